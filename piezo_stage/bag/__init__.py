@@ -1,0 +1,1 @@
+"""rosbag2/MCAP writing, reading, reindexing and export helpers. No rclpy."""

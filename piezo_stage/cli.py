@@ -1,0 +1,66 @@
+"""The `piezo-stage` command: one entry point, one sub-command module each.
+
+Every sub-command lives in ``piezo_stage/commands/<name>.py`` and exposes
+``add_arguments(parser)`` and ``run(args) -> int``; its module docstring's first line is the
+help text. Modules are imported lazily so that ``piezo-stage gains`` does not pay for rclpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+#: sub-command -> module (in piezo_stage.commands); order is the order shown in --help.
+COMMANDS: dict[str, str] = {
+    "demo": "demo",
+    "launch": "launch",
+    "identify": "identify",
+    "validate": "validate",
+    "gains": "gains",
+    "experiment": "experiment",
+    "emulate": "emulate",
+    "record": "record",
+    "play": "play",
+    "bag": "bag",
+    "plot": "plot",
+}
+
+
+def _load(name: str):
+    return importlib.import_module(f"piezo_stage.commands.{COMMANDS[name]}")
+
+
+def _summary(name: str) -> str:
+    try:
+        doc = _load(name).__doc__ or ""
+    except ModuleNotFoundError:
+        return "(not available in this build)"
+    return doc.strip().splitlines()[0] if doc.strip() else ""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        lines = [f"  {name:<11} {_summary(name)}" for name in COMMANDS]
+        print("usage: piezo-stage COMMAND [options]   (piezo-stage COMMAND --help)\n\ncommands:")
+        print("\n".join(lines))
+        if argv and argv[0] not in ("-h", "--help"):
+            print(f"\npiezo-stage: unknown command {argv[0]!r}", file=sys.stderr)
+            return 2
+        return 0
+    name, rest = argv[0], argv[1:]
+    module = _load(name)
+    parser = argparse.ArgumentParser(
+        prog=f"piezo-stage {name}",
+        description=(module.__doc__ or "").strip(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    module.add_arguments(parser)
+    args = parser.parse_args(rest)
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

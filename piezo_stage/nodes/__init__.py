@@ -1,0 +1,1 @@
+"""Thin rclpy nodes: one per core module (parameters, topics, timers only)."""
