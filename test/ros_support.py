@@ -1,0 +1,92 @@
+"""Helpers for tests that talk over real DDS: sample messages, child processes, waiting."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+MSG_TYPES = ["Voltage", "Displacement", "ControllerState", "BoucWenParameters",
+             "LimitCycle", "ExcitationInfo"]
+
+
+def msg_class(name: str) -> type:
+    return getattr(importlib.import_module("piezo_stage_msgs.msg"), name)
+
+
+def fill(msg: Any, seed: int = 1) -> Any:
+    """Populate every field of an rclpy message with distinct non-default values."""
+    k = seed
+    for field, ftype in msg.get_fields_and_field_types().items():
+        k += 1
+        if ftype.startswith("sequence<double") or ftype.startswith("double["):
+            setattr(msg, field, [0.5 * k, -1.25e-6 * k, 3.0e5 + k])
+        elif ftype == "double":
+            setattr(msg, field, 1.0e-6 * k + 0.125)
+        elif ftype in ("int8",):
+            setattr(msg, field, -1)
+        elif ftype in ("uint8", "uint32"):
+            setattr(msg, field, k % 5 if ftype == "uint8" else 1000 + k)
+        elif ftype == "boolean":
+            setattr(msg, field, True)
+        elif ftype == "string":
+            setattr(msg, field, f"{field}-{k}")
+        elif ftype == "std_msgs/Header":
+            msg.header.stamp.sec = 1700000000 + k
+            msg.header.stamp.nanosec = 123456789
+            msg.header.frame_id = "stage"
+        else:
+            raise AssertionError(f"fill(): no rule for field {field} of type {ftype}")
+    return msg
+
+
+def to_plain(msg: Any) -> Any:
+    """Nested dict/list view of an rclpy (or rosbags) message for equality checks."""
+    if hasattr(msg, "get_fields_and_field_types"):
+        return {f: to_plain(getattr(msg, f)) for f in msg.get_fields_and_field_types()}
+    if dataclasses.is_dataclass(msg):
+        return {f.name: to_plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)
+                if not f.name.startswith("__") and not f.name.isupper()}
+    if hasattr(msg, "tolist"):
+        return msg.tolist()
+    if isinstance(msg, (list, tuple)):
+        return [to_plain(v) for v in msg]
+    if hasattr(msg, "__len__") and not isinstance(msg, (str, bytes)):
+        return [to_plain(v) for v in msg]
+    return msg
+
+
+def spawn_python(code: str, *args: str) -> subprocess.Popen:
+    """Start `python -c code args...` in a separate process with this test's ROS environment."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    return subprocess.Popen([sys.executable, "-c", code, *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def spin_until(node: Any, predicate: Callable[[], bool], timeout: float) -> bool:
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if predicate():
+            return True
+    return predicate()
+
+
+def stop(proc: subprocess.Popen, timeout: float = 5.0) -> tuple[str, str]:
+    if proc.poll() is None:
+        proc.terminate()
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+    return out, err
