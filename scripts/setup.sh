@@ -13,6 +13,9 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${PIEZO_VENV:-$ROOT/.venv}"
 cd "$ROOT"
 
+# pip configurations with a file:// extra index that does not exist print one warning per
+# package; keep the output readable.
+quiet_pip() { "$PYV" -m pip "$@" 2> >(grep -v 'is ignored: it is neither a file nor a directory' >&2); }
 say() { printf '\033[1;34m[setup]\033[0m %s\n' "$*"; }
 hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -c1-16; }
 
@@ -30,7 +33,7 @@ req_stamp="$VENV/.piezo-requirements.stamp"
 req_hash="$(hash_of requirements.txt)"
 if [ "$(cat "$req_stamp" 2>/dev/null)" != "$req_hash" ]; then
   say "installing pinned requirements (requirements.txt)"
-  "$PYV" -m pip install --quiet --disable-pip-version-check -r requirements.txt
+  quiet_pip install --quiet --disable-pip-version-check -r requirements.txt
   echo "$req_hash" > "$req_stamp"
   rm -f "$VENV/.piezo-fix.stamp"
 fi
@@ -68,7 +71,7 @@ pkg_stamp="$VENV/.piezo-package.stamp"
 pkg_hash="$(hash_of setup.py setup.cfg package.xml)"
 if [ "$(cat "$pkg_stamp" 2>/dev/null)" != "$pkg_hash" ]; then
   say "installing piezo_stage (editable)"
-  "$PYV" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
+  quiet_pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
   echo "$pkg_hash" > "$pkg_stamp"
 fi
 # An editable install does not copy setup.py's data_files: register the package in the ament
