@@ -90,3 +90,18 @@ def stop(proc: subprocess.Popen, timeout: float = 5.0) -> tuple[str, str]:
         proc.kill()
         out, err = proc.communicate()
     return out, err
+
+
+def start_node(executable: str, *params: str, namespace: str | None = None,
+               extra: tuple[str, ...] = ()) -> subprocess.Popen:
+    """Start a piezo_stage node as its own process: `python -m piezo_stage.nodes.<executable>
+    --ros-args -p k:=v ...` (params given as "k:=v")."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    args = [sys.executable, "-m", f"piezo_stage.nodes.{executable}", "--ros-args"]
+    if namespace:
+        args += ["-r", f"__ns:={namespace}"]
+    for p in params:
+        args += ["-p", p]
+    args += list(extra)
+    return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

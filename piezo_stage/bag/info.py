@@ -1,0 +1,165 @@
+"""What a bag holds (``bag_info``) and its ``ros2 bag info``-style text (``format_info``).
+
+Counts and times come from the MCAP files themselves (their summary statistics, or a record
+walk for a file whose writer died), QoS and type hashes from ``metadata.yaml`` when present,
+else from the channels' metadata. Rates are mean rates over the bag: (count - 1) / duration.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from mcap.reader import make_reader
+from mcap.records import Channel, Schema
+
+from . import records
+from .errors import CorruptBagError, InvalidQosError
+from .metadata import METADATA_FILENAME, BagMetadata
+from .qos import normalize_profiles
+from .reader import bag_files
+
+
+def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
+    try:
+        qos = normalize_profiles(channel.metadata.get("offered_qos_profiles", ""))
+    except InvalidQosError:
+        qos = []
+    return {"type": schema.name if schema else "", "count": 0,
+            "serialization_format": channel.message_encoding, "offered_qos_profiles": qos,
+            "type_description_hash": channel.metadata.get("topic_type_hash", "")}
+
+
+def file_summary(path: Path) -> dict[str, Any]:
+    """Size, completeness, counts, times and topics of one MCAP file."""
+    scan = records.scan(path)
+    topics: dict[str, dict[str, Any]] = {}
+    start, end, count = 2**63, -1, 0
+    summary = None
+    if scan.has_footer:
+        with open(path, "rb") as stream:
+            try:
+                summary = make_reader(stream).get_summary()
+            except Exception as exc:  # mcap raises assorted errors on a bad summary
+                raise CorruptBagError(f"{path}: unreadable MCAP summary: {exc}") from None
+    if summary is not None and summary.statistics is not None:
+        stats = summary.statistics
+        for channel_id, channel in summary.channels.items():
+            info = _channel_info(channel, summary.schemas.get(channel.schema_id))
+            info["count"] = stats.channel_message_counts.get(channel_id, 0)
+            topics[channel.topic] = info
+        count = stats.message_count
+        start, end = stats.message_start_time, stats.message_end_time
+    else:
+        walk = records.McapWalk(path)
+        for channel, log_time, _, _, _ in walk.messages():
+            if channel.topic not in topics:
+                topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
+            topics[channel.topic]["count"] += 1
+            count += 1
+            start, end = min(start, log_time), max(end, log_time)
+        for channel in walk.channels.values():  # topics whose messages were all lost
+            topics.setdefault(channel.topic,
+                              _channel_info(channel, walk.schemas.get(channel.schema_id)))
+    return {"path": str(path), "size_bytes": scan.size, "complete": scan.has_footer,
+            "compression": scan.chunk_compression, "message_count": count,
+            "start_ns": start if count else 0, "end_ns": end if count else 0, "topics": topics}
+
+
+def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Topics of all files of a bag, counts summed."""
+    merged: dict[str, dict[str, Any]] = {}
+    for file in bag_files(path):
+        for name, info in file_summary(file)["topics"].items():
+            if name in merged:
+                merged[name]["count"] += info["count"]
+            else:
+                merged[name] = dict(info)
+    return merged
+
+
+def bag_info(path: str | Path) -> dict[str, Any]:
+    """Duration, start/end, size, files and per-topic type/count/rate/QoS of a bag."""
+    path = Path(path)
+    files = [file_summary(f) for f in bag_files(path)]
+    metadata = None
+    if path.is_dir() and (path / METADATA_FILENAME).is_file():
+        try:
+            metadata = BagMetadata.read(path)
+        except CorruptBagError:
+            metadata = None
+    topics: dict[str, dict[str, Any]] = {}
+    for summary in files:
+        for name, info in summary["topics"].items():
+            if name in topics:
+                topics[name]["count"] += info["count"]
+            else:
+                topics[name] = dict(info)
+    for record in metadata.topics if metadata else []:
+        entry = topics.setdefault(record.name, {
+            "type": record.type, "count": 0, "serialization_format": record.serialization_format,
+            "offered_qos_profiles": [], "type_description_hash": ""})
+        entry["offered_qos_profiles"] = record.offered_qos_profiles or entry["offered_qos_profiles"]
+        entry["type_description_hash"] = (record.type_description_hash
+                                          or entry["type_description_hash"])
+    with_messages = [f for f in files if f["message_count"]]
+    start = min((f["start_ns"] for f in with_messages), default=0)
+    end = max((f["end_ns"] for f in with_messages), default=0)
+    duration_s = (end - start) * 1e-9
+    for entry in topics.values():
+        entry["rate_hz"] = (entry["count"] - 1) / duration_s \
+            if entry["count"] > 1 and duration_s > 0 else 0.0
+    return {
+        "path": str(path),
+        "storage_identifier": "mcap",
+        "ros_distro": metadata.ros_distro if metadata else "",
+        "compression": next((f["compression"] for f in files if f["compression"]), ""),
+        "complete": all(f["complete"] for f in files),
+        "size_bytes": sum(f["size_bytes"] for f in files),
+        "files": files,
+        "message_count": sum(f["message_count"] for f in files),
+        "start_ns": start, "end_ns": end, "duration_ns": end - start,
+        "start_s": start * 1e-9, "end_s": end * 1e-9, "duration_s": duration_s,
+        "topics": dict(sorted(topics.items())),
+    }
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def _stamp(ns: int) -> str:
+    sec, nsec = divmod(ns, 1_000_000_000)
+    return f"{time.strftime('%b %e %Y %H:%M:%S', time.localtime(sec))}.{nsec:09d} " \
+           f"({sec}.{nsec:09d})"
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """``ros2 bag info``-like text of a ``bag_info`` dict (plus rates and file state)."""
+    pad = " " * 19
+    names = [Path(f["path"]).name + ("" if f["complete"] else "  (not closed: reindex it)")
+             for f in info["files"]]
+    lines = [
+        "Files:             " + f"\n{pad}".join(names),
+        f"Bag size:          {_size(info['size_bytes'])}",
+        f"Storage id:        {info['storage_identifier']}"
+        + (f" (chunk compression {info['compression']})" if info["compression"] else ""),
+        f"ROS Distro:        {info['ros_distro'] or 'unknown'}",
+        f"Duration:          {info['duration_ns'] / 1e9:.9f}s",
+        f"Start:             {_stamp(info['start_ns'])}",
+        f"End:               {_stamp(info['end_ns'])}",
+        f"Messages:          {info['message_count']}",
+    ]
+    topic_lines = [
+        f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
+        f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: {t['serialization_format']}"
+        for name, t in info["topics"].items()]
+    lines.append("Topic information: " + f"\n{pad}".join(topic_lines))
+    lines.append("Service:           0")
+    lines.append("Service information: ")
+    return "\n".join(lines)

@@ -1,0 +1,219 @@
+"""Recover a bag whose writer was killed (SIGKILL, power loss): ``reindex(path)``.
+
+Every MCAP file of the folder that lacks its footer is walked record by record up to the last
+complete chunk (``records.McapWalk``) and rewritten as a complete, indexed file (written to a
+temporary file, then renamed over the original); complete files are left as they are. A fresh
+``metadata.yaml`` is then written from what the files actually hold, keeping the old file's
+``custom_data``. Everything up to the writer's last flush survives.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcap.records import Channel, Schema
+from mcap.writer import CompressionType, Writer
+
+from . import records
+from .errors import BagNotFoundError, CorruptBagError, InvalidQosError, UnknownMessageTypeError
+from .metadata import METADATA_FILENAME, BagMetadata, FileRecord, TopicRecord
+from .qos import normalize_profiles, profiles_to_yaml
+from .reader import bag_files, folder_mcap_files
+from .types import message_definition
+from .writer import DEFAULT_CHUNK_SIZE, LIBRARY
+
+_COMPRESSION = {"": CompressionType.NONE, "zstd": CompressionType.ZSTD,
+                "lz4": CompressionType.LZ4}
+
+
+@dataclass
+class FileReport:
+    """What reindexing did to one MCAP file."""
+
+    path: Path
+    message_count: int
+    rewritten: bool
+    dropped_bytes: int = 0
+    reason: str = ""
+
+
+@dataclass
+class ReindexReport:
+    """What reindexing did to a bag."""
+
+    path: Path
+    files: list[FileReport] = field(default_factory=list)
+
+    @property
+    def message_count(self) -> int:
+        return sum(f.message_count for f in self.files)
+
+    def __str__(self) -> str:
+        lines = [f"reindexed {self.path}: {self.message_count} messages in {len(self.files)} "
+                 f"file(s)"]
+        for f in self.files:
+            state = (f"rewritten, {f.dropped_bytes} bytes dropped ({f.reason})"
+                     if f.rewritten else "complete, kept")
+            lines.append(f"  {f.path.name}: {f.message_count} messages, {state}")
+        return "\n".join(lines)
+
+
+class _TopicTable:
+    """Topics met in the files, merged by name, counts summed."""
+
+    def __init__(self, previous: BagMetadata | None) -> None:
+        self.previous = {t.name: t for t in previous.topics} if previous else {}
+        self.topics: dict[str, TopicRecord] = {}
+
+    def add(self, channel: Channel, schema: Schema | None, count: int) -> None:
+        topic = self.topics.get(channel.topic)
+        if topic is None:
+            old = self.previous.get(channel.topic)
+            try:
+                qos = normalize_profiles(channel.metadata.get("offered_qos_profiles"))
+            except InvalidQosError:
+                qos = old.offered_qos_profiles if old else []
+            topic = TopicRecord(
+                name=channel.topic, type=schema.name if schema else (old.type if old else ""),
+                serialization_format=channel.message_encoding, offered_qos_profiles=qos,
+                type_description_hash=channel.metadata.get("topic_type_hash")
+                or (old.type_description_hash if old else ""))
+            self.topics[channel.topic] = topic
+        topic.message_count += count
+
+    def lost(self) -> list[TopicRecord]:
+        """Topics the old metadata listed that no file read so far holds (count 0)."""
+        return [TopicRecord(name=t.name, type=t.type, serialization_format=t.serialization_format,
+                            offered_qos_profiles=t.offered_qos_profiles,
+                            type_description_hash=t.type_description_hash)
+                for name, t in self.previous.items() if name not in self.topics]
+
+    def records(self) -> list[TopicRecord]:
+        """Topics found, then the lost ones."""
+        return list(self.topics.values()) + self.lost()
+
+
+class _Rewriter:
+    """Copies the readable part of a damaged MCAP file into a new, complete one."""
+
+    def __init__(self, out, compression: str) -> None:
+        self.writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE,
+                             compression=_COMPRESSION.get(compression, CompressionType.ZSTD))
+        self.writer.start(profile="ros2", library=f"{LIBRARY} reindexed")
+        self.schema_ids: dict[str, int] = {}  # schema name -> id in the new file
+        self.channel_ids: dict[int, int] = {}
+
+    def declare(self, topic: TopicRecord) -> None:
+        """Schema and channel of a topic known only from metadata.yaml (if its type is)."""
+        try:
+            definition = message_definition(topic.type)
+        except UnknownMessageTypeError:
+            return
+        schema = Schema(id=0, name=topic.type, encoding="ros2msg",
+                        data=definition.encode("utf-8"))
+        channel = Channel(id=-len(self.channel_ids) - 1, topic=topic.name, schema_id=0,
+                          message_encoding=topic.serialization_format, metadata={
+                              "offered_qos_profiles": profiles_to_yaml(
+                                  topic.offered_qos_profiles),
+                              "topic_type_hash": topic.type_description_hash})
+        self.channel_id(channel, schema)
+
+    def channel_id(self, channel: Channel, schema: Schema | None) -> int:
+        new_id = self.channel_ids.get(channel.id)
+        if new_id is None:
+            schema_id = 0
+            if schema is not None:
+                schema_id = self.schema_ids.get(schema.name) or self.writer.register_schema(
+                    schema.name, schema.encoding, schema.data)
+                self.schema_ids[schema.name] = schema_id
+            new_id = self.writer.register_channel(channel.topic, channel.message_encoding,
+                                                  schema_id, dict(channel.metadata))
+            self.channel_ids[channel.id] = new_id
+        return new_id
+
+
+def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
+             metadata: BagMetadata) -> FileReport:
+    walk = records.McapWalk(path)
+    tmp = path.with_name(path.name + ".reindex")
+    record = FileRecord(path=path.name)
+    counts: dict[int, int] = {}
+    try:
+        with open(tmp, "wb") as out:
+            rewriter = _Rewriter(out, scan.chunk_compression)
+            for channel, log_time, publish_time, sequence, data in walk.messages():
+                channel_id = rewriter.channel_id(channel, walk.schemas.get(channel.schema_id))
+                rewriter.writer.add_message(channel_id, log_time, data, publish_time, sequence)
+                counts[channel.id] = counts.get(channel.id, 0) + 1
+                record.add(log_time, log_time, 1)
+            for channel in walk.channels.values():  # topics whose messages were all lost
+                schema = walk.schemas.get(channel.schema_id)
+                rewriter.channel_id(channel, schema)
+                table.add(channel, schema, counts.get(channel.id, 0))
+            for topic in table.lost():  # declared by the writer, but no record reached the disk
+                rewriter.declare(topic)
+                table.topics[topic.name] = topic
+            for entry in walk.metadata:
+                if entry.name != "rosbag2":
+                    rewriter.writer.add_metadata(entry.name, entry.metadata)
+            metadata.files.append(record)
+            metadata.topics = table.records()
+            rewriter.writer.add_metadata("rosbag2", {"serialized_metadata": metadata.serialized()})
+            rewriter.writer.finish()
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(tmp, path)
+    return FileReport(path, record.message_count, True, scan.size - walk.good_end,
+                      walk.damaged or "no footer")
+
+
+def _keep(path: Path, table: _TopicTable, metadata: BagMetadata) -> FileReport | None:
+    with open(path, "rb") as stream:
+        try:
+            summary = make_reader(stream).get_summary()
+        except Exception:  # mcap raises assorted errors on a damaged summary
+            return None
+    if summary is None or summary.statistics is None:
+        return None
+    stats = summary.statistics
+    for channel_id, channel in summary.channels.items():
+        table.add(channel, summary.schemas.get(channel.schema_id),
+                  stats.channel_message_counts.get(channel_id, 0))
+    record = FileRecord(path=path.name)
+    record.add(stats.message_start_time, stats.message_end_time, stats.message_count)
+    metadata.files.append(record)
+    return FileReport(path, stats.message_count, False)
+
+
+def reindex(path: str | Path) -> ReindexReport:
+    """Make every MCAP file of a bag folder (or one ``.mcap``) complete and indexed, and write
+    a fresh ``metadata.yaml`` for a folder."""
+    path = Path(path)
+    if path.is_dir():
+        files = folder_mcap_files(path)
+        if not files:
+            raise BagNotFoundError(f"{path} holds no .mcap file")
+    else:
+        files = bag_files(path)
+    previous = None
+    if path.is_dir() and (path / METADATA_FILENAME).is_file():
+        try:
+            previous = BagMetadata.read(path)
+        except CorruptBagError:
+            previous = None
+    metadata = BagMetadata(custom_data=dict(previous.custom_data) if previous else {},
+                           ros_distro=(previous.ros_distro if previous else "") or "jazzy")
+    table = _TopicTable(previous)
+    report = ReindexReport(path)
+    for file in files:
+        scan = records.scan(file)
+        kept = _keep(file, table, metadata) if scan.has_footer else None
+        report.files.append(kept or _rewrite(file, scan, table, metadata))
+    metadata.topics = table.records()
+    if path.is_dir():
+        metadata.write(path)
+    return report

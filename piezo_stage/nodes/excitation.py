@@ -1,0 +1,146 @@
+"""`excitation` node: open-loop signal generator for identification and validation runs.
+
+Publishes ``voltage_command`` (reliable) and ``excitation`` (ExcitationInfo: on every change of
+run/steady and at ``info_rate_hz``). The schedule is :class:`piezo_stage.model.excitation.ExcitationPlan`
+(a pure function of time since start). Two triggers:
+
+- ``timer``: a timer at ``rate_hz`` on the node's clock (wall, or sim time with use_sim_time);
+- ``clock``: one command per ``/clock`` message, stamped with that time — the lockstep plant
+  advances when it has the command for its current step, so a run is deterministic.
+
+When the plan is over it holds its hold value (``on_done: hold``) or exits (``on_done: exit``).
+Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from builtin_interfaces.msg import Time
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
+
+from piezo_stage.model.errors import ModelError
+from piezo_stage.model.excitation import PRESETS, ExcitationPlan, ExcitationSample, plan_from
+from piezo_stage_msgs.msg import ExcitationInfo, Voltage
+
+from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, on_set, run, stamp_to_s
+
+PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
+             "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
+
+
+class ExcitationNode(Node):
+    def __init__(self) -> None:
+        super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
+        preset = declare(self, "preset", "ch10_patch", f"plan whose values are the defaults of the "
+                         f"parameters below: one of {sorted(PRESETS)}, or ''", read_only=True)
+        base = plan_from(preset or None)
+        declare(self, "waveform", base.waveform, "triangle | sine | random | step | constant")
+        declare(self, "period", base.period, "[s] period of the waveform", lo=1e-6, hi=1e6)
+        declare(self, "low", base.low, "[V] minimum of the base waveform")
+        declare(self, "amplitude", base.amplitude, "[V] peak-to-peak span of the base waveform")
+        declare(self, "offsets", list(base.offsets), "[V] one run per offset q, e.g. [0.0, 100.0]")
+        declare(self, "settle_periods", base.settle_periods, "periods before a run is steady", lo=0, hi=100000)
+        declare(self, "record_periods", base.record_periods, "steady periods per run", lo=1, hi=100000)
+        declare(self, "v_min", -1e9, "[V] lower clamp of the command")
+        declare(self, "v_max", 1e9, "[V] upper clamp of the command")
+        declare(self, "hold", base.hold, "after the last run: last | low | zero")
+        declare(self, "seed", base.seed, "random waveform seed", lo=0, hi=2**31 - 1)
+        declare(self, "bandwidth", base.bandwidth, "[Hz] random waveform: highest frequency", lo=0.0, hi=1e6)
+        declare(self, "rate_hz", 1000.0, "command rate with trigger=timer [Hz]", lo=0.1, hi=100000.0)
+        declare(self, "trigger", "timer", "timer (rate_hz on the node clock) | clock (one command per /clock tick)")
+        declare(self, "autostart", True, "start at the first tick (else wait for ~/start)")
+        declare(self, "on_done", "hold", "hold (keep publishing the hold value) | exit")
+        declare(self, "info_rate_hz", 10.0, "ExcitationInfo rate besides change events [Hz]", lo=0.0, hi=10000.0)
+
+        self.plan = self._build_plan()
+        on_set(self, self._check_params)
+        self.finished = False
+        self.exit_code = 0
+        self._running = bool(self.get_parameter("autostart").value)
+        self._t_start: float | None = None
+        self._last_info: tuple[int, bool, bool] | None = None
+        self._last_info_t = -1e300
+        self._info_period = 1.0 / max(self.get_parameter("info_rate_hz").value, 1e-9)
+
+        self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
+        self._pub_info = self.create_publisher(ExcitationInfo, "excitation", COMMAND_QOS)
+        self.create_service(Trigger, "~/start", self._srv_start)
+        self.create_service(Trigger, "~/stop", self._srv_stop)
+        trigger = self.get_parameter("trigger").value
+        if trigger == "clock":
+            self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
+        elif trigger == "timer":
+            self.create_timer(1.0 / self.get_parameter("rate_hz").value,
+                              lambda: self._tick(self.get_clock().now().to_msg()))
+        else:
+            raise ValueError(f"trigger must be timer or clock, got {trigger!r}")
+        self.get_logger().info(
+            f"{self.plan.waveform} {self.plan.low:g}+{self.plan.amplitude:g} V, T={self.plan.period:g} s, "
+            f"offsets {list(self.plan.offsets)}, {self.plan.duration:g} s in all, trigger={trigger}")
+
+    # ------------------------------------------------------------------ parameters
+    def _build_plan(self, changed: dict | None = None) -> ExcitationPlan:
+        values = {k: self.get_parameter(k).value for k in PLAN_KEYS}
+        values.update({k: v for k, v in (changed or {}).items() if k in PLAN_KEYS})
+        return plan_from(None, **values)
+
+    def _check_params(self, changed: dict) -> str | None:
+        if not set(changed) & set(PLAN_KEYS):
+            return None
+        try:
+            plan = self._build_plan(changed)
+        except (ModelError, KeyError, TypeError) as exc:
+            return f"invalid excitation plan: {exc}"
+        self.plan = plan
+        return None
+
+    # ------------------------------------------------------------------ services
+    def _srv_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._running, self._t_start, self._last_info = True, None, None
+        response.success, response.message = True, "excitation (re)started"
+        return response
+
+    def _srv_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._running = False
+        response.success, response.message = True, "excitation stopped (no more commands)"
+        return response
+
+    # ------------------------------------------------------------------ tick
+    def _tick(self, stamp: Time) -> None:
+        if not self._running or self.finished:
+            return
+        now = stamp_to_s(stamp)
+        if self._t_start is None:
+            self._t_start = now
+        sample = self.plan.sample(now - self._t_start)
+        self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
+        self._publish_info(stamp, now, sample)
+        if sample.done and self.get_parameter("on_done").value == "exit":
+            self.get_logger().info("excitation plan done")
+            self.finished = True
+
+    def _publish_info(self, stamp: Time, now: float, sample: ExcitationSample) -> None:
+        key = (sample.run, sample.steady, sample.done)
+        if key == self._last_info and now - self._last_info_t < self._info_period:
+            return
+        self._last_info, self._last_info_t = key, now
+        self._pub_info.publish(ExcitationInfo(
+            header=_header(stamp), waveform=self.plan.waveform, period=self.plan.period,
+            amplitude=self.plan.amplitude, offset=sample.offset, run=sample.run, steady=sample.steady))
+
+
+def _header(stamp: Time):
+    from std_msgs.msg import Header
+
+    return Header(stamp=stamp, frame_id="")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(ExcitationNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
