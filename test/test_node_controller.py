@@ -1,0 +1,134 @@
+"""The controller node over real DDS: loop close/open services, safety on invalid or stale
+sensor samples, run-time gain changes checked against Theorem 4 and the sampled-loop check."""
+
+from __future__ import annotations
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from piezo_stage.nodes.common import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+from ros_support import spin_until, start_node, stop  # noqa: E402
+
+NS = "/ctl"
+
+
+@pytest.fixture()
+def node():
+    rclpy.init()
+    n = rclpy.create_node("probe", namespace=NS)
+    yield n
+    n.destroy_node()
+    rclpy.shutdown()
+
+
+def _call(node, srv_type, name, request, timeout=10.0):
+    client = node.create_client(srv_type, name)
+    assert client.wait_for_service(timeout_sec=timeout), name
+    future = client.call_async(request)
+    assert spin_until(node, future.done, timeout)
+    return future.result()
+
+
+def _sample(value, status=0, t=0.0):
+    from piezo_stage_msgs.msg import Displacement
+
+    msg = Displacement(displacement=value, status=status)
+    msg.header.stamp.sec = int(t)
+    msg.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+    return msg
+
+
+def test_invalid_sample_opens_the_loop_and_holds(node):
+    from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
+
+    proc = start_node("controller", "trigger:=sample", "hold_voltage:=50.0", "reference_source:=constant",
+                      "reference:=1e-6", namespace=NS)
+    states: list = []
+    cmds: list[float] = []
+    diags: list = []
+    node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    node.create_subscription(Voltage, "voltage_command", lambda m: cmds.append(m.voltage), COMMAND_QOS)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
+    try:
+        assert spin_until(node, lambda: node.count_subscribers("displacement") >= 1, 15.0)
+        refused = _call(node, Trigger, "controller/close_loop", Trigger.Request())
+        assert not refused.success  # no valid sample yet
+        t = 1.0
+        for _ in range(5):
+            pub.publish(_sample(0.0, t=t))
+            t += 1e-3
+            spin_until(node, lambda: False, 0.02)
+        assert _call(node, Trigger, "controller/close_loop", Trigger.Request()).success
+        for _ in range(20):
+            pub.publish(_sample(0.0, t=t))
+            t += 1e-3
+            spin_until(node, lambda: False, 0.01)
+        assert spin_until(node, lambda: any(s.loop_closed for s in states), 5.0)
+        closed_u = [s.u for s in states if s.loop_closed]
+        assert closed_u and closed_u[-1] > 0  # x below the 1 um reference: push up
+        n_before = len(cmds)
+        pub.publish(_sample(float("nan"), status=Displacement.NO_TARGET, t=t))
+        assert spin_until(node, lambda: len(cmds) > n_before, 5.0)
+        assert cmds[-1] == pytest.approx(50.0)  # hold_voltage
+        assert spin_until(node, lambda: any(st.level == DiagnosticStatus.ERROR and "loop opened" in st.message
+                                            for d in diags for st in d.status), 5.0)
+        # later valid samples keep the loop open until asked
+        pub.publish(_sample(0.0, t=t + 1e-3))
+        spin_until(node, lambda: False, 0.3)
+        assert not states[-1].loop_closed and states[-1].u == pytest.approx(50.0)
+    finally:
+        stop(proc)
+
+
+def test_stale_sensor_opens_the_loop(node):
+    from piezo_stage_msgs.msg import ControllerState, Displacement
+
+    proc = start_node("controller", "trigger:=timer", "rate_hz:=1000.0", "start_closed:=true",
+                      "stale_periods:=20", namespace=NS)
+    states: list = []
+    diags: list = []
+    node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
+    try:
+        assert spin_until(node, lambda: node.count_subscribers("displacement") >= 1, 15.0)
+        clock = node.get_clock()
+        for _ in range(100):
+            pub.publish(_sample(0.0, t=clock.now().nanoseconds * 1e-9))
+            spin_until(node, lambda: False, 0.002)
+        assert spin_until(node, lambda: any(s.loop_closed for s in states), 5.0)
+        # the sensor goes silent
+        assert spin_until(node, lambda: any("no sensor sample" in st.message for d in diags for st in d.status), 5.0)
+    finally:
+        stop(proc)
+
+
+def test_unsafe_gain_change_is_refused_with_a_reason(node):
+    proc = start_node("controller", namespace=NS)
+    try:
+        req = SetParameters.Request(parameters=[Parameter("k2", value=100.0).to_parameter_msg()])
+        result = _call(node, SetParameters, "controller/set_parameters", req).results[0]
+        assert not result.successful and "k2_min" in result.reason
+        ok = SetParameters.Request(parameters=[Parameter("k2", value=600.0).to_parameter_msg()])
+        assert _call(node, SetParameters, "controller/set_parameters", ok).results[0].successful
+        bad_mode = SetParameters.Request(parameters=[Parameter("mode", value="bang_bang").to_parameter_msg()])
+        result = _call(node, SetParameters, "controller/set_parameters", bad_mode).results[0]
+        assert not result.successful and "bang_bang" in result.reason
+    finally:
+        stop(proc)
+
+
+def test_unsafe_rate_at_start_exits_with_an_error():
+    # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (DESIGN.md §7)
+    proc = start_node("controller", "rate_hz:=20000.0", namespace=NS)
+    try:
+        assert proc.wait(timeout=20) != 0
+    finally:
+        out, err = stop(proc)
+    assert "sampled loop unstable" in err
