@@ -1,0 +1,116 @@
+"""Turn a graph entry into the argv and environment of its process.
+
+A node entry runs as ``python -m piezo_stage.launch.child PPID module MODULE ARGS --ros-args ...``:
+the small bootstrap (child.py) makes the process die with the launcher, then runs the module's
+``main()`` (the console_scripts contract) or, without one, the module as ``__main__``; so it
+behaves as ``python -m MODULE ARGS --ros-args ...`` (what ``--dry-run`` shows).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import pkgutil
+import re
+import shlex
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Mapping
+
+from piezo_stage.launch.errors import GraphError
+from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec, dump_yaml_value
+
+BOOTSTRAP = "piezo_stage.launch.child"
+_VAR = re.compile(r"\$\{(\w+)\}|\$(\w+)")
+
+
+def ros_value(value: Any) -> str:
+    """A parameter value as rcl reads it after ``-p name:=`` (YAML; strings quoted when needed)."""
+    if isinstance(value, list) and any(isinstance(v, float) for v in value):
+        value = [float(v) for v in value]  # rcl wants one element type per array
+    return dump_yaml_value(value)
+
+
+def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
+    """``--ros-args`` and what follows, in rcl's order of precedence (later wins): params files,
+    the graph's use_sim_time, then the entry's overrides (including --param ones)."""
+    args = ["--ros-args", "-r", f"__ns:={graph.namespace}"]
+    if spec.node_name:
+        args += ["-r", f"__node:={spec.node_name}"]
+    for path in spec.parameters:
+        args += ["--params-file", str(path)]
+    if graph.use_sim_time is not None:
+        args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
+    for key, value in spec.overrides.items():
+        args += ["-p", f"{key}:={ros_value(value)}"]
+    for src, dst in spec.remappings.items():
+        args += ["-r", f"{src}:={dst}"]
+    return args
+
+
+def display_argv(spec: ProcessSpec, graph: Graph) -> list[str]:
+    """What the process is equivalent to (shown by --dry-run and in the launch log)."""
+    if spec.is_node:
+        return ["python", "-m", str(spec.module), *spec.args, *ros_arguments(spec, graph)]
+    return [*spec.command, *spec.args]
+
+
+def process_argv(spec: ProcessSpec, graph: Graph, parent_pid: int | None = None) -> list[str]:
+    """The argv actually started: the bootstrap, then the module or command."""
+    head = [sys.executable, "-m", BOOTSTRAP, str(os.getpid() if parent_pid is None else parent_pid)]
+    if spec.is_node:
+        return [*head, "module", str(spec.module), *spec.args, *ros_arguments(spec, graph)]
+    return [*head, "exec", *spec.command, *spec.args]
+
+
+def process_env(spec: ProcessSpec, graph: Graph, base: Mapping[str, str] | None = None,
+                color: bool = False) -> dict[str, str]:
+    env = dict(os.environ if base is None else base)
+    for extra in (graph.env, spec.env):
+        for key, value in extra.items():
+            env[key] = expand(value, env, key)
+    env.setdefault("PYTHONUNBUFFERED", "1")  # lines reach the prefixer as they are printed
+    env.setdefault("RCUTILS_COLORIZED_OUTPUT", "1" if color else "0")
+    root = Path(__file__).resolve().parents[2]  # a source checkout: make its package importable
+    if (root / "setup.py").is_file():
+        paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+        if str(root) not in paths:
+            env["PYTHONPATH"] = os.pathsep.join([str(root), *paths])
+    return env
+
+
+def expand(value: str, env: Mapping[str, str], key: str = "") -> str:
+    """``$VAR`` / ``${VAR}`` replaced from `env` (unset: empty, as in a shell); for ``*PATH``
+    variables empty entries are dropped (an empty PYTHONPATH entry would mean the cwd)."""
+    text = _VAR.sub(lambda m: env.get(m.group(1) or m.group(2), ""), value)
+    if key.endswith("PATH"):
+        text = os.pathsep.join(p for p in text.split(os.pathsep) if p)
+    return text
+
+
+def shell_line(argv: list[str]) -> str:
+    return " ".join(shlex.quote(a) for a in argv)
+
+
+def available_nodes() -> list[str]:
+    import piezo_stage.nodes as nodes
+
+    return sorted(m.name for m in pkgutil.iter_modules(nodes.__path__)
+                  if not m.name.startswith("_") and m.name != "common")
+
+
+def check_runnable(graph: Graph, base_env: Mapping[str, str] | None = None) -> None:
+    """Before anything starts: every `executable` is a piezo_stage node module and every
+    `command` is found on the PATH. (A `module` is checked by the process itself, which may
+    have another PYTHONPATH.)"""
+    for spec in graph.nodes:
+        if spec.module is not None and spec.module.startswith(NODE_PACKAGE + "."):
+            if importlib.util.find_spec(spec.module) is None:
+                raise GraphError(f"{graph.source or 'graph'}: {spec.name}: no node module {spec.module!r} "
+                                 f"(available: {', '.join(available_nodes()) or 'none'})")
+        elif not spec.is_node:
+            path = process_env(spec, graph, base_env).get("PATH")
+            if shutil.which(spec.command[0], path=path) is None:
+                raise GraphError(f"{graph.source or 'graph'}: {spec.name}: command "
+                                 f"{spec.command[0]!r} not found on the PATH")

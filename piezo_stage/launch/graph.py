@@ -1,0 +1,427 @@
+"""The graph file: which processes a launch starts, how, and which topics mean "ready".
+
+Format (documented with examples in ``config/graphs/README.md``)::
+
+    description: simulated stage        # optional, shown by --dry-run
+    namespace: /piezo                   # default; `--ns` overrides it
+    use_sim_time: false                 # optional; passed to every node when given
+    env: {RCUTILS_LOGGING_BUFFERED_STREAM: "1"}   # optional, for every process
+    stop_timeout: 5.0                   # grace per shutdown step (SIGINT, then SIGTERM) [s]
+    wait_for_topics: [displacement, {topic: voltage, publishers: 1}]
+    nodes:
+      - executable: plant               # python module piezo_stage.nodes.plant
+        name: plant                     # optional node name (-r __node:=)
+        parameters: [plant_ch10_patch.yaml]   # params files: graph's folder, then config/
+        overrides: {clock_mode: lockstep}     # -p key:=value
+        remappings: {voltage_command: cmd}    # -r from:=to
+        required: true                  # its exit stops the launch with its code
+        args: []                        # CLI args before --ros-args
+        env: {}
+      - module: my_pkg.my_node          # any python module with main() (or runnable with -m)
+      - command: [piezo-stage, emulate, rig]  # a helper process (no ROS arguments)
+        ready_pattern: "listening on"   # later entries start once a line matches
+
+This module is pure Python (yaml only): parsing, validation and the `--ns`/`--param` edits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import yaml
+
+from piezo_stage.config_path import ConfigNotFoundError, find_config
+from piezo_stage.launch.errors import GraphError
+
+DEFAULT_NAMESPACE = "/piezo"  # piezo_stage.nodes.common.DEFAULT_NAMESPACE (not imported: no rclpy here)
+DEFAULT_STOP_TIMEOUT = 5.0
+NODE_PACKAGE = "piezo_stage.nodes"
+
+_GRAPH_KEYS = ("description", "namespace", "use_sim_time", "env", "stop_timeout",
+               "wait_for_topics", "nodes")
+_KINDS = ("executable", "module", "command")
+_NODE_KEYS = ("name", "parameters", "overrides", "remappings", "required", "args", "env",
+              "ready_pattern")
+_ROS_ONLY_KEYS = ("parameters", "overrides", "remappings")
+_TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
+_NAMESPACE_RE = re.compile(rf"^/(?:{_TOKEN}(?:/{_TOKEN})*)?$")
+_TOPIC_RE = re.compile(rf"^/?{_TOKEN}(?:/{_TOKEN})*$")
+_NODE_NAME_RE = re.compile(rf"^{_TOKEN}$")
+_MODULE_RE = re.compile(rf"^{_TOKEN}(?:\.{_TOKEN})*$")
+_PARAM_RE = re.compile(rf"^{_TOKEN}(?:\.{_TOKEN})*$")
+
+
+class _Loader(yaml.SafeLoader):
+    """YAML as rcl reads parameter values: ``5e6`` and ``1.0e-6`` are floats (PyYAML's YAML 1.1
+    resolver would make them strings)."""
+
+
+class _Dumper(yaml.SafeDumper):
+    """Quotes the strings that _Loader (and rcl) would read as floats, e.g. ``'5e6'``."""
+
+
+for _cls in (_Loader, _Dumper):
+    _cls.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+        list("-+0123456789."))
+
+
+def load_yaml(text: str) -> Any:
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+
+
+def dump_yaml_value(value: Any) -> str:
+    """One value as flow-style YAML on one line (no document end marker)."""
+    text = yaml.dump(value, Dumper=_Dumper, default_flow_style=True, width=1 << 30).strip()
+    return text[:-3].strip() if text.endswith("...") else text
+
+
+@dataclass(frozen=True)
+class TopicWait:
+    """A topic the launch waits for: it exists in the ROS graph with at least these counts."""
+
+    topic: str  # relative to the graph namespace, or absolute
+    publishers: int = 0
+    subscribers: int = 0
+
+    def resolve(self, namespace: str) -> str:
+        return resolve_name(self.topic, namespace)
+
+    def describe(self, namespace: str) -> str:
+        need = [f"{n} {what}" for n, what in ((self.publishers, "publisher(s)"),
+                                               (self.subscribers, "subscriber(s)")) if n]
+        return self.resolve(namespace) + (f" (with {' and '.join(need)})" if need else "")
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One entry of `nodes:`: a ROS node module (`executable`/`module`) or a `command`."""
+
+    name: str  # label (log prefix, --param target); the node name when `node_name` is set
+    module: str | None = None  # python module of a node
+    command: tuple[str, ...] = ()  # argv of a non-ROS helper process
+    node_name: str | None = None  # -r __node:=
+    parameters: tuple[Path, ...] = ()
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+    remappings: Mapping[str, str] = field(default_factory=dict)
+    required: bool = False
+    args: tuple[str, ...] = ()
+    env: Mapping[str, str] = field(default_factory=dict)
+    ready_pattern: str | None = None
+
+    @property
+    def is_node(self) -> bool:
+        return self.module is not None
+
+
+@dataclass(frozen=True)
+class Graph:
+    nodes: tuple[ProcessSpec, ...]
+    namespace: str = DEFAULT_NAMESPACE
+    wait_for_topics: tuple[TopicWait, ...] = ()
+    use_sim_time: bool | None = None
+    env: Mapping[str, str] = field(default_factory=dict)
+    stop_timeout: float = DEFAULT_STOP_TIMEOUT
+    description: str = ""
+    source: Path | None = None
+
+    def node(self, name: str) -> ProcessSpec:
+        for spec in self.nodes:
+            if spec.name == name:
+                return spec
+        raise KeyError(name)
+
+    def topics(self) -> list[str]:
+        """Fully qualified names of the topics waited for."""
+        return [w.resolve(self.namespace) for w in self.wait_for_topics]
+
+    def with_namespace(self, namespace: str) -> Graph:
+        return dataclasses.replace(self, namespace=normalize_namespace(namespace, "--ns"))
+
+    def with_params(self, assignments: Iterable[str]) -> Graph:
+        """Apply ``NODE.KEY:=VALUE`` (that node) and ``KEY:=VALUE`` (every node) overrides.
+
+        ``NODE.KEY`` is read as node + key when the part before the first dot names an entry
+        of the graph; otherwise the whole of it is a (dotted) parameter name for every node.
+        """
+        overrides = {spec.name: dict(spec.overrides) for spec in self.nodes}
+        for text in assignments:
+            target, key, value = self._split_assignment(text)
+            for spec in self.nodes:
+                if spec.is_node and target in (None, spec.name):
+                    overrides[spec.name][key] = value
+        nodes = tuple(dataclasses.replace(s, overrides=overrides[s.name]) for s in self.nodes)
+        return dataclasses.replace(self, nodes=nodes)
+
+    def _split_assignment(self, text: str) -> tuple[str | None, str, Any]:
+        lhs, sep, rhs = text.partition(":=")
+        if not sep:
+            raise GraphError(f"--param {text!r}: expected NODE.KEY:=VALUE or KEY:=VALUE")
+        lhs = lhs.strip()
+        try:
+            value = load_yaml(rhs) if rhs.strip() else ""
+        except yaml.YAMLError as exc:
+            raise GraphError(f"--param {text!r}: value is not YAML: {exc}") from None
+        head, dot, rest = lhs.partition(".")
+        names = {s.name: s for s in self.nodes}
+        if dot and head in names:
+            if not names[head].is_node:
+                raise GraphError(f"--param {text!r}: {head!r} is a command, it takes no ROS parameters")
+            target, key = head, rest
+        else:
+            target, key = None, lhs
+        if not _PARAM_RE.match(key):
+            raise GraphError(f"--param {text!r}: {key!r} is not a parameter name")
+        _check_param_value(value, f"--param {text!r}")
+        return target, key, value
+
+
+def resolve_name(topic: str, namespace: str) -> str:
+    """``displacement`` in ``/piezo`` -> ``/piezo/displacement``; absolute names stay."""
+    if topic.startswith("/"):
+        return topic
+    return namespace.rstrip("/") + "/" + topic
+
+
+def normalize_namespace(namespace: str, where: str = "namespace") -> str:
+    """``piezo`` / ``/piezo/`` -> ``/piezo``; raise GraphError for an invalid ROS namespace."""
+    if not isinstance(namespace, str):
+        raise GraphError(f"{where}: expected a string, got {namespace!r}")
+    ns = "/" + namespace.strip().strip("/")
+    if not _NAMESPACE_RE.match(ns):
+        raise GraphError(f"{where}: {namespace!r} is not a valid ROS namespace "
+                         "(tokens of letters, digits, '_', not starting with a digit)")
+    return ns
+
+
+def find_graph(graph: str | os.PathLike[str]) -> Path:
+    """An existing file path, or the name of a graph in ``config/graphs/`` (``.yaml`` optional)."""
+    path = Path(graph)
+    if path.is_file():
+        return path
+    if path.parent != Path(".") or path.is_absolute():
+        raise GraphError(f"graph file {str(graph)!r} not found")
+    names = [path.name] if path.suffix in (".yaml", ".yml") else [path.name + ".yaml", path.name]
+    tried: list[str] = []
+    for name in names:
+        try:
+            return find_config(f"graphs/{name}")
+        except ConfigNotFoundError as exc:
+            tried.append(str(exc))
+    raise GraphError(f"graph {str(graph)!r} is neither a file nor a shipped graph: " + "; ".join(tried))
+
+
+def load_graph(graph: str | os.PathLike[str]) -> Graph:
+    """Read and validate a graph file (path or shipped name); GraphError names any problem."""
+    path = find_graph(graph)
+    try:
+        data = load_yaml(path.read_text())
+    except yaml.YAMLError as exc:
+        raise GraphError(f"{path}: not valid YAML: {exc}") from None
+    except OSError as exc:
+        raise GraphError(f"{path}: cannot read: {exc}") from None
+    return parse_graph(data, source=path)
+
+
+def parse_graph(data: Any, source: Path | None = None) -> Graph:
+    """Validate a graph given as data (the parsed YAML); relative params files are looked up in
+    the folder of `source` (or the current folder), then in the package's ``config/``."""
+    where = str(source) if source is not None else "graph"
+    data = _mapping(data, where)
+    _no_unknown_keys(data, _GRAPH_KEYS, where)
+    base = source.parent if source is not None else Path.cwd()
+    nodes_data = data.get("nodes")
+    if not isinstance(nodes_data, list) or not nodes_data:
+        raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
+    nodes = tuple(_parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data))
+    seen: set[str] = set()
+    for i, spec in enumerate(nodes):
+        if spec.name in seen:
+            raise GraphError(f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
+                             "give each entry a distinct 'name'")
+        seen.add(spec.name)
+    use_sim_time = data.get("use_sim_time")
+    if use_sim_time is not None and not isinstance(use_sim_time, bool):
+        raise GraphError(f"{where}: use_sim_time: expected true or false, got {use_sim_time!r}")
+    stop_timeout = data.get("stop_timeout", DEFAULT_STOP_TIMEOUT)
+    if isinstance(stop_timeout, bool) or not isinstance(stop_timeout, (int, float)) or not stop_timeout > 0:
+        raise GraphError(f"{where}: stop_timeout: expected a positive number of seconds, got {stop_timeout!r}")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise GraphError(f"{where}: description: expected a string")
+    return Graph(
+        nodes=nodes,
+        namespace=normalize_namespace(data.get("namespace", DEFAULT_NAMESPACE), f"{where}: namespace"),
+        wait_for_topics=tuple(_parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
+                              for i, t in enumerate(_list(data.get("wait_for_topics", []),
+                                                          f"{where}: wait_for_topics"))),
+        use_sim_time=use_sim_time,
+        env=_env(data.get("env", {}), f"{where}: env"),
+        stop_timeout=float(stop_timeout),
+        description=description.strip(),
+        source=source,
+    )
+
+
+def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
+    entry = _mapping(entry, where)
+    _no_unknown_keys(entry, _KINDS + _NODE_KEYS, where)
+    kinds = [k for k in _KINDS if k in entry]
+    if len(kinds) != 1:
+        raise GraphError(f"{where}: needs exactly one of 'executable', 'module', 'command' "
+                         f"(found {kinds or 'none'})")
+    kind = kinds[0]
+    node_name = entry.get("name")
+    if node_name is not None and (not isinstance(node_name, str) or not _NODE_NAME_RE.match(node_name)):
+        raise GraphError(f"{where}: name {node_name!r} is not a valid ROS node name")
+    module: str | None = None
+    command: tuple[str, ...] = ()
+    if kind == "command":
+        command = tuple(_strings(entry["command"], f"{where}: command"))
+        if not command:
+            raise GraphError(f"{where}: command must not be empty")
+        default_name = re.sub(r"\W", "_", Path(command[0]).name)
+        for key in _ROS_ONLY_KEYS:
+            if key in entry:
+                raise GraphError(f"{where}: {key!r} is for ROS nodes, not for a command")
+    else:
+        value = entry[kind]
+        if not isinstance(value, str) or not _MODULE_RE.match(value) or (kind == "executable" and "." in value):
+            raise GraphError(f"{where}: {kind} {value!r} is not a "
+                             + ("node module name (e.g. plant)" if kind == "executable" else "python module path"))
+        module = f"{NODE_PACKAGE}.{value}" if kind == "executable" else value
+        default_name = value.rsplit(".", 1)[-1]
+    name = node_name or default_name
+    label = f"{where} ({name})"
+    required = entry.get("required", False)
+    if not isinstance(required, bool):
+        raise GraphError(f"{label}: required: expected true or false, got {required!r}")
+    ready_pattern = entry.get("ready_pattern")
+    if ready_pattern is not None:
+        try:
+            re.compile(ready_pattern)
+        except (re.error, TypeError) as exc:
+            raise GraphError(f"{label}: ready_pattern {ready_pattern!r} is not a regular expression: {exc}") from None
+    overrides = _flatten(_mapping(entry.get("overrides", {}), f"{label}: overrides"), f"{label}: overrides")
+    remappings = _mapping(entry.get("remappings", {}), f"{label}: remappings")
+    for src, dst in remappings.items():
+        if not (isinstance(src, str) and isinstance(dst, str) and _TOPIC_RE.match(src) and _TOPIC_RE.match(dst)):
+            raise GraphError(f"{label}: remapping {src!r}: {dst!r} is not NAME: NAME")
+    return ProcessSpec(
+        name=name,
+        module=module,
+        command=command,
+        node_name=node_name if module is not None else None,
+        parameters=tuple(_params_file(p, f"{label}: parameters", base)
+                         for p in _strings(entry.get("parameters", []), f"{label}: parameters")),
+        overrides=overrides,
+        remappings=dict(remappings),
+        required=required,
+        args=tuple(_strings(entry.get("args", []), f"{label}: args", scalars=True)),
+        env=_env(entry.get("env", {}), f"{label}: env"),
+        ready_pattern=ready_pattern,
+    )
+
+
+def _params_file(name: str, where: str, base: Path) -> Path:
+    path = Path(os.path.expanduser(name))
+    if path.is_absolute():
+        if path.is_file():
+            return path
+        raise GraphError(f"{where}: params file {name!r} not found")
+    local = base / path
+    if local.is_file():
+        return local.resolve()
+    try:
+        return find_config(name)
+    except ConfigNotFoundError as exc:
+        raise GraphError(f"{where}: params file {name!r} not found; tried {local}; {exc}") from None
+
+
+def _parse_topic_wait(item: Any, where: str) -> TopicWait:
+    if isinstance(item, str):
+        item = {"topic": item}
+    item = _mapping(item, where)
+    _no_unknown_keys(item, ("topic", "publishers", "subscribers"), where)
+    topic = item.get("topic")
+    if not isinstance(topic, str) or not _TOPIC_RE.match(topic):
+        raise GraphError(f"{where}: {topic!r} is not a topic name (relative or absolute)")
+    counts = {}
+    for key in ("publishers", "subscribers"):
+        n = item.get(key, 0)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise GraphError(f"{where}: {key}: expected a count >= 0, got {n!r}")
+        counts[key] = n
+    return TopicWait(topic, **counts)
+
+
+_KIND_OF = {bool: "bool", int: "number", float: "number", str: "string"}
+
+
+def _check_param_value(value: Any, where: str) -> None:
+    scalar = (bool, int, float, str)
+    if isinstance(value, scalar):
+        return
+    if isinstance(value, list) and value and all(isinstance(v, scalar) for v in value):
+        kinds = {_KIND_OF.get(type(v)) for v in value}
+        if len(kinds) == 1:
+            return
+    raise GraphError(f"{where}: {value!r} is not a ROS parameter value "
+                     "(bool, int, float, string, or a non-empty list of one of them)")
+
+
+def _flatten(values: Mapping[str, Any], where: str, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings become dotted parameter names (ROS nested parameters)."""
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if not isinstance(key, str) or not _PARAM_RE.match(name):
+            raise GraphError(f"{where}: {name!r} is not a parameter name")
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, where, name + "."))
+        else:
+            _check_param_value(value, f"{where}: {name}")
+            flat[name] = value
+    return flat
+
+
+def _mapping(value: Any, where: str) -> dict[str, Any]:
+    if not isinstance(value, Mapping):
+        raise GraphError(f"{where}: expected a mapping (key: value), got {type(value).__name__}")
+    return dict(value)
+
+
+def _list(value: Any, where: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise GraphError(f"{where}: expected a list, got {type(value).__name__}")
+    return value
+
+
+def _strings(value: Any, where: str, scalars: bool = False) -> list[str]:
+    items = _list(value, where)
+    ok = (str, int, float) if scalars else (str,)
+    for item in items:
+        if isinstance(item, bool) or not isinstance(item, ok):
+            raise GraphError(f"{where}: expected a list of strings, got item {item!r}")
+    return [str(item) for item in items]
+
+
+def _env(value: Any, where: str) -> dict[str, str]:
+    env = _mapping(value, where)
+    for key, val in env.items():
+        if not isinstance(key, str) or not key or "=" in key or not isinstance(val, (str, int, float)):
+            raise GraphError(f"{where}: {key!r}: {val!r} is not NAME: value")
+    return {k: (("true" if v else "false") if isinstance(v, bool) else str(v)) for k, v in env.items()}
+
+
+def _no_unknown_keys(data: Mapping[str, Any], allowed: Sequence[str], where: str) -> None:
+    unknown = [k for k in data if k not in allowed]
+    if unknown:
+        raise GraphError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} "
+                         f"(allowed: {', '.join(allowed)})")

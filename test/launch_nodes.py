@@ -1,0 +1,70 @@
+"""Tiny nodes for the launcher tests, run through piezo_stage.nodes.common.run like the product's:
+``python -m launch_nodes talker|listener --ros-args ...`` (a graph entry ``module: launch_nodes``
+with ``args: [talker]``)."""
+
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from piezo_stage.nodes.common import COMMAND_QOS, declare, run
+
+
+class Talker(Node):
+    """Publishes ``"<text> <count>"`` on ``chatter`` at 20 Hz; with exit_after > 0 it ends by
+    itself after that many seconds with exit code `fail_code`."""
+
+    def __init__(self) -> None:
+        super().__init__("talker")
+        self.text = declare(self, "text", "hello", "what to say")
+        exit_after = declare(self, "exit_after", 0.0, "seconds before exiting by itself (0: never)")
+        self.fail_code = declare(self, "fail_code", 0, "exit code when exiting by itself")
+        self.pub = self.create_publisher(String, "chatter", COMMAND_QOS)
+        self.count = 0
+        self.create_timer(0.05, self.tick)
+        if exit_after > 0:
+            self.create_timer(exit_after, self.finish)
+        print(f"talker {self.get_fully_qualified_name()} says {self.text!r}", flush=True)
+
+    def tick(self) -> None:
+        self.count += 1
+        self.pub.publish(String(data=f"{self.text} {self.count}"))
+
+    def finish(self) -> None:
+        self.get_logger().info(f"exiting by itself with code {self.fail_code}")
+        self.exit_code = self.fail_code
+        self.finished = True
+
+    def on_shutdown(self) -> None:
+        print(f"talker {self.get_fully_qualified_name()}: clean shutdown", flush=True)
+
+
+class Listener(Node):
+    """Prints ``heard: <data>`` for the first messages on ``chatter``, then every 20th."""
+
+    def __init__(self) -> None:
+        super().__init__("listener")
+        self.heard = 0
+        self.create_subscription(String, "chatter", self.on_message, COMMAND_QOS)
+
+    def on_message(self, msg: String) -> None:
+        self.heard += 1
+        if self.heard <= 3 or self.heard % 20 == 0:
+            print(f"heard: {msg.data}", flush=True)
+
+
+ROLES = {"talker": Talker, "listener": Listener}
+
+
+def main() -> int:
+    role = sys.argv[1] if len(sys.argv) > 1 else ""
+    if role not in ROLES:
+        print(f"usage: launch_nodes {{{'|'.join(ROLES)}}} [--ros-args ...]", file=sys.stderr)
+        return 2
+    return run(ROLES[role])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,276 @@
+"""The launcher with real processes over real DDS: namespaces, parameters, topic waiting,
+required exits, signals and escalation, and no process left behind."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
+
+from piezo_stage.cli import main  # noqa: E402
+from piezo_stage.launch import (Launcher, LaunchError, RequiredProcessExited,  # noqa: E402
+                                TopicsNotReadyError)
+from ros_support import ROOT  # noqa: E402
+
+TEST_DIR = str(Path(__file__).parent)
+PY = sys.executable
+
+
+def pid_alive(pid: int) -> bool:
+    """Running (a zombie waiting for its reaper counts as gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def wait_gone(pids, timeout: float = 10.0) -> list[int]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(pid_alive(p) for p in pids):
+        time.sleep(0.05)
+    return [p for p in pids if pid_alive(p)]
+
+
+class Lines:
+    """A LineSink keeping (name, line) pairs."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, str]] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, name: str, line: str, is_err: bool) -> None:
+        with self._lock:
+            self.items.append((name, line))
+
+    def of(self, name: str) -> list[str]:
+        with self._lock:
+            return [line for n, line in self.items if n == name]
+
+    def wait_for(self, name: str, text: str, timeout: float = 15.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(text in line for line in self.of(name)):
+                return True
+            time.sleep(0.05)
+        return False
+
+
+def chatter_graph(tmp_path: Path, name: str = "graph.yaml", talker: dict | None = None,
+                  extra: list | None = None, **top) -> Path:
+    """talker + listener (test/launch_nodes.py) waiting for chatter to have both ends."""
+    data = {"env": {"PYTHONPATH": TEST_DIR + ":${PYTHONPATH}"},
+            "wait_for_topics": [{"topic": "chatter", "publishers": 1, "subscribers": 1}],
+            "nodes": [{"module": "launch_nodes", "name": "talker", "args": ["talker"], **(talker or {})},
+                      {"module": "launch_nodes", "name": "listener", "args": ["listener"]},
+                      *(extra or [])],
+            **top}
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_two_namespaces_at_once_with_their_own_parameters(tmp_path):
+    import rclpy
+
+    path = chatter_graph(tmp_path, talker={"overrides": {"text": "from-graph"}})
+    out_a, out_b = Lines(), Lines()
+    a = Launcher(path, namespace="alpha", params=["talker.text:=alpha"], sink=out_a)
+    b = Launcher(path, namespace="/beta", params=["text:=beta"], sink=out_b)
+    rclpy.init()  # a program (the demo) using rclpy itself: the launcher's probe leaves it alone
+    try:
+        with a, b:
+            assert rclpy.ok()
+            _check_running(a, b, out_a, out_b)
+        assert rclpy.ok()
+    finally:
+        rclpy.shutdown()
+    pids = list(a.pids.values()) + list(b.pids.values())
+    assert a.exit_code == 0 and b.exit_code == 0 and a.reason == "stop requested"
+    assert not wait_gone(pids, timeout=1.0)
+    assert "talker /alpha/talker says 'alpha'" in out_a.of("talker")
+    heard_a, heard_b = out_a.of("listener"), out_b.of("listener")
+    assert heard_a and all(line.startswith("heard: alpha ") for line in heard_a)
+    assert heard_b and all(line.startswith("heard: beta ") for line in heard_b)
+    assert "talker /beta/talker: clean shutdown" in out_b.of("talker")
+    assert sorted(line for line in out_a.of("launch") if "exited" in line) == [
+        "listener exited with code 0", "talker exited with code 0"]
+
+
+def _check_running(a: Launcher, b: Launcher, out_a: Lines, out_b: Lines) -> None:
+    assert a.graph.topics() == ["/alpha/chatter"] and b.graph.topics() == ["/beta/chatter"]
+    assert out_a.wait_for("listener", "heard: alpha") and out_b.wait_for("listener", "heard: beta")
+    pids = list(a.pids.values()) + list(b.pids.values())
+    assert len(pids) == 4 and all(pid_alive(p) for p in pids)
+
+
+def test_default_namespace_is_the_nodes_one():
+    from piezo_stage.launch.graph import DEFAULT_NAMESPACE
+    from piezo_stage.nodes.common import DEFAULT_NAMESPACE as NODES_DEFAULT
+
+    assert DEFAULT_NAMESPACE == NODES_DEFAULT
+
+
+def test_required_exit_stops_the_others_with_its_code(tmp_path):
+    path = chatter_graph(tmp_path, talker={"required": True,
+                                           "overrides": {"exit_after": 0.5, "fail_code": 7}},
+                         extra=[{"command": ["sleep", "60"]}])
+    proc = subprocess.run([PY, "-m", "piezo_stage.cli", "launch", str(path), "--ns", "req"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 7, proc.stderr
+    err = proc.stderr.splitlines()
+    assert any(line.startswith("[launch]   talker exited with code 7 (required") for line in err), err
+    assert any(line.startswith("[talker]   [INFO]") and "exiting by itself with code 7" in line for line in err)
+    assert any(line.startswith("[listener] heard: hello ") for line in proc.stdout.splitlines()), proc.stdout
+    assert "\033[" not in proc.stdout + proc.stderr  # no colour when not a terminal
+    pids = [int(line.split("(pid ")[1].split(")")[0]) for line in err if "started " in line]
+    assert len(pids) == 3 and not wait_gone(pids, timeout=1.0)
+
+
+def _read_until(proc: subprocess.Popen, text: str, seen: list[str], timeout: float = 30.0) -> bool:
+    box: list[bool] = []
+
+    def read() -> None:
+        for line in proc.stdout:
+            seen.append(line.rstrip("\n"))
+            if text in line:
+                box.append(True)
+                return
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    t.join(timeout)
+    return bool(box)
+
+
+def test_sigint_to_the_launcher_stops_every_node_cleanly(tmp_path):
+    path = chatter_graph(tmp_path)
+    proc = subprocess.Popen([PY, "-m", "piezo_stage.cli", "launch", str(path)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen: list[str] = []
+    try:
+        assert _read_until(proc, "[launch]   ready after", seen), seen
+        pids = [int(line.split("(pid ")[1].split(")")[0]) for line in seen if "started " in line]
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    lines = seen + rest.splitlines()
+    assert proc.returncode == 0, lines
+    assert "[talker]   talker /piezo/talker: clean shutdown" in lines
+    assert "[launch]   sending SIGINT to talker, listener" in lines
+    assert "[launch]   done (stop requested), exit code 0" in lines
+    assert len(pids) == 2 and not wait_gone(pids, timeout=1.0)
+
+
+def test_sigkill_of_the_launcher_leaves_no_orphans(tmp_path):
+    path = chatter_graph(tmp_path, extra=[{"command": ["sleep", "60"]}])
+    proc = subprocess.Popen([PY, "-m", "piezo_stage.cli", "launch", str(path), "--no-wait"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen: list[str] = []
+    try:
+        assert _read_until(proc, "heard: ", seen), seen  # the nodes are up and talking
+        pids = [int(line.split("(pid ")[1].split(")")[0]) for line in seen if "started " in line]
+        proc.kill()
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert len(pids) == 3
+    assert not wait_gone(pids), "children outlived a SIGKILLed launcher"
+
+
+def test_stubborn_process_is_terminated_then_killed(tmp_path):
+    stubborn = ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)")
+    polite = "import time; print('up', flush=True); time.sleep(60)"
+    out = Lines()
+    launch = Launcher({"stop_timeout": 0.3, "nodes": [
+        {"command": [PY, "-c", stubborn], "name": "stubborn", "ready_pattern": "^up$"},
+        {"command": [PY, "-c", polite], "name": "polite", "ready_pattern": "up"}]}, sink=out)
+    launch.start()
+    assert launch.wait_ready() >= 0.0
+    pids = launch.pids
+    assert launch.stop() == 1  # a process had to be killed
+    log = out.of("launch")
+    assert "sending SIGINT to stubborn, polite" in log
+    assert "sending SIGTERM to stubborn" in log and "sending SIGKILL to stubborn" in log
+    assert "stubborn exited with code 137" in log and "polite exited with code 130" in log
+    assert launch.process("stubborn").killed and not launch.process("polite").killed
+    assert not wait_gone(pids.values(), timeout=1.0)
+
+
+def test_ready_pattern_orders_the_start(tmp_path):
+    out = Lines()
+    first = "import time; time.sleep(0.3); print('serving', flush=True); time.sleep(60)"
+    with Launcher({"nodes": [{"command": [PY, "-c", first], "name": "first", "ready_pattern": "serv"},
+                             {"command": ["sleep", "60"], "name": "second"}]}, sink=out) as launch:
+        order = [(n, line) for n, line in out.items if n == "first" or "started second" in line]
+        assert order[0] == ("first", "serving")
+        assert launch.process("second").poll() is None
+    silent = Launcher({"nodes": [{"command": ["sleep", "60"], "ready_pattern": "never"},
+                                 {"command": ["sleep", "61"], "name": "later"}]}, sink=out, timeout=0.5)
+    with pytest.raises(LaunchError, match=r"sleep printed no line matching 'never' within 0.5 s"):
+        silent.start()
+    assert silent.stop() == 0 and list(silent.pids) == ["sleep"]  # 'later' never started
+    with pytest.raises(LaunchError, match=r"early exited with code 3 before printing a line matching 'never'"):
+        Launcher({"nodes": [{"command": [PY, "-c", "raise SystemExit(3)"], "name": "early",
+                             "ready_pattern": "never"}]}, sink=out).start()
+
+
+def test_missing_topics_time_out_naming_them(tmp_path):
+    launch = Launcher({"namespace": "/quiet", "nodes": [{"command": ["sleep", "60"]}],
+                       "wait_for_topics": ["nobody_publishes", {"topic": "/rosout", "publishers": 99}]},
+                      sink=Lines())
+    launch.start()
+    with pytest.raises(TopicsNotReadyError) as info:
+        launch.wait_ready(timeout=1.0)
+    assert info.value.missing == ["/quiet/nobody_publishes", "/rosout (with 99 publisher(s))"]
+    assert "after 1 s still waiting for: /quiet/nobody_publishes" in str(info.value)
+    assert launch.stop() == 0
+    ended = Launcher({"nodes": [{"command": ["true"]}], "wait_for_topics": ["x"]}, sink=Lines())
+    ended.start()
+    with pytest.raises(TopicsNotReadyError, match=r"still waiting for: /piezo/x; exited meanwhile: true \(code 0\)"):
+        ended.wait_ready(timeout=20.0)  # raised as soon as nothing is left running
+    assert ended.stop() == 0 and ended.reason == "all processes exited"
+
+
+def test_cli_not_ready_exits_3_and_stops(tmp_path, capsys):
+    path = tmp_path / "g.yaml"
+    path.write_text("nodes: [{command: [sleep, '60']}]\nwait_for_topics: [nobody]\n")
+    assert main(["launch", str(path), "--timeout", "0.5", "--color", "never"]) == 3
+    err = capsys.readouterr().err
+    assert "piezo-stage launch: not ready: after 0.5 s still waiting for: /piezo/nobody" in err
+    pid = int(err.split("(pid ")[1].split(")")[0])
+    assert not wait_gone([pid], timeout=1.0)
+
+
+def test_required_exit_while_waiting_and_module_errors(tmp_path):
+    out = Lines()
+    launch = Launcher({"wait_for_topics": ["never"], "nodes": [
+        {"module": "no_such_module_xyz", "required": True}, {"command": ["sleep", "60"]}]}, sink=out)
+    launch.start()
+    with pytest.raises(RequiredProcessExited, match="'no_such_module_xyz' exited with code 2"):
+        launch.wait_ready(timeout=20.0)
+    assert launch.stop() == 2
+    assert any("cannot load module 'no_such_module_xyz'" in line for line in out.of("no_such_module_xyz"))
+
+
+def test_module_without_main_runs_as_main(tmp_path):
+    (tmp_path / "script_mod.py").write_text(
+        "import sys\nif __name__ == '__main__':\n    print('as main', sys.argv[1:])\n    sys.exit(4)\n")
+    out = Lines()
+    launch = Launcher({"env": {"PYTHONPATH": str(tmp_path)},
+                       "nodes": [{"module": "script_mod", "args": ["x"]}]}, sink=out)
+    launch.start()
+    assert launch.wait(20.0) == 4 and launch.reason == "all processes exited"
+    assert out.of("script_mod")[0].startswith("as main ['x', '--ros-args', '-r', '__ns:=/piezo'")
