@@ -1,0 +1,126 @@
+"""Design/check time-varying PID gains with Theorem 4 (11.6-11.7) and the sampled-loop check.
+
+Prints k2_min (11.6) and k0_max (11.7) for the Assumption 2 bounds (default: the shipped
+thesis_rig_bounds.yaml, §11.4.1; any bound can be overridden), whether the given gains satisfy
+Theorem 4, and with --rate-hz the spectral radius of the sampled loop (ZOH plant, rectangle-sum
+x0, Euler-difference x2, optional output delay). Exit status: 0 valid (and stable when checked),
+1 not, 2 bad input. Note: §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
+give ≈ 515.9 and ≈ 1.515e9 for its bounds (DESIGN.md §7).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from piezo_stage.control.bounds import Bounds, NominalPlant, load_bounds, load_nominal_plant, thesis_bounds_path
+from piezo_stage.control.discrete import HYSTERESIS_MODELS, SampledLoopReport, check_sampled_loop
+from piezo_stage.control.errors import ControlError
+from piezo_stage.control.laws import LAWS, Gains
+from piezo_stage.control.theorem4 import GainReport, validate_gains
+
+_BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
+_NOMINAL_FLAGS = ("m", "c", "kappa_x", "kappa_w", "rho")
+_UNITS = {"m_min": "V s^2/m", "m_max": "V s^2/m", "c_max": "V s/m", "kappa_x_max": "V/m",
+          "kappa_w_max": "V", "sigma_max": "-", "rho_max": "1/m"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    src = parser.add_argument_group("Assumption 2 bounds")
+    src.add_argument("--bounds", type=Path, default=None,
+                     help="bounds YAML (default: the shipped thesis_rig_bounds.yaml)")
+    for name in _BOUND_FLAGS:
+        src.add_argument("--" + name.replace("_", "-"), dest=name, type=float, default=None,
+                         help=f"override {name} [{_UNITS[name]}]")
+    g = parser.add_argument_group("gains")
+    g.add_argument("--k1", type=float, required=True, help="proportional gain k1 [V/m] (> 0)")
+    g.add_argument("--k2", type=float, default=None, help="derivative gain k2 [V s/m]")
+    g.add_argument("--k0", type=float, default=None, help="integral gain k0 [V/(m s)]")
+    g.add_argument("--ka", dest="kA", type=float, default=None, help="kA of (11.18) [V/(m s)]")
+    g.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f of (11.17-11.18) [Hz]")
+    d = parser.add_argument_group("sampled-loop check")
+    d.add_argument("--rate-hz", type=float, default=None, help="loop rate [Hz]; enables the check")
+    d.add_argument("--delay-samples", type=int, default=0, help="output applied this many periods late (default 0)")
+    d.add_argument("--law", choices=LAWS, default="pid",
+                   help="law checked (pid_sine = pid; pid_tv needs --ka, --f, rate/f integer)")
+    d.add_argument("--hysteresis", choices=HYSTERESIS_MODELS, default="disturbance",
+                   help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)")
+    d.add_argument("--derivative-tau", type=float, default=0.0, help="x2 filter time constant [s] (default 0: off)")
+    for name in _NOMINAL_FLAGS:
+        d.add_argument("--" + name.replace("_", "-"), dest="nominal_" + name, type=float, default=None,
+                       help=f"nominal plant {name} (default: the bounds file's nominal section)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _load(args: argparse.Namespace) -> tuple[Path, Bounds, NominalPlant | None]:
+    path = args.bounds if args.bounds is not None else thesis_bounds_path()
+    bounds = load_bounds(path).replace(**{k: getattr(args, k) for k in _BOUND_FLAGS})
+    nominal = load_nominal_plant(path)
+    overrides = {k: getattr(args, "nominal_" + k) for k in _NOMINAL_FLAGS}
+    if nominal is not None:
+        nominal = nominal.replace(**overrides)
+    elif all(overrides[k] is not None for k in ("m", "c", "kappa_x")):
+        nominal = NominalPlant.from_dict({k: v for k, v in overrides.items() if v is not None})
+    return path, bounds, nominal
+
+
+def _discrete(args: argparse.Namespace, report: GainReport, nominal: NominalPlant | None) -> SampledLoopReport:
+    if nominal is None:
+        raise ControlError(f"{args.bounds} has no 'nominal' section: give --m, --c and --kappa-x for --rate-hz")
+    if report.k2 is None or report.k0 is None:
+        raise ControlError("--rate-hz needs --k2 and --k0")
+    extra = {"kA": report.kA or 0.0}
+    if report.f is not None:
+        extra["f"] = report.f
+    gains = Gains(k0=report.k0, k1=report.k1, k2=report.k2, **extra)
+    return check_sampled_loop(nominal, gains, args.rate_hz, args.delay_samples, args.law,
+                              args.derivative_tau, args.hysteresis)
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.6g}"
+
+
+def _print_table(path: Path, bounds: Bounds, report: GainReport, disc: SampledLoopReport | None) -> None:
+    print(f"Assumption 2 bounds ({path}):")
+    for name, value in bounds.to_dict().items():
+        print(f"  {name:<12} {value:<12.6g} {_UNITS[name]}")
+    print("Theorem 4:")
+    print(f"  k1 = {_fmt(report.k1):<12}")
+    k2_ok = report.k2 is not None and report.k2 > report.k2_min
+    print(f"  k2 = {_fmt(report.k2):<12} k2_min = {_fmt(report.k2_min):<12} (11.6)  {'ok' if k2_ok else 'NOT ok'}")
+    k0_ok = report.k0 is not None and report.k0_max is not None and 0 < report.k0 < report.k0_max
+    print(f"  k0 = {_fmt(report.k0):<12} k0_max = {_fmt(report.k0_max):<12} (11.7)  {'ok' if k0_ok else 'NOT ok'}")
+    if report.kA is not None or report.f is not None:
+        print(f"  kA = {_fmt(report.kA):<12} f = {_fmt(report.f)} Hz")
+    print(f"  gains {'VALID' if report.valid else 'NOT VALID'}")
+    for reason in report.reasons:
+        print(f"    - {reason}")
+    for note in report.notes:
+        print(f"  note: {note}")
+    if disc is not None:
+        print(f"Sampled loop ({disc.law}, {disc.rate_hz:g} Hz, delay {disc.delay_samples} sample(s), "
+              f"hysteresis as {disc.hysteresis}):")
+        print(f"  spectral radius {disc.spectral_radius:.6f}  margin {disc.margin:+.3e}  "
+              f"{'STABLE' if disc.stable else 'UNSTABLE'}  (continuous time: "
+              f"{'stable' if disc.continuous_stable else 'unstable'})")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        path, bounds, nominal = _load(args)
+        report = validate_gains(bounds, args.k1, args.k2, args.k0, args.kA, args.f)
+        disc = _discrete(args, report, nominal) if args.rate_hz is not None else None
+    except ControlError as exc:
+        print(f"piezo-stage gains: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        out = {"bounds_file": str(path), "bounds": bounds.to_dict(), **report.to_dict(),
+               "discrete": None if disc is None else disc.to_dict()}
+        print(json.dumps(out))
+    else:
+        _print_table(path, bounds, report, disc)
+    ok = report.valid and (disc is None or disc.stable)
+    return 0 if ok else 1

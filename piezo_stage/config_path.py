@@ -1,0 +1,49 @@
+"""Locate the YAML files shipped in the package's ``config/`` folder.
+
+Installed (colcon / ament): ``<share>/piezo_stage/config/<name>``; from a source checkout:
+``<repository>/config/<name>`` next to the ``piezo_stage`` package folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PACKAGE = "piezo_stage"
+
+
+class ConfigNotFoundError(FileNotFoundError):
+    """A shipped configuration file could not be found in any known location."""
+
+
+def _candidates(name: str) -> list[Path]:
+    paths: list[Path] = []
+    try:
+        from ament_index_python.packages import (  # type: ignore[import-not-found]
+            PackageNotFoundError,
+            get_package_share_directory,
+        )
+
+        try:
+            paths.append(Path(get_package_share_directory(PACKAGE)) / "config" / name)
+        except (PackageNotFoundError, LookupError, OSError, ValueError):
+            pass  # not installed, or AMENT_PREFIX_PATH unset
+    except ImportError:
+        pass
+    paths.append(Path(__file__).resolve().parent.parent / "config" / name)
+    return paths
+
+
+def find_config(name: str) -> Path:
+    """Path of the shipped config file ``name`` (e.g. ``"thesis_rig_bounds.yaml"``).
+
+    Looks in the ament share directory ``piezo_stage/config`` when ``ament_index_python`` is
+    importable and the package is installed, then in the repository's ``config/`` folder.
+    Raises :class:`ConfigNotFoundError` naming every place tried.
+    """
+    tried = _candidates(name)
+    for path in tried:
+        if path.is_file():
+            return path
+    raise ConfigNotFoundError(
+        f"config file {name!r} not found; tried: " + ", ".join(str(p) for p in tried)
+    )

@@ -1,0 +1,185 @@
+"""Assumption 2 parameter bounds and the nominal linear plant, loaded from YAML (thesis §11.1, §11.4.1).
+
+YAML layout (see ``config/thesis_rig_bounds.yaml``)::
+
+    bounds:   # Assumption 2
+      m_min: 3.98e-3       # V s^2 / m
+      m_max: 6.63e-3
+      c_max: 13.43         # V s / m
+      kappa_x_max: 10.8e6  # V / m
+      kappa_w_max: 48.74   # V
+      sigma_max: 0.9212
+      rho_max: 9.510e4     # 1 / m
+    nominal:  # plant the sampled-loop check linearises (optional)
+      m: 5.3e-3
+      c: 13.0
+      kappa_x: 10.35e6
+      kappa_w: 43.57
+      rho: 8.566e4
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+from .errors import BoundsError
+
+
+def _check_finite(owner: str, values: Mapping[str, float]) -> None:
+    for key, value in values.items():
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise BoundsError(f"{owner}.{key} must be a finite number, got {value!r}")
+
+
+def _from_mapping(cls, owner: str, data: Mapping[str, Any]):
+    if not isinstance(data, Mapping):
+        raise BoundsError(f"{owner}: expected a mapping, got {type(data).__name__}")
+    names = [f.name for f in fields(cls)]
+    required = [f.name for f in fields(cls) if f.default is MISSING]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise BoundsError(f"{owner}: unknown key(s) {unknown}; expected {names}")
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise BoundsError(f"{owner}: missing key(s) {missing}")
+    try:
+        values = {k: float(v) for k, v in data.items()}
+    except (TypeError, ValueError) as exc:
+        raise BoundsError(f"{owner}: every value must be a number ({exc})") from None
+    obj = cls(**values)
+    obj.validate()
+    return obj
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Known intervals of the unknown plant parameters, Assumption 2 (thesis §11.1).
+
+    m ∈ [m_min, m_max] with m_min > 0, c ∈ [0, c_max], κx ∈ (0, kappa_x_max],
+    κw ∈ (0, kappa_w_max], σ ∈ [1/2, sigma_max], ρ ∈ (0, rho_max]. The structure parameter n ≥ 1
+    needs no bound. Units: m [V s²/m], c [V s/m], κx [V/m], κw [V], ρ [1/m].
+    """
+
+    m_min: float
+    m_max: float
+    c_max: float
+    kappa_x_max: float
+    kappa_w_max: float
+    sigma_max: float
+    rho_max: float
+
+    def validate(self) -> None:
+        """Raise :class:`BoundsError` unless the intervals of Assumption 2 are well formed."""
+        _check_finite("bounds", asdict(self))
+        if self.m_min <= 0:
+            raise BoundsError(f"bounds.m_min must be > 0 (Assumption 2), got {self.m_min}")
+        if self.m_max < self.m_min:
+            raise BoundsError(f"bounds.m_max ({self.m_max}) < m_min ({self.m_min})")
+        if self.c_max < 0:
+            raise BoundsError(f"bounds.c_max must be >= 0 (c ∈ [0, c_max]), got {self.c_max}")
+        for key in ("kappa_x_max", "kappa_w_max", "rho_max"):
+            if getattr(self, key) <= 0:
+                raise BoundsError(f"bounds.{key} must be > 0, got {getattr(self, key)}")
+        if self.sigma_max < 0.5:
+            raise BoundsError(f"bounds.sigma_max must be >= 1/2 (σ ∈ [1/2, σ_max]), got {self.sigma_max}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "Bounds":
+        """Build and validate from a mapping with exactly the field names."""
+        return _from_mapping(cls, "bounds", data)
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+    def replace(self, **overrides: float | None) -> "Bounds":
+        """Copy with the non-None ``overrides`` applied, validated."""
+        data = self.to_dict()
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return Bounds.from_dict(data)
+
+
+@dataclass(frozen=True)
+class NominalPlant:
+    """Nominal parameters of m·ẍ + c·ẋ + κx·x + κw·w = u (11.1-11.3) for the sampled-loop check.
+
+    ``kappa_w`` and ``rho`` are only used when the check linearises w by its initial slope
+    (ẇ = ρ·ẋ at w = 0, see :mod:`piezo_stage.control.discrete`).
+    """
+
+    m: float
+    c: float
+    kappa_x: float
+    kappa_w: float = 0.0
+    rho: float = 0.0
+
+    def validate(self) -> None:
+        _check_finite("nominal", asdict(self))
+        if self.m <= 0:
+            raise BoundsError(f"nominal.m must be > 0, got {self.m}")
+        for key in ("c", "kappa_x", "kappa_w", "rho"):
+            if getattr(self, key) < 0:
+                raise BoundsError(f"nominal.{key} must be >= 0, got {getattr(self, key)}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "NominalPlant":
+        return _from_mapping(cls, "nominal", data)
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+    def replace(self, **overrides: float | None) -> "NominalPlant":
+        data = self.to_dict()
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return NominalPlant.from_dict(data)
+
+
+#: the simulated plant of §11.4.1 (m, c) with the Table 11.1 means (κx, κw, ρ).
+THESIS_NOMINAL_PLANT = NominalPlant(m=5.3e-3, c=13.0, kappa_x=10.35e6, kappa_w=43.57, rho=8.566e4)
+
+
+def _read_yaml(path: str | Path) -> Mapping[str, Any]:
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise BoundsError(f"cannot read bounds file {path}: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise BoundsError(f"{path}: invalid YAML: {exc}") from None
+    if not isinstance(data, Mapping):
+        raise BoundsError(f"{path}: expected a mapping at top level")
+    return data
+
+
+def load_bounds(path: str | Path) -> Bounds:
+    """Assumption 2 bounds from the ``bounds:`` section of a YAML file (or a flat mapping)."""
+    data = _read_yaml(path)
+    section = data.get("bounds", data)
+    try:
+        return Bounds.from_dict(section)
+    except BoundsError as exc:
+        raise BoundsError(f"{path}: {exc}") from None
+
+
+def load_nominal_plant(path: str | Path) -> NominalPlant | None:
+    """The ``nominal:`` section of a bounds YAML file, or None when the file has none."""
+    data = _read_yaml(path)
+    if "nominal" not in data:
+        return None
+    try:
+        return NominalPlant.from_dict(data["nominal"])
+    except BoundsError as exc:
+        raise BoundsError(f"{path}: {exc}") from None
+
+
+def thesis_bounds_path() -> Path:
+    """Path of the shipped ``thesis_rig_bounds.yaml`` (§11.4.1 bounds)."""
+    from ..config_path import find_config
+
+    return find_config("thesis_rig_bounds.yaml")

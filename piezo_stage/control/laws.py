@@ -1,0 +1,93 @@
+"""The three control laws of thesis ch. 11 as pure, vectorised functions.
+
+- ``pid``      (11.5):  u = −k0·x0 − k1·x1 − k2·x2
+- ``pid_sine`` (11.17): u = −k0·x0 − k1·x1 − k2·x2 − A·sin(2πft)
+- ``pid_tv``   (11.18): u = −k0·x0 − k1·x1 − k2·x2 − kA·x0·sin(2πft)
+
+with x1 = x − yr, x2 = ẋ − ẏr and x0 = ∫ x1 dt (11.4). Units: x0 [m s], x1 [m], x2 [m/s], u [V].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .errors import GainError
+
+LAWS: tuple[str, ...] = ("pid", "pid_sine", "pid_tv")
+
+
+def check_law(mode: str) -> str:
+    """Return ``mode`` if it names one of :data:`LAWS`, else raise :class:`GainError`."""
+    if mode not in LAWS:
+        raise GainError(f"unknown control law {mode!r}; expected one of {LAWS}")
+    return mode
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V], f [Hz].
+
+    Thesis values (§11.4.1, §11.5.3): k1 = 5e6, k2 = 580, k0 = 1e9, kA = 1.5e9, f = 100 Hz;
+    §11.5.2 uses A = 15 V with f = 10 Hz.
+    """
+
+    k0: float
+    k1: float
+    k2: float
+    kA: float = 0.0
+    A: float = 0.0
+    f: float = 100.0
+
+    def validate(self, mode: str = "pid") -> None:
+        """Raise :class:`GainError` for non-finite or negative gains, or f <= 0 for the sine laws."""
+        check_law(mode)
+        for key, value in asdict(self).items():
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise GainError(f"gain {key} must be a finite number, got {value!r}")
+        for key in ("k0", "k1", "k2", "kA", "A"):
+            if getattr(self, key) < 0:
+                raise GainError(f"gain {key} must be >= 0, got {getattr(self, key)}")
+        if mode != "pid" and self.f <= 0:
+            raise GainError(f"law {mode!r} needs a frequency f > 0 Hz, got {self.f}")
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+#: §11.4.1 / §11.5.3 design.
+THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
+
+
+def pid_term(gains: Gains, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike) -> np.ndarray | float:
+    """u_pid = −k0·x0 − k1·x1 − k2·x2, the PID of (11.5)."""
+    return -gains.k0 * np.asarray(x0) - gains.k1 * np.asarray(x1) - gains.k2 * np.asarray(x2)
+
+
+def excitation_term(mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike) -> np.ndarray | float:
+    """The added term: 0 (11.5), −A·sin(2πft) (11.17) or −kA·x0·sin(2πft) (11.18)."""
+    check_law(mode)
+    if mode == "pid":
+        return np.zeros(np.broadcast(np.asarray(t), np.asarray(x0)).shape)[()]
+    s = np.sin(2.0 * np.pi * gains.f * np.asarray(t))
+    if mode == "pid_sine":
+        return -gains.A * s
+    return -gains.kA * np.asarray(x0) * s
+
+
+def x0_coefficient(mode: str, gains: Gains, t: float) -> float:
+    """∂u/∂x0 at time t: −k0 for (11.5)/(11.17), −(k0 + kA·sin(2πft)) for (11.18)."""
+    check_law(mode)
+    if mode == "pid_tv":
+        return -(gains.k0 + gains.kA * math.sin(2.0 * math.pi * gains.f * t))
+    return -gains.k0
+
+
+def control_law(
+    mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike
+) -> np.ndarray | float:
+    """u of law ``mode`` (11.5, 11.17 or 11.18); t is the time since the loop was closed [s]."""
+    return pid_term(gains, x0, x1, x2) + excitation_term(mode, gains, t, x0)
