@@ -1,0 +1,206 @@
+"""Loading recorded runs: CSV exports (oscilloscope, scripts) and rosbag2/MCAP bags.
+
+CSV: a header line naming at least ``time``, ``input`` and ``output`` (any order, other
+columns ignored, case and surrounding whitespace ignored, a UTF-8 BOM and preamble lines
+before the header tolerated). A unit in brackets or parentheses after a name, e.g.
+``time [ms]``, ``output (µm)``, is converted to SI (s, V, m); other units are kept as given.
+Comma, semicolon, tab or whitespace separated.
+
+Bags: the input and output topics are read with ``piezo_stage.bag.reader.read_series``; the
+faster one is the time base and the other is interpolated onto it. A bag holding both runs is
+split by the ``run`` field of the excitation topic.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataFormatError, SaturatedOutputError
+from .recording import Recording
+
+REQUIRED = ("time", "input", "output")
+_UNIT_RE = re.compile(r"^(?P<name>[^\[\(]*?)\s*(?:[\[\(](?P<unit>[^\]\)]*)[\]\)])?\s*$")
+#: unit as written (case matters: mV is not MV) -> (SI unit, factor)
+_SI = {
+    "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6), "µs": ("s", 1e-6), "μs": ("s", 1e-6),
+    "V": ("V", 1.0), "v": ("V", 1.0), "mV": ("V", 1e-3), "mv": ("V", 1e-3), "kV": ("V", 1e3),
+    "m": ("m", 1.0), "mm": ("m", 1e-3), "um": ("m", 1e-6), "µm": ("m", 1e-6),
+    "μm": ("m", 1e-6), "nm": ("m", 1e-9),
+}
+DEFAULT_EXCITATION_TOPIC = "/piezo/excitation"
+
+
+def parse_column(header: str) -> tuple[str, str]:
+    """``'Output [µm] '`` -> ``('output', 'µm')``."""
+    match = _UNIT_RE.match(header.strip().strip('"').strip())
+    if not match:
+        return header.strip().lower(), ""
+    return match.group("name").strip().lower(), (match.group("unit") or "").strip()
+
+
+def to_si(values: np.ndarray, unit: str) -> tuple[np.ndarray, str]:
+    """Scale to SI when the unit is a known prefix of s, V or m; otherwise unchanged."""
+    si = _SI.get(unit)
+    if si is None:
+        return values, unit
+    return values * si[1], si[0]
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    if delimiter is None:
+        return line.split()
+    return next(csv.reader([line], delimiter=delimiter))
+
+
+def _sniff_delimiter(line: str) -> str | None:
+    for d in (",", ";", "\t"):
+        if d in line:
+            return d
+    return None
+
+
+def load_csv(path: str | Path, name: str | None = None) -> Recording:
+    """One run from a CSV file with ``time``, ``input``, ``output`` columns."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="strict")
+    except UnicodeDecodeError:
+        text = path.read_text(encoding="latin-1")
+    except OSError as exc:
+        raise DataFormatError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    text = text.lstrip("\ufeff")
+    lines = text.splitlines()
+    header_at, delimiter, columns = None, None, {}
+    for i, line in enumerate(lines[:200]):
+        d = _sniff_delimiter(line)
+        fields = [parse_column(f) for f in _split(line, d)]
+        names = [f[0].lstrip("\ufeff") for f in fields]
+        if all(r in names for r in REQUIRED):
+            header_at, delimiter = i, d
+            columns = {r: (names.index(r), fields[names.index(r)][1]) for r in REQUIRED}
+            break
+    if header_at is None:
+        raise DataFormatError(
+            f"{path}: no header line naming the columns {', '.join(REQUIRED)} "
+            "(units in brackets are allowed, e.g. 'time [s],input [V],output [um]')")
+    data: dict[str, list[float]] = {r: [] for r in REQUIRED}
+    reader = csv.reader(_io.StringIO("\n".join(lines[header_at + 1:])), delimiter=delimiter) \
+        if delimiter else (ln.split() for ln in lines[header_at + 1:])
+    for k, row in enumerate(reader, start=header_at + 2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            for r in REQUIRED:
+                data[r].append(float(row[columns[r][0]]))
+        except (ValueError, IndexError) as exc:
+            raise DataFormatError(f"{path}:{k}: cannot read a number in {row!r} ({exc})") from exc
+    arrays = {}
+    units = {}
+    for r in REQUIRED:
+        arrays[r], units[r] = to_si(np.asarray(data[r], dtype=float), columns[r][1])
+    return Recording(arrays["time"], arrays["input"], arrays["output"], name=name or path.name,
+                     input_unit=units["input"], output_unit=units["output"],
+                     meta={"source": str(path)})
+
+
+def is_bag(path: str | Path) -> bool:
+    """A rosbag2 folder or an .mcap file."""
+    p = Path(path)
+    return p.is_dir() or p.suffix == ".mcap"
+
+
+def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray,
+           name: str) -> Recording:
+    """One time base for both signals: the denser one, the other interpolated on it."""
+    lo, hi = max(t_in[0], t_out[0]), min(t_in[-1], t_out[-1])
+    if hi <= lo:
+        raise DataFormatError(f"{name}: the input and output topics do not overlap in time")
+    if len(t_out) >= len(t_in):
+        keep = (t_out >= lo) & (t_out <= hi)
+        t = t_out[keep]
+        return Recording(t, np.interp(t, t_in, v), y[keep], name=name, input_unit="V", output_unit="m")
+    keep = (t_in >= lo) & (t_in <= hi)
+    t = t_in[keep]
+    return Recording(t, v[keep], np.interp(t, t_out, y), name=name, input_unit="V", output_unit="m")
+
+
+def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None):
+    order = np.argsort(t, kind="stable")
+    t, values = t[order], values[order]
+    status = status[order] if status is not None else None
+    unique = np.concatenate(([True], np.diff(t) > 0))
+    return t[unique], values[unique], (status[unique] if status is not None else None)
+
+
+def run_intervals(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[int, float, float]]:
+    """``(run, start, stop)`` [s] from the excitation topic's ``run`` field (stamps)."""
+    from piezo_stage.bag.reader import read_messages
+
+    marks = []
+    for _, log_time, msg in read_messages(path, [topic]):
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        marks.append((stamp if stamp > 0 else log_time * 1e-9, int(msg.run)))
+    marks.sort()
+    intervals: list[tuple[int, float, float]] = []
+    for stamp, run in marks:
+        if intervals and intervals[-1][0] == run:
+            intervals[-1] = (run, intervals[-1][1], stamp)
+        else:
+            intervals.append((run, stamp, stamp))
+    # each run lasts until the next one starts
+    return [(run, start, intervals[i + 1][1] if i + 1 < len(intervals) else np.inf)
+            for i, (run, start, _) in enumerate(intervals)]
+
+
+def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
+             output_topic: str = "/piezo/displacement",
+             excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
+    """The runs of a bag: one per ``run`` value of the excitation topic (or one run when the
+    bag has no excitation topic). Output samples flagged invalid (status != OK) are refused."""
+    from piezo_stage.bag.reader import read_series, topic_types
+
+    t_in, v, _ = _sorted_series(*read_series(path, input_topic))
+    t_out, y, status = _sorted_series(*read_series(path, output_topic))
+    if len(t_in) == 0 or len(t_out) == 0:
+        raise DataFormatError(f"{path}: topic {input_topic if len(t_in) == 0 else output_topic} is empty")
+    if excitation_topic in topic_types(path):
+        intervals = run_intervals(path, excitation_topic)
+    else:
+        intervals = [(0, -np.inf, np.inf)]
+    runs = []
+    for run, start, stop in intervals:
+        name = f"{Path(path).name} run {run}"
+        sel_in = (t_in >= start) & (t_in < stop)
+        sel_out = (t_out >= start) & (t_out < stop)
+        if sel_in.sum() < 2 or sel_out.sum() < 2:
+            continue
+        if status is not None:
+            bad = status[sel_out] != 0
+            if bad.any():
+                codes = sorted({int(c) for c in status[sel_out][bad]})
+                raise SaturatedOutputError(
+                    f"{name}: {int(bad.sum())} displacement sample(s) flagged invalid "
+                    f"(status {codes}: 1 NO_TARGET, 2 TOO_CLOSE, 3 TOO_FAR, 4 INVALID): the sensor "
+                    "left its range; reduce the excitation or re-position the sensor")
+        runs.append(_merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name))
+    if not runs:
+        raise DataFormatError(f"{path}: no run with samples on {input_topic} and {output_topic}")
+    return runs
+
+
+def load_runs(paths: list[str | Path], input_topic: str = "/piezo/voltage",
+              output_topic: str = "/piezo/displacement",
+              excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
+    """Runs from CSV files and/or bags, in the order given (a bag may hold several)."""
+    runs: list[Recording] = []
+    for p in paths:
+        if is_bag(p):
+            runs.extend(load_bag(p, input_topic, output_topic, excitation_topic))
+        else:
+            runs.append(load_csv(p))
+    return runs
