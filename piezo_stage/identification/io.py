@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import io as _io
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -137,44 +138,47 @@ def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None)
     return t[unique], values[unique], (status[unique] if status is not None else None)
 
 
-def run_intervals(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[int, float, float]]:
-    """``(run, start, stop)`` [s] from the excitation topic's ``run`` field (stamps)."""
+def intervals_from_marks(marks: list[tuple[float, int]]) -> list[tuple[int, float, float]]:
+    """``(run, start, stop)`` [s] from ``(stamp, run)`` marks of the excitation topic: each run
+    lasts from its first mark until the next run's first mark."""
+    intervals: list[tuple[int, float, float]] = []
+    for stamp, run in sorted(marks):
+        if intervals and intervals[-1][0] == run:
+            intervals[-1] = (run, intervals[-1][1], stamp)
+        else:
+            intervals.append((run, stamp, stamp))
+    return [(run, start, intervals[i + 1][1] if i + 1 < len(intervals) else np.inf)
+            for i, (run, start, _) in enumerate(intervals)]
+
+
+def excitation_marks(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[float, int]]:
+    """``(stamp [s], run)`` of every excitation message of a bag (header stamp, else log time)."""
     from piezo_stage.bag.reader import read_messages
 
     marks = []
     for _, log_time, msg in read_messages(path, [topic]):
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         marks.append((stamp if stamp > 0 else log_time * 1e-9, int(msg.run)))
-    marks.sort()
-    intervals: list[tuple[int, float, float]] = []
-    for stamp, run in marks:
-        if intervals and intervals[-1][0] == run:
-            intervals[-1] = (run, intervals[-1][1], stamp)
-        else:
-            intervals.append((run, stamp, stamp))
-    # each run lasts until the next one starts
-    return [(run, start, intervals[i + 1][1] if i + 1 < len(intervals) else np.inf)
-            for i, (run, start, _) in enumerate(intervals)]
+    return marks
 
 
-def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
-             output_topic: str = "/piezo/displacement",
-             excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
-    """The runs of a bag: one per ``run`` value of the excitation topic (or one run when the
-    bag has no excitation topic). Output samples flagged invalid (status != OK) are refused."""
-    from piezo_stage.bag.reader import read_series, topic_types
+def run_intervals(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[int, float, float]]:
+    """``(run, start, stop)`` [s] from the excitation topic's ``run`` field (stamps)."""
+    return intervals_from_marks(excitation_marks(path, topic))
 
-    t_in, v, _ = _sorted_series(*read_series(path, input_topic))
-    t_out, y, status = _sorted_series(*read_series(path, output_topic))
-    if len(t_in) == 0 or len(t_out) == 0:
-        raise DataFormatError(f"{path}: topic {input_topic if len(t_in) == 0 else output_topic} is empty")
-    if excitation_topic in topic_types(path):
-        intervals = run_intervals(path, excitation_topic)
-    else:
-        intervals = [(0, -np.inf, np.inf)]
+
+def recordings_from_series(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray,
+                           status: np.ndarray | None, intervals: list[tuple[int, float, float]],
+                           source: str, input_unit: str = "V", output_unit: str = "m") -> list[Recording]:
+    """One Recording per run interval from the input and output series (any order, duplicates
+    dropped). Shared by :func:`load_bag` and the live ``identifier`` node, so that a bag replayed
+    through the node gives the offline result. Output samples flagged invalid are refused."""
+    t_in, v, _ = _sorted_series(np.asarray(t_in, float), np.asarray(v, float), None)
+    t_out, y, status = _sorted_series(np.asarray(t_out, float), np.asarray(y, float),
+                                      None if status is None else np.asarray(status))
     runs = []
     for run, start, stop in intervals:
-        name = f"{Path(path).name} run {run}"
+        name = f"{source} run {run}"
         sel_in = (t_in >= start) & (t_in < stop)
         sel_out = (t_out >= start) & (t_out < stop)
         if sel_in.sum() < 2 or sel_out.sum() < 2:
@@ -187,7 +191,30 @@ def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
                     f"{name}: {int(bad.sum())} displacement sample(s) flagged invalid "
                     f"(status {codes}: 1 NO_TARGET, 2 TOO_CLOSE, 3 TOO_FAR, 4 INVALID): the sensor "
                     "left its range; reduce the excitation or re-position the sensor")
-        runs.append(_merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name))
+        rec = _merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name)
+        runs.append(replace(rec, input_unit=input_unit, output_unit=output_unit))
+    return runs
+
+
+def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
+             output_topic: str = "/piezo/displacement",
+             excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
+    """The runs of a bag: one per ``run`` value of the excitation topic (or one run when the
+    bag has no excitation topic). Output samples flagged invalid (status != OK) are refused."""
+    from piezo_stage.bag.reader import read_series, topic_types
+
+    t_in, v, _ = read_series(path, input_topic)
+    t_out, y, status = read_series(path, output_topic)
+    if len(t_in) == 0 or len(t_out) == 0:
+        raise DataFormatError(f"{path}: topic {input_topic if len(t_in) == 0 else output_topic} is empty")
+    if excitation_topic in topic_types(path):
+        intervals = run_intervals(path, excitation_topic)
+    else:
+        intervals = [(0, -np.inf, np.inf)]
+    units = {"voltage": "V", "displacement": "m"}
+    runs = recordings_from_series(t_in, v, t_out, y, status, intervals, Path(path).name,
+                                  units.get(input_topic.rsplit("/", 1)[-1], ""),
+                                  units.get(output_topic.rsplit("/", 1)[-1], ""))
     if not runs:
         raise DataFormatError(f"{path}: no run with samples on {input_topic} and {output_topic}")
     return runs

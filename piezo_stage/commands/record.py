@@ -1,0 +1,124 @@
+"""Record a namespace's topics to a rosbag2 (MCAP) bag: runs the recorder node until Ctrl-C.
+
+  piezo-stage record                            the contract topics of /piezo + /clock, /diagnostics
+  piezo-stage record --ns /stage2 -o run1       another namespace, into folder run1
+  piezo-stage record --topics voltage displacement --duration 10 --compression zstd
+
+Ctrl-C (or SIGTERM) is forwarded to the node, which closes the bag; the bag's path and what it
+holds are printed at the end. A bag left by a killed recorder: `piezo-stage bag reindex BAG`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+NODE_BOOTSTRAP = "piezo_stage.launch.child"
+_FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ns", default="/piezo", metavar="NS", help="namespace recorded (default /piezo)")
+    parser.add_argument("-o", "--output", metavar="BAG", default=None,
+                        help="bag folder to create (default rosbag2_<date>-<time>)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
+                        help="only these topics (relative names are in --ns)")
+    parser.add_argument("--regex", metavar="RE", default="",
+                        help="also every topic whose full name matches RE (e.g. '.*' for all)")
+    parser.add_argument("--compression", choices=("none", "zstd"), default="none",
+                        help="MCAP chunk compression")
+    parser.add_argument("--duration", type=float, metavar="S", default=None,
+                        help="stop after S seconds (default: until Ctrl-C)")
+    parser.add_argument("--max-bag-size", type=int, metavar="BYTES", default=0,
+                        help="split the bag into files of this size")
+    parser.add_argument("--max-bag-duration", type=float, metavar="S", default=0.0,
+                        help="split the bag into files of this span")
+    parser.add_argument("--use-sim-time", action="store_true", help="stamp with /clock time")
+    parser.add_argument("--start-paused", action="store_true",
+                        help="write nothing until the node's ~/start service is called")
+
+
+def node_env() -> dict[str, str]:
+    """This environment, with a source checkout's package importable by the child."""
+    env = dict(os.environ)
+    root = Path(__file__).resolve().parents[2]
+    if (root / "setup.py").is_file():
+        paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+        if str(root) not in paths:
+            env["PYTHONPATH"] = os.pathsep.join([str(root), *paths])
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+def run_node(module: str, ros_args: Sequence[str], stop_after: float | None = None) -> int:
+    """Run a node module as a child process (it dies with this one) until it exits; forward
+    SIGINT/SIGTERM/SIGHUP to it as SIGINT; with ``stop_after`` [s], send SIGINT then.
+    Returns the child's exit status (128 + N when killed by signal N)."""
+    argv = [sys.executable, "-m", NODE_BOOTSTRAP, str(os.getpid()), "module", module,
+            "--ros-args", *ros_args]
+    # own session: a terminal's Ctrl-C reaches only this process, which forwards it once
+    child = subprocess.Popen(argv, env=node_env(), start_new_session=True)
+
+    def forward(signum: int, frame: object) -> None:
+        if child.poll() is None:
+            child.send_signal(signal.SIGINT)
+
+    previous = {s: signal.signal(s, forward) for s in _FORWARDED}
+    try:
+        deadline = None if stop_after is None else time.monotonic() + stop_after
+        while True:
+            try:
+                timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+                code = child.wait(timeout=timeout)
+                break
+            except subprocess.TimeoutExpired:
+                forward(signal.SIGINT, None)
+                deadline = None
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    return 128 - code if code < 0 else code
+
+
+def ros_args(args: argparse.Namespace, bag: Path) -> list[str]:
+    from piezo_stage.launch.commandline import ros_value
+
+    params = {"bag": str(bag), "compression": args.compression,
+              "max_bag_size": args.max_bag_size, "max_bag_duration": float(args.max_bag_duration),
+              "start_paused": args.start_paused, "use_sim_time": args.use_sim_time}
+    if args.topics:
+        params["topics"] = list(args.topics)
+    if args.regex:
+        params["topic_regex"] = args.regex
+    out = ["-r", f"__ns:={args.ns}"]
+    for key, value in params.items():
+        out += ["-p", f"{key}:={ros_value(value)}"]
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from piezo_stage.bag import BagError, bag_info
+    from piezo_stage.nodes.recorder import default_bag_name
+
+    bag = Path(args.output or default_bag_name()).absolute()
+    if bag.exists() and (not bag.is_dir() or any(bag.iterdir())):
+        print(f"piezo-stage record: {bag} already exists", file=sys.stderr)
+        return 1
+    print(f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True)
+    code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag), args.duration)
+    try:
+        info = bag_info(bag)
+    except BagError as exc:
+        print(f"piezo-stage record: no readable bag at {bag}: {exc}", file=sys.stderr)
+        return code or 1
+    state = "complete" if info["complete"] else "NOT closed: run `piezo-stage bag reindex`"
+    print(f"bag: {bag} ({state}), {info['message_count']} messages, {info['duration_s']:.3f} s")
+    for name, topic in info["topics"].items():
+        print(f"  {name}: {topic['count']} [{topic['type']}]")
+    return code

@@ -1,0 +1,249 @@
+"""`identifier` node: live (or replayed-bag) identification of the Bouc-Wen model.
+
+Subscribes ``voltage``, ``displacement`` and ``excitation``; keeps the samples since start (or
+``~/reset``). When a run of the excitation has been steady and ends, it extracts that run's
+steady cycle and publishes it on ``limit_cycles``; once two runs (x(t) and x(t)+q) are complete
+it identifies (:func:`piezo_stage.identification.pipeline.identify`), publishes
+``bouc_wen_parameters`` (transient-local) and writes ``output_file`` if set. The runs are cut
+and paired exactly as ``piezo-stage identify`` cuts a bag
+(:func:`piezo_stage.identification.io.recordings_from_series`), so replaying a bag through this
+node gives the offline result.
+
+``input``: ``voltage`` (static ch. 10 form: voltage -> displacement) or ``displacement`` (the
+ch. 11 form: the quasi-static map displacement -> voltage).
+Services: ``~/identify`` (identify now from what is collected), ``~/reset`` (std_srvs/Trigger).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from piezo_stage.identification.analytic import DesignPoints
+from piezo_stage.identification.cycles import CycleOptions, extract_cycle
+from piezo_stage.identification.errors import IdentificationError
+from piezo_stage.identification.io import intervals_from_marks, recordings_from_series
+from piezo_stage.identification.pipeline import IdentifyOptions, identify
+from piezo_stage.identification.refine import RefineOptions
+from piezo_stage.identification.result import IdentificationResult
+from piezo_stage.model.errors import ModelError
+from piezo_stage.model.parameter_set import save_parameter_set
+from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo, LimitCycle, Voltage
+
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, OK, Diagnosis, Diagnostics,
+                     declare, run, stamp_to_s)
+
+#: deep queues: a replayed bag arrives in bursts
+STREAM_QOS = {
+    "best_effort": QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT),
+    "reliable": QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
+}
+
+
+@dataclass
+class _Series:
+    t: list[float] = field(default_factory=list)
+    value: list[float] = field(default_factory=list)
+    status: list[int] = field(default_factory=list)
+
+
+class IdentifierNode(Node):
+    def __init__(self) -> None:
+        super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
+        declare(self, "input", "voltage", "recorded input: voltage (ch. 10: voltage -> displacement) | "
+                "displacement (ch. 11: displacement -> voltage)", read_only=True)
+        declare(self, "degree", 1, "degree N of the polynomial part (10.4)", lo=1, hi=10)
+        declare(self, "refine", True, "refine the analytic estimate by nonlinear least squares")
+        declare(self, "input_sign", 0, "sign of the input driving w: +1, -1, 0 = from the loop orientation", lo=-1, hi=1)
+        declare(self, "design_points", [0.6, 0.95, 0.05], "Table 10.1 design points (fractions f1, f2, f3)")
+        declare(self, "steady_periods", 0, "average the last K periods (0: detect the steady state)", lo=0, hi=100000)
+        declare(self, "filter", False, "apply the §10.3.2 zero-phase data filter")
+        declare(self, "max_rms", 0.005, "largest residual RMS accepted, fraction of the output span", lo=0.0, hi=1.0)
+        declare(self, "auto_identify", True, "identify as soon as two runs are complete")
+        declare(self, "output_file", "", "write the identified parameter-set YAML here ('' = do not)")
+        declare(self, "name", "identified", "name stored in the parameter set")
+        declare(self, "stream_qos", "best_effort", "voltage/displacement subscriptions: best_effort (matches "
+                "every publisher) | reliable (no loss from reliable publishers, e.g. a player or the lockstep plant)",
+                read_only=True)
+        self._input = self.get_parameter("input").value
+        if self._input not in ("voltage", "displacement"):
+            raise ValueError(f"input must be voltage or displacement, got {self._input!r}")
+        self._reset()
+        self.result: IdentificationResult | None = None
+        self._error = ""
+
+        self._pub_cycle = self.create_publisher(LimitCycle, "limit_cycles", COMMAND_QOS)
+        self._pub_params = self.create_publisher(BoucWenParameters, "bouc_wen_parameters", LATCHED_QOS)
+        qos = STREAM_QOS[self.get_parameter("stream_qos").value]
+        self.create_subscription(Voltage, "voltage", self._on_voltage, qos)
+        self.create_subscription(Displacement, "displacement", self._on_displacement, qos)
+        self.create_subscription(ExcitationInfo, "excitation", self._on_excitation, COMMAND_QOS)
+        self.create_service(Trigger, "~/identify", self._srv_identify)
+        self.create_service(Trigger, "~/reset", self._srv_reset)
+        declare(self, "settle_time", 2.0, "wall seconds of silent streams after which a completed run is "
+                "processed even if the streams did not pass its end", lo=0.0, hi=3600.0)
+        self.create_timer(0.1, self._process_pending)
+        Diagnostics(self, "identification", self._diagnose)
+
+    # ------------------------------------------------------------------ data
+    def _reset(self) -> None:
+        self._voltage = _Series()
+        self._displacement = _Series()
+        self._marks: list[tuple[float, int]] = []
+        self._info: tuple[int, bool] | None = None
+        self._completed: list[int] = []
+        self._pending: list[tuple[float, int]] = []
+        self._last_count, self._last_change = 0, time.monotonic()
+        self._offsets: dict[int, float] = {}
+        self._periods: dict[int, float] = {}
+
+    def _on_voltage(self, msg: Voltage) -> None:
+        self._voltage.t.append(stamp_to_s(msg.header.stamp))
+        self._voltage.value.append(msg.voltage)
+
+    def _on_displacement(self, msg: Displacement) -> None:
+        self._displacement.t.append(stamp_to_s(msg.header.stamp))
+        self._displacement.value.append(msg.displacement)
+        self._displacement.status.append(msg.status)
+
+    def _on_excitation(self, msg: ExcitationInfo) -> None:
+        t = stamp_to_s(msg.header.stamp)
+        self._marks.append((t, int(msg.run)))
+        self._offsets[int(msg.run)] = msg.offset
+        self._periods[int(msg.run)] = msg.period
+        previous, self._info = self._info, (int(msg.run), bool(msg.steady))
+        if previous is not None and previous[1] and self._info != previous and previous[0] not in self._completed:
+            self._completed.append(previous[0])
+            self._pending.append((t, previous[0]))  # processed once the streams have caught up
+
+    def _process_pending(self) -> None:
+        """Handle completed runs once both streams have passed the run's end (topics arrive
+        independently), or when the streams have been silent for `settle_time`."""
+        if not self._pending:
+            return
+        latest = min(self._voltage.t[-1] if self._voltage.t else -math.inf,
+                     self._displacement.t[-1] if self._displacement.t else -math.inf)
+        count = len(self._voltage.t) + len(self._displacement.t)
+        now = time.monotonic()
+        if count != self._last_count:
+            self._last_count, self._last_change = count, now
+        silent = now - self._last_change > self.get_parameter("settle_time").value
+        while self._pending and (self._pending[0][0] <= latest or silent):
+            self._run_complete(self._pending.pop(0)[1])
+
+    def recordings(self):
+        """The runs collected so far, cut by the excitation marks (as the CLI cuts a bag)."""
+        tv, v = np.array(self._voltage.t), np.array(self._voltage.value)
+        td, d = np.array(self._displacement.t), np.array(self._displacement.value)
+        status = np.array(self._displacement.status, dtype=np.uint8)
+        intervals = intervals_from_marks(self._marks) if self._marks else [(0, -math.inf, math.inf)]
+        if self._input == "voltage":  # ch. 10: voltage -> displacement
+            return recordings_from_series(tv, v, td, d, status, intervals, self.get_name(), "V", "m")
+        ok = status == Displacement.OK  # ch. 11: u = Phi(x); invalid sensor samples are no input
+        return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, self.get_name(), "m", "V")
+
+    # ------------------------------------------------------------------ results
+    def _options(self) -> IdentifyOptions:
+        f1, f2, f3 = self.get_parameter("design_points").value
+        sign = int(self.get_parameter("input_sign").value)
+        k = int(self.get_parameter("steady_periods").value)
+        return IdentifyOptions(
+            degree=int(self.get_parameter("degree").value), refine=bool(self.get_parameter("refine").value),
+            input_sign=sign or None, design=DesignPoints(f1=f1, f2=f2, f3=f3),
+            cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value), steady_periods=k or None),
+            refinement=RefineOptions(max_rms_fraction=float(self.get_parameter("max_rms").value)),
+            input_name=self._input, output_name="displacement" if self._input == "voltage" else "voltage")
+
+    def _run_complete(self, run_index: int) -> None:
+        try:
+            recs = {r.name.rsplit(" ", 1)[-1]: r for r in self.recordings()}
+            rec = recs.get(str(run_index))
+            if rec is None:
+                raise IdentificationError(f"run {run_index}: no samples")
+            cycle = extract_cycle(rec, self._options().cycle)
+        except (IdentificationError, ModelError, ValueError) as exc:
+            self._set_error(f"run {run_index}: {exc}")
+            return
+        msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
+                         offset=float(self._offsets.get(run_index, 0.0)), period=float(cycle.period),
+                         input=[float(v) for v in cycle.input], output=[float(v) for v in cycle.output])
+        self._pub_cycle.publish(msg)
+        self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
+                               f"({cycle.periods} periods averaged)")
+        if len(self._completed) >= 2 and not self._pending and self.result is None \
+                and self.get_parameter("auto_identify").value:
+            try:
+                self.identify_now()
+            except (IdentificationError, ModelError, ValueError):
+                pass  # reported by identify_now (log + /diagnostics)
+
+    def identify_now(self) -> IdentificationResult:
+        try:
+            runs = self.recordings()
+            if len(runs) < 2:
+                raise IdentificationError(f"need two runs (x(t) and x(t)+q), have {len(runs)}")
+            result = identify(runs[0], runs[1], self._options())
+        except (IdentificationError, ModelError, ValueError) as exc:
+            self._set_error(str(exc))
+            raise
+        self.result, self._error = result, ""
+        p = result.parameters
+        self._pub_params.publish(BoucWenParameters(
+            header=Header(stamp=self.get_clock().now().to_msg()), kappa=[float(k) for k in p.kappa],
+            y0=float(p.y0), kappa_w=float(p.kappa_w), rho=float(p.rho), sigma=float(p.sigma), n=float(p.n),
+            input_sign=int(p.input_sign), input_name=self._input, rms_error=float(result.rms_error),
+            samples=int(result.samples)))
+        path = self.get_parameter("output_file").value
+        if path:
+            save_parameter_set(result.to_parameter_set(name=self.get_parameter("name").value), path)
+        self.get_logger().info(
+            f"identified: kappa={list(p.kappa)}, kappa_w={p.kappa_w:.6g}, rho={p.rho:.6g}, sigma={p.sigma:.6g}, "
+            f"n={p.n:.6g}, y0={p.y0:.6g}, input_sign={p.input_sign:+d}, rms={result.rms_error:.3g}"
+            + (f"; wrote {path}" if path else ""))
+        return result
+
+    def _set_error(self, reason: str) -> None:
+        self._error = reason
+        self.get_logger().error(f"identification failed: {reason}")
+
+    # ------------------------------------------------------------------ services
+    def _srv_identify(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            result = self.identify_now()
+        except (IdentificationError, ModelError, ValueError) as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        p = result.parameters
+        response.success = True
+        response.message = (f"kappa={list(p.kappa)} kappa_w={p.kappa_w:.6g} rho={p.rho:.6g} sigma={p.sigma:.6g} "
+                            f"n={p.n:.6g} y0={p.y0:.6g} rms={result.rms_error:.3g}")
+        return response
+
+    def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._reset()
+        self.result, self._error = None, ""
+        response.success, response.message = True, "collected data cleared"
+        return response
+
+    def _diagnose(self) -> Diagnosis:
+        values = {"voltage_samples": len(self._voltage.t), "displacement_samples": len(self._displacement.t),
+                  "completed_runs": len(self._completed), "identified": self.result is not None}
+        if self._error:
+            return Diagnosis(ERROR, self._error, values)
+        return Diagnosis(OK, "identified" if self.result else "collecting", values)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(IdentifierNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,322 @@
+"""`player` node: replays a rosbag2 (MCAP) folder or a plain ``.mcap`` file.
+
+Messages are read with the bag core reader (file order, which is receive order for bags the
+recorder wrote) and published as the recorded CDR bytes, without deserialising them. Timing:
+a message recorded ``dt`` after the start point goes out ``dt / rate`` wall seconds after
+playback started (``rate: 0`` = as fast as possible). ``publish_clock`` publishes ``/clock``
+with the bag's receive time (at ``clock_rate_hz`` in wall time, or before every message when
+``clock_rate_hz: 0``), so nodes started with ``use_sim_time`` run on bag time; a recorded
+``/clock`` is then not replayed.
+
+Window and selection: ``start_offset`` [s] after the bag's first message, ``duration`` [s]
+(0 = to the end), ``loop``; ``topics`` (only these), ``remap`` ("from:=to" strings). Each
+topic is published with the QoS its recorded publishers offered (``offered_qos_profiles``):
+reliable / transient-local only if every offer was.
+
+Services: ``~/pause``, ``~/resume`` (std_srvs/Trigger), ``~/set_paused`` (std_srvs/SetBool);
+while paused the clock keeps being published, frozen. When the bag is done (and ``loop`` is
+off) the node exits with status 0.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from builtin_interfaces.msg import Time
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import SetBool, Trigger
+
+from piezo_stage.bag import BagError, bag_info, read_raw
+
+from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, run
+from .recorder import MessageTypeError, message_type, string_array
+
+CLOCK_TOPIC = "/clock"
+
+
+class PlayerError(ValueError):
+    """A player parameter is invalid (unknown topic in the filter, malformed remap, ...)."""
+
+
+def parse_remaps(items: Sequence[str]) -> dict[str, str]:
+    """``["from:=to", ...]`` -> ``{from: to}``."""
+    remaps: dict[str, str] = {}
+    for item in items:
+        src, sep, dst = item.partition(":=")
+        if not sep or not src.strip() or not dst.strip():
+            raise PlayerError(f"remap {item!r} is not of the form 'from:=to'")
+        remaps[src.strip()] = dst.strip()
+    return remaps
+
+
+def playback_qos(profiles: Sequence[dict[str, Any]], queue_depth: int) -> QoSProfile:
+    """Publisher QoS for a topic recorded with these offers: reliable if every offer was (or
+    none is known), transient-local if every offer was; a latched topic keeps its depth,
+    others keep at least ``queue_depth`` messages (played fast, subscribers may lag)."""
+    reliable = all(p["reliability"] == "reliable" for p in profiles)
+    latched = bool(profiles) and all(p["durability"] == "transient_local" for p in profiles)
+    offered = max((int(p["depth"]) for p in profiles if p["history"] == "keep_last"), default=0)
+    depth = max(offered, 1) if latched else max(offered, queue_depth)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+class PlaybackClock:
+    """Bag time [ns] as a function of wall time [s, monotonic]: ``start_ns`` at ``resume()``,
+    advancing ``rate`` times faster than the wall clock, frozen while paused. Not thread safe:
+    the owner holds a lock."""
+
+    def __init__(self, start_ns: int, rate: float, paused: bool = False) -> None:
+        if rate <= 0:
+            raise PlayerError(f"a playback clock needs rate > 0, got {rate}")
+        self.rate = rate
+        self._bag_ns = start_ns          # bag time at the last pause / resume
+        self._wall: float | None = None  # wall time of the last resume (None = paused)
+        self.paused = True
+        if not paused:
+            self.resume(time.monotonic())
+
+    def now(self, wall: float) -> int:
+        if self._wall is None:
+            return self._bag_ns
+        return self._bag_ns + int((wall - self._wall) * self.rate * 1e9)
+
+    def due(self, bag_ns: int) -> float | None:
+        """Wall time at which ``bag_ns`` is reached; None while paused."""
+        if self._wall is None:
+            return None
+        return self._wall + (bag_ns - self._bag_ns) / (self.rate * 1e9)
+
+    def pause(self, wall: float) -> None:
+        if not self.paused:
+            self._bag_ns, self._wall, self.paused = self.now(wall), None, True
+
+    def resume(self, wall: float) -> None:
+        if self.paused:
+            self._wall, self.paused = wall, False
+
+
+@dataclass
+class _Output:
+    topic: str
+    publisher: Publisher
+    reliable: bool
+
+
+def _time_msg(t_ns: int) -> Time:
+    sec, nanosec = divmod(int(t_ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+class PlayerNode(Node):
+    def __init__(self) -> None:
+        super().__init__("player", namespace=DEFAULT_NAMESPACE)
+        bag = declare(self, "bag", "", "rosbag2 folder or .mcap file to play", read_only=True)
+        self.rate = declare(self, "rate", 1.0, "playback speed (1 = as recorded, 0 = as fast as "
+                            "possible)", lo=0.0, hi=1000.0, read_only=True)
+        self.publish_clock = declare(self, "publish_clock", False, "publish /clock with bag time",
+                                     read_only=True)
+        self.clock_rate_hz = declare(self, "clock_rate_hz", 100.0, "[Hz] /clock rate in wall time "
+                                     "(0 = before every message)", lo=0.0, hi=100000.0, read_only=True)
+        start_offset = declare(self, "start_offset", 0.0, "[s] start this long after the bag's "
+                               "first message", lo=0.0, hi=1e9, read_only=True)
+        duration = declare(self, "duration", 0.0, "[s] play this much bag time (0 = to the end)",
+                           lo=0.0, hi=1e9, read_only=True)
+        self.loop = declare(self, "loop", False, "start again at the end", read_only=True)
+        topics = string_array(self, "topics", "play only these topics (default all)")
+        remaps = string_array(self, "remap", "topic remappings, 'from:=to'")
+        queue_depth = declare(self, "queue_depth", 1000, "least publisher depth of volatile topics",
+                              lo=1, hi=1_000_000, read_only=True)
+        paused = declare(self, "start_paused", False, "wait for ~/resume before playing",
+                         read_only=True)
+        self.wait_for_subscribers = declare(
+            self, "wait_for_subscribers", 0, "before playing, wait until every topic has this many "
+            "subscribers", lo=0, hi=1000, read_only=True)
+        self.wait_timeout = declare(self, "wait_timeout", 10.0, "[s] longest wait for subscribers",
+                                    lo=0.0, hi=1e6, read_only=True)
+
+        if not bag:
+            raise PlayerError("parameter 'bag' (rosbag2 folder or .mcap file) is required")
+        self.bag_path = Path(bag)
+        try:
+            info = bag_info(self.bag_path)
+        except BagError as exc:
+            raise PlayerError(str(exc)) from None
+        wanted = {self._absolute(t) for t in topics}
+        unknown = sorted(wanted - set(info["topics"]))
+        if unknown:
+            raise PlayerError(f"topics {unknown} are not in {self.bag_path}; it has "
+                              f"{sorted(info['topics'])}")
+        remap = {self._absolute(k): v for k, v in parse_remaps(remaps).items()}
+        unknown = sorted(set(remap) - set(info["topics"]))
+        if unknown:
+            raise PlayerError(f"remapped topics {unknown} are not in {self.bag_path}")
+
+        self._outputs: dict[str, _Output] = {}
+        for name, topic in info["topics"].items():
+            if (wanted and name not in wanted) or (self.publish_clock and name == CLOCK_TOPIC):
+                continue
+            try:
+                msg_type = message_type(topic["type"])
+            except MessageTypeError as exc:
+                self.get_logger().warning(f"not playing {name}: {exc}")
+                continue
+            qos = playback_qos(topic["offered_qos_profiles"], queue_depth)
+            pub = self.create_publisher(msg_type, remap.get(name, name), qos)
+            self._outputs[name] = _Output(pub.topic_name, pub,
+                                          qos.reliability == ReliabilityPolicy.RELIABLE)
+        self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, COMMAND_QOS) \
+            if self.publish_clock else None
+
+        self._first_ns = info["start_ns"] + int(round(start_offset * 1e9))
+        self._end_ns = self._first_ns + int(round(duration * 1e9)) if duration > 0 else None
+        self.finished = False
+        self.exit_code = 0
+        self.played = 0           # messages published (all loops)
+        self.loops_done = 0
+        self._lock = threading.Condition()
+        self._stop = False
+        self._paused = bool(paused)
+        self._clock: PlaybackClock | None = None
+        self.create_service(Trigger, "~/pause", self._srv_pause)
+        self.create_service(Trigger, "~/resume", self._srv_resume)
+        self.create_service(SetBool, "~/set_paused", self._srv_set_paused)
+        self.get_logger().info(
+            f"playing {self.bag_path}: {len(self._outputs)} topics, rate {self.rate:g}"
+            + (", publishing /clock" if self.publish_clock else "")
+            + (", looping" if self.loop else "") + (" (paused: call ~/resume)" if paused else ""))
+        self._thread = threading.Thread(target=self._run, name="player", daemon=True)
+        self._thread.start()
+
+    def _absolute(self, topic: str) -> str:
+        return topic if topic.startswith("/") else self.resolve_topic_name(topic)
+
+    # ------------------------------------------------------------------ services
+    def set_paused(self, paused: bool) -> None:
+        with self._lock:
+            self._paused = paused
+            if self._clock is not None:
+                (self._clock.pause if paused else self._clock.resume)(time.monotonic())
+            self._lock.notify_all()
+
+    def _srv_pause(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self.set_paused(True)
+        response.success, response.message = True, "paused"
+        return response
+
+    def _srv_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self.set_paused(False)
+        response.success, response.message = True, "playing"
+        return response
+
+    def _srv_set_paused(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        self.set_paused(bool(request.data))
+        response.success, response.message = True, "paused" if request.data else "playing"
+        return response
+
+    # ------------------------------------------------------------------ playback thread
+    def _run(self) -> None:
+        try:
+            self._wait_for_subscribers()
+            while not self._stop:
+                self._play_once()
+                self.loops_done += 1
+                if not self.loop:
+                    break
+            for out in self._outputs.values():  # let reliable subscribers get the last ones
+                if out.reliable and not self._stop:
+                    out.publisher.wait_for_all_acked(Duration(seconds=2.0))
+        except Exception as exc:  # the executor thread ends the process with the status
+            self.get_logger().error(f"playback failed: {exc}")
+            self.exit_code = 1
+        self.get_logger().info(f"played {self.played} messages")
+        self.finished = True
+
+    def _wait_for_subscribers(self) -> None:
+        if not self.wait_for_subscribers:
+            return
+        deadline = time.monotonic() + self.wait_timeout
+        while not self._stop and time.monotonic() < deadline:
+            if all(o.publisher.get_subscription_count() >= self.wait_for_subscribers
+                   for o in self._outputs.values()):
+                return
+            time.sleep(0.02)
+        self.get_logger().warning("not every topic has its subscribers; playing anyway")
+
+    def _play_once(self) -> None:
+        timed = self.rate > 0
+        with self._lock:
+            self._clock = PlaybackClock(self._first_ns, self.rate if timed else 1.0, self._paused)
+        self._publish_clock(self._first_ns)
+        tick = 1.0 / self.clock_rate_hz if self.clock_rate_hz > 0 else 0.0
+        next_tick = time.monotonic() + tick
+        next_tick_ns = self._first_ns
+        for topic, _, t_ns, data in read_raw(self.bag_path, list(self._outputs)):
+            if t_ns < self._first_ns:
+                continue
+            if self._end_ns is not None and t_ns > self._end_ns:
+                continue  # file order is not strictly time order across files: read on
+            if timed:
+                next_tick = self._wait_until(t_ns, next_tick, tick)
+            else:
+                self._wait_while_paused()
+            if self._stop:
+                return
+            if self.publish_clock and (not tick or (not timed and t_ns >= next_tick_ns)):
+                self._publish_clock(t_ns)
+                next_tick_ns = t_ns + int(tick * 1e9)
+            self._outputs[topic].publisher.publish(data)
+            self.played += 1
+
+    def _wait_until(self, t_ns: int, next_tick: float, tick: float) -> float:
+        """Sleep until bag time ``t_ns`` is due, publishing /clock ticks meanwhile; return
+        the wall time of the next tick."""
+        with self._lock:
+            while not self._stop:
+                clock = self._clock
+                assert clock is not None
+                now = time.monotonic()
+                due = clock.due(t_ns)
+                if tick and self.publish_clock and now >= next_tick:
+                    self._publish_clock(clock.now(now))
+                    next_tick = max(next_tick + tick, now)
+                if due is not None and now >= due:
+                    break
+                wake = min(x for x in (due, next_tick if tick and self.publish_clock else None,
+                                       now + 0.5) if x is not None)
+                self._lock.wait(max(0.0, wake - now))
+        return next_tick
+
+    def _wait_while_paused(self) -> None:
+        with self._lock:
+            while self._paused and not self._stop:
+                self._lock.wait(0.5)
+
+    def _publish_clock(self, t_ns: int) -> None:
+        if self._clock_pub is not None:
+            self._clock_pub.publish(Clock(clock=_time_msg(t_ns)))
+
+    def on_shutdown(self) -> None:
+        with self._lock:
+            self._stop = True
+            self._lock.notify_all()
+        self._thread.join(timeout=5.0)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(PlayerNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,97 @@
+"""The identifier node over real DDS: limit cycles per run, parameters latched, equal to the
+offline identification of the same samples."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from piezo_stage.identification.io import intervals_from_marks, recordings_from_series  # noqa: E402
+from piezo_stage.identification.pipeline import IdentifyOptions, identify  # noqa: E402
+from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_run  # noqa: E402
+from piezo_stage.model.bouc_wen import BoucWenParameters  # noqa: E402
+from piezo_stage.nodes.common import COMMAND_QOS, LATCHED_QOS  # noqa: E402
+from ros_support import spin_until, start_node, stop  # noqa: E402
+
+NS = "/ident"
+
+
+def _stamp(msg, t):
+    msg.header.stamp.sec = int(t)
+    msg.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+    return msg
+
+
+def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
+    from piezo_stage_msgs.msg import BoucWenParameters as ParamsMsg
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, LimitCycle, Voltage
+
+    true = BoucWenParameters(**CH9_EXAMPLE)
+    period, runs, t0 = 1.0, [], 10.0
+    for k, q in enumerate((0.0, 0.1)):  # x(t) then x(t)+q, one after the other
+        rec = triangle_run(true, -0.2 + q, 0.2 + q, period=period, samples_per_branch=300, periods=3.0)
+        runs.append((rec.t + t0 + (3.0 + 1e-3) * k, rec.input, rec.output))  # no shared stamp
+    t = np.concatenate([r[0] for r in runs])
+    v = np.concatenate([r[1] for r in runs])
+    y = np.concatenate([r[2] for r in runs])
+    t1 = runs[1][0][0]  # run 1 starts with its first sample, as the excitation node marks it
+    marks = [(t0, 0, False), (t0 + 1.0, 0, True), (t1, 1, False), (t1 + 1.0, 1, True), (t1 + 3.0, 1, False)]
+
+    out_file = tmp_path / "identified.yaml"
+    rclpy.init()
+    node = rclpy.create_node("probe", namespace=NS)
+    proc = start_node("identifier", "stream_qos:=reliable", f"output_file:={out_file}", namespace=NS)
+    try:
+        reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+        pub_v = node.create_publisher(Voltage, "voltage", reliable)
+        pub_y = node.create_publisher(Displacement, "displacement", reliable)
+        pub_e = node.create_publisher(ExcitationInfo, "excitation", COMMAND_QOS)
+        cycles, params = [], []
+        node.create_subscription(LimitCycle, "limit_cycles", cycles.append, COMMAND_QOS)
+        node.create_subscription(ParamsMsg, "bouc_wen_parameters", params.append, LATCHED_QOS)
+        assert spin_until(node, lambda: pub_v.get_subscription_count() and pub_y.get_subscription_count()
+                          and pub_e.get_subscription_count(), 15.0)
+        spin_until(node, lambda: False, 1.0)  # both sides of the match settled: no early sample lost
+        mark_iter = iter(marks)
+        next_mark = next(mark_iter)
+        for i in range(len(t)):
+            while next_mark is not None and next_mark[0] <= t[i]:
+                pub_e.publish(_stamp(ExcitationInfo(waveform="triangle", period=period, amplitude=0.4,
+                                                    offset=0.1 * next_mark[1], run=next_mark[1],
+                                                    steady=next_mark[2]), next_mark[0]))
+                next_mark = next(mark_iter, None)
+            pub_v.publish(_stamp(Voltage(voltage=float(v[i])), t[i]))
+            pub_y.publish(_stamp(Displacement(displacement=float(y[i]), status=0), t[i]))
+            if i % 200 == 0:
+                rclpy.spin_once(node, timeout_sec=0)
+        pub_e.publish(_stamp(ExcitationInfo(run=1, steady=False, offset=0.1, period=period), t1 + 3.0))
+        ok = spin_until(node, lambda: len(params) == 1, 60.0)
+        if not ok:
+            out, err = stop(proc)
+            raise AssertionError(f"no parameters published; cycles {len(cycles)}; node log:\n{err[-3000:]}")
+        assert len(cycles) == 2 and [c.offset for c in cycles] == [0.0, 0.1]
+        assert cycles[0].period == pytest.approx(period, rel=1e-3)
+        assert max(cycles[1].input) - max(cycles[0].input) == pytest.approx(0.1, rel=1e-3)
+
+        stamped = np.array([(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
+                            for m in (_stamp(Voltage(), ti) for ti in t)])  # what the node receives
+        recs = recordings_from_series(stamped, v, stamped, y, np.zeros(len(t), np.uint8),
+                                      intervals_from_marks([(m[0], m[1]) for m in marks]), "offline")
+        offline = identify(recs[0], recs[1], IdentifyOptions())
+        got = params[0]
+        p = offline.parameters
+        assert got.samples == offline.samples
+        assert list(got.kappa) == pytest.approx(list(p.kappa), rel=1e-9)
+        for name in ("kappa_w", "rho", "sigma", "n", "y0"):
+            assert getattr(got, name) == pytest.approx(getattr(p, name), rel=1e-9, abs=1e-15), name
+        assert got.input_sign == 1 and got.input_name == "voltage" and got.samples == offline.samples
+        for name, value in (("kappa_w", 2.0), ("rho", 1.0), ("sigma", 3.0), ("n", 1.5)):
+            assert getattr(got, name) == pytest.approx(value, rel=1e-4)
+        assert out_file.exists() and "kappa_w" in out_file.read_text()
+    finally:
+        stop(proc)
+        node.destroy_node()
+        rclpy.shutdown()

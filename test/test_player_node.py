@@ -1,0 +1,233 @@
+"""The player node over real DDS: timing scaled by rate, /clock, topic filter and remapping,
+pause/resume services, loop, QoS from the bag, and the recorded bytes played as they are."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import serialize_message  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
+
+from piezo_stage.bag import BagWriter, qos, read_raw  # noqa: E402
+from piezo_stage.nodes.player import PlaybackClock, PlayerError, parse_remaps, playback_qos  # noqa: E402
+from ros_support import fill, msg_class, spin_until, start_node, stop  # noqa: E402
+
+NS = "/pl"
+N = 51                 # messages per stream, 10 ms apart: 0.5 s of bag time
+T0 = 1_700_000_000_000_000_000
+DT = 10_000_000
+KEEP_ALL = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+BEST_EFFORT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _data(type_name: str, seed: int) -> bytes:
+    """Serialised message (its CDR padding bytes are whatever rclpy leaves: compare with the
+    bytes stored in the bag, not with a second serialisation)."""
+    return serialize_message(fill(msg_class(type_name)(), seed))
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    """A bag as the recorder writes it: reliable voltage, best-effort displacement, latched
+    parameters; receive times 10 ms apart."""
+    path = tmp_path_factory.mktemp("play") / "bag"
+    with BagWriter(path) as writer:
+        writer.add_topic(f"{NS}/voltage", "piezo_stage_msgs/msg/Voltage", [qos.RELIABLE])
+        writer.add_topic(f"{NS}/displacement", "piezo_stage_msgs/msg/Displacement", [qos.SENSOR_DATA])
+        writer.add_topic(f"{NS}/bouc_wen_parameters", "piezo_stage_msgs/msg/BoucWenParameters", [qos.LATCHED])
+        writer.write(f"{NS}/bouc_wen_parameters", _data("BoucWenParameters", 999), T0)
+        for k in range(N):
+            writer.write(f"{NS}/voltage", _data("Voltage", k), T0 + k * DT)
+            writer.write(f"{NS}/displacement", _data("Displacement", 1000 + k), T0 + k * DT + DT // 2)
+    return path
+
+
+@pytest.fixture()
+def node():
+    rclpy.init()
+    n = rclpy.create_node("probe")
+    yield n
+    n.destroy_node()
+    rclpy.shutdown()
+
+
+class Sink:
+    """Raw subscriptions: arrival times [s, monotonic] and bytes per topic."""
+
+    def __init__(self, node, topics: dict[str, tuple[str, QoSProfile]]) -> None:
+        self.got: dict[str, list[tuple[float, bytes]]] = {t: [] for t in topics}
+        self.subscriptions = []
+        for topic, (type_name, profile) in topics.items():
+            self.subscriptions.append(node.create_subscription(msg_class(type_name), topic,
+                                     lambda data, topic=topic: self.got[topic].append((time.monotonic(), data)),
+                                     profile, raw=True))
+
+    def close(self, node) -> None:
+        for sub in self.subscriptions:
+            node.destroy_subscription(sub)
+
+    def count(self, topic: str) -> int:
+        return len(self.got[topic])
+
+    def span(self, topic: str) -> float:
+        return self.got[topic][-1][0] - self.got[topic][0][0]
+
+
+def same_bytes(played: bytes, recorded: bytes) -> bool:
+    """Equal, up to the zero padding to 4 bytes Fast DDS adds between processes."""
+    return played[:len(recorded)] == recorded and len(played) - len(recorded) < 4 \
+        and not any(played[len(recorded):])
+
+
+def _sink_all(node) -> Sink:
+    return Sink(node, {f"{NS}/voltage": ("Voltage", KEEP_ALL),
+                       f"{NS}/displacement": ("Displacement", BEST_EFFORT),
+                       f"{NS}/bouc_wen_parameters": ("BoucWenParameters", LATCHED)})
+
+
+def _play(node, sink: Sink, bag, *params: str) -> tuple[int, str]:
+    proc = start_node("player", f"bag:={bag}", "wait_for_subscribers:=1", *params, namespace=NS)
+    try:
+        assert spin_until(node, lambda: proc.poll() is not None, 30.0)
+        spin_until(node, lambda: False, 0.2)
+    finally:
+        _, err = stop(proc)
+    return proc.returncode, err
+
+
+def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag):
+    recorded: dict[str, list[bytes]] = {}
+    for topic, _, _, data in read_raw(bag):
+        recorded.setdefault(topic, []).append(bytes(data))
+    spans = {}
+    for rate in (1.0, 5.0):
+        sink = _sink_all(node)
+        code, err = _play(node, sink, bag, f"rate:={rate}")
+        assert code == 0, err
+        assert sink.count(f"{NS}/voltage") == N
+        voltages = [data for _, data in sink.got[f"{NS}/voltage"]]
+        assert all(same_bytes(v, r) for v, r in zip(voltages, recorded[f"{NS}/voltage"]))
+        got = [d for _, d in sink.got[f"{NS}/displacement"]]
+        assert len(got) >= 0.9 * N  # best effort, as recorded
+        index = [next(j for j, r in enumerate(recorded[f"{NS}/displacement"]) if same_bytes(d, r))
+                 for d in got]
+        assert index == sorted(set(index))
+        latched = [d for _, d in sink.got[f"{NS}/bouc_wen_parameters"]]
+        assert len(latched) == 1 and same_bytes(latched[0], recorded[f"{NS}/bouc_wen_parameters"][0])
+        spans[rate] = sink.span(f"{NS}/voltage")
+        sink.close(node)
+    # 0.5 s of bag time: ~0.5 s at rate 1, ~0.1 s at rate 5 (loose bounds: shared machine)
+    assert spans[1.0] > 0.35
+    assert spans[5.0] < 0.3
+    assert spans[1.0] > 2.0 * spans[5.0]
+
+
+def test_clock_topic_filter_and_remap(node, bag):
+    sink = Sink(node, {"/moved/voltage": ("Voltage", KEEP_ALL), f"{NS}/voltage": ("Voltage", KEEP_ALL),
+                       f"{NS}/displacement": ("Displacement", BEST_EFFORT)})
+    clocks: list[int] = []
+    node.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+                             KEEP_ALL)
+    code, err = _play(node, sink, bag, "publish_clock:=true", "clock_rate_hz:=100.0",
+                      f"topics:=['{NS}/voltage']", f"remap:=['{NS}/voltage:=/moved/voltage']")
+    assert code == 0, err
+    assert sink.count("/moved/voltage") == N
+    assert sink.count(f"{NS}/voltage") == 0 and sink.count(f"{NS}/displacement") == 0
+    assert len(clocks) >= 10  # ~50 ticks in 0.5 s
+    assert clocks == sorted(clocks)
+    assert T0 <= clocks[0] and clocks[-1] <= T0 + N * DT + 20 * DT
+
+
+def _call(node, srv_type, name: str, request) -> object:
+    client = node.create_client(srv_type, f"{NS}/player/{name}")
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(request)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=10.0)
+    assert future.done() and future.result().success
+    return future.result()
+
+
+def test_pause_resume_services(node, bag):
+    sink = _sink_all(node)
+    voltage = f"{NS}/voltage"
+    proc = start_node("player", f"bag:={bag}", "start_paused:=true", "rate:=0.5", namespace=NS)
+    try:
+        assert spin_until(node, lambda: node.count_publishers(voltage) >= 1, 15.0)
+        spin_until(node, lambda: False, 0.5)
+        assert sink.count(voltage) == 0  # paused from the start
+        _call(node, Trigger, "resume", Trigger.Request())
+        assert spin_until(node, lambda: sink.count(voltage) >= 10, 10.0)
+        _call(node, Trigger, "pause", Trigger.Request())
+        spin_until(node, lambda: False, 0.1)
+        held = sink.count(voltage)
+        spin_until(node, lambda: False, 0.4)  # 20 messages' worth at rate 0.5
+        assert sink.count(voltage) == held < N
+        _call(node, SetBool, "set_paused", SetBool.Request(data=False))
+        assert spin_until(node, lambda: proc.poll() is not None, 15.0)
+        assert proc.returncode == 0
+        assert sink.count(voltage) == N
+    finally:
+        _, err = stop(proc)
+    assert "Traceback" not in err
+
+
+def test_loop_replays_until_stopped(node, bag):
+    sink = _sink_all(node)
+    proc = start_node("player", f"bag:={bag}", "loop:=true", "rate:=0.0", "wait_for_subscribers:=1",
+                      f"topics:=['{NS}/voltage']", namespace=NS)
+    try:
+        assert spin_until(node, lambda: sink.count(f"{NS}/voltage") >= 3 * N, 20.0)
+        assert proc.poll() is None  # looping: does not exit by itself
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        _, err = stop(proc)
+    assert "Traceback" not in err
+    first = [d for _, d in sink.got[f"{NS}/voltage"][:N]]
+    second = [d for _, d in sink.got[f"{NS}/voltage"][N:2 * N]]
+    assert first == second
+
+
+def test_unknown_topic_in_the_filter_is_refused(bag):
+    proc = start_node("player", f"bag:={bag}", "topics:=['/not/there']", namespace=NS)
+    try:
+        assert proc.wait(timeout=20) == 1
+    finally:
+        _, err = stop(proc)
+    assert "/not/there" in err and "not in" in err
+
+
+# -- pure parts ---------------------------------------------------------------------------------
+def test_playback_clock_scales_and_freezes_while_paused():
+    clock = PlaybackClock(T0, rate=2.0, paused=True)
+    assert clock.due(T0) is None and clock.now(5.0) == T0
+    clock.resume(10.0)
+    assert clock.now(10.5) == T0 + 1_000_000_000       # 0.5 s wall at rate 2
+    assert clock.due(T0 + 3_000_000_000) == pytest.approx(11.5)
+    clock.pause(11.0)
+    assert clock.now(20.0) == T0 + 2_000_000_000       # frozen
+    clock.resume(30.0)
+    assert clock.due(T0 + 3_000_000_000) == pytest.approx(30.5)
+    with pytest.raises(PlayerError, match="rate > 0"):
+        PlaybackClock(T0, rate=0.0)
+
+
+def test_remaps_and_playback_qos():
+    assert parse_remaps(["/a:=/b", "c := d"]) == {"/a": "/b", "c": "d"}
+    with pytest.raises(PlayerError, match="from:=to"):
+        parse_remaps(["/a=/b"])
+    sensor = playback_qos([qos.SENSOR_DATA], 100)
+    assert sensor.reliability == ReliabilityPolicy.BEST_EFFORT and sensor.depth == 100
+    latched = playback_qos([qos.LATCHED, qos.LATCHED], 100)
+    assert latched.durability == DurabilityPolicy.TRANSIENT_LOCAL and latched.depth == 1
+    mixed = playback_qos([qos.RELIABLE, qos.SENSOR_DATA], 10)
+    assert mixed.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert playback_qos([], 10).reliability == ReliabilityPolicy.RELIABLE

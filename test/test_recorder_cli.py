@@ -1,0 +1,72 @@
+"""`piezo-stage record`: starts the recorder node in a namespace, forwards Ctrl-C, prints the bag."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from rclpy.duration import Duration  # noqa: E402
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from piezo_stage.bag import bag_info, read_messages  # noqa: E402
+from ros_support import ROOT, spin_until  # noqa: E402
+
+
+def _cli(*args: str) -> subprocess.Popen:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    return subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_record_forwards_sigint_and_prints_the_complete_bag(tmp_path):
+    from piezo_stage_msgs.msg import Voltage
+
+    bag = tmp_path / "run1"
+    proc = _cli("record", "--ns", "/cli", "-o", str(bag), "--topics", "voltage", "--compression", "zstd")
+    rclpy.init()
+    node = rclpy.create_node("probe", namespace="/cli")
+    try:
+        pub = node.create_publisher(Voltage, "voltage", QoSProfile(
+            depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
+        assert spin_until(node, lambda: pub.get_subscription_count() >= 1, 15.0)
+        spin_until(node, lambda: False, 0.2)
+        for k in range(50):
+            pub.publish(Voltage(voltage=float(k)))
+        assert pub.wait_for_all_acked(Duration(seconds=10))
+        proc.send_signal(signal.SIGINT)  # the recorder drains what it has not written yet
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        node.destroy_node()
+        rclpy.shutdown()
+    assert proc.returncode == 0, err
+    assert f"recording /cli to {bag}" in out
+    assert f"bag: {bag} (complete), 50 messages" in out
+    assert "/cli/voltage: 50 [piezo_stage_msgs/msg/Voltage]" in out
+    assert [m.voltage for _, _, m in read_messages(bag)] == [float(k) for k in range(50)]
+    assert bag_info(bag)["compression"] == "zstd"
+
+
+def test_record_duration_stops_by_itself(tmp_path):
+    bag = tmp_path / "short"
+    proc = _cli("record", "--ns", "/cli_short", "-o", str(bag), "--duration", "1.0")
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert f"bag: {bag} (complete)" in out
+    assert bag_info(bag)["complete"]
+
+
+def test_record_refuses_an_existing_bag(tmp_path, capsys):
+    from piezo_stage.cli import main
+
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    assert main(["record", "-o", str(tmp_path / "full")]) == 1
+    assert "already exists" in capsys.readouterr().err
