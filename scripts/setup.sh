@@ -49,10 +49,12 @@ fi
 
 # 3. message package -----------------------------------------------------------------------
 msg_stamp="$ROOT/install/.piezo-msgs.stamp"
-msg_hash="$(hash_of piezo_stage_msgs/CMakeLists.txt piezo_stage_msgs/package.xml piezo_stage_msgs/msg/* piezo_stage_msgs/srv/* "$fix_stamp")"
+msg_hash="$(hash_of piezo_stage_msgs/CMakeLists.txt piezo_stage_msgs/package.xml piezo_stage_msgs/msg/* "$fix_stamp")"
 if [ "$(cat "$msg_stamp" 2>/dev/null)" != "$msg_hash" ]; then
   say "building piezo_stage_msgs (colcon, ~15 s; log: log/setup-colcon.log)"
   mkdir -p "$ROOT/log"
+  # a clean build: a stale build tree keeps the generated code of removed interfaces
+  rm -rf "$ROOT/build/piezo_stage_msgs" "$ROOT/install/piezo_stage_msgs"
   (
     export PATH="$VENV/bin:$PATH"
     export AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV"
