@@ -1,0 +1,160 @@
+"""Run device emulators (PI GCS amplifier, Thorlabs MDT69x, optoNCDT sensor, or a whole rig) on ptys/TCP.
+
+Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or ``gcs: tcp://127.0.0.1:50000``,
+so a launcher or a user can connect the voltage_driver / laser_reader nodes to it. Runs until
+Ctrl-C (or --duration). Fault switches rehearse a bad link: --drop/--corrupt (per output byte),
+--slow (reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
+
+  piezo-stage emulate gcs --tcp 50000
+  piezo-stage emulate mdt69x
+  piezo-stage emulate optoncdt --family ild1320 --rate 2000
+  piezo-stage emulate rig --params config/ch11_rig.yaml --family ild1320
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+import time
+
+from piezo_stage.hardware.emulators import (EmulatorServer, Faults, GCSDeviceModel, MDTDeviceModel,
+                                            OptoNCDTDeviceModel)
+from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
+
+SENSOR_FAMILIES = sorted(FAMILIES)
+
+
+def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
+    g = parser.add_argument_group("fault injection")
+    g.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability an output byte is lost")
+    g.add_argument("--corrupt", type=float, default=0.0, metavar="P",
+                   help="probability an output byte is replaced by a random byte")
+    g.add_argument("--slow", type=float, default=0.0, metavar="SECONDS", help="delay every reply")
+    g.add_argument("--disconnect-every", type=float, default=0.0, metavar="SECONDS",
+                   help="hang up all clients periodically (pty: a new pty, path printed again)")
+    g.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
+    if link:
+        parser.add_argument("--link", default=None, metavar="PATH",
+                            help="stable symlink to the pty (kept across --disconnect-every)")
+    parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
+                        help="stop after this long (0: run until Ctrl-C)")
+
+
+def _sensor_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--family", choices=SENSOR_FAMILIES, default="ild1320")
+    parser.add_argument("--bits", type=int, choices=(14, 16, 18), default=None,
+                        help="output word width (ILD1320 family: 16 or 18; default per family)")
+    parser.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="measuring rate")
+    parser.add_argument("--measuring-range", type=float, default=10e-3, metavar="M",
+                        help="measuring range MR [m]")
+    parser.add_argument("--error-values", type=float, default=0.0, metavar="P",
+                        help="probability a sample is replaced by an error value")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="device", required=True, metavar="DEVICE")
+    gcs = sub.add_parser("gcs", help="PI E-709-class controller (GCS 2.0)")
+    where = gcs.add_mutually_exclusive_group()
+    where.add_argument("--tcp", type=int, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)")
+    where.add_argument("--pty", action="store_true", help="serve on a pty (default)")
+    gcs.add_argument("--axis", default="1", help="axis identifier reported by SAI?")
+    gcs.add_argument("--v-min", type=float, default=-30.0, help="VMI? [V]")
+    gcs.add_argument("--v-max", type=float, default=130.0, help="VMA? [V]")
+    gcs.add_argument("--servo-off", action="store_true", help="start with the servo off (default: on)")
+    gcs.add_argument("--accept-sva-with-servo-on", action="store_true",
+                     help="do not refuse SVA while the servo is on (the real controller refuses, error 79)")
+    _faults(gcs)
+
+    mdt = sub.add_parser("mdt69x", help="Thorlabs MDT694B/MDT693B on a pty")
+    mdt.add_argument("--model", choices=("MDT694B", "MDT693B"), default="MDT694B")
+    mdt.add_argument("--vlimit", type=float, choices=(75.0, 100.0, 150.0), default=150.0)
+    mdt.add_argument("--no-echo", action="store_true", help="start with command echo off")
+    _faults(mdt)
+
+    sensor = sub.add_parser("optoncdt", help="Micro-Epsilon optoNCDT sensor on a pty")
+    _sensor_args(sensor)
+    _faults(sensor)
+
+    rig = sub.add_parser("rig", help="amplifier + sensor bound to one simulated stage")
+    rig.add_argument("--params", required=True, help="parameter-set YAML of the simulated stage")
+    rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
+    rig.add_argument("--amp-tcp", type=int, default=None, metavar="PORT",
+                     help="serve the GCS amplifier on TCP instead of a pty")
+    rig.add_argument("--standoff", type=float, default=None, metavar="M",
+                     help="sensor reading at zero displacement [m] (default: MR/2)")
+    _sensor_args(rig)
+    _faults(rig, link=False)
+
+
+def _make_faults(args: argparse.Namespace) -> Faults:
+    return Faults(drop=args.drop, corrupt=args.corrupt, reply_delay=args.slow, seed=args.seed)
+
+
+def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
+    faults = _make_faults(args)
+    if args.device == "gcs":
+        model = GCSDeviceModel(axis=args.axis, v_min=args.v_min, v_max=args.v_max,
+                               servo_on=not args.servo_off,
+                               refuse_sva_when_servo_on=not args.accept_sva_with_servo_on)
+        endpoint = {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
+        return {"gcs": EmulatorServer(model, faults=faults, **endpoint)}
+    if args.device == "mdt69x":
+        model = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
+        return {"mdt69x": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults)}
+    fmt = frame_format(args.family, args.bits)
+    if args.device == "optoncdt":
+        model = OptoNCDTDeviceModel(fmt, args.measuring_range, args.rate,
+                                    error_probability=args.error_values, seed=args.seed)
+        return {"optoncdt": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults)}
+    from piezo_stage.hardware.emulators.rig import RigEmulator
+
+    rig = RigEmulator(load_stage(args.params), fmt, args.measuring_range, amplifier=args.amplifier,
+                      amplifier_tcp_port=args.amp_tcp, rate=args.rate, standoff=args.standoff,
+                      sensor_errors=args.error_values, amplifier_faults=faults,
+                      sensor_faults=_make_faults(args), seed=args.seed)
+    return rig.servers
+
+
+def load_stage(path: str):
+    """The simulated stage of the parameter set at ``path`` (piezo_stage.model.plant)."""
+    from piezo_stage.model.parameter_set import load_parameter_set
+    from piezo_stage.model.plant import SimulatedStage
+
+    return SimulatedStage(load_parameter_set(path))
+
+
+def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
+    for name, server in servers.items():
+        print(f"{name}: {server.url}{note}", flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    servers = _servers(args)
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    for server in servers.values():
+        server.start()
+    _announce(servers)
+    t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+    next_hangup = time.monotonic() + args.disconnect_every if args.disconnect_every > 0 else float("inf")
+    try:
+        while not stop.is_set() and time.monotonic() < t_end:
+            stop.wait(min(0.05, max(t_end - time.monotonic(), 0.0)))
+            if time.monotonic() >= next_hangup:
+                for server in servers.values():
+                    server.disconnect()
+                time.sleep(0.05)  # let the server threads reopen their endpoints
+                _announce(servers, " (reconnected)")
+                next_hangup += args.disconnect_every
+            for name, server in servers.items():
+                if server.error is not None:
+                    print(f"{name}: emulator failed: {server.error}", flush=True)
+                    return 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        for server in servers.values():
+            server.stop()
+    return 0

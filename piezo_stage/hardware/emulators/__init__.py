@@ -1,0 +1,9 @@
+"""Device emulators (PI GCS controller, Thorlabs MDT69x, optoNCDT sensor, and a rig coupling both to
+the simulated plant) served on ptys or loopback TCP by :class:`EmulatorServer`."""
+
+from .gcs_device import GCSDeviceModel
+from .mdt_device import MDTDeviceModel
+from .optoncdt_device import OptoNCDTDeviceModel
+from .server import EmulatorServer, Faults
+
+__all__ = ["EmulatorServer", "Faults", "GCSDeviceModel", "MDTDeviceModel", "OptoNCDTDeviceModel"]

@@ -1,0 +1,142 @@
+"""Emulated Thorlabs MDT694B (1 channel) / MDT693B (3 channels) open-loop piezo amplifier.
+
+Commands (case-insensitive, CR or LF terminated): ``id?``, ``vlimit?``, ``echo?``, ``echo=0|1``,
+``<axis>voltage?``, ``<axis>voltage=V``, ``<axis>min?``/``<axis>max?`` and their setters,
+``allvoltage=V``, ``friendly?``, ``serial?``. With echo on (the default) the command text is
+echoed, then the reply lines, each ending in CR, then the prompt ``>``. Unknown commands answer
+``CMD_NOT_DEFINED``. Voltages are clamped to [<axis>min, min(<axis>max, vlimit)] as the
+amplifier's output stage would.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+from ..errors import ConfigError
+from ..mdt69x import AXES, ERROR_TEXT
+
+VLIMITS = (75.0, 100.0, 150.0)  # positions of the output-limit switch [V]
+
+
+class MDTDeviceModel:
+    name = "mdt69x"
+    stream_period = None
+
+    def __init__(self, model: str = "MDT694B", vlimit: float = 150.0, echo: bool = True,
+                 on_voltage: Callable[[float], None] | None = None) -> None:
+        if model not in ("MDT693B", "MDT694B"):
+            raise ConfigError(f"model must be MDT693B or MDT694B, got {model!r}")
+        if vlimit not in VLIMITS:
+            raise ConfigError(f"vlimit switch must be one of {VLIMITS} V, got {vlimit}")
+        self.model = model
+        self.axes = AXES if model == "MDT693B" else AXES[:1]
+        self.vlimit = vlimit
+        self.echo = echo
+        self.on_voltage = on_voltage
+        self.voltage = {a: 0.0 for a in self.axes}
+        self.v_min = {a: 0.0 for a in self.axes}
+        self.v_max = {a: vlimit for a in self.axes}
+        self.commands: list[str] = []
+        self.lock = threading.Lock()
+
+    def session(self) -> "_MDTSession":
+        return _MDTSession(self)
+
+    def stream(self, now: float) -> bytes:
+        return b""
+
+    @property
+    def applied_voltage(self) -> float:
+        """Output of the first channel (x) [V]."""
+        with self.lock:
+            return self.voltage[self.axes[0]]
+
+    def execute(self, command: str) -> bytes:
+        with self.lock:
+            self.commands.append(command)
+            body = self._run(command.strip().lower())
+            echo = f"{command}\r" if self.echo else ""
+            if body is None:
+                return f"{echo}{ERROR_TEXT}>".encode("ascii")
+            return (echo + "".join(f"{line}\r" for line in body) + ">").encode("ascii")
+
+    def _set(self, axis: str, value: float) -> None:
+        value = min(max(value, self.v_min[axis]), min(self.v_max[axis], self.vlimit))
+        self.voltage[axis] = value
+        if self.on_voltage is not None and axis == self.axes[0]:
+            self.on_voltage(value)
+
+    def _run(self, cmd: str) -> list[str] | None:
+        """Reply lines for ``cmd`` ([] for a setter), or None when the command is not defined."""
+        if cmd == "id?":
+            return [f"{self.model} Piezo Controller (piezo_stage emulator)", "Firmware Version: 1.00",
+                    f"Current Voltage Limit: {self.vlimit:.0f}V", "Serial#: EMU0001", "Name: emulator"]
+        if cmd == "vlimit?":
+            return [f"[{self.vlimit:5.0f}]"]
+        if cmd == "echo?":
+            return ["Echo On" if self.echo else "Echo Off"]
+        if cmd in ("friendly?", "serial?"):
+            return ["emulator" if cmd == "friendly?" else "EMU0001"]
+        name, sep, arg = cmd.partition("=")
+        if cmd.endswith("?") and not sep:
+            name, query = cmd[:-1], True
+        elif sep:
+            query = False
+        else:
+            return None
+        if name == "echo" and not query:
+            if arg not in ("0", "1"):
+                return None
+            self.echo = arg == "1"
+            return []
+        if name == "allvoltage" and not query:
+            value = _number(arg)
+            if value is None:
+                return None
+            for axis in self.axes:
+                self._set(axis, value)
+            return []
+        axis, field = name[:1], name[1:]
+        if axis not in self.axes or field not in ("voltage", "min", "max"):
+            return None
+        table = {"voltage": self.voltage, "min": self.v_min, "max": self.v_max}[field]
+        if query:
+            return [f"[{table[axis]:7.2f}]"]
+        value = _number(arg)
+        if value is None or not 0.0 <= value <= self.vlimit:
+            return None
+        if field == "voltage":
+            self._set(axis, value)
+        else:
+            table[axis] = value
+        return []
+
+
+def _number(text: str) -> float | None:
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if value == value and abs(value) != float("inf") else None
+
+
+class _MDTSession:
+    """Per-connection command assembly: a command ends at CR or LF; empty lines are ignored."""
+
+    def __init__(self, model: MDTDeviceModel) -> None:
+        self.model = model
+        self._buf = bytearray()
+
+    def handle(self, data: bytes, now: float) -> bytes:
+        self._buf += data
+        out = bytearray()
+        while True:
+            ends = [i for i in (self._buf.find(b"\r"), self._buf.find(b"\n")) if i >= 0]
+            if not ends:
+                return bytes(out)
+            i = min(ends)
+            line = self._buf[:i].decode("ascii", errors="replace")
+            del self._buf[: i + 1]
+            if line.strip():
+                out += self.model.execute(line.strip())

@@ -1,0 +1,350 @@
+"""Serve a device model on a pty or a loopback TCP port, with fault injection, in one thread.
+
+A device model is pure logic: ``model.session()`` returns an object whose ``handle(data, now)``
+turns received bytes into reply bytes (one session per connection, so line buffers are per
+client), and ``model.stream(now)`` returns bytes to broadcast (the sensor's measurement stream;
+``b""`` for amplifiers) — it is called every ``model.stream_period`` seconds when that is set.
+
+:class:`Faults` acts on everything the device sends: bytes dropped or replaced at random
+(seeded), replies delayed, the link going silent; :meth:`EmulatorServer.disconnect` hangs up
+(TCP: closes the client sockets; pty: closes the pty and opens a fresh one, re-pointing the
+optional stable symlink, like unplugging and re-plugging a USB adapter).
+"""
+
+from __future__ import annotations
+
+import errno
+import heapq
+import itertools
+import os
+import selectors
+import socket
+import threading
+import time
+import tty
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from ..errors import ConfigError
+
+MAX_OUTPUT_BUFFER = 1 << 20  # bytes queued per connection before the oldest are dropped
+
+
+class Session(Protocol):
+    def handle(self, data: bytes, now: float) -> bytes: ...
+
+
+class DeviceModel(Protocol):
+    name: str
+    stream_period: float | None
+
+    def session(self) -> Session: ...
+
+    def stream(self, now: float) -> bytes: ...
+
+
+@dataclass
+class Faults:
+    """Fault injection on the device's output (thread-safe enough: plain attribute writes)."""
+
+    drop: float = 0.0  # probability that an outgoing byte is lost
+    corrupt: float = 0.0  # probability that an outgoing byte is replaced by a random byte
+    reply_delay: float = 0.0  # seconds every reply is held back (slow device)
+    silent: bool = False  # no output at all and input ignored (cable pulled, device hung)
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "corrupt"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} probability must be in [0, 1], got {getattr(self, name)}")
+        if self.reply_delay < 0:
+            raise ConfigError(f"reply_delay must be >= 0 s, got {self.reply_delay}")
+        self.rng = np.random.default_rng(self.seed)
+
+    def apply(self, data: bytes) -> bytes:
+        if not data or (self.drop == 0.0 and self.corrupt == 0.0):
+            return data
+        buf = np.frombuffer(data, dtype=np.uint8).copy()
+        if self.corrupt:
+            hit = self.rng.random(buf.size) < self.corrupt
+            buf[hit] = self.rng.integers(0, 256, int(np.count_nonzero(hit)), dtype=np.uint8)
+        if self.drop:
+            buf = buf[self.rng.random(buf.size) >= self.drop]
+        return buf.tobytes()
+
+
+class _Channel:
+    """One open connection: a TCP socket or a pty master fd, with its session and output queue."""
+
+    def __init__(self, fd: int, session: Session, sock: socket.socket | None = None) -> None:
+        self.fd = fd
+        self.sock = sock
+        self.session = session
+        self.out = bytearray()
+        self.closed = False
+
+    def recv(self) -> bytes:
+        return self.sock.recv(65536) if self.sock is not None else os.read(self.fd, 65536)
+
+    def send_some(self) -> None:
+        if not self.out:
+            return
+        try:
+            n = self.sock.send(self.out) if self.sock is not None else os.write(self.fd, self.out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            if exc.errno == errno.EAGAIN:
+                return
+            raise
+        del self.out[:n]
+
+    def queue(self, data: bytes) -> None:
+        self.out += data
+        if len(self.out) > MAX_OUTPUT_BUFFER:  # nobody reads: lose the oldest, like a UART FIFO
+            del self.out[: len(self.out) - MAX_OUTPUT_BUFFER]
+
+
+class EmulatorServer:
+    """Run ``model`` on a pty (``pty=True``) or on TCP ``host:tcp_port`` (0 = ephemeral)."""
+
+    def __init__(self, model: DeviceModel, *, pty: bool = False, tcp_port: int | None = None,
+                 host: str = "127.0.0.1", pty_link: str | None = None,
+                 faults: Faults | None = None) -> None:
+        if pty == (tcp_port is not None):
+            raise ConfigError("choose exactly one endpoint: pty=True or tcp_port=PORT")
+        self.model = model
+        self.faults = faults or Faults()
+        self.host = host
+        self.pty_link = pty_link
+        self._use_pty = pty
+        self._tcp_port = tcp_port
+        self._listener: socket.socket | None = None
+        self._pty_slave_fd: int | None = None
+        self._pty_path = ""
+        self._channels: dict[int, _Channel] = {}
+        self._delayed: list[tuple[float, int, int, bytes]] = []  # (due, seq, fd, data)
+        self._seq = itertools.count()
+        self._sel = selectors.DefaultSelector()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self._requests: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"emulator-{model.name}", daemon=True)
+        self.error: BaseException | None = None
+        self._open_endpoint()
+
+    # --- public ---------------------------------------------------------------------------------
+    @property
+    def path(self) -> str:
+        """The pty path clients open (the symlink if one was requested)."""
+        return self.pty_link or self._pty_path
+
+    @property
+    def port(self) -> int:
+        assert self._listener is not None
+        return self._listener.getsockname()[1]
+
+    @property
+    def url(self) -> str:
+        """Where clients connect: ``tcp://127.0.0.1:PORT`` or the pty path."""
+        return f"tcp://{self.host}:{self.port}" if self._listener is not None else self.path
+
+    def start(self) -> "EmulatorServer":
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        self._close_all()
+
+    def disconnect(self) -> None:
+        """Hang up every client (pty: a new pty replaces the old one)."""
+        self._requests.append("disconnect")
+        self._wake()
+
+    def __enter__(self) -> "EmulatorServer":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- endpoint -------------------------------------------------------------------------------
+    def _open_endpoint(self) -> None:
+        if self._use_pty:
+            self._open_pty()
+            return
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind((self.host, self._tcp_port or 0))
+        listener.listen(4)
+        listener.setblocking(False)
+        self._listener = listener
+        self._sel.register(listener, selectors.EVENT_READ, "listen")
+
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no CR/LF translation on the device side of the line
+        os.set_blocking(master, False)
+        self._pty_slave_fd = slave  # kept open so the master never sees EIO between clients
+        self._pty_path = os.ttyname(slave)
+        if self.pty_link:
+            tmp = f"{self.pty_link}.tmp{os.getpid()}"
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
+            os.symlink(self._pty_path, tmp)
+            os.replace(tmp, self.pty_link)
+        self._add_channel(_Channel(master, self.model.session()))
+
+    def _add_channel(self, channel: _Channel) -> None:
+        self._channels[channel.fd] = channel
+        self._sel.register(channel.fd, selectors.EVENT_READ, "channel")
+
+    def _drop_channel(self, channel: _Channel) -> None:
+        if channel.closed:
+            return
+        channel.closed = True
+        self._channels.pop(channel.fd, None)
+        try:
+            self._sel.unregister(channel.fd)
+        except (KeyError, ValueError):
+            pass
+        try:
+            if channel.sock is not None:
+                channel.sock.close()
+            else:
+                os.close(channel.fd)
+        except OSError:
+            pass
+
+    def _hang_up(self) -> None:
+        for channel in list(self._channels.values()):
+            self._drop_channel(channel)
+        self._delayed.clear()
+        if self._use_pty:
+            if self._pty_slave_fd is not None:
+                os.close(self._pty_slave_fd)
+                self._pty_slave_fd = None
+            self._open_pty()
+
+    def _close_all(self) -> None:
+        for channel in list(self._channels.values()):
+            self._drop_channel(channel)
+        if self._pty_slave_fd is not None:
+            os.close(self._pty_slave_fd)
+            self._pty_slave_fd = None
+        if self.pty_link and os.path.islink(self.pty_link):
+            os.unlink(self.pty_link)
+        if self._listener is not None:
+            try:
+                self._sel.unregister(self._listener)
+            except (KeyError, ValueError):
+                pass
+            self._listener.close()
+            self._listener = None
+        for fd in (self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._sel.close()
+
+    def _wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:
+            pass
+
+    # --- loop -----------------------------------------------------------------------------------
+    def _emit(self, fd: int | None, data: bytes, now: float) -> None:
+        """Send ``data`` to one channel (fd) or to all (None), through the fault injector."""
+        if not data or self.faults.silent:
+            return
+        data = self.faults.apply(data)
+        targets = list(self._channels) if fd is None else [fd]
+        for target in targets:
+            if self.faults.reply_delay > 0:
+                heapq.heappush(self._delayed, (now + self.faults.reply_delay, next(self._seq), target, data))
+            elif target in self._channels:
+                self._channels[target].queue(data)
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # surfaced to the owner through .error
+            self.error = exc
+            raise
+
+    def _loop(self) -> None:
+        next_stream = time.monotonic()
+        while not self._stop.is_set():
+            period = self.model.stream_period
+            now = time.monotonic()
+            timeout = 0.05
+            if period:
+                timeout = min(timeout, max(next_stream - now, 0.0))
+            if self._delayed:
+                timeout = min(timeout, max(self._delayed[0][0] - now, 0.0))
+            for fd, channel in self._channels.items():
+                events = selectors.EVENT_READ | (selectors.EVENT_WRITE if channel.out else 0)
+                self._sel.modify(fd, events, "channel")
+            for key, mask in self._sel.select(timeout):
+                self._on_event(key, mask)
+            now = time.monotonic()
+            while self._requests:
+                if self._requests.pop(0) == "disconnect":
+                    self._hang_up()
+            while self._delayed and self._delayed[0][0] <= now:
+                _, _, fd, data = heapq.heappop(self._delayed)
+                if fd in self._channels:
+                    self._channels[fd].queue(data)
+            if period and now >= next_stream:
+                self._emit(None, self.model.stream(now), now)
+                next_stream = max(next_stream + period, now - 1.0)
+            for channel in list(self._channels.values()):
+                try:
+                    channel.send_some()
+                except OSError:
+                    self._drop_channel(channel)
+
+    def _on_event(self, key: selectors.SelectorKey, mask: int) -> None:
+        if key.data == "wake":
+            os.read(self._wake_r, 4096)
+            return
+        if key.data == "listen":
+            assert self._listener is not None
+            try:
+                sock, _ = self._listener.accept()
+            except BlockingIOError:
+                return
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._add_channel(_Channel(sock.fileno(), self.model.session(), sock))
+            return
+        channel = self._channels.get(key.fd)
+        if channel is None:
+            return
+        if mask & selectors.EVENT_READ:
+            try:
+                data = channel.recv()
+            except (BlockingIOError, InterruptedError):
+                data = None
+            except OSError:
+                data = b""
+            if data == b"" and channel.sock is not None:
+                self._drop_channel(channel)
+                return
+            if data and not self.faults.silent:
+                now = time.monotonic()
+                self._emit(channel.fd, channel.session.handle(data, now), now)
+        if mask & selectors.EVENT_WRITE and not channel.closed:
+            try:
+                channel.send_some()
+            except OSError:
+                self._drop_channel(channel)

@@ -1,0 +1,292 @@
+"""Micro-Epsilon optoNCDT digital (RS422) output: frame formats, value conversion, stream parser.
+
+Families (``FrameFormat``):
+
+- ``ild1700`` (also ILD1402): 2 bytes per value, H = 1·D13..D7, L = 0·D6..D0 (14 bit);
+  d = (x·1.02/16368 − 0.01)·MR; error values 16370–16383 [ILD1700 manual §7.4/§8.2].
+- ``ild1320`` (also ILD1420/ILD2300): 3 bytes L/M/H whose top two bits are 00/01/10 (11 on H
+  marks a later value of an output block, e.g. intensity), 18 bit (or 16 bit);
+  d = (x·1.02/65520 − 0.01)·MR; 18-bit error values 262075–262082.
+- ``ild1750`` (also ILD1900): same 3-byte framing, d = (x − 98232)/65536·MR.
+
+Samples are metres from the start of the measuring range (MR in metres). A sample is OK only
+when it came from a well-formed frame, is a measurement value (not an error code) and lies in
+[0, MR]; below 0 it is TOO_CLOSE, above MR TOO_FAR; a status other than OK carries NaN.
+
+The parser is vectorised (numpy over each received chunk): a frame is a contiguous L, M, H
+byte triple (or H, L pair) with the right flag bits; every other byte goes to the ASCII
+command channel (ILD1320/1750 families answer ASCII commands between measurement frames) or is
+counted as discarded. Corrupt or lost bytes therefore cost frames but never turn into a
+displacement unless they form a well-formed frame by themselves.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .errors import ConfigError
+
+
+class Status(enum.IntEnum):
+    """Sample status, same values as the Displacement message constants."""
+
+    OK = 0
+    NO_TARGET = 1
+    TOO_CLOSE = 2
+    TOO_FAR = 3
+    INVALID = 4
+
+
+# Error value tables. ILD1700 codes from the ILD1700 manual §7.4 ("Digital error modes").
+# ILD1320-family codes are from memory of the ILD1320/1420 manuals and NOT verified here (the
+# manual page could not be retrieved): 262075 too much data for the baud rate, 262076 no peak,
+# 262077 peak before the measuring range, 262078 peak after it, 262079 value cannot be
+# evaluated, 262080 peak too wide, 262081 laser off, 262082 reserved. The ILD1750/1900 table
+# is assumed equal to the ILD1320 one — confirm both on real hardware.
+_ILD1700_ERRORS = {16370: Status.NO_TARGET, 16372: Status.TOO_CLOSE, 16374: Status.TOO_FAR,
+                   16376: Status.INVALID, 16378: Status.INVALID, 16380: Status.INVALID}
+_ILD18BIT_ERRORS = {262075: Status.INVALID, 262076: Status.NO_TARGET, 262077: Status.TOO_CLOSE,
+                    262078: Status.TOO_FAR, 262079: Status.INVALID, 262080: Status.INVALID,
+                    262081: Status.INVALID, 262082: Status.INVALID}
+
+
+@dataclass(frozen=True)
+class FrameFormat:
+    """One family's binary output format and digital-value -> metres conversion."""
+
+    family: str
+    bytes_per_value: int  # 2 (H/L) or 3 (L/M/H)
+    value_bits: int  # bits carried by a frame (14 or 18)
+    mask: int  # bits of the frame that hold the value (16-bit mode drops D16, D17)
+    measurement_max: int  # largest raw value that is a measurement (larger ones are not)
+    error_range: tuple[int, int]  # inclusive range of error values
+    errors: dict[int, Status]  # specific error values; others in error_range -> INVALID
+    scale: float  # d = (x * scale - offset) * MR
+    offset: float
+    ascii_commands: bool  # answers the ASCII command set (GETINFO, MEASRATE, ...)
+    default_baudrate: int
+    status_lut: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        lut = np.full(1 << self.value_bits, Status.INVALID, dtype=np.uint8)
+        lut[: self.measurement_max + 1] = Status.OK
+        lo, hi = self.error_range
+        lut[lo: hi + 1] = Status.INVALID
+        for code, status in self.errors.items():
+            lut[code] = status
+        lut.setflags(write=False)
+        object.__setattr__(self, "status_lut", lut)
+
+    def to_metres(self, raw: np.ndarray, measuring_range: float) -> np.ndarray:
+        """Digital value(s) -> metres from the start of the measuring range."""
+        return (np.asarray(raw, dtype=np.float64) * self.scale - self.offset) * measuring_range
+
+    def from_metres(self, distance: np.ndarray, measuring_range: float) -> np.ndarray:
+        """Inverse of :meth:`to_metres`, rounded to the nearest digital value and clipped."""
+        x = (np.asarray(distance, dtype=np.float64) / measuring_range + self.offset) / self.scale
+        return np.clip(np.rint(x), 0, self.measurement_max).astype(np.int64)
+
+    def error_value(self, status: Status) -> int:
+        """The error value a sensor of this family sends for ``status`` (not OK)."""
+        for code, st in sorted(self.errors.items()):
+            if st == status:
+                return code
+        return self.error_range[0]
+
+
+def _make_formats() -> dict[str, Callable[[int], FrameFormat]]:
+    def ild1700(bits: int = 14) -> FrameFormat:
+        if bits != 14:
+            raise ConfigError("the ILD1700/ILD1402 format carries 14-bit values")
+        return FrameFormat("ild1700", 2, 14, 0x3FFF, 16368, (16370, 16383), _ILD1700_ERRORS,
+                           1.02 / 16368, 0.01, False, 115200)
+
+    def ild1320(bits: int = 18) -> FrameFormat:
+        if bits == 18:
+            return FrameFormat("ild1320", 3, 18, 0x3FFFF, 65520, (262075, 262143), _ILD18BIT_ERRORS,
+                               1.02 / 65520, 0.01, True, 921600)
+        if bits == 16:  # 16-bit error values not confirmed: everything above 65520 is INVALID
+            return FrameFormat("ild1320", 3, 18, 0xFFFF, 65520, (65521, 65535), {},
+                               1.02 / 65520, 0.01, True, 921600)
+        raise ConfigError(f"ILD1320-family output is 16 or 18 bit, got {bits}")
+
+    def ild1750(bits: int = 18) -> FrameFormat:
+        if bits != 18:
+            raise ConfigError("the ILD1750/ILD1900 format carries 18-bit values")
+        return FrameFormat("ild1750", 3, 18, 0x3FFFF, 262074, (262075, 262143), _ILD18BIT_ERRORS,
+                           1.0 / 65536, 98232 / 65536, True, 921600)
+
+    return {"ild1700": ild1700, "ild1402": ild1700, "ild1320": ild1320, "ild1420": ild1320,
+            "ild2300": ild1320, "ild1750": ild1750, "ild1900": ild1750}
+
+
+FAMILIES = _make_formats()
+
+
+def frame_format(family: str, bits: int | None = None) -> FrameFormat:
+    """The :class:`FrameFormat` of ``family`` (ild1700, ild1402, ild1320, ild1420, ild2300, ild1750, ild1900)."""
+    key = family.lower().replace("-", "")
+    if key not in FAMILIES:
+        raise ConfigError(f"unknown optoNCDT family {family!r}; choose from {sorted(FAMILIES)}")
+    return FAMILIES[key]() if bits is None else FAMILIES[key](bits)
+
+
+def encode_values(fmt: FrameFormat, raw: np.ndarray, later: np.ndarray | None = None) -> bytes:
+    """Encode digital values as frames (the sensor side; used by the emulator and tests).
+
+    ``later`` marks values that are later values of an output block (H flag 11, 3-byte formats).
+    """
+    raw = np.asarray(raw, dtype=np.int64)
+    if fmt.bytes_per_value == 2:
+        out = np.empty((raw.size, 2), dtype=np.uint8)
+        out[:, 0] = 0x80 | ((raw >> 7) & 0x7F)
+        out[:, 1] = raw & 0x7F
+        return out.tobytes()
+    out = np.empty((raw.size, 3), dtype=np.uint8)
+    out[:, 0] = raw & 0x3F
+    out[:, 1] = 0x40 | ((raw >> 6) & 0x3F)
+    h_flag = np.full(raw.size, 0x80, dtype=np.uint8)
+    if later is not None:
+        h_flag[np.asarray(later, dtype=bool)] = 0xC0
+    out[:, 2] = h_flag | ((raw >> 12) & 0x3F)
+    return out.tobytes()
+
+
+@dataclass(frozen=True)
+class SampleBlock:
+    """Samples decoded from one chunk, in arrival order."""
+
+    displacement: np.ndarray  # float64 [m], NaN where status != OK
+    status: np.ndarray  # uint8, Status values
+    raw: np.ndarray  # int64 digital values as received
+
+    @staticmethod
+    def empty() -> "SampleBlock":
+        return SampleBlock(np.empty(0), np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64))
+
+    @staticmethod
+    def concat(blocks: list["SampleBlock"]) -> "SampleBlock":
+        if not blocks:
+            return SampleBlock.empty()
+        return SampleBlock(np.concatenate([b.displacement for b in blocks]),
+                           np.concatenate([b.status for b in blocks]),
+                           np.concatenate([b.raw for b in blocks]))
+
+    def __len__(self) -> int:
+        return int(self.status.size)
+
+
+@dataclass
+class ParserStats:
+    frames: int = 0  # well-formed frames (first values of a block)
+    later_values: int = 0  # well-formed frames flagged as later values of a block (ignored)
+    ok: int = 0
+    errors: int = 0  # samples with status != OK
+    text_bytes: int = 0  # bytes handed to the ASCII channel
+    discarded: int = 0  # bytes that were neither frame nor ASCII text
+
+
+class AsciiChannel:
+    """Collects ASCII command replies (they end with the prompt ``->``) between frames."""
+
+    PROMPT = b"->"
+    MAX_BUFFER = 8192
+
+    def __init__(self) -> None:
+        self._text = bytearray()
+        self._replies: list[bytes] = []
+
+    def feed(self, data: np.ndarray) -> int:
+        """Keep printable ASCII, CR and LF; return how many bytes were dropped."""
+        keep = ((data >= 0x20) & (data < 0x7F)) | (data == 0x0D) | (data == 0x0A)
+        self._text += data[keep].tobytes()
+        while (i := self._text.find(self.PROMPT)) >= 0:
+            self._replies.append(bytes(self._text[: i + len(self.PROMPT)]))
+            del self._text[: i + len(self.PROMPT)]
+        if len(self._text) > self.MAX_BUFFER:
+            del self._text[: len(self._text) - self.MAX_BUFFER]
+        return int(data.size - np.count_nonzero(keep))
+
+    def pop_reply(self) -> bytes | None:
+        return self._replies.pop(0) if self._replies else None
+
+    def clear(self) -> None:
+        self._text.clear()
+        self._replies.clear()
+
+
+class OptoNCDTParser:
+    """Incremental, vectorised parser of an optoNCDT byte stream (see module docstring)."""
+
+    def __init__(self, fmt: FrameFormat, measuring_range: float) -> None:
+        if not measuring_range > 0:
+            raise ConfigError(f"measuring range must be > 0 m, got {measuring_range}")
+        self.fmt = fmt
+        self.measuring_range = float(measuring_range)
+        self.ascii = AsciiChannel()
+        self.stats = ParserStats()
+        self._tail = np.empty(0, dtype=np.uint8)
+
+    def reset(self) -> None:
+        self._tail = np.empty(0, dtype=np.uint8)
+        self.ascii.clear()
+
+    def feed(self, data: bytes) -> SampleBlock:
+        """Parse the next chunk of the stream; bytes of an incomplete frame wait for the next chunk."""
+        if not data:
+            return SampleBlock.empty()
+        buf = np.concatenate([self._tail, np.frombuffer(data, dtype=np.uint8)])
+        width = self.fmt.bytes_per_value
+        ends = self._frame_ends(buf)  # index of each frame's last byte
+        decided = max(buf.size - (width - 1), int(ends[-1]) + 1 if ends.size else 0)
+        in_frame = np.zeros(buf.size, dtype=bool)
+        for k in range(width):
+            in_frame[ends - k] = True
+        other = buf[:decided][~in_frame[:decided]]
+        self._tail = buf[decided:].copy()
+        self._route_other(other)
+        return self._decode(buf, ends)
+
+    def _frame_ends(self, buf: np.ndarray) -> np.ndarray:
+        if self.fmt.bytes_per_value == 2:  # H (bit 7 set) followed by L (bit 7 clear)
+            return np.flatnonzero((buf[:-1] >= 0x80) & (buf[1:] < 0x80)) + 1
+        flags = buf >> 6  # L: 00, M: 01, H: 10 (first value) or 11 (later value of a block)
+        return np.flatnonzero((flags[2:] >= 2) & (flags[1:-1] == 1) & (flags[:-2] == 0)) + 2
+
+    def _route_other(self, other: np.ndarray) -> None:
+        if not other.size:
+            return
+        if self.fmt.ascii_commands:
+            dropped = self.ascii.feed(other)
+            self.stats.text_bytes += int(other.size) - dropped
+            self.stats.discarded += dropped
+        else:
+            self.stats.discarded += int(other.size)
+
+    def _decode(self, buf: np.ndarray, ends: np.ndarray) -> SampleBlock:
+        if not ends.size:
+            return SampleBlock.empty()
+        b = buf.astype(np.int64)
+        if self.fmt.bytes_per_value == 2:
+            raw = ((b[ends - 1] & 0x7F) << 7) | (b[ends] & 0x7F)
+        else:
+            first = b[ends] < 0xC0
+            self.stats.later_values += int(ends.size - np.count_nonzero(first))
+            ends = ends[first]
+            raw = ((b[ends] & 0x3F) << 12) | ((b[ends - 1] & 0x3F) << 6) | (b[ends - 2] & 0x3F)
+        raw &= self.fmt.mask
+        status = self.fmt.status_lut[raw].copy()
+        distance = self.fmt.to_metres(raw, self.measuring_range)
+        ok = status == Status.OK
+        status[ok & (distance < 0.0)] = Status.TOO_CLOSE
+        status[ok & (distance > self.measuring_range)] = Status.TOO_FAR
+        distance[status != Status.OK] = np.nan
+        n_ok = int(np.count_nonzero(status == Status.OK))
+        self.stats.frames += int(raw.size)
+        self.stats.ok += n_ok
+        self.stats.errors += int(raw.size) - n_ok
+        return SampleBlock(distance, status, raw)

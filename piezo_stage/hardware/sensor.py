@@ -1,0 +1,141 @@
+"""optoNCDT sensor reader: link handling on top of :class:`OptoNCDTParser`.
+
+``SensorReader.read()`` returns the samples decoded since the last call (a
+:class:`SampleBlock`, possibly empty); ``command()`` runs an ASCII command while samples keep
+arriving (they are kept for the next ``read()``); ``reconnect()`` reopens a dropped link.
+``stale`` tells when no frame arrived for ``stale_timeout`` seconds (for diagnostics).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+from .errors import ConfigError, ConnectionLost, DeviceTimeout, SensorCommandError, TransportError
+from .optoncdt import OptoNCDTParser, SampleBlock, frame_format
+from .transport import Transport, make_transport
+
+log = logging.getLogger(__name__)
+_ERROR_LINE = re.compile(r"^E(\d+)\b\s*(.*)$")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    family: str  # ild1700, ild1402, ild1320, ild1420, ild2300, ild1750, ild1900
+    measuring_range: float  # MR [m]
+    bits: int | None = None  # 16 or 18 for the ILD1320 family (default 18)
+    stale_timeout: float = 0.5  # s without frames before `stale`
+    reconnect_attempts: int = 3
+    reconnect_delay: float = 0.2  # s
+
+    def __post_init__(self) -> None:
+        if not self.measuring_range > 0:
+            raise ConfigError(f"measuring_range must be > 0 m, got {self.measuring_range}")
+        if not self.stale_timeout > 0:
+            raise ConfigError(f"stale_timeout must be > 0 s, got {self.stale_timeout}")
+
+
+class SensorReader:
+    def __init__(self, transport: Transport, config: SensorConfig,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.transport = transport
+        self.config = config
+        self.clock = clock
+        self.parser = OptoNCDTParser(frame_format(config.family, config.bits), config.measuring_range)
+        self._pending: list[SampleBlock] = []
+        self._t_frame = -float("inf")
+        self.reconnects = 0
+
+    @classmethod
+    def from_url(cls, url: str, config: SensorConfig, baudrate: int | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> "SensorReader":
+        fmt = frame_format(config.family, config.bits)
+        return cls(make_transport(url, baudrate or fmt.default_baudrate), config, clock)
+
+    # --- link -----------------------------------------------------------------------------------
+    def connect(self) -> None:
+        self.transport.open()
+        self.transport.reset_input()
+        self.parser.reset()
+        self._t_frame = self.clock()
+
+    def reconnect(self) -> None:
+        self.transport.close()
+        last: Exception | None = None
+        for attempt in range(max(self.config.reconnect_attempts, 1)):
+            if attempt:
+                time.sleep(self.config.reconnect_delay)
+            try:
+                self.connect()
+                self.reconnects += 1
+                return
+            except TransportError as exc:
+                last = exc
+                self.transport.close()
+        raise ConnectionLost(f"could not reconnect to {self.transport.url}: {last}") from last
+
+    def close(self) -> None:
+        self.transport.close()
+
+    @property
+    def stale(self) -> bool:
+        return self.clock() - self._t_frame > self.config.stale_timeout
+
+    # --- samples --------------------------------------------------------------------------------
+    def _receive(self, timeout: float) -> None:
+        data = self.transport.read(timeout)
+        if data:
+            block = self.parser.feed(data)
+            if len(block):
+                self._pending.append(block)
+                self._t_frame = self.clock()
+
+    def read(self, timeout: float = 0.05) -> SampleBlock:
+        """Samples received since the last call, waiting up to ``timeout`` s if there are none."""
+        if not self._pending:
+            self._receive(timeout)
+        block = SampleBlock.concat(self._pending)
+        self._pending = []
+        return block
+
+    def samples(self, timeout: float = 0.05) -> Iterator[SampleBlock]:
+        """Endless iterator of non-empty sample blocks (raises ConnectionLost when the link drops)."""
+        while True:
+            block = self.read(timeout)
+            if len(block):
+                yield block
+
+    # --- ASCII commands -------------------------------------------------------------------------
+    def command(self, text: str, timeout: float = 1.0) -> list[str]:
+        """Run an ASCII command; returns the reply lines without echo and prompt."""
+        if not self.parser.fmt.ascii_commands:
+            raise SensorCommandError("n/a", f"{self.parser.fmt.family} uses a binary command "
+                                     "protocol, which this reader does not implement", text)
+        self.parser.ascii.clear()
+        self.transport.write(text.encode("ascii") + b"\r\n")
+        deadline = self.clock() + timeout
+        while (reply := self.parser.ascii.pop_reply()) is None:
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                raise DeviceTimeout(f"no reply to {text!r} from {self.transport.url} within {timeout} s")
+            self._receive(min(remaining, 0.05))
+        lines = [ln.strip() for ln in reply[:-2].decode("ascii").replace("\r", "\n").split("\n")]
+        lines = [ln for ln in lines if ln]
+        if lines and lines[0].upper() == text.strip().upper():
+            lines = lines[1:]
+        for line in lines:
+            if (match := _ERROR_LINE.match(line)) is not None:
+                raise SensorCommandError(f"E{match.group(1)}", match.group(2) or line, text)
+        return lines
+
+    def get_info(self, timeout: float = 1.0) -> dict[str, str]:
+        """``GETINFO`` as a dict of ``key: value`` lines."""
+        info = {}
+        for line in self.command("GETINFO", timeout):
+            key, sep, value = line.partition(":")
+            if sep:
+                info[key.strip()] = value.strip()
+        return info

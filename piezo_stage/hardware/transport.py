@@ -1,0 +1,244 @@
+"""Byte links behind one small interface: serial ports / ptys (pyserial) and TCP sockets.
+
+URLs accepted by :func:`make_transport`:
+
+- ``tcp://HOST:PORT`` (``socket://`` is an alias) — e.g. a PI controller on port 50000;
+- ``serial:///dev/ttyUSB0?baudrate=115200`` or a bare device path ``/dev/pts/7``.
+
+Every transport raises :class:`ConnectionLost` when the link drops and returns ``b""`` from
+:meth:`Transport.read` when nothing arrived within the timeout. :class:`ReplyBuffer` assembles
+replies (lines, prompts) on top of any transport.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from abc import ABC, abstractmethod
+from typing import Callable
+from urllib.parse import parse_qs, urlparse
+
+from .errors import ConfigError, ConnectionLost, DeviceTimeout, NotConnected
+
+
+class Transport(ABC):
+    """A bidirectional byte link that can be (re)opened."""
+
+    url: str
+
+    @abstractmethod
+    def open(self) -> None:
+        """Open the link (idempotent); raise ConnectionLost if the far end is unreachable."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close the link (idempotent, never raises)."""
+
+    @property
+    @abstractmethod
+    def is_open(self) -> bool: ...
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Send all of ``data``."""
+
+    @abstractmethod
+    def read(self, timeout: float) -> bytes:
+        """Return the bytes available now, waiting up to ``timeout`` s for the first; b"" on timeout."""
+
+    @abstractmethod
+    def reset_input(self) -> None:
+        """Discard everything received but not yet read."""
+
+    def __enter__(self) -> "Transport":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SerialTransport(Transport):
+    """A serial port or pty through pyserial (8N1, no flow control)."""
+
+    def __init__(self, port: str, baudrate: int = 115200) -> None:
+        if baudrate <= 0:
+            raise ConfigError(f"baudrate must be positive, got {baudrate}")
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.url = f"serial://{port}?baudrate={self.baudrate}"
+        self._ser = None
+
+    def open(self) -> None:
+        if self._ser is not None:
+            return
+        import serial
+
+        try:
+            self._ser = serial.Serial(self.port, self.baudrate, bytesize=8, parity="N", stopbits=1,
+                                      timeout=0.1, write_timeout=1.0)
+        except (serial.SerialException, OSError) as exc:
+            raise ConnectionLost(f"cannot open {self.port}: {exc}") from exc
+
+    def close(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # closing a dead port must not raise
+                pass
+
+    @property
+    def is_open(self) -> bool:
+        return self._ser is not None
+
+    def _port(self):
+        if self._ser is None:
+            raise NotConnected(f"{self.url} is not open")
+        return self._ser
+
+    def write(self, data: bytes) -> None:
+        import serial
+
+        ser = self._port()
+        try:
+            ser.write(data)
+        except serial.SerialTimeoutException as exc:
+            raise DeviceTimeout(f"write to {self.port} timed out") from exc
+        except (serial.SerialException, OSError) as exc:
+            raise ConnectionLost(f"write to {self.port} failed: {exc}") from exc
+
+    def read(self, timeout: float) -> bytes:
+        import serial
+
+        ser = self._port()
+        try:
+            ser.timeout = max(timeout, 0.0)
+            data = ser.read(1)
+            waiting = ser.in_waiting
+            if data and waiting:
+                data += ser.read(waiting)
+            return bytes(data)
+        except (serial.SerialException, OSError, TypeError) as exc:
+            # pyserial raises SerialException("device reports readiness to read but returned no
+            # data") when the other side of a pty or a USB adapter goes away.
+            raise ConnectionLost(f"read from {self.port} failed: {exc}") from exc
+
+    def reset_input(self) -> None:
+        import serial
+
+        try:
+            self._port().reset_input_buffer()
+        except (serial.SerialException, OSError) as exc:
+            raise ConnectionLost(f"flush of {self.port} failed: {exc}") from exc
+
+
+class TcpTransport(Transport):
+    """A TCP client socket with Nagle disabled (small command/reply packets)."""
+
+    def __init__(self, host: str, port: int, connect_timeout: float = 2.0) -> None:
+        if not 0 < int(port) < 65536:
+            raise ConfigError(f"TCP port must be in 1..65535, got {port}")
+        self.host = host
+        self.port = int(port)
+        self.connect_timeout = connect_timeout
+        self.url = f"tcp://{host}:{self.port}"
+        self._sock: socket.socket | None = None
+
+    def open(self) -> None:
+        if self._sock is not None:
+            return
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout)
+        except OSError as exc:
+            raise ConnectionLost(f"cannot connect to {self.url}: {exc}") from exc
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock = sock
+
+    def close(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            try:
+                sock.close()
+            except OSError:
+                pass
+
+    @property
+    def is_open(self) -> bool:
+        return self._sock is not None
+
+    def _socket(self) -> socket.socket:
+        if self._sock is None:
+            raise NotConnected(f"{self.url} is not open")
+        return self._sock
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._socket().sendall(data)
+        except OSError as exc:
+            raise ConnectionLost(f"send to {self.url} failed: {exc}") from exc
+
+    def read(self, timeout: float) -> bytes:
+        sock = self._socket()
+        try:
+            sock.settimeout(max(timeout, 1e-4))
+            data = sock.recv(65536)
+        except (socket.timeout, BlockingIOError):
+            return b""
+        except OSError as exc:
+            raise ConnectionLost(f"receive from {self.url} failed: {exc}") from exc
+        if not data:
+            raise ConnectionLost(f"{self.url} closed the connection")
+        return data
+
+    def reset_input(self) -> None:
+        while self.read(0.0):
+            pass
+
+
+def make_transport(url: str, baudrate: int = 115200) -> Transport:
+    """Build (not open) the transport for ``url``; see the module docstring for the forms."""
+    if not url:
+        raise ConfigError("empty device URL")
+    parsed = urlparse(url)
+    if parsed.scheme in ("tcp", "socket"):
+        if not parsed.hostname or parsed.port is None:
+            raise ConfigError(f"TCP URL needs host and port, e.g. tcp://192.168.0.20:50000, got {url!r}")
+        return TcpTransport(parsed.hostname, parsed.port)
+    if parsed.scheme == "serial":
+        query = parse_qs(parsed.query)
+        baud = int(query.get("baudrate", [baudrate])[0])
+        return SerialTransport(parsed.path, baud)
+    if parsed.scheme == "":  # /dev/ttyUSB0, /dev/pts/7, COM3
+        return SerialTransport(url, baudrate)
+    raise ConfigError(f"unsupported device URL {url!r} (use tcp://HOST:PORT, serial://PATH or a path)")
+
+
+class ReplyBuffer:
+    """Accumulates bytes from a transport until a complete reply is present.
+
+    ``complete(buffer) -> end`` returns the index one past the reply's last byte, or -1 while the
+    reply is still incomplete. Bytes after the reply stay buffered for the next call.
+    """
+
+    def __init__(self, transport: Transport) -> None:
+        self.transport = transport
+        self._buf = bytearray()
+
+    def clear(self) -> None:
+        self._buf.clear()
+
+    def read_reply(self, complete: Callable[[bytes], int], timeout: float, what: str = "reply") -> bytes:
+        deadline = time.monotonic() + timeout
+        while True:
+            end = complete(bytes(self._buf)) if self._buf else -1
+            if end >= 0:
+                reply = bytes(self._buf[:end])
+                del self._buf[:end]
+                return reply
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                partial = bytes(self._buf[:80])
+                raise DeviceTimeout(f"no complete {what} from {self.transport.url} within "
+                                    f"{timeout:.3g} s (got {partial!r})")
+            self._buf += self.transport.read(min(remaining, 0.05))

@@ -1,0 +1,159 @@
+"""`piezo-stage emulate`: printed endpoints, clients connecting to them, the rig coupling, clean shutdown."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from piezo_stage.cli import main
+from piezo_stage.hardware.amplifier import make_amplifier
+from piezo_stage.hardware.driver import DriverConfig, VoltageDriver
+from piezo_stage.hardware.emulators.rig import RigEmulator
+from piezo_stage.hardware.errors import ConnectionLost
+from piezo_stage.hardware.optoncdt import Status, frame_format
+from piezo_stage.hardware.sensor import SensorConfig, SensorReader
+
+ROOT = Path(__file__).resolve().parents[1]
+MR = 10e-3
+
+
+def run_in_thread(argv, capsys, n_lines: int):
+    """Start ``main(argv)`` in a thread; return (thread, endpoint lines printed, result holder)."""
+    result: dict[str, int] = {}
+    thread = threading.Thread(target=lambda: result.setdefault("rc", main(argv)), daemon=True)
+    thread.start()
+    text, deadline = "", time.monotonic() + 10.0
+    while len(text.splitlines()) < n_lines and time.monotonic() < deadline:
+        time.sleep(0.02)
+        text += capsys.readouterr().out
+    return thread, dict(line.split(": ", 1) for line in text.splitlines()), result
+
+
+def test_gcs_subprocess_prints_pty_and_stops_cleanly_on_sigint():
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "emulate", "gcs", "--pty"],
+                            stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        line = proc.stdout.readline().strip()
+        assert re.fullmatch(r"gcs: /dev/pts/\d+", line)
+        driver = VoltageDriver(make_amplifier("gcs", line.split(": ")[1]), DriverConfig(v_min=0, v_max=100))
+        driver.connect()
+        assert driver.set_voltage(42.0).sent == 42.0
+        assert driver.shutdown() == 0.0
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+
+
+def test_gcs_on_tcp_and_mdt_on_pty_in_process(capsys):
+    thread, ends, result = run_in_thread(["emulate", "gcs", "--tcp", "0", "--duration", "0.5"], capsys, 1)
+    assert ends["gcs"].startswith("tcp://127.0.0.1:")
+    amp = make_amplifier("gcs", ends["gcs"])
+    assert "E-709" in amp.open().identity
+    amp.close()
+    thread.join(5)
+    assert result["rc"] == 0
+
+    thread, ends, result = run_in_thread(["emulate", "mdt69x", "--vlimit", "75", "--duration", "0.5"], capsys, 1)
+    amp = make_amplifier("mdt69x", ends["mdt69x"])
+    assert amp.open().v_max == 75.0
+    amp.close()
+    thread.join(5)
+    assert result["rc"] == 0
+
+
+def test_optoncdt_with_error_values_and_periodic_disconnect(capsys, tmp_path):
+    link = str(tmp_path / "laser")
+    argv = ["emulate", "optoncdt", "--family", "ild1700", "--rate", "2000", "--error-values", "0.3",
+            "--disconnect-every", "0.3", "--link", link, "--duration", "1.0", "--seed", "1"]
+    thread, ends, result = run_in_thread(argv, capsys, 1)
+    assert ends["optoncdt"] == link
+    reader = SensorReader.from_url(link, SensorConfig("ild1700", MR, reconnect_delay=0.05))
+    reader.connect()
+    statuses, lost = [], 0
+    deadline = time.monotonic() + 0.8
+    while time.monotonic() < deadline:
+        try:
+            statuses.append(reader.read(0.05).status)
+        except ConnectionLost:
+            lost += 1
+            reader.reconnect()
+    reader.close()
+    thread.join(5)
+    assert result["rc"] == 0
+    status = np.concatenate(statuses)
+    assert lost >= 1 and reader.reconnects == lost  # hung up at least once, came back each time
+    assert (status == Status.OK).any() and (status != Status.OK).mean() > 0.1
+
+
+class LinearStage:
+    """A stand-in plant for testing the wiring only: y = 1e-7 m/V * v, one sample of delay."""
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, command_voltage: float, dt: float) -> tuple[float, float, int]:
+        self.steps += 1
+        return command_voltage, 1e-7 * command_voltage, 0
+
+
+def test_rig_couples_amplifier_voltage_to_sensor_reading():
+    stage = LinearStage()
+    fmt = frame_format("ild1320")
+    with RigEmulator(stage, fmt, MR, amplifier="gcs", amplifier_tcp_port=0, rate=2000.0,
+                     standoff=4e-3) as rig:
+        driver = VoltageDriver(make_amplifier("gcs", rig.amplifier_server.url), DriverConfig(v_min=0, v_max=100))
+        reader = SensorReader.from_url(rig.sensor_server.url, SensorConfig("ild1320", MR))
+        driver.connect()
+        reader.connect()
+        for volts in (0.0, 100.0):
+            driver.set_voltage(volts)
+            time.sleep(0.1)
+            reader.read(0.05)  # discard samples taken before the new voltage
+            block = reader.read(0.1)
+            assert len(block) and np.all(block.status == Status.OK)
+            expected = 4e-3 + 1e-7 * volts
+            assert np.all(np.abs(block.displacement - expected) <= MR * 1.02 / 65520)
+        driver.shutdown()
+        reader.close()
+    assert stage.steps > 100 and rig.coupling.applied == 0.0
+
+
+def test_rig_command_with_the_simulated_plant(capsys, tmp_path):
+    """`emulate rig` with the real SimulatedStage: voltage in, plant displacement out of the sensor."""
+    from piezo_stage.model.bouc_wen import BoucWenParameters
+    from piezo_stage.model.parameter_set import Dynamics, ParameterSet, save_parameter_set
+
+    params = ParameterSet(name="ch11_rig", form="dynamic",
+                          bouc_wen=BoucWenParameters(kappa=(10.35e6,), kappa_w=43.57, rho=8.566e4,
+                                                     sigma=0.9153, n=1.176),
+                          dynamics=Dynamics(m=5.3e-3, c=13.0), input_name="voltage",
+                          output_name="displacement")
+    path = tmp_path / "rig.yaml"
+    save_parameter_set(params, path)
+    argv = ["emulate", "rig", "--params", str(path), "--family", "ild1750", "--measuring-range", "2e-3",
+            "--rate", "2000", "--duration", "2.0"]
+    thread, ends, result = run_in_thread(argv, capsys, 2)
+    driver = VoltageDriver(make_amplifier("gcs", ends["gcs"]), DriverConfig(v_min=0, v_max=100))
+    reader = SensorReader.from_url(ends["optoncdt"], SensorConfig("ild1750", 2e-3))
+    driver.connect()
+    reader.connect()
+    rest = reader.read(0.1)
+    driver.set_voltage(100.0)
+    time.sleep(0.2)
+    reader.read(0.05)
+    moved = reader.read(0.1)
+    driver.shutdown()
+    reader.close()
+    thread.join(5)
+    assert result["rc"] == 0
+    assert np.all(rest.status == Status.OK) and np.all(moved.status == Status.OK)
+    assert np.median(moved.displacement) > np.median(rest.displacement) + 1e-6  # ~10 µm at 100 V

@@ -1,0 +1,150 @@
+"""PI GCS 2.0 protocol against the GCS emulator (loopback TCP and pty), and PIPython against the emulator."""
+
+from __future__ import annotations
+
+import pytest
+
+from piezo_stage.hardware.emulators import EmulatorServer, Faults, GCSDeviceModel
+from piezo_stage.hardware.errors import DeviceTimeout, GCSError, ProtocolError
+from piezo_stage.hardware.gcs import (GCS_ERROR_MESSAGES, GCSConnection, gcs_error_message, gcs_reply_end,
+                                      join_reply, parse_item_values, split_reply)
+from piezo_stage.hardware.transport import make_transport
+
+
+@pytest.fixture(params=["tcp", "pty"])
+def served(request):
+    model = GCSDeviceModel(axis="A", v_min=-20.0, v_max=120.0)
+    endpoint = {"tcp_port": 0} if request.param == "tcp" else {"pty": True}
+    with EmulatorServer(model, **endpoint) as server:
+        transport = make_transport(server.url)
+        transport.open()
+        yield model, GCSConnection(transport, timeout=0.5)
+        transport.close()
+
+
+def test_error_table_has_the_required_codes_with_pipython_texts():
+    for code in (1, 2, 5, 15, 17, 66, 79):
+        assert code in GCS_ERROR_MESSAGES
+    assert gcs_error_message(79) == "Open-loop commands are not allowed when servo is on"
+    assert gcs_error_message(2) == "Unknown command"
+    assert "9999" in gcs_error_message(9999)
+
+
+def test_reply_framing_multi_line():
+    assert gcs_reply_end(b"1=2.5 \n2=3") == -1
+    assert gcs_reply_end(b"1=2.5 \n2=3\nrest") == len(b"1=2.5 \n2=3\n")
+    assert split_reply(join_reply(["a", "b", "c"])) == ["a", "b", "c"]
+    assert join_reply(["x=1", "y=2"]) == b"x=1 \ny=2\n"
+    assert parse_item_values(["1=12.345", "Z = -3"]) == {"1": "12.345", "Z": "-3"}
+    with pytest.raises(ProtocolError):
+        parse_item_values(["garbage"])
+
+
+def test_identify_axes_and_open_loop_voltage(served):
+    model, conn = served
+    assert "E-709" in conn.query("*IDN?")[0]
+    assert conn.query("SAI?") == ["A"]
+    conn.command("SVO A 0")
+    conn.command("SVA A 42.5")
+    assert conn.query_float("SVA? A", "A") == 42.5
+    assert conn.query_float("VOL? 1", "1") == 42.5
+    assert conn.query_float("VMA? 1", "1") == 120.0
+    assert conn.query_float("VMI? 1", "1") == -20.0
+    assert model.applied_voltage == 42.5
+
+
+def test_multi_line_reply_is_read_whole(served):
+    _, conn = served
+    lines = conn.query("HLP?")
+    assert len(lines) > 10 and "SVA" in lines and "VOL?" in lines
+    assert conn.error_code() == 0  # nothing left over from the multi-line reply
+
+
+@pytest.mark.parametrize("command, code", [
+    ("SVA A 10", 79),  # servo still on (real default)
+    ("FOO 1", 2),
+    ("SVO B 0", 15),
+    ("SVO A 7", 17),
+    ("SVO A", 1),
+    ("MOV A 1", None),  # servo on: accepted (target stored)
+])
+def test_setters_latch_error_codes(served, command, code):
+    model, conn = served
+    if code is None:
+        conn.command(command)
+        return
+    with pytest.raises(GCSError) as err:
+        conn.command(command)
+    assert err.value.code == code
+    assert err.value.message == GCS_ERROR_MESSAGES[code]
+    assert conn.error_code() == 0  # ERR? cleared it
+    assert model.applied_voltage == 0.0
+
+
+def test_voltage_outside_device_limits_and_move_with_servo_off(served):
+    model, conn = served
+    conn.command("SVO A 0")
+    with pytest.raises(GCSError) as err:
+        conn.command("SVA A 500")
+    assert err.value.code == 66
+    with pytest.raises(GCSError) as err:
+        conn.command("MOV A 1")
+    assert err.value.code == 5
+    assert model.applied_voltage == 0.0
+
+
+def test_refused_query_raises_gcs_error_not_timeout(served):
+    _, conn = served
+    with pytest.raises(GCSError) as err:
+        conn.query("VOL? 9")
+    assert err.value.code == 17
+
+
+def test_sva_accepted_with_servo_on_when_refusal_disabled():
+    model = GCSDeviceModel(refuse_sva_when_servo_on=False)
+    with EmulatorServer(model, tcp_port=0) as server:
+        with make_transport(server.url) as transport:
+            GCSConnection(transport).command("SVA 1 5")
+    assert model.applied_voltage == 5.0
+
+
+def test_slow_replies_time_out():
+    with EmulatorServer(GCSDeviceModel(), tcp_port=0, faults=Faults(reply_delay=0.5)) as server:
+        with make_transport(server.url) as transport:
+            with pytest.raises(DeviceTimeout):
+                GCSConnection(transport, timeout=0.1).query("*IDN?")
+
+
+def test_pipython_drives_the_emulator_over_tcp():
+    """PI's own Python library (pure-Python PISocket gateway, no vendor DLL) against the emulator."""
+    import gc
+
+    import pipython
+    from pipython import GCSDevice
+    from pipython.pidevice.interfaces.pisocket import PISocket
+
+    model = GCSDeviceModel(axis="1", v_min=0.0, v_max=100.0)
+    with EmulatorServer(model, tcp_port=0) as server:
+        device = GCSDevice(gateway=PISocket(host="127.0.0.1", port=server.port))
+        try:
+            assert "E-709" in device.qIDN()
+            axis = device.axes[0]
+            assert axis == "1"
+            with pytest.raises(pipython.GCSError) as err:  # servo on: SVA refused, PIPython reads ERR?
+                device.SVA(axis, 12.5)
+            assert err.value.val == 79
+            device.SVO(axis, False)
+            assert device.qSVO()[axis] is False
+            device.SVA(axis, 12.5)
+            assert device.qSVA()[axis] == 12.5
+            assert device.qVOL()[1] == 12.5
+            assert device.qVMA()[1] == 100.0 and device.qVMI()[1] == 0.0
+            with pytest.raises(pipython.GCSError) as err:
+                device.SVA(axis, 150.0)
+            assert err.value.val == 66
+            assert device.qERR() == 0
+            assert len(device.qHLP().splitlines()) > 10
+        finally:
+            del device  # PIPython closes its socket in __del__ (closing twice raises EBADF there)
+            gc.collect()
+    assert model.applied_voltage == 12.5
