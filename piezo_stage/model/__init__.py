@@ -1,1 +1,27 @@
-"""Bouc-Wen hysteresis models and piezo plant dynamics (thesis ch. 8, 9.1.1-9.1.2, 10.2, 11.2). No rclpy."""
+"""Bouc-Wen hysteresis models and piezo plant dynamics (thesis ch. 8, 9.1.1-9.1.2, 10.2, 11.2). No rclpy.
+
+Modules: ``bouc_wen`` (parameters, (8.10), exact simulation of (9.2)), ``limit_cycle``
+(phi/psi of (9.3)-(9.9), Theorem 2), ``signals`` (T-wave excitation), ``parameter_set``
+(YAML files), ``plant`` (static and dynamic simulated stage, sensor and amplifier models).
+"""
+
+from .bouc_wen import BoucWenParameters, from_standard, model_output, simulate_w
+from .errors import (
+    InitialStateError,
+    InputSignalError,
+    InvalidCommandError,
+    ModelError,
+    NotClassIError,
+    ParameterError,
+    ParameterFileError,
+)
+from .limit_cycle import limit_cycle, phi, phi_minus, phi_plus, psi, psi_minus, psi_plus
+from .parameter_set import Dynamics, ParameterSet, load_parameter_set, save_parameter_set, shipped_parameter_set
+
+__all__ = [
+    "BoucWenParameters", "from_standard", "model_output", "simulate_w",
+    "ModelError", "NotClassIError", "ParameterError", "InitialStateError", "InputSignalError",
+    "InvalidCommandError", "ParameterFileError",
+    "limit_cycle", "phi", "phi_minus", "phi_plus", "psi", "psi_minus", "psi_plus",
+    "Dynamics", "ParameterSet", "load_parameter_set", "save_parameter_set", "shipped_parameter_set",
+]

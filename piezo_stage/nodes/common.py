@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -98,7 +99,7 @@ class Diagnostics:
         self._probe = probe
         self.hardware_id = hardware_id
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._timer = node.create_timer(period, self.publish)
+        self._timer = node.create_timer(period, self.publish, clock=wall_clock())  # also under sim time
 
     def publish(self) -> None:
         d = self._probe()
@@ -108,6 +109,12 @@ class Diagnostics:
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(msg)
+
+
+def wall_clock() -> Clock:
+    """A steady clock for timers that must run in wall time even with use_sim_time (health
+    reporting, watchdogs): a stalled /clock must not stall them."""
+    return Clock(clock_type=ClockType.STEADY_TIME)
 
 
 def _fmt(v: Any) -> str:

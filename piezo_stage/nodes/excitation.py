@@ -25,7 +25,7 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.excitation import PRESETS, ExcitationPlan, ExcitationSample, plan_from
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
-from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, on_set, run, stamp_to_s
+from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, on_set, run, stamp_to_s, wall_clock
 
 PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
              "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
@@ -58,6 +58,7 @@ class ExcitationNode(Node):
         self.plan = self._build_plan()
         on_set(self, self._check_params)
         self.finished = False
+        self._exiting = False
         self.exit_code = 0
         self._running = bool(self.get_parameter("autostart").value)
         self._t_start: float | None = None
@@ -110,7 +111,7 @@ class ExcitationNode(Node):
 
     # ------------------------------------------------------------------ tick
     def _tick(self, stamp: Time) -> None:
-        if not self._running or self.finished:
+        if not self._running or self._exiting:
             return
         now = stamp_to_s(stamp)
         if self._t_start is None:
@@ -118,9 +119,14 @@ class ExcitationNode(Node):
         sample = self.plan.sample(now - self._t_start)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
         self._publish_info(stamp, now, sample)
-        if sample.done and self.get_parameter("on_done").value == "exit":
+        if sample.done and self.get_parameter("on_done").value == "exit" and not self._exiting:
             self.get_logger().info("excitation plan done")
-            self.finished = True
+            self._exiting = True
+            # let the last messages reach the subscribers (reliable delivery needs the process)
+            self._exit_timer = self.create_timer(0.5, self._finish, clock=wall_clock())
+
+    def _finish(self) -> None:
+        self.finished = True
 
     def _publish_info(self, stamp: Time, now: float, sample: ExcitationSample) -> None:
         key = (sample.run, sample.steady, sample.done)

@@ -39,7 +39,7 @@ from piezo_stage.model.parameter_set import save_parameter_set
 from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo, LimitCycle, Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, OK, Diagnosis, Diagnostics,
-                     declare, run, stamp_to_s)
+                     declare, run, stamp_to_s, wall_clock)
 
 #: deep queues: a replayed bag arrives in bursts
 STREAM_QOS = {
@@ -90,7 +90,7 @@ class IdentifierNode(Node):
         self.create_service(Trigger, "~/reset", self._srv_reset)
         declare(self, "settle_time", 2.0, "wall seconds of silent streams after which a completed run is "
                 "processed even if the streams did not pass its end", lo=0.0, hi=3600.0)
-        self.create_timer(0.1, self._process_pending)
+        self.create_timer(0.1, self._process_pending, clock=wall_clock())  # sim time may stall
         Diagnostics(self, "identification", self._diagnose)
 
     # ------------------------------------------------------------------ data
@@ -120,6 +120,9 @@ class IdentifierNode(Node):
         self._offsets[int(msg.run)] = msg.offset
         self._periods[int(msg.run)] = msg.period
         previous, self._info = self._info, (int(msg.run), bool(msg.steady))
+        if previous != self._info:
+            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) "
+                                   f"{'steady' if msg.steady else 'settling' if previous is None or previous[0] != msg.run else 'over'} at t = {t:.6g} s")
         if previous is not None and previous[1] and self._info != previous and previous[0] not in self._completed:
             self._completed.append(previous[0])
             self._pending.append((t, previous[0]))  # processed once the streams have caught up

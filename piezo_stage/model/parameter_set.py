@@ -1,0 +1,218 @@
+"""Parameter sets: a Bouc-Wen model plus, for the dynamic form, the mass and damping of ch. 11.
+
+The YAML file (plain YAML, not a ROS params file) is what ``piezo-stage identify --output``
+writes and the plant node loads::
+
+    name: ch10_patch
+    form: static            # static: y = f(v) (10.15); dynamic: m x'' + c x' + Phi(x) = u (11.1)
+    input_name: voltage
+    output_name: displacement
+    bouc_wen: {kappa: [1.401e-7, -5.0949e-11], kappa_w: 9.22e-6, rho: 0.0047, sigma: 0.812,
+               n: 1.12, y0: 1.7858e-6, input_sign: -1}
+    dynamics: null          # or {m: 5.3e-3, c: 13.0}
+    w0: 0.0
+    notes: ""
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .bouc_wen import BoucWenParameters, check_w0
+from .errors import ModelError, ParameterError, ParameterFileError
+
+__all__ = [
+    "Dynamics",
+    "ParameterSet",
+    "FORMS",
+    "parameter_set_to_dict",
+    "parameter_set_from_dict",
+    "load_parameter_set",
+    "save_parameter_set",
+    "shipped_parameter_set",
+    "SHIPPED",
+]
+
+FORMS = ("static", "dynamic")
+#: parameter sets shipped in config/ (DESIGN.md section 4)
+SHIPPED = ("ch9_example", "ch10_patch", "ch11_rig")
+
+_BW_KEYS = ("kappa", "kappa_w", "rho", "sigma", "n", "y0", "input_sign")
+_BW_REQUIRED = ("kappa", "kappa_w", "rho", "sigma", "n")
+_TOP_KEYS = ("name", "form", "input_name", "output_name", "bouc_wen", "dynamics", "w0", "notes")
+_TOP_REQUIRED = ("name", "form", "bouc_wen")
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """m x'' + c x' + Phi(x) = u (11.1); m [V s^2/m], c [V s/m] as normalized in (11.11)."""
+
+    m: float
+    c: float
+
+    def __post_init__(self) -> None:
+        for name in ("m", "c"):
+            value = getattr(self, name)
+            try:
+                value = float(value)
+            except (TypeError, ValueError) as exc:
+                raise ParameterError(f"dynamics.{name} must be a number, got {value!r}") from exc
+            object.__setattr__(self, name, value)
+        if not (math.isfinite(self.m) and self.m > 0.0):
+            raise ParameterError(f"dynamics.m must be > 0 (11.1), got {self.m!r}")
+        if not (math.isfinite(self.c) and self.c >= 0.0):
+            raise ParameterError(f"dynamics.c must be >= 0 (11.1), got {self.c!r}")
+
+
+@dataclass(frozen=True)
+class ParameterSet:
+    """A named model: static (10.15) or dynamic (11.1)-(11.3) with its Bouc-Wen parameters."""
+
+    name: str
+    form: str
+    bouc_wen: BoucWenParameters
+    dynamics: Dynamics | None
+    input_name: str = "voltage"
+    output_name: str = "displacement"
+    w0: float = 0.0
+    notes: str = ""
+
+    def __post_init__(self) -> None:
+        if self.form not in FORMS:
+            raise ParameterError(f"form must be one of {FORMS}, got {self.form!r}")
+        if self.form == "dynamic" and self.dynamics is None:
+            raise ParameterError("a dynamic parameter set needs dynamics {m, c} (11.1)")
+        if self.form == "static" and self.dynamics is not None:
+            raise ParameterError("a static parameter set has no dynamics (use form: dynamic)")
+        if not isinstance(self.bouc_wen, BoucWenParameters):
+            raise ParameterError("bouc_wen must be a BoucWenParameters")
+        object.__setattr__(self, "w0", check_w0(self.w0))
+
+    def validate(self) -> None:
+        """Class-I check of the Bouc-Wen part (raises NotClassIError)."""
+        self.bouc_wen.validate()
+
+
+def parameter_set_to_dict(ps: ParameterSet) -> dict[str, Any]:
+    """Plain dict in the YAML layout (floats kept at full precision)."""
+    bw = ps.bouc_wen
+    return {
+        "name": ps.name,
+        "form": ps.form,
+        "input_name": ps.input_name,
+        "output_name": ps.output_name,
+        "bouc_wen": {
+            "kappa": [float(k) for k in bw.kappa],
+            "kappa_w": bw.kappa_w,
+            "rho": bw.rho,
+            "sigma": bw.sigma,
+            "n": bw.n,
+            "y0": bw.y0,
+            "input_sign": bw.input_sign,
+        },
+        "dynamics": None if ps.dynamics is None else {"m": ps.dynamics.m, "c": ps.dynamics.c},
+        "w0": ps.w0,
+        "notes": ps.notes,
+    }
+
+
+def _check_keys(data: Any, allowed: tuple[str, ...], required: tuple[str, ...], where: str) -> None:
+    if not isinstance(data, dict):
+        raise ParameterFileError(f"{where} must be a mapping, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise ParameterFileError(f"{where}: unknown key(s) {unknown}; allowed: {list(allowed)}")
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise ParameterFileError(f"{where}: missing key(s) {missing}")
+
+
+def parameter_set_from_dict(data: dict[str, Any]) -> ParameterSet:
+    """Inverse of :func:`parameter_set_to_dict`; bad layouts raise :class:`ParameterFileError`."""
+    _check_keys(data, _TOP_KEYS, _TOP_REQUIRED, "parameter set")
+    bw = data["bouc_wen"]
+    _check_keys(bw, _BW_KEYS, _BW_REQUIRED, "bouc_wen")
+    dyn = data.get("dynamics")
+    if dyn is not None:
+        _check_keys(dyn, ("m", "c"), ("m", "c"), "dynamics")
+    kappa = bw["kappa"]
+    if not isinstance(kappa, (list, tuple)):
+        kappa = [kappa]
+    try:
+        params = BoucWenParameters(
+            kappa=tuple(kappa),
+            kappa_w=bw["kappa_w"],
+            rho=bw["rho"],
+            sigma=bw["sigma"],
+            n=bw["n"],
+            y0=bw.get("y0", 0.0),
+            input_sign=bw.get("input_sign", 1),
+        )
+        return ParameterSet(
+            name=str(data["name"]),
+            form=str(data["form"]),
+            bouc_wen=params,
+            dynamics=None if dyn is None else Dynamics(m=dyn["m"], c=dyn["c"]),
+            input_name=str(data.get("input_name", "voltage")),
+            output_name=str(data.get("output_name", "displacement")),
+            w0=data.get("w0", 0.0) or 0.0,
+            notes=str(data.get("notes", "") or ""),
+        )
+    except ParameterFileError:
+        raise
+    except ModelError as exc:
+        raise ParameterFileError(f"parameter set {data.get('name')!r}: {exc}") from exc
+
+
+def load_parameter_set(path: str | Path) -> ParameterSet:
+    """Read a parameter-set YAML file (see the module docstring for the layout)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ParameterFileError(f"cannot read parameter set {path}: {exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ParameterFileError(f"{path} is not valid YAML: {exc}") from exc
+    try:
+        return parameter_set_from_dict(data)
+    except ParameterFileError as exc:
+        raise ParameterFileError(f"{path}: {exc}") from exc
+
+
+class _FlowDumper(yaml.SafeDumper):
+    """Block style at the top level, flow style for the bouc_wen/dynamics mappings."""
+
+
+def _represent_dict(dumper: yaml.SafeDumper, data: dict[str, Any]) -> yaml.Node:
+    flow = "kappa" in data or set(data) == {"m", "c"}
+    return dumper.represent_mapping("tag:yaml.org,2002:map", data.items(), flow_style=flow)
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list[Any]) -> yaml.Node:
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=True)
+
+
+_FlowDumper.add_representer(dict, _represent_dict)
+_FlowDumper.add_representer(list, _represent_list)
+
+
+def save_parameter_set(ps: ParameterSet, path: str | Path) -> None:
+    """Write ``ps`` as YAML (exact float round trip)."""
+    text = yaml.dump(parameter_set_to_dict(ps), Dumper=_FlowDumper, sort_keys=False, width=100)
+    Path(path).write_text(text)
+
+
+def shipped_parameter_set(name: str) -> ParameterSet:
+    """One of the reference sets shipped in config/ (``ch9_example``, ``ch10_patch``, ``ch11_rig``)."""
+    from ..config_path import find_config
+
+    if name not in SHIPPED:
+        raise ParameterFileError(f"unknown shipped parameter set {name!r}; choose from {SHIPPED}")
+    return load_parameter_set(find_config(f"{name}.yaml"))

@@ -1,0 +1,175 @@
+"""The simulated stage: amplifier -> Bouc-Wen plant -> laser sensor (small composable models).
+
+``SimulatedStage.step(command_voltage, dt) -> (applied_voltage, displacement, status)`` is what
+the ``plant`` node and the rig emulator call; the node only schedules it. Defaults are ideal
+(no limits, infinite bandwidth, no slew limit, no quantisation, no noise, unlimited range).
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+import math
+
+import numpy as np
+
+from .errors import InvalidCommandError, ParameterError
+from .parameter_set import ParameterSet
+from .plant import DEFAULT_TOL, DynamicPlant, StaticPlant, _check_dt
+
+__all__ = ["AmplifierModel", "SensorModel", "SimulatedStage", "SensorStatus", "LASER_RANGE", "LASER_RESOLUTION"]
+
+#: Micro-Epsilon optoNCDT 1607-500 of the thesis rig (11.2.1): 500 um range, 0.1 um resolution
+LASER_RANGE = 500e-6
+LASER_RESOLUTION = 0.1e-6
+
+
+class SensorStatus(IntEnum):
+    """Status codes of ``piezo_stage_msgs/Displacement`` (DESIGN.md section 3)."""
+
+    OK = 0
+    NO_TARGET = 1
+    TOO_CLOSE = 2
+    TOO_FAR = 3
+    INVALID = 4
+
+
+def _finite_command(value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidCommandError(f"command voltage must be a number, got {value!r}") from exc
+    if not math.isfinite(value):
+        raise InvalidCommandError(f"command voltage must be finite, got {value!r}")
+    return value
+
+
+class AmplifierModel:
+    """Voltage amplifier: clamp to [v_min, v_max], first-order lag, slew-rate limit.
+
+    ``bandwidth_hz`` = 0 is an ideal (instantaneous) amplifier, ``slew_rate`` = 0 no slew limit.
+    Per step: target = clamp(command); v <- target + (v - target) exp(-2 pi f dt) (exact for a
+    first-order lag with the target held); the change is limited to slew_rate * dt.
+    """
+
+    def __init__(self, v_min: float = -math.inf, v_max: float = math.inf, bandwidth_hz: float = 0.0,
+                 slew_rate: float = 0.0, initial_voltage: float = 0.0) -> None:
+        v_min, v_max = float(v_min), float(v_max)
+        if math.isnan(v_min) or math.isnan(v_max) or not v_min < v_max:
+            raise ParameterError(f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]")
+        if not (math.isfinite(bandwidth_hz) and bandwidth_hz >= 0.0):
+            raise ParameterError(f"bandwidth_hz must be >= 0 (0: ideal), got {bandwidth_hz!r}")
+        if not (math.isfinite(slew_rate) and slew_rate >= 0.0):
+            raise ParameterError(f"slew_rate must be >= 0 (0: none), got {slew_rate!r}")
+        self.v_min, self.v_max = v_min, v_max
+        self.bandwidth_hz = float(bandwidth_hz)
+        self.slew_rate = float(slew_rate)
+        self.reset(initial_voltage)
+
+    def clamp(self, value: float) -> float:
+        """value limited to [v_min, v_max]."""
+        return min(self.v_max, max(self.v_min, value))
+
+    def reset(self, voltage: float = 0.0) -> None:
+        """Set the output voltage (clamped)."""
+        self.voltage = self.clamp(_finite_command(voltage))
+
+    def step(self, command: float, dt: float) -> float:
+        """Output voltage after holding ``command`` for dt (NaN/inf raise InvalidCommandError)."""
+        target = self.clamp(_finite_command(command))
+        dt = _check_dt(dt)
+        new = target
+        if self.bandwidth_hz > 0.0:
+            new = target + (self.voltage - target) * math.exp(-2.0 * math.pi * self.bandwidth_hz * dt)
+        if self.slew_rate > 0.0:
+            limit = self.slew_rate * dt
+            new = self.voltage + min(limit, max(-limit, new - self.voltage))
+        self.voltage = self.clamp(new)
+        return self.voltage
+
+
+class SensorModel:
+    """Laser triangulation sensor: measuring range, gaussian noise (seeded), quantisation.
+
+    Displacements below ``range_min`` read TOO_CLOSE, above ``range_max`` TOO_FAR (value NaN);
+    otherwise OK with value round((y + noise) / resolution) * resolution. ``resolution`` = 0
+    and ``noise_std`` = 0 turn those effects off.
+    """
+
+    def __init__(self, noise_std: float = 0.0, resolution: float = 0.0, range_min: float = -math.inf,
+                 range_max: float = math.inf, seed: int = 0) -> None:
+        if not (math.isfinite(noise_std) and noise_std >= 0.0):
+            raise ParameterError(f"noise_std must be >= 0, got {noise_std!r}")
+        if not (math.isfinite(resolution) and resolution >= 0.0):
+            raise ParameterError(f"resolution must be >= 0, got {resolution!r}")
+        if math.isnan(range_min) or math.isnan(range_max) or not range_min < range_max:
+            raise ParameterError(f"sensor range needs range_min < range_max, got [{range_min!r}, {range_max!r}]")
+        self.noise_std = float(noise_std)
+        self.resolution = float(resolution)
+        self.range_min, self.range_max = float(range_min), float(range_max)
+        self.seed = int(seed)
+        self._rng = np.random.default_rng(self.seed)
+
+    @classmethod
+    def laser(cls, midpoint: float = 0.0, noise_std: float = 0.0, seed: int = 0) -> "SensorModel":
+        """The thesis laser (optoNCDT 1607-500): 500 um range centred on ``midpoint``, 0.1 um steps."""
+        half = 0.5 * LASER_RANGE
+        return cls(noise_std=noise_std, resolution=LASER_RESOLUTION, range_min=midpoint - half,
+                   range_max=midpoint + half, seed=seed)
+
+    def measure(self, displacement: float) -> tuple[float, int]:
+        """(reading, status) for the true displacement; the reading is NaN unless status is OK."""
+        if not math.isfinite(displacement):
+            return math.nan, int(SensorStatus.INVALID)
+        if displacement < self.range_min:
+            return math.nan, int(SensorStatus.TOO_CLOSE)
+        if displacement > self.range_max:
+            return math.nan, int(SensorStatus.TOO_FAR)
+        value = displacement
+        if self.noise_std > 0.0:
+            value += self.noise_std * float(self._rng.standard_normal())
+        if self.resolution > 0.0:
+            value = round(value / self.resolution) * self.resolution
+        return value, int(SensorStatus.OK)
+
+
+class SimulatedStage:
+    """Amplifier -> plant (static (10.15) or dynamic (11.1)) -> sensor, one step at a time."""
+
+    def __init__(self, parameter_set: ParameterSet, amplifier: AmplifierModel | None = None,
+                 sensor: SensorModel | None = None, x0: float = 0.0, xdot0: float = 0.0,
+                 w0: float | None = None, initial_voltage: float = 0.0, tol: float = DEFAULT_TOL) -> None:
+        self.parameter_set = parameter_set
+        self.amplifier = amplifier if amplifier is not None else AmplifierModel()
+        self.sensor = sensor if sensor is not None else SensorModel()
+        self.amplifier.reset(initial_voltage)
+        w0 = parameter_set.w0 if w0 is None else w0
+        if parameter_set.form == "dynamic":
+            self.plant: StaticPlant | DynamicPlant = DynamicPlant(
+                parameter_set.bouc_wen, parameter_set.dynamics, x0=x0, xdot0=xdot0, w0=w0, tol=tol)
+        else:
+            self.plant = StaticPlant(parameter_set.bouc_wen, w0=w0, v0=self.amplifier.voltage)
+        self.steps = 0
+        self.time = 0.0
+
+    def _plant_output(self) -> float:
+        return self.plant.output()
+
+    def output(self) -> tuple[float, float, int]:
+        """(applied voltage, sensor reading, status) now, without advancing."""
+        value, status = self.sensor.measure(self._plant_output())
+        return self.amplifier.voltage, value, status
+
+    def step(self, command_voltage: float, dt: float) -> tuple[float, float, int]:
+        """Hold ``command_voltage`` for dt; return (applied voltage, sensor reading, status).
+
+        NaN/inf commands raise :class:`InvalidCommandError` and leave the state unchanged.
+        """
+        applied = self.amplifier.step(command_voltage, dt)
+        if isinstance(self.plant, DynamicPlant):
+            y = self.plant.step(applied, dt)
+        else:
+            y = self.plant.step(applied)
+        self.steps += 1
+        self.time += dt
+        value, status = self.sensor.measure(y)
+        return applied, value, status

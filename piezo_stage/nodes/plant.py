@@ -1,0 +1,213 @@
+"""`plant` node: the simulated stage, a drop-in for ``voltage_driver`` + ``laser_reader``.
+
+Same topics, types and units as the rig (DESIGN.md §3): subscribes ``voltage_command``,
+publishes ``voltage`` (what the amplifier applied) and ``displacement`` (the sensor), and
+``/diagnostics``. The mathematics is :class:`piezo_stage.model.plant.SimulatedStage`
+(amplifier -> Bouc-Wen plant -> sensor); this node only schedules it.
+
+Clocks (``clock_mode``):
+- ``realtime``: a wall-clock timer at ``rate_hz``; each tick integrates over the elapsed step
+  with the last command held (zero-order hold) and publishes one sample.
+- ``lockstep``: the node owns ``/clock``. At step k it publishes ``/clock`` = t_k and the
+  sample at t_k, then waits for the ``voltage_command`` stamped t_k (any publisher: the
+  excitation's clock trigger, the controller's sample trigger) and only then integrates to
+  t_k + 1/rate_hz. After ``lockstep_timeout`` wall seconds without that command it advances
+  with the held command and counts a late step (WARN on /diagnostics). Identical inputs give
+  identical samples, as fast as the graph can go. Stepping starts once a ``voltage_command``
+  publisher is present (``wait_for_commander``).
+
+NaN/inf commands are rejected with a warning and the last command is held, like the real driver.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Header
+
+from piezo_stage.config_path import find_config
+from piezo_stage.model.errors import InvalidCommandError
+from piezo_stage.model.parameter_set import load_parameter_set
+from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
+from piezo_stage_msgs.msg import Displacement, Voltage
+
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
+                     declare, run)
+
+#: lockstep streams are reliable (a lost sample would stall a step until the timeout); a
+#: reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig.
+LOCKSTEP_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+class PlantNode(Node):
+    def __init__(self) -> None:
+        super().__init__("plant", namespace=DEFAULT_NAMESPACE)
+        declare(self, "model_file", "ch10_patch.yaml", "parameter-set YAML (name in config/ or path), "
+                "e.g. ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage identify --output`",
+                read_only=True)
+        declare(self, "rate_hz", 1000.0, "output (sensor) rate [Hz]; lockstep: the simulation step", lo=1.0, hi=1e7, read_only=True)
+        declare(self, "clock_mode", "realtime", "realtime (wall timer) | lockstep (owns /clock)", read_only=True)
+        declare(self, "lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the step's command", lo=0.0, hi=3600.0)
+        declare(self, "wait_for_commander", True, "lockstep: start stepping once a voltage_command publisher exists")
+        declare(self, "start_time", 0.0, "lockstep: simulated time of the first step [s]", lo=0.0, hi=1e9, read_only=True)
+        declare(self, "initial_voltage", 0.0, "command held before the first voltage_command [V]", read_only=True)
+        declare(self, "x0", 0.0, "initial displacement x(0) [m] (dynamic form)", read_only=True)
+        declare(self, "xdot0", 0.0, "initial velocity [m/s] (dynamic form)", read_only=True)
+        declare(self, "w0", math.nan, "initial hysteretic state w(0) in [-1, 1] (NaN: the parameter set's)", read_only=True)
+        declare(self, "v_min", -math.inf, "amplifier lower limit [V]", read_only=True)
+        declare(self, "v_max", math.inf, "amplifier upper limit [V]", read_only=True)
+        declare(self, "amplifier_bandwidth_hz", 0.0, "amplifier first-order bandwidth [Hz] (0: ideal)", lo=0.0, hi=1e7, read_only=True)
+        declare(self, "amplifier_slew", 0.0, "amplifier slew-rate limit [V/s] (0: none)", lo=0.0, hi=1e12, read_only=True)
+        declare(self, "sensor_noise", 0.0, "sensor noise standard deviation [m]", lo=0.0, hi=1.0, read_only=True)
+        declare(self, "sensor_resolution", 0.0, "sensor quantisation step [m] (laser: 1e-7)", lo=0.0, hi=1.0, read_only=True)
+        declare(self, "sensor_min", -math.inf, "start of the measuring range [m] (below: TOO_CLOSE)", read_only=True)
+        declare(self, "sensor_max", math.inf, "end of the measuring range [m] (above: TOO_FAR)", read_only=True)
+        declare(self, "seed", 0, "noise seed", lo=0, hi=2**31 - 1, read_only=True)
+        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+
+        path = find_config(p["model_file"])
+        self.parameter_set = load_parameter_set(path)
+        w0 = self.parameter_set.w0 if math.isnan(p["w0"]) else p["w0"]
+        self.stage = SimulatedStage(
+            self.parameter_set,
+            amplifier=AmplifierModel(v_min=p["v_min"], v_max=p["v_max"],
+                                     bandwidth_hz=p["amplifier_bandwidth_hz"], slew_rate=p["amplifier_slew"]),
+            sensor=SensorModel(noise_std=p["sensor_noise"], resolution=p["sensor_resolution"],
+                               range_min=p["sensor_min"], range_max=p["sensor_max"], seed=p["seed"]),
+            x0=p["x0"], xdot0=p["xdot0"], w0=w0, initial_voltage=p["initial_voltage"])
+        self.dt = 1.0 / p["rate_hz"]
+        self.mode = p["clock_mode"]
+        self._command = float(p["initial_voltage"])
+        self._rejected = 0
+        self._commands = 0
+        self._late = 0
+        self._steps = 0
+        self._started_wall = time.monotonic()
+
+        lockstep = self.mode == "lockstep"
+        stream_qos = LOCKSTEP_QOS if lockstep else SENSOR_QOS
+        self._pub_x = self.create_publisher(Displacement, "displacement", stream_qos)
+        self._pub_v = self.create_publisher(Voltage, "voltage", stream_qos)
+        self.create_subscription(Voltage, "voltage_command", self._on_command,
+                                 LOCKSTEP_QOS if lockstep else COMMAND_QOS)
+        Diagnostics(self, "simulation", self._diagnose)
+        if lockstep:
+            self._pub_clock = self.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
+            self._k = 0
+            self._t0_ns = int(round(p["start_time"] * 1e9))
+            self._dt_ns = int(round(self.dt * 1e9))
+            self._waiting_since: float | None = None
+            self._started = False
+            self._timeout = float(p["lockstep_timeout"])
+            self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
+        elif self.mode == "realtime":
+            self._last_tick: float | None = None
+            self.create_timer(self.dt, self._realtime_tick)
+        else:
+            raise ValueError(f"clock_mode must be realtime or lockstep, got {self.mode!r}")
+        self.get_logger().info(
+            f"{self.parameter_set.name} ({self.parameter_set.form}) at {p['rate_hz']:g} Hz, clock {self.mode}")
+
+    # ------------------------------------------------------------------ commands
+    def _on_command(self, msg: Voltage) -> None:
+        if not math.isfinite(msg.voltage):
+            self._rejected += 1
+            self.get_logger().warn(f"rejected non-finite voltage command {msg.voltage}: holding {self._command:g} V",
+                                   throttle_duration_sec=1.0)
+            if self.mode == "lockstep" and self._matches_step(msg):
+                self._advance()  # the commander answered this step: do not wait for a timeout
+            return
+        self._command = msg.voltage
+        self._commands += 1
+        if self.mode == "lockstep" and self._matches_step(msg):
+            self._advance()
+
+    # ------------------------------------------------------------------ realtime
+    def _realtime_tick(self) -> None:
+        now = time.monotonic()
+        dt = self.dt if self._last_tick is None else min(now - self._last_tick, 10 * self.dt)
+        self._last_tick = now
+        self._step(dt)
+        self._publish(self.get_clock().now().to_msg())
+
+    # ------------------------------------------------------------------ lockstep
+    def _stamp(self):
+        from builtin_interfaces.msg import Time
+
+        ns = self._t0_ns + self._k * self._dt_ns
+        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+    def _matches_step(self, msg: Voltage) -> bool:
+        if not self._started:
+            return False
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        return abs(ns - (self._t0_ns + self._k * self._dt_ns)) < self._dt_ns // 2
+
+    def _emit_step(self) -> None:
+        stamp = self._stamp()
+        self._pub_clock.publish(Clock(clock=stamp))
+        self._publish(stamp)
+        self._waiting_since = time.monotonic()
+
+    def _advance(self) -> None:
+        self._step(self.dt)
+        self._k += 1
+        self._emit_step()
+
+    def _lockstep_watch(self) -> None:
+        if not self._started:
+            if self.get_parameter("wait_for_commander").value and self.count_publishers("voltage_command") == 0:
+                return
+            self._started = True
+            self._emit_step()
+            return
+        waited = time.monotonic() - self._waiting_since
+        if self._k == 0 and self._commands == 0 and waited > 0.1:
+            # a commander that has just appeared may have missed the first step: offer it again
+            # (same stamp and values; subscribers see a duplicate of step 0 at most)
+            self._emit_step()
+            return
+        if self._timeout > 0 and waited > self._timeout:
+            self._late += 1
+            self.get_logger().warn(f"no command for step {self._k} after {self._timeout:g} s: advancing "
+                                   f"with {self._command:g} V held", throttle_duration_sec=5.0)
+            self._advance()
+
+    # ------------------------------------------------------------------ common
+    def _step(self, dt: float) -> None:
+        try:
+            self._applied, self._x, self._status = self.stage.step(self._command, dt)
+        except InvalidCommandError as exc:  # the stage itself refuses: hold (cannot happen after the check above)
+            self.get_logger().error(str(exc))
+        self._steps += 1
+
+    def _publish(self, stamp) -> None:
+        if self._steps == 0:  # before the first step: the initial state
+            self._applied, self._x, self._status = self.stage.output()
+        header = Header(stamp=stamp)
+        ok = self._status == Displacement.OK
+        self._pub_x.publish(Displacement(header=header, displacement=self._x if ok else math.nan,
+                                         status=self._status))
+        self._pub_v.publish(Voltage(header=header, voltage=self._applied))
+
+    def _diagnose(self) -> Diagnosis:
+        elapsed = time.monotonic() - self._started_wall
+        values = {"model": self.parameter_set.name, "form": self.parameter_set.form, "clock_mode": self.mode,
+                  "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
+                  "command": self._command, "rejected_commands": self._rejected, "late_steps": self._late}
+        if self._late or self._rejected:
+            return Diagnosis(WARN, f"{self._late} late step(s), {self._rejected} rejected command(s)", values)
+        return Diagnosis(OK, "simulating", values)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(PlantNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
