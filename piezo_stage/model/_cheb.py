@@ -57,8 +57,12 @@ def _antiderivative_coefficients(c: Array, half_width: float) -> Array:
     return big * half_width
 
 
-def _fit_pieces(func: VectorFunction, breaks: Array, degree: int) -> tuple[Array, Array]:
-    """Bisect the pieces of ``breaks`` until each fit's tail is below tolerance (batched)."""
+def _fit_pieces(func: VectorFunction, breaks: Array, degree: int,
+                abs_tol: float = _ABS_TOL) -> tuple[Array, Array]:
+    """Bisect the pieces of ``breaks`` until each fit's tail is below tolerance (batched).
+
+    ``abs_tol`` is the absolute floor of the tail: a function computed as a small difference
+    of O(1) terms carries rounding noise of that size, which no bisection removes."""
     domain = breaks[-1] - breaks[0]
     nodes = _points(degree)
     matrix = _coefficient_matrix(degree)
@@ -71,7 +75,7 @@ def _fit_pieces(func: VectorFunction, breaks: Array, degree: int) -> tuple[Array
         rows = func(x.ravel()).reshape(x.shape) @ matrix.T
         scale = np.max(np.abs(rows), axis=1)
         tail = np.max(np.abs(rows[:, -3:]), axis=1)
-        split = (tail > np.maximum(_TAIL_TOL * scale, _ABS_TOL)) & (rights - lefts > _MIN_WIDTH * domain)
+        split = (tail > np.maximum(_TAIL_TOL * scale, abs_tol)) & (rights - lefts > _MIN_WIDTH * domain)
         keep = ~split
         done_left.append(lefts[keep])
         done_right.append(rights[keep])
@@ -91,9 +95,10 @@ def fit_interpolant(func: VectorFunction, breaks: Array, degree: int = DEGREE) -
     return _fit_pieces(func, np.asarray(breaks, dtype=float), degree)
 
 
-def fit_antiderivative(func: VectorFunction, breaks: Array, degree: int = DEGREE) -> tuple[Array, Array]:
+def fit_antiderivative(func: VectorFunction, breaks: Array, degree: int = DEGREE,
+                       abs_tol: float = _ABS_TOL) -> tuple[Array, Array]:
     """Piecewise Chebyshev table of ``F(x) = integral_{breaks[0]}^x func``."""
-    new_breaks, rows = _fit_pieces(func, np.asarray(breaks, dtype=float), degree)
+    new_breaks, rows = _fit_pieces(func, np.asarray(breaks, dtype=float), degree, abs_tol)
     out = np.zeros((rows.shape[0], degree + 2))
     offset = 0.0
     for i, c in enumerate(rows):
