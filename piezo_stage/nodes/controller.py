@@ -15,6 +15,11 @@ Assumption 2 bounds of ``bounds_file``) and the sampled-loop check at the runnin
 delay, and refused with the reason unless ``allow_unverified_gains`` is true.
 
 Services: ``~/close_loop``, ``~/open_loop`` (std_srvs/Trigger).
+
+``u_bias`` [V] is a constant feedforward: the command is u_bias + the law's u (§11.5 closes the
+loop "with a set point for the control around 200 V"); the law (and x0, anti-windup, bumpless
+transfer) works on u − u_bias, while ``u_min``/``u_max``/``hold_voltage`` and the published
+``voltage_command`` and ``controller_state.u`` stay amplifier volts.
 """
 
 from __future__ import annotations
@@ -61,12 +66,16 @@ class ControllerNode(Node):
         declare(self, "anti_windup", "conditional", "none | conditional | back_calculation")
         declare(self, "tracking_time", 0.0, "back-calculation time constant [s] (0: sqrt(Ti*Td))", lo=0.0, hi=1e3)
         declare(self, "derivative_tau", 0.0, "first-order filter on x2 [s] (0: off, as the thesis)", lo=0.0, hi=1.0)
+        declare(self, "u_bias", 0.0, "feedforward added to the law's output [V] (§11.5 set point)",
+                read_only=True)
         declare(self, "hold_voltage", math.nan, "output while the loop is open [V] (NaN: last output)")
         declare(self, "on_close", "bumpless", "x0 when the loop closes: bumpless | reset | keep")
         declare(self, "rate_hz", 1000.0, "loop rate [Hz] (trigger=timer; also the rate checked)", lo=1.0, hi=1e7)
         declare(self, "trigger", "timer", "timer (rate_hz) | sample (one step per displacement sample)")
         declare(self, "delay_samples", 1, "output delay assumed by the sampled-loop check", lo=0, hi=10)
         declare(self, "start_closed", False, "close the loop at the first valid sample")
+        declare(self, "wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
+                "has this many subscribers (an experiment's recorder sees step 0)", lo=0, hi=100, read_only=True)
         declare(self, "stale_periods", 5, "no sample for this many periods opens the loop", lo=1, hi=100000)
         declare(self, "reference_source", "topic", "topic (the reference topic) | second_order (thesis yr) | constant")
         declare(self, "reference", 0.0, "set point [m] for reference_source=constant, and before a reference arrives")
@@ -79,6 +88,7 @@ class ControllerNode(Node):
         self._bounds = load_bounds(self._bounds_path)
         self._plant = load_nominal_plant(self._bounds_path) or THESIS_NOMINAL_PLANT
         self._rate = float(self.get_parameter("rate_hz").value)
+        self._bias = float(self.get_parameter("u_bias").value)  # read-only: cached
         config = self._config({})
         report = self._verify(config)
         if report and not self.get_parameter("allow_unverified_gains").value:
@@ -95,6 +105,7 @@ class ControllerNode(Node):
         self._steps = 0
         self._saturated_steps = 0
         self._start_closed = bool(self.get_parameter("start_closed").value)
+        self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
         self._pub_state = self.create_publisher(ControllerState, "controller_state", COMMAND_QOS)
@@ -114,11 +125,12 @@ class ControllerNode(Node):
         p = {k: self.get_parameter(k).value for k in CONFIG_KEYS}
         p.update({k: v for k, v in changed.items() if k in CONFIG_KEYS})
         hold = p["hold_voltage"]
+        bias = self._bias
         config = ControllerConfig(
             mode=p["mode"], gains=Gains(**{k: float(p[k]) for k in GAIN_KEYS}),
-            u_min=float(p["u_min"]), u_max=float(p["u_max"]), anti_windup=p["anti_windup"],
+            u_min=float(p["u_min"]) - bias, u_max=float(p["u_max"]) - bias, anti_windup=p["anti_windup"],
             tracking_time=float(p["tracking_time"]) or None, derivative_tau=float(p["derivative_tau"]),
-            hold_voltage=None if math.isnan(hold) else float(hold), on_close=p["on_close"])
+            hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"])
         config.validate()
         return config
 
@@ -165,7 +177,15 @@ class ControllerNode(Node):
         self._status = Displacement.OK
         self._x, self._x_stamp = msg.displacement, t
         if self._trigger == "sample":
+            if self._waiting_for_subscribers():
+                return  # the lockstep plant re-offers step 0 until a command answers it
             self._step(t, msg.header.stamp)
+
+    def _waiting_for_subscribers(self) -> bool:
+        if self._wait_subs and self._pub_state.get_subscription_count() < self._wait_subs:
+            return True
+        self._wait_subs = 0
+        return False
 
     def _on_timer(self) -> None:
         now = self.get_clock().now()
@@ -200,6 +220,7 @@ class ControllerNode(Node):
         self._publish(out, stamp)
 
     def _hold_value(self) -> float:
+        """The open-loop output in the law's frame (amplifier volts − u_bias)."""
         hold = self.pid.config.hold_voltage
         return self.pid.config.clamp(self.pid.u if hold is None else hold)
 
@@ -210,16 +231,18 @@ class ControllerNode(Node):
         self._fault = reason
         if self.pid.last_output is not None:  # keep commanding the hold value: the stage stays put
             self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
-                                          voltage=self._hold_value() if not self.pid.loop_closed else self.pid.u))
+                                          voltage=self._bias + (self._hold_value() if not self.pid.loop_closed
+                                                                else self.pid.u)))
 
     def _publish(self, out: ControlOutput, stamp) -> None:
         header = Header(stamp=stamp)
         self._steps += 1
         self._saturated_steps += int(out.saturated)
-        self._pub_cmd.publish(Voltage(header=header, voltage=out.u))
+        u = self._bias + out.u
+        self._pub_cmd.publish(Voltage(header=header, voltage=u))
         self._pub_state.publish(ControllerState(
             header=header, mode=out.mode, loop_closed=out.loop_closed, saturated=out.saturated,
-            reference=out.reference, x0=out.x0, x1=out.x1, x2=out.x2, u=out.u, u_pid=out.u_pid,
+            reference=out.reference, x0=out.x0, x1=out.x1, x2=out.x2, u=u, u_pid=out.u_pid,
             u_excitation=out.u_excitation))
 
     # ------------------------------------------------------------------ services
@@ -235,11 +258,11 @@ class ControllerNode(Node):
     def _srv_open(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         hold = self._hold_value()
         self.pid.open_loop(hold)
-        response.success, response.message = True, f"loop open, holding {hold:.6g} V"
+        response.success, response.message = True, f"loop open, holding {self._bias + hold:.6g} V"
         return response
 
     def _diagnose(self) -> Diagnosis:
-        values = {"mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed, "u": self.pid.u,
+        values = {"mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed, "u": self._bias + self.pid.u,
                   "steps": self._steps, "saturated_steps": self._saturated_steps}
         if self._fault:
             return Diagnosis(ERROR, f"loop opened: {self._fault}", values)

@@ -85,7 +85,9 @@ class IdentifierNode(Node):
         qos = STREAM_QOS[self.get_parameter("stream_qos").value]
         self.create_subscription(Voltage, "voltage", self._on_voltage, qos)
         self.create_subscription(Displacement, "displacement", self._on_displacement, qos)
-        self.create_subscription(ExcitationInfo, "excitation", self._on_excitation, COMMAND_QOS)
+        # deep: marks must not be dropped while a cycle is being extracted (replayed bags burst)
+        self.create_subscription(ExcitationInfo, "excitation", self._on_excitation,
+                                 QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
         self.create_service(Trigger, "~/identify", self._srv_identify)
         self.create_service(Trigger, "~/reset", self._srv_reset)
         declare(self, "settle_time", 2.0, "wall seconds of silent streams after which a completed run is "

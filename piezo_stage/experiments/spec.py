@@ -1,0 +1,150 @@
+"""The ch. 11 experiments as data: graph, schedule, summary (no rclpy).
+
+- ``regulation`` (§11.4, Figs. 11.5-11.8): plant released at x(0) = 20 µm, ẋ(0) = 0.2 m/s,
+  w(0) = 0, the loop closed at t = 0 with x0(0) = 0 and yr the second-order reference of §11.4.1
+  with yr(0) = x(0), ẏr(0) = ẋ(0) (as the control core's tests).
+- ``perturbation`` (§11.5): loop closed around a set point with u ≈ 200 V (a 200 V feedforward
+  ``u_bias``, the plant resting at its equilibrium for 200 V, yr there), opened for 10 ms with
+  u forced to 72 V, closed again with x0 = 0 (the closing instant is t = 0 of §11.4).
+
+The loop rate is the lowest of :data:`RATE_CANDIDATES` at which the sampled loop
+(:func:`~piezo_stage.control.discrete.check_sampled_loop`) is stable with the lockstep's delay
+(0: the plant applies the command computed from the sample of the same step).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
+from piezo_stage.control.discrete import check_sampled_loop
+from piezo_stage.control.laws import LAWS, THESIS_GAINS, check_law
+from piezo_stage.model.parameter_set import shipped_parameter_set
+
+from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
+
+EXPERIMENTS: tuple[str, ...] = ("regulation", "perturbation")
+RATE_CANDIDATES: tuple[float, ...] = (100e3, 200e3, 500e3, 1e6)
+LOCKSTEP_DELAY = 0
+MODEL_FILE = "ch11_rig.yaml"
+X_INIT, XDOT_INIT = 20e-6, 0.2  # §11.4: x(0) [m], ẋ(0) [m/s]
+U_SET, U_OPEN, T_OPEN, OPEN_FOR = 200.0, 72.0, 0.005, 0.010  # §11.5
+DEFAULT_DURATION = {"regulation": 0.06, "perturbation": 0.25}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What to launch and when to open/close the loop (times in simulated seconds)."""
+
+    name: str
+    mode: str
+    rate_hz: float
+    spectral_radius: float
+    duration: float
+    plant: dict[str, Any]
+    controller: dict[str, Any]
+    open_at: float | None = None
+    close_at: float | None = None
+    gains: dict[str, float] = field(default_factory=dict)
+
+
+def pick_rate(mode: str, gains: dict[str, float] | None = None) -> tuple[float, float]:
+    """(rate [Hz], per-sample spectral radius): the lowest stable candidate at the lockstep's delay."""
+    g = THESIS_GAINS if not gains else THESIS_GAINS.__class__(**{**THESIS_GAINS.to_dict(), **gains})
+    for rate in RATE_CANDIDATES:
+        report = check_sampled_loop(THESIS_NOMINAL_PLANT, g, rate, LOCKSTEP_DELAY, mode)
+        if report.stable:
+            return rate, float(report.spectral_radius)
+    raise ExperimentError(f"the sampled loop of {mode} is unstable at every rate of {RATE_CANDIDATES}")
+
+
+def make_plan(name: str, mode: str, *, duration: float | None = None,
+              gains: dict[str, float] | None = None) -> Plan:
+    if name not in EXPERIMENTS:
+        raise UnknownExperimentError(f"unknown experiment {name!r}; expected one of {EXPERIMENTS}")
+    try:
+        check_law(mode)
+    except Exception as exc:
+        raise UnknownExperimentError(f"unknown mode {mode!r}; expected one of {LAWS}") from exc
+    gains = dict(gains or {})
+    unknown = set(gains) - set(THESIS_GAINS.to_dict())
+    if unknown:
+        raise ExperimentInputError(f"unknown gain(s) {sorted(unknown)}")
+    duration = DEFAULT_DURATION[name] if duration is None else float(duration)
+    if not (math.isfinite(duration) and duration > 0):
+        raise ExperimentInputError(f"duration must be > 0 s, got {duration}")
+    rate, radius = pick_rate(mode, gains)
+    controller = {"use_sim_time": True, "trigger": "sample", "rate_hz": rate, "delay_samples": LOCKSTEP_DELAY,
+                  "mode": mode, "start_closed": True, "on_close": "reset",
+                  "wait_for_state_subscribers": 1, **gains}
+    plant = {"model_file": MODEL_FILE, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,
+             "v_min": -450.0, "v_max": 450.0, "w0": 0.0}
+    if name == "regulation":
+        plant.update(x0=X_INIT, xdot0=XDOT_INIT, initial_voltage=0.0)
+        controller.update(reference_source="second_order", reference_y0=X_INIT, reference_ydot0=XDOT_INIT)
+        return Plan(name, mode, rate, radius, duration, plant, controller, gains=gains)
+    if duration <= T_OPEN + OPEN_FOR:
+        raise ExperimentInputError(f"perturbation needs a duration > {T_OPEN + OPEN_FOR} s, got {duration}")
+    rig = shipped_parameter_set("ch11_rig").bouc_wen
+    x_eq = U_SET / rig.kappa_x  # w(0) = 0: κx·x = u (11.2)
+    plant.update(x0=x_eq, xdot0=0.0, initial_voltage=U_SET)
+    controller.update(reference_source="constant", reference=x_eq, u_bias=U_SET, hold_voltage=U_OPEN)
+    return Plan(name, mode, rate, radius, duration, plant, controller, T_OPEN, T_OPEN + OPEN_FOR, gains)
+
+
+def graph_for(plan: Plan, namespace: str) -> dict[str, Any]:
+    """The launch graph (mapping form of config/graphs) of a plan."""
+    return {"description": f"experiment {plan.name} ({plan.mode})", "namespace": namespace,
+            "stop_timeout": 3.0,
+            "wait_for_topics": [{"topic": "/clock", "publishers": 1}, {"topic": "voltage_command", "publishers": 1}],
+            "nodes": [{"executable": "plant", "overrides": plan.plant, "required": True},
+                      {"executable": "controller", "overrides": plan.controller, "required": True}]}
+
+
+SIGNALS = ("t", "x0", "x1", "x2", "u", "u_pid", "u_excitation", "loop_closed", "reference")
+
+
+def _window(t: np.ndarray, start: float, end: float) -> np.ndarray:
+    return (t >= start) & (t < end)
+
+
+def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
+    """JSON-ready figures of one run (see the module docstring); ``data`` holds :data:`SIGNALS`."""
+    t = data["t"]
+    if t.size < 10:
+        raise ExperimentError(f"only {t.size} samples recorded")
+    end = t[-1]
+    period = 1.0 / THESIS_GAINS.f if "f" not in plan.gains else 1.0 / plan.gains["f"]
+    tail = _window(t, end - period, end + 1.0)  # the last period of the sine: whole-period figures
+    out: dict[str, Any] = {"experiment": plan.name, "mode": plan.mode, "rate_hz": plan.rate_hz,
+                           "delay_samples": LOCKSTEP_DELAY, "spectral_radius": plan.spectral_radius,
+                           "duration": float(end), "samples": int(t.size),
+                           "lost_samples": int(round((end - t[0]) * plan.rate_hz)) + 1 - int(t.size),
+                           "gains": {**THESIS_GAINS.to_dict(), **plan.gains}}
+    out.update(final_abs_x1=float(np.abs(data["x1"][tail]).max()), final_abs_x2=float(np.abs(data["x2"][tail]).max()),
+               final_u=float(data["u"][tail].mean()),
+               oscillation_x1=float(np.ptp(data["x1"][tail]) / 2), oscillation_u=float(np.ptp(data["u"][tail]) / 2),
+               max_abs_x1=float(np.abs(data["x1"]).max()))
+    if plan.name == "perturbation":
+        closed = data["loop_closed"].astype(bool)
+        opened = np.flatnonzero(~closed)
+        if opened.size == 0:
+            raise ExperimentError("the loop was never opened")
+        t_open, t_close = float(t[opened[0]]), float(t[opened[-1] + 1]) if opened[-1] + 1 < t.size else math.nan
+        before = _window(t, t_open - 0.002, t_open)
+        after = t >= t_close
+        err = np.abs(data["x1"][after])
+        threshold = 0.02 * err.max() if err.size else math.nan
+        beyond = np.flatnonzero(err > threshold)
+        out.update(t_open=t_open, t_close=t_close, open_for=t_close - t_open,
+                   u_before=float(data["u"][before].mean()), u_after=out["final_u"],
+                   max_abs_error=float(err.max()),
+                   settling_time=float(t[after][beyond[-1]] - t_close) if beyond.size else 0.0,
+                   settling_threshold=float(threshold))
+        out["u_change"] = out["u_after"] - out["u_before"]
+        out["u_change_relative"] = out["u_change"] / out["u_before"]
+    return out

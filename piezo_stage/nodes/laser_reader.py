@@ -1,0 +1,168 @@
+"""`laser_reader` node: a Micro-Epsilon optoNCDT laser sensor on ``displacement``.
+
+Same topic, type, units and QoS as the simulated ``plant`` (DESIGN.md §3): publishes
+``displacement`` (SENSOR_QOS, metres; status != OK carries NaN) and ``/diagnostics``. Frame
+parsing, resynchronisation, error values and link handling are
+:class:`piezo_stage.hardware.sensor.SensorReader`; this node polls it on a wall-clock timer and
+only adds:
+
+- the output convention: ``displacement = sign · (d − zero_offset)`` with d the distance from
+  the start of the measuring range [m];
+- decimation: ``decimation`` = N consecutive samples -> one message, the mean of the N when all
+  are OK; a group holding any non-OK sample takes the status of its first non-OK sample and NaN
+  (N = 1: every sample is published);
+- stamps: a read returns a block of samples that arrived together; the sample that closes an
+  output group gets ``stamp = t_reception − latency − m / rate_hz``, m being the number of
+  samples received after it in the same block (the sensor emits at ``rate_hz``; ``latency`` is
+  the sensor's own delay: exposure, processing and the serial frame time).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from rclpy.duration import Duration
+from rclpy.node import Node
+from std_msgs.msg import Header
+
+from piezo_stage.hardware import SampleBlock, SensorConfig, SensorReader, Status, TransportError
+from piezo_stage_msgs.msg import Displacement
+
+from .common import (DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, STALE, WARN, Diagnosis, Diagnostics, declare,
+                     run, wall_clock)
+
+
+@dataclass(frozen=True)
+class Decimated:
+    """Output samples of one block: value [m] (NaN unless OK), status, samples received after each."""
+
+    displacement: np.ndarray
+    status: np.ndarray
+    after: np.ndarray  # samples of the block that arrived after the last sample of each group
+
+
+class Decimator:
+    """N samples -> one (see the module docstring); keeps an incomplete group for the next block."""
+
+    def __init__(self, n: int) -> None:
+        if n < 1:
+            raise ValueError(f"decimation must be >= 1, got {n}")
+        self.n = n
+        self._d = np.empty(0)
+        self._s = np.empty(0, dtype=np.uint8)
+
+    def feed(self, block: SampleBlock) -> Decimated:
+        d = np.concatenate([self._d, block.displacement])
+        s = np.concatenate([self._s, block.status])
+        groups = d.size // self.n
+        used = groups * self.n
+        self._d, self._s = d[used:], s[used:]
+        d, s = d[:used].reshape(groups, self.n), s[:used].reshape(groups, self.n)
+        bad = s != Status.OK
+        any_bad = bad.any(axis=1)
+        status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)], Status.OK).astype(np.uint8)
+        value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
+        after = (used + self._d.size) - (np.arange(groups) + 1) * self.n
+        return Decimated(value, status, after.astype(np.int64))
+
+
+class LaserReaderNode(Node):
+    def __init__(self) -> None:
+        super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE)
+        ro = dict(read_only=True)
+        declare(self, "url", "/dev/ttyUSB0", "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, tcp://host:port", **ro)
+        declare(self, "baud", 0, "serial baud rate (0: the family's default)", lo=0, hi=4_000_000, **ro)
+        declare(self, "family", "ild1320", "optoNCDT family: ild1700|ild1402|ild1320|ild1420|ild2300|ild1750|ild1900", **ro)
+        declare(self, "bits", 0, "output word width (ILD1320 family: 16 or 18; 0: the family's default)", lo=0, hi=18, **ro)
+        declare(self, "measuring_range", 10e-3, "measuring range MR [m]", lo=1e-6, hi=10.0, **ro)
+        declare(self, "zero_offset", 0.0, "distance from the start of the range published as zero [m]", **ro)
+        declare(self, "sign", 1, "+1: away from the sensor is positive; -1: towards it", lo=-1, hi=1, step=2, **ro)
+        declare(self, "decimation", 1, "N samples -> one message (mean of N OK samples)", lo=1, hi=100000, **ro)
+        declare(self, "rate_hz", 1000.0, "the sensor's measuring rate [Hz] (stamp correction)", lo=1e-3, hi=1e6, **ro)
+        declare(self, "latency", 0.0, "sensor delay subtracted from the reception time [s]", lo=0.0, hi=10.0, **ro)
+        declare(self, "poll_period", 0.002, "period of the read timer (wall clock) [s]", lo=1e-4, hi=1.0, **ro)
+        declare(self, "stale_timeout", 0.5, "no frame for this long: stale (diagnostics) [s]", lo=1e-3, hi=60.0, **ro)
+        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+
+        config = SensorConfig(p["family"], p["measuring_range"], bits=p["bits"] or None,
+                              stale_timeout=p["stale_timeout"])
+        self.reader = SensorReader.from_url(p["url"], config, baudrate=p["baud"] or None)
+        self.reader.connect()
+        self.url = p["url"]
+        self.family = p["family"]
+        self.zero_offset = float(p["zero_offset"])
+        self.sign = float(p["sign"])
+        self.rate = float(p["rate_hz"])
+        self.latency = float(p["latency"])
+        self.decimator = Decimator(int(p["decimation"]))
+        self.connected = True
+        self.published = 0
+        self.by_status = {s: 0 for s in Status}
+        self.link_errors = 0
+        self.last_error = ""
+        self._last_diag = (time.monotonic(), 0, 0, 0, 0)  # (time, frames, published, errors, discarded)
+
+        self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
+        self.create_timer(p["poll_period"], self._poll, clock=wall_clock())
+        Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
+        self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR {p['measuring_range']:g} m, "
+                               f"decimation {p['decimation']}, rate {self.rate:g} Hz")
+
+    def _poll(self) -> None:
+        try:
+            if not self.connected:
+                self.reader.reconnect()
+                self.connected = True
+                self.get_logger().info(f"reconnected to {self.url}")
+            block = self.reader.read(0.0)
+        except TransportError as exc:
+            self.connected = False
+            self.link_errors += 1
+            self.last_error = str(exc)
+            self.get_logger().error(f"sensor link: {exc}", throttle_duration_sec=1.0)
+            return
+        if not len(block):
+            return
+        now = self.get_clock().now()
+        out = self.decimator.feed(block)
+        value = self.sign * (out.displacement - self.zero_offset)
+        for x, status, after in zip(value, out.status, out.after):
+            stamp = now - Duration(nanoseconds=int(round((self.latency + after / self.rate) * 1e9)))
+            self._pub.publish(Displacement(header=Header(stamp=stamp.to_msg()),
+                                           displacement=float(x) if status == Status.OK else math.nan,
+                                           status=int(status)))
+            self.by_status[Status(int(status))] += 1
+        self.published += len(out.status)
+
+    def _diagnose(self) -> Diagnosis:
+        stats = self.reader.parser.stats
+        now = (time.monotonic(), stats.frames, self.published, stats.errors, stats.discarded)
+        (t0, frames0, published0, errors0, discarded0), self._last_diag = self._last_diag, now
+        dt = max(now[0] - t0, 1e-9)
+        values = {"connected": self.connected, "stale": self.reader.stale, "family": self.family,
+                  "frame_rate": (stats.frames - frames0) / dt, "publish_rate": (self.published - published0) / dt,
+                  "frames": stats.frames, "published": self.published,
+                  **{f"samples_{s.name.lower()}": n for s, n in self.by_status.items()},
+                  "sample_errors": stats.errors, "resync_bytes_discarded": stats.discarded,
+                  "reconnects": self.reader.reconnects, "link_errors": self.link_errors,
+                  "last_error": self.last_error}
+        if not self.connected:
+            return Diagnosis(ERROR, f"disconnected from {self.url}", values)
+        if self.reader.stale:
+            return Diagnosis(STALE, f"no frames for {self.reader.config.stale_timeout:g} s", values)
+        errors, discarded = stats.errors - errors0, stats.discarded - discarded0
+        if errors or discarded:
+            return Diagnosis(WARN, f"{errors} error value(s), {discarded} byte(s) discarded (resync) "
+                             f"in the last {dt:.3g} s", values)
+        return Diagnosis(OK, "streaming", values)
+
+def main(args: list[str] | None = None) -> int:
+    return run(LaserReaderNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

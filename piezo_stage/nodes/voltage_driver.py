@@ -1,0 +1,187 @@
+"""`voltage_driver` node: the amplifier (PI GCS2 or Thorlabs MDT69x) behind ``voltage_command``.
+
+Same topics, types, units and QoS as the simulated ``plant`` (DESIGN.md §3): subscribes
+``voltage_command`` (COMMAND_QOS), publishes ``voltage`` (SENSOR_QOS: the value the device
+acknowledged, stamped when it was sent, and the device read-back every 1/readback_rate_hz s) and
+``/diagnostics``. Every safety rule lives in :class:`piezo_stage.hardware.driver.VoltageDriver`
+(limits = configured ∩ device, slew rate, watchdog, safe shutdown, reconnect); this node adds
+only what needs the ROS clock:
+
+- a command with a non-finite voltage is rejected here and counted (it never reaches the core);
+- with ``max_command_age`` > 0 a command whose header stamp is older than that w.r.t. the node
+  clock (unstamped commands included) is late and rejected;
+- ``tick()`` (the watchdog) runs on a steady wall-clock timer, so a stalled ``/clock`` cannot
+  keep the amplifier at its last voltage;
+- SIGINT/SIGTERM: ``on_shutdown()`` ramps to ``safe_voltage`` and leaves the amplifier in open
+  loop there (``VoltageDriver.shutdown``), publishing the final read-back.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+from rclpy.node import Node
+from rclpy.time import Time
+from std_msgs.msg import Header
+
+from piezo_stage.hardware import (DriverConfig, DriverState, HardwareError, NonFiniteVoltageError,
+                                  VoltageDriver, make_amplifier)
+from piezo_stage_msgs.msg import Voltage
+
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
+                     declare, run, wall_clock)
+
+
+class VoltageDriverNode(Node):
+    def __init__(self) -> None:
+        super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE)
+        ro = dict(read_only=True)
+        declare(self, "backend", "gcs", "amplifier protocol: gcs (PI E-709/E-625/E-727) | mdt69x (Thorlabs)", **ro)
+        declare(self, "url", "tcp://127.0.0.1:50000", "link: tcp://host:port, /dev/ttyUSB0, serial:///dev/ttyUSB0?baudrate=115200", **ro)
+        declare(self, "baud", 0, "serial baud rate (0: the backend's default)", lo=0, hi=4_000_000, **ro)
+        declare(self, "axis", "", "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)", **ro)
+        declare(self, "channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", lo=1, hi=64, **ro)
+        declare(self, "io_timeout", 0.5, "reply timeout of one device exchange [s]", lo=0.01, hi=10.0, **ro)
+        declare(self, "v_min", 0.0, "configured lower limit [V] (intersected with the device's)", **ro)
+        declare(self, "v_max", 100.0, "configured upper limit [V] (intersected with the device's)", **ro)
+        declare(self, "safe_voltage", 0.0, "voltage after a watchdog timeout and on shutdown [V]", **ro)
+        declare(self, "slew_rate", 0.0, "slew-rate limit [V/s] (0: none)", lo=0.0, hi=1e9, **ro)
+        declare(self, "command_timeout", 0.5, "watchdog: ramp to safe_voltage after this long without a command [s] (0: off)",
+                lo=0.0, hi=3600.0, **ro)
+        declare(self, "watchdog_period", 0.01, "period of the watchdog timer (wall clock) [s]", lo=1e-3, hi=1.0, **ro)
+        declare(self, "readback_rate_hz", 20.0, "rate of the device read-back published on voltage [Hz] (0: off)",
+                lo=0.0, hi=1000.0, **ro)
+        declare(self, "max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node clock [s] (0: off)",
+                lo=0.0, hi=3600.0, **ro)
+        declare(self, "reconnect_attempts", 3, "tries to reopen a dropped link per attempt round", lo=0, hi=100, **ro)
+        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+
+        amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None, channel=p["channel"],
+                                   timeout=p["io_timeout"], baudrate=p["baud"] or None)
+        config = DriverConfig(
+            v_min=p["v_min"], v_max=p["v_max"], safe_voltage=p["safe_voltage"],
+            slew_rate=p["slew_rate"] or math.inf,
+            command_timeout=p["command_timeout"] or math.inf,
+            reconnect_attempts=p["reconnect_attempts"])
+        self.driver = VoltageDriver(amplifier, config)
+        self.max_age = float(p["max_command_age"])
+        self.url = p["url"]
+        self.info = self.driver.connect()
+        self._applied = self.info.applied
+        self._last_command = math.nan
+        self._commands = 0
+        self._clamped = 0
+        self._rejected_nonfinite = 0
+        self._rejected_late = 0
+        self._link_errors = 0
+        self._watchdog_trips = 0
+        self._last_error = ""
+
+        self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
+        self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
+        self.create_timer(p["watchdog_period"], self._watchdog, clock=wall_clock())
+        if p["readback_rate_hz"] > 0:
+            self.create_timer(1.0 / p["readback_rate_hz"], self._readback, clock=wall_clock())
+        Diagnostics(self, f"{p['backend']} {self.url}", self._diagnose)
+        lim = self.driver.limits
+        self.get_logger().info(f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
+                               f"[{lim.v_min:g}, {lim.v_max:g}] V, output {self.info.applied:g} V")
+
+    # ------------------------------------------------------------------ commands
+    def _on_command(self, msg: Voltage) -> None:
+        if not math.isfinite(msg.voltage):
+            self._reject("nonfinite", f"non-finite voltage command {msg.voltage}")
+            return
+        if self.max_age > 0:
+            age = (self.get_clock().now() - Time.from_msg(msg.header.stamp)).nanoseconds * 1e-9
+            if age > self.max_age:
+                self._reject("late", f"late voltage command ({age:.3g} s old > max_command_age {self.max_age:g} s)")
+                return
+        self._last_command = msg.voltage
+        try:
+            result = self.driver.set_voltage(msg.voltage)
+        except NonFiniteVoltageError as exc:  # cannot happen after the check above; kept for safety
+            self._reject("nonfinite", str(exc))
+            return
+        except HardwareError as exc:
+            self._link_error(exc)
+            return
+        self._commands += 1
+        self._clamped += int(result.clamped)
+        self._publish(result.sent)
+
+    def _reject(self, kind: str, text: str) -> None:
+        # one log call site per kind: rclpy throttles per call site
+        text = f"rejected {text}: output stays at {self.driver.last_sent:g} V"
+        if kind == "late":
+            self._rejected_late += 1
+            self.get_logger().warn(text, throttle_duration_sec=1.0)
+        else:
+            self._rejected_nonfinite += 1
+            self.get_logger().warn(text, throttle_duration_sec=1.0)
+
+    def _link_error(self, exc: Exception) -> None:
+        self._link_errors += 1
+        self._last_error = str(exc)
+        self.get_logger().error(f"amplifier link: {exc}", throttle_duration_sec=1.0)
+
+    # ------------------------------------------------------------------ timers
+    def _watchdog(self) -> None:
+        before = self.driver.state
+        try:
+            state = self.driver.tick()
+        except HardwareError as exc:
+            self._link_error(exc)
+            return
+        if before is DriverState.ACTIVE and state in (DriverState.TIMED_OUT, DriverState.SAFE):
+            self._watchdog_trips += 1
+            self.get_logger().warn(f"no voltage command for {self.driver.config.command_timeout:g} s: "
+                                   f"ramping to {self.driver.config.safe_voltage:g} V")
+        if state in (DriverState.TIMED_OUT, DriverState.SAFE) and self.driver.last_sent != self._applied:
+            self._publish(self.driver.last_sent)
+
+    def _readback(self) -> None:
+        if not self.driver.connected:
+            return  # the watchdog reopens the link
+        try:
+            self._publish(self.driver.read_voltage())
+        except HardwareError as exc:
+            self._link_error(exc)
+
+    def _publish(self, voltage: float) -> None:
+        self._applied = voltage
+        self._pub.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()), voltage=voltage))
+
+    # ------------------------------------------------------------------ health, shutdown
+    def _diagnose(self) -> Diagnosis:
+        d = self.driver
+        lim = d.limits
+        values = {"state": d.state.value, "connected": d.connected, "identity": self.info.identity,
+                  "axis": self.info.axis, "v_min": lim.v_min, "v_max": lim.v_max,
+                  "safe_voltage": d.config.safe_voltage, "last_command": self._last_command,
+                  "last_sent": d.last_sent, "applied": self._applied, "commands": self._commands,
+                  "clamped_commands": self._clamped, "rejected_nonfinite": self._rejected_nonfinite,
+                  "rejected_late": self._rejected_late, "watchdog_trips": self._watchdog_trips,
+                  "reconnects": d.reconnects, "link_errors": self._link_errors, "last_error": self._last_error}
+        if not d.connected:
+            return Diagnosis(ERROR, f"disconnected from {self.url}", values)
+        rejected = self._rejected_nonfinite + self._rejected_late
+        if rejected or d.state in (DriverState.TIMED_OUT, DriverState.SAFE):
+            return Diagnosis(WARN, f"{d.state.value}; {self._rejected_nonfinite} non-finite and "
+                             f"{self._rejected_late} late command(s) rejected", values)
+        return Diagnosis(OK, d.state.value, values)
+
+    def on_shutdown(self) -> None:
+        """Ramp to safe_voltage at the slew rate and leave the amplifier there (open loop)."""
+        applied = self.driver.shutdown()
+        self._publish(applied)
+        self.get_logger().info(f"shut down at {applied:g} V (safe_voltage {self.driver.config.safe_voltage:g} V)")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(VoltageDriverNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

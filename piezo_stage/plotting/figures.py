@@ -1,0 +1,151 @@
+"""The figures, from numpy arrays (SI in, µm / V on the axes). Each writes one PNG and returns
+its path; matplotlib is imported inside, with the Agg backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+UM = 1e6  #: m -> µm on the axes
+DPI = 110
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    _pyplot().close(fig)
+    return path
+
+
+def _shade_runs(ax: Any, runs: Sequence[tuple[str, float, float]]) -> None:
+    for i, (_, start, stop) in enumerate(runs):
+        ax.axvspan(start, stop, color=f"C{i}", alpha=0.08, lw=0)
+
+
+def timeseries_figure(path: str | Path, t_v: np.ndarray, v: np.ndarray, t_y: np.ndarray, y: np.ndarray,
+                      *, runs: Sequence[tuple[str, float, float]] = (), title: str = "") -> Path:
+    """Input voltage [V] and displacement [µm] over time, excitation runs shaded."""
+    plt = _pyplot()
+    fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(9, 5.5))
+    ax1.plot(t_v, v, lw=0.9, color="C0", label="voltage v")
+    ax1.set_ylabel("voltage [V]")
+    ax2.plot(t_y, np.asarray(y) * UM, lw=0.9, color="C1", label="displacement y")
+    ax2.set_ylabel("displacement [µm]")
+    ax2.set_xlabel("time [s]")
+    for ax in (ax1, ax2):
+        _shade_runs(ax, runs)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+    ax1.set_title(title or "input and output over time" + (" (runs shaded)" if runs else ""))
+    return _save(fig, path)
+
+
+def hysteresis_figure(path: str | Path, loops: Sequence[tuple[str, np.ndarray, np.ndarray]],
+                      *, title: str = "") -> Path:
+    """Hysteresis loops: displacement [µm] against input voltage [V], one colour per run."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 5.5))
+    for i, (label, v, y) in enumerate(loops):
+        ax.plot(v, np.asarray(y) * UM, lw=0.9, color=f"C{i}", label=label)
+    ax.set_xlabel("input voltage v [V]")
+    ax.set_ylabel("displacement y [µm]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(title or "hysteresis loops (input vs displacement)")
+    return _save(fig, path)
+
+
+def model_figure(path: str | Path, t: np.ndarray, v: np.ndarray, y: np.ndarray, model: np.ndarray,
+                 *, title: str = "") -> Path:
+    """Bouc-Wen model (10.15) against the data: loops, outputs over time, and the error."""
+    plt = _pyplot()
+    y, model = np.asarray(y), np.asarray(model)
+    err = model - y
+    span = float(np.ptp(y)) or 1.0
+    fig = plt.figure(figsize=(11, 6))
+    grid = fig.add_gridspec(2, 2, width_ratios=[1, 1.4])
+    ax_loop = fig.add_subplot(grid[:, 0])
+    ax_t = fig.add_subplot(grid[0, 1])
+    ax_e = fig.add_subplot(grid[1, 1], sharex=ax_t)
+    ax_loop.plot(v, y * UM, lw=1.2, color="C0", label="measured")
+    ax_loop.plot(v, model * UM, lw=1.0, ls="--", color="C3", label="model")
+    ax_loop.set_xlabel("input voltage v [V]")
+    ax_loop.set_ylabel("displacement y [µm]")
+    ax_loop.legend(loc="best")
+    ax_t.plot(t, y * UM, lw=1.0, color="C0", label="measured")
+    ax_t.plot(t, model * UM, lw=0.9, ls="--", color="C3", label="model")
+    ax_t.set_ylabel("displacement [µm]")
+    ax_t.legend(loc="upper right")
+    ax_e.plot(t, err * UM, lw=0.8, color="C2", label="model − measured")
+    ax_e.set_ylabel("error [µm]")
+    ax_e.set_xlabel("time [s]")
+    ax_e.legend(loc="upper right")
+    for ax in (ax_loop, ax_t, ax_e):
+        ax.grid(alpha=0.3)
+    rms = float(np.sqrt(np.mean(err**2)))
+    fig.suptitle(title or f"model vs data: RMS error {rms * UM:.3g} µm ({100 * rms / span:.2g} % of span), "
+                 f"max {np.max(np.abs(err)) * UM:.3g} µm")
+    return _save(fig, path)
+
+
+def validation_figure(path: str | Path, t: np.ndarray, v: np.ndarray, true: np.ndarray,
+                      identified: np.ndarray, *, title: str = "") -> Path:
+    """Identified vs true model on a validation input: input, both outputs, their difference."""
+    plt = _pyplot()
+    fig, (ax_v, ax_y, ax_e) = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
+    ax_v.plot(t, v, lw=0.9, color="C0")
+    ax_v.set_ylabel("input v [V]")
+    ax_y.plot(t, np.asarray(true) * UM, lw=1.2, color="C0", label="true model")
+    ax_y.plot(t, np.asarray(identified) * UM, lw=0.9, ls="--", color="C3", label="identified model")
+    ax_y.set_ylabel("displacement [µm]")
+    ax_y.legend(loc="upper right")
+    ax_e.plot(t, (np.asarray(identified) - true) * UM, lw=0.8, color="C2")
+    ax_e.set_ylabel("identified − true [µm]")
+    ax_e.set_xlabel("time [s]")
+    for ax in (ax_v, ax_y, ax_e):
+        ax.grid(alpha=0.3)
+    ax_v.set_title(title or "validation: identified vs true model")
+    return _save(fig, path)
+
+
+def closed_loop_figure(path: str | Path, t: np.ndarray, x1: np.ndarray, x2: np.ndarray, u: np.ndarray,
+                       u_pid: np.ndarray, u_excitation: np.ndarray, loop_closed: np.ndarray,
+                       *, mode: str = "", title: str = "") -> Path:
+    """Closed-loop signals of the time-varying PID (ch. 11, cf. Figs. 11.5-11.8): tracking
+    error x1 [µm], velocity x2 [µm/s], control u and its terms u_pid, u_excitation [V];
+    the time the loop is closed is shaded."""
+    plt = _pyplot()
+    t = np.asarray(t)
+    closed = np.asarray(loop_closed, dtype=bool)
+    fig, (a1, a2, a3) = plt.subplots(3, 1, sharex=True, figsize=(9, 7.5))
+    a1.plot(t, np.asarray(x1) * UM, lw=0.9, color="C0", label="x1 = x − yr")
+    a1.set_ylabel("x1 [µm]")
+    a2.plot(t, np.asarray(x2) * UM, lw=0.7, color="C1", label="x2 = dx/dt")
+    a2.set_ylabel("x2 [µm/s]")
+    a3.plot(t, u, lw=1.0, color="C2", label="u")
+    a3.plot(t, u_pid, lw=0.8, ls="--", color="C3", label="u_pid")
+    a3.plot(t, u_excitation, lw=0.7, color="C4", alpha=0.8, label="u_excitation")
+    a3.set_ylabel("voltage [V]")
+    a3.set_xlabel("time [s]")
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], closed.astype(int), [0]])))
+    for ax in (a1, a2, a3):
+        for start, stop in zip(edges[::2], edges[1::2]):
+            ax.axvspan(t[start], t[min(stop, len(t)) - 1], color="0.5", alpha=0.12, lw=0,
+                       label="loop closed" if ax is a1 and start == edges[0] else None)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+    a1.set_title(title or f"closed loop{' (' + mode + ')' if mode else ''}")
+    return _save(fig, path)

@@ -1,0 +1,195 @@
+"""voltage_driver node over real DDS against amplifier emulators run in this process: each safety
+rule (limits, NaN/inf, late commands, slew, watchdog, SIGINT/SIGTERM, reconnect) checked on what
+the emulated device actually received."""
+
+from __future__ import annotations
+
+import math
+import signal
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from rclpy.time import Time  # noqa: E402
+
+from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel  # noqa: E402
+from piezo_stage.nodes.common import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+from rig_support import DiagnosticsProbe, sva_values  # noqa: E402
+from ros_support import spin_until, start_node, stop  # noqa: E402
+
+NS = "/rig"
+
+
+@pytest.fixture()
+def probe():
+    rclpy.init()
+    n = rclpy.create_node("probe", namespace=NS)
+    yield n
+    n.destroy_node()
+    rclpy.shutdown()
+
+
+@pytest.fixture()
+def gcs():
+    """GCS controller (VMI -20 V, VMA 120 V) on loopback TCP."""
+    model = GCSDeviceModel(v_min=-20.0, v_max=120.0)
+    with EmulatorServer(model, tcp_port=0) as server:
+        yield model, server
+
+
+class Driver:
+    """A voltage_driver process plus the probe's command publisher, voltage and diagnostics."""
+
+    def __init__(self, probe, url: str, *params: str, backend: str = "gcs") -> None:
+        from piezo_stage_msgs.msg import Voltage
+
+        self.probe = probe
+        self.proc = start_node("voltage_driver", f"backend:={backend}", f"url:={url}", *params, namespace=NS)
+        self.voltages: list = []
+        probe.create_subscription(Voltage, "voltage", self.voltages.append, SENSOR_QOS)
+        self.diag = DiagnosticsProbe(probe, f"{NS}/voltage_driver")
+        self.cmd = probe.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
+        ok = spin_until(probe, lambda: self.cmd.get_subscription_count() > 0 and self.diag.latest is not None, 20.0)
+        assert ok, stop(self.proc)
+
+    def send(self, voltage: float, stamp: Time | None = None) -> None:
+        from piezo_stage_msgs.msg import Voltage
+
+        msg = Voltage(voltage=voltage)
+        msg.header.stamp = (stamp or self.probe.get_clock().now()).to_msg()
+        self.cmd.publish(msg)
+
+    def wait(self, predicate, timeout: float = 5.0) -> bool:
+        return spin_until(self.probe, predicate, timeout)
+
+
+@pytest.mark.parametrize("backend", ["gcs", "mdt69x"])
+def test_out_of_range_commands_are_clamped_to_configured_and_device_limits(probe, backend):
+    # configured [-50, 100] V; device GCS [-20, 120] V, MDT69x [0, 75] V (vlimit switch)
+    model = GCSDeviceModel(v_min=-20.0, v_max=120.0) if backend == "gcs" else MDTDeviceModel(vlimit=75.0)
+    server = EmulatorServer(model, tcp_port=0) if backend == "gcs" else EmulatorServer(model, pty=True)
+    lo, hi = (-20.0, 100.0) if backend == "gcs" else (0.0, 75.0)
+    with server:
+        d = Driver(probe, server.url, "v_min:=-50.0", "v_max:=100.0",
+                   "command_timeout:=0.0", "readback_rate_hz:=0.0", backend=backend)
+        try:
+            d.send(500.0)
+            assert d.wait(lambda: sva_values(model)[-1:] == [hi]), sva_values(model)
+            d.send(-500.0)
+            assert d.wait(lambda: sva_values(model)[-1:] == [lo]), sva_values(model)
+            d.send(12.5)
+            assert d.wait(lambda: sva_values(model)[-1:] == [12.5])
+            assert d.wait(lambda: d.voltages and d.voltages[-1].voltage == 12.5)  # acknowledged value
+            assert d.wait(lambda: d.diag.value("clamped_commands") == "2", 3.0), d.diag.values
+            assert float(d.diag.value("v_min")) == lo and float(d.diag.value("v_max")) == hi
+        finally:
+            stop(d.proc)
+    assert min(sva_values(model)) >= lo and max(sva_values(model)) <= hi
+
+
+def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
+    model, server = gcs
+    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    try:
+        d.send(10.0)
+        assert d.wait(lambda: sva_values(model)[-1:] == [10.0])
+        n = len(sva_values(model))
+        for bad in (math.nan, math.inf, -math.inf):
+            d.send(bad)
+        d.send(20.0, stamp=probe.get_clock().now() - rclpy.duration.Duration(seconds=5.0))  # late
+        d.send(30.0, stamp=Time())  # unstamped: infinitely old
+        assert d.wait(lambda: d.diag.value("rejected_nonfinite") == "3" and d.diag.value("rejected_late") == "2",
+                      5.0), d.diag.values
+        assert len(sva_values(model)) == n and model.applied_voltage == 10.0  # device unchanged
+        assert d.diag.latest.level == DiagnosticStatus.WARN
+        d.send(11.0)  # a fresh command still goes through
+        assert d.wait(lambda: sva_values(model)[-1:] == [11.0])
+    finally:
+        _, err = stop(d.proc)
+    assert "rejected non-finite voltage command" in err and "rejected late voltage command" in err
+
+
+def test_slew_rate_limits_every_step(probe, gcs):
+    model, server = gcs
+    rate = 40.0  # V/s; the core caps dt at 0.05 s, so one write moves at most 2 V
+    d = Driver(probe, server.url, f"slew_rate:={rate}", "command_timeout:=0.0", "readback_rate_hz:=0.0")
+    try:
+        while not (sva_values(model) and sva_values(model)[-1] >= 20.0):
+            d.send(100.0)
+            assert d.wait(lambda: False, 0.02) is False
+            assert len(sva_values(model)) < 400, sva_values(model)
+    finally:
+        stop(d.proc)
+    sent = [0.0] + [v for v in sva_values(model) if v < 99.0]  # the ramp up (shutdown ramps back down)
+    steps = [b - a for a, b in zip(sent, sent[1:])]
+    assert len(steps) >= 10 and max(abs(s) for s in steps) <= rate * 0.05 + 1e-6
+    assert max(sva_values(model)) < 100.0  # never jumped to the request
+
+
+def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):
+    model, server = gcs
+    d = Driver(probe, server.url, "safe_voltage:=5.0", "slew_rate:=200.0", "command_timeout:=0.3",
+               "readback_rate_hz:=20.0")
+    try:
+        # (before any command the watchdog has already taken the output to safe_voltage once)
+        for _ in range(30):  # -> 40 V at 200 V/s, commands every 20 ms
+            d.send(40.0)
+            d.wait(lambda: False, 0.02)
+        assert model.applied_voltage == 40.0, sva_values(model)
+        n = len(sva_values(model))
+        while d.diag.value("state") != "active":  # diagnostics of the commanded phase
+            d.send(40.0)
+            assert d.wait(lambda: d.diag.value("state") == "active", 0.1) or len(sva_values(model)) < n + 50
+        trips = int(d.diag.value("watchdog_trips"))
+        n = len(sva_values(model))
+        assert d.wait(lambda: model.applied_voltage == 5.0, 5.0), sva_values(model)[-10:]
+        assert d.wait(lambda: d.diag.value("watchdog_trips") == str(trips + 1) and d.diag.value("state") == "safe",
+                      3.0), d.diag.values
+        assert d.wait(lambda: d.voltages and d.voltages[-1].voltage == 5.0, 2.0)  # read-back published
+    finally:
+        _, err = stop(d.proc)
+    down = sva_values(model)[n:]
+    assert len(down) > 5 and all(b <= a for a, b in zip(down, down[1:]))  # a ramp, not a jump
+    assert max(a - b for a, b in zip([40.0] + down, down)) <= 200.0 * 0.05 + 1e-6
+    assert "no voltage command" in err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_ramps_to_safe_voltage_and_exits_zero(probe, gcs, sig):
+    model, server = gcs
+    d = Driver(probe, server.url, "safe_voltage:=2.0", "slew_rate:=500.0", "command_timeout:=0.0")
+    try:
+        d.send(60.0)
+        while model.applied_voltage != 60.0:
+            d.send(60.0)
+            assert d.wait(lambda: model.applied_voltage == 60.0, 0.05) or len(sva_values(model)) < 200
+        n = len(sva_values(model))
+        d.proc.send_signal(sig)
+        code = d.proc.wait(timeout=10.0)
+    finally:
+        _, err = stop(d.proc)
+    assert code == 0, err
+    assert model.applied_voltage == 2.0 and sva_values(model)[-1] == 2.0
+    down = sva_values(model)[n:]
+    assert len(down) > 3 and max(a - b for a, b in zip([60.0] + down, down)) <= 500.0 * 0.05 + 1e-6
+    assert "shut down at 2 V" in err
+    assert any(c.startswith("SVO") and c.split()[-1] == "0" for c in model.commands)  # open loop
+
+
+def test_reconnects_after_the_link_drops(probe, gcs):
+    model, server = gcs
+    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0")
+    try:
+        d.send(7.0)
+        assert d.wait(lambda: model.applied_voltage == 7.0)
+        server.disconnect()
+        d.wait(lambda: False, 0.3)  # the read-back notices the hang-up and reopens the link
+        d.send(8.0)
+        assert d.wait(lambda: model.applied_voltage == 8.0, 5.0), d.diag.values
+        assert d.wait(lambda: int(d.diag.value("reconnects", "0")) >= 1 and d.diag.value("connected") == "True",
+                      3.0), d.diag.values
+        assert d.diag.latest.level == DiagnosticStatus.OK
+        assert model.commands.count("*IDN?") >= 2  # really opened twice
+    finally:
+        stop(d.proc)

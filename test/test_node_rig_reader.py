@@ -1,0 +1,157 @@
+"""laser_reader node over real DDS against the optoNCDT emulator on a pty in this process: metres
+and sign convention, error values as statuses with NaN, lost bytes never becoming a displacement,
+decimation and stamps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+
+from piezo_stage.hardware.emulators import EmulatorServer, Faults, OptoNCDTDeviceModel  # noqa: E402
+from piezo_stage.hardware.optoncdt import Status, frame_format  # noqa: E402
+from piezo_stage.nodes.common import SENSOR_QOS  # noqa: E402
+from rig_support import DiagnosticsProbe  # noqa: E402
+from ros_support import spin_until, start_node, stop  # noqa: E402
+
+NS = "/rig"
+MR = 10e-3
+
+
+@pytest.fixture()
+def probe():
+    rclpy.init()
+    n = rclpy.create_node("probe", namespace=NS)
+    yield n
+    n.destroy_node()
+    rclpy.shutdown()
+
+
+class Level:
+    """A settable constant distance [m] as the emulator's source (NaN: no target)."""
+
+    def __init__(self, d: float) -> None:
+        self.d = d
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        return np.full(t.shape, self.d)
+
+
+class Reader:
+    def __init__(self, probe, server: EmulatorServer, family: str, *params: str) -> None:
+        from piezo_stage_msgs.msg import Displacement
+
+        self.probe = probe
+        self.proc = start_node("laser_reader", f"url:={server.url}", f"family:={family}",
+                               f"measuring_range:={MR}", *params, namespace=NS)
+        self.samples: list = []
+        probe.create_subscription(Displacement, "displacement", self.samples.append, SENSOR_QOS)
+        self.diag = DiagnosticsProbe(probe, f"{NS}/laser_reader")
+        assert spin_until(probe, lambda: len(self.samples) > 50, 20.0), stop(self.proc)
+
+    def wait(self, predicate, timeout: float = 5.0) -> bool:
+        return spin_until(self.probe, predicate, timeout)
+
+    def collect(self, n: int, timeout: float = 10.0) -> list:
+        start = len(self.samples)
+        assert self.wait(lambda: len(self.samples) - start >= n, timeout)
+        return self.samples[start:]
+
+
+def quantised(family: str, d: float) -> float:
+    """The distance the sensor can report for d (its digital value, converted back)."""
+    fmt = frame_format(family)
+    return float(fmt.to_metres(fmt.from_metres(np.array([d]), MR), MR)[0])
+
+
+@pytest.mark.parametrize("family", ["ild1700", "ild1750"])
+def test_valid_frames_give_metres_with_offset_and_sign(probe, family):
+    model = OptoNCDTDeviceModel(frame_format(family), MR, 1000.0, source=Level(3e-3))
+    with EmulatorServer(model, pty=True) as server:
+        r = Reader(probe, server, family, "zero_offset:=0.001", "sign:=-1", "rate_hz:=1000.0")
+        try:
+            got = r.collect(200)
+            assert r.wait(lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.OK, 3.0)
+            assert float(r.diag.value("frame_rate")) > 100.0
+        finally:
+            stop(r.proc)
+    expected = -(quantised(family, 3e-3) - 1e-3)
+    assert abs(expected + 2e-3) < 1e-6  # the quantum is well below a micrometre
+    assert all(s.status == Status.OK and s.displacement == pytest.approx(expected, abs=1e-12) for s in got)
+    t = np.array([s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in got])
+    # samples of one block are stamped 1/rate apart, back from the reception time
+    assert np.median(np.diff(t)) == pytest.approx(1e-3, rel=0.05)
+
+
+def test_error_values_become_statuses_with_nan(probe):
+    level = Level(5e-3)
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=level, seed=3)
+    with EmulatorServer(model, pty=True) as server:
+        r = Reader(probe, server, "ild1320")
+        try:
+            seen = {}
+            for d, status in ((math.nan, Status.NO_TARGET), (-1e-3, Status.TOO_CLOSE), (2 * MR, Status.TOO_FAR)):
+                level.d = d
+                assert r.wait(lambda: r.samples[-1].status == status), (d, r.samples[-1])
+                seen[status] = r.collect(20)[-10:]
+            model.error_probability = 1.0  # every sample an error code of the family's table
+            r.collect(300)
+            codes = {s.status for s in r.samples[-200:]}
+            assert r.wait(lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.WARN, 3.0)
+            model.error_probability = 0.0
+            level.d = 5e-3
+            assert r.wait(lambda: r.samples[-1].status == Status.OK)
+        finally:
+            stop(r.proc)
+    for status, samples in seen.items():
+        assert all(s.status == status and math.isnan(s.displacement) for s in samples)
+    assert Status.INVALID in codes and Status.OK not in codes, codes
+    assert all(math.isnan(s.displacement) for s in r.samples if s.status != Status.OK)
+    assert r.samples[-1].displacement == pytest.approx(quantised("ild1320", 5e-3), abs=1e-12)
+
+
+@pytest.mark.parametrize("family", ["ild1700", "ild1320"])
+def test_lost_bytes_never_become_a_displacement(probe, family):
+    model = OptoNCDTDeviceModel(frame_format(family), MR, 2000.0, source=Level(4e-3))
+    faults = Faults(drop=0.05, seed=7)
+    with EmulatorServer(model, pty=True, faults=faults) as server:
+        r = Reader(probe, server, family, "rate_hz:=2000.0")
+        try:
+            got = r.collect(1000)
+            assert r.wait(lambda: int(r.diag.value("resync_bytes_discarded", "0")) > 20, 3.0), r.diag.values
+            sent = model.sent_samples
+            published = int(r.diag.value("published"))
+        finally:
+            stop(r.proc)
+    assert published < 0.95 * sent  # frames were lost...
+    value = quantised(family, 4e-3)
+    assert all(s.status == Status.OK and s.displacement == value for s in got)  # ...none misread
+
+
+def test_decimation_averages_and_stamps_each_group(probe):
+    rate, n, slope = 1000.0, 5, 2e-3  # 2 mm/s: 2 um per sample
+
+    def ramp(t: np.ndarray) -> np.ndarray:
+        return 1e-3 + slope * (t % 3.0)
+
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, rate, source=ramp)
+    with EmulatorServer(model, pty=True) as server:
+        r = Reader(probe, server, "ild1320", f"decimation:={n}", f"rate_hz:={rate}", "latency:=0.001")
+        try:
+            got = r.collect(200)
+            assert r.wait(lambda: r.diag.latest is not None, 3.0)
+            frame_rate, publish_rate = float(r.diag.value("frame_rate")), float(r.diag.value("publish_rate"))
+        finally:
+            stop(r.proc)
+    x = np.array([s.displacement for s in got])
+    t = np.array([s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in got])
+    step = np.diff(x)
+    step = step[step > 0]  # leave out the wrap of the ramp
+    assert np.median(step) == pytest.approx(n * slope / rate, rel=0.02)  # one message per N samples
+    assert np.median(np.diff(t)) == pytest.approx(n / rate, rel=0.05)
+    assert publish_rate == pytest.approx(frame_rate / n, rel=0.2)
+    assert all(s.status == Status.OK for s in got)
