@@ -17,7 +17,7 @@ def test_ch10_preset_is_the_thesis_experiment():
     assert v0.min() == pytest.approx(0.0) and v0.max() == pytest.approx(300.0, abs=0.5)
     assert v1.min() == pytest.approx(100.0) and v1.max() == pytest.approx(400.0, abs=0.5)
     np.testing.assert_allclose(v1 - v0, 100.0, atol=1e-9)  # x(t) and x(t) + q
-    assert plan.period == 10.0 and plan.duration == 60.0
+    assert plan.period == 10.0 and plan.duration == 2 * (8 + 2) * 10.0  # 8 settling + 2 recorded periods per run
 
 
 def test_triangle_starts_rising_from_its_minimum_and_is_periodic():

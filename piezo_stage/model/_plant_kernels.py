@@ -3,18 +3,26 @@
 Dynamic plant (11.1)-(11.3), (10.4):  m x'' + c x' + sum_i kappa_i x^i + kappa_w w = u,
 w driven by input_sign * x through (9.2), u constant over each output step (zero-order hold).
 
-Integrator: the step is cut into *pieces* on which x is monotone (a piece ends exactly at a
-velocity reversal, found as a root of x'(t)). On a piece of direction s, w is a smooth function
-of x given exactly by the branch solution (9.3)-(9.4), so the piece is smooth. On it,
+Integrator: the step is cut into *pieces* on which x is monotone. On a piece of direction s,
+w is a smooth function of x given exactly by the branch solution (9.3)-(9.4), so the piece is
+smooth. On it
 
     m x'' + c x' + k x = F(t),   F = u - sum_i kappa_i x^i - kappa_w w + k x,
 
-with k the local stiffness dPhi/dx at the piece start (so F varies only at second order). The
-linear left side is solved exactly (closed-form 2x2 exponential plus a polynomial particular
-solution), and F is the polynomial through its values at the q Lobatto nodes of the piece,
-found by Newton's method (collocation). The local error is measured by the forcing defect at
-two check points (actual F minus the interpolant), and the piece length is controlled so
-that it stays below tol_x; piece ends are also output times.
+with k = dPhi/dx at the piece start (the local stiffness, so F varies only at second order in
+the motion). The linear left side is solved exactly for a polynomial F (closed-form 2x2
+exponential plus a polynomial particular solution, or the phi-function Taylor series for
+short pieces), F being the polynomial through its values at the q Lobatto nodes.
+
+- small motions: F from the quadratic Taylor model F0 - Phi''/2 (x - x0)^2 on the linear
+  prediction (no iteration, one exact walk to the end); accepted when the neglected cubic
+  term and the interpolation defect are below the tolerance;
+- otherwise: collocation, nodal F solved by a chord-Newton iteration with w at every node from
+  the exact walk, error = forcing defect at a check point (actual F minus the interpolant).
+
+Pieces end at output times (u changes there), at velocity reversals (predicted from the
+linearized motion, then located on x'(t) and polished so that x'(end) ~ 0), or where the
+error control (tol_x on the displacement) puts them.
 
 State vector layout (float64 array): [x, v, s, x_anchor, y_anchor, x_cur, w_cur, h_pref]
 where (s, x_anchor, y_anchor, x_cur, w_cur) is the walker state in the hysteresis input and

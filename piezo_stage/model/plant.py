@@ -241,11 +241,15 @@ def simulate_reference(
     w0: float = 0.0,
     method: str = "DOP853",
     rtol: float = 1e-12,
+    reversal_events: bool = True,
 ) -> tuple[Array, Array, Array]:
-    """Baseline: scipy ``solve_ivp`` on (x, x', w) with events at x' = 0 (the |x'| kink of (9.2)).
+    """Baseline: scipy ``solve_ivp`` on (x, x', w) of (11.1)-(11.3), one call per ZOH interval.
 
-    Every ZOH interval is integrated separately and restarted at each velocity reversal, so
-    tight tolerances converge. Slow (the reference for tests and bench/plant.py).
+    With ``reversal_events`` (the converged reference) every interval is restarted at each
+    velocity reversal x' = 0, where the |x'| of (9.2) has a kink, so tight tolerances converge;
+    without, the solver steps over the kinks as a plain ``solve_ivp`` user would. Slow: the
+    reference for tests and bench/plant.py. atol is rtol times the displacement scale
+    min(length_scale, max|u| / kappa_x) (and that times omega for x', 1 for w).
     """
     params.validate()
     dt = _check_dt(dt)
@@ -270,13 +274,13 @@ def simulate_reference(
         return z[1]
 
     reversal.terminal = True
+    events = reversal if reversal_events else None
     state = np.array([x0, xdot0, check_w0(w0)], dtype=float)
     out = np.empty((3, len(u)))
     for k, uk in enumerate(u):
         t, end = 0.0, dt
         while t < end:
-            sol = solve_ivp(rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=reversal,
-                            args=(uk,))
+            sol = solve_ivp(rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=events, args=(uk,))
             state = sol.y[:, -1].copy()
             if sol.status == 1 and sol.t[-1] < end:
                 t_new = sol.t[-1]

@@ -1,0 +1,80 @@
+"""Amplifier, sensor and the simulated stage that chains them with a plant."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from piezo_stage.model.bouc_wen import model_output
+from piezo_stage.model.errors import InvalidCommandError, ParameterError
+from piezo_stage.model.parameter_set import shipped_parameter_set
+from piezo_stage.model.plant import DynamicPlant, SimulatedStage as FromPlant
+from piezo_stage.model.stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
+
+
+def test_amplifier_limits_bandwidth_and_slew():
+    ideal = AmplifierModel()
+    assert ideal.step(123.4, 1e-4) == 123.4
+    clamp = AmplifierModel(v_min=0.0, v_max=100.0)
+    assert clamp.step(150.0, 1e-4) == 100.0 and clamp.step(-5.0, 1e-4) == 0.0
+    lag = AmplifierModel(bandwidth_hz=1000.0)
+    v1 = lag.step(10.0, 1e-4)
+    assert v1 == pytest.approx(10.0 * (1.0 - math.exp(-2 * math.pi * 1000.0 * 1e-4)), rel=1e-12)
+    slew = AmplifierModel(slew_rate=1e4)  # 1 V per 100 us
+    assert [slew.step(3.0, 1e-4) for _ in range(4)] == pytest.approx([1.0, 2.0, 3.0, 3.0])
+    with pytest.raises(InvalidCommandError):
+        slew.step(math.nan, 1e-4)
+    assert slew.voltage == 3.0  # rejected command: state unchanged
+    with pytest.raises(ParameterError, match="v_min < v_max"):
+        AmplifierModel(v_min=1.0, v_max=0.0)
+    with pytest.raises(ParameterError, match="bandwidth"):
+        AmplifierModel(bandwidth_hz=-1.0)
+
+
+def test_sensor_range_quantisation_and_seeded_noise():
+    laser = SensorModel.laser(midpoint=100e-6)
+    assert laser.measure(100.04e-6) == (pytest.approx(100.0e-6, abs=1e-15), SensorStatus.OK)
+    assert laser.measure(100.06e-6)[0] == pytest.approx(100.1e-6, abs=1e-15)
+    value, status = laser.measure(-151e-6)
+    assert math.isnan(value) and status == SensorStatus.TOO_CLOSE
+    value, status = laser.measure(351e-6)
+    assert math.isnan(value) and status == SensorStatus.TOO_FAR
+    assert laser.measure(math.nan)[1] == SensorStatus.INVALID
+    noisy = [SensorModel(noise_std=1e-8, seed=4).measure(0.0)[0] for _ in range(2)]
+    assert noisy[0] == noisy[1] != 0.0  # seeded: reproducible
+    samples = np.array([s[0] for s in map(SensorModel(noise_std=1e-8, seed=1).measure, np.zeros(4000))])
+    assert np.std(samples) == pytest.approx(1e-8, rel=0.1) and abs(np.mean(samples)) < 1e-9
+    assert SensorModel().measure(1.23456789e-7) == (1.23456789e-7, SensorStatus.OK)  # defaults: ideal
+    with pytest.raises(ParameterError, match="range_min < range_max"):
+        SensorModel(range_min=1.0, range_max=0.0)
+
+
+def test_static_stage_is_the_model_output_of_the_applied_voltage():
+    ps = shipped_parameter_set("ch10_patch")
+    stage = SimulatedStage(ps, amplifier=AmplifierModel(v_min=0.0, v_max=250.0))
+    commands = np.concatenate([np.linspace(0.0, 300.0, 61), np.linspace(300.0, 50.0, 51)])
+    out = [stage.step(c, 0.01) for c in commands]
+    applied = np.array([o[0] for o in out])
+    assert applied.max() == 250.0
+    expected = model_output(ps.bouc_wen, np.concatenate([[0.0], applied]))[1:]
+    assert np.allclose([o[1] for o in out], expected, rtol=0, atol=1e-18)
+    assert all(o[2] == SensorStatus.OK for o in out) and stage.steps == len(commands)
+
+
+def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
+    ps = shipped_parameter_set("ch11_rig")
+    stage = SimulatedStage(ps, sensor=SensorModel(resolution=1e-7))
+    assert stage.output() == (0.0, 0.0, SensorStatus.OK)
+    reference = DynamicPlant(ps.bouc_wen, ps.dynamics)
+    for _ in range(50):
+        applied, y, status = stage.step(100.0, 1e-4)
+    x = reference.simulate(np.full(50, 100.0), 1e-4)[0][-1]
+    assert applied == 100.0 and status == SensorStatus.OK
+    assert y == pytest.approx(round(x / 1e-7) * 1e-7, abs=1e-15) and y > 5e-6  # ~10 um at 100 V
+    before = stage.output()
+    with pytest.raises(InvalidCommandError, match="finite"):
+        stage.step(math.inf, 1e-4)
+    assert stage.output() == before and stage.steps == 50
+    assert FromPlant is SimulatedStage  # also importable from piezo_stage.model.plant
