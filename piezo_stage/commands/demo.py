@@ -190,7 +190,9 @@ def record_identification(bag: str | Path, *, model_file: str, preset: str, rate
         logs, live_error = _run_stage(stage_graph, commander_graph, live, sim_steps, progress, timeout)
     if progress is not None:
         progress(1.0)
-    died = [line for line in logs if line.startswith("[launch] recorder exited")]
+    # at the final stop every node exits with 0; anything else is a failure of the recorder
+    died = [line for line in logs if line.startswith("[launch] recorder exited")
+            and not line.rstrip().endswith("code 0")]
     if died or not (bag / "metadata.yaml").exists():
         raise DemoError(f"the recorder node failed during the experiment ({died[0] if died else 'no bag'}):\n"
                         + "\n".join(line for line in logs if line.startswith("[recorder]"))[-2000:])
@@ -318,7 +320,7 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
     true = shipped_parameter_set("ch10_patch").bouc_wen
     progress.stage("(a) ch. 10 identification experiment: plant (lockstep) + excitation + identifier + recorder")
     run = record_identification(out / "ch10_identification", model_file="ch10_patch.yaml", preset="ch10_patch",
-                                rate_hz=args.rate, degree=2, settle_periods=5, topics=DEMO_TOPICS,
+                                rate_hz=args.rate, degree=2, settle_periods=8, topics=DEMO_TOPICS,
                                 live_params_file=out / "identified_live.yaml", progress=progress.bar)
     progress.done(f"namespace {run.namespace}, bag {run.bag}")
 

@@ -1,0 +1,61 @@
+"""piezo-stage demo end to end on the simulated stage: identified parameters within tolerance
+of the true ones (printed table), the closed-loop table, and the bags and PNGs it names exist."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from piezo_stage.model.parameter_set import shipped_parameter_set
+
+pytest.importorskip("rclpy")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "demo", "--out", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    text = proc.stdout
+    assert proc.returncode == 0, text[-3000:] + proc.stderr[-3000:]
+
+    true = shipped_parameter_set("ch10_patch").bouc_wen
+    expected = {"kappa_1": true.kappa[0], "kappa_2": true.kappa[1], "y0": true.y0, "kappa_w": true.kappa_w,
+                "rho": true.rho, "sigma": true.sigma, "n": true.n}
+    for name, value in expected.items():
+        row = re.search(rf"^{name}[ \t]+(\S+)((?:[ \t]+\S+[ \t]+\S+)+)[ \t]*$", text, re.M)
+        assert row, f"no row for {name} in:\n{text}"
+        assert float(row.group(1)) == pytest.approx(value, rel=1e-12)
+        cells = row.group(2).split()
+        found, errors = [float(c) for c in cells[0::2]], [float(c) for c in cells[1::2]]
+        assert found, name
+        for f, e in zip(found, errors):
+            assert f == pytest.approx(value, rel=1e-2), name  # the demo's tolerance
+            assert e == pytest.approx(abs(f - value) / abs(value), rel=1e-2, abs=1e-6)
+    m = re.search(r"model error on a validation input .*?RMS (\S+) µm, max (\S+) µm \((\S+) % / (\S+) %", text)
+    assert m and float(m.group(3)) < 0.5 and float(m.group(4)) < 1.0, text
+
+    for mode in ("pid", "pid_sine", "pid_tv"):
+        row = re.search(rf"^{mode}[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)[ \t]*$", text, re.M)
+        assert row, f"no perturbation row for {mode}"
+        u_before, u_after, settling, max_err = (float(x) for x in row.groups())
+        assert u_before > 0 and u_after > 0 and settling >= 0 and max_err > 0
+
+    listed = [Path(line.strip()) for line in text.split("files written:")[1].splitlines()
+              if line.startswith("  /")]
+    assert out / "ch10_identification" in listed
+    pngs = [p for p in listed if p.suffix == ".png"]
+    assert {p.name for p in pngs} >= {"ch10_identification_hysteresis.png", "ch10_identification_timeseries.png",
+                                      "ch10_validation.png"}
+    assert len(pngs) >= 6
+    for path in listed:
+        assert path.exists(), path
+        if path.suffix == ".png":
+            assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000
+        else:
+            assert (path / "metadata.yaml").exists()
+    assert "[" in text and "done in" in text  # the progress lines
