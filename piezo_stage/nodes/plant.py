@@ -40,8 +40,10 @@ from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, OK, SENSOR_QOS, WARN, Diagn
                      declare, run)
 
 #: lockstep streams are reliable (a lost sample would stall a step until the timeout); a
-#: reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig.
-LOCKSTEP_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+#: reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig. The
+#: history is deep: a reader that is busy for a while (the identifier extracting a cycle) must
+#: not lose the samples the graph produced meanwhile.
+LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class PlantNode(Node):
