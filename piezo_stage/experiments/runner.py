@@ -25,7 +25,6 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.serialization import serialize_message
-    from std_srvs.srv import Trigger
 
     from piezo_stage_msgs.msg import ControllerState
 
@@ -35,8 +34,6 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     rows: list[tuple] = []
     raw: list[tuple[int, bytes]] = []
     n_expected = int(round(plan.duration * plan.rate_hz))
-    state = {"opened": False, "closed": False}
-    clients = {k: node.create_client(Trigger, f"controller/{k}") for k in ("open_loop", "close_loop")}
 
     def on_state(msg: ControllerState) -> None:
         ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -45,15 +42,6 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
         t = ns * 1e-9
         rows.append((t, msg.x0, msg.x1, msg.x2, msg.u, msg.u_pid, msg.u_excitation, msg.loop_closed, msg.reference))
         raw.append((ns, serialize_message(msg)))
-        if plan.open_at is not None and not state["opened"] and t >= plan.open_at:
-            state["opened"] = True
-            clients["open_loop"].call_async(Trigger.Request())
-        if state["opened"] and "t_open" not in state and not msg.loop_closed:
-            state["t_open"] = t  # the service's slip: keep the window's length from the actual opening
-        if (plan.close_at is not None and not state["closed"] and "t_open" in state
-                and t >= state["t_open"] + plan.close_at - plan.open_at):
-            state["closed"] = True
-            clients["close_loop"].call_async(Trigger.Request())
         if progress is not None and len(rows) % 2000 == 0:
             progress(min(t / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {t * 1e3:.1f} ms")
 

@@ -92,7 +92,9 @@ def make_plan(name: str, mode: str, *, duration: float | None = None,
     rig = shipped_parameter_set("ch11_rig").bouc_wen
     x_eq = U_SET / rig.kappa_x  # w(0) = 0: κx·x = u (11.2)
     plant.update(x0=x_eq, xdot0=0.0, initial_voltage=U_SET)
-    controller.update(reference_source="constant", reference=x_eq, u_bias=U_SET, hold_voltage=U_OPEN)
+    # the window is scheduled in the controller on sim time: deterministic, no service slip
+    controller.update(reference_source="constant", reference=x_eq, u_bias=U_SET, hold_voltage=U_OPEN,
+                      open_at=T_OPEN, open_duration=OPEN_FOR)
     return Plan(name, mode, rate, radius, duration, plant, controller, T_OPEN, T_OPEN + OPEN_FOR, gains)
 
 

@@ -82,6 +82,10 @@ class ControllerNode(Node):
         declare(self, "reference_y0", 20e-6, "second_order: yr(0) [m]")
         declare(self, "reference_ydot0", 0.0, "second_order: dyr/dt(0) [m/s]")
         declare(self, "bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or path)")
+        declare(self, "open_at", -1.0, "open the loop at this time of the node clock [s] (< 0: never); "
+                "deterministic in lockstep, e.g. the §11.5 perturbation", read_only=True)
+        declare(self, "open_duration", 0.0, "close it again this long after it opened [s] (0: stay open)",
+                lo=0.0, hi=1e6, read_only=True)
         declare(self, "allow_unverified_gains", False, "accept gains that fail Theorem 4 or the sampled-loop check")
 
         self._bounds_path = find_config(self.get_parameter("bounds_file").value)
@@ -105,6 +109,7 @@ class ControllerNode(Node):
         self._steps = 0
         self._saturated_steps = 0
         self._start_closed = bool(self.get_parameter("start_closed").value)
+        self._window, self._window_t = "pending", math.nan
         self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
@@ -211,7 +216,23 @@ class ControllerNode(Node):
             return float(self.get_parameter("reference").value), 0.0
         return self._yr, None
 
+    def _scheduled_window(self, t: float) -> None:
+        """The open_at / open_duration window: opens with the hold voltage, closes after."""
+        open_at = self.get_parameter("open_at").value
+        if open_at < 0 or self._window == "done":
+            return
+        if self._window == "pending" and t >= open_at:
+            self.get_logger().info(f"scheduled opening at t = {t:.6g} s, holding {self._hold_value():.6g} V")
+            self.pid.open_loop(self._hold_value())
+            self._window, self._window_t = "open", t
+        elif self._window == "open" and self.get_parameter("open_duration").value > 0 \
+                and t >= self._window_t + self.get_parameter("open_duration").value - 0.5 / self._rate:
+            self.get_logger().info(f"scheduled closing at t = {t:.6g} s")
+            self.pid.close_loop()
+            self._window = "done"
+
     def _step(self, t: float, stamp) -> None:
+        self._scheduled_window(t)
         if self._start_closed and not self.pid.loop_closed and not self._fault:
             self._start_closed = False
             self.pid.close_loop()
