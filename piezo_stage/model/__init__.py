@@ -2,7 +2,8 @@
 
 Modules: ``bouc_wen`` (parameters, (8.10), exact simulation of (9.2)), ``limit_cycle``
 (phi/psi of (9.3)-(9.9), Theorem 2), ``signals`` (T-wave excitation), ``parameter_set``
-(YAML files), ``plant`` (static and dynamic simulated stage, sensor and amplifier models).
+(YAML files), ``plant`` (static and dynamic plants, solve_ivp reference), ``stage``
+(amplifier -> plant -> sensor, what the plant node steps).
 """
 
 from .bouc_wen import BoucWenParameters, from_standard, model_output, simulate_w

@@ -1,7 +1,10 @@
 """numba's ``njit`` when numba is installed, otherwise a no-op decorator (same code, pure Python).
 
 The model kernels are written as scalar loops in the subset of Python that numba compiles;
-without numba they still run (slowly) and give the same results.
+without numba they still run (slowly) and give the same results. Compiled code is cached in
+``__pycache__`` (first use in a fresh checkout compiles for ~15 s). numba invalidates a cache
+entry only when the file defining that function changes: after editing an inlined kernel in
+``_cheb.py`` or ``_branches.py``, delete ``piezo_stage/model/__pycache__/*.nb*``.
 """
 
 from __future__ import annotations

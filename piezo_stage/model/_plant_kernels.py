@@ -234,7 +234,7 @@ def _piece(tab, model, kpoly, st, u, k_loc, tau, points, vinv, invfact, Ez, Gz, 
     On return zs[p] = (x, v) at the points (nodes 1..q-1, then the check points), wst[i] the
     walker state at node i (wst[0]: the start) and res[q:] unused.
     """
-    rho, sgn, m, c = model[0], model[6], model[4], model[5]
+    rho, sgn = model[0], model[6]
     q = vinv.shape[0]
     x0 = st[X]
     v0 = st[V]

@@ -22,7 +22,7 @@ from numpy.polynomial import legendre
 from scipy.integrate import solve_ivp
 
 from . import _branches, _plant_kernels as K
-from .bouc_wen import BoucWenParameters, check_w0, model_output, polynomial
+from .bouc_wen import BoucWenParameters, check_w0, polynomial
 from .errors import InputSignalError, InvalidCommandError, ParameterError
 from .parameter_set import Dynamics
 
@@ -78,7 +78,7 @@ class StaticPlant:
         params.validate()
         self.params = params
         self._tab = _branches.tables(params.sigma, params.n)
-        self._w0 = check_w0(w0)
+        self._v1, self._w1 = np.zeros(1), np.zeros(1)  # step() buffers
         self.reset(w0, v0)
 
     def reset(self, w0: float = 0.0, v0: float = 0.0) -> None:
@@ -96,11 +96,17 @@ class StaticPlant:
     def output(self) -> float:
         """Current output y for the last input."""
         p = self.params
-        return float(polynomial(p.kappa, np.array([self._v]))[0] + p.kappa_w * self.w + p.y0)
+        total = 0.0
+        for k in reversed(p.kappa):  # sum kappa_i v^i (Horner)
+            total = (total + k) * self._v
+        return total + p.kappa_w * float(self._walker[4]) + p.y0
 
     def step(self, v: float) -> float:
         """Apply input v (the path from the previous input is monotone) and return y (10.15)."""
-        return float(self.simulate(np.array([_check_value(v, "input v")]))[0])
+        self._v1[0] = self.params.input_sign * _check_value(v, "input v")
+        K.static_walk(self._tab, self.params.rho, self._walker, self._v1, self._w1)
+        self._v = self._v1[0] * self.params.input_sign
+        return self.output()
 
     def simulate(self, v: Array) -> Array:
         """Outputs for a sequence of inputs, continuing from the current state."""
@@ -157,8 +163,8 @@ class DynamicPlant:
             raise ParameterError(f"the dynamic plant needs kappa_x > 0 (11.2), got {params.kappa_x!r}")
         if not (1e-14 <= tol <= 1e-2):
             raise ParameterError(f"tol must be in [1e-14, 1e-2], got {tol!r}")
-        if nodes not in (3, 4, 5):
-            raise ParameterError(f"nodes must be 3, 4 or 5, got {nodes!r}")
+        if nodes not in (4, 5):  # 3 nodes showed a systematic drift in long ZOH-ringing runs
+            raise ParameterError(f"nodes must be 4 or 5, got {nodes!r}")
         self.params = params
         self.dynamics = dynamics
         self.tol = float(tol)
@@ -171,6 +177,8 @@ class DynamicPlant:
         self._vinv = np.linalg.inv(np.vander(self._nodes, nodes, increasing=True))
         self._lagrange = _lagrange_weights(self._nodes, self._checks)
         self.stats = np.zeros(K.STATS_SIZE)
+        self._tol_x = self.tol * length_scale(params)
+        self._u1, self._x1, self._v1, self._w1 = (np.zeros(1) for _ in range(4))  # step() buffers
         self.reset(x0, xdot0, w0)
 
     # ------------------------------------------------------------------ state
@@ -206,6 +214,10 @@ class DynamicPlant:
         return self.x + self.params.y0
 
     # ------------------------------------------------------------------ integration
+    def _run(self, u: Array, dt: float, x: Array, v: Array, w: Array) -> None:
+        K.integrate(self._tab, self._model, self._kpoly, self._nodes, self._checks, self._vinv, self._lagrange, dt,
+                    self._tol_x, 1e-7 * dt, self._state, u, x, v, w, self.stats)
+
     def simulate(self, u: Array, dt: float) -> tuple[Array, Array, Array]:
         """States (x, x', w) at the end of each step k, u[k] held over [k dt, (k+1) dt]."""
         dt = _check_dt(dt)
@@ -215,15 +227,14 @@ class DynamicPlant:
         x = np.empty_like(u)
         v = np.empty_like(u)
         w = np.empty_like(u)
-        tol_x = self.tol * length_scale(self.params)
-        K.integrate(self._tab, self._model, self._kpoly, self._nodes, self._checks, self._vinv, self._lagrange, dt,
-                    tol_x, 1e-7 * dt, self._state, u, x, v, w, self.stats)
+        self._run(u, dt, x, v, w)
         return x, v, w
 
     def step(self, u: float, dt: float) -> float:
-        """Hold u over dt and return the displacement x + y0 at the end."""
-        x, _, _ = self.simulate(np.array([_check_value(u, "input u")]), dt)
-        return float(x[0]) + self.params.y0
+        """Hold u over dt and return the displacement x + y0 at the end (cheap per call)."""
+        self._u1[0] = _check_value(u, "input u")
+        self._run(self._u1, _check_dt(dt), self._x1, self._v1, self._w1)
+        return float(self._x1[0]) + self.params.y0
 
 
 def length_scale(params: BoucWenParameters) -> float:
@@ -270,28 +281,37 @@ def simulate_reference(
         wdot = rho * (vin - sigma * abs(vin) * a ** (n - 1.0) * w + (sigma - 1.0) * vin * a**n)
         return [v, (uk - c * v - float(np.dot(kappa, x**powers)) - kw * w) / m, wdot]
 
-    def reversal(_t, z, _uk):
+    def falling(_t, z, _uk):  # x' crosses zero downwards: a maximum of x
         return z[1]
 
-    reversal.terminal = True
-    events = reversal if reversal_events else None
+    def rising(_t, z, _uk):  # x' crosses zero upwards: a minimum of x
+        return z[1]
+
+    falling.terminal = rising.terminal = True
+    falling.direction, rising.direction = -1.0, 1.0
     state = np.array([x0, xdot0, check_w0(w0)], dtype=float)
     out = np.empty((3, len(u)))
+    after_event = None  # the event just handled: the next one is of the other kind
     for k, uk in enumerate(u):
         t, end = 0.0, dt
         while t < end:
+            events = None
+            if reversal_events:
+                if after_event is not None:
+                    events = rising if after_event is falling else falling
+                else:
+                    moving = state[1] if state[1] != 0.0 else rhs(t, state, uk)[1]  # at rest: where it goes
+                    events = falling if moving > 0.0 else (rising if moving < 0.0 else None)
             sol = solve_ivp(rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=events, args=(uk,))
             state = sol.y[:, -1].copy()
             if sol.status == 1 and sol.t[-1] < end:
-                t_new = sol.t[-1]
-                if t_new <= t + 1e-15 * dt:  # starting on a reversal: step past it
-                    sol = solve_ivp(rhs, (t, min(end, t + 1e-6 * dt)), state, method=method, rtol=rtol,
-                                    atol=atol, args=(uk,))
-                    state = sol.y[:, -1].copy()
-                    t_new = sol.t[-1]
-                t = t_new
+                t = sol.t[-1]
+                after_event = events
             else:
                 t = end
+                # once the velocity has the sign of the new direction, it picks the next event
+                if after_event is not None and (state[1] < 0.0) == (after_event is falling) and state[1] != 0.0:
+                    after_event = None
         state[2] = min(1.0, max(-1.0, state[2]))
         out[:, k] = state
     return out[0], out[1], out[2]
