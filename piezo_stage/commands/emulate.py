@@ -133,7 +133,11 @@ def run(args: argparse.Namespace) -> int:
     servers = _servers(args)
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():
+        # both signals only set the flag: a Ctrl-C that comes while the endpoints are being
+        # announced (or at any other point) still stops the servers cleanly, exit 0
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a launcher may have us ignore it
+            signal.signal(signal.SIGINT, lambda *_: stop.set())
     for server in servers.values():
         server.start()
     _announce(servers)
