@@ -13,12 +13,14 @@ import json
 import sys
 
 from piezo_stage.control.laws import LAWS
+from piezo_stage.experiments.spec import DEFAULT_DURATION
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("name", choices=("regulation", "perturbation"), help="experiment (§11.4 / §11.5)")
     parser.add_argument("--mode", choices=LAWS, default="pid_tv", help="control law (11.5, 11.17, 11.18)")
-    parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default per experiment)")
+    defaults = ", ".join(f"{name} {seconds:g} s" for name, seconds in DEFAULT_DURATION.items())
+    parser.add_argument("--duration", type=float, default=None, help=f"simulated seconds (default: {defaults})")
     parser.add_argument("--A", dest="A", type=float, default=None, help="sine amplitude A [V] (pid_sine)")
     parser.add_argument("--kA", dest="kA", type=float, default=None, help="sine gain kA [V/(m s)] (pid_tv)")
     parser.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f [Hz]")

@@ -1,11 +1,11 @@
-"""Run a ch. 11 experiment through the ROS graph: lockstep plant + controller nodes (Launcher),
-an in-process collector of ``controller_state`` that also opens/closes the loop by service at
-the planned simulated times; optional MCAP bag (bag core's BagWriter) and PNGs."""
+"""Run a ch. 11 experiment through the ROS graph: lockstep plant + controller nodes (Launcher;
+the controller opens and closes the loop at the planned simulated times itself) and an
+in-process collector of ``controller_state``; optional MCAP bag (bag core's BagWriter) and PNGs."""
 
 from __future__ import annotations
 
 import os
-import threading
+import struct
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -17,6 +17,8 @@ from .spec import SIGNALS, Plan, graph_for, make_plan, summarize
 
 Progress = Callable[[float, str], None]
 _counter = iter(range(1, 1 << 30))
+#: header.stamp (sec, nanosec) after the 4-byte CDR encapsulation (byte 1: 1 little-, 0 big-endian)
+_STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
 
 
 def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | None,
@@ -24,44 +26,50 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.serialization import serialize_message
+    from rclpy.serialization import deserialize_message
 
     from piezo_stage_msgs.msg import ControllerState
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     node = rclpy.create_node("experiment", namespace=namespace, context=ctx)
-    rows: list[tuple] = []
     raw: list[tuple[int, bytes]] = []
     n_expected = int(round(plan.duration * plan.rate_hz))
+    end_ns = int(round((plan.duration - 0.5 / plan.rate_hz) * 1e9))
 
-    def on_state(msg: ControllerState) -> None:
-        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    def on_state(data: bytes) -> None:
+        # raw CDR: the stamp is read in place and the messages are decoded after the run, so
+        # this process keeps pace with the graph (a lagging reader loses the writer's history)
+        sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
+        ns = sec * 1_000_000_000 + nanosec
         if raw and ns <= raw[-1][0]:
             return  # the plant re-offers step 0 to a late commander: keep one sample per step
-        t = ns * 1e-9
-        rows.append((t, msg.x0, msg.x1, msg.x2, msg.u, msg.u_pid, msg.u_excitation, msg.loop_closed, msg.reference))
-        raw.append((ns, serialize_message(msg)))
-        if progress is not None and len(rows) % 2000 == 0:
-            progress(min(t / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {t * 1e3:.1f} ms")
+        raw.append((ns, data))
+        if progress is not None and len(raw) % 2000 == 0:
+            progress(min(ns * 1e-9 / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {ns * 1e-6:.1f} ms")
 
     node.create_subscription(ControllerState, "controller_state", on_state,
-                             QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
+                             QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE), raw=True)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     try:
         launch.start()  # the subscription exists before the plant's first step
         launch.wait_ready()
         deadline = time.monotonic() + wall_timeout
-        while len(rows) < n_expected and (not rows or rows[-1][0] < plan.duration - 0.5 / plan.rate_hz):
+        while len(raw) < n_expected and (not raw or raw[-1][0] < end_ns):
             if time.monotonic() > deadline:
-                raise ExperimentError(f"{plan.name}/{plan.mode}: only {len(rows)} of {n_expected} steps "
+                raise ExperimentError(f"{plan.name}/{plan.mode}: only {len(raw)} of {n_expected} steps "
                                       f"after {wall_timeout:g} s")
             executor.spin_once(timeout_sec=0.1)
     finally:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+    rows = []
+    for ns, data in raw:
+        msg = deserialize_message(data, ControllerState)
+        rows.append((ns * 1e-9, msg.x0, msg.x1, msg.x2, msg.u, msg.u_pid, msg.u_excitation, msg.loop_closed,
+                     msg.reference))
     cols = list(zip(*rows))
     data = {k: np.asarray(v, dtype=bool if k == "loop_closed" else float) for k, v in zip(SIGNALS, cols)}
     return data, raw
