@@ -3,11 +3,12 @@
 >= 2000), beside a baseline raw rclpy ping-pong between two processes (the round trip that
 bounds any lockstep protocol on this machine).
 
-Graph: plant (ch. 11 rig, dynamic, lockstep) + controller (trigger=sample: one step per
-displacement sample), each its own process, real DDS. Steps/s is measured from the stamps of
-/clock received by this process over a wall-time window.
+Graphs: plant (ch. 11 rig, dynamic, lockstep at 100 kHz) + controller (trigger=sample: one
+step per displacement sample), and plant + excitation (trigger=clock: one command per /clock
+tick), each node its own process, real DDS. Steps/s is the plant's step counter (reported on
+/diagnostics) over a wall-time window.
 
-    python bench/lockstep.py [--seconds 10]
+    python bench/lockstep.py [--seconds 10] [--commanders controller excitation]
 """
 
 from __future__ import annotations
@@ -83,11 +84,39 @@ def ping_pong(seconds: float, executor: str) -> float:
         node.destroy_node()
 
 
-def lockstep(seconds: float, executor: str) -> float:
-    """Plant + controller steps per wall second, from the /clock stamps seen here."""
+COMMANDERS = {
+    # the controller closes the loop on each displacement sample (thesis ch. 11 at 100 kHz)
+    "controller": ["piezo_stage.nodes.controller", "--ros-args", "-r", "__ns:=/bench",
+                   "-p", "trigger:=sample", "-p", "rate_hz:=100000.0", "-p", "delay_samples:=0",
+                   "-p", "start_closed:=true", "-p", "reference_source:=constant",
+                   "-p", "reference:=2e-5", "-p", "mode:=pid"],
+    # the excitation answers each /clock tick (the identification run): a 1 Hz triangle
+    "excitation": ["piezo_stage.nodes.excitation", "--ros-args", "-r", "__ns:=/bench",
+                   "-p", "trigger:=clock", "-p", "preset:=''", "-p", "waveform:=triangle",
+                   "-p", "period:=1.0", "-p", "low:=0.0", "-p", "amplitude:=300.0",
+                   "-p", "offsets:=[0.0]", "-p", "settle_periods:=1000", "-p", "record_periods:=1"],
+}
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (/proc/<pid>/stat)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def lockstep(seconds: float, executor: str, commander: str = "controller") -> tuple[float, float, float]:
+    """Plant (ch. 11 rig, dynamic, lockstep at 100 kHz) + ``commander``: steps per wall second,
+    and the CPU time per step [s] of the plant and of the commander.
+
+    Read from the plant's own step counter on /diagnostics (once a second) so that this process
+    adds no subscriber to the per-step topics and takes no CPU from the two it measures. The
+    CPU per step depends much less on the load of the machine than the rate does (the two
+    processes overlap in part, on two cores: the idle rate lies between 1 / their sum and
+    1 / the larger one).
+    """
     import rclpy
-    from rosgraph_msgs.msg import Clock
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from diagnostic_msgs.msg import DiagnosticArray
 
     env = _env(executor)
     base = [sys.executable, "-m"]
@@ -95,27 +124,32 @@ def lockstep(seconds: float, executor: str) -> float:
         subprocess.Popen(base + ["piezo_stage.nodes.plant", "--ros-args", "-r", "__ns:=/bench",
                                  "-p", "model_file:=ch11_rig.yaml", "-p", "clock_mode:=lockstep",
                                  "-p", "rate_hz:=100000.0", "-p", "initial_voltage:=200.0"], env=env),
-        subprocess.Popen(base + ["piezo_stage.nodes.controller", "--ros-args", "-r", "__ns:=/bench",
-                                 "-p", "trigger:=sample", "-p", "rate_hz:=100000.0", "-p", "delay_samples:=0",
-                                 "-p", "start_closed:=true", "-p", "reference_source:=constant",
-                                 "-p", "reference:=2e-5", "-p", "mode:=pid"], env=env),
+        subprocess.Popen(base + COMMANDERS[commander], env=env),
     ]
     node = rclpy.create_node("lockstep_bench")
-    stamps: list[tuple[float, float]] = []
-    node.create_subscription(Clock, "/clock", lambda m: stamps.append(
-        (time.monotonic(), m.clock.sec + 1e-9 * m.clock.nanosec)), QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    counts: list[tuple[float, int, float, float]] = []  # (wall time, plant steps, CPU s of both)
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == "/bench/plant":
+                steps = {kv.key: kv.value for kv in status.values}.get("steps")
+                if steps is not None:
+                    counts.append((time.monotonic(), int(steps), _cpu_seconds(procs[0].pid),
+                                   _cpu_seconds(procs[1].pid)))
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     try:
         deadline = time.monotonic() + 30
-        while len(stamps) < 100:
+        while not counts or counts[-1][1] < 100:
             rclpy.spin_once(node, timeout_sec=0.05)
             if time.monotonic() > deadline:
                 raise RuntimeError("the lockstep graph did not start")
-        stamps.clear()
+        counts.clear()
         start = time.monotonic()
-        while time.monotonic() - start < seconds:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        (w0, s0), (w1, s1) = stamps[0], stamps[-1]
-        return (s1 - s0) * 100000.0 / (w1 - w0)
+        while time.monotonic() - start < seconds + 1.0:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        (w0, s0, p0, c0), (w1, s1, p1, c1) = counts[0], counts[-1]
+        return (s1 - s0) / (w1 - w0), (p1 - p0) / (s1 - s0), (c1 - c0) / (s1 - s0)
     finally:
         for p in procs:
             p.terminate()
@@ -127,6 +161,8 @@ def lockstep(seconds: float, executor: str) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--commanders", nargs="+", default=list(COMMANDERS), choices=list(COMMANDERS),
+                        help="which lockstep graphs to run (default: both)")
     args = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", "42")  # this process and its children
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -135,12 +171,14 @@ def main() -> int:
     rclpy.init()
     try:
         rt = ping_pong(args.seconds, "single")
-        steps = lockstep(args.seconds, "single")
+        steps = {name: lockstep(args.seconds, "single", name) for name in args.commanders}
     finally:
         rclpy.try_shutdown()
     print(f"baseline: rclpy ping-pong between two processes (SingleThreadedExecutor): {rt:8.0f} round trips/s")
-    print(f"lockstep plant + controller through DDS:                      {steps:8.0f} steps/s  "
-          f"(target >= 2000; {steps / rt:.2f} x the ping-pong)")
+    for name, (rate, cpu_plant, cpu_commander) in steps.items():
+        print(f"lockstep plant + {name:10s} through DDS:                 {rate:8.0f} steps/s  "
+              f"(target >= 2000; {rate / rt:.2f} x the ping-pong); CPU per step: plant "
+              f"{cpu_plant * 1e6:.0f} us, {name} {cpu_commander * 1e6:.0f} us")
     return 0
 
 

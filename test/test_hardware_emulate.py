@@ -124,6 +124,9 @@ def test_rig_couples_amplifier_voltage_to_sensor_reading():
             assert np.all(np.abs(block.displacement - expected) <= MR * 1.02 / 65520)
         driver.shutdown()
         reader.close()
+        deadline = time.monotonic() + 2.0  # the plant gets 0 V from the samples taken after the ramp
+        while rig.coupling.applied != 0.0 and time.monotonic() < deadline:
+            time.sleep(0.01)
     assert stage.steps > 100 and rig.coupling.applied == 0.0
 
 
@@ -157,3 +160,35 @@ def test_rig_command_with_the_simulated_plant(capsys, tmp_path):
     assert result["rc"] == 0
     assert np.all(rest.status == Status.OK) and np.all(moved.status == Status.OK)
     assert np.median(moved.displacement) > np.median(rest.displacement) + 1e-6  # ~10 µm at 100 V
+
+
+def test_rig_sensor_link_and_signal_waits_for_the_driver_ramp(tmp_path):
+    """`emulate rig --sensor-link PATH`: the reader opens the fixed path; on SIGINT the emulator
+    keeps serving its connected driver, which ramps to 0 V through it, then exits 0 once the
+    driver hung up, removing the link (a launcher signals every process at once)."""
+    link = tmp_path / "sensor"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "emulate", "rig", "--params",
+                             "ch10_patch.yaml", "--amp-tcp", "0", "--sensor-link", str(link), "--family",
+                             "ild1320", "--measuring-range", "2e-3", "--linger", "30"],
+                            stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        ends = dict(proc.stdout.readline().strip().split(": ", 1) for _ in range(2))
+        assert ends["optoncdt"] == str(link) and link.is_symlink()
+        driver = VoltageDriver(make_amplifier("gcs", ends["gcs"]),
+                               DriverConfig(v_min=0, v_max=100, slew_rate=500.0))
+        reader = SensorReader.from_url(str(link), SensorConfig("ild1320", 2e-3))
+        driver.connect()
+        reader.connect()
+        driver.ramp_to(60.0)
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.3)
+        assert proc.poll() is None  # still there for the connected driver
+        assert driver.shutdown() == 0.0  # the ramp down reached the device and was read back
+        reader.close()
+        assert proc.wait(timeout=20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not os.path.lexists(link)

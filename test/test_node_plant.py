@@ -52,6 +52,10 @@ def test_realtime_plant_follows_commands_and_refuses_nan(node):
         cmd.publish(Voltage(voltage=math.inf))
         spin_until(node, lambda: False, 0.2)
         assert vs[-1].voltage == 150.0  # held
+        # samples are stamped on the 200 Hz grid of the node clock (a late tick publishes the
+        # samples it owes with their own stamps): increasing, spaced by whole periods
+        spacing = np.diff([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in xs])
+        assert np.all(spacing > 0) and np.all(spacing % 5_000_000 == 0), spacing
         assert spin_until(node, lambda: any(s.level == DiagnosticStatus.WARN and "rejected" in s.message
                                             for d in diags for s in d.status), 5.0)
     finally:

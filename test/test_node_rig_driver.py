@@ -1,6 +1,6 @@
 """voltage_driver node over real DDS against amplifier emulators run in this process: each safety
 rule (limits, NaN/inf, late commands, slew, watchdog, SIGINT/SIGTERM, reconnect) checked on what
-the emulated device actually received."""
+the emulated device actually received, and the apply_at_stamp playout."""
 
 from __future__ import annotations
 
@@ -125,6 +125,38 @@ def test_slew_rate_limits_every_step(probe, gcs):
     steps = [b - a for a, b in zip(sent, sent[1:])]
     assert len(steps) >= 10 and max(abs(s) for s in steps) <= rate * 0.05 + 1e-6
     assert max(sva_values(model)) < 100.0  # never jumped to the request
+
+
+def test_apply_at_stamp_plays_commands_at_their_stamps_with_a_first_order_hold(probe, gcs):
+    """apply_at_stamp: commands stamped ahead (the excitation's lead) and arriving out of order are
+    written at their stamps, in stamp order, with hold_period values interpolated in between;
+    only the commands are published, each stamped when written — never before its stamp."""
+    from rclpy.duration import Duration
+
+    model, server = gcs
+    d = Driver(probe, server.url, "apply_at_stamp:=true", "hold_period:=0.002", "command_timeout:=0.0",
+               "readback_rate_hz:=0.0")
+    try:
+        now = probe.get_clock().now()  # 80 ms apart: within the playout's 0.1 s interpolation gap
+        commands = {10.0: now + Duration(seconds=1.0), 30.0: now + Duration(seconds=1.08),
+                    50.0: now + Duration(seconds=1.16)}
+        for v in (50.0, 10.0, 30.0):  # out of order
+            d.send(v, commands[v])
+        assert d.wait(lambda: any(m.voltage == 50.0 for m in d.voltages), 20.0), sva_values(model)
+        d.wait(lambda: False, 0.2)
+    finally:
+        stop(d.proc)
+    sent = sva_values(model)
+    first = sent.index(10.0)
+    played = sent[first: sent.index(50.0) + 1]
+    assert 30.0 in played and played == sorted(played)  # 10 -> 30 -> 50, monotone
+    assert sum(10.0 < v < 30.0 for v in played) >= 3  # the first-order hold between 10 and 30 V
+    assert sum(30.0 < v < 50.0 for v in played) >= 3
+    published = {m.voltage: Time.from_msg(m.header.stamp) for m in d.voltages if m.voltage in commands}
+    assert set(published) == set(commands)  # the commands only, not the interpolated values
+    assert not [m for m in d.voltages if m.voltage not in commands and m.voltage != 0.0]
+    for v, stamp in commands.items():
+        assert published[v] >= stamp, v  # written at (not before) its stamp
 
 
 def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):

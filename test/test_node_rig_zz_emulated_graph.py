@@ -1,16 +1,30 @@
 """Last step: the whole `emulated_rig` graph (emulate rig + voltage_driver + laser_reader +
 identifier + excitation) started by piezo_stage.launch.Launcher: the excitation's voltage reaches
-the emulated amplifier, the emulated stage moves the emulated sensor, the reader publishes it,
-and Ctrl-C ramps the amplifier to safe_voltage before the emulator goes away.
+the emulated amplifier, the emulated ch. 10 patch moves the emulated sensor, the reader publishes
+it, the identifier recovers the patch's parameters from the two runs, and Ctrl-C ramps the
+amplifier to safe_voltage before the emulator goes away (the sensor's pty link is removed).
 
-(The identification itself is not asserted here: on this shared 2-core machine the stamp jitter
-of a real-time graph moves the input's crossing times by 1-2 % of a 1.5 s period, above the
-identifier's 1 % periodicity tolerance; and the full experiment takes ~35 s.)"""
+Tolerances, against config/ch10_patch.yaml (Tables 10.4-10.5):
+- κ1, κ2: 1 %, y0: 3 % — the polynomial part dominates the output (κ1·v ~ 40 um of a ~45 um
+  span) and is fixed by the loop's centre line, which timing and quantisation hardly move (the
+  sensor's quantum is MR·1.02/2^18 ≈ 7.8 nm at MR = 2 mm, 0.02 % of the span); seen ≤ 0.1 %,
+  ≤ 1.4 % for y0.
+- κw, ρ, σ, n: 20 % — the hysteretic part is ~10 % of the output and, at these amplitudes
+  (ρ·Δv ≈ 1.4), weakly conditioned. The driver writes the 200 Hz commands as a first-order hold
+  in 1 ms steps (hold_period), so the plant's input still lags the record the identifier
+  interpolates by half a step (0.5 ms): simulating that chain offline without any ROS or host
+  timing gives κw −3 %, ρ +3 %, σ +3 %, n +5 % (a plain 200 Hz staircase: −10/+11/+13/+20 %;
+  smooth input: < 0.5 %); the host's scheduling adds a few % more (seen: up to 9 %, n 12 %).
+- the fitted loop itself: RMS residual ≤ 0.2 % of the output span (seen 0.04 %).
+(The full experiment takes ~25 s of real time.)
+"""
 
 from __future__ import annotations
 
 import os
 import socket
+import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,7 +32,10 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from piezo_stage.launch import Launcher  # noqa: E402
-from piezo_stage.nodes.common import SENSOR_QOS  # noqa: E402
+from piezo_stage.launch.graph import load_graph  # noqa: E402
+from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
+from piezo_stage.config_path import find_config  # noqa: E402
+from piezo_stage.nodes.common import LATCHED_QOS, SENSOR_QOS  # noqa: E402
 from ros_support import spin_until  # noqa: E402
 
 NS = "/emulated"
@@ -30,8 +47,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_emulated_rig_graph_runs_the_excitation_through_the_devices(tmp_path):
-    from piezo_stage_msgs.msg import Displacement, Voltage
+def rig_graph(port: int, link: str):
+    """The shipped graph with this test's amplifier port and sensor link appended to the
+    emulator's command line (argparse: the last occurrence wins)."""
+    g = load_graph("emulated_rig")
+    nodes = tuple(replace(s, args=s.args + ("--amp-tcp", str(port), "--sensor-link", link))
+                  if s.name == "rig" else s for s in g.nodes)
+    return replace(g, nodes=nodes)
+
+
+def test_emulated_rig_graph_identifies_the_emulated_patch(tmp_path):
+    from piezo_stage_msgs.msg import BoucWenParameters, Displacement, Voltage
 
     port, link = free_port(), tmp_path / "sensor"
     lines: list[str] = []
@@ -39,30 +65,46 @@ def test_emulated_rig_graph_runs_the_excitation_through_the_devices(tmp_path):
     probe = rclpy.create_node("probe", namespace=NS)
     xs: list = []
     vs: list = []
+    params: list = []
     probe.create_subscription(Displacement, "displacement", xs.append, SENSOR_QOS)
     probe.create_subscription(Voltage, "voltage", vs.append, SENSOR_QOS)
-    launch = Launcher("emulated_rig", namespace=NS, timeout=30.0,
-                      env={**os.environ, "PIEZO_RIG_SENSOR": str(link), "PIEZO_RIG_AMP_PORT": str(port)},
+    probe.create_subscription(BoucWenParameters, "bouc_wen_parameters", params.append, LATCHED_QOS)
+    launch = Launcher(rig_graph(port, str(link)), namespace=NS, timeout=30.0,
                       params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}",
                               f"identifier.output_file:={tmp_path / 'identified.yaml'}"],
                       sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"))
     try:
         launch.start()
         launch.wait_ready(timeout=30.0)
-        moved = spin_until(probe, lambda: len(vs) > 100 and len(xs) > 100 and max(v.voltage for v in vs) > 60.0,
-                           20.0)
-        spin_until(probe, lambda: False, 0.5)
+        assert link.is_symlink()
+        over: list[float] = []  # when the identifier saw the end of run 1 (it identifies then)
+
+        def identified_or_given_up() -> bool:
+            if not over and any("offset 100) over at" in line for line in lines):
+                over.append(time.monotonic())
+            return bool(params) or (bool(over) and time.monotonic() > over[0] + 15.0)
+
+        done = spin_until(probe, identified_or_given_up, 90.0)
+        spin_until(probe, lambda: False, 0.3)
     finally:
         code = launch.stop()
         probe.destroy_node()
         rclpy.shutdown()
     log = "\n".join(line for line in lines if "[launch] started" not in line)[-6000:]
-    assert moved, log
+    assert done and params, log
     assert code == 0, log
     assert any("shut down at 0 V" in line for line in lines), log  # ramped before the emulator stopped
+    assert not os.path.lexists(link), "the emulator leaves no stale link"
     v = np.array([m.voltage for m in vs])
-    x = np.array([m.displacement for m in xs])
-    assert v.min() >= 0.0 and v.max() <= 100.0  # the excitation's 0-100 V triangle, inside the limits
+    assert v.min() >= 0.0 and v.max() <= 400.0 and v.max() > 350.0  # the 0-300 / 100-400 V triangles
     assert all(m.status == Displacement.OK for m in xs) and len(xs) > 100
-    # the ch. 10 patch moves ~0.14 um/V: a triangle to > 60 V spans several micrometres
-    assert np.ptp(x) > 5e-6, np.ptp(x)
+
+    truth = load_parameter_set(find_config("ch10_patch.yaml")).bouc_wen
+    p = params[-1]
+    assert p.input_sign == -1 and p.samples > 1000
+    assert list(p.kappa) == pytest.approx(list(truth.kappa), rel=0.01)
+    assert p.y0 == pytest.approx(truth.y0, rel=0.03)
+    for name in ("kappa_w", "rho", "sigma", "n"):
+        assert getattr(p, name) == pytest.approx(getattr(truth, name), rel=0.20), name
+    span = truth.kappa[0] * 400.0  # ~ the output span of the two runs [m]
+    assert p.rms_error <= 2e-3 * span

@@ -1,14 +1,19 @@
 """Run device emulators (PI GCS amplifier, Thorlabs MDT69x, optoNCDT sensor, or a whole rig) on ptys/TCP.
 
-Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or ``gcs: tcp://127.0.0.1:50000``,
-so a launcher or a user can connect the voltage_driver / laser_reader nodes to it. Runs until
-Ctrl-C (or --duration). Fault switches rehearse a bad link: --drop/--corrupt (per output byte),
---slow (reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
+Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or
+``gcs: tcp://127.0.0.1:50000``, so a launcher or a user can connect the voltage_driver / laser_reader
+nodes to it; ``--link`` / ``--sensor-link`` / ``--amp-link`` give a pty a fixed path (a symlink,
+removed on exit). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not
+vanish under a driver that is still ramping its output to a safe voltage: on the first signal it
+keeps serving until its TCP clients have hung up, at most --linger seconds (a pty cannot tell
+whether its client is gone, so pty endpoints stop at once); a second signal stops it at once.
+Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --slow (reply delay),
+--disconnect-every (hang up and come back), --error-values (sensor).
 
   piezo-stage emulate gcs --tcp 50000
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
-  piezo-stage emulate rig --params config/ch11_rig.yaml --family ild1320
+  piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link /tmp/piezo_rig_sensor
 """
 
 from __future__ import annotations
@@ -39,6 +44,12 @@ def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
                             help="stable symlink to the pty (kept across --disconnect-every)")
     parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
                         help="stop after this long (0: run until Ctrl-C)")
+    parser.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+                        help="run the device threads under SCHED_FIFO at this priority (1-99) when the "
+                             "system allows it, so a loaded host does not delay the device (0: normal)")
+    parser.add_argument("--linger", type=float, default=3.0, metavar="SECONDS",
+                        help="on Ctrl-C/SIGTERM keep serving while TCP clients are connected, at most "
+                             "this long (a driver ramping to its safe voltage); 0: stop at once")
 
 
 def _sensor_args(parser: argparse.ArgumentParser) -> None:
@@ -77,12 +88,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _faults(sensor)
 
     rig = sub.add_parser("rig", help="amplifier + sensor bound to one simulated stage")
-    rig.add_argument("--params", required=True, help="parameter-set YAML of the simulated stage")
+    rig.add_argument("--params", required=True,
+                     help="parameter-set YAML of the simulated stage (a path, or a name in config/, e.g. ch10_patch.yaml)")
     rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
     rig.add_argument("--amp-tcp", type=int, default=None, metavar="PORT",
                      help="serve the GCS amplifier on TCP instead of a pty")
     rig.add_argument("--standoff", type=float, default=None, metavar="M",
                      help="sensor reading at zero displacement [m] (default: MR/2)")
+    rig.add_argument("--amp-range", type=float, nargs=2, default=None, metavar=("VMIN", "VMAX"),
+                     help="GCS amplifier output range VMI?/VMA? [V] (default -30 130, an E-709)")
+    rig.add_argument("--sensor-link", default=None, metavar="PATH",
+                     help="fixed path (symlink) of the sensor's pty, for the laser_reader's url")
+    rig.add_argument("--amp-link", default=None, metavar="PATH",
+                     help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)")
     _sensor_args(rig)
     _faults(rig, link=False)
 
@@ -93,35 +111,42 @@ def _make_faults(args: argparse.Namespace) -> Faults:
 
 def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
     faults = _make_faults(args)
+    rt = args.realtime
     if args.device == "gcs":
         model = GCSDeviceModel(axis=args.axis, v_min=args.v_min, v_max=args.v_max,
                                servo_on=not args.servo_off,
                                refuse_sva_when_servo_on=not args.accept_sva_with_servo_on)
         endpoint = {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
-        return {"gcs": EmulatorServer(model, faults=faults, **endpoint)}
+        return {"gcs": EmulatorServer(model, faults=faults, realtime_priority=rt, **endpoint)}
     if args.device == "mdt69x":
         model = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
-        return {"mdt69x": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults)}
+        return {"mdt69x": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt)}
     fmt = frame_format(args.family, args.bits)
     if args.device == "optoncdt":
         model = OptoNCDTDeviceModel(fmt, args.measuring_range, args.rate,
                                     error_probability=args.error_values, seed=args.seed)
-        return {"optoncdt": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults)}
+        return {"optoncdt": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt)}
     from piezo_stage.hardware.emulators.rig import RigEmulator
 
     rig = RigEmulator(load_stage(args.params), fmt, args.measuring_range, amplifier=args.amplifier,
                       amplifier_tcp_port=args.amp_tcp, rate=args.rate, standoff=args.standoff,
                       sensor_errors=args.error_values, amplifier_faults=faults,
-                      sensor_faults=_make_faults(args), seed=args.seed)
+                      sensor_faults=_make_faults(args), seed=args.seed,
+                      sensor_link=args.sensor_link, amplifier_link=args.amp_link,
+                      amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
+                      realtime_priority=args.realtime)
     return rig.servers
 
 
 def load_stage(path: str):
-    """The simulated stage of the parameter set at ``path`` (piezo_stage.model.plant)."""
+    """The simulated stage of the parameter set at ``path``, or of the shipped config of that name."""
+    from pathlib import Path
+
+    from piezo_stage.config_path import find_config
     from piezo_stage.model.parameter_set import load_parameter_set
     from piezo_stage.model.plant import SimulatedStage
 
-    return SimulatedStage(load_parameter_set(path))
+    return SimulatedStage(load_parameter_set(path if Path(path).exists() else find_config(path)))
 
 
 def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
@@ -132,15 +157,25 @@ def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
 def run(args: argparse.Namespace) -> int:
     servers = _servers(args)
     stop = threading.Event()
+    signals = [0]
+
+    def on_signal(*_: object) -> None:
+        signals[0] += 1
+        stop.set()
+
     if threading.current_thread() is threading.main_thread():
-        # both signals only set the flag: a Ctrl-C that comes while the endpoints are being
-        # announced (or at any other point) still stops the servers cleanly, exit 0
-        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        # both signals only count and set the flag: a Ctrl-C that comes while the endpoints are
+        # being announced (or at any other point) still stops the servers cleanly, exit 0
+        signal.signal(signal.SIGTERM, on_signal)
         if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a launcher may have us ignore it
-            signal.signal(signal.SIGINT, lambda *_: stop.set())
+            signal.signal(signal.SIGINT, on_signal)
     for server in servers.values():
         server.start()
     _announce(servers)
+    time.sleep(0.01)  # the server threads have set their priority
+    for name, server in servers.items():
+        if server.realtime_error:
+            print(f"{name}: note: {server.realtime_error}", flush=True)
     t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     next_hangup = time.monotonic() + args.disconnect_every if args.disconnect_every > 0 else float("inf")
     try:
@@ -152,13 +187,26 @@ def run(args: argparse.Namespace) -> int:
                 time.sleep(0.05)  # let the server threads reopen their endpoints
                 _announce(servers, " (reconnected)")
                 next_hangup += args.disconnect_every
-            for name, server in servers.items():
-                if server.error is not None:
-                    print(f"{name}: emulator failed: {server.error}", flush=True)
-                    return 1
+            if (failed := _failed(servers)) is not None:
+                return failed
+        if stop.is_set():  # a signal, not --duration: let connected drivers finish their ramp
+            linger_end = time.monotonic() + max(args.linger, 0.0)
+            while signals[0] < 2 and time.monotonic() < linger_end and any(s.clients for s in servers.values()):
+                time.sleep(0.02)
+                if (failed := _failed(servers)) is not None:
+                    return failed
     except KeyboardInterrupt:
         pass
     finally:
         for server in servers.values():
             server.stop()
     return 0
+
+
+def _failed(servers: dict[str, EmulatorServer]) -> int | None:
+    """1 (after saying so) when a server thread died, else None."""
+    for name, server in servers.items():
+        if server.error is not None:
+            print(f"{name}: emulator failed: {server.error}", flush=True)
+            return 1
+    return None

@@ -8,6 +8,8 @@ For the ROS nodes:
 - laser_reader: ``SensorReader.from_url(url, SensorConfig(family, measuring_range))`` with
   ``connect()``, ``read()`` -> :class:`SampleBlock` (metres, :class:`Status`), ``stale``,
   ``reconnect()``, ``command()``/``get_info()`` for the ASCII channel.
+- rig timing (``timing``): ``SampleClock`` stamps samples on the sensor's clock,
+  ``CommandPlayout`` applies commands at their stamps (open-loop runs), ``set_realtime_priority``.
 """
 
 from .amplifier import Amplifier, DeviceInfo, GCSAmplifier, MDT69xAmplifier, make_amplifier
@@ -18,14 +20,15 @@ from .errors import (ConfigError, ConnectionLost, DeviceError, DeviceTimeout, GC
 from .optoncdt import FrameFormat, OptoNCDTParser, SampleBlock, Status, frame_format
 from .safety import VoltageLimits
 from .sensor import SensorConfig, SensorReader
+from .timing import CommandPlayout, SampleClock, set_realtime_priority
 from .transport import SerialTransport, TcpTransport, Transport, make_transport
 
 __all__ = [
-    "Amplifier", "ConfigError", "ConnectionLost", "DeviceError", "DeviceInfo", "DeviceTimeout",
+    "Amplifier", "CommandPlayout", "ConfigError", "ConnectionLost", "DeviceError", "DeviceInfo", "DeviceTimeout",
     "DriverConfig", "DriverState", "FrameFormat", "GCSAmplifier", "GCSError", "HardwareError",
     "LimitsError", "MDT69xAmplifier", "NonFiniteVoltageError", "NotConnected", "OptoNCDTParser",
-    "ProtocolError", "SafetyError", "SampleBlock", "SensorCommandError", "SensorConfig", "SensorReader",
+    "ProtocolError", "SafetyError", "SampleBlock", "SampleClock", "SensorCommandError", "SensorConfig", "SensorReader",
     "SerialTransport", "SetResult", "Status", "TcpTransport", "Transport", "TransportError",
     "VoltageDriver", "VoltageLimits", "VoltageOutOfRangeError", "Watchdog", "frame_format",
-    "make_amplifier", "make_transport",
+    "make_amplifier", "make_transport", "set_realtime_priority",
 ]

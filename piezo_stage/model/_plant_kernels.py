@@ -73,7 +73,7 @@ def g_plus(tab, w):
     return 1.0 + tab[1] * (-w) ** tab[0]
 
 
-@njit
+@njit(nrt=False)
 def static_walk(tab, rho, state, x_in, out):
     """Advance the walker state [s, xa, ya, xc, wc] (in place) through the samples x_in."""
     s, xa, ya, xc, wc = state[0], state[1], state[2], state[3], state[4]
@@ -139,10 +139,10 @@ def _exp_l(a, b, t):
 
 
 _SERIES_TERMS = 24  # Taylor terms of phi_j(L t) when |L| t <= _SERIES_LIMIT
-_SERIES_LIMIT = 1.0
+_SERIES_LIMIT = 0.3
 
 
-@njit
+@njit(inline=True)
 def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
     """z(tau xi_p) = Ez[p] z(0) + Gz[p] F for the points xi_p, F the nodal forcing values.
 
@@ -194,6 +194,7 @@ def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
                 Gz[p, 0, j] = acc0
                 Gz[p, 1, j] = acc1
         return
+    inv_a = 1.0 / a  # (a multiplication in the back substitution below, not a division)
     for j in range(q):
         # particular solution for the j-th nodal unit forcing
         for k in range(q - 1, -1, -1):
@@ -202,7 +203,7 @@ def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
                 acc -= b * inv_tau * (k + 1) * pcoef[k + 1]
             if k + 2 < q:
                 acc -= inv_tau * inv_tau * (k + 2) * (k + 1) * pcoef[k + 2]
-            pcoef[k] = acc / a
+            pcoef[k] = acc * inv_a
         p0 = pcoef[0]
         d0 = pcoef[1] * inv_tau if q > 1 else 0.0
         for p in range(points.size):
@@ -224,7 +225,7 @@ def _forcing(model, kpoly, u, k_loc, x, w):
     return u - model[2] * x - hi_val - model[1] * w + k_loc * x
 
 
-@njit
+@njit(inline=True)
 def _piece(tab, model, kpoly, st, u, k_loc, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, F, zs, wst, Dn, dwdx,
            res, jac, tol_x, tol_force, stats):
     """Solve the collocation equations of one piece (Newton on the nodal forcing F_1..F_{q-1}).
@@ -352,7 +353,7 @@ def _branch_derivatives(tab, model, kpoly, x, s_in, w):
     return d1, d2, d3
 
 
-@njit
+@njit(inline=True)
 def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef, tmp, F, zs, wst,
                  phi2, phi3, tol_x, stats):
     """Small-amplitude piece: forcing from the quadratic Taylor model of Phi along the branch.
@@ -402,7 +403,7 @@ def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez
     return (cubic + mismatch) * min(tau * tau / (8.0 * m), 1.0 / k_loc) / tol_x
 
 
-@njit
+@njit(inline=True)
 def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
     """Largest |F(actual state) - F(interpolated)| at the check points."""
     rho, sgn = model[0], model[6]
@@ -422,7 +423,7 @@ def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
     return worst
 
 
-@njit
+@njit(inline=True)
 def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
     """x'(t) on the piece for the nodal forcing F (exact for the interpolated forcing)."""
     m, c = model[4], model[5]
@@ -430,6 +431,7 @@ def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
     b = c / m
     q = vinv.shape[0]
     inv_tau = 1.0 / tau
+    inv_a = 1.0 / a
     for k in range(q - 1, -1, -1):
         beta = 0.0
         for j in range(q):
@@ -439,7 +441,7 @@ def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
             acc -= b * inv_tau * (k + 1) * pcoef[k + 1]
         if k + 2 < q:
             acc -= inv_tau * inv_tau * (k + 2) * (k + 1) * pcoef[k + 2]
-        pcoef[k] = acc / a
+        pcoef[k] = acc * inv_a
     xi = t * inv_tau
     val = 0.0
     der = 0.0
@@ -451,7 +453,7 @@ def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
     return e10 * (x0 - pcoef[0]) + e11 * (v0 - d0) + der * inv_tau
 
 
-@njit
+@njit(inline=True)
 def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi):
     """Root of x'(t) in (0, t_hi] (x' has the sign of ``direction`` at 0, the other at t_hi)."""
     lo = 0.0
@@ -500,38 +502,36 @@ def _predicted_reversal(a, b, dx, v0, direction):
     return theta / be
 
 
-@njit
-def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min, st, u, x_out, v_out, w_out,
-              stats):
-    """Advance the plant over len(u) output steps of length dt with u held on each.
-
-    ``model`` = (rho, kappa_w, kappa_x, -, m, c, input_sign). Outputs are the states at the end
-    of each step; ``st`` is updated in place; ``stats`` counts pieces, rejected pieces, Newton
-    evaluations and velocity reversals.
-    """
+def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
+    """The arrays :func:`integrate` works in, allocated once per plant (it allocates nothing):
+    (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac)."""
     q = nodes.size
-    m, c = model[4], model[5]
     npts = q - 1 + checks.size
-    points = np.empty(npts)
-    for i in range(1, q):
-        points[i - 1] = nodes[i]
-    for p in range(checks.size):
-        points[q - 1 + p] = checks[p]
-    Ez = np.empty((npts, 2, 2))
-    Gz = np.empty((npts, 2, q))
-    pcoef = np.empty(q)
-    tmp = np.empty((2, q))
+    points = np.concatenate([nodes[1:], checks])
     invfact = np.empty(_SERIES_TERMS + q + 2)
     invfact[0] = 1.0
     for i in range(1, invfact.size):
         invfact[i] = invfact[i - 1] / i
-    F = np.empty(q)
-    zs = np.empty((npts, 2))
-    wst = np.empty((q, 5))
-    Dn = np.empty(q)
-    dwdx = np.empty(q)
-    res = np.empty(q)
-    jac = np.empty((q, q))
+    return (points, np.empty((npts, 2, 2)), np.empty((npts, 2, q)), np.empty(q), np.empty((2, q)), invfact,
+            np.empty(q), np.empty((npts, 2)), np.empty((q, 5)), np.empty(q), np.empty(q), np.empty(q),
+            np.empty((q, q)))
+
+
+@njit(nrt=False)
+def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min, st, u, x_out, v_out, w_out,
+              stats, work):
+    """Advance the plant over len(u) output steps of length dt with u held on each.
+
+    ``model`` = (rho, kappa_w, kappa_x, -, m, c, input_sign). Outputs are the states at the end
+    of each step; ``st`` is updated in place; ``stats`` counts pieces, rejected pieces, Newton
+    evaluations and velocity reversals; ``work`` is :func:`workspace` (nodes, checks).
+    Compiled without reference counting (``nrt=False``): the kernels it inlines work on the
+    caller's arrays only.
+    """
+    q = nodes.size
+    m, c = model[4], model[5]
+    points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac = work
+    npts = points.size
     for k in range(u.size):
         uk = u[k]
         t = 0.0
@@ -572,8 +572,9 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
             err = 0.0
             while True:
                 F[0] = _forcing(model, kpoly, uk, k_loc, x0, st[WC])
-                small = _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef,
-                                     tmp, F, zs, wst, phi2, phi3, tol_x, stats) <= 1.0
+                small_err = _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef,
+                                         tmp, F, zs, wst, phi2, phi3, tol_x, stats)
+                small = small_err <= 1.0
                 if not small:  # full collocation, started from the quadratic prediction in F
                     _piece(tab, model, kpoly, st, uk, k_loc, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, F, zs,
                            wst, Dn, dwdx, res, jac, tol_x, tol_force, stats)
@@ -609,7 +610,7 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                         polish += 1
                         continue
                 if small:
-                    err = 0.0
+                    err = small_err
                 else:
                     err = _defect(tab, model, kpoly, uk, k_loc, points, nodes, lagrange, F, zs, wst)
                     err *= min(tau * tau / (8.0 * m), 1.0 / k_loc) / tol_x
@@ -629,9 +630,8 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                 st[S + j] = wst[q - 1, j]
             if ends_reversal:
                 stats[REVERSALS] += 1
-            grow = 3.0 if err <= 0.0 else min(3.0, 0.9 * err ** -0.2)
-            if controlled:
-                st[HPREF] = min(dt, tau * grow)
+            if controlled:  # the next piece may grow by up to 3x
+                st[HPREF] = min(dt, tau * (3.0 if err <= 0.0 else min(3.0, 0.9 * err ** -0.2)))
             t += tau
         x_out[k] = st[X]
         v_out[k] = st[V]

@@ -179,6 +179,7 @@ class DynamicPlant:
         self.stats = np.zeros(K.STATS_SIZE)
         self._tol_x = self.tol * length_scale(params)
         self._u1, self._x1, self._v1, self._w1 = (np.zeros(1) for _ in range(4))  # step() buffers
+        self._work = K.workspace(self._nodes, self._checks)
         self.reset(x0, xdot0, w0)
 
     # ------------------------------------------------------------------ state
@@ -216,7 +217,7 @@ class DynamicPlant:
     # ------------------------------------------------------------------ integration
     def _run(self, u: Array, dt: float, x: Array, v: Array, w: Array) -> None:
         K.integrate(self._tab, self._model, self._kpoly, self._nodes, self._checks, self._vinv, self._lagrange, dt,
-                    self._tol_x, 1e-7 * dt, self._state, u, x, v, w, self.stats)
+                    self._tol_x, 1e-7 * dt, self._state, u, x, v, w, self.stats, self._work)
 
     def simulate(self, u: Array, dt: float) -> tuple[Array, Array, Array]:
         """States (x, x', w) at the end of each step k, u[k] held over [k dt, (k+1) dt]."""

@@ -29,6 +29,7 @@ import sys
 from typing import Any
 
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -48,6 +49,11 @@ from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
                            "derivative_tau", "hold_voltage", "on_close")
+#: controller_state under trigger=sample (lockstep): a recorder lagging the graph by up to this
+#: many steps loses none (the plant's LOCKSTEP_QOS, for the same reason)
+STATE_LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+#: parameters the loop reads every period (cached in ``_hot``)
+HOT_KEYS = ("stale_periods", "reference_source", "reference", "open_at", "open_duration")
 
 
 class ControllerNode(Node):
@@ -99,6 +105,9 @@ class ControllerNode(Node):
             raise ControlError(f"unsafe gains at start: {report} (set allow_unverified_gains to override)")
         self.pid = TimeVaryingPID(config, closed=False)
         on_set(self, self._check_params)
+        # parameters read on every step, cached (refreshed after each successful set)
+        self._hot = {k: self.get_parameter(k).value for k in HOT_KEYS}
+        self.add_post_set_parameters_callback(self._refresh_hot)
 
         self._yr = float(self.get_parameter("reference").value)
         self._ref_gen: SecondOrderReference | None = None
@@ -113,7 +122,8 @@ class ControllerNode(Node):
         self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
-        self._pub_state = self.create_publisher(ControllerState, "controller_state", COMMAND_QOS)
+        self._pub_state = self.create_publisher(ControllerState, "controller_state", STATE_LOCKSTEP_QOS
+                                                if self.get_parameter("trigger").value == "sample" else COMMAND_QOS)
         self.create_subscription(Displacement, "displacement", self._on_displacement, SENSOR_QOS)
         self.create_subscription(Displacement, "reference", self._on_reference, COMMAND_QOS)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
@@ -168,6 +178,9 @@ class ControllerNode(Node):
         self.pid.reconfigure(config)
         return None
 
+    def _refresh_hot(self, params: list) -> None:
+        self._hot.update({p.name: p.value for p in params if p.name in HOT_KEYS})
+
     # ------------------------------------------------------------------ inputs
     def _on_reference(self, msg: Displacement) -> None:
         if msg.status == Displacement.OK and math.isfinite(msg.displacement):
@@ -197,14 +210,14 @@ class ControllerNode(Node):
         t = now.nanoseconds * 1e-9
         if self._x_stamp is None:
             return
-        if t - self._x_stamp > self.get_parameter("stale_periods").value / self._rate:
+        if t - self._x_stamp > self._hot["stale_periods"] / self._rate:
             self._fail(f"no sensor sample for {t - self._x_stamp:.4f} s", t)
             return
         self._step(t, now.to_msg())
 
     # ------------------------------------------------------------------ loop
     def _reference(self, t: float) -> tuple[float, float | None]:
-        source = self.get_parameter("reference_source").value
+        source = self._hot["reference_source"]
         if source == "second_order":
             if self._ref_gen is None:
                 self._ref_gen = SecondOrderReference(
@@ -213,20 +226,20 @@ class ControllerNode(Node):
             yr, yr_dot, _ = self._ref_gen.evaluate(t)
             return float(yr), float(yr_dot)
         if source == "constant":
-            return float(self.get_parameter("reference").value), 0.0
+            return float(self._hot["reference"]), 0.0
         return self._yr, None
 
     def _scheduled_window(self, t: float) -> None:
         """The open_at / open_duration window: opens with the hold voltage, closes after."""
-        open_at = self.get_parameter("open_at").value
+        open_at = self._hot["open_at"]
         if open_at < 0 or self._window == "done":
             return
         if self._window == "pending" and t >= open_at:
             self.get_logger().info(f"scheduled opening at t = {t:.6g} s, holding {self._hold_value():.6g} V")
             self.pid.open_loop(self._hold_value())
             self._window, self._window_t = "open", t
-        elif self._window == "open" and self.get_parameter("open_duration").value > 0 \
-                and t >= self._window_t + self.get_parameter("open_duration").value - 0.5 / self._rate:
+        elif self._window == "open" and self._hot["open_duration"] > 0 \
+                and t >= self._window_t + self._hot["open_duration"] - 0.5 / self._rate:
             self.get_logger().info(f"scheduled closing at t = {t:.6g} s")
             self.pid.close_loop()
             self._window = "done"
@@ -293,7 +306,7 @@ class ControllerNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run(ControllerNode, args)
+    return run(ControllerNode, args, lean=True)
 
 
 if __name__ == "__main__":

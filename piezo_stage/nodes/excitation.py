@@ -5,6 +5,12 @@ run/steady and at ``info_rate_hz``). The schedule is :class:`piezo_stage.model.e
 (a pure function of time since start). Two triggers:
 
 - ``timer``: a timer at ``rate_hz`` on the node's clock (wall, or sim time with use_sim_time);
+  with ``catch_up`` the commands lie on a fixed grid of 1/rate_hz and a late timer publishes
+  every grid instant it missed, each with its own stamp (up to 1 s of them) — for a
+  voltage_driver with ``apply_at_stamp``, which applies each at its stamp, so a stalled
+  excitation process leaves no flat piece in the applied waveform; ``lead`` stamps (and
+  publishes) every command and mark that many seconds ahead of the clock, so that such a
+  driver has it before it is due and the marks stay aligned with the applied voltage;
 - ``clock``: one command per ``/clock`` message, stamped with that time — the lockstep plant
   advances when it has the command for its current step, so a run is deterministic.
 
@@ -18,7 +24,9 @@ import sys
 
 from builtin_interfaces.msg import Time
 from rclpy.node import Node
+from rclpy.time import Time as RosTime
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from piezo_stage.model.errors import ModelError
@@ -51,6 +59,10 @@ class ExcitationNode(Node):
         declare(self, "bandwidth", base.bandwidth, "[Hz] random waveform: highest frequency", lo=0.0, hi=1e6)
         declare(self, "rate_hz", 1000.0, "command rate with trigger=timer [Hz]", lo=0.1, hi=100000.0)
         declare(self, "trigger", "timer", "timer (rate_hz on the node clock) | clock (one command per /clock tick)")
+        declare(self, "catch_up", False, "trigger=timer: commands on a fixed 1/rate_hz grid, the ones a late "
+                "timer missed published with their own stamps (for a driver with apply_at_stamp)", read_only=True)
+        declare(self, "lead", 0.0, "trigger=timer: stamp commands and marks this far ahead of the clock [s] "
+                "(for a driver with apply_at_stamp)", lo=0.0, hi=10.0, read_only=True)
         declare(self, "autostart", True, "start at the first tick (else wait for ~/start)")
         declare(self, "on_done", "hold", "hold (keep publishing the hold value) | exit")
         declare(self, "info_rate_hz", 10.0, "ExcitationInfo rate besides change events [Hz]", lo=0.0, hi=10000.0)
@@ -74,8 +86,11 @@ class ExcitationNode(Node):
         if trigger == "clock":
             self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
         elif trigger == "timer":
-            self.create_timer(1.0 / self.get_parameter("rate_hz").value,
-                              lambda: self._tick(self.get_clock().now().to_msg()))
+            self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
+            self._lead_ns = int(round(self.get_parameter("lead").value * 1e9))
+            self._catch_up = bool(self.get_parameter("catch_up").value)
+            self._next_ns: int | None = None
+            self.create_timer(1.0 / self.get_parameter("rate_hz").value, self._on_timer)
         else:
             raise ValueError(f"trigger must be timer or clock, got {trigger!r}")
         self.get_logger().info(
@@ -125,6 +140,17 @@ class ExcitationNode(Node):
             # let the last messages reach the subscribers (reliable delivery needs the process)
             self._exit_timer = self.create_timer(0.5, self._finish, clock=wall_clock())
 
+    def _on_timer(self) -> None:
+        now_ns = self.get_clock().now().nanoseconds + self._lead_ns
+        if not self._catch_up:
+            self._tick(RosTime(nanoseconds=now_ns).to_msg())
+            return
+        if self._next_ns is None or now_ns - self._next_ns > 1_000_000_000:
+            self._next_ns = now_ns  # start, or a stall of more than 1 s: restart the grid here
+        while self._next_ns <= now_ns:
+            self._tick(RosTime(nanoseconds=self._next_ns).to_msg())
+            self._next_ns += self._grid_ns
+
     def _finish(self) -> None:
         self.finished = True
 
@@ -138,14 +164,12 @@ class ExcitationNode(Node):
             amplitude=self.plan.amplitude, offset=sample.offset, run=sample.run, steady=sample.steady))
 
 
-def _header(stamp: Time):
-    from std_msgs.msg import Header
-
+def _header(stamp: Time) -> Header:
     return Header(stamp=stamp, frame_id="")
 
 
 def main(args: list[str] | None = None) -> int:
-    return run(ExcitationNode, args)
+    return run(ExcitationNode, args, lean=True)
 
 
 if __name__ == "__main__":

@@ -11,10 +11,12 @@ only adds:
 - decimation: ``decimation`` = N consecutive samples -> one message, the mean of the N when all
   are OK; a group holding any non-OK sample takes the status of its first non-OK sample and NaN
   (N = 1: every sample is published);
-- stamps: a read returns a block of samples that arrived together; the sample that closes an
-  output group gets ``stamp = t_reception − latency − m / rate_hz``, m being the number of
-  samples received after it in the same block (the sensor emits at ``rate_hz``; ``latency`` is
-  the sensor's own delay: exposure, processing and the serial frame time).
+- stamps on the sensor's sample clock (:class:`piezo_stage.hardware.timing.SampleClock`): the
+  k-th sample since (re)connecting was taken at ``t0 + k / rate_hz``, ``t0`` being the lower
+  envelope of ``t_reception − k / rate_hz`` over ``stamp_window`` seconds (frames reach the host
+  in bursts, which only ever add delay); a message is stamped at the mean time of the samples it
+  averages, minus ``latency`` (the sensor's own delay: exposure, processing and the serial frame
+  time). ``rate_hz`` must be the sensor's measuring rate (MEASRATE).
 """
 
 from __future__ import annotations
@@ -25,11 +27,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.time import Time
 from std_msgs.msg import Header
 
 from piezo_stage.hardware import SampleBlock, SensorConfig, SensorReader, Status, TransportError
+from piezo_stage.hardware.timing import SampleClock
 from piezo_stage_msgs.msg import Displacement
 
 from .common import (DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, STALE, WARN, Diagnosis, Diagnostics, declare,
@@ -38,11 +41,11 @@ from .common import (DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, STALE, WARN, Diag
 
 @dataclass(frozen=True)
 class Decimated:
-    """Output samples of one block: value [m] (NaN unless OK), status, samples received after each."""
+    """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the group's)."""
 
     displacement: np.ndarray
     status: np.ndarray
-    after: np.ndarray  # samples of the block that arrived after the last sample of each group
+    stamp: np.ndarray
 
 
 class Decimator:
@@ -52,22 +55,30 @@ class Decimator:
         if n < 1:
             raise ValueError(f"decimation must be >= 1, got {n}")
         self.n = n
+        self.reset()
+
+    def reset(self) -> None:
+        """Drop an incomplete group (after a reconnect its samples are not contiguous)."""
         self._d = np.empty(0)
         self._s = np.empty(0, dtype=np.uint8)
+        self._t = np.empty(0, dtype=np.int64)
 
-    def feed(self, block: SampleBlock) -> Decimated:
+    def feed(self, block: SampleBlock, stamps: np.ndarray) -> Decimated:
+        """Groups completed by ``block`` whose samples were taken at ``stamps`` [ns]."""
         d = np.concatenate([self._d, block.displacement])
         s = np.concatenate([self._s, block.status])
+        t = np.concatenate([self._t, np.asarray(stamps, dtype=np.int64)])
         groups = d.size // self.n
         used = groups * self.n
-        self._d, self._s = d[used:], s[used:]
+        self._d, self._s, self._t = d[used:], s[used:], t[used:]
         d, s = d[:used].reshape(groups, self.n), s[:used].reshape(groups, self.n)
+        t = t[:used].reshape(groups, self.n)
         bad = s != Status.OK
         any_bad = bad.any(axis=1)
         status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)], Status.OK).astype(np.uint8)
         value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
-        after = (used + self._d.size) - (np.arange(groups) + 1) * self.n
-        return Decimated(value, status, after.astype(np.int64))
+        stamp = t[:, 0] + (t[:, -1] - t[:, 0]) // 2  # mean time of equally spaced samples
+        return Decimated(value, status, stamp)
 
 
 class LaserReaderNode(Node):
@@ -84,6 +95,8 @@ class LaserReaderNode(Node):
         declare(self, "decimation", 1, "N samples -> one message (mean of N OK samples)", lo=1, hi=100000, **ro)
         declare(self, "rate_hz", 1000.0, "the sensor's measuring rate [Hz] (stamp correction)", lo=1e-3, hi=1e6, **ro)
         declare(self, "latency", 0.0, "sensor delay subtracted from the reception time [s]", lo=0.0, hi=10.0, **ro)
+        declare(self, "stamp_window", 2.0, "window of the sample clock's lower envelope [s] (see module docstring)",
+                lo=0.01, hi=3600.0, **ro)
         declare(self, "poll_period", 0.002, "period of the read timer (wall clock) [s]", lo=1e-4, hi=1.0, **ro)
         declare(self, "stale_timeout", 0.5, "no frame for this long: stale (diagnostics) [s]", lo=1e-3, hi=60.0, **ro)
         p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
@@ -99,6 +112,7 @@ class LaserReaderNode(Node):
         self.rate = float(p["rate_hz"])
         self.latency = float(p["latency"])
         self.decimator = Decimator(int(p["decimation"]))
+        self.sample_clock = SampleClock(self.rate, p["stamp_window"])
         self.connected = True
         self.published = 0
         self.by_status = {s: 0 for s in Status}
@@ -117,6 +131,8 @@ class LaserReaderNode(Node):
             if not self.connected:
                 self.reader.reconnect()
                 self.connected = True
+                self.sample_clock.reset()
+                self.decimator.reset()
                 self.get_logger().info(f"reconnected to {self.url}")
             block = self.reader.read(0.0)
         except TransportError as exc:
@@ -127,11 +143,11 @@ class LaserReaderNode(Node):
             return
         if not len(block):
             return
-        now = self.get_clock().now()
-        out = self.decimator.feed(block)
+        stamps = self.sample_clock.stamps(self.get_clock().now().nanoseconds, len(block))
+        out = self.decimator.feed(block, stamps - int(round(self.latency * 1e9)))
         value = self.sign * (out.displacement - self.zero_offset)
-        for x, status, after in zip(value, out.status, out.after):
-            stamp = now - Duration(nanoseconds=int(round((self.latency + after / self.rate) * 1e9)))
+        for x, status, ns in zip(value, out.status, out.stamp):
+            stamp = Time(nanoseconds=int(ns), clock_type=self.get_clock().clock_type)
             self._pub.publish(Displacement(header=Header(stamp=stamp.to_msg()),
                                            displacement=float(x) if status == Status.OK else math.nan,
                                            status=int(status)))

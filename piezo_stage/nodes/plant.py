@@ -6,8 +6,11 @@ publishes ``voltage`` (what the amplifier applied) and ``displacement`` (the sen
 (amplifier -> Bouc-Wen plant -> sensor); this node only schedules it.
 
 Clocks (``clock_mode``):
-- ``realtime``: a wall-clock timer at ``rate_hz``; each tick integrates over the elapsed step
-  with the last command held (zero-order hold) and publishes one sample.
+- ``realtime``: a wall-clock timer at ``rate_hz``; samples are due on the grid t0 + k/rate_hz
+  of the node clock, each integrated over one step with the last command held (zero-order
+  hold) and stamped with its grid time. A tick that comes late publishes every sample due
+  since the last one (no drift, no lost samples under load); a stall longer than
+  ``REALTIME_CATCH_UP`` drops the older backlog and counts it (WARN on /diagnostics).
 - ``lockstep``: the node owns ``/clock``. At step k it publishes ``/clock`` = t_k and the
   sample at t_k, then waits for the ``voltage_command`` stamped t_k (any publisher: the
   excitation's clock trigger, the controller's sample trigger) and only then integrates to
@@ -25,10 +28,10 @@ import math
 import sys
 import time
 
+from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import Header
 
 from piezo_stage.config_path import find_config
 from piezo_stage.model.errors import InvalidCommandError
@@ -44,6 +47,8 @@ from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, OK, SENSOR_QOS, WARN, Diagn
 #: history is deep: a reader that is busy for a while (the identifier extracting a cycle) must
 #: not lose the samples the graph produced meanwhile.
 LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+#: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
+REALTIME_CATCH_UP = 1.0
 
 
 class PlantNode(Node):
@@ -88,6 +93,7 @@ class PlantNode(Node):
         self._rejected = 0
         self._commands = 0
         self._late = 0
+        self._dropped = 0
         self._steps = 0
         self._started_wall = time.monotonic()
 
@@ -95,8 +101,10 @@ class PlantNode(Node):
         stream_qos = LOCKSTEP_QOS if lockstep else SENSOR_QOS
         self._pub_x = self.create_publisher(Displacement, "displacement", stream_qos)
         self._pub_v = self.create_publisher(Voltage, "voltage", stream_qos)
-        self.create_subscription(Voltage, "voltage_command", self._on_command,
-                                 LOCKSTEP_QOS if lockstep else COMMAND_QOS)
+        self._msg_x, self._msg_v = Displacement(), Voltage()
+        sub = self.create_subscription(Voltage, "voltage_command", self._on_command,
+                                       LOCKSTEP_QOS if lockstep else COMMAND_QOS)
+        self._topic_command = sub.topic_name
         Diagnostics(self, "simulation", self._diagnose)
         if lockstep:
             self._pub_clock = self.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
@@ -105,10 +113,13 @@ class PlantNode(Node):
             self._dt_ns = int(round(self.dt * 1e9))
             self._waiting_since: float | None = None
             self._started = False
+            self._sample_first = False
             self._timeout = float(p["lockstep_timeout"])
             self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
         elif self.mode == "realtime":
-            self._last_tick: float | None = None
+            self._dt_ns = int(round(self.dt * 1e9))
+            self._next_ns: int | None = None  # grid time of the next sample due
+            self._max_backlog = max(10, int(REALTIME_CATCH_UP * p["rate_hz"]))
             self.create_timer(self.dt, self._realtime_tick)
         else:
             raise ValueError(f"clock_mode must be realtime or lockstep, got {self.mode!r}")
@@ -131,18 +142,24 @@ class PlantNode(Node):
 
     # ------------------------------------------------------------------ realtime
     def _realtime_tick(self) -> None:
-        now = time.monotonic()
-        dt = self.dt if self._last_tick is None else min(now - self._last_tick, 10 * self.dt)
-        self._last_tick = now
-        self._step(dt)
-        self._publish(self.get_clock().now().to_msg())
+        now = self.get_clock().now().nanoseconds
+        if self._next_ns is None:
+            self._next_ns = now
+        due = (now - self._next_ns) // self._dt_ns + 1  # samples whose grid time has come
+        if due > self._max_backlog:  # a long stall: resynchronise on the latest grid time
+            self._dropped += due - 1
+            self._next_ns += (due - 1) * self._dt_ns
+            due = 1
+        for _ in range(due):
+            self._step(self.dt)
+            sec, nanosec = divmod(self._next_ns, 1_000_000_000)
+            self._publish(Time(sec=sec, nanosec=nanosec))
+            self._next_ns += self._dt_ns
 
     # ------------------------------------------------------------------ lockstep
-    def _stamp(self):
-        from builtin_interfaces.msg import Time
-
-        ns = self._t0_ns + self._k * self._dt_ns
-        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    def _stamp(self) -> Time:
+        sec, nanosec = divmod(self._t0_ns + self._k * self._dt_ns, 1_000_000_000)
+        return Time(sec=sec, nanosec=nanosec)
 
     def _matches_step(self, msg: Voltage) -> bool:
         if not self._started:
@@ -152,9 +169,22 @@ class PlantNode(Node):
 
     def _emit_step(self) -> None:
         stamp = self._stamp()
-        self._pub_clock.publish(Clock(clock=stamp))
-        self._publish(stamp)
+        if self._sample_first:  # a sample-triggered commander (controller) waits for the sample
+            self._publish(stamp)
+            self._pub_clock.publish(Clock(clock=stamp))
+        else:  # a clock-triggered one (excitation) waits for /clock
+            self._pub_clock.publish(Clock(clock=stamp))
+            self._publish(stamp)
         self._waiting_since = time.monotonic()
+
+    def _commander_reads_samples(self) -> bool:
+        """True when a voltage_command publisher subscribes to our displacement (a controller):
+        then the sample is on the step's critical path and goes out before /clock."""
+        commanders = {(i.node_name, i.node_namespace)
+                      for i in self.get_publishers_info_by_topic(self._topic_command)}
+        readers = {(i.node_name, i.node_namespace)
+                   for i in self.get_subscriptions_info_by_topic(self._pub_x.topic_name)}
+        return bool(commanders & readers)
 
     def _advance(self) -> None:
         self._step(self.dt)
@@ -166,12 +196,14 @@ class PlantNode(Node):
             if self.get_parameter("wait_for_commander").value and self.count_publishers("voltage_command") == 0:
                 return
             self._started = True
+            self._sample_first = self._commander_reads_samples()
             self._emit_step()
             return
         waited = time.monotonic() - self._waiting_since
         if self._k == 0 and self._commands == 0 and waited > 0.1:
             # a commander that has just appeared may have missed the first step: offer it again
             # (same stamp and values; subscribers see a duplicate of step 0 at most)
+            self._sample_first = self._commander_reads_samples()
             self._emit_step()
             return
         if self._timeout > 0 and waited > self._timeout:
@@ -191,24 +223,29 @@ class PlantNode(Node):
     def _publish(self, stamp) -> None:
         if self._steps == 0:  # before the first step: the initial state
             self._applied, self._x, self._status = self.stage.output()
-        header = Header(stamp=stamp)
-        ok = self._status == Displacement.OK
-        self._pub_x.publish(Displacement(header=header, displacement=self._x if ok else math.nan,
-                                         status=self._status))
-        self._pub_v.publish(Voltage(header=header, voltage=self._applied))
+        # one message of each kind, refilled: publish() serializes before it returns
+        msg_x, msg_v = self._msg_x, self._msg_v
+        msg_x.header.stamp = msg_v.header.stamp = stamp
+        msg_x.displacement = self._x if self._status == Displacement.OK else math.nan
+        msg_x.status = self._status
+        msg_v.voltage = self._applied
+        self._pub_x.publish(msg_x)
+        self._pub_v.publish(msg_v)
 
     def _diagnose(self) -> Diagnosis:
         elapsed = time.monotonic() - self._started_wall
         values = {"model": self.parameter_set.name, "form": self.parameter_set.form, "clock_mode": self.mode,
                   "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
-                  "command": self._command, "rejected_commands": self._rejected, "late_steps": self._late}
-        if self._late or self._rejected:
-            return Diagnosis(WARN, f"{self._late} late step(s), {self._rejected} rejected command(s)", values)
+                  "command": self._command, "rejected_commands": self._rejected, "late_steps": self._late,
+                  "dropped_samples": self._dropped}
+        if self._late or self._rejected or self._dropped:
+            return Diagnosis(WARN, f"{self._late} late step(s), {self._rejected} rejected command(s), "
+                             f"{self._dropped} dropped sample(s)", values)
         return Diagnosis(OK, "simulating", values)
 
 
 def main(args: list[str] | None = None) -> int:
-    return run(PlantNode, args)
+    return run(PlantNode, args, lean=True)
 
 
 if __name__ == "__main__":

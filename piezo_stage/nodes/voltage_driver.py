@@ -2,14 +2,26 @@
 
 Same topics, types, units and QoS as the simulated ``plant`` (DESIGN.md §3): subscribes
 ``voltage_command`` (COMMAND_QOS), publishes ``voltage`` (SENSOR_QOS: the value the device
-acknowledged, stamped when it was sent, and the device read-back every 1/readback_rate_hz s) and
-``/diagnostics``. Every safety rule lives in :class:`piezo_stage.hardware.driver.VoltageDriver`
+acknowledged, stamped when it was sent — before the ``ERR?`` round trip that confirms it — and
+the device read-back every 1/readback_rate_hz s) and ``/diagnostics``. Every safety rule lives in
+:class:`piezo_stage.hardware.driver.VoltageDriver`
 (limits = configured ∩ device, slew rate, watchdog, safe shutdown, reconnect); this node adds
 only what needs the ROS clock:
 
 - a command with a non-finite voltage is rejected here and counted (it never reaches the core);
 - with ``max_command_age`` > 0 a command whose header stamp is older than that w.r.t. the node
   clock (unstamped commands included) is late and rejected;
+- ``apply_at_stamp`` (open-loop excitation, e.g. identification runs): each command is applied at
+  its header stamp + ``command_delay`` by :class:`piezo_stage.hardware.timing.CommandPlayout`
+  (its own thread, SCHED_FIFO at ``realtime_priority`` when allowed) instead of on arrival, so
+  the applied waveform is the commanded one shifted by a constant delay and not warped by the
+  transport's variable latency (the identifier cuts periods on the time axis). The excitation
+  node stamps its commands ``lead`` seconds ahead for this (then ``command_delay`` = 0 keeps its
+  run marks aligned with the applied voltage). Commands arriving after their time are applied at
+  once and counted (``late_playout`` on /diagnostics). ``hold_period`` > 0 fills the intervals
+  between queued commands with linearly interpolated values every ``hold_period`` s (a
+  first-order hold; only the commands are published on ``voltage``). Off (the default, and what
+  a closed loop needs): on arrival;
 - ``tick()`` (the watchdog) runs on a steady wall-clock timer, so a stalled ``/clock`` cannot
   keep the amplifier at its last voltage;
 - SIGINT/SIGTERM: ``on_shutdown()`` ramps to ``safe_voltage`` and leaves the amplifier in open
@@ -20,17 +32,19 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 
 from rclpy.node import Node
 from rclpy.time import Time
 from std_msgs.msg import Header
 
-from piezo_stage.hardware import (DriverConfig, DriverState, HardwareError, NonFiniteVoltageError,
+from piezo_stage.hardware import (ConfigError, DriverConfig, DriverState, HardwareError, NonFiniteVoltageError,
                                   VoltageDriver, make_amplifier)
+from piezo_stage.hardware.timing import CommandPlayout
 from piezo_stage_msgs.msg import Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
-                     declare, run, wall_clock)
+                     declare, run, stamp_to_s, wall_clock)
 
 
 class VoltageDriverNode(Node):
@@ -54,6 +68,13 @@ class VoltageDriverNode(Node):
                 lo=0.0, hi=1000.0, **ro)
         declare(self, "max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node clock [s] (0: off)",
                 lo=0.0, hi=3600.0, **ro)
+        declare(self, "apply_at_stamp", False, "apply each command at its stamp + command_delay (wall clock) "
+                "instead of on arrival: open-loop runs without the transport's latency jitter", **ro)
+        declare(self, "command_delay", 0.0, "with apply_at_stamp: added to the stamps [s]", lo=0.0, hi=10.0, **ro)
+        declare(self, "hold_period", 0.0, "with apply_at_stamp: write values interpolated between queued "
+                "commands every hold_period s (first-order hold; 0: hold each command)", lo=0.0, hi=1.0, **ro)
+        declare(self, "realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread "
+                "(1-99, when the system allows it; 0: normal)", lo=0, hi=99, **ro)
         declare(self, "reconnect_attempts", 3, "tries to reopen a dropped link per attempt round", lo=0, hi=100, **ro)
         p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
 
@@ -77,6 +98,14 @@ class VoltageDriverNode(Node):
         self._link_errors = 0
         self._watchdog_trips = 0
         self._last_error = ""
+        self._lock = threading.Lock()  # commands come from the executor or from the playout thread
+        self._playout: CommandPlayout | None = None
+        if p["apply_at_stamp"]:
+            if self.get_parameter("use_sim_time").value:
+                raise ConfigError("apply_at_stamp needs wall-clock stamps: not with use_sim_time")
+            sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
+            self._playout = CommandPlayout(self._apply, p["command_delay"], realtime_priority=p["realtime_priority"],
+                                           hold_period=p["hold_period"]).start()
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
         self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
@@ -98,18 +127,34 @@ class VoltageDriverNode(Node):
             if age > self.max_age:
                 self._reject("late", f"late voltage command ({age:.3g} s old > max_command_age {self.max_age:g} s)")
                 return
-        self._last_command = msg.voltage
-        try:
-            result = self.driver.set_voltage(msg.voltage)
-        except NonFiniteVoltageError as exc:  # cannot happen after the check above; kept for safety
-            self._reject("nonfinite", str(exc))
-            return
-        except HardwareError as exc:
-            self._link_error(exc)
-            return
-        self._commands += 1
-        self._clamped += int(result.clamped)
-        self._publish(result.sent)
+        if self._playout is not None:
+            self._playout.push(stamp_to_s(msg.header.stamp), msg.voltage)
+        else:
+            self._apply(msg.voltage)
+
+    def _apply(self, voltage: float, command: bool = True) -> None:
+        """Send one accepted command (from the executor, or from the playout thread when due) and
+        publish it; ``command`` False: a value the playout interpolated, sent only."""
+        with self._lock:
+            if not command:
+                try:
+                    self.driver.set_voltage(voltage)
+                except HardwareError as exc:
+                    self._link_error(exc)
+                return
+            self._last_command = voltage
+            sent_at = self.get_clock().now()  # applied when the device gets it, not after its ERR? reply
+            try:
+                result = self.driver.set_voltage(voltage)
+            except NonFiniteVoltageError as exc:  # cannot happen after the check above; kept for safety
+                self._reject("nonfinite", str(exc))
+                return
+            except HardwareError as exc:
+                self._link_error(exc)
+                return
+            self._commands += 1
+            self._clamped += int(result.clamped)
+            self._publish(result.sent, sent_at)
 
     def _reject(self, kind: str, text: str) -> None:
         # one log call site per kind: rclpy throttles per call site
@@ -149,9 +194,10 @@ class VoltageDriverNode(Node):
         except HardwareError as exc:
             self._link_error(exc)
 
-    def _publish(self, voltage: float) -> None:
+    def _publish(self, voltage: float, stamp: Time | None = None) -> None:
         self._applied = voltage
-        self._pub.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()), voltage=voltage))
+        stamp = self.get_clock().now() if stamp is None else stamp
+        self._pub.publish(Voltage(header=Header(stamp=stamp.to_msg()), voltage=voltage))
 
     # ------------------------------------------------------------------ health, shutdown
     def _diagnose(self) -> Diagnosis:
@@ -164,6 +210,11 @@ class VoltageDriverNode(Node):
                   "clamped_commands": self._clamped, "rejected_nonfinite": self._rejected_nonfinite,
                   "rejected_late": self._rejected_late, "watchdog_trips": self._watchdog_trips,
                   "reconnects": d.reconnects, "link_errors": self._link_errors, "last_error": self._last_error}
+        if self._playout is not None:
+            values.update(command_delay=self._playout.delay, late_playout=self._playout.late,
+                          ahead_playout=self._playout.ahead,
+                          pending_playout=self._playout.pending,
+                          playout_priority=self._playout.realtime_error or self._playout.realtime_priority)
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         rejected = self._rejected_nonfinite + self._rejected_late
@@ -174,6 +225,8 @@ class VoltageDriverNode(Node):
 
     def on_shutdown(self) -> None:
         """Ramp to safe_voltage at the slew rate and leave the amplifier there (open loop)."""
+        if self._playout is not None:
+            self._playout.stop()  # queued commands are dropped: the ramp owns the output now
         applied = self.driver.shutdown()
         self._publish(applied)
         self.get_logger().info(f"shut down at {applied:g} V (safe_voltage {self.driver.config.safe_voltage:g} V)")

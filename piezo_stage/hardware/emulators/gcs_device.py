@@ -33,14 +33,15 @@ class GCSDeviceModel:
 
     def __init__(self, axis: str = "1", channel: int = 1, v_min: float = -30.0, v_max: float = 130.0,
                  servo_on: bool = True, refuse_sva_when_servo_on: bool = True,
-                 on_voltage: Callable[[float], None] | None = None) -> None:
+                 on_voltage: Callable[[float, float | None], None] | None = None) -> None:
         self.axis = axis
         self.channel = channel
         self.v_min, self.v_max = v_min, v_max
         self.servo_on = servo_on
         self.online = True
         self.refuse_sva_when_servo_on = refuse_sva_when_servo_on
-        self.on_voltage = on_voltage
+        self.on_voltage = on_voltage  # called (voltage, time the command arrived or None) on every change
+        self._now: float | None = None  # arrival time of the line being executed
         self.voltage = 0.0  # open-loop value = applied output voltage [V]
         self.target = 0.0  # closed-loop target (stored only)
         self.error = 0
@@ -66,12 +67,14 @@ class GCSDeviceModel:
         with self.lock:
             return self.voltage
 
-    def execute(self, line: str) -> bytes:
-        """Run one command line; returns the reply bytes (b"" for setters and refused queries)."""
+    def execute(self, line: str, now: float | None = None) -> bytes:
+        """Run one command line (arrived at server time ``now``); returns the reply bytes (b""
+        for setters and refused queries)."""
         parts = line.split()
         if not parts:
             return b""
         with self.lock:
+            self._now = now
             self.commands.append(line)
             handler = self._handlers.get(parts[0])
             try:
@@ -126,7 +129,7 @@ class GCSDeviceModel:
     def _set_voltage(self, value: float) -> None:
         self.voltage = value
         if self.on_voltage is not None:
-            self.on_voltage(value)
+            self.on_voltage(value, self._now)
 
     # --- commands -------------------------------------------------------------------------------
     def _err(self, args: list[str]) -> list[str]:
@@ -206,5 +209,5 @@ class _LineSession:
         while (i := self._buf.find(b"\n")) >= 0:
             line = self._buf[:i].decode("ascii", errors="replace").strip("\r")
             del self._buf[: i + 1]
-            out += self.model.execute(line)
+            out += self.model.execute(line, now)
         return bytes(out)

@@ -24,7 +24,7 @@ class MDTDeviceModel:
     stream_period = None
 
     def __init__(self, model: str = "MDT694B", vlimit: float = 150.0, echo: bool = True,
-                 on_voltage: Callable[[float], None] | None = None) -> None:
+                 on_voltage: Callable[[float, float | None], None] | None = None) -> None:
         if model not in ("MDT693B", "MDT694B"):
             raise ConfigError(f"model must be MDT693B or MDT694B, got {model!r}")
         if vlimit not in VLIMITS:
@@ -33,7 +33,8 @@ class MDTDeviceModel:
         self.axes = AXES if model == "MDT693B" else AXES[:1]
         self.vlimit = vlimit
         self.echo = echo
-        self.on_voltage = on_voltage
+        self.on_voltage = on_voltage  # called (voltage of x, time the command arrived or None)
+        self._now: float | None = None  # arrival time of the command being executed
         self.voltage = {a: 0.0 for a in self.axes}
         self.v_min = {a: 0.0 for a in self.axes}
         self.v_max = {a: vlimit for a in self.axes}
@@ -52,8 +53,10 @@ class MDTDeviceModel:
         with self.lock:
             return self.voltage[self.axes[0]]
 
-    def execute(self, command: str) -> bytes:
+    def execute(self, command: str, now: float | None = None) -> bytes:
+        """Run one command (arrived at server time ``now``); returns the reply with echo and prompt."""
         with self.lock:
+            self._now = now
             self.commands.append(command)
             body = self._run(command.strip().lower())
             echo = f"{command}\r" if self.echo else ""
@@ -65,7 +68,7 @@ class MDTDeviceModel:
         value = min(max(value, self.v_min[axis]), min(self.v_max[axis], self.vlimit))
         self.voltage[axis] = value
         if self.on_voltage is not None and axis == self.axes[0]:
-            self.on_voltage(value)
+            self.on_voltage(value, self._now)
 
     def _run(self, cmd: str) -> list[str] | None:
         """Reply lines for ``cmd`` ([] for a setter), or None when the command is not defined."""
@@ -139,4 +142,4 @@ class _MDTSession:
             line = self._buf[:i].decode("ascii", errors="replace")
             del self._buf[: i + 1]
             if line.strip():
-                out += self.model.execute(line.strip())
+                out += self.model.execute(line.strip(), now)

@@ -55,6 +55,11 @@ class OptoNCDTDeviceModel:
         self.commands: list[str] = []
 
     @property
+    def t0(self) -> float | None:
+        """Server time (``time.monotonic``) of sample 0; ``source`` gets times relative to it."""
+        return self._t0
+
+    @property
     def stream_period(self) -> float:
         return min(1.0 / self.rate, 0.002)
 

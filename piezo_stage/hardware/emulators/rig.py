@@ -2,7 +2,11 @@
 
 The amplifier emulator's applied voltage drives the plant; the sensor emulator steps the plant
 once per sample (dt = 1/rate, so the plant runs on the sensor's sample clock) and streams
-``standoff + displacement`` (metres from the start of its measuring range). Any object with
+``standoff + displacement`` (metres from the start of its measuring range). The plant sees, for
+the sample taken at ``t0 + k/rate``, the voltage the amplifier applied at that instant (each
+applied voltage is kept with its arrival time), not the voltage at the moment the emulator's
+thread gets round to computing the sample: as on a real rig, the physics run in real time
+whatever the host's scheduling, and a late burst of samples still describes the past. Any object with
 ``step(command_voltage, dt) -> (applied_voltage, displacement, status)`` serves as the stage
 (``piezo_stage.model.plant.SimulatedStage``).
 """
@@ -11,6 +15,8 @@ from __future__ import annotations
 
 import math
 import threading
+import time
+from collections import deque
 from typing import Protocol
 
 import numpy as np
@@ -28,23 +34,42 @@ class Stage(Protocol):
 
 
 class RigCoupling:
-    """The sensor's displacement source: steps the stage with the amplifier's applied voltage."""
+    """The sensor's displacement source: steps the stage with the amplifier's applied voltage.
 
-    def __init__(self, stage: Stage, amplifier: GCSDeviceModel | MDTDeviceModel, rate: float,
-                 standoff: float) -> None:
+    :meth:`on_voltage` (the amplifier model's callback) records each applied voltage with its
+    time (``clock``, the emulator servers' ``time.monotonic``); a call with sample times
+    relative to ``origin()`` steps the stage once per sample with the voltage in force then.
+    """
+
+    def __init__(self, stage: Stage, rate: float, standoff: float, initial_voltage: float = 0.0,
+                 clock=time.monotonic) -> None:
         self.stage = stage
-        self.amplifier = amplifier
         self.dt = 1.0 / rate
         self.standoff = standoff
+        self.clock = clock
+        self.origin = lambda: 0.0  # absolute time of relative sample time 0 (set by RigEmulator)
         self.lock = threading.Lock()
+        self._history: deque[tuple[float, float]] = deque([(-math.inf, float(initial_voltage))])
         self.applied = 0.0  # last voltage the plant received [V]
         self.displacement = 0.0  # last plant output [m]
 
+    def on_voltage(self, value: float, at: float | None = None) -> None:
+        """The amplifier applied ``value`` at server time ``at`` (None: now)."""
+        with self.lock:
+            t = self.clock() if at is None else at
+            if t < self._history[-1][0]:  # keep the history in time order
+                t = self._history[-1][0]
+            self._history.append((t, float(value)))
+
     def __call__(self, times: np.ndarray) -> np.ndarray:
         out = np.empty(len(times))
+        t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
+            history = self._history
             for k in range(len(times)):
-                applied, y, status = self.stage.step(self.amplifier.applied_voltage, self.dt)
+                while len(history) > 1 and history[1][0] <= t_abs[k]:
+                    history.popleft()
+                applied, y, status = self.stage.step(history[0][1], self.dt)
                 self.applied, self.displacement = float(applied), float(y)
                 out[k] = self.standoff + y if int(status) == 0 and math.isfinite(y) else math.nan
         return out
@@ -57,9 +82,14 @@ class RigEmulator:
                  amplifier: str = "gcs", amplifier_tcp_port: int | None = None, rate: float = 1000.0,
                  standoff: float | None = None, sensor_errors: float = 0.0,
                  amplifier_faults: Faults | None = None, sensor_faults: Faults | None = None,
-                 seed: int | None = None) -> None:
+                 seed: int | None = None, sensor_link: str | None = None,
+                 amplifier_link: str | None = None, amplifier_range: tuple[float, float] | None = None,
+                 realtime_priority: int = 0) -> None:
+        if amplifier_range is not None and amplifier != "gcs":
+            raise ConfigError("amplifier_range sets the GCS controller's VMI?/VMA?; the MDT69x has its vlimit switch")
         if amplifier == "gcs":
-            self.amplifier = GCSDeviceModel()
+            self.amplifier = GCSDeviceModel(**({} if amplifier_range is None else
+                                               {"v_min": amplifier_range[0], "v_max": amplifier_range[1]}))
         elif amplifier == "mdt69x":
             if amplifier_tcp_port is not None:
                 raise ConfigError("the MDT69x emulator serves a pty only")
@@ -67,12 +97,21 @@ class RigEmulator:
         else:
             raise ConfigError(f"amplifier must be 'gcs' or 'mdt69x', got {amplifier!r}")
         standoff = 0.5 * measuring_range if standoff is None else standoff
-        self.coupling = RigCoupling(stage, self.amplifier, rate, standoff)
+        self.coupling = RigCoupling(stage, rate, standoff, self.amplifier.applied_voltage)
+        self.amplifier.on_voltage = self.coupling.on_voltage
         self.sensor = OptoNCDTDeviceModel(sensor_format, measuring_range, rate, source=self.coupling,
                                           error_probability=sensor_errors, seed=seed)
-        amp_endpoint = {"tcp_port": amplifier_tcp_port} if amplifier_tcp_port is not None else {"pty": True}
-        self.amplifier_server = EmulatorServer(self.amplifier, faults=amplifier_faults, **amp_endpoint)
-        self.sensor_server = EmulatorServer(self.sensor, pty=True, faults=sensor_faults)
+        self.coupling.origin = lambda: self.sensor.t0 or 0.0
+        if amplifier_tcp_port is not None:
+            if amplifier_link is not None:
+                raise ConfigError("an amplifier link names a pty: not with a TCP amplifier")
+            amp_endpoint = {"tcp_port": amplifier_tcp_port}
+        else:
+            amp_endpoint = {"pty": True, "pty_link": amplifier_link}
+        self.amplifier_server = EmulatorServer(self.amplifier, faults=amplifier_faults,
+                                               realtime_priority=realtime_priority, **amp_endpoint)
+        self.sensor_server = EmulatorServer(self.sensor, pty=True, pty_link=sensor_link, faults=sensor_faults,
+                                            realtime_priority=realtime_priority)
 
     @property
     def servers(self) -> dict[str, EmulatorServer]:

@@ -19,6 +19,8 @@ import itertools
 import os
 import selectors
 import socket
+import struct
+import sys
 import threading
 import time
 import tty
@@ -28,8 +30,13 @@ from typing import Protocol
 import numpy as np
 
 from ..errors import ConfigError
+from ..timing import set_realtime_priority
 
 MAX_OUTPUT_BUFFER = 1 << 20  # bytes queued per connection before the oldest are dropped
+# Linux: the kernel stamps each received TCP segment (CLOCK_REALTIME, struct timespec), so a
+# device model learns when a command reached it even when this thread ran late (a loaded host)
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("qq")
 
 
 class Session(Protocol):
@@ -85,8 +92,18 @@ class _Channel:
         self.out = bytearray()
         self.closed = False
 
-    def recv(self) -> bytes:
-        return self.sock.recv(65536) if self.sock is not None else os.read(self.fd, 65536)
+    def recv(self) -> tuple[bytes, float]:
+        """(data, arrival time in ``time.monotonic`` seconds): the kernel's receive stamp of a TCP
+        segment when there is one, else the time of this read."""
+        if self.sock is None:
+            return os.read(self.fd, 65536), time.monotonic()
+        data, ancillary, _, _ = self.sock.recvmsg(65536, socket.CMSG_SPACE(_TIMESPEC.size))
+        now = time.monotonic()
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                return data, min(now, now - (time.time() - (sec + 1e-9 * nsec)))
+        return data, now
 
     def send_some(self) -> None:
         if not self.out:
@@ -112,7 +129,7 @@ class EmulatorServer:
 
     def __init__(self, model: DeviceModel, *, pty: bool = False, tcp_port: int | None = None,
                  host: str = "127.0.0.1", pty_link: str | None = None,
-                 faults: Faults | None = None) -> None:
+                 faults: Faults | None = None, realtime_priority: int = 0) -> None:
         if pty == (tcp_port is not None):
             raise ConfigError("choose exactly one endpoint: pty=True or tcp_port=PORT")
         self.model = model
@@ -135,6 +152,9 @@ class EmulatorServer:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"emulator-{model.name}", daemon=True)
         self.error: BaseException | None = None
+        # SCHED_FIFO for the device thread: a device does not wait for the host's CPU
+        self.realtime_priority = realtime_priority
+        self.realtime_error: str | None = None
         self._open_endpoint()
 
     # --- public ---------------------------------------------------------------------------------
@@ -152,6 +172,11 @@ class EmulatorServer:
     def url(self) -> str:
         """Where clients connect: ``tcp://127.0.0.1:PORT`` or the pty path."""
         return f"tcp://{self.host}:{self.port}" if self._listener is not None else self.path
+
+    @property
+    def clients(self) -> int:
+        """TCP clients connected now (a pty has no way to tell: always 0)."""
+        return sum(1 for channel in list(self._channels.values()) if channel.sock is not None)
 
     def start(self) -> "EmulatorServer":
         self._thread.start()
@@ -275,6 +300,7 @@ class EmulatorServer:
                 self._channels[target].queue(data)
 
     def _run(self) -> None:
+        self.realtime_error = set_realtime_priority(self.realtime_priority)
         try:
             self._loop()
         except BaseException as exc:  # surfaced to the owner through .error
@@ -325,14 +351,17 @@ class EmulatorServer:
                 return
             sock.setblocking(False)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if sys.platform.startswith("linux"):
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             self._add_channel(_Channel(sock.fileno(), self.model.session(), sock))
             return
         channel = self._channels.get(key.fd)
         if channel is None:
             return
         if mask & selectors.EVENT_READ:
+            arrived = time.monotonic()
             try:
-                data = channel.recv()
+                data, arrived = channel.recv()
             except (BlockingIOError, InterruptedError):
                 data = None
             except OSError:
@@ -341,8 +370,8 @@ class EmulatorServer:
                 self._drop_channel(channel)
                 return
             if data and not self.faults.silent:
-                now = time.monotonic()
-                self._emit(channel.fd, channel.session.handle(data, now), now)
+                reply = channel.session.handle(data, arrived)
+                self._emit(channel.fd, reply, time.monotonic())
         if mask & selectors.EVENT_WRITE and not channel.closed:
             try:
                 channel.send_some()
