@@ -87,7 +87,7 @@ def ping_pong(seconds: float, executor: str) -> float:
 COMMANDERS = {
     # the controller closes the loop on each displacement sample (thesis ch. 11 at 100 kHz)
     "controller": ["piezo_stage.nodes.controller", "--ros-args", "-r", "__ns:=/bench",
-                   "-p", "trigger:=sample", "-p", "rate_hz:=100000.0", "-p", "delay_samples:=0",
+                   "-p", "trigger:=sample", "-p", "sensor_qos:=reliable", "-p", "rate_hz:=100000.0", "-p", "delay_samples:=0",
                    "-p", "start_closed:=true", "-p", "reference_source:=constant",
                    "-p", "reference:=2e-5", "-p", "mode:=pid"],
     # the excitation answers each /clock tick (the identification run): a 1 Hz triangle

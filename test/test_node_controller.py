@@ -132,3 +132,45 @@ def test_unsafe_rate_at_start_exits_with_an_error():
     finally:
         out, err = stop(proc)
     assert "sampled loop unstable" in err
+
+
+@pytest.mark.parametrize("sensor_qos,reliability", [("best_effort", "BEST_EFFORT"), ("reliable", "RELIABLE")])
+def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliability):
+    """best_effort matches the rig's SensorDataQoS reader; reliable (the lockstep graphs) loses no
+    sample of the lockstep plant, so no step waits for the plant's timeout."""
+    from rclpy.qos import ReliabilityPolicy
+
+    from piezo_stage.nodes.common import LOCKSTEP_QOS
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    proc = start_node("controller", "trigger:=sample", "rate_hz:=1000.0", f"sensor_qos:={sensor_qos}",
+                      "start_closed:=true", "reference_source:=constant", namespace=NS)
+    try:
+        topic = f"{NS}/displacement"
+        assert spin_until(node, lambda: node.get_subscriptions_info_by_topic(topic), 20)
+        info = node.get_subscriptions_info_by_topic(topic)[0]
+        assert info.qos_profile.reliability == getattr(ReliabilityPolicy, reliability)
+        commands = []
+        node.create_subscription(Voltage, "voltage_command", commands.append, COMMAND_QOS)
+        pub = node.create_publisher(Displacement, "displacement", LOCKSTEP_QOS if sensor_qos == "reliable"
+                                    else SENSOR_QOS)
+        assert spin_until(node, lambda: pub.get_subscription_count() > 0, 20)
+        k = [0]
+
+        def feed():
+            pub.publish(_sample(1e-6, t=k[0] * 1e-3))
+            k[0] += 1
+            return len(commands) >= 5
+
+        assert spin_until(node, feed, 20), "the controller did not answer the samples"
+    finally:
+        stop(proc)
+
+
+def test_unknown_sensor_qos_is_refused_at_start():
+    proc = start_node("controller", "sensor_qos:=fastest", namespace=NS)
+    try:
+        assert proc.wait(timeout=20) != 0
+    finally:
+        out, err = stop(proc)
+    assert "sensor_qos must be" in err

@@ -109,7 +109,7 @@ def make_plan(name: str, mode: str, *, duration: float | None = None,
     if not (math.isfinite(duration) and duration > 0):
         raise ExperimentInputError(f"duration must be > 0 s, got {duration}")
     rate, radius = pick_rate(mode, gains)
-    controller = {"use_sim_time": True, "trigger": "sample", "rate_hz": rate, "delay_samples": LOCKSTEP_DELAY,
+    controller = {"use_sim_time": True, "trigger": "sample", "sensor_qos": "reliable", "rate_hz": rate, "delay_samples": LOCKSTEP_DELAY,
                   "mode": mode, "start_closed": True, "on_close": "reset",
                   "wait_for_state_subscribers": 1, **gains}
     plant = {"model_file": MODEL_FILE, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,

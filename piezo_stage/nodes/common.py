@@ -40,6 +40,11 @@ SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 #: commands and state: reliable, keep last 10
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
+#: lockstep streams (the plant's samples and /clock, the controller's state): reliable, because a
+#: lost sample would stall a step until the timeout, and deep, because a reader busy for a while
+#: (the identifier extracting a cycle, a recorder) must not lose what the graph produced meanwhile.
+#: A reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig.
+LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 #: identified parameters and other results: reliable + transient local (latched)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,

@@ -29,7 +29,6 @@ import sys
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -43,15 +42,12 @@ from piezo_stage.control.reference import SecondOrderReference
 from piezo_stage.control.theorem4 import validate_gains
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN, Diagnosis,
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis,
                      Diagnostics, declare, on_set, run, stamp_to_s)
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
                            "derivative_tau", "hold_voltage", "on_close")
-#: controller_state under trigger=sample (lockstep): a recorder lagging the graph by up to this
-#: many steps loses none (the plant's LOCKSTEP_QOS, for the same reason)
-STATE_LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 #: parameters the loop reads every period (cached in ``_hot``)
 HOT_KEYS = ("stale_periods", "reference_source", "reference", "open_at", "open_duration")
 
@@ -79,6 +75,9 @@ class ControllerNode(Node):
         declare(self, "rate_hz", 1000.0, "loop rate [Hz] (trigger=timer; also the rate checked)", lo=1.0, hi=1e7)
         declare(self, "trigger", "timer", "timer (rate_hz) | sample (one step per displacement sample)")
         declare(self, "delay_samples", 1, "output delay assumed by the sampled-loop check", lo=0, hi=10)
+        declare(self, "sensor_qos", "best_effort", "displacement subscription: best_effort (matches every "
+                "publisher: the rig's laser_reader) | reliable (the lockstep plant: no sample lost, so no step waits "
+                "for the plant's timeout)", read_only=True)
         declare(self, "start_closed", False, "close the loop at the first valid sample")
         declare(self, "wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
                 "has this many subscribers (an experiment's recorder sees step 0)", lo=0, hi=100, read_only=True)
@@ -121,10 +120,14 @@ class ControllerNode(Node):
         self._window, self._window_t = "pending", math.nan
         self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
+        if self.get_parameter("sensor_qos").value not in ("best_effort", "reliable"):
+            raise ControlError(f"sensor_qos must be best_effort or reliable, got {self.get_parameter('sensor_qos').value!r}")
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
-        self._pub_state = self.create_publisher(ControllerState, "controller_state", STATE_LOCKSTEP_QOS
+        # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no state
+        self._pub_state = self.create_publisher(ControllerState, "controller_state", LOCKSTEP_QOS
                                                 if self.get_parameter("trigger").value == "sample" else COMMAND_QOS)
-        self.create_subscription(Displacement, "displacement", self._on_displacement, SENSOR_QOS)
+        self.create_subscription(Displacement, "displacement", self._on_displacement,
+                                 LOCKSTEP_QOS if self.get_parameter("sensor_qos").value == "reliable" else SENSOR_QOS)
         self.create_subscription(Displacement, "reference", self._on_reference, COMMAND_QOS)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)

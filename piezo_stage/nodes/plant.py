@@ -30,7 +30,6 @@ import time
 
 from builtin_interfaces.msg import Time
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from piezo_stage.config_path import find_config
@@ -39,14 +38,9 @@ from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
 from piezo_stage_msgs.msg import Displacement, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
                      declare, run)
 
-#: lockstep streams are reliable (a lost sample would stall a step until the timeout); a
-#: reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig. The
-#: history is deep: a reader that is busy for a while (the identifier extracting a cycle) must
-#: not lose the samples the graph produced meanwhile.
-LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
 
