@@ -33,7 +33,7 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.excitation import PRESETS, ExcitationPlan, ExcitationSample, plan_from
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
-from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, on_set, run, stamp_to_s, wall_clock
+from .common import COMMAND_QOS, DEFAULT_NAMESPACE, TickGrid, declare, on_set, run, stamp_to_s, wall_clock
 
 PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
              "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
@@ -89,7 +89,8 @@ class ExcitationNode(Node):
             self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
             self._lead_ns = int(round(self.get_parameter("lead").value * 1e9))
             self._catch_up = bool(self.get_parameter("catch_up").value)
-            self._next_ns: int | None = None
+            # catch_up: at most 1 s of missed instants, then the grid restarts at the latest one
+            self._grid = TickGrid(self._grid_ns, max(1, 1_000_000_000 // self._grid_ns))
             self.create_timer(1.0 / self.get_parameter("rate_hz").value, self._on_timer)
         else:
             raise ValueError(f"trigger must be timer or clock, got {trigger!r}")
@@ -145,11 +146,8 @@ class ExcitationNode(Node):
         if not self._catch_up:
             self._tick(RosTime(nanoseconds=now_ns).to_msg())
             return
-        if self._next_ns is None or now_ns - self._next_ns > 1_000_000_000:
-            self._next_ns = now_ns  # start, or a stall of more than 1 s: restart the grid here
-        while self._next_ns <= now_ns:
-            self._tick(RosTime(nanoseconds=self._next_ns).to_msg())
-            self._next_ns += self._grid_ns
+        for ns in self._grid.due(now_ns):
+            self._tick(RosTime(nanoseconds=ns).to_msg())
 
     def _finish(self) -> None:
         self.finished = True

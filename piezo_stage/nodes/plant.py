@@ -39,7 +39,7 @@ from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
 from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
-                     declare, run)
+                     TickGrid, declare, run)
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
@@ -87,7 +87,7 @@ class PlantNode(Node):
         self._rejected = 0
         self._commands = 0
         self._late = 0
-        self._dropped = 0
+        self._grid: TickGrid | None = None  # realtime mode
         self._steps = 0
         self._started_wall = time.monotonic()
 
@@ -112,8 +112,7 @@ class PlantNode(Node):
             self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
         elif self.mode == "realtime":
             self._dt_ns = int(round(self.dt * 1e9))
-            self._next_ns: int | None = None  # grid time of the next sample due
-            self._max_backlog = max(10, int(REALTIME_CATCH_UP * p["rate_hz"]))
+            self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
             self.create_timer(self.dt, self._realtime_tick)
         else:
             raise ValueError(f"clock_mode must be realtime or lockstep, got {self.mode!r}")
@@ -136,19 +135,10 @@ class PlantNode(Node):
 
     # ------------------------------------------------------------------ realtime
     def _realtime_tick(self) -> None:
-        now = self.get_clock().now().nanoseconds
-        if self._next_ns is None:
-            self._next_ns = now
-        due = (now - self._next_ns) // self._dt_ns + 1  # samples whose grid time has come
-        if due > self._max_backlog:  # a long stall: resynchronise on the latest grid time
-            self._dropped += due - 1
-            self._next_ns += (due - 1) * self._dt_ns
-            due = 1
-        for _ in range(due):
+        for ns in self._grid.due(self.get_clock().now().nanoseconds):
             self._step(self.dt)
-            sec, nanosec = divmod(self._next_ns, 1_000_000_000)
+            sec, nanosec = divmod(ns, 1_000_000_000)
             self._publish(Time(sec=sec, nanosec=nanosec))
-            self._next_ns += self._dt_ns
 
     # ------------------------------------------------------------------ lockstep
     def _stamp(self) -> Time:
@@ -227,14 +217,15 @@ class PlantNode(Node):
         self._pub_v.publish(msg_v)
 
     def _diagnose(self) -> Diagnosis:
+        dropped = self._grid.dropped if self._grid is not None else 0
         elapsed = time.monotonic() - self._started_wall
         values = {"model": self.parameter_set.name, "form": self.parameter_set.form, "clock_mode": self.mode,
                   "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
                   "command": self._command, "rejected_commands": self._rejected, "late_steps": self._late,
-                  "dropped_samples": self._dropped}
-        if self._late or self._rejected or self._dropped:
+                  "dropped_samples": dropped}
+        if self._late or self._rejected or dropped:
             return Diagnosis(WARN, f"{self._late} late step(s), {self._rejected} rejected command(s), "
-                             f"{self._dropped} dropped sample(s)", values)
+                             f"{dropped} dropped sample(s)", values)
         return Diagnosis(OK, "simulating", values)
 
 
