@@ -7,6 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from scipy.linalg import expm
+
+from piezo_stage.model import _plant_kernels as K
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.errors import InitialStateError, InputSignalError, InvalidCommandError, ParameterError
 from piezo_stage.model.limit_cycle import limit_cycle
@@ -71,19 +74,37 @@ def test_rig_rings_between_the_elastic_and_the_hysteretic_stiffness():
     assert np.all(np.abs(w) <= 1.0)
 
 
-@pytest.mark.parametrize("case", ["noise", "step"])
-def test_dynamic_plant_matches_converged_reference(case):
+@pytest.mark.parametrize("case, nodes", [("noise", 4), ("step", 4), ("noise", 5)])
+def test_dynamic_plant_matches_converged_reference(case, nodes):
     dt = 1e-4
     t = dt * np.arange(120)
     if case == "noise":
         u = 150.0 + band_limited_noise(t, 100.0, 50.0, seed=3)
     else:
         u = np.where(t < 0.005, 0.0, 200.0)
-    plant = DynamicPlant(RIG.bouc_wen, RIG.dynamics, w0=0.2, tol=1e-8)
+    plant = DynamicPlant(RIG.bouc_wen, RIG.dynamics, w0=0.2, tol=1e-8, nodes=nodes)
     x, xdot, w = plant.simulate(u, dt)
     xr, vr, wr = simulate_reference(RIG.bouc_wen, RIG.dynamics, u, dt, w0=0.2, rtol=1e-12)
     assert np.max(np.abs(x - xr)) <= 1e-6 * np.ptp(xr)
     assert np.max(np.abs(w - wr)) <= 1e-5
+
+
+@pytest.mark.parametrize("nodes", [4, 5])
+def test_piece_exponentials_from_the_group_plan_equal_expm(nodes):
+    # exp(L t) at the piece's points from two or three sin/cos/exp evaluations (double angle,
+    # angle difference) equals the matrix exponential, under-, critically and over-damped
+    plant = DynamicPlant(RIG.bouc_wen, RIG.dynamics, nodes=nodes)
+    points, Ez = plant._work[0], plant._work[1]
+    fractions, ops, index, parts = plant._work[13][:4]
+    assert np.count_nonzero(ops[:, 0] == 0) < points.size  # fewer direct evaluations than points
+    assert np.allclose(fractions[index], points, rtol=0, atol=1e-15)
+    for a, b in ((2.3e9, 2453.0), (4.0e6, 4.0e3), (1.0e6, 5.0e3)):  # b^2/4 <, =, > a
+        for tau in (3e-6, 4e-5, 1.5e-4):
+            K._exp_points(a, b, tau, fractions, ops, index, parts, Ez)
+            L = np.array([[0.0, 1.0], [-a, -b]])
+            scale = np.array([[1.0, 1.0 / math.sqrt(a)], [math.sqrt(a), 1.0]])  # of each entry
+            for p, xi in enumerate(points):
+                assert np.max(np.abs(Ez[p] - expm(L * tau * xi)) / scale) <= 1e-13
 
 
 def test_quasi_static_limit_is_the_theorem_2_cycle():

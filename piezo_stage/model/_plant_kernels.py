@@ -11,18 +11,22 @@ smooth. On it
 
 with k = dPhi/dx at the piece start (the local stiffness, so F varies only at second order in
 the motion). The linear left side is solved exactly for a polynomial F (closed-form 2x2
-exponential plus a polynomial particular solution, or the phi-function Taylor series for
-short pieces), F being the polynomial through its values at the q Lobatto nodes.
+exponential plus a polynomial particular solution, or for short pieces, where that cancels,
+a Taylor series), F being the polynomial through its values at the q Lobatto nodes.
+exp(L t) at the piece's points comes from two sin/cos/exp evaluations (group property, see
+:func:`exp_plan`).
 
 - small motions: F from the quadratic Taylor model F0 - Phi''/2 (x - x0)^2 on the linear
-  prediction (no iteration, one exact walk to the end); accepted when the neglected cubic
-  term and the interpolation defect are below the tolerance;
+  prediction (no iteration, the solution for that one F, one exact walk to the end); accepted
+  when the neglected cubic term and the interpolation defect are below the tolerance;
 - otherwise: collocation, nodal F solved by a chord-Newton iteration with w at every node from
-  the exact walk, error = forcing defect at a check point (actual F minus the interpolant).
+  the exact walk (piece matrices: response at the points to each nodal forcing), error =
+  forcing defect at a check point (actual F minus the interpolant).
 
 Pieces end at output times (u changes there), at velocity reversals (predicted from the
-linearized motion, then located on x'(t) and polished so that x'(end) ~ 0), or where the
-error control (tol_x on the displacement) puts them.
+linearized motion, then located on x'(t) and polished so that x'(end) ~ 0: a small correction
+of the end moves it along the piece's own solution, without a new solve), or where the error
+control (tol_x on the displacement) puts them.
 
 State vector layout (float64 array): [x, v, s, x_anchor, y_anchor, x_cur, w_cur, h_pref]
 where (s, x_anchor, y_anchor, x_cur, w_cur) is the walker state in the hysteresis input and
@@ -42,8 +46,8 @@ from ._jit import njit
 X, V, S, XA, YA, XC, WC, HPREF = range(8)
 STATE_SIZE = 8
 # indices in the statistics vector
-PIECES, REJECTED, NEWTON, REVERSALS, SOLVES = range(5)
-STATS_SIZE = 5
+PIECES, REJECTED, NEWTON, REVERSALS, SOLVES, ROOT_EVALS, MOVED_ENDS = range(7)
+STATS_SIZE = 7
 
 
 @njit(inline=True)
@@ -119,8 +123,9 @@ def _lu_solve(a, b, size):
 
 
 @njit(inline=True)
-def _exp_l(a, b, t):
-    """exp(L t) for L = [[0, 1], [-a, -b]] (closed form; under-, over- and critically damped)."""
+def _exp_parts(a, b, t):
+    """(cos(beta t), sin(beta t)/beta, exp(-b t/2)), beta^2 = a - b^2/4 (cosh/sinh if negative):
+    the three numbers exp(L t) is built from, L = [[0, 1], [-a, -b]]."""
     al = 0.5 * b
     beta2 = a - al * al
     if beta2 > 0.0:
@@ -134,16 +139,114 @@ def _exp_l(a, b, t):
     else:
         cc = 1.0
         ss = t
-    ex = math.exp(-al * t)
-    return ex * (cc + ss * al), ex * ss, -ex * ss * a, ex * (cc - ss * al)
-
-
-_SERIES_TERMS = 24  # Taylor terms of phi_j(L t) when |L| t <= _SERIES_LIMIT
-_SERIES_LIMIT = 0.3
+    return cc, ss, math.exp(-al * t)
 
 
 @njit(inline=True)
-def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
+def _exp_matrix(a, b, cc, ss, ex):
+    """exp(L t) from its parts (:func:`_exp_parts`)."""
+    al = 0.5 * b
+    return ex * (cc + ss * al), ex * ss, -ex * ss * a, ex * (cc - ss * al)
+
+
+@njit(inline=True)
+def _exp_l(a, b, t):
+    """exp(L t) for L = [[0, 1], [-a, -b]] (closed form; under-, over- and critically damped)."""
+    cc, ss, ex = _exp_parts(a, b, t)
+    return _exp_matrix(a, b, cc, ss, ex)
+
+
+# exponential plan (see exp_plan): how the parts at each fraction of the piece are obtained
+_DIRECT, _DOUBLE, _DIFFERENCE = 0, 1, 2
+
+
+def exp_plan(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A recipe for exp(L tau xi) at all the ``points`` xi with few sin/cos/exp evaluations.
+
+    exp(L t) is a one-parameter group, so its parts (cos(beta t), sin(beta t)/beta, e^(-b t/2))
+    at t1 - t2 and 2 t follow from those at t1, t2 by the angle-difference and double-angle
+    formulas (exact up to rounding). Fraction 1 is evaluated; a point xi < 1/2 directly, or as
+    the double of xi/2 (evaluated) when 1 - xi/2 is wanted too; every other point as 1 minus a
+    fraction already there, else directly. Lobatto nodes with the check point between the last
+    two (q = 4: 0.276, 0.724, 1, 0.862) need two evaluations instead of four. Returns
+    (fractions, ops[i] = (kind, j, k): direct, double of fraction j, or fraction j minus
+    fraction k; index, fractions[index[p]] = points[p])."""
+    fractions: list[float] = [1.0]  # 1.0 first: the other fractions may refer to it
+    ops: list[tuple[int, int, int]] = [(_DIRECT, 0, 0)]
+
+    def find(value: float) -> int:
+        for i, f in enumerate(fractions):
+            if abs(f - value) <= 1e-14:
+                return i
+        return -1
+
+    def add(value: float, op: tuple[int, int, int]) -> int:
+        fractions.append(value)
+        ops.append(op)
+        return len(fractions) - 1
+
+    wanted = sorted(set(float(p) for p in points))
+    for p in (p for p in wanted if p < 0.5):
+        if any(abs((1.0 - h) - 0.5 * p) <= 1e-14 for h in wanted):  # 1 - p/2 wanted: p from p/2
+            add(p, (_DOUBLE, add(0.5 * p, (_DIRECT, 0, 0)), 0))
+        else:
+            add(p, (_DIRECT, 0, 0))
+    for p in wanted:
+        if find(p) >= 0:
+            continue
+        j = find(1.0 - p)
+        add(p, (_DIFFERENCE, 0, j) if j >= 0 else (_DIRECT, 0, 0))
+    index = np.array([find(float(p)) for p in points], dtype=np.int64)
+    return np.array(fractions), np.array(ops, dtype=np.int64), index
+
+
+@njit(inline=True)
+def _exp_points(a, b, tau, fractions, ops, index, parts, Ez):
+    """Ez[p] = exp(L tau points[p]) following the plan of :func:`exp_plan` (parts: work array)."""
+    al = 0.5 * b
+    beta2 = a - al * al
+    for i in range(fractions.size):
+        kind = ops[i, 0]
+        if kind == _DIRECT:
+            cc, ss, ex = _exp_parts(a, b, tau * fractions[i])
+        elif kind == _DOUBLE:
+            j = ops[i, 1]
+            c1, s1, e1 = parts[j, 0], parts[j, 1], parts[j, 2]
+            cc = c1 * c1 - beta2 * s1 * s1
+            ss = 2.0 * c1 * s1
+            ex = e1 * e1
+        else:  # fraction j minus fraction k
+            j = ops[i, 1]
+            k = ops[i, 2]
+            c1, s1, e1 = parts[j, 0], parts[j, 1], parts[j, 2]
+            c2, s2, e2 = parts[k, 0], parts[k, 1], parts[k, 2]
+            cc = c1 * c2 + beta2 * s1 * s2
+            ss = s1 * c2 - c1 * s2
+            ex = e1 / e2
+        parts[i, 0] = cc
+        parts[i, 1] = ss
+        parts[i, 2] = ex
+    for p in range(index.size):
+        i = index[p]
+        e00, e01, e10, e11 = _exp_matrix(a, b, parts[i, 0], parts[i, 1], parts[i, 2])
+        Ez[p, 0, 0] = e00
+        Ez[p, 0, 1] = e01
+        Ez[p, 1, 0] = e10
+        Ez[p, 1, 1] = e11
+
+
+# the next controlled piece grows by 0.9 err^-0.2, at most by _MAX_GROWTH (3 made the ringing inputs
+# reject a piece in ten: 2 halves that, and the rejections' solves, for a few more pieces)
+_MAX_GROWTH = 2.0
+_FULL_GROWTH = (0.9 / _MAX_GROWTH) ** 5  # errors below which it grows by _MAX_GROWTH (no power needed)
+_MOVE_LIMIT = 0.1  # a reversal piece's end moves along its solution by up to this fraction of it in all
+_SERIES_TERMS = 24  # Taylor terms of phi_j(L t) when |L| t <= _SERIES_LIMIT
+_SERIES_LIMIT = 0.3
+_TAYLOR_TERMS = 40  # at most, in the Taylor series of a short piece's solution (|L| tau <= 0.3)
+
+
+@njit(inline=True)
+def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, plan):
     """z(tau xi_p) = Ez[p] z(0) + Gz[p] F for the points xi_p, F the nodal forcing values.
 
     Forcing sum_k beta_k xi^k, beta = vinv F, xi = t/tau. Long pieces (|L| tau > 1): the
@@ -154,12 +257,7 @@ def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
     """
     q = vinv.shape[0]
     inv_tau = 1.0 / tau
-    for p in range(points.size):
-        e00, e01, e10, e11 = _exp_l(a, b, tau * points[p])
-        Ez[p, 0, 0] = e00
-        Ez[p, 0, 1] = e01
-        Ez[p, 1, 0] = e10
-        Ez[p, 1, 1] = e11
+    _exp_points(a, b, tau, plan[0], plan[1], plan[2], plan[3], Ez)
     if max(math.sqrt(a), b) * tau <= _SERIES_LIMIT:
         for p in range(points.size):
             t = tau * points[p]
@@ -194,28 +292,33 @@ def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp):
                 Gz[p, 0, j] = acc0
                 Gz[p, 1, j] = acc1
         return
-    inv_a = 1.0 / a  # (a multiplication in the back substitution below, not a division)
-    for j in range(q):
-        # particular solution for the j-th nodal unit forcing
-        for k in range(q - 1, -1, -1):
-            acc = vinv[k, j] / m
+    # particular solutions of all the nodal unit forcings at once: row k of P holds the xi^k
+    # coefficients (back substitution from the top degree, rows of q numbers), then the values
+    # and derivatives at the points through the constant tables xi_p^k and k xi_p^(k-1)
+    vpow, dpow, P = plan[4], plan[5], plan[6]
+    inv_a = 1.0 / a
+    inv_ma = inv_a / m
+    for k in range(q - 1, -1, -1):
+        c1 = b * inv_tau * (k + 1) * inv_a
+        c2 = inv_tau * inv_tau * (k + 2) * (k + 1) * inv_a
+        for j in range(q):
+            acc = vinv[k, j] * inv_ma
             if k + 1 < q:
-                acc -= b * inv_tau * (k + 1) * pcoef[k + 1]
+                acc -= c1 * P[k + 1, j]
             if k + 2 < q:
-                acc -= inv_tau * inv_tau * (k + 2) * (k + 1) * pcoef[k + 2]
-            pcoef[k] = acc * inv_a
-        p0 = pcoef[0]
-        d0 = pcoef[1] * inv_tau if q > 1 else 0.0
-        for p in range(points.size):
-            xi = points[p]
+                acc -= c2 * P[k + 2, j]
+            P[k, j] = acc
+    for p in range(points.size):
+        e00, e01 = Ez[p, 0, 0], Ez[p, 0, 1] * inv_tau
+        e10, e11 = Ez[p, 1, 0], Ez[p, 1, 1] * inv_tau
+        for j in range(q):
             val = 0.0
             der = 0.0
-            for k in range(q - 1, -1, -1):
-                der = der * xi + val
-                val = val * xi + pcoef[k]
-            der *= inv_tau
-            Gz[p, 0, j] = val - (Ez[p, 0, 0] * p0 + Ez[p, 0, 1] * d0)
-            Gz[p, 1, j] = der - (Ez[p, 1, 0] * p0 + Ez[p, 1, 1] * d0)
+            for k in range(q):
+                val += vpow[p, k] * P[k, j]
+                der += dpow[p, k] * P[k, j]
+            Gz[p, 0, j] = val - (e00 * P[0, j] + e01 * P[1, j])
+            Gz[p, 1, j] = der * inv_tau - (e10 * P[0, j] + e11 * P[1, j])
 
 
 @njit(inline=True)
@@ -346,45 +449,117 @@ def _branch_derivatives(tab, model, kpoly, x, s_in, w):
             d3 += kpoly[j] * i * (i - 1) * (i - 2) * x ** (i - 3)
     d1 += kw * sgn * rho * g
     d2 += kw * s_in * rho * rho * g * g1
+    rho3 = rho * rho * rho
     if n == 1.0:
-        d3 += kw * sgn * rho**3 * g * g1 * g1
+        d3 += kw * sgn * rho3 * g * g1 * g1
     else:
-        d3 += kw * sgn * rho**3 * (g * g1 * g1 + g * g * g2)
+        d3 += kw * sgn * rho3 * (g * g1 * g1 + g * g * g2)
     return d1, d2, d3
 
 
 @njit(inline=True)
-def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef, tmp, F, zs, wst,
-                 phi2, phi3, tol_x, stats):
+def _monomial_forcing(vinv, F, pcoef):
+    """pcoef = coefficients beta_k of the forcing interpolant sum_k beta_k xi^k (nodal values F)."""
+    q = vinv.shape[0]
+    for k in range(q):
+        beta = 0.0
+        for j in range(q):
+            beta += vinv[k, j] * F[j]
+        pcoef[k] = beta
+
+
+@njit(inline=True)
+def _particular(a, b, m, inv_tau, pcoef):
+    """In place: forcing coefficients beta_k -> those of the polynomial particular solution P(xi)
+    of m x'' + c x' + k x = sum beta_k xi^k (a = k/m, b = c/m, xi = t/tau), from the top degree."""
+    q = pcoef.size
+    inv_a = 1.0 / a
+    for k in range(q - 1, -1, -1):
+        acc = pcoef[k] / m
+        if k + 1 < q:
+            acc -= b * inv_tau * (k + 1) * pcoef[k + 1]
+        if k + 2 < q:
+            acc -= inv_tau * inv_tau * (k + 2) * (k + 1) * pcoef[k + 2]
+        pcoef[k] = acc * inv_a
+
+
+@njit(inline=True)
+def _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs):
+    """zs[p] = (x, x') at the points for the nodal forcing F (exp(L t) at the points in Ez).
+
+    Long pieces: as :func:`_piece_matrices`'s long form for one forcing, the polynomial
+    particular solution (pcoef, in xi = t/tau) plus exp(L t) applied to the start offset.
+    Short pieces (|L| tau <= _SERIES_LIMIT, where that cancels): the Taylor series of x in
+    xi, y_n = x^(n)(0) tau^n / n!, from the recursion of m x'' + c x' + k x = sum beta_n xi^n:
+    y_{n+2} = (beta_n - c/tau (n+1) y_{n+1} - k y_n) tau^2 / (m (n+1)(n+2)), k = a m, c = b m."""
+    vpow, dpow, ys = plan[4], plan[5], plan[7]
+    q = vinv.shape[0]
+    inv_tau = 1.0 / tau
+    _monomial_forcing(vinv, F, pcoef)
+    if max(math.sqrt(a), b) * tau <= _SERIES_LIMIT:
+        ys[0] = x0
+        ys[1] = v0 * tau
+        h2 = tau * tau
+        size = ys.size
+        floor = 1e-19 * (abs(x0) + abs(ys[1]))
+        for n in range(size - 2):
+            beta = pcoef[n] * h2 / m if n < q else 0.0
+            ys[n + 2] = (beta - b * tau * (n + 1) * ys[n + 1] - a * h2 * ys[n]) / ((n + 1) * (n + 2))
+            if n + 2 >= q and abs(ys[n + 1]) + abs(ys[n + 2]) <= floor:
+                size = n + 3
+                break
+        for p in range(zs.shape[0]):
+            xi = vpow[p, 1]
+            val = 0.0
+            der = 0.0
+            for n in range(size - 1, -1, -1):
+                der = der * xi + val
+                val = val * xi + ys[n]
+            zs[p, 0] = val
+            zs[p, 1] = der * inv_tau
+        return
+    _particular(a, b, m, inv_tau, pcoef)
+    dx = x0 - pcoef[0]
+    dv = v0 - pcoef[1] * inv_tau
+    for p in range(zs.shape[0]):
+        val = 0.0
+        der = 0.0
+        for k in range(q):
+            val += vpow[p, k] * pcoef[k]
+            der += dpow[p, k] * pcoef[k]
+        zs[p, 0] = Ez[p, 0, 0] * dx + Ez[p, 0, 1] * dv + val
+        zs[p, 1] = Ez[p, 1, 0] * dx + Ez[p, 1, 1] * dv + der * inv_tau
+
+
+@njit(inline=True)
+def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef, tmp, plan, F, zs,
+                 wst, phi2, phi3, tol_x, stats):
     """Small-amplitude piece: forcing from the quadratic Taylor model of Phi along the branch.
 
     F(t) = F0 - phi2/2 (x(t) - x0)^2 on the linear prediction of x (a one-shot collocation, no
     Newton); only the end point is walked exactly. Returns the error estimate in units of
     tol_x (neglected cubic term, prediction mismatch at the nodes, interpolation defect at the
-    check point). F[0] must hold F0; F, zs and wst[q-1] are filled.
+    check point). F[0] must hold F0; F, zs, Ez and wst[q-1] are filled (not Gz).
     """
     rho, m, sgn = model[0], model[4], model[6]
     q = vinv.shape[0]
     stats[SOLVES] += 1
-    _piece_matrices(k_loc / m, model[5] / m, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp)
+    a = k_loc / m
+    b = model[5] / m
+    # the solution for this one F only, not the piece matrices (built by the caller if a
+    # collocation follows)
+    _exp_points(a, b, tau, plan[0], plan[1], plan[2], plan[3], Ez)
     x0 = st[X]
     v0 = st[V]
     for i in range(1, q):
-        gsum = 0.0
-        for j in range(q):
-            gsum += Gz[i - 1, 0, j]
-        d = Ez[i - 1, 0, 0] * x0 + Ez[i - 1, 0, 1] * v0 + gsum * F[0] - x0
+        # response to the unit constant forcing: (1 - exp(L t)_00) / k
+        d = Ez[i - 1, 0, 0] * x0 + Ez[i - 1, 0, 1] * v0 + (1.0 - Ez[i - 1, 0, 0]) / k_loc * F[0] - x0
         F[i] = F[0] - 0.5 * phi2 * d * d
+    _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs)
     reach = 0.0
     mismatch = 0.0
     for p in range(points.size):
-        xp = Ez[p, 0, 0] * x0 + Ez[p, 0, 1] * v0
-        vp = Ez[p, 1, 0] * x0 + Ez[p, 1, 1] * v0
-        for j in range(q):
-            xp += Gz[p, 0, j] * F[j]
-            vp += Gz[p, 1, j] * F[j]
-        zs[p, 0] = xp
-        zs[p, 1] = vp
+        xp = zs[p, 0]
         d = xp - x0
         reach = max(reach, abs(d))
         model_force = F[0] - 0.5 * phi2 * d * d
@@ -424,24 +599,15 @@ def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
 
 
 @njit(inline=True)
-def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
-    """x'(t) on the piece for the nodal forcing F (exact for the interpolated forcing)."""
+def _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
+    """(x(t), x'(t)) on the piece for the nodal forcing F (exact for the interpolated forcing)."""
     m, c = model[4], model[5]
     a = k_loc / m
     b = c / m
     q = vinv.shape[0]
     inv_tau = 1.0 / tau
-    inv_a = 1.0 / a
-    for k in range(q - 1, -1, -1):
-        beta = 0.0
-        for j in range(q):
-            beta += vinv[k, j] * F[j]
-        acc = beta / m
-        if k + 1 < q:
-            acc -= b * inv_tau * (k + 1) * pcoef[k + 1]
-        if k + 2 < q:
-            acc -= inv_tau * inv_tau * (k + 2) * (k + 1) * pcoef[k + 2]
-        pcoef[k] = acc * inv_a
+    _monomial_forcing(vinv, F, pcoef)
+    _particular(a, b, m, inv_tau, pcoef)
     xi = t * inv_tau
     val = 0.0
     der = 0.0
@@ -450,16 +616,17 @@ def _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
         val = val * xi + pcoef[k]
     e00, e01, e10, e11 = _exp_l(a, b, t)
     d0 = pcoef[1] * inv_tau if q > 1 else 0.0
-    return e10 * (x0 - pcoef[0]) + e11 * (v0 - d0) + der * inv_tau
+    return (e00 * (x0 - pcoef[0]) + e01 * (v0 - d0) + val,
+            e10 * (x0 - pcoef[0]) + e11 * (v0 - d0) + der * inv_tau)
 
 
 @njit(inline=True)
-def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi):
+def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi, stats):
     """Root of x'(t) in (0, t_hi] (x' has the sign of ``direction`` at 0, the other at t_hi)."""
     lo = 0.0
     hi = t_hi
     f_lo = v0 * direction
-    f_hi = _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, hi) * direction
+    f_hi = _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, hi)[1] * direction
     t = hi
     for _ in range(60):
         if f_lo > 0.0 and f_hi < 0.0:
@@ -468,7 +635,8 @@ def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi):
                 t = 0.5 * (lo + hi)
         else:
             t = 0.5 * (lo + hi)
-        f = _velocity_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t) * direction
+        f = _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t)[1] * direction
+        stats[ROOT_EVALS] += 1
         if f > 0.0:
             lo = t
             f_lo = f
@@ -504,7 +672,10 @@ def _predicted_reversal(a, b, dx, v0, direction):
 
 def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
     """The arrays :func:`integrate` works in, allocated once per plant (it allocates nothing):
-    (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac)."""
+    (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac, plan), plan the
+    :func:`exp_plan` of the points, its work array of parts, the tables xi_p^k and
+    k xi_p^(k-1), a q x q work array (:func:`_piece_matrices`) and the Taylor coefficients of
+    :func:`_states_at_points`."""
     q = nodes.size
     npts = q - 1 + checks.size
     points = np.concatenate([nodes[1:], checks])
@@ -512,9 +683,15 @@ def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
     invfact[0] = 1.0
     for i in range(1, invfact.size):
         invfact[i] = invfact[i - 1] / i
+    fractions, ops, index = exp_plan(points)
+    powers = np.arange(q)
+    vpow = points[:, None] ** powers  # xi_p^k
+    dpow = powers * points[:, None] ** np.maximum(powers - 1, 0)  # d/dxi xi^k at xi_p
+    plan = (fractions, ops, index, np.empty((fractions.size, 3)), vpow, dpow, np.empty((q, q)),
+            np.empty(_TAYLOR_TERMS))
     return (points, np.empty((npts, 2, 2)), np.empty((npts, 2, q)), np.empty(q), np.empty((2, q)), invfact,
             np.empty(q), np.empty((npts, 2)), np.empty((q, 5)), np.empty(q), np.empty(q), np.empty(q),
-            np.empty((q, q)))
+            np.empty((q, q)), plan)
 
 
 @njit(nrt=False)
@@ -524,13 +701,15 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
 
     ``model`` = (rho, kappa_w, kappa_x, -, m, c, input_sign). Outputs are the states at the end
     of each step; ``st`` is updated in place; ``stats`` counts pieces, rejected pieces, Newton
-    evaluations and velocity reversals; ``work`` is :func:`workspace` (nodes, checks).
+    evaluations, velocity reversals, piece solves, x'(t) evaluations locating a reversal and
+    reversal ends moved without a solve (indices PIECES..MOVED_ENDS); ``work`` is
+    :func:`workspace` (nodes, checks).
     Compiled without reference counting (``nrt=False``): the kernels it inlines work on the
     caller's arrays only.
     """
     q = nodes.size
     m, c = model[4], model[5]
-    points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac = work
+    points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac, plan = work
     npts = points.size
     for k in range(u.size):
         uk = u[k]
@@ -573,9 +752,10 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
             while True:
                 F[0] = _forcing(model, kpoly, uk, k_loc, x0, st[WC])
                 small_err = _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef,
-                                         tmp, F, zs, wst, phi2, phi3, tol_x, stats)
+                                         tmp, plan, F, zs, wst, phi2, phi3, tol_x, stats)
                 small = small_err <= 1.0
                 if not small:  # full collocation, started from the quadratic prediction in F
+                    _piece_matrices(k_loc / m, c / m, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, plan)
                     _piece(tab, model, kpoly, st, uk, k_loc, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, F, zs,
                            wst, Dn, dwdx, res, jac, tol_x, tol_force, stats)
                 # first point (in time) whose velocity has the wrong sign; a backward excursion
@@ -588,7 +768,7 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                         if t_bad < 0.0 or points[p] * tau < t_bad:
                             t_bad = points[p] * tau
                 if t_bad > 0.0 and not rooted and backward * tau > 1e-3 * tol_x:
-                    t_rev = _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_bad)
+                    t_rev = _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_bad, stats)
                     if t_rev > h_min:
                         tau = t_rev
                         ends_reversal = True
@@ -597,17 +777,44 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                 if ends_reversal and polish < 4:
                     # Newton on the piece length until the velocity at its end is negligible
                     # (the excursion v^2 / 2|a| it would still make is below the tolerance);
-                    # an aimed piece that ends far from a reversal is kept as an ordinary one
-                    v_end = zs[q - 2, 1]
-                    a_end = (F[q - 1] - c * v_end - k_loc * zs[q - 2, 0]) / m
+                    # an aimed piece that ends far from a reversal is kept as an ordinary one.
+                    # A small shift moves the end along this piece's solution (same forcing
+                    # polynomial, w walked exactly from the start): no new solve
                     v_peak = abs(v0)
                     for p in range(npts):
                         v_peak = max(v_peak, abs(zs[p, 1]))
-                    if not rooted and abs(v_end) > 0.05 * v_peak:
-                        ends_reversal = False
-                    elif a_end * direction < 0.0 and v_end * v_end > 2e-3 * tol_x * abs(a_end):
-                        tau = max(h_min, tau - v_end / a_end)
+                    f_end = F[q - 1]
+                    tau_solved = tau  # the length F was solved for
+                    # (moves only on long pieces: the polynomial form of _state_at cancels on short ones)
+                    movable = max(math.sqrt(k_loc / m), c / m) * tau > _SERIES_LIMIT
+                    resolve = False
+                    while polish < 4:
+                        v_end = zs[q - 2, 1]
+                        a_end = (f_end - c * v_end - k_loc * zs[q - 2, 0]) / m
+                        if not rooted and abs(v_end) > 0.05 * v_peak:
+                            ends_reversal = False
+                            break
+                        if not (a_end * direction < 0.0 and v_end * v_end > 2e-3 * tol_x * abs(a_end)):
+                            break
+                        shift = -v_end / a_end
                         polish += 1
+                        if movable and abs(tau + shift - tau_solved) <= _MOVE_LIMIT * tau_solved and \
+                                h_min < tau + shift <= remaining:
+                            tau += shift
+                            x_e, v_e = _state_at(model, k_loc, tau_solved, vinv, F, pcoef, x0, v0, tau)
+                            walker = advance(tab, model[0], wst[0, 0], wst[0, 1], wst[0, 2], wst[0, 3], wst[0, 4],
+                                             model[6] * x_e)
+                            zs[q - 2, 0] = x_e
+                            zs[q - 2, 1] = v_e
+                            for j in range(5):
+                                wst[q - 1, j] = walker[j]
+                            f_end = _forcing(model, kpoly, uk, k_loc, x_e, walker[4])
+                            stats[MOVED_ENDS] += 1
+                        else:
+                            tau = max(h_min, tau + shift)
+                            resolve = True
+                            break
+                    if resolve:
                         continue
                 if small:
                     err = small_err
@@ -630,8 +837,8 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                 st[S + j] = wst[q - 1, j]
             if ends_reversal:
                 stats[REVERSALS] += 1
-            if controlled:  # the next piece may grow by up to 3x
-                st[HPREF] = min(dt, tau * (3.0 if err <= 0.0 else min(3.0, 0.9 * err ** -0.2)))
+            if controlled:  # the next piece may grow by up to _MAX_GROWTH
+                st[HPREF] = min(dt, tau * (_MAX_GROWTH if err <= _FULL_GROWTH else 0.9 * err ** -0.2))
             t += tau
         x_out[k] = st[X]
         v_out[k] = st[V]
