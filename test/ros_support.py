@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 from typing import Any, Callable
 
@@ -47,9 +48,11 @@ def fill(msg: Any, seed: int = 1) -> Any:
 
 
 def to_plain(msg: Any) -> Any:
-    """Nested dict/list view of an rclpy (or rosbags) message for equality checks."""
+    """Nested dict/list view of an rclpy, rosbags or mcap_ros2 message for equality checks."""
     if hasattr(msg, "get_fields_and_field_types"):
         return {f: to_plain(getattr(msg, f)) for f in msg.get_fields_and_field_types()}
+    if isinstance(msg, types.SimpleNamespace):  # mcap_ros2's decoded messages
+        return {k: to_plain(getattr(msg, k)) for k in msg.__slots__}
     if dataclasses.is_dataclass(msg):
         return {f.name: to_plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)
                 if not f.name.startswith("__") and not f.name.isupper()}

@@ -36,6 +36,11 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         for f, e in zip(found, errors):
             assert f == pytest.approx(value, rel=1e-2), name  # the demo's tolerance
             assert e == pytest.approx(abs(f - value) / abs(value), rel=1e-2, abs=2e-5)  # 6 printed digits
+    header = re.search(r"^parameter[ \t]+true[ \t]+(.*)$", text, re.M)
+    assert header and re.findall(r"live|replayed|from bag", header.group(1)) == ["live", "replayed", "from bag"], \
+        text  # no column missing: the live and the replayed identifier node both gave a result
+    agree = re.search(r"^live, replayed vs from bag: largest relative difference (\S+)", text, re.M)
+    assert agree and float(agree.group(1)) <= 1e-9, text  # live, replay and offline: same samples, same cut
     m = re.search(r"model error on a validation input .*?RMS (\S+) µm, max (\S+) µm \((\S+) % / (\S+) %", text)
     assert m and float(m.group(3)) < 0.5 and float(m.group(4)) < 1.0, text
 
@@ -48,6 +53,7 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
     listed = [Path(line.strip()) for line in text.split("files written:")[1].splitlines()
               if line.startswith("  /")]
     assert out / "ch10_identification" in listed
+    assert {out / "identified_live.yaml", out / "identified_replay.yaml"} <= set(listed)
     pngs = [p for p in listed if p.suffix == ".png"]
     assert {p.name for p in pngs} >= {"ch10_identification_hysteresis.png", "ch10_identification_timeseries.png",
                                       "ch10_validation.png"}
@@ -56,6 +62,8 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         assert path.exists(), path
         if path.suffix == ".png":
             assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000
+        elif path.suffix == ".yaml":  # the live and the replayed identifier's parameter sets
+            assert "kappa_w" in path.read_text()
         else:
             assert (path / "metadata.yaml").exists()
     assert "[" in text and "done in" in text  # the progress lines

@@ -43,7 +43,7 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
     out_file = tmp_path / "identified.yaml"
     rclpy.init()
     node = rclpy.create_node("probe", namespace=NS)
-    proc = start_node("identifier", "stream_qos:=reliable", f"output_file:={out_file}", namespace=NS)
+    proc = start_node("identifier", f"output_file:={out_file}", namespace=NS)  # stream_qos auto: reliable here
     try:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         pub_v = node.create_publisher(Voltage, "voltage", reliable)
@@ -91,6 +91,52 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
         for name, value in (("kappa_w", 2.0), ("rho", 1.0), ("sigma", 3.0), ("n", 1.5)):
             assert getattr(got, name) == pytest.approx(value, rel=1e-4)
         assert out_file.exists() and "kappa_w" in out_file.read_text()
+    finally:
+        stop(proc)
+        node.destroy_node()
+        rclpy.shutdown()
+
+
+def test_identifier_adapts_its_stream_qos_to_the_publishers():
+    """stream_qos auto (default): reliable while every publisher is (the lockstep plant, a player),
+    best effort once a SensorDataQoS publisher (the rig's laser reader) is there, and samples flow."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    ns = "/ident_qos"
+    rclpy.init()
+    node = rclpy.create_node("probe", namespace=ns)
+    proc = start_node("identifier", namespace=ns)
+    try:
+        def sub_reliability(topic: str):
+            infos = [i for i in node.get_subscriptions_info_by_topic(f"{ns}/{topic}") if i.node_name == "identifier"]
+            return infos[0].qos_profile.reliability if len(infos) == 1 else None
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        node.create_publisher(Voltage, "voltage", reliable)
+        pub_y = node.create_publisher(Displacement, "displacement", best_effort)
+        assert spin_until(node, lambda: sub_reliability("voltage") == ReliabilityPolicy.RELIABLE
+                          and sub_reliability("displacement") == ReliabilityPolicy.BEST_EFFORT, 30.0), \
+            (sub_reliability("voltage"), sub_reliability("displacement"))
+        pub_v2 = node.create_publisher(Voltage, "voltage", best_effort)  # a publisher that offers less
+        assert spin_until(node, lambda: sub_reliability("voltage") == ReliabilityPolicy.BEST_EFFORT
+                          and pub_v2.get_subscription_count() == 1, 30.0), sub_reliability("voltage")
+
+        counts: dict[str, int] = {}
+
+        def on_diag(msg: DiagnosticArray) -> None:
+            for status in msg.status:
+                if status.name == f"{ns}/identifier":
+                    counts.update({kv.key: int(kv.value) for kv in status.values if kv.key.endswith("_samples")})
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+        for k in range(20):
+            pub_v2.publish(_stamp(Voltage(voltage=float(k)), 1.0 + 0.01 * k))
+            pub_y.publish(_stamp(Displacement(displacement=1e-6 * k, status=0), 1.0 + 0.01 * k))
+            spin_until(node, lambda: False, 0.02)
+        assert spin_until(node, lambda: counts.get("voltage_samples", 0) > 0
+                          and counts.get("displacement_samples", 0) > 0, 15.0), counts
     finally:
         stop(proc)
         node.destroy_node()

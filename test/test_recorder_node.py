@@ -8,7 +8,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import types
 from pathlib import Path
 
 import pytest
@@ -90,13 +89,7 @@ def expected(topic: str, seed: int):
     return fill(msg_class(TYPES[topic])(), seed)
 
 
-def plain(msg):
-    """Nested dict/list of a decoded message: rclpy, rosbags or mcap_ros2 (SimpleNamespace)."""
-    if isinstance(msg, types.SimpleNamespace):
-        return {k: plain(getattr(msg, k)) for k in msg.__slots__}
-    if isinstance(msg, (list, tuple)):
-        return [plain(v) for v in msg]
-    return to_plain(msg)
+plain = to_plain  # rclpy, rosbags or mcap_ros2 messages alike
 
 
 class DiagnosticsWatch:

@@ -138,27 +138,42 @@ def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None)
     return t[unique], values[unique], (status[unique] if status is not None else None)
 
 
-def intervals_from_marks(marks: list[tuple[float, int]]) -> list[tuple[int, float, float]]:
-    """``(run, start, stop)`` [s] from ``(stamp, run)`` marks of the excitation topic: each run
-    lasts from its first mark until the next run's first mark."""
+def intervals_from_marks(marks: list[tuple[float, int] | tuple[float, int, bool]]) -> list[tuple[int, float, float]]:
+    """``(run, start, stop)`` [s] from ``(stamp, run[, steady])`` marks of the excitation topic:
+    each run lasts from its first mark until the next run's first mark, or until its end mark
+    (the first non-steady mark after a steady one: the excitation node's "plan done"), so that
+    what follows the last run (held input, a stage stepping on) is not part of it."""
     intervals: list[tuple[int, float, float]] = []
-    for stamp, run in sorted(marks):
+    ended: dict[int, float] = {}  # interval index -> stamp of its end mark
+    was_steady = False
+    for mark in sorted(marks):
+        stamp, run = mark[0], mark[1]
+        steady = bool(mark[2]) if len(mark) > 2 else None
         if intervals and intervals[-1][0] == run:
             intervals[-1] = (run, intervals[-1][1], stamp)
         else:
             intervals.append((run, stamp, stamp))
-    return [(run, start, intervals[i + 1][1] if i + 1 < len(intervals) else np.inf)
+            was_steady = False
+        if steady is True:
+            was_steady = True
+        elif steady is False and was_steady:
+            ended.setdefault(len(intervals) - 1, stamp)
+    return [(run, start, min(ended.get(i, np.inf), intervals[i + 1][1] if i + 1 < len(intervals) else np.inf))
             for i, (run, start, _) in enumerate(intervals)]
 
 
-def excitation_marks(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[float, int]]:
-    """``(stamp [s], run)`` of every excitation message of a bag (header stamp, else log time)."""
+def excitation_marks(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[float, int, bool]]:
+    """``(stamp [s], run, steady)`` of every excitation message of a bag: the header stamps (as
+    for the samples, and as the live ``identifier`` sees them; 0 is a valid stamp on a sim
+    clock starting at 0), or the log times when no message is stamped."""
     from piezo_stage.bag.reader import read_messages
 
-    marks = []
+    marks, log_times = [], []
     for _, log_time, msg in read_messages(path, [topic]):
-        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        marks.append((stamp if stamp > 0 else log_time * 1e-9, int(msg.run)))
+        marks.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, int(msg.run), bool(msg.steady)))
+        log_times.append(log_time * 1e-9)
+    if marks and not any(m[0] for m in marks):
+        marks = [(t, run, steady) for t, (_, run, steady) in zip(log_times, marks)]
     return marks
 
 

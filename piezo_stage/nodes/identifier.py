@@ -6,12 +6,21 @@ steady cycle and publishes it on ``limit_cycles``; once two runs (x(t) and x(t)+
 it identifies (:func:`piezo_stage.identification.pipeline.identify`), publishes
 ``bouc_wen_parameters`` (transient-local) and writes ``output_file`` if set. The runs are cut
 and paired exactly as ``piezo-stage identify`` cuts a bag
-(:func:`piezo_stage.identification.io.recordings_from_series`), so replaying a bag through this
-node gives the offline result.
+(:func:`piezo_stage.identification.io.recordings_from_series`; a run ends at the next run's
+first mark or at its "plan done" mark), so replaying a bag through this node gives the offline
+result. ``on_done: exit`` makes it leave once it has identified (status 0) or failed (1): the
+``replay_identification`` graph ends by itself that way.
 
 ``input``: ``voltage`` (static ch. 10 form: voltage -> displacement) or ``displacement`` (the
 ch. 11 form: the quasi-static map displacement -> voltage).
 Services: ``~/identify`` (identify now from what is collected), ``~/reset`` (std_srvs/Trigger).
+
+``stream_qos``: ``auto`` (default) subscribes ``voltage`` and ``displacement`` once a publisher
+appears, with the QoS adapted to the publishers' offers as rosbag2 (and the ``recorder``) does:
+reliable and keep-all when every publisher is reliable (the lockstep plant, a player replaying
+a reliable recording: nothing is lost while the node is busy extracting a cycle), best effort
+when one is (the rig's SensorDataQoS laser reader); a publisher that offers less later makes
+it subscribe again. ``best_effort`` / ``reliable`` subscribe at once with that policy.
 """
 
 from __future__ import annotations
@@ -20,10 +29,13 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.subscription import Subscription
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -40,11 +52,17 @@ from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, OK, Diagnosis, Diagnostics,
                      declare, run, stamp_to_s, wall_clock)
+from .recorder import adapted_qos, use_recorder_transport_profile
 
-#: deep queues: a replayed bag arrives in bursts
+#: history of the stream subscriptions: a replayed bag arrives in bursts
+STREAM_DEPTH = 10000
+#: most queued samples one callback takes before yielding to the executor
+BATCH = 2000
+
+#: fixed stream QoS (``stream_qos`` other than ``auto``)
 STREAM_QOS = {
-    "best_effort": QoSProfile(depth=10000, reliability=ReliabilityPolicy.BEST_EFFORT),
-    "reliable": QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
+    "best_effort": QoSProfile(depth=STREAM_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
+    "reliable": QoSProfile(depth=STREAM_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
 }
 
 
@@ -53,6 +71,32 @@ class _Series:
     t: list[float] = field(default_factory=list)
     value: list[float] = field(default_factory=list)
     status: list[int] = field(default_factory=list)
+
+
+@dataclass
+class _Stream:
+    """One sample stream (voltage or displacement) and its subscription (None until subscribed).
+
+    Called by rclpy with a message, it also takes what else is queued (up to ``BATCH``), as the
+    recorder does: a burst costs one executor wake-up instead of one per message."""
+
+    msg_type: type
+    on_message: Callable[[Any], None]
+    subscription: Subscription | None = None
+    reliable: bool = False
+
+    def __call__(self, msg: Any) -> None:
+        self.on_message(msg)
+        sub = self.subscription
+        if sub is None:
+            return
+        with sub.handle:
+            take = sub.handle.take_message
+            for _ in range(BATCH):
+                got = take(self.msg_type, False)
+                if got is None:
+                    break
+                self.on_message(got[0])
 
 
 class IdentifierNode(Node):
@@ -70,36 +114,77 @@ class IdentifierNode(Node):
         declare(self, "auto_identify", True, "identify as soon as two runs are complete")
         declare(self, "output_file", "", "write the identified parameter-set YAML here ('' = do not)")
         declare(self, "name", "identified", "name stored in the parameter set")
-        declare(self, "stream_qos", "best_effort", "voltage/displacement subscriptions: best_effort (matches "
-                "every publisher) | reliable (no loss from reliable publishers, e.g. a player or the lockstep plant)",
-                read_only=True)
+        declare(self, "stream_qos", "auto", "voltage/displacement subscriptions: auto (adapted to the publishers "
+                "as rosbag2 does: reliable keep-all if every publisher is reliable, else best effort) | best_effort "
+                "(matches every publisher) | reliable (no loss from reliable publishers)", read_only=True)
         self._input = self.get_parameter("input").value
         if self._input not in ("voltage", "displacement"):
             raise ValueError(f"input must be voltage or displacement, got {self._input!r}")
+        stream_qos = self.get_parameter("stream_qos").value
+        if stream_qos != "auto" and stream_qos not in STREAM_QOS:
+            raise ValueError(f"stream_qos must be auto, best_effort or reliable, got {stream_qos!r}")
         self._reset()
         self.result: IdentificationResult | None = None
         self._error = ""
 
         self._pub_cycle = self.create_publisher(LimitCycle, "limit_cycles", COMMAND_QOS)
         self._pub_params = self.create_publisher(BoucWenParameters, "bouc_wen_parameters", LATCHED_QOS)
-        qos = STREAM_QOS[self.get_parameter("stream_qos").value]
-        self.create_subscription(Voltage, "voltage", self._on_voltage, qos)
-        self.create_subscription(Displacement, "displacement", self._on_displacement, qos)
+        self._streams = {"voltage": _Stream(Voltage, self._on_voltage),
+                         "displacement": _Stream(Displacement, self._on_displacement)}
+        self._adapt = stream_qos == "auto"
+        if not self._adapt:
+            for name in self._streams:
+                self._subscribe(name, STREAM_QOS[stream_qos])
         # deep: marks must not be dropped while a cycle is being extracted (replayed bags burst)
         self.create_subscription(ExcitationInfo, "excitation", self._on_excitation,
                                  QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
         self.create_service(Trigger, "~/identify", self._srv_identify)
         self.create_service(Trigger, "~/reset", self._srv_reset)
-        declare(self, "settle_time", 2.0, "wall seconds of silent streams after which a completed run is "
+        declare(self, "on_done", "stay", "after the automatic identification: stay (the result stays latched) | "
+                "exit (status 0 when identified, 1 when it failed: one-shot runs, e.g. replaying a bag)",
+                read_only=True)
+        if self.get_parameter("on_done").value not in ("stay", "exit"):
+            raise ValueError(f"on_done must be stay or exit, got {self.get_parameter('on_done').value!r}")
+        self.finished, self.exit_code = False, 0
+        declare(self, "settle_time", 10.0, "wall seconds of silent streams after which a completed run is "
                 "processed even if the streams did not pass its end", lo=0.0, hi=3600.0)
-        self.create_timer(0.1, self._process_pending, clock=wall_clock())  # sim time may stall
+        self.create_timer(0.1, self._tick, clock=wall_clock())  # sim time may stall
+        self._discover()
         Diagnostics(self, "identification", self._diagnose)
+
+    # ------------------------------------------------------------------ subscriptions
+    def _subscribe(self, name: str, qos: QoSProfile) -> None:
+        stream = self._streams[name]
+        if stream.subscription is not None:
+            self.destroy_subscription(stream.subscription)
+        stream.subscription = self.create_subscription(stream.msg_type, name, stream, qos)
+        stream.reliable = qos.reliability == ReliabilityPolicy.RELIABLE
+
+    def _discover(self) -> None:
+        """``stream_qos: auto``: subscribe each stream once it has publishers, with the QoS
+        adapted to their offers; subscribe again (best effort) if a best-effort publisher joins
+        a reliable subscription (it would not be matched)."""
+        if not self._adapt:
+            return
+        for name, stream in self._streams.items():
+            offers = [i.qos_profile for i in self.get_publishers_info_by_topic(self.resolve_topic_name(name))]
+            if not offers:
+                continue
+            qos = adapted_qos(offers, STREAM_DEPTH)
+            if stream.subscription is None or (stream.reliable and qos.reliability != ReliabilityPolicy.RELIABLE):
+                self._subscribe(name, qos)
+                self.get_logger().info(f"{name}: {len(offers)} publisher(s), subscribed "
+                                       f"{'reliable' if qos.reliability == ReliabilityPolicy.RELIABLE else 'best effort'}")
+
+    def _tick(self) -> None:
+        self._discover()
+        self._process_pending()
 
     # ------------------------------------------------------------------ data
     def _reset(self) -> None:
         self._voltage = _Series()
         self._displacement = _Series()
-        self._marks: list[tuple[float, int]] = []
+        self._marks: list[tuple[float, int, bool]] = []
         self._info: tuple[int, bool] | None = None
         self._completed: list[int] = []
         self._pending: list[tuple[float, int]] = []
@@ -118,7 +203,7 @@ class IdentifierNode(Node):
 
     def _on_excitation(self, msg: ExcitationInfo) -> None:
         t = stamp_to_s(msg.header.stamp)
-        self._marks.append((t, int(msg.run)))
+        self._marks.append((t, int(msg.run), bool(msg.steady)))
         self._offsets[int(msg.run)] = msg.offset
         self._periods[int(msg.run)] = msg.period
         previous, self._info = self._info, (int(msg.run), bool(msg.steady))
@@ -176,19 +261,29 @@ class IdentifierNode(Node):
             cycle = extract_cycle(rec, self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
             self._set_error(f"run {run_index}: {exc}")
-            return
-        msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
-                         offset=float(self._offsets.get(run_index, 0.0)), period=float(cycle.period),
-                         input=[float(v) for v in cycle.input], output=[float(v) for v in cycle.output])
-        self._pub_cycle.publish(msg)
-        self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
-                               f"({cycle.periods} periods averaged)")
+        else:
+            msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
+                             offset=float(self._offsets.get(run_index, 0.0)), period=float(cycle.period),
+                             input=[float(v) for v in cycle.input], output=[float(v) for v in cycle.output])
+            self._pub_cycle.publish(msg)
+            self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
+                                   f"({cycle.periods} periods averaged)")
         if len(self._completed) >= 2 and not self._pending and self.result is None \
                 and self.get_parameter("auto_identify").value:
             try:
                 self.identify_now()
             except (IdentificationError, ModelError, ValueError):
-                pass  # reported by identify_now (log + /diagnostics)
+                self._done(1)  # reported by identify_now (log + /diagnostics)
+            else:
+                self._done(0)
+
+    def _done(self, code: int) -> None:
+        """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
+        if self.get_parameter("on_done").value != "exit":
+            return
+        for pub in (self._pub_cycle, self._pub_params):
+            pub.wait_for_all_acked(Duration(seconds=2.0))
+        self.exit_code, self.finished = code, True
 
     def identify_now(self) -> IdentificationResult:
         try:
@@ -247,6 +342,10 @@ class IdentifierNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    # the recorder's deep shared-memory port queue: a burst (a replayed bag, the lockstep plant)
+    # arriving while the node extracts a cycle must not overflow it, or the lost samples come
+    # back only at the writer's next heartbeat, seconds later
+    use_recorder_transport_profile()
     return run(IdentifierNode, args)
 
 

@@ -15,7 +15,8 @@ reliable / transient-local only if every offer was.
 
 Services: ``~/pause``, ``~/resume`` (std_srvs/Trigger), ``~/set_paused`` (std_srvs/SetBool);
 while paused the clock keeps being published, frozen. When the bag is done (and ``loop`` is
-off) the node exits with status 0.
+off) the node waits until its reliable subscribers have acknowledged everything (at most
+``drain_timeout``), then exits with status 0.
 """
 
 from __future__ import annotations
@@ -145,6 +146,10 @@ class PlayerNode(Node):
             "subscribers", lo=0, hi=1000, read_only=True)
         self.wait_timeout = declare(self, "wait_timeout", 10.0, "[s] longest wait for subscribers",
                                     lo=0.0, hi=1e6, read_only=True)
+        self.drain_timeout = declare(
+            self, "drain_timeout", 30.0, "[s] at the end, longest wait for reliable subscribers to "
+            "acknowledge every message (a busy subscriber must not lose the tail)", lo=0.0, hi=1e6,
+            read_only=True)
 
         if not bag:
             raise PlayerError("parameter 'bag' (rosbag2 folder or .mcap file) is required")
@@ -234,14 +239,24 @@ class PlayerNode(Node):
                 self.loops_done += 1
                 if not self.loop:
                     break
-            for out in self._outputs.values():  # let reliable subscribers get the last ones
-                if out.reliable and not self._stop:
-                    out.publisher.wait_for_all_acked(Duration(seconds=2.0))
+            self._drain()
         except Exception as exc:  # the executor thread ends the process with the status
             self.get_logger().error(f"playback failed: {exc}")
             self.exit_code = 1
         self.get_logger().info(f"played {self.played} messages")
         self.finished = True
+
+    def _drain(self) -> None:
+        """Wait (up to ``drain_timeout``) until the reliable subscribers acknowledged everything:
+        leaving earlier would lose what a busy subscriber has not taken yet."""
+        deadline = time.monotonic() + self.drain_timeout
+        for out in self._outputs.values():
+            while out.reliable and not self._stop \
+                    and not out.publisher.wait_for_all_acked(Duration(seconds=0.1)):
+                if time.monotonic() > deadline:
+                    self.get_logger().warning(f"{out.topic}: not every subscriber acknowledged the "
+                                              f"last messages within {self.drain_timeout:g} s")
+                    return
 
     def _wait_for_subscribers(self) -> None:
         if not self.wait_for_subscribers:

@@ -48,7 +48,7 @@ def timeseries_figure(path: str | Path, t_v: np.ndarray, v: np.ndarray, t_y: np.
     for ax in (ax1, ax2):
         _shade_runs(ax, runs)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper right")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: the signal fills the axes
     ax1.set_title(title or "input and output over time" + (" (runs shaded)" if runs else ""))
     return _save(fig, path)
 
