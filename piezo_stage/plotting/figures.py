@@ -124,22 +124,25 @@ def validation_figure(path: str | Path, t: np.ndarray, v: np.ndarray, true: np.n
 def closed_loop_figure(path: str | Path, t: np.ndarray, x1: np.ndarray, x2: np.ndarray, u: np.ndarray,
                        u_pid: np.ndarray, u_excitation: np.ndarray, loop_closed: np.ndarray,
                        *, mode: str = "", title: str = "") -> Path:
-    """Closed-loop signals of the time-varying PID (ch. 11, cf. Figs. 11.5-11.8): tracking
-    error x1 [µm], velocity x2 [µm/s], control u and its terms u_pid, u_excitation [V];
-    the time the loop is closed is shaded."""
+    """Closed-loop signals of the time-varying PID (ch. 11, cf. Figs. 11.5-11.11): tracking
+    error x1 [µm], velocity x2 [m/s] (the thesis's unit: x2(0) = 0.2 m/s), control u and its
+    terms u_pid, u_excitation [V] against time (ms for runs shorter than 2 s, as the thesis's
+    figures); the time the loop is closed is shaded."""
     plt = _pyplot()
-    t = np.asarray(t)
+    t = np.asarray(t, dtype=float)
+    short = len(t) > 1 and t[-1] - t[0] < 2.0
+    t = t * 1e3 if short else t
     closed = np.asarray(loop_closed, dtype=bool)
     fig, (a1, a2, a3) = plt.subplots(3, 1, sharex=True, figsize=(9, 7.5))
     a1.plot(t, np.asarray(x1) * UM, lw=0.9, color="C0", label="x1 = x − yr")
     a1.set_ylabel("x1 [µm]")
-    a2.plot(t, np.asarray(x2) * UM, lw=0.7, color="C1", label="x2 = dx/dt")
-    a2.set_ylabel("x2 [µm/s]")
+    a2.plot(t, np.asarray(x2), lw=0.7, color="C1", label="x2 = dx/dt")
+    a2.set_ylabel("x2 [m/s]")
     a3.plot(t, u, lw=1.0, color="C2", label="u")
     a3.plot(t, u_pid, lw=0.8, ls="--", color="C3", label="u_pid")
     a3.plot(t, u_excitation, lw=0.7, color="C4", alpha=0.8, label="u_excitation")
     a3.set_ylabel("voltage [V]")
-    a3.set_xlabel("time [s]")
+    a3.set_xlabel("time [ms]" if short else "time [s]")
     edges = np.flatnonzero(np.diff(np.concatenate([[0], closed.astype(int), [0]])))
     for ax in (a1, a2, a3):
         for start, stop in zip(edges[::2], edges[1::2]):
