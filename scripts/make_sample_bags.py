@@ -89,7 +89,7 @@ SUMMARY_KEYS = ("rate_hz", "u_before", "u_after", "settling_time", "max_abs_erro
 
 def make_closed_loop(sample: ClosedLoopBag, out_dir: Path, force: bool) -> Path:
     from piezo_stage.bag import BagWriter, qos, read_raw
-    from piezo_stage.commands.demo import isolated_domain
+    from piezo_stage.launch.domain import isolated_domain
     from piezo_stage.experiments import run_experiment
 
     target = _target(out_dir, sample.name, force)

@@ -7,10 +7,8 @@ parallel test runs on one machine cannot hear each other. Child processes inheri
 
 from __future__ import annotations
 
-import fcntl
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -19,26 +17,17 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-_LOCK_DIR = Path(tempfile.gettempdir()) / "piezo_stage_ros_domains"
 _held_lock = None
 
 
 def _claim_domain() -> int:
-    """Claim a free ROS domain id in 1..100 for this process (held until it exits)."""
+    """Claim a free ROS domain id for this process, held until it exits (the project's one
+    claiming protocol: piezo_stage.launch.domain)."""
     global _held_lock
-    _LOCK_DIR.mkdir(exist_ok=True)
-    start = os.getpid() % 100
-    for k in range(100):
-        domain = 1 + (start + k) % 100
-        f = open(_LOCK_DIR / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            continue
-        _held_lock = f
-        return domain
-    raise RuntimeError("no free ROS domain id in 1..100")
+    from piezo_stage.launch.domain import claim_domain_id
+
+    domain, _held_lock = claim_domain_id(start=os.getpid() % 100)
+    return domain
 
 
 def pytest_configure(config: pytest.Config) -> None:

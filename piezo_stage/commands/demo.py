@@ -6,8 +6,7 @@ bag; (b) the identifier node's live result, the result of replaying the bag thro
 identifier node (the ``replay_identification`` graph) and the offline identification of the bag
 (``piezo-stage identify``), against the true parameters and against each other, and the
 identified model's error on a validation input; (c) the ch. 11
-perturbation experiment in the three controller modes (when `piezo_stage.experiments` is
-available); (d) a summary table and the paths of the bags and PNGs written.
+perturbation experiment in the three controller modes; (d) a summary table and the paths of the bags and PNGs written.
 """
 
 from __future__ import annotations
@@ -16,15 +15,15 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 import time
 import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from contextlib import contextmanager
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
+
+from piezo_stage.launch.domain import isolated_domain
 
 #: ch. 10 patch sampled at this lockstep rate: 1000 samples per 0.1 Hz triangle period
 DEFAULT_RATE_HZ = 100.0
@@ -90,50 +89,6 @@ class IdentificationRun:
     live_params_file: Path | None  #: the identifier node's result (None: it failed, see live_error)
     live_error: str = ""
     logs: list[str] = field(default_factory=list)
-
-
-#: lock files of claimed ROS domain ids (the same protocol as test/conftest.py)
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "piezo_stage_ros_domains"
-
-
-def claim_domain_id() -> tuple[int, Any]:
-    """Claim a ROS_DOMAIN_ID in 1..100 that no other process holds (exclusive flock on a file
-    per id); return it and the open lock file (the claim lasts until the file is closed)."""
-    import fcntl
-    import random
-
-    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
-    start = random.SystemRandom().randrange(100)
-    for k in range(100):
-        domain = 1 + (start + k) % 100
-        f = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            continue
-        return domain, f
-    raise DemoError("no free ROS domain id in 1..100 (every one is held by another run)")
-
-
-@contextmanager
-def isolated_domain(domain_id: int | None = None) -> Iterator[int]:
-    """Set ROS_DOMAIN_ID (a free one unless given) for this process and its children meanwhile:
-    /clock is global, so a lockstep run needs a domain of its own."""
-    lock = None
-    if domain_id is None:
-        domain_id, lock = claim_domain_id()
-    saved = os.environ.get("ROS_DOMAIN_ID")
-    os.environ["ROS_DOMAIN_ID"] = str(domain_id)
-    try:
-        yield domain_id
-    finally:
-        if saved is None:
-            os.environ.pop("ROS_DOMAIN_ID", None)
-        else:
-            os.environ["ROS_DOMAIN_ID"] = saved
-        if lock is not None:
-            lock.close()
 
 
 def _quiet_sink(logs: list[str]) -> Callable[[str, str, bool], None]:
@@ -441,12 +396,9 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
 
 
 def _closed_loop(out: Path, progress: Progress) -> tuple[bool | None, list[Path]]:
-    """(c) the ch. 11 perturbation experiment in the three modes; None when not available."""
-    try:
-        from piezo_stage.experiments import run_experiment
-    except ImportError as exc:
-        print(f"\n(c) closed loop: not available in this build (piezo_stage.experiments: {exc})")
-        return None, []
+    """(c) the ch. 11 perturbation experiment in the three modes."""
+    from piezo_stage.experiments import run_experiment
+
     rows, files = [], []
     with isolated_domain():
         for mode in CONTROLLER_MODES:
@@ -467,16 +419,11 @@ def _closed_loop(out: Path, progress: Progress) -> tuple[bool | None, list[Path]
 
 
 def run(args: argparse.Namespace) -> int:
+    from piezo_stage.experiments.errors import ExperimentError
     from piezo_stage.identification.errors import IdentificationError
     from piezo_stage.launch import LaunchError
 
-    errors: tuple[type[BaseException], ...] = (DemoError, IdentificationError, LaunchError, OSError)
-    try:
-        from piezo_stage.experiments.errors import ExperimentError
-
-        errors += (ExperimentError,)
-    except ImportError:
-        pass
+    errors = (DemoError, ExperimentError, IdentificationError, LaunchError, OSError)
 
     out = Path(args.out).absolute()
     out.mkdir(parents=True, exist_ok=True)

@@ -31,6 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.experiments import ExperimentError, ExperimentInputError, run_experiment
+    from piezo_stage.launch import LaunchError
+    from piezo_stage.launch.domain import isolated_domain
 
     gains = {k: getattr(args, k) for k in ("A", "kA", "f") if getattr(args, k) is not None}
 
@@ -39,12 +41,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{fraction * 100:5.1f} %] {text}", file=sys.stderr)
 
     try:
-        summary = run_experiment(args.name, args.mode, bag=args.bag, png_dir=args.png, progress=progress,
-                                 duration=args.duration, gains=gains or None)
+        # the lockstep plant owns /clock, which is global: run on a ROS domain of its own, so
+        # that a stage already running on this machine neither drives nor sees this run's clock
+        with isolated_domain():
+            summary = run_experiment(args.name, args.mode, bag=args.bag, png_dir=args.png, progress=progress,
+                                     duration=args.duration, gains=gains or None)
     except ExperimentInputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except ExperimentError as exc:
+    except (ExperimentError, LaunchError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     if args.json:
