@@ -115,3 +115,20 @@ def test_bag_with_nothing_to_plot_is_an_error(tmp_path, capsys):
     assert main(["plot", str(bag), "--out", str(tmp_path / "png")]) == 1
     assert "nothing to plot" in capsys.readouterr().err
     assert not (tmp_path / "png").exists()
+
+
+def test_steady_cycles_are_the_samples_the_excitation_marked_steady():
+    """The hysteresis plot draws bold what the identification uses: in the shipped ch. 10 bag
+    (7 periods per run, the last 2 recorded) the steady part is the end of each run."""
+    from piezo_stage.plotting.bag_plots import _runs, _steady_mask, find_topics
+
+    bag = Path(__file__).resolve().parents[1] / "bags" / "ch10_identification"
+    topics = find_topics(bag)
+    runs = _runs(bag, topics)
+    assert len(runs) == 2
+    for r in runs:
+        mask = _steady_mask(bag, topics.excitation, r.t)
+        assert not mask[0] and mask[-2]
+        steady_span = r.t[mask][-1] - r.t[mask][0]
+        assert 15.0 < steady_span <= 20.0 + 1e-6  # two 10 s periods, minus the run's last sample
+        assert np.all(np.diff(mask.astype(int)) >= 0)  # settling first, then steady to the end

@@ -62,6 +62,20 @@ def _runs(bag: Path, topics: BagTopics) -> list:
     return load_bag(bag, **kwargs)
 
 
+def _steady_mask(bag: Path, topic: str, t: np.ndarray) -> np.ndarray:
+    """True where the latest ExcitationInfo at or before each time says ``steady``."""
+    from piezo_stage.bag.reader import read_messages
+
+    marks = sorted((m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, bool(m.steady))
+                   for _, _, m in read_messages(bag, [topic]))
+    if not marks:
+        return np.zeros(len(t), dtype=bool)
+    times = np.array([m[0] for m in marks])
+    flags = np.array([m[1] for m in marks])
+    index = np.searchsorted(times, np.asarray(t), side="right") - 1
+    return np.where(index >= 0, flags[np.clip(index, 0, None)], False)
+
+
 def _last_parameters(bag: Path, topic: str):
     from piezo_stage.bag.reader import read_messages
     from piezo_stage.model.bouc_wen import BoucWenParameters
@@ -130,12 +144,14 @@ def plot_bag(bag: str | Path, out_dir: str | Path | None = None, *, stem: str | 
             shaded = [(r.name, float(r.t[0]), float(r.t[-1])) for r in runs]
             written.append(figures.timeseries_figure(out / f"{stem}_timeseries.png", t_v, v, t_y, y, runs=shaded,
                                                      title=f"{stem}: voltage and displacement"))
+            steady = None
             if runs:
                 loops = [(f"run {i}", r.input, r.output) for i, r in enumerate(runs)]
+                steady = [_steady_mask(bag, topics.excitation, r.t) for r in runs]
             else:
                 held = np.clip(np.searchsorted(t_v, t_y, side="right") - 1, 0, len(v) - 1)
                 loops = [("recorded", v[held], y)]
-            written.append(figures.hysteresis_figure(out / f"{stem}_hysteresis.png", loops,
+            written.append(figures.hysteresis_figure(out / f"{stem}_hysteresis.png", loops, steady=steady,
                                                      title=f"{stem}: hysteresis loops"))
             params = _last_parameters(bag, topics.parameters) if topics.parameters else None
             if params is not None and runs:

@@ -54,12 +54,21 @@ def timeseries_figure(path: str | Path, t_v: np.ndarray, v: np.ndarray, t_y: np.
 
 
 def hysteresis_figure(path: str | Path, loops: Sequence[tuple[str, np.ndarray, np.ndarray]],
-                      *, title: str = "") -> Path:
-    """Hysteresis loops: displacement [µm] against input voltage [V], one colour per run."""
+                      *, title: str = "", steady: Sequence[np.ndarray | None] | None = None) -> Path:
+    """Hysteresis loops: displacement [µm] against input voltage [V], one colour per run.
+
+    ``steady``: per loop, a mask of the samples the excitation marked steady (the limit cycle
+    the identification uses): they are drawn bold over the faint settling transient."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 5.5))
-    for i, (label, v, y) in enumerate(loops):
-        ax.plot(v, np.asarray(y) * UM, lw=0.9, color=f"C{i}", label=label)
+    masks = list(steady) if steady is not None else [None] * len(loops)
+    for i, ((label, v, y), mask) in enumerate(zip(loops, masks)):
+        v, y_um = np.asarray(v), np.asarray(y) * UM
+        if mask is None or not np.any(mask):
+            ax.plot(v, y_um, lw=0.9, color=f"C{i}", label=label)
+            continue
+        ax.plot(v, y_um, lw=0.6, color=f"C{i}", alpha=0.35, label=f"{label}: settling")
+        ax.plot(v[mask], y_um[mask], lw=1.6, color=f"C{i}", label=f"{label}: steady cycles")
     ax.set_xlabel("input voltage v [V]")
     ax.set_ylabel("displacement y [µm]")
     ax.grid(alpha=0.3)
