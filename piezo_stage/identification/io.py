@@ -115,19 +115,33 @@ def is_bag(path: str | Path) -> bool:
     return p.is_dir() or p.suffix == ".mcap"
 
 
-def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray,
-           name: str) -> Recording:
-    """One time base for both signals: the denser one, the other interpolated on it."""
+def _resample(t_src: np.ndarray, x_src: np.ndarray, t: np.ndarray, hold: bool) -> np.ndarray:
+    """``x_src`` at times ``t`` (within its span): the value in force (zero-order hold) for a
+    held signal, else linear interpolation."""
+    if not hold:
+        return np.interp(t, t_src, x_src)
+    return x_src[np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(x_src) - 1)]
+
+
+def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray, name: str,
+           hold_in: bool = False, hold_out: bool = False) -> Recording:
+    """One time base for both signals: the denser one, the other resampled on it.
+
+    A voltage series is what the amplifier applied from each stamp until the next (DESIGN.md §3:
+    ``voltage`` is stamped when applied), so it is resampled as held values (``hold_*``); linear
+    interpolation of a held staircase would make the input lead the stage by half a step (a 200 Hz
+    staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled from a
+    continuous signal and is interpolated."""
     lo, hi = max(t_in[0], t_out[0]), min(t_in[-1], t_out[-1])
     if hi <= lo:
         raise DataFormatError(f"{name}: the input and output topics do not overlap in time")
     if len(t_out) >= len(t_in):
         keep = (t_out >= lo) & (t_out <= hi)
         t = t_out[keep]
-        return Recording(t, np.interp(t, t_in, v), y[keep], name=name, input_unit="V", output_unit="m")
+        return Recording(t, _resample(t_in, v, t, hold_in), y[keep], name=name, input_unit="V", output_unit="m")
     keep = (t_in >= lo) & (t_in <= hi)
     t = t_in[keep]
-    return Recording(t, v[keep], np.interp(t, t_out, y), name=name, input_unit="V", output_unit="m")
+    return Recording(t, v[keep], _resample(t_out, y, t, hold_out), name=name, input_unit="V", output_unit="m")
 
 
 def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None):
@@ -187,7 +201,8 @@ def recordings_from_series(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y
                            source: str, input_unit: str = "V", output_unit: str = "m") -> list[Recording]:
     """One Recording per run interval from the input and output series (any order, duplicates
     dropped). Shared by :func:`load_bag` and the live ``identifier`` node, so that a bag replayed
-    through the node gives the offline result. Output samples flagged invalid are refused."""
+    through the node gives the offline result. Output samples flagged invalid are refused. A
+    series in volts (the applied ``voltage``) is resampled as held values, the other interpolated."""
     t_in, v, _ = _sorted_series(np.asarray(t_in, float), np.asarray(v, float), None)
     t_out, y, status = _sorted_series(np.asarray(t_out, float), np.asarray(y, float),
                                       None if status is None else np.asarray(status))
@@ -206,7 +221,8 @@ def recordings_from_series(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y
                     f"{name}: {int(bad.sum())} displacement sample(s) flagged invalid "
                     f"(status {codes}: 1 NO_TARGET, 2 TOO_CLOSE, 3 TOO_FAR, 4 INVALID): the sensor "
                     "left its range; reduce the excitation or re-position the sensor")
-        rec = _merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name)
+        rec = _merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name,
+                     hold_in=input_unit == "V", hold_out=output_unit == "V")
         runs.append(replace(rec, input_unit=input_unit, output_unit=output_unit))
     return runs
 
