@@ -138,10 +138,10 @@ while time.monotonic() < end:
 
 
 def test_ros_domain_isolation(ros_node):
-    from conftest import _LOCK_DIR  # the lock files held by running test sessions
+    from piezo_stage.launch.domain import DOMAIN_LOCK_DIR  # the lock files held by running test sessions
 
     own = int(os.environ["ROS_DOMAIN_ID"])
-    assert 1 <= own <= 100 and (_LOCK_DIR / f"{own}.lock").exists()
+    assert 1 <= own <= 100 and (DOMAIN_LOCK_DIR / f"{own}.lock").exists()
     other = 1 + own % 100
     got: list[float] = []
     ros_node.create_subscription(msg_class("Voltage"), "/probe/isolation", lambda m: got.append(m.voltage), 10)
