@@ -125,17 +125,19 @@ def _resample(t_src: np.ndarray, x_src: np.ndarray, t: np.ndarray, hold: bool) -
 
 def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray, name: str,
            hold_in: bool = False, hold_out: bool = False) -> Recording:
-    """One time base for both signals: the denser one, the other resampled on it.
+    """One time base for both signals, the other resampled on it.
 
     A voltage series is what the amplifier applied from each stamp until the next (DESIGN.md §3:
-    ``voltage`` is stamped when applied), so it is resampled as held values (``hold_*``); linear
-    interpolation of a held staircase would make the input lead the stage by half a step (a 200 Hz
-    staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled from a
-    continuous signal and is interpolated."""
+    ``voltage`` is stamped when applied), so it is resampled as held values (``hold_*``), which is
+    exact; linear interpolation of a held staircase would make the input lead the stage by half a
+    step (a 200 Hz staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled
+    from a continuous signal: its own sample times are the time base when the other signal is
+    held (no interpolation of measurements at all); otherwise the denser series is."""
     lo, hi = max(t_in[0], t_out[0]), min(t_in[-1], t_out[-1])
     if hi <= lo:
         raise DataFormatError(f"{name}: the input and output topics do not overlap in time")
-    if len(t_out) >= len(t_in):
+    output_base = hold_in if hold_in != hold_out else len(t_out) >= len(t_in)
+    if output_base:
         keep = (t_out >= lo) & (t_out <= hi)
         t = t_out[keep]
         return Recording(t, _resample(t_in, v, t, hold_in), y[keep], name=name, input_unit="V", output_unit="m")

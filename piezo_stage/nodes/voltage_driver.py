@@ -20,7 +20,7 @@ only what needs the ROS clock:
   run marks aligned with the applied voltage). Commands arriving after their time are applied at
   once and counted (``late_playout`` on /diagnostics). ``hold_period`` > 0 fills the intervals
   between queued commands with linearly interpolated values every ``hold_period`` s (a
-  first-order hold; only the commands are published on ``voltage``). Off (the default, and what
+  first-order hold; every value written is published on ``voltage``). Off (the default, and what
   a closed loop needs): on arrival;
 - ``tick()`` (the watchdog) runs on a steady wall-clock timer, so a stalled ``/clock`` cannot
   keep the amplifier at its last voltage;
@@ -134,13 +134,18 @@ class VoltageDriverNode(Node):
 
     def _apply(self, voltage: float, command: bool = True) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
-        publish it; ``command`` False: a value the playout interpolated, sent only."""
+        publish it; ``command`` False: a value the playout interpolated, sent and published too
+        (``voltage`` is what the device applies, stamped when applied: the identification reads it
+        as held values)."""
         with self._lock:
             if not command:
+                sent_at = self.get_clock().now()
                 try:
-                    self.driver.set_voltage(voltage)
+                    result = self.driver.set_voltage(voltage)
                 except HardwareError as exc:
                     self._link_error(exc)
+                    return
+                self._publish(result.sent, sent_at)
                 return
             self._last_command = voltage
             sent_at = self.get_clock().now()  # applied when the device gets it, not after its ERR? reply
