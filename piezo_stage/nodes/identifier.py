@@ -257,10 +257,11 @@ class IdentifierNode(Node):
             recs = {r.name.rsplit(" ", 1)[-1]: r for r in self.recordings()}
             rec = recs.get(str(run_index))
             if rec is None:
-                raise IdentificationError(f"run {run_index}: no samples")
+                raise IdentificationError(f"{self.get_name()} run {run_index}: no samples")
             cycle = extract_cycle(rec, self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
-            self._set_error(f"run {run_index}: {exc}")
+            text = str(exc)  # the extraction's messages already name the run ("<node> run <k>: ...")
+            self._set_error(text if f"run {run_index}:" in text else f"{self.get_name()} run {run_index}: {text}")
         else:
             msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
                              offset=float(self._offsets.get(run_index, 0.0)), period=float(cycle.period),
