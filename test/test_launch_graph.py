@@ -202,3 +202,19 @@ def test_bootstrap_finds_main(tmp_path, monkeypatch):
     assert defines_main("with_def") and defines_main("with_import") and not defines_main("script")
     with pytest.raises(ModuleNotFoundError):
         defines_main("no_such_module_xyz")
+
+
+def test_namespaced_clock_remaps_every_node_and_the_wait():
+    from piezo_stage.launch.commandline import ros_arguments
+
+    g = parse_graph({"clock": "namespaced", "wait_for_topics": [{"topic": "/clock", "publishers": 1}, "/other"],
+                     "nodes": [{"executable": "plant", "remappings": {"voltage_command": "cmd"}},
+                               {"command": ["sleep", "1"]}]}).with_namespace("/stage2")
+    args = ros_arguments(g.node("plant"), g)
+    assert "/clock:=clock" in args and "voltage_command:=cmd" in args  # rcl resolves it to /stage2/clock
+    assert g.node("sleep").remappings == {}
+    assert g.topics() == ["/stage2/clock", "/other"]
+    assert "/clock:=clock" not in ros_arguments(parse_graph({"nodes": [{"executable": "plant"}]}).nodes[0],
+                                                 parse_graph({"nodes": [{"executable": "plant"}]}))
+    with pytest.raises(GraphError, match="clock: expected global or namespaced"):
+        parse_graph({"clock": "local", "nodes": [{"executable": "plant"}]})

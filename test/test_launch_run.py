@@ -274,3 +274,35 @@ def test_module_without_main_runs_as_main(tmp_path):
     launch.start()
     assert launch.wait(20.0) == 4 and launch.reason == "all processes exited"
     assert out.of("script_mod")[0].startswith("as main ['x', '--ros-args', '-r', '__ns:=/piezo'")
+
+
+def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
+    """The shipped sim_closed_loop graph twice (`clock: namespaced`): each lockstep plant steps on
+    <ns>/clock under its own controller, and nothing publishes the global /clock."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    a = Launcher("sim_closed_loop", namespace="/stage_a", sink=Lines())
+    b = Launcher("sim_closed_loop", namespace="/stage_b", sink=Lines())
+    rclpy.init()
+    node = rclpy.create_node("clock_probe")
+    ticks: dict[str, list[float]] = {"/stage_a/clock": [], "/stage_b/clock": []}
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    for topic, got in ticks.items():
+        node.create_subscription(Clock, topic, lambda m, got=got: got.append(m.clock.sec + 1e-9 * m.clock.nanosec),
+                                 qos)
+    try:
+        with a, b:
+            assert a.graph.topics()[0] == "/stage_a/clock" and b.graph.topics()[0] == "/stage_b/clock"
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and min(len(v) for v in ticks.values()) < 200:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            assert node.count_publishers("/clock") == 0
+            assert node.count_publishers("/stage_a/clock") == 1 and node.count_publishers("/stage_b/clock") == 1
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+    for topic, got in ticks.items():
+        assert len(got) >= 200, topic  # each plant advanced: its controller answered every step
+        assert all(t1 > t0 for t0, t1 in zip(got[1:], got[2:])), topic  # one clock each, monotone

@@ -5,6 +5,7 @@ Format (documented with examples in ``config/graphs/README.md``)::
     description: simulated stage        # optional, shown by --dry-run
     namespace: /piezo                   # default; `--ns` overrides it
     use_sim_time: false                 # optional; passed to every node when given
+    clock: namespaced                   # optional: /clock -> <namespace>/clock for every node
     env: {RCUTILS_LOGGING_BUFFERED_STREAM: "1"}   # optional, for every process
     stop_timeout: 5.0                   # grace per shutdown step (SIGINT, then SIGTERM) [s]
     wait_for_topics: [displacement, {topic: voltage, publishers: 1}]
@@ -42,7 +43,7 @@ DEFAULT_NAMESPACE = "/piezo"  # piezo_stage.nodes.common.DEFAULT_NAMESPACE (not 
 DEFAULT_STOP_TIMEOUT = 5.0
 NODE_PACKAGE = "piezo_stage.nodes"
 
-_GRAPH_KEYS = ("description", "namespace", "use_sim_time", "env", "stop_timeout",
+_GRAPH_KEYS = ("description", "namespace", "use_sim_time", "clock", "env", "stop_timeout",
                "wait_for_topics", "nodes")
 _KINDS = ("executable", "module", "command")
 _NODE_KEYS = ("name", "parameters", "overrides", "remappings", "required", "args", "env",
@@ -255,18 +256,35 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     description = data.get("description", "")
     if not isinstance(description, str):
         raise GraphError(f"{where}: description: expected a string")
+    waits = tuple(_parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
+                  for i, t in enumerate(_list(data.get("wait_for_topics", []), f"{where}: wait_for_topics")))
+    clock = data.get("clock", "global")
+    if clock not in ("global", "namespaced"):
+        raise GraphError(f"{where}: clock: expected global or namespaced, got {clock!r}")
+    if clock == "namespaced":
+        nodes, waits = _namespaced_clock(nodes, waits)
     return Graph(
         nodes=nodes,
         namespace=normalize_namespace(data.get("namespace", DEFAULT_NAMESPACE), f"{where}: namespace"),
-        wait_for_topics=tuple(_parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
-                              for i, t in enumerate(_list(data.get("wait_for_topics", []),
-                                                          f"{where}: wait_for_topics"))),
+        wait_for_topics=waits,
         use_sim_time=use_sim_time,
         env=_env(data.get("env", {}), f"{where}: env"),
         stop_timeout=float(stop_timeout),
         description=description.strip(),
         source=source,
     )
+
+
+def _namespaced_clock(nodes: tuple[ProcessSpec, ...], waits: tuple[TopicWait, ...]
+                      ) -> tuple[tuple[ProcessSpec, ...], tuple[TopicWait, ...]]:
+    """``clock: namespaced``: every ROS node remaps ``/clock`` to ``clock``, which rcl resolves in
+    the node's namespace (``<ns>/clock``), and a wait for ``/clock`` waits for ``<ns>/clock``.
+    ``/clock`` is global in ROS, so two lockstep stages (each plant owns a clock) can only run side
+    by side in namespaces this way (or in different ROS domains)."""
+    nodes = tuple(dataclasses.replace(s, remappings={"/clock": "clock", **s.remappings}) if s.is_node else s
+                  for s in nodes)
+    waits = tuple(dataclasses.replace(w, topic="clock") if w.topic == "/clock" else w for w in waits)
+    return nodes, waits
 
 
 def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
