@@ -28,6 +28,7 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
 
+    from piezo_stage.nodes.common import LOCKSTEP_DEPTH
     from piezo_stage_msgs.msg import ControllerState
 
     ctx = rclpy.Context()
@@ -49,7 +50,7 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
             progress(min(ns * 1e-9 / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {ns * 1e-6:.1f} ms")
 
     node.create_subscription(ControllerState, "controller_state", on_state,
-                             QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE), raw=True)
+                             QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE), raw=True)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     try:

@@ -42,9 +42,14 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
 #: lockstep streams (the plant's samples and /clock, the controller's state): reliable, because a
 #: lost sample would stall a step until the timeout, and deep, because a reader busy for a while
-#: (the identifier extracting a cycle, a recorder) must not lose what the graph produced meanwhile.
+#: (the identifier extracting a cycle, a recorder, an experiment's collector) must not lose what
+#: the graph produced meanwhile: a reliable KEEP_LAST writer drops what a reader has not yet
+#: acknowledged once its history is full, and a lockstep graph runs at several thousand steps per
+#: wall second, so the history holds a whole experiment (0.4 s at 100 kHz: 40 000 steps; the ch. 10
+#: identification: 20 000). Its entries are allocated as they are used.
 #: A reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig.
-LOCKSTEP_QOS = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+LOCKSTEP_DEPTH = 100_000
+LOCKSTEP_QOS = QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
 #: identified parameters and other results: reliable + transient local (latched)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,

@@ -50,12 +50,12 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import save_parameter_set
 from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo, LimitCycle, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, OK, Diagnosis, Diagnostics,
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, LOCKSTEP_DEPTH, OK, Diagnosis, Diagnostics,
                      declare, run, stamp_to_s, wall_clock)
 from .recorder import adapted_qos, use_recorder_transport_profile
 
 #: history of the stream subscriptions: a replayed bag arrives in bursts
-STREAM_DEPTH = 10000
+STREAM_DEPTH = LOCKSTEP_DEPTH  # a whole lockstep run fits (see common.LOCKSTEP_DEPTH)
 #: most queued samples one callback takes before yielding to the executor
 BATCH = 2000
 
