@@ -124,14 +124,18 @@ def test_unsafe_gain_change_is_refused_with_a_reason(node):
         stop(proc)
 
 
-def test_unsafe_rate_at_start_exits_with_an_error():
+@pytest.mark.parametrize("param, reason", [
     # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (DESIGN.md §7)
-    proc = start_node("controller", "rate_hz:=20000.0", namespace=NS)
+    ("rate_hz:=20000.0", "sampled loop unstable"),
+    ("sensor_qos:=fastest", "sensor_qos must be"),
+])
+def test_bad_start_parameters_exit_with_the_reason(param, reason):
+    proc = start_node("controller", param, namespace=NS)
     try:
         assert proc.wait(timeout=20) != 0
     finally:
         out, err = stop(proc)
-    assert "sampled loop unstable" in err
+    assert reason in err
 
 
 @pytest.mark.parametrize("sensor_qos,reliability", [("best_effort", "BEST_EFFORT"), ("reliable", "RELIABLE")])
@@ -165,12 +169,3 @@ def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliabi
         assert spin_until(node, feed, 20), "the controller did not answer the samples"
     finally:
         stop(proc)
-
-
-def test_unknown_sensor_qos_is_refused_at_start():
-    proc = start_node("controller", "sensor_qos:=fastest", namespace=NS)
-    try:
-        assert proc.wait(timeout=20) != 0
-    finally:
-        out, err = stop(proc)
-    assert "sensor_qos must be" in err
