@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
+from std_srvs.srv import Trigger  # noqa: E402
 
 from piezo_stage.cli import main  # noqa: E402
 from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
@@ -44,9 +45,19 @@ def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
     got: list = []
     node.create_subscription(BoucWenParameters, "bouc_wen_parameters", got.append, LATCHED_QOS)
     cmd = [sys.executable, "-m", "piezo_stage.cli", "launch", "replay_identification", "--color", "never",
-           "--param", "player.rate:=0.0", "--param", f"identifier.output_file:={out_file}", *params]
+           "--param", "player.rate:=0.0", "--param", "player.start_paused:=true",
+           "--param", f"identifier.output_file:={out_file}", *params]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
+        # the identifier leaves once its matched subscribers have the latched result: play only
+        # when this probe is matched with it (else, under load, a fast replay could end first)
+        topic = "/piezo/bouc_wen_parameters"
+        assert spin_until(node, lambda: node.count_publishers(topic) >= 1 or proc.poll() is not None, 120.0)
+        spin_until(node, lambda: False, 1.0)
+        resume = node.create_client(Trigger, "/piezo/player/resume")
+        assert resume.wait_for_service(timeout_sec=60.0), "the player's ~/resume did not appear"
+        future = resume.call_async(Trigger.Request())
+        assert spin_until(node, future.done, 30.0) and future.result().success
         spin_until(node, lambda: proc.poll() is not None, 240.0)
         if proc.poll() is None:
             proc.terminate()
