@@ -77,3 +77,91 @@ def test_timer_trigger_runs_on_wall_clock_and_stops_cleanly_on_sigint(node):
     finally:
         out, err = stop(proc)
     assert "Traceback" not in err
+
+
+def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(node):
+    """trigger=clock runs as fast as the graph: a reliable reader that falls behind (a recorder
+    under load) must still get every command and mark, including those published just before the
+    node leaves (it waits for their acknowledgement). The lagging reader here takes nothing until
+    the plan is done, far more steps than a reader's DDS history holds (5000)."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from piezo_stage_msgs.msg import ExcitationInfo, Voltage
+
+    n_ticks, dt = 8001, 0.4 / 8000  # both runs of PLAN and the first tick after: done
+    proc = start_node("excitation", *PLAN, "trigger:=clock", "on_done:=exit", "use_sim_time:=true",
+                      "info_rate_hz:=10000.0", namespace="/exc")
+    lagging = rclpy.create_node("lagging", namespace="/exc")
+    keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    seen: set[tuple[int, int]] = set()
+    infos: list[ExcitationInfo] = []
+    late_cmds: list[Voltage] = []
+    late_infos: list[ExcitationInfo] = []
+    node.create_subscription(Voltage, "voltage_command",
+                             lambda m: seen.add((m.header.stamp.sec, m.header.stamp.nanosec)), keep_all)
+    node.create_subscription(ExcitationInfo, "excitation", infos.append, keep_all)
+    lagging.create_subscription(Voltage, "voltage_command", late_cmds.append, keep_all)
+    lagging.create_subscription(ExcitationInfo, "excitation", late_infos.append, keep_all)
+    clock = node.create_publisher(Clock, "/clock", COMMAND_QOS)
+    try:
+        assert spin_until(node, lambda: node.count_subscribers("/clock") >= 1 and
+                          node.count_subscribers("voltage_command") >= 2 and
+                          node.count_publishers("voltage_command") >= 1, 15.0)
+        spin_until(node, lambda: False, 0.5)
+        for k in range(n_ticks):  # lockstep: the next tick once the command for this one is in
+            t = 100.0 + k * dt
+            sec, nanosec = int(t), int(round((t - int(t)) * 1e9))
+            clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
+            assert spin_until(node, lambda: (sec, nanosec) in seen, 5.0), f"no command for tick {k}"
+        assert spin_until(lagging, lambda: len(late_cmds) >= n_ticks, 30.0), \
+            f"the lagging reader got {len(late_cmds)} of {n_ticks} commands"
+        spin_until(lagging, lambda: proc.poll() is not None, 30.0)
+        assert proc.wait(timeout=5) == 0  # it left once the lagging reader had everything
+        spin_until(node, lambda: False, 0.5)
+        spin_until(lagging, lambda: False, 0.5)
+        stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in late_cmds]
+        assert len(stamps) == n_ticks and set(stamps) == seen and stamps == sorted(stamps)
+        assert len(infos) > 3000  # a mark every 2-3 steps at this info rate, plus the changes
+        assert [(m.header.stamp.sec, m.header.stamp.nanosec, m.run, m.steady) for m in late_infos] == \
+            [(m.header.stamp.sec, m.header.stamp.nanosec, m.run, m.steady) for m in infos]
+    finally:
+        stop(proc)
+        lagging.destroy_node()
+
+
+def test_wait_for_subscribers_starts_the_plan_once_its_writers_have_matched_them(node):
+    """wait_for_subscribers:=2: ticks before the second subscriber is matched publish nothing, and
+    the plan (run 0, settling) starts at the first tick after: no reader misses its beginning."""
+    from piezo_stage_msgs.msg import ExcitationInfo, Voltage
+
+    proc = start_node("excitation", *PLAN, "trigger:=clock", "use_sim_time:=true", "wait_for_subscribers:=2",
+                      namespace="/exc")
+    cmds: list[Voltage] = []
+    infos: list[ExcitationInfo] = []
+    node.create_subscription(Voltage, "voltage_command", cmds.append, COMMAND_QOS)
+    node.create_subscription(ExcitationInfo, "excitation", infos.append, COMMAND_QOS)
+    clock = node.create_publisher(Clock, "/clock", COMMAND_QOS)
+    second = rclpy.create_node("second", namespace="/exc")
+    try:
+        assert spin_until(node, lambda: node.count_subscribers("/clock") >= 1, 15.0)
+        for k in range(20):  # one subscriber each: the plan waits
+            clock.publish(Clock(clock=Time(sec=50, nanosec=k * 1000)))
+            spin_until(node, lambda: False, 0.05)
+        assert cmds == [] and infos == []
+        late: list[ExcitationInfo] = []
+        second.create_subscription(Voltage, "voltage_command", lambda m: None, COMMAND_QOS)
+        second.create_subscription(ExcitationInfo, "excitation", late.append, COMMAND_QOS)
+        ns = 100_000
+        while not cmds and ns < 10_000_000_000:
+            clock.publish(Clock(clock=Time(sec=50, nanosec=ns)))
+            spin_until(node, lambda: bool(cmds), 0.1)
+            ns += 1000
+        assert cmds, "the plan did not start once both subscribers were there"
+        assert spin_until(node, lambda: bool(infos), 5.0) and spin_until(second, lambda: bool(late), 5.0)
+        first = cmds[0].header.stamp
+        assert (infos[0].run, infos[0].steady) == (0, False) and infos[0].header.stamp == first
+        assert late[0].header.stamp == first  # the second reader has the first mark too
+        assert cmds[0].voltage == pytest.approx(-1.0)  # the triangle's start: the plan's t = 0
+    finally:
+        stop(proc)
+        second.destroy_node()

@@ -66,17 +66,18 @@ def test_realtime_plant_follows_commands_and_refuses_nan(node):
 def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, list, list]:
     """plant (ch. 9 example) + excitation (its preset) + identifier, lockstep; returns the
     displacement stamps and values, and what the identifier published."""
-    from piezo_stage_msgs.msg import BoucWenParameters, Displacement, LimitCycle
+    from piezo_stage_msgs.msg import BoucWenParameters, Displacement, LimitCycle, Voltage
 
     procs = [
         start_node("plant", "model_file:=ch9_example.yaml", "clock_mode:=lockstep", f"rate_hz:={rate}",
-                   namespace=ns),
+                   "wait_for_subscribers:=2", namespace=ns),  # the probe and the identifier
         start_node("identifier", "use_sim_time:=true", "stream_qos:=reliable", namespace=ns),
     ]
     samples: list = []
     params: list = []
     cycles: list = []
     sub = node.create_subscription(Displacement, f"{ns}/displacement", samples.append, RELIABLE)
+    sub_v = node.create_subscription(Voltage, f"{ns}/voltage", lambda m: None, RELIABLE)
     sub_p = node.create_subscription(BoucWenParameters, f"{ns}/bouc_wen_parameters", params.append, LATCHED_QOS)
     sub_c = node.create_subscription(LimitCycle, f"{ns}/limit_cycles", cycles.append, COMMAND_QOS)
     try:
@@ -85,13 +86,14 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
                           and node.count_publishers(f"{ns}/displacement") >= 1, 20.0)
         spin_until(node, lambda: False, 1.0)
         procs.append(start_node("excitation", "preset:=ch9_example", "trigger:=clock", "use_sim_time:=true",
-                                "on_done:=exit", namespace=ns))
+                                "on_done:=exit", "wait_for_subscribers:=1", namespace=ns))
         assert spin_until(node, lambda: procs[-1].poll() is not None, 120.0)  # keep reading meanwhile
         assert procs[-1].returncode == 0, stop(procs[-1])
         published = spin_until(node, lambda: len(params) == 1, 30.0)
     finally:
         logs = [stop(p) for p in procs]
         node.destroy_subscription(sub)
+        node.destroy_subscription(sub_v)
         node.destroy_subscription(sub_p)
         node.destroy_subscription(sub_c)
     assert published, f"the identifier published nothing: {logs[1][1][-3000:]}"
@@ -120,3 +122,37 @@ def test_lockstep_loop_identifies_the_plant_and_is_deterministic(node):
     assert n > 2900
     np.testing.assert_array_equal(t1[:n], t2[:n])
     np.testing.assert_array_equal(x1[:n], x2[:n])  # the same run twice: identical samples
+
+
+def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node):
+    """wait_for_subscribers:=2: with a commander present but one reader per stream, no /clock and
+    no sample; once a second reader is matched, step 0 comes first, to both."""
+    from rosgraph_msgs.msg import Clock
+
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    ns = "/lockstep_wait"
+    proc = start_node("plant", "model_file:=ch9_example.yaml", "clock_mode:=lockstep", "rate_hz:=1000.0",
+                      "wait_for_subscribers:=2", namespace=ns)
+    second = rclpy.create_node("second", namespace=ns)
+    ticks: list = []
+    seen: list = []
+    late: list = []
+    node.create_publisher(Voltage, f"{ns}/voltage_command", COMMAND_QOS)  # the commander is there
+    node.create_subscription(Clock, "/clock", ticks.append, RELIABLE)
+    node.create_subscription(Displacement, f"{ns}/displacement", seen.append, RELIABLE)
+    node.create_subscription(Voltage, f"{ns}/voltage", lambda m: None, RELIABLE)
+    try:
+        assert spin_until(node, lambda: node.count_publishers("/clock") >= 1 and
+                          node.count_subscribers(f"{ns}/displacement") >= 1, 20.0)
+        spin_until(node, lambda: False, 1.5)
+        assert ticks == [] and seen == []  # waiting for its second reader
+        second.create_subscription(Displacement, f"{ns}/displacement", late.append, RELIABLE)
+        second.create_subscription(Voltage, f"{ns}/voltage", lambda m: None, RELIABLE)
+        assert spin_until(node, lambda: bool(ticks) and bool(seen), 10.0)
+        assert spin_until(second, lambda: bool(late), 5.0)
+        assert ticks[0].clock.sec == 0 and ticks[0].clock.nanosec == 0
+        assert seen[0].header.stamp == late[0].header.stamp == ticks[0].clock  # step 0, to both readers
+    finally:
+        stop(proc)
+        second.destroy_node()

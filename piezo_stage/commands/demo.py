@@ -124,7 +124,8 @@ def record_identification(bag: str | Path, *, model_file: str, preset: str, rate
                                                  "discovery_period": 0.02,
                                                  **({"topics": list(topics)} if topics else {})}},
         {"executable": "plant", "overrides": {"model_file": model_file, "clock_mode": "lockstep",
-                                              "rate_hz": float(rate_hz)}, "required": True},
+                                              "rate_hz": float(rate_hz), "wait_for_subscribers": readers},
+         "required": True},
     ]
     waits = [{"topic": t, "publishers": 1, "subscribers": readers} for t in ("/clock", "voltage", "displacement")]
     live = Path(live_params_file).absolute() if identifier and live_params_file else None
@@ -150,6 +151,9 @@ def record_identification(bag: str | Path, *, model_file: str, preset: str, rate
                         "subscribers": int(identifier) + int("excitation" in recorded)},
                        {"topic": "voltage_command", "publishers": 1,
                         "subscribers": 1 + int("voltage_command" in recorded)}]
+    # the launcher's probe sees a subscriber before the excitation's writers may have matched it:
+    # the node itself waits for its matched subscribers, so no reader misses the first marks
+    excitation["wait_for_subscribers"] = min(w["subscribers"] for w in commander_waits)
     commander_graph = {"description": "demo: excitation", "namespace": ns, "wait_for_topics": commander_waits,
                        "nodes": [{"executable": "excitation", "required": True, "overrides": excitation}]}
     with isolated_domain(domain_id):  # the launcher's topic probe runs in this process too
@@ -162,6 +166,9 @@ def record_identification(bag: str | Path, *, model_file: str, preset: str, rate
     if died or not (bag / "metadata.yaml").exists():
         raise DemoError(f"the recorder node failed during the experiment ({died[0] if died else 'no bag'}):\n"
                         + "\n".join(line for line in logs if line.startswith("[recorder]"))[-2000:])
+    lost = [line for line in logs if line.startswith("[recorder]") and "lost before reaching the recorder" in line]
+    if lost:  # the bag would not hold what the live identifier saw
+        raise DemoError(f"the bag {bag} is incomplete: {lost[-1]}")
     if live is not None and not live.exists():
         live = None
     return IdentificationRun(bag=bag, namespace=ns, live_params_file=live, live_error=live_error, logs=logs)

@@ -16,6 +16,7 @@ import inspect
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -23,6 +24,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidHandle
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -321,10 +323,35 @@ def _complete(result: Any) -> None:
         raise TypeError("LeanExecutor runs plain callbacks only (got a coroutine): use the standard executor")
 
 
+def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
+    """True when each publisher has at least ``count`` matched subscriptions, as its own writer
+    sees them (a graph query from another node may see a reader before the writer has matched it,
+    and a reliable volatile writer delivers nothing published before it matched)."""
+    return all(pub.get_subscription_count() >= count for pub in publishers)
+
+
+#: wall seconds a stopping node gives its reliable subscribers to acknowledge what it published
+EXIT_ACK_TIMEOUT = 2.0
+
+
+def wait_acked(node: Node, timeout: float, publishers: Sequence[Any] | None = None) -> list[str]:
+    """Wait, at most ``timeout`` wall seconds in all, until every reliable subscriber has
+    acknowledged what ``publishers`` (default: all the node's) published; return the topics still
+    unacknowledged. A reliable writer's unacknowledged samples leave with its process: a reader
+    lagging behind a lockstep graph (a recorder) would lose the end of the run."""
+    deadline = time.monotonic() + timeout
+    late = []
+    for pub in list(node.publishers if publishers is None else publishers):
+        left = max(deadline - time.monotonic(), 1e-3)
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            late.append(pub.topic_name)
+    return late
+
+
 def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *, lean: bool = False) -> int:
     """Run a node until SIGINT/SIGTERM, then call its ``on_shutdown()`` (if any) while the
-    context is still valid (so a driver can ramp to its safe voltage and publish it), then
-    destroy it. Returns the exit code for ``sys.exit``.
+    context is still valid (so a driver can ramp to its safe voltage and publish it), give its
+    reliable subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge what it published, then destroy it. Returns the exit code for ``sys.exit``.
 
     ``lean`` runs it with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
     SingleThreadedExecutor.
@@ -360,6 +387,11 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *, 
                     shutdown()
                 except Exception as exc:  # report, but still tear down
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
+            if rclpy.ok():
+                late = wait_acked(node, EXIT_ACK_TIMEOUT)
+                if late:
+                    print(f"[{node.get_name()}] left before every subscriber acknowledged {', '.join(late)}",
+                          file=sys.stderr)
             node.destroy_node()
         rclpy.try_shutdown()
     return code

@@ -43,7 +43,7 @@ from piezo_stage.control.theorem4 import validate_gains
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis,
-                     Diagnostics, declare, on_set, run, stamp_to_s)
+                     Diagnostics, declare, on_set, run, stamp_to_s, subscribers_matched)
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
@@ -122,10 +122,10 @@ class ControllerNode(Node):
 
         if self.get_parameter("sensor_qos").value not in ("best_effort", "reliable"):
             raise ControlError(f"sensor_qos must be best_effort or reliable, got {self.get_parameter('sensor_qos').value!r}")
-        self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
-        # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no state
-        self._pub_state = self.create_publisher(ControllerState, "controller_state", LOCKSTEP_QOS
-                                                if self.get_parameter("trigger").value == "sample" else COMMAND_QOS)
+        # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or state
+        out_qos = LOCKSTEP_QOS if self.get_parameter("trigger").value == "sample" else COMMAND_QOS
+        self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
+        self._pub_state = self.create_publisher(ControllerState, "controller_state", out_qos)
         self.create_subscription(Displacement, "displacement", self._on_displacement,
                                  LOCKSTEP_QOS if self.get_parameter("sensor_qos").value == "reliable" else SENSOR_QOS)
         self.create_subscription(Displacement, "reference", self._on_reference, COMMAND_QOS)
@@ -203,7 +203,7 @@ class ControllerNode(Node):
             self._step(t, msg.header.stamp)
 
     def _waiting_for_subscribers(self) -> bool:
-        if self._wait_subs and self._pub_state.get_subscription_count() < self._wait_subs:
+        if not subscribers_matched((self._pub_state,), self._wait_subs):
             return True
         self._wait_subs = 0
         return False

@@ -33,7 +33,8 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.excitation import PRESETS, ExcitationPlan, ExcitationSample, plan_from
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
-from .common import COMMAND_QOS, DEFAULT_NAMESPACE, TickGrid, declare, on_set, run, stamp_to_s, wall_clock
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, TickGrid, declare, on_set, run, stamp_to_s,
+                     subscribers_matched, wait_acked, wall_clock)
 
 PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
              "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
@@ -65,6 +66,11 @@ class ExcitationNode(Node):
                 "(for a driver with apply_at_stamp)", lo=0.0, hi=10.0, read_only=True)
         declare(self, "autostart", True, "start at the first tick (else wait for ~/start)")
         declare(self, "on_done", "hold", "hold (keep publishing the hold value) | exit")
+        declare(self, "wait_for_subscribers", 0, "start the plan once voltage_command and excitation each have "
+                "this many matched subscribers (their first commands and marks are then not lost to them)",
+                lo=0, hi=1000, read_only=True)
+        declare(self, "exit_ack_timeout", 30.0, "on_done=exit: wall seconds to wait for every reliable "
+                "subscriber to acknowledge the last commands and marks before leaving", lo=0.0, hi=3600.0)
         declare(self, "info_rate_hz", 10.0, "ExcitationInfo rate besides change events [Hz]", lo=0.0, hi=10000.0)
 
         self.plan = self._build_plan()
@@ -78,11 +84,16 @@ class ExcitationNode(Node):
         self._last_info_t = -1e300
         self._info_period = 1.0 / max(self.get_parameter("info_rate_hz").value, 1e-9)
 
-        self._pub_cmd = self.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
-        self._pub_info = self.create_publisher(ExcitationInfo, "excitation", COMMAND_QOS)
+        self._wait_subs = int(self.get_parameter("wait_for_subscribers").value)
+        trigger = self.get_parameter("trigger").value
+        # lockstep (trigger=clock): the graph runs as fast as the plant and this node, so a slower
+        # reader (the recorder, the identifier) falls behind by thousands of samples; a reliable
+        # writer keeping only the last 10 would drop what it has not acknowledged
+        out_qos = LOCKSTEP_QOS if trigger == "clock" else COMMAND_QOS
+        self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
+        self._pub_info = self.create_publisher(ExcitationInfo, "excitation", out_qos)
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
-        trigger = self.get_parameter("trigger").value
         if trigger == "clock":
             self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
         elif trigger == "timer":
@@ -131,6 +142,8 @@ class ExcitationNode(Node):
             return
         now = stamp_to_s(stamp)
         if self._t_start is None:
+            if not subscribers_matched((self._pub_cmd, self._pub_info), self._wait_subs):
+                return  # lockstep: the plant offers this step again until a command answers it
             self._t_start = now
         sample = self.plan.sample(now - self._t_start)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
@@ -150,6 +163,13 @@ class ExcitationNode(Node):
             self._tick(RosTime(nanoseconds=ns).to_msg())
 
     def _finish(self) -> None:
+        """Leave once every reliable subscriber has acknowledged every command and mark: the
+        unacknowledged samples of a lagging reader (the recorder in lockstep) go with the process."""
+        self._exit_timer.cancel()
+        timeout = self.get_parameter("exit_ack_timeout").value
+        for topic in wait_acked(self, timeout, (self._pub_cmd, self._pub_info)):
+            self.get_logger().warning(f"{topic}: not every subscriber acknowledged the last messages "
+                                      f"within {timeout:g} s; leaving anyway")
         self.finished = True
 
     def _publish_info(self, stamp: Time, now: float, sample: ExcitationSample) -> None:

@@ -32,7 +32,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
@@ -50,8 +49,8 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import save_parameter_set
 from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo, LimitCycle, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LATCHED_QOS, LOCKSTEP_DEPTH, OK, Diagnosis, Diagnostics,
-                     declare, run, stamp_to_s, wall_clock)
+from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, EXIT_ACK_TIMEOUT, LATCHED_QOS, LOCKSTEP_DEPTH, OK,
+                     Diagnosis, Diagnostics, declare, run, stamp_to_s, wait_acked, wall_clock)
 from .recorder import adapted_qos, use_recorder_transport_profile
 
 #: history of the stream subscriptions: a replayed bag arrives in bursts
@@ -282,8 +281,7 @@ class IdentifierNode(Node):
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
         if self.get_parameter("on_done").value != "exit":
             return
-        for pub in (self._pub_cycle, self._pub_params):
-            pub.wait_for_all_acked(Duration(seconds=2.0))
+        wait_acked(self, 2 * EXIT_ACK_TIMEOUT, (self._pub_cycle, self._pub_params))
         self.exit_code, self.finished = code, True
 
     def identify_now(self) -> IdentificationResult:

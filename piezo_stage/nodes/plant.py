@@ -39,7 +39,7 @@ from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
 from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
-                     TickGrid, declare, run)
+                     TickGrid, declare, run, subscribers_matched)
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
@@ -55,6 +55,8 @@ class PlantNode(Node):
         declare(self, "clock_mode", "realtime", "realtime (wall timer) | lockstep (owns /clock)", read_only=True)
         declare(self, "lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the step's command", lo=0.0, hi=3600.0)
         declare(self, "wait_for_commander", True, "lockstep: start stepping once a voltage_command publisher exists")
+        declare(self, "wait_for_subscribers", 0, "lockstep: start stepping once displacement and voltage each have "
+                "this many matched subscribers (none of them misses the first samples)", lo=0, hi=1000, read_only=True)
         declare(self, "start_time", 0.0, "lockstep: simulated time of the first step [s]", lo=0.0, hi=1e9, read_only=True)
         declare(self, "initial_voltage", 0.0, "command held before the first voltage_command [V]", read_only=True)
         declare(self, "x0", 0.0, "initial displacement x(0) [m] (dynamic form)", read_only=True)
@@ -178,6 +180,8 @@ class PlantNode(Node):
     def _lockstep_watch(self) -> None:
         if not self._started:
             if self.get_parameter("wait_for_commander").value and self.count_publishers("voltage_command") == 0:
+                return
+            if not subscribers_matched((self._pub_x, self._pub_v), self.get_parameter("wait_for_subscribers").value):
                 return
             self._started = True
             self._sample_first = self._commander_reads_samples()

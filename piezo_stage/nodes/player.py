@@ -38,7 +38,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from piezo_stage.bag import BagError, bag_info, read_raw
 
-from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, run
+from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, run, subscribers_matched
 from .recorder import MessageTypeError, message_type, string_array
 
 CLOCK_TOPIC = "/clock"
@@ -263,8 +263,7 @@ class PlayerNode(Node):
             return
         deadline = time.monotonic() + self.wait_timeout
         while not self._stop and time.monotonic() < deadline:
-            if all(o.publisher.get_subscription_count() >= self.wait_for_subscribers
-                   for o in self._outputs.values()):
+            if subscribers_matched([o.publisher for o in self._outputs.values()], self.wait_for_subscribers):
                 return
             time.sleep(0.02)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")

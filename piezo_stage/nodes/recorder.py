@@ -395,10 +395,16 @@ class RecorderNode(Node):
                 if not self._drain(slot):
                     break
         self.writer.close()
-        total = sum(s.written for s in self.stats().values())
-        dropped = sum(s.dropped for s in self.stats().values())
-        self.get_logger().info(f"bag {self.bag_path} closed: {total} messages on "
-                               f"{len(self._slots)} topics" + (f", {dropped} dropped" if dropped else ""))
+        stats = self.stats()
+        total = sum(s.written for s in stats.values())
+        dropped = sum(s.dropped for s in stats.values())
+        lost = {name: s.lost for name, s in sorted(stats.items()) if s.lost}
+        text = f"bag {self.bag_path} closed: {total} messages on {len(self._slots)} topics"
+        if dropped or lost:  # the bag is incomplete: say so where a user (and the demo) looks
+            self.get_logger().warning(text + f", {dropped} dropped, {sum(lost.values())} lost before reaching the "
+                                      "recorder" + "".join(f"; {name}: {n} lost" for name, n in lost.items()))
+        else:
+            self.get_logger().info(text + ", none lost")
 
 
 #: Fast DDS profile of the recorder's participant: the built-in transports (shared memory and
