@@ -141,3 +141,42 @@ def test_identifier_adapts_its_stream_qos_to_the_publishers():
         stop(proc)
         node.destroy_node()
         rclpy.shutdown()
+
+
+def test_identifier_says_when_the_streams_end_with_one_run_only():
+    """A replay of a bag holding one run: once the streams are silent for settle_time, the node
+    reports that identification needs two runs (in its log, as an error) and, with on_done=exit, exits 1
+    instead of waiting for ever."""
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    true = BoucWenParameters(**CH9_EXAMPLE)
+    rec = triangle_run(true, -0.2, 0.2, period=1.0, samples_per_branch=100, periods=3.0)
+    t = rec.t + 10.0
+    marks = [(t[0], 0, False), (t[0] + 1.0, 0, True), (t[-1], 0, False)]  # one run, then the plan's end
+    rclpy.init()
+    node = rclpy.create_node("probe", namespace=NS + "_one")
+    proc = start_node("identifier", "on_done:=exit", "settle_time:=1.0", "stream_qos:=reliable",
+                      namespace=NS + "_one")
+    try:
+        reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+        pub_v = node.create_publisher(Voltage, "voltage", reliable)
+        pub_y = node.create_publisher(Displacement, "displacement", reliable)
+        pub_e = node.create_publisher(ExcitationInfo, "excitation", COMMAND_QOS)
+        assert spin_until(node, lambda: pub_v.get_subscription_count() and pub_y.get_subscription_count()
+                          and pub_e.get_subscription_count(), 15.0)
+        spin_until(node, lambda: False, 0.5)
+        k = 0
+        for i in range(len(t)):
+            while k < len(marks) and marks[k][0] <= t[i]:
+                pub_e.publish(_stamp(ExcitationInfo(waveform="triangle", period=1.0, run=marks[k][1],
+                                                    steady=marks[k][2]), marks[k][0]))
+                k += 1
+            pub_v.publish(_stamp(Voltage(voltage=float(rec.input[i])), t[i]))
+            pub_y.publish(_stamp(Displacement(displacement=float(rec.output[i]), status=0), t[i]))
+        assert spin_until(node, lambda: proc.poll() is not None, 30.0), "the identifier kept waiting"
+        assert proc.returncode == 1
+    finally:
+        out, err = stop(proc)
+        node.destroy_node()
+        rclpy.shutdown()
+    assert "silent for 1 s" in err and "1 complete run(s)" in err and "needs two steady runs" in err, err[-2000:]

@@ -146,7 +146,8 @@ class IdentifierNode(Node):
             raise ValueError(f"on_done must be stay or exit, got {self.get_parameter('on_done').value!r}")
         self.finished, self.exit_code = False, 0
         declare(self, "settle_time", 10.0, "wall seconds of silent streams after which a completed run is "
-                "processed even if the streams did not pass its end", lo=0.0, hi=3600.0)
+                "processed even if the streams did not pass its end, and fewer than two complete runs is "
+                "reported as a failure (on_done=exit: exit 1)", lo=0.0, hi=3600.0)
         self.create_timer(0.1, self._tick, clock=wall_clock())  # sim time may stall
         self._discover()
         Diagnostics(self, "identification", self._diagnose)
@@ -188,6 +189,7 @@ class IdentifierNode(Node):
         self._completed: list[int] = []
         self._pending: list[tuple[float, int]] = []
         self._last_count, self._last_change = 0, time.monotonic()
+        self._silence_reported = False
         self._offsets: dict[int, float] = {}
         self._periods: dict[int, float] = {}
 
@@ -215,18 +217,27 @@ class IdentifierNode(Node):
 
     def _process_pending(self) -> None:
         """Handle completed runs once both streams have passed the run's end (topics arrive
-        independently), or when the streams have been silent for `settle_time`."""
-        if not self._pending:
-            return
-        latest = min(self._voltage.t[-1] if self._voltage.t else -math.inf,
-                     self._displacement.t[-1] if self._displacement.t else -math.inf)
+        independently), or when the streams have been silent for `settle_time`. Streams that
+        fall silent before two runs are complete (a bag holding one run, a sensor gone) are
+        reported once (and end an ``on_done: exit`` node with status 1)."""
         count = len(self._voltage.t) + len(self._displacement.t)
         now = time.monotonic()
         if count != self._last_count:
             self._last_count, self._last_change = count, now
-        silent = now - self._last_change > self.get_parameter("settle_time").value
-        while self._pending and (self._pending[0][0] <= latest or silent):
-            self._run_complete(self._pending.pop(0)[1])
+            self._silence_reported = False
+        settle = self.get_parameter("settle_time").value
+        silent = count > 0 and now - self._last_change > settle
+        if self._pending:
+            latest = min(self._voltage.t[-1] if self._voltage.t else -math.inf,
+                         self._displacement.t[-1] if self._displacement.t else -math.inf)
+            while self._pending and (self._pending[0][0] <= latest or silent):
+                self._run_complete(self._pending.pop(0)[1])
+        if silent and not self._silence_reported and self.result is None and len(self._completed) < 2:
+            self._silence_reported = True
+            self._set_error(f"the streams have been silent for {settle:g} s after {count} samples and "
+                            f"{len(self._completed)} complete run(s): identification needs two steady runs "
+                            "(x(t) and x(t)+q), each ended by the next run's mark or the plan's end")
+            self._done(1)
 
     def recordings(self):
         """The runs collected so far, cut by the excitation marks (as the CLI cuts a bag)."""
