@@ -1,4 +1,5 @@
-"""Locate the YAML files shipped in the package's ``config/`` folder.
+"""Locate the YAML files shipped in the package's ``config/`` folder, and read YAML files with
+errors that name the file (:func:`read_yaml`).
 
 Installed (colcon / ament): ``<share>/piezo_stage/config/<name>``; from a source checkout:
 ``<repository>/config/<name>`` next to the ``piezo_stage`` package folder.
@@ -7,6 +8,7 @@ Installed (colcon / ament): ``<share>/piezo_stage/config/<name>``; from a source
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 PACKAGE = "piezo_stage"
 
@@ -47,3 +49,20 @@ def find_config(name: str) -> Path:
     raise ConfigNotFoundError(
         f"config file {name!r} not found; tried: " + ", ".join(str(p) for p in tried)
     )
+
+
+def read_yaml(path: str | Path, error: type[Exception], what: str = "file") -> Any:
+    """Parse the YAML file ``path`` (safe loader). An unreadable file or invalid YAML raises
+    ``error`` with a message naming ``what`` and the path: ``cannot read <what> <path>: ...`` or
+    ``<path> is not valid YAML: ...``."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"cannot read {what} {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise error(f"{path} is not valid YAML: {exc}") from None

@@ -81,3 +81,8 @@ def test_bounds_errors(tmp_path):
     with pytest.raises(BoundsError, match="unknown key.*rho_mx"):
         load_bounds(bad)
     assert load_nominal_plant(bad) is None
+    bad.write_text("bounds: {m_min: [1e-3\n")
+    with pytest.raises(BoundsError, match="b.yaml is not valid YAML"):
+        load_bounds(bad)
+    with pytest.raises(BoundsError, match="cannot read bounds file .*missing.yaml"):
+        load_bounds(tmp_path / "missing.yaml")

@@ -9,6 +9,8 @@ from typing import Any
 
 import yaml
 
+from piezo_stage.config_path import read_yaml
+
 from . import yaml_emit
 from .errors import CorruptBagError
 from .qos import normalize_profiles
@@ -171,10 +173,7 @@ class BagMetadata:
     def read(cls, folder: str | Path) -> "BagMetadata":
         """Parse ``folder/metadata.yaml``."""
         path = Path(folder) / METADATA_FILENAME
-        try:
-            doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except yaml.YAMLError as exc:
-            raise CorruptBagError(f"{path} is not valid YAML: {exc}") from None
+        doc = read_yaml(path, CorruptBagError, "bag metadata")
         if not isinstance(doc, dict) or "rosbag2_bagfile_information" not in doc:
             raise CorruptBagError(f"{path} has no rosbag2_bagfile_information")
         return cls.from_dict(doc["rosbag2_bagfile_information"])

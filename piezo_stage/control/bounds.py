@@ -25,6 +25,8 @@ from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Mapping
 
+from piezo_stage.config_path import read_yaml
+
 from .errors import BoundsError
 
 
@@ -141,17 +143,7 @@ THESIS_NOMINAL_PLANT = NominalPlant(m=5.3e-3, c=13.0, kappa_x=10.35e6, kappa_w=4
 
 
 def _read_yaml(path: str | Path) -> Mapping[str, Any]:
-    import yaml
-
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise BoundsError(f"cannot read bounds file {path}: {exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise BoundsError(f"{path}: invalid YAML: {exc}") from None
+    data = read_yaml(path, BoundsError, "bounds file")
     if not isinstance(data, Mapping):
         raise BoundsError(f"{path}: expected a mapping at top level")
     return data

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from .errors import DeviceTimeout, GCSError, ProtocolError, TransportError
-from .transport import ReplyBuffer, Transport
+from .transport import DeviceConnection, Transport
 
 #: GCS controller error codes -> messages, texts as in PIPython 2.11 ``pidevice/gcserror.py``.
 GCS_ERROR_MESSAGES: dict[int, str] = {
@@ -100,18 +100,8 @@ def format_value(value: float) -> str:
     return format(float(value), ".10g")
 
 
-class GCSConnection:
+class GCSConnection(DeviceConnection):
     """Command/reply exchange with one GCS controller over any :class:`Transport`."""
-
-    def __init__(self, transport: Transport, timeout: float = 1.0) -> None:
-        self.transport = transport
-        self.timeout = timeout
-        self._replies = ReplyBuffer(transport)
-
-    def flush(self) -> None:
-        """Forget stale input (after connecting or after a timeout)."""
-        self._replies.clear()
-        self.transport.reset_input()
 
     def send(self, command: str) -> None:
         """Send a setter; GCS setters have no reply."""

@@ -13,7 +13,7 @@ import re
 
 from .errors import DeviceError, ProtocolError
 from .gcs import parse_float
-from .transport import ReplyBuffer, Transport
+from .transport import DeviceConnection, Transport
 
 PROMPT = b">"
 ERROR_TEXT = "CMD_NOT_DEFINED"
@@ -51,17 +51,8 @@ def parse_bracketed(body: str, what: str) -> float:
     return parse_float(number.group(0), what)
 
 
-class MDTConnection:
+class MDTConnection(DeviceConnection):
     """Command/reply exchange with one MDT69xB over any :class:`Transport`."""
-
-    def __init__(self, transport: Transport, timeout: float = 1.0) -> None:
-        self.transport = transport
-        self.timeout = timeout
-        self._replies = ReplyBuffer(transport)
-
-    def flush(self) -> None:
-        self._replies.clear()
-        self.transport.reset_input()
 
     def exchange(self, command: str) -> str:
         """Send ``command`` and return the reply body; raise DeviceError on ``CMD_NOT_DEFINED``."""

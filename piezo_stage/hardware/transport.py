@@ -242,3 +242,18 @@ class ReplyBuffer:
                 raise DeviceTimeout(f"no complete {what} from {self.transport.url} within "
                                     f"{timeout:.3g} s (got {partial!r})")
             self._buf += self.transport.read(min(remaining, 0.05))
+
+
+class DeviceConnection:
+    """Command/reply exchange with one device over any :class:`Transport`; the protocol
+    modules (:mod:`.gcs`, :mod:`.mdt69x`) add their commands and reply formats."""
+
+    def __init__(self, transport: Transport, timeout: float = 1.0) -> None:
+        self.transport = transport
+        self.timeout = timeout
+        self._replies = ReplyBuffer(transport)
+
+    def flush(self) -> None:
+        """Forget stale input (after connecting or after a timeout)."""
+        self._replies.clear()
+        self.transport.reset_input()

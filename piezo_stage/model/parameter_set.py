@@ -23,6 +23,8 @@ from typing import Any
 
 import yaml
 
+from piezo_stage.config_path import read_yaml
+
 from .bouc_wen import BoucWenParameters, check_w0
 from .errors import ModelError, ParameterError, ParameterFileError
 
@@ -172,14 +174,7 @@ def parameter_set_from_dict(data: dict[str, Any]) -> ParameterSet:
 def load_parameter_set(path: str | Path) -> ParameterSet:
     """Read a parameter-set YAML file (see the module docstring for the layout)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ParameterFileError(f"cannot read parameter set {path}: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ParameterFileError(f"{path} is not valid YAML: {exc}") from exc
+    data = read_yaml(path, ParameterFileError, "parameter set")
     try:
         return parameter_set_from_dict(data)
     except ParameterFileError as exc:
