@@ -73,6 +73,25 @@ def _h_integrand(v: Array, n: float) -> Array:
     return out
 
 
+@njit(inline=True, nrt=False)
+def _newton_step(x, f, df, lo, hi):
+    """One safeguarded Newton step for an increasing f with f(x) = ``f``, f'(x) = ``df`` and the
+    root in [lo, hi]: narrows the bracket, bisects when Newton leaves it. Returns
+    (x_new, lo, hi, converged)."""
+    if f > 0.0:
+        hi = x
+    else:
+        lo = x
+    x_new = x - f / df
+    if abs(x_new - x) <= 1e-15 * x:
+        return x_new, lo, hi, True
+    if not (lo < x_new < hi):
+        x_new = 0.5 * (lo + hi)
+        if hi - lo <= 1e-15 * hi:
+            return x_new, lo, hi, True
+    return x_new, lo, hi, False
+
+
 @njit
 def _t_solve(tab, y, with_e):
     """t >= 0 with t/n + H(a) (+ E(a)) = y, a = 1 - exp(-t): safeguarded Newton.
@@ -107,18 +126,9 @@ def _t_solve(tab, y, with_e):
         if with_e:
             f += flat_eval(tab, TAB_E, a)
             df += ea / (1.0 + tab[1] * a**n)
-        if f > 0.0:
-            hi = t
-        else:
-            lo = t
-        t_new = t - f / df
-        if abs(t_new - t) <= 1e-15 * t:
-            return t_new
-        if not (lo < t_new < hi):
-            t_new = 0.5 * (lo + hi)
-            if hi - lo <= 1e-15 * hi:
-                return t_new
-        t = t_new
+        t, lo, hi, done = _newton_step(t, f, df, lo, hi)
+        if done:
+            return t
     return t
 
 
@@ -141,18 +151,9 @@ def _e_solve(tab, y, with_p):
         if with_p:
             f += -math.log1p(-a) / n + flat_eval(tab, TAB_H, a)
             df += 1.0 / (1.0 - an)
-        if f > 0.0:
-            hi = a
-        else:
-            lo = a
-        a_new = a - f / df
-        if abs(a_new - a) <= 1e-15 * a:
-            return a_new
-        if not (lo < a_new < hi):
-            a_new = 0.5 * (lo + hi)
-            if hi - lo <= 1e-15 * hi:
-                return a_new
-        a = a_new
+        a, lo, hi, done = _newton_step(a, f, df, lo, hi)
+        if done:
+            return a
     return a
 
 
