@@ -332,6 +332,8 @@ def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
 
 #: wall seconds a stopping node gives its reliable subscribers to acknowledge what it published
 EXIT_ACK_TIMEOUT = 2.0
+#: periodic status topics, superseded by their next message: not waited for on shutdown
+_STATUS_TOPICS = ("/diagnostics", "/parameter_events", "/rosout")
 
 
 def wait_acked(node: Node, timeout: float, publishers: Sequence[Any] | None = None) -> list[str]:
@@ -388,7 +390,8 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *, 
                 except Exception as exc:  # report, but still tear down
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
             if rclpy.ok():
-                late = wait_acked(node, EXIT_ACK_TIMEOUT)
+                late = wait_acked(node, EXIT_ACK_TIMEOUT,
+                                  [p for p in node.publishers if p.topic_name not in _STATUS_TOPICS])
                 if late:
                     print(f"[{node.get_name()}] left before every subscriber acknowledged {', '.join(late)}",
                           file=sys.stderr)
