@@ -150,3 +150,17 @@ def test_sensor_config_validation():
         SensorConfig("ild1320", 0.0)
     with pytest.raises(ConfigError):
         SensorReader.from_url("/dev/null", SensorConfig("ild4000", MR))
+
+
+def test_emulated_sensor_wakes_on_its_sample_clock():
+    """Frames leave when their sample is due (next_due), not on a free-running stream tick
+    whose phase against the samples would be a constant lag the reader's clock cannot see."""
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0)
+    assert model.next_due() is None  # before the first sample
+    t0 = 100.0
+    model.stream(t0)  # sample 0 at t0
+    assert model.next_due() == pytest.approx(t0 + 1e-3, abs=1e-8)
+    data = model.stream(t0 + 2.5e-3)  # samples 1 and 2 are due, 3 is not
+    assert len(data) == 2 * 3 and model.sent_samples == 3
+    assert model.next_due() == pytest.approx(t0 + 3e-3, abs=1e-8)
+    assert model.stream(t0 + 2.9e-3) == b""  # nothing due before it

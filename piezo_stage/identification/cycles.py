@@ -96,8 +96,14 @@ def upward_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def estimate_period(rec: Recording, options: CycleOptions = CycleOptions()) -> tuple[float, np.ndarray]:
-    """Period T of the input and the upward crossing times that delimit whole periods."""
+    """Period T of the input and the upward crossing times that delimit whole periods.
+
+    With ``steady_periods`` = K only the last K + 1 crossings count: the periods before the ones
+    used (the settling ones) may be disturbed without spoiling the run (a host that stalled
+    the amplifier's playout for a few tens of ms while the previous run was identified)."""
     crossings = upward_crossings(rec.t, rec.input)
+    if options.steady_periods is not None and len(crossings) > options.steady_periods + 1:
+        crossings = crossings[-(options.steady_periods + 1):]
     if len(crossings) < 2:
         raise NotPeriodicError(
             f"{rec.label}: the input does not repeat (found {len(crossings)} rising mid-level "

@@ -3,8 +3,8 @@
 Same topic, type, units and QoS as the simulated ``plant`` (DESIGN.md §3): publishes
 ``displacement`` (SENSOR_QOS, metres; status != OK carries NaN) and ``/diagnostics``. Frame
 parsing, resynchronisation, error values and link handling are
-:class:`piezo_stage.hardware.sensor.SensorReader`; this node polls it on a wall-clock timer and
-only adds:
+:class:`piezo_stage.hardware.sensor.SensorReader`; this node reads it in a thread of its own
+(blocking reads: each block is stamped as it arrives) and only adds:
 
 - the output convention: ``displacement = sign · (d − zero_offset)`` with d the distance from
   the start of the measuring range [m];
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass
 
@@ -36,7 +37,7 @@ from piezo_stage.hardware.timing import SampleClock
 from piezo_stage_msgs.msg import Displacement
 
 from .common import (DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, STALE, WARN, Diagnosis, Diagnostics, declare,
-                     run, wall_clock)
+                     run)
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,8 @@ class LaserReaderNode(Node):
         declare(self, "latency", 0.0, "sensor delay subtracted from the reception time [s]", lo=0.0, hi=10.0, **ro)
         declare(self, "stamp_window", 2.0, "window of the sample clock's lower envelope [s] (see module docstring)",
                 lo=0.01, hi=3600.0, **ro)
-        declare(self, "poll_period", 0.002, "period of the read timer (wall clock) [s]", lo=1e-4, hi=1.0, **ro)
+        declare(self, "poll_period", 0.002, "longest wait of the read thread's blocking read before it checks the "
+                "link and shutdown [s] (samples are taken as they arrive)", lo=1e-4, hi=1.0, **ro)
         declare(self, "stale_timeout", 0.5, "no frame for this long: stale (diagnostics) [s]", lo=1e-3, hi=60.0, **ro)
         p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
 
@@ -121,12 +123,34 @@ class LaserReaderNode(Node):
         self._last_diag = (time.monotonic(), 0, 0, 0, 0)  # (time, frames, published, errors, discarded)
 
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
-        self.create_timer(p["poll_period"], self._poll, clock=wall_clock())
+        # a thread blocked in read() stamps each block when it arrives: a periodic poll would
+        # stamp it up to a poll period late, a constant lag (the poll's phase against the
+        # sensor's frames) that the sample clock cannot remove, since it only takes away the
+        # jitter above the smallest delay
+        self._reader_stop = threading.Event()
+        self._wait = float(p["poll_period"])
+        self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
+        self._thread.start()
         Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
         self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR {p['measuring_range']:g} m, "
                                f"decimation {p['decimation']}, rate {self.rate:g} Hz")
 
-    def _poll(self) -> None:
+    def _read_loop(self) -> None:
+        while not self._reader_stop.is_set():
+            try:
+                self._poll(self._wait)
+            except Exception as exc:  # a bug must not silently end the stream: say it, go on
+                self.last_error = f"reader thread: {exc!r}"
+                self.get_logger().error(self.last_error, throttle_duration_sec=1.0)
+                self._reader_stop.wait(self._wait)
+
+    def on_shutdown(self) -> None:
+        """Stop the read thread before the node goes away (called by ``common.run``)."""
+        self._reader_stop.set()
+        self._thread.join(timeout=2.0)
+
+    def _poll(self, timeout: float = 0.0) -> None:
+        """Read what arrived (waiting up to ``timeout`` s for it), stamp, decimate, publish."""
         try:
             if not self.connected:
                 self.reader.reconnect()
@@ -134,12 +158,13 @@ class LaserReaderNode(Node):
                 self.sample_clock.reset()
                 self.decimator.reset()
                 self.get_logger().info(f"reconnected to {self.url}")
-            block = self.reader.read(0.0)
+            block = self.reader.read(timeout)
         except TransportError as exc:
             self.connected = False
             self.link_errors += 1
             self.last_error = str(exc)
             self.get_logger().error(f"sensor link: {exc}", throttle_duration_sec=1.0)
+            self._reader_stop.wait(timeout)  # a dead link fails at once: retry at the poll pace
             return
         if not len(block):
             return

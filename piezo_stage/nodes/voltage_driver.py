@@ -40,7 +40,7 @@ from std_msgs.msg import Header
 
 from piezo_stage.hardware import (ConfigError, DriverConfig, DriverState, HardwareError, NonFiniteVoltageError,
                                   VoltageDriver, make_amplifier)
-from piezo_stage.hardware.timing import CommandPlayout
+from piezo_stage.hardware.timing import CommandPlayout, set_realtime_priority
 from piezo_stage_msgs.msg import Voltage
 
 from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
@@ -73,8 +73,8 @@ class VoltageDriverNode(Node):
         declare(self, "command_delay", 0.0, "with apply_at_stamp: added to the stamps [s]", lo=0.0, hi=10.0, **ro)
         declare(self, "hold_period", 0.0, "with apply_at_stamp: write values interpolated between queued "
                 "commands every hold_period s (first-order hold; 0: hold each command)", lo=0.0, hi=1.0, **ro)
-        declare(self, "realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread "
-                "(1-99, when the system allows it; 0: normal)", lo=0, hi=99, **ro)
+        declare(self, "realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
+                "the executor's thread (1-99, when the system allows it; 0: normal)", lo=0, hi=99, **ro)
         declare(self, "reconnect_attempts", 3, "tries to reopen a dropped link per attempt round", lo=0, hi=100, **ro)
         p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
 
@@ -106,6 +106,9 @@ class VoltageDriverNode(Node):
             sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
             self._playout = CommandPlayout(self._apply, p["command_delay"], realtime_priority=p["realtime_priority"],
                                            hold_period=p["hold_period"]).start()
+            # the executor's thread too: the playout needs the GIL, and a normal-priority holder
+            # preempted by other processes would stall it for tens of ms (priority inversion)
+            self._executor_priority = set_realtime_priority(p["realtime_priority"])
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
         self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
@@ -219,7 +222,8 @@ class VoltageDriverNode(Node):
             values.update(command_delay=self._playout.delay, late_playout=self._playout.late,
                           ahead_playout=self._playout.ahead,
                           pending_playout=self._playout.pending,
-                          playout_priority=self._playout.realtime_error or self._playout.realtime_priority)
+                          playout_priority=self._playout.realtime_error or self._playout.realtime_priority,
+                          executor_priority=self._executor_priority or self._playout.realtime_priority)
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         rejected = self._rejected_nonfinite + self._rejected_late

@@ -67,6 +67,16 @@ class OptoNCDTDeviceModel:
         mr = self.measuring_range
         return 0.5 * mr + 0.1 * mr * np.sin(2 * np.pi * t)
 
+    def next_due(self) -> float | None:
+        """Server time at which the next sample is due (None before the first): the server wakes
+        then, so each frame leaves when its sample is taken, as from a real sensor, and not up to
+        a stream period later (a lag the reader's sample clock cannot see, since it only removes
+        the jitter above the smallest delay)."""
+        with self.lock:
+            if self._t0 is None:
+                return None
+            return self._t0 + self.sent_samples / self.rate + 1e-9
+
     def session(self) -> "_AsciiSession":
         return _AsciiSession(self)
 

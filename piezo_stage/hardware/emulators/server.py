@@ -3,7 +3,9 @@
 A device model is pure logic: ``model.session()`` returns an object whose ``handle(data, now)``
 turns received bytes into reply bytes (one session per connection, so line buffers are per
 client), and ``model.stream(now)`` returns bytes to broadcast (the sensor's measurement stream;
-``b""`` for amplifiers) — it is called every ``model.stream_period`` seconds when that is set.
+``b""`` for amplifiers) — it is called every ``model.stream_period`` seconds when that is set,
+and at ``model.next_due()`` when the model has one (a sensor's next sample time: frames leave
+on the sample clock).
 
 :class:`Faults` acts on everything the device sends: bytes dropped or replaced at random
 (seeded), replies delayed, the link going silent; :meth:`EmulatorServer.disconnect` hangs up
@@ -144,7 +146,10 @@ class EmulatorServer:
         self._channels: dict[int, _Channel] = {}
         self._delayed: list[tuple[float, int, int, bytes]] = []  # (due, seq, fd, data)
         self._seq = itertools.count()
-        self._sel = selectors.DefaultSelector()
+        # select(2), not epoll: epoll rounds a timeout up to whole milliseconds, which would
+        # lock the stream's wake-ups at a constant lag behind the sample clock (a stamp bias of
+        # up to one sample period at 1 kHz that the reader cannot see); a few fds only
+        self._sel = selectors.SelectSelector()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
@@ -333,6 +338,9 @@ class EmulatorServer:
             if period and now >= next_stream:
                 self._emit(None, self.model.stream(now), now)
                 next_stream = max(next_stream + period, now - 1.0)
+                due = getattr(self.model, "next_due", None)
+                if due is not None and (t_due := due()) is not None:
+                    next_stream = min(t_due, now + period)  # on the model's sample clock
             for channel in list(self._channels.values()):
                 try:
                     channel.send_some()
