@@ -163,6 +163,27 @@ def test_apply_at_stamp_plays_commands_at_their_stamps_with_a_first_order_hold(p
         assert published[v] >= stamp, v  # written at (not before) its stamp
 
 
+def test_realtime_priority_covers_the_playout_and_the_executor_thread(probe, gcs):
+    """realtime_priority: the playout thread and the executor's thread (which holds the GIL the
+    playout needs) both run SCHED_FIFO when the system allows it, and /diagnostics says which."""
+    import os
+
+    _, server = gcs
+    d = Driver(probe, server.url, "apply_at_stamp:=true", "realtime_priority:=5", "command_timeout:=0.0",
+               "readback_rate_hz:=0.0")
+    try:
+        assert d.wait(lambda: d.diag.value("executor_priority") != "", 10.0), d.diag.values
+        playout, executor = d.diag.value("playout_priority"), d.diag.value("executor_priority")
+        policy = os.sched_getscheduler(d.proc.pid)  # the process's main thread runs the executor
+    finally:
+        stop(d.proc)
+    assert playout == executor  # both granted, or both refused for the same reason
+    if executor == "5":
+        assert policy == os.SCHED_FIFO
+    else:
+        assert "refused" in executor and policy != os.SCHED_FIFO
+
+
 def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):
     model, server = gcs
     d = Driver(probe, server.url, "safe_voltage:=5.0", "slew_rate:=200.0", "command_timeout:=0.3",

@@ -338,12 +338,14 @@ _STATUS_TOPICS = ("/diagnostics", "/parameter_events", "/rosout")
 
 def wait_acked(node: Node, timeout: float, publishers: Sequence[Any] | None = None) -> list[str]:
     """Wait, at most ``timeout`` wall seconds in all, until every reliable subscriber has
-    acknowledged what ``publishers`` (default: all the node's) published; return the topics still
-    unacknowledged. A reliable writer's unacknowledged samples leave with its process: a reader
+    acknowledged what ``publishers`` (default: the node's data publishers, not its status topics)
+    published; return the topics still unacknowledged. A reliable writer's unacknowledged samples leave with its process: a reader
     lagging behind a lockstep graph (a recorder) would lose the end of the run."""
     deadline = time.monotonic() + timeout
     late = []
-    for pub in list(node.publishers if publishers is None else publishers):
+    if publishers is None:
+        publishers = [p for p in node.publishers if p.topic_name not in _STATUS_TOPICS]
+    for pub in list(publishers):
         left = max(deadline - time.monotonic(), 1e-3)
         if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
             late.append(pub.topic_name)
@@ -353,7 +355,8 @@ def wait_acked(node: Node, timeout: float, publishers: Sequence[Any] | None = No
 def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *, lean: bool = False) -> int:
     """Run a node until SIGINT/SIGTERM, then call its ``on_shutdown()`` (if any) while the
     context is still valid (so a driver can ramp to its safe voltage and publish it), give its
-    reliable subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge what it published, then destroy it. Returns the exit code for ``sys.exit``.
+    reliable subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge what it published, then destroy it.
+    Returns the exit code for ``sys.exit``.
 
     ``lean`` runs it with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
     SingleThreadedExecutor.
@@ -390,8 +393,7 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *, 
                 except Exception as exc:  # report, but still tear down
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
             if rclpy.ok():
-                late = wait_acked(node, EXIT_ACK_TIMEOUT,
-                                  [p for p in node.publishers if p.topic_name not in _STATUS_TOPICS])
+                late = wait_acked(node, EXIT_ACK_TIMEOUT)
                 if late:
                     print(f"[{node.get_name()}] left before every subscriber acknowledged {', '.join(late)}",
                           file=sys.stderr)
