@@ -98,21 +98,32 @@ def test_identify_recovers_the_true_parameters(name, capsys):
         assert found[key] == pytest.approx(value, rel=TOLERANCE), key
 
 
+#: The live result in a committed bag was computed on another machine (another CPU, another BLAS
+#: kernel): the fresh offline fit agrees to rounding, not to the last digit (seen: y0 differing
+#: by 5e-14 of the output span). Tolerances on the physical scale: y0 within 1e-9 of the output
+#: span, every other parameter within 1e-7 relative -- still far below what a different cut of
+#: the samples or a changed method moves them by (the fit itself is 1e-5..1e-4 from the truth).
+Y0_SPAN_TOLERANCE = 1e-9
+PARAMETER_TOLERANCE = 1e-7
+
+
 @pytest.mark.parametrize("name", sorted(BAGS))
 def test_recorded_live_result_is_the_offline_identification_of_the_bag(name, capsys):
     """The identifier node identified live while the bag was recorded (its bouc_wen_parameters are
-    in the bag): the same samples, cut the same way, give the offline result to 1e-9."""
+    in the bag): the same samples, cut the same way, give the offline result, to rounding."""
     from piezo_stage.bag.reader import read_messages
 
     _, degree = BAGS[name]
     path = ROOT / "bags" / name
     live = [msg for _, _, msg in read_messages(path, ["/piezo/bouc_wen_parameters"])]
     assert len(live) == 1
+    span = np.ptp([msg.displacement for _, _, msg in read_messages(path, ["/piezo/displacement"])])
     assert main(["identify", str(path), "--degree", str(degree), "--json"]) == 0
     offline = json.loads(capsys.readouterr().out)
-    assert list(live[0].kappa) == pytest.approx(offline["kappa"], rel=1e-9)
-    for key in ("y0", "kappa_w", "rho", "sigma", "n"):
-        assert getattr(live[0], key) == pytest.approx(offline[key], rel=1e-9, abs=1e-300), key
+    assert list(live[0].kappa) == pytest.approx(offline["kappa"], rel=PARAMETER_TOLERANCE)
+    assert abs(live[0].y0 - offline["y0"]) <= Y0_SPAN_TOLERANCE * span
+    for key in ("kappa_w", "rho", "sigma", "n"):
+        assert getattr(live[0], key) == pytest.approx(offline[key], rel=PARAMETER_TOLERANCE), key
     assert live[0].samples == offline["samples"]
 
 
