@@ -11,6 +11,8 @@ import pytest
 from piezo_stage.bag import BagWriter, UnknownTopicError, export_csv, types
 from piezo_stage.bag.export import MAX_ARRAY_COLUMNS
 
+pytestmark = pytest.mark.unit
+
 T0 = 1_700_000_000_000_000_000
 
 
@@ -31,7 +33,8 @@ def exported(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
             header=types.header(T0 + 5), voltage=299.5)],
         "/piezo/controller_state": [c("piezo_stage_msgs/msg/ControllerState")(
             header=types.header(T0), mode="pid_tv", loop_closed=True, saturated=False,
-            reference=1e-6, x0=2e-9, x1=-3e-7, x2=4e-3, u=55.0, u_pid=50.0, u_excitation=5.0)],
+            reference=1e-6, x0=2e-9, x1=-3e-7, x2=4e-3, u=55.0, u_pid=50.0, u_excitation=5.0,
+            u_ff=0.0)],
         "/piezo/bouc_wen_parameters": [c("piezo_stage_msgs/msg/BoucWenParameters")(
             header=types.header(T0), kappa=np.array(kappa), y0=1.7858e-6, kappa_w=9.22e-6,
             rho=0.0047, sigma=0.812, n=1.12, input_sign=-1, input_name="voltage",

@@ -20,6 +20,8 @@ from piezo_stage.bag.errors import (BagClosedError, BagExistsError, DuplicateTop
 from piezo_stage.bag.series import encode_series
 from piezo_stage.bag.writer import BagWriter, InvalidBagOptionError, InvalidTopicNameError
 
+pytestmark = pytest.mark.unit
+
 T0 = 1_700_000_000_000_000_000
 
 
@@ -41,7 +43,8 @@ def _messages(k: int) -> dict[str, tuple[str, object]]:
                                         header=h, mode=["pid", "pid_sine", "pid_tv"][k % 3],
                                         loop_closed=bool(k % 2), saturated=not k % 2,
                                         reference=1e-6 * k, x0=-2e-9 * k, x1=3e-7, x2=-4e-3,
-                                        u=55.5 + k, u_pid=50.0, u_excitation=5.5 + k)),
+                                        u=55.5 + k, u_pid=50.0, u_excitation=5.5 + k,
+                                        u_ff=0.25 * k)),
         "/piezo/bouc_wen_parameters": ("piezo_stage_msgs/msg/BoucWenParameters",
                                        c("piezo_stage_msgs/msg/BoucWenParameters")(
                                            header=h, kappa=np.array([1.401e-7, -5.0949e-11 * k]),

@@ -14,6 +14,8 @@ from piezo_stage.cli import main
 from piezo_stage.model.bouc_wen import model_output
 from piezo_stage.model.parameter_set import shipped_parameter_set
 
+pytestmark = pytest.mark.unit
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 NS = "/piezo"
 
@@ -59,7 +61,7 @@ def _closed_loop_bag(path: Path) -> None:
             w.write(f"{NS}/controller_state", _msg(
                 "ControllerState", header=header(ns), mode="pid_tv", loop_closed=bool(ci), saturated=False,
                 reference=1e-5, x0=0.0, x1=float(xi), x2=float(-xi / 0.02), u=float(-5e6 * xi + u_exc),
-                u_pid=float(-5e6 * xi), u_excitation=u_exc), ns)
+                u_pid=float(-5e6 * xi), u_excitation=u_exc, u_ff=0.0), ns)
 
 
 def _png_size(path: Path) -> tuple[int, int]:

@@ -26,7 +26,7 @@ UNITS: dict[str, dict[str, str]] = {
     "piezo_stage_msgs/msg/Displacement": {"displacement": "m"},
     "piezo_stage_msgs/msg/ControllerState": {
         "reference": "m", "x0": "m*s", "x1": "m", "x2": "m/s", "u": "V", "u_pid": "V",
-        "u_excitation": "V"},
+        "u_excitation": "V", "u_ff": "V"},
     "piezo_stage_msgs/msg/ExcitationInfo": {"period": "s", "amplitude": "V", "offset": "V"},
     "piezo_stage_msgs/msg/LimitCycle": {"period": "s"},
 }

@@ -19,7 +19,7 @@ from .errors import BagNotFoundError, CorruptBagError, UnknownTopicError, WrongT
 from .metadata import METADATA_FILENAME, BagMetadata
 from .records import McapWalk
 from .series import SERIES_FIELDS, decode_series
-from .types import deserialize, ensure_registered
+from .types import decoding_type, deserialize
 
 _INDEX_RE = re.compile(r"_(\d+)\.mcap$")
 
@@ -90,7 +90,7 @@ def read_messages(path: str | Path, topics: str | Iterable[str] | None = None
             raise CorruptBagError(f"topic {channel.topic} has no schema: cannot decode it")
         type_name = known.get(schema.name)
         if type_name is None:
-            type_name = ensure_registered(schema.name, schema.data.decode("utf-8"))
+            type_name = decoding_type(schema.name, schema.data.decode("utf-8"))
             known[schema.name] = type_name
         yield channel.topic, log_time, deserialize(data, type_name)
 
