@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Closed loop over ROS topics in real time (DESIGN.md §5: a 1 kHz loop on this 2-core machine,
+"""Closed loop over ROS topics in real time (docs/design.md §5: a 1 kHz loop on this 2-core machine,
 p99 sensor->command latency <= 1 ms, no missed cycle in 60 s), beside a baseline: a raw rclpy
 echo between two processes at the same rate.
 
@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 NS = "/bench_loop"
-TARGET_P99 = 1e-3  # [s] DESIGN.md §5
+TARGET_P99 = 1e-3  # [s] docs/design.md §5
 
 PUBLISHER = r"""
 import sys, time, rclpy

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Lockstep simulation through the ROS graph: control steps per wall second (DESIGN.md §5:
+"""Lockstep simulation through the ROS graph: control steps per wall second (docs/design.md §5:
 >= 2000), beside a baseline raw rclpy ping-pong between two processes (the round trip that
 bounds any lockstep protocol on this machine).
 

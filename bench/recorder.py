@@ -4,7 +4,7 @@ Core part: N already-serialised ~60-byte Displacement messages (what an rclpy ra
 hands the recorder) are written through ``piezo_stage.bag.BagWriter`` and, side by side, through
 rosbags' own rosbag2 ``Writer`` (MCAP storage) as the baseline; each run is read back to check
 that no message was lost. Best of ``--repeat`` interleaved runs; prints msgs/s and the ratio.
-Target (DESIGN.md §5): >= 30 000 msgs/s with zero loss.
+Target (docs/design.md §5): >= 30 000 msgs/s with zero loss.
 
 ROS part (needs rclpy: ``source scripts/env.sh``): the ``recorder`` node runs as its own
 process and records ``--ros-n`` distinct Displacement messages that a reliable KEEP_ALL

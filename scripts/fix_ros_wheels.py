@@ -4,7 +4,7 @@
 Idempotent: running it twice changes nothing the second time. Each fix is explained where it
 is applied. Prints one line per file it changed.
 
-Quirks (DESIGN.md §6):
+Quirks (docs/design.md §6):
 1. ``share/*/cmake/*rosidl_generator_pyExport.cmake`` name the wheel build machine's paths
    ``/opt/python/cp311-cp311/include/python3.11`` and
    ``/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include`` in

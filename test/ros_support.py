@@ -9,8 +9,9 @@ import subprocess
 import sys
 import time
 import types
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 ROOT = Path(__file__).resolve().parents[1]
 MSG_TYPES = ["Voltage", "Displacement", "ControllerState", "BoucWenParameters",
@@ -71,6 +72,20 @@ def spawn_python(code: str, *args: str) -> subprocess.Popen:
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
     return subprocess.Popen([sys.executable, "-c", code, *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@contextmanager
+def probe_node(namespace: str = "/", name: str = "probe") -> Iterator[Any]:
+    """rclpy initialised, one node for the test's side of the conversation, then shut down."""
+    import rclpy
+
+    rclpy.init()
+    node = rclpy.create_node(name, namespace=namespace)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
 
 
 def spin_until(node: Any, predicate: Callable[[], bool], timeout: float) -> bool:

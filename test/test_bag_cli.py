@@ -13,6 +13,8 @@ from piezo_stage.bag import BagWriter, qos
 from piezo_stage.bag.series import encode_series
 from piezo_stage.cli import main
 
+pytestmark = pytest.mark.unit
+
 T0 = 1_700_000_000_000_000_000
 DISP, VOLT = "piezo_stage_msgs/msg/Displacement", "piezo_stage_msgs/msg/Voltage"
 

@@ -13,6 +13,8 @@ from piezo_stage.bag import (BagNotFoundError, BagWriter, UnknownTopicError, Wro
                              bag_info, qos, read_messages, read_raw, read_series, types)
 from piezo_stage.bag.series import encode_series
 
+pytestmark = pytest.mark.unit
+
 T0 = 1_700_000_000_000_000_000
 DISP, VOLT = "piezo_stage_msgs/msg/Displacement", "piezo_stage_msgs/msg/Voltage"
 N = 500

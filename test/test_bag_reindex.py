@@ -19,6 +19,7 @@ from rosbags.highlevel import AnyReader
 from piezo_stage.bag import BagWriter, bag_info, qos, read_series, reindex
 from piezo_stage.bag.series import encode_series
 
+
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000
 DISP, VOLT = "piezo_stage_msgs/msg/Displacement", "piezo_stage_msgs/msg/Voltage"
@@ -69,6 +70,7 @@ def _killed_recording(path: Path, compression: str) -> None:
     assert child.returncode == -signal.SIGKILL
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize("compression", ["", "zstd"])
 def test_sigkilled_writer_is_recovered_up_to_its_last_flush(tmp_path, compression):
     path = tmp_path / "killed"
@@ -131,7 +133,8 @@ def _flushed_bag(path: Path, chunks: int, per_chunk: int = 100) -> np.ndarray:
     return t
 
 
-def test_damaged_chunk_ends_the_recovery(tmp_path):
+@pytest.mark.unit
+def test_damaged_chunk_is_skipped_and_reported_by_the_recovery(tmp_path):
     _flushed_bag(tmp_path / "b", chunks=5)
     file = tmp_path / "b" / "b_0.mcap"
     chunks = _chunk_offsets(file)
@@ -140,12 +143,27 @@ def test_damaged_chunk_ends_the_recovery(tmp_path):
     data[(chunks[2][0] + chunks[2][1]) // 2] ^= 0xFF       # a flipped bit inside chunk 3
     file.write_bytes(bytes(data[:chunks[3][1] + 5]))       # and the tail cut after chunk 4
     report = reindex(tmp_path / "b")
-    assert report.message_count == 200
-    assert "CRC" in report.files[0].reason
-    t, v, _ = read_series(tmp_path / "b", "/v")
-    np.testing.assert_array_equal(v, np.arange(200.0))
+    assert report.message_count == 300 and report.damaged
+    assert "chunk CRC error" in report.files[0].damage and "DAMAGED" in str(report)
+    t, v, _ = read_series(tmp_path / "b", "/v")  # chunks 1, 2 and 4: chunk 3 is lost
+    np.testing.assert_array_equal(v, np.r_[np.arange(200.0), np.arange(300.0, 400.0)])
 
 
+@pytest.mark.unit
+def test_damaged_complete_file_is_reported_and_rewritten(tmp_path):
+    _flushed_bag(tmp_path / "d", chunks=4)
+    file = tmp_path / "d" / "d_0.mcap"
+    start, end = _chunk_offsets(file)[1]
+    data = bytearray(file.read_bytes())
+    data[(start + end) // 2] ^= 0x40                        # footer intact, chunk 2 damaged
+    file.write_bytes(bytes(data))
+    report = reindex(tmp_path / "d")
+    assert report.damaged and report.files[0].rewritten
+    assert "read 300 of 400 messages (100 lost)" in report.files[0].damage
+    assert bag_info(tmp_path / "d")["damage"] == []          # the rewritten file is clean
+
+
+@pytest.mark.unit
 def test_cut_inside_a_chunk_keeps_the_complete_ones(tmp_path):
     _flushed_bag(tmp_path / "c", chunks=3)
     file = tmp_path / "c" / "c_0.mcap"
@@ -157,6 +175,7 @@ def test_cut_inside_a_chunk_keeps_the_complete_ones(tmp_path):
         assert sum(1 for _ in make_reader(stream).iter_messages()) == 200
 
 
+@pytest.mark.unit
 def test_killed_before_the_first_flush_gives_an_empty_valid_bag(tmp_path):
     writer = BagWriter(tmp_path / "live", flush_period_s=0)
     writer.add_topic("/v", VOLT, [qos.RELIABLE])

@@ -14,6 +14,8 @@ from piezo_stage.bag import types
 from piezo_stage.bag.errors import UnknownMessageTypeError
 from piezo_stage.bag.series import _decode_generic, decode_series, encode_series
 
+pytestmark = pytest.mark.unit
+
 SEP = "=" * 80 + "\n"
 PROJECT = ["BoucWenParameters", "ControllerState", "Displacement", "ExcitationInfo",
            "LimitCycle", "Voltage"]

@@ -6,6 +6,8 @@ import pytest
 
 from piezo_stage.cli import main
 
+pytestmark = pytest.mark.unit
+
 
 def gains(capsys, *argv):
     code = main(["gains", *argv])

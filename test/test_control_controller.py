@@ -8,6 +8,8 @@ from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.errors import ControllerConfigError, MeasurementError
 from piezo_stage.control.laws import Gains
 
+pytestmark = pytest.mark.unit
+
 G = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 DT = 1e-3
 

@@ -11,7 +11,9 @@ from piezo_stage.control.discrete import (
 from piezo_stage.control.errors import SampledLoopError
 from piezo_stage.control.laws import THESIS_GAINS as G
 
-# DESIGN.md §7: stable at 1 kHz and >= 100 kHz, unstable at 5-50 kHz; >= 200 kHz with one sample of delay.
+pytestmark = pytest.mark.unit
+
+# docs/design.md §7: stable at 1 kHz and >= 100 kHz, unstable at 5-50 kHz; >= 200 kHz with one sample of delay.
 CASES = [(1e3, 0, True), (5e3, 0, False), (20e3, 0, False), (50e3, 0, False), (100e3, 0, True),
          (1e3, 1, True), (100e3, 1, False), (200e3, 1, True)]
 

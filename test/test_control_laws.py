@@ -9,6 +9,8 @@ from piezo_stage.control.errors import ControlError, GainError
 from piezo_stage.control.laws import THESIS_GAINS, Gains, control_law, excitation_term, pid_term, x0_coefficient
 from piezo_stage.control.reference import SecondOrderReference
 
+pytestmark = pytest.mark.unit
+
 G = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 
 

@@ -13,6 +13,8 @@ from piezo_stage.control.simulation import simulate_closed_loop
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
 
+pytestmark = pytest.mark.unit
+
 RIG = shipped_parameter_set("ch11_rig")
 
 

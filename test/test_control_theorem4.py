@@ -11,6 +11,8 @@ from piezo_stage.control.bounds import (
 from piezo_stage.control.errors import BoundsError, GainError
 from piezo_stage.control.theorem4 import k0_max, k2_min, validate_gains
 
+pytestmark = pytest.mark.unit
+
 THESIS = Bounds(m_min=3.98e-3, m_max=6.63e-3, c_max=13.43, kappa_x_max=10.8e6,
                 kappa_w_max=48.74, sigma_max=0.9212, rho_max=9.510e4)
 
@@ -28,7 +30,7 @@ def test_find_config_names_where_it_looked():
 
 
 def test_k2_min_and_k0_max_as_printed_not_as_quoted():
-    # (11.6)-(11.7) evaluated by hand with the §11.4.1 bounds (DESIGN.md §7 erratum)
+    # (11.6)-(11.7) evaluated by hand with the §11.4.1 bounds (docs/design.md §7 erratum)
     expected_k2 = math.sqrt(2 * 6.63e-3 * (0.9212 * 9.510e4 * 48.74 + 10.8e6 + 5e6))
     assert k2_min(THESIS, 5e6) == pytest.approx(expected_k2, rel=1e-12)
     assert k2_min(THESIS, 5e6) == pytest.approx(515.9, abs=0.05)

@@ -8,6 +8,8 @@ import pytest
 from piezo_stage.model.errors import ParameterError
 from piezo_stage.model.excitation import PRESETS, ExcitationPlan, plan_from
 
+pytestmark = pytest.mark.unit
+
 
 def test_ch10_preset_is_the_thesis_experiment():
     plan = PRESETS["ch10_patch"]

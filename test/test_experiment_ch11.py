@@ -15,11 +15,13 @@ import pytest
 from piezo_stage.bag.reader import read_messages
 from piezo_stage.experiments import ExperimentError, UnknownExperimentError, make_plan, run_experiment
 
+
 REG = 0.1  # simulated seconds of the pid / pid_tv regulation runs (pid_tv's u needs them to approach 0 V)
 REG_SINE = 0.05  # simulated seconds of the pid_sine regulation runs (steady oscillation from ~20 ms)
 PERT = 0.035  # simulated seconds of the short perturbation runs (loop open 5-15 ms)
 
 
+@pytest.mark.unit
 def test_plan_picks_a_stable_rate_and_rejects_bad_input():
     plan = make_plan("regulation", "pid")
     assert plan.rate_hz == 100e3 and plan.spectral_radius < 1  # 5-50 kHz are unstable (DESIGN §7)
@@ -49,6 +51,7 @@ def regulation():
     return get
 
 
+@pytest.mark.ros
 def test_regulation_pid_regulates_with_nonzero_final_u(regulation, tmp_path):
     r = regulation("pid", bag=tmp_path / "bag", png_dir=tmp_path / "png")
     assert r["lost_samples"] <= 0 and r["samples"] >= int(REG * r["rate_hz"]) - 1
@@ -60,6 +63,7 @@ def test_regulation_pid_regulates_with_nonzero_final_u(regulation, tmp_path):
     assert (tmp_path / "png" / "regulation_pid.png").stat().st_size > 10_000
 
 
+@pytest.mark.ros
 def test_regulation_pid_sine_oscillation_shrinks_with_A(regulation):
     big, small = regulation("pid_sine", 15.0), regulation("pid_sine", 5.0)
     assert big["final_abs_x1"] < 0.2 * big["max_abs_x1"]
@@ -67,6 +71,7 @@ def test_regulation_pid_sine_oscillation_shrinks_with_A(regulation):
     assert small["oscillation_x1"] < big["oscillation_x1"]
 
 
+@pytest.mark.ros
 def test_regulation_pid_tv_regulates(regulation):
     r, pid = regulation("pid_tv"), regulation("pid")
     assert r["initial_x1"] == pytest.approx(20e-6, rel=1e-9)
@@ -83,6 +88,7 @@ def perturbation():
             "pid_tv": run_experiment("perturbation", "pid_tv")}
 
 
+@pytest.mark.ros
 def test_perturbation_opens_for_10_ms_at_72_V(perturbation):
     for r in perturbation.values():
         assert r["u_before"] == pytest.approx(200.0, abs=0.5)
@@ -90,6 +96,7 @@ def test_perturbation_opens_for_10_ms_at_72_V(perturbation):
         assert r["max_abs_error"] > 5e-6  # the 128 V drop moved the stage
 
 
+@pytest.mark.ros
 def test_perturbation_pid_moves_the_equilibrium_pid_tv_keeps_it(perturbation):
     pid, tv = perturbation["pid"], perturbation["pid_tv"]
     assert abs(pid["u_change_relative"]) > 0.05  # Fig. 11.9: u after far from u before
@@ -99,6 +106,7 @@ def test_perturbation_pid_moves_the_equilibrium_pid_tv_keeps_it(perturbation):
     assert tv["final_abs_x1"] < 0.02 * tv["max_abs_error"]  # and x1 back near 0
 
 
+@pytest.mark.ros
 def test_command_json(capsys):
     from piezo_stage.cli import main
 

@@ -15,6 +15,8 @@ from piezo_stage.hardware.errors import (ConfigError, ConnectionLost, DeviceTime
                                          NonFiniteVoltageError, NotConnected, VoltageOutOfRangeError)
 from piezo_stage.hardware.safety import VoltageLimits, round_within, slew_step
 
+pytestmark = pytest.mark.ros
+
 
 class FakeClock:
     """Deterministic time for the driver (the emulators run on real time)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import os
 import re
 import signal
@@ -20,6 +21,8 @@ from piezo_stage.hardware.emulators.rig import RigEmulator
 from piezo_stage.hardware.errors import ConnectionLost
 from piezo_stage.hardware.optoncdt import Status, frame_format
 from piezo_stage.hardware.sensor import SensorConfig, SensorReader
+
+pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 MR = 10e-3

@@ -10,6 +10,8 @@ from piezo_stage.hardware.gcs import (GCS_ERROR_MESSAGES, GCSConnection, gcs_err
                                       join_reply, parse_item_values, split_reply)
 from piezo_stage.hardware.transport import make_transport
 
+pytestmark = pytest.mark.ros
+
 
 @pytest.fixture(params=["tcp", "pty"])
 def served(request):

@@ -9,6 +9,8 @@ from piezo_stage.hardware.errors import ConfigError, DeviceError, ProtocolError
 from piezo_stage.hardware.mdt69x import MDTConnection, mdt_reply_end, parse_bracketed, reply_body
 from piezo_stage.hardware.transport import make_transport
 
+pytestmark = pytest.mark.ros
+
 
 @pytest.fixture(params=[True, False], ids=["echo", "no-echo"])
 def served(request):

@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 
 from piezo_stage.hardware.errors import ConfigError
-from piezo_stage.hardware.optoncdt import (OptoNCDTParser, SampleBlock, Status, encode_values,
-                                           frame_format)
+from piezo_stage.hardware.optoncdt import (FrameCheck, OptoNCDTParser, SampleBlock, Status,
+                                           encode_values, frame_format)
+
+pytestmark = pytest.mark.unit
 
 MR = 10e-3  # 10 mm sensor
+K = FrameCheck().relock_frames
 FORMATS = {"ild1700": (), "ild1320-18": (18,), "ild1320-16": (16,), "ild1750": ()}
 
 
@@ -26,6 +29,12 @@ def feed_chunked(parser: OptoNCDTParser, data: bytes, rng: np.random.Generator, 
         blocks.append(parser.feed(data[i: i + n]))
         i += n
     return SampleBlock.concat(blocks)
+
+
+def locked(fmt, raw) -> bytes:
+    """Frames of ``raw`` each sent K times in a row (K = the relock count), so a fresh parser
+    locks on and the last copy of each shows the status the value maps to."""
+    return encode_values(fmt, np.repeat(np.asarray(raw), K))
 
 
 def reference_frames(fmt, data: bytes) -> list[int]:
@@ -78,16 +87,16 @@ def test_family_conversions_round_trip():
 ])
 def test_error_values_map_to_status(family, raw, status):
     fmt = frame_format(family)
-    block = OptoNCDTParser(fmt, MR).feed(encode_values(fmt, np.array([raw])))
-    assert len(block) == 1 and block.status[0] == status and block.raw[0] == raw
-    assert np.isnan(block.displacement[0]) == (status != Status.OK)
+    block = OptoNCDTParser(fmt, MR).feed(locked(fmt, [raw]))
+    assert len(block) == K and block.status[-1] == status and block.raw[-1] == raw
+    assert np.isnan(block.displacement[-1]) == (status != Status.OK)
 
 
 def test_sixteen_bit_mode_ignores_d16_d17():
     fmt = frame_format("ild1320", 16)
-    block = OptoNCDTParser(fmt, MR).feed(encode_values(fmt, np.array([(3 << 16) | 32760, 65535])))
-    assert block.raw.tolist() == [32760, 65535]
-    assert block.status.tolist() == [Status.OK, Status.INVALID]
+    block = OptoNCDTParser(fmt, MR).feed(locked(fmt, [(3 << 16) | 32760, 65535]))
+    assert block.raw[K - 1::K].tolist() == [32760, 65535]
+    assert block.status[K - 1::K].tolist() == [Status.OK, Status.INVALID]
 
 
 # --- framing ---------------------------------------------------------------------------------------
@@ -138,7 +147,8 @@ def test_resynchronises_after_lost_and_corrupt_bytes(name):
     parser = OptoNCDTParser(fmt, MR)
     block = feed_chunked(parser, faulty.tobytes(), rng)
     ok = block.status == Status.OK
-    assert ok.sum() >= 0.98 * d.size  # ~0.4 % of bytes damaged costs only the frames they hit
+    # ~0.4 % of bytes damaged costs only the frames they hit and the K after each (relock)
+    assert ok.sum() >= (1 - 0.004 * fmt.bytes_per_value * (K + 1)) * d.size
     assert np.all((block.displacement[ok] >= 0) & (block.displacement[ok] <= MR))
     assert block.raw.tolist() == reference_frames(fmt, faulty.tobytes())
 

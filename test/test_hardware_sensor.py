@@ -12,6 +12,8 @@ from piezo_stage.hardware.errors import ConfigError, ConnectionLost, SensorComma
 from piezo_stage.hardware.optoncdt import SampleBlock, Status, frame_format
 from piezo_stage.hardware.sensor import SensorConfig, SensorReader
 
+pytestmark = pytest.mark.ros
+
 MR = 10e-3
 FAMILIES = ["ild1700", "ild1320", "ild1750"]
 

@@ -12,6 +12,8 @@ import pytest
 from piezo_stage.hardware import ConfigError
 from piezo_stage.hardware.timing import CommandPlayout, SampleClock, set_realtime_priority
 
+pytestmark = pytest.mark.unit
+
 RATE = 1000.0
 T0 = 1_795_000_000_000_000_000  # ns, a wall-clock epoch like the ROS clock's
 

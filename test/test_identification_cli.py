@@ -16,6 +16,8 @@ from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.model.signals import sine
 
+pytestmark = pytest.mark.unit
+
 CH9 = BoucWenParameters(**CH9_EXAMPLE)
 PATCH = BoucWenParameters(**CH10_PATCH)
 

@@ -20,6 +20,8 @@ from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.limit_cycle import limit_cycle
 from piezo_stage.model.signals import triangle
 
+pytestmark = pytest.mark.unit
+
 CH9 = BoucWenParameters(**CH9_EXAMPLE)
 PATCH = BoucWenParameters(**CH10_PATCH)
 

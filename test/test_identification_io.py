@@ -3,11 +3,14 @@ applied voltage is a held signal, the displacement a sampled continuous one."""
 
 from __future__ import annotations
 
+import pytest
 import numpy as np
 
 from piezo_stage.identification.io import recordings_from_series
 from piezo_stage.model.bouc_wen import model_output
 from piezo_stage.model.parameter_set import shipped_parameter_set
+
+pytestmark = pytest.mark.unit
 
 INTERVAL = [(0, -np.inf, np.inf)]
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import pytest
 import os
 import subprocess
 import sys
 
 from piezo_stage.launch.domain import claim_domain_id, isolated_domain
 from ros_support import ROOT
+
+pytestmark = pytest.mark.ros
 
 
 def test_claims_are_exclusive_across_processes():

@@ -4,6 +4,7 @@ parameters (in the launcher's precedence order), remappings, namespace and requi
 
 from __future__ import annotations
 
+import pytest
 import ast
 import copy
 from pathlib import Path
@@ -11,6 +12,8 @@ from pathlib import Path
 import yaml
 
 from piezo_stage.cli import main
+
+pytestmark = pytest.mark.unit
 
 GRAPH = {
     "description": "export check",

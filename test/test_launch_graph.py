@@ -16,6 +16,8 @@ from piezo_stage.launch.commandline import check_runnable, display_argv, process
 from piezo_stage.launch.output import Prefixer, use_color
 from piezo_stage.launch.graph import find_graph, load_yaml, normalize_namespace
 
+pytestmark = pytest.mark.unit
+
 
 def write(tmp_path: Path, data: object, name: str = "graph.yaml") -> Path:
     path = tmp_path / name

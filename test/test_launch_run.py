@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+pytestmark = pytest.mark.ros
+
 pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
 
 from piezo_stage.cli import main  # noqa: E402

@@ -20,6 +20,8 @@ from piezo_stage.model.bouc_wen import (
 )
 from piezo_stage.model.signals import triangle
 
+pytestmark = pytest.mark.unit
+
 CH9 = dict(rho=1.0, sigma=3.0, n=1.5)
 
 

@@ -20,6 +20,8 @@ from piezo_stage.model.limit_cycle import (
 )
 from piezo_stage.model.signals import triangle
 
+pytestmark = pytest.mark.unit
+
 SETS = [(3.0, 1.5), (0.9153, 1.176), (0.812, 1.12), (0.5, 1.0), (7.0, 3.3)]
 
 

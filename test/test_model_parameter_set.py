@@ -19,6 +19,8 @@ from piezo_stage.model.parameter_set import (
     shipped_parameter_set,
 )
 
+pytestmark = pytest.mark.unit
+
 
 def test_shipped_sets_hold_the_thesis_values():
     ch9 = shipped_parameter_set("ch9_example")

@@ -17,6 +17,8 @@ from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant, StaticPlant, simulate_reference
 from piezo_stage.model.signals import band_limited_noise, triangle
 
+pytestmark = pytest.mark.unit
+
 RIG = shipped_parameter_set("ch11_rig")
 M, C = RIG.dynamics.m, RIG.dynamics.c
 KX = RIG.bouc_wen.kappa_x

@@ -8,6 +8,8 @@ import pytest
 from piezo_stage.model.errors import InputSignalError
 from piezo_stage.model.signals import band_limited_noise, sine, step, t_wave_pair, triangle
 
+pytestmark = pytest.mark.unit
+
 
 def test_triangle_is_a_t_wave():
     t = np.linspace(0.0, 3.0, 3001)

@@ -9,6 +9,8 @@ from scipy.integrate import solve_ivp
 
 from piezo_stage.model.bouc_wen import simulate_w
 
+pytestmark = pytest.mark.unit
+
 
 def _reference(x_up: float, x_down: float, rho: float, sigma: float, n: float, xs_up, xs_down):
     def g(w: float, sign: int) -> float:  # (8.9) with dx/dt of sign `sign`

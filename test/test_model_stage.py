@@ -13,6 +13,8 @@ from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant, SimulatedStage as FromPlant
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
 
+pytestmark = pytest.mark.unit
+
 
 def test_amplifier_limits_bandwidth_and_slew():
     ideal = AmplifierModel()

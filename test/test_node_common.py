@@ -6,6 +6,8 @@ import pytest
 
 from piezo_stage.nodes.common import TickGrid
 
+pytestmark = pytest.mark.unit
+
 
 def test_on_time_ticks_get_one_instant_each():
     grid = TickGrid(period_ns=1000, max_backlog=10)

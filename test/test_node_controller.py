@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
@@ -15,15 +17,6 @@ from piezo_stage.nodes.common import COMMAND_QOS, SENSOR_QOS  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ctl"
-
-
-@pytest.fixture()
-def node():
-    rclpy.init()
-    n = rclpy.create_node("probe", namespace=NS)
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
 
 
 def _call(node, srv_type, name, request, timeout=10.0):
@@ -125,7 +118,7 @@ def test_unsafe_gain_change_is_refused_with_a_reason(node):
 
 
 @pytest.mark.parametrize("param, reason", [
-    # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (DESIGN.md §7)
+    # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (docs/design.md §7)
     ("rate_hz:=20000.0", "sampled loop unstable"),
     ("sensor_qos:=fastest", "sensor_qos must be"),
 ])

@@ -6,6 +6,8 @@ import signal
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from builtin_interfaces.msg import Time  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -18,13 +20,7 @@ PLAN = ["waveform:=triangle", "period:=0.1", "low:=-1.0", "amplitude:=2.0", "off
         "settle_periods:=1", "record_periods:=1"]
 
 
-@pytest.fixture()
-def node():
-    rclpy.init()
-    n = rclpy.create_node("probe", namespace="/exc")
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
+NS = "/exc"  # the probe node's namespace (conftest)
 
 
 def test_clock_trigger_publishes_the_plan_stamped_with_sim_time(node):

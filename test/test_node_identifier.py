@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
@@ -25,7 +27,7 @@ def _stamp(msg, t):
     return msg
 
 
-def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
+def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_path):
     from piezo_stage_msgs.msg import BoucWenParameters as ParamsMsg
     from piezo_stage_msgs.msg import Displacement, ExcitationInfo, LimitCycle, Voltage
 
@@ -41,8 +43,6 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
     marks = [(t0, 0, False), (t0 + 1.0, 0, True), (t1, 1, False), (t1 + 1.0, 1, True), (t1 + 3.0, 1, False)]
 
     out_file = tmp_path / "identified.yaml"
-    rclpy.init()
-    node = rclpy.create_node("probe", namespace=NS)
     proc = start_node("identifier", f"output_file:={out_file}", namespace=NS)  # stream_qos auto: reliable here
     try:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
@@ -93,8 +93,6 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(tmp_path):
         assert out_file.exists() and "kappa_w" in out_file.read_text()
     finally:
         stop(proc)
-        node.destroy_node()
-        rclpy.shutdown()
 
 
 def test_identifier_adapts_its_stream_qos_to_the_publishers():

@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -20,13 +22,7 @@ from ros_support import spin_until, start_node, stop  # noqa: E402
 RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 
 
-@pytest.fixture()
-def node():
-    rclpy.init()
-    n = rclpy.create_node("probe", namespace="/sim")
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
+NS = "/sim"  # the probe node's namespace (conftest)
 
 
 def test_realtime_plant_follows_commands_and_refuses_nan(node):

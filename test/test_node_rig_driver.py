@@ -9,6 +9,8 @@ import signal
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from rclpy.time import Time  # noqa: E402
@@ -19,15 +21,6 @@ from rig_support import DiagnosticsProbe, sva_values  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/rig"
-
-
-@pytest.fixture()
-def probe():
-    rclpy.init()
-    n = rclpy.create_node("probe", namespace=NS)
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
 
 
 @pytest.fixture()

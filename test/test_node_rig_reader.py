@@ -10,6 +10,8 @@ import math
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
@@ -21,15 +23,6 @@ from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/rig"
 MR = 10e-3
-
-
-@pytest.fixture()
-def probe():
-    rclpy.init()
-    n = rclpy.create_node("probe", namespace=NS)
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
 
 
 class Level:

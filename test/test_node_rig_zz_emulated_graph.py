@@ -33,6 +33,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 
 from piezo_stage.launch import Launcher  # noqa: E402
@@ -60,13 +62,11 @@ def rig_graph(port: int, link: str):
     return replace(g, nodes=nodes)
 
 
-def test_emulated_rig_graph_identifies_the_emulated_patch(tmp_path):
+def test_emulated_rig_graph_identifies_the_emulated_patch(probe, tmp_path):
     from piezo_stage_msgs.msg import BoucWenParameters, Displacement, Voltage
 
     port, link = free_port(), tmp_path / "sensor"
     lines: list[str] = []
-    rclpy.init()
-    probe = rclpy.create_node("probe", namespace=NS)
     xs: list = []
     vs: list = []
     params: list = []
@@ -92,8 +92,6 @@ def test_emulated_rig_graph_identifies_the_emulated_patch(tmp_path):
         spin_until(probe, lambda: False, 0.3)
     finally:
         code = launch.stop()
-        probe.destroy_node()
-        rclpy.shutdown()
     log = "\n".join(line for line in lines if "[launch] started" not in line)[-6000:]
     assert done and params, log
     assert code == 0, log

@@ -3,6 +3,7 @@ and say what the running nodes really declare."""
 
 from __future__ import annotations
 
+import pytest
 import importlib.util
 import re
 import subprocess
@@ -12,6 +13,7 @@ import rclpy
 from rcl_interfaces.msg import ParameterType
 
 from ros_support import ROOT
+
 
 SCRIPT = ROOT / "scripts" / "param_docs.py"
 #: declared by rclpy itself on every node
@@ -31,16 +33,19 @@ def _docs() -> dict[str, dict[str, list[str]]]:
     return tables
 
 
+@pytest.mark.ros
 def test_committed_reference_is_current():
     result = subprocess.run([sys.executable, str(SCRIPT), "--check"], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
 
 
+@pytest.mark.unit
 def test_every_node_executable_has_its_table():
     assert set(_docs()) == {"controller", "excitation", "identifier", "laser_reader", "plant", "player",
                             "recorder", "voltage_driver"}
 
 
+@pytest.mark.ros
 def test_reference_matches_what_running_nodes_declare():
     """The AST reading agrees with rclpy: the same names, types, defaults, ranges and read-only flags."""
     spec = importlib.util.spec_from_file_location("param_docs", SCRIPT)
@@ -85,6 +90,7 @@ def test_reference_matches_what_running_nodes_declare():
         rclpy.shutdown()
 
 
+@pytest.mark.unit
 def test_readme_names_only_declared_parameters():
     """The README's short table of parameters names real ones (values in parentheses aside)."""
     docs = _docs()

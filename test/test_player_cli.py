@@ -8,6 +8,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -19,7 +21,7 @@ from ros_support import ROOT, spin_until  # noqa: E402
 T0 = 1_700_000_000_000_000_000
 
 
-def test_play_filters_remaps_and_publishes_the_clock(tmp_path):
+def test_play_filters_remaps_and_publishes_the_clock(node, tmp_path):
     import numpy as np
     from piezo_stage_msgs.msg import Voltage
 
@@ -33,8 +35,6 @@ def test_play_filters_remaps_and_publishes_the_clock(tmp_path):
     recorded = [d for topic, _, _, d in read_raw(bag) if topic == "/piezo/voltage"]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    rclpy.init()
-    node = rclpy.create_node("probe")
     got, other, clocks = [], [], []
     keep_all = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(Voltage, "/replay/voltage", lambda d: got.append(d), keep_all, raw=True)
@@ -51,8 +51,6 @@ def test_play_filters_remaps_and_publishes_the_clock(tmp_path):
         if proc.poll() is None:
             proc.kill()
         _, err = proc.communicate()
-        node.destroy_node()
-        rclpy.shutdown()
     assert proc.returncode == 0, err
     assert len(got) == 20 and not other
     assert all(g[:len(r)] == r for g, r in zip(got, recorded))

@@ -8,6 +8,8 @@ import time
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
@@ -48,15 +50,6 @@ def bag(tmp_path_factory):
             writer.write(f"{NS}/voltage", _data("Voltage", k), T0 + k * DT)
             writer.write(f"{NS}/displacement", _data("Displacement", 1000 + k), T0 + k * DT + DT // 2)
     return path
-
-
-@pytest.fixture()
-def node():
-    rclpy.init()
-    n = rclpy.create_node("probe")
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
 
 
 class Sink:

@@ -9,12 +9,17 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.duration import Duration  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from piezo_stage.bag import bag_info, read_messages  # noqa: E402
 from ros_support import ROOT, spin_until  # noqa: E402
+
+
+NS = "/cli"  # the probe node's namespace (conftest)
 
 
 def _cli(*args: str) -> subprocess.Popen:
@@ -24,13 +29,11 @@ def _cli(*args: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def test_record_forwards_sigint_and_prints_the_complete_bag(tmp_path):
+def test_record_forwards_sigint_and_prints_the_complete_bag(node, tmp_path):
     from piezo_stage_msgs.msg import Voltage
 
     bag = tmp_path / "run1"
     proc = _cli("record", "--ns", "/cli", "-o", str(bag), "--topics", "voltage", "--compression", "zstd")
-    rclpy.init()
-    node = rclpy.create_node("probe", namespace="/cli")
     try:
         pub = node.create_publisher(Voltage, "voltage", QoSProfile(
             depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
@@ -44,8 +47,6 @@ def test_record_forwards_sigint_and_prints_the_complete_bag(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-        node.destroy_node()
-        rclpy.shutdown()
     assert proc.returncode == 0, err
     assert f"recording /cli to {bag}" in out
     assert f"bag: {bag} (complete), 50 messages" in out

@@ -8,6 +8,8 @@ import time
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
@@ -19,15 +21,6 @@ from piezo_stage.cli import main as cli  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 KEEP_ALL = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
-
-
-@pytest.fixture()
-def node():
-    rclpy.init()
-    n = rclpy.create_node("probe")
-    yield n
-    n.destroy_node()
-    rclpy.shutdown()
 
 
 class Stage:

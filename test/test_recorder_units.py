@@ -8,6 +8,7 @@ import re
 
 import pytest
 
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 
@@ -15,6 +16,7 @@ from piezo_stage.nodes import recorder  # noqa: E402
 from piezo_stage.nodes.common import COMMAND_QOS, LATCHED_QOS  # noqa: E402
 
 
+@pytest.mark.unit
 def test_adapted_qos_follows_the_weakest_offer():
     reliable = recorder.adapted_qos([COMMAND_QOS], 100)
     assert reliable.reliability == ReliabilityPolicy.RELIABLE
@@ -28,6 +30,7 @@ def test_adapted_qos_follows_the_weakest_offer():
     assert recorder.adapted_qos([], 5).reliability == ReliabilityPolicy.BEST_EFFORT  # no offer known
 
 
+@pytest.mark.unit
 def test_message_type_lookup():
     from piezo_stage_msgs.msg import Voltage
 
@@ -39,12 +42,14 @@ def test_message_type_lookup():
         recorder.message_type("Voltage")
 
 
+@pytest.mark.unit
 def test_default_bag_name_is_rosbag2_style():
     assert re.fullmatch(r"rosbag2_\d{4}_\d\d_\d\d-\d\d_\d\d_\d\d", recorder.default_bag_name())
 
 
 @pytest.mark.parametrize("param, message", [("compression:=lz4", "compression must be one of"),
                                             ("topic_regex:=(", "not a valid regular expression")])
+@pytest.mark.ros
 def test_bad_parameters_are_refused(tmp_path, param, message):
     rclpy.init(args=["x", "--ros-args", "-p", f"bag:={tmp_path / 'bag'}", "-p", param])
     try:
@@ -55,6 +60,7 @@ def test_bad_parameters_are_refused(tmp_path, param, message):
     assert not (tmp_path / "bag").exists()  # refused before any file is created
 
 
+@pytest.mark.unit
 def test_transport_profile_set_unless_the_user_has_one(monkeypatch, tmp_path):
     monkeypatch.setattr(recorder.tempfile, "gettempdir", lambda: str(tmp_path))
     for var in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"):

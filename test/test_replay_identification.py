@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.ros
+
 rclpy = pytest.importorskip("rclpy")
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -24,6 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 NAMES = ("y0", "kappa_w", "rho", "sigma", "n")
 
 
+NS = "/piezo"  # the probe node's namespace (conftest)
+
+
 def _offline(bag: str, degree: int, capsys) -> dict:
     assert main(["identify", str(ROOT / bag), "--degree", str(degree), "--json"]) == 0
     return json.loads(capsys.readouterr().out)
@@ -34,14 +39,12 @@ def _offline(bag: str, degree: int, capsys) -> dict:
     ("bags/ch9_identification", 1, ["--param", "player.bag:=bags/ch9_identification",
                                     "--param", "identifier.degree:=1"]),
 ])
-def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(bag, degree, params, tmp_path,
+def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(node, bag, degree, params, tmp_path,
                                                                                  capsys):
     from piezo_stage_msgs.msg import BoucWenParameters
 
     offline = _offline(bag, degree, capsys)
     out_file = tmp_path / "replayed.yaml"
-    rclpy.init()
-    node = rclpy.create_node("probe", namespace="/piezo")
     got: list = []
     node.create_subscription(BoucWenParameters, "bouc_wen_parameters", got.append, LATCHED_QOS)
     cmd = [sys.executable, "-m", "piezo_stage.cli", "launch", "replay_identification", "--color", "never",
@@ -69,8 +72,6 @@ def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-        node.destroy_node()
-        rclpy.shutdown()
 
     replayed = load_parameter_set(out_file)
     p = replayed.bouc_wen

@@ -13,6 +13,8 @@ from piezo_stage.cli import main
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from ros_support import to_plain
 
+pytestmark = pytest.mark.unit
+
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = {"ch10_identification": ("ch10_patch", 2), "ch9_identification": ("ch9_example", 1)}
 #: every committed bag (a folder with metadata.yaml)

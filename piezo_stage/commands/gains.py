@@ -5,7 +5,7 @@ thesis_rig_bounds.yaml, §11.4.1; any bound can be overridden), whether the give
 Theorem 4, and with --rate-hz the spectral radius of the sampled loop (ZOH plant, rectangle-sum
 x0, Euler-difference x2, optional output delay). Exit status: 0 valid (and stable when checked),
 1 not, 2 bad input. Note: §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
-give ≈ 515.9 and ≈ 1.515e9 for its bounds (DESIGN.md §7).
+give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
 """
 
 from __future__ import annotations

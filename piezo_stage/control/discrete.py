@@ -4,7 +4,7 @@ Plant: the linear part of (11.1)-(11.3), m·ẍ + c·ẋ + k·x = u, held by a z
 period T = 1/rate. The hysteresis enters one of two ways (``hysteresis=``):
 
 - ``"disturbance"`` (default): k = κx, and κw·w is a bounded input (|w| ≤ 1 for class I) that
-  cannot change stability of the linear loop — the "linear part" of DESIGN.md §4/§7;
+  cannot change stability of the linear loop — the "linear part" of docs/design.md §4/§7;
 - ``"initial_slope"``: w linearised by its slope at w = 0, ẇ = ρ·ẋ (11.3), so k = κx + κw·ρ,
   the stiffest the hysteresis makes the plant.
 
@@ -164,7 +164,7 @@ def check_sampled_loop(
     """Spectral radius, stability flag and margin 1 − ρ of the sampled loop (module docstring).
 
     With the §11.4.1 gains and plant: stable at 1 kHz, unstable at 5-50 kHz, stable at 100 kHz
-    without delay, and needing ≥ 200 kHz with a one-sample delay (DESIGN.md §7).
+    without delay, and needing ≥ 200 kHz with a one-sample delay (docs/design.md §7).
     """
     mats = closed_loop_matrices(plant, gains, rate_hz, delay_samples, law, derivative_tau, hysteresis)
     rho = spectral_radius_per_sample(mats)

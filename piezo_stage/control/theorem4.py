@@ -1,6 +1,6 @@
 """Theorem 4 gain design for the PID (11.5): k2_min (11.6), k0_max (11.7) and a gain report.
 
-Erratum (DESIGN.md §7): §11.4.1 quotes k2_min = 567.6 (k1 = 5e6) and k0_max = 1.16e9 (k2 = 580),
+Erratum (docs/design.md §7): §11.4.1 quotes k2_min = 567.6 (k1 = 5e6) and k0_max = 1.16e9 (k2 = 580),
 but evaluating (11.6)-(11.7) with the bounds printed there gives k2_min ≈ 515.9 and
 k0_max ≈ 1.515e9. This module implements the formulas as printed; the thesis gains
 k1 = 5e6, k2 = 580, k0 = 1e9 satisfy both versions.
@@ -132,7 +132,7 @@ def validate_gains(
             reasons.append(f"f = {f:.6g} Hz must be > 0 (11.17-11.18)")
     notes.append(
         "k2_min and k0_max evaluate (11.6)-(11.7) as printed; §11.4.1 quotes 567.6 and 1.16e9 "
-        "for its bounds (DESIGN.md §7 erratum)"
+        "for its bounds (docs/design.md §7 erratum)"
     )
     return GainReport(
         k1=k1, k2=k2, k0=k0, kA=kA, f=f, k2_min=k2min, k0_max=k0max, e1=e1, e2=e2,

@@ -127,7 +127,7 @@ def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray, na
            hold_in: bool = False, hold_out: bool = False) -> Recording:
     """One time base for both signals, the other resampled on it.
 
-    A voltage series is what the amplifier applied from each stamp until the next (DESIGN.md §3:
+    A voltage series is what the amplifier applied from each stamp until the next (docs/design.md §3:
     ``voltage`` is stamped when applied), so it is resampled as held values (``hold_*``), which is
     exact; linear interpolation of a held staircase would make the input lead the stage by half a
     step (a 200 Hz staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled

@@ -11,16 +11,23 @@ writes and the plant node loads::
                n: 1.12, y0: 1.7858e-6, input_sign: -1}
     dynamics: null          # or {m: 5.3e-3, c: 13.0}
     w0: 0.0
+    delay: 0.0              # optional: the output lags the input by this much [s]
+    drift: null             # optional creep: {kind: log, coefficient: 1.2e-6, time_constant: 0.4}
     notes: ""
+
+``delay`` and ``drift`` describe a recording (what ``identify --method fit`` estimates) and
+are applied by ``piezo-stage validate``; the plant ignores them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from piezo_stage.config_path import read_yaml
@@ -30,6 +37,8 @@ from .errors import ModelError, ParameterError, ParameterFileError
 
 __all__ = [
     "Dynamics",
+    "Drift",
+    "DriftKind",
     "ParameterSet",
     "FORMS",
     "parameter_set_to_dict",
@@ -41,12 +50,14 @@ __all__ = [
 ]
 
 FORMS = ("static", "dynamic")
-#: parameter sets shipped in config/ (DESIGN.md section 4)
+#: parameter sets shipped in config/ (docs/design.md section 4)
 SHIPPED = ("ch9_example", "ch10_patch", "ch11_rig")
 
 _BW_KEYS = ("kappa", "kappa_w", "rho", "sigma", "n", "y0", "input_sign")
 _BW_REQUIRED = ("kappa", "kappa_w", "rho", "sigma", "n")
-_TOP_KEYS = ("name", "form", "input_name", "output_name", "bouc_wen", "dynamics", "w0", "notes")
+_TOP_KEYS = ("name", "form", "input_name", "output_name", "bouc_wen", "dynamics", "w0", "delay",
+             "drift", "notes")
+_DRIFT_KEYS = ("kind", "coefficient", "time_constant")
 _TOP_REQUIRED = ("name", "form", "bouc_wen")
 
 
@@ -71,6 +82,50 @@ class Dynamics:
             raise ParameterError(f"dynamics.c must be >= 0 (11.1), got {self.c!r}")
 
 
+class DriftKind(str, Enum):
+    """Shape of the slow output drift (creep) added to a recording's model output."""
+
+    NONE = "none"
+    LINEAR = "linear"     #: coefficient · t / time_constant
+    LOG = "log"           #: coefficient · ln(1 + t / time_constant)
+
+
+@dataclass(frozen=True)
+class Drift:
+    """Slow additive drift of the output, t measured from the start of the recording."""
+
+    kind: DriftKind
+    coefficient: float
+    time_constant: float
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "kind", DriftKind(self.kind))
+        except ValueError as exc:
+            raise ParameterError(f"drift.kind must be 'linear' or 'log', got {self.kind!r}") from exc
+        if self.kind is DriftKind.NONE:
+            raise ParameterError("drift.kind 'none': write drift: null instead")
+        for name in ("coefficient", "time_constant"):
+            try:
+                object.__setattr__(self, name, float(getattr(self, name)))
+            except (TypeError, ValueError) as exc:
+                raise ParameterError(f"drift.{name} must be a number, got {getattr(self, name)!r}") from exc
+        if not math.isfinite(self.coefficient):
+            raise ParameterError(f"drift.coefficient must be finite, got {self.coefficient!r}")
+        if not (math.isfinite(self.time_constant) and self.time_constant > 0.0):
+            raise ParameterError(f"drift.time_constant must be > 0 [s], got {self.time_constant!r}")
+
+    def evaluate(self, t: np.ndarray) -> np.ndarray:
+        """The drift at times ``t`` [s] from the start of the recording."""
+        return self.coefficient * drift_basis(self.kind, np.asarray(t, dtype=float), self.time_constant)
+
+
+def drift_basis(kind: DriftKind, t: np.ndarray, time_constant: float) -> np.ndarray:
+    """t / τ (linear) or ln(1 + t/τ) (log), t >= 0 from the start of the recording."""
+    s = np.maximum(t, 0.0) / time_constant
+    return s if kind is DriftKind.LINEAR else np.log1p(s)
+
+
 @dataclass(frozen=True)
 class ParameterSet:
     """A named model: static (10.15) or dynamic (11.1)-(11.3) with its Bouc-Wen parameters."""
@@ -83,6 +138,8 @@ class ParameterSet:
     output_name: str = "displacement"
     w0: float = 0.0
     notes: str = ""
+    delay: float = 0.0            #: output lag behind the input [s] (validate applies it)
+    drift: Drift | None = None    #: slow output drift (validate applies it)
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
@@ -94,6 +151,15 @@ class ParameterSet:
         if not isinstance(self.bouc_wen, BoucWenParameters):
             raise ParameterError("bouc_wen must be a BoucWenParameters")
         object.__setattr__(self, "w0", check_w0(self.w0))
+        try:
+            delay = float(self.delay)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"delay must be a number [s], got {self.delay!r}") from exc
+        if not math.isfinite(delay):
+            raise ParameterError(f"delay must be finite [s], got {self.delay!r}")
+        object.__setattr__(self, "delay", delay)
+        if self.drift is not None and not isinstance(self.drift, Drift):
+            raise ParameterError("drift must be a Drift or None")
 
     def validate(self) -> None:
         """Class-I check of the Bouc-Wen part (raises NotClassIError)."""
@@ -119,6 +185,10 @@ def parameter_set_to_dict(ps: ParameterSet) -> dict[str, Any]:
         },
         "dynamics": None if ps.dynamics is None else {"m": ps.dynamics.m, "c": ps.dynamics.c},
         "w0": ps.w0,
+        "delay": ps.delay,
+        "drift": None if ps.drift is None else {"kind": ps.drift.kind.value,
+                                                "coefficient": ps.drift.coefficient,
+                                                "time_constant": ps.drift.time_constant},
         "notes": ps.notes,
     }
 
@@ -142,6 +212,9 @@ def parameter_set_from_dict(data: dict[str, Any]) -> ParameterSet:
     dyn = data.get("dynamics")
     if dyn is not None:
         _check_keys(dyn, ("m", "c"), ("m", "c"), "dynamics")
+    drift = data.get("drift")
+    if drift is not None:
+        _check_keys(drift, _DRIFT_KEYS, _DRIFT_KEYS, "drift")
     kappa = bw["kappa"]
     if not isinstance(kappa, (list, tuple)):
         kappa = [kappa]
@@ -164,6 +237,8 @@ def parameter_set_from_dict(data: dict[str, Any]) -> ParameterSet:
             output_name=str(data.get("output_name", "displacement")),
             w0=data.get("w0", 0.0) or 0.0,
             notes=str(data.get("notes", "") or ""),
+            delay=data.get("delay", 0.0) or 0.0,
+            drift=None if drift is None else Drift(**drift),
         )
     except ParameterFileError:
         raise
@@ -186,7 +261,7 @@ class _FlowDumper(yaml.SafeDumper):
 
 
 def _represent_dict(dumper: yaml.SafeDumper, data: dict[str, Any]) -> yaml.Node:
-    flow = "kappa" in data or set(data) == {"m", "c"}
+    flow = "kappa" in data or set(data) in ({"m", "c"}, set(_DRIFT_KEYS))
     return dumper.represent_mapping("tag:yaml.org,2002:map", data.items(), flow_style=flow)
 
 

@@ -24,7 +24,7 @@ LASER_RESOLUTION = 0.1e-6
 
 
 class SensorStatus(IntEnum):
-    """Status codes of ``piezo_stage_msgs/Displacement`` (DESIGN.md section 3)."""
+    """Status codes of ``piezo_stage_msgs/Displacement`` (docs/design.md section 3)."""
 
     OK = 0
     NO_TARGET = 1
