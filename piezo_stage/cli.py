@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 from typing import Sequence
 
 #: sub-command -> module (in piezo_stage.commands); order is the order shown in --help.
@@ -59,6 +60,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     module.add_arguments(parser)
     args = parser.parse_args(rest)
+
+    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"piezo-stage {name}: warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = one_line  # bag damage, skipped topics: one line each
     return int(module.run(args) or 0)
 
 

@@ -47,3 +47,11 @@ class WrongTopicTypeError(BagError, TypeError):
 
 class CorruptBagError(BagError):
     """An MCAP file is damaged beyond what the tolerant reader recovers."""
+
+
+class BagDamageWarning(UserWarning):
+    """An MCAP file has CRC or record errors: some messages were not read (counts in text)."""
+
+
+class SkippedTopicWarning(UserWarning):
+    """A topic was left out because its messages cannot be decoded (reason in text)."""

@@ -16,9 +16,9 @@ from typing import Any, Iterable
 
 from rosbags.interfaces import Nodetype
 
+from .decode import BagTypes
 from .errors import UnknownTopicError
-from .reader import read_messages, topic_types
-from .types import typestore
+from .reader import decode_bag, topic_types
 
 #: SI units of the piezo_stage_msgs fields (from the .msg comments).
 UNITS: dict[str, dict[str, str]] = {
@@ -54,21 +54,22 @@ def _cell(value: Any) -> Any:
     return value
 
 
-def _has_sequences(type_name: str) -> bool:
+def _has_sequences(fielddefs: dict[str, Any], type_name: str) -> bool:
     """True if rows of this type can differ in columns (a variable-length array inside)."""
-    for _, (nodetype, detail) in typestore().fielddefs[type_name][1]:
+    for _, (nodetype, detail) in fielddefs[type_name][1]:
         if nodetype == Nodetype.SEQUENCE:
             return True
-        if nodetype == Nodetype.NAME and detail not in TIME_TYPES and _has_sequences(detail):
+        if nodetype == Nodetype.NAME and detail not in TIME_TYPES \
+                and _has_sequences(fielddefs, detail):
             return True
         if nodetype == Nodetype.ARRAY and detail[0][0] == Nodetype.NAME \
-                and _has_sequences(detail[0][1]):
+                and _has_sequences(fielddefs, detail[0][1]):
             return True
     return False
 
 
-def _flatten_array(values: Any, column: str, element: tuple, unit: str | None
-                   ) -> list[tuple[str, Any]]:
+def _flatten_array(fielddefs: dict[str, Any], values: Any, column: str, element: tuple,
+                   unit: str | None) -> list[tuple[str, Any]]:
     kind, detail = element
     if kind == Nodetype.NAME:
         cells: list[tuple[str, Any]] = []
@@ -77,7 +78,7 @@ def _flatten_array(values: Any, column: str, element: tuple, unit: str | None
                 cells.append((f"{column}[{i}] [s]",
                               seconds_text(item.sec * 1_000_000_000 + item.nanosec)))
             else:
-                cells += flatten(item, detail, f"{column}[{i}].")
+                cells += flatten(fielddefs, item, detail, f"{column}[{i}].")
         return cells
     items = [_cell(v) for v in values]
     if len(items) > MAX_ARRAY_COLUMNS:
@@ -86,11 +87,12 @@ def _flatten_array(values: Any, column: str, element: tuple, unit: str | None
     return [(_label(f"{column}[{i}]", unit), v) for i, v in enumerate(items)]
 
 
-def flatten(message: Any, type_name: str, prefix: str = "") -> list[tuple[str, Any]]:
+def flatten(fielddefs: dict[str, Any], message: Any, type_name: str, prefix: str = ""
+            ) -> list[tuple[str, Any]]:
     """``[(column, value)]`` of one message (see the module docstring for the naming)."""
     units = UNITS.get(type_name, {})
     cells: list[tuple[str, Any]] = []
-    for name, (nodetype, detail) in typestore().fielddefs[type_name][1]:
+    for name, (nodetype, detail) in fielddefs[type_name][1]:
         value, column = getattr(message, name), prefix + name
         if nodetype == Nodetype.BASE:
             cells.append((_label(column, units.get(name)), _cell(value)))
@@ -99,9 +101,9 @@ def flatten(message: Any, type_name: str, prefix: str = "") -> list[tuple[str, A
                 cells.append((f"{column} [s]",
                               seconds_text(value.sec * 1_000_000_000 + value.nanosec)))
             else:
-                cells += flatten(value, detail, column + ".")
+                cells += flatten(fielddefs, value, detail, column + ".")
         else:
-            cells += _flatten_array(value, column, detail[0], units.get(name))
+            cells += _flatten_array(fielddefs, value, column, detail[0], units.get(name))
     return cells
 
 
@@ -121,15 +123,21 @@ def export_csv(path: str | Path, out_dir: str | Path,
                                 f"{', '.join(sorted(types)) or 'none'}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    variable = {t for t in selected if _has_sequences(types[t])}
+    bag_types = BagTypes()
+    fielddefs = bag_types.store.fielddefs
+    variable: dict[str, bool] = {}
     files: dict[str, Any] = {}
     writers: dict[str, Any] = {}
-    buffered: dict[str, list[dict[str, Any]]] = {t: [] for t in variable}
+    buffered: dict[str, list[dict[str, Any]]] = {}
     written: dict[str, Path] = {}
     try:
-        for topic, log_time, message in read_messages(path, selected):
-            row = [(LOG_TIME_COLUMN, seconds_text(log_time))] + flatten(message, types[topic])
-            if topic in variable:
+        for topic, type_name, log_time, message in decode_bag(path, selected, bag_types):
+            row = [(LOG_TIME_COLUMN, seconds_text(log_time))] \
+                + flatten(fielddefs, message, type_name)
+            if topic not in variable:
+                variable[topic] = _has_sequences(fielddefs, type_name)
+            if variable[topic]:
+                buffered.setdefault(topic, [])
                 buffered[topic].append(dict(row))
                 continue
             writer = writers.get(topic)

@@ -1,8 +1,10 @@
 """What a bag holds (``bag_info``) and its ``ros2 bag info``-style text (``format_info``).
 
-Counts and times come from the MCAP files themselves (their summary statistics, or a record
-walk for a file whose writer died), QoS and type hashes from ``metadata.yaml`` when present,
-else from the channels' metadata. Rates are mean rates over the bag: (count - 1) / duration.
+Counts and times come from a walk of the MCAP files themselves (every chunk decompressed and
+CRC-checked: damage is listed in ``damage``, one line per damaged file, with the messages read
+against the count the file's summary promised), QoS and type hashes from ``metadata.yaml``
+when present, else from the channels' metadata. Rates are mean rates over the bag:
+(count - 1) / duration. Service-event topics (``*/srv/*_Event``) are counted as services.
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mcap.reader import make_reader
 from mcap.records import Channel, Schema
 
 from . import records
@@ -32,39 +33,27 @@ def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
 
 
 def file_summary(path: Path) -> dict[str, Any]:
-    """Size, completeness, counts, times and topics of one MCAP file."""
+    """Size, completeness, damage, counts, times and topics of one MCAP file."""
     scan = records.scan(path)
     topics: dict[str, dict[str, Any]] = {}
     start, end, count = 2**63, -1, 0
-    summary = None
-    if scan.has_footer:
-        with open(path, "rb") as stream:
-            try:
-                summary = make_reader(stream).get_summary()
-            except Exception as exc:  # mcap raises assorted errors on a bad summary
-                raise CorruptBagError(f"{path}: unreadable MCAP summary: {exc}") from None
-    if summary is not None and summary.statistics is not None:
-        stats = summary.statistics
-        for channel_id, channel in summary.channels.items():
-            info = _channel_info(channel, summary.schemas.get(channel.schema_id))
-            info["count"] = stats.channel_message_counts.get(channel_id, 0)
-            topics[channel.topic] = info
-        count = stats.message_count
-        start, end = stats.message_start_time, stats.message_end_time
-    else:
-        walk = records.McapWalk(path)
-        for channel, log_time, _, _, _ in walk.messages():
-            if channel.topic not in topics:
-                topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
-            topics[channel.topic]["count"] += 1
-            count += 1
-            start, end = min(start, log_time), max(end, log_time)
-        for channel in walk.channels.values():  # topics whose messages were all lost
-            topics.setdefault(channel.topic,
-                              _channel_info(channel, walk.schemas.get(channel.schema_id)))
-    return {"path": str(path), "size_bytes": scan.size, "complete": scan.has_footer,
-            "compression": scan.chunk_compression, "message_count": count,
-            "start_ns": start if count else 0, "end_ns": end if count else 0, "topics": topics}
+    walk = records.McapWalk(path)
+    for channel, log_time, _, _, _ in walk.messages():
+        if channel.topic not in topics:
+            topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
+        topics[channel.topic]["count"] += 1
+        count += 1
+        start, end = min(start, log_time), max(end, log_time)
+    for channel in walk.channels.values():  # topics without messages (or all lost)
+        topics.setdefault(channel.topic,
+                          _channel_info(channel, walk.schemas.get(channel.schema_id)))
+    compression = scan.chunk_compression
+    if path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
+        compression = f"file zstd{', chunk ' + compression if compression else ''}"
+    return {"path": str(path), "size_bytes": path.stat().st_size, "complete": scan.has_footer,
+            "compression": compression, "message_count": count,
+            "start_ns": start if count else 0, "end_ns": end if count else 0, "topics": topics,
+            "damage": str(walk.damage()) if walk.errors else ""}
 
 
 def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
@@ -116,6 +105,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "ros_distro": metadata.ros_distro if metadata else "",
         "compression": next((f["compression"] for f in files if f["compression"]), ""),
         "complete": all(f["complete"] for f in files),
+        "damage": [f["damage"] for f in files if f["damage"]],
         "size_bytes": sum(f["size_bytes"] for f in files),
         "files": files,
         "message_count": sum(f["message_count"] for f in files),
@@ -143,7 +133,7 @@ def format_info(info: dict[str, Any]) -> str:
     """``ros2 bag info``-like text of a ``bag_info`` dict (plus rates and file state)."""
     pad = " " * 19
     names = [Path(f["path"]).name + ("" if f["complete"] else "  (not closed: reindex it)")
-             for f in info["files"]]
+             + ("  (DAMAGED)" if f["damage"] else "") for f in info["files"]]
     lines = [
         "Files:             " + f"\n{pad}".join(names),
         f"Bag size:          {_size(info['size_bytes'])}",
@@ -155,11 +145,15 @@ def format_info(info: dict[str, Any]) -> str:
         f"End:               {_stamp(info['end_ns'])}",
         f"Messages:          {info['message_count']}",
     ]
-    topic_lines = [
-        f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
-        f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: {t['serialization_format']}"
-        for name, t in info["topics"].items()]
+    topic_lines, service_lines = [], []
+    for name, t in info["topics"].items():
+        line = (f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
+                f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: "
+                f"{t['serialization_format']}")
+        is_service = "/srv/" in t["type"] and t["type"].endswith("_Event")
+        (service_lines if is_service else topic_lines).append(line)
     lines.append("Topic information: " + f"\n{pad}".join(topic_lines))
-    lines.append("Service:           0")
-    lines.append("Service information: ")
+    lines.append(f"Service:           {len(service_lines)}")
+    lines.append("Service information: " + f"\n{pad}".join(service_lines))
+    lines += [f"DAMAGED:           {d}" for d in info.get("damage", [])]
     return "\n".join(lines)

@@ -1,27 +1,32 @@
-"""Read rosbag2 (MCAP) folders or plain ``.mcap`` files.
+"""Read rosbag2 (MCAP) folders or plain ``.mcap`` / ``.mcap.zstd`` files.
 
 Files are walked record by record in file order (``records.McapWalk``; a live recording is
-written in receive order), up to the end of the data section or, for a file whose writer died,
-up to the last complete chunk: a crashed recording reads before it is reindexed. Split bags are
-read file after file.
+written in receive order, so messages come as received, not sorted by time), up to the end of
+the data section or, for a file whose writer died, up to the last complete chunk: a crashed
+recording reads before it is reindexed. Split bags are read file after file. Damage found on
+the way (CRC, garbled records) is reported as one ``BagDamageWarning`` per file; messages are
+decoded with the bag's own schemas (``decode.BagTypes``), undecodable topics are left out with
+one ``SkippedTopicWarning`` each.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
 from mcap.records import Channel, Schema
 
-from .errors import BagNotFoundError, CorruptBagError, UnknownTopicError, WrongTopicTypeError
+from .decode import BagTypes
+from .errors import (BagDamageWarning, BagNotFoundError, CorruptBagError, SkippedTopicWarning,
+                     UnknownTopicError, WrongTopicTypeError)
 from .metadata import METADATA_FILENAME, BagMetadata
-from .records import McapWalk
+from .records import McapWalk, is_mcap_name
 from .series import SERIES_FIELDS, decode_series
-from .types import decoding_type, deserialize
 
-_INDEX_RE = re.compile(r"_(\d+)\.mcap$")
+_INDEX_RE = re.compile(r"_(\d+)\.mcap(?:\.zstd)?$")
 
 
 def _file_order(path: Path) -> tuple[int, str]:
@@ -30,15 +35,16 @@ def _file_order(path: Path) -> tuple[int, str]:
 
 
 def folder_mcap_files(folder: Path) -> list[Path]:
-    """Every ``*.mcap`` of a folder, in split order (``_0``, ``_1``, ..., ``_10``)."""
-    return sorted(folder.glob("*.mcap"), key=_file_order)
+    """Every ``*.mcap`` (or ``*.mcap.zstd``) of a folder, in split order (``_0``, ..., ``_10``)."""
+    return sorted((p for p in folder.iterdir() if p.is_file() and is_mcap_name(p)),
+                  key=_file_order)
 
 
 def bag_files(path: str | Path) -> list[Path]:
     """The MCAP files of a bag folder (in recording order) or ``[path]`` for a ``.mcap``."""
     path = Path(path)
     if path.is_file():
-        if path.suffix != ".mcap":
+        if not is_mcap_name(path):
             raise BagNotFoundError(f"{path} is not an .mcap file or a rosbag2 folder")
         return [path]
     if not path.is_dir():
@@ -71,6 +77,8 @@ def iter_bag(path: str | Path, topics: str | Iterable[str] | None = None
         walk = McapWalk(file, wanted)
         for channel, log_time, _, _, data in walk.messages():
             yield channel, walk.schemas.get(channel.schema_id), log_time, data
+        if walk.errors:
+            warnings.warn(BagDamageWarning(str(walk.damage())), stacklevel=2)
 
 
 def read_raw(path: str | Path, topics: str | Iterable[str] | None = None
@@ -80,31 +88,60 @@ def read_raw(path: str | Path, topics: str | Iterable[str] | None = None
         yield channel.topic, schema.name if schema else "", log_time, data
 
 
+def decode_bag(path: str | Path, topics: str | Iterable[str] | None = None,
+               types: BagTypes | None = None) -> Iterator[tuple[str, str, int, Any]]:
+    """``(topic, type_name, log_time_ns, message)``, decoded with the bag's own schemas into
+    rosbags dataclasses (a bag recorded before a field was added reads with its own
+    definition); topics that cannot be decoded are skipped with a warning each, messages that
+    do not decode are counted in one ``BagDamageWarning`` per topic."""
+    types = types or BagTypes()
+    fallback = _metadata_types(path)
+    known: dict[int, str | None] = {}
+    bad: dict[str, tuple[int, str]] = {}
+    for channel, schema, log_time, data in iter_bag(path, topics):
+        key = id(channel)
+        if key not in known:
+            known[key] = types.type_of(channel, schema, fallback.get(channel.topic, ""))
+            if known[key] is None:
+                warnings.warn(SkippedTopicWarning(
+                    f"skipped {channel.topic}: {types.skipped[channel.topic]}"), stacklevel=2)
+        type_name = known[key]
+        if type_name is None:
+            continue
+        try:
+            message = types.deserialize(data, type_name)
+        except Exception as exc:  # rosbags raises assorted errors on bad CDR
+            count, first = bad.get(channel.topic, (0, str(exc)))
+            bad[channel.topic] = (count + 1, first)
+            continue
+        yield channel.topic, type_name, log_time, message
+    for topic, (count, first) in bad.items():
+        warnings.warn(BagDamageWarning(
+            f"damaged: {count} message(s) on {topic} do not decode ({first})"), stacklevel=2)
+
+
 def read_messages(path: str | Path, topics: str | Iterable[str] | None = None
                   ) -> Iterator[tuple[str, int, Any]]:
-    """``(topic, log_time_ns, message)`` with messages decoded to rosbags dataclasses (types
-    the typestore lacks are registered from the bag's own schemas)."""
-    known: dict[str, str] = {}
-    for channel, schema, log_time, data in iter_bag(path, topics):
-        if schema is None:
-            raise CorruptBagError(f"topic {channel.topic} has no schema: cannot decode it")
-        type_name = known.get(schema.name)
-        if type_name is None:
-            type_name = decoding_type(schema.name, schema.data.decode("utf-8"))
-            known[schema.name] = type_name
-        yield channel.topic, log_time, deserialize(data, type_name)
+    """``(topic, log_time_ns, message)`` with messages decoded to rosbags dataclasses."""
+    for topic, _, log_time, message in decode_bag(path, topics):
+        yield topic, log_time, message
+
+
+def _metadata_types(path: str | Path) -> dict[str, str]:
+    path = Path(path)
+    if path.is_dir() and (path / METADATA_FILENAME).is_file():
+        try:
+            return {t.name: t.type for t in BagMetadata.read(path).topics}
+        except CorruptBagError:
+            pass
+    return {}
 
 
 def topic_types(path: str | Path) -> dict[str, str]:
     """``{topic: type}`` of a bag (from metadata.yaml, else from the MCAP channels)."""
-    path = Path(path)
-    if path.is_dir() and (path / METADATA_FILENAME).is_file():
-        try:
-            found = {t.name: t.type for t in BagMetadata.read(path).topics}
-            if found:
-                return found
-        except CorruptBagError:
-            pass
+    found = _metadata_types(path)
+    if found:
+        return found
     from .info import mcap_topics  # local import: info builds on this module
     return {name: t["type"] for name, t in mcap_topics(path).items()}
 

@@ -2,25 +2,37 @@
 
 ``McapWalk`` reads an MCAP file record by record through an mmap: chunks are decompressed
 (zstd, lz4 or none) and CRC-checked whole, message records are unpacked with one
-``struct.unpack_from`` each. The walk stops at the end of the data section, or -- for a file
-whose writer was killed -- at the first record that is incomplete or damaged; every message
-before that point is returned. ``scan`` only walks the top-level record headers.
+``struct.unpack_from`` each. A chunk that fails its CRC or does not decompress is skipped and
+counted; a garbled top-level record header is skipped to the next chunk the summary's chunk
+index names; the data-section and summary CRCs are checked. Everything found lands in
+``errors`` (``damage()`` sums it up against the summary's message counts). The walk stops at
+the end of the data section, or -- for a file whose writer was killed -- at the first
+incomplete record; every message before that point is returned. ``scan`` only walks the
+top-level record headers. A FILE-mode compressed ``.mcap.zstd`` is decompressed into memory.
+
+Why hand-written and not ``mcap.reader``: the library stops at the first damaged record (its
+stream reader) or needs an intact summary (its seeking reader), so it can neither recover a
+truncated file nor read past a damaged chunk; it is used here for the records' bodies
+(Schema, Channel, Metadata, Header, the summary) and by the writer.
 """
 
 from __future__ import annotations
 
+import bisect
+import contextlib
 import io
 import mmap
 import os
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Channel, Header, Metadata, Schema
+from mcap.reader import make_reader
+from mcap.records import Channel, Header, Metadata, Schema, Statistics
 
 from .errors import CorruptBagError
 
@@ -29,6 +41,10 @@ _RECORD = struct.Struct("<BQ")
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK = struct.Struct("<QQQII")   # start, end, uncompressed size, uncompressed crc, len(compr.)
 _CHUNK_COMPRESSION_AT = 8 + 8 + 8 + 4
+_FOOTER = struct.Struct("<QQI")    # summary start, summary offset start, summary crc
+_FOOTER_RECORD = _RECORD.size + _FOOTER.size
+#: suffix of a file compressed whole by rosbag2 (``--compression-mode file``)
+FILE_COMPRESSED_SUFFIX = ".zstd"
 #: (channel, log_time_ns, publish_time_ns, sequence, data)
 MessageTuple = tuple[Channel, int, int, int, bytes]
 
@@ -47,32 +63,77 @@ class Scan:
         return self.size - self.complete_end
 
 
-def scan(path: str | Path) -> Scan:
-    """Walk the top-level record headers of an MCAP file (seeks over the bodies)."""
+def is_mcap_name(path: Path) -> bool:
+    """``x.mcap`` or a FILE-mode compressed ``x.mcap.zstd``."""
+    return path.name.endswith(".mcap") or path.name.endswith(".mcap" + FILE_COMPRESSED_SUFFIX)
+
+
+@contextlib.contextmanager
+def open_buffer(path: str | Path) -> Iterator[bytes | mmap.mmap]:
+    """The file's bytes: an mmap, or for ``.mcap.zstd`` the decompressed content."""
     path = Path(path)
-    size = os.path.getsize(path)
-    with open(path, "rb") as stream:
-        magic = stream.read(len(MAGIC))
-        if magic != MAGIC:
-            if size < len(MAGIC) and MAGIC.startswith(magic):  # killed before the first flush
-                return Scan(size, 0, False, "")
-            raise CorruptBagError(f"{path} is not an MCAP file (bad magic)")
+    if path.name.endswith(FILE_COMPRESSED_SUFFIX):
+        import zstandard
+        with open(path, "rb") as stream:
+            try:
+                data = zstandard.ZstdDecompressor().stream_reader(stream).read()
+            except zstandard.ZstdError as exc:
+                raise CorruptBagError(f"{path} does not decompress: {exc}") from None
+        yield data
+        return
+    if os.path.getsize(path) == 0:
+        yield b""
+        return
+    with open(path, "rb") as stream, \
+            mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+        yield mapped
+
+
+def _check_magic(path: Path, buf) -> bool:
+    """True if ``buf`` starts with the magic; False if it is a prefix of it (killed before
+    the first flush); else CorruptBagError."""
+    if buf[:len(MAGIC)] == MAGIC:
+        return True
+    if len(buf) < len(MAGIC) and MAGIC.startswith(bytes(buf)):
+        return False
+    raise CorruptBagError(f"{path} is not an MCAP file (bad magic)")
+
+
+def scan(path: str | Path) -> Scan:
+    """Walk the top-level record headers of an MCAP file (skips over the bodies)."""
+    path = Path(path)
+    with open_buffer(path) as buf:
+        size = len(buf)
+        if not _check_magic(path, buf):
+            return Scan(size, 0, False, "")
+        footer = _footer_at(buf)
         end, compression = len(MAGIC), None
         while end + _RECORD.size <= size:
-            stream.seek(end)
-            opcode, length = _RECORD.unpack(stream.read(_RECORD.size))
+            opcode, length = _RECORD.unpack_from(buf, end)
             record_end = end + _RECORD.size + length
             if record_end > size:
                 break
             if opcode == Opcode.CHUNK and compression is None:
-                stream.seek(end + _RECORD.size + _CHUNK_COMPRESSION_AT)
-                (n,) = struct.unpack("<I", stream.read(4))
-                compression = stream.read(n).decode("utf-8", "replace")
+                at = end + _RECORD.size + _CHUNK_COMPRESSION_AT
+                (n,) = struct.unpack_from("<I", buf, at)
+                compression = bytes(buf[at + 4:at + 4 + n]).decode("utf-8", "replace")
+                if footer is not None:  # complete: the first chunk is all we wanted
+                    break
             end = record_end
             if opcode == Opcode.FOOTER:
-                stream.seek(end)
-                return Scan(size, end, stream.read(len(MAGIC)) == MAGIC, compression or "")
+                break
+    if footer is not None:
+        return Scan(size, size, True, compression or "")
     return Scan(size, end, False, compression or "")
+
+
+def _footer_at(buf) -> int | None:
+    """Offset of the footer record if the file ends with footer + magic, else None."""
+    at = len(buf) - len(MAGIC) - _FOOTER_RECORD
+    if at < len(MAGIC) or bytes(buf[-len(MAGIC):]) != MAGIC:
+        return None
+    opcode, length = _RECORD.unpack_from(buf, at)
+    return at if opcode == Opcode.FOOTER and length == _FOOTER.size else None
 
 
 def _parse(record_type, body: memoryview):
@@ -91,10 +152,40 @@ def _decompress(compression: str, data: memoryview, size: int) -> bytes | memory
     raise CorruptBagError(f"unsupported MCAP chunk compression {compression!r}")
 
 
+@dataclass
+class Damage:
+    """What a walk found wrong with one file."""
+
+    path: Path
+    errors: list[str] = field(default_factory=list)
+    messages_read: int = 0
+    messages_expected: int | None = None  # from the summary's statistics, if readable
+
+    @property
+    def lost(self) -> int | None:
+        if self.messages_expected is None:
+            return None
+        return max(0, self.messages_expected - self.messages_read)
+
+    def __bool__(self) -> bool:
+        return bool(self.errors)
+
+    def __str__(self) -> str:
+        kinds: dict[str, int] = {}
+        for error in self.errors:
+            kind = error.split(":")[0]
+            kinds[kind] = kinds.get(kind, 0) + 1
+        what = ", ".join(f"{n} {kind}" for kind, n in kinds.items())
+        counts = (f"read {self.messages_read} of {self.messages_expected} messages "
+                  f"({self.lost} lost)" if self.messages_expected is not None
+                  else f"read {self.messages_read} messages")
+        return f"{self.path.name}: damaged: {what}; {counts}; first: {self.errors[0]}"
+
+
 class McapWalk:
     """One pass over an MCAP file; ``messages()`` yields ``(channel, log_time_ns,
     publish_time_ns, sequence, data)`` of the wanted topics and fills ``schemas``,
-    ``channels``, ``metadata`` and ``header`` as their records go by."""
+    ``channels``, ``metadata``, ``header`` and ``errors`` as their records go by."""
 
     def __init__(self, path: str | Path, topics: Iterable[str] | None = None) -> None:
         self.path = Path(path)
@@ -103,60 +194,112 @@ class McapWalk:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.metadata: list[Metadata] = []
+        self.statistics: Statistics | None = None
         self.reached_end = False  # the data section ended normally (DataEnd or Footer)
         self.damaged = ""         # why the walk stopped early, "" if it did not
+        self.errors: list[str] = []  # damage found (CRC, garbled records), walk went on
         self.good_end = 0         # offset just past the last top-level record fully read
+        self.counts: dict[int, int] = {}  # channel id -> messages read (wanted ones)
         self._wanted: set[int] = set()
+        self._chunk_starts: list[int] = []
 
     def _add_channel(self, channel: Channel) -> None:
         self.channels[channel.id] = channel
         if self.topics is None or channel.topic in self.topics:
             self._wanted.add(channel.id)
 
-    def _records(self, buf, start: int, top: bool) -> Iterator[MessageTuple]:
-        pos, n = start, len(buf)
+    def damage(self) -> Damage:
+        """The errors found, with the messages read against the summary's count."""
+        expected = None
+        if self.statistics is not None:
+            counts = self.statistics.channel_message_counts
+            expected = sum(counts.get(c, 0) for c in self._wanted) if counts \
+                else (self.statistics.message_count if self.topics is None else None)
+        return Damage(self.path, list(self.errors), sum(self.counts.values()), expected)
+
+    def _resync(self, at: int) -> int | None:
+        """Start of the next indexed chunk after a garbled record at ``at``, if any."""
+        i = bisect.bisect_right(self._chunk_starts, at)
+        return self._chunk_starts[i] if i < len(self._chunk_starts) else None
+
+    def _records(self, buf, start: int, top: bool, end: int | None = None
+                 ) -> Iterator[MessageTuple]:
+        pos, n = start, len(buf) if end is None else end
         unpack_record, unpack_message = _RECORD.unpack_from, _MESSAGE.unpack_from
-        wanted, channels = self._wanted, self.channels
+        wanted, channels, counts = self._wanted, self.channels, self.counts
         while pos + 9 <= n:
             opcode, length = unpack_record(buf, pos)
             body, pos = pos + 9, pos + 9 + length
             if pos > n:
-                self.damaged = f"record at offset {body - 9} is truncated"
+                where = body - 9
+                if not top:
+                    self.errors.append(f"garbled record: in a chunk at {where}")
+                    return
+                if (resync := self._resync(where)) is not None:
+                    self.errors.append(f"garbled record: header at offset {where}")
+                    pos = resync
+                    continue
+                if self.statistics is not None:  # complete file: this is damage
+                    self.errors.append(f"garbled record: header at offset {where}")
+                self.damaged = f"record at offset {where} is truncated"
                 return
             if opcode == 0x05:  # Message
+                if length < _MESSAGE.size:
+                    self.errors.append(f"garbled record: message at {body - 9}")
+                    continue
                 channel_id, sequence, log_time, publish_time = unpack_message(buf, body)
                 if channel_id in wanted:
+                    counts[channel_id] = counts.get(channel_id, 0) + 1
                     yield channels[channel_id], log_time, publish_time, sequence, \
                         bytes(buf[body + 22:pos])
+                elif channel_id not in channels:
+                    self.errors.append(f"garbled record: message of unknown channel "
+                                       f"{channel_id}")
             elif opcode == Opcode.CHUNK:
-                yield from self._chunk(buf[body:pos])
-                if self.damaged:
-                    return
-            elif opcode == Opcode.SCHEMA:
-                schema = _parse(Schema, buf[body:pos])
-                self.schemas[schema.id] = schema
-            elif opcode == Opcode.CHANNEL:
-                self._add_channel(_parse(Channel, buf[body:pos]))
-            elif top and opcode == Opcode.METADATA:
-                self.metadata.append(_parse(Metadata, buf[body:pos]))
-            elif top and opcode == Opcode.HEADER:
-                self.header = _parse(Header, buf[body:pos])
+                yield from self._chunk(buf[body:pos], body - 9)
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) or (
+                    top and opcode in (Opcode.METADATA, Opcode.HEADER)):
+                try:
+                    self._definition(opcode, buf[body:pos])
+                except Exception as exc:  # mcap raises assorted errors on garbled bodies
+                    self.errors.append(f"garbled record: opcode {opcode} at {body - 9}: {exc}")
             elif top and opcode in (Opcode.DATA_END, Opcode.FOOTER):
                 self.reached_end = True
                 self.good_end = pos
+                if opcode == Opcode.DATA_END:
+                    self._check_data_crc(buf, body - 9, buf[body:pos])
                 return
             if top:
                 self.good_end = pos
         if pos != n:
-            self.damaged = f"record header at offset {pos} is truncated"
+            if top:
+                self.damaged = f"record header at offset {pos} is truncated"
+            else:
+                self.errors.append(f"garbled record: chunk ends inside a record at {pos}")
 
-    def _chunk(self, body: memoryview) -> Iterator[MessageTuple]:
+    def _definition(self, opcode: int, body) -> None:
+        if opcode == Opcode.SCHEMA:
+            schema = _parse(Schema, body)
+            self.schemas[schema.id] = schema
+        elif opcode == Opcode.CHANNEL:
+            self._add_channel(_parse(Channel, body))
+        elif opcode == Opcode.METADATA:
+            self.metadata.append(_parse(Metadata, body))
+        else:
+            self.header = _parse(Header, body)
+
+    def _check_data_crc(self, buf, data_end_at: int, body) -> None:
+        (crc,) = struct.unpack_from("<I", body, 0) if len(body) >= 4 else (0,)
+        if crc and zlib.crc32(buf[:data_end_at]) != crc:
+            self.errors.append("data CRC error: the data section fails its CRC")
+
+    def _chunk(self, body: memoryview, at: int) -> Iterator[MessageTuple]:
         try:
             _, _, size, crc, n = _CHUNK.unpack_from(body, 0)
             compression = bytes(body[_CHUNK.size:_CHUNK.size + n]).decode("utf-8")
             (data_len,) = struct.unpack_from("<Q", body, _CHUNK.size + n)
         except (struct.error, UnicodeDecodeError):
-            self.damaged = "chunk header is garbled"
+            self.errors.append(f"garbled record: chunk header at {at}")
             return
         data_at = _CHUNK.size + n + 8
         try:
@@ -164,27 +307,48 @@ class McapWalk:
         except CorruptBagError:
             raise
         except Exception as exc:  # zstd/lz4 raise their own types on damaged data
-            self.damaged = f"chunk does not decompress: {exc}"
+            self.errors.append(f"chunk CRC error: chunk at {at} does not decompress ({exc})")
             return
         if len(data) != size or (crc and zlib.crc32(data) != crc):
-            self.damaged = "chunk fails its size or CRC check"
+            self.errors.append(f"chunk CRC error: chunk at {at} fails its size or CRC check")
             return
         yield from self._records(data, 0, top=False)
 
+    def _read_summary(self, buf) -> None:
+        """Statistics and chunk offsets from the summary (if the file has an intact one)."""
+        footer = _footer_at(buf)
+        if footer is None:
+            return
+        summary_start, offset_start, crc = _FOOTER.unpack_from(buf, footer + _RECORD.size)
+        if summary_start == 0:
+            return
+        if crc and zlib.crc32(buf[summary_start:footer + _RECORD.size + 16]) != crc:
+            self.errors.append("summary CRC error: the summary section fails its CRC")
+            return
+        try:
+            with contextlib.ExitStack() as stack:
+                stream = (io.BytesIO(buf) if isinstance(buf, bytes)
+                          else stack.enter_context(open(self.path, "rb")))
+                summary = make_reader(stream).get_summary()
+        except Exception as exc:  # mcap raises assorted errors on a bad summary
+            self.errors.append(f"summary CRC error: unreadable summary ({exc})")
+            return
+        if summary is None:
+            return
+        self.statistics = summary.statistics
+        self._chunk_starts = sorted(c.chunk_start_offset for c in summary.chunk_indexes)
+        self.schemas.update(summary.schemas)
+        for channel in summary.channels.values():  # known before any chunk (or if lost)
+            self._add_channel(channel)
+
     def messages(self) -> Iterator[MessageTuple]:
         """Messages of the wanted topics in file order."""
-        size = os.path.getsize(self.path)
-        if size < len(MAGIC):
-            with open(self.path, "rb") as stream:
-                if not MAGIC.startswith(stream.read()):
-                    raise CorruptBagError(f"{self.path} is not an MCAP file (bad magic)")
-            self.damaged = "file shorter than the MCAP magic"
-            return
-        with open(self.path, "rb") as stream, \
-                mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-            if mapped[:len(MAGIC)] != MAGIC:
-                raise CorruptBagError(f"{self.path} is not an MCAP file (bad magic)")
-            view = memoryview(mapped)
+        with open_buffer(self.path) as buf:
+            if not _check_magic(self.path, buf):
+                self.damaged = "file shorter than the MCAP magic"
+                return
+            self._read_summary(buf)
+            view = memoryview(buf)
             self.good_end = len(MAGIC)
             try:
                 yield from self._records(view, len(MAGIC), top=True)

@@ -4,11 +4,15 @@ Every MCAP file of the folder that lacks its footer is walked record by record u
 complete chunk (``records.McapWalk``) and rewritten as a complete, indexed file (written to a
 temporary file, then renamed over the original); complete files are left as they are. A fresh
 ``metadata.yaml`` is then written from what the files actually hold, keeping the old file's
-``custom_data``. Everything up to the writer's last flush survives.
+``custom_data``. Everything up to the writer's last flush survives. A complete file is
+walked too (every chunk CRC-checked): a damaged one is rewritten with the chunks that pass, and
+the report says "damaged", what was wrong and how many messages were recovered. A FILE-mode
+compressed ``.mcap.zstd`` is only checked, never rewritten.
 """
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +42,7 @@ class FileReport:
     rewritten: bool
     dropped_bytes: int = 0
     reason: str = ""
+    damage: str = ""  # CRC/record errors found, with the counts (records.Damage)
 
 
 @dataclass
@@ -55,10 +60,20 @@ class ReindexReport:
         lines = [f"reindexed {self.path}: {self.message_count} messages in {len(self.files)} "
                  f"file(s)"]
         for f in self.files:
-            state = (f"rewritten, {f.dropped_bytes} bytes dropped ({f.reason})"
-                     if f.rewritten else "complete, kept")
-            lines.append(f"  {f.path.name}: {f.message_count} messages, {state}")
+            if f.damage:
+                state = ("DAMAGED, rewritten with what passed its checks" if f.rewritten
+                         else "DAMAGED, left as is") + f" -- {f.damage}"
+            elif f.rewritten:
+                state = f"rewritten, {f.dropped_bytes} bytes dropped ({f.reason})"
+            else:
+                state = "complete, kept"
+            lines.append(f"  {f.path.name}: {f.message_count} messages recovered, {state}"
+                         if f.damage else f"  {f.path.name}: {f.message_count} messages, {state}")
         return "\n".join(lines)
+
+    @property
+    def damaged(self) -> bool:
+        return any(f.damage for f in self.files)
 
 
 class _TopicTable:
@@ -168,16 +183,23 @@ def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
         raise
     os.replace(tmp, path)
     return FileReport(path, record.message_count, True, scan.size - walk.good_end,
-                      walk.damaged or "no footer")
+                      walk.damaged or ("damaged" if walk.errors else "no footer"),
+                      str(walk.damage()) if walk.errors else "")
 
 
 def _keep(path: Path, table: _TopicTable, metadata: BagMetadata) -> FileReport | None:
-    with open(path, "rb") as stream:
-        try:
-            summary = make_reader(stream).get_summary()
-        except Exception:  # mcap raises assorted errors on a damaged summary
-            return None
+    walk = records.McapWalk(path)
+    read = sum(1 for _ in walk.messages())
+    if walk.errors and not path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
+        return None  # damaged: rewrite it with what passes
+    try:
+        with records.open_buffer(path) as buf:
+            summary = make_reader(io.BytesIO(bytes(buf))).get_summary()
+    except Exception:  # mcap raises assorted errors on a damaged summary
+        summary = None
     if summary is None or summary.statistics is None:
+        if walk.errors:
+            return FileReport(path, read, False, damage=str(walk.damage()))
         return None
     stats = summary.statistics
     for channel_id, channel in summary.channels.items():
@@ -186,7 +208,8 @@ def _keep(path: Path, table: _TopicTable, metadata: BagMetadata) -> FileReport |
     record = FileRecord(path=path.name)
     record.add(stats.message_start_time, stats.message_end_time, stats.message_count)
     metadata.files.append(record)
-    return FileReport(path, stats.message_count, False)
+    return FileReport(path, read if walk.errors else stats.message_count, False,
+                      damage=str(walk.damage()) if walk.errors else "")
 
 
 def reindex(path: str | Path) -> ReindexReport:
@@ -206,12 +229,18 @@ def reindex(path: str | Path) -> ReindexReport:
         except CorruptBagError:
             previous = None
     metadata = BagMetadata(custom_data=dict(previous.custom_data) if previous else {},
-                           ros_distro=(previous.ros_distro if previous else "") or "jazzy")
+                           ros_distro=(previous.ros_distro if previous else "") or "jazzy",
+                           compression_format=previous.compression_format if previous else "",
+                           compression_mode=previous.compression_mode if previous else "")
     table = _TopicTable(previous)
     report = ReindexReport(path)
     for file in files:
         scan = records.scan(file)
-        kept = _keep(file, table, metadata) if scan.has_footer else None
+        if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
+            kept = _keep(file, table, metadata) or FileReport(
+                file, 0, False, reason="file-compressed: checked, not rewritten")
+        else:
+            kept = _keep(file, table, metadata) if scan.has_footer else None
         report.files.append(kept or _rewrite(file, scan, table, metadata))
     metadata.topics = table.records()
     if path.is_dir():
