@@ -2,13 +2,17 @@
 SHELL := /bin/bash
 ENV := source scripts/env.sh &&
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test test-fast lint bench clean
 setup:            ## .venv + pinned wheels, wheel fixes, piezo_stage_msgs build (idempotent)
 	@bash scripts/setup.sh
 demo: setup       ## the simulated stage, end to end
 	@$(ENV) piezo-stage demo --out demo_out
-test: setup       ## every test (pytest over test/)
+test: setup lint  ## lint, then every test (pytest over test/: the unit, ros and slow layers)
 	@$(ENV) python -m pytest test -q -p no:cacheprovider
+test-fast: setup  ## the unit layer without slow tests (no ROS processes, no sockets; < 1 min)
+	@$(ENV) python -m pytest test -q -p no:cacheprovider -m "unit and not slow"
+lint: setup       ## ruff (rules and reasons in pyproject.toml)
+	@$(ENV) ruff check .
 bench: setup      ## speed/accuracy figures against their baselines
 	@$(ENV) for b in bench/*.py; do echo "== $$b"; python $$b || exit 1; done
 clean:

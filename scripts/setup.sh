@@ -70,7 +70,7 @@ fi
 
 # 4. piezo_stage itself (editable: console scripts + share/ data files in the venv) --------
 pkg_stamp="$VENV/.piezo-package.stamp"
-pkg_hash="$(hash_of setup.py setup.cfg package.xml)"
+pkg_hash="$(hash_of setup.py setup.cfg pyproject.toml package.xml)"
 if [ "$(cat "$pkg_stamp" 2>/dev/null)" != "$pkg_hash" ]; then
   say "installing piezo_stage (editable)"
   quiet_pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
@@ -83,7 +83,8 @@ mkdir -p "$VENV/share/ament_index/resource_index/packages" "$VENV/share/piezo_st
 touch "$VENV/share/ament_index/resource_index/packages/piezo_stage"
 ln -sfn "$ROOT/package.xml" "$VENV/share/piezo_stage/package.xml"
 ln -sfn "$ROOT/config" "$VENV/share/piezo_stage/config"
-for node in voltage_driver laser_reader plant excitation identifier controller recorder player; do
+# the node list is defined once, in piezo_stage/nodes/__init__.py (pure Python)
+for node in $("$PYV" -c "from piezo_stage.nodes import NODES; print(' '.join(NODES))"); do
   ln -sfn "$VENV/bin/$node" "$VENV/lib/piezo_stage/$node"
 done
 say "ready: source scripts/env.sh"
