@@ -101,7 +101,7 @@ def test_identify_reports_errors_without_numbers(tmp_path, patch_runs, capsys):
     assert captured.out == "" and "saturated" in captured.err
     assert main(["identify", str(a), str(tmp_path / "missing.csv")]) == 1
     assert "cannot read" in capsys.readouterr().err
-    assert main(["identify", str(a)]) == 1
+    assert main(["identify", str(a), "--method", "analytic"]) == 1
     assert "two runs" in capsys.readouterr().err
 
 

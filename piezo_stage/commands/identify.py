@@ -1,37 +1,66 @@
-"""Identify the (modified) Bouc-Wen model from two runs x(t), x(t)+q (thesis ch. 9-10).
+"""Identify the (modified) Bouc-Wen model from one or more recorded runs (thesis ch. 9-10).
 
-RUN_A and RUN_B are CSV files with columns time, input, output (units in brackets are
-converted to SI), or rosbag2 folders / .mcap files; a single bag holding both runs is split
-by the excitation topic's `run` field. Prints the parameters (refined and analytic), or one
-JSON object with --json; --output writes the parameter-set YAML the plant node loads.
+RUN... are CSV files with columns time, input, output (units in brackets are converted to
+SI), or rosbag2 folders / .mcap files; a bag holding several runs is split by the excitation
+topic's `run` field. --method analytic: two T-wave runs x(t), x(t)+q at their limit cycle
+(Table 10.2 + refinement); fit: the model simulated over the whole records (any input,
+transients, one run) and fitted by least squares, with standard errors, an estimated delay,
+optional drift and a held-out check; auto (default): analytic when its preconditions hold,
+the fit otherwise. Prints the parameters, or one JSON object with --json; --output writes the
+parameter-set YAML the plant node loads (and PNGs of the fit beside it).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from dataclasses import replace
+from pathlib import Path
 
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
-from piezo_stage.identification.pipeline import IdentifyOptions, identify
+from piezo_stage.identification.methods import Method, identify_runs
+from piezo_stage.identification.pipeline import IdentifyOptions
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
+from piezo_stage.identification.simfit import FitOptions
+from piezo_stage.model.parameter_set import DriftKind
+
+
+class UsageError(ValueError):
+    """An option value that makes no sense (exit 2, before any data are read)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run_a", metavar="RUN_A", help="first run (CSV, bag folder or .mcap)")
-    parser.add_argument("run_b", metavar="RUN_B", nargs="?",
-                        help="second run, offset by q (omit when RUN_A is a bag holding both)")
+    parser.add_argument("runs", metavar="RUN", nargs="+",
+                        help="recorded runs (CSV, bag folder or .mcap); the analytic method "
+                             "needs two, x(t) and x(t)+q (or one bag holding both)")
+    parser.add_argument("--method", choices=[m.value for m in Method], default=Method.AUTO.value,
+                        help="analytic (ch. 9-10), fit (simulation error, any runs) or auto "
+                             "(analytic when its preconditions hold, else fit; default)")
     parser.add_argument("--degree", "-N", type=int, default=1,
                         help="degree N of the polynomial part (10.4); 1 = plain Bouc-Wen (default)")
     parser.add_argument("--no-refine", action="store_true",
-                        help="return the analytic Table 10.2 estimate without least-squares refinement")
+                        help="analytic method: the Table 10.2 estimate without least-squares "
+                             "refinement")
+    parser.add_argument("--drift", choices=[k.value for k in DriftKind], default="none",
+                        help="fit: a slow output drift per run, linear or logarithmic in time "
+                             "(creep; default none)")
+    parser.add_argument("--no-delay", action="store_true",
+                        help="fit: do not estimate an input-to-output delay")
+    parser.add_argument("--holdout", type=float, default=FitOptions.holdout, metavar="FRACTION",
+                        help="fit: share of each run (its end) held out to check the model's "
+                             "prediction when runs hold more than 3 periods (default 0.25; 0: off)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--output", "-o", metavar="PARAMS_YAML",
                         help="write the identified parameter set (YAML) here")
+    parser.add_argument("--plots", metavar="DIR", default=None,
+                        help="folder for PNGs of the fit (default: the folder of --output)")
+    parser.add_argument("--no-plot", action="store_true", help="write no PNGs")
     parser.add_argument("--name", default="identified", help="name stored in the parameter set")
     parser.add_argument("--input-topic", default="/piezo/voltage")
     parser.add_argument("--output-topic", default="/piezo/displacement")
@@ -48,44 +77,104 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="apply the §10.3.2 second-order filter (zero phase) to the cycles")
     parser.add_argument("--max-rms", type=float, default=None, metavar="FRACTION",
                         help="accept a residual RMS up to this fraction of the output span "
-                             "(default 0.005) before reporting a bad fit")
+                             "before reporting a bad fit (default 0.005 analytic, 0.02 fit)")
 
 
-def _options(args: argparse.Namespace) -> IdentifyOptions:
+def _fraction(name: str, value: float, lo: float, hi: float, *, open_lo: bool = True) -> None:
+    ok = math.isfinite(value) and (value > lo if open_lo else value >= lo) and value <= hi
+    if not ok:
+        bracket = "(" if open_lo else "["
+        raise UsageError(f"{name} must be in {bracket}{lo:g}, {hi:g}], got {value!r}")
+
+
+def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
     design = DesignPoints()
     if args.design_points:
         try:
             f1, f2, f3 = (float(s) for s in args.design_points.split(","))
         except ValueError:
-            raise IdentificationError(
-                f"--design-points needs three comma-separated fractions, got {args.design_points!r}")
+            raise UsageError(  # noqa: B904 - the message says it all
+                "--design-points needs three comma-separated fractions, "
+                f"got {args.design_points!r}")
+        for label, f in (("F1", f1), ("F2", f2), ("F3", f3)):
+            _fraction(f"--design-points {label}", f, 0.0, 1.0, open_lo=False)
         design = DesignPoints(f1=f1, f2=f2, f3=f3)
-    refinement = RefineOptions() if args.max_rms is None else RefineOptions(max_rms_fraction=args.max_rms)
-    return IdentifyOptions(
+    if args.degree < 1:
+        raise UsageError(f"--degree must be an integer >= 1, got {args.degree}")
+    if args.steady_periods is not None and args.steady_periods < 1:
+        raise UsageError(
+            f"--steady-periods must be >= 1 (periods to average), got {args.steady_periods}")
+    fit = FitOptions(drift=DriftKind(args.drift), fit_delay=not args.no_delay)
+    _fraction("--holdout", args.holdout, 0.0, 0.9, open_lo=False)
+    fit = replace(fit, holdout=args.holdout)
+    refinement = RefineOptions()
+    if args.max_rms is not None:
+        _fraction("--max-rms", args.max_rms, 0.0, 1.0)
+        refinement = RefineOptions(max_rms_fraction=args.max_rms)
+        fit = replace(fit, max_rms_fraction=args.max_rms)
+    options = IdentifyOptions(
         degree=args.degree, refine=not args.no_refine,
         input_sign=None if args.input_sign == "auto" else int(args.input_sign),
         cycle=CycleOptions(data_filter=args.filter, steady_periods=args.steady_periods),
         design=design, refinement=refinement)
+    return options, fit
 
 
 def _text(result: IdentificationResult) -> str:
-    rows = [("", "refined" if result.refined else "analytic", "analytic")]
+    fitted = result.method == "fit"
+    std = result.diagnostics.get("std", {})
+    head = "fit" if fitted else "refined" if result.refined else "analytic"
+    rows = [("", head, "± std" if fitted else "", "analytic")]
     final, first = result.parameters, result.analytic
 
     def row(label: str, get) -> None:
-        rows.append((label, f"{get(final):.6g}", f"{get(first):.6g}" if first is not None else "-"))
+        sd = std.get(label)
+        rows.append((label, f"{get(final):.6g}", f"{sd:.2g}" if sd is not None else "",
+                     f"{get(first):.6g}" if first is not None else "-"))
 
     for i in range(len(final.kappa)):
         row(f"kappa_{i + 1}", lambda p, i=i: p.kappa[i])
     for name in ("y0", "kappa_w", "rho", "sigma", "n"):
         row(name, lambda p, name=name: getattr(p, name))
-    rows.append(("rms_error", f"{result.rms_error:.4g}", f"{result.analytic_rms_error:.4g}"))
+    rows.append(("rms_error", f"{result.rms_error:.4g}", "", f"{result.analytic_rms_error:.4g}"))
     width = max(len(r[0]) for r in rows)
-    lines = [f"{a:<{width}}  {b:>14}  {c:>14}" for a, b, c in rows]
+    lines = [f"{a:<{width}}  {b:>14}  {c:>8}  {d:>14}" for a, b, c, d in rows]
     d = result.diagnostics
-    lines.append(f"input_sign {final.input_sign:+d}, q = {d['q']:.6g}, w(0) = {result.w0:.6g}, "
-                 f"samples {result.samples}, steady periods {d['steady_periods']}")
+    q = f", q = {d['q']:.6g}" if d.get("q") is not None else ""
+    lines.append(f"method {result.method}, input_sign {final.input_sign:+d}{q}, "
+                 f"w(0) = {result.w0:.6g}, samples {result.samples}"
+                 + (f", steady periods {d['steady_periods']}" if "steady_periods" in d else ""))
+    if fitted:
+        extra = [f"delay {1e3 * result.delay:.3g} ms (± {1e3 * std.get('delay', 0.0):.2g})"]
+        if result.drift is not None:
+            extra.append(f"drift {result.drift.kind.value} {result.drift.coefficient:.4g} "
+                         f"(time constant {result.drift.time_constant:.3g} s)")
+        if "holdout_rms" in d:
+            extra.append(f"held-out last {100 * d['holdout_fraction']:.0f} %: RMS "
+                         f"{d['holdout_rms']:.4g} ({d['holdout_rms_percent']:.3g} % of span)")
+        lines.append(", ".join(extra))
+        if d.get("analytic_problem"):
+            lines.append(f"analytic method not used: {d['analytic_problem']}")
     return "\n".join(lines)
+
+
+def _plot(result: IdentificationResult, runs, out_dir: Path, stem: str) -> list[Path]:
+    from piezo_stage.identification.validation import (
+        ValidationResult,
+        plot_validation,
+        validate_model,
+    )
+
+    written = []
+    for i, rec in enumerate(runs):
+        label = stem if len(runs) == 1 else f"{stem}_run{i}"
+        if result.fitted:
+            res = ValidationResult(recording=rec, model=result.fitted[i],
+                                   w0=result.diagnostics["w0_runs"][i], w0_clipped=False)
+        else:
+            res = validate_model(result.parameters, rec)
+        written += plot_validation(res, out_dir, label)
+    return written
 
 
 def run(args: argparse.Namespace) -> int:
@@ -93,24 +182,33 @@ def run(args: argparse.Namespace) -> int:
     from piezo_stage.model.errors import ModelError
 
     try:
-        options = _options(args)
-        paths = [args.run_a] + ([args.run_b] if args.run_b else [])
-        runs = load_runs(paths, args.input_topic, args.output_topic, args.excitation_topic)
-        if len(runs) != 2:
-            raise IdentificationError(
-                f"need exactly two runs (x(t) and x(t)+q), got {len(runs)} from {', '.join(paths)}")
-        result = identify(runs[0], runs[1], options)
+        options, fit = _options(args)
+    except UsageError as exc:
+        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
+        return 2
+    written: list[Path] = []
+    try:
+        runs = load_runs(args.runs, args.input_topic, args.output_topic, args.excitation_topic)
+        result = identify_runs(runs, options, Method(args.method), fit)
         if args.output:
             from piezo_stage.model.parameter_set import save_parameter_set
 
             save_parameter_set(result.to_parameter_set(name=args.name), args.output)
+        plots = args.plots or (str(Path(args.output).parent) if args.output else None)
+        if plots and not args.no_plot:
+            stem = Path(args.output).stem if args.output else "identify"
+            written = _plot(result, runs, Path(plots), stem)
     except (IdentificationError, BagError, ModelError, OSError) as exc:
         print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
         return 1
+    for text in result.warnings:
+        print(f"piezo-stage identify: warning: {text}", file=sys.stderr)
     if args.json:
         print(json.dumps(result.to_dict()))
     else:
         print(_text(result))
         if args.output:
             print(f"wrote {args.output}")
+    for path in written:
+        print(f"wrote {path}", file=sys.stderr if args.json else sys.stdout)
     return 0

@@ -1,7 +1,8 @@
 """Validate an identified model on another recording (sine, random: thesis §10.3.3).
 
 Simulates the static model of PARAMS (the YAML written by `piezo-stage identify --output`)
-on the input of DATA (CSV with time, input, output, or a bag) from w(0) of (10.18), prints the
+on the input of DATA (CSV with time, input, output, or a bag) from w(0) of (10.18), with the
+set's delay and drift terms when it has them (identify --method fit), prints the
 RMS and maximum error and their share of the output span, and writes two PNGs to --out: model
 vs data over time, and the loops (input vs output).
 """
@@ -25,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object per run")
     parser.add_argument("--w0", type=float, default=None,
                         help="initial hysteretic state (default: (10.18) from the first sample)")
+    parser.add_argument("--no-drift", action="store_true",
+                        help="leave out the parameter set's drift term (its delay always applies)")
     parser.add_argument("--input-topic", default="/piezo/voltage")
     parser.add_argument("--output-topic", default="/piezo/displacement")
     parser.add_argument("--excitation-topic", default=DEFAULT_EXCITATION_TOPIC)
@@ -43,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.params}: form {pset.form!r}; validate simulates the static model "
                 "(output = Σκ_i v^i + κw·w + y0, ch. 10)")
         runs = load_runs([args.data], args.input_topic, args.output_topic, args.excitation_topic)
-        results = [validate_model(pset.bouc_wen, rec, args.w0) for rec in runs]
+        drift = None if args.no_drift else pset.drift
+        results = [validate_model(pset.bouc_wen, rec, args.w0, pset.delay, drift) for rec in runs]
         written = []
         if not args.no_plot:
             stem = Path(args.data).stem or "validation"

@@ -2,9 +2,9 @@
 
 Theorem 2 says the output of a T-wave excited Bouc-Wen system converges to a limit cycle.
 On real data that cycle has to be found: estimate the period from the input's upward
-mid-level crossings, cut the run into whole periods on a common phase grid, keep the trailing
-periods that agree with the last one within the noise (steady state), and average them. The
-averaged cycle starts at the input minimum, so its first part is the loading branch of v.
+mid-level crossings, cut the run into whole periods on a common phase grid, check that the
+trailing periods agree with the last one (steady state), and average those within the noise
+level of it (no transient bias). The averaged cycle starts at the input minimum, so its first part is the loading branch of v.
 """
 
 from __future__ import annotations
@@ -15,8 +15,13 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from .derivatives import noise_std
-from .errors import (IdentificationError, NonMonotoneBranchError, NoSteadyStateError,
-                     NotPeriodicError, TooFewSamplesError)
+from .errors import (
+    IdentificationError,
+    NonMonotoneBranchError,
+    NoSteadyStateError,
+    NotPeriodicError,
+    TooFewSamplesError,
+)
 from .filtering import THESIS_BANDWIDTH_RATIO, THESIS_ZETA, zero_phase_periodic
 from .recording import Recording, check_recording
 
@@ -139,10 +144,13 @@ def _period_grid(rec: Recording, period: float) -> tuple[np.ndarray, np.ndarray,
 
 
 _MAD_SCALE = 1.482602218505602
+#: relative difference between periods that is rounding, not transient
+_ROUNDOFF = 1e-12
 
 
 def _steady_count(rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOptions) -> tuple[int, tuple[float, ...]]:
-    """Number of trailing periods that agree with the last one (input and output)."""
+    """Number of trailing periods to average: those within the noise level of the last one
+    (the limit cycle is reached when ``min_steady_periods`` agree within the tolerances)."""
     n_periods = X.shape[0]
     # robust spread (1.4826·median|d|, the std for Gaussian noise): a transient or drift moves
     # every sample, while interpolating across a turning point between samples only spoils one
@@ -158,16 +166,25 @@ def _steady_count(rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOp
             raise NoSteadyStateError(
                 f"{rec.label}: {count} steady periods requested but only {n_periods} recorded")
     else:
+        # average only the periods that differ from the last by no more than the noise: a
+        # settling period within the span tolerance still carries its transient (bias)
+        # (white noise from the third differences of the last two periods' difference:
+        # smooth signal and transient cancel there)
+        noise_d = noise_std(Y[-1] - Y[-2]) / np.sqrt(2.0) if n_periods > 1 else noise_y
+        tol_avg = options.noise_factor * np.sqrt(2.0) * min(noise_y, noise_d) + _ROUNDOFF * span_y
         count = 1
-        while count < n_periods and rms_y[-1 - count] <= tol_y and rms_x[-1 - count] <= tol_x:
+        while count < n_periods and rms_y[-1 - count] <= tol_avg and rms_x[-1 - count] <= tol_x:
             count += 1
+        agree = 1
+        while agree < n_periods and rms_y[-1 - agree] <= tol_y and rms_x[-1 - agree] <= tol_x:
+            agree += 1
     used = slice(n_periods - count, n_periods)
     if np.any(rms_x[used] > tol_x):
         worst = float(np.max(rms_x[used]) / span_x)
         raise NotPeriodicError(
             f"{rec.label}: input periods differ by {100 * worst:.2g} % of the span: the "
             "excitation is not periodic")
-    if count < options.min_steady_periods and options.steady_periods is None:
+    if options.steady_periods is None and agree < options.min_steady_periods:
         if n_periods < options.min_steady_periods:
             raise NoSteadyStateError(
                 f"{rec.label}: {n_periods} whole period(s) recorded; at least "

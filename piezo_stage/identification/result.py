@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from piezo_stage.model.bouc_wen import BoucWenParameters
+from piezo_stage.model.parameter_set import Drift
 
 from .cycles import SteadyCycle
 
@@ -44,7 +45,9 @@ class IdentificationResult:
     ``parameters`` are the final values (refined, or the analytic ones when refinement is
     off); ``analytic`` the Table 10.2 estimate, or None when it fell outside class I (the
     refinement then started from its projection, see ``diagnostics['analytic_raw']``).
-    ``w0`` is w(0) of (10.18) at the first sample of run A.
+    ``w0`` is w(0) of (10.18) at the first sample of run A (fitted, with ``method`` "fit").
+    ``delay`` and ``drift`` (run A's) are what the fit by simulation error estimated;
+    ``warnings`` name what the record does not determine well.
     """
 
     parameters: BoucWenParameters
@@ -58,6 +61,12 @@ class IdentificationResult:
     output_name: str = "displacement"
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
     cycles: tuple[SteadyCycle, ...] = field(default=(), compare=False, repr=False)
+    method: str = "analytic"              #: "analytic" (ch. 9-10 + refinement) or "fit"
+    delay: float = 0.0                    #: output lag behind the input [s]
+    drift: Drift | None = None
+    warnings: tuple[str, ...] = ()
+    #: the model's output over each run as fitted (method "fit"; empty for the analytic one)
+    fitted: tuple = field(default=(), compare=False, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON object of ``piezo-stage identify --json``: the message fields of the final
@@ -67,6 +76,16 @@ class IdentificationResult:
         out["refined"] = bool(self.refined)
         out["input_name"] = self.input_name
         out["output_name"] = self.output_name
+        out["method"] = self.method
+        out["delay"] = float(self.delay)
+        out["drift"] = None if self.drift is None else {
+            "kind": self.drift.kind.value, "coefficient": self.drift.coefficient,
+            "time_constant": self.drift.time_constant}
+        out["std"] = {k: float(v) for k, v in self.diagnostics.get("std", {}).items()}
+        out["warnings"] = list(self.warnings)
+        if "holdout_rms" in self.diagnostics:
+            out["holdout"] = {k: self.diagnostics[k] for k in
+                              ("holdout_fraction", "holdout_rms", "holdout_rms_percent")}
         if self.analytic is not None:
             out["analytic"] = parameters_dict(self.analytic, self.analytic_rms_error, self.samples)
             out["analytic"]["class_i"] = True
@@ -82,9 +101,11 @@ class IdentificationResult:
 
         if not notes:
             q = self.diagnostics.get("q")
-            notes = (f"identified from {self.samples} samples, rms_error {self.rms_error:.4g}"
+            notes = (f"identified ({self.method}) from {self.samples} samples, rms_error "
+                     f"{self.rms_error:.4g}"
                      + (f", q = {q:.6g}" if q is not None else "")
                      + ("" if self.refined else ", analytic estimate (no refinement)"))
         return ParameterSet(name=name, form="static", bouc_wen=self.parameters, dynamics=None,
                             input_name=self.input_name, output_name=self.output_name,
-                            w0=float(min(1.0, max(-1.0, self.w0))), notes=notes)
+                            w0=float(min(1.0, max(-1.0, self.w0))), notes=notes,
+                            delay=float(self.delay), drift=self.drift)

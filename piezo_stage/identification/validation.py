@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
+from piezo_stage.model.parameter_set import Drift
 
 from .analytic import initial_w
 from .recording import Recording, check_recording
@@ -46,14 +47,19 @@ class ValidationResult:
                 "w0": self.w0, "samples": len(self.recording)}
 
 
-def validate_model(params: BoucWenParameters, rec: Recording, w0: float | None = None) -> ValidationResult:
-    """Simulate (10.15) on ``rec.input``; w(0) from (10.18) unless given."""
+def validate_model(params: BoucWenParameters, rec: Recording, w0: float | None = None,
+                   delay: float = 0.0, drift: Drift | None = None) -> ValidationResult:
+    """Simulate (10.15) on ``rec.input`` delayed by ``delay`` [s] (held before the start),
+    plus ``drift`` from the record's start; w(0) from (10.18) unless given."""
     check_recording(rec)
+    v = rec.input if delay == 0.0 else np.interp(rec.t - delay, rec.t, rec.input)
+    offset = np.zeros(len(rec)) if drift is None else drift.evaluate(rec.t - rec.t[0])
     if w0 is None:
-        w0 = initial_w(params.kappa, params.kappa_w, params.y0, float(rec.input[0]), float(rec.output[0]))
+        w0 = initial_w(params.kappa, params.kappa_w, params.y0, float(v[0]),
+                       float(rec.output[0] - offset[0]))
     clipped = not -1.0 <= w0 <= 1.0
     w0 = float(np.clip(w0, -1.0, 1.0))
-    return ValidationResult(recording=rec, model=model_output(params, rec.input, w0=w0), w0=w0,
+    return ValidationResult(recording=rec, model=model_output(params, v, w0=w0) + offset, w0=w0,
                             w0_clipped=clipped)
 
 

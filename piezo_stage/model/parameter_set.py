@@ -21,9 +21,9 @@ are applied by ``piezo-stage validate``; the plant ignores them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import Enum
-import math
 from pathlib import Path
 from typing import Any
 
@@ -102,14 +102,16 @@ class Drift:
         try:
             object.__setattr__(self, "kind", DriftKind(self.kind))
         except ValueError as exc:
-            raise ParameterError(f"drift.kind must be 'linear' or 'log', got {self.kind!r}") from exc
+            raise ParameterError(
+                f"drift.kind must be 'linear' or 'log', got {self.kind!r}") from exc
         if self.kind is DriftKind.NONE:
             raise ParameterError("drift.kind 'none': write drift: null instead")
         for name in ("coefficient", "time_constant"):
             try:
                 object.__setattr__(self, name, float(getattr(self, name)))
             except (TypeError, ValueError) as exc:
-                raise ParameterError(f"drift.{name} must be a number, got {getattr(self, name)!r}") from exc
+                raise ParameterError(
+                    f"drift.{name} must be a number, got {getattr(self, name)!r}") from exc
         if not math.isfinite(self.coefficient):
             raise ParameterError(f"drift.coefficient must be finite, got {self.coefficient!r}")
         if not (math.isfinite(self.time_constant) and self.time_constant > 0.0):
@@ -117,7 +119,8 @@ class Drift:
 
     def evaluate(self, t: np.ndarray) -> np.ndarray:
         """The drift at times ``t`` [s] from the start of the recording."""
-        return self.coefficient * drift_basis(self.kind, np.asarray(t, dtype=float), self.time_constant)
+        t = np.asarray(t, dtype=float)
+        return self.coefficient * drift_basis(self.kind, t, self.time_constant)
 
 
 def drift_basis(kind: DriftKind, t: np.ndarray, time_constant: float) -> np.ndarray:
@@ -280,7 +283,7 @@ def save_parameter_set(ps: ParameterSet, path: str | Path) -> None:
 
 
 def shipped_parameter_set(name: str) -> ParameterSet:
-    """One of the reference sets shipped in config/ (``ch9_example``, ``ch10_patch``, ``ch11_rig``)."""
+    """A reference set shipped in config/ (``ch9_example``, ``ch10_patch``, ``ch11_rig``)."""
     from ..config_path import find_config
 
     if name not in SHIPPED:

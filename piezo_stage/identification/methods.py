@@ -1,0 +1,137 @@
+"""Choice of method: the analytic one (ch. 9-10, two T-wave runs at their limit cycle) or the
+fit by simulation error (any runs, see simfit.py), and the fit's result as an
+:class:`IdentificationResult`.
+
+auto: the analytic method with its refinement when its preconditions hold (two wave-periodic
+runs x(t), x(t)+q whose limit cycle is reached) and the fit is good; the fit otherwise, seeded
+by whatever the analytic method produced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from enum import Enum
+from typing import Sequence
+
+import numpy as np
+
+from .analytic import initial_w
+from .errors import (
+    BadFitError,
+    DataFormatError,
+    IdentificationError,
+    NonFiniteDataError,
+    SaturatedOutputError,
+)
+from .pipeline import IdentifyOptions, identify
+from .recording import Recording, check_recording
+from .result import IdentificationResult
+from .simfit import (
+    FitOptions,
+    Seed,
+    SimulationFit,
+    check_simulation_fit,
+    holdout_check,
+    noise_level,
+    seed_from,
+    seed_of,
+    simulation_fit,
+)
+
+
+class Method(str, Enum):
+    ANALYTIC = "analytic"
+    FIT = "fit"
+    AUTO = "auto"
+
+
+#: the data are unusable by either method: reported as they are, no fallback
+_DATA_ERRORS = (NonFiniteDataError, SaturatedOutputError, DataFormatError)
+
+
+def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = None,
+                  method: Method | str = Method.AUTO,
+                  fit: FitOptions | None = None) -> IdentificationResult:
+    """Identify from one or more runs with ``method`` (see the module docstring)."""
+    options = IdentifyOptions() if options is None else options
+    fit = FitOptions() if fit is None else fit
+    method = Method(method)
+    runs = list(runs)
+    if not runs:
+        raise IdentificationError("no runs to identify from")
+    for rec in runs:
+        check_recording(rec, clip_fraction=options.cycle.clip_fraction)
+    if method is Method.ANALYTIC:
+        if len(runs) != 2:
+            raise IdentificationError(
+                f"the analytic method needs exactly two runs (x(t) and x(t)+q), got "
+                f"{len(runs)}; --method fit identifies from any runs")
+        return identify(runs[0], runs[1], options)
+    analytic: IdentificationResult | None = None
+    problem = f"{len(runs)} run(s): the analytic method needs two (x(t) and x(t)+q)"
+    if len(runs) == 2:
+        try:
+            analytic = identify(runs[0], runs[1], options)
+            if method is Method.AUTO:
+                return analytic
+        except _DATA_ERRORS:
+            raise
+        except BadFitError as exc:
+            problem, analytic = str(exc), exc.result
+        except IdentificationError as exc:
+            problem = str(exc)
+    fit = replace(fit, degree=options.degree, input_sign=options.input_sign)
+    seeds: list[Seed] = []
+    if analytic is not None:
+        p = analytic.parameters
+        seeds.append(seed_from(p, [initial_w(p.kappa, p.kappa_w, p.y0, float(r.input[0]),
+                                             float(r.output[0])) for r in runs]))
+    return fit_runs(runs, fit, seeds, analytic=analytic, analytic_problem=problem,
+                    input_name=options.input_name, output_name=options.output_name)
+
+
+def _warnings(final: SimulationFit, figures: dict[str, float]) -> list[str]:
+    out = [f"{a} and {b} are strongly correlated ({c:+.4f}): not separately determined by "
+           "this record" for a, b, c in final.correlations]
+    if figures and figures["holdout_rms"] > 2.0 * figures["train_rms"]:
+        out.append(f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
+                   f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits "
+                   f"the rest ({figures['train_rms_percent']:.3g} %): it may not generalise")
+    return out
+
+
+def fit_runs(runs: Sequence[Recording], fit: FitOptions,
+             seeds: Sequence[Seed] = (), *, analytic: IdentificationResult | None = None,
+             analytic_problem: str = "", input_name: str = "voltage",
+             output_name: str = "displacement") -> IdentificationResult:
+    """The fit by simulation error with its held-out check, as an IdentificationResult
+    (refused with :class:`BadFitError` when the data do not support it)."""
+    figures: dict[str, float] = {}
+    check = holdout_check(runs, fit, seeds)
+    if check is not None:
+        partial, figures = check
+        seeds = [seed_of(partial), *seeds]
+    final = simulation_fit(runs, fit, seeds)
+    span = max(float(np.ptp(r.output)) for r in runs)
+    diagnostics = {
+        "method": "fit", "std": final.std, "relative_std": final.relative_std,
+        "correlations": [list(c) for c in final.correlations], "nfev": final.nfev,
+        "solver": final.status, "noise_output": noise_level(runs), "output_span": span,
+        "w0_runs": list(final.w0), "runs": len(runs), **figures,
+        "drift_runs": [None if d is None else d.coefficient for d in final.drift],
+    }
+    if analytic_problem:
+        diagnostics["analytic_problem"] = analytic_problem
+    if analytic is not None:
+        diagnostics["q"] = analytic.diagnostics.get("q")
+    result = IdentificationResult(
+        parameters=final.parameters,
+        analytic=None if analytic is None else analytic.parameters,
+        rms_error=final.rms_error,
+        analytic_rms_error=float("nan") if analytic is None else analytic.rms_error,
+        samples=sum(len(r) for r in runs), w0=final.w0[0], refined=True,
+        input_name=input_name, output_name=output_name, diagnostics=diagnostics,
+        method="fit", delay=final.delay, drift=final.drift[0],
+        warnings=tuple(_warnings(final, figures)), fitted=final.model)
+    check_simulation_fit(final, runs, fit, result)
+    return result

@@ -1,0 +1,383 @@
+"""Fit by simulation error: the modified model (10.15) simulated over whole records.
+
+For any input (triangle, sine, raised cosine, random, steps), one run or several, transients
+included: the output ``y = Σ κ_i v^i + κw·w + y0 (+ drift)`` is simulated over every record
+from a fitted initial state w(0), with w from (9.2) driven by the (optionally delayed) input,
+and the squared output error is minimised.
+
+The parameters that enter linearly (κ_1..κ_N, y0, κw, drift coefficients) are eliminated by
+linear least squares at every trial point (variable projection), so the nonlinear search runs
+over ρ, σ, n, w(0) of each run and the delay only. κw may come out negative: the model is odd
+(w driven by −v from −w(0) is −w), so that is input_sign = −1 with κw > 0 (the orientation
+is detected, §10.3.2). Seeds: given ones (the analytic method, ch. 9-10) and a small
+deterministic grid. Standard errors come from the Jacobian of all parameters at the optimum,
+scaled by the residual.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from piezo_stage.model.bouc_wen import BoucWenParameters, polynomial, simulate_w
+from piezo_stage.model.parameter_set import Drift, DriftKind, drift_basis
+
+from .cycles import upward_crossings
+from .derivatives import noise_std
+from .errors import BadFitError, IdentificationError, OrientationError
+from .recording import Recording
+
+#: hysteretic parameters whose standard errors decide whether the data determine them
+HYSTERETIC = ("kappa_w", "rho", "sigma", "n")
+#: multi-start grid: ρ·(input span), σ, n
+_GRID_RHO = (0.3, 1.0, 3.0, 10.0)
+_GRID_SIGMA = (0.6, 1.5, 4.0)
+_GRID_N = (1.2, 2.5)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    degree: int = 1                        #: N of (10.4)
+    input_sign: int | None = None          #: None: from the sign of κw (loop orientation)
+    drift: DriftKind = DriftKind.NONE      #: slow additive output drift per run
+    fit_delay: bool = True                 #: estimate a constant input-to-output delay
+    max_delay_samples: float = 10.0        #: |delay| bound, in sampling intervals
+    holdout: float = 0.25                  #: share of each run held out for the check ...
+    min_holdout_periods: float = 3.0       #: ... when every run holds more periods than this
+    starts: int = 3                        #: grid points refined when no seed is given
+    max_nfev: int = 200
+    tolerance: float = 1e-14               #: ftol = xtol = gtol of scipy's least_squares
+    correlation_limit: float = 0.995       #: |correlation| above this draws a warning
+    noise_factor: float = 3.0              #: a fit is bad if RMS > noise_factor·noise ...
+    max_rms_fraction: float = 0.02         #: ... and RMS > this fraction of the output span
+    max_rel_std: float = 0.05              #: a hysteretic parameter whose relative standard
+                                           #: error exceeds this is not determined by the data
+
+
+@dataclass(frozen=True)
+class Seed:
+    """A starting point of the nonlinear search (w0 per run; None: 0)."""
+
+    rho: float
+    sigma: float
+    n: float
+    w0: tuple[float, ...] | None = None
+    delay: float = 0.0
+
+
+@dataclass(frozen=True)
+class SimulationFit:
+    """The optimum: parameters, per-run initial states, delay, drift, and their quality."""
+
+    parameters: BoucWenParameters
+    w0: tuple[float, ...]
+    delay: float
+    drift: tuple[Drift | None, ...]
+    rms_error: float
+    std: dict[str, float]
+    relative_std: dict[str, float]
+    correlations: list[tuple[str, str, float]]
+    model: tuple[np.ndarray, ...]           #: simulated output of each run
+    nfev: int
+    status: str
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+
+class _Problem:
+    """The runs, with the design matrix of the linear parameters at a nonlinear point.
+
+    θ = (ρ·span_v, σ, n, w0_1..w0_R[, delay/dt]); columns: v^1..v^N, 1, w, drift of each run.
+    """
+
+    def __init__(self, runs: Sequence[Recording], options: FitOptions,
+                 time_constant: Sequence[float] | None = None) -> None:
+        self.runs = list(runs)
+        self.options = options
+        self.degree = int(options.degree)
+        v_all = np.concatenate([r.input for r in runs])
+        self.span_v = float(np.ptp(v_all))
+        self.dt = float(np.median(np.concatenate([np.diff(r.t) for r in runs])))
+        self.y = np.concatenate([r.output for r in runs])
+        self.sizes = [len(r) for r in runs]
+        self.drift = DriftKind(options.drift)
+        if time_constant is None:
+            time_constant = [max(10.0 * self.dt, (r.t[-1] - r.t[0]) / 100.0) for r in runs]
+        self.time_constant = list(time_constant)
+        self.basis = [drift_basis(self.drift, r.t - r.t[0], tc)
+                      for r, tc in zip(runs, self.time_constant)] \
+            if self.drift is not DriftKind.NONE else []
+
+    @property
+    def n_theta(self) -> int:
+        return 3 + len(self.runs) + int(self.options.fit_delay)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        r = len(self.runs)
+        lo = [1e-6, 0.5, 1.0] + [-1.0] * r
+        hi = [np.inf, np.inf, 50.0] + [1.0] * r
+        if self.options.fit_delay:
+            lo.append(-self.options.max_delay_samples)
+            hi.append(self.options.max_delay_samples)
+        return np.array(lo), np.array(hi)
+
+    def theta(self, seed: Seed) -> np.ndarray:
+        w0 = seed.w0 if seed.w0 is not None else (0.0,) * len(self.runs)
+        th = [seed.rho * self.span_v, seed.sigma, seed.n, *w0]
+        if self.options.fit_delay:
+            th.append(seed.delay / self.dt)
+        lo, hi = self.bounds()
+        return np.clip(np.array(th, dtype=float), lo, hi)
+
+    def split(self, th: np.ndarray) -> tuple[float, float, float, np.ndarray, float]:
+        r = len(self.runs)
+        delay = float(th[3 + r]) * self.dt if self.options.fit_delay else 0.0
+        return float(th[0]) / self.span_v, float(th[1]), float(th[2]), th[3:3 + r], delay
+
+    def inputs(self, delay: float) -> list[np.ndarray]:
+        """Each run's input as it acts on the output: v(t − delay), held before the start."""
+        if delay == 0.0:
+            return [r.input for r in self.runs]
+        return [np.interp(r.t - delay, r.t, r.input) for r in self.runs]
+
+    def states(self, th: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        rho, sigma, n, w0, delay = self.split(th)
+        vs = self.inputs(delay)
+        ws = [simulate_w(v, rho, sigma, n, float(np.clip(w, -1.0, 1.0))) for v, w in zip(vs, w0)]
+        return vs, ws
+
+    def matrix(self, vs: list[np.ndarray], ws: list[np.ndarray]) -> np.ndarray:
+        v, w = np.concatenate(vs), np.concatenate(ws)
+        cols = [v ** (i + 1) for i in range(self.degree)] + [np.ones_like(v), w]
+        offsets = np.cumsum([0] + self.sizes)
+        for k, b in enumerate(self.basis):
+            col = np.zeros_like(v)
+            col[offsets[k]:offsets[k + 1]] = b
+            cols.append(col)
+        return np.column_stack(cols)
+
+    def linear(self, th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(coefficients, design matrix, residual model − data) at θ."""
+        A = self.matrix(*self.states(th))
+        norms = np.linalg.norm(A, axis=0)
+        norms[norms == 0] = 1.0
+        c = np.linalg.lstsq(A / norms, self.y, rcond=None)[0] / norms
+        return c, A, A @ c - self.y
+
+    def residual(self, th: np.ndarray) -> np.ndarray:
+        return self.linear(th)[2]
+
+
+def _seeds(options: FitOptions, given: Sequence[Seed]) -> list[Seed]:
+    if given:
+        return list(given)
+    return [Seed(rho, sigma, n) for rho in _GRID_RHO for sigma in _GRID_SIGMA for n in _GRID_N]
+
+
+def _solve(problem: _Problem, th0: np.ndarray, max_nfev: int, tol: float):
+    lo, hi = problem.bounds()
+    return least_squares(problem.residual, th0, jac="2-point", bounds=(lo, hi), method="trf",
+                         x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
+
+
+def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions):
+    """Best least-squares optimum over the seeds: seeds are ranked by their cost, the best
+    ``options.starts`` are refined."""
+    lo, hi = problem.bounds()
+    if len(seeds) > 1:
+        th_grid = [problem.theta(s) for s in seeds]
+        costs = [float(np.sum(problem.residual(th) ** 2)) for th in th_grid]
+        order = np.argsort(costs)[:max(1, options.starts)]
+        candidates = [th_grid[i] for i in order]
+    else:
+        candidates = [problem.theta(seeds[0])]
+    best, nfev = None, 0
+    first_pass = options.max_nfev if len(candidates) == 1 else min(options.max_nfev, 40)
+    for th in candidates:
+        res = _solve(problem, th, first_pass, options.tolerance)
+        nfev += int(res.nfev)
+        if best is None or res.cost < best.cost:
+            best = res
+    if first_pass < options.max_nfev and best.status == 0:     # polish the best start
+        best = _solve(problem, best.x, options.max_nfev, options.tolerance)
+        nfev += int(best.nfev)
+    return best, nfev
+
+
+def _param_names(problem: _Problem) -> list[str]:
+    names = [f"kappa_{i + 1}" for i in range(problem.degree)] + ["y0", "kappa_w"]
+    names += [f"drift_{k}" for k in range(len(problem.basis))]
+    names += ["rho", "sigma", "n"] + [f"w0_{k}" for k in range(len(problem.runs))]
+    if problem.options.fit_delay:
+        names.append("delay")
+    return names
+
+
+def _uncertainty(problem: _Problem, th: np.ndarray, c: np.ndarray, A: np.ndarray,
+                 r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Standard errors and correlation matrix of all parameters (linear ones, then θ in
+    physical units) from the full Jacobian at the optimum, scaled by the residual variance."""
+    lo, hi = problem.bounds()
+    cols = []
+    for j in range(len(th)):
+        h = 1e-6 * max(1.0, abs(th[j]))
+        step = h if th[j] + h <= hi[j] else -h
+        tj = th.copy()
+        tj[j] += step
+        cols.append((problem.matrix(*problem.states(tj)) @ c - A @ c) / step)
+    J = np.column_stack([A] + cols)
+    scale = np.ones(J.shape[1])
+    scale[A.shape[1]] = 1.0 / problem.span_v                        # ρ from ρ·span_v
+    if problem.options.fit_delay:
+        scale[-1] = problem.dt                                      # delay from delay/dt
+    norms = np.linalg.norm(J, axis=0)
+    norms[norms == 0] = 1.0
+    Jn = J / norms
+    dof = max(1, len(r) - J.shape[1])
+    s2 = float(r @ r) / dof
+    cov_n = np.linalg.pinv(Jn.T @ Jn) * s2
+    std = np.sqrt(np.clip(np.diag(cov_n), 0.0, None)) / norms * scale
+    d = np.sqrt(np.clip(np.diag(cov_n), 0.0, None))
+    d[d == 0] = 1.0
+    corr = cov_n / np.outer(d, d)
+    return std, corr
+
+
+def _values(problem: _Problem, th: np.ndarray, c: np.ndarray) -> np.ndarray:
+    rho, sigma, n, w0, delay = problem.split(th)
+    vals = [*c, rho, sigma, n, *w0]
+    if problem.options.fit_delay:
+        vals.append(delay)
+    return np.array(vals)
+
+
+def count_periods(rec: Recording) -> int:
+    """Periods of the input: its rising mid-level crossings (any waveform)."""
+    return len(upward_crossings(rec.t, rec.input))
+
+
+def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions(),
+                   seeds: Sequence[Seed] = (), time_constant: Sequence[float] | None = None
+                   ) -> SimulationFit:
+    """Least-squares fit of (10.15) with w from (9.2) over the whole runs (no checks of
+    fit quality; see :func:`check_simulation_fit`)."""
+    if int(options.degree) != options.degree or options.degree < 1:
+        raise IdentificationError(
+            f"polynomial degree N must be an integer >= 1, got {options.degree!r}")
+    problem = _Problem(runs, options, time_constant)
+    if problem.span_v <= 0:
+        raise IdentificationError("the input is constant: no excitation to identify from")
+    res, nfev = _optimum(problem, _seeds(options, seeds), options)
+    th = res.x
+    c, A, r = problem.linear(th)
+    std, corr = _uncertainty(problem, th, c, A, r)
+    names = _param_names(problem)
+    values = _values(problem, th, c)
+    rho, sigma, n, w0, delay = problem.split(th)
+    deg = problem.degree
+    kappa, y0, kappa_w = tuple(float(k) for k in c[:deg]), float(c[deg]), float(c[deg + 1])
+    sign = 1
+    if kappa_w < 0:                      # odd model: w(−v; −w0) = −w(v; w0)
+        sign, kappa_w, w0 = -1, -kappa_w, -w0
+        values[deg + 1] = kappa_w
+        values[names.index("w0_0"):names.index("w0_0") + len(w0)] = w0
+    if options.input_sign is not None and sign != options.input_sign:
+        raise OrientationError(
+            f"the loop orientation gives input_sign {sign:+d}, but {options.input_sign:+d} was "
+            "requested: the loops run the other way")
+    params = BoucWenParameters(kappa=kappa, kappa_w=kappa_w, rho=rho, sigma=sigma, n=n, y0=y0,
+                               input_sign=sign)
+    drifts = tuple(Drift(problem.drift, float(c[deg + 2 + k]), problem.time_constant[k])
+                   for k in range(len(problem.basis))) or (None,) * len(runs)
+    offsets = np.cumsum([0] + problem.sizes)
+    model = tuple((A @ c)[offsets[k]:offsets[k + 1]] for k in range(len(runs)))
+    std_d = {k: float(s) for k, s in zip(names, std)}
+    rel = {k: float(s / abs(v)) if v != 0 else float("inf") for k, s, v in zip(names, std, values)}
+    pairs = []
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            if names[j] == "y0" and names[i].startswith("kappa_"):
+                continue     # κ_i–y0: the polynomial's offset when the input is not centred
+            if abs(corr[i, j]) > options.correlation_limit:
+                pairs.append((names[i], names[j], float(corr[i, j])))
+    return SimulationFit(parameters=params, w0=tuple(float(w) for w in w0), delay=delay,
+                         drift=drifts, rms_error=float(np.sqrt(np.mean(r ** 2))), std=std_d,
+                         relative_std=rel, correlations=pairs, model=model, nfev=nfev,
+                         status=str(res.message),
+                         diagnostics={"time_constant": problem.time_constant})
+
+
+def predict(fit: SimulationFit, runs: Sequence[Recording]) -> list[np.ndarray]:
+    """The fitted model's output over ``runs`` (same w0, delay and drift as fitted)."""
+    p = fit.parameters
+    out = []
+    for rec, w0, drift in zip(runs, fit.w0, fit.drift):
+        v = rec.input if fit.delay == 0.0 else np.interp(rec.t - fit.delay, rec.t, rec.input)
+        y = polynomial(p.kappa, v) + p.kappa_w * simulate_w(p.input_sign * v, p.rho, p.sigma,
+                                                            p.n, w0) + p.y0
+        if drift is not None:
+            y = y + drift.evaluate(rec.t - rec.t[0])
+        out.append(y)
+    return out
+
+
+def holdout_check(runs: Sequence[Recording], options: FitOptions, seeds: Sequence[Seed] = ()
+                  ) -> tuple[SimulationFit, dict[str, float]] | None:
+    """Fit on the first (1 − holdout) of every run, predict the rest: (fit, figures), or
+    None when a run holds too few periods (or holdout is 0)."""
+    if not options.holdout > 0 or any(count_periods(r) <= options.min_holdout_periods
+                                      for r in runs):
+        return None
+    cut = [int(round(len(r) * (1.0 - options.holdout))) for r in runs]
+    train = [r.slice(0, k) for r, k in zip(runs, cut)]
+    time_constant = [max(10.0 * float(np.median(np.diff(r.t))), (r.t[-1] - r.t[0]) / 100.0)
+                     for r in runs]
+    fit = simulation_fit(train, options, seeds, time_constant)
+    pred = predict(fit, runs)
+    err = np.concatenate([p[k:] - r.output[k:] for p, r, k in zip(pred, runs, cut)])
+    span = max(float(np.ptp(r.output)) for r in runs)
+    rms = float(np.sqrt(np.mean(err ** 2)))
+    return fit, {"holdout_fraction": float(options.holdout), "holdout_rms": rms,
+                 "holdout_rms_percent": 100.0 * rms / span,
+                 "train_rms": fit.rms_error, "train_rms_percent": 100.0 * fit.rms_error / span}
+
+
+def seed_of(fit: SimulationFit) -> Seed:
+    """A seed from an earlier fit (e.g. the held-out one), in the κw > 0 orientation."""
+    p = fit.parameters
+    return Seed(rho=p.rho, sigma=p.sigma, n=p.n, w0=tuple(p.input_sign * w for w in fit.w0),
+                delay=fit.delay)
+
+
+def seed_from(params: BoucWenParameters, w0: Sequence[float]) -> Seed:
+    """A seed from known parameters (the analytic method) with w(0) of each run."""
+    return Seed(rho=params.rho, sigma=params.sigma, n=params.n,
+                w0=tuple(params.input_sign * float(np.clip(w, -1, 1)) for w in w0))
+
+
+def noise_level(runs: Sequence[Recording]) -> float:
+    """White-noise std of the outputs (third differences, pooled)."""
+    return float(np.sqrt(np.mean([noise_std(r.output) ** 2 for r in runs])))
+
+
+def check_simulation_fit(fit: SimulationFit, runs: Sequence[Recording], options: FitOptions,
+                         result: Any = None) -> None:
+    """Refuse a fit the data do not support (as :func:`pipeline.check_fit`)."""
+    span = max(float(np.ptp(r.output)) for r in runs)
+    noise = noise_level(runs)
+    allowed = max(options.noise_factor * noise, options.max_rms_fraction * span)
+    if fit.rms_error > allowed:
+        raise BadFitError(
+            f"bad fit: residual RMS {fit.rms_error:.4g} ({100 * fit.rms_error / span:.3g} % of "
+            f"the output span) exceeds both {options.noise_factor:g}x the noise level "
+            f"({noise:.3g}) and {100 * options.max_rms_fraction:g} % of the span: the model "
+            "(degree N, Bouc-Wen structure) does not describe these data", result)
+    loose = {k: v for k, v in fit.relative_std.items()
+             if k in HYSTERETIC and not v <= options.max_rel_std}
+    if loose:
+        text = ", ".join(f"{k} ±{100 * v:.2g} %" for k, v in loose.items())
+        raise BadFitError(
+            f"bad fit: parameters not determined by the data ({text}, limit "
+            f"{100 * options.max_rel_std:g} %): excite a wider loop or reduce the noise", result)
