@@ -153,7 +153,7 @@ def test_open_loop_mode_is_selected_on_connect():
 def test_slew_rate_limits_every_step(rig):
     model, server, kind = rig
     clock = FakeClock()
-    driver = make_driver(server, kind, clock, slew_rate=100.0, max_slew_interval=0.05)
+    driver = make_driver(server, kind, clock, slew_rate=100.0, write_period=0.01)
     driver.connect()
     times = np.concatenate([np.arange(1, 41) * 0.01, [10.0, 10.001, 10.002]])
     targets = [50.0] * 40 + [0.0, 90.0, 90.0]
@@ -164,8 +164,8 @@ def test_slew_rate_limits_every_step(rig):
     sent = np.array([r.sent for r in results])
     assert sent[0] == pytest.approx(1.0) and results[0].slew_limited
     assert sent[39] == pytest.approx(40.0)
-    assert sent[40] == pytest.approx(35.0)  # 9.6 s pause: the step is capped at 100 V/s * 50 ms
-    dt = np.minimum(np.diff(np.concatenate([[0.0], times])), 0.05)
+    assert sent[40] == pytest.approx(39.0)  # 9.6 s pause: one write still moves 100 V/s * 10 ms
+    dt = np.minimum(np.diff(np.concatenate([[0.0], times])), 0.01)
     assert np.all(np.abs(np.diff(np.concatenate([[0.0], sent]))) <= 100.0 * dt + 1e-3)
     assert sent_voltages(model) == pytest.approx(list(sent), abs=1e-3)
     driver.close()
@@ -204,9 +204,9 @@ def test_watchdog_ramps_to_safe_voltage_after_command_timeout(rig):
     assert states[0] is DriverState.TIMED_OUT and states[-1] is DriverState.SAFE
     assert driver.read_voltage() == pytest.approx(5.0)
     ramp = np.array(sent_voltages(model)[n_before:])
-    assert ramp[0] == pytest.approx(25.0)  # first step: 100 V/s over the capped 50 ms
+    assert ramp[0] == pytest.approx(29.0)  # first step: 100 V/s over one 10 ms write period
     assert np.all(np.diff(ramp) < 0) and np.all(np.abs(np.diff(ramp)) <= 1.0 + 1e-3)
-    assert ramp[-1] == pytest.approx(5.0) and len(ramp) == 21
+    assert ramp[-1] == pytest.approx(5.0) and len(ramp) == 25
     clock.t += 0.01
     driver.set_voltage(6.0)  # commands resume
     assert driver.state is DriverState.ACTIVE
@@ -225,7 +225,9 @@ def test_watchdog_reaches_safe_voltage_when_the_link_dropped():
         time.sleep(0.1)
         for k in range(1, 30):
             clock.t += 0.01
-            driver.tick()
+            driver.tick()  # never blocks: the link is reopened in the background
+            if driver.state is DriverState.DISCONNECTED:
+                assert driver.wait_connected(5.0)
         assert driver.state is DriverState.SAFE and driver.reconnects == 1
         assert model.applied_voltage == 0.0
         driver.close()
@@ -273,15 +275,17 @@ def test_reconnect_after_tcp_hang_up():
         clock = FakeClock()
         driver = make_driver(server, "gcs", clock, slew_rate=1000.0)
         driver.connect()
-        clock.t = 0.05
-        assert driver.set_voltage(20.0).sent == pytest.approx(20.0)
+        assert driver.ramp_to(20.0) == pytest.approx(20.0)
         server.disconnect()
         time.sleep(0.1)
-        clock.t = 0.06
-        result = driver.set_voltage(25.0)  # link found dead -> reopened -> continues from read-back
+        clock.t += 0.01
+        with pytest.raises(ConnectionLost):  # link found dead: reopened in the background
+            driver.set_voltage(25.0)
+        assert driver.wait_connected(5.0)
+        result = driver.set_voltage(25.0)  # continues from the read-back
         assert driver.reconnects == 1 and driver.state is DriverState.ACTIVE
         assert result.sent == pytest.approx(20.0)  # no time elapsed since the read-back: hold
-        clock.t = 0.07
+        clock.t += 0.01
         assert driver.set_voltage(25.0).sent == pytest.approx(25.0)
         assert model.applied_voltage == pytest.approx(25.0)
         driver.close()
@@ -300,6 +304,9 @@ def test_reconnect_after_pty_unplug_through_stable_link(tmp_path):
         deadline = time.monotonic() + 2.0
         while server._pty_path == old_target and time.monotonic() < deadline:
             time.sleep(0.01)
+        with pytest.raises(ConnectionLost):
+            driver.read_voltage()
+        assert driver.wait_connected(5.0)
         assert driver.read_voltage() == pytest.approx(10.0)
         assert driver.reconnects == 1
         driver.close()
@@ -312,11 +319,13 @@ def test_silent_device_times_out_then_recovers():
         driver = make_driver(server, "gcs", timeout=0.1, reconnect_attempts=2, reconnect_delay=0.0)
         driver.connect()
         faults.silent = True
-        with pytest.raises(ConnectionLost):
+        with pytest.raises(DeviceTimeout):
             driver.set_voltage(10.0)
         assert driver.state is DriverState.DISCONNECTED
+        with pytest.raises(NotConnected):  # at once, while the background reconnect tries
+            driver.set_voltage(10.0)
         faults.silent = False
-        driver.reconnect()
+        assert driver.wait_connected(5.0)
         assert driver.set_voltage(10.0).sent == 10.0
         driver.close()
 

@@ -144,7 +144,7 @@ def test_resynchronises_after_lost_and_corrupt_bytes(name):
     hit = rng.random(faulty.size) < 0.002
     faulty[hit] = rng.integers(0, 256, int(hit.sum()), dtype=np.uint8)
     faulty = faulty[rng.random(faulty.size) >= 0.002]
-    parser = OptoNCDTParser(fmt, MR)
+    parser = OptoNCDTParser(fmt, MR, FrameCheck(max_speed=float("inf")))  # the values jump: no gate
     block = feed_chunked(parser, faulty.tobytes(), rng)
     ok = block.status == Status.OK
     # ~0.4 % of bytes damaged costs only the frames they hit and the K after each (relock)
@@ -156,19 +156,15 @@ def test_resynchronises_after_lost_and_corrupt_bytes(name):
 # --- fuzz ------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", list(FORMATS))
 def test_fuzz_million_random_bytes(name):
-    """10^6 seeded random bytes: no crash; every sample is a well-formed frame; OK ones lie in [0, MR]."""
+    """10^6 seeded random bytes: no crash; every sample is a well-formed frame; none is OK."""
     fmt = fmt_of(name)
     rng = np.random.default_rng(2024)
     data = rng.integers(0, 256, 1_000_000, dtype=np.uint8).tobytes()
     parser = OptoNCDTParser(fmt, MR)
     block = feed_chunked(parser, data, rng)
     assert block.raw.tolist() == reference_frames(fmt, data)
-    ok = block.status == Status.OK
-    assert ok.any() and (~ok).any()
-    d = block.displacement
-    assert np.all((d[ok] >= 0.0) & (d[ok] <= MR))
-    assert np.all(np.isnan(d[~ok]))
-    assert np.all(fmt.status_lut[block.raw][ok] == Status.OK)  # OK only for measurement values
+    assert len(block) > 1000 and not np.any(block.status == Status.OK)
+    assert np.all(np.isnan(block.displacement))
     stats = parser.stats
     n_frame_bytes = fmt.bytes_per_value * (stats.frames + stats.later_values)
     assert n_frame_bytes + stats.text_bytes + stats.discarded + len(parser._tail) == len(data)

@@ -1,23 +1,33 @@
 """The voltage driver: every safety rule between a voltage request and the amplifier.
 
 :class:`VoltageDriver` wraps an :class:`~piezo_stage.hardware.amplifier.Amplifier` and
-guarantees, whatever the caller sends:
+guarantees, whatever the caller sends and whatever the link does:
 
 - NaN/inf is refused with :class:`NonFiniteVoltageError` and nothing reaches the device;
 - no value outside [min, max] = configured limits ∩ device limits (VMI?/VMA?, vlimit?) is ever
   written — requests outside are clamped (``clamp=True``, reported in :class:`SetResult`) or
   refused with :class:`VoltageOutOfRangeError`;
-- consecutive writes differ by at most ``slew_rate * dt`` (dt capped at ``max_slew_interval`` so
-  a request after a long pause cannot jump); the limits win over slew;
-- the watchdog (:meth:`tick`, called by a timer or by :class:`Watchdog`): if no command arrives
-  for ``command_timeout`` the output ramps to ``safe_voltage`` at the slew rate;
-- :meth:`shutdown` ramps to ``safe_voltage`` and leaves the amplifier in open loop at that
-  voltage, then closes the link;
-- a dropped link is reopened (``reconnect_attempts``) and the output continues from the
-  voltage read back from the device.
+- **ramps**: a write is an instantaneous step on the device, so no write moves the output by
+  more than :attr:`DriverConfig.max_step` = ``slew_rate`` × min(``write_period``, 25 ms), nor by
+  more than ``slew_rate`` × the time since the previous write. Over any interval [a, b] the
+  output therefore moves at most ``slew_rate`` (b − a) + ``max_step`` — after pauses, after a
+  reconnect (the output continues from the read-back), in the watchdog's ramp and in the
+  shutdown ramp. A request further away is reached by a ramp of many writes: each command
+  writes one step and :meth:`tick` (every ``write_period``) keeps stepping toward the target;
+  the limits win over slew;
+- the watchdog (:meth:`tick`): ``command_timeout`` after the last *received* valid command
+  (:meth:`command_received`, called on arrival also for commands queued for later) the output
+  ramps to ``safe_voltage``; firing calls the ``on_timeout`` callbacks (the node clears its
+  queue of stamped commands) and commands received before it fired are refused
+  (:class:`CommandExpired`) when they come up for application;
+- a dropped link is reopened by a background thread (never in the caller's thread): meanwhile
+  writes raise :class:`NotConnected` at once, and the output continues from the voltage read
+  back from the device;
+- :meth:`shutdown` ramps to ``safe_voltage``, leaves the amplifier in open loop there and closes
+  the link; it raises :class:`SafeStateNotReached` when it could not.
 
-Nodes call ``connect()``, ``set_voltage(v)`` per command, ``tick()`` from a timer and
-``shutdown()`` on exit; ``read_voltage()`` gives the applied voltage to publish.
+Nodes call ``connect()``, ``command_received()``/``set_voltage(v)`` per command, ``tick()`` from
+a timer and ``shutdown()`` on exit; ``read_voltage()`` gives the applied voltage to publish.
 """
 
 from __future__ import annotations
@@ -31,11 +41,16 @@ from dataclasses import dataclass
 from typing import Callable
 
 from .amplifier import Amplifier, DeviceInfo
-from .errors import (ConfigError, ConnectionLost, NonFiniteVoltageError, NotConnected, TransportError,
+from .errors import (CommandExpired, ConfigError, DeviceError, HardwareError, NonFiniteVoltageError,
+                     NotConnected, ProtocolError, SafeStateNotReached, TransportError,
                      VoltageOutOfRangeError)
 from .safety import VoltageLimits, round_within, slew_step
 
 log = logging.getLogger(__name__)
+
+MAX_STEP_TIME = 0.025  # s: no single write carries more than this much slew
+# what a device exchange can fail with when the link is bad: the write may or may not have landed
+LINK_FAULTS = (TransportError, ProtocolError, DeviceError)
 
 
 @dataclass(frozen=True)
@@ -46,12 +61,13 @@ class DriverConfig:
     v_max: float
     safe_voltage: float = 0.0
     slew_rate: float = math.inf  # V/s
-    max_slew_interval: float = 0.05  # s; cap on dt in the slew limit
-    command_timeout: float = 0.5  # s without a command before ramping to safe_voltage; inf = off
+    write_period: float = 0.01  # s: period of tick(); one write steps at most slew_rate * this
+    command_timeout: float = 0.5  # s without a received command before ramping to safe; inf = off
     ramp_period: float = 0.005  # s between steps of a blocking ramp (shutdown, ramp_to)
     clamp: bool = True  # False: refuse out-of-range requests instead of clamping
-    reconnect_attempts: int = 3
-    reconnect_delay: float = 0.2  # s between attempts
+    reconnect_attempts: int = 3  # 0: never reopen a dropped link
+    reconnect_delay: float = 0.2  # s between attempts of the background reconnect
+    shutdown_timeout: float = 5.0  # s shutdown waits for a dropped link to come back
 
     def __post_init__(self) -> None:
         VoltageLimits(self.v_min, self.v_max)  # raises LimitsError when empty or not finite
@@ -59,11 +75,16 @@ class DriverConfig:
             raise ConfigError(f"safe_voltage must be finite, got {self.safe_voltage}")
         if not self.slew_rate > 0:
             raise ConfigError(f"slew_rate must be > 0 V/s (inf = unlimited), got {self.slew_rate}")
-        for name in ("max_slew_interval", "command_timeout", "ramp_period"):
+        for name in ("write_period", "command_timeout", "ramp_period"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0 s, got {getattr(self, name)}")
-        if self.reconnect_attempts < 0 or self.reconnect_delay < 0:
-            raise ConfigError("reconnect_attempts and reconnect_delay must be >= 0")
+        if self.reconnect_attempts < 0 or self.reconnect_delay < 0 or self.shutdown_timeout < 0:
+            raise ConfigError("reconnect_attempts, reconnect_delay and shutdown_timeout must be >= 0")
+
+    @property
+    def max_step(self) -> float:
+        """Largest change of one write [V]: slew_rate × min(write_period, 25 ms)."""
+        return self.slew_rate * min(self.write_period, MAX_STEP_TIME)
 
 
 @dataclass(frozen=True)
@@ -73,7 +94,7 @@ class SetResult:
     requested: float
     sent: float
     clamped: bool  # the request lay outside [min, max]
-    slew_limited: bool  # the step was cut by the slew-rate limit
+    slew_limited: bool  # the step was cut by the slew-rate limit (tick() continues the ramp)
 
 
 class DriverState(enum.Enum):
@@ -98,66 +119,155 @@ class VoltageDriver:
         self.info: DeviceInfo | None = None
         self.limits: VoltageLimits | None = None
         self.last_sent = math.nan  # last voltage written (or read back after (re)connecting)
-        self._t_sent = 0.0
-        self._t_command = 0.0
+        self.target = math.nan  # where the output is ramping to (limits applied)
+        self.writes = 0
         self.reconnects = 0
+        self.expired = 0  # commands refused because the watchdog fired after they were received
+        self.last_link_error = ""
+        self.on_timeout: list[Callable[[], None]] = []  # called (under the lock) when the watchdog fires
+        self._t_sent = 0.0
+        self._t_command = 0.0  # when the last valid command was received
+        self._t_trip = -math.inf  # when the watchdog last fired
         self._may_reconnect = False  # True between connect() and close()/shutdown()
         self._lock = threading.RLock()
+        self._connected = threading.Condition(self._lock)
+        self._reconnector: threading.Thread | None = None
+        self._resume = DriverState.ACTIVE  # state to return to after a reconnect
+        self._stop = threading.Event()
 
     # --- link -----------------------------------------------------------------------------------
     def connect(self) -> DeviceInfo:
         """Open the amplifier, compute the effective limits and take over its present output."""
+        info = self.amplifier.open()
         with self._lock:
-            info = self.amplifier.open()
-            configured = VoltageLimits(self.config.v_min, self.config.v_max)
-            limits = configured.intersect(VoltageLimits(info.v_min, info.v_max))
-            if not limits.contains(self.config.safe_voltage):
-                self.amplifier.close()
-                raise VoltageOutOfRangeError(
-                    f"safe_voltage {self.config.safe_voltage} V outside [{limits.v_min}, {limits.v_max}] V")
-            self.info, self.limits = info, limits
-            self.last_sent = info.applied
-            now = self.clock()
-            self._t_sent = self._t_command = now
-            self.state = DriverState.ACTIVE
+            self._install(info)
             self._may_reconnect = True
+            self._stop.clear()
+            lim = self.limits
             log.info("connected to %s axis %s, limits [%g, %g] V, output %g V",
-                     info.identity, info.axis, limits.v_min, limits.v_max, info.applied)
+                     info.identity, info.axis, lim.v_min, lim.v_max, info.applied)
             return info
 
-    def reconnect(self) -> DeviceInfo:
-        """Close and reopen the link (``reconnect_attempts`` tries); raises ConnectionLost."""
-        with self._lock:
+    def _install(self, info: DeviceInfo, first: bool = True) -> None:
+        """Take over an opened device: limits, and its read-back as the output now (ramps
+        continue from there). After a reconnect the target and the watchdog's state are kept."""
+        configured = VoltageLimits(self.config.v_min, self.config.v_max)
+        limits = configured.intersect(VoltageLimits(info.v_min, info.v_max))
+        if not limits.contains(self.config.safe_voltage):
             self.amplifier.close()
-            self.state = DriverState.DISCONNECTED
-            last: Exception | None = None
-            for attempt in range(max(self.config.reconnect_attempts, 1)):
-                if attempt:
-                    self.sleep(self.config.reconnect_delay)
-                try:
-                    info = self.connect()
-                    self.reconnects += 1
-                    return info
-                except TransportError as exc:
-                    last = exc
+            raise VoltageOutOfRangeError(
+                f"safe_voltage {self.config.safe_voltage} V outside [{limits.v_min}, {limits.v_max}] V")
+        self.info, self.limits = info, limits
+        self.last_sent = info.applied
+        self._t_sent = self.clock()
+        if first:
+            self.target = limits.clamp(info.applied)
+            self._t_command = self._t_sent
+            self.state = DriverState.ACTIVE
+        else:
+            self.state = self._resume
+        self._connected.notify_all()
+
+    def reconnect(self) -> DeviceInfo:
+        """Close and reopen the link now (``reconnect_attempts`` tries, in the caller's thread)."""
+        with self._lock:
+            self._mark_down()
+        self.amplifier.close()
+        last: Exception | None = None
+        for attempt in range(max(self.config.reconnect_attempts, 1)):
+            if attempt and self._stop.wait(self.config.reconnect_delay):
+                break
+            try:
+                info = self.amplifier.open()
+            except HardwareError as exc:  # silent, garbled or refusing: try again
+                last = exc
+                self.amplifier.close()
+                continue
+            with self._lock:
+                if not self._may_reconnect:
                     self.amplifier.close()
-            raise ConnectionLost(f"could not reconnect to {self.amplifier.transport.url}: {last}") from last
+                    raise NotConnected("voltage driver was closed while reconnecting")
+                self.reconnects += 1
+                self._install(info, first=False)
+                log.info("reconnected to %s, output %g V", self.amplifier.transport.url, info.applied)
+                return info
+        raise NotConnected(f"could not reconnect to {self.amplifier.transport.url}: {last}")
+
+    def _link_down(self, exc: Exception) -> None:
+        """Mark the link down and reopen it in the background (never in the caller's thread)."""
+        self.last_link_error = str(exc)
+        self._mark_down()
+        self.amplifier.close()
+        if self.config.reconnect_attempts <= 0 or not self._may_reconnect:
+            return
+        if self._reconnector is None or not self._reconnector.is_alive():
+            log.warning("link to %s lost (%s); reconnecting in the background",
+                        self.amplifier.transport.url, exc)
+            self._reconnector = threading.Thread(target=self._reconnect_loop, daemon=True,
+                                                 name="voltage-driver-reconnect")
+            self._reconnector.start()
+
+    def _mark_down(self) -> None:
+        if self.state in (DriverState.DISCONNECTED, DriverState.SHUT_DOWN):
+            return
+        timed_out = self.state in (DriverState.TIMED_OUT, DriverState.SAFE)
+        self._resume = DriverState.TIMED_OUT if timed_out else DriverState.ACTIVE
+        self.state = DriverState.DISCONNECTED
+
+    def _reconnect_loop(self) -> None:
+        while self._may_reconnect and not self._stop.is_set():
+            try:
+                self.reconnect()
+            except HardwareError as exc:  # link still down, or the device came back unusable
+                log.error("amplifier link still down: %s", exc)
+                self.last_link_error = str(exc)
+                self._stop.wait(self.config.reconnect_delay)
+                continue
+            return
+
+    def wait_connected(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s (real time) for a background reconnect; True when connected."""
+        deadline = time.monotonic() + timeout
+        with self._connected:
+            while self.state is DriverState.DISCONNECTED and self._may_reconnect:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._reconnector is None or not self._reconnector.is_alive():
+                    break
+                self._connected.wait(min(remaining, 0.05))
+            return self.connected
 
     def close(self) -> None:
         """Close the link without touching the output (use shutdown() to ramp to safe first)."""
         with self._lock:
             self._may_reconnect = False
+            self._stop.set()
             self.amplifier.close()
             if self.state is not DriverState.SHUT_DOWN:
                 self.state = DriverState.DISCONNECTED
+        self._join_reconnector()
+
+    def _join_reconnector(self) -> None:
+        thread = self._reconnector
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=10.0)
 
     @property
     def connected(self) -> bool:
         return self.state not in (DriverState.DISCONNECTED, DriverState.SHUT_DOWN)
 
     # --- commands -------------------------------------------------------------------------------
-    def set_voltage(self, voltage: float, now: float | None = None) -> SetResult:
-        """Apply one voltage request with all safety checks; returns what was sent."""
+    def command_received(self, received: float | None = None) -> None:
+        """A valid command arrived at ``received`` (default now): the watchdog counts from here."""
+        with self._lock:
+            received = self.clock() if received is None else received
+            self._t_command = max(self._t_command, received)
+
+    def set_voltage(self, voltage: float, received: float | None = None) -> SetResult:
+        """Apply one voltage request with all safety checks; returns what was sent.
+
+        ``received``: when the command arrived (for commands applied later than that, e.g. at
+        their stamp); one received before the watchdog last fired raises :class:`CommandExpired`.
+        """
         voltage = float(voltage)
         if not math.isfinite(voltage):
             raise NonFiniteVoltageError(f"refusing non-finite voltage {voltage!r}; nothing sent")
@@ -166,47 +276,57 @@ class VoltageDriver:
             if not limits.contains(voltage) and not self.config.clamp:
                 raise VoltageOutOfRangeError(
                     f"{voltage} V outside [{limits.v_min}, {limits.v_max}] V; nothing sent")
-            now = self.clock() if now is None else now
-            sent, slewed = self._write_step(limits.clamp(voltage), now)
-            self._t_command = now
+            received = self.clock() if received is None else received
+            if received <= self._t_trip:
+                self.expired += 1
+                raise CommandExpired(f"command received {self._t_trip - received:.3g} s before the "
+                                     "watchdog fired; dropped")
+            self._t_command = max(self._t_command, received)
             self.state = DriverState.ACTIVE
-            return SetResult(voltage, sent, not limits.contains(voltage), slewed)
+            self.target = limits.clamp(voltage)
+            sent = self._write_step()
+            return SetResult(voltage, sent, not limits.contains(voltage), sent != self._rounded(self.target))
 
     def read_voltage(self) -> float:
         """The applied voltage the amplifier reports [V]."""
         with self._lock:
             self._require_limits()
-            return self._with_reconnect(self.amplifier.read_voltage)
+            try:
+                return self.amplifier.read_voltage()
+            except TransportError as exc:  # a garbled reply (ProtocolError) leaves the link up
+                self._link_down(exc)
+                raise
 
     def tick(self, now: float | None = None) -> DriverState:
-        """Watchdog step: after ``command_timeout`` without commands, ramp toward safe_voltage.
+        """Every ``write_period``: watchdog, and one more step of the ramp toward the target.
 
-        A link that dropped is reopened here too, so the output still reaches safe_voltage when
-        the commands stopped because the link died.
+        After ``command_timeout`` without a received command the target becomes safe_voltage.
+        Never blocks on a dead link: a reconnect runs in the background.
         """
         with self._lock:
-            if self.state is DriverState.SHUT_DOWN or not self._may_reconnect:
+            if self.state in (DriverState.SHUT_DOWN, DriverState.DISCONNECTED) or not self._may_reconnect:
                 return self.state
             now = self.clock() if now is None else now
-            if self.state is DriverState.DISCONNECTED:
-                t_command = self._t_command
-                try:
-                    self.reconnect()
-                except TransportError as exc:
-                    log.error("watchdog: link still down: %s", exc)
-                    return self.state
-                self._t_command = t_command  # the silence before the drop still counts
             if self.state is DriverState.ACTIVE and now - self._t_command > self.config.command_timeout:
                 log.warning("no voltage command for %.3g s: ramping to %g V",
                             now - self._t_command, self.config.safe_voltage)
-                self.state = DriverState.TIMED_OUT
-            if self.state is DriverState.TIMED_OUT:
-                t_command = self._t_command
-                sent, _ = self._write_step(self.config.safe_voltage, now)  # may reconnect
-                self._t_command = t_command
-                safe = sent == self._rounded(self.config.safe_voltage)
-                self.state = DriverState.SAFE if safe else DriverState.TIMED_OUT
+                self._trip(now)
+            goal = self._rounded(self.target)
+            if self.last_sent != goal:
+                try:
+                    self._write_step()
+                except LINK_FAULTS:
+                    return self.state  # link marked down; the background reconnect takes over
+            if self.state is DriverState.TIMED_OUT and self.last_sent == goal:
+                self.state = DriverState.SAFE
             return self.state
+
+    def _trip(self, now: float) -> None:
+        self.state = DriverState.TIMED_OUT
+        self._t_trip = now
+        self.target = self.config.safe_voltage
+        for callback in self.on_timeout:
+            callback()
 
     def ramp_to(self, target: float) -> float:
         """Blocking ramp to ``target`` at the slew rate; returns the final voltage sent."""
@@ -217,72 +337,96 @@ class VoltageDriver:
             limits = self._require_limits()
             if not limits.contains(target):
                 raise VoltageOutOfRangeError(f"ramp target {target} V outside [{limits.v_min}, {limits.v_max}] V")
+            self.target = target
             goal = self._rounded(target)
             while True:
-                now = self.clock()
-                sent, _ = self._write_step(target, now)
-                self._t_command = now
+                sent = self._write_step()
+                self._t_command = max(self._t_command, self._t_sent)
                 if sent == goal:
                     return sent
                 self.sleep(self.config.ramp_period)
 
     def shutdown(self) -> float:
-        """Ramp to safe_voltage, leave the amplifier there in open loop, close; returns read-back."""
+        """Ramp to safe_voltage, leave the amplifier there in open loop, close; returns read-back.
+
+        Raises :class:`SafeStateNotReached` (link closed all the same) when that failed.
+        """
         with self._lock:
             if self.state is DriverState.SHUT_DOWN:
                 return self.last_sent
-            self.ramp_to(self.config.safe_voltage)  # reopens a dropped link first
-            applied = self.read_voltage()
-            self.amplifier.close()
-            self._may_reconnect = False
-            self.state = DriverState.SHUT_DOWN
-            log.info("shut down at %g V (read back %g V)", self.last_sent, applied)
-            return applied
+        safe = self.config.safe_voltage
+        applied = math.nan
+        try:
+            deadline = time.monotonic() + self.config.shutdown_timeout
+            while True:
+                if not self.wait_connected(max(deadline - time.monotonic(), 0.0)):
+                    raise SafeStateNotReached(
+                        f"output not brought to safe_voltage {safe:g} V: amplifier link down "
+                        f"({self.last_link_error or 'not connected'}); last sent {self.last_sent:g} V")
+                try:
+                    self.ramp_to(safe)
+                    applied = self.read_voltage()
+                    break
+                except LINK_FAULTS:
+                    if time.monotonic() > deadline:
+                        raise
+            if abs(applied - self._rounded(safe)) > 1.5 * 10.0 ** -self.amplifier.decimals + 1e-9:
+                raise SafeStateNotReached(f"amplifier reads back {applied:g} V after the ramp to "
+                                          f"safe_voltage {safe:g} V")
+        except LINK_FAULTS as exc:
+            raise SafeStateNotReached(f"output not brought to safe_voltage {safe:g} V: {exc}") from exc
+        finally:
+            with self._lock:
+                self._may_reconnect = False
+                self._stop.set()
+                self.amplifier.close()
+                self.state = DriverState.SHUT_DOWN
+            self._join_reconnector()
+        log.info("shut down at %g V (read back %g V)", self.last_sent, applied)
+        return applied
 
     # --- internals ------------------------------------------------------------------------------
     def _require_limits(self) -> VoltageLimits:
-        """The effective limits; reopens a link that dropped, refuses after close()/shutdown()."""
+        """The effective limits; refuses while the link is down and after close()/shutdown()."""
         if self.limits is None or not self._may_reconnect:
             raise NotConnected("voltage driver is not connected; call connect()")
         if self.state is DriverState.DISCONNECTED:
-            self.reconnect()
+            raise NotConnected(f"amplifier link down ({self.last_link_error}); reconnecting")
         return self.limits
 
     def _rounded(self, voltage: float) -> float:
         assert self.limits is not None
         return round_within(voltage, self.limits, self.amplifier.decimals)
 
-    def _write_step(self, target: float, now: float) -> tuple[float, bool]:
-        """Write one slew-limited, limit-checked step toward ``target``; returns (sent, slew-cut)."""
-        def attempt() -> tuple[float, bool]:
-            assert self.limits is not None
-            dt = min(now - self._t_sent, self.config.max_slew_interval)
-            stepped = slew_step(self.last_sent, target, self.config.slew_rate, dt)
-            value = self._rounded(self.limits.clamp(stepped))
-            if not self.limits.contains(value):  # cannot happen; kept as the last line of defence
-                raise VoltageOutOfRangeError(f"internal error: {value} V outside {self.limits}")
-            self.amplifier.write_voltage(value)
-            self.last_sent, self._t_sent = value, now
-            return value, value != self._rounded(target)
-
-        return self._with_reconnect(attempt)
-
-    def _with_reconnect(self, operation):
+    def _write_step(self) -> float:
+        """Write one step toward ``target``: at most max_step and slew_rate × (time since the
+        previous write); the clock is read just before the write. Returns the value sent."""
+        assert self.limits is not None
+        now = self.clock()
+        dt = max(now - self._t_sent, 0.0)
+        step = slew_step(self.last_sent, self.target, self.config.slew_rate, dt)
+        if not math.isinf(self.config.slew_rate):
+            cap = self.config.max_step
+            step = min(max(step, self.last_sent - cap), self.last_sent + cap)
+        value = self._rounded(self.limits.clamp(step))
+        if not self.limits.contains(value):  # cannot happen; kept as the last line of defence
+            raise VoltageOutOfRangeError(f"internal error: {value} V outside {self.limits}")
         try:
-            return operation()
-        except TransportError as exc:
-            if self.config.reconnect_attempts <= 0:
-                self.state = DriverState.DISCONNECTED
-                raise
-            log.warning("link to %s lost (%s); reconnecting", self.amplifier.transport.url, exc)
-            self.reconnect()
-            return operation()
+            self.amplifier.write_voltage(value)
+        except LINK_FAULTS as exc:
+            # whether the device took the value is unknown: reopen, which reads the output back
+            self._link_down(exc)
+            raise
+        self.last_sent, self._t_sent = value, now
+        self.writes += 1
+        return value
 
 
 class Watchdog:
     """A thread calling :meth:`VoltageDriver.tick` every ``period`` seconds (for non-ROS use)."""
 
-    def __init__(self, driver: VoltageDriver, period: float = 0.01) -> None:
+    def __init__(self, driver: VoltageDriver, period: float | None = None) -> None:
+        period = driver.config.write_period if period is None else period
         if not period > 0:
             raise ConfigError(f"watchdog period must be > 0 s, got {period}")
         self.driver = driver

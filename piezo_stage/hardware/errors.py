@@ -67,3 +67,11 @@ class VoltageOutOfRangeError(SafetyError):
 
 class LimitsError(SafetyError):
     """The configured and device voltage limits do not intersect, or safe_voltage lies outside them."""
+
+
+class CommandExpired(SafetyError):
+    """A command received before the watchdog fired arrived for application after it: dropped."""
+
+
+class SafeStateNotReached(HardwareError):
+    """Shutdown could not bring the output to ``safe_voltage`` (link down, device refused)."""

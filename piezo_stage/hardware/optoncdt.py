@@ -13,16 +13,23 @@ Samples are metres from the start of the measuring range (MR in metres). A sampl
 when it came from a well-formed frame, is a measurement value (not an error code) and lies in
 [0, MR]; below 0 it is TOO_CLOSE, above MR TOO_FAR; a status other than OK carries NaN.
 
-The parser is vectorised (numpy over each received chunk): a frame is a contiguous L, M, H
-byte triple (or H, L pair) with the right flag bits; every other byte goes to the ASCII
+The parser finds frames vectorised (numpy over each received chunk): a frame is a contiguous
+L, M, H byte triple (or H, L pair) with the right flag bits; every other byte goes to the ASCII
 command channel (ILD1320/1750 families answer ASCII commands between measurement frames) or is
-counted as discarded. Corrupt or lost bytes therefore cost frames but never turn into a
-displacement unless they form a well-formed frame by themselves.
+counted as discarded. On top of that it keeps a **frame lock** (:class:`FrameCheck`), the same
+for every family: any byte between two frames (discarded, garbage, or text) is a framing error
+and unlocks; unlocked, nothing is OK until ``relock_frames`` consecutive well-formed frames
+agree (each within the speed gate of the one before), so the frame next to lost or discarded
+bytes is never OK. The **speed gate** refuses a value implying a speed above ``max_speed``
+[m/s] since the last accepted one (the stage cannot move that fast); ``relock_frames``
+refusals in a row unlock. Refused and withheld frames are samples with status INVALID (the
+sample count stays on the sensor's clock); each cause has its counter in :class:`ParserStats`.
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -180,14 +187,35 @@ class SampleBlock:
         return int(self.status.size)
 
 
+@dataclass(frozen=True)
+class FrameCheck:
+    """Frame lock and plausibility gate of :class:`OptoNCDTParser` (see the module docstring)."""
+
+    relock_frames: int = 6  # k: consecutive agreeing frames before values are OK again (>= 2)
+    max_speed: float = 0.1  # m/s: larger implied speeds are refused (inf: no gate)
+    rate: float = 1000.0  # Hz: the sensor's measuring rate (time between frames for the gate)
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.relock_frames <= 1000:
+            raise ConfigError(f"relock_frames must be in [2, 1000], got {self.relock_frames}")
+        if not self.max_speed > 0:
+            raise ConfigError(f"max_speed must be > 0 m/s (inf: no gate), got {self.max_speed}")
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise ConfigError(f"rate must be > 0 Hz, got {self.rate}")
+
+
 @dataclass
 class ParserStats:
     frames: int = 0  # well-formed frames (first values of a block)
     later_values: int = 0  # well-formed frames flagged as later values of a block (ignored)
-    ok: int = 0
-    errors: int = 0  # samples with status != OK
+    ok: int = 0  # samples with status OK
+    errors: int = 0  # error values sent by the sensor (status NO_TARGET, TOO_CLOSE, ...)
     text_bytes: int = 0  # bytes handed to the ASCII channel
     discarded: int = 0  # bytes that were neither frame nor ASCII text
+    framing_errors: int = 0  # runs of non-frame bytes between frames (each unlocks)
+    relock_withheld: int = 0  # well-formed frames withheld while relocking (status INVALID)
+    speed_rejected: int = 0  # values refused by the speed gate (status INVALID)
+    lock_losses: int = 0  # times a lock was lost (framing error, or relock_frames refusals)
 
 
 class AsciiChannel:
@@ -220,20 +248,29 @@ class AsciiChannel:
 
 
 class OptoNCDTParser:
-    """Incremental, vectorised parser of an optoNCDT byte stream (see module docstring)."""
+    """Incremental parser of an optoNCDT byte stream with frame lock and speed gate (module docstring)."""
 
-    def __init__(self, fmt: FrameFormat, measuring_range: float) -> None:
+    def __init__(self, fmt: FrameFormat, measuring_range: float, check: FrameCheck | None = None) -> None:
         if not measuring_range > 0:
             raise ConfigError(f"measuring range must be > 0 m, got {measuring_range}")
         self.fmt = fmt
         self.measuring_range = float(measuring_range)
+        self.check = check or FrameCheck()
         self.ascii = AsciiChannel()
         self.stats = ParserStats()
-        self._tail = np.empty(0, dtype=np.uint8)
+        # the speed gate's slack: two digital steps (rounding on both sides)
+        self._quantum = 2.0 * abs(fmt.scale) * self.measuring_range
+        self.reset()
 
     def reset(self) -> None:
+        """Forget the stream (after (re)connecting: unlocked until relock_frames agree)."""
         self._tail = np.empty(0, dtype=np.uint8)
         self.ascii.clear()
+        self._gap = 1  # non-frame bytes since the last frame (a new stream starts unlocked)
+        self._good = 0  # consecutive agreeing frames since the last framing error
+        self._ref = math.nan  # last accepted value [m]
+        self._since = 0  # frames since it
+        self._refused = 0  # consecutive speed-gate refusals while locked
 
     def feed(self, data: bytes) -> SampleBlock:
         """Parse the next chunk of the stream; bytes of an incomplete frame wait for the next chunk."""
@@ -249,7 +286,15 @@ class OptoNCDTParser:
         other = buf[:decided][~in_frame[:decided]]
         self._tail = buf[decided:].copy()
         self._route_other(other)
-        return self._decode(buf, ends)
+        # non-frame bytes in front of each frame (the first one also those of earlier chunks)
+        starts = ends - (width - 1)
+        gaps = np.diff(np.concatenate([[-1], ends]).astype(np.int64)) - width
+        if gaps.size:
+            gaps[0] = self._gap + int(starts[0])
+            self._gap = decided - (int(ends[-1]) + 1)
+        else:
+            self._gap += decided
+        return self._decode(buf, ends, gaps)
 
     def _frame_ends(self, buf: np.ndarray) -> np.ndarray:
         if self.fmt.bytes_per_value == 2:  # H (bit 7 set) followed by L (bit 7 clear)
@@ -267,16 +312,15 @@ class OptoNCDTParser:
         else:
             self.stats.discarded += int(other.size)
 
-    def _decode(self, buf: np.ndarray, ends: np.ndarray) -> SampleBlock:
+    def _decode(self, buf: np.ndarray, ends: np.ndarray, gaps: np.ndarray) -> SampleBlock:
         if not ends.size:
             return SampleBlock.empty()
         b = buf.astype(np.int64)
         if self.fmt.bytes_per_value == 2:
+            first = np.ones(ends.size, dtype=bool)
             raw = ((b[ends - 1] & 0x7F) << 7) | (b[ends] & 0x7F)
         else:
             first = b[ends] < 0xC0
-            self.stats.later_values += int(ends.size - np.count_nonzero(first))
-            ends = ends[first]
             raw = ((b[ends] & 0x3F) << 12) | ((b[ends - 1] & 0x3F) << 6) | (b[ends - 2] & 0x3F)
         raw &= self.fmt.mask
         status = self.fmt.status_lut[raw].copy()
@@ -284,9 +328,52 @@ class OptoNCDTParser:
         ok = status == Status.OK
         status[ok & (distance < 0.0)] = Status.TOO_CLOSE
         status[ok & (distance > self.measuring_range)] = Status.TOO_FAR
+        self.stats.errors += int(np.count_nonzero((status != Status.OK) & first))
+        status = self._lock(status, distance, first, gaps)
+        keep = first
+        status, distance, raw = status[keep], distance[keep], raw[keep]
         distance[status != Status.OK] = np.nan
-        n_ok = int(np.count_nonzero(status == Status.OK))
         self.stats.frames += int(raw.size)
-        self.stats.ok += n_ok
-        self.stats.errors += int(raw.size) - n_ok
+        self.stats.later_values += int(ends.size - raw.size)
+        self.stats.ok += int(np.count_nonzero(status == Status.OK))
         return SampleBlock(distance, status, raw)
+
+    def _lock(self, status: np.ndarray, distance: np.ndarray, first: np.ndarray,
+              gaps: np.ndarray) -> np.ndarray:
+        """Frame lock and speed gate, frame by frame: OK values not passing become INVALID."""
+        check, stats = self.check, self.stats
+        k, step, slack = check.relock_frames, check.max_speed / check.rate, self._quantum
+        out = status.copy()
+        ok_value = int(Status.OK)
+        for i, (st, d, is_first, gap) in enumerate(zip(status.tolist(), distance.tolist(),
+                                                        first.tolist(), gaps.tolist())):
+            if gap > 0:
+                stats.framing_errors += 1
+                if self._good >= k:
+                    stats.lock_losses += 1
+                self._good, self._ref, self._refused = 0, math.nan, 0
+            if not is_first:
+                continue
+            self._since += 1
+            if st != ok_value:
+                continue  # an error value: well-formed, but nothing to compare
+            if self._good and abs(d - self._ref) <= step * self._since + slack:
+                self._good += 1
+                self._ref, self._since, self._refused = d, 0, 0
+                if self._good >= k:
+                    continue  # locked and plausible: OK
+                stats.relock_withheld += 1
+            elif self._good >= k:  # locked: refuse this value
+                stats.speed_rejected += 1
+                self._refused += 1
+                if self._refused >= k:  # the reference itself is doubtful: relock from here
+                    stats.lock_losses += 1
+                    self._good, self._ref, self._since, self._refused = 1, d, 0, 0
+            else:  # the first of a new run (after an error, or disagreeing with the run)
+                if self._good:
+                    stats.speed_rejected += 1
+                else:
+                    stats.relock_withheld += 1
+                self._good, self._ref, self._since = 1, d, 0
+            out[i] = Status.INVALID
+        return out

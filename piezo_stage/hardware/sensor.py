@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterator
 
 from .errors import ConfigError, ConnectionLost, DeviceTimeout, SensorCommandError, TransportError
-from .optoncdt import OptoNCDTParser, SampleBlock, frame_format
+from .optoncdt import FrameCheck, OptoNCDTParser, SampleBlock, frame_format
 from .transport import Transport, make_transport
 
 log = logging.getLogger(__name__)
@@ -28,6 +28,9 @@ class SensorConfig:
     measuring_range: float  # MR [m]
     bits: int | None = None  # 16 or 18 for the ILD1320 family (default 18)
     stale_timeout: float = 0.5  # s without frames before `stale`
+    rate: float = 1000.0  # Hz: the sensor's measuring rate (speed gate)
+    max_speed: float = 0.1  # m/s: values implying a faster stage are refused (inf: no gate)
+    relock_frames: int = 6  # consecutive agreeing frames after a framing error before OK again
     reconnect_attempts: int = 3
     reconnect_delay: float = 0.2  # s
 
@@ -36,6 +39,11 @@ class SensorConfig:
             raise ConfigError(f"measuring_range must be > 0 m, got {self.measuring_range}")
         if not self.stale_timeout > 0:
             raise ConfigError(f"stale_timeout must be > 0 s, got {self.stale_timeout}")
+        self.frame_check  # validates rate, max_speed, relock_frames
+
+    @property
+    def frame_check(self) -> FrameCheck:
+        return FrameCheck(self.relock_frames, self.max_speed, self.rate)
 
 
 class SensorReader:
@@ -44,7 +52,8 @@ class SensorReader:
         self.transport = transport
         self.config = config
         self.clock = clock
-        self.parser = OptoNCDTParser(frame_format(config.family, config.bits), config.measuring_range)
+        self.parser = OptoNCDTParser(frame_format(config.family, config.bits), config.measuring_range,
+                                     config.frame_check)
         self._pending: list[SampleBlock] = []
         self._t_frame = -float("inf")
         self.reconnects = 0

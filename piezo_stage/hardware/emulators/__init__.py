@@ -2,8 +2,9 @@
 the simulated plant) served on ptys or loopback TCP by :class:`EmulatorServer`."""
 
 from .gcs_device import GCSDeviceModel
+from .loopback import LoopbackTransport
 from .mdt_device import MDTDeviceModel
 from .optoncdt_device import OptoNCDTDeviceModel
 from .server import EmulatorServer, Faults
 
-__all__ = ["EmulatorServer", "Faults", "GCSDeviceModel", "MDTDeviceModel", "OptoNCDTDeviceModel"]
+__all__ = ["EmulatorServer", "Faults", "GCSDeviceModel", "LoopbackTransport", "MDTDeviceModel", "OptoNCDTDeviceModel"]

@@ -56,31 +56,72 @@ class DeviceModel(Protocol):
 
 @dataclass
 class Faults:
-    """Fault injection on the device's output (thread-safe enough: plain attribute writes)."""
+    """Fault injection on the device's output, the faults a bench sees (seeded).
+
+    Per output byte: ``drop`` (lost), ``corrupt`` (replaced by a random byte). Per output chunk
+    (a reply, or a burst of the sensor's stream): ``garbage`` (a burst of 1-32 random bytes
+    inserted in front), ``hangup`` (the chunk is cut in the middle and the link hung up: a
+    disconnect mid-reply), ``stall`` (the device stops for ``stall_time`` s: nothing out, input
+    ignored). ``reply_delay`` holds every reply back (a slow device); ``silent`` is a pulled
+    cable. Plain attribute writes switch them at run time.
+    """
 
     drop: float = 0.0  # probability that an outgoing byte is lost
     corrupt: float = 0.0  # probability that an outgoing byte is replaced by a random byte
+    garbage: float = 0.0  # probability that a chunk is preceded by 1-32 random bytes
+    hangup: float = 0.0  # probability that a chunk is cut in the middle and the link hung up
+    stall: float = 0.0  # probability that the device stalls for stall_time before a chunk
+    stall_time: float = 0.5  # s
     reply_delay: float = 0.0  # seconds every reply is held back (slow device)
     silent: bool = False  # no output at all and input ignored (cable pulled, device hung)
     seed: int | None = None
 
     def __post_init__(self) -> None:
-        for name in ("drop", "corrupt"):
+        for name in ("drop", "corrupt", "garbage", "hangup", "stall"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} probability must be in [0, 1], got {getattr(self, name)}")
-        if self.reply_delay < 0:
-            raise ConfigError(f"reply_delay must be >= 0 s, got {self.reply_delay}")
+        if self.reply_delay < 0 or self.stall_time < 0:
+            raise ConfigError("reply_delay and stall_time must be >= 0 s")
         self.rng = np.random.default_rng(self.seed)
+        self.stalled_until = -np.inf
+        self.counts = {"dropped": 0, "corrupted": 0, "garbage": 0, "hangups": 0, "stalls": 0}
+
+    def muted(self, now: float) -> bool:
+        """The device neither answers nor listens now (silent, or stalled)."""
+        return self.silent or now < self.stalled_until
+
+    def inject(self, data: bytes, now: float) -> tuple[bytes, bool]:
+        """The bytes that leave the device for ``data`` at ``now``, and whether the link is hung
+        up after them."""
+        if not data or self.muted(now):
+            return b"", False
+        if self.stall and self.rng.random() < self.stall:
+            self.stalled_until = now + self.stall_time
+            self.counts["stalls"] += 1
+            return b"", False
+        hang_up = bool(self.hangup) and self.rng.random() < self.hangup
+        if hang_up:
+            data = data[: int(self.rng.integers(0, len(data)))]
+            self.counts["hangups"] += 1
+        if self.garbage and self.rng.random() < self.garbage:
+            junk = self.rng.integers(0, 256, int(self.rng.integers(1, 33)), dtype=np.uint8)
+            data = junk.tobytes() + data
+            self.counts["garbage"] += 1
+        return self.apply(data), hang_up
 
     def apply(self, data: bytes) -> bytes:
+        """Per-byte faults only: ``corrupt`` then ``drop``."""
         if not data or (self.drop == 0.0 and self.corrupt == 0.0):
             return data
         buf = np.frombuffer(data, dtype=np.uint8).copy()
         if self.corrupt:
             hit = self.rng.random(buf.size) < self.corrupt
             buf[hit] = self.rng.integers(0, 256, int(np.count_nonzero(hit)), dtype=np.uint8)
+            self.counts["corrupted"] += int(np.count_nonzero(hit))
         if self.drop:
-            buf = buf[self.rng.random(buf.size) >= self.drop]
+            keep = self.rng.random(buf.size) >= self.drop
+            self.counts["dropped"] += int(buf.size - np.count_nonzero(keep))
+            buf = buf[keep]
         return buf.tobytes()
 
 
@@ -294,15 +335,20 @@ class EmulatorServer:
     # --- loop -----------------------------------------------------------------------------------
     def _emit(self, fd: int | None, data: bytes, now: float) -> None:
         """Send ``data`` to one channel (fd) or to all (None), through the fault injector."""
-        if not data or self.faults.silent:
-            return
-        data = self.faults.apply(data)
+        data, hang_up = self.faults.inject(data, now)
         targets = list(self._channels) if fd is None else [fd]
         for target in targets:
-            if self.faults.reply_delay > 0:
+            if self.faults.reply_delay > 0 and data:
                 heapq.heappush(self._delayed, (now + self.faults.reply_delay, next(self._seq), target, data))
             elif target in self._channels:
                 self._channels[target].queue(data)
+                if hang_up:
+                    try:
+                        self._channels[target].send_some()  # the cut reply leaves, then the line drops
+                    except OSError:
+                        pass
+        if hang_up:
+            self._hang_up()
 
     def _run(self) -> None:
         self.realtime_error = set_realtime_priority(self.realtime_priority)
@@ -377,7 +423,7 @@ class EmulatorServer:
             if data == b"" and channel.sock is not None:
                 self._drop_channel(channel)
                 return
-            if data and not self.faults.silent:
+            if data and not self.faults.muted(time.monotonic()):
                 reply = channel.session.handle(data, arrived)
                 self._emit(channel.fd, reply, time.monotonic())
         if mask & selectors.EVENT_WRITE and not channel.closed:
