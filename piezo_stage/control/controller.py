@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, replace
 
 from .errors import ControllerConfigError, MeasurementError
+from .feedforward import Compensation, Feedforward, FeedforwardModel
 from .laws import THESIS_GAINS, Gains, check_law, excitation_term, pid_term, x0_coefficient
 
 ANTI_WINDUP: tuple[str, ...] = ("none", "conditional", "back_calculation")
@@ -40,6 +41,8 @@ class ControllerConfig:
     - ``on_close``: x0 at closing: ``"bumpless"`` (x0 chosen so that u is continuous),
       ``"reset"`` (x0 = 0, as the §11.4 simulations start) or ``"keep"`` (x0 frozen while open).
     - ``dt_max``: a larger Δt between samples is a gap: no integration, x2 re-baselined.
+    - ``compensation``: ``feedback`` (the law alone), ``feedforward`` (u_ff of ``feedforward``
+      alone) or ``both`` (u_ff + the law): tracking, issue 17 (see :mod:`.feedforward`).
     """
 
     mode: str = "pid"
@@ -52,6 +55,15 @@ class ControllerConfig:
     hold_voltage: float | None = None
     on_close: str = "bumpless"
     dt_max: float = 0.1
+    compensation: Compensation = Compensation.FEEDBACK
+    feedforward: FeedforwardModel | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "compensation", Compensation(self.compensation))
+        except ValueError:
+            names = ", ".join(c.value for c in Compensation)
+            raise ControllerConfigError(f"compensation must be one of {names}, got {self.compensation!r}") from None
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable configuration."""
@@ -79,6 +91,9 @@ class ControllerConfig:
             raise ControllerConfigError(f"hold_voltage must be finite, got {self.hold_voltage}")
         if not (self.dt_max > 0):
             raise ControllerConfigError(f"dt_max must be > 0 s, got {self.dt_max}")
+        if self.compensation is not Compensation.FEEDBACK and self.feedforward is None:
+            raise ControllerConfigError(f"compensation {self.compensation.value} needs a "
+                                        "feedforward model (a dynamic parameter set)")
 
     @property
     def effective_tracking_time(self) -> float:
@@ -95,9 +110,9 @@ class ControllerConfig:
 class ControlOutput:
     """One controller period; field names match ``piezo_stage_msgs/msg/ControllerState``.
 
-    ``u = clamp(u_pid + u_excitation)`` when the loop is closed, the (clamped) hold voltage when
-    open. ``timing`` is ``"ok"``, ``"first"`` (no previous sample: x2 from ẏr only, no
-    integration), ``"gap"`` (Δt > dt_max: likewise) or ``"nonpositive_dt"`` (sample ignored, the
+    ``u = clamp(u_pid + u_excitation + u_ff)`` when the loop is closed (u_pid = u_excitation = 0
+    under ``feedforward``, u_ff = 0 under ``feedback``), the (clamped) hold voltage when open.
+    ``timing`` is ``"ok"``, ``"first"`` (no previous sample: x2 from ẏr only, no integration), ``"gap"`` (Δt > dt_max: likewise) or ``"nonpositive_dt"`` (sample ignored, the
     previous output repeated).
     """
 
@@ -114,6 +129,7 @@ class ControlOutput:
     u_excitation: float
     saturated: bool
     timing: str = TIMING_OK
+    u_ff: float = 0.0
 
 
 class TimeVaryingPID:
@@ -145,6 +161,9 @@ class TimeVaryingPID:
         self._t_close: float | None = None
         self._hold: float | None = None
         self._last: ControlOutput | None = None
+        self._u_ff = 0.0
+        model = self._config.feedforward
+        self._ff = Feedforward(model) if model is not None else None
 
     @property
     def config(self) -> ControllerConfig:
@@ -174,6 +193,8 @@ class TimeVaryingPID:
         old = self._config
         if self._closed and config.on_close == "bumpless" and old.gains.k0 > 0 and config.gains.k0 != old.gains.k0:
             self._x0 *= old.gains.k0 / config.gains.k0
+        if config.feedforward != old.feedforward:
+            self._ff = Feedforward(config.feedforward) if config.feedforward is not None else None
         self._config = config
 
     def open_loop(self, hold: float | None = None) -> None:
@@ -185,6 +206,8 @@ class TimeVaryingPID:
         self._hold = float(hold)
         self._closed = False
         self._pending_close = False
+        if self._ff is not None:
+            self._ff.unseed()  # the stage leaves x_d: re-seeded from it at closing
 
     def close_loop(self) -> None:
         """Close the loop at the next :meth:`update` (x0 set per ``config.on_close``, sine phase 0)."""
@@ -192,14 +215,17 @@ class TimeVaryingPID:
             self._pending_close = True
 
     # ----------------------------------------------------------------- period
-    def update(self, t: float, x_measured: float, yr: float = 0.0, yr_dot: float | None = None) -> ControlOutput:
+    def update(self, t: float, x_measured: float, yr: float = 0.0, yr_dot: float | None = None,
+               yr_ddot: float = 0.0) -> ControlOutput:
         """One period at time ``t`` [s] with measured position ``x_measured`` [m] and reference
-        ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used)."""
+        ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used; ÿr [m/s²] for the
+        feedforward's m·ÿr term)."""
         for name, value in (("t", t), ("x_measured", x_measured), ("yr", yr)):
             if not math.isfinite(value):
                 raise MeasurementError(f"{name} must be finite, got {value}; open the loop on invalid samples")
-        if yr_dot is not None and not math.isfinite(yr_dot):
-            raise MeasurementError(f"yr_dot must be finite, got {yr_dot}")
+        for name, value in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
+            if value is not None and not math.isfinite(value):
+                raise MeasurementError(f"{name} must be finite, got {value}")
         cfg = self._config
         if self._t_prev is None:
             timing, dt = TIMING_FIRST, 0.0
@@ -221,6 +247,14 @@ class TimeVaryingPID:
         x2 = self._x2f
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
 
+        u_ff = 0.0
+        use_ff = self._ff is not None and cfg.compensation is not Compensation.FEEDBACK
+        if use_ff and (self._closed or self._pending_close):
+            assert self._ff is not None
+            if not self._ff.seeded:  # closing now, or the first sample of a loop started closed
+                self._ff.seed(x_measured, self._u)
+            u_ff = self._ff.step(yr, yr_dot if yr_dot is not None else 0.0, yr_ddot)
+        self._u_ff = u_ff
         if self._pending_close:
             self._close_now(t, x1, x2)
         elif self._closed and self._t_close is None:
@@ -232,10 +266,13 @@ class TimeVaryingPID:
             tau = t - self._t_close
             u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
             u_exc = float(excitation_term(cfg.mode, cfg.gains, tau, self._x0))
-            u_raw = u_pid + u_exc
+            if cfg.compensation is Compensation.FEEDFORWARD:
+                u_pid = u_exc = 0.0
+            u_raw = u_pid + u_exc + u_ff
             x0_used = self._x0
             self._u = cfg.clamp(u_raw)
-            if cfg.anti_windup == "back_calculation" and self._u != u_raw:
+            if cfg.anti_windup == "back_calculation" and self._u != u_raw \
+                    and cfg.compensation is not Compensation.FEEDFORWARD:
                 gain = min(dt / cfg.effective_tracking_time, 1.0) if dt > 0 else 0.0
                 self._x0 += gain * (self._u - u_raw) / (-cfg.gains.k0)
         else:
@@ -246,6 +283,7 @@ class TimeVaryingPID:
         self._last = ControlOutput(
             t=t, dt=dt, mode=cfg.mode, loop_closed=self._closed, reference=yr, x0=x0_used, x1=x1, x2=x2,
             u=self._u, u_pid=u_pid, u_excitation=u_exc, saturated=self._u != u_raw, timing=timing,
+            u_ff=u_ff,
         )
         return self._last
 
@@ -253,8 +291,8 @@ class TimeVaryingPID:
         """Open→closed transfer at time t (the new phase origin: sin(2πf·0) = 0)."""
         cfg = self._config
         if cfg.on_close == "bumpless":
-            # u(t_close) = −k0·x0 − k1·x1 − k2·x2 must equal the output being applied now.
-            self._x0 = -(self._u + cfg.gains.k1 * x1 + cfg.gains.k2 * x2) / cfg.gains.k0
+            # u(t_close) = −k0·x0 − k1·x1 − k2·x2 + u_ff must equal the output being applied now.
+            self._x0 = -(self._u - self._u_ff + cfg.gains.k1 * x1 + cfg.gains.k2 * x2) / cfg.gains.k0
         elif cfg.on_close == "reset":
             self._x0 = 0.0
         self._closed, self._pending_close, self._t_close, self._hold = True, False, t, None
@@ -265,9 +303,12 @@ class TimeVaryingPID:
         push u further beyond it."""
         cfg = self._config
         step = x1 * dt
+        if cfg.compensation is Compensation.FEEDFORWARD:
+            return  # the law is not applied: its integral is not accumulated
         if cfg.anti_windup == "conditional":
             tau = t - self._t_close
-            u_now = float(pid_term(cfg.gains, self._x0, x1, x2) + excitation_term(cfg.mode, cfg.gains, tau, self._x0))
+            u_now = float(pid_term(cfg.gains, self._x0, x1, x2) + excitation_term(cfg.mode, cfg.gains, tau, self._x0)
+                          + self._u_ff)
             excess = u_now - cfg.clamp(u_now)
             if excess != 0.0 and excess * x0_coefficient(cfg.mode, cfg.gains, tau) * step > 0:
                 return

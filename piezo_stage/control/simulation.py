@@ -19,7 +19,7 @@ import numpy as np
 from .controller import TimeVaryingPID
 from .errors import SampledLoopError
 
-ReferenceFn = Callable[[float], "float | tuple[float, float | None]"]
+ReferenceFn = Callable[[float], "float | tuple[float, float | None] | tuple[float, float, float]"]
 
 
 class SampledPlant(Protocol):
@@ -44,6 +44,7 @@ class ClosedLoopResult:
     u_pid: np.ndarray
     u_excitation: np.ndarray
     u_applied: np.ndarray
+    u_ff: np.ndarray
     saturated: np.ndarray
     loop_closed: np.ndarray
     xdot: np.ndarray
@@ -71,7 +72,7 @@ def simulate_closed_loop(
 
     Each period k: measure, call ``controller.update(t[k], measured, yr, ẏr)``, hold the output
     computed ``delay_samples`` periods earlier over the period (zero-order hold), step the plant.
-    ``reference(t)`` returns yr or (yr, ẏr), e.g. a
+    ``reference(t)`` returns yr, (yr, ẏr) or (yr, ẏr, ÿr) (a trajectory, for the feedforward), e.g. a
     :class:`~piezo_stage.control.reference.SecondOrderReference`; default yr = 0, ẏr = 0.
     ``open_windows``: (start, end, hold) intervals (relative to t0) with the loop open at
     ``hold`` volts (None: the last output), closed again at ``end`` (§11.5: 10 ms at 72 V).
@@ -85,7 +86,7 @@ def simulate_closed_loop(
     period = 1.0 / rate_hz
     n = int(round(duration * rate_hz))
     rec = {k: np.empty(n) for k in ("t", "measured", "reference", "x0", "x1", "x2", "u", "u_pid",
-                                    "u_excitation", "u_applied", "xdot", "w")}
+                                    "u_excitation", "u_applied", "u_ff", "xdot", "w")}
     saturated = np.zeros(n, dtype=bool)
     closed = np.zeros(n, dtype=bool)
     pending: deque[float] = deque([controller.u] * int(delay_samples))
@@ -100,17 +101,20 @@ def simulate_closed_loop(
         elif was_open and not is_open:
             controller.close_loop()
         was_open = is_open
-        yr, yr_dot = 0.0, 0.0
+        yr, yr_dot, yr_ddot = 0.0, 0.0, 0.0
         if reference is not None:
             value = reference(t)
-            yr, yr_dot = (value if isinstance(value, tuple) else (value, None))
-        out = controller.update(t, measured, yr, yr_dot)
+            value = value if isinstance(value, tuple) else (value, None)
+            yr, yr_dot = value[0], value[1]
+            yr_ddot = value[2] if len(value) > 2 else 0.0
+        out = controller.update(t, measured, yr, yr_dot, yr_ddot)
         pending.append(out.u)
         applied = pending.popleft()
         rec["t"][k], rec["measured"][k], rec["reference"][k] = t, measured, yr
         rec["x0"][k], rec["x1"][k], rec["x2"][k] = out.x0, out.x1, out.x2
         rec["u"][k], rec["u_pid"][k], rec["u_excitation"][k], rec["u_applied"][k] = (
             out.u, out.u_pid, out.u_excitation, applied)
+        rec["u_ff"][k] = out.u_ff
         rec["xdot"][k] = getattr(plant, "xdot", math.nan)
         rec["w"][k] = getattr(plant, "w", math.nan)
         saturated[k], closed[k] = out.saturated, out.loop_closed
