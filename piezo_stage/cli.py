@@ -29,6 +29,13 @@ COMMANDS: dict[str, str] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``piezo-stage CMD: error: ... (see --help)``, exit 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
 def _load(name: str):
     return importlib.import_module(f"piezo_stage.commands.{COMMANDS[name]}")
 
@@ -53,7 +60,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     name, rest = argv[0], argv[1:]
     module = _load(name)
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=f"piezo-stage {name}",
         description=(module.__doc__ or "").strip(),
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -15,8 +15,10 @@ import json
 import sys
 from pathlib import Path
 
+from piezo_stage.commands.argtypes import int_range, physical
 from piezo_stage.control.bounds import Bounds, NominalPlant, load_bounds, load_nominal_plant, thesis_bounds_path
-from piezo_stage.control.discrete import HYSTERESIS_MODELS, SampledLoopReport, check_sampled_loop
+from piezo_stage.control.discrete import (HYSTERESIS_MODELS, MAX_DELAY_SAMPLES, SampledLoopReport,
+                                          check_sampled_loop)
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.laws import LAWS, Gains
 from piezo_stage.control.theorem4 import GainReport, validate_gains
@@ -32,24 +34,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--bounds", type=Path, default=None,
                      help="bounds YAML (default: the shipped thesis_rig_bounds.yaml)")
     for name in _BOUND_FLAGS:
-        src.add_argument("--" + name.replace("_", "-"), dest=name, type=float, default=None,
+        src.add_argument("--" + name.replace("_", "-"), dest=name, type=physical, default=None,
                          help=f"override {name} [{_UNITS[name]}]")
     g = parser.add_argument_group("gains")
-    g.add_argument("--k1", type=float, required=True, help="proportional gain k1 [V/m] (> 0)")
-    g.add_argument("--k2", type=float, default=None, help="derivative gain k2 [V s/m]")
-    g.add_argument("--k0", type=float, default=None, help="integral gain k0 [V/(m s)]")
-    g.add_argument("--ka", dest="kA", type=float, default=None, help="kA of (11.18) [V/(m s)]")
-    g.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f of (11.17-11.18) [Hz]")
+    g.add_argument("--k1", type=physical, required=True, help="proportional gain k1 [V/m] (> 0)")
+    g.add_argument("--k2", type=physical, default=None, help="derivative gain k2 [V s/m]")
+    g.add_argument("--k0", type=physical, default=None, help="integral gain k0 [V/(m s)]")
+    g.add_argument("--ka", dest="kA", type=physical, default=None, help="kA of (11.18) [V/(m s)]")
+    g.add_argument("--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]")
     d = parser.add_argument_group("sampled-loop check")
-    d.add_argument("--rate-hz", type=float, default=None, help="loop rate [Hz]; enables the check")
-    d.add_argument("--delay-samples", type=int, default=0, help="output applied this many periods late (default 0)")
+    d.add_argument("--rate-hz", type=physical, default=None, help="loop rate [Hz]; enables the check")
+    d.add_argument("--delay-samples", type=int_range(0, MAX_DELAY_SAMPLES), default=0, help="output applied this many periods late (default 0)")
     d.add_argument("--law", choices=LAWS, default="pid",
                    help="law checked (pid_sine = pid; pid_tv needs --ka, --f, rate/f integer)")
     d.add_argument("--hysteresis", choices=HYSTERESIS_MODELS, default="disturbance",
                    help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)")
-    d.add_argument("--derivative-tau", type=float, default=0.0, help="x2 filter time constant [s] (default 0: off)")
+    d.add_argument("--derivative-tau", type=physical, default=0.0, help="x2 filter time constant [s] (default 0: off)")
     for name in _NOMINAL_FLAGS:
-        d.add_argument("--" + name.replace("_", "-"), dest="nominal_" + name, type=float, default=None,
+        d.add_argument("--" + name.replace("_", "-"), dest="nominal_" + name, type=physical, default=None,
                        help=f"nominal plant {name} (default: the bounds file's nominal section)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -115,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
         disc = _discrete(args, report, nominal) if args.rate_hz is not None else None
     except ControlError as exc:
         print(f"piezo-stage gains: {exc}", file=sys.stderr)
+        return 2
+    except (ArithmeticError, ValueError) as exc:  # bounds from a file beyond double precision
+        print(f"piezo-stage gains: the bounds and gains overflow double precision ({exc})",
+              file=sys.stderr)
         return 2
     if args.json:
         out = {"bounds_file": str(path), "bounds": bounds.to_dict(), **report.to_dict(),

@@ -32,6 +32,13 @@ from .errors import SampledLoopError
 from .laws import Gains, check_law
 
 HYSTERESIS_MODELS: tuple[str, ...] = ("disturbance", "initial_slope")
+#: Margins 1 − ρ smaller than this are rounding noise of a double ρ near 1 (1e6·eps keeps ~4 digits
+#: of the margin): the check is meaningful while the slowest closed-loop mode moves |λ|·T above it.
+MARGIN_RESOLUTION = 1e6 * float(np.finfo(float).eps)
+#: Longest output delay checked: the loop matrix has 5 + d rows (d = 1e5 would need 74.5 GiB).
+MAX_DELAY_SAMPLES = 1000
+#: Most matrix entries the Floquet product of pid_tv may hold (N matrices of (5 + d)² entries).
+MAX_FLOQUET_ENTRIES = 20_000_000
 
 
 def stiffness(plant: NominalPlant, hysteresis: str = "disturbance") -> float:
@@ -45,6 +52,14 @@ def continuous_poles(plant: NominalPlant, gains: Gains, hysteresis: str = "distu
     """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15), w frozen."""
     k = stiffness(plant, hysteresis)
     return np.roots([plant.m, plant.c + gains.k2, k + gains.k1, gains.k0])
+
+
+def max_meaningful_rate(plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance") -> float:
+    """Highest loop rate [Hz] at which the sampled check resolves the slowest continuous mode:
+    |λ_min|·T ≥ ``MARGIN_RESOLUTION`` (beyond it ρ = 1 − |λ|T rounds to noise around 1)."""
+    mags = np.abs(continuous_poles(plant, gains, hysteresis))
+    mags = mags[mags > 0]
+    return float(mags.min() / MARGIN_RESOLUTION) if mags.size else math.inf
 
 
 def zoh_plant(plant: NominalPlant, period: float, hysteresis: str = "disturbance") -> tuple[np.ndarray, np.ndarray]:
@@ -111,12 +126,18 @@ def closed_loop_matrices(
     plant.validate()
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise SampledLoopError(f"rate_hz must be > 0, got {rate_hz}")
-    if int(delay_samples) != delay_samples or delay_samples < 0:
-        raise SampledLoopError(f"delay_samples must be a non-negative integer, got {delay_samples}")
+    if int(delay_samples) != delay_samples or not 0 <= delay_samples <= MAX_DELAY_SAMPLES:
+        raise SampledLoopError(f"delay_samples must be an integer in [0, {MAX_DELAY_SAMPLES}], "
+                               f"got {delay_samples}")
     if not (math.isfinite(derivative_tau) and derivative_tau >= 0):
         raise SampledLoopError(f"derivative_tau must be >= 0, got {derivative_tau}")
     period = 1.0 / rate_hz
-    ad, bd = zoh_plant(plant, period, hysteresis)
+    with np.errstate(all="ignore"):
+        ad, bd = zoh_plant(plant, period, hysteresis) if math.isfinite(period) else (
+            np.full((2, 2), np.inf), np.full(2, np.inf))
+    if not (np.all(np.isfinite(ad)) and np.all(np.isfinite(bd))):
+        raise SampledLoopError(f"rate_hz {rate_hz:g} is too low: the plant held over T = "
+                               f"{period:.3g} s overflows double precision")
     alpha = period / (derivative_tau + period)
     delay = int(delay_samples)
     if law != "pid_tv":
@@ -124,11 +145,14 @@ def closed_loop_matrices(
     if not gains.f > 0:
         raise SampledLoopError("law pid_tv needs f > 0")
     n_per = rate_hz / gains.f
-    n_int = round(n_per)
+    n_int = round(n_per) if math.isfinite(n_per) else 0
     if n_int < 1 or abs(n_per - n_int) > 1e-9 * n_per:
         raise SampledLoopError(
             f"pid_tv check needs rate/f to be an integer (Floquet over one period), got {n_per:.6g}"
         )
+    if n_int * (5 + delay) ** 2 > MAX_FLOQUET_ENTRIES:
+        raise SampledLoopError(f"pid_tv check over rate/f = {n_int} samples with delay {delay} "
+                               f"needs more than {MAX_FLOQUET_ENTRIES:.0e} matrix entries")
     phase = 2.0 * math.pi * gains.f * period * np.arange(n_int)
     return [_step_matrix(ad, bd, period, gains.k0 + gains.kA * math.sin(p), gains, delay, alpha) for p in phase]
 
@@ -166,6 +190,13 @@ def check_sampled_loop(
     With the §11.4.1 gains and plant: stable at 1 kHz, unstable at 5-50 kHz, stable at 100 kHz
     without delay, and needing ≥ 200 kHz with a one-sample delay (docs/design.md §7).
     """
+    limit = max_meaningful_rate(plant, gains, hysteresis)
+    if rate_hz > limit:
+        raise SampledLoopError(
+            f"rate_hz {rate_hz:g} is beyond where the sampled check means anything (about "
+            f"{limit:.3g} Hz here): the slowest closed-loop mode moves less than "
+            f"{MARGIN_RESOLUTION:.1e} per sample, so rho = 1 - |lambda| T is rounding noise; "
+            f"the continuous-time verdict applies")
     mats = closed_loop_matrices(plant, gains, rate_hz, delay_samples, law, derivative_tau, hysteresis)
     rho = spectral_radius_per_sample(mats)
     cont = bool(np.all(continuous_poles(plant, gains, hysteresis).real < 0))

@@ -1,0 +1,76 @@
+"""argparse ``type=`` converters for numeric options: a bad value is one line, exit 2.
+
+``physical`` bounds magnitudes to [1e-150, 1e150] (or 0) so that products and quotients of two
+values stay finite and normal in double precision (1e308 overflowed (11.6)-(11.7), 1e-320 is
+subnormal and divided by zero).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+#: Largest and smallest non-zero magnitude accepted by ``physical``.
+MAX_MAGNITUDE, MIN_MAGNITUDE = 1e150, 1e-150
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def physical(text: str) -> float:
+    """A finite float of physical magnitude (0, or |x| in [1e-150, 1e150])."""
+    value = _float(text)
+    if value != 0 and not MIN_MAGNITUDE <= abs(value) <= MAX_MAGNITUDE:
+        raise argparse.ArgumentTypeError(
+            f"{text} is outside [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}] in magnitude "
+            f"(double precision overflows or underflows)")
+    return value
+
+
+def positive(text: str) -> float:
+    """A physical float > 0."""
+    value = physical(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """A physical float >= 0."""
+    value = physical(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def probability(text: str) -> float:
+    """A float in [0, 1]."""
+    value = _float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {text}")
+    return value
+
+
+def int_range(lo: int, hi: int) -> Callable[[str], int]:
+    """An integer in [lo, hi]."""
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be in [{lo}, {hi}], got {value}")
+        return value
+    return convert
+
+
+#: TCP port: 0 (any free one) to 65535.
+port = int_range(0, 65535)
