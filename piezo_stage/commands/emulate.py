@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import argparse
 import signal
+import sys
 import threading
 import time
 
+from piezo_stage.commands.argtypes import (int_range, non_negative, port, positive,
+                                           probability)
 from piezo_stage.hardware.emulators import (EmulatorServer, Faults, GCSDeviceModel, MDTDeviceModel,
                                             OptoNCDTDeviceModel)
 from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
@@ -32,22 +35,22 @@ SENSOR_FAMILIES = sorted(FAMILIES)
 
 def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
     g = parser.add_argument_group("fault injection")
-    g.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability an output byte is lost")
-    g.add_argument("--corrupt", type=float, default=0.0, metavar="P",
+    g.add_argument("--drop", type=probability, default=0.0, metavar="P", help="probability an output byte is lost")
+    g.add_argument("--corrupt", type=probability, default=0.0, metavar="P",
                    help="probability an output byte is replaced by a random byte")
-    g.add_argument("--slow", type=float, default=0.0, metavar="SECONDS", help="delay every reply")
-    g.add_argument("--disconnect-every", type=float, default=0.0, metavar="SECONDS",
+    g.add_argument("--slow", type=non_negative, default=0.0, metavar="SECONDS", help="delay every reply")
+    g.add_argument("--disconnect-every", type=non_negative, default=0.0, metavar="SECONDS",
                    help="hang up all clients periodically (pty: a new pty, path printed again)")
     g.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
     if link:
         parser.add_argument("--link", default=None, metavar="PATH",
                             help="stable symlink to the pty (kept across --disconnect-every)")
-    parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
+    parser.add_argument("--duration", type=non_negative, default=0.0, metavar="SECONDS",
                         help="stop after this long (0: run until Ctrl-C)")
-    parser.add_argument("--realtime", type=int, default=0, metavar="PRIORITY",
+    parser.add_argument("--realtime", type=int_range(0, 99), default=0, metavar="PRIORITY",
                         help="run the device threads under SCHED_FIFO at this priority (1-99) when the "
                              "system allows it, so a loaded host does not delay the device (0: normal)")
-    parser.add_argument("--linger", type=float, default=3.0, metavar="SECONDS",
+    parser.add_argument("--linger", type=non_negative, default=3.0, metavar="SECONDS",
                         help="on Ctrl-C/SIGTERM keep serving while TCP clients are connected, at most "
                              "this long (a driver ramping to its safe voltage); 0: stop at once")
 
@@ -56,10 +59,10 @@ def _sensor_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--family", choices=SENSOR_FAMILIES, default="ild1320")
     parser.add_argument("--bits", type=int, choices=(14, 16, 18), default=None,
                         help="output word width (ILD1320 family: 16 or 18; default per family)")
-    parser.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="measuring rate")
-    parser.add_argument("--measuring-range", type=float, default=10e-3, metavar="M",
+    parser.add_argument("--rate", type=positive, default=1000.0, metavar="HZ", help="measuring rate")
+    parser.add_argument("--measuring-range", type=positive, default=10e-3, metavar="M",
                         help="measuring range MR [m]")
-    parser.add_argument("--error-values", type=float, default=0.0, metavar="P",
+    parser.add_argument("--error-values", type=probability, default=0.0, metavar="P",
                         help="probability a sample is replaced by an error value")
 
 
@@ -67,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="device", required=True, metavar="DEVICE")
     gcs = sub.add_parser("gcs", help="PI E-709-class controller (GCS 2.0)")
     where = gcs.add_mutually_exclusive_group()
-    where.add_argument("--tcp", type=int, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)")
+    where.add_argument("--tcp", type=port, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)")
     where.add_argument("--pty", action="store_true", help="serve on a pty (default)")
     gcs.add_argument("--axis", default="1", help="axis identifier reported by SAI?")
     gcs.add_argument("--v-min", type=float, default=-30.0, help="VMI? [V]")
@@ -91,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rig.add_argument("--params", required=True,
                      help="parameter-set YAML of the simulated stage (a path, or a name in config/, e.g. ch10_patch.yaml)")
     rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
-    rig.add_argument("--amp-tcp", type=int, default=None, metavar="PORT",
+    rig.add_argument("--amp-tcp", type=port, default=None, metavar="PORT",
                      help="serve the GCS amplifier on TCP instead of a pty")
     rig.add_argument("--standoff", type=float, default=None, metavar="M",
                      help="sensor reading at zero displacement [m] (default: MR/2)")
@@ -155,7 +158,14 @@ def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    servers = _servers(args)
+    from piezo_stage.config_path import ConfigNotFoundError
+    from piezo_stage.model.errors import ModelError
+
+    try:
+        servers = _servers(args)
+    except (ConfigNotFoundError, ModelError) as exc:  # --params missing or not a parameter set
+        print(f"piezo-stage emulate: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signals = [0]
 
