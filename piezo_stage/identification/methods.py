@@ -56,7 +56,16 @@ def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = N
     options = IdentifyOptions() if options is None else options
     fit = FitOptions() if fit is None else fit
     method = Method(method)
-    runs = list(runs)
+    try:
+        return _identify(list(runs), options, method, fit)
+    except ArithmeticError as exc:     # overflow or division by zero on extreme data
+        raise IdentificationError(
+            f"numerical failure ({type(exc).__name__}: {exc}): the data are outside the "
+            "range the method handles (check units and scaling)") from exc
+
+
+def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
+              fit: FitOptions) -> IdentificationResult:
     if not runs:
         raise IdentificationError("no runs to identify from")
     for rec in runs:

@@ -14,6 +14,10 @@ from .errors import DataFormatError, NonFiniteDataError, SaturatedOutputError, T
 
 #: below this many samples a run cannot hold two periods of usable branches
 MIN_RUN_SAMPLES = 200
+#: input and output magnitudes (SI units) the arithmetic of the methods supports: v^N and
+#: products of spans stay far from overflow and underflow
+MAX_MAGNITUDE = 1e30
+MIN_SPAN = 1e-30
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,14 @@ def check_recording(rec: Recording, *, clip_fraction: float = 0.02) -> None:
             raise NonFiniteDataError(
                 f"{rec.label}: {int(bad.sum())} non-finite {attr} value(s), first at sample {first}"
             )
+    for attr in ("input", "output"):
+        values = getattr(rec, attr)
+        peak, span = float(np.max(np.abs(values))), float(np.ptp(values))
+        if peak > MAX_MAGNITUDE or 0.0 < span < MIN_SPAN:
+            raise DataFormatError(
+                f"{rec.label}: {attr} values out of range (largest |value| {peak:.3g}, span "
+                f"{span:.3g}; supported: |value| <= {MAX_MAGNITUDE:g}, span >= {MIN_SPAN:g}): "
+                "check the units")
     dt = np.diff(rec.t)
     if np.any(dt <= 0):
         first = int(np.argmax(dt <= 0))
