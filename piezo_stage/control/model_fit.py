@@ -8,9 +8,8 @@
   triangle's corners ring the ~7 kHz resonance and the displacement then reverses inside a
   branch. The fit runs in µm (the analytic stage's tolerances are scale-free, the refinement's
   steps are not) and is converted back to metres.
-- m and c: a voltage step recorded on the rig, fitted by simulation (least squares between the
-  recorded displacement and the dynamic model's, with the Bouc-Wen part just identified),
-  started from the ringing frequency of the step.
+- m and c: a voltage step recorded on the rig, fitted by simulation with the Bouc-Wen part just
+  identified (:func:`piezo_stage.identification.dynamics.fit_step_response`).
 
 :func:`rig_recordings` makes those recordings on a simulated rig (a ``DynamicPlant``, sampled as
 the plant node samples it: the displacement at the start of each held step).
@@ -22,9 +21,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from piezo_stage.identification import IdentifyOptions, Recording, identify
+from piezo_stage.identification import IdentificationError, IdentifyOptions, Recording, identify
+from piezo_stage.identification.dynamics import fit_step_response
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.parameter_set import Dynamics, ParameterSet
 from piezo_stage.model.plant import DynamicPlant
@@ -70,24 +69,25 @@ def rig_recordings(
     if rig.dynamics is None:
         raise ModelFitError("the simulated rig needs the dynamic form (11.1)")
     rng = np.random.default_rng(seed)
-    bw, x_rest = rig.bouc_wen, lambda u: u / rig.bouc_wen.kappa_x
+    bw = rig.bouc_wen
+
+    def sampled(u: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
+        """(x at each sample, u held over the interval ending there): what the plant node
+        publishes, from rest at u[0] (w = 0 there)."""
+        plant = DynamicPlant(bw, rig.dynamics, x0=u[0] / bw.kappa_x)
+        x = np.concatenate([[plant.output()], plant.simulate(u, 1.0 / rate)[0][:-1] + bw.y0])
+        return x + noise * rng.standard_normal(u.size), np.concatenate([u[:1], u[:-1]])
 
     def record(lo: float, hi: float, name: str) -> Recording:
         n = int(round(periods * rate_hz / frequency))
         t = np.arange(n) / rate_hz
-        u = lo + (hi - lo) * 0.5 * (1.0 - np.cos(2.0 * math.pi * frequency * t))
-        plant = DynamicPlant(bw, rig.dynamics, x0=x_rest(lo))
-        x = np.concatenate([[plant.output()], plant.simulate(u, 1.0 / rate_hz)[0][:-1] + bw.y0])
-        x = x + noise * rng.standard_normal(n)
+        wave = lo + (hi - lo) * 0.5 * (1.0 - np.cos(2.0 * math.pi * frequency * t))
+        x, u = sampled(wave, rate_hz)
         first = n - int(round(keep * rate_hz / frequency))
         return Recording(t[first:] - t[first], x[first:], u[first:], name, "m", "V")
 
-    n = int(round(step_duration * step_rate_hz))
-    t = np.arange(n) / step_rate_hz
-    u = np.where(t < 0.25 * step_duration, step[0], step[1])
-    plant = DynamicPlant(bw, rig.dynamics, x0=x_rest(step[0]))
-    x = np.concatenate([[plant.output()], plant.simulate(u, 1.0 / step_rate_hz)[0][:-1] + bw.y0])
-    x = x + noise * rng.standard_normal(n)
+    t = np.arange(int(round(step_duration * step_rate_hz))) / step_rate_hz
+    x, u = sampled(np.where(t < 0.25 * step_duration, step[0], step[1]), step_rate_hz)
     return RigRecordings(
         record(u_low, u_high, "run A"), record(u_low + shift, u_high + shift, "run B"), t, u, x
     )
@@ -119,48 +119,13 @@ def fit_bouc_wen(run_a: Recording, run_b: Recording) -> tuple[BoucWenParameters,
     ), float(result.rms_error)
 
 
-def fit_dynamics(bw: BoucWenParameters, t: np.ndarray, u: np.ndarray, x: np.ndarray) -> Dynamics:
-    """m, c from a step response by simulation (u held over each sample period)."""
-    dt = float(np.median(np.diff(t)))
-    x = np.asarray(x, dtype=float)
-    after = np.flatnonzero(np.diff(u) != 0)
-    if after.size == 0:
-        raise ModelFitError("the step recording has no step in u")
-    k = after[0] + 1
-    ring = x[k:] - x[-1]
-    spectrum = np.abs(np.fft.rfft(ring * np.hanning(ring.size), 8 * ring.size))
-    freqs = np.fft.rfftfreq(8 * ring.size, dt)
-    f_ring = float(freqs[1:][np.argmax(spectrum[1:])])
-    if not f_ring > 0:
-        raise ModelFitError("no ringing in the step response: cannot estimate m")
-    # just after a reversal dw/dx = ρ: the stiffness the ringing sees is κx + κw·ρ (11.3)
-    m0 = (bw.kappa_x + bw.kappa_w * bw.rho) / (2 * math.pi * f_ring) ** 2
-    c0 = 2 * 0.03 * math.sqrt(bw.kappa_x * m0)
-
-    scale = float(np.ptp(x)) or 1.0  # residuals of order 1: least_squares' tolerances are absolute
-
-    def simulate(p: np.ndarray) -> np.ndarray:
-        plant = DynamicPlant(
-            bw, Dynamics(m0 * math.exp(p[0]), c0 * math.exp(p[1])), x0=x[0] - bw.y0
-        )
-        plant.reset(x[0] - bw.y0, 0.0, _rest_w(bw, u[0], x[0]))
-        xs = plant.simulate(u, dt)[0]
-        return (np.concatenate([[x[0]], xs[:-1] + bw.y0]) - x) / scale
-
-    fit = least_squares(simulate, np.zeros(2), x_scale=1.0, diff_step=1e-3)
-    return Dynamics(m0 * math.exp(fit.x[0]), c0 * math.exp(fit.x[1]))
-
-
-def _rest_w(bw: BoucWenParameters, u: float, x: float) -> float:
-    from .feedforward import FeedforwardModel
-
-    return FeedforwardModel(bw, 0.0, 0.0).seed_w(x, u)
-
-
 def fit_feedforward_model(rec: RigRecordings, name: str = "tracking_model") -> ParameterSet:
     """The dynamic parameter set (input x, output u) fitted from the rig's recordings."""
     bw, rms = fit_bouc_wen(rec.run_a, rec.run_b)
-    dyn = fit_dynamics(bw, rec.step_t, rec.step_u, rec.step_x)
+    try:
+        dyn = fit_step_response(rec.step_t, rec.step_u, rec.step_x, bw).dynamics
+    except IdentificationError as exc:
+        raise ModelFitError(f"m and c of the feedforward model: {exc}") from exc
     return ParameterSet(
         name=name,
         form="dynamic",
