@@ -4,16 +4,32 @@ Bags are rosbag2 folders (metadata version 9, MCAP storage, CDR messages, ``ros2
 schemas) that ``ros2 bag``, rosbags, the mcap library, Foxglove and PlotJuggler open.
 """
 
-from .errors import (BagClosedError, BagError, BagExistsError, BagNotFoundError,
-                     CorruptBagError, DuplicateTopicError, InvalidQosError,
-                     UnknownMessageTypeError, UnknownTopicError, WrongTopicTypeError)
+from .errors import (
+                     BagClosedError,
+                     BagError,
+                     BagExistsError,
+                     BagNotFoundError,
+                     CorruptBagError,
+                     DuplicateTopicError,
+                     InvalidQosError,
+                     UnknownMessageTypeError,
+                     UnknownTopicError,
+                     WrongTopicTypeError,
+)
 from .export import export_csv
 from .info import bag_info, format_info
 from .qos import LATCHED, RELIABLE, SENSOR_DATA, qos_from_profile, qos_profile
 from .reader import read_messages, read_raw, read_series
 from .reindex import reindex
-from .types import (deserialize, header, message_class, message_definition, serialize,
-                    type_hash, typestore)
+from .types import (
+                     deserialize,
+                     header,
+                     message_class,
+                     message_definition,
+                     serialize,
+                     type_hash,
+                     typestore,
+)
 from .writer import BagWriter, InvalidBagOptionError, InvalidTopicNameError
 
 __all__ = [

@@ -7,8 +7,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from piezo_stage.config_path import read_yaml
 
 from . import yaml_emit
@@ -139,7 +137,7 @@ class BagMetadata:
         return path
 
     @classmethod
-    def from_dict(cls, info: dict[str, Any]) -> "BagMetadata":
+    def from_dict(cls, info: dict[str, Any]) -> BagMetadata:
         """Parse a ``rosbag2_bagfile_information`` mapping of any rosbag2 version >= 4."""
         try:
             topics = [
@@ -170,7 +168,7 @@ class BagMetadata:
             raise CorruptBagError(f"malformed rosbag2 metadata: {exc!r}") from None
 
     @classmethod
-    def read(cls, folder: str | Path) -> "BagMetadata":
+    def read(cls, folder: str | Path) -> BagMetadata:
         """Parse ``folder/metadata.yaml``."""
         path = Path(folder) / METADATA_FILENAME
         doc = read_yaml(path, CorruptBagError, "bag metadata")

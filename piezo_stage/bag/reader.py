@@ -20,8 +20,14 @@ import numpy as np
 from mcap.records import Channel, Schema
 
 from .decode import BagTypes
-from .errors import (BagDamageWarning, BagNotFoundError, CorruptBagError, SkippedTopicWarning,
-                     UnknownTopicError, WrongTopicTypeError)
+from .errors import (
+    BagDamageWarning,
+    BagNotFoundError,
+    CorruptBagError,
+    SkippedTopicWarning,
+    UnknownTopicError,
+    WrongTopicTypeError,
+)
 from .metadata import METADATA_FILENAME, BagMetadata
 from .records import McapWalk, is_mcap_name
 from .series import SERIES_FIELDS, decode_series

@@ -25,8 +25,7 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, Writer
 
 from .. import __version__
-from .errors import (BagClosedError, BagError, BagExistsError, DuplicateTopicError,
-                     UnknownTopicError)
+from .errors import BagClosedError, BagError, BagExistsError, DuplicateTopicError, UnknownTopicError
 from .metadata import BagMetadata, FileRecord, TopicRecord
 from .qos import normalize_profiles, profiles_to_yaml
 from .types import full_type_name, message_definition, type_hash
@@ -238,7 +237,7 @@ class BagWriter:
         """Paths of the MCAP files written so far."""
         return [self.path / f.path for f in self._metadata.files]
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

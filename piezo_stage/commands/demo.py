@@ -340,10 +340,12 @@ def model_error(true: Any, found: Any, v: np.ndarray) -> tuple[np.ndarray, np.nd
 
 # ------------------------------------------------------------------ the command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from piezo_stage.commands.argtypes import positive
+
     parser.add_argument("--out", "-o", metavar="DIR", default="demo_output",
                         help="folder for the bags and PNGs (default: ./demo_output); must not hold a "
                              "previous demo's bags")
-    parser.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ,
+    parser.add_argument("--rate", type=positive, default=DEFAULT_RATE_HZ,
                         help=f"lockstep plant rate of the identification run [Hz] (default {DEFAULT_RATE_HZ:g})")
     parser.add_argument("--skip-closed-loop", action="store_true", help="identification only (parts a, b)")
 

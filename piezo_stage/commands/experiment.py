@@ -30,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from piezo_stage.control.errors import ControlError
     from piezo_stage.experiments import ExperimentError, ExperimentInputError, run_experiment
     from piezo_stage.launch import LaunchError
     from piezo_stage.launch.domain import isolated_domain
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         with isolated_domain():
             summary = run_experiment(args.name, args.mode, bag=args.bag, png_dir=args.png, progress=progress,
                                      duration=args.duration, gains=gains or None)
-    except ExperimentInputError as exc:
+    except (ExperimentInputError, ControlError) as exc:  # ControlError: gains the check refuses
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except (ExperimentError, LaunchError) as exc:

@@ -13,23 +13,29 @@ import argparse
 import sys
 from pathlib import Path
 
+from piezo_stage.commands.argtypes import int_range, non_negative
 from piezo_stage.commands.record import run_node
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("bag", metavar="BAG", help="rosbag2 folder or .mcap file")
-    parser.add_argument("--rate", type=float, default=1.0, help="speed factor (0 = as fast as possible)")
-    parser.add_argument("--clock", nargs="?", type=float, const=100.0, default=None, metavar="HZ",
+    parser.add_argument("bag", metavar="BAG", help="rosbag2 folder, .mcap or .mcap.zstd file")
+    parser.add_argument("--allow-damaged", action="store_true",
+                        help="exit 0 on a damaged bag (the damage is still reported)")
+    parser.add_argument("--rate", type=non_negative, default=1.0,
+                        help="speed factor (0 = as fast as possible)")
+    parser.add_argument("--clock", nargs="?", type=non_negative, const=100.0, default=None,
+                        metavar="HZ",
                         help="publish /clock with bag time, at HZ (default 100; 0 = every message)")
     parser.add_argument("--loop", action="store_true", help="start again at the end")
-    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[], help="only these topics")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
+                        help="only these topics")
     parser.add_argument("--remap", nargs="+", metavar="FROM:=TO", default=[], help="rename topics")
-    parser.add_argument("--start-offset", type=float, default=0.0, metavar="S",
+    parser.add_argument("--start-offset", type=non_negative, default=0.0, metavar="S",
                         help="start S seconds after the first message")
-    parser.add_argument("--duration", type=float, default=0.0, metavar="S",
+    parser.add_argument("--duration", type=non_negative, default=0.0, metavar="S",
                         help="play S seconds of the bag (default all)")
     parser.add_argument("--start-paused", action="store_true", help="wait for ~/resume")
-    parser.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
+    parser.add_argument("--wait-for-subscribers", type=int_range(0, 10_000), default=0, metavar="N",
                         help="wait until every topic has N subscribers before playing")
     parser.add_argument("--ns", default="/piezo", metavar="NS",
                         help="namespace of the player node (relative topic names are in it)")

@@ -19,12 +19,15 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from piezo_stage.commands.argtypes import int_range, non_negative, positive
+
 NODE_BOOTSTRAP = "piezo_stage.launch.child"
 _FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ns", default="/piezo", metavar="NS", help="namespace recorded (default /piezo)")
+    parser.add_argument("--ns", default="/piezo", metavar="NS",
+                        help="namespace recorded (default /piezo)")
     parser.add_argument("-o", "--output", metavar="BAG", default=None,
                         help="bag folder to create (default rosbag2_<date>-<time>)")
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
@@ -33,11 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also every topic whose full name matches RE (e.g. '.*' for all)")
     parser.add_argument("--compression", choices=("none", "zstd"), default="none",
                         help="MCAP chunk compression")
-    parser.add_argument("--duration", type=float, metavar="S", default=None,
+    parser.add_argument("--duration", type=positive, metavar="S", default=None,
                         help="stop after S seconds (default: until Ctrl-C)")
-    parser.add_argument("--max-bag-size", type=int, metavar="BYTES", default=0,
+    parser.add_argument("--max-bag-size", type=int_range(0, 2**63 - 1), metavar="BYTES", default=0,
                         help="split the bag into files of this size")
-    parser.add_argument("--max-bag-duration", type=float, metavar="S", default=0.0,
+    parser.add_argument("--max-bag-duration", type=non_negative, metavar="S", default=0.0,
                         help="split the bag into files of this span")
     parser.add_argument("--use-sim-time", action="store_true", help="stamp with /clock time")
     parser.add_argument("--start-paused", action="store_true",
@@ -110,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
     if bag.exists() and (not bag.is_dir() or any(bag.iterdir())):
         print(f"piezo-stage record: {bag} already exists", file=sys.stderr)
         return 1
-    print(f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True)
+    print(f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"),
+          flush=True)
     code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag), args.duration)
     try:
         info = bag_info(bag)
@@ -121,4 +125,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"bag: {bag} ({state}), {info['message_count']} messages, {info['duration_s']:.3f} s")
     for name, topic in info["topics"].items():
         print(f"  {name}: {topic['count']} [{topic['type']}]")
-    return code
+    for damage in info["damage"]:
+        print(f"piezo-stage record: warning: {damage}", file=sys.stderr)
+    if code == 0 and not info["complete"]:  # e.g. a full disk: the recorder could not close it
+        print(f"piezo-stage record: {bag} was not closed (disk full or the recorder failed): "
+              f"run `piezo-stage bag reindex {bag}`", file=sys.stderr)
+        return 1
+    return code or (1 if info["damage"] else 0)
