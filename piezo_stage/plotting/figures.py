@@ -161,3 +161,42 @@ def closed_loop_figure(path: str | Path, t: np.ndarray, x1: np.ndarray, x2: np.n
         ax.legend(loc="upper right")
     a1.set_title(title or f"closed loop{' (' + mode + ')' if mode else ''}")
     return _save(fig, path)
+
+
+def tracking_figure(path: str | Path, t: np.ndarray, x_d: np.ndarray, x: np.ndarray, u: np.ndarray,
+                    u_ff: np.ndarray, *, feedback: tuple[np.ndarray, np.ndarray] | None = None,
+                    t_from: float = 0.0, title: str = "") -> Path:
+    """Tracking (issue 17): x_d and x [µm], the error x − x_d [nm], u and the feedforward u_ff
+    [V] against time; ``feedback`` = (t, x) of the feedback-only run, drawn faint; the part
+    before ``t_from`` (left out of the figures) shaded."""
+    plt = _pyplot()
+    t = np.asarray(t, dtype=float)
+    short = len(t) > 1 and t[-1] - t[0] < 2.0
+    scale = 1e3 if short else 1.0
+    fig, (a1, a2, a3) = plt.subplots(3, 1, sharex=True, figsize=(9, 7.5))
+    a1.plot(t * scale, np.asarray(x_d) * UM, lw=1.6, color="0.6", label="x_d")
+    a1.plot(t * scale, np.asarray(x) * UM, lw=0.9, color="C0", label="x")
+    a2.plot(t * scale, (np.asarray(x) - x_d) * 1e9, lw=0.9, color="C0", label="x − x_d")
+    if feedback is not None:
+        t_fb, x_fb = (np.asarray(a, dtype=float) for a in feedback)
+        a1.plot(t_fb * scale, x_fb * UM, lw=0.8, color="C3", alpha=0.6, label="x, feedback only")
+        x_d_fb = np.interp(t_fb, t, x_d)
+        a2.plot(t_fb * scale, (x_fb - x_d_fb) * 1e9, lw=0.8, color="C3", alpha=0.5,
+                label="feedback only")
+        steady = t_fb >= t_from
+        if steady.any():  # keep the compensated error readable
+            lim = 1.2 * np.abs((np.asarray(x) - x_d)[t >= t_from]).max()
+            a2.set_ylim(-3 * lim, 3 * lim)
+    a3.plot(t * scale, u, lw=1.0, color="C2", label="u")
+    a3.plot(t * scale, u_ff, lw=0.8, ls="--", color="C1", label="u_ff")
+    a1.set_ylabel("position [µm]")
+    a2.set_ylabel("error [nm]")
+    a3.set_ylabel("voltage [V]")
+    a3.set_xlabel("time [ms]" if short else "time [s]")
+    for ax in (a1, a2, a3):
+        if t_from > t[0]:
+            ax.axvspan(t[0] * scale, t_from * scale, color="0.5", alpha=0.12, lw=0)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+    a1.set_title(title or "tracking")
+    return _save(fig, path)
