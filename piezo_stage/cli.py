@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "validate": "validate",
     "gains": "gains",
     "experiment": "experiment",
+    "commission": "commission",
     "emulate": "emulate",
     "record": "record",
     "play": "play",

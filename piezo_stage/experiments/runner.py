@@ -28,7 +28,7 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
 
-    from piezo_stage.nodes.common import LOCKSTEP_DEPTH
+    from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
     from piezo_stage_msgs.msg import ControllerState
 
     ctx = rclpy.Context()
@@ -89,17 +89,19 @@ def _write_bag(path: Path, namespace: str, raw: list[tuple[int, bytes]]) -> None
 def run_experiment(name: str, mode: str, *, bag: str | os.PathLike[str] | None = None,
                    png_dir: str | os.PathLike[str] | None = None, progress: Progress | None = None,
                    duration: float | None = None, gains: dict[str, float] | None = None,
-                   wall_timeout: float = 300.0) -> dict[str, Any]:
+                   wall_timeout: float = 300.0, plan: Plan | None = None) -> dict[str, Any]:
     """Run experiment ``name`` (regulation | perturbation) under law ``mode`` (pid | pid_sine |
     pid_tv) on the simulated ch. 11 rig in lockstep; return the JSON-ready summary.
 
     ``duration``: simulated seconds (default per experiment); ``gains``: overrides of the thesis
     gains (e.g. ``{"A": 5.0}``); ``bag``: MCAP bag folder (must not exist); ``png_dir``: folder
-    for the figures; ``progress(fraction, text)``.
+    for the figures; ``progress(fraction, text)``; ``plan``: a ready plan instead (another rig,
+    e.g. ``piezo-stage commission``'s acceptance run; ``name``, ``mode`` and the rest are then ignored).
     """
     from piezo_stage.launch import Launcher
 
-    plan = make_plan(name, mode, duration=duration, gains=gains)
+    plan = plan if plan is not None else make_plan(name, mode, duration=duration, gains=gains)
+    name, mode = plan.name, plan.mode
     if bag is not None and Path(bag).exists():
         raise ExperimentError(f"bag {bag} already exists")
     namespace = f"/experiment_{os.getpid()}_{next(_counter)}"

@@ -1,0 +1,11 @@
+"""Commission a new rig: the thesis's ch. 11 procedure from first excitation to verified gains.
+
+:class:`~.procedure.Commissioning` runs the steps (sweep, dynamics, bounds, gains, acceptance,
+report) on a graph (:mod:`.graphs`, over ROS); the maths is in :mod:`.sweep`, :mod:`.design` and
+:mod:`piezo_stage.identification.dynamics` (no rclpy in those).
+"""
+
+from .procedure import STEPS, Commissioning, Options, Step, StepFailed
+from .sweep import SweepSettings
+
+__all__ = ["STEPS", "Commissioning", "Options", "Step", "StepFailed", "SweepSettings"]

@@ -1,0 +1,236 @@
+"""The graphs the procedure drives over ROS (rclpy imported lazily): ``sim`` (the plant node on a
+parameter-set file, lockstep: deterministic, as fast as the graph goes), ``emulated_rig`` (the
+device emulators behind the real drivers, real time) and ``rig`` (the real devices of
+config/graphs/rig_identification.yaml). Each excitation is its own launch: the graph without its
+excitation/identifier entries, plus an ``excitation`` node with the step's plan; an in-process
+node records ``voltage``, ``displacement`` and ``excitation`` (raw CDR) into an MCAP bag.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+from piezo_stage.model.excitation import ExcitationPlan
+
+from .procedure import RigError
+from .sweep import Series
+
+GRAPHS = ("sim", "emulated_rig", "rig")
+_STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
+_TOPICS = {"voltage": "piezo_stage_msgs/msg/Voltage", "displacement": "piezo_stage_msgs/msg/Displacement",
+           "excitation": "piezo_stage_msgs/msg/ExcitationInfo"}
+LOCKSTEP_DEPTH = 100_000
+_counter = iter(range(1, 1 << 30))
+
+
+class GraphRunError(RigError):
+    """The graph did not deliver what the step needs (no sensor, a node died, a timeout)."""
+
+
+def _stamp_ns(data: bytes) -> int:
+    sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def _plan_overrides(plan: ExcitationPlan) -> dict[str, Any]:
+    return {"preset": "", "waveform": plan.waveform, "period": plan.period, "low": plan.low,
+            "amplitude": plan.amplitude, "offsets": [float(q) for q in plan.offsets],
+            "settle_periods": plan.settle_periods, "record_periods": plan.record_periods, "hold": plan.hold,
+            "on_done": "hold", "wait_for_subscribers": 1}
+
+
+@dataclass
+class RosRig:
+    """A graph: ``name``, sensor ``rate_hz``, the loop's ``delay_samples`` and the amplifier range."""
+
+    name: str
+    rate_hz: float
+    delay_samples: int
+    v_min: float
+    v_max: float
+    base_nodes: list[dict[str, Any]]
+    lockstep: bool
+    model_file: str | None = None
+    extra_params: list[str] = field(default_factory=list)
+    progress: Callable[[str, str], None] = lambda step, text: None
+    wall_timeout: float = 600.0
+
+    # ------------------------------------------------------------------ graphs
+    def _graph(self, plan: ExcitationPlan, namespace: str) -> dict[str, Any]:
+        nodes = copy.deepcopy(self.base_nodes)
+        exc = _plan_overrides(plan)
+        if self.lockstep:
+            exc.update(trigger="clock", use_sim_time=True)
+        else:
+            exc.update(trigger="timer", rate_hz=min(self.rate_hz, 1000.0), catch_up=True, lead=1.0)
+        nodes.append({"executable": "excitation", "overrides": exc})
+        graph = {"description": f"commission ({self.name})", "namespace": namespace, "stop_timeout": 5.0,
+                 "nodes": nodes, "wait_for_topics": [{"topic": "displacement", "publishers": 1}]}
+        if self.lockstep:
+            graph["clock"] = "namespaced"
+        return graph
+
+    def excite(self, plan: ExcitationPlan, bag: Path, label: str) -> Series:
+        """Run ``plan`` on the graph; record it to ``bag``; return what was recorded."""
+        from piezo_stage.launch import Launcher, LaunchError
+
+        namespace = f"/commission_{os.getpid()}_{next(_counter)}"
+        lines: list[str] = []
+        launch = Launcher(self._graph(plan, namespace), params=self.extra_params,
+                          sink=lambda n, line, err: lines.append(f"[{n}] {line}"))
+        try:
+            raw = self._collect(launch, namespace, plan, label)
+        except (GraphRunError, LaunchError) as exc:
+            tail = "\n".join(lines[-15:])
+            raise GraphRunError(f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else "")) from exc
+        finally:
+            launch.stop()
+        _write_bag(bag, namespace, raw)
+        return _series(raw)
+
+    def _collect(self, launch: Any, namespace: str, plan: ExcitationPlan, label: str) -> dict[str, list]:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+        from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+        node = rclpy.create_node("commission", namespace=namespace, context=ctx)
+        raw: dict[str, list] = {k: [] for k in _TOPICS}
+        stream = (QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE) if self.lockstep
+                  else qos_profile_sensor_data)
+        marks_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        for topic, msg_type, qos in (("voltage", Voltage, stream), ("displacement", Displacement, stream),
+                                     ("excitation", ExcitationInfo, marks_qos)):
+            node.create_subscription(msg_type, topic, lambda d, k=topic: raw[k].append((_stamp_ns(d), d)), qos,
+                                     raw=True)
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        try:
+            launch.start()
+            launch.wait_ready()
+            started = time.monotonic()
+            next_note = started + 2.0
+            while True:
+                if time.monotonic() - started > self.wall_timeout:
+                    raise GraphRunError(f"not done after {self.wall_timeout:g} s")
+                executor.spin_once(timeout_sec=0.05)
+                if not raw["excitation"] or not raw["displacement"]:
+                    if time.monotonic() - started > 60.0:
+                        raise GraphRunError("no sensor sample and excitation mark within 60 s: "
+                                            "the graph has no working sensor or excitation")
+                    continue
+                t0 = min(ns for ns, _ in raw["excitation"])
+                done = (raw["displacement"][-1][0] - t0) * 1e-9
+                if done >= plan.duration + 2.0 / self.rate_hz and len(raw["voltage"]) > 0 and \
+                        raw["voltage"][-1][0] >= raw["displacement"][-1][0]:
+                    break
+                if time.monotonic() > next_note:
+                    next_note += 2.0
+                    self.progress("graph", f"{label}: {min(done / plan.duration, 1.0) * 100:.0f} %")
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=ctx)
+        return raw
+
+    # ------------------------------------------------------------------ acceptance
+    def accept(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:
+        """The §11.5 perturbation experiment under pid_tv with the designed gains (sim only)."""
+        if not self.lockstep:
+            raise GraphRunError(f"the acceptance experiment runs on the sim graph only: on {self.name} the loop "
+                                "would run at the sensor's rate, far below the rate the gains need")
+        from piezo_stage.experiments import run_experiment
+        from piezo_stage.experiments.spec import OPEN_FOR, T_OPEN, U_OPEN, U_SET, Plan
+
+        g = run["gains"]
+        rate = float(run["rate_hz"])
+        x_eq = U_SET / float(run["kappa_x"])  # w(0) = 0: kappa_x x = u (11.2)
+        gains = {k: float(g[k]) for k in ("k0", "k1", "k2", "kA", "f")}
+        controller = {"use_sim_time": True, "trigger": "sample", "sensor_qos": "reliable", "rate_hz": rate,
+                      "delay_samples": int(run["delay_samples"]), "mode": "pid_tv", "start_closed": True,
+                      "on_close": "reset", "wait_for_state_subscribers": 1, "bounds_file": run["bounds_file"],
+                      "reference_source": "constant", "reference": x_eq, "u_bias": U_SET, "hold_voltage": U_OPEN,
+                      "open_at": T_OPEN, "open_duration": OPEN_FOR, **gains}
+        plant = {"model_file": self.model_file, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,
+                 "v_min": self.v_min, "v_max": self.v_max, "w0": 0.0, "x0": x_eq, "xdot0": 0.0,
+                 "initial_voltage": U_SET}
+        plan = Plan("perturbation", "pid_tv", rate, math.nan, float(run["duration"]), plant, controller,
+                    T_OPEN, T_OPEN + OPEN_FOR, gains)
+        return run_experiment("perturbation", "pid_tv", bag=str(bag), png_dir=str(png_dir), plan=plan,
+                              progress=lambda fr, text: self.progress("acceptance", f"{fr * 100:.0f} % {text}"))
+
+
+def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:
+    from piezo_stage.bag.writer import BagWriter
+
+    with BagWriter(path) as bag:
+        for topic, type_name in _TOPICS.items():
+            bag.add_topic(f"{namespace}/{topic}", type_name)
+        for topic in _TOPICS:
+            for ns, data in raw[topic]:
+                bag.write(f"{namespace}/{topic}", data, ns)
+
+
+def _series(raw: dict[str, list]) -> Series:
+    from rclpy.serialization import deserialize_message
+
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    def unique(items: list) -> list:
+        seen, out = set(), []
+        for ns, data in sorted(items, key=lambda p: p[0]):
+            if ns not in seen:
+                seen.add(ns)
+                out.append((ns, data))
+        return out
+
+    volts = [(ns, deserialize_message(d, Voltage).voltage) for ns, d in unique(raw["voltage"])]
+    disp = [(ns, deserialize_message(d, Displacement)) for ns, d in unique(raw["displacement"])]
+    marks = []
+    for ns, d in sorted(raw["excitation"], key=lambda p: p[0]):
+        msg = deserialize_message(d, ExcitationInfo)
+        marks.append((ns * 1e-9, int(msg.run), bool(msg.steady)))
+    return Series(t_v=np.array([ns * 1e-9 for ns, _ in volts]), v=np.array([v for _, v in volts]),
+                  t_x=np.array([ns * 1e-9 for ns, _ in disp]), x=np.array([m.displacement for _, m in disp]),
+                  status=np.array([m.status for _, m in disp], dtype=int), marks=marks)
+
+
+def make_rig(graph: str, *, model_file: str = "ch11_rig.yaml", rate_hz: float = 50e3, v_min: float = -450.0,
+             v_max: float = 450.0, params: list[str] | None = None,
+             progress: Callable[[str, str], None] = lambda s, t: None) -> RosRig:
+    """The :class:`RosRig` of a graph name (``sim``, ``emulated_rig``, ``rig``)."""
+    from piezo_stage.config_path import find_config
+
+    if graph == "sim":
+        plant = {"executable": "plant", "required": True,
+                 "overrides": {"model_file": model_file, "clock_mode": "lockstep", "rate_hz": rate_hz,
+                               "lockstep_timeout": 2.0, "v_min": v_min, "v_max": v_max, "w0": 0.0,
+                               "wait_for_subscribers": 1}}
+        return RosRig("sim", rate_hz, 0, v_min, v_max, [plant], True, model_file=model_file,
+                      extra_params=list(params or []), progress=progress)
+    if graph not in ("emulated_rig", "rig"):
+        raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPHS}")
+    source = "emulated_rig.yaml" if graph == "emulated_rig" else "rig_identification.yaml"
+    data = yaml.safe_load(Path(find_config(f"graphs/{source}")).read_text())
+    nodes = [n for n in data["nodes"] if n.get("executable") not in ("excitation", "identifier")]
+    rate, lo, hi = 1000.0, v_min, v_max
+    for n in nodes:
+        o = n.get("overrides", {})
+        if n.get("executable") == "laser_reader":
+            rate = float(o.get("rate_hz", rate)) / float(o.get("decimation", 1))
+        if n.get("executable") == "voltage_driver":
+            lo, hi = float(o.get("v_min", lo)), float(o.get("v_max", hi))
+    return RosRig(graph, rate, 1, lo, hi, nodes, False, extra_params=list(params or []), progress=progress)

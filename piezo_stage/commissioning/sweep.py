@@ -1,0 +1,174 @@
+"""Step 1, the frequency sweep of thesis §11.3 / Fig. 11.3 (no rclpy).
+
+At each frequency a wave-periodic excitation (the pair of runs x(t), x(t) + q of §9.1.3, here
+voltages low + amplitude·shape + {0, q}) drives the stage; the Bouc-Wen part (11.2)-(11.3) is
+identified in the ch. 11 form — input the displacement x, output the voltage u — by the analytic
+method of ch. 9-10 with degree N = 1 (the columns swapped). The inverse of a shift-equivariant
+hysteresis is one too, so run B's x is run A's shifted by q/kappa_x and the method applies.
+
+Pairing of the samples: the plant and the driver publish with sample j the voltage held over
+(t_{j-1}, t_j]; the staircase acts like the smooth input delayed by half a sample, so x(t_j)
+is paired with (v_j + v_{j+1})/2 (without this the loop of a 100 Hz sweep at 50 kHz widens
+and kappa_w, rho, sigma, n come out 5-15 % off). Samples on other stamps (a driver and a
+sensor of their own) are paired with the voltage held at the sample time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.identification.errors import IdentificationError
+from piezo_stage.identification.recording import Recording
+from piezo_stage.model.excitation import ExcitationPlan
+
+#: the Bouc-Wen parameters of Fig. 11.3 / Table 11.1, in the table's order
+PARAMETERS = ("n", "sigma", "rho", "kappa_w", "kappa_x")
+UNITS = {"n": "-", "sigma": "-", "rho": "1/m", "kappa_w": "V", "kappa_x": "V/m"}
+#: least samples per period of the excitation (40 per branch and a clean loop need ~ 500)
+MIN_SAMPLES_PER_PERIOD = 200
+
+
+class SweepError(Exception):
+    """A frequency of the sweep could not be identified (the message says which and why)."""
+
+
+@dataclass(frozen=True)
+class SweepSettings:
+    """What each frequency's runs look like (voltages [V])."""
+
+    frequencies: tuple[float, ...] = (10.0, 20.0, 50.0, 100.0)
+    low: float = 0.0
+    amplitude: float = 300.0
+    offset: float = 100.0              #: q of §9.1.3
+    settle_periods: int = 2
+    record_periods: int = 2
+    waveform: str = "sine"             #: wave periodic and smooth: a triangle's corners ring the resonance
+
+    def plan(self, frequency: float) -> ExcitationPlan:
+        return ExcitationPlan(waveform=self.waveform, period=1.0 / frequency, low=self.low,
+                              amplitude=self.amplitude, offsets=(0.0, self.offset),
+                              settle_periods=self.settle_periods, record_periods=self.record_periods,
+                              hold="low")
+
+    def check(self, rate_hz: float, v_min: float, v_max: float) -> None:
+        """Raise SweepError for a sweep the graph cannot run (rate, amplifier range)."""
+        if not self.frequencies or any(not (math.isfinite(f) and f > 0) for f in self.frequencies):
+            raise SweepError(f"frequencies must be > 0 Hz, got {self.frequencies}")
+        if self.settle_periods < 1 or self.record_periods < 2:
+            raise SweepError("need settle_periods >= 1 and record_periods >= 2")
+        slow = [f for f in self.frequencies if rate_hz / f < MIN_SAMPLES_PER_PERIOD]
+        if slow:
+            raise SweepError(f"at {rate_hz:g} Hz the sensor takes < {MIN_SAMPLES_PER_PERIOD} samples per period "
+                             f"of {slow} Hz: sweep up to {rate_hz / MIN_SAMPLES_PER_PERIOD:g} Hz")
+        top = self.low + self.amplitude + max(0.0, self.offset)
+        bottom = self.low + min(0.0, self.offset)
+        if bottom < v_min or top > v_max:
+            raise SweepError(f"the sweep spans {bottom:g}..{top:g} V, beyond the amplifier's {v_min:g}..{v_max:g} V: "
+                             "it would clip; reduce --amplitude/--offset")
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+@dataclass
+class Series:
+    """What a run recorded: voltage samples (t_v, v), displacement samples (t_x, x, status), and
+    the excitation's marks (stamp, run, steady)."""
+
+    t_v: np.ndarray
+    v: np.ndarray
+    t_x: np.ndarray
+    x: np.ndarray
+    status: np.ndarray
+    marks: list[tuple[float, int, bool]] = field(default_factory=list)
+
+
+def paired(series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, x, u) on the displacement samples (module docstring), NaN-free samples only."""
+    t_x, x = series.t_x, series.x
+    same = len(series.t_v) == len(t_x) and np.allclose(series.t_v, t_x, rtol=0, atol=1e-9)
+    if same:
+        v = series.v
+        u = np.concatenate(((v[:-1] + v[1:]) / 2, v[-1:]))
+    else:
+        idx = np.searchsorted(series.t_v, t_x, side="right") - 1
+        u = np.where(idx >= 0, series.v[np.clip(idx, 0, None)], np.nan)
+    ok = np.isfinite(x) & np.isfinite(u)
+    return t_x[ok], x[ok], u[ok]
+
+
+def check_clipping(series: Series, v_min: float, v_max: float) -> None:
+    """Raise SweepError when the sensor reported out-of-range samples or the amplifier sat at a limit."""
+    bad = np.flatnonzero(series.status != 0)
+    if bad.size:
+        raise SweepError(f"the sensor reported {bad.size} sample(s) out of its range or invalid (first at "
+                         f"t = {series.t_x[bad[0]]:.6g} s, status {int(series.status[bad[0]])}): the sweep clips the "
+                         "sensor; reduce --amplitude/--offset or move the sensor")
+    at_limit = (series.v >= v_max - 1e-9) | (series.v <= v_min + 1e-9)
+    if np.count_nonzero(at_limit) > 2:
+        raise SweepError(f"the applied voltage sat at the amplifier's limit ({v_min:g}/{v_max:g} V) for "
+                         f"{int(np.count_nonzero(at_limit))} samples: the sweep clips the amplifier")
+
+
+def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Recording]:
+    """The two runs (input x, output u): the steady part of each, with the sample at its end."""
+    from piezo_stage.identification.io import intervals_from_marks
+
+    t, x, u = paired(series)
+    intervals = intervals_from_marks(series.marks)
+    if len(intervals) < 2:
+        raise SweepError(f"the excitation marked {len(intervals)} run(s); 2 are needed")
+    runs = []
+    for run, start, stop in intervals[:2]:
+        steady_from = start + plan.settle_periods * plan.period
+        hi = steady_from + plan.record_periods * plan.period
+        keep = (t >= steady_from - 1e-9) & (t <= hi + 1e-9)
+        runs.append(Recording(t[keep], x[keep], u[keep], name=f"{1 / plan.period:g} Hz run {run}",
+                              input_unit="m", output_unit="V"))
+    return runs[0], runs[1]
+
+
+@dataclass(frozen=True)
+class FrequencyResult:
+    frequency: float
+    kappa_x: float
+    kappa_w: float
+    rho: float
+    sigma: float
+    n: float
+    y0: float               #: voltage offset of u = kappa_x x + kappa_w w + y0
+    rms_error: float        #: [V]
+    samples: int
+
+    def to_dict(self) -> dict:
+        return {k: float(v) if k != "samples" else int(v) for k, v in asdict(self).items()}
+
+
+def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
+    """Identify (11.2)-(11.3) at one frequency (input x, output u); SweepError with the reason."""
+    from piezo_stage.identification.pipeline import IdentifyOptions, identify
+
+    f = 1.0 / plan.period
+    try:
+        run_a, run_b = run_recordings(series, plan)
+        options = IdentifyOptions(degree=1, input_name="displacement", output_name="voltage",
+                                  cycle=CycleOptions(steady_periods=plan.record_periods))
+        result = identify(run_a, run_b, options)
+    except (IdentificationError, ValueError) as exc:
+        raise SweepError(f"{f:g} Hz: {exc}") from exc
+    p = result.parameters
+    return FrequencyResult(frequency=f, kappa_x=p.kappa_x, kappa_w=p.kappa_w, rho=p.rho, sigma=p.sigma, n=p.n,
+                           y0=p.y0, rms_error=result.rms_error, samples=result.samples)
+
+
+def table(results: list[FrequencyResult]) -> dict[str, dict[str, float]]:
+    """Table 11.1: smallest, largest and mean value of each parameter over the frequencies."""
+    out = {}
+    for name in PARAMETERS:
+        values = np.array([getattr(r, name) for r in results])
+        out[name] = {"min": float(values.min()), "max": float(values.max()), "mean": float(values.mean())}
+    return out

@@ -1,0 +1,149 @@
+"""piezo-stage commission, the maths and the procedure without ROS: a simulated rig in-process
+(DynamicPlant on a ch11_rig perturbed by kappa_w +20 %, m -15 %)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from piezo_stage.commissioning import Commissioning, Options, Step, StepFailed, SweepSettings
+from piezo_stage.commissioning import design, sweep
+from piezo_stage.commissioning.sweep import Series, SweepError
+from piezo_stage.control.discrete import check_sampled_loop
+from piezo_stage.control.laws import Gains
+from piezo_stage.identification.dynamics import (DynamicsError, UnresolvedResonanceError,
+                                                 fit_step_response)
+from piezo_stage.model.excitation import ExcitationPlan
+from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
+from piezo_stage.model.plant import DynamicPlant
+
+pytestmark = pytest.mark.unit
+
+_RIG = shipped_parameter_set("ch11_rig")
+TRUTH = dataclasses.replace(_RIG.bouc_wen, kappa_w=_RIG.bouc_wen.kappa_w * 1.2)
+TRUTH_DYN = Dynamics(m=_RIG.dynamics.m * 0.85, c=_RIG.dynamics.c)
+
+
+def simulate(plan: ExcitationPlan, rate: float, sensor_max: float = np.inf) -> Series:
+    """What the lockstep plant publishes: sample j at t_j = j/rate with x(t_j) and the voltage
+    held over (t_{j-1}, t_j]; marks as the excitation node sends them."""
+    dt = 1.0 / rate
+    n = int(round(plan.duration * rate)) + 2
+    t = np.arange(n) * dt
+    u = plan.values(t)
+    x, _, _ = DynamicPlant(TRUTH, TRUTH_DYN).simulate(u, dt)
+    xs = np.concatenate(([0.0], x))[:n]
+    us = np.concatenate(([u[0]], u))[:n]
+    marks = [(s.run * plan.run_duration + plan.settle_periods * plan.period * k, s.run, bool(k))
+             for s in (plan.sample(r * plan.run_duration) for r in range(len(plan.offsets))) for k in (0, 1)]
+    status = np.where(xs > sensor_max, 3, 0)
+    return Series(t, us, t, np.where(status == 0, xs, np.nan), status, sorted(marks))
+
+
+class FakeRig:
+    name = "fake"
+    delay_samples = 0
+    v_min, v_max = -450.0, 450.0
+
+    def __init__(self, rate: float = 50e3, sensor_max: float = np.inf) -> None:
+        self.rate_hz = rate
+        self.sensor_max = sensor_max
+        self.excited: list[str] = []
+
+    def excite(self, plan, bag: Path, label: str) -> Series:
+        self.excited.append(label)
+        bag.mkdir(parents=True)
+        return simulate(plan, self.rate_hz, self.sensor_max)
+
+    def accept(self, run, bag, png_dir):
+        bag.mkdir(parents=True)
+        return {"u_before": 200.0, "u_after": 201.0, "settling_time": 0.1, "png": []}
+
+
+def test_sweep_identifies_the_perturbed_rig_within_2_percent():
+    plan = SweepSettings().plan(20.0)
+    res = sweep.identify_frequency(simulate(plan, 50e3), plan)
+    for name in ("kappa_x", "kappa_w", "rho", "sigma", "n"):
+        assert getattr(res, name) == pytest.approx(getattr(TRUTH, name), rel=0.02), name
+
+
+def test_sweep_checks_amplifier_range_and_sensor_rate():
+    with pytest.raises(SweepError, match="clip"):
+        SweepSettings(amplitude=400.0).check(50e3, -450.0, 450.0)
+    with pytest.raises(SweepError, match="samples per period"):
+        SweepSettings(frequencies=(100.0,)).check(1000.0, -450.0, 450.0)
+
+
+def _step(rate: float):
+    dt = 1.0 / rate
+    n = int(0.01 * rate)
+    u = np.where(np.arange(n) >= n // 10, 50.0, 0.0)
+    x, _, _ = DynamicPlant(TRUTH, TRUTH_DYN).simulate(u, dt)
+    return np.arange(n + 1) * dt, np.concatenate(([0.0], u)), np.concatenate(([0.0], x))
+
+
+def test_step_fit_recovers_m_and_c_with_standard_errors():
+    estimate = dataclasses.replace(TRUTH, kappa_w=TRUTH.kappa_w * 1.02, rho=TRUTH.rho * 0.98)
+    fit = fit_step_response(*_step(50e3), estimate)
+    assert fit.m == pytest.approx(TRUTH_DYN.m, rel=0.02)
+    assert fit.c == pytest.approx(TRUTH_DYN.c, rel=0.05)
+    assert 0 < fit.m_std < 0.05 * fit.m and 0 < fit.c_std < 0.2 * fit.c
+    assert fit.samples_per_period >= 4
+
+
+@pytest.mark.parametrize("rate", [20e3, 10e3])
+def test_step_fit_refuses_a_sensor_too_slow_for_the_resonance(rate):
+    with pytest.raises(DynamicsError) as info:
+        fit_step_response(*_step(rate), TRUTH)
+    assert isinstance(info.value, UnresolvedResonanceError) or "does not describe" in str(info.value)
+
+
+def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
+    tab = {k: {"min": v * 0.99, "max": v * 1.01, "mean": v} for k, v in
+           (("kappa_x", TRUTH.kappa_x), ("kappa_w", TRUTH.kappa_w), ("rho", TRUTH.rho), ("sigma", TRUTH.sigma),
+            ("n", TRUTH.n))}
+    b = design.assumption2_bounds(tab, TRUTH_DYN.m, 1e-6, TRUTH_DYN.c, 0.1, margin=0.2)
+    assert b.m_min < TRUTH_DYN.m < b.m_max and b.c_max > TRUTH_DYN.c
+    assert b.kappa_w_max > TRUTH.kappa_w and b.rho_max > TRUTH.rho and b.sigma_max > TRUTH.sigma
+    nominal = design.nominal_plant(tab, TRUTH_DYN.m, TRUTH_DYN.c)
+    d = design.design_gains(b, nominal)
+    assert d.theorem4.valid and d.gains.k2 > d.theorem4.k2_min and d.gains.k0 < d.theorem4.k0_max
+    assert d.rate_hz in design.RATE_CANDIDATES
+    assert check_sampled_loop(nominal, Gains(**d.gains.to_dict()), d.rate_hz, 0, "pid_tv").stable
+    with pytest.raises(design.DesignError, match="unstable"):
+        design.design_gains(b, nominal, rate_hz=20e3, delay_samples=0)
+
+
+@pytest.mark.slow
+def test_procedure_writes_the_files_and_resumes(tmp_path):
+    rig = FakeRig()
+    options = Options(sweep=SweepSettings(frequencies=(20.0, 50.0)))
+    summary = Commissioning(tmp_path, rig, options).run()
+    assert summary["identified"]["kappa_w"] == pytest.approx(TRUTH.kappa_w, rel=0.02)
+    assert summary["identified"]["m"] == pytest.approx(TRUTH_DYN.m, rel=0.1)
+    for key in ("parameter_set", "bounds", "controller", "report"):
+        assert Path(summary["files"][key]).is_file()
+    from piezo_stage.control.bounds import load_bounds
+    from piezo_stage.model.parameter_set import load_parameter_set
+
+    assert load_bounds(summary["files"]["bounds"]).kappa_w_max > TRUTH.kappa_w
+    assert load_parameter_set(summary["files"]["parameter_set"]).dynamics.m == pytest.approx(TRUTH_DYN.m, rel=0.1)
+    assert "| kappa_w |" in (tmp_path / "report.md").read_text()
+    again = FakeRig()
+    Commissioning(tmp_path, again, options).run()
+    assert again.excited == []  # every step resumed from state.json
+
+
+@pytest.mark.slow
+def test_a_clipped_sensor_stops_before_the_gains(tmp_path):
+    rig = FakeRig(sensor_max=20e-6)
+    with pytest.raises(StepFailed) as info:
+        Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(50.0,)))).run()
+    assert info.value.step is Step.SWEEP and "clips the sensor" in info.value.reason
+    assert (tmp_path / "FAILED.md").is_file()
+    assert not any((tmp_path / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml"))
+    assert json.loads((tmp_path / "state.json").read_text())["failed"]["step"] == "sweep"
