@@ -70,3 +70,22 @@ def test_errors_exit_1_with_a_message(tmp_path, capsys):
     assert "no bag at" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["bag", "export", str(tmp_path)])  # --csv is required
+
+
+def test_record_exits_1_when_its_bag_was_not_closed(tmp_path, monkeypatch, capsys):
+    """What a full disk leaves: the recorder exits 0 but could not close the bag."""
+    import piezo_stage.commands.record as record
+
+    def recorder_that_could_not_close(module, ros_args, stop_after=None):
+        bag = ros_args[ros_args.index("-p") + 1].split(":=", 1)[1]
+        writer = BagWriter(bag, flush_period_s=0)  # flushed chunks, never closed
+        writer.add_topic("/piezo/voltage", VOLT, [qos.RELIABLE])
+        for ti, v in zip(range(5), encode_series(VOLT, T0 + np.arange(5), np.ones(5))):
+            writer.write("/piezo/voltage", v, T0 + ti)
+        writer.flush()
+        return 0
+
+    monkeypatch.setattr(record, "run_node", recorder_that_could_not_close)
+    assert main(["record", "-o", str(tmp_path / "full"), "--duration", "1"]) == 1
+    captured = capsys.readouterr()
+    assert "NOT closed" in captured.out and "was not closed" in captured.err
