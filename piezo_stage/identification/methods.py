@@ -27,6 +27,7 @@ from .pipeline import IdentifyOptions, identify
 from .recording import Recording, check_recording
 from .result import IdentificationResult
 from .simfit import (
+    HYSTERETIC,
     FitOptions,
     Seed,
     SimulationFit,
@@ -99,9 +100,14 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
                     input_name=options.input_name, output_name=options.output_name)
 
 
-def _warnings(final: SimulationFit, figures: dict[str, float]) -> list[str]:
+def _warnings(final: SimulationFit, figures: dict[str, float], fit: FitOptions) -> list[str]:
     out = [f"{a} and {b} are strongly correlated ({c:+.4f}): not separately determined by "
            "this record" for a, b, c in final.correlations]
+    loose = [f"{k} ±{100 * v:.2g} %" for k, v in final.relative_std.items()
+             if k in HYSTERETIC and not v <= fit.warn_rel_std]
+    if loose:
+        out.append(f"loosely determined: {', '.join(loose)} (standard errors assume white "
+                   "noise; model error makes them optimistic)")
     if figures and figures["holdout_rms"] > 2.0 * figures["train_rms"]:
         out.append(f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
                    f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits "
@@ -141,6 +147,6 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
         samples=sum(len(r) for r in runs), w0=final.w0[0], refined=True,
         input_name=input_name, output_name=output_name, diagnostics=diagnostics,
         method="fit", delay=final.delay, drift=final.drift[0],
-        warnings=tuple(_warnings(final, figures)), fitted=final.model)
+        warnings=tuple(_warnings(final, figures, fit)), fitted=final.model)
     check_simulation_fit(final, runs, fit, result)
     return result
