@@ -155,7 +155,7 @@ def topic_types(path: str | Path) -> dict[str, str]:
 def read_series(path: str | Path, topic: str
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``(t [s] from header.stamp, values, status or None)`` of a Voltage (V) or
-    Displacement (m, status) topic, vectorised."""
+    Displacement (m, status) topic, vectorised, in stamp order."""
     types = topic_types(path)
     if topic not in types:
         raise UnknownTopicError(
@@ -165,4 +165,9 @@ def read_series(path: str | Path, topic: str
         raise WrongTopicTypeError(
             f"read_series reads {' or '.join(SERIES_FIELDS)} topics; {topic} is {type_name}")
     datas = [data for _, _, _, data in read_raw(path, topic)]
-    return decode_series(datas, type_name)
+    t, values, status = decode_series(datas, type_name)
+    order = np.argsort(t, kind="stable")  # rosbag2 writes in receive order, not stamp order
+    if np.any(order != np.arange(t.size)):
+        t, values = t[order], values[order]
+        status = None if status is None else status[order]
+    return t, values, status
