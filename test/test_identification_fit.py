@@ -12,19 +12,32 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.cli import main
-from piezo_stage.identification.errors import (BadFitError, IdentificationError,
-                                               NoSteadyStateError, OrientationError)
+from piezo_stage.identification.errors import (
+    BadFitError,
+    IdentificationError,
+    NoSteadyStateError,
+    OrientationError,
+)
 from piezo_stage.identification.io import load_csv
 from piezo_stage.identification.methods import identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
 from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.simfit import FitOptions, holdout_check, simulation_fit
-from piezo_stage.identification.synthetic import (CH9_EXAMPLE, CH10_PATCH, triangle_pair,
-                                                  triangle_run)
+from piezo_stage.identification.synthetic import (
+    CH9_EXAMPLE,
+    CH10_PATCH,
+    triangle_pair,
+    triangle_run,
+)
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
-from piezo_stage.model.parameter_set import (Drift, DriftKind, load_parameter_set,
-                                             parameter_set_from_dict, parameter_set_to_dict,
-                                             shipped_parameter_set)
+from piezo_stage.model.parameter_set import (
+    Drift,
+    DriftKind,
+    load_parameter_set,
+    parameter_set_from_dict,
+    parameter_set_to_dict,
+    shipped_parameter_set,
+)
 from piezo_stage.model.signals import sine
 
 pytestmark = pytest.mark.unit
