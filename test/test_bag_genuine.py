@@ -118,6 +118,54 @@ def test_file_mode_compression(tmp_path):
     assert "file-compressed" in str(reindex(bag)) or reindex(bag).message_count == 20
 
 
+def _rewrite_messages(source: Path, target: Path, transform, compression=CompressionType.ZSTD,
+                      shuffle: int | None = None) -> list[int]:
+    """Copy an MCAP file with the mcap library (small chunks), each message's data through
+    ``transform``, in file order or shuffled with seed ``shuffle``; returns the log times
+    as written."""
+    with open(source, "rb") as stream:
+        records = list(make_reader(stream).iter_messages(log_time_order=False))
+    if shuffle is not None:
+        random.Random(shuffle).shuffle(records)
+    with open(target, "wb") as out:
+        writer = Writer(out, compression=compression, chunk_size=512)
+        writer.start(profile="ros2", library="test")
+        ids: dict[int, int] = {}
+        for schema, channel, message in records:
+            if channel.id not in ids:
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                ids[channel.id] = writer.register_channel(channel.topic, "cdr", schema_id,
+                                                          channel.metadata)
+            writer.add_message(ids[channel.id], message.log_time, transform(message.data),
+                               message.publish_time)
+        writer.finish()
+    return [message.log_time for _, _, message in records]
+
+
+def test_message_mode_compression_and_prefixed_paths(tmp_path):
+    bag = _copy("talker", tmp_path)
+    _rewrite_messages(DATA / "talker" / "talker.mcap", bag / "talker.mcap",
+                      zstandard.ZstdCompressor().compress)
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    meta["rosbag2_bagfile_information"].update(
+        compression_format="zstd", compression_mode="MESSAGE",
+        relative_file_paths=["talker/talker.mcap"])  # as older rosbag2 wrote them
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    plain = [(t, s, m.data) for t, s, m in read_messages(DATA / "talker") if t == "/topic"]
+    assert [(t, s, m.data) for t, s, m in read_messages(bag) if t == "/topic"] == plain
+
+
+def test_sqlite3_storage_is_named(tmp_path, capsys):
+    bag = tmp_path / "db3"
+    bag.mkdir()
+    (bag / "db3_0.db3").write_bytes(b"SQLite format 3\0")
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "version": 5, "storage_identifier": "sqlite3", "relative_file_paths": ["db3_0.db3"],
+        "topics_with_message_count": [], "message_count": 0}}))
+    assert main(["bag", "info", str(bag)]) == 1
+    assert "'sqlite3' storage: only MCAP" in capsys.readouterr().err
+
+
 def test_metadata_v9_with_qos_as_a_list(tmp_path):
     bag = _copy("cdr_test", tmp_path)
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())
@@ -136,32 +184,14 @@ def test_metadata_v9_with_qos_as_a_list(tmp_path):
 
 
 def test_lz4_chunks_and_messages_out_of_time_order(tmp_path):
-    with open(DATA / "talker" / "talker.mcap", "rb") as stream:
-        reader = make_reader(stream)
-        records = [(schema, channel, message) for schema, channel, message
-                   in reader.iter_messages(log_time_order=False)]
     out = tmp_path / "shuffled.mcap"
-    order = list(range(len(records)))
-    random.Random(1).shuffle(order)
-    with open(out, "wb") as stream:
-        writer = Writer(stream, compression=CompressionType.LZ4, chunk_size=512)
-        writer.start(profile="ros2", library="test")
-        ids: dict[int, int] = {}
-        for i in order:
-            schema, channel, message = records[i]
-            if channel.id not in ids:
-                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                ids[channel.id] = writer.register_channel(channel.topic, "cdr", schema_id,
-                                                          channel.metadata)
-            writer.add_message(ids[channel.id], message.log_time, message.data,
-                               message.publish_time)
-        writer.finish()
+    times = _rewrite_messages(DATA / "talker" / "talker.mcap", out, lambda data: data,
+                              compression=CompressionType.LZ4, shuffle=1)
     info = bag_info(out)
     assert info["compression"] == "lz4" and info["message_count"] == 20
-    times = [m.log_time for _, _, m in records]
     assert (info["start_ns"], info["end_ns"]) == (min(times), max(times))
-    got = [t for _, t, _ in read_messages(out)]
-    assert got == [records[i][2].log_time for i in order]   # file order, as recorded
+    assert [t for _, t, _ in read_messages(out)] == times   # file order, as recorded
+    assert times != sorted(times)
 
 
 def _flip(file: Path, count: int, seed: int) -> None:

@@ -56,17 +56,31 @@ def bag_files(path: str | Path) -> list[Path]:
     if not path.is_dir():
         raise BagNotFoundError(f"no bag at {path}")
     files: list[Path] = []
-    if (path / METADATA_FILENAME).is_file():
-        try:
-            files = [path / f.path for f in BagMetadata.read(path).files]
-        except CorruptBagError:
-            files = []
+    metadata = _metadata(path)
+    if metadata is not None:
+        if metadata.storage_identifier not in ("", "mcap"):
+            raise BagNotFoundError(
+                f"{path} is a rosbag2 bag in {metadata.storage_identifier!r} storage: only MCAP "
+                f"is read here (`ros2 bag convert` or rosbags-convert make an MCAP copy)")
+        # older rosbag2 wrote the paths with the bag folder in front: keep the name only
+        files = [path / f.path if (path / f.path).is_file() else path / Path(f.path).name
+                 for f in metadata.files]
         files = [f for f in files if f.is_file()]
     if not files:
         files = folder_mcap_files(path)
     if not files:
         raise BagNotFoundError(f"{path} holds no .mcap file")
     return files
+
+
+def _metadata(path: Path) -> BagMetadata | None:
+    """The bag folder's metadata.yaml, or None (missing or unreadable: the files tell)."""
+    if path.is_dir() and (path / METADATA_FILENAME).is_file():
+        try:
+            return BagMetadata.read(path)
+        except CorruptBagError:
+            return None
+    return None
 
 
 def _topic_set(topics: str | Iterable[str] | None) -> set[str] | None:
@@ -79,12 +93,26 @@ def iter_bag(path: str | Path, topics: str | Iterable[str] | None = None
              ) -> Iterator[tuple[Channel, Schema | None, int, bytes]]:
     """``(channel, schema, log_time_ns, data)`` of every message of every file, file order."""
     wanted = _topic_set(topics)
+    metadata = _metadata(Path(path))
+    per_message = metadata is not None and metadata.compression_mode.upper() == "MESSAGE"
+    decompress = _zstd_message if per_message else None
     for file in bag_files(path):
         walk = McapWalk(file, wanted)
         for channel, log_time, _, _, data in walk.messages():
+            if decompress is not None:  # rosbag2 --compression-mode message (zstd)
+                data = decompress(data)
             yield channel, walk.schemas.get(channel.schema_id), log_time, data
         if walk.errors:
             warnings.warn(BagDamageWarning(str(walk.damage())), stacklevel=2)
+
+
+def _zstd_message(data: bytes) -> bytes:
+    import zstandard
+    try:
+        return zstandard.ZstdDecompressor().decompressobj().decompress(data)
+    except zstandard.ZstdError as exc:
+        raise CorruptBagError(f"a MESSAGE-mode compressed message does not decompress: {exc}"
+                              ) from None
 
 
 def read_raw(path: str | Path, topics: str | Iterable[str] | None = None
@@ -134,13 +162,8 @@ def read_messages(path: str | Path, topics: str | Iterable[str] | None = None
 
 
 def _metadata_types(path: str | Path) -> dict[str, str]:
-    path = Path(path)
-    if path.is_dir() and (path / METADATA_FILENAME).is_file():
-        try:
-            return {t.name: t.type for t in BagMetadata.read(path).topics}
-        except CorruptBagError:
-            pass
-    return {}
+    metadata = _metadata(Path(path))
+    return {t.name: t.type for t in metadata.topics} if metadata is not None else {}
 
 
 def topic_types(path: str | Path) -> dict[str, str]:
