@@ -19,7 +19,7 @@ from . import records
 from .errors import CorruptBagError, InvalidQosError
 from .metadata import METADATA_FILENAME, BagMetadata
 from .qos import normalize_profiles
-from .reader import bag_files
+from .reader import bag_files, listed_counts
 
 
 def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
@@ -32,12 +32,13 @@ def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
             "type_description_hash": channel.metadata.get("topic_type_hash", "")}
 
 
-def file_summary(path: Path) -> dict[str, Any]:
-    """Size, completeness, damage, counts, times and topics of one MCAP file."""
+def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
+    """Size, completeness, damage, counts, times and topics of one MCAP file (``listed``: the
+    count metadata.yaml gives for it, to tell what damage lost when the summary is gone)."""
     scan = records.scan(path)
     topics: dict[str, dict[str, Any]] = {}
     start, end, count = 2**63, -1, 0
-    walk = records.McapWalk(path)
+    walk = records.McapWalk(path, expected=listed)
     for channel, log_time, _, _, _ in walk.messages():
         if channel.topic not in topics:
             topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
@@ -71,7 +72,8 @@ def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
 def bag_info(path: str | Path) -> dict[str, Any]:
     """Duration, start/end, size, files and per-topic type/count/rate/QoS of a bag."""
     path = Path(path)
-    files = [file_summary(f) for f in bag_files(path)]
+    listed = listed_counts(path)
+    files = [file_summary(f, listed.get(f.name)) for f in bag_files(path)]
     metadata = None
     if path.is_dir() and (path / METADATA_FILENAME).is_file():
         try:

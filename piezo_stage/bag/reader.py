@@ -73,6 +73,14 @@ def bag_files(path: str | Path) -> list[Path]:
     return files
 
 
+def listed_counts(path: str | Path) -> dict[str, int]:
+    """``{file name: message count}`` that metadata.yaml lists (to tell what damage lost)."""
+    metadata = _metadata(Path(path))
+    if metadata is None:
+        return {}
+    return {Path(f.path).name: f.message_count for f in metadata.files if f.message_count}
+
+
 def _metadata(path: Path) -> BagMetadata | None:
     """The bag folder's metadata.yaml, or None (missing or unreadable: the files tell)."""
     if path.is_dir() and (path / METADATA_FILENAME).is_file():
@@ -96,8 +104,9 @@ def iter_bag(path: str | Path, topics: str | Iterable[str] | None = None
     metadata = _metadata(Path(path))
     per_message = metadata is not None and metadata.compression_mode.upper() == "MESSAGE"
     decompress = _zstd_message if per_message else None
+    listed = listed_counts(path) if wanted is None else {}
     for file in bag_files(path):
-        walk = McapWalk(file, wanted)
+        walk = McapWalk(file, wanted, listed.get(file.name))
         for channel, log_time, _, _, data in walk.messages():
             if decompress is not None:  # rosbag2 --compression-mode message (zstd)
                 data = decompress(data)

@@ -187,8 +187,10 @@ class McapWalk:
     publish_time_ns, sequence, data)`` of the wanted topics and fills ``schemas``,
     ``channels``, ``metadata``, ``header`` and ``errors`` as their records go by."""
 
-    def __init__(self, path: str | Path, topics: Iterable[str] | None = None) -> None:
+    def __init__(self, path: str | Path, topics: Iterable[str] | None = None,
+                 expected: int | None = None) -> None:
         self.path = Path(path)
+        self.expected = expected  # messages metadata.yaml lists for the file (summary lost)
         self.topics = None if topics is None else set(topics)
         self.header: Header | None = None
         self.schemas: dict[int, Schema] = {}
@@ -215,6 +217,8 @@ class McapWalk:
             counts = self.statistics.channel_message_counts
             expected = sum(counts.get(c, 0) for c in self._wanted) if counts \
                 else (self.statistics.message_count if self.topics is None else None)
+        elif self.topics is None:
+            expected = self.expected
         return Damage(self.path, list(self.errors), sum(self.counts.values()), expected)
 
     def _resync(self, at: int) -> int | None:

@@ -69,6 +69,7 @@ class ReindexReport:
                 state = "complete, kept"
             lines.append(f"  {f.path.name}: {f.message_count} messages recovered, {state}"
                          if f.damage else f"  {f.path.name}: {f.message_count} messages, {state}")
+            lines[-1] = lines[-1].replace(f"-- {f.path.name}: damaged: ", "-- ")
         return "\n".join(lines)
 
     @property
@@ -151,8 +152,8 @@ class _Rewriter:
 
 
 def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
-             metadata: BagMetadata) -> FileReport:
-    walk = records.McapWalk(path)
+             metadata: BagMetadata, listed: int | None = None) -> FileReport:
+    walk = records.McapWalk(path, expected=listed)
     tmp = path.with_name(path.name + ".reindex")
     record = FileRecord(path=path.name)
     counts: dict[int, int] = {}
@@ -187,8 +188,9 @@ def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
                       str(walk.damage()) if walk.errors else "")
 
 
-def _keep(path: Path, table: _TopicTable, metadata: BagMetadata) -> FileReport | None:
-    walk = records.McapWalk(path)
+def _keep(path: Path, table: _TopicTable, metadata: BagMetadata,
+          listed: int | None = None) -> FileReport | None:
+    walk = records.McapWalk(path, expected=listed)
     read = sum(1 for _ in walk.messages())
     if walk.errors and not path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
         return None  # damaged: rewrite it with what passes
@@ -234,14 +236,16 @@ def reindex(path: str | Path) -> ReindexReport:
                            compression_mode=previous.compression_mode if previous else "")
     table = _TopicTable(previous)
     report = ReindexReport(path)
+    listed = {Path(f.path).name: f.message_count for f in previous.files} if previous else {}
     for file in files:
         scan = records.scan(file)
+        count = listed.get(file.name) or None
         if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
-            kept = _keep(file, table, metadata) or FileReport(
+            kept = _keep(file, table, metadata, count) or FileReport(
                 file, 0, False, reason="file-compressed: checked, not rewritten")
         else:
-            kept = _keep(file, table, metadata) if scan.has_footer else None
-        report.files.append(kept or _rewrite(file, scan, table, metadata))
+            kept = _keep(file, table, metadata, count) if scan.has_footer else None
+        report.files.append(kept or _rewrite(file, scan, table, metadata, count))
     metadata.topics = table.records()
     if path.is_dir():
         metadata.write(path)
