@@ -155,6 +155,8 @@ def _text(result: IdentificationResult) -> str:
         lines.append(", ".join(extra))
         if d.get("analytic_problem"):
             lines.append(f"analytic method not used: {d['analytic_problem']}")
+        elif result.analytic is not None:
+            lines.append("seeded by the analytic method (ch. 9-10)")
     return "\n".join(lines)
 
 

@@ -84,6 +84,7 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
             analytic = identify(runs[0], runs[1], options)
             if method is Method.AUTO:
                 return analytic
+            problem = ""
         except _DATA_ERRORS:
             raise
         except BadFitError as exc:
@@ -101,8 +102,8 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
 
 
 def _warnings(final: SimulationFit, figures: dict[str, float], fit: FitOptions) -> list[str]:
-    out = [f"{a} and {b} are strongly correlated ({c:+.4f}): not separately determined by "
-           "this record" for a, b, c in final.correlations]
+    out = [f"{a} and {b} are strongly correlated ({c:+.5f}): this record separates them "
+           "poorly (see their standard errors)" for a, b, c in final.correlations]
     loose = [f"{k} ±{100 * v:.2g} %" for k, v in final.relative_std.items()
              if k in HYSTERETIC and not v <= fit.warn_rel_std]
     if loose:

@@ -56,7 +56,7 @@ class FitOptions:
     starts: int = 3                        #: grid points refined when no seed is given
     max_nfev: int = 200
     tolerance: float = 1e-14               #: ftol = xtol = gtol of scipy's least_squares
-    correlation_limit: float = 0.995       #: |correlation| above this draws a warning
+    correlation_limit: float = 0.999       #: |correlation| above this draws a warning
     noise_factor: float = 3.0              #: a fit is bad if RMS > noise_factor·noise ...
     max_rms_fraction: float = 0.02         #: ... and RMS > this fraction of the output span
     max_rel_std: float = 0.25              #: a hysteretic parameter whose relative standard
