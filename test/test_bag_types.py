@@ -116,3 +116,34 @@ def test_series_codec_is_byte_exact_and_inverse(type_name, frame):
             np.testing.assert_array_equal(st, status)
         else:
             assert st is None
+
+
+def _decoder_round_trip(schema_name: str, encoding: str, text: str, fields: dict):
+    from mcap.records import Channel, Schema
+
+    from piezo_stage.bag.decode import BagTypes
+
+    bag_types = BagTypes()
+    channel = Channel(id=1, topic="/t", message_encoding="cdr", schema_id=1, metadata={})
+    name = bag_types.type_of(channel, Schema(id=1, name=schema_name, encoding=encoding,
+                                             data=text.encode()))
+    if name is None:
+        return None, bag_types.skipped["/t"]
+    message = bag_types.store.types[name](**fields)
+    data = bytes(bag_types.store.serialize_cdr(message, name))
+    return bag_types.deserialize(data, name), ""
+
+
+def test_bag_types_read_ros2idl_and_old_type_names():
+    idl = "module my_pkg { module msg { struct Point { double x; string label; }; }; };"
+    decoded, _ = _decoder_round_trip("my_pkg/msg/Point", "ros2idl", idl, {"x": 1.5, "label": "a"})
+    assert (decoded.x, decoded.label) == (1.5, "a")
+    decoded, _ = _decoder_round_trip("my_pkg/Point", "ros2msg", "float64 x\n", {"x": 2.5})
+    assert decoded.x == 2.5 and decoded.__msgtype__ == "my_pkg/msg/Point"
+
+
+def test_bag_types_skip_what_they_cannot_parse_with_the_reason():
+    decoded, why = _decoder_round_trip("my_pkg/msg/Bad", "ros2msg", "float64[ x\n", {})
+    assert decoded is None and "my_pkg/msg/Bad not decodable" in why
+    decoded, why = _decoder_round_trip("my_pkg/msg/J", "jsonschema", "{}", {})
+    assert decoded is None and "not ros2msg" in why
