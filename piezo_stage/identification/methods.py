@@ -3,8 +3,8 @@ fit by simulation error (any runs, see simfit.py), and the fit's result as an
 :class:`IdentificationResult`.
 
 auto: the analytic method with its refinement when its preconditions hold (two wave-periodic
-runs x(t), x(t)+q whose limit cycle is reached) and the fit is good; the fit otherwise, seeded
-by whatever the analytic method produced.
+runs x(t), x(t)+q whose limit cycle is reached; a bad fit there is refused as such), the fit
+otherwise. fit: the fit, seeded by whatever the analytic method produced.
 """
 
 from __future__ import annotations
@@ -88,6 +88,8 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
         except _DATA_ERRORS:
             raise
         except BadFitError as exc:
+            if method is Method.AUTO:    # its preconditions hold: its verdict stands
+                raise
             problem, analytic = str(exc), exc.result
         except IdentificationError as exc:
             problem = str(exc)
