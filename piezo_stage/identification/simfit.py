@@ -38,6 +38,8 @@ _GRID_RHO = (0.3, 1.0, 3.0, 10.0)
 _GRID_SIGMA = (0.6, 1.5, 4.0)
 _GRID_N = (1.2, 2.5)
 _GRID_W0 = (-0.6, 0.0, 0.6)
+#: the multi-start runs on every k-th sample when the runs hold more samples than this
+GRID_SAMPLES = 12000
 #: upper bounds of σ and n: beyond, w is a step function of x and the branch tables of the
 #: model (piezo_stage.model._branches) no longer converge
 SIGMA_MAX = 100.0
@@ -138,6 +140,10 @@ class _Problem:
         lo, hi = self.bounds()
         return np.clip(np.array(th, dtype=float), lo, hi)
 
+    def seed(self, th: np.ndarray) -> Seed:
+        rho, sigma, n, w0, delay = self.split(th)
+        return Seed(rho, sigma, n, tuple(float(w) for w in w0), delay)
+
     def split(self, th: np.ndarray) -> tuple[float, float, float, np.ndarray, float]:
         r = len(self.runs)
         delay = float(th[3 + r]) * self.dt if self.options.fit_delay else 0.0
@@ -197,8 +203,16 @@ def _solve(problem: _Problem, th0: np.ndarray, max_nfev: int, tol: float):
 
 def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions):
     """Best least-squares optimum over the seeds: seeds are ranked by their cost, the best
-    ``options.starts`` are refined."""
-    lo, hi = problem.bounds()
+    ``options.starts`` are refined (on every k-th sample of long runs, then on all)."""
+    total = sum(problem.sizes)
+    if len(seeds) > 1 and total > GRID_SAMPLES:
+        k = int(np.ceil(total / GRID_SAMPLES))
+        coarse = _Problem([Recording(r.t[::k], r.input[::k], r.output[::k], r.name)
+                           for r in problem.runs], options, problem.time_constant)
+        res, nfev = _optimum(coarse, seeds, options)
+        best = _solve(problem, problem.theta(coarse.seed(res.x)), options.max_nfev,
+                      options.tolerance)
+        return best, nfev + int(best.nfev)
     if len(seeds) > 1:
         th_grid = [problem.theta(s) for s in seeds]
         costs = [float(np.sum(problem.residual(th) ** 2)) for th in th_grid]
