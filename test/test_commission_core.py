@@ -10,13 +10,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from piezo_stage.commissioning import Commissioning, Options, Step, StepFailed, SweepSettings
-from piezo_stage.commissioning import design, sweep
+from piezo_stage.commissioning import (
+    Commissioning,
+    Options,
+    Step,
+    StepFailed,
+    SweepSettings,
+    design,
+    sweep,
+)
 from piezo_stage.commissioning.sweep import Series, SweepError
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.laws import Gains
-from piezo_stage.identification.dynamics import (DynamicsError, UnresolvedResonanceError,
-                                                 fit_step_response)
+from piezo_stage.identification.dynamics import (
+    DynamicsError,
+    UnresolvedResonanceError,
+    fit_step_response,
+)
 from piezo_stage.model.excitation import ExcitationPlan
 from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
@@ -38,8 +48,11 @@ def simulate(plan: ExcitationPlan, rate: float, sensor_max: float = np.inf) -> S
     x, _, _ = DynamicPlant(TRUTH, TRUTH_DYN).simulate(u, dt)
     xs = np.concatenate(([0.0], x))[:n]
     us = np.concatenate(([u[0]], u))[:n]
-    marks = [(s.run * plan.run_duration + plan.settle_periods * plan.period * k, s.run, bool(k))
-             for s in (plan.sample(r * plan.run_duration) for r in range(len(plan.offsets))) for k in (0, 1)]
+    marks = [
+        (s.run * plan.run_duration + plan.settle_periods * plan.period * k, s.run, bool(k))
+        for s in (plan.sample(r * plan.run_duration) for r in range(len(plan.offsets)))
+        for k in (0, 1)
+    ]
     status = np.where(xs > sensor_max, 3, 0)
     return Series(t, us, t, np.where(status == 0, xs, np.nan), status, sorted(marks))
 
@@ -99,13 +112,22 @@ def test_step_fit_recovers_m_and_c_with_standard_errors():
 def test_step_fit_refuses_a_sensor_too_slow_for_the_resonance(rate):
     with pytest.raises(DynamicsError) as info:
         fit_step_response(*_step(rate), TRUTH)
-    assert isinstance(info.value, UnresolvedResonanceError) or "does not describe" in str(info.value)
+    assert isinstance(info.value, UnresolvedResonanceError) or "does not describe" in str(
+        info.value
+    )
 
 
 def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
-    tab = {k: {"min": v * 0.99, "max": v * 1.01, "mean": v} for k, v in
-           (("kappa_x", TRUTH.kappa_x), ("kappa_w", TRUTH.kappa_w), ("rho", TRUTH.rho), ("sigma", TRUTH.sigma),
-            ("n", TRUTH.n))}
+    tab = {
+        k: {"min": v * 0.99, "max": v * 1.01, "mean": v}
+        for k, v in (
+            ("kappa_x", TRUTH.kappa_x),
+            ("kappa_w", TRUTH.kappa_w),
+            ("rho", TRUTH.rho),
+            ("sigma", TRUTH.sigma),
+            ("n", TRUTH.n),
+        )
+    }
     b = design.assumption2_bounds(tab, TRUTH_DYN.m, 1e-6, TRUTH_DYN.c, 0.1, margin=0.2)
     assert b.m_min < TRUTH_DYN.m < b.m_max and b.c_max > TRUTH_DYN.c
     assert b.kappa_w_max > TRUTH.kappa_w and b.rho_max > TRUTH.rho and b.sigma_max > TRUTH.sigma
@@ -131,7 +153,9 @@ def test_procedure_writes_the_files_and_resumes(tmp_path):
     from piezo_stage.model.parameter_set import load_parameter_set
 
     assert load_bounds(summary["files"]["bounds"]).kappa_w_max > TRUTH.kappa_w
-    assert load_parameter_set(summary["files"]["parameter_set"]).dynamics.m == pytest.approx(TRUTH_DYN.m, rel=0.1)
+    assert load_parameter_set(summary["files"]["parameter_set"]).dynamics.m == pytest.approx(
+        TRUTH_DYN.m, rel=0.1
+    )
     assert "| kappa_w |" in (tmp_path / "report.md").read_text()
     again = FakeRig()
     Commissioning(tmp_path, again, options).run()
@@ -145,5 +169,26 @@ def test_a_clipped_sensor_stops_before_the_gains(tmp_path):
         Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(50.0,)))).run()
     assert info.value.step is Step.SWEEP and "clips the sensor" in info.value.reason
     assert (tmp_path / "FAILED.md").is_file()
-    assert not any((tmp_path / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml"))
+    assert not any(
+        (tmp_path / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml")
+    )
     assert json.loads((tmp_path / "state.json").read_text())["failed"]["step"] == "sweep"
+
+
+@pytest.mark.parametrize(
+    "args, text",
+    [
+        (["--amplitude", "500"], "clip"),
+        (["--m", "5e-3"], "--m and --c"),
+        (["--frequencies", "1000"], "samples per period"),
+        (["--margin", "1.5"], "--margin"),
+    ],
+)
+def test_cli_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, args, text):
+    from piezo_stage.cli import main
+
+    out = tmp_path / "out"
+    assert main(["commission", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert text in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

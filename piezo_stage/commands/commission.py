@@ -25,40 +25,75 @@ def _floats(text: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(",") if v.strip())
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
     if not values:
         raise argparse.ArgumentTypeError("expected at least one frequency")
     return values
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("out_dir", type=Path, metavar="DIR", help="output folder (resumed when it exists)")
-    parser.add_argument("--graph", choices=("sim", "emulated_rig", "rig"), default="sim",
-                        help="sim (plant node on --param plant.model_file:=FILE), emulated_rig, rig")
-    parser.add_argument("--param", action="append", default=[], metavar="NODE.KEY:=VALUE",
-                        help="node parameter (e.g. plant.model_file:=my_plant.yaml)")
-    parser.add_argument("--sensor-rate", type=float, default=50e3,
-                        help="sim: sensor (lockstep) rate [Hz] (default 50000; >= 4x the natural frequency)")
+    parser.add_argument(
+        "out_dir", type=Path, metavar="DIR", help="output folder (resumed when it exists)"
+    )
+    parser.add_argument(
+        "--graph",
+        choices=("sim", "emulated_rig", "rig"),
+        default="sim",
+        help="sim (plant node on --param plant.model_file:=FILE), emulated_rig, rig",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NODE.KEY:=VALUE",
+        help="node parameter (e.g. plant.model_file:=my_plant.yaml)",
+    )
+    parser.add_argument(
+        "--sensor-rate",
+        type=float,
+        default=50e3,
+        help="sim: sensor (lockstep) rate [Hz] (default 50000; >= 4x the natural frequency)",
+    )
     s = parser.add_argument_group("sweep (step 1)")
-    s.add_argument("--frequencies", type=_floats, default=(10.0, 20.0, 50.0, 100.0),
-                   help="comma-separated [Hz] (default 10,20,50,100; each needs >= 200 sensor samples per period)")
+    s.add_argument(
+        "--frequencies",
+        type=_floats,
+        default=(10.0, 20.0, 50.0, 100.0),
+        help="comma-separated [Hz] (default 10,20,50,100; >= 200 sensor samples per period each)",
+    )
     s.add_argument("--low", type=float, default=0.0, help="lowest voltage of the excitation [V]")
-    s.add_argument("--amplitude", type=float, default=300.0, help="peak-to-peak of the excitation [V]")
+    s.add_argument(
+        "--amplitude", type=float, default=300.0, help="peak-to-peak of the excitation [V]"
+    )
     s.add_argument("--offset", type=float, default=100.0, help="q between the two runs [V]")
     s.add_argument("--settle-periods", type=int, default=2)
     s.add_argument("--record-periods", type=int, default=2)
     d = parser.add_argument_group("dynamics (step 2)")
     d.add_argument("--step-size", type=float, default=50.0, help="voltage step [V]")
-    d.add_argument("--m", type=float, default=None, help="m [V s^2/m] from physical data (skips the step fit)")
+    d.add_argument(
+        "--m", type=float, default=None, help="m [V s^2/m] from physical data (skips the step fit)"
+    )
     d.add_argument("--c", type=float, default=None, help="c [V s/m] from physical data (with --m)")
     g = parser.add_argument_group("bounds and gains (steps 3-4)")
-    g.add_argument("--margin", type=float, default=0.2, help="bounds margin, fraction (default 0.2)")
-    g.add_argument("--gain-margin", type=float, default=0.1,
-                   help="k2 = (1+G) k2_min, k0 = (1-G) k0_max (default 0.1)")
+    g.add_argument(
+        "--margin", type=float, default=0.2, help="bounds margin, fraction (default 0.2)"
+    )
+    g.add_argument(
+        "--gain-margin",
+        type=float,
+        default=0.1,
+        help="k2 = (1+G) k2_min, k0 = (1-G) k0_max (default 0.1)",
+    )
     g.add_argument("--k1", type=float, default=None, help="k1 [V/m] (default kappa_x/2)")
     g.add_argument("--f", type=float, default=100.0, help="f of (11.18) [Hz] (default 100)")
-    g.add_argument("--rate-hz", type=float, default=None,
-                   help="loop rate [Hz] (default: the lowest of 100k, 200k, 500k, 1M where the sampled loop is stable)")
+    g.add_argument(
+        "--rate-hz",
+        type=float,
+        default=None,
+        help="loop rate [Hz] (default: the lowest stable of 100k, 200k, 500k, 1M)",
+    )
     parser.add_argument("--restart", action="store_true", help="discard DIR's earlier steps")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
@@ -85,7 +120,9 @@ def run(args: argparse.Namespace) -> int:
 
     def progress(step: str, text: str) -> None:
         if not args.json:
-            print(f"[{time.monotonic() - started:6.1f} s] {step}: {text}", file=sys.stderr, flush=True)
+            print(
+                f"[{time.monotonic() - started:6.1f} s] {step}: {text}", file=sys.stderr, flush=True
+            )
 
     model, params = _model_file(args.param)
     try:
@@ -96,16 +133,32 @@ def run(args: argparse.Namespace) -> int:
         for name in ("margin", "gain_margin"):
             if not 0.0 <= getattr(args, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1)")
-        settings = SweepSettings(frequencies=args.frequencies, low=args.low, amplitude=args.amplitude,
-                                 offset=args.offset, settle_periods=args.settle_periods,
-                                 record_periods=args.record_periods)
-        rig = make_rig(args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress)
+        settings = SweepSettings(
+            frequencies=args.frequencies,
+            low=args.low,
+            amplitude=args.amplitude,
+            offset=args.offset,
+            settle_periods=args.settle_periods,
+            record_periods=args.record_periods,
+        )
+        rig = make_rig(
+            args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress
+        )
         settings.check(rig.rate_hz, rig.v_min, rig.v_max)
     except (ValueError, SweepError, OSError) as exc:
         print(f"piezo-stage commission: {exc}", file=sys.stderr)
         return 2
-    options = Options(sweep=settings, step_size=args.step_size, margin=args.margin, gain_margin=args.gain_margin,
-                      k1=args.k1, f=args.f, rate_hz=args.rate_hz, m=args.m, c=args.c)
+    options = Options(
+        sweep=settings,
+        step_size=args.step_size,
+        margin=args.margin,
+        gain_margin=args.gain_margin,
+        k1=args.k1,
+        f=args.f,
+        rate_hz=args.rate_hz,
+        m=args.m,
+        c=args.c,
+    )
     if args.restart and args.out_dir.exists():
         shutil.rmtree(args.out_dir)
     from piezo_stage.launch.domain import isolated_domain
@@ -114,7 +167,9 @@ def run(args: argparse.Namespace) -> int:
         with isolated_domain():
             summary = Commissioning(args.out_dir, rig, options, progress).run()
     except StepFailed as exc:
-        print(f"piezo-stage commission: step {exc.step.value} failed: {exc.reason}", file=sys.stderr)
+        print(
+            f"piezo-stage commission: step {exc.step.value} failed: {exc.reason}", file=sys.stderr
+        )
         if args.json:
             print(json.dumps({"failed": {"step": exc.step.value, "reason": exc.reason}}))
         return 1
@@ -128,6 +183,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"commissioned: report {summary['files']['report']}")
         for k, v in summary["gains"].items():
             print(f"  {k:>3} = {v:.6g}")
-        print(f"  loop rate {summary['rate_hz']:g} Hz, u before/after {summary['closed_loop']['u_before']:.5g}/"
-              f"{summary['closed_loop']['u_after']:.5g} V")
+        print(
+            f"  loop rate {summary['rate_hz']:g} Hz, u before/after "
+            f"{summary['closed_loop']['u_before']:.5g}/"
+            f"{summary['closed_loop']['u_after']:.5g} V"
+        )
     return 0

@@ -25,35 +25,48 @@ from piezo_stage.control.laws import Gains
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 RATE_CANDIDATES: tuple[float, ...] = (100e3, 200e3, 500e3, 1e6)
-THESIS_F = 100.0          # §11.4.3: f = 100 Hz
-THESIS_KA_RATIO = 1.5     # kA / k0 of the ch. 11 runs (1.5e9 / 1e9)
-STD_FACTOR = 3.0          # m, c bounds: estimate ± 3 standard errors before the margin
+THESIS_F = 100.0  # §11.4.3: f = 100 Hz
+THESIS_KA_RATIO = 1.5  # kA / k0 of the ch. 11 runs (1.5e9 / 1e9)
+STD_FACTOR = 3.0  # m, c bounds: estimate ± 3 standard errors before the margin
 
 
 class DesignError(Exception):
     """No gains pass Theorem 4 and the sampled-loop check (the message says why)."""
 
 
-def assumption2_bounds(table: dict[str, dict[str, float]], m: float, m_std: float, c: float, c_std: float,
-                       margin: float) -> Bounds:
+def assumption2_bounds(
+    table: dict[str, dict[str, float]],
+    m: float,
+    m_std: float,
+    c: float,
+    c_std: float,
+    margin: float,
+) -> Bounds:
     """Assumption 2 bounds (module docstring) from the sweep's table and the step fit."""
     if not (0.0 <= margin < 1.0):
         raise DesignError(f"margin must be in [0, 1), got {margin}")
     up = 1.0 + margin
-    return Bounds.from_dict({
-        "m_min": max((m - STD_FACTOR * m_std) * (1.0 - margin), 1e-300),
-        "m_max": (m + STD_FACTOR * m_std) * up,
-        "c_max": max(c + STD_FACTOR * c_std, 0.0) * up,
-        "kappa_x_max": table["kappa_x"]["max"] * up,
-        "kappa_w_max": table["kappa_w"]["max"] * up,
-        "sigma_max": max(table["sigma"]["max"] * up, 0.5),
-        "rho_max": table["rho"]["max"] * up,
-    })
+    return Bounds.from_dict(
+        {
+            "m_min": max((m - STD_FACTOR * m_std) * (1.0 - margin), 1e-300),
+            "m_max": (m + STD_FACTOR * m_std) * up,
+            "c_max": max(c + STD_FACTOR * c_std, 0.0) * up,
+            "kappa_x_max": table["kappa_x"]["max"] * up,
+            "kappa_w_max": table["kappa_w"]["max"] * up,
+            "sigma_max": max(table["sigma"]["max"] * up, 0.5),
+            "rho_max": table["rho"]["max"] * up,
+        }
+    )
 
 
 def nominal_plant(table: dict[str, dict[str, float]], m: float, c: float) -> NominalPlant:
-    return NominalPlant(m=m, c=c, kappa_x=table["kappa_x"]["mean"], kappa_w=table["kappa_w"]["mean"],
-                        rho=table["rho"]["mean"])
+    return NominalPlant(
+        m=m,
+        c=c,
+        kappa_x=table["kappa_x"]["mean"],
+        kappa_w=table["kappa_w"]["mean"],
+        rho=table["rho"]["mean"],
+    )
 
 
 @dataclass(frozen=True)
@@ -63,20 +76,36 @@ class GainDesign:
     delay_samples: int
     theorem4: GainReport
     sampled: SampledLoopReport
-    tried: tuple[tuple[float, float], ...]   #: (rate, spectral radius) of each rate checked
+    tried: tuple[tuple[float, float], ...]  #: (rate, spectral radius) of each rate checked
 
     def to_dict(self) -> dict:
         g = self.gains
-        return {"gains": {"k0": g.k0, "k1": g.k1, "k2": g.k2, "kA": g.kA, "f": g.f}, "rate_hz": self.rate_hz,
-                "delay_samples": self.delay_samples, "k2_min": self.theorem4.k2_min, "k0_max": self.theorem4.k0_max,
-                "theorem4_valid": self.theorem4.valid, "spectral_radius": self.sampled.spectral_radius,
-                "stable": self.sampled.stable, "tried": [list(t) for t in self.tried]}
+        return {
+            "gains": {"k0": g.k0, "k1": g.k1, "k2": g.k2, "kA": g.kA, "f": g.f},
+            "rate_hz": self.rate_hz,
+            "delay_samples": self.delay_samples,
+            "k2_min": self.theorem4.k2_min,
+            "k0_max": self.theorem4.k0_max,
+            "theorem4_valid": self.theorem4.valid,
+            "spectral_radius": self.sampled.spectral_radius,
+            "stable": self.sampled.stable,
+            "tried": [list(t) for t in self.tried],
+        }
 
 
-def design_gains(bounds: Bounds, nominal: NominalPlant, *, k1: float | None = None, gain_margin: float = 0.1,
-                 f: float = THESIS_F, ka_ratio: float = THESIS_KA_RATIO, rate_hz: float | None = None,
-                 delay_samples: int = 0, candidates: tuple[float, ...] = RATE_CANDIDATES) -> GainDesign:
-    """Gains of Theorem 4 for ``bounds`` and the loop rate (module docstring); DesignError if none."""
+def design_gains(
+    bounds: Bounds,
+    nominal: NominalPlant,
+    *,
+    k1: float | None = None,
+    gain_margin: float = 0.1,
+    f: float = THESIS_F,
+    ka_ratio: float = THESIS_KA_RATIO,
+    rate_hz: float | None = None,
+    delay_samples: int = 0,
+    candidates: tuple[float, ...] = RATE_CANDIDATES,
+) -> GainDesign:
+    """Theorem 4 gains for ``bounds`` and the loop rate (module docstring); DesignError if none."""
     if not (0.0 < gain_margin < 1.0):
         raise DesignError(f"gain margin must be in (0, 1), got {gain_margin}")
     k1 = 0.5 * nominal.kappa_x if k1 is None else float(k1)
@@ -97,11 +126,15 @@ def design_gains(bounds: Bounds, nominal: NominalPlant, *, k1: float | None = No
         if sampled.stable:
             return GainDesign(gains, rate, delay_samples, report, sampled, tuple(tried))
     text = ", ".join(f"{r:g} Hz: {s:.6f}" for r, s in tried)
-    raise DesignError(f"the sampled loop of pid_tv with delay {delay_samples} is unstable at every rate "
-                      f"checked (spectral radius per sample: {text}); the loop must run faster")
+    raise DesignError(
+        f"the sampled loop of pid_tv with delay {delay_samples} is unstable at every rate "
+        f"checked (spectral radius per sample: {text}); the loop must run faster"
+    )
 
 
-def write_bounds(path: Path, bounds: Bounds, nominal: NominalPlant, margin: float, source: str) -> None:
+def write_bounds(
+    path: Path, bounds: Bounds, nominal: NominalPlant, margin: float, source: str
+) -> None:
     """The bounds file in the layout of config/thesis_rig_bounds.yaml (bounds + nominal)."""
     b, n = bounds, nominal
     lines = [
@@ -109,23 +142,41 @@ def write_bounds(path: Path, bounds: Bounds, nominal: NominalPlant, margin: floa
         "# Read by `piezo-stage gains --bounds FILE` and the controller's bounds_file parameter.",
         "# Units SI: m [V s^2/m], c [V s/m], kappa_x [V/m], kappa_w [V], rho [1/m].",
         "",
-        f"bounds:                  # Assumption 2: sweep's largest values x {1 + margin:g}; m, c: fit ± 3 s.e., margin {margin:g}",
+        f"bounds:                  # Assumption 2: sweep's largest values x {1 + margin:g}; "
+        f"m, c: fit ± 3 s.e., margin {margin:g}",
     ]
     lines += [f"  {k}: {v:.10g}" for k, v in b.to_dict().items()]
-    lines += ["", "nominal:                 # plant linearised by the sampled-loop check: fitted m, c and the sweep's means"]
+    lines += [
+        "",
+        "nominal:                 # plant linearised by the sampled-loop check: fitted m, c "
+        "and the sweep's means",
+    ]
     lines += [f"  {k}: {v:.10g}" for k, v in n.to_dict().items()]
     path.write_text("\n".join(lines) + "\n")
 
 
-def write_controller_params(path: Path, design: GainDesign, bounds_file: Path, trigger: str) -> None:
+def write_controller_params(
+    path: Path, design: GainDesign, bounds_file: Path, trigger: str
+) -> None:
     """A ROS 2 params file for the controller node (``--params-file``, a graph's ``parameters``)."""
     g = design.gains
-    params = {"mode": "pid_tv", "k0": g.k0, "k1": g.k1, "k2": g.k2, "kA": g.kA, "f": g.f,
-              "rate_hz": design.rate_hz, "delay_samples": design.delay_samples, "trigger": trigger,
-              "bounds_file": str(bounds_file)}
+    params = {
+        "mode": "pid_tv",
+        "k0": g.k0,
+        "k1": g.k1,
+        "k2": g.k2,
+        "kA": g.kA,
+        "f": g.f,
+        "rate_hz": design.rate_hz,
+        "delay_samples": design.delay_samples,
+        "trigger": trigger,
+        "bounds_file": str(bounds_file),
+    }
     body = "\n".join(f"    {k}: {_yaml(v)}" for k, v in params.items())
-    path.write_text("# controller parameters written by `piezo-stage commission` (Theorem 4 + sampled check)\n"
-                    f"/**:\n  ros__parameters:\n{body}\n")
+    path.write_text(
+        "# controller parameters written by `piezo-stage commission` (Theorem 4 + sampled check)\n"
+        f"/**:\n  ros__parameters:\n{body}\n"
+    )
 
 
 def _yaml(value: object) -> str:

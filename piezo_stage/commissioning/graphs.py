@@ -27,9 +27,13 @@ from .sweep import Series
 
 GRAPHS = ("sim", "emulated_rig", "rig")
 _STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
-_TOPICS = {"voltage": "piezo_stage_msgs/msg/Voltage", "displacement": "piezo_stage_msgs/msg/Displacement",
-           "excitation": "piezo_stage_msgs/msg/ExcitationInfo"}
+_TOPICS = {
+    "voltage": "piezo_stage_msgs/msg/Voltage",
+    "displacement": "piezo_stage_msgs/msg/Displacement",
+    "excitation": "piezo_stage_msgs/msg/ExcitationInfo",
+}
 LOCKSTEP_DEPTH = 100_000
+SIM_SENSOR_NOISE = 2e-9  #: [m] standard deviation of the sim graph's sensor
 _counter = iter(range(1, 1 << 30))
 
 
@@ -43,15 +47,24 @@ def _stamp_ns(data: bytes) -> int:
 
 
 def _plan_overrides(plan: ExcitationPlan) -> dict[str, Any]:
-    return {"preset": "", "waveform": plan.waveform, "period": plan.period, "low": plan.low,
-            "amplitude": plan.amplitude, "offsets": [float(q) for q in plan.offsets],
-            "settle_periods": plan.settle_periods, "record_periods": plan.record_periods, "hold": plan.hold,
-            "on_done": "hold", "wait_for_subscribers": 1}
+    return {
+        "preset": "",
+        "waveform": plan.waveform,
+        "period": plan.period,
+        "low": plan.low,
+        "amplitude": plan.amplitude,
+        "offsets": [float(q) for q in plan.offsets],
+        "settle_periods": plan.settle_periods,
+        "record_periods": plan.record_periods,
+        "hold": plan.hold,
+        "on_done": "hold",
+        "wait_for_subscribers": 1,
+    }
 
 
 @dataclass
 class RosRig:
-    """A graph: ``name``, sensor ``rate_hz``, the loop's ``delay_samples`` and the amplifier range."""
+    """A graph: ``name``, sensor ``rate_hz``, the loop's ``delay_samples``, the amplifier range."""
 
     name: str
     rate_hz: float
@@ -64,6 +77,7 @@ class RosRig:
     extra_params: list[str] = field(default_factory=list)
     progress: Callable[[str, str], None] = lambda step, text: None
     wall_timeout: float = 600.0
+    data_timeout: float = 30.0  #: [s] for the graph's topics and the first sample and mark
 
     # ------------------------------------------------------------------ graphs
     def _graph(self, plan: ExcitationPlan, namespace: str) -> dict[str, Any]:
@@ -74,8 +88,13 @@ class RosRig:
         else:
             exc.update(trigger="timer", rate_hz=min(self.rate_hz, 1000.0), catch_up=True, lead=1.0)
         nodes.append({"executable": "excitation", "overrides": exc})
-        graph = {"description": f"commission ({self.name})", "namespace": namespace, "stop_timeout": 5.0,
-                 "nodes": nodes, "wait_for_topics": [{"topic": "displacement", "publishers": 1}]}
+        graph = {
+            "description": f"commission ({self.name})",
+            "namespace": namespace,
+            "stop_timeout": 5.0,
+            "nodes": nodes,
+            "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
+        }
         if self.lockstep:
             graph["clock"] = "namespaced"
         return graph
@@ -86,19 +105,27 @@ class RosRig:
 
         namespace = f"/commission_{os.getpid()}_{next(_counter)}"
         lines: list[str] = []
-        launch = Launcher(self._graph(plan, namespace), params=self.extra_params,
-                          sink=lambda n, line, err: lines.append(f"[{n}] {line}"))
+        launch = Launcher(
+            self._graph(plan, namespace),
+            params=self.extra_params,
+            timeout=self.data_timeout,
+            sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
+        )
         try:
             raw = self._collect(launch, namespace, plan, label)
         except (GraphRunError, LaunchError) as exc:
             tail = "\n".join(lines[-15:])
-            raise GraphRunError(f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else "")) from exc
+            raise GraphRunError(
+                f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else "")
+            ) from exc
         finally:
             launch.stop()
         _write_bag(bag, namespace, raw)
         return _series(raw)
 
-    def _collect(self, launch: Any, namespace: str, plan: ExcitationPlan, label: str) -> dict[str, list]:
+    def _collect(
+        self, launch: Any, namespace: str, plan: ExcitationPlan, label: str
+    ) -> dict[str, list]:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -109,13 +136,20 @@ class RosRig:
         rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
         node = rclpy.create_node("commission", namespace=namespace, context=ctx)
         raw: dict[str, list] = {k: [] for k in _TOPICS}
-        stream = (QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE) if self.lockstep
-                  else qos_profile_sensor_data)
+        stream = (
+            QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+            if self.lockstep
+            else qos_profile_sensor_data
+        )
         marks_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        for topic, msg_type, qos in (("voltage", Voltage, stream), ("displacement", Displacement, stream),
-                                     ("excitation", ExcitationInfo, marks_qos)):
-            node.create_subscription(msg_type, topic, lambda d, k=topic: raw[k].append((_stamp_ns(d), d)), qos,
-                                     raw=True)
+        for topic, msg_type, qos in (
+            ("voltage", Voltage, stream),
+            ("displacement", Displacement, stream),
+            ("excitation", ExcitationInfo, marks_qos),
+        ):
+            node.create_subscription(
+                msg_type, topic, lambda d, k=topic: raw[k].append((_stamp_ns(d), d)), qos, raw=True
+            )
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
         try:
@@ -128,14 +162,21 @@ class RosRig:
                     raise GraphRunError(f"not done after {self.wall_timeout:g} s")
                 executor.spin_once(timeout_sec=0.05)
                 if not raw["excitation"] or not raw["displacement"]:
-                    if time.monotonic() - started > 60.0:
-                        raise GraphRunError("no sensor sample and excitation mark within 60 s: "
-                                            "the graph has no working sensor or excitation")
+                    if time.monotonic() - started > self.data_timeout:
+                        missing = [k for k in ("displacement", "excitation") if not raw[k]]
+                        raise GraphRunError(
+                            f"no {' and no '.join(missing)} message within "
+                            f"{self.data_timeout:g} s: "
+                            "the graph has no working sensor or excitation"
+                        )
                     continue
                 t0 = min(ns for ns, _ in raw["excitation"])
                 done = (raw["displacement"][-1][0] - t0) * 1e-9
-                if done >= plan.duration + 2.0 / self.rate_hz and len(raw["voltage"]) > 0 and \
-                        raw["voltage"][-1][0] >= raw["displacement"][-1][0]:
+                if (
+                    done >= plan.duration + 2.0 / self.rate_hz
+                    and len(raw["voltage"]) > 0
+                    and raw["voltage"][-1][0] >= raw["displacement"][-1][0]
+                ):
                     break
                 if time.monotonic() > next_note:
                     next_note += 2.0
@@ -150,27 +191,62 @@ class RosRig:
     def accept(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:
         """The §11.5 perturbation experiment under pid_tv with the designed gains (sim only)."""
         if not self.lockstep:
-            raise GraphRunError(f"the acceptance experiment runs on the sim graph only: on {self.name} the loop "
-                                "would run at the sensor's rate, far below the rate the gains need")
-        from piezo_stage.experiments import run_experiment
-        from piezo_stage.experiments.spec import OPEN_FOR, T_OPEN, U_OPEN, U_SET, Plan
+            raise GraphRunError(
+                f"the acceptance experiment runs on the sim graph only: on {self.name} the loop "
+                "would run at the sensor's rate, far below the rate the gains need"
+            )
+        from dataclasses import replace
 
-        g = run["gains"]
+        from piezo_stage.experiments import make_plan, run_experiment
+        from piezo_stage.experiments.spec import U_SET
+
+        # the §11.5 plan of the experiments, moved to this rig: its plant file, the designed
+        # gains, rate and bounds file, and the set point of the identified kappa_x
+        base = make_plan("perturbation", "pid_tv", duration=float(run["duration"]))
         rate = float(run["rate_hz"])
         x_eq = U_SET / float(run["kappa_x"])  # w(0) = 0: kappa_x x = u (11.2)
-        gains = {k: float(g[k]) for k in ("k0", "k1", "k2", "kA", "f")}
-        controller = {"use_sim_time": True, "trigger": "sample", "sensor_qos": "reliable", "rate_hz": rate,
-                      "delay_samples": int(run["delay_samples"]), "mode": "pid_tv", "start_closed": True,
-                      "on_close": "reset", "wait_for_state_subscribers": 1, "bounds_file": run["bounds_file"],
-                      "reference_source": "constant", "reference": x_eq, "u_bias": U_SET, "hold_voltage": U_OPEN,
-                      "open_at": T_OPEN, "open_duration": OPEN_FOR, **gains}
-        plant = {"model_file": self.model_file, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,
-                 "v_min": self.v_min, "v_max": self.v_max, "w0": 0.0, "x0": x_eq, "xdot0": 0.0,
-                 "initial_voltage": U_SET}
-        plan = Plan("perturbation", "pid_tv", rate, math.nan, float(run["duration"]), plant, controller,
-                    T_OPEN, T_OPEN + OPEN_FOR, gains)
-        return run_experiment("perturbation", "pid_tv", bag=str(bag), png_dir=str(png_dir), plan=plan,
-                              progress=lambda fr, text: self.progress("acceptance", f"{fr * 100:.0f} % {text}"))
+        gains = {k: float(run["gains"][k]) for k in ("k0", "k1", "k2", "kA", "f")}
+        controller = {
+            **base.controller,
+            "rate_hz": rate,
+            "delay_samples": int(run["delay_samples"]),
+            "bounds_file": run["bounds_file"],
+            "reference": x_eq,
+            **gains,
+        }
+        plant = {
+            **base.plant,
+            "model_file": self.model_file,
+            "rate_hz": rate,
+            "v_min": self.v_min,
+            "v_max": self.v_max,
+            "w0": 0.0,
+        }
+        for key in ("initial_displacement", "x0"):  # the plant's x(0), by either name
+            if key in plant:
+                plant[key] = x_eq
+        plan = replace(
+            base,
+            rate_hz=rate,
+            spectral_radius=math.nan,
+            plant=plant,
+            controller=controller,
+            gains=gains,
+        )
+        from piezo_stage.experiments import ExperimentError
+        from piezo_stage.launch import LaunchError
+
+        try:
+            return run_experiment(
+                "perturbation",
+                "pid_tv",
+                bag=str(bag),
+                png_dir=str(png_dir),
+                plan=plan,
+                progress=lambda fr, text: self.progress("acceptance", f"{fr * 100:.0f} % {text}"),
+            )
+        except (ExperimentError, LaunchError) as exc:
+            raise GraphRunError(f"acceptance run: {exc}") from exc
 
 
 def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:
@@ -203,24 +279,61 @@ def _series(raw: dict[str, list]) -> Series:
     for ns, d in sorted(raw["excitation"], key=lambda p: p[0]):
         msg = deserialize_message(d, ExcitationInfo)
         marks.append((ns * 1e-9, int(msg.run), bool(msg.steady)))
-    return Series(t_v=np.array([ns * 1e-9 for ns, _ in volts]), v=np.array([v for _, v in volts]),
-                  t_x=np.array([ns * 1e-9 for ns, _ in disp]), x=np.array([m.displacement for _, m in disp]),
-                  status=np.array([m.status for _, m in disp], dtype=int), marks=marks)
+    return Series(
+        t_v=np.array([ns * 1e-9 for ns, _ in volts]),
+        v=np.array([v for _, v in volts]),
+        t_x=np.array([ns * 1e-9 for ns, _ in disp]),
+        x=np.array([m.displacement for _, m in disp]),
+        status=np.array([m.status for _, m in disp], dtype=int),
+        marks=marks,
+    )
 
 
-def make_rig(graph: str, *, model_file: str = "ch11_rig.yaml", rate_hz: float = 50e3, v_min: float = -450.0,
-             v_max: float = 450.0, params: list[str] | None = None,
-             progress: Callable[[str, str], None] = lambda s, t: None) -> RosRig:
+def make_rig(
+    graph: str,
+    *,
+    model_file: str = "ch11_rig.yaml",
+    rate_hz: float = 50e3,
+    v_min: float = -450.0,
+    v_max: float = 450.0,
+    params: list[str] | None = None,
+    progress: Callable[[str, str], None] = lambda s, t: None,
+) -> RosRig:
     """The :class:`RosRig` of a graph name (``sim``, ``emulated_rig``, ``rig``)."""
     from piezo_stage.config_path import find_config
 
     if graph == "sim":
-        plant = {"executable": "plant", "required": True,
-                 "overrides": {"model_file": model_file, "clock_mode": "lockstep", "rate_hz": rate_hz,
-                               "lockstep_timeout": 2.0, "v_min": v_min, "v_max": v_max, "w0": 0.0,
-                               "wait_for_subscribers": 1}}
-        return RosRig("sim", rate_hz, 0, v_min, v_max, [plant], True, model_file=model_file,
-                      extra_params=list(params or []), progress=progress)
+        plant = {
+            "executable": "plant",
+            "required": True,
+            "overrides": {
+                "model_file": model_file,
+                "clock_mode": "lockstep",
+                "rate_hz": rate_hz,
+                "lockstep_timeout": 2.0,
+                "v_min": v_min,
+                "v_max": v_max,
+                "w0": 0.0,
+                "wait_for_subscribers": 1,
+                # a sensor is never exact: 2 nm of noise (an optoNCDT resolves 0.1 um) hides the
+                # sub-nanometre ZOH ripple at the sine's turning points, which the cycle check
+                # would otherwise take for reversals of the input x (minor loops)
+                "sensor_noise": SIM_SENSOR_NOISE,
+                "seed": 1,
+            },
+        }
+        return RosRig(
+            "sim",
+            rate_hz,
+            0,
+            v_min,
+            v_max,
+            [plant],
+            True,
+            model_file=model_file,
+            extra_params=list(params or []),
+            progress=progress,
+        )
     if graph not in ("emulated_rig", "rig"):
         raise ValueError(f"unknown graph {graph!r}; expected one of {GRAPHS}")
     source = "emulated_rig.yaml" if graph == "emulated_rig" else "rig_identification.yaml"
@@ -233,4 +346,6 @@ def make_rig(graph: str, *, model_file: str = "ch11_rig.yaml", rate_hz: float = 
             rate = float(o.get("rate_hz", rate)) / float(o.get("decimation", 1))
         if n.get("executable") == "voltage_driver":
             lo, hi = float(o.get("v_min", lo)), float(o.get("v_max", hi))
-    return RosRig(graph, rate, 1, lo, hi, nodes, False, extra_params=list(params or []), progress=progress)
+    return RosRig(
+        graph, rate, 1, lo, hi, nodes, False, extra_params=list(params or []), progress=progress
+    )

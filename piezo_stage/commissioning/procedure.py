@@ -45,7 +45,11 @@ class Step(str, Enum):
 
 STEPS = tuple(Step)
 STATE_FILE = "state.json"
-FILES = {"parameter_set": "identified_rig.yaml", "bounds": "rig_bounds.yaml", "controller": "controller.yaml"}
+FILES = {
+    "parameter_set": "identified_rig.yaml",
+    "bounds": "rig_bounds.yaml",
+    "controller": "controller.yaml",
+}
 
 
 class StepFailed(Exception):
@@ -62,8 +66,8 @@ class Rig(Protocol):
     """A graph the procedure can drive."""
 
     name: str
-    rate_hz: float            #: sensor sample rate
-    delay_samples: int        #: output delay of a loop on this graph
+    rate_hz: float  #: sensor sample rate
+    delay_samples: int  #: output delay of a loop on this graph
     v_min: float
     v_max: float
 
@@ -75,15 +79,15 @@ class Rig(Protocol):
 @dataclass
 class Options:
     sweep: SweepSettings = field(default_factory=SweepSettings)
-    step_low: float = 0.0             #: [V] rest voltage before the step
-    step_size: float = 50.0           #: [V]
-    step_duration: float = 0.01       #: [s] recorded after the step
+    step_low: float = 0.0  #: [V] rest voltage before the step
+    step_size: float = 50.0  #: [V]
+    step_duration: float = 0.01  #: [s] recorded after the step
     margin: float = 0.2
     gain_margin: float = 0.1
     k1: float | None = None
     f: float = design.THESIS_F
-    rate_hz: float | None = None      #: loop rate (None: the lowest stable candidate)
-    m: float | None = None            #: physical data instead of the step fit (as §11.2.1)
+    rate_hz: float | None = None  #: loop rate (None: the lowest stable candidate)
+    m: float | None = None  #: physical data instead of the step fit (as §11.2.1)
     c: float | None = None
     acceptance_duration: float = 0.4
 
@@ -108,7 +112,9 @@ def _jsonable(value: Any) -> Any:
 class Commissioning:
     """Run (or resume) the procedure in ``out_dir`` on ``rig``."""
 
-    def __init__(self, out_dir: Path, rig: Rig, options: Options, progress: Progress | None = None) -> None:
+    def __init__(
+        self, out_dir: Path, rig: Rig, options: Options, progress: Progress | None = None
+    ) -> None:
         self.dir = Path(out_dir)
         self.rig = rig
         self.options = options
@@ -122,12 +128,19 @@ class Commissioning:
         return self.dir / STATE_FILE
 
     def _load_state(self) -> None:
-        key = {"graph": self.rig.name, "rate_hz": self.rig.rate_hz, "options": _jsonable(self.options.to_dict())}
+        key = {
+            "graph": self.rig.name,
+            "rate_hz": self.rig.rate_hz,
+            "options": _jsonable(self.options.to_dict()),
+        }
         if self._state_path.exists():
             state = json.loads(self._state_path.read_text())
             if state.get("key") != key:
-                raise StepFailed(Step.SWEEP, f"{self.dir} holds a commissioning with other options or graph; "
-                                 "use another folder or --restart")
+                raise StepFailed(
+                    Step.SWEEP,
+                    f"{self.dir} holds a commissioning with other options or graph; "
+                    "use another folder or --restart",
+                )
             self.state = state
         else:
             self.state = {"key": key, "steps": {}}
@@ -176,14 +189,16 @@ class Commissioning:
         self._save()
         done = ", ".join(self.state["steps"]) or "none"
         (self.dir / "FAILED.md").write_text(
-            f"# Commissioning stopped at step `{exc.step.value}`\n\n{exc.reason}\n\nSteps done: {done}. "
-            "No gains were released: nothing in this folder is a complete commissioning.\n")
+            f"# Commissioning stopped at step `{exc.step.value}`\n\n{exc.reason}\n\nSteps "
+            f"done: {done}. "
+            "No gains were released: nothing in this folder is a complete commissioning.\n"
+        )
 
     # ------------------------------------------------------------------ steps
     def _bag(self, name: str) -> Path:
         path = self.dir / "bags" / name
         if path.exists():
-            shutil.rmtree(path)   # a step interrupted before it was recorded as done
+            shutil.rmtree(path)  # a step interrupted before it was recorded as done
         path.parent.mkdir(parents=True, exist_ok=True)
         return path
 
@@ -198,7 +213,11 @@ class Commissioning:
                 results.append(sweep.FrequencyResult(**done[key]))
                 continue
             plan = settings.plan(f)
-            self.progress("sweep", f"{i + 1}/{len(settings.frequencies)}: {f:g} Hz ({plan.duration:.3g} s of excitation)")
+            self.progress(
+                "sweep",
+                f"{i + 1}/{len(settings.frequencies)}: {f:g} Hz ({plan.duration:.3g} s of "
+                "excitation)",
+            )
             series = self.rig.excite(plan, self._bag(f"sweep_{key}Hz"), f"sweep {f:g} Hz")
             sweep.check_clipping(series, self.rig.v_min, self.rig.v_max)
             res = sweep.identify_frequency(series, plan)
@@ -212,16 +231,37 @@ class Commissioning:
     def _bouc_wen(self) -> BoucWenParameters:
         tab = self.result(Step.SWEEP)["table"]
         y0 = float(np.mean([r["y0"] for r in self.result(Step.SWEEP)["frequencies"]]))
-        return BoucWenParameters(kappa=(tab["kappa_x"]["mean"],), kappa_w=tab["kappa_w"]["mean"], rho=tab["rho"]["mean"],
-                                 sigma=tab["sigma"]["mean"], n=tab["n"]["mean"], y0=y0, input_sign=1)
+        return BoucWenParameters(
+            kappa=(tab["kappa_x"]["mean"],),
+            kappa_w=tab["kappa_w"]["mean"],
+            rho=tab["rho"]["mean"],
+            sigma=tab["sigma"]["mean"],
+            n=tab["n"]["mean"],
+            y0=y0,
+            input_sign=1,
+        )
 
     def _dynamics(self) -> dict[str, Any]:
         o = self.options
         if o.m is not None and o.c is not None:
-            return {"source": "physical data (--m, --c)", "m": o.m, "c": o.c, "m_std": 0.0, "c_std": 0.0}
+            return {
+                "source": "physical data (--m, --c)",
+                "m": o.m,
+                "c": o.c,
+                "m_std": 0.0,
+                "c_std": 0.0,
+            }
         half = max(o.step_duration, 20.0 / self.rig.rate_hz)
-        plan = ExcitationPlan(waveform="step", period=2.0 * half, low=o.step_low, amplitude=o.step_size,
-                              offsets=(0.0,), settle_periods=0, record_periods=1, hold="last")
+        plan = ExcitationPlan(
+            waveform="step",
+            period=2.0 * half,
+            low=o.step_low,
+            amplitude=o.step_size,
+            offsets=(0.0,),
+            settle_periods=0,
+            record_periods=1,
+            hold="last",
+        )
         series = self.rig.excite(plan, self._bag("dynamics_step"), "step response")
         sweep.check_clipping(series, self.rig.v_min, self.rig.v_max)
         t, x = series.t_x, series.x
@@ -234,20 +274,38 @@ class Commissioning:
         bw = self._bouc_wen()
         fit = fit_step_response(t, u, x, bw, voltage_offset=bw.y0)
         t_fit, x_fit = predicted_response(fit, bw, t, u, voltage_offset=bw.y0)
-        return {"source": f"step {o.step_low:g} -> {o.step_low + o.step_size:g} V", **fit.to_dict(),
-                "t": t.tolist(), "u": u.tolist(), "x": x.tolist(), "t_fit": t_fit.tolist(), "x_fit": x_fit.tolist()}
+        return {
+            "source": f"step {o.step_low:g} -> {o.step_low + o.step_size:g} V",
+            **fit.to_dict(),
+            "t": t.tolist(),
+            "u": u.tolist(),
+            "x": x.tolist(),
+            "t_fit": t_fit.tolist(),
+            "x_fit": x_fit.tolist(),
+        }
 
     def _bounds(self) -> dict[str, Any]:
         tab = self.result(Step.SWEEP)["table"]
         dyn = self.result(Step.DYNAMICS)
-        bounds = design.assumption2_bounds(tab, dyn["m"], dyn["m_std"], dyn["c"], dyn["c_std"], self.options.margin)
+        bounds = design.assumption2_bounds(
+            tab, dyn["m"], dyn["m_std"], dyn["c"], dyn["c_std"], self.options.margin
+        )
         nominal = design.nominal_plant(tab, dyn["m"], dyn["c"])
         pending = self.dir / "pending"
         pending.mkdir(exist_ok=True)
-        design.write_bounds(pending / FILES["bounds"], bounds, nominal, self.options.margin,
-                            f"graph {self.rig.name}, {len(self.options.sweep.frequencies)} frequencies")
+        design.write_bounds(
+            pending / FILES["bounds"],
+            bounds,
+            nominal,
+            self.options.margin,
+            f"graph {self.rig.name}, {len(self.options.sweep.frequencies)} frequencies",
+        )
         self._write_parameter_set(pending / FILES["parameter_set"], dyn)
-        return {"bounds": bounds.to_dict(), "nominal": nominal.to_dict(), "margin": self.options.margin}
+        return {
+            "bounds": bounds.to_dict(),
+            "nominal": nominal.to_dict(),
+            "margin": self.options.margin,
+        }
 
     def _write_parameter_set(self, path: Path, dyn: dict[str, Any]) -> None:
         from dataclasses import replace
@@ -255,36 +313,60 @@ class Commissioning:
         from piezo_stage.model.parameter_set import Dynamics, ParameterSet, save_parameter_set
 
         bw = replace(self._bouc_wen(), y0=0.0)  # the dynamic form's y0 is a displacement offset
-        save_parameter_set(ParameterSet(name=f"commissioned_{self.rig.name}", form="dynamic", bouc_wen=bw,
-                                        dynamics=Dynamics(m=dyn["m"], c=dyn["c"]),
-                                        notes="piezo-stage commission: sweep means, step-fitted m and c"), path)
+        save_parameter_set(
+            ParameterSet(
+                name=f"commissioned_{self.rig.name}",
+                form="dynamic",
+                bouc_wen=bw,
+                dynamics=Dynamics(m=dyn["m"], c=dyn["c"]),
+                notes="piezo-stage commission: sweep means, step-fitted m and c",
+            ),
+            path,
+        )
 
     def _gains(self) -> dict[str, Any]:
         from piezo_stage.control.bounds import Bounds, NominalPlant
 
         b = self.result(Step.BOUNDS)
         o = self.options
-        d = design.design_gains(Bounds.from_dict(b["bounds"]), NominalPlant.from_dict(b["nominal"]), k1=o.k1,
-                                gain_margin=o.gain_margin, f=o.f, rate_hz=o.rate_hz,
-                                delay_samples=self.rig.delay_samples)
-        design.write_controller_params(self.dir / "pending" / FILES["controller"], d,
-                                       (self.dir / FILES["bounds"]).resolve(),
-                                       "sample" if self.rig.delay_samples == 0 else "timer")
+        d = design.design_gains(
+            Bounds.from_dict(b["bounds"]),
+            NominalPlant.from_dict(b["nominal"]),
+            k1=o.k1,
+            gain_margin=o.gain_margin,
+            f=o.f,
+            rate_hz=o.rate_hz,
+            delay_samples=self.rig.delay_samples,
+        )
+        design.write_controller_params(
+            self.dir / "pending" / FILES["controller"],
+            d,
+            (self.dir / FILES["bounds"]).resolve(),
+            "sample" if self.rig.delay_samples == 0 else "timer",
+        )
         return d.to_dict()
 
     def _acceptance(self) -> dict[str, Any]:
         g = self.result(Step.GAINS)
-        run = {"gains": g["gains"], "rate_hz": g["rate_hz"], "delay_samples": g["delay_samples"],
-               "bounds_file": str((self.dir / "pending" / FILES["bounds"]).resolve()),
-               "kappa_x": self.result(Step.SWEEP)["table"]["kappa_x"]["mean"], "duration": self.options.acceptance_duration}
+        run = {
+            "gains": g["gains"],
+            "rate_hz": g["rate_hz"],
+            "delay_samples": g["delay_samples"],
+            "bounds_file": str((self.dir / "pending" / FILES["bounds"]).resolve()),
+            "kappa_x": self.result(Step.SWEEP)["table"]["kappa_x"]["mean"],
+            "duration": self.options.acceptance_duration,
+        }
         png = self.dir / "figures"
         png.mkdir(exist_ok=True)
         summary = self.rig.accept(run, self._bag("acceptance"), png)
         rel = abs(summary["u_after"] - summary["u_before"]) / abs(summary["u_before"])
         summary["u_change_relative"] = rel
         if not rel <= 0.01:
-            raise StepFailed(Step.ACCEPTANCE, f"u after the perturbation {summary['u_after']:.4g} V differs from u "
-                             f"before {summary['u_before']:.4g} V by {100 * rel:.3g} % (> 1 %)")
+            raise StepFailed(
+                Step.ACCEPTANCE,
+                f"u after the perturbation {summary['u_after']:.4g} V differs from u "
+                f"before {summary['u_before']:.4g} V by {100 * rel:.3g} % (> 1 %)",
+            )
         return summary
 
     def _report(self) -> dict[str, Any]:
@@ -302,15 +384,31 @@ class Commissioning:
         s = self.state["steps"]
         tab = s["sweep"]["table"]
         ident = {k: tab[k]["mean"] for k in sweep.PARAMETERS}
-        ident.update(m=s["dynamics"]["m"], c=s["dynamics"]["c"], m_std=s["dynamics"]["m_std"],
-                     c_std=s["dynamics"]["c_std"])
+        ident.update(
+            m=s["dynamics"]["m"],
+            c=s["dynamics"]["c"],
+            m_std=s["dynamics"]["m_std"],
+            c_std=s["dynamics"]["c_std"],
+        )
         acc = s["acceptance"]
-        return _jsonable({
-            "graph": self.rig.name, "identified": ident, "table": tab, "bounds": s["bounds"]["bounds"],
-            "margin": s["bounds"]["margin"], "gains": s["gains"]["gains"], "rate_hz": s["gains"]["rate_hz"],
-            "delay_samples": s["gains"]["delay_samples"], "spectral_radius": s["gains"]["spectral_radius"],
-            "k2_min": s["gains"]["k2_min"], "k0_max": s["gains"]["k0_max"],
-            "closed_loop": {k: acc.get(k) for k in ("u_before", "u_after", "u_change_relative", "settling_time")},
-            "files": s["report"]["files"],
-            "wall_time": {k: v["wall_time"] for k, v in s.items()},
-        })
+        return _jsonable(
+            {
+                "graph": self.rig.name,
+                "identified": ident,
+                "table": tab,
+                "bounds": s["bounds"]["bounds"],
+                "margin": s["bounds"]["margin"],
+                "gains": s["gains"]["gains"],
+                "rate_hz": s["gains"]["rate_hz"],
+                "delay_samples": s["gains"]["delay_samples"],
+                "spectral_radius": s["gains"]["spectral_radius"],
+                "k2_min": s["gains"]["k2_min"],
+                "k0_max": s["gains"]["k0_max"],
+                "closed_loop": {
+                    k: acc.get(k)
+                    for k in ("u_before", "u_after", "u_change_relative", "settling_time")
+                },
+                "files": s["report"]["files"],
+                "wall_time": {k: v["wall_time"] for k, v in s.items()},
+            }
+        )

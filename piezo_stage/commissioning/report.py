@@ -11,8 +11,13 @@ import numpy as np
 from .sweep import PARAMETERS, UNITS
 
 #: Table 11.1 (smallest, largest, mean), for the report's comparison column
-TABLE_11_1 = {"n": (1.16, 1.192, 1.176), "sigma": (0.9094, 0.9212, 0.9153), "rho": (7.632e4, 9.5e4, 8.566e4),
-              "kappa_w": (39.97, 48.74, 43.57), "kappa_x": (9.83e6, 10.8e6, 10.35e6)}
+TABLE_11_1 = {
+    "n": (1.16, 1.192, 1.176),
+    "sigma": (0.9094, 0.9212, 0.9153),
+    "rho": (7.632e4, 9.5e4, 8.566e4),
+    "kappa_w": (39.97, 48.74, 43.57),
+    "kappa_x": (9.83e6, 10.8e6, 10.35e6),
+}
 
 
 def _plt():
@@ -53,10 +58,19 @@ def plot_step(dyn: dict[str, Any], path: Path) -> Path:
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(6.5, 5), sharex=True)
     a1.plot((t - t[0]) * 1e3, x * 1e6, ".", ms=3, label="measured")
     if "x_fit" in dyn:
-        a1.plot((np.asarray(dyn["t_fit"]) - t[0]) * 1e3, np.asarray(dyn["x_fit"]) * 1e6, "-", lw=1, label="fitted model")
+        a1.plot(
+            (np.asarray(dyn["t_fit"]) - t[0]) * 1e3,
+            np.asarray(dyn["x_fit"]) * 1e6,
+            "-",
+            lw=1,
+            label="fitted model",
+        )
     a1.set_ylabel("x [µm]")
     a1.legend()
-    a1.set_title(f"Step response: m = {dyn['m']:.4g} ± {dyn['m_std']:.2g}, c = {dyn['c']:.4g} ± {dyn['c_std']:.2g}")
+    a1.set_title(
+        f"Step response: m = {dyn['m']:.4g} ± {dyn['m_std']:.2g}, c = {dyn['c']:.4g} ± "
+        f"{dyn['c_std']:.2g}"
+    )
     a2.step((t - t[0]) * 1e3, u, where="pre")
     a2.set_ylabel("u [V]")
     a2.set_xlabel("t [ms]")
@@ -78,48 +92,113 @@ def write_report(out_dir: Path, state: dict[str, Any], files: dict[str, str]) ->
     figures.mkdir(exist_ok=True)
     sweep_png = plot_sweep(s["sweep"]["frequencies"], figures / "sweep_parameters.png")
     dyn = s["dynamics"]
-    lines = ["# Commissioning report", "", f"Graph `{state['key']['graph']}`, sensor rate "
-             f"{state['key']['rate_hz']:g} Hz.", "", "## 1. Frequency sweep (Fig. 11.3, input x, output u)", ""]
+    lines = [
+        "# Commissioning report",
+        "",
+        f"Graph `{state['key']['graph']}`, sensor rate {state['key']['rate_hz']:g} Hz.",
+        "",
+        "## 1. Frequency sweep (Fig. 11.3, input x, output u)",
+        "",
+    ]
     lines.append(_row(["f [Hz]", *PARAMETERS, "rms [V]"]))
     lines.append(_row(["---"] * (len(PARAMETERS) + 2)))
     for r in s["sweep"]["frequencies"]:
-        lines.append(_row([f"{r['frequency']:g}", *(f"{r[p]:.5g}" for p in PARAMETERS), f"{r['rms_error']:.3g}"]))
+        lines.append(
+            _row(
+                [
+                    f"{r['frequency']:g}",
+                    *(f"{r[p]:.5g}" for p in PARAMETERS),
+                    f"{r['rms_error']:.3g}",
+                ]
+            )
+        )
     lines += ["", "Table 11.1 form (thesis values for the thesis's rig beside):", ""]
-    lines.append(_row(["parameter", "smallest", "largest", "mean", "unit", "Table 11.1 (smallest / largest / mean)"]))
+    lines.append(
+        _row(
+            [
+                "parameter",
+                "smallest",
+                "largest",
+                "mean",
+                "unit",
+                "Table 11.1 (smallest / largest / mean)",
+            ]
+        )
+    )
     lines.append(_row(["---"] * 6))
     for p in PARAMETERS:
         t = s["sweep"]["table"][p]
         th = " / ".join(f"{v:.4g}" for v in TABLE_11_1[p])
-        lines.append(_row([p, f"{t['min']:.5g}", f"{t['max']:.5g}", f"{t['mean']:.5g}", UNITS[p], th]))
-    lines += ["", f"![parameters against frequency](figures/{sweep_png.name})", "",
-              "## 2. Dynamics m, c of (11.1)", ""]
+        lines.append(
+            _row([p, f"{t['min']:.5g}", f"{t['max']:.5g}", f"{t['mean']:.5g}", UNITS[p], th])
+        )
+    lines += [
+        "",
+        f"![parameters against frequency](figures/{sweep_png.name})",
+        "",
+        "## 2. Dynamics m, c of (11.1)",
+        "",
+    ]
     if "t" in dyn:
         step_png = plot_step(dyn, figures / "step_response.png")
-        lines += [f"From a {dyn['source']} step at {dyn['rate_hz']:g} Hz: m = {dyn['m']:.5g} ± {dyn['m_std']:.2g} V s²/m, "
-                  f"c = {dyn['c']:.5g} ± {dyn['c_std']:.2g} V s/m (standard errors), natural frequency "
-                  f"{dyn['natural_frequency']:.5g} Hz ({dyn['samples_per_period']:.3g} samples per period; rule: >= 4), "
-                  f"damping ratio {dyn['damping_ratio']:.3g}.", "", f"![step response](figures/{step_png.name})", ""]
+        lines += [
+            f"From a {dyn['source']} step at {dyn['rate_hz']:g} Hz: m = {dyn['m']:.5g} ± "
+            f"{dyn['m_std']:.2g} V s²/m, "
+            f"c = {dyn['c']:.5g} ± {dyn['c_std']:.2g} V s/m (standard errors), natural frequency "
+            f"{dyn['natural_frequency']:.5g} Hz ({dyn['samples_per_period']:.3g} samples per "
+            "period; rule: >= 4), "
+            f"damping ratio {dyn['damping_ratio']:.3g}.",
+            "",
+            f"![step response](figures/{step_png.name})",
+            "",
+        ]
     else:
         lines += [f"m = {dyn['m']:.5g} V s²/m, c = {dyn['c']:.5g} V s/m from {dyn['source']}.", ""]
     b = s["bounds"]
-    lines += ["## 3. Bounds of Assumption 2", "", f"Margin {b['margin']:g} (see `{Path(files['bounds']).name}`).", "",
-              _row(["bound", "value"]), _row(["---", "---"])]
+    lines += [
+        "## 3. Bounds of Assumption 2",
+        "",
+        f"Margin {b['margin']:g} (see `{Path(files['bounds']).name}`).",
+        "",
+        _row(["bound", "value"]),
+        _row(["---", "---"]),
+    ]
     lines += [_row([k, f"{v:.6g}"]) for k, v in b["bounds"].items()]
     g = s["gains"]
-    lines += ["", "## 4. Gains (Theorem 4, (11.18))", "",
-              f"k2_min = {g['k2_min']:.6g}, k0_max = {g['k0_max']:.6g}; loop rate {g['rate_hz']:g} Hz with "
-              f"{g['delay_samples']} sample(s) delay, spectral radius {g['spectral_radius']:.6f} (stable < 1).", "",
-              _row(["gain", "value"]), _row(["---", "---"])]
+    lines += [
+        "",
+        "## 4. Gains (Theorem 4, (11.18))",
+        "",
+        f"k2_min = {g['k2_min']:.6g}, k0_max = {g['k0_max']:.6g}; loop rate {g['rate_hz']:g} "
+        "Hz with "
+        f"{g['delay_samples']} sample(s) delay, spectral radius {g['spectral_radius']:.6f} "
+        "(stable < 1).",
+        "",
+        _row(["gain", "value"]),
+        _row(["---", "---"]),
+    ]
     lines += [_row([k, f"{v:.6g}"]) for k, v in g["gains"].items()]
     a = s["acceptance"]
-    lines += ["", "## 5. Acceptance: perturbation experiment (§11.5) under pid_tv", "",
-              f"u before {a['u_before']:.6g} V, after {a['u_after']:.6g} V ({100 * a['u_change_relative']:.3g} %), "
-              f"settling time {a.get('settling_time', float('nan')):.4g} s.", ""]
+    lines += [
+        "",
+        "## 5. Acceptance: perturbation experiment (§11.5) under pid_tv",
+        "",
+        f"u before {a['u_before']:.6g} V, after {a['u_after']:.6g} V "
+        f"({100 * a['u_change_relative']:.3g} %), "
+        f"settling time {a.get('settling_time', float('nan')):.4g} s.",
+        "",
+    ]
     lines += [f"![closed loop](figures/{Path(p).name})" for p in a.get("png", [])]
     lines += ["", "## 6. Files", ""]
     lines += [f"- {k}: `{Path(v).name}`" for k, v in files.items()]
-    lines += ["", "Bags (MCAP), one per step: `bags/`.", "", "Wall time per step: " +
-              ", ".join(f"{k} {v['wall_time']:.1f} s" for k, v in s.items() if "wall_time" in v) + "."]
+    lines += [
+        "",
+        "Bags (MCAP), one per step: `bags/`.",
+        "",
+        "Wall time per step: "
+        + ", ".join(f"{k} {v['wall_time']:.1f} s" for k, v in s.items() if "wall_time" in v)
+        + ".",
+    ]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path

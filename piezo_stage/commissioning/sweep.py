@@ -43,16 +43,22 @@ class SweepSettings:
     frequencies: tuple[float, ...] = (10.0, 20.0, 50.0, 100.0)
     low: float = 0.0
     amplitude: float = 300.0
-    offset: float = 100.0              #: q of §9.1.3
+    offset: float = 100.0  #: q of §9.1.3
     settle_periods: int = 2
     record_periods: int = 2
-    waveform: str = "sine"             #: wave periodic and smooth: a triangle's corners ring the resonance
+    waveform: str = "sine"  #: wave periodic and smooth: a triangle's corners ring the resonance
 
     def plan(self, frequency: float) -> ExcitationPlan:
-        return ExcitationPlan(waveform=self.waveform, period=1.0 / frequency, low=self.low,
-                              amplitude=self.amplitude, offsets=(0.0, self.offset),
-                              settle_periods=self.settle_periods, record_periods=self.record_periods,
-                              hold="low")
+        return ExcitationPlan(
+            waveform=self.waveform,
+            period=1.0 / frequency,
+            low=self.low,
+            amplitude=self.amplitude,
+            offsets=(0.0, self.offset),
+            settle_periods=self.settle_periods,
+            record_periods=self.record_periods,
+            hold="low",
+        )
 
     def check(self, rate_hz: float, v_min: float, v_max: float) -> None:
         """Raise SweepError for a sweep the graph cannot run (rate, amplifier range)."""
@@ -62,13 +68,18 @@ class SweepSettings:
             raise SweepError("need settle_periods >= 1 and record_periods >= 2")
         slow = [f for f in self.frequencies if rate_hz / f < MIN_SAMPLES_PER_PERIOD]
         if slow:
-            raise SweepError(f"at {rate_hz:g} Hz the sensor takes < {MIN_SAMPLES_PER_PERIOD} samples per period "
-                             f"of {slow} Hz: sweep up to {rate_hz / MIN_SAMPLES_PER_PERIOD:g} Hz")
+            raise SweepError(
+                f"at {rate_hz:g} Hz the sensor takes < {MIN_SAMPLES_PER_PERIOD} samples per period "
+                f"of {slow} Hz: sweep up to {rate_hz / MIN_SAMPLES_PER_PERIOD:g} Hz"
+            )
         top = self.low + self.amplitude + max(0.0, self.offset)
         bottom = self.low + min(0.0, self.offset)
         if bottom < v_min or top > v_max:
-            raise SweepError(f"the sweep spans {bottom:g}..{top:g} V, beyond the amplifier's {v_min:g}..{v_max:g} V: "
-                             "it would clip; reduce --amplitude/--offset")
+            raise SweepError(
+                f"the sweep spans {bottom:g}..{top:g} V, beyond the amplifier's "
+                f"{v_min:g}..{v_max:g} V: "
+                "it would clip; reduce --amplitude/--offset"
+            )
 
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -102,16 +113,21 @@ def paired(series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def check_clipping(series: Series, v_min: float, v_max: float) -> None:
-    """Raise SweepError when the sensor reported out-of-range samples or the amplifier sat at a limit."""
+    """SweepError when the sensor reported out-of-range samples or the amplifier sat at a limit."""
     bad = np.flatnonzero(series.status != 0)
     if bad.size:
-        raise SweepError(f"the sensor reported {bad.size} sample(s) out of its range or invalid (first at "
-                         f"t = {series.t_x[bad[0]]:.6g} s, status {int(series.status[bad[0]])}): the sweep clips the "
-                         "sensor; reduce --amplitude/--offset or move the sensor")
+        raise SweepError(
+            f"the sensor reported {bad.size} sample(s) out of its range or invalid (first at "
+            f"t = {series.t_x[bad[0]]:.6g} s, status {int(series.status[bad[0]])}): the sweep "
+            "clips the "
+            "sensor; reduce --amplitude/--offset or move the sensor"
+        )
     at_limit = (series.v >= v_max - 1e-9) | (series.v <= v_min + 1e-9)
     if np.count_nonzero(at_limit) > 2:
-        raise SweepError(f"the applied voltage sat at the amplifier's limit ({v_min:g}/{v_max:g} V) for "
-                         f"{int(np.count_nonzero(at_limit))} samples: the sweep clips the amplifier")
+        raise SweepError(
+            f"the applied voltage sat at the amplifier's limit ({v_min:g}/{v_max:g} V) for "
+            f"{int(np.count_nonzero(at_limit))} samples: the sweep clips the amplifier"
+        )
 
 
 def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Recording]:
@@ -123,12 +139,22 @@ def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Rec
     if len(intervals) < 2:
         raise SweepError(f"the excitation marked {len(intervals)} run(s); 2 are needed")
     runs = []
-    for run, start, stop in intervals[:2]:
+    for run, start, _stop in intervals[:2]:
         steady_from = start + plan.settle_periods * plan.period
         hi = steady_from + plan.record_periods * plan.period
-        keep = (t >= steady_from - 1e-9) & (t <= hi + 1e-9)
-        runs.append(Recording(t[keep], x[keep], u[keep], name=f"{1 / plan.period:g} Hz run {run}",
-                              input_unit="m", output_unit="V"))
+        dt = float(np.median(np.diff(t)))
+        # one sample past the end: record_periods whole periods from the first sample
+        keep = (t >= steady_from - 0.5 * dt) & (t <= hi + 1.5 * dt)
+        runs.append(
+            Recording(
+                t[keep],
+                x[keep],
+                u[keep],
+                name=f"{1 / plan.period:g} Hz run {run}",
+                input_unit="m",
+                output_unit="V",
+            )
+        )
     return runs[0], runs[1]
 
 
@@ -140,8 +166,8 @@ class FrequencyResult:
     rho: float
     sigma: float
     n: float
-    y0: float               #: voltage offset of u = kappa_x x + kappa_w w + y0
-    rms_error: float        #: [V]
+    y0: float  #: voltage offset of u = kappa_x x + kappa_w w + y0
+    rms_error: float  #: [V]
     samples: int
 
     def to_dict(self) -> dict:
@@ -155,14 +181,27 @@ def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
     f = 1.0 / plan.period
     try:
         run_a, run_b = run_recordings(series, plan)
-        options = IdentifyOptions(degree=1, input_name="displacement", output_name="voltage",
-                                  cycle=CycleOptions(steady_periods=plan.record_periods))
+        options = IdentifyOptions(
+            degree=1,
+            input_name="displacement",
+            output_name="voltage",
+            cycle=CycleOptions(steady_periods=plan.record_periods),
+        )
         result = identify(run_a, run_b, options)
     except (IdentificationError, ValueError) as exc:
         raise SweepError(f"{f:g} Hz: {exc}") from exc
     p = result.parameters
-    return FrequencyResult(frequency=f, kappa_x=p.kappa_x, kappa_w=p.kappa_w, rho=p.rho, sigma=p.sigma, n=p.n,
-                           y0=p.y0, rms_error=result.rms_error, samples=result.samples)
+    return FrequencyResult(
+        frequency=f,
+        kappa_x=p.kappa_x,
+        kappa_w=p.kappa_w,
+        rho=p.rho,
+        sigma=p.sigma,
+        n=p.n,
+        y0=p.y0,
+        rms_error=result.rms_error,
+        samples=result.samples,
+    )
 
 
 def table(results: list[FrequencyResult]) -> dict[str, dict[str, float]]:
@@ -170,5 +209,9 @@ def table(results: list[FrequencyResult]) -> dict[str, dict[str, float]]:
     out = {}
     for name in PARAMETERS:
         values = np.array([getattr(r, name) for r in results])
-        out[name] = {"min": float(values.min()), "max": float(values.max()), "mean": float(values.mean())}
+        out[name] = {
+            "min": float(values.min()),
+            "max": float(values.max()),
+            "mean": float(values.mean()),
+        }
     return out

@@ -1,0 +1,124 @@
+"""piezo-stage commission over ROS: the sim graph on a plant file the procedure does not know
+(ch11_rig with kappa_w +20 %, m -15 %), the emulated rig (short), a graph without a sensor."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.ros
+
+PERTURBED = """name: perturbed_ch11
+form: dynamic
+input_name: voltage
+output_name: displacement
+bouc_wen: {kappa: [10.35e+6], kappa_w: 52.284, rho: 8.566e+4, sigma: 0.9153, n: 1.176, y0: 0.0,
+  input_sign: 1}
+dynamics: {m: 4.505e-3, c: 13.0}
+w0: 0.0
+"""
+TRUTH = {
+    "kappa_x": 10.35e6,
+    "kappa_w": 52.284,
+    "rho": 8.566e4,
+    "sigma": 0.9153,
+    "n": 1.176,
+    "m": 4.505e-3,
+    "c": 13.0,
+}
+
+
+def _commission(*args: str, timeout: float = 900.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "piezo_stage.cli", "commission", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ),
+    )
+
+
+@pytest.mark.slow
+def test_sim_graph_commissions_an_unknown_plant(tmp_path):
+    plant = tmp_path / "plant.yaml"
+    plant.write_text(PERTURBED)
+    out = tmp_path / "out"
+    proc = _commission(
+        str(out), "--param", f"plant.model_file:={plant}", "--frequencies", "50,100", "--json"
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads(proc.stdout)
+    for key in ("kappa_x", "kappa_w", "rho", "sigma", "n"):
+        assert s["identified"][key] == pytest.approx(TRUTH[key], rel=0.02), key
+    for key in ("m", "c"):
+        assert s["identified"][key] == pytest.approx(TRUTH[key], rel=0.10), key
+    b = s["bounds"]
+    assert b["m_min"] < TRUTH["m"] < b["m_max"] and b["c_max"] > TRUTH["c"]
+    for key in ("kappa_x", "kappa_w", "sigma", "rho"):
+        assert b[f"{key}_max"] > TRUTH[key], key
+    assert s["gains"]["k2"] > s["k2_min"] and 0 < s["gains"]["k0"] < s["k0_max"]
+    assert s["spectral_radius"] < 1.0
+    assert s["closed_loop"]["u_change_relative"] <= 0.01
+    for key in ("parameter_set", "bounds", "controller", "report"):
+        assert Path(s["files"][key]).is_file()
+    assert sorted(p.name for p in (out / "bags").iterdir()) == [
+        "acceptance",
+        "dynamics_step",
+        "sweep_100Hz",
+        "sweep_50Hz",
+    ]
+    # resumable: a second run on the same folder redoes nothing and reports the same
+    again = _commission(
+        str(out),
+        "--param",
+        f"plant.model_file:={plant}",
+        "--frequencies",
+        "50,100",
+        "--json",
+        timeout=120.0,
+    )
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads(again.stdout)["gains"] == s["gains"]
+
+
+@pytest.mark.slow
+def test_emulated_rig_stops_with_its_reason_and_releases_nothing(tmp_path):
+    out = tmp_path / "out"
+    proc = _commission(
+        str(out),
+        "--graph",
+        "emulated_rig",
+        "--frequencies",
+        "1",
+        "--amplitude",
+        "250",
+        "--settle-periods",
+        "1",
+        timeout=300.0,
+    )
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "step " in proc.stderr and "failed" in proc.stderr
+    assert (out / "FAILED.md").is_file()
+    assert (out / "bags" / "sweep_1Hz").is_dir()
+    assert not any(
+        (out / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml")
+    )
+
+
+def test_a_graph_without_a_sensor_stops_at_the_sweep(tmp_path):
+    from piezo_stage.commissioning import Commissioning, Options, Step, StepFailed, SweepSettings
+    from piezo_stage.commissioning.graphs import make_rig
+    from piezo_stage.launch.domain import isolated_domain
+
+    rig = make_rig("sim")
+    rig.base_nodes = []  # no plant: nothing publishes displacement
+    rig.data_timeout = 5.0
+    with isolated_domain(), pytest.raises(StepFailed) as info:
+        Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(100.0,)))).run()
+    assert info.value.step is Step.SWEEP and "displacement" in info.value.reason
+    assert (tmp_path / "FAILED.md").is_file() and not (tmp_path / "rig_bounds.yaml").exists()
