@@ -124,7 +124,7 @@ def _text(result: IdentificationResult) -> str:
     fitted = result.method == "fit"
     std = result.diagnostics.get("std", {})
     head = "fit" if fitted else "refined" if result.refined else "analytic"
-    rows = [("", head, "± std" if fitted else "", "analytic")]
+    rows = [("", head, "± std" if std else "", "analytic")]
     final, first = result.parameters, result.analytic
 
     def row(label: str, get) -> None:

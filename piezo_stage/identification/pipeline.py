@@ -107,8 +107,13 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
             options.refinement.n_max)
         fit = refine(start, paths, options.refinement)
         final, rms = fit.parameters, fit.rms_error
+        values = dict(zip([f"kappa_{i + 1}" for i in range(len(final.kappa))], final.kappa),
+                      y0=final.y0, kappa_w=final.kappa_w, rho=final.rho, sigma=final.sigma,
+                      n=final.n)
         diagnostics.update(relative_std=fit.relative_std, nfev=fit.nfev, solver=fit.status,
-                           rejected_trials=fit.rejected_trials)
+                           rejected_trials=fit.rejected_trials,
+                           std={k: rel * abs(values[k]) for k, rel in fit.relative_std.items()
+                                if k in values and np.isfinite(rel)})
     else:
         if analytic is None:
             raise AnalyticEstimateError(
