@@ -5,13 +5,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from piezo_stage.identification.cycles import (CycleOptions, estimate_period, extract_cycle,
-                                               smooth_input, split_branches, upward_crossings)
+from piezo_stage.identification.cycles import (
+    CycleOptions,
+    estimate_period,
+    extract_cycle,
+    smooth_input,
+    split_branches,
+    upward_crossings,
+)
 from piezo_stage.identification.derivatives import adaptive_fit, local_fit, local_root, noise_std
-from piezo_stage.identification.errors import (DataFormatError, NonFiniteDataError,
-                                               NonMonotoneBranchError, NoSteadyStateError,
-                                               NotPeriodicError, OrientationError,
-                                               SaturatedOutputError, TooFewSamplesError)
+from piezo_stage.identification.errors import (
+    DataFormatError,
+    NonFiniteDataError,
+    NonMonotoneBranchError,
+    NoSteadyStateError,
+    NotPeriodicError,
+    OrientationError,
+    SaturatedOutputError,
+    TooFewSamplesError,
+)
 from piezo_stage.identification.filtering import filter_gain, zero_phase_periodic
 from piezo_stage.identification.orientation import detect_orientation, resolve_orientation
 from piezo_stage.identification.recording import Recording

@@ -3,8 +3,8 @@ applied voltage is a held signal, the displacement a sampled continuous one."""
 
 from __future__ import annotations
 
-import pytest
 import numpy as np
+import pytest
 
 from piezo_stage.identification.io import recordings_from_series
 from piezo_stage.model.bouc_wen import model_output

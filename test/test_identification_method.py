@@ -8,20 +8,42 @@ from math import comb
 import numpy as np
 import pytest
 
-from piezo_stage.identification.analytic import (DerivativeOptions, DesignPoints, hysteretic_estimate,
-                                                 initial_w, table_10_2, theta)
+from piezo_stage.identification.analytic import (
+    DerivativeOptions,
+    DesignPoints,
+    hysteretic_estimate,
+    initial_w,
+    table_10_2,
+    theta,
+)
 from piezo_stage.identification.cycles import extract_cycle, smooth_input, split_branches
 from piezo_stage.identification.derivatives import LocalFit
-from piezo_stage.identification.errors import (AnalyticEstimateError, BadFitError, DesignPointError,
-                                               IdentificationError, InconsistentRunsError,
-                                               OrientationError)
+from piezo_stage.identification.errors import (
+    AnalyticEstimateError,
+    BadFitError,
+    DesignPointError,
+    IdentificationError,
+    InconsistentRunsError,
+    OrientationError,
+)
 from piezo_stage.identification.pipeline import IdentifyOptions, identify
-from piezo_stage.identification.polynomial import (fit_polynomial, kappa_from_g, offset_between,
-                                                   offset_y0, polyval, q_matrix)
+from piezo_stage.identification.polynomial import (
+    fit_polynomial,
+    kappa_from_g,
+    offset_between,
+    offset_y0,
+    polyval,
+    q_matrix,
+)
 from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.refine import RefineOptions, _line_corner
-from piezo_stage.identification.synthetic import (CH9_EXAMPLE, CH10_PATCH, limit_cycle_start,
-                                                  triangle_pair, triangle_run)
+from piezo_stage.identification.synthetic import (
+    CH9_EXAMPLE,
+    CH10_PATCH,
+    limit_cycle_start,
+    triangle_pair,
+    triangle_run,
+)
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.parameter_set import load_parameter_set, save_parameter_set
 from piezo_stage.model.signals import sine, triangle

@@ -4,11 +4,22 @@ Entry points: :func:`identify` (two recorded runs) and :func:`identify_cycles` (
 cycles), returning an :class:`IdentificationResult`; :func:`load_runs` reads CSV files and bags.
 """
 
-from .errors import (AnalyticEstimateError, BadFitError, DataFormatError, DesignPointError,
-                     IdentificationError, InconsistentRunsError, NoSteadyStateError,
-                     NonFiniteDataError, NonMonotoneBranchError, NotPeriodicError,
-                     OrientationError, RefinementError, SaturatedOutputError,
-                     TooFewSamplesError)
+from .errors import (
+    AnalyticEstimateError,
+    BadFitError,
+    DataFormatError,
+    DesignPointError,
+    IdentificationError,
+    InconsistentRunsError,
+    NonFiniteDataError,
+    NonMonotoneBranchError,
+    NoSteadyStateError,
+    NotPeriodicError,
+    OrientationError,
+    RefinementError,
+    SaturatedOutputError,
+    TooFewSamplesError,
+)
 from .recording import Recording
 
 __all__ = [

@@ -4,7 +4,8 @@ Theorem 2 says the output of a T-wave excited Bouc-Wen system converges to a lim
 On real data that cycle has to be found: estimate the period from the input's upward
 mid-level crossings, cut the run into whole periods on a common phase grid, check that the
 trailing periods agree with the last one (steady state), and average those within the noise
-level of it (no transient bias). The averaged cycle starts at the input minimum, so its first part is the loading branch of v.
+level of it (no transient bias). The averaged cycle starts at the input minimum, so its first
+part is the loading branch of v.
 """
 
 from __future__ import annotations

@@ -14,7 +14,13 @@ import numpy as np
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.errors import ModelError
 
-from .analytic import DerivativeOptions, DesignPoints, HystereticEstimate, hysteretic_estimate, initial_w
+from .analytic import (
+    DerivativeOptions,
+    DesignPoints,
+    HystereticEstimate,
+    hysteretic_estimate,
+    initial_w,
+)
 from .cycles import CycleOptions, SteadyCycle, extract_cycle, smooth_input, split_branches
 from .errors import AnalyticEstimateError, BadFitError, IdentificationError, RefinementError
 from .orientation import detect_orientation, resolve_orientation
