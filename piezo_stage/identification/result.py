@@ -101,8 +101,8 @@ class IdentificationResult:
 
         if not notes:
             q = self.diagnostics.get("q")
-            notes = (f"identified ({self.method}) from {self.samples} samples, rms_error "
-                     f"{self.rms_error:.4g}"
+            notes = (f"identified from {self.samples} samples ({self.method} method), "
+                     f"rms_error {self.rms_error:.4g}"
                      + (f", q = {q:.6g}" if q is not None else "")
                      + ("" if self.refined else ", analytic estimate (no refinement)"))
         return ParameterSet(name=name, form="static", bouc_wen=self.parameters, dynamics=None,
