@@ -147,8 +147,11 @@ def _text(result: IdentificationResult) -> str:
     if fitted:
         extra = [f"delay {1e3 * result.delay:.3g} ms (± {1e3 * std.get('delay', 0.0):.2g})"]
         if result.drift is not None:
-            extra.append(f"drift {result.drift.kind.value} {result.drift.coefficient:.4g} "
-                         f"(time constant {result.drift.time_constant:.3g} s)")
+            change = d["drift_change"][0]
+            extra.append(f"drift {result.drift.kind.value}: {change:.4g} over the record "
+                         f"({100 * change / d['output_span']:.3g} % of span; coefficient "
+                         f"{result.drift.coefficient:.4g}, time constant "
+                         f"{result.drift.time_constant:.3g} s)")
         if "holdout_rms" in d:
             extra.append(f"held-out last {100 * d['holdout_fraction']:.0f} %: RMS "
                          f"{d['holdout_rms']:.4g} ({d['holdout_rms_percent']:.3g} % of span)")

@@ -137,6 +137,9 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
         "solver": final.status, "noise_output": noise_level(runs), "output_span": span,
         "w0_runs": list(final.w0), "runs": len(runs), **figures,
         "drift_runs": [None if d is None else d.coefficient for d in final.drift],
+        #: how far the drift moves each run's output from its start to its end
+        "drift_change": [None if d is None else float(d.evaluate(np.array([r.t[-1] - r.t[0]]))[0])
+                         for d, r in zip(final.drift, runs)],
     }
     if analytic_problem:
         diagnostics["analytic_problem"] = analytic_problem
