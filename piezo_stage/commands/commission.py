@@ -98,8 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
-def _model_file(params: list[str]) -> tuple[str, list[str]]:
-    model, rest = "ch11_rig.yaml", []
+def _model_file(params: list[str]) -> tuple[str | None, list[str]]:
+    model, rest = None, []
     for p in params:
         key, sep, value = p.partition(":=")
         if sep and key in ("plant.model_file", "model_file"):
@@ -126,8 +126,8 @@ def run(args: argparse.Namespace) -> int:
 
     model, params = _model_file(args.param)
     try:
-        if args.graph == "sim":
-            find_config(model) if not Path(model).is_file() else None
+        if model is not None and not Path(model).is_file():
+            find_config(model)  # a shipped name, else ConfigNotFoundError (an OSError)
         if (args.m is None) != (args.c is None):
             raise ValueError("give both --m and --c, or neither")
         for name in ("margin", "gain_margin"):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import socket
 import struct
 import time
 from dataclasses import dataclass, field
@@ -292,7 +293,7 @@ def _series(raw: dict[str, list]) -> Series:
 def make_rig(
     graph: str,
     *,
-    model_file: str = "ch11_rig.yaml",
+    model_file: str | None = None,
     rate_hz: float = 50e3,
     v_min: float = -450.0,
     v_max: float = 450.0,
@@ -303,6 +304,7 @@ def make_rig(
     from piezo_stage.config_path import find_config
 
     if graph == "sim":
+        model_file = model_file or "ch11_rig.yaml"
         plant = {
             "executable": "plant",
             "required": True,
@@ -339,6 +341,21 @@ def make_rig(
     source = "emulated_rig.yaml" if graph == "emulated_rig" else "rig_identification.yaml"
     data = yaml.safe_load(Path(find_config(f"graphs/{source}")).read_text())
     nodes = [n for n in data["nodes"] if n.get("executable") not in ("excitation", "identifier")]
+    params = list(params or [])
+    if graph == "emulated_rig":
+        # the emulator on a port and a link of its own (a test or another rig may hold the
+        # graph's fixed ones), on the given plant file; the driver and the reader follow it
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        link = f"/tmp/piezo_commission_{os.getpid()}_{port}_sensor"
+        for n in nodes:
+            if n.get("name") == "rig":
+                command = [model_file if a == "ch10_patch.yaml" and model_file else a
+                           for a in n["command"]]
+                n["command"] = command + ["--amp-tcp", str(port), "--sensor-link", link]
+        urls = [f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}"]
+        params = urls + params
     rate, lo, hi = 1000.0, v_min, v_max
     for n in nodes:
         o = n.get("overrides", {})
@@ -347,5 +364,5 @@ def make_rig(
         if n.get("executable") == "voltage_driver":
             lo, hi = float(o.get("v_min", lo)), float(o.get("v_max", hi))
     return RosRig(
-        graph, rate, 1, lo, hi, nodes, False, extra_params=list(params or []), progress=progress
+        graph, rate, 1, lo, hi, nodes, False, extra_params=params, progress=progress
     )

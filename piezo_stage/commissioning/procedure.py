@@ -275,7 +275,7 @@ class Commissioning:
         fit = fit_step_response(t, u, x, bw, voltage_offset=bw.y0)
         t_fit, x_fit = predicted_response(fit, bw, t, u, voltage_offset=bw.y0)
         return {
-            "source": f"step {o.step_low:g} -> {o.step_low + o.step_size:g} V",
+            "source": f"{o.step_low:g} -> {o.step_low + o.step_size:g} V",
             **fit.to_dict(),
             "t": t.tolist(),
             "u": u.tolist(),
