@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 MAX_STEP_TIME = 0.025  # s: no single write carries more than this much slew
 # what a device exchange can fail with when the link is bad: the write may or may not have landed
 LINK_FAULTS = (TransportError, ProtocolError, DeviceError)
+READBACK_TOLERANCE = 0.05  # V: two read-backs after a reconnect must agree (the ramp starts there)
 
 
 @dataclass(frozen=True)
@@ -179,6 +180,9 @@ class VoltageDriver:
                 break
             try:
                 info = self.amplifier.open()
+                again = self.amplifier.read_voltage()
+                if abs(again - info.applied) > READBACK_TOLERANCE:  # one of them was garbled
+                    raise ProtocolError(f"read-back {info.applied} V then {again} V")
             except HardwareError as exc:  # silent, garbled or refusing: try again
                 last = exc
                 self.amplifier.close()
@@ -272,16 +276,16 @@ class VoltageDriver:
         if not math.isfinite(voltage):
             raise NonFiniteVoltageError(f"refusing non-finite voltage {voltage!r}; nothing sent")
         with self._lock:
-            limits = self._require_limits()
-            if not limits.contains(voltage) and not self.config.clamp:
-                raise VoltageOutOfRangeError(
-                    f"{voltage} V outside [{limits.v_min}, {limits.v_max}] V; nothing sent")
             received = self.clock() if received is None else received
             if received <= self._t_trip:
                 self.expired += 1
                 raise CommandExpired(f"command received {self._t_trip - received:.3g} s before the "
                                      "watchdog fired; dropped")
-            self._t_command = max(self._t_command, received)
+            self._t_command = max(self._t_command, received)  # the watchdog counts from here
+            limits = self._require_limits()  # raises at once while the link is down
+            if not limits.contains(voltage) and not self.config.clamp:
+                raise VoltageOutOfRangeError(
+                    f"{voltage} V outside [{limits.v_min}, {limits.v_max}] V; nothing sent")
             self.state = DriverState.ACTIVE
             self.target = limits.clamp(voltage)
             sent = self._write_step()
