@@ -110,7 +110,7 @@ def realtime_rate(seconds: float, rate_hz: float = 1000.0) -> tuple[dict[str, fl
 
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from piezo_stage.nodes.common import LeanExecutor
+    from piezo_stage.nodes.executor import LeanExecutor
     from piezo_stage.nodes.plant import REALTIME_CATCH_UP
     from piezo_stage_msgs.msg import Displacement
 

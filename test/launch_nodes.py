@@ -1,4 +1,4 @@
-"""Tiny nodes for the launcher tests, run through piezo_stage.nodes.common.run like the product's:
+"""Tiny nodes for the launcher tests, run through piezo_stage.nodes.runtime.run like the product's:
 ``python -m launch_nodes talker|listener --ros-args ...`` (a graph entry ``module: launch_nodes``
 with ``args: [talker]``)."""
 
@@ -9,7 +9,17 @@ import sys
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from piezo_stage.nodes.common import COMMAND_QOS, declare, run
+from piezo_stage.nodes.parameters import declare_table
+from piezo_stage.nodes.qos import COMMAND_QOS
+from piezo_stage.nodes.runtime import run
+from piezo_stage.nodes.spec import Param, ParameterTable
+
+#: the talker's parameters (the launcher checks a graph's overrides against it)
+PARAMETERS = ParameterTable("talker", (
+    Param("text", "hello", "what to say"),
+    Param("exit_after", 0.0, "seconds before exiting by itself (0: never)", "s"),
+    Param("fail_code", 0, "exit code when exiting by itself"),
+))
 
 
 class Talker(Node):
@@ -18,9 +28,8 @@ class Talker(Node):
 
     def __init__(self) -> None:
         super().__init__("talker")
-        self.text = declare(self, "text", "hello", "what to say")
-        exit_after = declare(self, "exit_after", 0.0, "seconds before exiting by itself (0: never)")
-        self.fail_code = declare(self, "fail_code", 0, "exit code when exiting by itself")
+        p = declare_table(self, PARAMETERS)
+        self.text, exit_after, self.fail_code = p["text"], p["exit_after"], p["fail_code"]
         self.pub = self.create_publisher(String, "chatter", COMMAND_QOS)
         self.count = 0
         self.create_timer(0.05, self.tick)

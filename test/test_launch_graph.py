@@ -172,13 +172,15 @@ def test_cli_dry_run_prints_the_commands(tmp_path, capsys):
     path = write(tmp_path, {"description": "two nodes", "wait_for_topics": ["displacement", "/clock"],
                             "nodes": [{"executable": "plant", "required": True},
                                       {"command": ["piezo-stage", "emulate", "rig"]}]})
-    assert main(["launch", str(path), "--ns", "/b", "--param", "plant.rate:=5.0", "--param", "gains.k1:=5e6",
-                 "--dry-run"]) == 0
+    assert main(["launch", str(path), "--ns", "/b", "--param", "plant.rate_hz:=5.0", "--param",
+                 "sensor.noise:=1e-9", "--dry-run"]) == 2
+    assert "no node of the graph has a parameter 'sensor.noise'" in capsys.readouterr().err
+    assert main(["launch", str(path), "--ns", "/b", "--param", "plant.rate_hz:=5.0", "--param",
+                 "sensor_noise:=1e-9", "--dry-run"]) == 0
     out, err = capsys.readouterr()
-    assert "--param 'gains.k1:=5e6' goes to every node ('gains' is not an entry of the graph)" in err
     assert "two nodes" in out and "waits for: /b/displacement, /clock" in out
-    assert ("plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b -p rate:=5.0 "
-            "-p gains.k1:=5000000.0") in out
+    assert ("plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b -p rate_hz:=5.0 "
+            "-p sensor_noise:=1.0e-09") in out
     assert "piezo_stage: piezo-stage emulate rig" in out
 
 

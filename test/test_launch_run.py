@@ -114,13 +114,6 @@ def _check_running(a: Launcher, b: Launcher, out_a: Lines, out_b: Lines) -> None
     assert len(pids) == 4 and all(pid_alive(p) for p in pids)
 
 
-def test_default_namespace_is_the_nodes_one():
-    from piezo_stage.launch.graph import DEFAULT_NAMESPACE
-    from piezo_stage.nodes.common import DEFAULT_NAMESPACE as NODES_DEFAULT
-
-    assert DEFAULT_NAMESPACE == NODES_DEFAULT
-
-
 def test_required_exit_stops_the_others_with_its_code(tmp_path):
     path = chatter_graph(tmp_path, talker={"required": True,
                                            "overrides": {"exit_after": 0.5, "fail_code": 7}},

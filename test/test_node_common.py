@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from piezo_stage.nodes.common import TickGrid
+from piezo_stage.model.tick_grid import TickGrid
 
 pytestmark = pytest.mark.unit
 

@@ -13,7 +13,7 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from piezo_stage.nodes.common import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ctl"
@@ -120,7 +120,7 @@ def test_unsafe_gain_change_is_refused_with_a_reason(node):
 @pytest.mark.parametrize("param, reason", [
     # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (docs/design.md §7)
     ("rate_hz:=20000.0", "sampled loop unstable"),
-    ("sensor_qos:=fastest", "sensor_qos must be"),
+    ("sensor_qos:=fastest", "sensor_qos: 'fastest' is not one of best_effort, reliable"),
 ])
 def test_bad_start_parameters_exit_with_the_reason(param, reason):
     proc = start_node("controller", param, namespace=NS)
@@ -137,7 +137,7 @@ def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliabi
     sample of the lockstep plant, so no step waits for the plant's timeout."""
     from rclpy.qos import ReliabilityPolicy
 
-    from piezo_stage.nodes.common import LOCKSTEP_QOS
+    from piezo_stage.nodes.qos import LOCKSTEP_QOS
     from piezo_stage_msgs.msg import Displacement, Voltage
 
     proc = start_node("controller", "trigger:=sample", "rate_hz:=1000.0", f"sensor_qos:={sensor_qos}",

@@ -13,7 +13,7 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from piezo_stage.model.excitation import plan_from  # noqa: E402
-from piezo_stage.nodes.common import COMMAND_QOS  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 PLAN = ["waveform:=triangle", "period:=0.1", "low:=-1.0", "amplitude:=2.0", "offsets:=[0.0, 0.5]",

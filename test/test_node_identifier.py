@@ -15,7 +15,7 @@ from piezo_stage.identification.io import intervals_from_marks, recordings_from_
 from piezo_stage.identification.pipeline import IdentifyOptions, identify  # noqa: E402
 from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_run  # noqa: E402
 from piezo_stage.model.bouc_wen import BoucWenParameters  # noqa: E402
-from piezo_stage.nodes.common import COMMAND_QOS, LATCHED_QOS  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ident"

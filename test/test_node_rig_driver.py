@@ -16,7 +16,7 @@ from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from rclpy.time import Time  # noqa: E402
 
 from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel  # noqa: E402
-from piezo_stage.nodes.common import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
 from rig_support import DiagnosticsProbe, sva_values  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 

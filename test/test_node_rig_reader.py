@@ -17,7 +17,7 @@ from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 
 from piezo_stage.hardware.emulators import EmulatorServer, Faults, OptoNCDTDeviceModel  # noqa: E402
 from piezo_stage.hardware.optoncdt import Status, frame_format  # noqa: E402
-from piezo_stage.nodes.common import SENSOR_QOS  # noqa: E402
+from piezo_stage.nodes.qos import SENSOR_QOS  # noqa: E402
 from rig_support import DiagnosticsProbe  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 

@@ -41,7 +41,7 @@ from piezo_stage.launch import Launcher  # noqa: E402
 from piezo_stage.launch.graph import load_graph  # noqa: E402
 from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
 from piezo_stage.config_path import find_config  # noqa: E402
-from piezo_stage.nodes.common import LATCHED_QOS, SENSOR_QOS  # noqa: E402
+from piezo_stage.nodes.qos import LATCHED_QOS, SENSOR_QOS  # noqa: E402
 from ros_support import spin_until  # noqa: E402
 
 NS = "/emulated"

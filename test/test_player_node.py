@@ -17,7 +17,8 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from piezo_stage.bag import BagWriter, qos, read_raw  # noqa: E402
-from piezo_stage.nodes.player import PlaybackClock, PlayerError, parse_remaps, playback_qos  # noqa: E402
+from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps  # noqa: E402
+from piezo_stage.nodes.player import playback_qos  # noqa: E402
 from ros_support import fill, msg_class, spin_until, start_node, stop  # noqa: E402
 
 NS = "/pl"
@@ -209,13 +210,13 @@ def test_playback_clock_scales_and_freezes_while_paused():
     assert clock.now(20.0) == T0 + 2_000_000_000       # frozen
     clock.resume(30.0)
     assert clock.due(T0 + 3_000_000_000) == pytest.approx(30.5)
-    with pytest.raises(PlayerError, match="rate > 0"):
+    with pytest.raises(PlaybackError, match="rate > 0"):
         PlaybackClock(T0, rate=0.0)
 
 
 def test_remaps_and_playback_qos():
     assert parse_remaps(["/a:=/b", "c := d"]) == {"/a": "/b", "c": "d"}
-    with pytest.raises(PlayerError, match="from:=to"):
+    with pytest.raises(PlaybackError, match="from:=to"):
         parse_remaps(["/a=/b"])
     sensor = playback_qos([qos.SENSOR_DATA], 100)
     assert sensor.reliability == ReliabilityPolicy.BEST_EFFORT and sensor.depth == 100

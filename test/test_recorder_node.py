@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.unit
+pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 import yaml  # noqa: E402
@@ -43,7 +43,7 @@ import rclpy
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy._rclpy_pybind11 import RCLError
 from ros_support import fill, msg_class
-from piezo_stage.nodes.common import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 ns, n_rel, n_sensor, n_state, n_late = sys.argv[2], *map(int, sys.argv[3:7])
 rclpy.init()
 node = rclpy.create_node("source", namespace=ns)

@@ -19,7 +19,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from piezo_stage.cli import main  # noqa: E402
 from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
-from piezo_stage.nodes.common import LATCHED_QOS  # noqa: E402
+from piezo_stage.nodes.qos import LATCHED_QOS  # noqa: E402
 from ros_support import spin_until  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

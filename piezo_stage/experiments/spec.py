@@ -7,9 +7,10 @@
   which contradicts its x1(0) = x(0) − yr(0) = 20 µm (11.4): the error state, stated in each of
   §11.4.1-11.4.3, is kept, and the reference's initial conditions are read as yr(0) = x1(0),
   ẏr(0) = x2(0). The plant node therefore starts at x(0) = x1(0) + yr(0) = 40 µm,
-  ẋ(0) = x2(0) + ẏr(0) = 0.4 m/s (its ``x0``/``xdot0`` are the physical state). In the sampled
-  loop x2 is an Euler difference (§11.5), so at the first sample, with no previous one, the
-  controller takes x2 = −ẏr(0); from the second sample on x2 is measured.
+  ẋ(0) = x2(0) + ẏr(0) = 0.4 m/s (its ``initial_displacement``/``initial_velocity`` are the
+  physical state). In the sampled loop x2 is an Euler difference (§11.5), so at the first
+  sample, with no previous one, the controller takes x2 = −ẏr(0); from the second sample on x2
+  is measured.
   Summary: ``u_before`` is the voltage before t = 0 (0 V), ``u_after`` the mean of u over the
   last whole period 1/f of the sine; Figs. 11.5-11.8: x1, x2 → 0 in every mode, under ``pid``
   u(∞) = κw·w(∞) ≠ 0, under ``pid_sine`` a steady oscillation shrinking with A, under ``pid_tv``
@@ -115,14 +116,16 @@ def make_plan(name: str, mode: str, *, duration: float | None = None,
     plant = {"model_file": MODEL_FILE, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,
              "v_min": -450.0, "v_max": 450.0, "w0": 0.0}
     if name == "regulation":
-        plant.update(x0=X1_INIT + YR_INIT, xdot0=X2_INIT + YRDOT_INIT, initial_voltage=0.0)  # x = x1 + yr (11.4)
+        # x = x1 + yr (11.4)
+        plant.update(initial_displacement=X1_INIT + YR_INIT,
+                     initial_velocity=X2_INIT + YRDOT_INIT, initial_voltage=0.0)
         controller.update(reference_source="second_order", reference_y0=YR_INIT, reference_ydot0=YRDOT_INIT)
         return Plan(name, mode, rate, radius, duration, plant, controller, gains=gains)
     if duration <= T_OPEN + OPEN_FOR:
         raise ExperimentInputError(f"perturbation needs a duration > {T_OPEN + OPEN_FOR} s, got {duration}")
     rig = shipped_parameter_set("ch11_rig").bouc_wen
     x_eq = U_SET / rig.kappa_x  # w(0) = 0: κx·x = u (11.2)
-    plant.update(x0=x_eq, xdot0=0.0, initial_voltage=U_SET)
+    plant.update(initial_displacement=x_eq, initial_velocity=0.0, initial_voltage=U_SET)
     # the window is scheduled in the controller on sim time: deterministic, no service slip
     controller.update(reference_source="constant", reference=x_eq, u_bias=U_SET, hold_voltage=U_OPEN,
                       open_at=T_OPEN, open_duration=OPEN_FOR)

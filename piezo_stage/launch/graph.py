@@ -32,14 +32,14 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
 
 from piezo_stage.config_path import ConfigNotFoundError, find_config
 from piezo_stage.launch.errors import GraphError
+from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (no rclpy)
 
-DEFAULT_NAMESPACE = "/piezo"  # piezo_stage.nodes.common.DEFAULT_NAMESPACE (not imported: no rclpy here)
 DEFAULT_STOP_TIMEOUT = 5.0
 NODE_PACKAGE = "piezo_stage.nodes"
 
@@ -145,8 +145,10 @@ class Graph:
     def with_namespace(self, namespace: str) -> Graph:
         return dataclasses.replace(self, namespace=normalize_namespace(namespace, "--ns"))
 
-    def with_params(self, assignments: Iterable[str]) -> Graph:
-        """Apply ``NODE.KEY:=VALUE`` (that node) and ``KEY:=VALUE`` (every node) overrides.
+    def with_params(self, assignments: Iterable[str],
+                    accepts: Callable[[ProcessSpec, str], bool] | None = None) -> Graph:
+        """Apply ``NODE.KEY:=VALUE`` (that node) and ``KEY:=VALUE`` (every node that
+        ``accepts`` the key; an error when none does) overrides.
 
         ``NODE.KEY`` is read as node + key when the part before the first dot names an entry
         of the graph; otherwise the whole of it is a (dotted) parameter name for every node.
@@ -154,9 +156,12 @@ class Graph:
         overrides = {spec.name: dict(spec.overrides) for spec in self.nodes}
         for text in assignments:
             target, key, value = self._split_assignment(text)
-            for spec in self.nodes:
-                if spec.is_node and target in (None, spec.name):
-                    overrides[spec.name][key] = value
+            takers = [s for s in self.nodes if s.is_node and target in (None, s.name)
+                      and (target is not None or accepts is None or accepts(s, key))]
+            if not takers and any(s.is_node for s in self.nodes):
+                raise GraphError(f"--param {text!r}: no node of the graph has a parameter {key!r}")
+            for spec in takers:
+                overrides[spec.name][key] = value
         nodes = tuple(dataclasses.replace(s, overrides=overrides[s.name]) for s in self.nodes)
         return dataclasses.replace(self, nodes=nodes)
 

@@ -22,6 +22,7 @@ from piezo_stage.launch.errors import (LaunchError, LaunchInterrupted, RequiredP
                                        TopicsNotReadyError)
 from piezo_stage.launch.graph import Graph, load_graph, parse_graph
 from piezo_stage.launch.output import LAUNCHER_NAME, LineSink, Prefixer, use_color
+from piezo_stage.launch.parameters import accepts, check_parameters
 from piezo_stage.launch.process import ManagedProcess
 
 POLL_S = 0.05
@@ -57,7 +58,8 @@ class Launcher:
         if namespace is not None:
             g = g.with_namespace(namespace)
         if params:
-            g = g.with_params(params)
+            g = g.with_params(params, accepts)
+        check_parameters(g)
         self.graph = g
         self._sink = sink if sink is not None else Prefixer([s.name for s in g.nodes], color=color)
         self._child_color = sink is None and use_color(sys.stderr, color)

@@ -22,6 +22,8 @@ import numpy as np
 from .errors import ParameterError
 
 WAVEFORMS = ("triangle", "sine", "random", "step", "constant")
+#: what the plan outputs after its last run: the last value, the first run's low, or zero
+HOLDS = ("last", "low", "zero")
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,7 @@ class ExcitationPlan:
             raise ParameterError("need settle_periods >= 0 and record_periods >= 1")
         if not self.v_min < self.v_max:
             raise ParameterError(f"need v_min < v_max, got [{self.v_min}, {self.v_max}]")
-        if self.hold not in ("last", "low", "zero"):
+        if self.hold not in HOLDS:
             raise ParameterError(f"hold must be last, low or zero, got {self.hold!r}")
         if self.waveform == "random":
             if self.bandwidth <= 1.0 / self.period:

@@ -1,1 +1,11 @@
-"""Thin rclpy nodes: one per core module (parameters, topics, timers only)."""
+"""Thin rclpy nodes: one per core module (parameters, topics, timers only).
+
+Pure Python (the launcher, setup.py and scripts/setup.sh read it without rclpy).
+"""
+
+#: nodes are created in this namespace; `--ros-args -r __ns:=/other` overrides it (rcl remap)
+DEFAULT_NAMESPACE = "/piezo"
+
+#: the node executables: module piezo_stage.nodes.<name>, console script <name>
+NODES = ("voltage_driver", "laser_reader", "plant", "excitation", "identifier", "controller",
+         "recorder", "player")

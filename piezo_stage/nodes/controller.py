@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import sys
+from enum import Enum
 from typing import Any
 
 from rclpy.node import Node
@@ -34,16 +35,25 @@ from std_srvs.srv import Trigger
 
 from piezo_stage.config_path import find_config
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, load_bounds, load_nominal_plant
-from piezo_stage.control.controller import ControllerConfig, ControlOutput, TimeVaryingPID
+from piezo_stage.control.controller import (
+    ANTI_WINDUP,
+    ON_CLOSE,
+    ControllerConfig,
+    ControlOutput,
+    TimeVaryingPID,
+)
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.laws import THESIS_GAINS, Gains
+from piezo_stage.control.laws import LAWS, THESIS_GAINS, Gains
 from piezo_stage.control.reference import SecondOrderReference
 from piezo_stage.control.theorem4 import validate_gains
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis,
-                     Diagnostics, declare, on_set, run, stamp_to_s, subscribers_matched)
+from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .parameters import declare_table, on_set
+from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
+from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched
+from .spec import Param, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
@@ -52,46 +62,74 @@ CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_ti
 HOT_KEYS = ("stale_periods", "reference_source", "reference", "open_at", "open_duration")
 
 
+class StepTrigger(str, Enum):
+    TIMER = "timer"    # rate_hz on the node clock
+    SAMPLE = "sample"  # one step per displacement sample (the lockstep plant)
+
+
+class SensorQos(str, Enum):
+    BEST_EFFORT = "best_effort"  # matches every publisher: the rig's laser_reader
+    RELIABLE = "reliable"        # the lockstep plant: no sample lost, no step waits for its timeout
+
+
+class ReferenceSource(str, Enum):
+    TOPIC = "topic"                # the reference topic
+    SECOND_ORDER = "second_order"  # the thesis's yr
+    CONSTANT = "constant"          # the reference parameter
+
+
+_G = THESIS_GAINS
+PARAMETERS = ParameterTable("controller", (
+    Param("mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=LAWS),
+    Param("k0", _G.k0, "integral gain k0", "V/(m s)", (0.0, 1e15)),
+    Param("k1", _G.k1, "proportional gain k1", "V/m", (0.0, 1e15)),
+    Param("k2", _G.k2, "derivative gain k2", "V s/m", (0.0, 1e12)),
+    Param("kA", _G.kA, "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
+    Param("A", _G.A, "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
+    Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
+    Param("u_min", -450.0, "amplifier lower limit", "V"),
+    Param("u_max", 450.0, "amplifier upper limit", "V"),
+    Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=ANTI_WINDUP),
+    Param("tracking_time", 0.0, "back-calculation time constant (0: sqrt(Ti*Td))", "s", (0.0, 1e3)),
+    Param("derivative_tau", 0.0, "first-order filter on x2 (0: off, as the thesis)", "s",
+          (0.0, 1.0)),
+    Param("u_bias", 0.0, "feedforward added to the law's output (§11.5 set point)", "V",
+          read_only=True),
+    Param("hold_voltage", math.nan, "output while the loop is open (NaN: last output)", "V"),
+    Param("on_close", "bumpless", "x0 when the loop closes", choices=ON_CLOSE),
+    Param("rate_hz", 1000.0, "loop rate (trigger=timer; also the rate checked)", "Hz", (1.0, 1e7)),
+    Param("trigger", "timer", "timer (rate_hz) or sample (one step per displacement sample)",
+          choices=StepTrigger),
+    Param("delay_samples", 1, "output delay assumed by the sampled-loop check", range=(0, 10)),
+    Param("sensor_qos", "best_effort", "displacement subscription: best_effort (matches every "
+          "publisher: the rig's laser_reader) or reliable (the lockstep plant: no sample lost, so "
+          "no step waits for the plant's timeout)", choices=SensorQos, read_only=True),
+    Param("start_closed", False, "close the loop at the first valid sample"),
+    Param("wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
+          "has this many subscribers (an experiment's recorder sees step 0)", range=(0, 100),
+          read_only=True),
+    Param("stale_periods", 5, "no sample for this many periods opens the loop", range=(1, 100000)),
+    Param("reference_source", "topic", "where the set point comes from: the reference topic, the "
+          "thesis's second-order yr, or the reference parameter", choices=ReferenceSource),
+    Param("reference", 0.0, "set point for reference_source=constant, and before a reference "
+          "arrives", "m"),
+    Param("reference_y0", 20e-6, "second_order: yr(0)", "m"),
+    Param("reference_ydot0", 0.0, "second_order: dyr/dt(0)", "m/s"),
+    Param("bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or "
+          "path)"),
+    Param("open_at", -1.0, "open the loop at this time of the node clock (< 0: never); "
+          "deterministic in lockstep, e.g. the §11.5 perturbation", "s", read_only=True),
+    Param("open_duration", 0.0, "close it again this long after it opened (0: stay open)", "s",
+          (0.0, 1e6), read_only=True),
+    Param("allow_unverified_gains", False, "accept gains that fail Theorem 4 or the sampled-loop "
+          "check"),
+), summary="The thesis's time-varying PID (11.5, 11.17, 11.18) on ROS topics.")
+
+
 class ControllerNode(Node):
     def __init__(self) -> None:
         super().__init__("controller", namespace=DEFAULT_NAMESPACE)
-        g = THESIS_GAINS
-        declare(self, "mode", "pid", "control law: pid (11.5) | pid_sine (11.17) | pid_tv (11.18)")
-        declare(self, "k0", g.k0, "integral gain k0 [V/(m s)]", lo=0.0, hi=1e15)
-        declare(self, "k1", g.k1, "proportional gain k1 [V/m]", lo=0.0, hi=1e15)
-        declare(self, "k2", g.k2, "derivative gain k2 [V s/m]", lo=0.0, hi=1e12)
-        declare(self, "kA", g.kA, "time-varying sine gain kA [V/(m s)] (pid_tv)", lo=0.0, hi=1e15)
-        declare(self, "A", g.A, "sine amplitude A [V] (pid_sine)", lo=0.0, hi=1e4)
-        declare(self, "f", g.f, "sine frequency f [Hz]", lo=1e-6, hi=1e6)
-        declare(self, "u_min", -450.0, "amplifier lower limit [V]")
-        declare(self, "u_max", 450.0, "amplifier upper limit [V]")
-        declare(self, "anti_windup", "conditional", "none | conditional | back_calculation")
-        declare(self, "tracking_time", 0.0, "back-calculation time constant [s] (0: sqrt(Ti*Td))", lo=0.0, hi=1e3)
-        declare(self, "derivative_tau", 0.0, "first-order filter on x2 [s] (0: off, as the thesis)", lo=0.0, hi=1.0)
-        declare(self, "u_bias", 0.0, "feedforward added to the law's output [V] (§11.5 set point)",
-                read_only=True)
-        declare(self, "hold_voltage", math.nan, "output while the loop is open [V] (NaN: last output)")
-        declare(self, "on_close", "bumpless", "x0 when the loop closes: bumpless | reset | keep")
-        declare(self, "rate_hz", 1000.0, "loop rate [Hz] (trigger=timer; also the rate checked)", lo=1.0, hi=1e7)
-        declare(self, "trigger", "timer", "timer (rate_hz) | sample (one step per displacement sample)")
-        declare(self, "delay_samples", 1, "output delay assumed by the sampled-loop check", lo=0, hi=10)
-        declare(self, "sensor_qos", "best_effort", "displacement subscription: best_effort (matches every "
-                "publisher: the rig's laser_reader) | reliable (the lockstep plant: no sample lost, so no step waits "
-                "for the plant's timeout)", read_only=True)
-        declare(self, "start_closed", False, "close the loop at the first valid sample")
-        declare(self, "wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
-                "has this many subscribers (an experiment's recorder sees step 0)", lo=0, hi=100, read_only=True)
-        declare(self, "stale_periods", 5, "no sample for this many periods opens the loop", lo=1, hi=100000)
-        declare(self, "reference_source", "topic", "topic (the reference topic) | second_order (thesis yr) | constant")
-        declare(self, "reference", 0.0, "set point [m] for reference_source=constant, and before a reference arrives")
-        declare(self, "reference_y0", 20e-6, "second_order: yr(0) [m]")
-        declare(self, "reference_ydot0", 0.0, "second_order: dyr/dt(0) [m/s]")
-        declare(self, "bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or path)")
-        declare(self, "open_at", -1.0, "open the loop at this time of the node clock [s] (< 0: never); "
-                "deterministic in lockstep, e.g. the §11.5 perturbation", read_only=True)
-        declare(self, "open_duration", 0.0, "close it again this long after it opened [s] (0: stay open)",
-                lo=0.0, hi=1e6, read_only=True)
-        declare(self, "allow_unverified_gains", False, "accept gains that fail Theorem 4 or the sampled-loop check")
+        declare_table(self, PARAMETERS)
 
         self._bounds_path = find_config(self.get_parameter("bounds_file").value)
         self._bounds = load_bounds(self._bounds_path)
@@ -101,7 +139,8 @@ class ControllerNode(Node):
         config = self._config({})
         report = self._verify(config)
         if report and not self.get_parameter("allow_unverified_gains").value:
-            raise ControlError(f"unsafe gains at start: {report} (set allow_unverified_gains to override)")
+            raise ControlError(f"unsafe gains at start: {report} (set allow_unverified_gains to "
+                               "override)")
         self.pid = TimeVaryingPID(config, closed=False)
         on_set(self, self._check_params)
         # parameters read on every step, cached (refreshed after each successful set)
@@ -120,22 +159,20 @@ class ControllerNode(Node):
         self._window, self._window_t = "pending", math.nan
         self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
-        if self.get_parameter("sensor_qos").value not in ("best_effort", "reliable"):
-            raise ControlError(f"sensor_qos must be best_effort or reliable, got {self.get_parameter('sensor_qos').value!r}")
-        # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or state
+        # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or
+        # state
         out_qos = LOCKSTEP_QOS if self.get_parameter("trigger").value == "sample" else COMMAND_QOS
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
         self._pub_state = self.create_publisher(ControllerState, "controller_state", out_qos)
+        reliable = self.get_parameter("sensor_qos").value == SensorQos.RELIABLE
         self.create_subscription(Displacement, "displacement", self._on_displacement,
-                                 LOCKSTEP_QOS if self.get_parameter("sensor_qos").value == "reliable" else SENSOR_QOS)
+                                 LOCKSTEP_QOS if reliable else SENSOR_QOS)
         self.create_subscription(Displacement, "reference", self._on_reference, COMMAND_QOS)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
         self._trigger = self.get_parameter("trigger").value
         if self._trigger == "timer":
             self.create_timer(1.0 / self._rate, self._on_timer)
-        elif self._trigger != "sample":
-            raise ControlError(f"trigger must be timer or sample, got {self._trigger!r}")
         Diagnostics(self, "controller", self._diagnose)
 
     # ------------------------------------------------------------------ configuration
@@ -146,8 +183,10 @@ class ControllerNode(Node):
         bias = self._bias
         config = ControllerConfig(
             mode=p["mode"], gains=Gains(**{k: float(p[k]) for k in GAIN_KEYS}),
-            u_min=float(p["u_min"]) - bias, u_max=float(p["u_max"]) - bias, anti_windup=p["anti_windup"],
-            tracking_time=float(p["tracking_time"]) or None, derivative_tau=float(p["derivative_tau"]),
+            u_min=float(p["u_min"]) - bias, u_max=float(p["u_max"]) - bias,
+            anti_windup=p["anti_windup"],
+            tracking_time=float(p["tracking_time"]) or None,
+            derivative_tau=float(p["derivative_tau"]),
             hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"])
         config.validate()
         return config
@@ -155,14 +194,16 @@ class ControllerNode(Node):
     def _verify(self, config: ControllerConfig) -> str:
         """'' when Theorem 4 and the sampled-loop check accept the gains, else the reasons."""
         g = config.gains
-        report = validate_gains(self._bounds, g.k1, g.k2, g.k0, g.kA if config.mode == "pid_tv" else None,
+        report = validate_gains(self._bounds, g.k1, g.k2, g.k0,
+                                g.kA if config.mode == "pid_tv" else None,
                                 g.f if config.mode != "pid" else None)
         reasons = list(report.reasons)
         sampled = check_sampled_loop(self._plant, g, self._rate,
                                      int(self.get_parameter("delay_samples").value), config.mode,
                                      config.derivative_tau)
         if not sampled.stable:
-            reasons.append(f"sampled loop unstable at {self._rate:g} Hz with {sampled.delay_samples} "
+            reasons.append(f"sampled loop unstable at {self._rate:g} Hz with "
+                           f"{sampled.delay_samples} "
                            f"sample(s) delay: spectral radius {sampled.spectral_radius:.4f} >= 1")
         return "; ".join(reasons)
 
@@ -238,7 +279,8 @@ class ControllerNode(Node):
         if open_at < 0 or self._window == "done":
             return
         if self._window == "pending" and t >= open_at:
-            self.get_logger().info(f"scheduled opening at t = {t:.6g} s, holding {self._hold_value():.6g} V")
+            self.get_logger().info(f"scheduled opening at t = {t:.6g} s, holding "
+                                   f"{self._hold_value():.6g} V")
             self.pid.open_loop(self._hold_value())
             self._window, self._window_t = "open", t
         elif self._window == "open" and self._hot["open_duration"] > 0 \
@@ -267,9 +309,9 @@ class ControllerNode(Node):
             self.pid.open_loop(self._hold_value())
         self._fault = reason
         if self.pid.last_output is not None:  # keep commanding the hold value: the stage stays put
+            u = self._hold_value() if not self.pid.loop_closed else self.pid.u
             self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
-                                          voltage=self._bias + (self._hold_value() if not self.pid.loop_closed
-                                                                else self.pid.u)))
+                                          voltage=self._bias + u))
 
     def _publish(self, out: ControlOutput, stamp) -> None:
         header = Header(stamp=stamp)
@@ -299,11 +341,13 @@ class ControllerNode(Node):
         return response
 
     def _diagnose(self) -> Diagnosis:
-        values = {"mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed, "u": self._bias + self.pid.u,
+        values = {"mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed,
+                  "u": self._bias + self.pid.u,
                   "steps": self._steps, "saturated_steps": self._saturated_steps}
         if self._fault:
             return Diagnosis(ERROR, f"loop opened: {self._fault}", values)
-        if self._saturated_steps and self.pid.last_output is not None and self.pid.last_output.saturated:
+        last = self.pid.last_output
+        if self._saturated_steps and last is not None and last.saturated:
             return Diagnosis(WARN, "output saturated", values)
         return Diagnosis(OK, "closed" if self.pid.loop_closed else "open", values)
 

@@ -1,7 +1,8 @@
 """`excitation` node: open-loop signal generator for identification and validation runs.
 
 Publishes ``voltage_command`` (reliable) and ``excitation`` (ExcitationInfo: on every change of
-run/steady and at ``info_rate_hz``). The schedule is :class:`piezo_stage.model.excitation.ExcitationPlan`
+run/steady and at ``info_rate_hz``). The schedule is
+:class:`piezo_stage.model.excitation.ExcitationPlan`
 (a pure function of time since start). Two triggers:
 
 - ``timer``: a timer at ``rate_hz`` on the node's clock (wall, or sim time with use_sim_time);
@@ -21,6 +22,7 @@ Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
 from __future__ import annotations
 
 import sys
+from enum import Enum
 
 from builtin_interfaces.msg import Time
 from rclpy.node import Node
@@ -30,48 +32,85 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from piezo_stage.model.errors import ModelError
-from piezo_stage.model.excitation import PRESETS, ExcitationPlan, ExcitationSample, plan_from
+from piezo_stage.model.excitation import (
+    HOLDS,
+    PRESETS,
+    WAVEFORMS,
+    ExcitationPlan,
+    ExcitationSample,
+    plan_from,
+)
+from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, TickGrid, declare, on_set, run, stamp_to_s,
-                     subscribers_matched, wait_acked, wall_clock)
+from .parameters import declare_table, on_set
+from .qos import COMMAND_QOS, LOCKSTEP_QOS
+from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, wait_acked, wall_clock
+from .spec import Param, ParameterTable
 
 PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
              "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
 
 
+class StepTrigger(str, Enum):
+    TIMER = "timer"  # rate_hz on the node clock
+    CLOCK = "clock"  # one command per /clock tick (the lockstep plant)
+
+
+class OnDone(str, Enum):
+    HOLD = "hold"  # keep publishing the hold value
+    EXIT = "exit"
+
+
+_BASE = PRESETS["ch10_patch"]
+PARAMETERS = ParameterTable("excitation", (
+    Param("preset", "ch10_patch", "plan whose values are the defaults of the plan parameters below "
+          "(their defaults here are ch10_patch's), or ''", choices=(*PRESETS, ""), read_only=True),
+    Param("waveform", _BASE.waveform, "shape of the base waveform", choices=WAVEFORMS),
+    Param("period", _BASE.period, "period of the waveform", "s", (1e-6, 1e6)),
+    Param("low", _BASE.low, "minimum of the base waveform", "V"),
+    Param("amplitude", _BASE.amplitude, "peak-to-peak span of the base waveform", "V"),
+    Param("offsets", list(_BASE.offsets), "one run per offset q, e.g. [0.0, 100.0]", "V"),
+    Param("settle_periods", _BASE.settle_periods, "periods before a run is steady",
+          range=(0, 100000)),
+    Param("record_periods", _BASE.record_periods, "steady periods per run", range=(1, 100000)),
+    Param("v_min", -1e9, "lower clamp of the command", "V"),
+    Param("v_max", 1e9, "upper clamp of the command", "V"),
+    Param("hold", _BASE.hold, "after the last run: the last value, the first run's low, or zero",
+          choices=HOLDS),
+    Param("seed", _BASE.seed, "random waveform seed", range=(0, 2**31 - 1)),
+    Param("bandwidth", _BASE.bandwidth, "random waveform: highest frequency", "Hz", (0.0, 1e6)),
+    Param("rate_hz", 1000.0, "command rate with trigger=timer", "Hz", (0.1, 100000.0)),
+    Param("trigger", "timer", "timer (rate_hz on the node clock) or clock (one command per /clock "
+          "tick)", choices=StepTrigger),
+    Param("catch_up", False, "trigger=timer: commands on a fixed 1/rate_hz grid, the ones a late "
+          "timer missed published with their own stamps (for a driver with apply_at_stamp)",
+          read_only=True),
+    Param("lead", 0.0, "trigger=timer: stamp commands and marks this far ahead of the clock (for a "
+          "driver with apply_at_stamp)", "s", (0.0, 10.0), read_only=True),
+    Param("autostart", True, "start at the first tick (else wait for ~/start)"),
+    Param("on_done", "hold", "after the plan: hold (keep publishing the hold value) or exit",
+          choices=OnDone),
+    Param("wait_for_subscribers", 0, "start the plan once voltage_command and excitation each have "
+          "this many matched subscribers (their first commands and marks are then not lost to "
+          "them)", range=(0, 1000), read_only=True),
+    Param("exit_ack_timeout", 30.0, "on_done=exit: wall seconds to wait for every reliable "
+          "subscriber to acknowledge the last commands and marks before leaving", "s",
+          (0.0, 3600.0)),
+    Param("info_rate_hz", 10.0, "ExcitationInfo rate besides change events", "Hz", (0.0, 10000.0)),
+),
+summary="The identification excitation (thesis ch. 10): a waveform per offset q, with run marks.")
+
+
 class ExcitationNode(Node):
     def __init__(self) -> None:
         super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
-        preset = declare(self, "preset", "ch10_patch", f"plan whose values are the defaults of the "
-                         f"parameters below: one of {sorted(PRESETS)}, or ''", read_only=True)
+        preset = declare_table(self, PARAMETERS, only=("preset",))["preset"]
         base = plan_from(preset or None)
-        declare(self, "waveform", base.waveform, "triangle | sine | random | step | constant")
-        declare(self, "period", base.period, "[s] period of the waveform", lo=1e-6, hi=1e6)
-        declare(self, "low", base.low, "[V] minimum of the base waveform")
-        declare(self, "amplitude", base.amplitude, "[V] peak-to-peak span of the base waveform")
-        declare(self, "offsets", list(base.offsets), "[V] one run per offset q, e.g. [0.0, 100.0]")
-        declare(self, "settle_periods", base.settle_periods, "periods before a run is steady", lo=0, hi=100000)
-        declare(self, "record_periods", base.record_periods, "steady periods per run", lo=1, hi=100000)
-        declare(self, "v_min", -1e9, "[V] lower clamp of the command")
-        declare(self, "v_max", 1e9, "[V] upper clamp of the command")
-        declare(self, "hold", base.hold, "after the last run: last | low | zero")
-        declare(self, "seed", base.seed, "random waveform seed", lo=0, hi=2**31 - 1)
-        declare(self, "bandwidth", base.bandwidth, "[Hz] random waveform: highest frequency", lo=0.0, hi=1e6)
-        declare(self, "rate_hz", 1000.0, "command rate with trigger=timer [Hz]", lo=0.1, hi=100000.0)
-        declare(self, "trigger", "timer", "timer (rate_hz on the node clock) | clock (one command per /clock tick)")
-        declare(self, "catch_up", False, "trigger=timer: commands on a fixed 1/rate_hz grid, the ones a late "
-                "timer missed published with their own stamps (for a driver with apply_at_stamp)", read_only=True)
-        declare(self, "lead", 0.0, "trigger=timer: stamp commands and marks this far ahead of the clock [s] "
-                "(for a driver with apply_at_stamp)", lo=0.0, hi=10.0, read_only=True)
-        declare(self, "autostart", True, "start at the first tick (else wait for ~/start)")
-        declare(self, "on_done", "hold", "hold (keep publishing the hold value) | exit")
-        declare(self, "wait_for_subscribers", 0, "start the plan once voltage_command and excitation each have "
-                "this many matched subscribers (their first commands and marks are then not lost to them)",
-                lo=0, hi=1000, read_only=True)
-        declare(self, "exit_ack_timeout", 30.0, "on_done=exit: wall seconds to wait for every reliable "
-                "subscriber to acknowledge the last commands and marks before leaving", lo=0.0, hi=3600.0)
-        declare(self, "info_rate_hz", 10.0, "ExcitationInfo rate besides change events [Hz]", lo=0.0, hi=10000.0)
+        declare_table(self, PARAMETERS, only=set(PARAMETERS.names) - {"preset"},
+                      defaults={k: list(v) if isinstance(v, tuple) else v
+                                for k in PLAN_KEYS if k not in ("v_min", "v_max")
+                                and (v := getattr(base, k)) is not None})
 
         self.plan = self._build_plan()
         on_set(self, self._check_params)
@@ -96,18 +135,18 @@ class ExcitationNode(Node):
         self.create_service(Trigger, "~/stop", self._srv_stop)
         if trigger == "clock":
             self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
-        elif trigger == "timer":
+        else:
             self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
             self._lead_ns = int(round(self.get_parameter("lead").value * 1e9))
             self._catch_up = bool(self.get_parameter("catch_up").value)
             # catch_up: at most 1 s of missed instants, then the grid restarts at the latest one
             self._grid = TickGrid(self._grid_ns, max(1, 1_000_000_000 // self._grid_ns))
             self.create_timer(1.0 / self.get_parameter("rate_hz").value, self._on_timer)
-        else:
-            raise ValueError(f"trigger must be timer or clock, got {trigger!r}")
         self.get_logger().info(
-            f"{self.plan.waveform} {self.plan.low:g}+{self.plan.amplitude:g} V, T={self.plan.period:g} s, "
-            f"offsets {list(self.plan.offsets)}, {self.plan.duration:g} s in all, trigger={trigger}")
+            f"{self.plan.waveform} {self.plan.low:g}+{self.plan.amplitude:g} V, "
+            f"T={self.plan.period:g} s, "
+            f"offsets {list(self.plan.offsets)}, {self.plan.duration:g} s in all, "
+            f"trigger={trigger}")
 
     # ------------------------------------------------------------------ parameters
     def _build_plan(self, changed: dict | None = None) -> ExcitationPlan:
@@ -164,11 +203,13 @@ class ExcitationNode(Node):
 
     def _finish(self) -> None:
         """Leave once every reliable subscriber has acknowledged every command and mark: the
-        unacknowledged samples of a lagging reader (the recorder in lockstep) go with the process."""
+        unacknowledged samples of a lagging reader (the recorder in lockstep) go with the
+        process."""
         self._exit_timer.cancel()
         timeout = self.get_parameter("exit_ack_timeout").value
         for topic in wait_acked(self, timeout, (self._pub_cmd, self._pub_info)):
-            self.get_logger().warning(f"{topic}: not every subscriber acknowledged the last messages "
+            self.get_logger().warning(f"{topic}: not every subscriber acknowledged the last "
+                                      "messages "
                                       f"within {timeout:g} s; leaving anyway")
         self.finished = True
 
@@ -179,7 +220,8 @@ class ExcitationNode(Node):
         self._last_info, self._last_info_t = key, now
         self._pub_info.publish(ExcitationInfo(
             header=_header(stamp), waveform=self.plan.waveform, period=self.plan.period,
-            amplitude=self.plan.amplitude, offset=sample.offset, run=sample.run, steady=sample.steady))
+            amplitude=self.plan.amplitude, offset=sample.offset, run=sample.run,
+            steady=sample.steady))
 
 
 def _header(stamp: Time) -> Header:

@@ -29,6 +29,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, Callable
 
 import numpy as np
@@ -47,14 +48,23 @@ from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import save_parameter_set
-from piezo_stage_msgs.msg import BoucWenParameters, Displacement, ExcitationInfo, LimitCycle, Voltage
+from piezo_stage_msgs.msg import (
+    BoucWenParameters,
+    Displacement,
+    ExcitationInfo,
+    LimitCycle,
+    Voltage,
+)
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, EXIT_ACK_TIMEOUT, LATCHED_QOS, LOCKSTEP_DEPTH, OK,
-                     Diagnosis, Diagnostics, declare, run, stamp_to_s, wait_acked, wall_clock)
-from .recorder import adapted_qos, use_recorder_transport_profile
+from .dds import use_recorder_transport_profile
+from .diagnostics import ERROR, OK, Diagnosis, Diagnostics
+from .parameters import declare_table
+from .qos import COMMAND_QOS, LATCHED_QOS, LOCKSTEP_DEPTH, adapted_qos
+from .runtime import DEFAULT_NAMESPACE, EXIT_ACK_TIMEOUT, run, stamp_to_s, wait_acked, wall_clock
+from .spec import Param, ParameterTable
 
 #: history of the stream subscriptions: a replayed bag arrives in bursts
-STREAM_DEPTH = LOCKSTEP_DEPTH  # a whole lockstep run fits (see common.LOCKSTEP_DEPTH)
+STREAM_DEPTH = LOCKSTEP_DEPTH  # a whole lockstep run fits (see qos.LOCKSTEP_DEPTH)
 #: most queued samples one callback takes before yielding to the executor
 BATCH = 2000
 
@@ -98,36 +108,64 @@ class _Stream:
                 self.on_message(got[0])
 
 
+class Input(str, Enum):
+    VOLTAGE = "voltage"            # ch. 10: voltage -> displacement
+    DISPLACEMENT = "displacement"  # ch. 11: displacement -> voltage
+
+
+class StreamQos(str, Enum):
+    AUTO = "auto"                # adapted to the publishers, as rosbag2 does
+    BEST_EFFORT = "best_effort"  # matches every publisher
+    RELIABLE = "reliable"        # no loss from reliable publishers
+
+
+class OnDone(str, Enum):
+    STAY = "stay"  # the result stays latched
+    EXIT = "exit"  # status 0 when identified, 1 when it failed
+
+
+PARAMETERS = ParameterTable("identifier", (
+    Param("input", "voltage", "recorded input: voltage (ch. 10: voltage -> displacement) or "
+          "displacement (ch. 11: displacement -> voltage)", choices=Input, read_only=True),
+    Param("degree", 1, "degree N of the polynomial part (10.4)", range=(1, 10)),
+    Param("refine", True, "refine the analytic estimate by nonlinear least squares"),
+    Param("input_sign", 0, "sign of the input driving w: +1, -1, 0 = from the loop orientation",
+          range=(-1, 1)),
+    Param("design_points", [0.6, 0.95, 0.05], "Table 10.1 design points (fractions f1, f2, f3)"),
+    Param("steady_periods", 0, "average the last K periods (0: detect the steady state)",
+          range=(0, 100000)),
+    Param("filter", False, "apply the §10.3.2 zero-phase data filter"),
+    Param("max_rms", 0.005, "largest residual RMS accepted, fraction of the output span",
+          range=(0.0, 1.0)),
+    Param("auto_identify", True, "identify as soon as two runs are complete"),
+    Param("output_file", "", "write the identified parameter-set YAML here ('' = do not)"),
+    Param("name", "identified", "name stored in the parameter set"),
+    Param("stream_qos", "auto", "voltage/displacement subscriptions: auto (adapted to the "
+          "publishers as rosbag2 does: reliable keep-all if every publisher is reliable, else best "
+          "effort), best_effort (matches every publisher) or reliable (no loss from reliable "
+          "publishers)", choices=StreamQos, read_only=True),
+    Param("on_done", "stay", "after the automatic identification: stay (the result stays latched) "
+          "or exit (status 0 when identified, 1 when it failed: one-shot runs, e.g. replaying a "
+          "bag)", choices=OnDone, read_only=True),
+    Param("settle_time", 10.0, "wall seconds of silent streams after which a completed run is "
+          "processed even if the streams did not pass its end, and fewer than two complete runs is "
+          "reported as a failure (on_done=exit: exit 1)", "s", (0.0, 3600.0)),
+), summary="Live (or replayed-bag) identification of the Bouc-Wen model (thesis ch. 10).")
+
+
 class IdentifierNode(Node):
     def __init__(self) -> None:
         super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
-        declare(self, "input", "voltage", "recorded input: voltage (ch. 10: voltage -> displacement) | "
-                "displacement (ch. 11: displacement -> voltage)", read_only=True)
-        declare(self, "degree", 1, "degree N of the polynomial part (10.4)", lo=1, hi=10)
-        declare(self, "refine", True, "refine the analytic estimate by nonlinear least squares")
-        declare(self, "input_sign", 0, "sign of the input driving w: +1, -1, 0 = from the loop orientation", lo=-1, hi=1)
-        declare(self, "design_points", [0.6, 0.95, 0.05], "Table 10.1 design points (fractions f1, f2, f3)")
-        declare(self, "steady_periods", 0, "average the last K periods (0: detect the steady state)", lo=0, hi=100000)
-        declare(self, "filter", False, "apply the §10.3.2 zero-phase data filter")
-        declare(self, "max_rms", 0.005, "largest residual RMS accepted, fraction of the output span", lo=0.0, hi=1.0)
-        declare(self, "auto_identify", True, "identify as soon as two runs are complete")
-        declare(self, "output_file", "", "write the identified parameter-set YAML here ('' = do not)")
-        declare(self, "name", "identified", "name stored in the parameter set")
-        declare(self, "stream_qos", "auto", "voltage/displacement subscriptions: auto (adapted to the publishers "
-                "as rosbag2 does: reliable keep-all if every publisher is reliable, else best effort) | best_effort "
-                "(matches every publisher) | reliable (no loss from reliable publishers)", read_only=True)
+        declare_table(self, PARAMETERS)
         self._input = self.get_parameter("input").value
-        if self._input not in ("voltage", "displacement"):
-            raise ValueError(f"input must be voltage or displacement, got {self._input!r}")
         stream_qos = self.get_parameter("stream_qos").value
-        if stream_qos != "auto" and stream_qos not in STREAM_QOS:
-            raise ValueError(f"stream_qos must be auto, best_effort or reliable, got {stream_qos!r}")
         self._reset()
         self.result: IdentificationResult | None = None
         self._error = ""
 
         self._pub_cycle = self.create_publisher(LimitCycle, "limit_cycles", COMMAND_QOS)
-        self._pub_params = self.create_publisher(BoucWenParameters, "bouc_wen_parameters", LATCHED_QOS)
+        self._pub_params = self.create_publisher(BoucWenParameters, "bouc_wen_parameters",
+                                                 LATCHED_QOS)
         self._streams = {"voltage": _Stream(Voltage, self._on_voltage),
                          "displacement": _Stream(Displacement, self._on_displacement)}
         self._adapt = stream_qos == "auto"
@@ -139,15 +177,7 @@ class IdentifierNode(Node):
                                  QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
         self.create_service(Trigger, "~/identify", self._srv_identify)
         self.create_service(Trigger, "~/reset", self._srv_reset)
-        declare(self, "on_done", "stay", "after the automatic identification: stay (the result stays latched) | "
-                "exit (status 0 when identified, 1 when it failed: one-shot runs, e.g. replaying a bag)",
-                read_only=True)
-        if self.get_parameter("on_done").value not in ("stay", "exit"):
-            raise ValueError(f"on_done must be stay or exit, got {self.get_parameter('on_done').value!r}")
         self.finished, self.exit_code = False, 0
-        declare(self, "settle_time", 10.0, "wall seconds of silent streams after which a completed run is "
-                "processed even if the streams did not pass its end, and fewer than two complete runs is "
-                "reported as a failure (on_done=exit: exit 1)", lo=0.0, hi=3600.0)
         self.create_timer(0.1, self._tick, clock=wall_clock())  # sim time may stall
         self._discover()
         Diagnostics(self, "identification", self._diagnose)
@@ -167,14 +197,16 @@ class IdentifierNode(Node):
         if not self._adapt:
             return
         for name, stream in self._streams.items():
-            offers = [i.qos_profile for i in self.get_publishers_info_by_topic(self.resolve_topic_name(name))]
+            topic = self.resolve_topic_name(name)
+            offers = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)]
             if not offers:
                 continue
             qos = adapted_qos(offers, STREAM_DEPTH)
-            if stream.subscription is None or (stream.reliable and qos.reliability != ReliabilityPolicy.RELIABLE):
+            reliable = qos.reliability == ReliabilityPolicy.RELIABLE
+            if stream.subscription is None or (stream.reliable and not reliable):
                 self._subscribe(name, qos)
                 self.get_logger().info(f"{name}: {len(offers)} publisher(s), subscribed "
-                                       f"{'reliable' if qos.reliability == ReliabilityPolicy.RELIABLE else 'best effort'}")
+                                       f"{'reliable' if reliable else 'best effort'}")
 
     def _tick(self) -> None:
         self._discover()
@@ -209,9 +241,12 @@ class IdentifierNode(Node):
         self._periods[int(msg.run)] = msg.period
         previous, self._info = self._info, (int(msg.run), bool(msg.steady))
         if previous != self._info:
-            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) "
-                                   f"{'steady' if msg.steady else 'settling' if previous is None or previous[0] != msg.run else 'over'} at t = {t:.6g} s")
-        if previous is not None and previous[1] and self._info != previous and previous[0] not in self._completed:
+            new_run = previous is None or previous[0] != msg.run
+            phase = "steady" if msg.steady else "settling" if new_run else "over"
+            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) {phase} "
+                                   f"at t = {t:.6g} s")
+        if previous is not None and previous[1] and self._info != previous \
+                and previous[0] not in self._completed:
             self._completed.append(previous[0])
             self._pending.append((t, previous[0]))  # processed once the streams have caught up
 
@@ -232,11 +267,13 @@ class IdentifierNode(Node):
                          self._displacement.t[-1] if self._displacement.t else -math.inf)
             while self._pending and (self._pending[0][0] <= latest or silent):
                 self._run_complete(self._pending.pop(0)[1])
-        if silent and not self._silence_reported and self.result is None and len(self._completed) < 2:
+        if silent and not self._silence_reported and self.result is None \
+                and len(self._completed) < 2:
             self._silence_reported = True
-            self._set_error(f"the streams have been silent for {settle:g} s after {count} samples and "
-                            f"{len(self._completed)} complete run(s): identification needs two steady runs "
-                            "(x(t) and x(t)+q), each ended by the next run's mark or the plan's end")
+            self._set_error(f"the streams have been silent for {settle:g} s after {count} samples "
+                            f"and {len(self._completed)} complete run(s): identification needs two "
+                            "steady runs (x(t) and x(t)+q), each ended by the next run's mark or "
+                            "the plan's end")
             self._done(1)
 
     def recordings(self):
@@ -246,9 +283,11 @@ class IdentifierNode(Node):
         status = np.array(self._displacement.status, dtype=np.uint8)
         intervals = intervals_from_marks(self._marks) if self._marks else [(0, -math.inf, math.inf)]
         if self._input == "voltage":  # ch. 10: voltage -> displacement
-            return recordings_from_series(tv, v, td, d, status, intervals, self.get_name(), "V", "m")
+            return recordings_from_series(tv, v, td, d, status, intervals, self.get_name(), "V",
+                                          "m")
         ok = status == Displacement.OK  # ch. 11: u = Phi(x); invalid sensor samples are no input
-        return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, self.get_name(), "m", "V")
+        return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, self.get_name(), "m",
+                                      "V")
 
     # ------------------------------------------------------------------ results
     def _options(self) -> IdentifyOptions:
@@ -256,11 +295,14 @@ class IdentifierNode(Node):
         sign = int(self.get_parameter("input_sign").value)
         k = int(self.get_parameter("steady_periods").value)
         return IdentifyOptions(
-            degree=int(self.get_parameter("degree").value), refine=bool(self.get_parameter("refine").value),
+            degree=int(self.get_parameter("degree").value),
+            refine=bool(self.get_parameter("refine").value),
             input_sign=sign or None, design=DesignPoints(f1=f1, f2=f2, f3=f3),
-            cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value), steady_periods=k or None),
+            cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value),
+                               steady_periods=k or None),
             refinement=RefineOptions(max_rms_fraction=float(self.get_parameter("max_rms").value)),
-            input_name=self._input, output_name="displacement" if self._input == "voltage" else "voltage")
+            input_name=self._input,
+            output_name="displacement" if self._input == "voltage" else "voltage")
 
     def _run_complete(self, run_index: int) -> None:
         try:
@@ -270,12 +312,15 @@ class IdentifierNode(Node):
                 raise IdentificationError(f"{self.get_name()} run {run_index}: no samples")
             cycle = extract_cycle(rec, self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
-            text = str(exc)  # the extraction's messages already name the run ("<node> run <k>: ...")
-            self._set_error(text if f"run {run_index}:" in text else f"{self.get_name()} run {run_index}: {text}")
+            text = str(exc)  # the extraction's messages name the run ("<node> run <k>: ...")
+            self._set_error(text if f"run {run_index}:" in text else f"{self.get_name()} run "
+                                                                     f"{run_index}: {text}")
         else:
             msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
-                             offset=float(self._offsets.get(run_index, 0.0)), period=float(cycle.period),
-                             input=[float(v) for v in cycle.input], output=[float(v) for v in cycle.output])
+                             offset=float(self._offsets.get(run_index, 0.0)),
+                             period=float(cycle.period),
+                             input=[float(v) for v in cycle.input],
+                             output=[float(v) for v in cycle.output])
             self._pub_cycle.publish(msg)
             self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
                                    f"({cycle.periods} periods averaged)")
@@ -308,14 +353,16 @@ class IdentifierNode(Node):
         p = result.parameters
         self._pub_params.publish(BoucWenParameters(
             header=Header(stamp=self.get_clock().now().to_msg()), kappa=[float(k) for k in p.kappa],
-            y0=float(p.y0), kappa_w=float(p.kappa_w), rho=float(p.rho), sigma=float(p.sigma), n=float(p.n),
+            y0=float(p.y0), kappa_w=float(p.kappa_w), rho=float(p.rho), sigma=float(p.sigma),
+            n=float(p.n),
             input_sign=int(p.input_sign), input_name=self._input, rms_error=float(result.rms_error),
             samples=int(result.samples)))
         path = self.get_parameter("output_file").value
         if path:
             save_parameter_set(result.to_parameter_set(name=self.get_parameter("name").value), path)
         self.get_logger().info(
-            f"identified: kappa={list(p.kappa)}, kappa_w={p.kappa_w:.6g}, rho={p.rho:.6g}, sigma={p.sigma:.6g}, "
+            f"identified: kappa={list(p.kappa)}, kappa_w={p.kappa_w:.6g}, rho={p.rho:.6g}, "
+            f"sigma={p.sigma:.6g}, "
             f"n={p.n:.6g}, y0={p.y0:.6g}, input_sign={p.input_sign:+d}, rms={result.rms_error:.3g}"
             + (f"; wrote {path}" if path else ""))
         return result
@@ -325,7 +372,8 @@ class IdentifierNode(Node):
         self.get_logger().error(f"identification failed: {reason}")
 
     # ------------------------------------------------------------------ services
-    def _srv_identify(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    def _srv_identify(self, request: Trigger.Request,
+                      response: Trigger.Response) -> Trigger.Response:
         try:
             result = self.identify_now()
         except (IdentificationError, ModelError, ValueError) as exc:
@@ -333,7 +381,8 @@ class IdentifierNode(Node):
             return response
         p = result.parameters
         response.success = True
-        response.message = (f"kappa={list(p.kappa)} kappa_w={p.kappa_w:.6g} rho={p.rho:.6g} sigma={p.sigma:.6g} "
+        response.message = (f"kappa={list(p.kappa)} kappa_w={p.kappa_w:.6g} rho={p.rho:.6g} "
+                            f"sigma={p.sigma:.6g} "
                             f"n={p.n:.6g} y0={p.y0:.6g} rms={result.rms_error:.3g}")
         return response
 
@@ -344,7 +393,8 @@ class IdentifierNode(Node):
         return response
 
     def _diagnose(self) -> Diagnosis:
-        values = {"voltage_samples": len(self._voltage.t), "displacement_samples": len(self._displacement.t),
+        values = {"voltage_samples": len(self._voltage.t),
+                  "displacement_samples": len(self._displacement.t),
                   "completed_runs": len(self._completed), "identified": self.result is not None}
         if self._error:
             return Diagnosis(ERROR, self._error, values)

@@ -1,6 +1,6 @@
 """`laser_reader` node: a Micro-Epsilon optoNCDT laser sensor on ``displacement``.
 
-Same topic, type, units and QoS as the simulated ``plant`` (DESIGN.md §3): publishes
+Same topic, type, units and QoS as the simulated ``plant`` (docs/design.md §3): publishes
 ``displacement`` (SENSOR_QOS, metres; status != OK carries NaN) and ``/diagnostics``. Frame
 parsing, resynchronisation, error values and link handling are
 :class:`piezo_stage.hardware.sensor.SensorReader`; this node reads it in a thread of its own
@@ -33,16 +33,21 @@ from rclpy.time import Time
 from std_msgs.msg import Header
 
 from piezo_stage.hardware import SampleBlock, SensorConfig, SensorReader, Status, TransportError
+from piezo_stage.hardware.optoncdt import FAMILIES
 from piezo_stage.hardware.timing import SampleClock
 from piezo_stage_msgs.msg import Displacement
 
-from .common import (DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, STALE, WARN, Diagnosis, Diagnostics, declare,
-                     run)
+from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
+from .parameters import declare_table
+from .qos import SENSOR_QOS
+from .runtime import DEFAULT_NAMESPACE, run
+from .spec import Param, ParameterTable
 
 
 @dataclass(frozen=True)
 class Decimated:
-    """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the group's)."""
+    """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the
+    group's)."""
 
     displacement: np.ndarray
     status: np.ndarray
@@ -76,32 +81,46 @@ class Decimator:
         t = t[:used].reshape(groups, self.n)
         bad = s != Status.OK
         any_bad = bad.any(axis=1)
-        status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)], Status.OK).astype(np.uint8)
+        status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)],
+                          Status.OK).astype(np.uint8)
         value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
         stamp = t[:, 0] + (t[:, -1] - t[:, 0]) // 2  # mean time of equally spaced samples
         return Decimated(value, status, stamp)
 
 
+PARAMETERS = ParameterTable("laser_reader", (
+    Param("url", "/dev/ttyUSB0", "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, "
+          "tcp://host:port", read_only=True),
+    Param("baud", 0, "serial baud rate (0: the family's default)", range=(0, 4_000_000),
+          read_only=True),
+    Param("family", "ild1320", "optoNCDT family", choices=tuple(FAMILIES), read_only=True),
+    Param("bits", 0, "output word width (ILD1320 family: 16 or 18; 0: the family's default)",
+          range=(0, 18), read_only=True),
+    Param("measuring_range", 10e-3, "measuring range MR", "m", (1e-6, 10.0), read_only=True),
+    Param("zero_offset", 0.0, "distance from the start of the range published as zero", "m",
+          read_only=True),
+    Param("sign", 1, "+1: away from the sensor is positive; -1: towards it", range=(-1, 1), step=2,
+          read_only=True),
+    Param("decimation", 1, "N samples -> one message (mean of N OK samples)", range=(1, 100000),
+          read_only=True),
+    Param("rate_hz", 1000.0, "the sensor's measuring rate (stamp correction)", "Hz", (1e-3, 1e6),
+          read_only=True),
+    Param("latency", 0.0, "sensor delay subtracted from the reception time", "s", (0.0, 10.0),
+          read_only=True),
+    Param("stamp_window", 2.0, "window of the sample clock's lower envelope (see module docstring)",
+          "s", (0.01, 3600.0), read_only=True),
+    Param("poll_period", 0.002, "longest wait of the read thread's blocking read before it checks "
+          "the link and shutdown (samples are taken as they arrive)", "s", (1e-4, 1.0),
+          read_only=True),
+    Param("stale_timeout", 0.5, "no frame for this long: stale (diagnostics)", "s", (1e-3, 60.0),
+          read_only=True),
+), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
+
+
 class LaserReaderNode(Node):
     def __init__(self) -> None:
         super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE)
-        ro = dict(read_only=True)
-        declare(self, "url", "/dev/ttyUSB0", "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, tcp://host:port", **ro)
-        declare(self, "baud", 0, "serial baud rate (0: the family's default)", lo=0, hi=4_000_000, **ro)
-        declare(self, "family", "ild1320", "optoNCDT family: ild1700|ild1402|ild1320|ild1420|ild2300|ild1750|ild1900", **ro)
-        declare(self, "bits", 0, "output word width (ILD1320 family: 16 or 18; 0: the family's default)", lo=0, hi=18, **ro)
-        declare(self, "measuring_range", 10e-3, "measuring range MR [m]", lo=1e-6, hi=10.0, **ro)
-        declare(self, "zero_offset", 0.0, "distance from the start of the range published as zero [m]", **ro)
-        declare(self, "sign", 1, "+1: away from the sensor is positive; -1: towards it", lo=-1, hi=1, step=2, **ro)
-        declare(self, "decimation", 1, "N samples -> one message (mean of N OK samples)", lo=1, hi=100000, **ro)
-        declare(self, "rate_hz", 1000.0, "the sensor's measuring rate [Hz] (stamp correction)", lo=1e-3, hi=1e6, **ro)
-        declare(self, "latency", 0.0, "sensor delay subtracted from the reception time [s]", lo=0.0, hi=10.0, **ro)
-        declare(self, "stamp_window", 2.0, "window of the sample clock's lower envelope [s] (see module docstring)",
-                lo=0.01, hi=3600.0, **ro)
-        declare(self, "poll_period", 0.002, "longest wait of the read thread's blocking read before it checks the "
-                "link and shutdown [s] (samples are taken as they arrive)", lo=1e-4, hi=1.0, **ro)
-        declare(self, "stale_timeout", 0.5, "no frame for this long: stale (diagnostics) [s]", lo=1e-3, hi=60.0, **ro)
-        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+        p = declare_table(self, PARAMETERS)
 
         config = SensorConfig(p["family"], p["measuring_range"], bits=p["bits"] or None,
                               stale_timeout=p["stale_timeout"])
@@ -120,7 +139,8 @@ class LaserReaderNode(Node):
         self.by_status = {s: 0 for s in Status}
         self.link_errors = 0
         self.last_error = ""
-        self._last_diag = (time.monotonic(), 0, 0, 0, 0)  # (time, frames, published, errors, discarded)
+        self._last_diag = (time.monotonic(), 0, 0, 0,
+                           0)  # (time, frames, published, errors, discarded)
 
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
         # a thread blocked in read() stamps each block when it arrives: a periodic poll would
@@ -132,7 +152,8 @@ class LaserReaderNode(Node):
         self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
         self._thread.start()
         Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
-        self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR {p['measuring_range']:g} m, "
+        self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR "
+                               f"{p['measuring_range']:g} m, "
                                f"decimation {p['decimation']}, rate {self.rate:g} Hz")
 
     def _read_loop(self) -> None:
@@ -173,8 +194,8 @@ class LaserReaderNode(Node):
         value = self.sign * (out.displacement - self.zero_offset)
         for x, status, ns in zip(value, out.status, out.stamp):
             stamp = Time(nanoseconds=int(ns), clock_type=self.get_clock().clock_type)
-            self._pub.publish(Displacement(header=Header(stamp=stamp.to_msg()),
-                                           displacement=float(x) if status == Status.OK else math.nan,
+            value = float(x) if status == Status.OK else math.nan
+            self._pub.publish(Displacement(header=Header(stamp=stamp.to_msg()), displacement=value,
                                            status=int(status)))
             self.by_status[Status(int(status))] += 1
         self.published += len(out.status)
@@ -185,7 +206,8 @@ class LaserReaderNode(Node):
         (t0, frames0, published0, errors0, discarded0), self._last_diag = self._last_diag, now
         dt = max(now[0] - t0, 1e-9)
         values = {"connected": self.connected, "stale": self.reader.stale, "family": self.family,
-                  "frame_rate": (stats.frames - frames0) / dt, "publish_rate": (self.published - published0) / dt,
+                  "frame_rate": (stats.frames - frames0) / dt,
+                  "publish_rate": (self.published - published0) / dt,
                   "frames": stats.frames, "published": self.published,
                   **{f"samples_{s.name.lower()}": n for s, n in self.by_status.items()},
                   "sample_errors": stats.errors, "resync_bytes_discarded": stats.discarded,
@@ -197,7 +219,8 @@ class LaserReaderNode(Node):
             return Diagnosis(STALE, f"no frames for {self.reader.config.stale_timeout:g} s", values)
         errors, discarded = stats.errors - errors0, stats.discarded - discarded0
         if errors or discarded:
-            return Diagnosis(WARN, f"{errors} error value(s), {discarded} byte(s) discarded (resync) "
+            return Diagnosis(WARN,
+                             f"{errors} error value(s), {discarded} byte(s) discarded (resync) "
                              f"in the last {dt:.3g} s", values)
         return Diagnosis(OK, "streaming", values)
 

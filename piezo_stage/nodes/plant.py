@@ -1,6 +1,6 @@
 """`plant` node: the simulated stage, a drop-in for ``voltage_driver`` + ``laser_reader``.
 
-Same topics, types and units as the rig (DESIGN.md §3): subscribes ``voltage_command``,
+Same topics, types and units as the rig (docs/design.md §3): subscribes ``voltage_command``,
 publishes ``voltage`` (what the amplifier applied) and ``displacement`` (the sensor), and
 ``/diagnostics``. The mathematics is :class:`piezo_stage.model.plant.SimulatedStage`
 (amplifier -> Bouc-Wen plant -> sensor); this node only schedules it.
@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from enum import Enum
 
 from builtin_interfaces.msg import Time
 from rclpy.node import Node
@@ -36,42 +37,71 @@ from piezo_stage.config_path import find_config
 from piezo_stage.model.errors import InvalidCommandError
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
+from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import Displacement, Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, LOCKSTEP_QOS, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
-                     TickGrid, declare, run, subscribers_matched)
+from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .parameters import declare_table
+from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
+from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .spec import Param, ParameterTable
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
 
 
+class ClockMode(str, Enum):
+    REALTIME = "realtime"  # a wall timer at rate_hz
+    LOCKSTEP = "lockstep"  # owns /clock: one step per voltage_command
+
+
+PARAMETERS = ParameterTable("plant", (
+    Param("model_file", "ch10_patch.yaml", "parameter-set YAML (name in config/ or path), e.g. "
+          "ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage "
+          "identify --output`", read_only=True),
+    Param("rate_hz", 1000.0, "output (sensor) rate; lockstep: the simulation step", "Hz",
+          (1.0, 1e7), read_only=True),
+    Param("clock_mode", "realtime", "realtime (wall timer) or lockstep (owns /clock)",
+          choices=ClockMode, read_only=True),
+    Param("lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the step's command", "s",
+          (0.0, 3600.0)),
+    Param("wait_for_commander", True, "lockstep: start stepping once a voltage_command publisher "
+          "exists"),
+    Param("wait_for_subscribers", 0, "lockstep: start stepping once displacement and voltage each "
+          "have this many matched subscribers (none of them misses the first samples)",
+          range=(0, 1000), read_only=True),
+    Param("start_time", 0.0, "lockstep: simulated time of the first step", "s", (0.0, 1e9),
+          read_only=True),
+    Param("initial_voltage", 0.0, "command held before the first voltage_command", "V",
+          read_only=True),
+    Param("initial_displacement", 0.0, "initial displacement x(0) (dynamic form)", "m",
+          read_only=True),
+    Param("initial_velocity", 0.0, "initial velocity dx/dt(0) (dynamic form)", "m/s",
+          read_only=True),
+    Param("w0", math.nan, "initial hysteretic state w(0) in [-1, 1] (NaN: the parameter set's)",
+          read_only=True),
+    Param("v_min", -math.inf, "amplifier lower limit", "V", read_only=True),
+    Param("v_max", math.inf, "amplifier upper limit", "V", read_only=True),
+    Param("amplifier_bandwidth_hz", 0.0, "amplifier first-order bandwidth (0: ideal)", "Hz",
+          (0.0, 1e7), read_only=True),
+    Param("amplifier_slew", 0.0, "amplifier slew-rate limit (0: none)", "V/s", (0.0, 1e12),
+          read_only=True),
+    Param("sensor_noise", 0.0, "sensor noise standard deviation", "m", (0.0, 1.0), read_only=True),
+    Param("sensor_resolution", 0.0, "sensor quantisation step (laser: 1e-7)", "m", (0.0, 1.0),
+          read_only=True),
+    Param("sensor_min", -math.inf, "start of the measuring range (below: TOO_CLOSE)", "m",
+          read_only=True),
+    Param("sensor_max", math.inf, "end of the measuring range (above: TOO_FAR)", "m",
+          read_only=True),
+    Param("seed", 0, "noise seed", range=(0, 2**31 - 1), read_only=True),
+),
+summary="Simulated stage: the Bouc-Wen plant with the real stage's topics (realtime or lockstep).")
+
+
 class PlantNode(Node):
     def __init__(self) -> None:
         super().__init__("plant", namespace=DEFAULT_NAMESPACE)
-        declare(self, "model_file", "ch10_patch.yaml", "parameter-set YAML (name in config/ or path), "
-                "e.g. ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage identify --output`",
-                read_only=True)
-        declare(self, "rate_hz", 1000.0, "output (sensor) rate [Hz]; lockstep: the simulation step", lo=1.0, hi=1e7, read_only=True)
-        declare(self, "clock_mode", "realtime", "realtime (wall timer) | lockstep (owns /clock)", read_only=True)
-        declare(self, "lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the step's command", lo=0.0, hi=3600.0)
-        declare(self, "wait_for_commander", True, "lockstep: start stepping once a voltage_command publisher exists")
-        declare(self, "wait_for_subscribers", 0, "lockstep: start stepping once displacement and voltage each have "
-                "this many matched subscribers (none of them misses the first samples)", lo=0, hi=1000, read_only=True)
-        declare(self, "start_time", 0.0, "lockstep: simulated time of the first step [s]", lo=0.0, hi=1e9, read_only=True)
-        declare(self, "initial_voltage", 0.0, "command held before the first voltage_command [V]", read_only=True)
-        declare(self, "x0", 0.0, "initial displacement x(0) [m] (dynamic form)", read_only=True)
-        declare(self, "xdot0", 0.0, "initial velocity [m/s] (dynamic form)", read_only=True)
-        declare(self, "w0", math.nan, "initial hysteretic state w(0) in [-1, 1] (NaN: the parameter set's)", read_only=True)
-        declare(self, "v_min", -math.inf, "amplifier lower limit [V]", read_only=True)
-        declare(self, "v_max", math.inf, "amplifier upper limit [V]", read_only=True)
-        declare(self, "amplifier_bandwidth_hz", 0.0, "amplifier first-order bandwidth [Hz] (0: ideal)", lo=0.0, hi=1e7, read_only=True)
-        declare(self, "amplifier_slew", 0.0, "amplifier slew-rate limit [V/s] (0: none)", lo=0.0, hi=1e12, read_only=True)
-        declare(self, "sensor_noise", 0.0, "sensor noise standard deviation [m]", lo=0.0, hi=1.0, read_only=True)
-        declare(self, "sensor_resolution", 0.0, "sensor quantisation step [m] (laser: 1e-7)", lo=0.0, hi=1.0, read_only=True)
-        declare(self, "sensor_min", -math.inf, "start of the measuring range [m] (below: TOO_CLOSE)", read_only=True)
-        declare(self, "sensor_max", math.inf, "end of the measuring range [m] (above: TOO_FAR)", read_only=True)
-        declare(self, "seed", 0, "noise seed", lo=0, hi=2**31 - 1, read_only=True)
-        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+        p = declare_table(self, PARAMETERS)
 
         path = find_config(p["model_file"])
         self.parameter_set = load_parameter_set(path)
@@ -79,10 +109,13 @@ class PlantNode(Node):
         self.stage = SimulatedStage(
             self.parameter_set,
             amplifier=AmplifierModel(v_min=p["v_min"], v_max=p["v_max"],
-                                     bandwidth_hz=p["amplifier_bandwidth_hz"], slew_rate=p["amplifier_slew"]),
+                                     bandwidth_hz=p["amplifier_bandwidth_hz"],
+                                     slew_rate=p["amplifier_slew"]),
             sensor=SensorModel(noise_std=p["sensor_noise"], resolution=p["sensor_resolution"],
-                               range_min=p["sensor_min"], range_max=p["sensor_max"], seed=p["seed"]),
-            x0=p["x0"], xdot0=p["xdot0"], w0=w0, initial_voltage=p["initial_voltage"])
+                               range_min=p["sensor_min"], range_max=p["sensor_max"],
+                               seed=p["seed"]),
+            x0=p["initial_displacement"], xdot0=p["initial_velocity"], w0=w0,
+            initial_voltage=p["initial_voltage"])
         self.dt = 1.0 / p["rate_hz"]
         self.mode = p["clock_mode"]
         self._command = float(p["initial_voltage"])
@@ -112,20 +145,20 @@ class PlantNode(Node):
             self._sample_first = False
             self._timeout = float(p["lockstep_timeout"])
             self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
-        elif self.mode == "realtime":
+        else:
             self._dt_ns = int(round(self.dt * 1e9))
             self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
             self.create_timer(self.dt, self._realtime_tick)
-        else:
-            raise ValueError(f"clock_mode must be realtime or lockstep, got {self.mode!r}")
         self.get_logger().info(
-            f"{self.parameter_set.name} ({self.parameter_set.form}) at {p['rate_hz']:g} Hz, clock {self.mode}")
+            f"{self.parameter_set.name} ({self.parameter_set.form}) at {p['rate_hz']:g} Hz, clock "
+            f"{self.mode}")
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
         if not math.isfinite(msg.voltage):
             self._rejected += 1
-            self.get_logger().warn(f"rejected non-finite voltage command {msg.voltage}: holding {self._command:g} V",
+            self.get_logger().warn(f"rejected non-finite voltage command {msg.voltage}: holding "
+                                   f"{self._command:g} V",
                                    throttle_duration_sec=1.0)
             if self.mode == "lockstep" and self._matches_step(msg):
                 self._advance()  # the commander answered this step: do not wait for a timeout
@@ -179,9 +212,11 @@ class PlantNode(Node):
 
     def _lockstep_watch(self) -> None:
         if not self._started:
-            if self.get_parameter("wait_for_commander").value and self.count_publishers("voltage_command") == 0:
+            if self.get_parameter("wait_for_commander").value \
+                    and self.count_publishers("voltage_command") == 0:
                 return
-            if not subscribers_matched((self._pub_x, self._pub_v), self.get_parameter("wait_for_subscribers").value):
+            if not subscribers_matched((self._pub_x, self._pub_v),
+                                       self.get_parameter("wait_for_subscribers").value):
                 return
             self._started = True
             self._sample_first = self._commander_reads_samples()
@@ -196,7 +231,8 @@ class PlantNode(Node):
             return
         if self._timeout > 0 and waited > self._timeout:
             self._late += 1
-            self.get_logger().warn(f"no command for step {self._k} after {self._timeout:g} s: advancing "
+            self.get_logger().warn(f"no command for step {self._k} after {self._timeout:g} s: "
+                                   "advancing "
                                    f"with {self._command:g} V held", throttle_duration_sec=5.0)
             self._advance()
 
@@ -204,7 +240,7 @@ class PlantNode(Node):
     def _step(self, dt: float) -> None:
         try:
             self._applied, self._x, self._status = self.stage.step(self._command, dt)
-        except InvalidCommandError as exc:  # the stage itself refuses: hold (cannot happen after the check above)
+        except InvalidCommandError as exc:  # the stage refuses: hold (not after the check above)
             self.get_logger().error(str(exc))
         self._steps += 1
 
@@ -223,12 +259,15 @@ class PlantNode(Node):
     def _diagnose(self) -> Diagnosis:
         dropped = self._grid.dropped if self._grid is not None else 0
         elapsed = time.monotonic() - self._started_wall
-        values = {"model": self.parameter_set.name, "form": self.parameter_set.form, "clock_mode": self.mode,
+        values = {"model": self.parameter_set.name, "form": self.parameter_set.form,
+                  "clock_mode": self.mode,
                   "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
-                  "command": self._command, "rejected_commands": self._rejected, "late_steps": self._late,
+                  "command": self._command, "rejected_commands": self._rejected,
+                  "late_steps": self._late,
                   "dropped_samples": dropped}
         if self._late or self._rejected or dropped:
-            return Diagnosis(WARN, f"{self._late} late step(s), {self._rejected} rejected command(s), "
+            return Diagnosis(WARN,
+                             f"{self._late} late step(s), {self._rejected} rejected command(s), "
                              f"{dropped} dropped sample(s)", values)
         return Diagnosis(OK, "simulating", values)
 

@@ -37,26 +37,15 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import SetBool, Trigger
 
 from piezo_stage.bag import BagError, bag_info, read_raw
+from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 
-from .common import COMMAND_QOS, DEFAULT_NAMESPACE, declare, run, subscribers_matched
-from .recorder import MessageTypeError, message_type, string_array
+from .parameters import declare_table
+from .qos import COMMAND_QOS
+from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .spec import Kind, Param, ParameterTable
+from .topics import MessageTypeError, message_type
 
 CLOCK_TOPIC = "/clock"
-
-
-class PlayerError(ValueError):
-    """A player parameter is invalid (unknown topic in the filter, malformed remap, ...)."""
-
-
-def parse_remaps(items: Sequence[str]) -> dict[str, str]:
-    """``["from:=to", ...]`` -> ``{from: to}``."""
-    remaps: dict[str, str] = {}
-    for item in items:
-        src, sep, dst = item.partition(":=")
-        if not sep or not src.strip() or not dst.strip():
-            raise PlayerError(f"remap {item!r} is not of the form 'from:=to'")
-        remaps[src.strip()] = dst.strip()
-    return remaps
 
 
 def playback_qos(profiles: Sequence[dict[str, Any]], queue_depth: int) -> QoSProfile:
@@ -73,41 +62,6 @@ def playback_qos(profiles: Sequence[dict[str, Any]], queue_depth: int) -> QoSPro
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-class PlaybackClock:
-    """Bag time [ns] as a function of wall time [s, monotonic]: ``start_ns`` at ``resume()``,
-    advancing ``rate`` times faster than the wall clock, frozen while paused. Not thread safe:
-    the owner holds a lock."""
-
-    def __init__(self, start_ns: int, rate: float, paused: bool = False) -> None:
-        if rate <= 0:
-            raise PlayerError(f"a playback clock needs rate > 0, got {rate}")
-        self.rate = rate
-        self._bag_ns = start_ns          # bag time at the last pause / resume
-        self._wall: float | None = None  # wall time of the last resume (None = paused)
-        self.paused = True
-        if not paused:
-            self.resume(time.monotonic())
-
-    def now(self, wall: float) -> int:
-        if self._wall is None:
-            return self._bag_ns
-        return self._bag_ns + int((wall - self._wall) * self.rate * 1e9)
-
-    def due(self, bag_ns: int) -> float | None:
-        """Wall time at which ``bag_ns`` is reached; None while paused."""
-        if self._wall is None:
-            return None
-        return self._wall + (bag_ns - self._bag_ns) / (self.rate * 1e9)
-
-    def pause(self, wall: float) -> None:
-        if not self.paused:
-            self._bag_ns, self._wall, self.paused = self.now(wall), None, True
-
-    def resume(self, wall: float) -> None:
-        if self.paused:
-            self._wall, self.paused = wall, False
-
-
 @dataclass
 class _Output:
     topic: str
@@ -120,53 +74,60 @@ def _time_msg(t_ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
+PARAMETERS = ParameterTable("player", (
+    Param("bag", "", "rosbag2 folder or .mcap file to play", read_only=True),
+    Param("rate", 1.0, "playback speed (1 = as recorded, 0 = as fast as possible)",
+          range=(0.0, 1000.0), read_only=True),
+    Param("publish_clock", False, "publish /clock with bag time", read_only=True),
+    Param("clock_rate_hz", 100.0, "/clock rate in wall time (0 = before every message)", "Hz",
+          (0.0, 100000.0), read_only=True),
+    Param("start_offset", 0.0, "start this long after the bag's first message", "s", (0.0, 1e9),
+          read_only=True),
+    Param("duration", 0.0, "play this much bag time (0 = to the end)", "s", (0.0, 1e9),
+          read_only=True),
+    Param("loop", False, "start again at the end", read_only=True),
+    Param("topics", [], "play only these topics (default all)", kind=Kind.STRING_ARRAY,
+          read_only=True),
+    Param("remap", [], "topic remappings, 'from:=to'", kind=Kind.STRING_ARRAY, read_only=True),
+    Param("queue_depth", 1000, "least publisher depth of volatile topics", range=(1, 1_000_000),
+          read_only=True),
+    Param("start_paused", False, "wait for ~/resume before playing", read_only=True),
+    Param("wait_for_subscribers", 0, "before playing, wait until every topic has this many "
+          "subscribers", range=(0, 1000), read_only=True),
+    Param("wait_timeout", 10.0, "longest wait for subscribers", "s", (0.0, 1e6), read_only=True),
+    Param("drain_timeout", 30.0, "at the end, longest wait for reliable subscribers to acknowledge "
+          "every message (a busy subscriber must not lose the tail)", "s", (0.0, 1e6),
+          read_only=True),
+), summary="Replays a rosbag2 (MCAP) folder or a plain .mcap file.")
+
+
 class PlayerNode(Node):
     def __init__(self) -> None:
         super().__init__("player", namespace=DEFAULT_NAMESPACE)
-        bag = declare(self, "bag", "", "rosbag2 folder or .mcap file to play", read_only=True)
-        self.rate = declare(self, "rate", 1.0, "playback speed (1 = as recorded, 0 = as fast as "
-                            "possible)", lo=0.0, hi=1000.0, read_only=True)
-        self.publish_clock = declare(self, "publish_clock", False, "publish /clock with bag time",
-                                     read_only=True)
-        self.clock_rate_hz = declare(self, "clock_rate_hz", 100.0, "[Hz] /clock rate in wall time "
-                                     "(0 = before every message)", lo=0.0, hi=100000.0, read_only=True)
-        start_offset = declare(self, "start_offset", 0.0, "[s] start this long after the bag's "
-                               "first message", lo=0.0, hi=1e9, read_only=True)
-        duration = declare(self, "duration", 0.0, "[s] play this much bag time (0 = to the end)",
-                           lo=0.0, hi=1e9, read_only=True)
-        self.loop = declare(self, "loop", False, "start again at the end", read_only=True)
-        topics = string_array(self, "topics", "play only these topics (default all)")
-        remaps = string_array(self, "remap", "topic remappings, 'from:=to'")
-        queue_depth = declare(self, "queue_depth", 1000, "least publisher depth of volatile topics",
-                              lo=1, hi=1_000_000, read_only=True)
-        paused = declare(self, "start_paused", False, "wait for ~/resume before playing",
-                         read_only=True)
-        self.wait_for_subscribers = declare(
-            self, "wait_for_subscribers", 0, "before playing, wait until every topic has this many "
-            "subscribers", lo=0, hi=1000, read_only=True)
-        self.wait_timeout = declare(self, "wait_timeout", 10.0, "[s] longest wait for subscribers",
-                                    lo=0.0, hi=1e6, read_only=True)
-        self.drain_timeout = declare(
-            self, "drain_timeout", 30.0, "[s] at the end, longest wait for reliable subscribers to "
-            "acknowledge every message (a busy subscriber must not lose the tail)", lo=0.0, hi=1e6,
-            read_only=True)
+        p = declare_table(self, PARAMETERS)
+        bag, topics, remaps, queue_depth = p["bag"], p["topics"], p["remap"], p["queue_depth"]
+        start_offset, duration, paused = p["start_offset"], p["duration"], p["start_paused"]
+        self.rate, self.publish_clock = p["rate"], p["publish_clock"]
+        self.clock_rate_hz = p["clock_rate_hz"]
+        self.loop, self.wait_for_subscribers = p["loop"], p["wait_for_subscribers"]
+        self.wait_timeout, self.drain_timeout = p["wait_timeout"], p["drain_timeout"]
 
         if not bag:
-            raise PlayerError("parameter 'bag' (rosbag2 folder or .mcap file) is required")
+            raise PlaybackError("parameter 'bag' (rosbag2 folder or .mcap file) is required")
         self.bag_path = Path(bag)
         try:
             info = bag_info(self.bag_path)
         except BagError as exc:
-            raise PlayerError(str(exc)) from None
+            raise PlaybackError(str(exc)) from None
         wanted = {self._absolute(t) for t in topics}
         unknown = sorted(wanted - set(info["topics"]))
         if unknown:
-            raise PlayerError(f"topics {unknown} are not in {self.bag_path}; it has "
+            raise PlaybackError(f"topics {unknown} are not in {self.bag_path}; it has "
                               f"{sorted(info['topics'])}")
         remap = {self._absolute(k): v for k, v in parse_remaps(remaps).items()}
         unknown = sorted(set(remap) - set(info["topics"]))
         if unknown:
-            raise PlayerError(f"remapped topics {unknown} are not in {self.bag_path}")
+            raise PlaybackError(f"remapped topics {unknown} are not in {self.bag_path}")
 
         self._outputs: dict[str, _Output] = {}
         for name, topic in info["topics"].items():
@@ -225,7 +186,8 @@ class PlayerNode(Node):
         response.success, response.message = True, "playing"
         return response
 
-    def _srv_set_paused(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+    def _srv_set_paused(self, request: SetBool.Request,
+                        response: SetBool.Response) -> SetBool.Response:
         self.set_paused(bool(request.data))
         response.success, response.message = True, "paused" if request.data else "playing"
         return response
@@ -263,7 +225,8 @@ class PlayerNode(Node):
             return
         deadline = time.monotonic() + self.wait_timeout
         while not self._stop and time.monotonic() < deadline:
-            if subscribers_matched([o.publisher for o in self._outputs.values()], self.wait_for_subscribers):
+            if subscribers_matched([o.publisher for o in self._outputs.values()],
+                                   self.wait_for_subscribers):
                 return
             time.sleep(0.02)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")

@@ -1,6 +1,6 @@
 """`recorder` node: records the topics of its namespace to a rosbag2 (MCAP) bag.
 
-What it records: by default every topic of the interface contract (DESIGN.md §3) under the
+What it records: by default every topic of the interface contract (docs/design.md §3) under the
 node's namespace that has a publisher, plus ``/clock`` and ``/diagnostics``; or the topics of
 the ``topics`` parameter and/or those whose fully qualified name matches ``topic_regex``.
 Topics that appear later are picked up by a graph poll every ``discovery_period`` seconds.
@@ -28,34 +28,30 @@ Services: ``~/start``, ``~/stop`` (pause; the bag stays open) and ``~/split`` (s
 
 from __future__ import annotations
 
-import importlib
-import os
 import re
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
 from std_srvs.srv import Trigger
 
 from piezo_stage.bag import BagError, BagWriter, qos_from_profile
 
-from .common import DEFAULT_NAMESPACE, ERROR, OK, WARN, Diagnosis, Diagnostics, declare, run
+from .dds import use_recorder_transport_profile
+from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .parameters import declare_table
+from .qos import adapted_qos
+from .runtime import DEFAULT_NAMESPACE, run
+from .spec import Kind, Param, ParameterTable
+from .topics import CONTRACT_TOPICS, GLOBAL_TOPICS, MessageTypeError, message_type
 
-#: topics of the interface contract (DESIGN.md §3), relative to the recorder's namespace
-CONTRACT_TOPICS = ("voltage_command", "voltage", "displacement", "reference", "controller_state",
-                   "excitation", "limit_cycles", "bouc_wen_parameters")
-#: global topics recorded by default besides the namespace's
-GLOBAL_TOPICS = ("/clock", "/diagnostics")
 #: most messages one callback takes from its subscription before yielding to the executor
 BATCH = 2000
 COMPRESSIONS = {"none": None, "zstd": "zstd"}
@@ -65,47 +61,9 @@ class RecorderError(ValueError):
     """A recorder parameter is invalid (compression, regex, sizes)."""
 
 
-class MessageTypeError(LookupError):
-    """A topic's message type has no importable Python class."""
-
-
-def message_type(type_name: str) -> type:
-    """The rclpy message class of ``pkg/msg/Name`` (imported from ``pkg.msg``)."""
-    parts = type_name.split("/")
-    if len(parts) == 2:
-        parts.insert(1, "msg")
-    if len(parts) != 3 or not all(parts):
-        raise MessageTypeError(f"invalid message type name {type_name!r}")
-    package, namespace, name = parts
-    try:
-        return getattr(importlib.import_module(f"{package}.{namespace}"), name)
-    except (ImportError, AttributeError) as exc:
-        raise MessageTypeError(f"cannot import message type {type_name}: {exc}") from None
-
-
 def default_bag_name(now: float | None = None) -> str:
     """rosbag2's default folder name: ``rosbag2_YYYY_MM_DD-HH_MM_SS`` (local time)."""
     return time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S", time.localtime(now))
-
-
-def adapted_qos(offers: Sequence[QoSProfile], queue_depth: int) -> QoSProfile:
-    """Subscription QoS that matches every offer (rosbag2's adapt_request_to_offers): reliable
-    if all publishers are reliable, transient-local if all are; KEEP_ALL when reliable."""
-    reliable = bool(offers) and all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
-    latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
-    durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
-    if reliable:
-        return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=queue_depth,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=durability)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=queue_depth,
-                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=durability)
-
-
-def string_array(node: Node, name: str, description: str) -> list[str]:
-    """Declare a string-array parameter whose default is empty; return its value."""
-    value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY,
-                                   ParameterDescriptor(description=description, read_only=True)).value
-    return list(value or [])
 
 
 @dataclass
@@ -149,50 +107,54 @@ class _Slot:
         self.stats.lost_dds += int(status.total_count_change)
 
 
+PARAMETERS = ParameterTable("recorder", (
+    Param("bag", "", "output bag folder ('' = rosbag2_<date>-<time> in the working directory)",
+          read_only=True),
+    Param("compression", "none", "MCAP chunk compression", choices=tuple(COMPRESSIONS),
+          read_only=True),
+    Param("max_bag_size", 0, "split the bag at this file size (0 = never)", "bytes", (0, 2**62),
+          read_only=True),
+    Param("max_bag_duration", 0.0, "split the bag at this span of receive time (0 = never)", "s",
+          (0.0, 1e9), read_only=True),
+    Param("flush_period", 1.0, "complete the chunk and refresh metadata.yaml this often (what "
+          "survives a crash)", "s", (0.01, 3600.0), read_only=True),
+    Param("start_paused", False, "open the bag but write nothing until ~/start", read_only=True),
+    Param("queue_depth", 1000, "KEEP_LAST depth of best-effort subscriptions (reliable ones keep "
+          "all)", range=(1, 1_000_000), read_only=True),
+    Param("discovery_period", 0.5, "graph poll for new topics", "s", (0.01, 60.0), read_only=True),
+    Param("diagnostics_period", 1.0, "/diagnostics period", "s", (0.01, 3600.0), read_only=True),
+    Param("topics", [], "topics to record (relative names are in the node's namespace); empty = "
+          "the contract's topics + /clock + /diagnostics", kind=Kind.STRING_ARRAY, read_only=True),
+    Param("topic_regex", "", "also record every topic whose fully qualified name matches this "
+          "regular expression (re.search)", read_only=True),
+), summary="Records the topics of its namespace to a rosbag2 (MCAP) bag.")
+
+
 class RecorderNode(Node):
     def __init__(self) -> None:
         super().__init__("recorder", namespace=DEFAULT_NAMESPACE)
-        bag = declare(self, "bag", "", "output bag folder ('' = rosbag2_<date>-<time> in the "
-                      "working directory)", read_only=True)
-        compression = declare(self, "compression", "none", "none | zstd (MCAP chunk compression)",
-                              read_only=True)
-        max_size = declare(self, "max_bag_size", 0, "[bytes] split the bag at this file size "
-                           "(0 = never)", lo=0, hi=2**62, read_only=True)
-        max_duration = declare(self, "max_bag_duration", 0.0, "[s] split the bag at this span "
-                               "of receive time (0 = never)", lo=0.0, hi=1e9, read_only=True)
-        flush_period = declare(self, "flush_period", 1.0, "[s] complete the chunk and refresh "
-                               "metadata.yaml this often (what survives a crash)",
-                               lo=0.01, hi=3600.0, read_only=True)
-        paused = declare(self, "start_paused", False, "open the bag but write nothing until ~/start",
-                         read_only=True)
-        self._queue_depth = declare(self, "queue_depth", 1000, "KEEP_LAST depth of best-effort "
-                                    "subscriptions (reliable ones keep all)", lo=1, hi=1_000_000,
-                                    read_only=True)
-        period = declare(self, "discovery_period", 0.5, "[s] graph poll for new topics",
-                         lo=0.01, hi=60.0, read_only=True)
-        diagnostics_period = declare(self, "diagnostics_period", 1.0, "[s] /diagnostics period",
-                                     lo=0.01, hi=3600.0, read_only=True)
-        topics = string_array(self, "topics", "topics to record (relative names are in the "
-                              "node's namespace); empty = the contract's topics + /clock + /diagnostics")
-        regex = declare(self, "topic_regex", "", "also record every topic whose fully qualified "
-                        "name matches this regular expression (re.search)", read_only=True)
+        p = declare_table(self, PARAMETERS)
+        compression, regex, topics = p["compression"], p["topic_regex"], p["topics"]
+        flush_period, period = p["flush_period"], p["discovery_period"]
+        self._queue_depth = p["queue_depth"]
 
-        if compression not in COMPRESSIONS:
-            raise RecorderError(f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}")
         try:
             self._regex = re.compile(regex) if regex else None
         except re.error as exc:
-            raise RecorderError(f"topic_regex {regex!r} is not a valid regular expression: {exc}") from None
+            raise RecorderError(f"topic_regex {regex!r} is not a valid regular expression: "
+                                f"{exc}") from None
         self._explicit = {self.resolve_topic_name(t) for t in topics}
         if not self._explicit and self._regex is None:
-            self._explicit = {self.resolve_topic_name(t) for t in CONTRACT_TOPICS} | set(GLOBAL_TOPICS)
+            self._explicit = ({self.resolve_topic_name(t) for t in CONTRACT_TOPICS}
+                              | set(GLOBAL_TOPICS))
 
-        self.bag_path = Path(bag or default_bag_name()).absolute()
+        self.bag_path = Path(p["bag"] or default_bag_name()).absolute()
         self.writer = BagWriter(self.bag_path, compression=COMPRESSIONS[compression],
-                                max_bag_size=max_size, max_bag_duration_s=max_duration,
+                                max_bag_size=p["max_bag_size"],
+                                max_bag_duration_s=p["max_bag_duration"],
                                 flush_period_s=flush_period,
                                 custom_data={"recorder": self.get_fully_qualified_name()})
-        self.paused = bool(paused)
+        self.paused = bool(p["start_paused"])
         self.finished = False
         self._slots: dict[str, _Slot] = {}
         self._skipped: set[str] = set()  # topics that cannot be recorded (said once)
@@ -205,14 +167,15 @@ class RecorderNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # sim time may stop or race
         self.create_timer(flush_period, self._flush, clock=steady)
         self.create_timer(period, self.discover, clock=steady)
-        self._diagnostics = Diagnostics(self, "recorder", self._diagnose, diagnostics_period)
+        self._diagnostics = Diagnostics(self, "recorder", self._diagnose, p["diagnostics_period"])
         self.get_logger().info(f"recording to {self.bag_path}"
                                + (" (paused: call ~/start)" if self.paused else ""))
         self.discover()
 
     # ------------------------------------------------------------------ topic selection
     def wanted(self, topic: str) -> bool:
-        return topic in self._explicit or (self._regex is not None and self._regex.search(topic) is not None)
+        return topic in self._explicit \
+            or (self._regex is not None and self._regex.search(topic) is not None)
 
     def discover(self) -> None:
         """Subscribe to wanted topics that have publishers; adapt QoS to new offers."""
@@ -371,7 +334,8 @@ class RecorderNode(Node):
         stats = self.stats()
         values: dict[str, Any] = {"bag": str(self.bag_path),
                                   "state": "paused" if self.paused else "recording",
-                                  "topics": len(stats), "written": sum(s.written for s in stats.values())}
+                                  "topics": len(stats),
+                                  "written": sum(s.written for s in stats.values())}
         for name, s in sorted(stats.items()):
             values[f"{name} received"] = s.received
             values[f"{name} written"] = s.written
@@ -383,7 +347,8 @@ class RecorderNode(Node):
         if self._error:
             return Diagnosis(ERROR, f"write error: {self._error}", values)
         if dropped or lost:
-            return Diagnosis(WARN, f"{dropped} dropped, {lost} lost before reaching the recorder", values)
+            return Diagnosis(WARN, f"{dropped} dropped, {lost} lost before reaching the recorder",
+                             values)
         return Diagnosis(OK, "paused" if self.paused else f"recording {len(stats)} topics", values)
 
     def on_shutdown(self) -> None:
@@ -401,58 +366,12 @@ class RecorderNode(Node):
         lost = {name: s.lost for name, s in sorted(stats.items()) if s.lost}
         text = f"bag {self.bag_path} closed: {total} messages on {len(self._slots)} topics"
         if dropped or lost:  # the bag is incomplete: say so where a user (and the demo) looks
-            self.get_logger().warning(text + f", {dropped} dropped, {sum(lost.values())} lost before reaching the "
-                                      "recorder" + "".join(f"; {name}: {n} lost" for name, n in lost.items()))
+            self.get_logger().warning(text + f", {dropped} dropped, {sum(lost.values())} lost "
+                                             "before reaching the "
+                                      "recorder" + "".join(f"; {name}: {n} lost" for name,
+                                                           n in lost.items()))
         else:
             self.get_logger().info(text + ", none lost")
-
-
-#: Fast DDS profile of the recorder's participant: the built-in transports (shared memory and
-#: UDPv4), with a shared-memory port queue 32x deeper than the default 512 descriptors. With
-#: the default, a burst from a fast publisher overflows the port while the recorder's process
-#: waits for the CPU; the lost samples are then repaired only at the writer's next heartbeat
-#: (3 s in Fast DDS), which stalls a reliable publisher for seconds.
-FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <transport_descriptors>
-    <transport_descriptor>
-      <transport_id>piezo_recorder_shm</transport_id>
-      <type>SHM</type>
-      <segment_size>16777216</segment_size>
-      <port_queue_capacity>16384</port_queue_capacity>
-    </transport_descriptor>
-    <transport_descriptor>
-      <transport_id>piezo_recorder_udp</transport_id>
-      <type>UDPv4</type>
-    </transport_descriptor>
-  </transport_descriptors>
-  <participant profile_name="piezo_recorder" is_default_profile="true">
-    <rtps>
-      <userTransports>
-        <transport_id>piezo_recorder_shm</transport_id>
-        <transport_id>piezo_recorder_udp</transport_id>
-      </userTransports>
-      <useBuiltinTransports>false</useBuiltinTransports>
-    </rtps>
-  </participant>
-</profiles>
-"""
-_PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
-
-
-def use_recorder_transport_profile() -> Path | None:
-    """Point Fast DDS at :data:`FASTDDS_PROFILE` (written to the temp folder) unless another
-    RMW is chosen or the user set a Fast DDS profile of their own. Call before rclpy.init."""
-    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp" \
-            or any(os.environ.get(v) for v in _PROFILE_VARS):
-        return None
-    path = Path(tempfile.gettempdir()) / f"piezo_stage_recorder_fastdds_{os.getuid()}.xml"
-    if not path.is_file() or path.read_text(encoding="utf-8") != FASTDDS_PROFILE:
-        tmp = path.with_name(f"{path.name}.{os.getpid()}")
-        tmp.write_text(FASTDDS_PROFILE, encoding="utf-8")
-        os.replace(tmp, path)
-    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(path)
-    return path
 
 
 def main(args: list[str] | None = None) -> int:

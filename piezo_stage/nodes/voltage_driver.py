@@ -1,6 +1,6 @@
 """`voltage_driver` node: the amplifier (PI GCS2 or Thorlabs MDT69x) behind ``voltage_command``.
 
-Same topics, types, units and QoS as the simulated ``plant`` (DESIGN.md §3): subscribes
+Same topics, types, units and QoS as the simulated ``plant`` (docs/design.md §3): subscribes
 ``voltage_command`` (COMMAND_QOS), publishes ``voltage`` (SENSOR_QOS: the value the device
 acknowledged, stamped when it was sent — before the ``ERR?`` round trip that confirms it — and
 the device read-back every 1/readback_rate_hz s) and ``/diagnostics``. Every safety rule lives in
@@ -38,47 +38,78 @@ from rclpy.node import Node
 from rclpy.time import Time
 from std_msgs.msg import Header
 
-from piezo_stage.hardware import (ConfigError, DriverConfig, DriverState, HardwareError, NonFiniteVoltageError,
-                                  VoltageDriver, make_amplifier)
+from piezo_stage.hardware import (
+    ConfigError,
+    DriverConfig,
+    DriverState,
+    HardwareError,
+    NonFiniteVoltageError,
+    VoltageDriver,
+    make_amplifier,
+)
+from piezo_stage.hardware.amplifier import AMPLIFIERS
 from piezo_stage.hardware.timing import CommandPlayout, set_realtime_priority
 from piezo_stage_msgs.msg import Voltage
 
-from .common import (COMMAND_QOS, DEFAULT_NAMESPACE, ERROR, OK, SENSOR_QOS, WARN, Diagnosis, Diagnostics,
-                     declare, run, stamp_to_s, wall_clock)
+from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .parameters import declare_table
+from .qos import COMMAND_QOS, SENSOR_QOS
+from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, wall_clock
+from .spec import Param, ParameterTable
+
+PARAMETERS = ParameterTable("voltage_driver", (
+    Param("backend", "gcs", "amplifier protocol: gcs (PI E-709/E-625/E-727) or mdt69x (Thorlabs)",
+          choices=tuple(AMPLIFIERS), read_only=True),
+    Param("url", "tcp://127.0.0.1:50000", "link: tcp://host:port, /dev/ttyUSB0, "
+          "serial:///dev/ttyUSB0?baudrate=115200", read_only=True),
+    Param("baud", 0, "serial baud rate (0: the backend's default)", range=(0, 4_000_000),
+          read_only=True),
+    Param("axis", "", "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)",
+          read_only=True),
+    Param("channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", range=(1, 64), read_only=True),
+    Param("io_timeout", 0.5, "reply timeout of one device exchange", "s", (0.01, 10.0),
+          read_only=True),
+    Param("v_min", 0.0, "configured lower limit (intersected with the device's)", "V",
+          read_only=True),
+    Param("v_max", 100.0, "configured upper limit (intersected with the device's)", "V",
+          read_only=True),
+    Param("safe_voltage", 0.0, "voltage after a watchdog timeout and on shutdown", "V",
+          read_only=True),
+    Param("slew_rate", 0.0, "slew-rate limit (0: none)", "V/s", (0.0, 1e9), read_only=True),
+    Param("command_timeout", 0.5, "watchdog: ramp to safe_voltage after this long without a "
+          "command (0: off)", "s", (0.0, 3600.0), read_only=True),
+    Param("watchdog_period", 0.01, "period of the watchdog timer (wall clock)", "s", (1e-3, 1.0),
+          read_only=True),
+    Param("readback_rate_hz", 20.0, "rate of the device read-back published on voltage (0: off)",
+          "Hz", (0.0, 1000.0), read_only=True),
+    Param("max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node "
+          "clock (0: off)", "s", (0.0, 3600.0), read_only=True),
+    Param("apply_at_stamp", False, "apply each command at its stamp + command_delay (wall clock) "
+          "instead of on arrival: open-loop runs without the transport's latency jitter",
+          read_only=True),
+    Param("command_delay", 0.0, "with apply_at_stamp: added to the stamps", "s", (0.0, 10.0),
+          read_only=True),
+    Param("hold_period", 0.0, "with apply_at_stamp: write values interpolated between queued "
+          "commands every hold_period s (first-order hold; 0: hold each command)", "s", (0.0, 1.0),
+          read_only=True),
+    Param("realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
+          "the executor's thread (1-99, when the system allows it; 0: normal)", range=(0, 99),
+          read_only=True),
+    Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round",
+          range=(0, 100), read_only=True),
+),
+summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, with "
+        "limits, slew "
+   "and watchdog.")
 
 
 class VoltageDriverNode(Node):
     def __init__(self) -> None:
         super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE)
-        ro = dict(read_only=True)
-        declare(self, "backend", "gcs", "amplifier protocol: gcs (PI E-709/E-625/E-727) | mdt69x (Thorlabs)", **ro)
-        declare(self, "url", "tcp://127.0.0.1:50000", "link: tcp://host:port, /dev/ttyUSB0, serial:///dev/ttyUSB0?baudrate=115200", **ro)
-        declare(self, "baud", 0, "serial baud rate (0: the backend's default)", lo=0, hi=4_000_000, **ro)
-        declare(self, "axis", "", "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)", **ro)
-        declare(self, "channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", lo=1, hi=64, **ro)
-        declare(self, "io_timeout", 0.5, "reply timeout of one device exchange [s]", lo=0.01, hi=10.0, **ro)
-        declare(self, "v_min", 0.0, "configured lower limit [V] (intersected with the device's)", **ro)
-        declare(self, "v_max", 100.0, "configured upper limit [V] (intersected with the device's)", **ro)
-        declare(self, "safe_voltage", 0.0, "voltage after a watchdog timeout and on shutdown [V]", **ro)
-        declare(self, "slew_rate", 0.0, "slew-rate limit [V/s] (0: none)", lo=0.0, hi=1e9, **ro)
-        declare(self, "command_timeout", 0.5, "watchdog: ramp to safe_voltage after this long without a command [s] (0: off)",
-                lo=0.0, hi=3600.0, **ro)
-        declare(self, "watchdog_period", 0.01, "period of the watchdog timer (wall clock) [s]", lo=1e-3, hi=1.0, **ro)
-        declare(self, "readback_rate_hz", 20.0, "rate of the device read-back published on voltage [Hz] (0: off)",
-                lo=0.0, hi=1000.0, **ro)
-        declare(self, "max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node clock [s] (0: off)",
-                lo=0.0, hi=3600.0, **ro)
-        declare(self, "apply_at_stamp", False, "apply each command at its stamp + command_delay (wall clock) "
-                "instead of on arrival: open-loop runs without the transport's latency jitter", **ro)
-        declare(self, "command_delay", 0.0, "with apply_at_stamp: added to the stamps [s]", lo=0.0, hi=10.0, **ro)
-        declare(self, "hold_period", 0.0, "with apply_at_stamp: write values interpolated between queued "
-                "commands every hold_period s (first-order hold; 0: hold each command)", lo=0.0, hi=1.0, **ro)
-        declare(self, "realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
-                "the executor's thread (1-99, when the system allows it; 0: normal)", lo=0, hi=99, **ro)
-        declare(self, "reconnect_attempts", 3, "tries to reopen a dropped link per attempt round", lo=0, hi=100, **ro)
-        p = {name: param.value for name, param in self.get_parameters_by_prefix("").items()}
+        p = declare_table(self, PARAMETERS)
 
-        amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None, channel=p["channel"],
+        amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None,
+                                   channel=p["channel"],
                                    timeout=p["io_timeout"], baudrate=p["baud"] or None)
         config = DriverConfig(
             v_min=p["v_min"], v_max=p["v_max"], safe_voltage=p["safe_voltage"],
@@ -104,7 +135,8 @@ class VoltageDriverNode(Node):
             if self.get_parameter("use_sim_time").value:
                 raise ConfigError("apply_at_stamp needs wall-clock stamps: not with use_sim_time")
             sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
-            self._playout = CommandPlayout(self._apply, p["command_delay"], realtime_priority=p["realtime_priority"],
+            self._playout = CommandPlayout(self._apply, p["command_delay"],
+                                           realtime_priority=p["realtime_priority"],
                                            hold_period=p["hold_period"]).start()
             # the executor's thread too: the playout needs the GIL, and a normal-priority holder
             # preempted by other processes would stall it for tens of ms (priority inversion)
@@ -128,7 +160,9 @@ class VoltageDriverNode(Node):
         if self.max_age > 0:
             age = (self.get_clock().now() - Time.from_msg(msg.header.stamp)).nanoseconds * 1e-9
             if age > self.max_age:
-                self._reject("late", f"late voltage command ({age:.3g} s old > max_command_age {self.max_age:g} s)")
+                self._reject("late",
+                             f"late voltage command ({age:.3g} s old > max_command_age "
+                             f"{self.max_age:g} s)")
                 return
         if self._playout is not None:
             self._playout.push(stamp_to_s(msg.header.stamp), msg.voltage)
@@ -151,10 +185,10 @@ class VoltageDriverNode(Node):
                 self._publish(result.sent, sent_at)
                 return
             self._last_command = voltage
-            sent_at = self.get_clock().now()  # applied when the device gets it, not after its ERR? reply
+            sent_at = self.get_clock().now()  # applied when the device gets it, not after ERR?
             try:
                 result = self.driver.set_voltage(voltage)
-            except NonFiniteVoltageError as exc:  # cannot happen after the check above; kept for safety
+            except NonFiniteVoltageError as exc:  # not after the check above; kept for safety
                 self._reject("nonfinite", str(exc))
                 return
             except HardwareError as exc:
@@ -189,9 +223,11 @@ class VoltageDriverNode(Node):
             return
         if before is DriverState.ACTIVE and state in (DriverState.TIMED_OUT, DriverState.SAFE):
             self._watchdog_trips += 1
-            self.get_logger().warn(f"no voltage command for {self.driver.config.command_timeout:g} s: "
+            self.get_logger().warn("no voltage command for "
+                                   f"{self.driver.config.command_timeout:g} s: "
                                    f"ramping to {self.driver.config.safe_voltage:g} V")
-        if state in (DriverState.TIMED_OUT, DriverState.SAFE) and self.driver.last_sent != self._applied:
+        if state in (DriverState.TIMED_OUT,
+                     DriverState.SAFE) and self.driver.last_sent != self._applied:
             self._publish(self.driver.last_sent)
 
     def _readback(self) -> None:
@@ -217,13 +253,14 @@ class VoltageDriverNode(Node):
                   "last_sent": d.last_sent, "applied": self._applied, "commands": self._commands,
                   "clamped_commands": self._clamped, "rejected_nonfinite": self._rejected_nonfinite,
                   "rejected_late": self._rejected_late, "watchdog_trips": self._watchdog_trips,
-                  "reconnects": d.reconnects, "link_errors": self._link_errors, "last_error": self._last_error}
-        if self._playout is not None:
-            values.update(command_delay=self._playout.delay, late_playout=self._playout.late,
-                          ahead_playout=self._playout.ahead,
-                          pending_playout=self._playout.pending,
-                          playout_priority=self._playout.realtime_error or self._playout.realtime_priority,
-                          executor_priority=self._executor_priority or self._playout.realtime_priority)
+                  "reconnects": d.reconnects, "link_errors": self._link_errors,
+                  "last_error": self._last_error}
+        playout = self._playout
+        if playout is not None:
+            values.update(command_delay=playout.delay, late_playout=playout.late,
+                          ahead_playout=playout.ahead, pending_playout=playout.pending,
+                          playout_priority=playout.realtime_error or playout.realtime_priority,
+                          executor_priority=self._executor_priority or playout.realtime_priority)
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         rejected = self._rejected_nonfinite + self._rejected_late
@@ -238,7 +275,8 @@ class VoltageDriverNode(Node):
             self._playout.stop()  # queued commands are dropped: the ramp owns the output now
         applied = self.driver.shutdown()
         self._publish(applied)
-        self.get_logger().info(f"shut down at {applied:g} V (safe_voltage {self.driver.config.safe_voltage:g} V)")
+        self.get_logger().info(f"shut down at {applied:g} V (safe_voltage "
+                               f"{self.driver.config.safe_voltage:g} V)")
 
 
 def main(args: list[str] | None = None) -> int:

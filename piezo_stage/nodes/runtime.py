@@ -1,0 +1,119 @@
+"""How a piezo_stage node runs: :func:`run` (a clean SIGINT/SIGTERM shutdown that lets the node
+put its device in a safe state before the context goes away, exit codes), waiting for
+subscribers to match and to acknowledge, and the clocks and stamps nodes share.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+from . import DEFAULT_NAMESPACE  # noqa: F401 (re-exported: nodes import it from here)
+from .executor import LeanExecutor
+from .spec import ParameterError
+
+
+def wall_clock() -> Clock:
+    """A steady clock for timers that must run in wall time even with use_sim_time (health
+    reporting, watchdogs): a stalled /clock must not stall them."""
+    return Clock(clock_type=ClockType.STEADY_TIME)
+
+
+def stamp_to_s(stamp: Any) -> float:
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
+def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
+    """True when each publisher has at least ``count`` matched subscriptions, as its own writer
+    sees them (a graph query from another node may see a reader before the writer has matched it,
+    and a reliable volatile writer delivers nothing published before it matched)."""
+    return all(pub.get_subscription_count() >= count for pub in publishers)
+
+
+#: wall seconds a stopping node gives its reliable subscribers to acknowledge what it published
+EXIT_ACK_TIMEOUT = 2.0
+#: periodic status topics, superseded by their next message: not waited for on shutdown
+_STATUS_TOPICS = ("/diagnostics", "/parameter_events", "/rosout")
+
+
+def wait_acked(node: Node, timeout: float, publishers: Sequence[Any] | None = None) -> list[str]:
+    """Wait, at most ``timeout`` wall seconds in all, until every reliable subscriber has
+    acknowledged what ``publishers`` (default: the node's data publishers, not its status topics)
+    published; return the topics still unacknowledged. A reliable writer's unacknowledged
+    samples leave with its process: a reader
+    lagging behind a lockstep graph (a recorder) would lose the end of the run."""
+    deadline = time.monotonic() + timeout
+    late = []
+    if publishers is None:
+        publishers = [p for p in node.publishers if p.topic_name not in _STATUS_TOPICS]
+    for pub in list(publishers):
+        left = max(deadline - time.monotonic(), 1e-3)
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            late.append(pub.topic_name)
+    return late
+
+
+def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
+        lean: bool = False) -> int:
+    """Run a node until SIGINT/SIGTERM, then call its ``on_shutdown()`` (if any) while the
+    context is still valid (so a driver can ramp to its safe voltage and publish it), give its
+    reliable subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge what it published, then destroy it.
+    Returns the exit code for ``sys.exit``.
+
+    ``lean`` runs it with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
+    SingleThreadedExecutor.
+    """
+    argv = list(sys.argv if args is None else args)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def handler(signum: int, frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    node = None
+    code = 0
+    try:
+        node = node_factory()
+        executor = LeanExecutor() if lean else SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok() and not getattr(node, "finished", False):
+            executor.spin_once(timeout_sec=0.05)
+        code = int(getattr(node, "exit_code", 0))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ParameterError as exc:  # bad input: one line, exit 2
+        print(f"error: {exc}", file=sys.stderr)
+        code = 2
+    except Exception as exc:  # a node that cannot start says why and exits non-zero
+        print(f"[{getattr(node, 'get_name', lambda: 'node')()}] fatal: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        if node is not None:
+            shutdown = getattr(node, "on_shutdown", None)
+            if shutdown is not None:
+                try:
+                    shutdown()
+                except Exception as exc:  # report, but still tear down
+                    print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
+            if rclpy.ok():
+                late = wait_acked(node, EXIT_ACK_TIMEOUT)
+                if late:
+                    print(f"[{node.get_name()}] left before every subscriber acknowledged "
+                          f"{', '.join(late)}",
+                          file=sys.stderr)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+

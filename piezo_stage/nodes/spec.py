@@ -1,0 +1,222 @@
+"""Typed parameter tables: one :class:`ParameterTable` per node says, once, every parameter's
+name, type, default, unit, range or choices, whether it is read-only, and what it means.
+
+From the table the node declares its parameters (:func:`piezo_stage.nodes.parameters.declare_table`,
+with ``ParameterDescriptor`` ranges and read-only flags), validates them on start and on set
+(unknown names are refused with the closest valid name; choices are checked), the launcher checks
+a graph's overrides before it starts anything, and ``docs/parameters.md`` is generated
+(``scripts/param_docs.py``). Pure Python: no rclpy here (the launcher and the docs read it too).
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass, field, replace
+from enum import Enum
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+#: declared by rclpy itself on every node (and accepted by every node)
+ROS_OWN = ("use_sim_time", "start_type_description_service")
+#: prefixes rclpy reads itself (QoS overrides of publishers and subscriptions)
+ROS_OWN_PREFIXES = ("qos_overrides.",)
+
+
+class ParameterError(ValueError):
+    """A parameter given to a node is unknown or invalid (bad input: exit code 2)."""
+
+
+class Kind(str, Enum):
+    """The ROS parameter type."""
+
+    BOOL = "bool"
+    INT = "int"
+    FLOAT = "float"
+    STRING = "string"
+    INT_ARRAY = "int[]"
+    FLOAT_ARRAY = "float[]"
+    STRING_ARRAY = "string[]"
+
+
+def _kind_of(value: Any) -> Kind:
+    if isinstance(value, bool):
+        return Kind.BOOL
+    if isinstance(value, int):
+        return Kind.INT
+    if isinstance(value, float):
+        return Kind.FLOAT
+    if isinstance(value, str):
+        return Kind.STRING
+    if isinstance(value, (list, tuple)) and value:
+        return {Kind.INT: Kind.INT_ARRAY, Kind.FLOAT: Kind.FLOAT_ARRAY,
+                Kind.STRING: Kind.STRING_ARRAY}[_kind_of(value[0])]
+    raise TypeError(f"cannot infer a parameter type from {value!r}: give kind=")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter. ``choices``: a ``str`` Enum class or a sequence of strings (a string
+    parameter must be one of them); ``range``: (lo, hi) inclusive, for int and float."""
+
+    name: str
+    default: Any
+    description: str
+    unit: str = ""
+    range: tuple[float, float] | None = None
+    step: float = 0
+    choices: type[Enum] | Sequence[str] | None = None
+    read_only: bool = False
+    kind: Kind | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind is None:
+            object.__setattr__(self, "kind", _kind_of(self.default))
+        if isinstance(self.default, tuple):
+            object.__setattr__(self, "default", list(self.default))
+        if self.range is not None and self.kind not in (Kind.INT, Kind.FLOAT):
+            raise TypeError(f"{self.name}: only int and float parameters have a range")
+        if self.choices is not None and self.kind is not Kind.STRING:
+            raise TypeError(f"{self.name}: only string parameters have choices")
+        reason = self.check(self.default)
+        if reason:
+            raise ValueError(f"default of {reason}")
+
+    @property
+    def choice_values(self) -> tuple[str, ...]:
+        if self.choices is None:
+            return ()
+        if isinstance(self.choices, type) and issubclass(self.choices, Enum):
+            return tuple(str(m.value) for m in self.choices)
+        return tuple(self.choices)
+
+    def check(self, value: Any) -> str | None:
+        """A reason to refuse ``value``, or None (types and ranges rclpy checks too)."""
+        choices = self.choice_values
+        if choices and value not in choices:
+            near = difflib.get_close_matches(str(value), choices, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else ""
+            return f"{self.name}: {value!r} is not one of {', '.join(choices)}{hint}"
+        if self.range is not None and isinstance(value, (int, float)) and not isinstance(value,
+                                                                                         bool) \
+                and not math.isnan(value) and not self.range[0] <= value <= self.range[1]:
+            return f"{self.name}: {value!r} is outside [{self.range[0]:g}, {self.range[1]:g}]"
+        return None
+
+    def full_description(self) -> str:
+        """The description with its unit and choices (the ParameterDescriptor's text)."""
+        text = self.description
+        if self.unit:
+            text += f" [{self.unit}]"
+        if self.choice_values:
+            text += f" (one of: {', '.join(self.choice_values)})"
+        return text
+
+
+def is_ros_own(name: str) -> bool:
+    return name in ROS_OWN or name.startswith(ROS_OWN_PREFIXES)
+
+
+@dataclass(frozen=True)
+class ParameterTable:
+    """The parameters of one node (``node``: its executable name), in declaration order."""
+
+    node: str
+    params: tuple[Param, ...]
+    summary: str = ""
+    _by_name: dict[str, Param] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "params", tuple(self.params))
+        by_name = {p.name: p for p in self.params}
+        if len(by_name) != len(self.params):
+            raise ValueError(f"{self.node}: a parameter name is listed twice")
+        object.__setattr__(self, "_by_name", by_name)
+
+    def __iter__(self) -> Iterator[Param]:
+        return iter(self.params)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __getitem__(self, name: str) -> Param:
+        return self._by_name[name]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._by_name)
+
+    def defaults(self) -> dict[str, Any]:
+        return {p.name: p.default for p in self.params}
+
+    def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable:
+        """The same table with other defaults (e.g. the excitation's preset)."""
+        unknown = set(defaults) - set(self._by_name)
+        if unknown:
+            raise KeyError(f"{self.node}: no parameter {sorted(unknown)}")
+        params = tuple(replace(p, default=defaults[p.name]) if p.name in defaults else p
+                       for p in self.params)
+        return replace(self, params=params)
+
+    def suggest(self, name: str) -> str:
+        """``" (did you mean 'v_max'?)"`` for the closest valid name, or ''."""
+        near = difflib.get_close_matches(name, self.names, n=1, cutoff=0.5)
+        return f" (did you mean {near[0]!r}?)" if near else ""
+
+    def problems(self, values: Mapping[str, Any]) -> list[str]:
+        """What is wrong with ``values`` given to this node: unknown names (with the closest
+        valid one), values outside the choices or the range."""
+        found = []
+        for name, value in values.items():
+            if is_ros_own(name):
+                continue
+            if name not in self._by_name:
+                found.append(f"{self.node} has no parameter {name!r}{self.suggest(name)}")
+                continue
+            reason = self._by_name[name].check(value)
+            if reason:
+                found.append(f"{self.node}: {reason}")
+        return found
+
+    def check(self, values: Mapping[str, Any]) -> None:
+        """Raise :class:`ParameterError` naming every problem of ``values``."""
+        found = self.problems(values)
+        if found:
+            raise ParameterError("; ".join(found))
+
+    def check_names(self, names: Iterable[str]) -> None:
+        """Raise :class:`ParameterError` for names this node does not have."""
+        found = [f"{self.node} has no parameter {n!r}{self.suggest(n)}" for n in names
+                 if not is_ros_own(n) and n not in self._by_name]
+        if found:
+            raise ParameterError("; ".join(found))
+
+    def markdown(self) -> str:
+        """This table for docs/parameters.md."""
+        rows = [f"\n## `{self.node}`\n\n{_cell(self.summary)}\n\n"
+                "| parameter | type | default | unit | range / choices | read-only | description "
+                "|\n"
+                "|---|---|---|---|---|---|---|\n"]
+        for p in sorted(self.params, key=lambda p: p.name):
+            if p.range is not None:
+                allowed = f"{show(p.range[0])} … {show(p.range[1])}"
+            else:
+                allowed = " \\| ".join(f"`{c}`" for c in p.choice_values)
+            rows.append(f"| `{p.name}` | {p.kind.value} | `{_cell(show(p.default))}` | "
+                        f"{_cell(p.unit)} | "
+                        f"{allowed} | {'yes' if p.read_only else ''} | {_cell(p.description)} |\n")
+        return "".join(rows)
+
+
+def show(value: Any) -> str:
+    """A value as the docs print it."""
+    if isinstance(value, float):
+        return "NaN" if math.isnan(value) else f"{value:.6g}"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(show(v) for v in value) + "]"
+    return str(value)
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")

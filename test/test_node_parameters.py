@@ -1,0 +1,119 @@
+"""One parameter table per node: unknown names and bad choices are refused at start (by the node
+and by the launcher) with the closest valid name and exit code 2; the tables are well formed."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+from enum import Enum
+
+import pytest
+
+from piezo_stage.nodes import NODES
+from piezo_stage.nodes.spec import Kind, Param, ParameterError, ParameterTable
+
+pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
+
+from piezo_stage.cli import main  # noqa: E402
+
+
+class Colour(str, Enum):
+    RED = "red"
+    GREEN = "green"
+
+
+TABLE = ParameterTable("demo", (
+    Param("v_max", 100.0, "upper limit", "V", (0.0, 200.0)),
+    Param("colour", "red", "a colour", choices=Colour),
+    Param("names", [], "some names", kind=Kind.STRING_ARRAY),
+))
+
+
+@pytest.mark.unit
+def test_unknown_names_get_the_closest_valid_one():
+    assert TABLE.problems({"vmax": 5.0}) == ["demo has no parameter 'vmax' (did you mean 'v_max'?)"]
+    assert TABLE.problems({"use_sim_time": True, "qos_overrides./x.publisher.depth": 5}) == []
+    with pytest.raises(ParameterError, match=r"'colr' \(did you mean 'colour'\?\)"):
+        TABLE.check_names(["colr"])
+
+
+@pytest.mark.unit
+def test_choices_and_ranges_are_checked():
+    assert TABLE.problems({"colour": "gren"}) == [
+        "demo: colour: 'gren' is not one of red, green (did you mean 'green'?)"]
+    assert TABLE.problems({"v_max": 250.0}) == ["demo: v_max: 250.0 is outside [0, 200]"]
+    assert TABLE.problems({"colour": "green", "v_max": 200.0}) == []
+    with pytest.raises(ValueError, match="default of"):
+        Param("c", "blue", "bad default", choices=Colour)
+    with pytest.raises(TypeError, match="kind="):
+        Param("empty", [], "no type")
+
+
+@pytest.mark.unit
+def test_with_defaults_keeps_everything_else():
+    other = TABLE.with_defaults({"v_max": 50.0})
+    assert other["v_max"].default == 50.0 and other["v_max"].range == (0.0, 200.0)
+    assert TABLE["v_max"].default == 100.0
+    with pytest.raises(KeyError):
+        TABLE.with_defaults({"nope": 1})
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("name", NODES)
+def test_every_node_has_a_well_formed_table(name):
+    table = importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS
+    assert table.node == name and len(table.names) >= 5
+    for p in table:
+        assert p.description and p.kind is not None
+        assert p.check(p.default) is None, p.name
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("node, args, message", [
+    ("voltage_driver", ["-p", "vmax:=50.0"],
+     "voltage_driver has no parameter 'vmax' (did you mean 'v_max'?)"),
+    ("plant", ["-p", "clock_mode:=lockstp"], "(did you mean 'lockstep'?)"),
+    ("controller", ["-p", "reference_source:=topc"], "(did you mean 'topic'?)"),
+])
+def test_a_node_refuses_an_unknown_name_or_choice_at_start(node, args, message):
+    """Before: rclpy ignored the misspelled override and the driver ran with [0, 100] V (exit 0 on
+    SIGINT); reference_source 'topc' silently fell back to the topic."""
+    proc = subprocess.run([sys.executable, "-m", f"piezo_stage.nodes.{node}", "--ros-args", *args],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.unit
+def test_the_launcher_refuses_unknown_parameters_before_starting(tmp_path, capsys):
+    import yaml
+
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump({"nodes": [{"executable": "controller"},
+                                              {"executable": "plant"}]}))
+    assert main(["launch", str(path), "--param", "controller.nosuchparam:=1", "--dry-run"]) == 2
+    assert "controller has no parameter 'nosuchparam'" in capsys.readouterr().err
+    assert main(["launch", str(path), "--param", "controller.k_1:=1.0", "--dry-run"]) == 2
+    assert "(did you mean 'k1'?)" in capsys.readouterr().err
+    path.write_text(yaml.safe_dump({"nodes": [{"executable": "plant",
+                                               "overrides": {"ratehz": 10.0}}]}))
+    assert main(["launch", str(path), "--dry-run"]) == 2
+    assert "plant has no parameter 'ratehz' (did you mean 'rate_hz'?)" in capsys.readouterr().err
+    path.write_text(yaml.safe_dump({"nodes": [{"executable": "plant",
+                                               "overrides": {"rate_hz": 10.0}}]}))
+    assert main(["launch", str(path), "--dry-run"]) == 0
+
+
+@pytest.mark.unit
+def test_every_shipped_graph_passes_the_check():
+    from piezo_stage.launch.graph import load_graph
+    from piezo_stage.launch.parameters import check_parameters
+
+    from ros_support import ROOT
+
+    graphs = sorted((ROOT / "config" / "graphs").glob("*.yaml"))
+    assert len(graphs) >= 5
+    for path in graphs:
+        check_parameters(load_graph(path))
