@@ -3,17 +3,19 @@
 Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or
 ``gcs: tcp://127.0.0.1:50000``, so a launcher or a user can connect the voltage_driver / laser_reader
 nodes to it; ``--link`` / ``--sensor-link`` / ``--amp-link`` give a pty a fixed path (a symlink,
-removed on exit). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not
+removed on exit; ``run:NAME`` puts it in the per-user run-time folder, where the reader's
+``url: run:NAME`` finds it). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not
 vanish under a driver that is still ramping its output to a safe voltage: on the first signal it
 keeps serving until its TCP clients have hung up, at most --linger seconds (a pty cannot tell
 whether its client is gone, so pty endpoints stop at once); a second signal stops it at once.
-Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --slow (reply delay),
---disconnect-every (hang up and come back), --error-values (sensor).
+Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbage (random bursts),
+--hangup (a reply cut and the line dropped), --stall/--stall-time (the device stops), --slow
+(reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
 
   piezo-stage emulate gcs --tcp 50000
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
-  piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link /tmp/piezo_rig_sensor
+  piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link run:rig_sensor
 """
 
 from __future__ import annotations
@@ -109,7 +111,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_faults(args: argparse.Namespace) -> Faults:
-    return Faults(drop=args.drop, corrupt=args.corrupt, reply_delay=args.slow, seed=args.seed)
+    return Faults(drop=args.drop, corrupt=args.corrupt, garbage=args.garbage, hangup=args.hangup,
+                  stall=args.stall, stall_time=args.stall_time, reply_delay=args.slow, seed=args.seed)
 
 
 def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:

@@ -3,7 +3,9 @@
 URLs accepted by :func:`make_transport`:
 
 - ``tcp://HOST:PORT`` (``socket://`` is an alias) — e.g. a PI controller on port 50000;
-- ``serial:///dev/ttyUSB0?baudrate=115200`` or a bare device path ``/dev/pts/7``.
+- ``serial:///dev/ttyUSB0?baudrate=115200`` or a bare device path ``/dev/pts/7``;
+- ``run:NAME``: NAME in the per-user run-time folder (:mod:`piezo_stage.runtime_dir`), e.g. the
+  pty link of ``piezo-stage emulate rig --sensor-link run:rig_sensor``.
 
 Every transport raises :class:`ConnectionLost` when the link drops and returns ``b""`` from
 :meth:`Transport.read` when nothing arrived within the timeout. :class:`ReplyBuffer` assembles
@@ -211,7 +213,12 @@ def make_transport(url: str, baudrate: int = 115200) -> Transport:
         return SerialTransport(parsed.path, baud)
     if parsed.scheme == "":  # /dev/ttyUSB0, /dev/pts/7, COM3
         return SerialTransport(url, baudrate)
-    raise ConfigError(f"unsupported device URL {url!r} (use tcp://HOST:PORT, serial://PATH or a path)")
+    if parsed.scheme == "run":  # run:NAME, a link in the per-user run-time folder (an emulator's pty)
+        from piezo_stage.runtime_dir import resolve
+
+        return SerialTransport(resolve(url), baudrate)
+    raise ConfigError(f"unsupported device URL {url!r} (use tcp://HOST:PORT, serial://PATH, run:NAME "
+                      "or a path)")
 
 
 class ReplyBuffer:

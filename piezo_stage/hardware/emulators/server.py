@@ -31,6 +31,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ...runtime_dir import resolve
 from ..errors import ConfigError
 from ..timing import set_realtime_priority
 
@@ -178,7 +179,7 @@ class EmulatorServer:
         self.model = model
         self.faults = faults or Faults()
         self.host = host
-        self.pty_link = pty_link
+        self.pty_link = resolve(pty_link) if pty_link else None  # run:NAME: in the run-time folder
         self._use_pty = pty
         self._tcp_port = tcp_port
         self._listener: socket.socket | None = None
