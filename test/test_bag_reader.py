@@ -9,8 +9,18 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from piezo_stage.bag import (BagNotFoundError, BagWriter, UnknownTopicError, WrongTopicTypeError,
-                             bag_info, qos, read_messages, read_raw, read_series, types)
+from piezo_stage.bag import (
+    BagNotFoundError,
+    BagWriter,
+    UnknownTopicError,
+    WrongTopicTypeError,
+    bag_info,
+    qos,
+    read_messages,
+    read_raw,
+    read_series,
+    types,
+)
 from piezo_stage.bag.series import encode_series
 
 pytestmark = pytest.mark.unit
@@ -136,3 +146,47 @@ def test_unclosed_file_reads_up_to_its_last_complete_chunk(series_bag, tmp_path)
     assert len(t) == info["topics"]["/piezo/voltage"]["count"] < N
     _, _, voltage, _, _ = _series()
     np.testing.assert_array_equal(v, voltage[:len(v)])
+
+
+def _float64_bag(path, rec, t0=T0):
+    """A bare .mcap like `ros2 bag record` of two std_msgs/Float64 topics (no header: the
+    receive time is the sample time), lz4 chunks."""
+    import struct
+
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.LZ4)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema("std_msgs/msg/Float64", "ros2msg", b"float64 data\n")
+        channels = [writer.register_channel(t, "cdr", schema, {}) for t in ("/u", "/y")]
+        for t, u, y in zip(rec.t, rec.input, rec.output):
+            ns = t0 + int(round(t * 1e9))
+            for channel, value in zip(channels, (u, y)):
+                writer.add_message(channel, ns, b"\x00\x01\x00\x00" + struct.pack("<d", value), ns)
+        writer.finish()
+    return path
+
+
+def test_identify_reads_any_numeric_topic_of_a_foreign_bag(tmp_path, capsys):
+    import json
+
+    from piezo_stage.cli import main
+    from piezo_stage.identification.synthetic import CH10_PATCH, triangle_pair
+    from piezo_stage.model.bouc_wen import BoucWenParameters
+
+    runs = triangle_pair(BoucWenParameters(**CH10_PATCH), 0.0, 300.0, 100.0, period=10.0,
+                         samples_per_branch=200, periods=3)
+    bags = [str(_float64_bag(tmp_path / f"run{i}.mcap", rec)) for i, rec in enumerate(runs)]
+    t, u, status = read_series(bags[0], "/u.data")
+    np.testing.assert_allclose(u, runs[0].input) and status is None
+    assert main(["identify", *bags, "--input-topic", "/u", "--output-topic", "/y",
+                 "--degree", "2", "--no-plot", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["rho"] == pytest.approx(CH10_PATCH["rho"], rel=1e-4)
+    assert result["n"] == pytest.approx(CH10_PATCH["n"], rel=1e-4)
+    with pytest.raises(WrongTopicTypeError, match=r"numeric fields: bool_value"):
+        read_series(ROOT_DATA / "cdr_test", "/test_topic")
+
+
+ROOT_DATA = Path(__file__).resolve().parent / "data" / "rosbag2"

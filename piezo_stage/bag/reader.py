@@ -186,20 +186,72 @@ def topic_types(path: str | Path) -> dict[str, str]:
 
 def read_series(path: str | Path, topic: str
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``(t [s] from header.stamp, values, status or None)`` of a Voltage (V) or
-    Displacement (m, status) topic, vectorised, in stamp order."""
+    """``(t [s], values, status or None)`` of a topic, in stamp order: Voltage (V) and
+    Displacement (m, status) vectorised; any other type by one numeric field -- ``TOPIC.FIELD``
+    (dotted path), or the message's only numeric scalar field -- with t from ``header.stamp``
+    when the message has one, else the receive time."""
     types = topic_types(path)
+    field = ""
+    if topic not in types and "." in topic.rsplit("/", 1)[-1]:
+        topic, field = topic.split(".", 1) if "/" not in topic.split(".", 1)[1] else (topic, "")
     if topic not in types:
         raise UnknownTopicError(
             f"topic {topic!r} is not in bag {path}; it has {', '.join(sorted(types)) or 'none'}")
     type_name = types[topic]
-    if type_name not in SERIES_FIELDS:
-        raise WrongTopicTypeError(
-            f"read_series reads {' or '.join(SERIES_FIELDS)} topics; {topic} is {type_name}")
-    datas = [data for _, _, _, data in read_raw(path, topic)]
-    t, values, status = decode_series(datas, type_name)
+    if type_name in SERIES_FIELDS and not field:
+        datas = [data for _, _, _, data in read_raw(path, topic)]
+        t, values, status = decode_series(datas, type_name)
+    else:
+        t, values = _generic_series(path, topic, field)
+        status = None
     order = np.argsort(t, kind="stable")  # rosbag2 writes in receive order, not stamp order
     if np.any(order != np.arange(t.size)):
         t, values = t[order], values[order]
         status = None if status is None else status[order]
     return t, values, status
+
+
+_NUMERIC = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16",
+                      "uint16", "int32", "uint32", "int64", "uint64"})
+
+
+def _numeric_fields(fielddefs: dict[str, Any], type_name: str) -> list[str]:
+    from rosbags.interfaces import Nodetype
+
+    return [name for name, (kind, detail) in fielddefs[type_name][1]
+            if kind == Nodetype.BASE and detail[0] in _NUMERIC]
+
+
+def _generic_series(path: str | Path, topic: str, field: str) -> tuple[np.ndarray, np.ndarray]:
+    types = BagTypes()
+    t: list[float] = []
+    values: list[float] = []
+    for _, type_name, log_time, message in decode_bag(path, topic, types):
+        if not values:  # first message: check the field
+            numeric = _numeric_fields(types.store.fielddefs, type_name)
+            if not field:
+                if len(numeric) != 1:
+                    raise WrongTopicTypeError(
+                        f"{topic} is {type_name}: name its value field as {topic}.FIELD "
+                        f"(numeric fields: {', '.join(numeric) or 'none'})")
+                field = numeric[0]
+            stamp = getattr(getattr(message, "header", None), "stamp", None)
+        value: Any = message
+        try:
+            for part in field.split("."):
+                value = getattr(value, part)
+            values.append(float(value))
+        except (AttributeError, TypeError, ValueError):
+            raise WrongTopicTypeError(f"{topic} ({type_name}) has no numeric field "
+                                      f"{field!r}") from None
+        t.append(message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
+                 if stamp is not None else log_time * 1e-9)
+    if not values and not field:  # nothing decoded: judge the field by the shipped type
+        from .types import full_type_name, typestore
+
+        name = full_type_name(topic_types(path)[topic])
+        shipped = typestore().fielddefs
+        if name in shipped and len(numeric := _numeric_fields(shipped, name)) != 1:
+            raise WrongTopicTypeError(f"{topic} is {name}: name its value field as "
+                                      f"{topic}.FIELD (numeric fields: {', '.join(numeric)})")
+    return np.asarray(t, dtype=np.float64), np.asarray(values, dtype=np.float64)
