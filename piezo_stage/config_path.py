@@ -64,8 +64,13 @@ def read_yaml(path: str | Path, error: type[Exception], what: str = "file") -> A
         raise error(f"cannot read {what} {path}: {getattr(exc, 'strerror', None) or exc}") from None
     try:
         return yaml.safe_load(text)
-    except yaml.YAMLError as exc:  # its text spans lines: keep the problem and where
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise error(f"{path} is not valid YAML: {problem}{where}") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{path} is not valid YAML: {yaml_problem(exc)}") from None
+
+
+def yaml_problem(exc: Exception) -> str:
+    """One line of a PyYAML error (its text spans lines): the problem and where."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+    problem = getattr(exc, "problem", None) or (str(exc).splitlines() or [""])[0]
+    return f"{problem}{where}"

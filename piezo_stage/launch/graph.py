@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
 
-from piezo_stage.config_path import ConfigNotFoundError, find_config
+from piezo_stage.config_path import ConfigNotFoundError, find_config, yaml_problem
 from piezo_stage.launch.errors import GraphError
 from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (no rclpy)
 
@@ -227,10 +227,10 @@ def load_graph(graph: str | os.PathLike[str]) -> Graph:
     """Read and validate a graph file (path or shipped name); GraphError names any problem."""
     path = find_graph(graph)
     try:
-        data = load_yaml(path.read_text())
+        data = load_yaml(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
-        raise GraphError(f"{path}: not valid YAML: {exc}") from None
-    except OSError as exc:
+        raise GraphError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
+    except (OSError, UnicodeDecodeError) as exc:  # a binary file is not a graph either
         raise GraphError(f"{path}: cannot read: {exc}") from None
     return parse_graph(data, source=path)
 
