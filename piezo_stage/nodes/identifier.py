@@ -42,10 +42,11 @@ from std_srvs.srv import Trigger
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions, extract_cycle
 from piezo_stage.identification.errors import IdentificationError
-from piezo_stage.identification.io import intervals_from_marks, recordings_from_series
+from piezo_stage.identification.io import recordings_from_series
 from piezo_stage.identification.pipeline import IdentifyOptions, identify
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
+from piezo_stage.identification.run_tracker import RUNS_NEEDED, RunTracker
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import save_parameter_set
 from piezo_stage_msgs.msg import (
@@ -210,20 +211,13 @@ class IdentifierNode(Node):
 
     def _tick(self) -> None:
         self._discover()
-        self._process_pending()
+        self._process_completed()
 
     # ------------------------------------------------------------------ data
     def _reset(self) -> None:
         self._voltage = _Series()
         self._displacement = _Series()
-        self._marks: list[tuple[float, int, bool]] = []
-        self._info: tuple[int, bool] | None = None
-        self._completed: list[int] = []
-        self._pending: list[tuple[float, int]] = []
-        self._last_count, self._last_change = 0, time.monotonic()
-        self._silence_reported = False
-        self._offsets: dict[int, float] = {}
-        self._periods: dict[int, float] = {}
+        self._runs = RunTracker()
 
     def _on_voltage(self, msg: Voltage) -> None:
         self._voltage.t.append(stamp_to_s(msg.header.stamp))
@@ -236,58 +230,50 @@ class IdentifierNode(Node):
 
     def _on_excitation(self, msg: ExcitationInfo) -> None:
         t = stamp_to_s(msg.header.stamp)
-        self._marks.append((t, int(msg.run), bool(msg.steady)))
-        self._offsets[int(msg.run)] = msg.offset
-        self._periods[int(msg.run)] = msg.period
-        previous, self._info = self._info, (int(msg.run), bool(msg.steady))
-        if previous != self._info:
-            new_run = previous is None or previous[0] != msg.run
-            phase = "steady" if msg.steady else "settling" if new_run else "over"
-            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) {phase} "
-                                   f"at t = {t:.6g} s")
-        if previous is not None and previous[1] and self._info != previous \
-                and previous[0] not in self._completed:
-            self._completed.append(previous[0])
-            self._pending.append((t, previous[0]))  # processed once the streams have caught up
+        phase = self._runs.mark(t, int(msg.run), bool(msg.steady), msg.offset)
+        if phase is not None:
+            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) "
+                                   f"{phase.value} at t = {t:.6g} s")
 
-    def _process_pending(self) -> None:
-        """Handle completed runs once both streams have passed the run's end (topics arrive
-        independently), or when the streams have been silent for `settle_time`. Streams that
-        fall silent before two runs are complete (a bag holding one run, a sensor gone) are
-        reported once (and end an ``on_done: exit`` node with status 1)."""
-        count = len(self._voltage.t) + len(self._displacement.t)
-        now = time.monotonic()
-        if count != self._last_count:
-            self._last_count, self._last_change = count, now
-            self._silence_reported = False
+    def _process_completed(self) -> None:
+        """Handle the completed runs whose data has arrived (:class:`RunTracker`); identify once
+        two are; report streams that fell silent before two runs were complete (a bag holding
+        one run, a sensor gone), ending an ``on_done: exit`` node with status 1."""
+        v, d = self._voltage.t, self._displacement.t
+        latest = min(v[-1] if v else -math.inf, d[-1] if d else -math.inf)
         settle = self.get_parameter("settle_time").value
-        silent = count > 0 and now - self._last_change > settle
-        if self._pending:
-            latest = min(self._voltage.t[-1] if self._voltage.t else -math.inf,
-                         self._displacement.t[-1] if self._displacement.t else -math.inf)
-            while self._pending and (self._pending[0][0] <= latest or silent):
-                self._run_complete(self._pending.pop(0)[1])
-        if silent and not self._silence_reported and self.result is None \
-                and len(self._completed) < 2:
-            self._silence_reported = True
+        poll = self._runs.poll(len(v) + len(d), latest, time.monotonic(), settle,
+                               identified=self.result is not None)
+        for run_index in poll.ready:
+            self._run_complete(run_index)
+        if poll.ready and len(self._runs.completed) >= RUNS_NEEDED and not self._runs.pending \
+                and self.result is None and self.get_parameter("auto_identify").value:
+            try:
+                self.identify_now()
+            except (IdentificationError, ModelError, ValueError):
+                self._done(1)  # reported by identify_now (log + /diagnostics)
+            else:
+                self._done(0)
+        if poll.stalled:
+            count, runs = len(v) + len(d), len(self._runs.completed)
             self._set_error(f"the streams have been silent for {settle:g} s after {count} samples "
-                            f"and {len(self._completed)} complete run(s): identification needs two "
-                            "steady runs (x(t) and x(t)+q), each ended by the next run's mark or "
-                            "the plan's end")
+                            f"and {runs} complete run(s): identification needs two steady runs "
+                            "(x(t) and x(t)+q), each ended by the next run's mark or the plan's "
+                            "end")
             self._done(1)
 
-    def recordings(self):
-        """The runs collected so far, cut by the excitation marks (as the CLI cuts a bag)."""
+    def recordings(self, intervals: list[tuple[int, float, float]] | None = None):
+        """The runs collected so far (or those of ``intervals``), cut by the excitation marks as
+        the CLI cuts a bag."""
         tv, v = np.array(self._voltage.t), np.array(self._voltage.value)
         td, d = np.array(self._displacement.t), np.array(self._displacement.value)
         status = np.array(self._displacement.status, dtype=np.uint8)
-        intervals = intervals_from_marks(self._marks) if self._marks else [(0, -math.inf, math.inf)]
+        intervals = self._runs.intervals() if intervals is None else intervals
+        name = self.get_name()
         if self._input == "voltage":  # ch. 10: voltage -> displacement
-            return recordings_from_series(tv, v, td, d, status, intervals, self.get_name(), "V",
-                                          "m")
+            return recordings_from_series(tv, v, td, d, status, intervals, name, "V", "m")
         ok = status == Displacement.OK  # ch. 11: u = Phi(x); invalid sensor samples are no input
-        return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, self.get_name(), "m",
-                                      "V")
+        return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, name, "m", "V")
 
     # ------------------------------------------------------------------ results
     def _options(self) -> IdentifyOptions:
@@ -306,32 +292,24 @@ class IdentifierNode(Node):
 
     def _run_complete(self, run_index: int) -> None:
         try:
-            recs = {r.name.rsplit(" ", 1)[-1]: r for r in self.recordings()}
-            rec = recs.get(str(run_index))
-            if rec is None:
+            interval = self._runs.interval(run_index)
+            recs = self.recordings([interval]) if interval is not None else []
+            if not recs:
                 raise IdentificationError(f"{self.get_name()} run {run_index}: no samples")
-            cycle = extract_cycle(rec, self._options().cycle)
+            cycle = extract_cycle(recs[0], self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
             text = str(exc)  # the extraction's messages name the run ("<node> run <k>: ...")
-            self._set_error(text if f"run {run_index}:" in text else f"{self.get_name()} run "
-                                                                     f"{run_index}: {text}")
+            named = f"run {run_index}:" in text
+            self._set_error(text if named else f"{self.get_name()} run {run_index}: {text}")
         else:
             msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
-                             offset=float(self._offsets.get(run_index, 0.0)),
+                             offset=float(self._runs.offsets.get(run_index, 0.0)),
                              period=float(cycle.period),
                              input=[float(v) for v in cycle.input],
                              output=[float(v) for v in cycle.output])
             self._pub_cycle.publish(msg)
             self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
                                    f"({cycle.periods} periods averaged)")
-        if len(self._completed) >= 2 and not self._pending and self.result is None \
-                and self.get_parameter("auto_identify").value:
-            try:
-                self.identify_now()
-            except (IdentificationError, ModelError, ValueError):
-                self._done(1)  # reported by identify_now (log + /diagnostics)
-            else:
-                self._done(0)
 
     def _done(self, code: int) -> None:
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
@@ -395,7 +373,8 @@ class IdentifierNode(Node):
     def _diagnose(self) -> Diagnosis:
         values = {"voltage_samples": len(self._voltage.t),
                   "displacement_samples": len(self._displacement.t),
-                  "completed_runs": len(self._completed), "identified": self.result is not None}
+                  "completed_runs": len(self._runs.completed),
+                  "identified": self.result is not None}
         if self._error:
             return Diagnosis(ERROR, self._error, values)
         return Diagnosis(OK, "identified" if self.result else "collecting", values)
