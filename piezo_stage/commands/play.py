@@ -49,7 +49,8 @@ def ros_args(args: argparse.Namespace) -> list[str]:
         "publish_clock": args.clock is not None,
         "clock_rate_hz": float(args.clock if args.clock is not None else 100.0),
         "start_offset": float(args.start_offset), "duration": float(args.duration),
-        "start_paused": args.start_paused, "wait_for_subscribers": args.wait_for_subscribers}
+        "start_paused": args.start_paused, "wait_for_subscribers": args.wait_for_subscribers,
+        "allow_damaged": args.allow_damaged}
     if args.topics:
         params["topics"] = list(args.topics)
     if args.remap:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -37,6 +38,7 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import SetBool, Trigger
 
 from piezo_stage.bag import BagError, bag_info, read_raw
+from piezo_stage.bag.errors import BagDamageWarning
 from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 
 from .parameters import declare_table
@@ -95,6 +97,8 @@ PARAMETERS = ParameterTable("player", (
     Param("wait_for_subscribers", 0, "before playing, wait until every topic has this many "
           "subscribers", range=(0, 1000), read_only=True),
     Param("wait_timeout", 10.0, "longest wait for subscribers", "s", (0.0, 1e6), read_only=True),
+    Param("allow_damaged", False, "play a damaged bag (CRC or record errors): what is readable; "
+          "else refuse it, exit 1", read_only=True),
     Param("drain_timeout", 30.0, "at the end, longest wait for reliable subscribers to acknowledge "
           "every message (a busy subscriber must not lose the tail)", "s", (0.0, 1e6),
           read_only=True),
@@ -119,6 +123,13 @@ class PlayerNode(Node):
             info = bag_info(self.bag_path)
         except BagError as exc:
             raise PlaybackError(str(exc)) from None
+        for damage in info["damage"]:
+            if not p["allow_damaged"]:
+                raise PlaybackError(f"{damage} -- allow_damaged:=true (play --allow-damaged) "
+                                    f"plays what is readable")
+            self.get_logger().warning(damage)
+        if info["damage"]:  # said once above: not again per read
+            warnings.simplefilter("ignore", BagDamageWarning)
         wanted = {self._absolute(t) for t in topics}
         unknown = sorted(wanted - set(info["topics"]))
         if unknown:
@@ -130,18 +141,25 @@ class PlayerNode(Node):
             raise PlaybackError(f"remapped topics {unknown} are not in {self.bag_path}")
 
         self._outputs: dict[str, _Output] = {}
+        not_installed: list[str] = []
         for name, topic in info["topics"].items():
             if (wanted and name not in wanted) or (self.publish_clock and name == CLOCK_TOPIC):
                 continue
             try:
                 msg_type = message_type(topic["type"])
-            except MessageTypeError as exc:
-                self.get_logger().warning(f"not playing {name}: {exc}")
+            except MessageTypeError:
+                not_installed.append(f"{name} ({topic['type']})")
                 continue
             qos = playback_qos(topic["offered_qos_profiles"], queue_depth)
             pub = self.create_publisher(msg_type, remap.get(name, name), qos)
             self._outputs[name] = _Output(pub.topic_name, pub,
                                           qos.reliability == ReliabilityPolicy.RELIABLE)
+        if not_installed:
+            self.get_logger().warning(
+                f"not playing {len(not_installed)} topic(s) whose type is not installed: "
+                f"{', '.join(not_installed)}; playing the other {len(self._outputs)}")
+            if not self._outputs:
+                raise PlaybackError(f"no topic of {self.bag_path} has an installed type")
         self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, COMMAND_QOS) \
             if self.publish_clock else None
 
