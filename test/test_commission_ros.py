@@ -122,3 +122,15 @@ def test_a_graph_without_a_sensor_stops_at_the_sweep(tmp_path):
         Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(100.0,)))).run()
     assert info.value.step is Step.SWEEP and "displacement" in info.value.reason
     assert (tmp_path / "FAILED.md").is_file() and not (tmp_path / "rig_bounds.yaml").exists()
+
+
+@pytest.mark.slow
+def test_a_sweep_that_clips_the_sensor_stops_before_the_gains(tmp_path):
+    out = tmp_path / "out"
+    proc = _commission(
+        str(out), "--frequencies", "100", "--param", "plant.sensor_max:=20e-6", timeout=300.0
+    )
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "step sweep failed" in proc.stderr and "clips the sensor" in proc.stderr
+    assert (out / "FAILED.md").is_file() and (out / "bags" / "sweep_100Hz").is_dir()
+    assert not any((out / n).exists() for n in ("report.md", "rig_bounds.yaml", "controller.yaml"))
