@@ -147,3 +147,16 @@ def test_bag_types_skip_what_they_cannot_parse_with_the_reason():
     assert decoded is None and "my_pkg/msg/Bad not decodable" in why
     decoded, why = _decoder_round_trip("my_pkg/msg/J", "jsonschema", "{}", {})
     assert decoded is None and "not ros2msg" in why
+
+
+def test_export_flattens_fields_named_like_python_keywords():
+    from mcap.records import Channel, Schema
+
+    from piezo_stage.bag.decode import BagTypes
+    from piezo_stage.bag.export import flatten
+
+    bag_types = BagTypes()
+    name = bag_types.type_of(Channel(1, "/k", "cdr", 1, {}),
+                             Schema(1, "p/msg/K", "ros2msg", b"int32 from\nint32 class\n"))
+    message = bag_types.store.types[name](from_=1, class_=2)  # rosbags' names for keywords
+    assert flatten(bag_types.store.fielddefs, message, name) == [("from", 1), ("class", 2)]

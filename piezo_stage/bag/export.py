@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from rosbags.interfaces import Nodetype
+from rosbags.typesys.base import normalize_fieldname
 
 from .decode import BagTypes
 from .errors import UnknownTopicError
@@ -93,7 +94,7 @@ def flatten(fielddefs: dict[str, Any], message: Any, type_name: str, prefix: str
     units = UNITS.get(type_name, {})
     cells: list[tuple[str, Any]] = []
     for name, (nodetype, detail) in fielddefs[type_name][1]:
-        value, column = getattr(message, name), prefix + name
+        value, column = getattr(message, normalize_fieldname(name)), prefix + name
         if nodetype == Nodetype.BASE:
             cells.append((_label(column, units.get(name)), _cell(value)))
         elif nodetype == Nodetype.NAME:
