@@ -156,7 +156,8 @@ def test_export_flattens_fields_named_like_python_keywords():
     from piezo_stage.bag.export import flatten
 
     bag_types = BagTypes()
-    name = bag_types.type_of(Channel(1, "/k", "cdr", 1, {}),
-                             Schema(1, "p/msg/K", "ros2msg", b"int32 from\nint32 class\n"))
+    channel = Channel(id=1, topic="/k", message_encoding="cdr", schema_id=1, metadata={})
+    name = bag_types.type_of(channel, Schema(id=1, name="p/msg/K", encoding="ros2msg",
+                                             data=b"int32 from\nint32 class\n"))
     message = bag_types.store.types[name](from_=1, class_=2)  # rosbags' names for keywords
     assert flatten(bag_types.store.fielddefs, message, name) == [("from", 1), ("class", 2)]
