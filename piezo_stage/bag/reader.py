@@ -215,6 +215,13 @@ _NUMERIC = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uin
                       "uint16", "int32", "uint32", "int64", "uint64"})
 
 
+def normalize_fieldname(name: str) -> str:
+    """rosbags' attribute name of a field (``from`` -> ``from_``)."""
+    from rosbags.typesys.base import normalize_fieldname as normalize
+
+    return normalize(name)
+
+
 def _numeric_fields(fielddefs: dict[str, Any], type_name: str) -> list[str]:
     from rosbags.interfaces import Nodetype
 
@@ -239,7 +246,7 @@ def _generic_series(path: str | Path, topic: str, field: str) -> tuple[np.ndarra
         value: Any = message
         try:
             for part in field.split("."):
-                value = getattr(value, part)
+                value = getattr(value, normalize_fieldname(part))
             values.append(float(value))
         except (AttributeError, TypeError, ValueError):
             raise WrongTopicTypeError(f"{topic} ({type_name}) has no numeric field "
