@@ -62,12 +62,9 @@ def parse_schema(schema: Schema) -> tuple[str, dict[str, Any]]:
         return name, types
     if schema.encoding != "ros2msg":
         raise UnknownMessageTypeError(f"schema encoding {schema.encoding!r} is not ros2msg")
-    package, namespace, base = schema.name.split("/")[0], "", schema.name.split("/")[-1]
-    if schema.name.count("/") == 2:
-        namespace = schema.name.split("/")[1]
-    if namespace == "srv" and base.endswith("_Event"):
-        name = f"{package}/srv/{base}"
-        return name, _service_event(name, text)
+    parts = schema.name.split("/")
+    if len(parts) == 3 and parts[1] == "srv" and parts[2].endswith("_Event"):
+        return schema.name, _service_event(schema.name, text)
     name = full_type_name(schema.name)
     return name, get_types_from_msg(text, name)
 

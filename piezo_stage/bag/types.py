@@ -13,7 +13,6 @@ no ``.msg`` file anywhere falls back to the text rosbags generates from its type
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import os
 import re
@@ -121,25 +120,6 @@ def ensure_registered(type_name: str, definition: str | None = None) -> str:
         raise UnknownMessageTypeError(f"cannot parse the definition of {name}: {exc}") from exc
     store.register({k: v for k, v in parsed.items() if k not in store.fielddefs})
     return name
-
-
-def decoding_type(type_name: str, definition: str) -> str:
-    """Type to decode a bag's messages with: ``type_name`` when the bag's ``definition`` has the
-    fields the typestore knows, else that older definition registered under an alias
-    (``ControllerState_bag<hash>``), so bags recorded before a field was added stay readable."""
-    name = ensure_registered(type_name, definition)
-    store = typestore()
-    try:
-        parsed = get_types_from_msg(definition, name)
-    except Exception:  # not ros2msg text: decode with the known definition
-        return name
-    if name not in parsed or parsed[name] == store.fielddefs[name]:
-        return name
-    alias = f"{name}_bag{hashlib.sha256(definition.encode()).hexdigest()[:8]}"
-    if alias not in store.fielddefs:
-        store.register({alias: parsed[name], **{k: v for k, v in parsed.items()
-                                               if k != name and k not in store.fielddefs}})
-    return alias
 
 
 def _dependencies(text: str, package: str) -> list[str]:
