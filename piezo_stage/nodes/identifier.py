@@ -3,7 +3,9 @@
 Subscribes ``voltage``, ``displacement`` and ``excitation``; keeps the samples since start (or
 ``~/reset``). When a run of the excitation has been steady and ends, it extracts that run's
 steady cycle and publishes it on ``limit_cycles``; once two runs (x(t) and x(t)+q) are complete
-it identifies (:func:`piezo_stage.identification.pipeline.identify`), publishes
+it identifies with ``method`` (:func:`piezo_stage.identification.methods.identify_runs`: the
+analytic method, the fit by simulation error, or auto as ``piezo-stage identify``; with ``fit``
+or ``auto`` also from what one run left when the streams fall silent), publishes
 ``bouc_wen_parameters`` (transient-local) and writes ``output_file`` if set. The runs are cut
 and paired exactly as ``piezo-stage identify`` cuts a bag
 (:func:`piezo_stage.identification.io.recordings_from_series`; a run ends at the next run's
@@ -43,10 +45,12 @@ from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions, extract_cycle
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import recordings_from_series
-from piezo_stage.identification.pipeline import IdentifyOptions, identify
+from piezo_stage.identification.methods import Method, identify_runs
+from piezo_stage.identification.pipeline import IdentifyOptions
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.run_tracker import RUNS_NEEDED, RunTracker
+from piezo_stage.identification.simfit import FitOptions
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import save_parameter_set
 from piezo_stage_msgs.msg import (
@@ -129,6 +133,9 @@ PARAMETERS = ParameterTable("identifier", (
     Param("input", "voltage", "recorded input: voltage (ch. 10: voltage -> displacement) or "
           "displacement (ch. 11: displacement -> voltage)", choices=Input, read_only=True),
     Param("degree", 1, "degree N of the polynomial part (10.4)", range=(1, 10)),
+    Param("method", "auto", "analytic (ch. 9-10: two steady T-wave runs), fit (the simulated "
+          "model fitted to whole runs: any input, transients, one run) or auto (analytic when its "
+          "preconditions hold, else fit), as piezo-stage identify --method", choices=Method),
     Param("refine", True, "refine the analytic estimate by nonlinear least squares"),
     Param("input_sign", 0, "sign of the input driving w: +1, -1, 0 = from the loop orientation",
           range=(-1, 1)),
@@ -136,8 +143,8 @@ PARAMETERS = ParameterTable("identifier", (
     Param("steady_periods", 0, "average the last K periods (0: detect the steady state)",
           range=(0, 100000)),
     Param("filter", False, "apply the §10.3.2 zero-phase data filter"),
-    Param("max_rms", 0.005, "largest residual RMS accepted, fraction of the output span",
-          range=(0.0, 1.0)),
+    Param("max_rms", 0.0, "largest residual RMS accepted, fraction of the output span (0: the "
+          "method's default, 0.005 analytic, 0.02 fit)", range=(0.0, 1.0)),
     Param("auto_identify", True, "identify as soon as two runs are complete"),
     Param("output_file", "", "write the identified parameter-set YAML here ('' = do not)"),
     Param("name", "identified", "name stored in the parameter set"),
@@ -218,6 +225,7 @@ class IdentifierNode(Node):
         self._voltage = _Series()
         self._displacement = _Series()
         self._runs = RunTracker()
+        self._attempted = False   # the identification at silence (fit, auto) was tried
 
     def _on_voltage(self, msg: Voltage) -> None:
         self._voltage.t.append(stamp_to_s(msg.header.stamp))
@@ -254,6 +262,17 @@ class IdentifierNode(Node):
                 self._done(1)  # reported by identify_now (log + /diagnostics)
             else:
                 self._done(0)
+        if poll.silent and self.result is None and not self._attempted \
+                and self.get_parameter("method").value != Method.ANALYTIC.value \
+                and self.get_parameter("auto_identify").value:
+            self._attempted = True   # the fit takes whatever runs the silence left
+            try:
+                self.identify_now()
+            except (IdentificationError, ModelError, ValueError):
+                self._done(1)
+            else:
+                self._done(0)
+            return
         if poll.stalled:
             count, runs = len(v) + len(d), len(self._runs.completed)
             self._set_error(f"the streams have been silent for {settle:g} s after {count} samples "
@@ -286,9 +305,13 @@ class IdentifierNode(Node):
             input_sign=sign or None, design=DesignPoints(f1=f1, f2=f2, f3=f3),
             cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value),
                                steady_periods=k or None),
-            refinement=RefineOptions(max_rms_fraction=float(self.get_parameter("max_rms").value)),
+            refinement=RefineOptions(**self._max_rms()),
             input_name=self._input,
             output_name="displacement" if self._input == "voltage" else "voltage")
+
+    def _max_rms(self) -> dict[str, float]:
+        value = float(self.get_parameter("max_rms").value)
+        return {"max_rms_fraction": value} if value > 0 else {}
 
     def _run_complete(self, run_index: int) -> None:
         try:
@@ -299,8 +322,12 @@ class IdentifierNode(Node):
             cycle = extract_cycle(recs[0], self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
             text = str(exc)  # the extraction's messages name the run ("<node> run <k>: ...")
-            named = f"run {run_index}:" in text
-            self._set_error(text if named else f"{self.get_name()} run {run_index}: {text}")
+            named = (text if f"run {run_index}:" in text
+                     else f"{self.get_name()} run {run_index}: {text}")
+            if self.get_parameter("method").value == Method.ANALYTIC.value:
+                self._set_error(named)
+            else:   # the fit by simulation error needs no steady cycle
+                self.get_logger().info(f"no steady cycle ({named})")
         else:
             msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
                              offset=float(self._runs.offsets.get(run_index, 0.0)),
@@ -321,9 +348,8 @@ class IdentifierNode(Node):
     def identify_now(self) -> IdentificationResult:
         try:
             runs = self.recordings()
-            if len(runs) < 2:
-                raise IdentificationError(f"need two runs (x(t) and x(t)+q), have {len(runs)}")
-            result = identify(runs[0], runs[1], self._options())
+            result = identify_runs(runs, self._options(), self.get_parameter("method").value,
+                                   FitOptions(**self._max_rms()))
         except (IdentificationError, ModelError, ValueError) as exc:
             self._set_error(str(exc))
             raise
