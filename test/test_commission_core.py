@@ -62,6 +62,7 @@ def simulate(plan: ExcitationPlan, rate: float, sensor_max: float = np.inf) -> S
 class FakeRig:
     name = "fake"
     delay_samples = 0
+    loop_rates = design.RATE_CANDIDATES
     v_min, v_max = -450.0, 450.0
 
     def __init__(self, rate: float = 50e3, sensor_max: float = np.inf) -> None:

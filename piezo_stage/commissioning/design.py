@@ -186,3 +186,11 @@ def _yaml(value: object) -> str:
     if isinstance(value, int):
         return str(value)
     return f'"{value}"'
+
+
+def read_controller_params(path: Path) -> dict:
+    """The ``ros__parameters`` of a file written by :func:`write_controller_params`."""
+    import yaml
+
+    data = yaml.safe_load(Path(path).read_text())
+    return dict(data["/**"]["ros__parameters"])

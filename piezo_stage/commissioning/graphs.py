@@ -80,6 +80,13 @@ class RosRig:
     wall_timeout: float = 600.0
     data_timeout: float = 30.0  #: [s] for the graph's topics and the first sample and mark
 
+    @property
+    def loop_rates(self) -> tuple[float, ...]:
+        """sim: any lockstep rate (the candidates); a rig: its sensor's rate (trigger=timer)."""
+        from .design import RATE_CANDIDATES
+
+        return RATE_CANDIDATES if self.lockstep else (self.rate_hz,)
+
     # ------------------------------------------------------------------ graphs
     def _graph(self, plan: ExcitationPlan, namespace: str) -> dict[str, Any]:
         nodes = copy.deepcopy(self.base_nodes)

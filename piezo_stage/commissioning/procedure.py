@@ -67,6 +67,7 @@ class Rig(Protocol):
 
     name: str
     rate_hz: float  #: sensor sample rate
+    loop_rates: tuple[float, ...]  #: loop rates the graph can run (the lowest stable is used)
     delay_samples: int  #: output delay of a loop on this graph
     v_min: float
     v_max: float
@@ -337,6 +338,7 @@ class Commissioning:
             f=o.f,
             rate_hz=o.rate_hz,
             delay_samples=self.rig.delay_samples,
+            candidates=self.rig.loop_rates,
         )
         design.write_controller_params(
             self.dir / "pending" / FILES["controller"],
@@ -347,11 +349,12 @@ class Commissioning:
         return d.to_dict()
 
     def _acceptance(self) -> dict[str, Any]:
-        g = self.result(Step.GAINS)
+        # the controller runs on the files written: its parameter file, the pending bounds file
+        params = design.read_controller_params(self.dir / "pending" / FILES["controller"])
         run = {
-            "gains": g["gains"],
-            "rate_hz": g["rate_hz"],
-            "delay_samples": g["delay_samples"],
+            "gains": {k: params[k] for k in ("k0", "k1", "k2", "kA", "f")},
+            "rate_hz": params["rate_hz"],
+            "delay_samples": params["delay_samples"],
             "bounds_file": str((self.dir / "pending" / FILES["bounds"]).resolve()),
             "kappa_x": self.result(Step.SWEEP)["table"]["kappa_x"]["mean"],
             "duration": self.options.acceptance_duration,
