@@ -66,3 +66,11 @@ def test_bad_input_exit_2(capsys, tmp_path):
     assert code in (0, 1) and json.loads(out)["discrete"]["rate_hz"] == 1000
     code, _, err = gains(capsys, "--k1", "-1")
     assert code == 2 and "k1 > 0" in err
+
+
+def test_kA_is_spelled_as_the_parameter_and_ka_still_works(capsys):
+    args = ("--k1", "5e6", "--k2", "580", "--k0", "1e9", "--f", "100", "--json")
+    code_a, out_a, err_a = gains(capsys, *args, "--kA", "2e9")
+    code_b, out_b, _ = gains(capsys, *args, "--ka", "2e9")
+    assert code_a == code_b and out_a == out_b, err_a
+    assert json.loads(out_a)["kA"] == 2e9

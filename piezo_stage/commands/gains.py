@@ -40,13 +40,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--k1", type=physical, required=True, help="proportional gain k1 [V/m] (> 0)")
     g.add_argument("--k2", type=physical, default=None, help="derivative gain k2 [V s/m]")
     g.add_argument("--k0", type=physical, default=None, help="integral gain k0 [V/(m s)]")
-    g.add_argument("--ka", dest="kA", type=physical, default=None, help="kA of (11.18) [V/(m s)]")
+    g.add_argument("--kA", "--ka", dest="kA", type=physical, default=None,
+                   help="kA of (11.18) [V/(m s)] (--ka: the same)")
     g.add_argument("--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]")
     d = parser.add_argument_group("sampled-loop check")
     d.add_argument("--rate-hz", type=physical, default=None, help="loop rate [Hz]; enables the check")
     d.add_argument("--delay-samples", type=int_range(0, MAX_DELAY_SAMPLES), default=0, help="output applied this many periods late (default 0)")
     d.add_argument("--law", choices=LAWS, default="pid",
-                   help="law checked (pid_sine = pid; pid_tv needs --ka, --f, rate/f integer)")
+                   help="law checked (pid_sine = pid; pid_tv needs --kA, --f, rate/f integer)")
     d.add_argument("--hysteresis", choices=HYSTERESIS_MODELS, default="disturbance",
                    help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)")
     d.add_argument("--derivative-tau", type=physical, default=0.0, help="x2 filter time constant [s] (default 0: off)")
