@@ -20,6 +20,7 @@ from piezo_stage.commissioning import (
     sweep,
 )
 from piezo_stage.commissioning.graphs import SIM_SENSOR_NOISE
+from piezo_stage.commissioning.procedure import OtherCommissioningError
 from piezo_stage.commissioning.sweep import Series, SweepError
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.laws import Gains
@@ -162,6 +163,12 @@ def test_procedure_writes_the_files_and_resumes(tmp_path):
     again = FakeRig()
     Commissioning(tmp_path, again, options).run()
     assert again.excited == []  # every step resumed from state.json
+    other = dataclasses.replace(options, margin=0.3)
+    with pytest.raises(OtherCommissioningError, match="--restart"):
+        Commissioning(tmp_path, FakeRig(), other).run()
+    assert (tmp_path / "report.md").is_file() and json.loads((tmp_path / "state.json").read_text())[
+        "steps"
+    ]
 
 
 def test_a_clipped_sensor_stops_before_the_gains(tmp_path):

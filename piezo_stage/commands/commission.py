@@ -113,6 +113,7 @@ def _model_file(params: list[str]) -> tuple[str | None, list[str]]:
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.commissioning import Commissioning, Options, StepFailed, SweepSettings
     from piezo_stage.commissioning.graphs import GraphRunError, make_rig
+    from piezo_stage.commissioning.procedure import OtherCommissioningError
     from piezo_stage.commissioning.sweep import SweepError
     from piezo_stage.config_path import find_config
 
@@ -166,6 +167,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         with isolated_domain():
             summary = Commissioning(args.out_dir, rig, options, progress).run()
+    except OtherCommissioningError as exc:
+        print(f"piezo-stage commission: {exc}", file=sys.stderr)
+        return 2
     except StepFailed as exc:
         print(
             f"piezo-stage commission: step {exc.step.value} failed: {exc.reason}", file=sys.stderr

@@ -33,7 +33,6 @@ _TOPICS = {
     "displacement": "piezo_stage_msgs/msg/Displacement",
     "excitation": "piezo_stage_msgs/msg/ExcitationInfo",
 }
-LOCKSTEP_DEPTH = 100_000
 SIM_SENSOR_NOISE = 2e-9  #: [m] standard deviation of the sim graph's sensor
 _counter = iter(range(1, 1 << 30))
 
@@ -113,13 +112,14 @@ class RosRig:
 
         namespace = f"/commission_{os.getpid()}_{next(_counter)}"
         lines: list[str] = []
-        launch = Launcher(
-            self._graph(plan, namespace),
-            params=self.extra_params,
-            timeout=self.data_timeout,
-            sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
-        )
+        launch = None
         try:
+            launch = Launcher(
+                self._graph(plan, namespace),
+                params=self.extra_params,
+                timeout=self.data_timeout,
+                sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
+            )
             raw = self._collect(launch, namespace, plan, label)
         except (GraphRunError, LaunchError) as exc:
             tail = "\n".join(lines[-15:])
@@ -127,7 +127,8 @@ class RosRig:
                 f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else "")
             ) from exc
         finally:
-            launch.stop()
+            if launch is not None:
+                launch.stop()
         _write_bag(bag, namespace, raw)
         return _series(raw)
 
@@ -138,6 +139,7 @@ class RosRig:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
+        from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
         from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
         ctx = rclpy.Context()
@@ -358,8 +360,9 @@ def make_rig(
         link = f"/tmp/piezo_commission_{os.getpid()}_{port}_sensor"
         for n in nodes:
             if n.get("name") == "rig":
-                command = [model_file if a == "ch10_patch.yaml" and model_file else a
-                           for a in n["command"]]
+                command = [
+                    model_file if a == "ch10_patch.yaml" and model_file else a for a in n["command"]
+                ]
                 n["command"] = command + ["--amp-tcp", str(port), "--sensor-link", link]
         urls = [f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}"]
         params = urls + params
@@ -370,6 +373,4 @@ def make_rig(
             rate = float(o.get("rate_hz", rate)) / float(o.get("decimation", 1))
         if n.get("executable") == "voltage_driver":
             lo, hi = float(o.get("v_min", lo)), float(o.get("v_max", hi))
-    return RosRig(
-        graph, rate, 1, lo, hi, nodes, False, extra_params=params, progress=progress
-    )
+    return RosRig(graph, rate, 1, lo, hi, nodes, False, extra_params=params, progress=progress)

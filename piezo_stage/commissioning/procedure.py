@@ -58,6 +58,10 @@ class StepFailed(Exception):
         self.step, self.reason = step, reason
 
 
+class OtherCommissioningError(ValueError):
+    """The output folder holds a commissioning with other options (nothing is touched)."""
+
+
 class RigError(Exception):
     """The graph did not deliver what a step needs (no sensor, a node died, a timeout)."""
 
@@ -137,10 +141,9 @@ class Commissioning:
         if self._state_path.exists():
             state = json.loads(self._state_path.read_text())
             if state.get("key") != key:
-                raise StepFailed(
-                    Step.SWEEP,
+                raise OtherCommissioningError(
                     f"{self.dir} holds a commissioning with other options or graph; "
-                    "use another folder or --restart",
+                    "use another folder or --restart"
                 )
             self.state = state
         else:

@@ -51,8 +51,6 @@ def plot_sweep(rows: list[dict[str, Any]], path: Path) -> Path:
 
 def plot_step(dyn: dict[str, Any], path: Path) -> Path:
     """The measured step response and the fitted model's."""
-    from piezo_stage.model.bouc_wen import BoucWenParameters  # noqa: F401 - documents the model used
-
     plt = _plt()
     t, x, u = (np.asarray(dyn[k]) for k in ("t", "x", "u"))
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(6.5, 5), sharex=True)
