@@ -29,21 +29,27 @@ NAMES = ("y0", "kappa_w", "rho", "sigma", "n")
 NS = "/piezo"  # the probe node's namespace (conftest)
 
 
-def _offline(bag: str, degree: int, capsys) -> dict:
-    assert main(["identify", str(ROOT / bag), "--degree", str(degree), "--json"]) == 0
+def _offline(bag: str, degree: int, capsys, method: str = "auto") -> dict:
+    assert main(["identify", str(ROOT / bag), "--degree", str(degree), "--method", method,
+                 "--json"]) == 0
     return json.loads(capsys.readouterr().out)
 
 
-@pytest.mark.parametrize("bag, degree, params", [
-    ("bags/ch10_identification", 2, []),  # the graph as shipped (its bag and degree)
+@pytest.mark.parametrize("bag, degree, params, method", [
+    ("bags/ch10_identification", 2, [], "auto"),  # the graph as shipped (its bag and degree)
     ("bags/ch9_identification", 1, ["--param", "player.bag:=bags/ch9_identification",
-                                    "--param", "identifier.degree:=1"]),
+                                    "--param", "identifier.degree:=1"], "auto"),
+    # issue 13: the fit by simulation error over the whole runs, as `identify --method fit`
+    ("bags/ch9_identification", 1, ["--param", "player.bag:=bags/ch9_identification",
+                                    "--param", "identifier.degree:=1",
+                                    "--param", "identifier.method:=fit"], "fit"),
 ])
-def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(node, bag, degree, params, tmp_path,
-                                                                                 capsys):
+def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(node, bag, degree, params, method,
+                                                                                 tmp_path, capsys):
     from piezo_stage_msgs.msg import BoucWenParameters
 
-    offline = _offline(bag, degree, capsys)
+    offline = _offline(bag, degree, capsys, method)
+    assert offline["method"] == ("fit" if method == "fit" else "analytic")
     out_file = tmp_path / "replayed.yaml"
     got: list = []
     node.create_subscription(BoucWenParameters, "bouc_wen_parameters", got.append, LATCHED_QOS)
