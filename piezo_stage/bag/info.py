@@ -39,12 +39,24 @@ def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
     topics: dict[str, dict[str, Any]] = {}
     start, end, count = 2**63, -1, 0
     walk = records.McapWalk(path, expected=listed)
-    for channel, log_time, _, _, _ in walk.messages():
-        if channel.topic not in topics:
-            topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
-        topics[channel.topic]["count"] += 1
-        count += 1
-        start, end = min(start, log_time), max(end, log_time)
+    indexed = walk.indexed_counts()
+    if indexed is not None:  # complete file: chunks CRC-checked, counts from their indexes
+        for channel_id, (n, first, last) in indexed.items():
+            channel = walk.channels[channel_id]
+            info = topics.setdefault(
+                channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id)))
+            info["count"] += n
+            count += n
+            start, end = min(start, first), max(end, last)
+    else:
+        walk = records.McapWalk(path, expected=listed)
+        for channel, log_time, _, _, _ in walk.messages():
+            if channel.topic not in topics:
+                topics[channel.topic] = _channel_info(channel,
+                                                      walk.schemas.get(channel.schema_id))
+            topics[channel.topic]["count"] += 1
+            count += 1
+            start, end = min(start, log_time), max(end, log_time)
     for channel in walk.channels.values():  # topics without messages (or all lost)
         topics.setdefault(channel.topic,
                           _channel_info(channel, walk.schemas.get(channel.schema_id)))

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
@@ -297,14 +298,15 @@ class McapWalk:
         if crc and zlib.crc32(buf[:data_end_at]) != crc:
             self.errors.append("data CRC error: the data section fails its CRC")
 
-    def _chunk(self, body: memoryview, at: int) -> Iterator[MessageTuple]:
+    def _chunk_data(self, body: memoryview, at: int) -> bytes | memoryview | None:
+        """The chunk's records, decompressed and CRC-checked; None (error noted) if damaged."""
         try:
             _, _, size, crc, n = _CHUNK.unpack_from(body, 0)
             compression = bytes(body[_CHUNK.size:_CHUNK.size + n]).decode("utf-8")
             (data_len,) = struct.unpack_from("<Q", body, _CHUNK.size + n)
         except (struct.error, UnicodeDecodeError):
             self.errors.append(f"garbled record: chunk header at {at}")
-            return
+            return None
         data_at = _CHUNK.size + n + 8
         try:
             data = _decompress(compression, body[data_at:data_at + data_len], size)
@@ -312,11 +314,79 @@ class McapWalk:
             raise
         except Exception as exc:  # zstd/lz4 raise their own types on damaged data
             self.errors.append(f"chunk CRC error: chunk at {at} does not decompress ({exc})")
-            return
+            return None
         if len(data) != size or (crc and zlib.crc32(data) != crc):
             self.errors.append(f"chunk CRC error: chunk at {at} fails its size or CRC check")
-            return
-        yield from self._records(data, 0, top=False)
+            return None
+        return data
+
+    def _chunk(self, body: memoryview, at: int) -> Iterator[MessageTuple]:
+        data = self._chunk_data(body, at)
+        if data is not None:
+            yield from self._records(data, 0, top=False)
+
+    def indexed_counts(self) -> dict[int, tuple[int, int, int]] | None:
+        """``{channel id: (messages, first, last log time)}`` of the chunks that pass their
+        CRC, from the message index records after each chunk -- no message is unpacked, so
+        ``bag info`` runs at decompression speed. None when the file has no intact summary or
+        its indexes disagree with it: then walk ``messages()`` (on a fresh walk)."""
+        with open_buffer(self.path) as buf:
+            if not _check_magic(self.path, buf):
+                return None
+            self._read_summary(buf)
+            if self.statistics is None or not self._chunk_starts or self.errors:
+                return None
+            view = memoryview(buf)
+            try:
+                found = self._index_walk(view)
+            finally:
+                view.release()
+        if found is None:
+            return None
+        stats = self.statistics
+        if not self.errors and (
+                sum(c for c, _, _ in found.values()) != stats.message_count
+                or min(lo for _, lo, _ in found.values()) != stats.message_start_time
+                or max(hi for _, _, hi in found.values()) != stats.message_end_time):
+            return None  # indexes (outside any CRC) disagree with the summary: walk instead
+        self.counts = {c: n for c, (n, _, _) in found.items()}
+        return found
+
+    def _index_walk(self, view: memoryview) -> dict[int, tuple[int, int, int]] | None:
+        found: dict[int, tuple[int, int, int]] = {}
+        pos, n, chunk_ok, indexed = len(MAGIC), len(view), False, False
+        while pos + 9 <= n:
+            opcode, length = _RECORD.unpack_from(view, pos)
+            body, end = pos + 9, pos + 9 + length
+            if end > n:
+                self.errors.append(f"garbled record: header at offset {pos}")
+                resync = self._resync(pos)
+                if resync is None:
+                    break
+                pos, chunk_ok = resync, False
+                continue
+            if opcode == Opcode.CHUNK:
+                chunk_ok = self._chunk_data(view[body:end], pos) is not None
+            elif opcode == Opcode.MESSAGE_INDEX and chunk_ok and length >= 6:
+                channel_id, size = struct.unpack_from("<HI", view, body)
+                times = np.frombuffer(view[body + 6:min(end, body + 6 + size)],
+                                      dtype="<u8")[::2]
+                indexed = True
+                if times.size:
+                    count, lo, hi = found.get(channel_id, (0, 2**63, -1))
+                    found[channel_id] = (count + times.size, min(lo, int(times.min())),
+                                         max(hi, int(times.max())))
+            elif opcode == 0x05 and length >= _MESSAGE.size:  # a message outside any chunk
+                channel_id, _, log_time, _ = _MESSAGE.unpack_from(view, body)
+                count, lo, hi = found.get(channel_id, (0, 2**63, -1))
+                found[channel_id] = (count + 1, min(lo, log_time), max(hi, log_time))
+            elif opcode == Opcode.DATA_END:
+                self._check_data_crc(view, pos, view[body:end])
+                break
+            elif opcode == Opcode.FOOTER:
+                break
+            pos = end
+        return found if indexed or not self._chunk_starts else None
 
     def _read_summary(self, buf) -> None:
         """Statistics and chunk offsets from the summary (if the file has an intact one)."""
