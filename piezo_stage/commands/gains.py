@@ -4,7 +4,9 @@ Prints k2_min (11.6) and k0_max (11.7) for the Assumption 2 bounds (default: the
 thesis_rig_bounds.yaml, §11.4.1; any bound can be overridden), whether the given gains satisfy
 Theorem 4, and with --rate-hz the spectral radius of the sampled loop (ZOH plant, rectangle-sum
 x0, Euler-difference x2, optional output delay). Exit status: 0 valid (and stable when checked),
-1 not, 2 bad input. Note: §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
+1 not, 2 bad input. Values beyond 1e±150, a delay over 1000 samples, a rate so low that the held
+plant overflows, or so high that the slowest closed-loop mode moves less than 1e6·eps per sample
+(|λ_min|/2.2e-10 Hz: ρ would be rounding noise around 1) are refused with the reason. Note: §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
 give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
 """
 
