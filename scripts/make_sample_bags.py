@@ -62,14 +62,17 @@ def _target(out_dir: Path, name: str, force: bool) -> Path:
 
 
 def make(sample: SampleBag, out_dir: Path, force: bool) -> Path:
-    from piezo_stage.commands.demo import record_identification
+    from piezo_stage.experiments.identification import record_identification
 
     target = _target(out_dir, sample.name, force)
     with tempfile.TemporaryDirectory() as tmp:
         run = record_identification(Path(tmp) / sample.name, model_file=sample.model_file,
-                                    preset=sample.preset, rate_hz=sample.rate_hz, degree=sample.degree,
-                                    namespace="/piezo", live_params_file=Path(tmp) / "live.yaml",
+                                    preset=sample.preset, rate_hz=sample.rate_hz,
+                                    degree=sample.degree, namespace="/piezo",
+                                    live_params_file=Path(tmp) / "live.yaml",
                                     settle_periods=sample.settle_periods, topics=TOPICS)
+        if run.live_params_file is None:  # the bag would lack the recorded live result
+            raise SystemExit(f"{sample.name}: {run.live_error}")
         shutil.copytree(run.bag, target)
     return target
 
@@ -89,16 +92,16 @@ SUMMARY_KEYS = ("rate_hz", "u_before", "u_after", "settling_time", "max_abs_erro
 
 def make_closed_loop(sample: ClosedLoopBag, out_dir: Path, force: bool) -> Path:
     from piezo_stage.bag import BagWriter, qos, read_raw
-    from piezo_stage.launch.domain import isolated_domain
     from piezo_stage.experiments import run_experiment
+    from piezo_stage.launch.domain import isolated_domain
 
     target = _target(out_dir, sample.name, force)
     with tempfile.TemporaryDirectory() as tmp, isolated_domain():
         full = Path(tmp) / sample.name
         summary = run_experiment(sample.experiment, sample.mode, bag=full)
         if summary.get("lost_samples", 0):
-            raise SystemExit(f"{sample.name}: the experiment lost {summary['lost_samples']} of its steps "
-                             "(a busy machine?): run again")
+            raise SystemExit(f"{sample.name}: the experiment lost {summary['lost_samples']} of its "
+                             "steps (a busy machine?): run again")
         custom = {"experiment": f"piezo-stage experiment {sample.experiment} --mode {sample.mode}",
                   "keep_every": str(sample.keep_every)}
         custom.update({k: repr(summary[k]) for k in SUMMARY_KEYS if k in summary})

@@ -161,6 +161,10 @@ def test_sigint_closes_a_complete_bag_with_counts(recording):
     assert 0.9 * N_SENSOR <= counts[f"{NS}/displacement"] <= N_SENSOR
     assert counts["/diagnostics"] >= 1  # recorded beside the namespace's topics
     assert meta["message_count"] == sum(counts.values()) == info["message_count"]
+    # the recorder's accounting outlives it: the experiments read it from the metadata
+    custom = meta["custom_data"]
+    assert custom["messages_dropped"] == "0"
+    assert int(custom["messages_lost"]) >= 0
 
 
 def test_no_loss_reliable_messages_all_written_and_counted(recording):

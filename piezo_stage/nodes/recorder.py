@@ -352,27 +352,29 @@ class RecorderNode(Node):
         return Diagnosis(OK, "paused" if self.paused else f"recording {len(stats)} topics", values)
 
     def on_shutdown(self) -> None:
-        """Record what is still queued, then close the bag (final metadata.yaml)."""
+        """Record what is still queued, then close the bag (final metadata.yaml, whose
+        custom_data says how many messages were dropped and lost: a status that outlives the
+        node, read by the experiments)."""
         if self.writer.closed:
             return
         for slot in self._slots.values():
             for _ in range(100):  # bounded: a publisher may still be sending
                 if not self._drain(slot):
                     break
-        self.writer.close()
         stats = self.stats()
         total = sum(s.written for s in stats.values())
         dropped = sum(s.dropped for s in stats.values())
         lost = {name: s.lost for name, s in sorted(stats.items()) if s.lost}
+        self.writer.metadata.custom_data.update(messages_dropped=str(dropped),
+                                                messages_lost=str(sum(lost.values())))
+        self.writer.close()
         text = f"bag {self.bag_path} closed: {total} messages on {len(self._slots)} topics"
-        if dropped or lost:  # the bag is incomplete: say so where a user (and the demo) looks
-            self.get_logger().warning(text + f", {dropped} dropped, {sum(lost.values())} lost "
-                                             "before reaching the "
-                                      "recorder" + "".join(f"; {name}: {n} lost" for name,
-                                                           n in lost.items()))
+        if dropped or lost:  # the bag is incomplete: say so where a user looks
+            self.get_logger().warning(
+                f"{text}, {dropped} dropped, {sum(lost.values())} lost before reaching the "
+                "recorder" + "".join(f"; {name}: {n} lost" for name, n in lost.items()))
         else:
             self.get_logger().info(text + ", none lost")
-
 
 def main(args: list[str] | None = None) -> int:
     use_recorder_transport_profile()
