@@ -181,3 +181,23 @@ def test_emulate_numeric_options_never_start_on_bad_values(device, option, value
         return  # a good value would start the emulator: not for a unit test
     code, _ = _run(["emulate", device, option, value], capsys)
     assert code == 2
+
+
+def test_sampled_check_is_refused_exactly_where_it_stops_meaning_anything():
+    from piezo_stage.control.bounds import load_nominal_plant, thesis_bounds_path
+    from piezo_stage.control.discrete import (
+        check_sampled_loop,
+        continuous_poles,
+        max_meaningful_rate,
+    )
+    from piezo_stage.control.errors import SampledLoopError
+    from piezo_stage.control.laws import Gains
+
+    plant, gains = load_nominal_plant(thesis_bounds_path()), Gains(k0=1e8, k1=2e5, k2=600)
+    limit = max_meaningful_rate(plant, gains)
+    slowest = min(abs(continuous_poles(plant, gains)))
+    below = check_sampled_loop(plant, gains, limit / 10)
+    # still meaningful: the margin is the slowest mode's decay per sample, to 1 %
+    assert below.margin == pytest.approx(slowest * 10 / limit, rel=1e-2)
+    with pytest.raises(SampledLoopError, match="means anything"):
+        check_sampled_loop(plant, gains, limit * 10)
