@@ -29,6 +29,7 @@ from piezo_stage.identification.synthetic import (
     triangle_pair,
     triangle_run,
 )
+from piezo_stage.identification.validation import validate_model
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.parameter_set import (
     Drift,
@@ -117,6 +118,38 @@ def test_sine_input_with_delay_and_drift():
     assert fit.delay == pytest.approx(delay, abs=1e-8)
     assert fit.drift[0].coefficient == pytest.approx(0.01, rel=1e-6)
     assert fit.w0[0] == pytest.approx(0.3, abs=1e-6)
+
+
+def _filtered_noise(n: int, rng: np.random.Generator) -> np.ndarray:
+    b = np.convolve(rng.standard_normal(n), np.ones(50) / 50, mode="same")
+    return 0.2 * b / np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("name, make_input", [
+    ("random", lambda t, rng: _filtered_noise(len(t), rng)),
+    ("steps", lambda t, rng: np.repeat(rng.uniform(-0.2, 0.2, 20), len(t) // 20)),
+    ("abrupt start", lambda t, rng: np.where(t < 0.5, 0.0, 0.2 * np.sin(2 * np.pi * t))),
+    ("decaying sine", lambda t, rng: 0.2 * np.exp(-t / 3) * np.sin(4 * np.pi * t)),
+])
+def test_any_input_one_run(name, make_input):
+    t = np.arange(4000) * 1e-3
+    v = make_input(t, np.random.default_rng(3))
+    rec = Recording(t, v, model_output(CH9, v, w0=-0.2), name=name)
+    result = identify_runs([rec])
+    assert result.method == "fit"
+    assert max_rel_error(result.parameters, CH9) <= 1e-6, name
+    assert result.w0 == pytest.approx(-0.2, abs=1e-6)
+
+
+def test_validate_applies_delay_and_drift():
+    t = np.arange(3000) * 1e-3
+    v = sine(t, 1.0, 150.0)
+    delay, drift = 3e-3, Drift(DriftKind.LINEAR, 2e-7, 1.0)
+    y = model_output(PATCH, np.interp(t - delay, t, v), w0=0.0) + drift.evaluate(t)
+    rec = Recording(t, v, y, name="bipolar")
+    exact = validate_model(PATCH, rec, w0=0.0, delay=delay, drift=drift)
+    assert exact.rms < 1e-12 * np.ptp(y)
+    assert validate_model(PATCH, rec, w0=0.0).rms > 1e-3 * np.ptp(y)   # the terms matter
 
 
 def test_input_sign_detected_and_a_contradicting_request_refused():
