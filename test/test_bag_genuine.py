@@ -234,3 +234,11 @@ def test_flipped_bytes_are_reported_by_every_bag_command(tmp_path, capsys):
     report = reindex(bag)
     assert report.damaged and "DAMAGED" in str(report)
     assert bag_info(bag)["damage"] == []
+
+
+def test_reindex_leaves_a_sound_genuine_bag_alone(tmp_path):
+    bag = _copy("bag_with_topics_and_service_events", tmp_path)
+    before = {f.name: f.read_bytes() for f in bag.iterdir()}
+    report = reindex(bag)
+    assert not report.damaged and not any(f.rewritten for f in report.files)
+    assert {f.name: f.read_bytes() for f in bag.iterdir()} == before   # v8 metadata kept

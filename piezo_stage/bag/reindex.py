@@ -247,6 +247,7 @@ def reindex(path: str | Path) -> ReindexReport:
             kept = _keep(file, table, metadata, count) if scan.has_footer else None
         report.files.append(kept or _rewrite(file, scan, table, metadata, count))
     metadata.topics = table.records()
-    if path.is_dir():
+    untouched = previous is not None and not any(f.rewritten or f.damage for f in report.files)
+    if path.is_dir() and not untouched:  # a sound bag keeps its own metadata.yaml (any version)
         metadata.write(path)
     return report
