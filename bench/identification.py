@@ -97,7 +97,8 @@ def section(title: str) -> None:
 
 def noiseless() -> None:
     section("ch. 9 example, noiseless: max relative parameter error")
-    print(f"{'samples/branch':>14}  {'analytic':>10}  {'refined':>10}  {'baseline LSQ':>12}  {'(nfev)':>7}")
+    print(f"{'samples/branch':>14}  {'analytic':>10}  {'refined':>10}  {'baseline LSQ':>12}  "
+          f"{'(nfev)':>7}")
     for spb in (1000, 2000, 10000):
         result = identify(*ch9_runs(spb))
         err_b, nfev_b, _ = baseline(result, CH9)
@@ -150,11 +151,14 @@ def patch() -> None:
     runs = triangle_pair(PATCH, 0.0, 300.0, 100.0, period=10.0, samples_per_branch=2000, periods=3)
     result = identify(*runs, IdentifyOptions(degree=2))
     p = result.parameters
-    print(f"input_sign {p.input_sign:+d}; analytic error {max_rel_error(result.analytic, PATCH):.2e}, "
+    print(f"input_sign {p.input_sign:+d}; analytic error "
+          f"{max_rel_error(result.analytic, PATCH):.2e}, "
           f"refined {max_rel_error(p, PATCH):.2e}, y0 rel. error {abs(p.y0 / PATCH.y0 - 1):.1e}")
-    print(f"kappa {p.kappa}, kappa_w {p.kappa_w:.6g}, rho {p.rho:.6g}, sigma {p.sigma:.6g}, n {p.n:.6g}")
+    print(f"kappa {p.kappa}, kappa_w {p.kappa_w:.6g}, rho {p.rho:.6g}, sigma {p.sigma:.6g}, "
+          f"n {p.n:.6g}")
     err_b, nfev_b, t_b = baseline(result, PATCH)
-    print(f"baseline LSQ from a generic start: error {err_b:.2e} after {nfev_b} evaluations ({t_b:.2f} s)")
+    print(f"baseline LSQ from a generic start: error {err_b:.2e} after {nfev_b} evaluations "
+          f"({t_b:.2f} s)")
     try:
         identify(*runs, IdentifyOptions(degree=1))
         print("N = 1 on these data: accepted (unexpected)")
@@ -180,7 +184,8 @@ def timing() -> None:
     result = identify(*runs)
     _, nfev_b, t_b = baseline(result, CH9)
     print(f"analytic (cycle extraction + Table 10.2): {1e3 * t_ana:7.1f} ms   target < 50 ms")
-    print(f"analytic + refinement:                    {1e3 * t_full:7.1f} ms   target refinement < 5 s")
+    print(f"analytic + refinement:                    {1e3 * t_full:7.1f} ms   "
+          "target refinement < 5 s")
     print(f"baseline LSQ from generic start:          {1e3 * t_b:7.1f} ms   ({nfev_b} evaluations, "
           f"refinement from the analytic start: {result.diagnostics['nfev']}); ratio "
           f"{t_b / max(t_full - t_ana, 1e-9):.1f}x")
