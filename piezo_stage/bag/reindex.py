@@ -247,7 +247,9 @@ def reindex(path: str | Path) -> ReindexReport:
             kept = _keep(file, table, metadata, count) if scan.has_footer else None
         report.files.append(kept or _rewrite(file, scan, table, metadata, count))
     metadata.topics = table.records()
-    untouched = previous is not None and not any(f.rewritten or f.damage for f in report.files)
+    untouched = (previous is not None and not any(f.rewritten or f.damage for f in report.files)
+                 and [Path(f.path).name for f in previous.files] == [f.name for f in files]
+                 and previous.message_count == metadata.message_count)  # and it tells the truth
     if path.is_dir() and not untouched:  # a sound bag keeps its own metadata.yaml (any version)
         metadata.write(path)
     return report
