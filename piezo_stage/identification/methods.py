@@ -23,7 +23,7 @@ from .errors import (
     NonFiniteDataError,
     SaturatedOutputError,
 )
-from .pipeline import IdentifyOptions, identify
+from .pipeline import IdentifyOptions, correlation_warning, identify
 from .recording import Recording, check_recording
 from .result import IdentificationResult
 from .simfit import (
@@ -104,8 +104,7 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
 
 
 def _warnings(final: SimulationFit, figures: dict[str, float], fit: FitOptions) -> list[str]:
-    out = [f"{a} and {b} are strongly correlated ({c:+.5f}): this record separates them "
-           "poorly (see their standard errors)" for a, b, c in final.correlations]
+    out = [correlation_warning(*c) for c in final.correlations]
     loose = [f"{k} ±{100 * v:.2g} %" for k, v in final.relative_std.items()
              if k in HYSTERETIC and not v <= fit.warn_rel_std]
     if loose:

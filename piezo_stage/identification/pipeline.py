@@ -119,7 +119,8 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
         diagnostics.update(relative_std=fit.relative_std, nfev=fit.nfev, solver=fit.status,
                            rejected_trials=fit.rejected_trials,
                            std={k: rel * abs(values[k]) for k, rel in fit.relative_std.items()
-                                if k in values and np.isfinite(rel)})
+                                if k in values and np.isfinite(rel)},
+                           correlations=[list(c) for c in fit.correlations])
     else:
         if analytic is None:
             raise AnalyticEstimateError(
@@ -133,9 +134,16 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
         samples=samples, w0=initial_w(final.kappa, final.kappa_w, final.y0,
                                       float(cycle_a.input[0]), float(cycle_a.output[0])),
         refined=options.refine, input_name=options.input_name, output_name=options.output_name,
-        diagnostics=diagnostics, cycles=cycles)
+        diagnostics=diagnostics, cycles=cycles,
+        warnings=tuple(correlation_warning(*c) for c in diagnostics.get("correlations", ())))
     check_fit(result, options.refinement)
     return result
+
+
+def correlation_warning(a: str, b: str, c: float) -> str:
+    """The warning for two strongly correlated parameters (both methods)."""
+    return (f"{a} and {b} are strongly correlated ({c:+.5f}): this record separates them "
+            "poorly (see their standard errors)")
 
 
 def _analytic_parameters(kappa: np.ndarray, y0: float, h: HystereticEstimate,

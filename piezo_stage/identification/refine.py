@@ -26,6 +26,8 @@ _TAIL = ("y0", "kappa_w", "rho", "sigma", "n")
 #: the hysteretic parameters whose standard errors decide whether the data determine them
 HYSTERETIC = ("kappa_w", "rho", "sigma", "n")
 _FD_STEP = 1.5e-8      #: relative finite-difference step of the Jacobian (√eps)
+#: |correlation| of two parameters above which the result warns (as the fit by simulation)
+CORRELATION_LIMIT = 0.999
 
 
 @dataclass(frozen=True)
@@ -156,6 +158,8 @@ class RefinedFit:
     nfev: int
     status: str
     rejected_trials: int = 0     #: trial points the model could not simulate
+    #: parameter pairs whose correlation exceeds CORRELATION_LIMIT: (name, name, correlation)
+    correlations: tuple[tuple[str, str, float], ...] = ()
 
 
 def _bounds(p0: np.ndarray, degree: int, n_max: float) -> tuple[np.ndarray, np.ndarray]:
@@ -177,6 +181,19 @@ def feasible_start(kappa: np.ndarray, y0: float, kappa_w: float, rho: float, sig
                              rho=float(rho), sigma=max(float(sigma), 0.5),
                              n=min(max(float(n), 1.0), n_max), y0=float(y0),
                              input_sign=input_sign)
+
+
+def strong_correlations(names: list[str], cov: np.ndarray,
+                        limit: float) -> tuple[tuple[str, str, float], ...]:
+    """Parameter pairs whose correlation (from the covariance ``cov``) exceeds ``limit`` in
+    magnitude; κ_i with y0 left out (the polynomial's offset when the input is not centred)."""
+    d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    d[d == 0] = 1.0
+    corr = cov / np.outer(d, d)
+    return tuple((names[i], names[j], float(corr[i, j]))
+                 for i in range(len(names)) for j in range(i + 1, len(names))
+                 if not (names[j] == "y0" and names[i].startswith("kappa_"))
+                 and abs(corr[i, j]) > limit)
 
 
 def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOptions = RefineOptions()) -> RefinedFit:
@@ -250,6 +267,8 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
     names = [f"kappa_{i + 1}" for i in range(degree)] + list(_TAIL)
     rel = {name: float(sd / abs(v)) if v != 0 else float("inf")
            for name, sd, v in zip(names, std, p)}
+    pairs = strong_correlations(names, cov, CORRELATION_LIMIT)
     return RefinedFit(parameters=params, rms_error=float(np.sqrt(np.mean(r**2))),
                       relative_std=rel, nfev=int(res.nfev), status=str(res.message),
+                      correlations=pairs,
                       rejected_trials=len(failures))

@@ -30,6 +30,7 @@ from .cycles import upward_crossings
 from .derivatives import noise_std
 from .errors import BadFitError, IdentificationError, OrientationError
 from .recording import Recording
+from .refine import strong_correlations
 
 #: hysteretic parameters whose standard errors decide whether the data determine them
 HYSTERETIC = ("kappa_w", "rho", "sigma", "n")
@@ -244,8 +245,9 @@ def _param_names(problem: _Problem) -> list[str]:
 
 def _uncertainty(problem: _Problem, th: np.ndarray, c: np.ndarray, A: np.ndarray,
                  r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Standard errors and correlation matrix of all parameters (linear ones, then θ in
-    physical units) from the full Jacobian at the optimum, scaled by the residual variance."""
+    """Standard errors and covariance (of the column-normalised problem: for correlations) of
+    all parameters (linear ones, then θ in physical units) from the full Jacobian at the
+    optimum, scaled by the residual variance."""
     lo, hi = problem.bounds()
     cols = []
     for j in range(len(th)):
@@ -266,10 +268,7 @@ def _uncertainty(problem: _Problem, th: np.ndarray, c: np.ndarray, A: np.ndarray
     s2 = float(r @ r) / dof
     cov_n = np.linalg.pinv(Jn.T @ Jn) * s2
     std = np.sqrt(np.clip(np.diag(cov_n), 0.0, None)) / norms * scale
-    d = np.sqrt(np.clip(np.diag(cov_n), 0.0, None))
-    d[d == 0] = 1.0
-    corr = cov_n / np.outer(d, d)
-    return std, corr
+    return std, cov_n
 
 
 def _values(problem: _Problem, th: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -299,7 +298,7 @@ def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions()
     res, nfev = _optimum(problem, _seeds(seeds, problem.span_v, len(runs)), options)
     th = res.x
     c, A, r = problem.linear(th)
-    std, corr = _uncertainty(problem, th, c, A, r)
+    std, cov = _uncertainty(problem, th, c, A, r)
     names = _param_names(problem)
     values = _values(problem, th, c)
     rho, sigma, n, w0, delay = problem.split(th)
@@ -310,6 +309,8 @@ def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions()
         sign, kappa_w, w0 = -1, -kappa_w, -w0
         values[deg + 1] = kappa_w
         values[names.index("w0_0"):names.index("w0_0") + len(w0)] = w0
+        flip = np.array([-1.0 if k == "kappa_w" or k.startswith("w0_") else 1.0 for k in names])
+        cov = cov * np.outer(flip, flip)
     if options.input_sign is not None and sign != options.input_sign:
         raise OrientationError(
             f"the loop orientation gives input_sign {sign:+d}, but {options.input_sign:+d} was "
@@ -322,13 +323,7 @@ def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions()
     model = tuple((A @ c)[offsets[k]:offsets[k + 1]] for k in range(len(runs)))
     std_d = {k: float(s) for k, s in zip(names, std)}
     rel = {k: float(s / abs(v)) if v != 0 else float("inf") for k, s, v in zip(names, std, values)}
-    pairs = []
-    for i in range(len(names)):
-        for j in range(i + 1, len(names)):
-            if names[j] == "y0" and names[i].startswith("kappa_"):
-                continue     # κ_i–y0: the polynomial's offset when the input is not centred
-            if abs(corr[i, j]) > options.correlation_limit:
-                pairs.append((names[i], names[j], float(corr[i, j])))
+    pairs = list(strong_correlations(names, cov, options.correlation_limit))
     return SimulationFit(parameters=params, w0=tuple(float(w) for w in w0), delay=delay,
                          drift=drifts, rms_error=float(np.sqrt(np.mean(r ** 2))), std=std_d,
                          relative_std=rel, correlations=pairs, model=model, nfev=nfev,

@@ -354,6 +354,8 @@ class IdentifierNode(Node):
             self._set_error(str(exc))
             raise
         self.result, self._error = result, ""
+        for text in result.warnings:
+            self.get_logger().warning(text)
         p = result.parameters
         self._pub_params.publish(BoucWenParameters(
             header=Header(stamp=self.get_clock().now().to_msg()), kappa=[float(k) for k in p.kappa],
