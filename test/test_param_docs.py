@@ -10,6 +10,7 @@ import sys
 import pytest
 import rclpy
 from rcl_interfaces.msg import ParameterType
+from rclpy.exceptions import ParameterUninitializedException
 
 from ros_support import ROOT
 
@@ -45,45 +46,58 @@ def test_every_node_executable_has_its_table():
                             "recorder", "voltage_driver"}
 
 
+#: rclpy's parameter types as the tables name them
+KINDS = {ParameterType.PARAMETER_BOOL: "bool", ParameterType.PARAMETER_INTEGER: "int",
+         ParameterType.PARAMETER_DOUBLE: "float", ParameterType.PARAMETER_STRING: "string",
+         ParameterType.PARAMETER_DOUBLE_ARRAY: "float[]",
+         ParameterType.PARAMETER_STRING_ARRAY: "string[]",
+         ParameterType.PARAMETER_INTEGER_ARRAY: "int[]"}
+
+
 @pytest.mark.ros
-def test_running_nodes_declare_exactly_their_table():
-    """What rclpy reports for the nodes that start without a device or a bag is their table:
-    the same names, types, defaults, ranges, read-only flags and descriptions."""
+@pytest.mark.parametrize("name", ["plant", "controller", "identifier", "excitation", "recorder",
+                                  "player"])
+def test_running_nodes_declare_exactly_their_table(name, tmp_path):
+    """What rclpy reports for the nodes that start without a device is their table: the same
+    names, types, defaults, ranges, read-only flags and descriptions (the recorder and the
+    player get the one parameter they need, a bag)."""
+    import importlib
+
     from piezo_stage.nodes.parameters import descriptor
 
-    names = {ParameterType.PARAMETER_BOOL: "bool", ParameterType.PARAMETER_INTEGER: "int",
-             ParameterType.PARAMETER_DOUBLE: "float", ParameterType.PARAMETER_STRING: "string",
-             ParameterType.PARAMETER_DOUBLE_ARRAY: "float[]",
-             ParameterType.PARAMETER_STRING_ARRAY: "string[]",
-             ParameterType.PARAMETER_INTEGER_ARRAY: "int[]"}
-    rclpy.init()
+    module = importlib.import_module(f"piezo_stage.nodes.{name}")
+    table = module.PARAMETERS
+    given = {"recorder": {"bag": str(tmp_path / "bag")},
+             "player": {"bag": str(ROOT / "bags" / "ch9_identification")}}.get(name, {})
+    args = ["x", "--ros-args", *(a for k, v in given.items() for a in ("-p", f"{k}:={v}"))]
+    rclpy.init(args=args)
     try:
-        from piezo_stage.nodes import controller, excitation, identifier, plant
-
-        for module, factory in [(plant, plant.PlantNode), (controller, controller.ControllerNode),
-                                (identifier, identifier.IdentifierNode), (excitation,
-                                                                          excitation.ExcitationNode)]:
-            table = module.PARAMETERS
-            node = factory()
-            try:
-                declared = {p: node.describe_parameter(p) for p in node._parameters
-                            if p not in ROS_OWN}
-                assert set(declared) == set(table.names), table.node
-                for p, described in declared.items():
-                    spec = table[p]
-                    assert names[described.type] == spec.kind.value, (table.node, p)
-                    expected = descriptor(spec)
-                    assert described.description == expected.description, (table.node, p)
-                    assert described.read_only == spec.read_only, (table.node, p)
-                    for r in ("floating_point_range", "integer_range"):
-                        assert list(getattr(described, r)) == list(getattr(expected, r)), (p, r)
+        factory = next(v for k, v in vars(module).items() if k.endswith("Node") and k != "Node")
+        node = factory()
+        try:
+            declared = {p: node.describe_parameter(p) for p in node._parameters
+                        if p not in ROS_OWN}
+            assert set(declared) == set(table.names)
+            for p, described in declared.items():
+                spec = table[p]
+                assert KINDS[described.type] == spec.kind.value, p
+                expected = descriptor(spec)
+                assert described.description == expected.description, p
+                assert described.read_only == spec.read_only, p
+                for r in ("floating_point_range", "integer_range"):
+                    assert list(getattr(described, r)) == list(getattr(expected, r)), (p, r)
+                try:
                     value = node.get_parameter(p).value
-                    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-                        value = list(value)
-                    nan = value != value and spec.default != spec.default
-                    assert value == spec.default or nan, (table.node, p)
-            finally:
-                node.destroy_node()
+                except ParameterUninitializedException:  # rclpy: an empty typed array, not set
+                    value = []
+                if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+                    value = list(value)
+                nan = value != value and spec.default != spec.default
+                assert value == given.get(p, spec.default) or nan, p
+        finally:
+            if hasattr(node, "on_shutdown"):
+                node.on_shutdown()
+            node.destroy_node()
     finally:
         rclpy.shutdown()
 
