@@ -1,4 +1,4 @@
-"""The fixed stamp grid shared by the realtime plant and the catch-up excitation timer."""
+"""The fixed stamp grid (model.tick_grid) of the realtime plant and the excitation timer."""
 
 from __future__ import annotations
 
