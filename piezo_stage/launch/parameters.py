@@ -44,6 +44,7 @@ def check_parameters(graph: Graph) -> None:
     for spec in graph.nodes:
         table = node_table(spec)
         if table is not None:
-            found += [f"{spec.name}: {p}" for p in table.problems(dict(spec.overrides))]
+            prefix = "" if spec.name == table.node else f"{spec.name}: "
+            found += [prefix + p for p in table.problems(dict(spec.overrides))]
     if found:
         raise GraphError("; ".join(found))
