@@ -23,15 +23,14 @@ from .errors import (
     NonFiniteDataError,
     SaturatedOutputError,
 )
-from .pipeline import IdentifyOptions, correlation_warning, identify
+from .pipeline import IdentifyOptions, check_fit, correlation_warning, identify
 from .recording import Recording, check_recording
+from .refine import HYSTERETIC
 from .result import IdentificationResult
 from .simfit import (
-    HYSTERETIC,
     FitOptions,
     Seed,
     SimulationFit,
-    check_simulation_fit,
     holdout_check,
     noise_level,
     seed_from,
@@ -153,5 +152,5 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
         input_name=input_name, output_name=output_name, diagnostics=diagnostics,
         method="fit", delay=final.delay, drift=final.drift[0],
         warnings=tuple(_warnings(final, figures, fit)), fitted=final.model)
-    check_simulation_fit(final, runs, fit, result)
+    check_fit(result, fit)
     return result

@@ -8,6 +8,7 @@ refinement on the whole cycles (refine.py); w(0) by (10.18).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from .recording import Recording
 from .refine import HYSTERETIC, RefineOptions, cycle_path, feasible_start, refine, residuals
 from .result import IdentificationResult
 
+if TYPE_CHECKING:
+    from .simfit import FitOptions
+
 
 @dataclass(frozen=True)
 class IdentifyOptions:
@@ -45,7 +49,8 @@ class IdentifyOptions:
     output_name: str = "displacement"
 
 
-def identify(run_a: Recording, run_b: Recording, options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:
+def identify(run_a: Recording, run_b: Recording,
+             options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:  # noqa: B008
     """Identify from two recorded runs (any phase, transients included)."""
     cycles = (extract_cycle(run_a, options.cycle), extract_cycle(run_b, options.cycle))
     result = identify_cycles(cycles[0], cycles[1], options)
@@ -56,7 +61,8 @@ def identify(run_a: Recording, run_b: Recording, options: IdentifyOptions = Iden
 
 def _check_options(options: IdentifyOptions) -> None:
     if int(options.degree) != options.degree or options.degree < 1:
-        raise IdentificationError(f"polynomial degree N must be an integer >= 1, got {options.degree!r}")
+        raise IdentificationError(
+            f"polynomial degree N must be an integer >= 1, got {options.degree!r}")
     if options.input_sign not in (None, 1, -1):
         raise IdentificationError(f"input_sign must be +1, -1 or None, got {options.input_sign!r}")
 
@@ -161,15 +167,17 @@ def _analytic_parameters(kappa: np.ndarray, y0: float, h: HystereticEstimate,
     return params, ""
 
 
-def check_fit(result: IdentificationResult, options: RefineOptions) -> None:
+def check_fit(result: IdentificationResult, options: RefineOptions | FitOptions) -> None:
     """Reject a fit the data do not support: residual above both the noise allowance and the
-    span allowance, or a hysteretic parameter with a large relative standard error."""
+    span allowance, or a hysteretic parameter with a large relative standard error (the limits
+    of either method's options; the figures from ``result.diagnostics``)."""
     d = result.diagnostics
     span, noise = d["output_span"], d["noise_output"]
     allowed = max(options.noise_factor * noise, options.max_rms_fraction * span)
     if result.rms_error > allowed:
         raise BadFitError(
-            f"bad fit: residual RMS {result.rms_error:.4g} ({100 * result.rms_error / span:.3g} % of "
+            f"bad fit: residual RMS {result.rms_error:.4g} "
+            f"({100 * result.rms_error / span:.3g} % of "
             f"the output span) exceeds both {options.noise_factor:g}x the noise level "
             f"({noise:.3g}) and {100 * options.max_rms_fraction:g} % of the span: the model "
             "(degree N, Bouc-Wen structure) does not describe these data", result)

@@ -28,12 +28,10 @@ from piezo_stage.model.parameter_set import Drift, DriftKind, drift_basis
 
 from .cycles import upward_crossings
 from .derivatives import noise_std
-from .errors import BadFitError, IdentificationError, OrientationError
+from .errors import IdentificationError, OrientationError
 from .recording import Recording
 from .refine import strong_correlations
 
-#: hysteretic parameters whose standard errors decide whether the data determine them
-HYSTERETIC = ("kappa_w", "rho", "sigma", "n")
 #: multi-start grid: ρ·(input span), σ, n
 _GRID_RHO = (0.3, 1.0, 3.0, 10.0)
 _GRID_SIGMA = (0.6, 1.5, 4.0)
@@ -382,24 +380,3 @@ def seed_from(params: BoucWenParameters, w0: Sequence[float]) -> Seed:
 def noise_level(runs: Sequence[Recording]) -> float:
     """White-noise std of the outputs (third differences, pooled)."""
     return float(np.sqrt(np.mean([noise_std(r.output) ** 2 for r in runs])))
-
-
-def check_simulation_fit(fit: SimulationFit, runs: Sequence[Recording], options: FitOptions,
-                         result: Any = None) -> None:
-    """Refuse a fit the data do not support (as :func:`pipeline.check_fit`)."""
-    span = max(float(np.ptp(r.output)) for r in runs)
-    noise = noise_level(runs)
-    allowed = max(options.noise_factor * noise, options.max_rms_fraction * span)
-    if fit.rms_error > allowed:
-        raise BadFitError(
-            f"bad fit: residual RMS {fit.rms_error:.4g} ({100 * fit.rms_error / span:.3g} % of "
-            f"the output span) exceeds both {options.noise_factor:g}x the noise level "
-            f"({noise:.3g}) and {100 * options.max_rms_fraction:g} % of the span: the model "
-            "(degree N, Bouc-Wen structure) does not describe these data", result)
-    loose = {k: v for k, v in fit.relative_std.items()
-             if k in HYSTERETIC and not v <= options.max_rel_std}
-    if loose:
-        text = ", ".join(f"{k} ±{100 * v:.2g} %" for k, v in loose.items())
-        raise BadFitError(
-            f"bad fit: parameters not determined by the data ({text}, limit "
-            f"{100 * options.max_rel_std:g} %): excite a wider loop or reduce the noise", result)
