@@ -11,8 +11,15 @@ import pytest
 from piezo_stage.hardware.amplifier import GCSAmplifier, MDT69xAmplifier, make_amplifier
 from piezo_stage.hardware.driver import DriverConfig, DriverState, VoltageDriver, Watchdog
 from piezo_stage.hardware.emulators import EmulatorServer, Faults, GCSDeviceModel, MDTDeviceModel
-from piezo_stage.hardware.errors import (ConfigError, ConnectionLost, DeviceTimeout, LimitsError,
-                                         NonFiniteVoltageError, NotConnected, VoltageOutOfRangeError)
+from piezo_stage.hardware.errors import (
+    ConfigError,
+    ConnectionLost,
+    DeviceTimeout,
+    LimitsError,
+    NonFiniteVoltageError,
+    NotConnected,
+    VoltageOutOfRangeError,
+)
 from piezo_stage.hardware.safety import VoltageLimits, round_within, slew_step
 
 pytestmark = pytest.mark.ros
@@ -223,7 +230,7 @@ def test_watchdog_reaches_safe_voltage_when_the_link_dropped():
         driver.ramp_to(10.0)
         server.disconnect()  # the commands stop because the link died
         time.sleep(0.1)
-        for k in range(1, 30):
+        for _ in range(1, 30):
             clock.t += 0.01
             driver.tick()  # never blocks: the link is reopened in the background
             if driver.state is DriverState.DISCONNECTED:

@@ -193,10 +193,10 @@ def test_watchdog_counts_from_received_commands_and_clears_queued_ones():
 
     # a playout on a fake clock, stepped by hand: push (stamp, voltage); due ones applied in order
     queue: list[tuple[float, float, float]] = []
-    playout = CommandPlayout(lambda v, c: None, 0.0, clock=wall)
+    playout = CommandPlayout(lambda v, c, r: None, 0.0, clock=wall)
     driver.on_timeout.append(playout.clear)
     driver.on_timeout.append(queue.clear)
-    for k in range(100):  # 1 s of commands at 100 Hz, each stamped 4 s ahead
+    for _ in range(100):  # 1 s of commands at 100 Hz, each stamped 4 s ahead
         bench.clock.t += 0.01
         wall.t += 0.01
         driver.command_received()

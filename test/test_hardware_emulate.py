@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import pytest
 import os
 import re
 import signal
@@ -13,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from piezo_stage.cli import main
 from piezo_stage.hardware.amplifier import make_amplifier

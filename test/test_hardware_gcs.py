@@ -6,8 +6,15 @@ import pytest
 
 from piezo_stage.hardware.emulators import EmulatorServer, Faults, GCSDeviceModel
 from piezo_stage.hardware.errors import DeviceTimeout, GCSError, ProtocolError
-from piezo_stage.hardware.gcs import (GCS_ERROR_MESSAGES, GCSConnection, gcs_error_message, gcs_reply_end,
-                                      join_reply, parse_item_values, split_reply)
+from piezo_stage.hardware.gcs import (
+    GCS_ERROR_MESSAGES,
+    GCSConnection,
+    gcs_error_message,
+    gcs_reply_end,
+    join_reply,
+    parse_item_values,
+    split_reply,
+)
 from piezo_stage.hardware.transport import make_transport
 
 pytestmark = pytest.mark.ros

@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 from piezo_stage.hardware.errors import ConfigError
-from piezo_stage.hardware.optoncdt import (FrameCheck, OptoNCDTParser, SampleBlock, Status,
-                                           encode_values, frame_format)
+from piezo_stage.hardware.optoncdt import (
+    FrameCheck,
+    OptoNCDTParser,
+    SampleBlock,
+    Status,
+    encode_values,
+    frame_format,
+)
 
 pytestmark = pytest.mark.unit
 

@@ -14,8 +14,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.hardware.emulators.streams import damage, frame_ends, score, sensor_stream
-from piezo_stage.hardware.optoncdt import (FrameCheck, OptoNCDTParser, SampleBlock, Status,
-                                           encode_values, frame_format)
+from piezo_stage.hardware.optoncdt import (
+    FrameCheck,
+    OptoNCDTParser,
+    SampleBlock,
+    Status,
+    encode_values,
+    frame_format,
+)
 
 pytestmark = pytest.mark.unit
 

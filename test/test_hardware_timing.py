@@ -89,7 +89,7 @@ def test_playout_applies_each_command_at_its_stamp_in_stamp_order():
     applied: list[tuple[float, float]] = []
     done = threading.Event()
 
-    def apply(v: float, command: bool) -> None:
+    def apply(v: float, command: bool, received: float | None) -> None:
         assert command  # no hold_period: only the commands themselves
         applied.append((time.time(), v))
         if len(applied) == 20:
@@ -119,7 +119,7 @@ def test_playout_applies_each_command_at_its_stamp_in_stamp_order():
 def test_playout_keeps_running_after_a_failed_apply_and_stop_drops_the_queue():
     seen: list[float] = []
 
-    def apply(v: float, command: bool) -> None:
+    def apply(v: float, command: bool, received: float | None) -> None:
         if v == 1.0:
             raise RuntimeError("link down")
         seen.append(v)

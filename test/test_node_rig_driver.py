@@ -12,15 +12,17 @@ import pytest
 pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.time import Time  # noqa: E402
 
 from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel  # noqa: E402
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+
 from rig_support import DiagnosticsProbe, sva_values  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/rig"
+CAP_TIME = 0.025  # s: no write carries more slew than this (issue 18)
 
 
 @pytest.fixture()
@@ -91,9 +93,9 @@ def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
         for bad in (math.nan, math.inf, -math.inf):
             d.send(bad)
         d.send(20.0, stamp=probe.get_clock().now() - rclpy.duration.Duration(seconds=5.0))  # late
-        d.send(30.0, stamp=Time())  # unstamped: infinitely old
-        assert d.wait(lambda: d.diag.value("rejected_nonfinite") == "3" and d.diag.value("rejected_late") == "2",
-                      5.0), d.diag.values
+        d.send(30.0, stamp=Time())  # unstamped: refused when stamps are checked
+        assert d.wait(lambda: d.diag.value("rejected_nonfinite") == "3" and d.diag.value("rejected_late") == "1"
+                      and d.diag.value("rejected_stamp_unstamped") == "1", 5.0), d.diag.values
         assert len(sva_values(model)) == n and model.applied_voltage == 10.0  # device unchanged
         assert d.diag.latest.level == DiagnosticStatus.WARN
         d.send(11.0)  # a fresh command still goes through
@@ -105,7 +107,7 @@ def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
 
 def test_slew_rate_limits_every_step(probe, gcs):
     model, server = gcs
-    rate = 40.0  # V/s; the core caps dt at 0.05 s, so one write moves at most 2 V
+    rate = 40.0  # V/s; one write moves at most rate x min(watchdog_period, 25 ms)
     d = Driver(probe, server.url, f"slew_rate:={rate}", "command_timeout:=0.0", "readback_rate_hz:=0.0")
     try:
         while not (sva_values(model) and sva_values(model)[-1] >= 20.0):
@@ -116,7 +118,7 @@ def test_slew_rate_limits_every_step(probe, gcs):
         stop(d.proc)
     sent = [0.0] + [v for v in sva_values(model) if v < 99.0]  # the ramp up (shutdown ramps back down)
     steps = [b - a for a, b in zip(sent, sent[1:])]
-    assert len(steps) >= 10 and max(abs(s) for s in steps) <= rate * 0.05 + 1e-6
+    assert len(steps) >= 10 and max(abs(s) for s in steps) <= rate * CAP_TIME + 1e-6
     assert max(sva_values(model)) < 100.0  # never jumped to the request
 
 
@@ -201,7 +203,7 @@ def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):
         _, err = stop(d.proc)
     down = sva_values(model)[n:]
     assert len(down) > 5 and all(b <= a for a, b in zip(down, down[1:]))  # a ramp, not a jump
-    assert max(a - b for a, b in zip([40.0] + down, down)) <= 200.0 * 0.05 + 1e-6
+    assert max(a - b for a, b in zip([40.0] + down, down)) <= 200.0 * CAP_TIME + 1e-6
     assert "no voltage command" in err
 
 
@@ -222,7 +224,7 @@ def test_signal_ramps_to_safe_voltage_and_exits_zero(probe, gcs, sig):
     assert code == 0, err
     assert model.applied_voltage == 2.0 and sva_values(model)[-1] == 2.0
     down = sva_values(model)[n:]
-    assert len(down) > 3 and max(a - b for a, b in zip([60.0] + down, down)) <= 500.0 * 0.05 + 1e-6
+    assert len(down) > 3 and max(a - b for a, b in zip([60.0] + down, down)) <= 500.0 * CAP_TIME + 1e-6
     assert "shut down at 2 V" in err
     assert any(c.startswith("SVO") and c.split()[-1] == "0" for c in model.commands)  # open loop
 
@@ -243,3 +245,124 @@ def test_reconnects_after_the_link_drops(probe, gcs):
         assert model.commands.count("*IDN?") >= 2  # really opened twice
     finally:
         stop(d.proc)
+
+
+# --- issue 18: stamps, use_sim_time, queued commands, silent device, exit codes --------------------
+def _stamp(sec: int, nanosec: int = 0):
+    from builtin_interfaces.msg import Time as TimeMsg
+
+    return TimeMsg(sec=sec, nanosec=nanosec)
+
+
+def test_bad_stamps_are_counted_rejections_never_a_crash(probe, gcs):
+    """sec = -1 made the driver exit 1 ("Seconds value must not be negative"); a stamp in 2038
+    was applied."""
+    from piezo_stage_msgs.msg import Voltage
+
+    model, server = gcs
+    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    try:
+        d.send(10.0)
+        assert d.wait(lambda: sva_values(model)[-1:] == [10.0])
+        n = len(sva_values(model))
+        for stamp in (_stamp(-1), _stamp(-2_000_000_000, 5), _stamp(2_147_000_000)):
+            msg = Voltage(voltage=50.0)
+            msg.header.stamp = stamp
+            d.cmd.publish(msg)
+        assert d.wait(lambda: d.diag.value("rejected_stamp_negative") == "2"
+                      and d.diag.value("rejected_stamp_ahead") == "1", 5.0), d.diag.values
+        assert d.proc.poll() is None and len(sva_values(model)) == n
+        d.send(11.0)
+        assert d.wait(lambda: sva_values(model)[-1:] == [11.0])
+    finally:
+        stop(d.proc)
+
+
+def test_use_sim_time_cannot_be_switched_on_at_run_time(probe, gcs):
+    """With use_sim_time switched on, the clock read 0 and commands stamped 1 h old were applied."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    model, server = gcs
+    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    try:
+        client = probe.create_client(SetParameters, f"{NS}/voltage_driver/set_parameters")
+        assert client.wait_for_service(timeout_sec=10.0)
+        req = SetParameters.Request(parameters=[Parameter("use_sim_time", value=True).to_parameter_msg()])
+        future = client.call_async(req)
+        assert d.wait(lambda: future.done(), 10.0)
+        assert not future.result().results[0].successful
+        n = len(sva_values(model))
+        d.send(40.0, stamp=probe.get_clock().now() - rclpy.duration.Duration(seconds=3600.0))
+        assert d.wait(lambda: d.diag.value("rejected_late") == "1", 5.0), d.diag.values
+        assert len(sva_values(model)) == n
+    finally:
+        stop(d.proc)
+
+
+def test_watchdog_clears_queued_commands_when_the_publisher_stops(probe, gcs):
+    """apply_at_stamp, commands stamped 4 s ahead: the publisher stops; the watchdog fires
+    command_timeout after the last *received* command and the queued commands never reach the
+    device after that (they kept it away from safe_voltage for 4.86 s)."""
+    model, server = gcs
+    d = Driver(probe, server.url, "command_timeout:=0.5", "readback_rate_hz:=0.0", "apply_at_stamp:=true",
+               "slew_rate:=1000.0")
+    try:
+        # no command yet: the watchdog fires once, 0.5 s after start
+        assert d.wait(lambda: d.diag.value("watchdog_trips") == "1", 5.0), d.diag.values
+        ahead = rclpy.duration.Duration(seconds=4.0)
+        for k in range(50):  # 0.5 s of commands, each due 4 s after it is sent
+            d.send(30.0 + 0.1 * k, stamp=probe.get_clock().now() + ahead)
+            d.wait(lambda: False, 0.01)
+        assert d.wait(lambda: d.diag.value("watchdog_trips") == "2", 3.0), d.diag.values
+        n = len(sva_values(model))
+        d.wait(lambda: False, 5.0)  # past the time the queued commands were due
+        assert all(v == 0.0 for v in sva_values(model)[n:]), sva_values(model)[n:]
+        assert model.applied_voltage == 0.0 and d.diag.value("pending_playout") == "0"
+    finally:
+        stop(d.proc)
+
+
+def test_silent_device_is_an_error_within_a_second_and_diagnostics_keep_coming(probe):
+    """Reconnects ran in the executor: the first ERROR came after 7.3 s and /diagnostics was
+    silent for 8.1 s."""
+    import time
+
+    from piezo_stage.hardware.emulators import Faults
+
+    model = GCSDeviceModel()
+    faults = Faults()
+    with EmulatorServer(model, tcp_port=0, faults=faults) as server:
+        d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "io_timeout:=0.2")
+        try:
+            stamps: list[float] = []
+            probe.create_subscription(DiagnosticArray, "/diagnostics",
+                                      lambda m: stamps.append(time.monotonic()), 10)
+            faults.silent = True
+            t0 = time.monotonic()
+            assert d.wait(lambda: d.diag.latest.level == DiagnosticStatus.ERROR, 5.0), d.diag.values
+            t_error = time.monotonic() - t0
+            d.wait(lambda: False, 3.0)  # the device stays silent
+            gaps = [b - a for a, b in zip(stamps, stamps[1:]) if b > t0]
+            faults.silent = False
+            assert d.wait(lambda: d.diag.value("connected") == "True", 10.0), d.diag.values
+        finally:
+            stop(d.proc)
+    assert t_error < 2.0 and gaps and max(gaps) < 2.0, (t_error, gaps)
+
+
+def test_exit_code_is_non_zero_when_safe_voltage_was_not_reached(probe):
+    """The link is down at shutdown: the output could not be ramped to safe_voltage (exit 0 before)."""
+    model = GCSDeviceModel()
+    server = EmulatorServer(model, tcp_port=0).start()
+    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "slew_rate:=1000.0")
+    try:
+        d.send(20.0)
+        assert d.wait(lambda: model.applied_voltage > 0.0, 5.0)
+        server.stop()  # the amplifier is gone
+        d.wait(lambda: False, 0.5)
+        d.proc.send_signal(signal.SIGINT)
+        code = d.proc.wait(timeout=30.0)
+    finally:
+        _, err = stop(d.proc)
+    assert code != 0 and "safe_voltage" in err, (code, err[-2000:])

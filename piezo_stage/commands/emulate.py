@@ -26,10 +26,14 @@ import sys
 import threading
 import time
 
-from piezo_stage.commands.argtypes import (int_range, non_negative, port, positive,
-                                           probability)
-from piezo_stage.hardware.emulators import (EmulatorServer, Faults, GCSDeviceModel, MDTDeviceModel,
-                                            OptoNCDTDeviceModel)
+from piezo_stage.commands.argtypes import int_range, non_negative, port, positive, probability
+from piezo_stage.hardware.emulators import (
+    EmulatorServer,
+    Faults,
+    GCSDeviceModel,
+    MDTDeviceModel,
+    OptoNCDTDeviceModel,
+)
 from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
 
 SENSOR_FAMILIES = sorted(FAMILIES)
@@ -40,6 +44,14 @@ def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
     g.add_argument("--drop", type=probability, default=0.0, metavar="P", help="probability an output byte is lost")
     g.add_argument("--corrupt", type=probability, default=0.0, metavar="P",
                    help="probability an output byte is replaced by a random byte")
+    g.add_argument("--garbage", type=probability, default=0.0, metavar="P",
+                   help="probability an output chunk is preceded by 1-32 random bytes")
+    g.add_argument("--hangup", type=probability, default=0.0, metavar="P",
+                   help="probability an output chunk is cut in the middle and the link hung up")
+    g.add_argument("--stall", type=probability, default=0.0, metavar="P",
+                   help="probability the device stalls (no output, input ignored) before a chunk")
+    g.add_argument("--stall-time", type=non_negative, default=0.5, metavar="SECONDS",
+                   help="length of a stall")
     g.add_argument("--slow", type=non_negative, default=0.0, metavar="SECONDS", help="delay every reply")
     g.add_argument("--disconnect-every", type=non_negative, default=0.0, metavar="SECONDS",
                    help="hang up all clients periodically (pty: a new pty, path printed again)")

@@ -14,9 +14,22 @@ For the ROS nodes:
 
 from .amplifier import Amplifier, DeviceInfo, GCSAmplifier, MDT69xAmplifier, make_amplifier
 from .driver import DriverConfig, DriverState, SetResult, VoltageDriver, Watchdog
-from .errors import (ConfigError, ConnectionLost, DeviceError, DeviceTimeout, GCSError, HardwareError,
-                     LimitsError, NonFiniteVoltageError, NotConnected, ProtocolError, SafetyError,
-                     SensorCommandError, TransportError, VoltageOutOfRangeError)
+from .errors import (
+                     ConfigError,
+                     ConnectionLost,
+                     DeviceError,
+                     DeviceTimeout,
+                     GCSError,
+                     HardwareError,
+                     LimitsError,
+                     NonFiniteVoltageError,
+                     NotConnected,
+                     ProtocolError,
+                     SafetyError,
+                     SensorCommandError,
+                     TransportError,
+                     VoltageOutOfRangeError,
+)
 from .optoncdt import FrameFormat, OptoNCDTParser, SampleBlock, Status, frame_format
 from .safety import VoltageLimits
 from .sensor import SensorConfig, SensorReader

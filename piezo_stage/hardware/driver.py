@@ -41,9 +41,18 @@ from dataclasses import dataclass
 from typing import Callable
 
 from .amplifier import Amplifier, DeviceInfo
-from .errors import (CommandExpired, ConfigError, DeviceError, HardwareError, NonFiniteVoltageError,
-                     NotConnected, ProtocolError, SafeStateNotReached, TransportError,
-                     VoltageOutOfRangeError)
+from .errors import (
+    CommandExpired,
+    ConfigError,
+    DeviceError,
+    HardwareError,
+    NonFiniteVoltageError,
+    NotConnected,
+    ProtocolError,
+    SafeStateNotReached,
+    TransportError,
+    VoltageOutOfRangeError,
+)
 from .safety import VoltageLimits, round_within, slew_step
 
 log = logging.getLogger(__name__)
@@ -124,6 +133,7 @@ class VoltageDriver:
         self.writes = 0
         self.reconnects = 0
         self.expired = 0  # commands refused because the watchdog fired after they were received
+        self.trips = 0  # times the watchdog fired
         self.last_link_error = ""
         self.on_timeout: list[Callable[[], None]] = []  # called (under the lock) when the watchdog fires
         self._t_sent = 0.0
@@ -311,7 +321,10 @@ class VoltageDriver:
             if self.state in (DriverState.SHUT_DOWN, DriverState.DISCONNECTED) or not self._may_reconnect:
                 return self.state
             now = self.clock() if now is None else now
-            if self.state is DriverState.ACTIVE and now - self._t_command > self.config.command_timeout:
+            # fires once per silence: also when commands arrived (to be applied later) since the
+            # last time it fired, so their queue is cleared command_timeout after the last one
+            silent = now - self._t_command > self.config.command_timeout
+            if silent and (self.state is DriverState.ACTIVE or self._t_command > self._t_trip):
                 log.warning("no voltage command for %.3g s: ramping to %g V",
                             now - self._t_command, self.config.safe_voltage)
                 self._trip(now)
@@ -326,6 +339,7 @@ class VoltageDriver:
             return self.state
 
     def _trip(self, now: float) -> None:
+        self.trips += 1
         self.state = DriverState.TIMED_OUT
         self._t_trip = now
         self.target = self.config.safe_voltage

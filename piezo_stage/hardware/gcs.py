@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from .errors import DeviceTimeout, GCSError, ProtocolError, TransportError
-from .transport import DeviceConnection, Transport
+from .transport import DeviceConnection
 
 #: GCS controller error codes -> messages, texts as in PIPython 2.11 ``pidevice/gcserror.py``.
 GCS_ERROR_MESSAGES: dict[int, str] = {

@@ -13,7 +13,7 @@ import re
 
 from .errors import DeviceError, ProtocolError
 from .gcs import parse_float
-from .transport import DeviceConnection, Transport
+from .transport import DeviceConnection
 
 PROMPT = b">"
 ERROR_TEXT = "CMD_NOT_DEFINED"

@@ -39,7 +39,7 @@ class SensorConfig:
             raise ConfigError(f"measuring_range must be > 0 m, got {self.measuring_range}")
         if not self.stale_timeout > 0:
             raise ConfigError(f"stale_timeout must be > 0 s, got {self.stale_timeout}")
-        self.frame_check  # validates rate, max_speed, relock_frames
+        FrameCheck(self.relock_frames, self.max_speed, self.rate)  # raises ConfigError when bad
 
     @property
     def frame_check(self) -> FrameCheck:

@@ -110,10 +110,12 @@ class SampleClock:
 class CommandPlayout:
     """Apply each command at ``stamp + delay`` (wall clock, seconds) from a dedicated thread.
 
-    ``push(stamp, voltage)`` queues a command; the thread calls ``apply(voltage, True)`` when it
-    is due, in stamp order. With ``hold_period`` > 0 it also fills the interval between a
-    command and the next one already queued with ``apply(value, False)`` every ``hold_period``
-    s, linearly interpolated (a first-order hold): the device's output then follows the straight
+    ``push(stamp, voltage, received)`` queues a command; the thread calls ``apply(voltage, True,
+    received)`` when it is due, in stamp order (``received``: when the command arrived; the
+    driver refuses one received before its watchdog fired). With ``hold_period`` > 0 it also
+    fills the interval between a command and the next one already queued with ``apply(value,
+    False, received of the next one)`` every ``hold_period`` s, linearly interpolated (a
+    first-order hold): the device's output then follows the straight
     lines between the commands, which is how a sampled record of them is read back (a linear
     interpolation between the stamped values), up to the finer staircase of ``hold_period`` —
     not a staircase lagging it by half a command period. A command that is already due when it
@@ -123,7 +125,7 @@ class CommandPlayout:
     take over the output); ``stop()`` ends the thread.
     """
 
-    def __init__(self, apply: Callable[[float, bool], None], delay: float,
+    def __init__(self, apply: Callable[[float, bool, float | None], None], delay: float,
                  clock: Callable[[], float] = time.time, max_pending: int = 100_000,
                  realtime_priority: int = 0, max_ahead: float = 5.0, hold_period: float = 0.0,
                  max_hold_gap: float = 0.1) -> None:
@@ -157,7 +159,9 @@ class CommandPlayout:
         self._thread.start()
         return self
 
-    def push(self, stamp: float, voltage: float) -> None:
+    def push(self, stamp: float, voltage: float, received: float | None = None) -> None:
+        """Queue ``voltage`` for ``stamp`` + delay; ``received`` (when it arrived, on the
+        caller's clock) is handed to ``apply`` with it."""
         now = self.clock()
         due = stamp + self.delay
         with self._cv:
@@ -169,7 +173,7 @@ class CommandPlayout:
             if len(self._queue) >= self.max_pending:
                 self.dropped += 1
                 return
-            heapq.heappush(self._queue, (due, next(self._seq), float(voltage)))
+            heapq.heappush(self._queue, (due, next(self._seq), float(voltage), received))
             self._cv.notify()
 
     @property
@@ -201,7 +205,7 @@ class CommandPlayout:
                         self._cv.wait()
                         continue
                     now = self.clock()
-                    due, _, v1 = self._queue[0]
+                    due, _, v1, received = self._queue[0]
                     if due <= now:
                         item = (heapq.heappop(self._queue), True)
                         break
@@ -210,18 +214,18 @@ class CommandPlayout:
                         t_fill = emitted + self.hold_period
                         if t_fill <= now:
                             frac = (now - last[0]) / (due - last[0])
-                            item = ((now, 0, last[1] + frac * (v1 - last[1])), False)
+                            item = ((now, 0, last[1] + frac * (v1 - last[1]), received), False)
                             break
                         wake = min(wake, t_fill)
                     self._cv.wait(wake - now)
                 if self._stop:
                     return
-            (t, _, voltage), is_command = item
+            (t, _, voltage, received), is_command = item
             if is_command:
                 last = (t, voltage)
             emitted = self.clock()
             try:
-                self.apply(voltage, is_command)
+                self.apply(voltage, is_command, received)
                 self.applied += int(is_command)
             except Exception as exc:  # the owner reports it; the playout keeps running
                 self.error = exc

@@ -2,7 +2,8 @@
 
 Same topic, type, units and QoS as the simulated ``plant`` (docs/design.md §3): publishes
 ``displacement`` (SENSOR_QOS, metres; status != OK carries NaN) and ``/diagnostics``. Frame
-parsing, resynchronisation, error values and link handling are
+parsing, resynchronisation, the frame lock and speed gate (``relock_frames``, ``max_speed``:
+nothing OK next to damaged bytes), error values and link handling are
 :class:`piezo_stage.hardware.sensor.SensorReader`; this node reads it in a thread of its own
 (blocking reads: each block is stamped as it arrives) and only adds:
 
@@ -114,6 +115,12 @@ PARAMETERS = ParameterTable("laser_reader", (
           read_only=True),
     Param("stale_timeout", 0.5, "no frame for this long: stale (diagnostics)", "s", (1e-3, 60.0),
           read_only=True),
+    Param("max_speed", 0.1, "plausibility gate: a value implying a faster stage since the last "
+          "accepted one is refused (set it a little above the stage's top speed; an accepted "
+          "value is then off by at most max_speed / rate_hz)", "m/s", (1e-6, 1e3),
+          read_only=True),
+    Param("relock_frames", 6, "after a framing error, consecutive well-formed frames that must "
+          "agree (within the gate) before values are OK again", range=(2, 1000), read_only=True),
 ), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
 
 
@@ -123,7 +130,8 @@ class LaserReaderNode(Node):
         p = declare_table(self, PARAMETERS)
 
         config = SensorConfig(p["family"], p["measuring_range"], bits=p["bits"] or None,
-                              stale_timeout=p["stale_timeout"])
+                              stale_timeout=p["stale_timeout"], rate=p["rate_hz"],
+                              max_speed=p["max_speed"], relock_frames=p["relock_frames"])
         self.reader = SensorReader.from_url(p["url"], config, baudrate=p["baud"] or None)
         self.reader.connect()
         self.url = p["url"]
@@ -139,8 +147,8 @@ class LaserReaderNode(Node):
         self.by_status = {s: 0 for s in Status}
         self.link_errors = 0
         self.last_error = ""
-        self._last_diag = (time.monotonic(), 0, 0, 0,
-                           0)  # (time, frames, published, errors, discarded)
+        # (time, frames, published, errors, discarded, withheld + refused)
+        self._last_diag = (time.monotonic(), 0, 0, 0, 0, 0)
 
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
         # a thread blocked in read() stamps each block when it arrives: a periodic poll would
@@ -202,8 +210,10 @@ class LaserReaderNode(Node):
 
     def _diagnose(self) -> Diagnosis:
         stats = self.reader.parser.stats
-        now = (time.monotonic(), stats.frames, self.published, stats.errors, stats.discarded)
-        (t0, frames0, published0, errors0, discarded0), self._last_diag = self._last_diag, now
+        now = (time.monotonic(), stats.frames, self.published, stats.errors, stats.discarded,
+               stats.relock_withheld + stats.speed_rejected)
+        (t0, frames0, published0, errors0, discarded0, refused0) = self._last_diag
+        self._last_diag = now
         dt = max(now[0] - t0, 1e-9)
         values = {"connected": self.connected, "stale": self.reader.stale, "family": self.family,
                   "frame_rate": (stats.frames - frames0) / dt,
@@ -211,6 +221,8 @@ class LaserReaderNode(Node):
                   "frames": stats.frames, "published": self.published,
                   **{f"samples_{s.name.lower()}": n for s, n in self.by_status.items()},
                   "sample_errors": stats.errors, "resync_bytes_discarded": stats.discarded,
+                  "framing_errors": stats.framing_errors, "lock_losses": stats.lock_losses,
+                  "relock_withheld": stats.relock_withheld, "speed_rejected": stats.speed_rejected,
                   "reconnects": self.reader.reconnects, "link_errors": self.link_errors,
                   "last_error": self.last_error}
         if not self.connected:
@@ -218,9 +230,11 @@ class LaserReaderNode(Node):
         if self.reader.stale:
             return Diagnosis(STALE, f"no frames for {self.reader.config.stale_timeout:g} s", values)
         errors, discarded = stats.errors - errors0, stats.discarded - discarded0
-        if errors or discarded:
+        refused = now[5] - refused0
+        if errors or discarded or refused:
             return Diagnosis(WARN,
-                             f"{errors} error value(s), {discarded} byte(s) discarded (resync) "
+                             f"{errors} error value(s), {discarded} byte(s) discarded (resync), "
+                             f"{refused} frame(s) withheld or refused (lock, speed gate) "
                              f"in the last {dt:.3g} s", values)
         return Diagnosis(OK, "streaming", values)
 

@@ -105,8 +105,9 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
             if shutdown is not None:
                 try:
                     shutdown()
-                except Exception as exc:  # report, but still tear down
+                except Exception as exc:  # report, still tear down, and exit non-zero
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
+                    code = code or 1
             if rclpy.ok():
                 late = wait_acked(node, EXIT_ACK_TIMEOUT)
                 if late:

@@ -48,11 +48,13 @@ from piezo_stage.hardware import (
     make_amplifier,
 )
 from piezo_stage.hardware.amplifier import AMPLIFIERS
+from piezo_stage.hardware.errors import CommandExpired
+from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
 from piezo_stage.hardware.timing import CommandPlayout, set_realtime_priority
 from piezo_stage_msgs.msg import Voltage
 
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
-from .parameters import declare_table
+from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, wall_clock
 from .spec import Param, ParameterTable
@@ -75,15 +77,18 @@ PARAMETERS = ParameterTable("voltage_driver", (
           read_only=True),
     Param("safe_voltage", 0.0, "voltage after a watchdog timeout and on shutdown", "V",
           read_only=True),
-    Param("slew_rate", 0.0, "slew-rate limit (0: none)", "V/s", (0.0, 1e9), read_only=True),
+    Param("slew_rate", 0.0, "slew-rate limit (0: none); one write steps at most slew_rate x "
+          "min(watchdog_period, 25 ms), longer moves are ramps", "V/s", (0.0, 1e9), read_only=True),
     Param("command_timeout", 0.5, "watchdog: ramp to safe_voltage after this long without a "
           "command (0: off)", "s", (0.0, 3600.0), read_only=True),
-    Param("watchdog_period", 0.01, "period of the watchdog timer (wall clock)", "s", (1e-3, 1.0),
-          read_only=True),
+    Param("watchdog_period", 0.01, "period of the watchdog timer (wall clock), which also writes "
+          "the steps of a ramp", "s", (1e-3, 1.0), read_only=True),
     Param("readback_rate_hz", 20.0, "rate of the device read-back published on voltage (0: off)",
           "Hz", (0.0, 1000.0), read_only=True),
     Param("max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node "
           "clock (0: off)", "s", (0.0, 3600.0), read_only=True),
+    Param("max_stamp_ahead", 5.0, "reject commands stamped further ahead of the node clock than "
+          "this (a foreign or broken clock)", "s", (1e-3, 3600.0), read_only=True),
     Param("apply_at_stamp", False, "apply each command at its stamp + command_delay (wall clock) "
           "instead of on arrival: open-loop runs without the transport's latency jitter",
           read_only=True),
@@ -95,8 +100,9 @@ PARAMETERS = ParameterTable("voltage_driver", (
     Param("realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
           "the executor's thread (1-99, when the system allows it; 0: normal)", range=(0, 99),
           read_only=True),
-    Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round",
-          range=(0, 100), read_only=True),
+    Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round (in a "
+          "background thread, every round until it is back; 0: never)", range=(0, 100),
+          read_only=True),
 ),
 summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, with "
         "limits, slew "
@@ -115,9 +121,15 @@ class VoltageDriverNode(Node):
             v_min=p["v_min"], v_max=p["v_max"], safe_voltage=p["safe_voltage"],
             slew_rate=p["slew_rate"] or math.inf,
             command_timeout=p["command_timeout"] or math.inf,
+            write_period=p["watchdog_period"],
             reconnect_attempts=p["reconnect_attempts"])
         self.driver = VoltageDriver(amplifier, config)
         self.max_age = float(p["max_command_age"])
+        self.stamps = StampPolicy(self.max_age, p["max_stamp_ahead"],
+                                  require_stamp=self.max_age > 0 or p["apply_at_stamp"])
+        # the limits and safety settings are read-only in the table; so is the clock they use
+        on_set(self, lambda changed: "use_sim_time is fixed at start (the stamp checks and the "
+               "watchdog depend on it)" if "use_sim_time" in changed else None)
         self.url = p["url"]
         self.info = self.driver.connect()
         self._applied = self.info.applied
@@ -126,6 +138,7 @@ class VoltageDriverNode(Node):
         self._clamped = 0
         self._rejected_nonfinite = 0
         self._rejected_late = 0
+        self._rejected_stamp = {v.value: 0 for v in StampVerdict if v is not StampVerdict.OK}
         self._link_errors = 0
         self._watchdog_trips = 0
         self._last_error = ""
@@ -137,7 +150,10 @@ class VoltageDriverNode(Node):
             sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
             self._playout = CommandPlayout(self._apply, p["command_delay"],
                                            realtime_priority=p["realtime_priority"],
-                                           hold_period=p["hold_period"]).start()
+                                           hold_period=p["hold_period"],
+                                           max_ahead=max(p["max_stamp_ahead"],
+                                                         p["command_delay"])).start()
+            self.driver.on_timeout.append(self._playout.clear)  # the watchdog owns the output
             # the executor's thread too: the playout needs the GIL, and a normal-priority holder
             # preempted by other processes would stall it for tens of ms (priority inversion)
             self._executor_priority = set_realtime_priority(p["realtime_priority"])
@@ -157,19 +173,26 @@ class VoltageDriverNode(Node):
         if not math.isfinite(msg.voltage):
             self._reject("nonfinite", f"non-finite voltage command {msg.voltage}")
             return
-        if self.max_age > 0:
-            age = (self.get_clock().now() - Time.from_msg(msg.header.stamp)).nanoseconds * 1e-9
-            if age > self.max_age:
-                self._reject("late",
-                             f"late voltage command ({age:.3g} s old > max_command_age "
-                             f"{self.max_age:g} s)")
-                return
+        stamp = msg.header.stamp
+        now = self.get_clock().now().nanoseconds * 1e-9
+        verdict, age = self.stamps.check(stamp.sec, stamp.nanosec, now)
+        if verdict is StampVerdict.TOO_OLD:
+            self._reject("late", f"late voltage command ({age:.3g} s old > max_command_age "
+                         f"{self.max_age:g} s)")
+            return
+        if verdict is not StampVerdict.OK:
+            self._rejected_stamp[verdict.value] += 1
+            self._reject("stamp", f"voltage command with a {verdict.value} stamp "
+                         f"({stamp.sec} s {stamp.nanosec} ns)")
+            return
+        received = self.driver.clock()
+        self.driver.command_received(received)  # the watchdog counts from arrival
         if self._playout is not None:
-            self._playout.push(stamp_to_s(msg.header.stamp), msg.voltage)
+            self._playout.push(stamp_to_s(stamp), msg.voltage, received)
         else:
-            self._apply(msg.voltage)
+            self._apply(msg.voltage, True, received)
 
-    def _apply(self, voltage: float, command: bool = True) -> None:
+    def _apply(self, voltage: float, command: bool = True, received: float | None = None) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
         publish it; ``command`` False: a value the playout interpolated, sent and published too
         (``voltage`` is what the device applies, stamped when applied: the identification reads it
@@ -178,7 +201,9 @@ class VoltageDriverNode(Node):
             if not command:
                 sent_at = self.get_clock().now()
                 try:
-                    result = self.driver.set_voltage(voltage)
+                    result = self.driver.set_voltage(voltage, received)
+                except CommandExpired:
+                    return
                 except HardwareError as exc:
                     self._link_error(exc)
                     return
@@ -187,9 +212,12 @@ class VoltageDriverNode(Node):
             self._last_command = voltage
             sent_at = self.get_clock().now()  # applied when the device gets it, not after ERR?
             try:
-                result = self.driver.set_voltage(voltage)
+                result = self.driver.set_voltage(voltage, received)
             except NonFiniteVoltageError as exc:  # not after the check above; kept for safety
                 self._reject("nonfinite", str(exc))
+                return
+            except CommandExpired as exc:  # queued before the watchdog fired
+                self._reject("expired", str(exc))
                 return
             except HardwareError as exc:
                 self._link_error(exc)
@@ -204,6 +232,10 @@ class VoltageDriverNode(Node):
         if kind == "late":
             self._rejected_late += 1
             self.get_logger().warn(text, throttle_duration_sec=1.0)
+        elif kind == "stamp":  # counted by the caller, per verdict
+            self.get_logger().warn(text, throttle_duration_sec=1.0)
+        elif kind == "expired":  # counted by the driver
+            self.get_logger().warn(text, throttle_duration_sec=1.0)
         else:
             self._rejected_nonfinite += 1
             self.get_logger().warn(text, throttle_duration_sec=1.0)
@@ -215,20 +247,19 @@ class VoltageDriverNode(Node):
 
     # ------------------------------------------------------------------ timers
     def _watchdog(self) -> None:
-        before = self.driver.state
+        trips = self.driver.trips
         try:
             state = self.driver.tick()
         except HardwareError as exc:
             self._link_error(exc)
             return
-        if before is DriverState.ACTIVE and state in (DriverState.TIMED_OUT, DriverState.SAFE):
-            self._watchdog_trips += 1
+        if self.driver.trips != trips:
+            self._watchdog_trips = self.driver.trips
             self.get_logger().warn("no voltage command for "
                                    f"{self.driver.config.command_timeout:g} s: "
                                    f"ramping to {self.driver.config.safe_voltage:g} V")
-        if state in (DriverState.TIMED_OUT,
-                     DriverState.SAFE) and self.driver.last_sent != self._applied:
-            self._publish(self.driver.last_sent)
+        if self.driver.last_sent != self._applied and state is not DriverState.DISCONNECTED:
+            self._publish(self.driver.last_sent)  # a step of a ramp (toward a command or safe)
 
     def _readback(self) -> None:
         if not self.driver.connected:
@@ -253,8 +284,10 @@ class VoltageDriverNode(Node):
                   "last_sent": d.last_sent, "applied": self._applied, "commands": self._commands,
                   "clamped_commands": self._clamped, "rejected_nonfinite": self._rejected_nonfinite,
                   "rejected_late": self._rejected_late, "watchdog_trips": self._watchdog_trips,
+                  **{f"rejected_stamp_{k}": n for k, n in self._rejected_stamp.items()},
+                  "rejected_expired": d.expired, "device_writes": d.writes,
                   "reconnects": d.reconnects, "link_errors": self._link_errors,
-                  "last_error": self._last_error}
+                  "last_error": self._last_error or d.last_link_error}
         playout = self._playout
         if playout is not None:
             values.update(command_delay=playout.delay, late_playout=playout.late,
@@ -263,17 +296,19 @@ class VoltageDriverNode(Node):
                           executor_priority=self._executor_priority or playout.realtime_priority)
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
-        rejected = self._rejected_nonfinite + self._rejected_late
+        bad_stamps = sum(self._rejected_stamp.values())
+        rejected = self._rejected_nonfinite + self._rejected_late + bad_stamps + d.expired
         if rejected or d.state in (DriverState.TIMED_OUT, DriverState.SAFE):
-            return Diagnosis(WARN, f"{d.state.value}; {self._rejected_nonfinite} non-finite and "
-                             f"{self._rejected_late} late command(s) rejected", values)
+            return Diagnosis(WARN, f"{d.state.value}; {self._rejected_nonfinite} non-finite, "
+                             f"{self._rejected_late} late, {bad_stamps} badly stamped and "
+                             f"{d.expired} expired command(s) rejected", values)
         return Diagnosis(OK, d.state.value, values)
 
     def on_shutdown(self) -> None:
         """Ramp to safe_voltage at the slew rate and leave the amplifier there (open loop)."""
         if self._playout is not None:
             self._playout.stop()  # queued commands are dropped: the ramp owns the output now
-        applied = self.driver.shutdown()
+        applied = self.driver.shutdown()  # SafeStateNotReached: run() exits 1 with the reason
         self._publish(applied)
         self.get_logger().info(f"shut down at {applied:g} V (safe_voltage "
                                f"{self.driver.config.safe_voltage:g} V)")

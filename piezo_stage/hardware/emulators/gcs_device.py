@@ -14,8 +14,17 @@ from __future__ import annotations
 import threading
 from typing import Callable
 
-from ..gcs import (ERR_INVALID_AXIS, ERR_PARAM_RANGE, ERR_SERVO_OFF_MOVE, ERR_SERVO_ON, ERR_SYNTAX,
-                   ERR_UNKNOWN_COMMAND, ERR_VOLTAGE_LIMITS, format_value, join_reply)
+from ..gcs import (
+    ERR_INVALID_AXIS,
+    ERR_PARAM_RANGE,
+    ERR_SERVO_OFF_MOVE,
+    ERR_SERVO_ON,
+    ERR_SYNTAX,
+    ERR_UNKNOWN_COMMAND,
+    ERR_VOLTAGE_LIMITS,
+    format_value,
+    join_reply,
+)
 
 IDN = "(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-709.CHG, EMU0000001, 01.000 (piezo_stage emulator)"
 
