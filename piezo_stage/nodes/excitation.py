@@ -209,8 +209,7 @@ class ExcitationNode(Node):
         timeout = self.get_parameter("exit_ack_timeout").value
         for topic in wait_acked(self, timeout, (self._pub_cmd, self._pub_info)):
             self.get_logger().warning(f"{topic}: not every subscriber acknowledged the last "
-                                      "messages "
-                                      f"within {timeout:g} s; leaving anyway")
+                                      f"messages within {timeout:g} s; leaving anyway")
         self.finished = True
 
     def _publish_info(self, stamp: Time, now: float, sample: ExcitationSample) -> None:
