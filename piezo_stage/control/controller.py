@@ -282,7 +282,8 @@ class TimeVaryingPID:
             self._u = cfg.clamp(u_raw)
         self._last = ControlOutput(
             t=t, dt=dt, mode=cfg.mode, loop_closed=self._closed, reference=yr, x0=x0_used, x1=x1, x2=x2,
-            u=self._u, u_pid=u_pid, u_excitation=u_exc, saturated=self._u != u_raw, timing=timing,
+            u=self._u, u_pid=u_pid, u_excitation=u_exc, saturated=bool(self._u != u_raw),
+            timing=timing,
             u_ff=u_ff,
         )
         return self._last

@@ -155,4 +155,4 @@ class Feedforward:
         if not self._seeded:
             raise FeedforwardError("feedforward stepped before it was seeded")
         static = self._phi.step(xd - self.model.bouc_wen.y0)
-        return self.model.m * ad + self.model.c * vd + static
+        return float(self.model.m * ad + self.model.c * vd + static)

@@ -50,7 +50,7 @@ class TrackingErrors:
             "max_error": self.max_error,
             "range": self.range,
             "rms_relative": self.relative,
-            "samples": self.samples,
+            "measured_samples": self.samples,
         }
 
 

@@ -234,7 +234,7 @@ def run_tracking(
     bag: str | os.PathLike[str] | None = None,
     progress: Progress | None = None,
     duration: float | None = None,
-    wall_timeout: float = 600.0,
+    wall_timeout: float | None = None,
 ) -> dict[str, Any]:
     """Run ``spec`` (and its feedback-only twin with ``compare``); return the JSON-ready summary."""
     if bag is not None and Path(bag).exists():
@@ -259,7 +259,9 @@ def run_tracking(
                     f"tracking/{label}: {spec.trajectory} at {p.rate_hz / 1e3:g} kHz, "
                     f"{p.duration:g} s simulated",
                 )
-            data, raw, wall = _run_once(p, progress, wall_timeout)
+            # generous: ~2000 steps/s on an idle machine, 10x slower under load
+            timeout = wall_timeout or 60.0 + p.duration * p.rate_hz / 200.0
+            data, raw, wall = _run_once(p, progress, timeout)
             results[label] = (data, raw, wall)
     data, raw, wall = results[spec.compensation]
     out: dict[str, Any] = {

@@ -16,6 +16,12 @@ delay, and refused with the reason unless ``allow_unverified_gains`` is true.
 
 Services: ``~/close_loop``, ``~/open_loop`` (std_srvs/Trigger).
 
+Tracking (issue 17): ``reference_source: trajectory`` generates x_d, ẋ_d, ẍ_d in closed form
+(:mod:`piezo_stage.control.trajectory`, time from the first step) and publishes x_d on
+``reference`` (recorders and plots see it as an external set point); ``compensation``
+(feedback | feedforward | both) adds the Bouc-Wen feedforward of ``feedforward_model`` (a
+dynamic parameter set, input displacement), reported as ``controller_state.u_ff``.
+
 ``u_bias`` [V] is a constant feedforward: the command is u_bias + the law's u (§11.5 closes the
 loop "with a set point for the control around 200 V"); the law (and x0, anti-windup, bumpless
 transfer) works on u − u_bias, while ``u_min``/``u_max``/``hold_voltage`` and the published
@@ -44,16 +50,18 @@ from piezo_stage.control.controller import (
 )
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
+from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import LAWS, THESIS_GAINS, Gains
 from piezo_stage.control.reference import SecondOrderReference
 from piezo_stage.control.theorem4 import validate_gains
+from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched
-from .spec import Param, ParameterTable
+from .spec import Param, ParameterError, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
@@ -76,6 +84,7 @@ class ReferenceSource(str, Enum):
     TOPIC = "topic"                # the reference topic
     SECOND_ORDER = "second_order"  # the thesis's yr
     CONSTANT = "constant"          # the reference parameter
+    TRAJECTORY = "trajectory"      # x_d of the trajectory_* parameters, published on reference
 
 
 _G = THESIS_GAINS
@@ -110,11 +119,28 @@ PARAMETERS = ParameterTable("controller", (
           read_only=True),
     Param("stale_periods", 5, "no sample for this many periods opens the loop", range=(1, 100000)),
     Param("reference_source", "topic", "where the set point comes from: the reference topic, the "
-          "thesis's second-order yr, or the reference parameter", choices=ReferenceSource),
+          "thesis's second-order yr, the reference parameter, or the trajectory_* parameters (x_d "
+          "then published on reference)", choices=ReferenceSource),
     Param("reference", 0.0, "set point for reference_source=constant, and before a reference "
           "arrives", "m"),
     Param("reference_y0", 20e-6, "second_order: yr(0)", "m"),
     Param("reference_ydot0", 0.0, "second_order: dyr/dt(0)", "m/s"),
+    Param("trajectory", "triangle", "reference_source=trajectory: triangle, sine, steps or the "
+          "path of a CSV file (t [s], x [m])", read_only=True),
+    Param("trajectory_amplitude", 10e-6, "half the trajectory's range", "m", (0.0, 1.0),
+          read_only=True),
+    Param("trajectory_frequency", 10.0, "trajectory frequency", "Hz", (1e-6, 1e5), read_only=True),
+    Param("trajectory_offset", math.nan, "mid-range of the trajectory (NaN: the amplitude, so x_d "
+          "starts at 0)", "m", read_only=True),
+    Param("trajectory_rounding", DEFAULT_ROUNDING, "triangle corner / step transition, share of a "
+          "half period", "", (1e-3, 1.0), read_only=True),
+    Param("trajectory_v_max", math.inf, "velocity limit of the trajectory", "m/s", read_only=True),
+    Param("trajectory_a_max", math.inf, "acceleration limit of the trajectory", "m/s^2",
+          read_only=True),
+    Param("compensation", "feedback", "feedback (the law alone), feedforward (u_ff alone) or both "
+          "(u_ff + the law)", choices=Compensation, read_only=True),
+    Param("feedforward_model", "", "dynamic parameter set of the feedforward (input displacement; "
+          "name in config/ or path); needed unless compensation=feedback", read_only=True),
     Param("bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or "
           "path)"),
     Param("open_at", -1.0, "open the loop at this time of the node clock (< 0: never); "
@@ -136,6 +162,9 @@ class ControllerNode(Node):
         self._plant = load_nominal_plant(self._bounds_path) or THESIS_NOMINAL_PLANT
         self._rate = float(self.get_parameter("rate_hz").value)
         self._bias = float(self.get_parameter("u_bias").value)  # read-only: cached
+        self._feedforward = self._load_feedforward()
+        self._trajectory = self._load_trajectory()
+        self._t_ref: float | None = None  # the trajectory's time origin: the first step
         config = self._config({})
         report = self._verify(config)
         if report and not self.get_parameter("allow_unverified_gains").value:
@@ -167,7 +196,9 @@ class ControllerNode(Node):
         reliable = self.get_parameter("sensor_qos").value == SensorQos.RELIABLE
         self.create_subscription(Displacement, "displacement", self._on_displacement,
                                  LOCKSTEP_QOS if reliable else SENSOR_QOS)
-        self.create_subscription(Displacement, "reference", self._on_reference, COMMAND_QOS)
+        self._ref_qos = out_qos
+        self._sub_ref = self._pub_ref = None  # made when first needed (never its own echo)
+        self._reference_io(self.get_parameter("reference_source").value)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
         self._trigger = self.get_parameter("trigger").value
@@ -187,9 +218,39 @@ class ControllerNode(Node):
             anti_windup=p["anti_windup"],
             tracking_time=float(p["tracking_time"]) or None,
             derivative_tau=float(p["derivative_tau"]),
-            hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"])
+            hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"],
+            compensation=self.get_parameter("compensation").value, feedforward=self._feedforward)
         config.validate()
         return config
+
+    def _load_feedforward(self) -> FeedforwardModel | None:
+        """The feedforward model (None under feedback); bad files and combinations exit 2."""
+        name = self.get_parameter("feedforward_model").value
+        compensation = self.get_parameter("compensation").value
+        if compensation == Compensation.FEEDBACK:
+            return None
+        if not name:
+            raise ParameterError(f"controller: compensation {compensation} needs feedforward_model")
+        if self._bias != 0.0:
+            raise ParameterError("controller: u_bias and the feedforward both set the operating "
+                                 "voltage; use one (u_bias: 0)")
+        try:
+            return FeedforwardModel.load(find_config(name))
+        except (ControlError, OSError) as exc:
+            raise ParameterError(f"controller: feedforward_model: {exc}") from None
+
+    def _load_trajectory(self) -> Trajectory | None:
+        """The trajectory of reference_source=trajectory, built (and checked) at start."""
+        p = {k: self.get_parameter(f"trajectory{k}").value
+             for k in ("", "_amplitude", "_frequency", "_offset", "_rounding", "_v_max", "_a_max")}
+        try:
+            return make_trajectory(p[""], amplitude=p["_amplitude"], frequency=p["_frequency"],
+                                   offset=None if math.isnan(p["_offset"]) else p["_offset"],
+                                   rounding=p["_rounding"], v_max=p["_v_max"], a_max=p["_a_max"])
+        except ControlError as exc:
+            if self.get_parameter("reference_source").value == ReferenceSource.TRAJECTORY:
+                raise ParameterError(f"controller: {exc}") from None
+            return None  # not used unless reference_source is switched to it (refused then)
 
     def _verify(self, config: ControllerConfig) -> str:
         """'' when Theorem 4 and the sampled-loop check accept the gains, else the reasons."""
@@ -208,6 +269,9 @@ class ControllerNode(Node):
         return "; ".join(reasons)
 
     def _check_params(self, changed: dict[str, Any]) -> str | None:
+        if changed.get("reference_source") == ReferenceSource.TRAJECTORY \
+                and self._trajectory is None:
+            return "refused: the trajectory_* parameters give no valid trajectory"
         if not set(changed) & set(CONFIG_KEYS + ("delay_samples",)):
             return None
         try:
@@ -224,6 +288,16 @@ class ControllerNode(Node):
 
     def _refresh_hot(self, params: list) -> None:
         self._hot.update({p.name: p.value for p in params if p.name in HOT_KEYS})
+        self._reference_io(self._hot["reference_source"])
+
+    def _reference_io(self, source: str) -> None:
+        """trajectory: a publisher of x_d on ``reference``; otherwise the subscription to it."""
+        if source == ReferenceSource.TRAJECTORY:
+            if self._pub_ref is None:
+                self._pub_ref = self.create_publisher(Displacement, "reference", self._ref_qos)
+        elif self._sub_ref is None:
+            self._sub_ref = self.create_subscription(Displacement, "reference", self._on_reference,
+                                                     COMMAND_QOS)
 
     # ------------------------------------------------------------------ inputs
     def _on_reference(self, msg: Displacement) -> None:
@@ -260,18 +334,26 @@ class ControllerNode(Node):
         self._step(t, now.to_msg())
 
     # ------------------------------------------------------------------ loop
-    def _reference(self, t: float) -> tuple[float, float | None]:
+    def _reference(self, t: float, stamp) -> tuple[float, float | None, float]:
+        """(yr, ẏr or None, ÿr) at time t."""
         source = self._hot["reference_source"]
         if source == "second_order":
             if self._ref_gen is None:
                 self._ref_gen = SecondOrderReference(
                     y0=float(self.get_parameter("reference_y0").value),
                     ydot0=float(self.get_parameter("reference_ydot0").value), t_start=t)
-            yr, yr_dot, _ = self._ref_gen.evaluate(t)
-            return float(yr), float(yr_dot)
+            yr, yr_dot, yr_ddot = self._ref_gen.evaluate(t)
+            return float(yr), float(yr_dot), float(yr_ddot)
+        if source == "trajectory" and self._trajectory is not None and self._pub_ref is not None:
+            if self._t_ref is None:
+                self._t_ref = t
+            x, v, a = (float(value) for value in self._trajectory.evaluate(t - self._t_ref))
+            self._pub_ref.publish(Displacement(header=Header(stamp=stamp), displacement=x,
+                                               status=Displacement.OK))
+            return x, v, a
         if source == "constant":
-            return float(self._hot["reference"]), 0.0
-        return self._yr, None
+            return float(self._hot["reference"]), 0.0, 0.0
+        return self._yr, None, 0.0
 
     def _scheduled_window(self, t: float) -> None:
         """The open_at / open_duration window: opens with the hold voltage, closes after."""
@@ -294,8 +376,8 @@ class ControllerNode(Node):
         if self._start_closed and not self.pid.loop_closed and not self._fault:
             self._start_closed = False
             self.pid.close_loop()
-        yr, yr_dot = self._reference(t)
-        out = self.pid.update(t, self._x, yr, yr_dot)
+        yr, yr_dot, yr_ddot = self._reference(t, stamp)
+        out = self.pid.update(t, self._x, yr, yr_dot, yr_ddot)
         self._publish(out, stamp)
 
     def _hold_value(self) -> float:
@@ -322,7 +404,7 @@ class ControllerNode(Node):
         self._pub_state.publish(ControllerState(
             header=header, mode=out.mode, loop_closed=out.loop_closed, saturated=out.saturated,
             reference=out.reference, x0=out.x0, x1=out.x1, x2=out.x2, u=u, u_pid=out.u_pid,
-            u_excitation=out.u_excitation))
+            u_excitation=out.u_excitation, u_ff=out.u_ff))
 
     # ------------------------------------------------------------------ services
     def _srv_close(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
