@@ -25,7 +25,8 @@ class RuntimeDirError(OSError):
     """The run-time folder exists but is not safe to use (not ours, a symlink, open to others)."""
 
 
-def _candidate() -> Path:
+def location() -> Path:
+    """Where the run-time folder is (not created nor checked: :func:`runtime_dir` does that)."""
     if override := os.environ.get("PIEZO_STAGE_RUNTIME_DIR"):
         return Path(override)
     xdg = os.environ.get("XDG_RUNTIME_DIR")
@@ -36,7 +37,7 @@ def _candidate() -> Path:
 
 def runtime_dir(sub: str | None = None) -> Path:
     """The checked run-time folder (created if missing), or ``sub`` inside it (created too)."""
-    path = _ensure(_candidate())
+    path = _ensure(location())
     return path if sub is None else _ensure(path / sub)
 
 

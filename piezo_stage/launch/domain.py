@@ -1,7 +1,8 @@
 """A ROS domain of one's own for a lockstep run: ``/clock`` is global (not namespaced), so two
 lockstep simulations on one domain would drive each other's clocks.
 
-Claims are exclusive ``flock``s on ``<tmp>/piezo_stage_ros_domains/<id>.lock``, one file per id
+Claims are exclusive ``flock``s on ``ros_domains/<id>.lock`` in the per-user run-time folder
+(:mod:`piezo_stage.runtime_dir`: mode 0700, never a fixed name in a shared /tmp), one file per id
 in 1..100, held while the lock file is open: the demo, the experiments, the sample-bag script and
 the test suite (test/conftest.py) all use this one protocol, so they never pick the same id.
 """
@@ -11,26 +12,26 @@ from __future__ import annotations
 import fcntl
 import os
 import random
-import tempfile
 from contextlib import contextmanager
-from pathlib import Path
 from typing import IO, Iterator
+
+from piezo_stage.runtime_dir import location, runtime_dir
 
 from .errors import LaunchError
 
 #: lock files of claimed ROS domain ids
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "piezo_stage_ros_domains"
+DOMAIN_LOCK_DIR = location() / "ros_domains"
 
 
 def claim_domain_id(start: int | None = None) -> tuple[int, IO[str]]:
     """Claim a ROS_DOMAIN_ID in 1..100 that no other process holds; return it and the open lock
     file (the claim lasts until the file is closed or the process exits). The search starts at
     ``start`` (default: a random id) and wraps around."""
-    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    lock_dir = runtime_dir("ros_domains")  # created 0700, refused when not ours
     first = random.SystemRandom().randrange(100) if start is None else start
     for k in range(100):
         domain = 1 + (first + k) % 100
-        f = open(DOMAIN_LOCK_DIR / f"{domain}.lock", "w")
+        f = open(lock_dir / f"{domain}.lock", "w")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
