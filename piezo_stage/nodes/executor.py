@@ -161,8 +161,8 @@ def _drive(coroutine: Any) -> None:
     except StopIteration:
         return
     coroutine.close()
-    raise RuntimeError("a waitable awaited a future: LeanExecutor cannot run it, use the standard "
-                       "executor")
+    raise RuntimeError("a waitable awaited a future: LeanExecutor cannot run it, use the "
+                       "standard executor")
 
 
 def _complete(result: Any) -> None:

@@ -277,8 +277,8 @@ class IdentifierNode(Node):
             count, runs = len(v) + len(d), len(self._runs.completed)
             self._set_error(f"the streams have been silent for {settle:g} s after {count} samples "
                             f"and {runs} complete run(s): identification needs two steady runs "
-                            "(x(t) and x(t)+q), each ended by the next run's mark or the plan's "
-                            "end")
+                            "(x(t) and x(t)+q), each ended by the next run's mark or the "
+                            "plan's end")
             self._done(1)
 
     def recordings(self, intervals: list[tuple[int, float, float]] | None = None):

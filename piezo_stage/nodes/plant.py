@@ -149,9 +149,8 @@ class PlantNode(Node):
             self._dt_ns = int(round(self.dt * 1e9))
             self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
             self.create_timer(self.dt, self._realtime_tick)
-        self.get_logger().info(
-            f"{self.parameter_set.name} ({self.parameter_set.form}) at {p['rate_hz']:g} Hz, clock "
-            f"{self.mode}")
+        self.get_logger().info(f"{self.parameter_set.name} ({self.parameter_set.form}) at "
+                               f"{p['rate_hz']:g} Hz, clock {self.mode}")
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
@@ -232,8 +231,8 @@ class PlantNode(Node):
         if self._timeout > 0 and waited > self._timeout:
             self._late += 1
             self.get_logger().warn(f"no command for step {self._k} after {self._timeout:g} s: "
-                                   "advancing "
-                                   f"with {self._command:g} V held", throttle_duration_sec=5.0)
+                                   f"advancing with {self._command:g} V held",
+                                   throttle_duration_sec=5.0)
             self._advance()
 
     # ------------------------------------------------------------------ common

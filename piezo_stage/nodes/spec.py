@@ -193,9 +193,8 @@ class ParameterTable:
     def markdown(self) -> str:
         """This table for docs/parameters.md."""
         rows = [f"\n## `{self.node}`\n\n{_cell(self.summary)}\n\n"
-                "| parameter | type | default | unit | range / choices | read-only | description "
-                "|\n"
-                "|---|---|---|---|---|---|---|\n"]
+                "| parameter | type | default | unit | range / choices | read-only "
+                "| description |\n|---|---|---|---|---|---|---|\n"]
         for p in sorted(self.params, key=lambda p: p.name):
             if p.range is not None:
                 allowed = f"{show(p.range[0])} … {show(p.range[1])}"

@@ -103,10 +103,8 @@ PARAMETERS = ParameterTable("voltage_driver", (
     Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round (in a "
           "background thread, every round until it is back; 0: never)", range=(0, 100),
           read_only=True),
-),
-summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, with "
-        "limits, slew "
-   "and watchdog.")
+), summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, "
+           "with limits, slew and watchdog.")
 
 
 class VoltageDriverNode(Node):
