@@ -1,7 +1,11 @@
-"""Orchestration of the thesis ch. 11 experiments through the ROS graph (lockstep simulated rig).
+"""The thesis's experiments through the ROS graph (lockstep simulated stage): the one place
+that orchestrates them (the demo, the CLI and scripts/make_sample_bags.py call them).
 
-:func:`run_experiment` launches the plant and controller nodes, drives the experiment, and
-returns a JSON-ready summary; :mod:`.spec` holds the plans and the summaries (no rclpy).
+- ch. 10 identification: :mod:`.identification` (the ``sim_identification`` graph with a
+  recorder, the bag replayed through the identifier node, the offline identification).
+- ch. 11 closed loop: :func:`run_experiment` launches the plant and controller nodes, drives
+  the experiment, and returns a JSON-ready summary; :mod:`.spec` holds the plans and the
+  summaries (no rclpy).
 """
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
