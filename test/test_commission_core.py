@@ -228,3 +228,17 @@ def test_a_frequency_that_fails_stops_before_the_gains_and_resumes_from_it(tmp_p
     Commissioning(tmp_path, rig, options).run()
     assert rig.excited[0] == "sweep 100 Hz"  # 50 Hz was kept
     assert not (tmp_path / "FAILED.md").exists() and (tmp_path / "report.md").is_file()
+
+
+def test_clipping_is_told_from_a_command_held_at_a_limit(tmp_path):
+    plan = SweepSettings(low=0.0, amplitude=300.0, offset=100.0).plan(50.0)
+    series = simulate(plan, 50e3)
+    sweep.check_clipping(series, plan, 0.0, 450.0)  # the sine's minimum at v_min = 0 V: no clip
+    clipped = dataclasses.replace(series, v=np.minimum(series.v, 350.0))
+    with pytest.raises(SweepError, match="amplifier clips"):
+        sweep.check_clipping(clipped, plan, 0.0, 450.0)  # a limit the rig did not declare
+    rig = FakeRig()
+    rig.v_max = 350.0
+    with pytest.raises(StepFailed, match="clip"):
+        Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(50.0,)))).run()
+    assert not (tmp_path / "pending").exists() and rig.excited == []

@@ -136,9 +136,9 @@ class RosRig:
         self, launch: Any, namespace: str, plan: ExcitationPlan, label: str
     ) -> dict[str, list]:
         import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+        from piezo_stage.nodes.executor import LeanExecutor
         from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
         from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
@@ -149,7 +149,8 @@ class RosRig:
         stream = (
             QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
             if self.lockstep
-            else qos_profile_sensor_data
+            # best effort matches the devices' SensorDataQoS; deep, so a busy moment loses nothing
+            else QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
         )
         marks_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         for topic, msg_type, qos in (
@@ -160,7 +161,7 @@ class RosRig:
             node.create_subscription(
                 msg_type, topic, lambda d, k=topic: raw[k].append((_stamp_ns(d), d)), qos, raw=True
             )
-        executor = SingleThreadedExecutor(context=ctx)
+        executor = LeanExecutor(context=ctx)  # a sample per wake-up at 1-2 kHz on a loaded host
         executor.add_node(node)
         try:
             launch.start()
@@ -180,7 +181,7 @@ class RosRig:
                             "the graph has no working sensor or excitation"
                         )
                     continue
-                t0 = min(ns for ns, _ in raw["excitation"])
+                t0 = raw["excitation"][0][0]  # marks arrive in order (reliable, one writer)
                 done = (raw["displacement"][-1][0] - t0) * 1e-9
                 if (
                     done >= plan.duration + 2.0 / self.rate_hz

@@ -223,7 +223,7 @@ class Commissioning:
                 "excitation)",
             )
             series = self.rig.excite(plan, self._bag(f"sweep_{key}Hz"), f"sweep {f:g} Hz")
-            sweep.check_clipping(series, self.rig.v_min, self.rig.v_max)
+            sweep.check_clipping(series, plan, self.rig.v_min, self.rig.v_max)
             res = sweep.identify_frequency(series, plan)
             results.append(res)
             done[key] = res.to_dict()
@@ -267,7 +267,7 @@ class Commissioning:
             hold="last",
         )
         series = self.rig.excite(plan, self._bag("dynamics_step"), "step response")
-        sweep.check_clipping(series, self.rig.v_min, self.rig.v_max)
+        sweep.check_clipping(series, plan, self.rig.v_min, self.rig.v_max)
         t, x = series.t_x, series.x
         if series.marks:
             t0 = min(m[0] for m in series.marks)

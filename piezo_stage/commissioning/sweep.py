@@ -57,7 +57,7 @@ class SweepSettings:
             offsets=(0.0, self.offset),
             settle_periods=self.settle_periods,
             record_periods=self.record_periods,
-            hold="low",
+            hold="last",  # the last run ends at its minimum: no jump after the plan
         )
 
     def check(self, rate_hz: float, v_min: float, v_max: float) -> None:
@@ -112,22 +112,36 @@ def paired(series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return t_x[ok], x[ok], u[ok]
 
 
-def check_clipping(series: Series, v_min: float, v_max: float) -> None:
-    """SweepError when the sensor reported out-of-range samples or the amplifier sat at a limit."""
-    bad = np.flatnonzero(series.status != 0)
+def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: float) -> None:
+    """SweepError when, during the plan (from its first mark), the sensor reported out-of-range
+    samples, or the applied voltage has a flat top or bottom the plan has not (an amplifier at a
+    limit, known or not; a command held at a limit on purpose is no clipping)."""
+    t0 = min(m[0] for m in series.marks) if series.marks else -np.inf
+    during_x = (series.t_x >= t0) & (series.t_x < t0 + plan.duration)
+    bad = np.flatnonzero(during_x & (series.status != 0))
     if bad.size:
         raise SweepError(
             f"the sensor reported {bad.size} sample(s) out of its range or invalid (first at "
-            f"t = {series.t_x[bad[0]]:.6g} s, status {int(series.status[bad[0]])}): the sweep "
-            "clips the "
-            "sensor; reduce --amplitude/--offset or move the sensor"
+            f"t = {series.t_x[bad[0]] - t0:.6g} s into the excitation, status "
+            f"{int(series.status[bad[0]])}): the sweep clips the sensor; reduce "
+            "--amplitude/--offset or move the sensor"
         )
-    at_limit = (series.v >= v_max - 1e-9) | (series.v <= v_min + 1e-9)
-    if np.count_nonzero(at_limit) > 2:
-        raise SweepError(
-            f"the applied voltage sat at the amplifier's limit ({v_min:g}/{v_max:g} V) for "
-            f"{int(np.count_nonzero(at_limit))} samples: the sweep clips the amplifier"
-        )
+    t = series.t_v - t0
+    during = (t >= 0) & (t < plan.duration)
+    if np.count_nonzero(during) < 3:
+        return
+    v, asked = series.v[during], plan.values(t[during])
+    delta = 1e-3 * max(float(np.ptp(asked)), 1e-9)
+    for name, sign in (("upper", 1.0), ("lower", -1.0)):
+        flat_v = np.count_nonzero(sign * v >= np.max(sign * v) - delta)
+        flat_asked = np.count_nonzero(sign * asked >= np.max(sign * asked) - delta)
+        if flat_v > flat_asked + 3 and flat_v > 1.5 * flat_asked:
+            level = float(np.max(v) if sign > 0 else np.min(v))
+            raise SweepError(
+                f"the applied voltage stays at its {name} extreme {level:.6g} V for {flat_v} "
+                f"samples where the excitation has {flat_asked}: the amplifier clips (limits "
+                f"{v_min:g}/{v_max:g} V); reduce --amplitude/--offset"
+            )
 
 
 def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Recording]:
