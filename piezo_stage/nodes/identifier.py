@@ -256,6 +256,7 @@ class IdentifierNode(Node):
             self._run_complete(run_index)
         if poll.ready and len(self._runs.completed) >= RUNS_NEEDED and not self._runs.pending \
                 and self.result is None and self.get_parameter("auto_identify").value:
+            self._attempted = True
             try:
                 self.identify_now()
             except (IdentificationError, ModelError, ValueError):
