@@ -15,7 +15,8 @@ over 20 seeds with the coverage of the standard errors; the real P-885 record (f
 first 60 %, held-out RMS on the last 40 %); the time of a fit on a 10k-sample run.
 
 Run:  python bench/identification.py [section ...]   (sections: noiseless patch timing noisy
-      one_run two_runs ch9_24 noisy_one_run p885 fit_timing; default all, a few minutes)
+      one_run one_run_patch two_runs ch9_24 noisy_one_run p885 fit_timing; default all, a few
+      minutes)
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from piezo_stage.identification.errors import IdentificationError  # noqa: E402
 from piezo_stage.identification.io import load_csv  # noqa: E402
 from piezo_stage.identification.methods import identify_runs  # noqa: E402
 from piezo_stage.identification.pipeline import IdentifyOptions, identify  # noqa: E402
+from piezo_stage.identification.recording import Recording  # noqa: E402
 from piezo_stage.identification.refine import RefineOptions, cycle_path, refine  # noqa: E402
 from piezo_stage.identification.simfit import FitOptions, holdout_check  # noqa: E402
 from piezo_stage.identification.synthetic import (  # noqa: E402
@@ -263,6 +265,15 @@ def one_run() -> None:
     _fit_row("max relative parameter error", [run], CH9, 1e-6)
 
 
+def one_run_patch() -> None:
+    section("one noiseless run of the ch. 10 patch (N = 2, input -v), a ±150 V 1 Hz sine from "
+            "w(0) = 0.5")
+    t = np.arange(6000) * 1e-3
+    v = 150.0 * np.sin(2 * np.pi * t)
+    run = Recording(t, v, model_output(PATCH, v, w0=0.5), name="patch sine")
+    _fit_row("max relative parameter error", [run], PATCH, 1e-6, degree=2)
+
+
 def two_runs() -> None:
     section("two noiseless runs x(t), x(t)+q, 5 periods from w(0) = 0 (limit cycle not reached)")
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=1000, periods=5, w0=0.0)
@@ -355,8 +366,8 @@ def fit_timing() -> None:
           f"{max_rel_error(r.parameters, PATCH):.2e}")
 
 
-SECTIONS = {f.__name__: f for f in (noiseless, patch, timing, noisy, one_run, two_runs, ch9_24,
-                                     noisy_one_run, p885, fit_timing)}
+SECTIONS = {f.__name__: f for f in (noiseless, patch, timing, noisy, one_run, one_run_patch,
+                                     two_runs, ch9_24, noisy_one_run, p885, fit_timing)}
 
 
 if __name__ == "__main__":
