@@ -11,7 +11,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
-from .errors import ConfigError, DeviceError, GCSError
+from .errors import ConfigError, DeviceError, GCSError, ProtocolError
 from .gcs import ERR_UNKNOWN_COMMAND, GCSConnection
 from .mdt69x import AXES as MDT_AXES
 from .mdt69x import DEFAULT_BAUDRATE as MDT_BAUDRATE
@@ -85,6 +85,8 @@ class GCSAmplifier(Amplifier):
         axes = [a.strip() for a in self.conn.query("SAI?") if a.strip()]
         if not axes:
             raise DeviceError("SAI?", "controller reports no axes", "SAI?")
+        if not all(a.isascii() and a.isprintable() for a in axes):  # a garbled reply
+            raise ProtocolError(f"SAI? answered {axes!r}: not axis names")
         if self.requested_axis is None:
             self.axis = axes[0]
         elif self.requested_axis not in axes:

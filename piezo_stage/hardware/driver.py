@@ -232,7 +232,7 @@ class VoltageDriver:
         while self._may_reconnect and not self._stop.is_set():
             try:
                 self.reconnect()
-            except HardwareError as exc:  # link still down, or the device came back unusable
+            except Exception as exc:  # still down, garbled, or a bug: say so, never stop trying
                 log.error("amplifier link still down: %s", exc)
                 self.last_link_error = str(exc)
                 self._stop.wait(self.config.reconnect_delay)
