@@ -1,0 +1,82 @@
+"""Tracking experiment (issue 17) through the ROS graph: lockstep plant + controller generating the
+trajectory, with the feedforward's model fitted from recordings of the simulated rig."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from piezo_stage.bag.reader import read_messages
+from piezo_stage.experiments.errors import ExperimentInputError
+from piezo_stage.experiments.tracking import TrackingSpec, identify_model, make_tracking_plan
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    path = tmp_path_factory.mktemp("tracking") / "model.yaml"
+    identify_model(path)  # recordings of the simulated ch. 11 rig, not its file
+    return path
+
+
+@pytest.mark.unit
+def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
+    spec = TrackingSpec(trajectory="sine", amplitude=5e-6, frequency=100.0, offset=8e-6,
+                        compensation="both", model=str(model))
+    plan = make_tracking_plan(spec, str(model))
+    assert plan.rate_hz == 100e3 and plan.spectral_radius < 1
+    assert plan.duration == pytest.approx(0.03)  # three periods
+    assert plan.plant["initial_displacement"] == pytest.approx(3e-6)  # x_d(0) = offset - amplitude
+    assert plan.plant["initial_voltage"] == pytest.approx(10.35e6 * 3e-6)  # at rest there, w = 0
+    c = plan.controller
+    assert c["reference_source"] == "trajectory" and c["compensation"] == "both"
+    assert c["trajectory"] == "sine" and c["trajectory_offset"] == 8e-6
+    assert c["hold_voltage"] == plan.plant["initial_voltage"]
+    assert math.isnan(make_tracking_plan(TrackingSpec(), "").controller["trajectory_offset"])
+    for bad, match in ((dict(compensation="inverse"), "compensation"),
+                       (dict(mode="pi"), "unknown law"),
+                       (dict(trajectory="sine", frequency=1e3, a_max=1.0), "a_max"),
+                       (dict(plant_model="ch10_patch.yaml"), "static"),
+                       (dict(plant_model="no_such_rig.yaml"), "not found")):
+        with pytest.raises(ExperimentInputError, match=match):
+            make_tracking_plan(TrackingSpec(**bad), "")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_command_tracks_a_100_hz_sine_and_compares_with_feedback(model, tmp_path, capsys):
+    from piezo_stage.cli import main
+
+    code = main(["experiment", "tracking", "--trajectory", "sine", "--amplitude", "5e-6",
+                 "--frequency", "100", "--compensation", "both", "--model", str(model),
+                 "--compare", "--png", str(tmp_path / "png"), "--bag", str(tmp_path / "bag"),
+                 "--json"])
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["range"] == pytest.approx(10e-6, rel=1e-3) and out["samples"] >= 2999
+    assert out["rms_relative"] <= 0.02  # the issue's target for the 100 Hz sine
+    assert out["feedback"]["rms_error"] > 10 * out["rms_error"] and out["rms_ratio"] < 0.1
+    assert all((tmp_path / "png" / name).is_file() for name in ("tracking_sine_both.png",))
+    states = [m for _, _, m in read_messages(tmp_path / "bag")]
+    u_ff = np.array([m.u_ff for m in states])
+    assert len(states) == out["samples"] and u_ff.max() > 100.0  # κx·10 µm = 104 V
+    assert np.allclose([m.u for m in states], [m.u_pid + m.u_ff for m in states], atol=1e-9)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_csv_trajectory_with_feedforward_alone(model, tmp_path, capsys):
+    from piezo_stage.cli import main
+
+    t = np.linspace(0.0, 0.01, 11)
+    csv = tmp_path / "scan.csv"
+    csv.write_text("t, x\n" + "".join(f"{a:.6g},{2e-6 * a / 0.01:.6g}\n" for a in t))
+    code = main(["experiment", "tracking", "--trajectory", str(csv), "--compensation",
+                 "feedforward", "--model", str(model), "--json"])
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["range"] == pytest.approx(2e-6, rel=0.02) and out["measured_from"] == 0.0
+    assert out["rms_error"] < 0.05 * out["range"]  # open loop on a fitted model: close
+    assert main(["experiment", "tracking", "--compensation", "both"]) == 2  # no --model
