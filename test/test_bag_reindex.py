@@ -19,7 +19,6 @@ from rosbags.highlevel import AnyReader
 from piezo_stage.bag import BagWriter, bag_info, qos, read_series, reindex
 from piezo_stage.bag.series import encode_series
 
-
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000
 DISP, VOLT = "piezo_stage_msgs/msg/Displacement", "piezo_stage_msgs/msg/Voltage"

@@ -15,8 +15,14 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Nodetype
 
 from piezo_stage.bag import qos, records, types
-from piezo_stage.bag.errors import (BagClosedError, BagExistsError, DuplicateTopicError,
-                                    InvalidQosError, UnknownMessageTypeError, UnknownTopicError)
+from piezo_stage.bag.errors import (
+    BagClosedError,
+    BagExistsError,
+    DuplicateTopicError,
+    InvalidQosError,
+    UnknownMessageTypeError,
+    UnknownTopicError,
+)
 from piezo_stage.bag.series import encode_series
 from piezo_stage.bag.writer import BagWriter, InvalidBagOptionError, InvalidTopicNameError
 
