@@ -41,9 +41,11 @@ class Clock:
 
 
 class Bench:
-    """GCS emulator + loopback link + driver on one fake clock; ``applied`` logs (t, V) at the device."""
+    """GCS emulator + loopback link + driver on one fake clock; ``applied``: (t, V) at the device"""
 
-    def __init__(self, faults: Faults | None = None, transport_cls=LoopbackTransport, **cfg) -> None:
+    def __init__(
+        self, faults: Faults | None = None, transport_cls=LoopbackTransport, **cfg
+    ) -> None:
         self.clock = Clock()
         self.model = GCSDeviceModel(v_min=-30.0, v_max=130.0)
         self.applied: list[tuple[float, float]] = [(self.clock.t, self.model.voltage)]
@@ -51,8 +53,12 @@ class Bench:
         self.transport = transport_cls(self.model, faults, clock=self.clock)
         cfg = {"v_min": 0.0, "v_max": 100.0, "reconnect_delay": 0.001, **cfg}
         self.config = DriverConfig(**cfg)
-        self.driver = VoltageDriver(GCSAmplifier(self.transport, timeout=0.02), self.config,
-                                    clock=self.clock, sleep=self.clock.sleep)
+        self.driver = VoltageDriver(
+            GCSAmplifier(self.transport, timeout=0.02),
+            self.config,
+            clock=self.clock,
+            sleep=self.clock.sleep,
+        )
         self.driver.connect()
 
     def command(self, voltage: float) -> None:
@@ -80,10 +86,12 @@ class Bench:
         return self.config.slew_rate * min(WRITE_PERIOD, CAP_TIME)
 
     def assert_ramps(self) -> None:
-        """No write steps more than max_step; no interval sees more than slew × length + max_step."""
+        """No write steps more than max_step; no interval sees more than slew × length + max_step"""
         t, v = np.array(self.applied).T
         cap = self.max_step() + 1e-6
-        assert np.all(np.abs(np.diff(v)) <= cap), f"largest step {np.max(np.abs(np.diff(v))):.4g} V > {cap:.4g} V"
+        assert np.all(np.abs(np.diff(v)) <= cap), (
+            f"largest step {np.max(np.abs(np.diff(v))):.4g} V > {cap:.4g} V"
+        )
         dv = np.abs(v[None, :] - v[:, None])
         dt = np.abs(t[None, :] - t[:, None])
         excess = dv - self.config.slew_rate * dt - cap
@@ -91,7 +99,7 @@ class Bench:
         assert np.all((v >= self.config.v_min) & (v <= self.config.v_max))
 
 
-# --- row 2: pauses, watchdog and shutdown ramps ----------------------------------------------------
+# --- row 2: pauses, watchdog and shutdown ramps --------------------------------------------------
 def test_pauses_never_allow_a_big_step():
     """2000 V/s, 0-100 V: 100 -> 0 -> 100 after pauses reached the device as single 100 V steps."""
     bench = Bench(slew_rate=2000.0)
@@ -180,7 +188,7 @@ def test_a_slow_reconnect_is_not_followed_by_a_step():
     bench.assert_ramps()
 
 
-# --- row 5: the watchdog counts from received commands and clears the queue ------------------------
+# --- row 5: the watchdog counts from received commands and clears the queue ----------------------
 def test_watchdog_counts_from_received_commands_and_clears_queued_ones():
     """Commands stamped 4 s ahead (apply_at_stamp) stop arriving: safe within command_timeout +
     ramp time, and nothing queued before the trip reaches the device after it."""
@@ -230,7 +238,7 @@ def test_commands_received_before_the_trip_are_refused():
     assert driver.expired == 1 and bench.model.voltage == 0.0
 
 
-# --- row 6: reconnects never block the caller ------------------------------------------------------
+# --- row 6: reconnects never block the caller ----------------------------------------------------
 class BlockingOpenTransport(LoopbackTransport):
     """After the first open, opening hangs until released (a device that never answers)."""
 
@@ -271,7 +279,7 @@ def test_a_hanging_reconnect_never_blocks_tick_or_commands():
     driver.close()
 
 
-# --- row 7 (core): a shutdown that cannot reach safe_voltage says so -------------------------------
+# --- row 7 (core): a shutdown that cannot reach safe_voltage says so -----------------------------
 def test_shutdown_with_the_link_down_raises():
     from piezo_stage.hardware.errors import SafeStateNotReached
 
@@ -284,7 +292,7 @@ def test_shutdown_with_the_link_down_raises():
     assert bench.driver.state is DriverState.SHUT_DOWN and bench.model.voltage == 20.0
 
 
-# --- property: random schedules of commands, pauses and link faults --------------------------------
+# --- property: random schedules of commands, pauses and link faults ------------------------------
 EVENTS = st.one_of(
     st.tuples(st.just("cmd"), st.floats(0.0, 0.4), st.floats(-50.0, 150.0)),
     st.tuples(st.just("tick"), st.floats(0.0, 0.05), st.just(0.0)),
@@ -295,8 +303,11 @@ EVENTS = st.one_of(
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(slew=st.sampled_from([50.0, 200.0, 2000.0, 1e5]), schedule=st.lists(EVENTS, max_size=120),
-       seed=st.integers(0, 2**16))
+@given(
+    slew=st.sampled_from([50.0, 200.0, 2000.0, 1e5]),
+    schedule=st.lists(EVENTS, max_size=120),
+    seed=st.integers(0, 2**16),
+)
 def test_property_ramps_and_limits_hold_under_any_schedule(slew, schedule, seed):
     faults = Faults(seed=seed)
     bench = Bench(faults, slew_rate=slew, command_timeout=0.2)

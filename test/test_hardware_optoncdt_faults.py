@@ -34,7 +34,9 @@ CHECK = FrameCheck(relock_frames=6, max_speed=1e-3, rate=RATE)
 
 
 def feed_all(parser: OptoNCDTParser, data: bytes, chunk: int = 4096) -> SampleBlock:
-    return SampleBlock.concat([parser.feed(data[i: i + chunk]) for i in range(0, len(data), chunk)])
+    return SampleBlock.concat(
+        [parser.feed(data[i : i + chunk]) for i in range(0, len(data), chunk)]
+    )
 
 
 def fmt_of(name: str):
@@ -47,9 +49,16 @@ def truth_stream(fmt, n: int = 100_000):
 
 
 @pytest.mark.parametrize("name", list(FAMILIES))
-@pytest.mark.parametrize("mode", [dict(lose_one=True), dict(replace_one=True), dict(corrupt=1e-3),
-                                  dict(corrupt=1e-3, drop=1e-3, garbage=1e-3)],
-                         ids=["lose-one-per-frame", "replace-one-per-frame", "corrupt-1e-3", "mixed"])
+@pytest.mark.parametrize(
+    "mode",
+    [
+        dict(lose_one=True),
+        dict(replace_one=True),
+        dict(corrupt=1e-3),
+        dict(corrupt=1e-3, drop=1e-3, garbage=1e-3),
+    ],
+    ids=["lose-one-per-frame", "replace-one-per-frame", "corrupt-1e-3", "mixed"],
+)
 def test_no_ok_value_is_off_by_more_than_1e3_of_the_range(name, mode):
     fmt = fmt_of(name)
     data, origin, truth = truth_stream(fmt)
@@ -64,8 +73,15 @@ def test_no_ok_value_is_off_by_more_than_1e3_of_the_range(name, mode):
 def test_a_frame_next_to_discarded_or_lost_bytes_is_never_ok(name):
     fmt = fmt_of(name)
     data, origin, truth = truth_stream(fmt, 20_000)
-    data, origin = damage(data, origin, np.random.default_rng(8), fmt.bytes_per_value,
-                          drop=3e-3, corrupt=3e-3, garbage=3e-3)
+    data, origin = damage(
+        data,
+        origin,
+        np.random.default_rng(8),
+        fmt.bytes_per_value,
+        drop=3e-3,
+        corrupt=3e-3,
+        garbage=3e-3,
+    )
     parser = OptoNCDTParser(fmt, MR, CHECK)
     status = parser.feed(data.tobytes()).status
     ends = frame_ends(fmt, data)  # later-value frames (3-byte H flag 11) are frames too
@@ -90,7 +106,7 @@ def test_publishing_again_within_10_good_frames_after_garbage(name):
         block = parser.feed(garbage + data.tobytes())
         # the good frames are the last 40 samples; the first OK one among them
         good = block.status[-40:] == Status.OK
-        assert good.any() and good[np.argmax(good):].all()  # once back, it stays
+        assert good.any() and good[np.argmax(good) :].all()  # once back, it stays
         latencies.append(int(np.argmax(good)) + 1)
         assert not np.any(block.status[:-40] == Status.OK)  # nothing from the garbage
     assert max(latencies) <= 10, max(latencies)
@@ -113,22 +129,39 @@ def test_speed_gate_refuses_a_jump_and_counts_it():
     raw[100] += 4096  # a spike of 6 % MR in one frame, framing intact
     parser = OptoNCDTParser(fmt, MR, CHECK)
     block = parser.feed(encode_values(fmt, raw))
-    assert block.status[100] == Status.INVALID and np.all(block.status[CHECK.relock_frames:100] == 0)
+    assert block.status[100] == Status.INVALID and np.all(
+        block.status[CHECK.relock_frames : 100] == 0
+    )
     assert np.all(block.status[101:] == Status.OK)
     assert parser.stats.speed_rejected == 1 and parser.stats.framing_errors == 1  # the start
 
 
 @settings(max_examples=40, deadline=None)
-@given(name=st.sampled_from(list(FAMILIES)), seed=st.integers(0, 2**32 - 1),
-       drop=st.sampled_from([0.0, 1e-3, 1e-2]), corrupt=st.sampled_from([0.0, 1e-3, 1e-2]),
-       garbage=st.sampled_from([0.0, 1e-3, 1e-2]), lose_one=st.booleans(),
-       replace_one=st.booleans(), chunk=st.integers(1, 5000))
-def test_property_no_wrong_ok_value_under_any_damage(name, seed, drop, corrupt, garbage,
-                                                      lose_one, replace_one, chunk):
+@given(
+    name=st.sampled_from(list(FAMILIES)),
+    seed=st.integers(0, 2**32 - 1),
+    drop=st.sampled_from([0.0, 1e-3, 1e-2]),
+    corrupt=st.sampled_from([0.0, 1e-3, 1e-2]),
+    garbage=st.sampled_from([0.0, 1e-3, 1e-2]),
+    lose_one=st.booleans(),
+    replace_one=st.booleans(),
+    chunk=st.integers(1, 5000),
+)
+def test_property_no_wrong_ok_value_under_any_damage(
+    name, seed, drop, corrupt, garbage, lose_one, replace_one, chunk
+):
     fmt = fmt_of(name)
     data, origin, truth = truth_stream(fmt, 5000)
-    data, origin = damage(data, origin, np.random.default_rng(seed), fmt.bytes_per_value,
-                          drop=drop, corrupt=corrupt, garbage=garbage, lose_one=lose_one,
-                          replace_one=replace_one)
+    data, origin = damage(
+        data,
+        origin,
+        np.random.default_rng(seed),
+        fmt.bytes_per_value,
+        drop=drop,
+        corrupt=corrupt,
+        garbage=garbage,
+        lose_one=lose_one,
+        replace_one=replace_one,
+    )
     result = score(OptoNCDTParser(fmt, MR, CHECK), data, origin, truth, TOL, chunk=chunk)
     assert result.wrong == 0, result

@@ -1,4 +1,4 @@
-"""Device wire protocols (PI GCS2, Thorlabs MDT69x, Micro-Epsilon optoNCDT) and their emulators. No rclpy.
+"""Device wire protocols (PI GCS2, Thorlabs MDT69x, Micro-Epsilon optoNCDT), emulators. No rclpy.
 
 For the ROS nodes:
 
@@ -15,20 +15,20 @@ For the ROS nodes:
 from .amplifier import Amplifier, DeviceInfo, GCSAmplifier, MDT69xAmplifier, make_amplifier
 from .driver import DriverConfig, DriverState, SetResult, VoltageDriver, Watchdog
 from .errors import (
-                     ConfigError,
-                     ConnectionLost,
-                     DeviceError,
-                     DeviceTimeout,
-                     GCSError,
-                     HardwareError,
-                     LimitsError,
-                     NonFiniteVoltageError,
-                     NotConnected,
-                     ProtocolError,
-                     SafetyError,
-                     SensorCommandError,
-                     TransportError,
-                     VoltageOutOfRangeError,
+    ConfigError,
+    ConnectionLost,
+    DeviceError,
+    DeviceTimeout,
+    GCSError,
+    HardwareError,
+    LimitsError,
+    NonFiniteVoltageError,
+    NotConnected,
+    ProtocolError,
+    SafetyError,
+    SensorCommandError,
+    TransportError,
+    VoltageOutOfRangeError,
 )
 from .optoncdt import FrameFormat, OptoNCDTParser, SampleBlock, Status, frame_format
 from .safety import VoltageLimits
@@ -37,11 +37,43 @@ from .timing import CommandPlayout, SampleClock, set_realtime_priority
 from .transport import SerialTransport, TcpTransport, Transport, make_transport
 
 __all__ = [
-    "Amplifier", "CommandPlayout", "ConfigError", "ConnectionLost", "DeviceError", "DeviceInfo", "DeviceTimeout",
-    "DriverConfig", "DriverState", "FrameFormat", "GCSAmplifier", "GCSError", "HardwareError",
-    "LimitsError", "MDT69xAmplifier", "NonFiniteVoltageError", "NotConnected", "OptoNCDTParser",
-    "ProtocolError", "SafetyError", "SampleBlock", "SampleClock", "SensorCommandError", "SensorConfig", "SensorReader",
-    "SerialTransport", "SetResult", "Status", "TcpTransport", "Transport", "TransportError",
-    "VoltageDriver", "VoltageLimits", "VoltageOutOfRangeError", "Watchdog", "frame_format",
-    "make_amplifier", "make_transport", "set_realtime_priority",
+    "Amplifier",
+    "CommandPlayout",
+    "ConfigError",
+    "ConnectionLost",
+    "DeviceError",
+    "DeviceInfo",
+    "DeviceTimeout",
+    "DriverConfig",
+    "DriverState",
+    "FrameFormat",
+    "GCSAmplifier",
+    "GCSError",
+    "HardwareError",
+    "LimitsError",
+    "MDT69xAmplifier",
+    "NonFiniteVoltageError",
+    "NotConnected",
+    "OptoNCDTParser",
+    "ProtocolError",
+    "SafetyError",
+    "SampleBlock",
+    "SampleClock",
+    "SensorCommandError",
+    "SensorConfig",
+    "SensorReader",
+    "SerialTransport",
+    "SetResult",
+    "Status",
+    "TcpTransport",
+    "Transport",
+    "TransportError",
+    "VoltageDriver",
+    "VoltageLimits",
+    "VoltageOutOfRangeError",
+    "Watchdog",
+    "frame_format",
+    "make_amplifier",
+    "make_transport",
+    "set_realtime_priority",
 ]

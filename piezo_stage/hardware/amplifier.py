@@ -68,8 +68,14 @@ class GCSAmplifier(Amplifier):
 
     decimals = 6
 
-    def __init__(self, transport: Transport, axis: str | None = None, channel: int = 1,
-                 timeout: float = 1.0, check_errors: bool = True) -> None:
+    def __init__(
+        self,
+        transport: Transport,
+        axis: str | None = None,
+        channel: int = 1,
+        timeout: float = 1.0,
+        check_errors: bool = True,
+    ) -> None:
         super().__init__(transport)
         self.conn = GCSConnection(transport, timeout)
         self.requested_axis = axis
@@ -156,8 +162,15 @@ AMPLIFIERS: dict[str, tuple[type[Amplifier], int]] = {
 }
 
 
-def make_amplifier(kind: str, url: str, *, axis: str | None = None, channel: int = 1,
-                   timeout: float = 1.0, baudrate: int | None = None) -> Amplifier:
+def make_amplifier(
+    kind: str,
+    url: str,
+    *,
+    axis: str | None = None,
+    channel: int = 1,
+    timeout: float = 1.0,
+    baudrate: int | None = None,
+) -> Amplifier:
     """Build (not open) an amplifier of ``kind`` ("gcs" or "mdt69x") on the link at ``url``."""
     if kind not in AMPLIFIERS:
         raise ConfigError(f"unknown amplifier {kind!r}; choose from {sorted(AMPLIFIERS)}")

@@ -89,7 +89,9 @@ class DriverConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0 s, got {getattr(self, name)}")
         if self.reconnect_attempts < 0 or self.reconnect_delay < 0 or self.shutdown_timeout < 0:
-            raise ConfigError("reconnect_attempts, reconnect_delay and shutdown_timeout must be >= 0")
+            raise ConfigError(
+                "reconnect_attempts, reconnect_delay and shutdown_timeout must be >= 0"
+            )
 
     @property
     def max_step(self) -> float:
@@ -118,9 +120,13 @@ class DriverState(enum.Enum):
 class VoltageDriver:
     """Safe open-loop voltage output through an :class:`Amplifier` (see module docstring)."""
 
-    def __init__(self, amplifier: Amplifier, config: DriverConfig,
-                 clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        amplifier: Amplifier,
+        config: DriverConfig,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         self.amplifier = amplifier
         self.config = config
         self.clock = clock
@@ -135,7 +141,9 @@ class VoltageDriver:
         self.expired = 0  # commands refused because the watchdog fired after they were received
         self.trips = 0  # times the watchdog fired
         self.last_link_error = ""
-        self.on_timeout: list[Callable[[], None]] = []  # called (under the lock) when the watchdog fires
+        self.on_timeout: list[
+            Callable[[], None]
+        ] = []  # called (under the lock) when the watchdog fires
         self._t_sent = 0.0
         self._t_command = 0.0  # when the last valid command was received
         self._t_trip = -math.inf  # when the watchdog last fired
@@ -155,8 +163,14 @@ class VoltageDriver:
             self._may_reconnect = True
             self._stop.clear()
             lim = self.limits
-            log.info("connected to %s axis %s, limits [%g, %g] V, output %g V",
-                     info.identity, info.axis, lim.v_min, lim.v_max, info.applied)
+            log.info(
+                "connected to %s axis %s, limits [%g, %g] V, output %g V",
+                info.identity,
+                info.axis,
+                lim.v_min,
+                lim.v_max,
+                info.applied,
+            )
             return info
 
     def _install(self, info: DeviceInfo, first: bool = True) -> None:
@@ -167,7 +181,9 @@ class VoltageDriver:
         if not limits.contains(self.config.safe_voltage):
             self.amplifier.close()
             raise VoltageOutOfRangeError(
-                f"safe_voltage {self.config.safe_voltage} V outside [{limits.v_min}, {limits.v_max}] V")
+                f"safe_voltage {self.config.safe_voltage} V outside "
+                f"[{limits.v_min}, {limits.v_max}] V"
+            )
         self.info, self.limits = info, limits
         self.last_sent = info.applied
         self._t_sent = self.clock()
@@ -203,7 +219,9 @@ class VoltageDriver:
                     raise NotConnected("voltage driver was closed while reconnecting")
                 self.reconnects += 1
                 self._install(info, first=False)
-                log.info("reconnected to %s, output %g V", self.amplifier.transport.url, info.applied)
+                log.info(
+                    "reconnected to %s, output %g V", self.amplifier.transport.url, info.applied
+                )
                 return info
         raise NotConnected(f"could not reconnect to {self.amplifier.transport.url}: {last}")
 
@@ -215,10 +233,14 @@ class VoltageDriver:
         if self.config.reconnect_attempts <= 0 or not self._may_reconnect:
             return
         if self._reconnector is None or not self._reconnector.is_alive():
-            log.warning("link to %s lost (%s); reconnecting in the background",
-                        self.amplifier.transport.url, exc)
-            self._reconnector = threading.Thread(target=self._reconnect_loop, daemon=True,
-                                                 name="voltage-driver-reconnect")
+            log.warning(
+                "link to %s lost (%s); reconnecting in the background",
+                self.amplifier.transport.url,
+                exc,
+            )
+            self._reconnector = threading.Thread(
+                target=self._reconnect_loop, daemon=True, name="voltage-driver-reconnect"
+            )
             self._reconnector.start()
 
     def _mark_down(self) -> None:
@@ -289,17 +311,22 @@ class VoltageDriver:
             received = self.clock() if received is None else received
             if received <= self._t_trip:
                 self.expired += 1
-                raise CommandExpired(f"command received {self._t_trip - received:.3g} s before the "
-                                     "watchdog fired; dropped")
+                raise CommandExpired(
+                    f"command received {self._t_trip - received:.3g} s before the "
+                    "watchdog fired; dropped"
+                )
             self._t_command = max(self._t_command, received)  # the watchdog counts from here
             limits = self._require_limits()  # raises at once while the link is down
             if not limits.contains(voltage) and not self.config.clamp:
                 raise VoltageOutOfRangeError(
-                    f"{voltage} V outside [{limits.v_min}, {limits.v_max}] V; nothing sent")
+                    f"{voltage} V outside [{limits.v_min}, {limits.v_max}] V; nothing sent"
+                )
             self.state = DriverState.ACTIVE
             self.target = limits.clamp(voltage)
             sent = self._write_step()
-            return SetResult(voltage, sent, not limits.contains(voltage), sent != self._rounded(self.target))
+            return SetResult(
+                voltage, sent, not limits.contains(voltage), sent != self._rounded(self.target)
+            )
 
     def read_voltage(self) -> float:
         """The applied voltage the amplifier reports [V]."""
@@ -318,15 +345,21 @@ class VoltageDriver:
         Never blocks on a dead link: a reconnect runs in the background.
         """
         with self._lock:
-            if self.state in (DriverState.SHUT_DOWN, DriverState.DISCONNECTED) or not self._may_reconnect:
+            if (
+                self.state in (DriverState.SHUT_DOWN, DriverState.DISCONNECTED)
+                or not self._may_reconnect
+            ):
                 return self.state
             now = self.clock() if now is None else now
             # fires once per silence: also when commands arrived (to be applied later) since the
             # last time it fired, so their queue is cleared command_timeout after the last one
             silent = now - self._t_command > self.config.command_timeout
             if silent and (self.state is DriverState.ACTIVE or self._t_command > self._t_trip):
-                log.warning("no voltage command for %.3g s: ramping to %g V",
-                            now - self._t_command, self.config.safe_voltage)
+                log.warning(
+                    "no voltage command for %.3g s: ramping to %g V",
+                    now - self._t_command,
+                    self.config.safe_voltage,
+                )
                 self._trip(now)
             goal = self._rounded(self.target)
             if self.last_sent != goal:
@@ -354,7 +387,9 @@ class VoltageDriver:
         with self._lock:
             limits = self._require_limits()
             if not limits.contains(target):
-                raise VoltageOutOfRangeError(f"ramp target {target} V outside [{limits.v_min}, {limits.v_max}] V")
+                raise VoltageOutOfRangeError(
+                    f"ramp target {target} V outside [{limits.v_min}, {limits.v_max}] V"
+                )
             self.target = target
             goal = self._rounded(target)
             while True:
@@ -380,7 +415,9 @@ class VoltageDriver:
                 if not self.wait_connected(max(deadline - time.monotonic(), 0.0)):
                     raise SafeStateNotReached(
                         f"output not brought to safe_voltage {safe:g} V: amplifier link down "
-                        f"({self.last_link_error or 'not connected'}); last sent {self.last_sent:g} V")
+                        f"({self.last_link_error or 'not connected'}); "
+                        f"last sent {self.last_sent:g} V"
+                    )
                 try:
                     self.ramp_to(safe)
                     applied = self.read_voltage()
@@ -388,11 +425,14 @@ class VoltageDriver:
                 except LINK_FAULTS:
                     if time.monotonic() > deadline:
                         raise
-            if abs(applied - self._rounded(safe)) > 1.5 * 10.0 ** -self.amplifier.decimals + 1e-9:
-                raise SafeStateNotReached(f"amplifier reads back {applied:g} V after the ramp to "
-                                          f"safe_voltage {safe:g} V")
+            if abs(applied - self._rounded(safe)) > 1.5 * 10.0**-self.amplifier.decimals + 1e-9:
+                raise SafeStateNotReached(
+                    f"amplifier reads back {applied:g} V after the ramp to safe_voltage {safe:g} V"
+                )
         except LINK_FAULTS as exc:
-            raise SafeStateNotReached(f"output not brought to safe_voltage {safe:g} V: {exc}") from exc
+            raise SafeStateNotReached(
+                f"output not brought to safe_voltage {safe:g} V: {exc}"
+            ) from exc
         finally:
             with self._lock:
                 self._may_reconnect = False

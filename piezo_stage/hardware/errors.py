@@ -66,7 +66,7 @@ class VoltageOutOfRangeError(SafetyError):
 
 
 class LimitsError(SafetyError):
-    """The configured and device voltage limits do not intersect, or safe_voltage lies outside them."""
+    """The configured and device voltage limits do not intersect, or safe_voltage is outside."""
 
 
 class CommandExpired(SafetyError):

@@ -32,7 +32,7 @@ GCS_ERROR_MESSAGES: dict[int, str] = {
     60: "Protected Param: current Command Level (CCL) too low",
     66: "Voltage out of limits",
     73: "Motion commands are not allowed when wave generator output is active; "
-        "use WGO to disable generator output",
+    "use WGO to disable generator output",
     79: "Open-loop commands are not allowed when servo is on",
     302: "Voltage out of limits",
 }
@@ -115,7 +115,9 @@ class GCSConnection(DeviceConnection):
         """
         self.send(command)
         try:
-            reply = self._replies.read_reply(gcs_reply_end, self.timeout, what=f"reply to {command!r}")
+            reply = self._replies.read_reply(
+                gcs_reply_end, self.timeout, what=f"reply to {command!r}"
+            )
         except DeviceTimeout as timeout:
             if command == "ERR?":
                 raise

@@ -37,7 +37,7 @@ def reply_body(reply: bytes, command: str) -> str:
         text = text[:-1]
     text = text.strip("\r\n")
     if text.lower().startswith(command.lower()):
-        text = text[len(command):]
+        text = text[len(command) :]
     return text.strip("\r\n ")
 
 

@@ -54,11 +54,24 @@ class Status(enum.IntEnum):
 # 262077 peak before the measuring range, 262078 peak after it, 262079 value cannot be
 # evaluated, 262080 peak too wide, 262081 laser off, 262082 reserved. The ILD1750/1900 table
 # is assumed equal to the ILD1320 one — confirm both on real hardware.
-_ILD1700_ERRORS = {16370: Status.NO_TARGET, 16372: Status.TOO_CLOSE, 16374: Status.TOO_FAR,
-                   16376: Status.INVALID, 16378: Status.INVALID, 16380: Status.INVALID}
-_ILD18BIT_ERRORS = {262075: Status.INVALID, 262076: Status.NO_TARGET, 262077: Status.TOO_CLOSE,
-                    262078: Status.TOO_FAR, 262079: Status.INVALID, 262080: Status.INVALID,
-                    262081: Status.INVALID, 262082: Status.INVALID}
+_ILD1700_ERRORS = {
+    16370: Status.NO_TARGET,
+    16372: Status.TOO_CLOSE,
+    16374: Status.TOO_FAR,
+    16376: Status.INVALID,
+    16378: Status.INVALID,
+    16380: Status.INVALID,
+}
+_ILD18BIT_ERRORS = {
+    262075: Status.INVALID,
+    262076: Status.NO_TARGET,
+    262077: Status.TOO_CLOSE,
+    262078: Status.TOO_FAR,
+    262079: Status.INVALID,
+    262080: Status.INVALID,
+    262081: Status.INVALID,
+    262082: Status.INVALID,
+}
 
 
 @dataclass(frozen=True)
@@ -82,7 +95,7 @@ class FrameFormat:
         lut = np.full(1 << self.value_bits, Status.INVALID, dtype=np.uint8)
         lut[: self.measurement_max + 1] = Status.OK
         lo, hi = self.error_range
-        lut[lo: hi + 1] = Status.INVALID
+        lut[lo : hi + 1] = Status.INVALID
         for code, status in self.errors.items():
             lut[code] = status
         lut.setflags(write=False)
@@ -109,33 +122,84 @@ def _make_formats() -> dict[str, Callable[[int], FrameFormat]]:
     def ild1700(bits: int = 14) -> FrameFormat:
         if bits != 14:
             raise ConfigError("the ILD1700/ILD1402 format carries 14-bit values")
-        return FrameFormat("ild1700", 2, 14, 0x3FFF, 16368, (16370, 16383), _ILD1700_ERRORS,
-                           1.02 / 16368, 0.01, False, 115200)
+        return FrameFormat(
+            "ild1700",
+            2,
+            14,
+            0x3FFF,
+            16368,
+            (16370, 16383),
+            _ILD1700_ERRORS,
+            1.02 / 16368,
+            0.01,
+            False,
+            115200,
+        )
 
     def ild1320(bits: int = 18) -> FrameFormat:
         if bits == 18:
-            return FrameFormat("ild1320", 3, 18, 0x3FFFF, 65520, (262075, 262143), _ILD18BIT_ERRORS,
-                               1.02 / 65520, 0.01, True, 921600)
+            return FrameFormat(
+                "ild1320",
+                3,
+                18,
+                0x3FFFF,
+                65520,
+                (262075, 262143),
+                _ILD18BIT_ERRORS,
+                1.02 / 65520,
+                0.01,
+                True,
+                921600,
+            )
         if bits == 16:  # 16-bit error values not confirmed: everything above 65520 is INVALID
-            return FrameFormat("ild1320", 3, 18, 0xFFFF, 65520, (65521, 65535), {},
-                               1.02 / 65520, 0.01, True, 921600)
+            return FrameFormat(
+                "ild1320",
+                3,
+                18,
+                0xFFFF,
+                65520,
+                (65521, 65535),
+                {},
+                1.02 / 65520,
+                0.01,
+                True,
+                921600,
+            )
         raise ConfigError(f"ILD1320-family output is 16 or 18 bit, got {bits}")
 
     def ild1750(bits: int = 18) -> FrameFormat:
         if bits != 18:
             raise ConfigError("the ILD1750/ILD1900 format carries 18-bit values")
-        return FrameFormat("ild1750", 3, 18, 0x3FFFF, 262074, (262075, 262143), _ILD18BIT_ERRORS,
-                           1.0 / 65536, 98232 / 65536, True, 921600)
+        return FrameFormat(
+            "ild1750",
+            3,
+            18,
+            0x3FFFF,
+            262074,
+            (262075, 262143),
+            _ILD18BIT_ERRORS,
+            1.0 / 65536,
+            98232 / 65536,
+            True,
+            921600,
+        )
 
-    return {"ild1700": ild1700, "ild1402": ild1700, "ild1320": ild1320, "ild1420": ild1320,
-            "ild2300": ild1320, "ild1750": ild1750, "ild1900": ild1750}
+    return {
+        "ild1700": ild1700,
+        "ild1402": ild1700,
+        "ild1320": ild1320,
+        "ild1420": ild1320,
+        "ild2300": ild1320,
+        "ild1750": ild1750,
+        "ild1900": ild1750,
+    }
 
 
 FAMILIES = _make_formats()
 
 
 def frame_format(family: str, bits: int | None = None) -> FrameFormat:
-    """The :class:`FrameFormat` of ``family`` (ild1700, ild1402, ild1320, ild1420, ild2300, ild1750, ild1900)."""
+    """The :class:`FrameFormat` of ``family`` (one of :data:`FAMILIES`)."""
     key = family.lower().replace("-", "")
     if key not in FAMILIES:
         raise ConfigError(f"unknown optoNCDT family {family!r}; choose from {sorted(FAMILIES)}")
@@ -179,9 +243,11 @@ class SampleBlock:
     def concat(blocks: list["SampleBlock"]) -> "SampleBlock":
         if not blocks:
             return SampleBlock.empty()
-        return SampleBlock(np.concatenate([b.displacement for b in blocks]),
-                           np.concatenate([b.status for b in blocks]),
-                           np.concatenate([b.raw for b in blocks]))
+        return SampleBlock(
+            np.concatenate([b.displacement for b in blocks]),
+            np.concatenate([b.status for b in blocks]),
+            np.concatenate([b.raw for b in blocks]),
+        )
 
     def __len__(self) -> int:
         return int(self.status.size)
@@ -248,9 +314,11 @@ class AsciiChannel:
 
 
 class OptoNCDTParser:
-    """Incremental parser of an optoNCDT byte stream with frame lock and speed gate (module docstring)."""
+    """Incremental parser of an optoNCDT stream, with frame lock and speed gate (see module)."""
 
-    def __init__(self, fmt: FrameFormat, measuring_range: float, check: FrameCheck | None = None) -> None:
+    def __init__(
+        self, fmt: FrameFormat, measuring_range: float, check: FrameCheck | None = None
+    ) -> None:
         if not measuring_range > 0:
             raise ConfigError(f"measuring range must be > 0 m, got {measuring_range}")
         self.fmt = fmt
@@ -273,7 +341,7 @@ class OptoNCDTParser:
         self._refused = 0  # consecutive speed-gate refusals while locked
 
     def feed(self, data: bytes) -> SampleBlock:
-        """Parse the next chunk of the stream; bytes of an incomplete frame wait for the next chunk."""
+        """Parse the next chunk; the bytes of an incomplete frame wait for the next chunk."""
         if not data:
             return SampleBlock.empty()
         buf = np.concatenate([self._tail, np.frombuffer(data, dtype=np.uint8)])
@@ -338,15 +406,17 @@ class OptoNCDTParser:
         self.stats.ok += int(np.count_nonzero(status == Status.OK))
         return SampleBlock(distance, status, raw)
 
-    def _lock(self, status: np.ndarray, distance: np.ndarray, first: np.ndarray,
-              gaps: np.ndarray) -> np.ndarray:
+    def _lock(
+        self, status: np.ndarray, distance: np.ndarray, first: np.ndarray, gaps: np.ndarray
+    ) -> np.ndarray:
         """Frame lock and speed gate, frame by frame: OK values not passing become INVALID."""
         check, stats = self.check, self.stats
         k, step, slack = check.relock_frames, check.max_speed / check.rate, self._quantum
         out = status.copy()
         ok_value = int(Status.OK)
-        for i, (st, d, is_first, gap) in enumerate(zip(status.tolist(), distance.tolist(),
-                                                        first.tolist(), gaps.tolist())):
+        for i, (st, d, is_first, gap) in enumerate(
+            zip(status.tolist(), distance.tolist(), first.tolist(), gaps.tolist())
+        ):
             if gap > 0:
                 stats.framing_errors += 1
                 if self._good >= k:

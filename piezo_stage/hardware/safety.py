@@ -1,4 +1,4 @@
-"""Voltage limits, rounding inside them and slew-rate stepping: the pure arithmetic of driver safety."""
+"""Voltage limits, rounding inside them and slew-rate stepping: the arithmetic of driver safety."""
 
 from __future__ import annotations
 
@@ -24,8 +24,10 @@ class VoltageLimits:
     def intersect(self, other: "VoltageLimits") -> "VoltageLimits":
         lo, hi = max(self.v_min, other.v_min), min(self.v_max, other.v_max)
         if lo > hi:
-            raise LimitsError(f"configured limits [{self.v_min}, {self.v_max}] V and device limits "
-                              f"[{other.v_min}, {other.v_max}] V do not overlap")
+            raise LimitsError(
+                f"configured limits [{self.v_min}, {self.v_max}] V and device limits "
+                f"[{other.v_min}, {other.v_max}] V do not overlap"
+            )
         return VoltageLimits(lo, hi)
 
     def contains(self, voltage: float) -> bool:
@@ -37,14 +39,16 @@ class VoltageLimits:
 
 def round_within(voltage: float, limits: VoltageLimits, decimals: int) -> float:
     """Round to ``decimals`` places, rounding inward at the limits so the result stays inside."""
-    scale = 10.0 ** decimals
+    scale = 10.0**decimals
     value = round(voltage, decimals)
     if value > limits.v_max:
         value = math.floor(limits.v_max * scale) / scale
     if value < limits.v_min:
         value = math.ceil(limits.v_min * scale) / scale
     if not limits.contains(value):  # limits narrower than one quantum: no representable value
-        raise LimitsError(f"no {decimals}-decimal voltage inside [{limits.v_min}, {limits.v_max}] V")
+        raise LimitsError(
+            f"no {decimals}-decimal voltage inside [{limits.v_min}, {limits.v_max}] V"
+        )
     return value
 
 

@@ -47,20 +47,30 @@ class SensorConfig:
 
 
 class SensorReader:
-    def __init__(self, transport: Transport, config: SensorConfig,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        transport: Transport,
+        config: SensorConfig,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.transport = transport
         self.config = config
         self.clock = clock
-        self.parser = OptoNCDTParser(frame_format(config.family, config.bits), config.measuring_range,
-                                     config.frame_check)
+        self.parser = OptoNCDTParser(
+            frame_format(config.family, config.bits), config.measuring_range, config.frame_check
+        )
         self._pending: list[SampleBlock] = []
         self._t_frame = -float("inf")
         self.reconnects = 0
 
     @classmethod
-    def from_url(cls, url: str, config: SensorConfig, baudrate: int | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> "SensorReader":
+    def from_url(
+        cls,
+        url: str,
+        config: SensorConfig,
+        baudrate: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> "SensorReader":
         fmt = frame_format(config.family, config.bits)
         return cls(make_transport(url, baudrate or fmt.default_baudrate), config, clock)
 
@@ -111,7 +121,7 @@ class SensorReader:
         return block
 
     def samples(self, timeout: float = 0.05) -> Iterator[SampleBlock]:
-        """Endless iterator of non-empty sample blocks (raises ConnectionLost when the link drops)."""
+        """Endless iterator of non-empty sample blocks (ConnectionLost when the link drops)."""
         while True:
             block = self.read(timeout)
             if len(block):
@@ -121,15 +131,21 @@ class SensorReader:
     def command(self, text: str, timeout: float = 1.0) -> list[str]:
         """Run an ASCII command; returns the reply lines without echo and prompt."""
         if not self.parser.fmt.ascii_commands:
-            raise SensorCommandError("n/a", f"{self.parser.fmt.family} uses a binary command "
-                                     "protocol, which this reader does not implement", text)
+            raise SensorCommandError(
+                "n/a",
+                f"{self.parser.fmt.family} uses a binary command "
+                "protocol, which this reader does not implement",
+                text,
+            )
         self.parser.ascii.clear()
         self.transport.write(text.encode("ascii") + b"\r\n")
         deadline = self.clock() + timeout
         while (reply := self.parser.ascii.pop_reply()) is None:
             remaining = deadline - self.clock()
             if remaining <= 0:
-                raise DeviceTimeout(f"no reply to {text!r} from {self.transport.url} within {timeout} s")
+                raise DeviceTimeout(
+                    f"no reply to {text!r} from {self.transport.url} within {timeout} s"
+                )
             self._receive(min(remaining, 0.05))
         lines = [ln.strip() for ln in reply[:-2].decode("ascii").replace("\r", "\n").split("\n")]
         lines = [ln for ln in lines if ln]

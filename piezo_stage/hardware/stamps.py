@@ -1,4 +1,4 @@
-"""Header-stamp checks of incoming voltage commands: a bad stamp is a counted rejection, never a crash.
+"""Header-stamp checks of incoming voltage commands: a bad stamp is a counted rejection.
 
 A stamp is (sec, nanosec) as it came off the wire (``builtin_interfaces/Time``: sec is a signed
 int32, so a hand-made message can carry -1). :meth:`StampPolicy.check` classifies it against

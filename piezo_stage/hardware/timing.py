@@ -55,7 +55,10 @@ def set_realtime_priority(priority: int) -> str | None:
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(min(int(priority), 99)))
     except OSError as exc:
-        return f"SCHED_FIFO priority {priority} refused ({exc.strerror}); allow it with an rtprio limit"
+        return (
+            f"SCHED_FIFO priority {priority} refused ({exc.strerror}); "
+            "allow it with an rtprio limit"
+        )
     return None
 
 
@@ -125,10 +128,17 @@ class CommandPlayout:
     take over the output); ``stop()`` ends the thread.
     """
 
-    def __init__(self, apply: Callable[[float, bool, float | None], None], delay: float,
-                 clock: Callable[[], float] = time.time, max_pending: int = 100_000,
-                 realtime_priority: int = 0, max_ahead: float = 5.0, hold_period: float = 0.0,
-                 max_hold_gap: float = 0.1) -> None:
+    def __init__(
+        self,
+        apply: Callable[[float, bool, float | None], None],
+        delay: float,
+        clock: Callable[[], float] = time.time,
+        max_pending: int = 100_000,
+        realtime_priority: int = 0,
+        max_ahead: float = 5.0,
+        hold_period: float = 0.0,
+        max_hold_gap: float = 0.1,
+    ) -> None:
         if not (math.isfinite(delay) and delay >= 0):
             raise ConfigError(f"playout delay must be >= 0 s, got {delay}")
         if not (math.isfinite(max_ahead) and max_ahead >= delay):
@@ -210,7 +220,11 @@ class CommandPlayout:
                         item = (heapq.heappop(self._queue), True)
                         break
                     wake = due
-                    if self.hold_period > 0 and last is not None and 0 < due - last[0] <= self.max_hold_gap:
+                    if (
+                        self.hold_period > 0
+                        and last is not None
+                        and 0 < due - last[0] <= self.max_hold_gap
+                    ):
                         t_fill = emitted + self.hold_period
                         if t_fill <= now:
                             frac = (now - last[0]) / (due - last[0])

@@ -46,7 +46,7 @@ class Transport(ABC):
 
     @abstractmethod
     def read(self, timeout: float) -> bytes:
-        """Return the bytes available now, waiting up to ``timeout`` s for the first; b"" on timeout."""
+        """The bytes available now, waiting up to ``timeout`` s for the first; b"" on timeout."""
 
     @abstractmethod
     def reset_input(self) -> None:
@@ -77,8 +77,15 @@ class SerialTransport(Transport):
         import serial
 
         try:
-            self._ser = serial.Serial(self.port, self.baudrate, bytesize=8, parity="N", stopbits=1,
-                                      timeout=0.1, write_timeout=1.0)
+            self._ser = serial.Serial(
+                self.port,
+                self.baudrate,
+                bytesize=8,
+                parity="N",
+                stopbits=1,
+                timeout=0.1,
+                write_timeout=1.0,
+            )
         except (serial.SerialException, OSError) as exc:
             raise ConnectionLost(f"cannot open {self.port}: {exc}") from exc
 
@@ -205,7 +212,9 @@ def make_transport(url: str, baudrate: int = 115200) -> Transport:
     parsed = urlparse(url)
     if parsed.scheme in ("tcp", "socket"):
         if not parsed.hostname or parsed.port is None:
-            raise ConfigError(f"TCP URL needs host and port, e.g. tcp://192.168.0.20:50000, got {url!r}")
+            raise ConfigError(
+                f"TCP URL needs host and port, e.g. tcp://192.168.0.20:50000, got {url!r}"
+            )
         return TcpTransport(parsed.hostname, parsed.port)
     if parsed.scheme == "serial":
         query = parse_qs(parsed.query)
@@ -213,12 +222,15 @@ def make_transport(url: str, baudrate: int = 115200) -> Transport:
         return SerialTransport(parsed.path, baud)
     if parsed.scheme == "":  # /dev/ttyUSB0, /dev/pts/7, COM3
         return SerialTransport(url, baudrate)
-    if parsed.scheme == "run":  # run:NAME, a link in the per-user run-time folder (an emulator's pty)
+    if (
+        parsed.scheme == "run"
+    ):  # run:NAME, a link in the per-user run-time folder (an emulator's pty)
         from piezo_stage.runtime_dir import resolve
 
         return SerialTransport(resolve(url), baudrate)
-    raise ConfigError(f"unsupported device URL {url!r} (use tcp://HOST:PORT, serial://PATH, run:NAME "
-                      "or a path)")
+    raise ConfigError(
+        f"unsupported device URL {url!r} (use tcp://HOST:PORT, serial://PATH, run:NAME or a path)"
+    )
 
 
 class ReplyBuffer:
@@ -235,7 +247,9 @@ class ReplyBuffer:
     def clear(self) -> None:
         self._buf.clear()
 
-    def read_reply(self, complete: Callable[[bytes], int], timeout: float, what: str = "reply") -> bytes:
+    def read_reply(
+        self, complete: Callable[[bytes], int], timeout: float, what: str = "reply"
+    ) -> bytes:
         deadline = time.monotonic() + timeout
         while True:
             end = complete(bytes(self._buf)) if self._buf else -1
@@ -246,8 +260,10 @@ class ReplyBuffer:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 partial = bytes(self._buf[:80])
-                raise DeviceTimeout(f"no complete {what} from {self.transport.url} within "
-                                    f"{timeout:.3g} s (got {partial!r})")
+                raise DeviceTimeout(
+                    f"no complete {what} from {self.transport.url} within "
+                    f"{timeout:.3g} s (got {partial!r})"
+                )
             self._buf += self.transport.read(min(remaining, 0.05))
 
 

@@ -7,4 +7,11 @@ from .mdt_device import MDTDeviceModel
 from .optoncdt_device import OptoNCDTDeviceModel
 from .server import EmulatorServer, Faults
 
-__all__ = ["EmulatorServer", "Faults", "GCSDeviceModel", "LoopbackTransport", "MDTDeviceModel", "OptoNCDTDeviceModel"]
+__all__ = [
+    "EmulatorServer",
+    "Faults",
+    "GCSDeviceModel",
+    "LoopbackTransport",
+    "MDTDeviceModel",
+    "OptoNCDTDeviceModel",
+]

@@ -26,7 +26,10 @@ from ..gcs import (
     join_reply,
 )
 
-IDN = "(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-709.CHG, EMU0000001, 01.000 (piezo_stage emulator)"
+IDN = (
+    "(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-709.CHG, EMU0000001, 01.000 "
+    "(piezo_stage emulator)"
+)
 
 
 class _CommandError(Exception):
@@ -40,16 +43,25 @@ class GCSDeviceModel:
     name = "gcs"
     stream_period = None
 
-    def __init__(self, axis: str = "1", channel: int = 1, v_min: float = -30.0, v_max: float = 130.0,
-                 servo_on: bool = True, refuse_sva_when_servo_on: bool = True,
-                 on_voltage: Callable[[float, float | None], None] | None = None) -> None:
+    def __init__(
+        self,
+        axis: str = "1",
+        channel: int = 1,
+        v_min: float = -30.0,
+        v_max: float = 130.0,
+        servo_on: bool = True,
+        refuse_sva_when_servo_on: bool = True,
+        on_voltage: Callable[[float, float | None], None] | None = None,
+    ) -> None:
         self.axis = axis
         self.channel = channel
         self.v_min, self.v_max = v_min, v_max
         self.servo_on = servo_on
         self.online = True
         self.refuse_sva_when_servo_on = refuse_sva_when_servo_on
-        self.on_voltage = on_voltage  # called (voltage, time the command arrived or None) on every change
+        self.on_voltage = (
+            on_voltage  # called (voltage, time the command arrived or None) on every change
+        )
         self._now: float | None = None  # arrival time of the line being executed
         self.voltage = 0.0  # open-loop value = applied output voltage [V]
         self.target = 0.0  # closed-loop target (stored only)
@@ -57,10 +69,20 @@ class GCSDeviceModel:
         self.commands: list[str] = []  # every line received, for tests and rehearsal logs
         self.lock = threading.Lock()
         self._handlers: dict[str, Callable[[list[str]], list[str] | None]] = {
-            "*IDN?": lambda a: [IDN], "CSV?": lambda a: ["2.0"], "ERR?": self._err,
-            "HLP?": self._hlp, "SAI?": self._sai, "ONL": self._onl, "ONL?": self._onl_q,
-            "SVO": self._svo, "SVO?": self._svo_q, "SVA": self._sva, "SVA?": self._sva_q,
-            "MOV": self._mov, "MOV?": self._mov_q, "VOL?": self._vol_q,
+            "*IDN?": lambda a: [IDN],
+            "CSV?": lambda a: ["2.0"],
+            "ERR?": self._err,
+            "HLP?": self._hlp,
+            "SAI?": self._sai,
+            "ONL": self._onl,
+            "ONL?": self._onl_q,
+            "SVO": self._svo,
+            "SVO?": self._svo_q,
+            "SVA": self._sva,
+            "SVA?": self._sva_q,
+            "MOV": self._mov,
+            "MOV?": self._mov_q,
+            "VOL?": self._vol_q,
             "VMA?": lambda a: self._channel_query(a, self.v_max),
             "VMI?": lambda a: self._channel_query(a, self.v_min),
         }
@@ -146,7 +168,9 @@ class GCSDeviceModel:
         return [str(code)]
 
     def _hlp(self, args: list[str]) -> list[str]:
-        return ["The following commands are available:"] + [f"{name}" for name in sorted(self._handlers)]
+        return ["The following commands are available:"] + [
+            f"{name}" for name in sorted(self._handlers)
+        ]
 
     def _sai(self, args: list[str]) -> list[str]:
         if args not in ([], ["ALL"]):
@@ -161,7 +185,11 @@ class GCSDeviceModel:
         self.online = pairs[-1][1] == "1"
 
     def _onl_q(self, args: list[str]) -> list[str]:
-        return self._channel_query(args, int(self.online)) if args else [f"{self.channel}={int(self.online)}"]
+        return (
+            self._channel_query(args, int(self.online))
+            if args
+            else [f"{self.channel}={int(self.online)}"]
+        )
 
     def _svo(self, args: list[str]) -> None:
         pairs = self._pairs(args)

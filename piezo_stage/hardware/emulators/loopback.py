@@ -19,9 +19,13 @@ from .server import DeviceModel, Faults
 
 
 class LoopbackTransport(Transport):
-    def __init__(self, model: DeviceModel, faults: Faults | None = None,
-                 clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        model: DeviceModel,
+        faults: Faults | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         self.model = model
         self.faults = faults or Faults()
         self.clock = clock

@@ -23,8 +23,13 @@ class MDTDeviceModel:
     name = "mdt69x"
     stream_period = None
 
-    def __init__(self, model: str = "MDT694B", vlimit: float = 150.0, echo: bool = True,
-                 on_voltage: Callable[[float, float | None], None] | None = None) -> None:
+    def __init__(
+        self,
+        model: str = "MDT694B",
+        vlimit: float = 150.0,
+        echo: bool = True,
+        on_voltage: Callable[[float, float | None], None] | None = None,
+    ) -> None:
         if model not in ("MDT693B", "MDT694B"):
             raise ConfigError(f"model must be MDT693B or MDT694B, got {model!r}")
         if vlimit not in VLIMITS:
@@ -54,7 +59,7 @@ class MDTDeviceModel:
             return self.voltage[self.axes[0]]
 
     def execute(self, command: str, now: float | None = None) -> bytes:
-        """Run one command (arrived at server time ``now``); returns the reply with echo and prompt."""
+        """Run one command (arrived at server time ``now``); the reply with echo and prompt."""
         with self.lock:
             self._now = now
             self.commands.append(command)
@@ -73,8 +78,13 @@ class MDTDeviceModel:
     def _run(self, cmd: str) -> list[str] | None:
         """Reply lines for ``cmd`` ([] for a setter), or None when the command is not defined."""
         if cmd == "id?":
-            return [f"{self.model} Piezo Controller (piezo_stage emulator)", "Firmware Version: 1.00",
-                    f"Current Voltage Limit: {self.vlimit:.0f}V", "Serial#: EMU0001", "Name: emulator"]
+            return [
+                f"{self.model} Piezo Controller (piezo_stage emulator)",
+                "Firmware Version: 1.00",
+                f"Current Voltage Limit: {self.vlimit:.0f}V",
+                "Serial#: EMU0001",
+                "Name: emulator",
+            ]
         if cmd == "vlimit?":
             return [f"[{self.vlimit:5.0f}]"]
         if cmd == "echo?":

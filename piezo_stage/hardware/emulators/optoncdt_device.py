@@ -29,9 +29,16 @@ Source = Callable[[np.ndarray], np.ndarray]
 class OptoNCDTDeviceModel:
     name = "optoncdt"
 
-    def __init__(self, fmt: FrameFormat, measuring_range: float, rate: float = 1000.0,
-                 source: Source | None = None, error_probability: float = 0.0,
-                 seed: int | None = None, extra_values: int = 0) -> None:
+    def __init__(
+        self,
+        fmt: FrameFormat,
+        measuring_range: float,
+        rate: float = 1000.0,
+        source: Source | None = None,
+        error_probability: float = 0.0,
+        seed: int | None = None,
+        extra_values: int = 0,
+    ) -> None:
         if not measuring_range > 0:
             raise ConfigError(f"measuring range must be > 0 m, got {measuring_range}")
         if not 0 < rate <= 100_000:
@@ -113,12 +120,12 @@ class OptoNCDTDeviceModel:
         if not self.extra_values:
             data = encode_values(self.fmt, raw)
             w = self.fmt.bytes_per_value
-            return [data[i: i + w] for i in range(0, len(data), w)]
+            return [data[i : i + w] for i in range(0, len(data), w)]
         block = np.repeat(raw, 1 + self.extra_values)
         later = np.tile([False] + [True] * self.extra_values, raw.size)
         data = encode_values(self.fmt, block, later)
         w = 3 * (1 + self.extra_values)
-        return [data[i: i + w] for i in range(0, len(data), w)]
+        return [data[i : i + w] for i in range(0, len(data), w)]
 
     def _interleave(self, frames: list[bytes]) -> bytes:
         """Frames with the pending ASCII reply spread between them (never inside a frame)."""
@@ -150,9 +157,13 @@ class OptoNCDTDeviceModel:
     def _run(self, words: list[str]) -> list[str]:
         name, args = words[0].upper(), words[1:]
         if name == "GETINFO" and not args:
-            return [f"Name: {self.fmt.family.upper()} (piezo_stage emulator)", "Serial: 00000001",
-                    "Option: 000", f"Measuring range: {self.measuring_range * 1e3:g} mm",
-                    f"Output: {self.fmt.value_bits} bit binary"]
+            return [
+                f"Name: {self.fmt.family.upper()} (piezo_stage emulator)",
+                "Serial: 00000001",
+                "Option: 000",
+                f"Measuring range: {self.measuring_range * 1e3:g} mm",
+                f"Output: {self.fmt.value_bits} bit binary",
+            ]
         if name == "MEASRATE":
             if not args:
                 return [f"MEASRATE {self.rate / 1000:.3f}"]

@@ -6,7 +6,8 @@ once per sample (dt = 1/rate, so the plant runs on the sensor's sample clock) an
 the sample taken at ``t0 + k/rate``, the voltage the amplifier applied at that instant (each
 applied voltage is kept with its arrival time), not the voltage at the moment the emulator's
 thread gets round to computing the sample: as on a real rig, the physics run in real time
-whatever the host's scheduling, and a late burst of samples still describes the past. Any object with
+whatever the host's scheduling, and a late burst of samples still describes the past. Any object
+with
 ``step(command_voltage, dt) -> (applied_voltage, displacement, status)`` serves as the stage
 (``piezo_stage.model.plant.SimulatedStage``).
 """
@@ -41,8 +42,14 @@ class RigCoupling:
     relative to ``origin()`` steps the stage once per sample with the voltage in force then.
     """
 
-    def __init__(self, stage: Stage, rate: float, standoff: float, initial_voltage: float = 0.0,
-                 clock=time.monotonic) -> None:
+    def __init__(
+        self,
+        stage: Stage,
+        rate: float,
+        standoff: float,
+        initial_voltage: float = 0.0,
+        clock=time.monotonic,
+    ) -> None:
         self.stage = stage
         self.dt = 1.0 / rate
         self.standoff = standoff
@@ -78,18 +85,38 @@ class RigCoupling:
 class RigEmulator:
     """Amplifier (GCS on TCP or pty, or MDT69x on pty) + optoNCDT sensor (pty) around one stage."""
 
-    def __init__(self, stage: Stage, sensor_format: FrameFormat, measuring_range: float, *,
-                 amplifier: str = "gcs", amplifier_tcp_port: int | None = None, rate: float = 1000.0,
-                 standoff: float | None = None, sensor_errors: float = 0.0,
-                 amplifier_faults: Faults | None = None, sensor_faults: Faults | None = None,
-                 seed: int | None = None, sensor_link: str | None = None,
-                 amplifier_link: str | None = None, amplifier_range: tuple[float, float] | None = None,
-                 realtime_priority: int = 0) -> None:
+    def __init__(
+        self,
+        stage: Stage,
+        sensor_format: FrameFormat,
+        measuring_range: float,
+        *,
+        amplifier: str = "gcs",
+        amplifier_tcp_port: int | None = None,
+        rate: float = 1000.0,
+        standoff: float | None = None,
+        sensor_errors: float = 0.0,
+        amplifier_faults: Faults | None = None,
+        sensor_faults: Faults | None = None,
+        seed: int | None = None,
+        sensor_link: str | None = None,
+        amplifier_link: str | None = None,
+        amplifier_range: tuple[float, float] | None = None,
+        realtime_priority: int = 0,
+    ) -> None:
         if amplifier_range is not None and amplifier != "gcs":
-            raise ConfigError("amplifier_range sets the GCS controller's VMI?/VMA?; the MDT69x has its vlimit switch")
+            raise ConfigError(
+                "amplifier_range sets the GCS controller's VMI?/VMA?; "
+                "the MDT69x has its vlimit switch"
+            )
         if amplifier == "gcs":
-            self.amplifier = GCSDeviceModel(**({} if amplifier_range is None else
-                                               {"v_min": amplifier_range[0], "v_max": amplifier_range[1]}))
+            self.amplifier = GCSDeviceModel(
+                **(
+                    {}
+                    if amplifier_range is None
+                    else {"v_min": amplifier_range[0], "v_max": amplifier_range[1]}
+                )
+            )
         elif amplifier == "mdt69x":
             if amplifier_tcp_port is not None:
                 raise ConfigError("the MDT69x emulator serves a pty only")
@@ -99,8 +126,14 @@ class RigEmulator:
         standoff = 0.5 * measuring_range if standoff is None else standoff
         self.coupling = RigCoupling(stage, rate, standoff, self.amplifier.applied_voltage)
         self.amplifier.on_voltage = self.coupling.on_voltage
-        self.sensor = OptoNCDTDeviceModel(sensor_format, measuring_range, rate, source=self.coupling,
-                                          error_probability=sensor_errors, seed=seed)
+        self.sensor = OptoNCDTDeviceModel(
+            sensor_format,
+            measuring_range,
+            rate,
+            source=self.coupling,
+            error_probability=sensor_errors,
+            seed=seed,
+        )
         self.coupling.origin = lambda: self.sensor.t0 or 0.0
         if amplifier_tcp_port is not None:
             if amplifier_link is not None:
@@ -108,10 +141,19 @@ class RigEmulator:
             amp_endpoint = {"tcp_port": amplifier_tcp_port}
         else:
             amp_endpoint = {"pty": True, "pty_link": amplifier_link}
-        self.amplifier_server = EmulatorServer(self.amplifier, faults=amplifier_faults,
-                                               realtime_priority=realtime_priority, **amp_endpoint)
-        self.sensor_server = EmulatorServer(self.sensor, pty=True, pty_link=sensor_link, faults=sensor_faults,
-                                            realtime_priority=realtime_priority)
+        self.amplifier_server = EmulatorServer(
+            self.amplifier,
+            faults=amplifier_faults,
+            realtime_priority=realtime_priority,
+            **amp_endpoint,
+        )
+        self.sensor_server = EmulatorServer(
+            self.sensor,
+            pty=True,
+            pty_link=sensor_link,
+            faults=sensor_faults,
+            realtime_priority=realtime_priority,
+        )
 
     @property
     def servers(self) -> dict[str, EmulatorServer]:

@@ -80,7 +80,9 @@ class Faults:
     def __post_init__(self) -> None:
         for name in ("drop", "corrupt", "garbage", "hangup", "stall"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"{name} probability must be in [0, 1], got {getattr(self, name)}")
+                raise ConfigError(
+                    f"{name} probability must be in [0, 1], got {getattr(self, name)}"
+                )
         if self.reply_delay < 0 or self.stall_time < 0:
             raise ConfigError("reply_delay and stall_time must be >= 0 s")
         self.rng = np.random.default_rng(self.seed)
@@ -144,7 +146,11 @@ class _Channel:
         data, ancillary, _, _ = self.sock.recvmsg(65536, socket.CMSG_SPACE(_TIMESPEC.size))
         now = time.monotonic()
         for level, kind, payload in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+            if (
+                level == socket.SOL_SOCKET
+                and kind == SO_TIMESTAMPNS
+                and len(payload) >= _TIMESPEC.size
+            ):
                 sec, nsec = _TIMESPEC.unpack_from(payload)
                 return data, min(now, now - (time.time() - (sec + 1e-9 * nsec)))
         return data, now
@@ -171,9 +177,17 @@ class _Channel:
 class EmulatorServer:
     """Run ``model`` on a pty (``pty=True``) or on TCP ``host:tcp_port`` (0 = ephemeral)."""
 
-    def __init__(self, model: DeviceModel, *, pty: bool = False, tcp_port: int | None = None,
-                 host: str = "127.0.0.1", pty_link: str | None = None,
-                 faults: Faults | None = None, realtime_priority: int = 0) -> None:
+    def __init__(
+        self,
+        model: DeviceModel,
+        *,
+        pty: bool = False,
+        tcp_port: int | None = None,
+        host: str = "127.0.0.1",
+        pty_link: str | None = None,
+        faults: Faults | None = None,
+        realtime_priority: int = 0,
+    ) -> None:
         if pty == (tcp_port is not None):
             raise ConfigError("choose exactly one endpoint: pty=True or tcp_port=PORT")
         self.model = model
@@ -197,7 +211,9 @@ class EmulatorServer:
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         self._requests: list[str] = []
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"emulator-{model.name}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f"emulator-{model.name}", daemon=True
+        )
         self.error: BaseException | None = None
         # SCHED_FIFO for the device thread: a device does not wait for the host's CPU
         self.realtime_priority = realtime_priority
@@ -340,12 +356,16 @@ class EmulatorServer:
         targets = list(self._channels) if fd is None else [fd]
         for target in targets:
             if self.faults.reply_delay > 0 and data:
-                heapq.heappush(self._delayed, (now + self.faults.reply_delay, next(self._seq), target, data))
+                heapq.heappush(
+                    self._delayed, (now + self.faults.reply_delay, next(self._seq), target, data)
+                )
             elif target in self._channels:
                 self._channels[target].queue(data)
                 if hang_up:
                     try:
-                        self._channels[target].send_some()  # the cut reply leaves, then the line drops
+                        self._channels[
+                            target
+                        ].send_some()  # the cut reply leaves, then the line drops
                     except OSError:
                         pass
         if hang_up:

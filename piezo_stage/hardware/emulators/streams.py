@@ -16,8 +16,9 @@ import numpy as np
 from ..optoncdt import FrameCheck, FrameFormat, OptoNCDTParser, encode_values
 
 
-def sensor_stream(fmt: FrameFormat, distance: np.ndarray, measuring_range: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sensor_stream(
+    fmt: FrameFormat, distance: np.ndarray, measuring_range: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(bytes as uint8, frame index of each byte, true value of each frame [m])."""
     raw = fmt.from_metres(np.asarray(distance, dtype=np.float64), measuring_range)
     data = np.frombuffer(encode_values(fmt, raw), dtype=np.uint8)
@@ -25,9 +26,18 @@ def sensor_stream(fmt: FrameFormat, distance: np.ndarray, measuring_range: float
     return data, origin, fmt.to_metres(raw, measuring_range)
 
 
-def damage(data: np.ndarray, origin: np.ndarray, rng: np.random.Generator, width: int, *,
-           lose_one: bool = False, replace_one: bool = False, corrupt: float = 0.0,
-           drop: float = 0.0, garbage: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def damage(
+    data: np.ndarray,
+    origin: np.ndarray,
+    rng: np.random.Generator,
+    width: int,
+    *,
+    lose_one: bool = False,
+    replace_one: bool = False,
+    corrupt: float = 0.0,
+    drop: float = 0.0,
+    garbage: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Damage a stream: one byte of every frame lost (``lose_one``) or replaced (``replace_one``),
     bytes replaced/lost with probability ``corrupt``/``drop``, and before a frame with probability
     ``garbage`` a burst of 1-32 random bytes inserted."""
@@ -67,10 +77,16 @@ class Score:
     worst: float  # largest |error| of an OK value [m] (0 when none)
 
 
-def score(parser: OptoNCDTParser, data: np.ndarray, origin: np.ndarray, truth: np.ndarray,
-          tolerance: float, chunk: int = 4096) -> Score:
+def score(
+    parser: OptoNCDTParser,
+    data: np.ndarray,
+    origin: np.ndarray,
+    truth: np.ndarray,
+    tolerance: float,
+    chunk: int = 4096,
+) -> Score:
     """Feed ``data`` in chunks; compare each OK value with the truth of its last byte's frame."""
-    blocks = [parser.feed(data[i: i + chunk].tobytes()) for i in range(0, data.size, chunk)]
+    blocks = [parser.feed(data[i : i + chunk].tobytes()) for i in range(0, data.size, chunk)]
     status = np.concatenate([b.status for b in blocks]) if blocks else np.empty(0)
     value = np.concatenate([b.displacement for b in blocks]) if blocks else np.empty(0)
     ends = frame_ends(parser.fmt, data)
@@ -79,8 +95,12 @@ def score(parser: OptoNCDTParser, data: np.ndarray, origin: np.ndarray, truth: n
     ok = status == 0
     src = origin[ends[ok]]
     err = np.where(src >= 0, np.abs(value[ok] - truth[np.maximum(src, 0)]), np.inf)
-    return Score(int(status.size), int(ok.sum()), int(np.count_nonzero(err > tolerance)),
-                 float(err.max()) if err.size else 0.0)
+    return Score(
+        int(status.size),
+        int(ok.sum()),
+        int(np.count_nonzero(err > tolerance)),
+        float(err.max()) if err.size else 0.0,
+    )
 
 
 def frame_ends(fmt: FrameFormat, buf: np.ndarray) -> np.ndarray:
