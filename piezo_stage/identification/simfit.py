@@ -200,33 +200,38 @@ def _solve(problem: _Problem, th0: np.ndarray, max_nfev: int, tol: float):
                          x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
 
 
-def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions):
+#: tolerance and evaluations of the first pass from each start (the best is then polished)
+_FIRST_PASS_TOL = 1e-8
+_FIRST_PASS_NFEV = 40
+
+
+def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions,
+             polish: bool = True):
     """Best least-squares optimum over the seeds: seeds are ranked by their cost, the best
-    ``options.starts`` are refined (on every k-th sample of long runs, then on all)."""
+    ``options.starts`` get a first pass (on every k-th sample of long runs), the best of those
+    is polished on all samples to ``options.tolerance``."""
     total = sum(problem.sizes)
-    if len(seeds) > 1 and total > GRID_SAMPLES:
+    if len(seeds) == 1:
+        res = _solve(problem, problem.theta(seeds[0]), options.max_nfev, options.tolerance)
+        return res, int(res.nfev)
+    if total > GRID_SAMPLES:
         k = int(np.ceil(total / GRID_SAMPLES))
         coarse = _Problem([Recording(r.t[::k], r.input[::k], r.output[::k], r.name)
                            for r in problem.runs], options, problem.time_constant)
-        res, nfev = _optimum(coarse, seeds, options)
+        res, nfev = _optimum(coarse, seeds, options, polish=False)
         best = _solve(problem, problem.theta(coarse.seed(res.x)), options.max_nfev,
                       options.tolerance)
         return best, nfev + int(best.nfev)
-    if len(seeds) > 1:
-        th_grid = [problem.theta(s) for s in seeds]
-        costs = [float(np.sum(problem.residual(th) ** 2)) for th in th_grid]
-        order = np.argsort(costs)[:max(1, options.starts)]
-        candidates = [th_grid[i] for i in order]
-    else:
-        candidates = [problem.theta(seeds[0])]
+    th_grid = [problem.theta(s) for s in seeds]
+    costs = [float(np.sum(problem.residual(th) ** 2)) for th in th_grid]
     best, nfev = None, 0
-    first_pass = options.max_nfev if len(candidates) == 1 else min(options.max_nfev, 40)
-    for th in candidates:
-        res = _solve(problem, th, first_pass, options.tolerance)
+    for i in np.argsort(costs)[:max(1, options.starts)]:
+        res = _solve(problem, th_grid[i], min(options.max_nfev, _FIRST_PASS_NFEV),
+                     max(options.tolerance, _FIRST_PASS_TOL))
         nfev += int(res.nfev)
         if best is None or res.cost < best.cost:
             best = res
-    if first_pass < options.max_nfev and best.status == 0:     # polish the best start
+    if polish:
         best = _solve(problem, best.x, options.max_nfev, options.tolerance)
         nfev += int(best.nfev)
     return best, nfev
