@@ -39,7 +39,7 @@ from piezo_stage.hardware.timing import SampleClock
 from piezo_stage_msgs.msg import Displacement
 
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
-from .parameters import declare_table
+from .parameters import declare_table, on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run
 from .spec import Param, ParameterTable
@@ -128,6 +128,8 @@ class LaserReaderNode(Node):
     def __init__(self) -> None:
         super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
+        on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "
+               "depend on it)" if "use_sim_time" in changed else None)
 
         config = SensorConfig(p["family"], p["measuring_range"], bits=p["bits"] or None,
                               stale_timeout=p["stale_timeout"], rate=p["rate_hz"],
