@@ -95,8 +95,9 @@ def run_experiment(name: str, mode: str, *, bag: str | os.PathLike[str] | None =
 
     ``duration``: simulated seconds (default per experiment); ``gains``: overrides of the thesis
     gains (e.g. ``{"A": 5.0}``); ``bag``: MCAP bag folder (must not exist); ``png_dir``: folder
-    for the figures; ``progress(fraction, text)``; ``plan``: a ready plan instead (another rig,
-    e.g. ``piezo-stage commission``'s acceptance run; ``name``, ``mode`` and the rest are then ignored).
+    for the figures; ``progress(fraction, text)``; ``plan``: a ready plan instead (another
+    rig, e.g. ``piezo-stage commission``'s acceptance run; ``name``, ``mode`` and the rest are
+    then ignored).
     """
     from piezo_stage.launch import Launcher
 
