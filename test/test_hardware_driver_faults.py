@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from piezo_stage.hardware.amplifier import GCSAmplifier
 from piezo_stage.hardware.driver import DriverConfig, DriverState, VoltageDriver
 from piezo_stage.hardware.emulators import Faults, GCSDeviceModel, LoopbackTransport
+from piezo_stage.hardware.emulators.gcs_device import IDN
 from piezo_stage.hardware.errors import HardwareError
 from piezo_stage.hardware.timing import CommandPlayout
 
@@ -330,3 +331,29 @@ def test_property_ramps_and_limits_hold_under_any_schedule(slew, schedule, seed)
         assert not math.isnan(bench.model.voltage)
     bench.driver.close()
     bench.assert_ramps()
+
+
+# --- the emulator's faults themselves -------------------------------------------------------
+def test_fault_injection_stall_hangup_garbage():
+    clock = Clock()
+    faults = Faults(seed=1)
+    model = GCSDeviceModel()
+    link = LoopbackTransport(model, faults, clock=clock)
+    link.open()
+    faults.garbage = 1.0  # every reply preceded by 1-32 random bytes
+    link.write(b"*IDN?\n")
+    reply = link.read(0.0)
+    assert reply.endswith(IDN.encode() + b"\n") and len(reply) > len(IDN) + 1
+    faults.garbage, faults.hangup = 0.0, 1.0  # the reply is cut and the line dropped
+    link.write(b"*IDN?\n")
+    assert len(link.read(0.0)) < 60
+    with pytest.raises(HardwareError):
+        link.write(b"*IDN?\n")
+    faults.hangup, faults.stall, faults.stall_time = 0.0, 1.0, 0.5
+    link.open()
+    link.write(b"*IDN?\n")  # the device stalls: no answer, input ignored for 0.5 s
+    assert link.read(0.0) == b"" and faults.muted(clock.t + 0.4) and not faults.muted(clock.t + 0.6)
+    faults.stall = 0.0
+    clock.t += 0.6
+    link.write(b"*IDN?\n")
+    assert link.read(0.0).endswith(b"emulator)\n")
