@@ -109,6 +109,9 @@ class _Problem:
         self.span_v = float(np.ptp(v_all))
         self.dt = float(np.median(np.concatenate([np.diff(r.t) for r in runs])))
         self.y = np.concatenate([r.output for r in runs])
+        #: residuals are minimised in units of the output span: the solver's tolerances are
+        #: then relative to the data (outputs in metres made gtol stop early)
+        self.y_scale = float(np.ptp(self.y)) or 1.0
         self.sizes = [len(r) for r in runs]
         self.drift = DriftKind(options.drift)
         if time_constant is None:
@@ -179,11 +182,12 @@ class _Problem:
         return c, A, A @ c - self.y
 
     def residual(self, th: np.ndarray) -> np.ndarray:
+        """Model minus data at θ, in units of the output span."""
         try:
-            return self.linear(th)[2]
+            return self.linear(th)[2] / self.y_scale
         except (RuntimeError, ModelError):
             # a trial point the model cannot simulate: a large residual turns the step down
-            return np.full_like(self.y, 1e3 * max(float(np.ptp(self.y)), 1e-300))
+            return np.full_like(self.y, 1e3)
 
 
 def _seeds(given: Sequence[Seed], span_v: float, runs: int) -> list[Seed]:
