@@ -1,0 +1,114 @@
+"""Tracking on the rig graph (issue 17): the emulated rig (``piezo-stage emulate rig`` around the
+ch. 11 rig, GCS amplifier on TCP + optoNCDT on a pty) with voltage_driver and laser_reader from
+config/graphs/emulated_rig.yaml, and the controller stepping on each 1 kHz sensor sample
+(trigger=sample: a stall of this loaded host delays steps instead of opening the loop on a
+stale sample, as the wall timer does) generating a triangle (``reference_source: trajectory``)
+with the Bouc-Wen feedforward plus the PID (``both``).
+
+The feedforward's model is fitted from recordings of the simulated rig (never its file). What
+is checked: x_d goes out on ``reference``, controller_state carries u_ff (the voltage the model
+asks for, ~125-145 V at the top here), and after the first period the stage follows x_d: RMS
+error ≤ 5 % of the 10 µm range. Scale of that bound: the hysteresis alone is κw/κx ≈ 4 µm; at a
+1 kHz loop the command is a staircase whose steps ring the rig's 7 kHz resonance, and the
+ringing wears w down (the ch. 11 dither: |w| peaks at 0.11 instead of 0.61), so the model's
+hysteresis term over-compensates: the feedforward alone leaves 0.9 µm RMS (9 %, pure-core
+simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 2.5-3.5 %
+(seen). The loop through DDS also applies u 1-2 ms late (~0.05 µm on this 40 µm/s ramp); the
+sensor's quantum is 7.8 nm. Runs ~30 s of real time.
+"""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+rclpy = pytest.importorskip("rclpy")
+
+from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings  # noqa: E402
+from piezo_stage.control.tracking import tracking_errors  # noqa: E402
+from piezo_stage.launch import Launcher  # noqa: E402
+from piezo_stage.launch.graph import find_graph, load_yaml, parse_graph  # noqa: E402
+from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS  # noqa: E402
+
+from ros_support import spin_until  # noqa: E402
+
+NS = "/emulated_tracking"
+AMPLITUDE, OFFSET, FREQUENCY, PERIODS = 5e-6, 7e-6, 2.0, 3
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def tracking_graph(port: int, link: str, model_file: str):
+    """emulated_rig.yaml's emulator (on the ch. 11 rig), driver and reader, plus the controller."""
+    source = find_graph("emulated_rig")
+    data = load_yaml(source.read_text())
+    nodes = []
+    for entry in data["nodes"]:
+        if entry.get("name") == "rig":
+            command = ["ch11_rig.yaml" if a == "ch10_patch.yaml" else a for a in entry["command"]]
+            command += ["--amp-tcp", str(port), "--sensor-link", link]
+            nodes.append({**entry, "command": command})
+        elif entry.get("executable") in ("voltage_driver", "laser_reader"):
+            nodes.append(entry)
+    nodes.append({"executable": "controller", "required": True, "overrides": {
+        "trigger": "sample", "rate_hz": 1000.0, "mode": "pid", "start_closed": True,
+        "u_min": 0.0, "u_max": 400.0, "reference_source": "trajectory", "trajectory": "triangle",
+        "trajectory_amplitude": AMPLITUDE, "trajectory_offset": OFFSET,
+        "trajectory_frequency": FREQUENCY,
+        "compensation": "both", "feedforward_model": model_file}})
+    return parse_graph({**data, "nodes": nodes}, source)
+
+
+def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
+    from piezo_stage_msgs.msg import ControllerState, Displacement
+
+    model = tmp_path / "model.yaml"
+    rig = shipped_parameter_set("ch11_rig")  # recorded as a simulated rig: the model is fitted
+    save_parameter_set(fit_feedforward_model(rig_recordings(rig)), model)
+    port, link = free_port(), str(tmp_path / "sensor")
+    states: list = []
+    refs: list = []
+    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    probe.create_subscription(Displacement, "reference", refs.append, COMMAND_QOS)
+    lines: list[str] = []
+    launch = Launcher(tracking_graph(port, link, str(model)), namespace=NS, timeout=30.0,
+                      params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}",
+                              f"laser_reader.url:={link}"],
+                      sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"))
+    n_wanted = int(PERIODS / FREQUENCY * 1000 * 0.9)
+    try:
+        launch.start()
+        launch.wait_ready(timeout=30.0)
+        done = spin_until(probe, lambda: sum(s.loop_closed for s in states) >= n_wanted, 60.0)
+    finally:
+        launch.stop()
+    log = "\n".join(lines[-40:])
+    assert done, log
+    closed = [s for s in states if s.loop_closed]
+    t = np.array([s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in closed])
+    t -= t[0]
+    x_d = np.array([s.reference for s in closed])
+    x = np.array([s.x1 for s in closed]) + x_d
+    u_ff = np.array([s.u_ff for s in closed])
+    assert refs and max(r.displacement for r in refs) == pytest.approx(OFFSET + AMPLITUDE, rel=0.02)
+    assert np.ptp(x_d) == pytest.approx(2 * AMPLITUDE, rel=0.02)
+    assert 100.0 < u_ff.max() < 180.0  # κx·12 µm = 124 V, plus κw·w
+    # on a loaded host the controller misses samples (best-effort sensor QoS; gaps of 5-40 ms,
+    # dozens per second under the full test suite) and each gap kicks the loop: the 20 ms after
+    # one are the host's doing, not the compensation's, and are left out
+    gaps = t[1:][np.diff(t) > 5e-3]
+    calm = ~np.any((t[:, None] >= gaps[None, :]) & (t[:, None] < gaps[None, :] + 0.02), axis=1)
+    errors = tracking_errors(t[calm], x[calm], x_d[calm], t_from=1.0 / FREQUENCY)
+    print(f"emulated rig tracking: RMS {errors.rms_error * 1e9:.1f} nm = "
+          f"{100 * errors.relative:.2f} % of the range, max {errors.max_error * 1e9:.1f} nm "
+          f"({np.count_nonzero(~calm)} samples after {gaps.size} host stalls left out)")
+    assert errors.samples > 200 and errors.relative <= 0.05, log
