@@ -213,7 +213,8 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
 
     def fun(z: np.ndarray) -> np.ndarray:
         try:
-            return residuals(unpack(z * scale, degree, sign), paths)
+            # in units of the output span: the tolerances are then relative to the data
+            return residuals(unpack(z * scale, degree, sign), paths) / y_span
         except RefinementError as exc:
             # a trial point the model cannot simulate: non-finite residuals make the
             # trust-region method reject the step and shrink the region
@@ -258,10 +259,11 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
                               f"{failures[-1] if failures else 'non-finite residuals'}")
     p = res.x * scale
     params = unpack(p, degree, sign)
-    r = res.fun
+    r = res.fun * y_span
     dof = max(1, len(r) - len(p))
     s2 = float(r @ r) / dof
-    jtj = res.jac.T @ res.jac
+    J = res.jac * y_span
+    jtj = J.T @ J
     cov = np.linalg.pinv(jtj) * s2
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     names = [f"kappa_{i + 1}" for i in range(degree)] + list(_TAIL)
