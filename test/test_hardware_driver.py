@@ -1,4 +1,5 @@
-"""Voltage driver safety, each item against a real emulator: limits, NaN/inf, slew, watchdog, shutdown, reconnect."""
+"""Voltage driver safety, each item against a real emulator: limits, NaN/inf, slew, watchdog,
+shutdown, reconnect."""
 
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ def make_driver(server, kind, clock=None, timeout=0.3, **cfg) -> VoltageDriver:
     return VoltageDriver(amp, DriverConfig(**cfg), clock=clock, sleep=clock.sleep)
 
 
-# --- pure arithmetic ------------------------------------------------------------------------------
+# --- pure arithmetic -----------------------------------------------------------------------------
 def test_limits_arithmetic():
     a = VoltageLimits(0.0, 150.0)
     assert a.intersect(VoltageLimits(-20.0, 120.0)) == VoltageLimits(0.0, 120.0)
@@ -84,14 +85,22 @@ def test_limits_arithmetic():
     assert slew_step(0.0, 10.0, math.inf, 0.0) == 10.0
 
 
-@pytest.mark.parametrize("bad", [dict(slew_rate=0.0), dict(command_timeout=-1.0), dict(safe_voltage=math.nan),
-                                 dict(v_min=5.0, v_max=1.0), dict(reconnect_attempts=-1)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(slew_rate=0.0),
+        dict(command_timeout=-1.0),
+        dict(safe_voltage=math.nan),
+        dict(v_min=5.0, v_max=1.0),
+        dict(reconnect_attempts=-1),
+    ],
+)
 def test_config_validation(bad):
     with pytest.raises((ConfigError, LimitsError)):
         DriverConfig(**{"v_min": 0.0, "v_max": 100.0, **bad})
 
 
-# --- limits ----------------------------------------------------------------------------------------
+# --- limits --------------------------------------------------------------------------------------
 def test_effective_limits_are_configured_intersect_device(rig):
     model, server, kind = rig
     driver = make_driver(server, kind, v_min=-50.0, v_max=200.0)
@@ -156,7 +165,7 @@ def test_open_loop_mode_is_selected_on_connect():
         driver.close()
 
 
-# --- slew rate -------------------------------------------------------------------------------------
+# --- slew rate -----------------------------------------------------------------------------------
 def test_slew_rate_limits_every_step(rig):
     model, server, kind = rig
     clock = FakeClock()
@@ -179,7 +188,7 @@ def test_slew_rate_limits_every_step(rig):
 
 
 def test_limits_win_over_slew():
-    """A device already above the configured maximum is brought inside at once, never left outside."""
+    """A device above the configured maximum is brought inside at once, never left outside."""
     model = GCSDeviceModel(servo_on=False)
     model.voltage = 110.0
     with EmulatorServer(model, tcp_port=0) as server:
@@ -191,11 +200,13 @@ def test_limits_win_over_slew():
         driver.close()
 
 
-# --- watchdog --------------------------------------------------------------------------------------
+# --- watchdog ------------------------------------------------------------------------------------
 def test_watchdog_ramps_to_safe_voltage_after_command_timeout(rig):
     model, server, kind = rig
     clock = FakeClock()
-    driver = make_driver(server, kind, clock, safe_voltage=5.0, slew_rate=100.0, command_timeout=0.1)
+    driver = make_driver(
+        server, kind, clock, safe_voltage=5.0, slew_rate=100.0, command_timeout=0.1
+    )
     driver.connect()
     clock.t = 1.0
     driver.ramp_to(30.0)
@@ -224,7 +235,9 @@ def test_watchdog_reaches_safe_voltage_when_the_link_dropped():
     model = GCSDeviceModel()
     with EmulatorServer(model, tcp_port=0) as server:
         clock = FakeClock()
-        driver = make_driver(server, "gcs", clock, safe_voltage=0.0, slew_rate=100.0, command_timeout=0.1)
+        driver = make_driver(
+            server, "gcs", clock, safe_voltage=0.0, slew_rate=100.0, command_timeout=0.1
+        )
         driver.connect()
         clock.t = 1.0
         driver.ramp_to(10.0)
@@ -243,7 +256,9 @@ def test_watchdog_reaches_safe_voltage_when_the_link_dropped():
 def test_watchdog_thread_brings_output_to_safe_voltage():
     model = GCSDeviceModel()
     with EmulatorServer(model, tcp_port=0) as server:
-        driver = make_driver(server, "gcs", safe_voltage=2.0, slew_rate=2000.0, command_timeout=0.05)
+        driver = make_driver(
+            server, "gcs", safe_voltage=2.0, slew_rate=2000.0, command_timeout=0.05
+        )
         driver.connect()
         driver.set_voltage(20.0)
         with Watchdog(driver, period=0.005):
@@ -255,7 +270,7 @@ def test_watchdog_thread_brings_output_to_safe_voltage():
         driver.close()
 
 
-# --- shutdown --------------------------------------------------------------------------------------
+# --- shutdown ------------------------------------------------------------------------------------
 def test_shutdown_ramps_to_safe_and_leaves_known_state(rig):
     model, server, kind = rig
     clock = FakeClock()
@@ -275,7 +290,7 @@ def test_shutdown_ramps_to_safe_and_leaves_known_state(rig):
     assert driver.shutdown() == 3.0  # idempotent
 
 
-# --- reconnect -------------------------------------------------------------------------------------
+# --- reconnect -----------------------------------------------------------------------------------
 def test_reconnect_after_tcp_hang_up():
     model = GCSDeviceModel()
     with EmulatorServer(model, tcp_port=0) as server:

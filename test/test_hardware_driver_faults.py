@@ -333,7 +333,7 @@ def test_property_ramps_and_limits_hold_under_any_schedule(slew, schedule, seed)
     bench.assert_ramps()
 
 
-# --- the emulator's faults themselves -------------------------------------------------------
+# --- the emulator's faults themselves ------------------------------------------------------------
 def test_fault_injection_stall_hangup_garbage():
     clock = Clock()
     faults = Faults(seed=1)

@@ -1,4 +1,5 @@
-"""`piezo-stage emulate`: printed endpoints, clients connecting to them, the rig coupling, clean shutdown."""
+"""`piezo-stage emulate`: printed endpoints, clients connecting to them, the rig coupling, clean
+shutdown."""
 
 from __future__ import annotations
 
@@ -42,12 +43,19 @@ def run_in_thread(argv, capsys, n_lines: int):
 
 def test_gcs_subprocess_prints_pty_and_stops_cleanly_on_sigint():
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "emulate", "gcs", "--pty"],
-                            stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "piezo_stage.cli", "emulate", "gcs", "--pty"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
     try:
         line = proc.stdout.readline().strip()
         assert re.fullmatch(r"gcs: /dev/pts/\d+", line)
-        driver = VoltageDriver(make_amplifier("gcs", line.split(": ")[1]), DriverConfig(v_min=0, v_max=100))
+        driver = VoltageDriver(
+            make_amplifier("gcs", line.split(": ")[1]), DriverConfig(v_min=0, v_max=100)
+        )
         driver.connect()
         assert driver.set_voltage(42.0).sent == 42.0
         assert driver.shutdown() == 0.0
@@ -57,7 +65,9 @@ def test_gcs_subprocess_prints_pty_and_stops_cleanly_on_sigint():
 
 
 def test_gcs_on_tcp_and_mdt_on_pty_in_process(capsys):
-    thread, ends, result = run_in_thread(["emulate", "gcs", "--tcp", "0", "--duration", "0.5"], capsys, 1)
+    thread, ends, result = run_in_thread(
+        ["emulate", "gcs", "--tcp", "0", "--duration", "0.5"], capsys, 1
+    )
     assert ends["gcs"].startswith("tcp://127.0.0.1:")
     amp = make_amplifier("gcs", ends["gcs"])
     assert "E-709" in amp.open().identity
@@ -65,7 +75,9 @@ def test_gcs_on_tcp_and_mdt_on_pty_in_process(capsys):
     thread.join(5)
     assert result["rc"] == 0
 
-    thread, ends, result = run_in_thread(["emulate", "mdt69x", "--vlimit", "75", "--duration", "0.5"], capsys, 1)
+    thread, ends, result = run_in_thread(
+        ["emulate", "mdt69x", "--vlimit", "75", "--duration", "0.5"], capsys, 1
+    )
     amp = make_amplifier("mdt69x", ends["mdt69x"])
     assert amp.open().v_max == 75.0
     amp.close()
@@ -75,8 +87,24 @@ def test_gcs_on_tcp_and_mdt_on_pty_in_process(capsys):
 
 def test_optoncdt_with_error_values_and_periodic_disconnect(capsys, tmp_path):
     link = str(tmp_path / "laser")
-    argv = ["emulate", "optoncdt", "--family", "ild1700", "--rate", "2000", "--error-values", "0.3",
-            "--disconnect-every", "0.3", "--link", link, "--duration", "1.0", "--seed", "1"]
+    argv = [
+        "emulate",
+        "optoncdt",
+        "--family",
+        "ild1700",
+        "--rate",
+        "2000",
+        "--error-values",
+        "0.3",
+        "--disconnect-every",
+        "0.3",
+        "--link",
+        link,
+        "--duration",
+        "1.0",
+        "--seed",
+        "1",
+    ]
     thread, ends, result = run_in_thread(argv, capsys, 1)
     assert ends["optoncdt"] == link
     reader = SensorReader.from_url(link, SensorConfig("ild1700", MR, reconnect_delay=0.05))
@@ -111,9 +139,12 @@ class LinearStage:
 def test_rig_couples_amplifier_voltage_to_sensor_reading():
     stage = LinearStage()
     fmt = frame_format("ild1320")
-    with RigEmulator(stage, fmt, MR, amplifier="gcs", amplifier_tcp_port=0, rate=2000.0,
-                     standoff=4e-3) as rig:
-        driver = VoltageDriver(make_amplifier("gcs", rig.amplifier_server.url), DriverConfig(v_min=0, v_max=100))
+    with RigEmulator(
+        stage, fmt, MR, amplifier="gcs", amplifier_tcp_port=0, rate=2000.0, standoff=4e-3
+    ) as rig:
+        driver = VoltageDriver(
+            make_amplifier("gcs", rig.amplifier_server.url), DriverConfig(v_min=0, v_max=100)
+        )
         reader = SensorReader.from_url(rig.sensor_server.url, SensorConfig("ild1320", MR))
         driver.connect()
         reader.connect()
@@ -127,26 +158,45 @@ def test_rig_couples_amplifier_voltage_to_sensor_reading():
             assert np.all(np.abs(block.displacement - expected) <= MR * 1.02 / 65520)
         driver.shutdown()
         reader.close()
-        deadline = time.monotonic() + 2.0  # the plant gets 0 V from the samples taken after the ramp
+        deadline = (
+            time.monotonic() + 2.0
+        )  # the plant gets 0 V from the samples taken after the ramp
         while rig.coupling.applied != 0.0 and time.monotonic() < deadline:
             time.sleep(0.01)
     assert stage.steps > 100 and rig.coupling.applied == 0.0
 
 
 def test_rig_command_with_the_simulated_plant(capsys, tmp_path):
-    """`emulate rig` with the real SimulatedStage: voltage in, plant displacement out of the sensor."""
+    """`emulate rig` with the real SimulatedStage: voltage in, plant displacement out."""
     from piezo_stage.model.bouc_wen import BoucWenParameters
     from piezo_stage.model.parameter_set import Dynamics, ParameterSet, save_parameter_set
 
-    params = ParameterSet(name="ch11_rig", form="dynamic",
-                          bouc_wen=BoucWenParameters(kappa=(10.35e6,), kappa_w=43.57, rho=8.566e4,
-                                                     sigma=0.9153, n=1.176),
-                          dynamics=Dynamics(m=5.3e-3, c=13.0), input_name="voltage",
-                          output_name="displacement")
+    params = ParameterSet(
+        name="ch11_rig",
+        form="dynamic",
+        bouc_wen=BoucWenParameters(
+            kappa=(10.35e6,), kappa_w=43.57, rho=8.566e4, sigma=0.9153, n=1.176
+        ),
+        dynamics=Dynamics(m=5.3e-3, c=13.0),
+        input_name="voltage",
+        output_name="displacement",
+    )
     path = tmp_path / "rig.yaml"
     save_parameter_set(params, path)
-    argv = ["emulate", "rig", "--params", str(path), "--family", "ild1750", "--measuring-range", "2e-3",
-            "--rate", "2000", "--duration", "2.0"]
+    argv = [
+        "emulate",
+        "rig",
+        "--params",
+        str(path),
+        "--family",
+        "ild1750",
+        "--measuring-range",
+        "2e-3",
+        "--rate",
+        "2000",
+        "--duration",
+        "2.0",
+    ]
     thread, ends, result = run_in_thread(argv, capsys, 2)
     driver = VoltageDriver(make_amplifier("gcs", ends["gcs"]), DriverConfig(v_min=0, v_max=100))
     reader = SensorReader.from_url(ends["optoncdt"], SensorConfig("ild1750", 2e-3))
@@ -163,7 +213,11 @@ def test_rig_command_with_the_simulated_plant(capsys, tmp_path):
     thread.join(5)
     assert result["rc"] == 0
     k = SensorConfig("ild1750", 2e-3).relock_frames
-    assert len(rest) > k and np.all(rest.status[k - 1:] == Status.OK) and np.all(moved.status == Status.OK)
+    assert (
+        len(rest) > k
+        and np.all(rest.status[k - 1 :] == Status.OK)
+        and np.all(moved.status == Status.OK)
+    )
     assert np.median(moved.displacement) > np.nanmedian(rest.displacement) + 1e-6  # ~10 µm at 100 V
 
 
@@ -173,15 +227,37 @@ def test_rig_sensor_link_and_signal_waits_for_the_driver_ramp(tmp_path):
     driver hung up, removing the link (a launcher signals every process at once)."""
     link = tmp_path / "sensor"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", "emulate", "rig", "--params",
-                             "ch10_patch.yaml", "--amp-tcp", "0", "--sensor-link", str(link), "--family",
-                             "ild1320", "--measuring-range", "2e-3", "--linger", "30"],
-                            stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "piezo_stage.cli",
+            "emulate",
+            "rig",
+            "--params",
+            "ch10_patch.yaml",
+            "--amp-tcp",
+            "0",
+            "--sensor-link",
+            str(link),
+            "--family",
+            "ild1320",
+            "--measuring-range",
+            "2e-3",
+            "--linger",
+            "30",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
     try:
         ends = dict(proc.stdout.readline().strip().split(": ", 1) for _ in range(2))
         assert ends["optoncdt"] == str(link) and link.is_symlink()
-        driver = VoltageDriver(make_amplifier("gcs", ends["gcs"]),
-                               DriverConfig(v_min=0, v_max=100, slew_rate=500.0))
+        driver = VoltageDriver(
+            make_amplifier("gcs", ends["gcs"]), DriverConfig(v_min=0, v_max=100, slew_rate=500.0)
+        )
         reader = SensorReader.from_url(str(link), SensorConfig("ild1320", 2e-3))
         driver.connect()
         reader.connect()

@@ -1,4 +1,5 @@
-"""PI GCS 2.0 protocol against the GCS emulator (loopback TCP and pty), and PIPython against the emulator."""
+"""PI GCS 2.0 protocol against the GCS emulator (loopback TCP and pty), and PIPython against the
+emulator."""
 
 from __future__ import annotations
 
@@ -69,14 +70,17 @@ def test_multi_line_reply_is_read_whole(served):
     assert conn.error_code() == 0  # nothing left over from the multi-line reply
 
 
-@pytest.mark.parametrize("command, code", [
-    ("SVA A 10", 79),  # servo still on (real default)
-    ("FOO 1", 2),
-    ("SVO B 0", 15),
-    ("SVO A 7", 17),
-    ("SVO A", 1),
-    ("MOV A 1", None),  # servo on: accepted (target stored)
-])
+@pytest.mark.parametrize(
+    "command, code",
+    [
+        ("SVA A 10", 79),  # servo still on (real default)
+        ("FOO 1", 2),
+        ("SVO B 0", 15),
+        ("SVO A 7", 17),
+        ("SVO A", 1),
+        ("MOV A 1", None),  # servo on: accepted (target stored)
+    ],
+)
 def test_setters_latch_error_codes(served, command, code):
     model, conn = served
     if code is None:
@@ -125,7 +129,7 @@ def test_slow_replies_time_out():
 
 
 def test_pipython_drives_the_emulator_over_tcp():
-    """PI's own Python library (pure-Python PISocket gateway, no vendor DLL) against the emulator."""
+    """PI's own Python library (pure-Python PISocket gateway, no vendor DLL) on the emulator."""
     import gc
 
     import pipython
@@ -139,7 +143,9 @@ def test_pipython_drives_the_emulator_over_tcp():
             assert "E-709" in device.qIDN()
             axis = device.axes[0]
             assert axis == "1"
-            with pytest.raises(pipython.GCSError) as err:  # servo on: SVA refused, PIPython reads ERR?
+            with pytest.raises(
+                pipython.GCSError
+            ) as err:  # servo on: SVA refused, PIPython reads ERR?
                 device.SVA(axis, 12.5)
             assert err.value.val == 79
             device.SVO(axis, False)

@@ -1,4 +1,5 @@
-"""optoNCDT frame formats and stream parser: conversions, error values, ASCII separation, resync, fuzz."""
+"""optoNCDT frame formats and stream parser: conversions, error values, ASCII separation, resync,
+fuzz."""
 
 from __future__ import annotations
 
@@ -28,11 +29,13 @@ def fmt_of(name: str):
     return frame_format(name.split("-")[0], *FORMATS[name])
 
 
-def feed_chunked(parser: OptoNCDTParser, data: bytes, rng: np.random.Generator, max_chunk: int = 4096):
+def feed_chunked(
+    parser: OptoNCDTParser, data: bytes, rng: np.random.Generator, max_chunk: int = 4096
+):
     blocks, i = [], 0
     while i < len(data):
         n = int(rng.integers(1, max_chunk + 1))
-        blocks.append(parser.feed(data[i: i + n]))
+        blocks.append(parser.feed(data[i : i + n]))
         i += n
     return SampleBlock.concat(blocks)
 
@@ -46,8 +49,10 @@ def locked(fmt, raw) -> bytes:
 def reference_frames(fmt, data: bytes) -> list[int]:
     """Well-formed frames found by a regular expression (independent of the parser's numpy scan)."""
     if fmt.bytes_per_value == 2:
-        return [((m[0] & 0x7F) << 7) | (m[1] & 0x7F) for m in
-                (mt.group() for mt in re.finditer(rb"[\x80-\xff][\x00-\x7f]", data, re.S))]
+        return [
+            ((m[0] & 0x7F) << 7) | (m[1] & 0x7F)
+            for m in (mt.group() for mt in re.finditer(rb"[\x80-\xff][\x00-\x7f]", data, re.S))
+        ]
     out = []
     for mt in re.finditer(rb"[\x00-\x3f][\x40-\x7f][\x80-\xbf]", data, re.S):
         lo, mid, hi = mt.group()
@@ -55,7 +60,7 @@ def reference_frames(fmt, data: bytes) -> list[int]:
     return out
 
 
-# --- conversions and codes (ILD1700 manual worked examples) ----------------------------------------
+# --- conversions and codes (ILD1700 manual worked examples) --------------------------------------
 def test_ild1700_manual_examples():
     fmt = frame_format("ild1700")
     assert fmt.to_metres(8184, MR) == pytest.approx(5.000e-3, abs=1e-6)  # mid of range
@@ -80,17 +85,31 @@ def test_family_conversions_round_trip():
         frame_format("ild1320", 17)
 
 
-@pytest.mark.parametrize("family, raw, status", [
-    ("ild1700", 16370, Status.NO_TARGET), ("ild1700", 16372, Status.TOO_CLOSE),
-    ("ild1700", 16374, Status.TOO_FAR), ("ild1700", 16376, Status.INVALID),
-    ("ild1700", 16383, Status.INVALID), ("ild1700", 16369, Status.INVALID),
-    ("ild1700", 100, Status.TOO_CLOSE), ("ild1700", 16300, Status.TOO_FAR), ("ild1700", 8184, Status.OK),
-    ("ild1320", 262076, Status.NO_TARGET), ("ild1320", 262077, Status.TOO_CLOSE),
-    ("ild1320", 262078, Status.TOO_FAR), ("ild1320", 262075, Status.INVALID),
-    ("ild1320", 262082, Status.INVALID), ("ild1320", 100000, Status.INVALID), ("ild1320", 32760, Status.OK),
-    ("ild1750", 262076, Status.NO_TARGET), ("ild1750", 98231, Status.TOO_CLOSE),
-    ("ild1750", 98232 + 65537, Status.TOO_FAR), ("ild1750", 130000, Status.OK),
-])
+@pytest.mark.parametrize(
+    "family, raw, status",
+    [
+        ("ild1700", 16370, Status.NO_TARGET),
+        ("ild1700", 16372, Status.TOO_CLOSE),
+        ("ild1700", 16374, Status.TOO_FAR),
+        ("ild1700", 16376, Status.INVALID),
+        ("ild1700", 16383, Status.INVALID),
+        ("ild1700", 16369, Status.INVALID),
+        ("ild1700", 100, Status.TOO_CLOSE),
+        ("ild1700", 16300, Status.TOO_FAR),
+        ("ild1700", 8184, Status.OK),
+        ("ild1320", 262076, Status.NO_TARGET),
+        ("ild1320", 262077, Status.TOO_CLOSE),
+        ("ild1320", 262078, Status.TOO_FAR),
+        ("ild1320", 262075, Status.INVALID),
+        ("ild1320", 262082, Status.INVALID),
+        ("ild1320", 100000, Status.INVALID),
+        ("ild1320", 32760, Status.OK),
+        ("ild1750", 262076, Status.NO_TARGET),
+        ("ild1750", 98231, Status.TOO_CLOSE),
+        ("ild1750", 98232 + 65537, Status.TOO_FAR),
+        ("ild1750", 130000, Status.OK),
+    ],
+)
 def test_error_values_map_to_status(family, raw, status):
     fmt = frame_format(family)
     block = OptoNCDTParser(fmt, MR).feed(locked(fmt, [raw]))
@@ -101,11 +120,11 @@ def test_error_values_map_to_status(family, raw, status):
 def test_sixteen_bit_mode_ignores_d16_d17():
     fmt = frame_format("ild1320", 16)
     block = OptoNCDTParser(fmt, MR).feed(locked(fmt, [(3 << 16) | 32760, 65535]))
-    assert block.raw[K - 1::K].tolist() == [32760, 65535]
-    assert block.status[K - 1::K].tolist() == [Status.OK, Status.INVALID]
+    assert block.raw[K - 1 :: K].tolist() == [32760, 65535]
+    assert block.status[K - 1 :: K].tolist() == [Status.OK, Status.INVALID]
 
 
-# --- framing ---------------------------------------------------------------------------------------
+# --- framing -------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", list(FORMATS))
 def test_every_split_point_gives_the_same_samples(name):
     fmt = fmt_of(name)
@@ -121,18 +140,20 @@ def test_every_split_point_gives_the_same_samples(name):
 def test_later_values_of_a_block_are_not_displacements():
     fmt = frame_format("ild1320")
     raw = np.array([30000, 500, 31000, 600])  # displacement, intensity, displacement, intensity
-    block = OptoNCDTParser(fmt, MR).feed(encode_values(fmt, raw, later=np.array([0, 1, 0, 1], bool)))
+    block = OptoNCDTParser(fmt, MR).feed(
+        encode_values(fmt, raw, later=np.array([0, 1, 0, 1], bool))
+    )
     assert block.raw.tolist() == [30000, 31000]
 
 
 def test_ascii_reply_between_frames_is_separated():
     fmt = frame_format("ild1320")
     raw = fmt.from_metres(np.full(40, 0.005), MR)
-    frames = [encode_values(fmt, raw[i: i + 1]) for i in range(raw.size)]
+    frames = [encode_values(fmt, raw[i : i + 1]) for i in range(raw.size)]
     reply = b"GETINFO\r\nName: ILD1320-10\r\nMR: 10 mm\r\n->"
     stream = bytearray()
     for k, frame in enumerate(frames):
-        stream += frame + reply[2 * k: 2 * k + 2]
+        stream += frame + reply[2 * k : 2 * k + 2]
     parser = OptoNCDTParser(fmt, MR)
     block = feed_chunked(parser, bytes(stream), np.random.default_rng(0), max_chunk=5)
     assert block.raw.tolist() == raw.tolist()
@@ -159,7 +180,7 @@ def test_resynchronises_after_lost_and_corrupt_bytes(name):
     assert block.raw.tolist() == reference_frames(fmt, faulty.tobytes())
 
 
-# --- fuzz ------------------------------------------------------------------------------------------
+# --- fuzz ----------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", list(FORMATS))
 def test_fuzz_million_random_bytes(name):
     """10^6 seeded random bytes: no crash; every sample is a well-formed frame; none is OK."""

@@ -1,4 +1,5 @@
-"""optoNCDT sensor reader against the sensor emulator over a pty: stream, ASCII commands, faults, reconnect."""
+"""optoNCDT sensor reader against the sensor emulator over a pty: stream, ASCII commands, faults,
+reconnect."""
 
 from __future__ import annotations
 
@@ -47,8 +48,8 @@ def test_stream_follows_the_source(family):
         reader.close()
     fmt = frame_format(family)
     # unlocked at the start: the first K - 1 frames are withheld, then every one is OK
-    assert len(block) >= 400 and np.all(block.status[K - 1:] == Status.OK)
-    d = block.displacement[K - 1:]
+    assert len(block) >= 400 and np.all(block.status[K - 1 :] == Status.OK)
+    d = block.displacement[K - 1 :]
     quantum = MR * (fmt.scale if family != "ild1750" else 1 / 65536)
     assert np.all(np.diff(d) >= -quantum)  # in order, none lost or duplicated out of order
     assert np.all(np.diff(d) <= 2e-3 / 2000 + 2 * quantum)  # consecutive samples, no gaps
@@ -77,7 +78,7 @@ def test_ascii_commands_while_streaming(family):
     both = SampleBlock.concat([before, after])
     ok = both.status == Status.OK
     # frames next to reply text are withheld until the lock is back; none lost, none out of order
-    assert np.all(before.status[K - 1:] == Status.OK) and ok.mean() > 0.5
+    assert np.all(before.status[K - 1 :] == Status.OK) and ok.mean() > 0.5
     assert np.all(np.diff(both.displacement[ok]) >= -1e-6)
     assert reader.parser.stats.text_bytes > 0
 
@@ -110,8 +111,13 @@ def test_out_of_range_and_lost_target_are_error_values():
 @pytest.mark.parametrize("family", FAMILIES)
 def test_corrupted_and_dropped_bytes_never_give_invalid_displacements(family):
     faults = Faults(drop=0.01, corrupt=0.01, seed=3)
-    model, server = served(family, faults=faults, source=lambda t: np.full(t.shape, 4e-3),
-                           error_probability=0.05, seed=4)
+    model, server = served(
+        family,
+        faults=faults,
+        source=lambda t: np.full(t.shape, 4e-3),
+        error_probability=0.05,
+        seed=4,
+    )
     with server:
         reader = SensorReader.from_url(server.url, SensorConfig(family, MR))
         reader.connect()
@@ -130,8 +136,9 @@ def test_reconnect_after_hang_up_and_staleness(tmp_path):
     model, server = served("ild1320", faults=faults, link=link)
     now = [0.0]
     with server:
-        reader = SensorReader.from_url(link, SensorConfig("ild1320", MR, stale_timeout=0.5),
-                                       clock=lambda: now[0])
+        reader = SensorReader.from_url(
+            link, SensorConfig("ild1320", MR, stale_timeout=0.5), clock=lambda: now[0]
+        )
         reader.connect()
         assert len(collect(reader, 50)) >= 50 and not reader.stale
         faults.silent = True

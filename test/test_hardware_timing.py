@@ -68,7 +68,9 @@ def test_sample_clock_follows_lost_samples_within_its_window():
     before = err[(truth < T0 + 4.9e9)]
     long_after = err[truth > T0 + 7.0e9]  # the 0.5 s window has forgotten the older envelope
     assert np.max(np.abs(before[100:])) < 0.2e-3
-    assert np.min(err[(truth > T0 + 5.01e9) & (truth < T0 + 5.3e9)]) < -9e-3  # 10 samples early at first
+    assert (
+        np.min(err[(truth > T0 + 5.01e9) & (truth < T0 + 5.3e9)]) < -9e-3
+    )  # 10 samples early at first
     assert np.max(np.abs(long_after)) < 0.2e-3  # then back on the sensor's clock
 
 
@@ -111,7 +113,7 @@ def test_playout_applies_each_command_at_its_stamp_in_stamp_order():
     assert values[0] == -1.0 and playout.late == 1
     assert values[1:19] == list(range(18))  # stamp order, not arrival order
     assert values[19] == 99.0 and playout.ahead == 1
-    for (t, v) in applied[1:19]:
+    for t, v in applied[1:19]:
         assert t >= stamps[int(v)] + 0.05  # never before its time
     assert playout.pending == 0 and playout.applied == 20 and playout.error is None
 

@@ -40,12 +40,18 @@ class Driver:
         from piezo_stage_msgs.msg import Voltage
 
         self.probe = probe
-        self.proc = start_node("voltage_driver", f"backend:={backend}", f"url:={url}", *params, namespace=NS)
+        self.proc = start_node(
+            "voltage_driver", f"backend:={backend}", f"url:={url}", *params, namespace=NS
+        )
         self.voltages: list = []
         probe.create_subscription(Voltage, "voltage", self.voltages.append, SENSOR_QOS)
         self.diag = DiagnosticsProbe(probe, f"{NS}/voltage_driver")
         self.cmd = probe.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
-        ok = spin_until(probe, lambda: self.cmd.get_subscription_count() > 0 and self.diag.latest is not None, 20.0)
+        ok = spin_until(
+            probe,
+            lambda: self.cmd.get_subscription_count() > 0 and self.diag.latest is not None,
+            20.0,
+        )
         assert ok, stop(self.proc)
 
     def send(self, voltage: float, stamp: Time | None = None) -> None:
@@ -62,12 +68,25 @@ class Driver:
 @pytest.mark.parametrize("backend", ["gcs", "mdt69x"])
 def test_out_of_range_commands_are_clamped_to_configured_and_device_limits(probe, backend):
     # configured [-50, 100] V; device GCS [-20, 120] V, MDT69x [0, 75] V (vlimit switch)
-    model = GCSDeviceModel(v_min=-20.0, v_max=120.0) if backend == "gcs" else MDTDeviceModel(vlimit=75.0)
-    server = EmulatorServer(model, tcp_port=0) if backend == "gcs" else EmulatorServer(model, pty=True)
+    model = (
+        GCSDeviceModel(v_min=-20.0, v_max=120.0)
+        if backend == "gcs"
+        else MDTDeviceModel(vlimit=75.0)
+    )
+    server = (
+        EmulatorServer(model, tcp_port=0) if backend == "gcs" else EmulatorServer(model, pty=True)
+    )
     lo, hi = (-20.0, 100.0) if backend == "gcs" else (0.0, 75.0)
     with server:
-        d = Driver(probe, server.url, "v_min:=-50.0", "v_max:=100.0",
-                   "command_timeout:=0.0", "readback_rate_hz:=0.0", backend=backend)
+        d = Driver(
+            probe,
+            server.url,
+            "v_min:=-50.0",
+            "v_max:=100.0",
+            "command_timeout:=0.0",
+            "readback_rate_hz:=0.0",
+            backend=backend,
+        )
         try:
             d.send(500.0)
             assert d.wait(lambda: sva_values(model)[-1:] == [hi]), sva_values(model)
@@ -75,7 +94,9 @@ def test_out_of_range_commands_are_clamped_to_configured_and_device_limits(probe
             assert d.wait(lambda: sva_values(model)[-1:] == [lo]), sva_values(model)
             d.send(12.5)
             assert d.wait(lambda: sva_values(model)[-1:] == [12.5])
-            assert d.wait(lambda: d.voltages and d.voltages[-1].voltage == 12.5)  # acknowledged value
+            assert d.wait(
+                lambda: d.voltages and d.voltages[-1].voltage == 12.5
+            )  # acknowledged value
             assert d.wait(lambda: d.diag.value("clamped_commands") == "2", 3.0), d.diag.values
             assert float(d.diag.value("v_min")) == lo and float(d.diag.value("v_max")) == hi
         finally:
@@ -85,7 +106,9 @@ def test_out_of_range_commands_are_clamped_to_configured_and_device_limits(probe
 
 def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
     model, server = gcs
-    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    d = Driver(
+        probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5"
+    )
     try:
         d.send(10.0)
         assert d.wait(lambda: sva_values(model)[-1:] == [10.0])
@@ -94,8 +117,14 @@ def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
             d.send(bad)
         d.send(20.0, stamp=probe.get_clock().now() - rclpy.duration.Duration(seconds=5.0))  # late
         d.send(30.0, stamp=Time())  # unstamped: refused when stamps are checked
-        assert d.wait(lambda: d.diag.value("rejected_nonfinite") == "3" and d.diag.value("rejected_late") == "1"
-                      and d.diag.value("rejected_stamp_unstamped") == "1", 5.0), d.diag.values
+        assert d.wait(
+            lambda: (
+                d.diag.value("rejected_nonfinite") == "3"
+                and d.diag.value("rejected_late") == "1"
+                and d.diag.value("rejected_stamp_unstamped") == "1"
+            ),
+            5.0,
+        ), d.diag.values
         assert len(sva_values(model)) == n and model.applied_voltage == 10.0  # device unchanged
         assert d.diag.latest.level == DiagnosticStatus.WARN
         d.send(11.0)  # a fresh command still goes through
@@ -108,7 +137,9 @@ def test_nonfinite_and_late_commands_never_reach_the_amplifier(probe, gcs):
 def test_slew_rate_limits_every_step(probe, gcs):
     model, server = gcs
     rate = 40.0  # V/s; one write moves at most rate x min(watchdog_period, 25 ms)
-    d = Driver(probe, server.url, f"slew_rate:={rate}", "command_timeout:=0.0", "readback_rate_hz:=0.0")
+    d = Driver(
+        probe, server.url, f"slew_rate:={rate}", "command_timeout:=0.0", "readback_rate_hz:=0.0"
+    )
     try:
         while not (sva_values(model) and sva_values(model)[-1] >= 20.0):
             d.send(100.0)
@@ -116,7 +147,9 @@ def test_slew_rate_limits_every_step(probe, gcs):
             assert len(sva_values(model)) < 400, sva_values(model)
     finally:
         stop(d.proc)
-    sent = [0.0] + [v for v in sva_values(model) if v < 99.0]  # the ramp up (shutdown ramps back down)
+    sent = [0.0] + [
+        v for v in sva_values(model) if v < 99.0
+    ]  # the ramp up (shutdown ramps back down)
     steps = [b - a for a, b in zip(sent, sent[1:])]
     assert len(steps) >= 10 and max(abs(s) for s in steps) <= rate * CAP_TIME + 1e-6
     assert max(sva_values(model)) < 100.0  # never jumped to the request
@@ -130,12 +163,21 @@ def test_apply_at_stamp_plays_commands_at_their_stamps_with_a_first_order_hold(p
     from rclpy.duration import Duration
 
     model, server = gcs
-    d = Driver(probe, server.url, "apply_at_stamp:=true", "hold_period:=0.002", "command_timeout:=0.0",
-               "readback_rate_hz:=0.0")
+    d = Driver(
+        probe,
+        server.url,
+        "apply_at_stamp:=true",
+        "hold_period:=0.002",
+        "command_timeout:=0.0",
+        "readback_rate_hz:=0.0",
+    )
     try:
         now = probe.get_clock().now()  # 80 ms apart: within the playout's 0.1 s interpolation gap
-        commands = {10.0: now + Duration(seconds=1.0), 30.0: now + Duration(seconds=1.08),
-                    50.0: now + Duration(seconds=1.16)}
+        commands = {
+            10.0: now + Duration(seconds=1.0),
+            30.0: now + Duration(seconds=1.08),
+            50.0: now + Duration(seconds=1.16),
+        }
         for v in (50.0, 10.0, 30.0):  # out of order
             d.send(v, commands[v])
         assert d.wait(lambda: any(m.voltage == 50.0 for m in d.voltages), 20.0), sva_values(model)
@@ -144,14 +186,18 @@ def test_apply_at_stamp_plays_commands_at_their_stamps_with_a_first_order_hold(p
         stop(d.proc)
     sent = sva_values(model)
     first = sent.index(10.0)
-    played = sent[first: sent.index(50.0) + 1]
+    played = sent[first : sent.index(50.0) + 1]
     assert 30.0 in played and played == sorted(played)  # 10 -> 30 -> 50, monotone
     assert sum(10.0 < v < 30.0 for v in played) >= 3  # the first-order hold between 10 and 30 V
     assert sum(30.0 < v < 50.0 for v in played) >= 3
-    published = {m.voltage: Time.from_msg(m.header.stamp) for m in d.voltages if m.voltage in commands}
+    published = {
+        m.voltage: Time.from_msg(m.header.stamp) for m in d.voltages if m.voltage in commands
+    }
     assert set(published) == set(commands)
-    written = [m.voltage for m in d.voltages if m.voltage != 0.0]  # the interpolated values too, in order
-    assert written[written.index(10.0): written.index(50.0) + 1] == played
+    written = [
+        m.voltage for m in d.voltages if m.voltage != 0.0
+    ]  # the interpolated values too, in order
+    assert written[written.index(10.0) : written.index(50.0) + 1] == played
     stamps = [Time.from_msg(m.header.stamp).nanoseconds for m in d.voltages]
     assert stamps == sorted(stamps)
     for v, stamp in commands.items():
@@ -164,8 +210,14 @@ def test_realtime_priority_covers_the_playout_and_the_executor_thread(probe, gcs
     import os
 
     _, server = gcs
-    d = Driver(probe, server.url, "apply_at_stamp:=true", "realtime_priority:=5", "command_timeout:=0.0",
-               "readback_rate_hz:=0.0")
+    d = Driver(
+        probe,
+        server.url,
+        "apply_at_stamp:=true",
+        "realtime_priority:=5",
+        "command_timeout:=0.0",
+        "readback_rate_hz:=0.0",
+    )
     try:
         assert d.wait(lambda: d.diag.value("executor_priority") != "", 10.0), d.diag.values
         playout, executor = d.diag.value("playout_priority"), d.diag.value("executor_priority")
@@ -181,8 +233,14 @@ def test_realtime_priority_covers_the_playout_and_the_executor_thread(probe, gcs
 
 def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):
     model, server = gcs
-    d = Driver(probe, server.url, "safe_voltage:=5.0", "slew_rate:=200.0", "command_timeout:=0.3",
-               "readback_rate_hz:=20.0")
+    d = Driver(
+        probe,
+        server.url,
+        "safe_voltage:=5.0",
+        "slew_rate:=200.0",
+        "command_timeout:=0.3",
+        "readback_rate_hz:=20.0",
+    )
     try:
         # (before any command the watchdog has already taken the output to safe_voltage once)
         for _ in range(30):  # -> 40 V at 200 V/s, commands every 20 ms
@@ -192,13 +250,22 @@ def test_watchdog_ramps_to_safe_voltage_when_commands_stop(probe, gcs):
         n = len(sva_values(model))
         while d.diag.value("state") != "active":  # diagnostics of the commanded phase
             d.send(40.0)
-            assert d.wait(lambda: d.diag.value("state") == "active", 0.1) or len(sva_values(model)) < n + 50
+            assert (
+                d.wait(lambda: d.diag.value("state") == "active", 0.1)
+                or len(sva_values(model)) < n + 50
+            )
         trips = int(d.diag.value("watchdog_trips"))
         n = len(sva_values(model))
         assert d.wait(lambda: model.applied_voltage == 5.0, 5.0), sva_values(model)[-10:]
-        assert d.wait(lambda: d.diag.value("watchdog_trips") == str(trips + 1) and d.diag.value("state") == "safe",
-                      3.0), d.diag.values
-        assert d.wait(lambda: d.voltages and d.voltages[-1].voltage == 5.0, 2.0)  # read-back published
+        assert d.wait(
+            lambda: (
+                d.diag.value("watchdog_trips") == str(trips + 1) and d.diag.value("state") == "safe"
+            ),
+            3.0,
+        ), d.diag.values
+        assert d.wait(
+            lambda: d.voltages and d.voltages[-1].voltage == 5.0, 2.0
+        )  # read-back published
     finally:
         _, err = stop(d.proc)
     down = sva_values(model)[n:]
@@ -215,7 +282,9 @@ def test_signal_ramps_to_safe_voltage_and_exits_zero(probe, gcs, sig):
         d.send(60.0)
         while model.applied_voltage != 60.0:
             d.send(60.0)
-            assert d.wait(lambda: model.applied_voltage == 60.0, 0.05) or len(sva_values(model)) < 200
+            assert (
+                d.wait(lambda: model.applied_voltage == 60.0, 0.05) or len(sva_values(model)) < 200
+            )
         n = len(sva_values(model))
         d.proc.send_signal(sig)
         code = d.proc.wait(timeout=10.0)
@@ -224,7 +293,9 @@ def test_signal_ramps_to_safe_voltage_and_exits_zero(probe, gcs, sig):
     assert code == 0, err
     assert model.applied_voltage == 2.0 and sva_values(model)[-1] == 2.0
     down = sva_values(model)[n:]
-    assert len(down) > 3 and max(a - b for a, b in zip([60.0] + down, down)) <= 500.0 * CAP_TIME + 1e-6
+    assert (
+        len(down) > 3 and max(a - b for a, b in zip([60.0] + down, down)) <= 500.0 * CAP_TIME + 1e-6
+    )
     assert "shut down at 2 V" in err
     assert any(c.startswith("SVO") and c.split()[-1] == "0" for c in model.commands)  # open loop
 
@@ -239,15 +310,19 @@ def test_reconnects_after_the_link_drops(probe, gcs):
         d.wait(lambda: False, 0.3)  # the read-back notices the hang-up and reopens the link
         d.send(8.0)
         assert d.wait(lambda: model.applied_voltage == 8.0, 5.0), d.diag.values
-        assert d.wait(lambda: int(d.diag.value("reconnects", "0")) >= 1 and d.diag.value("connected") == "True",
-                      3.0), d.diag.values
+        assert d.wait(
+            lambda: (
+                int(d.diag.value("reconnects", "0")) >= 1 and d.diag.value("connected") == "True"
+            ),
+            3.0,
+        ), d.diag.values
         assert d.diag.latest.level == DiagnosticStatus.OK
         assert model.commands.count("*IDN?") >= 2  # really opened twice
     finally:
         stop(d.proc)
 
 
-# --- issue 18: stamps, use_sim_time, queued commands, silent device, exit codes --------------------
+# --- issue 18: stamps, use_sim_time, queued commands, silent device, exit codes ------------------
 def _stamp(sec: int, nanosec: int = 0):
     from builtin_interfaces.msg import Time as TimeMsg
 
@@ -260,7 +335,9 @@ def test_bad_stamps_are_counted_rejections_never_a_crash(probe, gcs):
     from piezo_stage_msgs.msg import Voltage
 
     model, server = gcs
-    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    d = Driver(
+        probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5"
+    )
     try:
         d.send(10.0)
         assert d.wait(lambda: sva_values(model)[-1:] == [10.0])
@@ -272,8 +349,13 @@ def test_bad_stamps_are_counted_rejections_never_a_crash(probe, gcs):
         d.send(11.0)  # still alive, and the bad ones never reached the device
         assert d.wait(lambda: sva_values(model)[-1:] == [11.0]), d.proc.poll()
         assert sva_values(model)[n:] == [11.0]
-        assert d.wait(lambda: d.diag.value("rejected_stamp_negative") == "2"
-                      and d.diag.value("rejected_stamp_ahead") == "1", 5.0), d.diag.values
+        assert d.wait(
+            lambda: (
+                d.diag.value("rejected_stamp_negative") == "2"
+                and d.diag.value("rejected_stamp_ahead") == "1"
+            ),
+            5.0,
+        ), d.diag.values
     finally:
         stop(d.proc)
 
@@ -284,11 +366,15 @@ def test_use_sim_time_cannot_be_switched_on_at_run_time(probe, gcs):
     from rclpy.parameter import Parameter
 
     model, server = gcs
-    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5")
+    d = Driver(
+        probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=0.0", "max_command_age:=0.5"
+    )
     try:
         client = probe.create_client(SetParameters, f"{NS}/voltage_driver/set_parameters")
         assert client.wait_for_service(timeout_sec=10.0)
-        req = SetParameters.Request(parameters=[Parameter("use_sim_time", value=True).to_parameter_msg()])
+        req = SetParameters.Request(
+            parameters=[Parameter("use_sim_time", value=True).to_parameter_msg()]
+        )
         future = client.call_async(req)
         assert d.wait(lambda: future.done(), 10.0)
         assert not future.result().results[0].successful
@@ -305,8 +391,14 @@ def test_watchdog_clears_queued_commands_when_the_publisher_stops(probe, gcs):
     command_timeout after the last *received* command and the queued commands never reach the
     device after that (they kept it away from safe_voltage for 4.86 s)."""
     model, server = gcs
-    d = Driver(probe, server.url, "command_timeout:=0.5", "readback_rate_hz:=0.0", "apply_at_stamp:=true",
-               "slew_rate:=1000.0")
+    d = Driver(
+        probe,
+        server.url,
+        "command_timeout:=0.5",
+        "readback_rate_hz:=0.0",
+        "apply_at_stamp:=true",
+        "slew_rate:=1000.0",
+    )
     try:
         # no command yet: the watchdog fires once, 0.5 s after start
         assert d.wait(lambda: d.diag.value("watchdog_trips") == "1", 5.0), d.diag.values
@@ -333,11 +425,12 @@ def test_silent_device_is_an_error_within_a_second_and_diagnostics_keep_coming(p
     model = GCSDeviceModel()
     faults = Faults()
     with EmulatorServer(model, tcp_port=0, faults=faults) as server:
-        d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "io_timeout:=0.2")
+        d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0")
         try:
             stamps: list[float] = []
-            probe.create_subscription(DiagnosticArray, "/diagnostics",
-                                      lambda m: stamps.append(time.monotonic()), 10)
+            probe.create_subscription(
+                DiagnosticArray, "/diagnostics", lambda m: stamps.append(time.monotonic()), 10
+            )
             faults.silent = True
             t0 = time.monotonic()
             assert d.wait(lambda: d.diag.latest.level == DiagnosticStatus.ERROR, 5.0), d.diag.values
@@ -352,10 +445,12 @@ def test_silent_device_is_an_error_within_a_second_and_diagnostics_keep_coming(p
 
 
 def test_exit_code_is_non_zero_when_safe_voltage_was_not_reached(probe):
-    """The link is down at shutdown: the output could not be ramped to safe_voltage (exit 0 before)."""
+    """The link is down at shutdown: the output cannot be ramped to safe_voltage (exit 0 before)."""
     model = GCSDeviceModel()
     server = EmulatorServer(model, tcp_port=0).start()
-    d = Driver(probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "slew_rate:=1000.0")
+    d = Driver(
+        probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "slew_rate:=1000.0"
+    )
     try:
         d.send(20.0)
         assert d.wait(lambda: model.applied_voltage > 0.0, 5.0)

@@ -18,6 +18,7 @@ from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from piezo_stage.hardware.emulators import EmulatorServer, Faults, OptoNCDTDeviceModel  # noqa: E402
 from piezo_stage.hardware.optoncdt import Status, frame_format  # noqa: E402
 from piezo_stage.nodes.qos import SENSOR_QOS  # noqa: E402
+
 from rig_support import DiagnosticsProbe  # noqa: E402
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
@@ -40,8 +41,14 @@ class Reader:
         from piezo_stage_msgs.msg import Displacement
 
         self.probe = probe
-        self.proc = start_node("laser_reader", f"url:={server.url}", f"family:={family}",
-                               f"measuring_range:={MR}", *params, namespace=NS)
+        self.proc = start_node(
+            "laser_reader",
+            f"url:={server.url}",
+            f"family:={family}",
+            f"measuring_range:={MR}",
+            *params,
+            namespace=NS,
+        )
         self.samples: list = []
         probe.create_subscription(Displacement, "displacement", self.samples.append, SENSOR_QOS)
         self.diag = DiagnosticsProbe(probe, f"{NS}/laser_reader")
@@ -69,13 +76,18 @@ def test_valid_frames_give_metres_with_offset_and_sign(probe, family):
         r = Reader(probe, server, family, "zero_offset:=0.001", "sign:=-1", "rate_hz:=1000.0")
         try:
             got = r.collect(200)
-            assert r.wait(lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.OK, 3.0)
+            assert r.wait(
+                lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.OK,
+                3.0,
+            )
             assert float(r.diag.value("frame_rate")) > 100.0
         finally:
             stop(r.proc)
     expected = -(quantised(family, 3e-3) - 1e-3)
     assert abs(expected + 2e-3) < 1e-6  # the quantum is well below a micrometre
-    assert all(s.status == Status.OK and s.displacement == pytest.approx(expected, abs=1e-12) for s in got)
+    assert all(
+        s.status == Status.OK and s.displacement == pytest.approx(expected, abs=1e-12) for s in got
+    )
     t = np.array([s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in got])
     # samples of one block are stamped 1/rate apart, back from the reception time
     assert np.median(np.diff(t)) == pytest.approx(1e-3, rel=0.05)
@@ -88,14 +100,21 @@ def test_error_values_become_statuses_with_nan(probe):
         r = Reader(probe, server, "ild1320")
         try:
             seen = {}
-            for d, status in ((math.nan, Status.NO_TARGET), (-1e-3, Status.TOO_CLOSE), (2 * MR, Status.TOO_FAR)):
+            for d, status in (
+                (math.nan, Status.NO_TARGET),
+                (-1e-3, Status.TOO_CLOSE),
+                (2 * MR, Status.TOO_FAR),
+            ):
                 level.d = d
-                assert r.wait(lambda: r.samples[-1].status == status), (d, r.samples[-1])
+                assert r.wait(lambda s=status: r.samples[-1].status == s), (d, r.samples[-1])
                 seen[status] = r.collect(20)[-10:]
             model.error_probability = 1.0  # every sample an error code of the family's table
             r.collect(300)
             codes = {s.status for s in r.samples[-200:]}
-            assert r.wait(lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.WARN, 3.0)
+            assert r.wait(
+                lambda: r.diag.latest is not None and r.diag.latest.level == DiagnosticStatus.WARN,
+                3.0,
+            )
             model.error_probability = 0.0
             level.d = 5e-3
             assert r.wait(lambda: r.samples[-1].status == Status.OK)
@@ -116,7 +135,9 @@ def test_lost_bytes_never_become_a_displacement(probe, family):
         r = Reader(probe, server, family, "rate_hz:=2000.0")
         try:
             got = r.collect(1000)
-            assert r.wait(lambda: int(r.diag.value("resync_bytes_discarded", "0")) > 20, 3.0), r.diag.values
+            assert r.wait(lambda: int(r.diag.value("resync_bytes_discarded", "0")) > 20, 3.0), (
+                r.diag.values
+            )
             sent = model.sent_samples
             published = int(r.diag.value("published"))
         finally:
@@ -127,7 +148,11 @@ def test_lost_bytes_never_become_a_displacement(probe, family):
     assert all(s.displacement == value for s in ok)  # ...none misread
     # the frames after each gap are withheld (INVALID) until the lock is back
     assert 0.3 * len(got) < len(ok) < len(got)
-    assert all(s.status == Status.INVALID and math.isnan(s.displacement) for s in got if s.status != Status.OK)
+    assert all(
+        s.status == Status.INVALID and math.isnan(s.displacement)
+        for s in got
+        if s.status != Status.OK
+    )
 
 
 @pytest.mark.parametrize("family", ["ild1700", "ild1320", "ild1750"])
@@ -140,11 +165,18 @@ def test_corrupted_bytes_never_become_an_invalid_displacement(probe, family):
     model = OptoNCDTDeviceModel(frame_format(family), MR, 2000.0, source=Level(4e-3))
     faults = Faults(corrupt=0.03, seed=11)
     with EmulatorServer(model, pty=True, faults=faults) as server:
-        r = Reader(probe, server, family, "rate_hz:=2000.0", "zero_offset:=0.002", "max_speed:=1e-4")
+        r = Reader(
+            probe, server, family, "rate_hz:=2000.0", "zero_offset:=0.002", "max_speed:=1e-4"
+        )
         try:
             got = r.collect(1500)
-            assert r.wait(lambda: int(r.diag.value("resync_bytes_discarded", "0")) > 20
-                          and r.diag.latest.level == DiagnosticStatus.WARN, 3.0), r.diag.values
+            assert r.wait(
+                lambda: (
+                    int(r.diag.value("resync_bytes_discarded", "0")) > 20
+                    and r.diag.latest.level == DiagnosticStatus.WARN
+                ),
+                3.0,
+            ), r.diag.values
             diag = r.diag.values
         finally:
             stop(r.proc)
@@ -155,7 +187,9 @@ def test_corrupted_bytes_never_become_an_invalid_displacement(probe, family):
     assert all(math.isnan(s.displacement) for s in bad)
     assert all(abs(s.displacement - value) <= 1e-3 * MR for s in ok)
     assert len(ok) > 0.2 * len(got) and int(diag["framing_errors"]) > 10
-    assert int(diag["published"]) < model.sent_samples  # the broken frames were dropped, not guessed
+    assert (
+        int(diag["published"]) < model.sent_samples
+    )  # the broken frames were dropped, not guessed
 
 
 def test_decimation_averages_and_stamps_each_group(probe):
@@ -166,11 +200,16 @@ def test_decimation_averages_and_stamps_each_group(probe):
 
     model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, rate, source=ramp)
     with EmulatorServer(model, pty=True) as server:
-        r = Reader(probe, server, "ild1320", f"decimation:={n}", f"rate_hz:={rate}", "latency:=0.001")
+        r = Reader(
+            probe, server, "ild1320", f"decimation:={n}", f"rate_hz:={rate}", "latency:=0.001"
+        )
         try:
             got = r.collect(200)
             assert r.wait(lambda: r.diag.latest is not None, 3.0)
-            frame_rate, publish_rate = float(r.diag.value("frame_rate")), float(r.diag.value("publish_rate"))
+            frame_rate, publish_rate = (
+                float(r.diag.value("frame_rate")),
+                float(r.diag.value("publish_rate")),
+            )
         finally:
             stop(r.proc)
     x = np.array([s.displacement for s in got])

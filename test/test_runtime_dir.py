@@ -23,10 +23,15 @@ def place(tmp_path, monkeypatch):
 def test_created_private_and_reused(place):
     assert runtime_dir() == place
     info = os.lstat(place)
-    assert stat.S_ISDIR(info.st_mode) and info.st_mode & 0o777 == 0o700 and info.st_uid == os.getuid()
+    assert (
+        stat.S_ISDIR(info.st_mode) and info.st_mode & 0o777 == 0o700 and info.st_uid == os.getuid()
+    )
     os.chmod(place, 0o777)  # ours but opened up: closed again
     assert runtime_dir("locks") == place / "locks"
-    assert os.lstat(place).st_mode & 0o777 == 0o700 and os.lstat(place / "locks").st_mode & 0o777 == 0o700
+    assert (
+        os.lstat(place).st_mode & 0o777 == 0o700
+        and os.lstat(place / "locks").st_mode & 0o777 == 0o700
+    )
 
 
 def test_a_planted_symlink_or_file_is_refused(place, tmp_path):

@@ -161,7 +161,8 @@ class VoltageDriverNode(Node):
         self.create_timer(p["watchdog_period"], self._watchdog, clock=wall_clock())
         if p["readback_rate_hz"] > 0:
             self.create_timer(1.0 / p["readback_rate_hz"], self._readback, clock=wall_clock())
-        Diagnostics(self, f"{p['backend']} {self.url}", self._diagnose)
+        self._diagnostics = Diagnostics(self, f"{p['backend']} {self.url}", self._diagnose)
+        self._reported_down = False
         lim = self.driver.limits
         self.get_logger().info(f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
                                f"[{lim.v_min:g}, {lim.v_max:g}] V, output {self.info.applied:g} V")
@@ -242,6 +243,9 @@ class VoltageDriverNode(Node):
         self._link_errors += 1
         self._last_error = str(exc)
         self.get_logger().error(f"amplifier link: {exc}", throttle_duration_sec=1.0)
+        if not self.driver.connected and not self._reported_down:
+            self._reported_down = True
+            self._diagnostics.publish()  # ERROR now, not at the next period
 
     # ------------------------------------------------------------------ timers
     def _watchdog(self) -> None:
@@ -292,6 +296,7 @@ class VoltageDriverNode(Node):
                           ahead_playout=playout.ahead, pending_playout=playout.pending,
                           playout_priority=playout.realtime_error or playout.realtime_priority,
                           executor_priority=self._executor_priority or playout.realtime_priority)
+        self._reported_down = not d.connected
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         bad_stamps = sum(self._rejected_stamp.values())
