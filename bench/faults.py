@@ -36,7 +36,12 @@ sys.path.insert(0, str(ROOT))
 
 from piezo_stage.hardware.amplifier import GCSAmplifier  # noqa: E402
 from piezo_stage.hardware.driver import MAX_STEP_TIME, DriverConfig, DriverState, VoltageDriver  # noqa: E402
-from piezo_stage.hardware.emulators import Faults, GCSDeviceModel, LoopbackTransport  # noqa: E402
+from piezo_stage.hardware.emulators import (  # noqa: E402
+    Faults,
+    GCSDeviceModel,
+    LoopbackTransport,
+    ManualClock,
+)
 from piezo_stage.hardware.emulators.streams import damage, score, sensor_stream  # noqa: E402
 from piezo_stage.hardware.errors import HardwareError  # noqa: E402
 from piezo_stage.hardware.optoncdt import (  # noqa: E402
@@ -48,17 +53,6 @@ from piezo_stage.hardware.optoncdt import (  # noqa: E402
 )
 
 FAMILIES = (("ild1700", None), ("ild1320", 18), ("ild1320", 16), ("ild1750", None))
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, dt: float) -> None:
-        self.t += dt
 
 
 class FlakyLink(LoopbackTransport):
@@ -78,7 +72,7 @@ class FlakyLink(LoopbackTransport):
 
 def bench_driver(seconds: float, seed: int, slew: float = 2000.0, timeout: float = 0.5) -> dict:
     rng = np.random.default_rng(seed)
-    clock = FakeClock()
+    clock = ManualClock()
     model = GCSDeviceModel(v_min=-30.0, v_max=130.0)
     applied = [(0.0, model.voltage)]
     model.on_voltage = lambda v, at=None: applied.append((clock.t, float(v)))

@@ -11,7 +11,13 @@ import pytest
 
 from piezo_stage.hardware.amplifier import GCSAmplifier, MDT69xAmplifier, make_amplifier
 from piezo_stage.hardware.driver import DriverConfig, DriverState, VoltageDriver, Watchdog
-from piezo_stage.hardware.emulators import EmulatorServer, Faults, GCSDeviceModel, MDTDeviceModel
+from piezo_stage.hardware.emulators import (
+    EmulatorServer,
+    Faults,
+    GCSDeviceModel,
+    ManualClock,
+    MDTDeviceModel,
+)
 from piezo_stage.hardware.errors import (
     ConfigError,
     ConnectionLost,
@@ -26,17 +32,7 @@ from piezo_stage.hardware.safety import VoltageLimits, round_within, slew_step
 pytestmark = pytest.mark.ros
 
 
-class FakeClock:
-    """Deterministic time for the driver (the emulators run on real time)."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += seconds
+FakeClock = ManualClock  # deterministic time for the driver (the emulators run on real time)
 
 
 def sent_voltages(model) -> list[float]:

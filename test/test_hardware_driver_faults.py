@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from piezo_stage.hardware.amplifier import GCSAmplifier
 from piezo_stage.hardware.driver import DriverConfig, DriverState, VoltageDriver
-from piezo_stage.hardware.emulators import Faults, GCSDeviceModel, LoopbackTransport
+from piezo_stage.hardware.emulators import Faults, GCSDeviceModel, LoopbackTransport, ManualClock
 from piezo_stage.hardware.emulators.gcs_device import IDN
 from piezo_stage.hardware.errors import HardwareError
 from piezo_stage.hardware.timing import CommandPlayout
@@ -30,15 +30,8 @@ CAP_TIME = 0.025  # s: the most slew one write may carry (issue 18)
 WRITE_PERIOD = 0.01  # s: the driver's default write (tick) period, the period the tests tick at
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += seconds
+def Clock() -> ManualClock:
+    return ManualClock(100.0)
 
 
 class Bench:

@@ -2,7 +2,7 @@
 the simulated plant) served on ptys or loopback TCP by :class:`EmulatorServer`."""
 
 from .gcs_device import GCSDeviceModel
-from .loopback import LoopbackTransport
+from .loopback import LoopbackTransport, ManualClock
 from .mdt_device import MDTDeviceModel
 from .optoncdt_device import OptoNCDTDeviceModel
 from .server import EmulatorServer, Faults
@@ -12,6 +12,7 @@ __all__ = [
     "Faults",
     "GCSDeviceModel",
     "LoopbackTransport",
+    "ManualClock",
     "MDTDeviceModel",
     "OptoNCDTDeviceModel",
 ]

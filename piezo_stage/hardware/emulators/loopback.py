@@ -18,6 +18,19 @@ from ..transport import Transport
 from .server import DeviceModel, Faults
 
 
+class ManualClock:
+    """Time that moves only when set or slept on: the clock (and sleep) of deterministic runs."""
+
+    def __init__(self, t: float = 0.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
 class LoopbackTransport(Transport):
     def __init__(
         self,
