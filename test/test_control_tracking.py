@@ -58,5 +58,6 @@ def test_triangle_targets_and_model_mismatch(fitted):
 
 def test_sine_at_100_hz(fitted):
     model = FeedforwardModel.from_parameter_set(fitted)
-    _, both = simulate_tracking(make_trajectory("sine", amplitude=5e-6, frequency=100.0), RIG, "both", model)
+    sine = make_trajectory("sine", amplitude=5e-6, frequency=100.0)
+    _, both = simulate_tracking(sine, RIG, "both", model)
     assert both.range == pytest.approx(10e-6, rel=1e-3) and both.relative <= 0.02

@@ -77,7 +77,8 @@ def test_csv_spline_holds_its_ends_and_reports_bad_files(tmp_path):
     path = tmp_path / "scan.csv"
     t = np.linspace(0.0, 0.02, 21)
     x = 5e-6 * (1 - np.cos(2 * np.pi * 50 * t))
-    path.write_text("t [s], x [m]\n# a comment\n" + "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(t, x)))
+    rows = "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(t, x))
+    path.write_text("t [s], x [m]\n# a comment\n" + rows)
     tr = make_trajectory(str(path))
     assert isinstance(tr, CsvTrajectory) and tr.range == pytest.approx(10e-6)
     xs, vs, accel = tr.evaluate(np.array([-1.0, 0.01, 1.0]))
