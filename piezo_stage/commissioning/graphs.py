@@ -358,7 +358,7 @@ def make_rig(
         with socket.socket() as sock:
             sock.bind(("127.0.0.1", 0))
             port = sock.getsockname()[1]
-        link = f"/tmp/piezo_commission_{os.getpid()}_{port}_sensor"
+        link = f"run:commission_{os.getpid()}_{port}_sensor"  # in the per-user run-time folder
         for n in nodes:
             if n.get("name") == "rig":
                 command = [
