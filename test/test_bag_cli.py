@@ -65,8 +65,8 @@ def test_export_and_reindex(bag, tmp_path, capsys):
     assert "1102 messages" in capsys.readouterr().out
 
 
-def test_errors_exit_1_with_a_message(tmp_path, capsys):
-    assert main(["bag", "info", str(tmp_path / "missing")]) == 1
+def test_errors_exit_2_with_a_message(tmp_path, capsys):
+    assert main(["bag", "info", str(tmp_path / "missing")]) == 2
     assert "no bag at" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["bag", "export", str(tmp_path)])  # --csv is required

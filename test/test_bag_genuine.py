@@ -176,7 +176,7 @@ def test_sqlite3_storage_is_named(tmp_path, capsys):
     (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
         "version": 5, "storage_identifier": "sqlite3", "relative_file_paths": ["db3_0.db3"],
         "topics_with_message_count": [], "message_count": 0}}))
-    assert main(["bag", "info", str(bag)]) == 1
+    assert main(["bag", "info", str(bag)]) == 2  # a storage it cannot read: unusable input
     assert "'sqlite3' storage: only MCAP" in capsys.readouterr().err
 
 

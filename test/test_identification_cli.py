@@ -96,10 +96,10 @@ def test_identify_reports_errors_without_numbers(tmp_path, patch_runs, capsys):
     clipped = Recording(patch_runs[1].t, patch_runs[1].input,
                         np.minimum(patch_runs[1].output, np.percentile(patch_runs[1].output, 85)))
     b = write_csv(tmp_path / "b.csv", clipped)
-    assert main(["identify", str(a), str(b), "--json"]) == 1
+    assert main(["identify", str(a), str(b), "--json"]) == 2  # unusable input
     captured = capsys.readouterr()
     assert captured.out == "" and "saturated" in captured.err
-    assert main(["identify", str(a), str(tmp_path / "missing.csv")]) == 1
+    assert main(["identify", str(a), str(tmp_path / "missing.csv")]) == 2
     assert "cannot read" in capsys.readouterr().err
     assert main(["identify", str(a), "--method", "analytic"]) == 1
     assert "two runs" in capsys.readouterr().err
@@ -191,5 +191,5 @@ def test_validate_on_a_sine(tmp_path, patch_runs, capsys):
 
 
 def test_validate_errors(tmp_path, capsys):
-    assert main(["validate", str(tmp_path / "none.yaml"), str(tmp_path / "none.csv")]) == 1
+    assert main(["validate", str(tmp_path / "none.yaml"), str(tmp_path / "none.csv")]) == 2
     assert "error" in capsys.readouterr().err

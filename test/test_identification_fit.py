@@ -238,7 +238,7 @@ def test_cli_extreme_values_give_a_reason_not_a_traceback(tmp_path, capsys, scal
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=300, periods=3)
     paths = [write_csv(tmp_path / f"{i}.csv", Recording(r.t, r.input * scale, r.output * scale))
              for i, r in enumerate(runs)]
-    assert main(["identify", *map(str, paths)]) == 1
+    assert main(["identify", *map(str, paths)]) == 2
     err = capsys.readouterr().err
     assert "out of range" in err and err.count("\n") == 1
 

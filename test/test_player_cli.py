@@ -60,5 +60,5 @@ def test_play_filters_remaps_and_publishes_the_clock(node, tmp_path):
 def test_play_missing_bag(tmp_path, capsys):
     from piezo_stage.cli import main
 
-    assert main(["play", str(tmp_path / "nope")]) == 1
+    assert main(["play", str(tmp_path / "nope")]) == 2
     assert "no bag" in capsys.readouterr().err

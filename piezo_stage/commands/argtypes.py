@@ -74,3 +74,22 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
 
 #: TCP port: 0 (any free one) to 65535.
 port = int_range(0, 65535)
+
+
+def data_error_exit_code(exc: Exception) -> int:
+    """Exit code of `identify`/`validate` for an error raised while reading or identifying:
+    2 for unusable input (unreadable, non-finite, out of range, too short, clipped, a bad
+    parameter file), 1 when the data were read but do not support the identification."""
+    from piezo_stage.identification.errors import IdentificationError, InputDataError
+
+    if isinstance(exc, IdentificationError) and not isinstance(exc, InputDataError):
+        return 1
+    return 2
+
+
+def bag_error_exit_code(exc: Exception) -> int:
+    """Exit code for an error opening or reading a bag: 1 for a damaged bag, 2 for input that is
+    not usable at all (no such path, not a bag, a topic the bag does not hold)."""
+    from piezo_stage.bag.errors import CorruptBagError
+
+    return 1 if isinstance(exc, CorruptBagError) else 2

@@ -59,12 +59,13 @@ def _run(args: argparse.Namespace) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.bag import BagError
+    from piezo_stage.commands.argtypes import bag_error_exit_code
 
     try:
         damaged = _run(args)
     except (BagError, OSError) as exc:
         print(f"piezo-stage bag {args.verb}: {exc}", file=sys.stderr)
-        return 1
+        return bag_error_exit_code(exc)
     if damaged and not args.allow_damaged:
         print(f"piezo-stage bag {args.verb}: the bag is damaged (see above); "
               f"--allow-damaged accepts it", file=sys.stderr)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.commands.argtypes import data_error_exit_code
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
 from piezo_stage.identification.methods import Method, identify_runs
@@ -205,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
             written = _plot(result, runs, Path(plots), stem)
     except (IdentificationError, BagError, ModelError, OSError) as exc:
         print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
-        return 1
+        return data_error_exit_code(exc)
     for text in result.warnings:
         print(f"piezo-stage identify: warning: {text}", file=sys.stderr)
     if args.json:

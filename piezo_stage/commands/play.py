@@ -64,5 +64,5 @@ def ros_args(args: argparse.Namespace) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if not Path(args.bag).exists():
         print(f"piezo-stage play: no bag at {args.bag}", file=sys.stderr)
-        return 1
+        return 2
     return run_node("piezo_stage.nodes.player", ros_args(args))

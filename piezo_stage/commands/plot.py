@@ -18,12 +18,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.bag.errors import BagError
+    from piezo_stage.commands.argtypes import bag_error_exit_code
     from piezo_stage.identification.errors import IdentificationError
     from piezo_stage.plotting import PlotError, plot_bag
 
     try:
         paths = plot_bag(args.bag, args.out)
-    except (PlotError, BagError, IdentificationError, OSError) as exc:
+    except (BagError, OSError) as exc:
+        print(f"piezo-stage plot: error: {exc}", file=sys.stderr)
+        return bag_error_exit_code(exc)
+    except (PlotError, IdentificationError) as exc:
         print(f"piezo-stage plot: error: {exc}", file=sys.stderr)
         return 1
     for path in paths:

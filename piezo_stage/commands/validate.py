@@ -14,6 +14,7 @@ import json
 import sys
 from pathlib import Path
 
+from piezo_stage.commands.argtypes import data_error_exit_code
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
 
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
                 written += plot_validation(res, args.out, stem if len(results) == 1 else f"{stem}_run{i}")
     except (IdentificationError, BagError, ModelError, OSError) as exc:
         print(f"piezo-stage validate: error: {exc}", file=sys.stderr)
-        return 1
+        return data_error_exit_code(exc)
     for res in results:
         s = res.summary()
         unit = res.recording.output_unit

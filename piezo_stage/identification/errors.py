@@ -13,11 +13,17 @@ class IdentificationError(ValueError):
     """Base class: the data cannot support the requested identification."""
 
 
-class NonFiniteDataError(IdentificationError):
+class InputDataError(IdentificationError):
+    """The recording itself is unusable input (unreadable, non-finite, out of range, too short,
+    clipped): the CLI exits 2, as for any bad input. Other identification errors mean the data
+    were read but do not support the method (exit 1)."""
+
+
+class NonFiniteDataError(InputDataError):
     """NaN or inf in time, input or output."""
 
 
-class TooFewSamplesError(IdentificationError):
+class TooFewSamplesError(InputDataError):
     """Not enough samples (per branch, per period or in total) for the method."""
 
 
@@ -31,7 +37,7 @@ class NoSteadyStateError(IdentificationError):
     not reached, or the system drifts)."""
 
 
-class SaturatedOutputError(IdentificationError):
+class SaturatedOutputError(InputDataError):
     """The output is clipped (flat at its extreme while the input keeps moving) or the sensor
     flagged samples as invalid."""
 
@@ -73,5 +79,5 @@ class RefinementError(IdentificationError):
     """The least-squares refinement could not run (the model failed to simulate a trial point)."""
 
 
-class DataFormatError(IdentificationError):
+class DataFormatError(InputDataError):
     """A recording file cannot be read: missing columns, unparsable numbers, unknown format."""
