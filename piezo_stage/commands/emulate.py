@@ -1,11 +1,11 @@
-"""Run device emulators (PI GCS amplifier, Thorlabs MDT69x, optoNCDT sensor, or a whole rig) on ptys/TCP.
+"""Run device emulators (PI GCS, Thorlabs MDT69x, optoNCDT sensor, or a whole rig) on ptys/TCP.
 
-Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or
-``gcs: tcp://127.0.0.1:50000``, so a launcher or a user can connect the voltage_driver / laser_reader
-nodes to it; ``--link`` / ``--sensor-link`` / ``--amp-link`` give a pty a fixed path (a symlink,
-removed on exit; ``run:NAME`` puts it in the per-user run-time folder, where the reader's
-``url: run:NAME`` finds it). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not
-vanish under a driver that is still ramping its output to a safe voltage: on the first signal it
+Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or ``gcs: tcp://127.0.0.1:50000``,
+so a launcher or a user can connect the voltage_driver / laser_reader nodes to it; ``--link`` /
+``--sensor-link`` / ``--amp-link`` give a pty a fixed path (a symlink, removed on exit;
+``run:NAME`` puts it in the per-user run-time folder, where the reader's ``url: run:NAME`` finds
+it). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not vanish under
+a driver that is still ramping its output to a safe voltage: on the first signal it
 keeps serving until its TCP clients have hung up, at most --linger seconds (a pty cannot tell
 whether its client is gone, so pty endpoints stop at once); a second signal stops it at once.
 Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbage (random bursts),
@@ -41,57 +41,134 @@ SENSOR_FAMILIES = sorted(FAMILIES)
 
 def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
     g = parser.add_argument_group("fault injection")
-    g.add_argument("--drop", type=probability, default=0.0, metavar="P", help="probability an output byte is lost")
-    g.add_argument("--corrupt", type=probability, default=0.0, metavar="P",
-                   help="probability an output byte is replaced by a random byte")
-    g.add_argument("--garbage", type=probability, default=0.0, metavar="P",
-                   help="probability an output chunk is preceded by 1-32 random bytes")
-    g.add_argument("--hangup", type=probability, default=0.0, metavar="P",
-                   help="probability an output chunk is cut in the middle and the link hung up")
-    g.add_argument("--stall", type=probability, default=0.0, metavar="P",
-                   help="probability the device stalls (no output, input ignored) before a chunk")
-    g.add_argument("--stall-time", type=non_negative, default=0.5, metavar="SECONDS",
-                   help="length of a stall")
-    g.add_argument("--slow", type=non_negative, default=0.0, metavar="SECONDS", help="delay every reply")
-    g.add_argument("--disconnect-every", type=non_negative, default=0.0, metavar="SECONDS",
-                   help="hang up all clients periodically (pty: a new pty, path printed again)")
+    g.add_argument(
+        "--drop",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability an output byte is lost",
+    )
+    g.add_argument(
+        "--corrupt",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability an output byte is replaced by a random byte",
+    )
+    g.add_argument(
+        "--garbage",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability an output chunk is preceded by 1-32 random bytes",
+    )
+    g.add_argument(
+        "--hangup",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability an output chunk is cut in the middle and the link hung up",
+    )
+    g.add_argument(
+        "--stall",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability the device stalls (no output, input ignored) before a chunk",
+    )
+    g.add_argument(
+        "--stall-time", type=non_negative, default=0.5, metavar="SECONDS", help="length of a stall"
+    )
+    g.add_argument(
+        "--slow", type=non_negative, default=0.0, metavar="SECONDS", help="delay every reply"
+    )
+    g.add_argument(
+        "--disconnect-every",
+        type=non_negative,
+        default=0.0,
+        metavar="SECONDS",
+        help="hang up all clients periodically (pty: a new pty, path printed again)",
+    )
     g.add_argument("--seed", type=int, default=None, help="seed of the fault generator")
     if link:
-        parser.add_argument("--link", default=None, metavar="PATH",
-                            help="stable symlink to the pty (kept across --disconnect-every)")
-    parser.add_argument("--duration", type=non_negative, default=0.0, metavar="SECONDS",
-                        help="stop after this long (0: run until Ctrl-C)")
-    parser.add_argument("--realtime", type=int_range(0, 99), default=0, metavar="PRIORITY",
-                        help="run the device threads under SCHED_FIFO at this priority (1-99) when the "
-                             "system allows it, so a loaded host does not delay the device (0: normal)")
-    parser.add_argument("--linger", type=non_negative, default=3.0, metavar="SECONDS",
-                        help="on Ctrl-C/SIGTERM keep serving while TCP clients are connected, at most "
-                             "this long (a driver ramping to its safe voltage); 0: stop at once")
+        parser.add_argument(
+            "--link",
+            default=None,
+            metavar="PATH",
+            help="stable symlink to the pty (kept across --disconnect-every)",
+        )
+    parser.add_argument(
+        "--duration",
+        type=non_negative,
+        default=0.0,
+        metavar="SECONDS",
+        help="stop after this long (0: run until Ctrl-C)",
+    )
+    parser.add_argument(
+        "--realtime",
+        type=int_range(0, 99),
+        default=0,
+        metavar="PRIORITY",
+        help="run the device threads under SCHED_FIFO at this priority (1-99) when the "
+        "system allows it, so a loaded host does not delay the device (0: normal)",
+    )
+    parser.add_argument(
+        "--linger",
+        type=non_negative,
+        default=3.0,
+        metavar="SECONDS",
+        help="on Ctrl-C/SIGTERM keep serving while TCP clients are connected, at most "
+        "this long (a driver ramping to its safe voltage); 0: stop at once",
+    )
 
 
 def _sensor_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--family", choices=SENSOR_FAMILIES, default="ild1320")
-    parser.add_argument("--bits", type=int, choices=(14, 16, 18), default=None,
-                        help="output word width (ILD1320 family: 16 or 18; default per family)")
-    parser.add_argument("--rate", type=positive, default=1000.0, metavar="HZ", help="measuring rate")
-    parser.add_argument("--measuring-range", type=positive, default=10e-3, metavar="M",
-                        help="measuring range MR [m]")
-    parser.add_argument("--error-values", type=probability, default=0.0, metavar="P",
-                        help="probability a sample is replaced by an error value")
+    parser.add_argument(
+        "--bits",
+        type=int,
+        choices=(14, 16, 18),
+        default=None,
+        help="output word width (ILD1320 family: 16 or 18; default per family)",
+    )
+    parser.add_argument(
+        "--rate", type=positive, default=1000.0, metavar="HZ", help="measuring rate"
+    )
+    parser.add_argument(
+        "--measuring-range",
+        type=positive,
+        default=10e-3,
+        metavar="M",
+        help="measuring range MR [m]",
+    )
+    parser.add_argument(
+        "--error-values",
+        type=probability,
+        default=0.0,
+        metavar="P",
+        help="probability a sample is replaced by an error value",
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="device", required=True, metavar="DEVICE")
     gcs = sub.add_parser("gcs", help="PI E-709-class controller (GCS 2.0)")
     where = gcs.add_mutually_exclusive_group()
-    where.add_argument("--tcp", type=port, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)")
+    where.add_argument(
+        "--tcp", type=port, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)"
+    )
     where.add_argument("--pty", action="store_true", help="serve on a pty (default)")
     gcs.add_argument("--axis", default="1", help="axis identifier reported by SAI?")
     gcs.add_argument("--v-min", type=float, default=-30.0, help="VMI? [V]")
     gcs.add_argument("--v-max", type=float, default=130.0, help="VMA? [V]")
-    gcs.add_argument("--servo-off", action="store_true", help="start with the servo off (default: on)")
-    gcs.add_argument("--accept-sva-with-servo-on", action="store_true",
-                     help="do not refuse SVA while the servo is on (the real controller refuses, error 79)")
+    gcs.add_argument(
+        "--servo-off", action="store_true", help="start with the servo off (default: on)"
+    )
+    gcs.add_argument(
+        "--accept-sva-with-servo-on",
+        action="store_true",
+        help="do not refuse SVA while the servo is on (the real controller refuses, error 79)",
+    )
     _faults(gcs)
 
     mdt = sub.add_parser("mdt69x", help="Thorlabs MDT694B/MDT693B on a pty")
@@ -105,59 +182,141 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _faults(sensor)
 
     rig = sub.add_parser("rig", help="amplifier + sensor bound to one simulated stage")
-    rig.add_argument("--params", required=True,
-                     help="parameter-set YAML of the simulated stage (a path, or a name in config/, e.g. ch10_patch.yaml)")
+    rig.add_argument(
+        "--params",
+        required=True,
+        help="parameter-set YAML of the simulated stage (a path, or a name in config/, "
+        "e.g. ch10_patch.yaml)",
+    )
     rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
-    rig.add_argument("--amp-tcp", type=port, default=None, metavar="PORT",
-                     help="serve the GCS amplifier on TCP instead of a pty")
-    rig.add_argument("--standoff", type=float, default=None, metavar="M",
-                     help="sensor reading at zero displacement [m] (default: MR/2)")
-    rig.add_argument("--amp-range", type=float, nargs=2, default=None, metavar=("VMIN", "VMAX"),
-                     help="GCS amplifier output range VMI?/VMA? [V] (default -30 130, an E-709)")
-    rig.add_argument("--sensor-link", default=None, metavar="PATH",
-                     help="fixed path (symlink) of the sensor's pty, for the laser_reader's url")
-    rig.add_argument("--amp-link", default=None, metavar="PATH",
-                     help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)")
+    rig.add_argument(
+        "--amp-tcp",
+        type=port,
+        default=None,
+        metavar="PORT",
+        help="serve the GCS amplifier on TCP instead of a pty",
+    )
+    rig.add_argument(
+        "--standoff",
+        type=float,
+        default=None,
+        metavar="M",
+        help="sensor reading at zero displacement [m] (default: MR/2)",
+    )
+    rig.add_argument(
+        "--amp-range",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("VMIN", "VMAX"),
+        help="GCS amplifier output range VMI?/VMA? [V] (default -30 130, an E-709)",
+    )
+    rig.add_argument(
+        "--amp-bandwidth",
+        type=non_negative,
+        default=1000.0,
+        metavar="HZ",
+        help="amplifier small-signal bandwidth: a Butterworth low-pass from command to "
+        "stage (default 1000; 0: ideal, every 1/rate step reaches the stage)",
+    )
+    rig.add_argument(
+        "--amp-filter-order",
+        type=int,
+        choices=(1, 2),
+        default=2,
+        help="order of that low-pass (default 2)",
+    )
+    rig.add_argument(
+        "--sensor-link",
+        default=None,
+        metavar="PATH",
+        help="fixed path (symlink) of the sensor's pty, for the laser_reader's url",
+    )
+    rig.add_argument(
+        "--amp-link",
+        default=None,
+        metavar="PATH",
+        help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)",
+    )
     _sensor_args(rig)
     _faults(rig, link=False)
 
 
 def _make_faults(args: argparse.Namespace) -> Faults:
-    return Faults(drop=args.drop, corrupt=args.corrupt, garbage=args.garbage, hangup=args.hangup,
-                  stall=args.stall, stall_time=args.stall_time, reply_delay=args.slow, seed=args.seed)
+    return Faults(
+        drop=args.drop,
+        corrupt=args.corrupt,
+        garbage=args.garbage,
+        hangup=args.hangup,
+        stall=args.stall,
+        stall_time=args.stall_time,
+        reply_delay=args.slow,
+        seed=args.seed,
+    )
 
 
 def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
     faults = _make_faults(args)
     rt = args.realtime
     if args.device == "gcs":
-        model = GCSDeviceModel(axis=args.axis, v_min=args.v_min, v_max=args.v_max,
-                               servo_on=not args.servo_off,
-                               refuse_sva_when_servo_on=not args.accept_sva_with_servo_on)
-        endpoint = {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
+        model = GCSDeviceModel(
+            axis=args.axis,
+            v_min=args.v_min,
+            v_max=args.v_max,
+            servo_on=not args.servo_off,
+            refuse_sva_when_servo_on=not args.accept_sva_with_servo_on,
+        )
+        endpoint = (
+            {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
+        )
         return {"gcs": EmulatorServer(model, faults=faults, realtime_priority=rt, **endpoint)}
     if args.device == "mdt69x":
         model = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
-        return {"mdt69x": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt)}
+        return {
+            "mdt69x": EmulatorServer(
+                model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
+            )
+        }
     fmt = frame_format(args.family, args.bits)
     if args.device == "optoncdt":
-        model = OptoNCDTDeviceModel(fmt, args.measuring_range, args.rate,
-                                    error_probability=args.error_values, seed=args.seed)
-        return {"optoncdt": EmulatorServer(model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt)}
+        model = OptoNCDTDeviceModel(
+            fmt,
+            args.measuring_range,
+            args.rate,
+            error_probability=args.error_values,
+            seed=args.seed,
+        )
+        return {
+            "optoncdt": EmulatorServer(
+                model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
+            )
+        }
     from piezo_stage.hardware.emulators.rig import RigEmulator
 
-    rig = RigEmulator(load_stage(args.params), fmt, args.measuring_range, amplifier=args.amplifier,
-                      amplifier_tcp_port=args.amp_tcp, rate=args.rate, standoff=args.standoff,
-                      sensor_errors=args.error_values, amplifier_faults=faults,
-                      sensor_faults=_make_faults(args), seed=args.seed,
-                      sensor_link=args.sensor_link, amplifier_link=args.amp_link,
-                      amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
-                      realtime_priority=args.realtime)
+    rig = RigEmulator(
+        load_stage(args.params),
+        fmt,
+        args.measuring_range,
+        amplifier=args.amplifier,
+        amplifier_tcp_port=args.amp_tcp,
+        rate=args.rate,
+        standoff=args.standoff,
+        sensor_errors=args.error_values,
+        amplifier_faults=faults,
+        sensor_faults=_make_faults(args),
+        seed=args.seed,
+        sensor_link=args.sensor_link,
+        amplifier_link=args.amp_link,
+        amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
+        realtime_priority=args.realtime,
+        amplifier_bandwidth=args.amp_bandwidth,
+        amplifier_filter_order=args.amp_filter_order,
+    )
     return rig.servers
 
 
 def load_stage(path: str):
-    """The simulated stage of the parameter set at ``path``, or of the shipped config of that name."""
+    """The simulated stage of the parameter set at ``path``, or of the shipped config so named."""
     from pathlib import Path
 
     from piezo_stage.config_path import find_config
@@ -192,7 +351,9 @@ def run(args: argparse.Namespace) -> int:
         # both signals only count and set the flag: a Ctrl-C that comes while the endpoints are
         # being announced (or at any other point) still stops the servers cleanly, exit 0
         signal.signal(signal.SIGTERM, on_signal)
-        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a launcher may have us ignore it
+        if (
+            signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+        ):  # a launcher may have us ignore it
             signal.signal(signal.SIGINT, on_signal)
     for server in servers.values():
         server.start()
@@ -202,7 +363,9 @@ def run(args: argparse.Namespace) -> int:
         if server.realtime_error:
             print(f"{name}: note: {server.realtime_error}", flush=True)
     t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
-    next_hangup = time.monotonic() + args.disconnect_every if args.disconnect_every > 0 else float("inf")
+    next_hangup = (
+        time.monotonic() + args.disconnect_every if args.disconnect_every > 0 else float("inf")
+    )
     try:
         while not stop.is_set() and time.monotonic() < t_end:
             stop.wait(min(0.05, max(t_end - time.monotonic(), 0.0)))
@@ -216,7 +379,11 @@ def run(args: argparse.Namespace) -> int:
                 return failed
         if stop.is_set():  # a signal, not --duration: let connected drivers finish their ramp
             linger_end = time.monotonic() + max(args.linger, 0.0)
-            while signals[0] < 2 and time.monotonic() < linger_end and any(s.clients for s in servers.values()):
+            while (
+                signals[0] < 2
+                and time.monotonic() < linger_end
+                and any(s.clients for s in servers.values())
+            ):
                 time.sleep(0.02)
                 if (failed := _failed(servers)) is not None:
                     return failed
