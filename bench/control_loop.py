@@ -111,19 +111,28 @@ class LoopFigures:
     def merge(parts: list["LoopFigures"]) -> "LoopFigures":
         """One run's figures from its slices (latencies pooled, counts summed)."""
         intervals_std = max(p.command_interval_std for p in parts)
-        return LoopFigures(parts[0].label, sum(p.seconds for p in parts), sum(p.samples for p in parts),
-                           sum(p.commands for p in parts), np.concatenate([p.latencies for p in parts]),
-                           sum(p.missed for p in parts), sum(p.sensor_gaps for p in parts), intervals_std)
+        return LoopFigures(
+            parts[0].label,
+            sum(p.seconds for p in parts),
+            sum(p.samples for p in parts),
+            sum(p.commands for p in parts),
+            np.concatenate([p.latencies for p in parts]),
+            sum(p.missed for p in parts),
+            sum(p.sensor_gaps for p in parts),
+            intervals_std,
+        )
 
     def line(self) -> str:
         lat = self.latencies * 1e3
         if lat.size == 0:
             return f"{self.label:<34} no matched command in {self.seconds:.0f} s"
         p50, p99 = np.percentile(lat, [50, 99])
-        return (f"{self.label:<34} samples {self.samples:6d}  commands {self.commands:6d}  latency ms: "
-                f"p50 {p50:6.3f}  p99 {p99:6.3f}  max {lat.max():7.3f}  missed {self.missed:4d}  "
-                f"sensor gaps {self.sensor_gaps:3d}  command-interval std (worst slice) "
-                f"{self.command_interval_std * 1e3:.3f} ms")
+        return (
+            f"{self.label:<34} samples {self.samples:6d}  commands {self.commands:6d}  latency ms: "
+            f"p50 {p50:6.3f}  p99 {p99:6.3f}  max {lat.max():7.3f}  missed {self.missed:4d}  "
+            f"sensor gaps {self.sensor_gaps:3d}  command-interval std (worst slice) "
+            f"{self.command_interval_std * 1e3:.3f} ms"
+        )
 
 
 def _env() -> dict:
@@ -135,16 +144,51 @@ def _env() -> dict:
 def _sensor_cmd(sensor: str, rate: float) -> list[str]:
     if sensor == "publisher":
         return [sys.executable, "-c", PUBLISHER, str(rate), NS]
-    return [sys.executable, "-m", "piezo_stage.nodes.plant", "--ros-args", "-r", f"__ns:={NS}",
-            "-p", "model_file:=ch11_rig.yaml", "-p", "clock_mode:=realtime", "-p", f"rate_hz:={rate}",
-            "-p", "v_min:=-450.0", "-p", "v_max:=450.0"]
+    return [
+        sys.executable,
+        "-m",
+        "piezo_stage.nodes.plant",
+        "--ros-args",
+        "-r",
+        f"__ns:={NS}",
+        "-p",
+        "model_file:=ch11_rig.yaml",
+        "-p",
+        "clock_mode:=realtime",
+        "-p",
+        f"rate_hz:={rate}",
+        "-p",
+        "v_min:=-450.0",
+        "-p",
+        "v_max:=450.0",
+    ]
 
 
 def _controller_cmd(trigger: str, rate: float) -> list[str]:
-    return [sys.executable, "-m", "piezo_stage.nodes.controller", "--ros-args", "-r", f"__ns:={NS}",
-            "-p", f"trigger:={trigger}", "-p", f"rate_hz:={rate}", "-p", "delay_samples:=1",
-            "-p", "start_closed:=true", "-p", "reference_source:=constant", "-p", "reference:=1e-5",
-            "-p", "mode:=pid", "-p", "stale_periods:=1000"]
+    return [
+        sys.executable,
+        "-m",
+        "piezo_stage.nodes.controller",
+        "--ros-args",
+        "-r",
+        f"__ns:={NS}",
+        "-p",
+        f"trigger:={trigger}",
+        "-p",
+        f"rate_hz:={rate}",
+        "-p",
+        "delay_samples:=1",
+        "-p",
+        "start_closed:=true",
+        "-p",
+        "reference_source:=constant",
+        "-p",
+        "reference:=1e-5",
+        "-p",
+        "mode:=pid",
+        "-p",
+        "stale_periods:=1000",
+    ]
 
 
 def _fifo(cmd: list[str], priority: int) -> list[str]:
@@ -152,8 +196,9 @@ def _fifo(cmd: list[str], priority: int) -> list[str]:
     return ["chrt", "-f", str(priority), *cmd] if priority > 0 else cmd
 
 
-def measure(label: str, commander: list[str], sensor: list[str], seconds: float, rate: float,
-            match: str) -> LoopFigures:
+def measure(
+    label: str, commander: list[str], sensor: list[str], seconds: float, rate: float, match: str
+) -> LoopFigures:
     """Start sensor + commander, wait for the loop to run, record ``seconds``, return the figures."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -170,7 +215,9 @@ def measure(label: str, commander: list[str], sensor: list[str], seconds: float,
 
     def on_sample(msg: Displacement) -> None:
         if recording["samples"]:
-            samples.append((msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, time.time_ns()))
+            samples.append(
+                (msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, time.time_ns())
+            )
 
     def on_command(msg: Voltage) -> None:
         now = time.time_ns()
@@ -180,8 +227,12 @@ def measure(label: str, commander: list[str], sensor: list[str], seconds: float,
             commands.append((0, now))  # warm-up: only counted to know the loop runs
 
     node.create_subscription(Displacement, "displacement", on_sample, qos_profile_sensor_data)
-    node.create_subscription(Voltage, "voltage_command", on_command,
-                             QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    node.create_subscription(
+        Voltage,
+        "voltage_command",
+        on_command,
+        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
+    )
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
@@ -212,13 +263,21 @@ def measure(label: str, commander: list[str], sensor: list[str], seconds: float,
     return _figures(label, seconds, rate, samples, [c for c in commands if c[0]], match)
 
 
-def _figures(label: str, seconds: float, rate: float, samples: list[tuple[int, int]],
-             commands: list[tuple[int, int]], match: str) -> LoopFigures:
+def _figures(
+    label: str,
+    seconds: float,
+    rate: float,
+    samples: list[tuple[int, int]],
+    commands: list[tuple[int, int]],
+    match: str,
+) -> LoopFigures:
     period_ns = 1e9 / rate
     s_stamp = np.array([s for s, _ in samples], dtype=np.int64)
     c_stamp = np.array([s for s, _ in commands], dtype=np.int64)
     c_recv = np.array([r for _, r in commands], dtype=np.int64)
-    sensor_gaps = int(np.count_nonzero(np.diff(s_stamp) > 1.5 * period_ns)) if s_stamp.size > 1 else 0
+    sensor_gaps = (
+        int(np.count_nonzero(np.diff(s_stamp) > 1.5 * period_ns)) if s_stamp.size > 1 else 0
+    )
     if match == "stamp":
         first = {}
         for stamp, recv in commands:
@@ -238,18 +297,31 @@ def _figures(label: str, seconds: float, rate: float, samples: list[tuple[int, i
         intervals = np.diff(c_stamp)
         missed = int(np.sum(np.maximum(np.round(intervals / period_ns) - 1, 0)))
     std = float(np.std(intervals) * 1e-9) if intervals.size else math.nan
-    return LoopFigures(label, seconds, int(s_stamp.size), int(c_stamp.size), lat, missed, sensor_gaps, std)
+    return LoopFigures(
+        label, seconds, int(s_stamp.size), int(c_stamp.size), lat, missed, sensor_gaps, std
+    )
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=60.0, help="recorded seconds per run (default 60)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=60.0, help="recorded seconds per run (default 60)"
+    )
     parser.add_argument("--rate", type=float, default=1000.0, help="loop rate [Hz] (default 1000)")
     parser.add_argument("--trigger", choices=("sample", "timer", "both"), default="both")
     parser.add_argument("--sensor", choices=("plant", "publisher"), default="plant")
-    parser.add_argument("--repeat", type=int, default=3, help="slices per run, taken in turn (default 3)")
-    parser.add_argument("--fifo", type=int, default=0, metavar="PRIO",
-                        help="run sensor, commander and this process under SCHED_FIFO PRIO (root; 0: off)")
+    parser.add_argument(
+        "--repeat", type=int, default=3, help="slices per run, taken in turn (default 3)"
+    )
+    parser.add_argument(
+        "--fifo",
+        type=int,
+        default=0,
+        metavar="PRIO",
+        help="run sensor, commander and this process under SCHED_FIFO PRIO (root; 0: off)",
+    )
     args = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", "43")  # this process and its children
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -259,22 +331,38 @@ def main() -> int:
     if args.fifo > 0:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
     triggers = ("sample", "timer") if args.trigger == "both" else (args.trigger,)
-    configs = [("baseline: rclpy echo (2 processes)", _fifo([sys.executable, "-c", ECHO, NS], args.fifo), "stamp")]
-    configs += [(f"controller node, trigger={trigger}", _fifo(_controller_cmd(trigger, args.rate), args.fifo),
-                 "stamp" if trigger == "sample" else "next") for trigger in triggers]
+    configs = [
+        (
+            "baseline: rclpy echo (2 processes)",
+            _fifo([sys.executable, "-c", ECHO, NS], args.fifo),
+            "stamp",
+        )
+    ]
+    configs += [
+        (
+            f"controller node, trigger={trigger}",
+            _fifo(_controller_cmd(trigger, args.rate), args.fifo),
+            "stamp" if trigger == "sample" else "next",
+        )
+        for trigger in triggers
+    ]
     parts: dict[str, list[LoopFigures]] = {label: [] for label, _, _ in configs}
     rclpy.init()
     try:  # round robin in --repeat slices: the runs share the machine's (varying) load
         for _ in range(args.repeat):
             for label, commander, match in configs:
-                parts[label].append(measure(label, commander, sensor, args.seconds / args.repeat, args.rate, match))
+                parts[label].append(
+                    measure(label, commander, sensor, args.seconds / args.repeat, args.rate, match)
+                )
     finally:
         rclpy.try_shutdown()
     runs = [LoopFigures.merge(p) for p in parts.values()]
     load = os.getloadavg()
-    print(f"{args.rate:g} Hz loop over ROS topics, sensor = {args.sensor}, {args.seconds:g} s per run "
-          f"({args.repeat} slices in turn), SCHED_FIFO {args.fifo or 'off'}, "
-          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    print(
+        f"{args.rate:g} Hz loop over ROS topics, sensor = {args.sensor}, {args.seconds:g} s per run "
+        f"({args.repeat} slices in turn), SCHED_FIFO {args.fifo or 'off'}, "
+        f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
+    )
     for r in runs:
         print(r.line())
     base = runs[0]
@@ -286,8 +374,10 @@ def main() -> int:
         p99, base_p99 = np.percentile(r.latencies, 99), np.percentile(base.latencies, 99)
         met = p99 <= TARGET_P99 and r.missed == 0
         ok &= met
-        print(f"  {r.label}: p99 {p99 * 1e3:.3f} ms = {p99 / base_p99:.2f} x the echo's; target p99 <= "
-              f"{TARGET_P99 * 1e3:g} ms and no missed cycle: {'met' if met else 'NOT met'}")
+        print(
+            f"  {r.label}: p99 {p99 * 1e3:.3f} ms = {p99 / base_p99:.2f} x the echo's; target p99 <= "
+            f"{TARGET_P99 * 1e3:g} ms and no missed cycle: {'met' if met else 'NOT met'}"
+        )
     return 0 if ok else 1
 
 

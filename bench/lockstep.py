@@ -86,15 +86,53 @@ def ping_pong(seconds: float, executor: str) -> float:
 
 COMMANDERS = {
     # the controller closes the loop on each displacement sample (thesis ch. 11 at 100 kHz)
-    "controller": ["piezo_stage.nodes.controller", "--ros-args", "-r", "__ns:=/bench",
-                   "-p", "trigger:=sample", "-p", "sensor_qos:=reliable", "-p", "rate_hz:=100000.0", "-p", "delay_samples:=0",
-                   "-p", "start_closed:=true", "-p", "reference_source:=constant",
-                   "-p", "reference:=2e-5", "-p", "mode:=pid"],
+    "controller": [
+        "piezo_stage.nodes.controller",
+        "--ros-args",
+        "-r",
+        "__ns:=/bench",
+        "-p",
+        "trigger:=sample",
+        "-p",
+        "sensor_qos:=reliable",
+        "-p",
+        "rate_hz:=100000.0",
+        "-p",
+        "delay_samples:=0",
+        "-p",
+        "start_closed:=true",
+        "-p",
+        "reference_source:=constant",
+        "-p",
+        "reference:=2e-5",
+        "-p",
+        "mode:=pid",
+    ],
     # the excitation answers each /clock tick (the identification run): a 1 Hz triangle
-    "excitation": ["piezo_stage.nodes.excitation", "--ros-args", "-r", "__ns:=/bench",
-                   "-p", "trigger:=clock", "-p", "preset:=''", "-p", "waveform:=triangle",
-                   "-p", "period:=1.0", "-p", "low:=0.0", "-p", "amplitude:=300.0",
-                   "-p", "offsets:=[0.0]", "-p", "settle_periods:=1000", "-p", "record_periods:=1"],
+    "excitation": [
+        "piezo_stage.nodes.excitation",
+        "--ros-args",
+        "-r",
+        "__ns:=/bench",
+        "-p",
+        "trigger:=clock",
+        "-p",
+        "preset:=''",
+        "-p",
+        "waveform:=triangle",
+        "-p",
+        "period:=1.0",
+        "-p",
+        "low:=0.0",
+        "-p",
+        "amplitude:=300.0",
+        "-p",
+        "offsets:=[0.0]",
+        "-p",
+        "settle_periods:=1000",
+        "-p",
+        "record_periods:=1",
+    ],
 }
 
 
@@ -105,7 +143,9 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def lockstep(seconds: float, executor: str, commander: str = "controller") -> tuple[float, float, float]:
+def lockstep(
+    seconds: float, executor: str, commander: str = "controller"
+) -> tuple[float, float, float]:
     """Plant (ch. 11 rig, dynamic, lockstep at 100 kHz) + ``commander``: steps per wall second,
     and the CPU time per step [s] of the plant and of the commander.
 
@@ -121,9 +161,24 @@ def lockstep(seconds: float, executor: str, commander: str = "controller") -> tu
     env = _env(executor)
     base = [sys.executable, "-m"]
     procs = [
-        subprocess.Popen(base + ["piezo_stage.nodes.plant", "--ros-args", "-r", "__ns:=/bench",
-                                 "-p", "model_file:=ch11_rig.yaml", "-p", "clock_mode:=lockstep",
-                                 "-p", "rate_hz:=100000.0", "-p", "initial_voltage:=200.0"], env=env),
+        subprocess.Popen(
+            base
+            + [
+                "piezo_stage.nodes.plant",
+                "--ros-args",
+                "-r",
+                "__ns:=/bench",
+                "-p",
+                "model_file:=ch11_rig.yaml",
+                "-p",
+                "clock_mode:=lockstep",
+                "-p",
+                "rate_hz:=100000.0",
+                "-p",
+                "initial_voltage:=200.0",
+            ],
+            env=env,
+        ),
         subprocess.Popen(base + COMMANDERS[commander], env=env),
     ]
     node = rclpy.create_node("lockstep_bench")
@@ -134,8 +189,14 @@ def lockstep(seconds: float, executor: str, commander: str = "controller") -> tu
             if status.name == "/bench/plant":
                 steps = {kv.key: kv.value for kv in status.values}.get("steps")
                 if steps is not None:
-                    counts.append((time.monotonic(), int(steps), _cpu_seconds(procs[0].pid),
-                                   _cpu_seconds(procs[1].pid)))
+                    counts.append(
+                        (
+                            time.monotonic(),
+                            int(steps),
+                            _cpu_seconds(procs[0].pid),
+                            _cpu_seconds(procs[1].pid),
+                        )
+                    )
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
     try:
@@ -159,10 +220,17 @@ def lockstep(seconds: float, executor: str, commander: str = "controller") -> tu
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seconds", type=float, default=10.0)
-    parser.add_argument("--commanders", nargs="+", default=list(COMMANDERS), choices=list(COMMANDERS),
-                        help="which lockstep graphs to run (default: both)")
+    parser.add_argument(
+        "--commanders",
+        nargs="+",
+        default=list(COMMANDERS),
+        choices=list(COMMANDERS),
+        help="which lockstep graphs to run (default: both)",
+    )
     args = parser.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", "42")  # this process and its children
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -174,11 +242,15 @@ def main() -> int:
         steps = {name: lockstep(args.seconds, "single", name) for name in args.commanders}
     finally:
         rclpy.try_shutdown()
-    print(f"baseline: rclpy ping-pong between two processes (SingleThreadedExecutor): {rt:8.0f} round trips/s")
+    print(
+        f"baseline: rclpy ping-pong between two processes (SingleThreadedExecutor): {rt:8.0f} round trips/s"
+    )
     for name, (rate, cpu_plant, cpu_commander) in steps.items():
-        print(f"lockstep plant + {name:10s} through DDS:                 {rate:8.0f} steps/s  "
-              f"(target >= 2000; {rate / rt:.2f} x the ping-pong); CPU per step: plant "
-              f"{cpu_plant * 1e6:.0f} us, {name} {cpu_commander * 1e6:.0f} us")
+        print(
+            f"lockstep plant + {name:10s} through DDS:                 {rate:8.0f} steps/s  "
+            f"(target >= 2000; {rate / rt:.2f} x the ping-pong); CPU per step: plant "
+            f"{cpu_plant * 1e6:.0f} us, {name} {cpu_commander * 1e6:.0f} us"
+        )
     return 0
 
 

@@ -78,8 +78,9 @@ def ours(u: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray]:
 
 def baseline(u: np.ndarray, method: str) -> tuple[float, np.ndarray]:
     start = time.perf_counter()
-    x, _, _ = simulate_reference(RIG.bouc_wen, RIG.dynamics, u, DT, method=method, rtol=1e-8,
-                                 reversal_events=False)
+    x, _, _ = simulate_reference(
+        RIG.bouc_wen, RIG.dynamics, u, DT, method=method, rtol=1e-8, reversal_events=False
+    )
     elapsed = time.perf_counter() - start
     return len(u) * DT / elapsed, x
 
@@ -106,9 +107,8 @@ def realtime_rate(seconds: float, rate_hz: float = 1000.0) -> tuple[dict[str, fl
 
     Returns the figures and the node's catch-up limit [s] (stalls beyond it drop samples)."""
     import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
     from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     from piezo_stage.nodes.executor import LeanExecutor
     from piezo_stage.nodes.plant import REALTIME_CATCH_UP
@@ -116,10 +116,25 @@ def realtime_rate(seconds: float, rate_hz: float = 1000.0) -> tuple[dict[str, fl
 
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    proc = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.plant", "--ros-args",
-                             "-r", "__ns:=/bench_rt", "-p", "model_file:=ch11_rig.yaml",
-                             "-p", "clock_mode:=realtime", "-p", f"rate_hz:={rate_hz}",
-                             "-p", "initial_voltage:=100.0"], env=env)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "piezo_stage.nodes.plant",
+            "--ros-args",
+            "-r",
+            "__ns:=/bench_rt",
+            "-p",
+            "model_file:=ch11_rig.yaml",
+            "-p",
+            "clock_mode:=realtime",
+            "-p",
+            f"rate_hz:={rate_hz}",
+            "-p",
+            "initial_voltage:=100.0",
+        ],
+        env=env,
+    )
     rclpy.init()
     node = rclpy.create_node("realtime_bench")
     arrivals: list[float] = []
@@ -178,18 +193,27 @@ def realtime_rate(seconds: float, rate_hz: float = 1000.0) -> tuple[dict[str, fl
     gaps = np.diff(stamped) * 1e-9
     latency = arrived - stamped * 1e-9
     rate = arrived.size / elapsed
-    return {"samples": arrived.size, "rate": rate, "error_pct": 100.0 * (rate - rate_hz) / rate_hz,
-            "stamp_rate": (stamped.size - 1) / ((stamped[-1] - stamped[0]) * 1e-9),
-            "gap_median": float(np.median(gaps)), "gap_p99": float(np.percentile(gaps, 99)),
-            "gap_max": float(np.max(gaps)), "min_gap": float(np.min(gaps)),
-            "arrival_p99": float(np.percentile(np.diff(arrived), 99)),
-            "dropped": dropped, "duplicates": stamped.size - np.unique(stamped).size,
-            "latency_median": float(np.median(latency)),
-            "latency_p99": float(np.percentile(latency, 99))}, REALTIME_CATCH_UP
+    return {
+        "samples": arrived.size,
+        "rate": rate,
+        "error_pct": 100.0 * (rate - rate_hz) / rate_hz,
+        "stamp_rate": (stamped.size - 1) / ((stamped[-1] - stamped[0]) * 1e-9),
+        "gap_median": float(np.median(gaps)),
+        "gap_p99": float(np.percentile(gaps, 99)),
+        "gap_max": float(np.max(gaps)),
+        "min_gap": float(np.min(gaps)),
+        "arrival_p99": float(np.percentile(np.diff(arrived), 99)),
+        "dropped": dropped,
+        "duplicates": stamped.size - np.unique(stamped).size,
+        "latency_median": float(np.median(latency)),
+        "latency_p99": float(np.percentile(latency, 99)),
+    }, REALTIME_CATCH_UP
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--realtime-seconds", type=float, default=30.0)
     parser.add_argument("--skip-integrator", action="store_true")
     parser.add_argument("--skip-realtime", action="store_true")
@@ -201,21 +225,25 @@ def main() -> int:
         os.environ.setdefault("ROS_DOMAIN_ID", "43")  # this process and the plant node
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         r, catch_up = realtime_rate(args.realtime_seconds)
-        print(f"realtime plant node, 1 kHz, {args.realtime_seconds:g} s wall: {r['samples']} samples received, "
-              f"{r['rate']:.1f} Hz ({r['error_pct']:+.2f} %, target within 5 %); stamps {r['stamp_rate']:.1f} Hz, "
-              f"spacing median {r['gap_median'] * 1e3:.3f} ms, p99 {r['gap_p99'] * 1e3:.3f} ms, "
-              f"max {r['gap_max'] * 1e3:.3f} ms; arrival spacing p99 {r['arrival_p99'] * 1e3:.3f} ms; stamp to "
-              f"arrival median {r['latency_median'] * 1e3:.3f} ms, p99 {r['latency_p99'] * 1e3:.3f} ms; "
-              f"samples the plant dropped after a stall > {catch_up:g} s: {r['dropped']}; duplicates {r['duplicates']}, "
-              f"min spacing {r['min_gap'] * 1e3:.3f} ms")
+        print(
+            f"realtime plant node, 1 kHz, {args.realtime_seconds:g} s wall: {r['samples']} samples received, "
+            f"{r['rate']:.1f} Hz ({r['error_pct']:+.2f} %, target within 5 %); stamps {r['stamp_rate']:.1f} Hz, "
+            f"spacing median {r['gap_median'] * 1e3:.3f} ms, p99 {r['gap_p99'] * 1e3:.3f} ms, "
+            f"max {r['gap_max'] * 1e3:.3f} ms; arrival spacing p99 {r['arrival_p99'] * 1e3:.3f} ms; stamp to "
+            f"arrival median {r['latency_median'] * 1e3:.3f} ms, p99 {r['latency_p99'] * 1e3:.3f} ms; "
+            f"samples the plant dropped after a stall > {catch_up:g} s: {r['dropped']}; duplicates {r['duplicates']}, "
+            f"min spacing {r['min_gap'] * 1e3:.3f} ms"
+        )
     print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
     return 0
 
 
 def integrator() -> None:
     print(f"ch. 11 rig, output step {DT * 1e6:g} us (10 kHz), DynamicPlant tol {DEFAULT_TOL:g}")
-    print(f"{'input':16s} {'ours xRT':>9s} {'(CPU)':>7s} {'ours err':>9s} {'pieces/out':>10s}   "
-          f"{'Radau xRT':>9s} {'err':>8s}   {'LSODA xRT':>9s} {'err':>8s}   {'ours/Radau':>10s} {'ours/LSODA':>10s}")
+    print(
+        f"{'input':16s} {'ours xRT':>9s} {'(CPU)':>7s} {'ours err':>9s} {'pieces/out':>10s}   "
+        f"{'Radau xRT':>9s} {'err':>8s}   {'LSODA xRT':>9s} {'err':>8s}   {'ours/Radau':>10s} {'ours/LSODA':>10s}"
+    )
     long = inputs(SPEED_SAMPLES, DT)
     for name, u in long.items():
         speed, speed_cpu, x, stats = ours(u)
@@ -232,8 +260,10 @@ def integrator() -> None:
         print("".join(row), flush=True)
     for dt, label in ((1e-4, "10 kHz"), (1e-5, "100 kHz")):
         plant_us, stage_us = per_call(dt)
-        print(f"per call at {label:7s}: DynamicPlant.step {plant_us:6.2f} us, SimulatedStage.step {stage_us:6.2f} us"
-              f"  ({dt * 1e6 / stage_us:.0f}x real time through the stage)")
+        print(
+            f"per call at {label:7s}: DynamicPlant.step {plant_us:6.2f} us, SimulatedStage.step {stage_us:6.2f} us"
+            f"  ({dt * 1e6 / stage_us:.0f}x real time through the stage)"
+        )
 
 
 if __name__ == "__main__":

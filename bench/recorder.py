@@ -169,8 +169,11 @@ def read_bag(path: Path) -> tuple[list[int], list[bytes]]:
 def same_message(recorded: bytes, sent: bytes) -> bool:
     """True if the recorded bytes are the sent ones, up to the zero padding to a multiple of
     4 bytes that Fast DDS adds to a serialised payload it sends to another process."""
-    return recorded[:len(sent)] == sent and len(recorded) - len(sent) < 4 \
-        and not any(recorded[len(sent):])
+    return (
+        recorded[: len(sent)] == sent
+        and len(recorded) - len(sent) < 4
+        and not any(recorded[len(sent) :])
+    )
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -188,12 +191,34 @@ def bench_ros(n: int, compression: str, root: Path) -> dict[str, float]:
     env = _ros_env()
     with tempfile.TemporaryFile("w+") as log:
         recorder = subprocess.Popen(
-            [sys.executable, "-m", "piezo_stage.nodes.recorder", "--ros-args", "-r", f"__ns:={namespace}",
-             "-p", f"bag:={path}", "-p", "topics:=[displacement]", "-p", "discovery_period:=0.1",
-             "-p", f"compression:={compression}"], env=env, stdout=log, stderr=log)
+            [
+                sys.executable,
+                "-m",
+                "piezo_stage.nodes.recorder",
+                "--ros-args",
+                "-r",
+                f"__ns:={namespace}",
+                "-p",
+                f"bag:={path}",
+                "-p",
+                "topics:=[displacement]",
+                "-p",
+                "discovery_period:=0.1",
+                "-p",
+                f"compression:={compression}",
+            ],
+            env=env,
+            stdout=log,
+            stderr=log,
+        )
         try:
-            publisher = subprocess.Popen([sys.executable, "-c", PUBLISHER, str(ROOT), str(n), namespace],
-                                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            publisher = subprocess.Popen(
+                [sys.executable, "-c", PUBLISHER, str(ROOT), str(n), namespace],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
             go = publisher.stdout.readline()
             cpu_start = _cpu_seconds(recorder.pid)
             out, err = publisher.communicate(timeout=300)
@@ -213,8 +238,14 @@ def bench_ros(n: int, compression: str, root: Path) -> dict[str, float]:
     lost = n - len(datas)
     corrupt = sum(not same_message(a, b) for a, b in zip(datas, expected))
     span = (times[-1] - times[0]) * 1e-9 if len(times) > 1 else float("nan")
-    return {"recorded": n / span, "published": sent["rate"], "retries": sent["retries"],
-            "lost": lost, "corrupt": corrupt, "cpu_us": cpu / n * 1e6}
+    return {
+        "recorded": n / span,
+        "published": sent["rate"],
+        "retries": sent["retries"],
+        "lost": lost,
+        "corrupt": corrupt,
+        "cpu_us": cpu / n * 1e6,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,8 +256,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-ros", action="store_true", help="core part only")
     args = parser.parse_args(argv)
     size = len(make_messages(1)[1][0])
-    print(f"recorder core: {args.n} serialised {TYPE} messages of {size} bytes, "
-          f"best of {args.repeat}")
+    print(
+        f"recorder core: {args.n} serialised {TYPE} messages of {size} bytes, best of {args.repeat}"
+    )
     rates = bench_core(args.n, args.repeat)
     baseline = rates["rosbags Writer (mcap)"]
     for name, rate in rates.items():
@@ -239,8 +271,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def main_ros(n: int, repeat: int, core: dict[str, float]) -> bool:
-    print(f"\nrecorder node over DDS: {n} messages from a reliable KEEP_ALL publisher process, "
-          f"best of {repeat}")
+    print(
+        f"\nrecorder node over DDS: {n} messages from a reliable KEEP_ALL publisher process, "
+        f"best of {repeat}"
+    )
     ok = True
     with tempfile.TemporaryDirectory(prefix="bench_recorder_ros_") as tmp:
         for compression, baseline in (("none", "BagWriter"), ("zstd", "BagWriter zstd")):
@@ -248,12 +282,16 @@ def main_ros(n: int, repeat: int, core: dict[str, float]) -> bool:
             best = max(runs, key=lambda r: r["recorded"])
             lost = max(r["lost"] for r in runs)
             corrupt = max(r["corrupt"] for r in runs)
-            print(f"  recorder node ({compression:<4}) {best['recorded']:>10,.0f} msgs/s   "
-                  f"ratio vs core {baseline} {best['recorded'] / core[baseline]:5.2f}   "
-                  f"publisher {best['published']:,.0f} msgs/s ({best['retries']} retried)   "
-                  f"lost {lost}, corrupt {corrupt}")
-            print(f"      recorder CPU {best['cpu_us']:.1f} us/msg: one free core would record "
-                  f"{1e6 / best['cpu_us']:,.0f} msgs/s")
+            print(
+                f"  recorder node ({compression:<4}) {best['recorded']:>10,.0f} msgs/s   "
+                f"ratio vs core {baseline} {best['recorded'] / core[baseline]:5.2f}   "
+                f"publisher {best['published']:,.0f} msgs/s ({best['retries']} retried)   "
+                f"lost {lost}, corrupt {corrupt}"
+            )
+            print(
+                f"      recorder CPU {best['cpu_us']:.1f} us/msg: one free core would record "
+                f"{1e6 / best['cpu_us']:,.0f} msgs/s"
+            )
             ok = ok and best["recorded"] >= TARGET and lost == 0 and corrupt == 0
     print(f"target >= {TARGET:,.0f} msgs/s over DDS with zero loss: {'met' if ok else 'NOT met'}")
     return ok

@@ -47,8 +47,11 @@ def main() -> int:
         return 1
     py_include = sysconfig.get_paths()["include"]
     if not os.path.isfile(os.path.join(py_include, "Python.h")):
-        print(f"fix_ros_wheels: no Python.h in {py_include}: install the Python headers "
-              "(Debian: python3-dev)", file=sys.stderr)
+        print(
+            f"fix_ros_wheels: no Python.h in {py_include}: install the Python headers "
+            "(Debian: python3-dev)",
+            file=sys.stderr,
+        )
         return 1
     site = f"{BUILD_PREFIX}/lib/python3.11/site-packages"
     fixes_cmake = [
@@ -56,12 +59,15 @@ def main() -> int:
         (f"{BUILD_PREFIX}/include/python3.11", py_include),
     ]
     changed = 0
-    for path in glob.glob(os.path.join(prefix, "share", "*", "cmake", "*rosidl_generator_pyExport.cmake")):
+    for path in glob.glob(
+        os.path.join(prefix, "share", "*", "cmake", "*rosidl_generator_pyExport.cmake")
+    ):
         if _rewrite(path, fixes_cmake):
             print(f"fixed include dirs: {os.path.relpath(path, prefix)}")
             changed += 1
-    for path in glob.glob(os.path.join(prefix, "share", "ament_index", "resource_index",
-                                       "parent_prefix_path", "*")):
+    for path in glob.glob(
+        os.path.join(prefix, "share", "ament_index", "resource_index", "parent_prefix_path", "*")
+    ):
         if _rewrite(path, [(BUILD_PREFIX, prefix)]):
             changed += 1
     print(f"fix_ros_wheels: {changed} file(s) patched in {prefix}")

@@ -48,11 +48,16 @@ LAYERS = ("unit", "ros")
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A test without its layer is a collection error, not a silent member of no layer."""
-    missing = [item.nodeid for item in items
-               if sum(item.get_closest_marker(layer) is not None for layer in LAYERS) != 1]
+    missing = [
+        item.nodeid
+        for item in items
+        if sum(item.get_closest_marker(layer) is not None for layer in LAYERS) != 1
+    ]
     if missing:
-        raise pytest.UsageError("tests need exactly one layer marker (unit or ros; "
-                                "`pytestmark = pytest.mark.unit` in the file): " + ", ".join(missing[:10]))
+        raise pytest.UsageError(
+            "tests need exactly one layer marker (unit or ros; "
+            "`pytestmark = pytest.mark.unit` in the file): " + ", ".join(missing[:10])
+        )
 
 
 class _NotInUnitLayer(RuntimeError):
@@ -73,6 +78,7 @@ def _unit_layer_guard(item: pytest.Item) -> Iterator[None]:
     def refuse(what: str):
         def _refuse(*args, **kwargs):
             raise _NotInUnitLayer(f"{what} in a test marked unit: mark it ros")
+
         return _refuse
 
     with pytest.MonkeyPatch.context() as mp:

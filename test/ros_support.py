@@ -14,8 +14,14 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 ROOT = Path(__file__).resolve().parents[1]
-MSG_TYPES = ["Voltage", "Displacement", "ControllerState", "BoucWenParameters",
-             "LimitCycle", "ExcitationInfo"]
+MSG_TYPES = [
+    "Voltage",
+    "Displacement",
+    "ControllerState",
+    "BoucWenParameters",
+    "LimitCycle",
+    "ExcitationInfo",
+]
 
 
 def msg_class(name: str) -> type:
@@ -55,8 +61,11 @@ def to_plain(msg: Any) -> Any:
     if isinstance(msg, types.SimpleNamespace):  # mcap_ros2's decoded messages
         return {k: to_plain(getattr(msg, k)) for k in msg.__slots__}
     if dataclasses.is_dataclass(msg):
-        return {f.name: to_plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)
-                if not f.name.startswith("__") and not f.name.isupper()}
+        return {
+            f.name: to_plain(getattr(msg, f.name))
+            for f in dataclasses.fields(msg)
+            if not f.name.startswith("__") and not f.name.isupper()
+        }
     if hasattr(msg, "tolist"):
         return msg.tolist()
     if isinstance(msg, (list, tuple)):
@@ -70,8 +79,13 @@ def spawn_python(code: str, *args: str) -> subprocess.Popen:
     """Start `python -c code args...` in a separate process with this test's ROS environment."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    return subprocess.Popen([sys.executable, "-c", code, *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 @contextmanager
@@ -110,8 +124,9 @@ def stop(proc: subprocess.Popen, timeout: float = 5.0) -> tuple[str, str]:
     return out, err
 
 
-def start_node(executable: str, *params: str, namespace: str | None = None,
-               extra: tuple[str, ...] = ()) -> subprocess.Popen:
+def start_node(
+    executable: str, *params: str, namespace: str | None = None, extra: tuple[str, ...] = ()
+) -> subprocess.Popen:
     """Start a piezo_stage node as its own process: `python -m piezo_stage.nodes.<executable>
     --ros-args -p k:=v ...` (params given as "k:=v")."""
     env = dict(os.environ)
@@ -122,4 +137,6 @@ def start_node(executable: str, *params: str, namespace: str | None = None,
     for p in params:
         args += ["-p", p]
     args += list(extra)
-    return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )

@@ -16,8 +16,20 @@ def gains(capsys, *argv):
 
 
 def test_json_thesis_gains_with_rate(capsys):
-    code, out, _ = gains(capsys, "--k1", "5e6", "--k2", "580", "--k0", "1e9", "--rate-hz", "1000",
-                         "--delay-samples", "1", "--json")
+    code, out, _ = gains(
+        capsys,
+        "--k1",
+        "5e6",
+        "--k2",
+        "580",
+        "--k0",
+        "1e9",
+        "--rate-hz",
+        "1000",
+        "--delay-samples",
+        "1",
+        "--json",
+    )
     data = json.loads(out)
     assert code == 0
     assert data["k2_min"] == pytest.approx(515.875, abs=1e-3)
@@ -31,7 +43,9 @@ def test_json_thesis_gains_with_rate(capsys):
 
 
 def test_json_unstable_rate_exit_1(capsys):
-    code, out, _ = gains(capsys, "--k1", "5e6", "--k2", "580", "--k0", "1e9", "--rate-hz", "20000", "--json")
+    code, out, _ = gains(
+        capsys, "--k1", "5e6", "--k2", "580", "--k0", "1e9", "--rate-hz", "20000", "--json"
+    )
     data = json.loads(out)
     assert code == 1 and data["valid"] is True and data["discrete"]["stable"] is False
 
@@ -58,11 +72,33 @@ def test_bad_input_exit_2(capsys, tmp_path):
     code, _, err = gains(capsys, "--k1", "5e6", "--rate-hz", "1000")
     assert code == 2 and "--k2 and --k0" in err
     flat = tmp_path / "b.yaml"
-    flat.write_text("m_min: 1e-3\nm_max: 2e-3\nc_max: 1\nkappa_x_max: 1e6\nkappa_w_max: 1\nsigma_max: 1\nrho_max: 1\n")
-    code, _, err = gains(capsys, "--bounds", str(flat), "--k1", "1e6", "--k2", "200", "--k0", "1", "--rate-hz", "1e3")
+    flat.write_text(
+        "m_min: 1e-3\nm_max: 2e-3\nc_max: 1\nkappa_x_max: 1e6\nkappa_w_max: 1\nsigma_max: 1\nrho_max: 1\n"
+    )
+    code, _, err = gains(
+        capsys, "--bounds", str(flat), "--k1", "1e6", "--k2", "200", "--k0", "1", "--rate-hz", "1e3"
+    )
     assert code == 2 and "nominal" in err
-    code, out, _ = gains(capsys, "--bounds", str(flat), "--k1", "1e6", "--k2", "200", "--k0", "1",
-                         "--rate-hz", "1e3", "--m", "1e-3", "--c", "1", "--kappa-x", "1e6", "--json")
+    code, out, _ = gains(
+        capsys,
+        "--bounds",
+        str(flat),
+        "--k1",
+        "1e6",
+        "--k2",
+        "200",
+        "--k0",
+        "1",
+        "--rate-hz",
+        "1e3",
+        "--m",
+        "1e-3",
+        "--c",
+        "1",
+        "--kappa-x",
+        "1e6",
+        "--json",
+    )
     assert code in (0, 1) and json.loads(out)["discrete"]["rate_hz"] == 1000
     code, _, err = gains(capsys, "--k1", "-1")
     assert code == 2 and "k1 > 0" in err

@@ -33,7 +33,9 @@ def test_x2_uses_reference_derivative():
     ctrl.update(0.0, 0.0, yr=0.0)
     tracking = ctrl.update(DT, 1e-6, yr=1e-6)  # ẏr from the Euler difference of yr
     assert tracking.x1 == 0.0 and tracking.x2 == pytest.approx(0.0, abs=1e-15)
-    given = ctrl.update(2 * DT, 2e-6, yr=2e-6, yr_dot=0.0)  # ẏr given: derivative on measurement only
+    given = ctrl.update(
+        2 * DT, 2e-6, yr=2e-6, yr_dot=0.0
+    )  # ẏr given: derivative on measurement only
     assert given.x2 == pytest.approx(1e-3)
 
 
@@ -53,7 +55,9 @@ def test_sine_laws_phase_from_closing_time():
     assert out[1].u_excitation == pytest.approx(-15.0 * math.sin(2 * math.pi * 100 * DT))
     tv = TimeVaryingPID(ControllerConfig(mode="pid_tv", gains=G))
     out = run(tv, [1e-6, 1e-6, 1e-6])
-    assert out[2].u_excitation == pytest.approx(-1.5e9 * out[2].x0 * math.sin(2 * math.pi * 100 * 2 * DT))
+    assert out[2].u_excitation == pytest.approx(
+        -1.5e9 * out[2].x0 * math.sin(2 * math.pi * 100 * 2 * DT)
+    )
     assert out[2].u == pytest.approx(out[2].u_pid + out[2].u_excitation)
 
 
@@ -143,7 +147,11 @@ def test_dt_guards():
     gap = ctrl.update(1.0, 3e-6)  # 1 s gap: no integration, x2 re-baselined
     assert gap.timing == "gap" and gap.x0 == x0 and gap.x2 == 0.0
     nxt = ctrl.update(1.0 + DT, 4e-6)
-    assert nxt.timing == "ok" and nxt.x2 == pytest.approx(1e-3) and nxt.x0 == pytest.approx(x0 + 4e-6 * DT)
+    assert (
+        nxt.timing == "ok"
+        and nxt.x2 == pytest.approx(1e-3)
+        and nxt.x0 == pytest.approx(x0 + 4e-6 * DT)
+    )
 
 
 def test_invalid_inputs_and_config():

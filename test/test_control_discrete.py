@@ -6,7 +6,10 @@ import pytest
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT as PLANT
 from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.discrete import (
-    check_sampled_loop, closed_loop_matrices, continuous_poles, zoh_plant,
+    check_sampled_loop,
+    closed_loop_matrices,
+    continuous_poles,
+    zoh_plant,
 )
 from piezo_stage.control.errors import SampledLoopError
 from piezo_stage.control.laws import THESIS_GAINS as G
@@ -14,22 +17,35 @@ from piezo_stage.control.laws import THESIS_GAINS as G
 pytestmark = pytest.mark.unit
 
 # docs/design.md §7: stable at 1 kHz and >= 100 kHz, unstable at 5-50 kHz; >= 200 kHz with one sample of delay.
-CASES = [(1e3, 0, True), (5e3, 0, False), (20e3, 0, False), (50e3, 0, False), (100e3, 0, True),
-         (1e3, 1, True), (100e3, 1, False), (200e3, 1, True)]
+CASES = [
+    (1e3, 0, True),
+    (5e3, 0, False),
+    (20e3, 0, False),
+    (50e3, 0, False),
+    (100e3, 0, True),
+    (1e3, 1, True),
+    (100e3, 1, False),
+    (200e3, 1, True),
+]
 
 
 def test_continuous_loop_of_the_linear_part_is_stable():
     poles = continuous_poles(PLANT, G)
     assert np.all(poles.real < 0)
     # m s^3 + (c+k2) s^2 + (kx+k1) s + k0 evaluated at its roots
-    np.testing.assert_allclose(np.polyval([PLANT.m, PLANT.c + G.k2, PLANT.kappa_x + G.k1, G.k0], poles), 0,
-                               atol=1e-6 * G.k0)
+    np.testing.assert_allclose(
+        np.polyval([PLANT.m, PLANT.c + G.k2, PLANT.kappa_x + G.k1, G.k0], poles),
+        0,
+        atol=1e-6 * G.k0,
+    )
 
 
 @pytest.mark.parametrize("rate, delay, stable", CASES)
 def test_rate_and_delay_decide_stability(rate, delay, stable):
     report = check_sampled_loop(PLANT, G, rate, delay)
-    print(f"{rate:>9.0f} Hz delay {delay}: rho = {report.spectral_radius:.6f} margin {report.margin:+.3e}")
+    print(
+        f"{rate:>9.0f} Hz delay {delay}: rho = {report.spectral_radius:.6f} margin {report.margin:+.3e}"
+    )
     assert report.stable is stable
     assert report.margin == pytest.approx(1 - report.spectral_radius)
     assert report.continuous_stable

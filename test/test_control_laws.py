@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from piezo_stage.control.errors import ControlError, GainError
-from piezo_stage.control.laws import THESIS_GAINS, Gains, control_law, excitation_term, pid_term, x0_coefficient
+from piezo_stage.control.laws import (
+    THESIS_GAINS,
+    Gains,
+    control_law,
+    excitation_term,
+    pid_term,
+    x0_coefficient,
+)
 from piezo_stage.control.reference import SecondOrderReference
 
 pytestmark = pytest.mark.unit

@@ -24,7 +24,9 @@ def plant(x0=20e-6, xdot0=0.2):
 
 
 def controller(mode="pid", limit=np.inf):
-    return TimeVaryingPID(ControllerConfig(mode=mode, gains=THESIS_GAINS, u_min=-limit, u_max=limit))
+    return TimeVaryingPID(
+        ControllerConfig(mode=mode, gains=THESIS_GAINS, u_min=-limit, u_max=limit)
+    )
 
 
 @pytest.mark.parametrize("rate, delay", [(1e3, 0), (20e3, 0), (100e3, 0), (100e3, 1), (200e3, 1)])
@@ -34,7 +36,9 @@ def test_simulation_confirms_the_sampled_check(rate, delay):
     r = simulate_closed_loop(controller(limit=450.0), plant(), rate, duration, delay_samples=delay)
     half = len(r.t) // 2
     settled = bool(not r.saturated[half:].any() and np.abs(r.x1[half:]).max() < 0.1 * 20e-6)
-    diverged = bool(r.saturated[half:].mean() > 0.5)  # an unstable loop ends up banging the ±450 V limits
+    diverged = bool(
+        r.saturated[half:].mean() > 0.5
+    )  # an unstable loop ends up banging the ±450 V limits
     assert settled is predicted and diverged is not predicted
 
 
@@ -52,14 +56,18 @@ def test_pid_tv_restores_the_control_after_a_perturbation():
     """§11.5 experiment: at rest (u = 0), loop opened 10 ms at 72 V, closed again (bumpless)."""
     finals = {}
     for mode in ("pid", "pid_tv"):
-        r = simulate_closed_loop(controller(mode), plant(0.0, 0.0), 1e3, 1.0, open_windows=[(0.05, 0.06, 72.0)])
+        r = simulate_closed_loop(
+            controller(mode), plant(0.0, 0.0), 1e3, 1.0, open_windows=[(0.05, 0.06, 72.0)]
+        )
         assert np.all(r.u[52:60] == 72.0) and not r.loop_closed[55] and r.loop_closed[60]
         assert abs(r.u[60] - 72.0) < 1e-9  # bumpless re-closing
         assert abs(r.x1[-1]) < 1e-8
         finals[mode] = r.u[-1]
         assert r.u[0] == 0.0
     assert abs(finals["pid"]) > 1.0  # the equilibrium moved
-    assert abs(finals["pid_tv"]) < 0.05 * abs(finals["pid"])  # (11.18) brings u back towards its value before
+    assert abs(finals["pid_tv"]) < 0.05 * abs(
+        finals["pid"]
+    )  # (11.18) brings u back towards its value before
 
 
 class BiasedPlant:
@@ -81,20 +89,29 @@ def test_pid_tv_restores_u_slowly_after_the_section_11_5_perturbation():
     the return slows down as it goes (the dither that erases w scales with w: sub-exponential)."""
     rate, bias = 100e3, 200.0
     x_eq = bias / RIG.bouc_wen.kappa[0]
-    config = ControllerConfig(mode="pid_tv", gains=THESIS_GAINS, u_min=-450 - bias, u_max=450 - bias,
-                              on_close="reset")
-    r = simulate_closed_loop(TimeVaryingPID(config), BiasedPlant(bias, x0=x_eq, xdot0=0.0), rate, 0.4,
-                             reference=lambda t: (x_eq, 0.0), open_windows=[(0.005, 0.015, 72.0 - bias)])
+    config = ControllerConfig(
+        mode="pid_tv", gains=THESIS_GAINS, u_min=-450 - bias, u_max=450 - bias, on_close="reset"
+    )
+    r = simulate_closed_loop(
+        TimeVaryingPID(config),
+        BiasedPlant(bias, x0=x_eq, xdot0=0.0),
+        rate,
+        0.4,
+        reference=lambda t: (x_eq, 0.0),
+        open_windows=[(0.005, 0.015, 72.0 - bias)],
+    )
     period = int(rate / THESIS_GAINS.f)
 
     def deviation(t):  # |mean of u − u_before| over the whole period of the sine ending at t
         k = int(round(t * rate))
-        return abs(r.u[k - period:k].mean())
+        return abs(r.u[k - period : k].mean())
 
     assert np.abs(r.u[:500]).max() < 1e-9  # at rest before the window: u = u_bias
     assert deviation(0.4) <= 0.01 * bias
     ratio_early, ratio_late = deviation(0.2) / deviation(0.1), deviation(0.4) / deviation(0.2)
-    assert ratio_late < 1.0 and ratio_late > ratio_early  # exponential decay would give ratio_early²
+    assert (
+        ratio_late < 1.0 and ratio_late > ratio_early
+    )  # exponential decay would give ratio_early²
 
 
 def test_tracks_the_second_order_reference():

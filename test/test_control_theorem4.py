@@ -6,15 +6,26 @@ import pytest
 
 from piezo_stage.config_path import ConfigNotFoundError, find_config
 from piezo_stage.control.bounds import (
-    THESIS_NOMINAL_PLANT, Bounds, load_bounds, load_nominal_plant, thesis_bounds_path,
+    THESIS_NOMINAL_PLANT,
+    Bounds,
+    load_bounds,
+    load_nominal_plant,
+    thesis_bounds_path,
 )
 from piezo_stage.control.errors import BoundsError, GainError
 from piezo_stage.control.theorem4 import k0_max, k2_min, validate_gains
 
 pytestmark = pytest.mark.unit
 
-THESIS = Bounds(m_min=3.98e-3, m_max=6.63e-3, c_max=13.43, kappa_x_max=10.8e6,
-                kappa_w_max=48.74, sigma_max=0.9212, rho_max=9.510e4)
+THESIS = Bounds(
+    m_min=3.98e-3,
+    m_max=6.63e-3,
+    c_max=13.43,
+    kappa_x_max=10.8e6,
+    kappa_w_max=48.74,
+    sigma_max=0.9212,
+    rho_max=9.510e4,
+)
 
 
 def test_shipped_file_holds_the_thesis_bounds_and_nominal_plant():
@@ -49,7 +60,12 @@ def test_thesis_gains_accepted():
 
 @pytest.mark.parametrize(
     "k2, k0, fragment",
-    [(510.0, 1e8, "k2_min"), (580.0, 1.6e9, "k0_max"), (580.0, -1.0, "must be > 0"), (None, 1e9, "k2 not given")],
+    [
+        (510.0, 1e8, "k2_min"),
+        (580.0, 1.6e9, "k0_max"),
+        (580.0, -1.0, "must be > 0"),
+        (None, 1e9, "k2 not given"),
+    ],
 )
 def test_bad_gains_rejected_with_reason(k2, k0, fragment):
     report = validate_gains(THESIS, k1=5e6, k2=k2, k0=k0)
@@ -75,11 +91,15 @@ def test_bounds_errors(tmp_path):
     with pytest.raises(BoundsError, match="sigma_max"):
         THESIS.replace(sigma_max=0.3)
     bad = tmp_path / "b.yaml"
-    bad.write_text("bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1}\n")
+    bad.write_text(
+        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1}\n"
+    )
     with pytest.raises(BoundsError, match="missing key.*rho_max"):
         load_bounds(bad)
-    bad.write_text("bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1, "
-                   "rho_max: 1, rho_mx: 2}\n")
+    bad.write_text(
+        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1, "
+        "rho_max: 1, rho_mx: 2}\n"
+    )
     with pytest.raises(BoundsError, match="unknown key.*rho_mx"):
         load_bounds(bad)
     assert load_nominal_plant(bad) is None

@@ -20,14 +20,26 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
     out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "piezo_stage.cli", "demo", "--out", str(out)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "piezo_stage.cli", "demo", "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     text = proc.stdout
     assert proc.returncode == 0, text[-3000:] + proc.stderr[-3000:]
 
     true = shipped_parameter_set("ch10_patch").bouc_wen
-    expected = {"kappa_1": true.kappa[0], "kappa_2": true.kappa[1], "y0": true.y0, "kappa_w": true.kappa_w,
-                "rho": true.rho, "sigma": true.sigma, "n": true.n}
+    expected = {
+        "kappa_1": true.kappa[0],
+        "kappa_2": true.kappa[1],
+        "y0": true.y0,
+        "kappa_w": true.kappa_w,
+        "rho": true.rho,
+        "sigma": true.sigma,
+        "n": true.n,
+    }
     for name, value in expected.items():
         row = re.search(rf"^{name}[ \t]+(\S+)((?:[ \t]+\S+[ \t]+\S+)+)[ \t]*$", text, re.M)
         assert row, f"no row for {name} in:\n{text}"
@@ -37,13 +49,22 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         assert found, name
         for f, e in zip(found, errors):
             assert f == pytest.approx(value, rel=1e-2), name  # the demo's tolerance
-            assert e == pytest.approx(abs(f - value) / abs(value), rel=1e-2, abs=2e-5)  # 6 printed digits
+            assert e == pytest.approx(
+                abs(f - value) / abs(value), rel=1e-2, abs=2e-5
+            )  # 6 printed digits
     header = re.search(r"^parameter[ \t]+true[ \t]+(.*)$", text, re.M)
-    assert header and re.findall(r"live|replayed|from bag", header.group(1)) == ["live", "replayed", "from bag"], \
-        text  # no column missing: the live and the replayed identifier node both gave a result
+    assert header and re.findall(r"live|replayed|from bag", header.group(1)) == [
+        "live",
+        "replayed",
+        "from bag",
+    ], text  # no column missing: the live and the replayed identifier node both gave a result
     agree = re.search(r"^live, replayed vs from bag: largest relative difference (\S+)", text, re.M)
-    assert agree and float(agree.group(1)) <= 1e-9, text  # live, replay and offline: same samples, same cut
-    m = re.search(r"model error on a validation input .*?RMS (\S+) µm, max (\S+) µm \((\S+) % / (\S+) %", text)
+    assert agree and float(agree.group(1)) <= 1e-9, (
+        text
+    )  # live, replay and offline: same samples, same cut
+    m = re.search(
+        r"model error on a validation input .*?RMS (\S+) µm, max (\S+) µm \((\S+) % / (\S+) %", text
+    )
     assert m and float(m.group(3)) < 0.5 and float(m.group(4)) < 1.0, text
 
     for mode in ("pid", "pid_sine", "pid_tv"):
@@ -52,13 +73,19 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         u_before, u_after, settling, max_err = (float(x) for x in row.groups())
         assert u_before > 0 and u_after > 0 and settling >= 0 and max_err > 0
 
-    listed = [Path(line.strip()) for line in text.split("files written:")[1].splitlines()
-              if line.startswith("  /")]
+    listed = [
+        Path(line.strip())
+        for line in text.split("files written:")[1].splitlines()
+        if line.startswith("  /")
+    ]
     assert out / "ch10_identification" in listed
     assert {out / "identified_live.yaml", out / "identified_replay.yaml"} <= set(listed)
     pngs = [p for p in listed if p.suffix == ".png"]
-    assert {p.name for p in pngs} >= {"ch10_identification_hysteresis.png", "ch10_identification_timeseries.png",
-                                      "ch10_validation.png"}
+    assert {p.name for p in pngs} >= {
+        "ch10_identification_hysteresis.png",
+        "ch10_identification_timeseries.png",
+        "ch10_validation.png",
+    }
     assert len(pngs) >= 6
     for path in listed:
         assert path.exists(), path

@@ -64,9 +64,14 @@ def test_every_message_round_trips_between_processes(ros_node):
         pubs = {}
         for i, name in enumerate(MSG_TYPES):
             cls = msg_class(name)
-            pubs[name] = (ros_node.create_publisher(cls, "in_" + name, qos), fill(cls(), seed=10 * i))
-            ros_node.create_subscription(cls, "out_" + name,
-                                         lambda msg, n=name: received.setdefault(n, msg), qos)
+            pubs[name] = (
+                ros_node.create_publisher(cls, "in_" + name, qos),
+                fill(cls(), seed=10 * i),
+            )
+            ros_node.create_subscription(
+                cls, "out_" + name, lambda msg, n=name: received.setdefault(n, msg), qos
+            )
+
         # publish until every echo is back (discovery takes a moment)
         def all_back() -> bool:
             for name, (pub, msg) in pubs.items():
@@ -74,7 +79,9 @@ def test_every_message_round_trips_between_processes(ros_node):
                     pub.publish(msg)
             return len(received) == len(MSG_TYPES)
 
-        assert spin_until(ros_node, all_back, timeout=20.0), f"missing: {set(MSG_TYPES) - set(received)}"
+        assert spin_until(ros_node, all_back, timeout=20.0), (
+            f"missing: {set(MSG_TYPES) - set(received)}"
+        )
         for name, (_, sent) in pubs.items():
             assert to_plain(received[name]) == to_plain(sent), name
             assert received[name] is not sent
@@ -140,13 +147,17 @@ while time.monotonic() < end:
 
 
 def test_ros_domain_isolation(ros_node):
-    from piezo_stage.launch.domain import DOMAIN_LOCK_DIR  # the lock files held by running test sessions
+    from piezo_stage.launch.domain import (
+        DOMAIN_LOCK_DIR,
+    )  # the lock files held by running test sessions
 
     own = int(os.environ["ROS_DOMAIN_ID"])
     assert 1 <= own <= 100 and (DOMAIN_LOCK_DIR / f"{own}.lock").exists()
     other = 1 + own % 100
     got: list[float] = []
-    ros_node.create_subscription(msg_class("Voltage"), "/probe/isolation", lambda m: got.append(m.voltage), 10)
+    ros_node.create_subscription(
+        msg_class("Voltage"), "/probe/isolation", lambda m: got.append(m.voltage), 10
+    )
     env_backup = os.environ["ROS_DOMAIN_ID"]
     os.environ["ROS_DOMAIN_ID"] = str(other)
     foreign = spawn_python(TALKER, "4", "-1.0")
@@ -158,6 +169,8 @@ def test_ros_domain_isolation(ros_node):
         stop(foreign)
     same = spawn_python(TALKER, "6", "2.5")
     try:
-        assert spin_until(ros_node, lambda: 2.5 in got, timeout=10.0), "a talker in the same domain was not heard"
+        assert spin_until(ros_node, lambda: 2.5 in got, timeout=10.0), (
+            "a talker in the same domain was not heard"
+        )
     finally:
         stop(same)

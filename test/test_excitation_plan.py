@@ -19,7 +19,9 @@ def test_ch10_preset_is_the_thesis_experiment():
     assert v0.min() == pytest.approx(0.0) and v0.max() == pytest.approx(300.0, abs=0.5)
     assert v1.min() == pytest.approx(100.0) and v1.max() == pytest.approx(400.0, abs=0.5)
     np.testing.assert_allclose(v1 - v0, 100.0, atol=1e-9)  # x(t) and x(t) + q
-    assert plan.period == 10.0 and plan.duration == 2 * (8 + 2) * 10.0  # 8 settling + 2 recorded periods per run
+    assert (
+        plan.period == 10.0 and plan.duration == 2 * (8 + 2) * 10.0
+    )  # 8 settling + 2 recorded periods per run
 
 
 def test_triangle_starts_rising_from_its_minimum_and_is_periodic():
@@ -61,8 +63,17 @@ def test_random_waveform_is_seeded_bounded_and_periodic():
     np.testing.assert_allclose(a.values(t[:-1]), a.values(t[:-1] + 4.0), atol=1e-9)
 
 
-@pytest.mark.parametrize("bad", [dict(waveform="saw"), dict(period=0.0), dict(offsets=()),
-                                 dict(low=math.nan), dict(v_min=1.0, v_max=0.0), dict(record_periods=0)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(waveform="saw"),
+        dict(period=0.0),
+        dict(offsets=()),
+        dict(low=math.nan),
+        dict(v_min=1.0, v_max=0.0),
+        dict(record_periods=0),
+    ],
+)
 def test_bad_plans_are_refused(bad):
     with pytest.raises(ParameterError):
         ExcitationPlan(**bad)

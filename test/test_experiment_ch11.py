@@ -21,7 +21,9 @@ from piezo_stage.experiments import (
 )
 
 REG = 0.1  # simulated seconds of the pid / pid_tv regulation runs (pid_tv's u needs them to approach 0 V)
-REG_SINE = 0.05  # simulated seconds of the pid_sine regulation runs (steady oscillation from ~20 ms)
+REG_SINE = (
+    0.05  # simulated seconds of the pid_sine regulation runs (steady oscillation from ~20 ms)
+)
 PERT = 0.035  # simulated seconds of the short perturbation runs (loop open 5-15 ms)
 
 
@@ -33,7 +35,10 @@ def test_plan_picks_a_stable_rate_and_rejects_bad_input():
     x0, xdot0 = plan.plant["initial_displacement"], plan.plant["initial_velocity"]
     assert x0 - plan.controller["reference_y0"] == pytest.approx(20e-6, rel=1e-12)
     assert xdot0 - plan.controller["reference_ydot0"] == pytest.approx(0.2, rel=1e-12)
-    assert plan.controller["reference_y0"] != 0 and plan.controller["reference_source"] == "second_order"
+    assert (
+        plan.controller["reference_y0"] != 0
+        and plan.controller["reference_source"] == "second_order"
+    )
     assert plan.plant["w0"] == 0.0 and plan.plant["initial_voltage"] == 0.0
     with pytest.raises(UnknownExperimentError):
         make_plan("nonsense", "pid")
@@ -50,9 +55,15 @@ def regulation():
     def get(mode, A=None, **kwargs):
         key = (mode, A)
         if key not in runs:
-            runs[key] = run_experiment("regulation", mode, duration=REG_SINE if mode == "pid_sine" else REG,
-                                       gains={"A": A} if A else None, **kwargs)
+            runs[key] = run_experiment(
+                "regulation",
+                mode,
+                duration=REG_SINE if mode == "pid_sine" else REG,
+                gains={"A": A} if A else None,
+                **kwargs,
+            )
         return runs[key]
+
     return get
 
 
@@ -60,7 +71,9 @@ def regulation():
 def test_regulation_pid_regulates_with_nonzero_final_u(regulation, tmp_path):
     r = regulation("pid", bag=tmp_path / "bag", png_dir=tmp_path / "png")
     assert r["lost_samples"] <= 0 and r["samples"] >= int(REG * r["rate_hz"]) - 1
-    assert r["initial_x1"] == pytest.approx(20e-6, rel=1e-9)  # the loop starts at the thesis's x1(0)
+    assert r["initial_x1"] == pytest.approx(
+        20e-6, rel=1e-9
+    )  # the loop starts at the thesis's x1(0)
     assert r["final_abs_x1"] < 0.01 * r["max_abs_x1"] and r["final_abs_x2"] < 1e-5
     assert abs(r["u_after"] - r["u_before"]) > 5.0  # Fig. 11.5: u(∞) = κw·w(∞) ≠ 0 = u(0−)
     msgs = list(read_messages(tmp_path / "bag"))
@@ -89,8 +102,10 @@ def test_regulation_pid_tv_regulates(regulation):
 def perturbation():
     """pid: a short run (it settles at its new equilibrium within ~0.1 s and is already far from
     200 V at 35 ms); pid_tv: the experiment's default duration (0.4 s, see the spec's docstring)."""
-    return {"pid": run_experiment("perturbation", "pid", duration=PERT),
-            "pid_tv": run_experiment("perturbation", "pid_tv")}
+    return {
+        "pid": run_experiment("perturbation", "pid", duration=PERT),
+        "pid_tv": run_experiment("perturbation", "pid_tv"),
+    }
 
 
 @pytest.mark.ros

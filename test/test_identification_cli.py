@@ -27,11 +27,21 @@ def patch_runs():
     return triangle_pair(PATCH, 0.0, 300.0, 100.0, period=10.0, samples_per_branch=600, periods=3)
 
 
-def write_csv(path, rec: Recording, header="time,input,output", scale=(1.0, 1.0, 1.0),
-              preamble="", bom=False, sep=","):
-    rows = np.column_stack((rec.t * scale[0], rec.input * scale[1], rec.output * scale[2],
-                            np.zeros(len(rec))))
-    text = preamble + header + "\n" + "\n".join(sep.join(f"{v:.17g}" for v in r) for r in rows) + "\n"
+def write_csv(
+    path,
+    rec: Recording,
+    header="time,input,output",
+    scale=(1.0, 1.0, 1.0),
+    preamble="",
+    bom=False,
+    sep=",",
+):
+    rows = np.column_stack(
+        (rec.t * scale[0], rec.input * scale[1], rec.output * scale[2], np.zeros(len(rec)))
+    )
+    text = (
+        preamble + header + "\n" + "\n".join(sep.join(f"{v:.17g}" for v in r) for r in rows) + "\n"
+    )
     path.write_text(("\ufeff" if bom else "") + text, encoding="utf-8")
     return path
 
@@ -47,10 +57,15 @@ def test_parse_column_names_and_units():
 
 def test_oscilloscope_style_csv(tmp_path, patch_runs):
     rec = patch_runs[0]
-    path = write_csv(tmp_path / "scope.csv", rec,
-                     header="Time [ms]; Input (V) ;Output[um]; CH3 [V]",
-                     scale=(1e3, 1.0, 1e6), preamble="TDS 3014\nRecord Length;10000\n",
-                     bom=True, sep=";")
+    path = write_csv(
+        tmp_path / "scope.csv",
+        rec,
+        header="Time [ms]; Input (V) ;Output[um]; CH3 [V]",
+        scale=(1e3, 1.0, 1e6),
+        preamble="TDS 3014\nRecord Length;10000\n",
+        bom=True,
+        sep=";",
+    )
     loaded = load_csv(path)
     assert np.allclose(loaded.t, rec.t) and np.allclose(loaded.output, rec.output, rtol=1e-12)
     assert loaded.input_unit == "V" and loaded.output_unit == "m"
@@ -93,8 +108,11 @@ def test_identify_text_and_no_refine(tmp_path, patch_runs, capsys):
 
 def test_identify_reports_errors_without_numbers(tmp_path, patch_runs, capsys):
     a = write_csv(tmp_path / "a.csv", patch_runs[0])
-    clipped = Recording(patch_runs[1].t, patch_runs[1].input,
-                        np.minimum(patch_runs[1].output, np.percentile(patch_runs[1].output, 85)))
+    clipped = Recording(
+        patch_runs[1].t,
+        patch_runs[1].input,
+        np.minimum(patch_runs[1].output, np.percentile(patch_runs[1].output, 85)),
+    )
     b = write_csv(tmp_path / "b.csv", clipped)
     assert main(["identify", str(a), str(b), "--json"]) == 2  # unusable input
     captured = capsys.readouterr()
@@ -130,16 +148,30 @@ def write_bag(path, runs: list[Recording], status_fail: int | None = None):
         t_offset = 1.0
         for k, rec in enumerate(runs):
             start = int((t_offset + rec.t[0]) * 1e9)
-            w.write("/piezo/excitation", serialize(E(header=header(start), waveform="triangle",
-                                                     period=10.0, amplitude=300.0, offset=100.0 * k,
-                                                     run=k, steady=False)), start)
+            w.write(
+                "/piezo/excitation",
+                serialize(
+                    E(
+                        header=header(start),
+                        waveform="triangle",
+                        period=10.0,
+                        amplitude=300.0,
+                        offset=100.0 * k,
+                        run=k,
+                        steady=False,
+                    )
+                ),
+                start,
+            )
             for i, (t, v, y) in enumerate(zip(rec.t, rec.input, rec.output)):
                 ns = int(round((t_offset + t) * 1e9))
                 w.write("/piezo/voltage", serialize(V(header=header(ns), voltage=float(v))), ns)
                 status = 3 if status_fail is not None and i == status_fail and k == 1 else 0
-                w.write("/piezo/displacement",
-                        serialize(D(header=header(ns + 1000), displacement=float(y), status=status)),
-                        ns + 1000)
+                w.write(
+                    "/piezo/displacement",
+                    serialize(D(header=header(ns + 1000), displacement=float(y), status=status)),
+                    ns + 1000,
+                )
             t_offset += rec.t[-1] + 1.0
 
 
@@ -171,7 +203,7 @@ def test_validate_on_a_sine(tmp_path, patch_runs, capsys):
     assert main(["identify", str(a), str(b), "-N", "2", "--output", str(params)]) == 0
     capsys.readouterr()
     t = np.linspace(0.0, 20.0, 4001)
-    v = sine(t, 0.2, 200.0, offset=200.0)                # 0..400 V, §10.3.3
+    v = sine(t, 0.2, 200.0, offset=200.0)  # 0..400 V, §10.3.3
     rec = Recording(t, v, model_output(PATCH, v, w0=0.1))
     data = write_csv(tmp_path / "sine.csv", rec, header="time [s],input [V],output [m]")
     out = tmp_path / "plots"

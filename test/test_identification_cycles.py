@@ -58,7 +58,7 @@ def test_period_and_crossings_of_a_triangle():
 def test_crossings_robust_to_noise():
     t = np.linspace(0, 10, 20001)
     x = triangle(t, 1.0, 0.0, 1.0) + 0.02 * np.random.default_rng(3).standard_normal(len(t))
-    assert len(upward_crossings(t, x)) == 10          # no chatter around the mid level
+    assert len(upward_crossings(t, x)) == 10  # no chatter around the mid level
 
 
 def test_steady_cycle_matches_theorem_2():
@@ -80,7 +80,7 @@ def test_recording_phase_does_not_matter():
 
 
 def test_transient_periods_are_left_out():
-    rec = ch9_run(periods=20, w0=0.0)         # ch. 9 converges by a factor ~0.37 per period
+    rec = ch9_run(periods=20, w0=0.0)  # ch. 9 converges by a factor ~0.37 per period
     cycle = extract_cycle(rec)
     # noiseless: every earlier period still differs from the last (by ~1e-10 of the span,
     # above the noise level): only the last one is the cycle, not an average carrying the
@@ -97,7 +97,7 @@ def test_noisy_transient_periods_average_only_at_the_noise_level():
     assert 2 <= cycle.periods < 19
     assert cycle.start_time > (20 - cycle.periods - 1) * 1.0
     noise = 1e-4 * np.ptp(rec.output)
-    used = np.asarray(cycle.period_rms[-cycle.periods:])
+    used = np.asarray(cycle.period_rms[-cycle.periods :])
     assert np.all(used < 3 * np.sqrt(2) * noise * 1.2)
 
 
@@ -164,7 +164,7 @@ def test_input_with_a_minor_loop_is_rejected():
     t = np.arange(4 * 2000 + 1) / 2000
     v = triangle(t, 1.0, -0.2, 0.2)
     phase = np.mod(t, 1.0)
-    v = v - 0.05 * np.exp(-(((phase - 0.3) / 0.01) ** 2))     # a dip inside the rise
+    v = v - 0.05 * np.exp(-(((phase - 0.3) / 0.01) ** 2))  # a dip inside the rise
     rec = Recording(t, v, model_output(CH9, v, w0=-0.2))
     with pytest.raises(NonMonotoneBranchError, match="loading"):
         smooth_input(extract_cycle(rec, CycleOptions(steady_periods=2)))
@@ -207,7 +207,7 @@ def test_branches_in_model_input_orientation():
     assert loading.loading and not unloading.loading
     assert np.all(np.diff(loading.x) >= 0) and loading.x[0] == pytest.approx(-300.0)
     # loading in x = -v is the falling voltage: its y lies on the v-falling part of the cycle
-    falling = np.concatenate((cycle.output[cycle.i_max:], cycle.output[:1]))
+    falling = np.concatenate((cycle.output[cycle.i_max :], cycle.output[:1]))
     assert np.allclose(np.sort(loading.y), np.sort(falling))
 
 
@@ -224,7 +224,7 @@ def test_noisy_input_is_smoothed_branchwise():
 
 def test_filter_gain_is_the_thesis_second_order_filter():
     assert filter_gain(np.array([0.0]))[0] == pytest.approx(1.0)
-    assert filter_gain(np.array([50.0]))[0] == pytest.approx(1 / (2 * 0.7))   # at ω_n
+    assert filter_gain(np.array([50.0]))[0] == pytest.approx(1 / (2 * 0.7))  # at ω_n
     assert filter_gain(np.array([500.0]))[0] < 0.011
 
 
@@ -235,7 +235,7 @@ def test_zero_phase_filter_keeps_the_timing():
     noisy = x + 0.05 * np.random.default_rng(2).standard_normal(m)
     filtered = zero_phase_periodic(noisy)
     assert np.std(filtered - x) < 0.25 * np.std(noisy - x)
-    assert int(np.argmax(zero_phase_periodic(x))) == m // 2                 # no delay
+    assert int(np.argmax(zero_phase_periodic(x))) == m // 2  # no delay
 
 
 def test_filtered_cycle_option():
@@ -243,7 +243,7 @@ def test_filtered_cycle_option():
     clean = extract_cycle(ch9_run(periods=3)).output
     raw = extract_cycle(rec)
     filt = extract_cycle(rec, CycleOptions(data_filter=True))
-    inner = slice(50, raw.i_max - 50)            # away from the rounded corners
+    inner = slice(50, raw.i_max - 50)  # away from the rounded corners
     assert np.std((filt.output - clean)[inner]) < 0.5 * np.std((raw.output - clean)[inner])
     assert filt.noise_output == raw.noise_output  # the fits still see the white-noise level
 
@@ -283,7 +283,11 @@ def test_figure_eight_is_rejected():
     v = triangle(t, 1.0, -1.0, 1.0)
     rising = np.mod(t, 1.0) < 0.5
     # gap proportional to v: positive on one half of the range, negative on the other
-    y = v + np.where(rising, 0.05, -0.05) * v * (1 - v**2) + 0.01 * np.where(rising, 1, -1) * (1 - v**2)
+    y = (
+        v
+        + np.where(rising, 0.05, -0.05) * v * (1 - v**2)
+        + 0.01 * np.where(rising, 1, -1) * (1 - v**2)
+    )
     cycle = extract_cycle(Recording(t, v, y))
     with pytest.raises(OrientationError, match="crosses itself"):
         detect_orientation(cycle, smooth_input(cycle))
@@ -311,7 +315,7 @@ def test_adaptive_window_widens_with_noise_and_beats_differences():
     wide = adaptive_fit(x, noisy, 0.5, noise=noise_std(noisy), slope_scale=1.0)
     assert sharp.samples == 8 and wide.samples > 100
     exact = 2 * np.cos(1.0)
-    raw_difference = (noisy[2001] - noisy[2000]) / (x[2001] - x[2000])       # (9.39)
+    raw_difference = (noisy[2001] - noisy[2000]) / (x[2001] - x[2000])  # (9.39)
     assert abs(wide.slope - exact) < 1e-3 < abs(raw_difference - exact)
     assert abs(wide.slope - exact) < 4 * wide.slope_std
 

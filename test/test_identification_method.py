@@ -91,10 +91,10 @@ def test_q_matrix_reproduces_the_difference_polynomial(degree):
     rng = np.random.default_rng(degree)
     kappa, q = rng.standard_normal(degree), 0.37
     x = np.linspace(-2, 2, 7)
-    diff = polyval(kappa, x + q) - polyval(kappa, x)                      # (10.7) left side
-    g = q_matrix(q, degree) @ kappa                                        # (10.9)
-    assert np.allclose(diff, sum(g[j] * x**j for j in range(degree)))      # (10.7) right side
-    assert np.allclose(kappa_from_g(g, q), kappa)                         # (10.11)
+    diff = polyval(kappa, x + q) - polyval(kappa, x)  # (10.7) left side
+    g = q_matrix(q, degree) @ kappa  # (10.9)
+    assert np.allclose(diff, sum(g[j] * x**j for j in range(degree)))  # (10.7) right side
+    assert np.allclose(kappa_from_g(g, q), kappa)  # (10.11)
     assert q_matrix(q, degree)[0, degree - 1] == pytest.approx(comb(degree, degree) * q**degree)
 
 
@@ -127,7 +127,7 @@ def test_y0_for_an_asymmetric_t_wave():
     fit = fit_polynomial(br[0], br[1], 2, offset_between(br[0], br[1]))
     assert offset_y0(br, fit.kappa) == pytest.approx(PATCH.y0, rel=1e-4)
     cycle = extract_cycle(runs[0])
-    naive = np.mean(cycle.output - polyval(fit.kappa, cycle.input))        # (10.17) in time
+    naive = np.mean(cycle.output - polyval(fit.kappa, cycle.input))  # (10.17) in time
     assert abs(naive - PATCH.y0) > 100 * abs(offset_y0(br, fit.kappa) - PATCH.y0)
 
 
@@ -150,15 +150,16 @@ def test_analytic_estimate_of_the_ch9_example(ch9_runs):
     assert max_rel_error(result.analytic, CH9) < 1e-4
     assert abs(result.parameters.y0) < 1e-12
     d = result.diagnostics
-    assert d["a"] == pytest.approx(CH9.rho * CH9.kappa_w, rel=1e-5)              # a = ρκw
+    assert d["a"] == pytest.approx(CH9.rho * CH9.kappa_w, rel=1e-5)  # a = ρκw
     assert d["b"] == pytest.approx(CH9.rho * CH9.kappa_w ** (1 - CH9.n), rel=1e-4)
     assert d["x_star3"] < d["x_star"] < d["x_star1"] < d["x_star2"]
 
 
 def test_plain_table_10_2_without_slope_correction(ch9_runs):
     _, br = branches_of(ch9_runs, 1)
-    plain = hysteretic_estimate(br[0][0], np.array([2.0]), 0.0, 0.0,
-                                derivative=DerivativeOptions(slope_corrections=0))
+    plain = hysteretic_estimate(
+        br[0][0], np.array([2.0]), 0.0, 0.0, derivative=DerivativeOptions(slope_corrections=0)
+    )
     corrected = hysteretic_estimate(br[0][0], np.array([2.0]), 0.0, 0.0)
     err = lambda h: max(abs(getattr(h, k) / getattr(CH9, k) - 1) for k in HYSTERETIC)
     assert err(corrected) < err(plain) < 1e-4
@@ -192,7 +193,7 @@ def test_theta_is_kappa_w_times_w_on_the_loading_branch(ch9_runs):
     _, br = branches_of(ch9_runs, 1)
     b = br[0][0]
     w = (b.y - 2.0 * b.x) / 2.0
-    assert np.allclose(theta(b, np.array([2.0]), 0.0), 2.0 * w)                 # (9.21)
+    assert np.allclose(theta(b, np.array([2.0]), 0.0), 2.0 * w)  # (9.21)
 
 
 # ------------------------------------------------------------------ refinement and targets
@@ -228,26 +229,50 @@ def test_plain_bouc_wen_on_patch_data_is_a_bad_fit(patch_runs):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_noise_1e_4_of_span(seed):
-    runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=2000, periods=3, noise=1e-4,
-                         rng=np.random.default_rng(seed))
+    runs = triangle_pair(
+        CH9,
+        -0.2,
+        0.2,
+        0.1,
+        samples_per_branch=2000,
+        periods=3,
+        noise=1e-4,
+        rng=np.random.default_rng(seed),
+    )
     result = identify(*runs)
     assert max_rel_error(result.parameters, CH9) < 5e-3
     assert result.rms_error < 3 * result.diagnostics["noise_output"]
 
 
 def test_noise_1e_3_of_span():
-    runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=2000, periods=3, noise=1e-3,
-                         rng=np.random.default_rng(11))
+    runs = triangle_pair(
+        CH9,
+        -0.2,
+        0.2,
+        0.1,
+        samples_per_branch=2000,
+        periods=3,
+        noise=1e-3,
+        rng=np.random.default_rng(11),
+    )
     result = identify(*runs)
     assert max_rel_error(result.parameters, CH9) < 5e-2
     std = result.diagnostics["relative_std"]
-    for k in HYSTERETIC:     # the reported standard errors cover the actual error
+    for k in HYSTERETIC:  # the reported standard errors cover the actual error
         assert abs(getattr(result.parameters, k) / getattr(CH9, k) - 1) < 4 * std[k]
 
 
 def test_undetermined_parameters_are_reported():
-    runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=2000, periods=3, noise=1e-3,
-                         rng=np.random.default_rng(11))
+    runs = triangle_pair(
+        CH9,
+        -0.2,
+        0.2,
+        0.1,
+        samples_per_branch=2000,
+        periods=3,
+        noise=1e-3,
+        rng=np.random.default_rng(11),
+    )
     with pytest.raises(BadFitError, match="not determined by the data"):
         identify(*runs, IdentifyOptions(refinement=RefineOptions(max_rel_std=1e-3)))
 
@@ -268,8 +293,9 @@ def test_w0_by_10_18():
         runs.append(Recording(t, v, model_output(PATCH, v, w0=v0_w)))
     result = identify(*runs, IdentifyOptions(degree=2))
     assert result.w0 == pytest.approx(v0_w, abs=1e-5)
-    assert initial_w(PATCH.kappa, PATCH.kappa_w, PATCH.y0, runs[0].input[0],
-                     runs[0].output[0]) == pytest.approx(v0_w, abs=1e-12)
+    assert initial_w(
+        PATCH.kappa, PATCH.kappa_w, PATCH.y0, runs[0].input[0], runs[0].output[0]
+    ) == pytest.approx(v0_w, abs=1e-12)
 
 
 def test_options_are_checked(ch9_runs):
@@ -285,7 +311,17 @@ def test_options_are_checked(ch9_runs):
 def test_result_dict_and_parameter_set(patch_runs, tmp_path):
     result = identify(*patch_runs, IdentifyOptions(degree=2))
     d = json.loads(json.dumps(result.to_dict()))
-    for key in ("kappa", "y0", "kappa_w", "rho", "sigma", "n", "input_sign", "rms_error", "samples"):
+    for key in (
+        "kappa",
+        "y0",
+        "kappa_w",
+        "rho",
+        "sigma",
+        "n",
+        "input_sign",
+        "rms_error",
+        "samples",
+    ):
         assert key in d and key in d["analytic"]
     assert d["kappa"] == list(result.parameters.kappa) and d["input_sign"] == -1
     assert d["analytic"]["rms_error"] > d["rms_error"]
@@ -303,7 +339,7 @@ def test_sine_is_a_t_wave_too():
     t = np.arange(3 * 4000 + 1) / 4000
     runs = []
     for lo in (-0.2, -0.1):
-        v = sine(t, 1.0, 0.2, lo + 0.2, phase=-np.pi / 2)                  # starts at its minimum
+        v = sine(t, 1.0, 0.2, lo + 0.2, phase=-np.pi / 2)  # starts at its minimum
         runs.append(Recording(t, v, model_output(CH9, v, w0=limit_cycle_start(CH9, lo, lo + 0.4))))
     result = identify(*runs)
     assert max_rel_error(result.analytic, CH9) < 1e-4
@@ -330,7 +366,7 @@ def test_corner_reconstruction():
     k = np.arange(1000)
     corner = _line_corner(-np.abs(k - 500.3), 500, 10)
     assert corner[0] == pytest.approx(500.3) and corner[1] == pytest.approx(0.0, abs=1e-12)
-    assert _line_corner(np.cos(2 * np.pi * (k - 500.3) / 1000), 500, 10) is None   # smooth top
+    assert _line_corner(np.cos(2 * np.pi * (k - 500.3) / 1000), 500, 10) is None  # smooth top
 
 
 def test_analytic_outside_class_i_is_projected_then_refined():

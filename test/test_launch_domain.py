@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-import pytest
 import os
 import subprocess
 import sys
 
+import pytest
+
 from piezo_stage.launch.domain import claim_domain_id, isolated_domain
+
 from ros_support import ROOT
 
 pytestmark = pytest.mark.ros
@@ -18,8 +20,9 @@ def test_claims_are_exclusive_across_processes():
     try:
         # another process asking from the same start gets another id while this one is held
         code = "from piezo_stage.launch.domain import claim_domain_id; print(claim_domain_id(start=40)[0])"
-        other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                               cwd=ROOT).stdout.strip()
+        other = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+        ).stdout.strip()
         assert int(other) != domain
     finally:
         lock.close()

@@ -12,9 +12,15 @@ import yaml
 from piezo_stage.cli import main
 from piezo_stage.launch import GraphError, Launcher, load_graph, parse_graph
 from piezo_stage.launch.child import defines_main
-from piezo_stage.launch.commandline import check_runnable, display_argv, process_env, ros_arguments, ros_value
-from piezo_stage.launch.output import Prefixer, use_color
+from piezo_stage.launch.commandline import (
+    check_runnable,
+    display_argv,
+    process_env,
+    ros_arguments,
+    ros_value,
+)
 from piezo_stage.launch.graph import find_graph, load_yaml, normalize_namespace
+from piezo_stage.launch.output import Prefixer, use_color
 
 pytestmark = pytest.mark.unit
 
@@ -26,8 +32,15 @@ def write(tmp_path: Path, data: object, name: str = "graph.yaml") -> Path:
 
 
 def test_defaults_and_resolution_of_names(tmp_path):
-    g = parse_graph({"nodes": [{"executable": "plant"}, {"module": "pkg.sub.talker"},
-                               {"command": ["/usr/bin/env", "true"], "required": True}]})
+    g = parse_graph(
+        {
+            "nodes": [
+                {"executable": "plant"},
+                {"module": "pkg.sub.talker"},
+                {"command": ["/usr/bin/env", "true"], "required": True},
+            ]
+        }
+    )
     assert g.namespace == "/piezo"
     assert [s.name for s in g.nodes] == ["plant", "talker", "env"]
     assert g.nodes[0].module == "piezo_stage.nodes.plant" and g.nodes[0].node_name is None
@@ -38,38 +51,93 @@ def test_defaults_and_resolution_of_names(tmp_path):
 
 def test_ros_arguments_in_precedence_order(tmp_path):
     (tmp_path / "plant.yaml").write_text("/**:\n  ros__parameters: {a: 1}\n")
-    g = load_graph(write(tmp_path, {
-        "namespace": "stage_a/", "use_sim_time": True,
-        "nodes": [{"executable": "plant", "name": "sim", "parameters": ["plant.yaml"],
-                   "overrides": {"clock_mode": "lockstep", "rate": 1000.0, "label": "1.5",
-                                 "gains": {"k1": 5e6}, "kappa": [1, 2.5], "on": False},
-                   "remappings": {"voltage_command": "cmd"}, "args": ["--verbose", 3]}]}))
+    g = load_graph(
+        write(
+            tmp_path,
+            {
+                "namespace": "stage_a/",
+                "use_sim_time": True,
+                "nodes": [
+                    {
+                        "executable": "plant",
+                        "name": "sim",
+                        "parameters": ["plant.yaml"],
+                        "overrides": {
+                            "clock_mode": "lockstep",
+                            "rate": 1000.0,
+                            "label": "1.5",
+                            "gains": {"k1": 5e6},
+                            "kappa": [1, 2.5],
+                            "on": False,
+                        },
+                        "remappings": {"voltage_command": "cmd"},
+                        "args": ["--verbose", 3],
+                    }
+                ],
+            },
+        )
+    )
     spec = g.nodes[0]
     args = ros_arguments(spec, g)
     assert args[:5] == ["--ros-args", "-r", "__ns:=/stage_a", "-r", "__node:=sim"]
     assert args[5:7] == ["--params-file", str(tmp_path / "plant.yaml")]
     p = [args[i + 1] for i, a in enumerate(args) if a == "-p"]
-    assert p == ["use_sim_time:=true", "clock_mode:=lockstep", "rate:=1000.0", "label:='1.5'",
-                 "gains.k1:=5000000.0", "kappa:=[1.0, 2.5]", "on:=false"]
+    assert p == [
+        "use_sim_time:=true",
+        "clock_mode:=lockstep",
+        "rate:=1000.0",
+        "label:='1.5'",
+        "gains.k1:=5000000.0",
+        "kappa:=[1.0, 2.5]",
+        "on:=false",
+    ]
     assert args[-2:] == ["-r", "voltage_command:=cmd"]
-    assert display_argv(spec, g)[:5] == ["python", "-m", "piezo_stage.nodes.plant", "--verbose", "3"]
+    assert display_argv(spec, g)[:5] == [
+        "python",
+        "-m",
+        "piezo_stage.nodes.plant",
+        "--verbose",
+        "3",
+    ]
 
 
 def test_exponent_floats_are_floats_as_in_rcl(tmp_path):
-    g = load_graph(write(tmp_path, "nodes: [{executable: c, overrides: {k1: 5e6, k0: 1.0e9, t: -2E-3, s: 'x1e5'}}]"))
+    g = load_graph(
+        write(
+            tmp_path,
+            "nodes: [{executable: c, overrides: {k1: 5e6, k0: 1.0e9, t: -2E-3, s: 'x1e5'}}]",
+        )
+    )
     assert g.nodes[0].overrides == {"k1": 5e6, "k0": 1e9, "t": -2e-3, "s": "x1e5"}
     assert g.with_params(["c.k1:=5.0e6"]).nodes[0].overrides["k1"] == 5e6
 
 
 def test_ros_value_reads_back_as_the_same_value():
-    for value in (True, 0, -3, 2.5, 1e-9, "lockstep", "1.0", "true", "5e6", "a b: c", ["x", "y"], [1, 2]):
+    for value in (
+        True,
+        0,
+        -3,
+        2.5,
+        1e-9,
+        "lockstep",
+        "1.0",
+        "true",
+        "5e6",
+        "a b: c",
+        ["x", "y"],
+        [1, 2],
+    ):
         assert load_yaml(ros_value(value)) == value, value
     assert ros_value("5e6") == "'5e6'" and ros_value(5e6) == "5000000.0"
 
 
 def test_environment_of_a_process():
-    g = parse_graph({"env": {"PYTHONPATH": "/g:${PYTHONPATH}", "MODE": "sim"},
-                     "nodes": [{"command": ["true"], "env": {"MODE": "$MODE-$NOPE-x", "N": 3}}]})
+    g = parse_graph(
+        {
+            "env": {"PYTHONPATH": "/g:${PYTHONPATH}", "MODE": "sim"},
+            "nodes": [{"command": ["true"], "env": {"MODE": "$MODE-$NOPE-x", "N": 3}}],
+        }
+    )
     env = process_env(g.nodes[0], g, {"PYTHONPATH": "/base", "PATH": "/bin"})
     assert env["MODE"] == "sim--x" and env["N"] == "3" and env["PYTHONUNBUFFERED"] == "1"
     paths = env["PYTHONPATH"].split(":")
@@ -79,18 +147,27 @@ def test_environment_of_a_process():
 
 
 def test_params_file_found_in_config_folder(tmp_path):
-    g = parse_graph({"nodes": [{"executable": "plant", "parameters": ["thesis_rig_bounds.yaml"]}]},
-                    source=tmp_path / "g.yaml")
+    g = parse_graph(
+        {"nodes": [{"executable": "plant", "parameters": ["thesis_rig_bounds.yaml"]}]},
+        source=tmp_path / "g.yaml",
+    )
     assert g.nodes[0].parameters[0].name == "thesis_rig_bounds.yaml"
     assert g.nodes[0].parameters[0].parent.name == "config"
 
 
 def test_namespace_and_param_edits():
-    g = parse_graph({"nodes": [{"executable": "plant", "overrides": {"rate": 10.0}},
-                               {"executable": "controller", "name": "ctl"},
-                               {"command": ["sleep", "1"]}]})
-    g2 = g.with_namespace("two").with_params(["ctl.k1:=5.0e6", "rate:=20.0", "gains.k2:=580",
-                                              "plant.mode:=[a, b]"])
+    g = parse_graph(
+        {
+            "nodes": [
+                {"executable": "plant", "overrides": {"rate": 10.0}},
+                {"executable": "controller", "name": "ctl"},
+                {"command": ["sleep", "1"]},
+            ]
+        }
+    )
+    g2 = g.with_namespace("two").with_params(
+        ["ctl.k1:=5.0e6", "rate:=20.0", "gains.k2:=580", "plant.mode:=[a, b]"]
+    )
     assert g2.namespace == "/two" and g.namespace == "/piezo"
     assert g2.node("plant").overrides == {"rate": 20.0, "gains.k2": 580, "mode": ["a", "b"]}
     assert g2.node("ctl").overrides == {"k1": 5.0e6, "rate": 20.0, "gains.k2": 580}
@@ -106,30 +183,59 @@ def test_namespace_and_param_edits():
     assert normalize_namespace("/") == "/"
 
 
-@pytest.mark.parametrize("data, message", [
-    ({"nodes": []}, "'nodes' must be a non-empty list"),
-    ({"node": [{"executable": "plant"}]}, r"unknown key\(s\) 'node' \(allowed: description"),
-    ({"nodes": [{"executable": "plant", "paramters": []}]}, r"nodes\[0\]: unknown key\(s\) 'paramters'"),
-    ({"nodes": [{"name": "x"}]}, "exactly one of 'executable', 'module', 'command'"),
-    ({"nodes": [{"executable": "plant", "module": "a.b"}]}, "exactly one of"),
-    ({"nodes": [{"executable": "a.b"}]}, "not a node module name"),
-    ({"nodes": [{"executable": "plant"}, {"executable": "plant"}]}, r"nodes\[1\]: name 'plant' is used twice"),
-    ({"nodes": [{"executable": "plant", "required": "yes"}]}, r"\(plant\): required: expected true or false"),
-    ({"nodes": [{"executable": "plant", "parameters": ["nope.yaml"]}]}, "params file 'nope.yaml' not found"),
-    ({"nodes": [{"command": ["x"], "overrides": {"a": 1}}]}, "'overrides' is for ROS nodes"),
-    ({"nodes": [{"command": []}]}, "command must not be empty"),
-    ({"nodes": [{"executable": "plant", "name": "my-node"}]}, "not a valid ROS node name"),
-    ({"nodes": [{"executable": "plant", "remappings": {"a": 3}}]}, "is not NAME: NAME"),
-    ({"nodes": [{"executable": "plant", "ready_pattern": "("}]}, "not a regular expression"),
-    ({"nodes": [{"executable": "plant"}], "namespace": "a b"}, "not a valid ROS namespace"),
-    ({"nodes": [{"executable": "plant"}], "wait_for_topics": ["bad topic"]}, r"wait_for_topics\[0\]"),
-    ({"nodes": [{"executable": "plant"}], "wait_for_topics": [{"topic": "a", "publishers": -1}]},
-     "expected a count >= 0"),
-    ({"nodes": [{"executable": "plant"}], "stop_timeout": 0}, "stop_timeout: expected a positive"),
-    ({"nodes": [{"executable": "plant"}], "use_sim_time": "true"}, "use_sim_time: expected true or false"),
-    ({"nodes": [{"executable": "plant", "overrides": {"a": None}}]}, r"\(plant\): overrides"),
-    ([1, 2], "expected a mapping"),
-])
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        ({"nodes": []}, "'nodes' must be a non-empty list"),
+        ({"node": [{"executable": "plant"}]}, r"unknown key\(s\) 'node' \(allowed: description"),
+        (
+            {"nodes": [{"executable": "plant", "paramters": []}]},
+            r"nodes\[0\]: unknown key\(s\) 'paramters'",
+        ),
+        ({"nodes": [{"name": "x"}]}, "exactly one of 'executable', 'module', 'command'"),
+        ({"nodes": [{"executable": "plant", "module": "a.b"}]}, "exactly one of"),
+        ({"nodes": [{"executable": "a.b"}]}, "not a node module name"),
+        (
+            {"nodes": [{"executable": "plant"}, {"executable": "plant"}]},
+            r"nodes\[1\]: name 'plant' is used twice",
+        ),
+        (
+            {"nodes": [{"executable": "plant", "required": "yes"}]},
+            r"\(plant\): required: expected true or false",
+        ),
+        (
+            {"nodes": [{"executable": "plant", "parameters": ["nope.yaml"]}]},
+            "params file 'nope.yaml' not found",
+        ),
+        ({"nodes": [{"command": ["x"], "overrides": {"a": 1}}]}, "'overrides' is for ROS nodes"),
+        ({"nodes": [{"command": []}]}, "command must not be empty"),
+        ({"nodes": [{"executable": "plant", "name": "my-node"}]}, "not a valid ROS node name"),
+        ({"nodes": [{"executable": "plant", "remappings": {"a": 3}}]}, "is not NAME: NAME"),
+        ({"nodes": [{"executable": "plant", "ready_pattern": "("}]}, "not a regular expression"),
+        ({"nodes": [{"executable": "plant"}], "namespace": "a b"}, "not a valid ROS namespace"),
+        (
+            {"nodes": [{"executable": "plant"}], "wait_for_topics": ["bad topic"]},
+            r"wait_for_topics\[0\]",
+        ),
+        (
+            {
+                "nodes": [{"executable": "plant"}],
+                "wait_for_topics": [{"topic": "a", "publishers": -1}],
+            },
+            "expected a count >= 0",
+        ),
+        (
+            {"nodes": [{"executable": "plant"}], "stop_timeout": 0},
+            "stop_timeout: expected a positive",
+        ),
+        (
+            {"nodes": [{"executable": "plant"}], "use_sim_time": "true"},
+            "use_sim_time: expected true or false",
+        ),
+        ({"nodes": [{"executable": "plant", "overrides": {"a": None}}]}, r"\(plant\): overrides"),
+        ([1, 2], "expected a mapping"),
+    ],
+)
 def test_bad_graphs_name_the_problem(tmp_path, data, message):
     path = write(tmp_path, data)
     with pytest.raises(GraphError, match=message) as info:
@@ -148,7 +254,9 @@ def test_bad_yaml_and_missing_files(tmp_path):
 
 def test_missing_executable_or_command_is_refused_before_starting():
     g = parse_graph({"nodes": [{"executable": "no_such_node"}]})
-    with pytest.raises(GraphError, match=r"no node module 'piezo_stage.nodes.no_such_node' \(available:"):
+    with pytest.raises(
+        GraphError, match=r"no node module 'piezo_stage.nodes.no_such_node' \(available:"
+    ):
         check_runnable(g)
     with pytest.raises(GraphError, match=r"no node module"):
         Launcher(g).start()
@@ -161,7 +269,10 @@ def test_cli_bad_graph_exits_2_with_the_reason(tmp_path, capsys):
     assert "unknown key(s) 'exe'" in capsys.readouterr().err
     assert main(["launch", "no_such_graph"]) == 2
     assert "no_such_graph" in capsys.readouterr().err
-    assert main(["launch", str(write(tmp_path, {"nodes": [{"executable": "nope_node"}]}, "n.yaml"))]) == 2
+    assert (
+        main(["launch", str(write(tmp_path, {"nodes": [{"executable": "nope_node"}]}, "n.yaml"))])
+        == 2
+    )
     assert "no node module 'piezo_stage.nodes.nope_node'" in capsys.readouterr().err
     path = write(tmp_path, {"nodes": [{"executable": "plant"}]}, "p.yaml")
     assert main(["launch", str(path), "--param", "plant.rate=3"]) == 2
@@ -169,18 +280,56 @@ def test_cli_bad_graph_exits_2_with_the_reason(tmp_path, capsys):
 
 
 def test_cli_dry_run_prints_the_commands(tmp_path, capsys):
-    path = write(tmp_path, {"description": "two nodes", "wait_for_topics": ["displacement", "/clock"],
-                            "nodes": [{"executable": "plant", "required": True},
-                                      {"command": ["piezo-stage", "emulate", "rig"]}]})
-    assert main(["launch", str(path), "--ns", "/b", "--param", "plant.rate_hz:=5.0", "--param",
-                 "sensor.noise:=1e-9", "--dry-run"]) == 2
+    path = write(
+        tmp_path,
+        {
+            "description": "two nodes",
+            "wait_for_topics": ["displacement", "/clock"],
+            "nodes": [
+                {"executable": "plant", "required": True},
+                {"command": ["piezo-stage", "emulate", "rig"]},
+            ],
+        },
+    )
+    assert (
+        main(
+            [
+                "launch",
+                str(path),
+                "--ns",
+                "/b",
+                "--param",
+                "plant.rate_hz:=5.0",
+                "--param",
+                "sensor.noise:=1e-9",
+                "--dry-run",
+            ]
+        )
+        == 2
+    )
     assert "no node of the graph has a parameter 'sensor.noise'" in capsys.readouterr().err
-    assert main(["launch", str(path), "--ns", "/b", "--param", "plant.rate_hz:=5.0", "--param",
-                 "sensor_noise:=1e-9", "--dry-run"]) == 0
+    assert (
+        main(
+            [
+                "launch",
+                str(path),
+                "--ns",
+                "/b",
+                "--param",
+                "plant.rate_hz:=5.0",
+                "--param",
+                "sensor_noise:=1e-9",
+                "--dry-run",
+            ]
+        )
+        == 0
+    )
     out, err = capsys.readouterr()
     assert "two nodes" in out and "waits for: /b/displacement, /clock" in out
-    assert ("plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b -p rate_hz:=5.0 "
-            "-p sensor_noise:=1.0e-09") in out
+    assert (
+        "plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b -p rate_hz:=5.0 "
+        "-p sensor_noise:=1.0e-09"
+    ) in out
     assert "piezo_stage: piezo-stage emulate rig" in out
 
 
@@ -211,14 +360,25 @@ def test_bootstrap_finds_main(tmp_path, monkeypatch):
 def test_namespaced_clock_remaps_every_node_and_the_wait():
     from piezo_stage.launch.commandline import ros_arguments
 
-    g = parse_graph({"clock": "namespaced", "wait_for_topics": [{"topic": "/clock", "publishers": 1}, "/other"],
-                     "nodes": [{"executable": "plant", "remappings": {"voltage_command": "cmd"}},
-                               {"command": ["sleep", "1"]}]}).with_namespace("/stage2")
+    g = parse_graph(
+        {
+            "clock": "namespaced",
+            "wait_for_topics": [{"topic": "/clock", "publishers": 1}, "/other"],
+            "nodes": [
+                {"executable": "plant", "remappings": {"voltage_command": "cmd"}},
+                {"command": ["sleep", "1"]},
+            ],
+        }
+    ).with_namespace("/stage2")
     args = ros_arguments(g.node("plant"), g)
-    assert "/clock:=clock" in args and "voltage_command:=cmd" in args  # rcl resolves it to /stage2/clock
+    assert (
+        "/clock:=clock" in args and "voltage_command:=cmd" in args
+    )  # rcl resolves it to /stage2/clock
     assert g.node("sleep").remappings == {}
     assert g.topics() == ["/stage2/clock", "/other"]
-    assert "/clock:=clock" not in ros_arguments(parse_graph({"nodes": [{"executable": "plant"}]}).nodes[0],
-                                                 parse_graph({"nodes": [{"executable": "plant"}]}))
+    assert "/clock:=clock" not in ros_arguments(
+        parse_graph({"nodes": [{"executable": "plant"}]}).nodes[0],
+        parse_graph({"nodes": [{"executable": "plant"}]}),
+    )
     with pytest.raises(GraphError, match="clock: expected global or namespaced"):
         parse_graph({"clock": "local", "nodes": [{"executable": "plant"}]})

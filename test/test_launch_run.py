@@ -18,8 +18,13 @@ pytestmark = pytest.mark.ros
 pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
 
 from piezo_stage.cli import main  # noqa: E402
-from piezo_stage.launch import (Launcher, LaunchError, RequiredProcessExited,  # noqa: E402
-                                TopicsNotReadyError)
+from piezo_stage.launch import (
+    Launcher,
+    LaunchError,
+    RequiredProcessExited,  # noqa: E402
+    TopicsNotReadyError,
+)
+
 from ros_support import ROOT  # noqa: E402
 
 TEST_DIR = str(Path(__file__).parent)
@@ -66,15 +71,24 @@ class Lines:
         return False
 
 
-def chatter_graph(tmp_path: Path, name: str = "graph.yaml", talker: dict | None = None,
-                  extra: list | None = None, **top) -> Path:
+def chatter_graph(
+    tmp_path: Path,
+    name: str = "graph.yaml",
+    talker: dict | None = None,
+    extra: list | None = None,
+    **top,
+) -> Path:
     """talker + listener (test/launch_nodes.py) waiting for chatter to have both ends."""
-    data = {"env": {"PYTHONPATH": TEST_DIR + ":${PYTHONPATH}"},
-            "wait_for_topics": [{"topic": "chatter", "publishers": 1, "subscribers": 1}],
-            "nodes": [{"module": "launch_nodes", "name": "talker", "args": ["talker"], **(talker or {})},
-                      {"module": "launch_nodes", "name": "listener", "args": ["listener"]},
-                      *(extra or [])],
-            **top}
+    data = {
+        "env": {"PYTHONPATH": TEST_DIR + ":${PYTHONPATH}"},
+        "wait_for_topics": [{"topic": "chatter", "publishers": 1, "subscribers": 1}],
+        "nodes": [
+            {"module": "launch_nodes", "name": "talker", "args": ["talker"], **(talker or {})},
+            {"module": "launch_nodes", "name": "listener", "args": ["listener"]},
+            *(extra or []),
+        ],
+        **top,
+    }
     path = tmp_path / name
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -104,7 +118,9 @@ def test_two_namespaces_at_once_with_their_own_parameters(tmp_path):
     assert heard_b and all(line.startswith("heard: beta ") for line in heard_b)
     assert "talker /beta/talker: clean shutdown" in out_b.of("talker")
     assert sorted(line for line in out_a.of("launch") if "exited" in line) == [
-        "listener exited with code 0", "talker exited with code 0"]
+        "listener exited with code 0",
+        "talker exited with code 0",
+    ]
 
 
 def _check_running(a: Launcher, b: Launcher, out_a: Lines, out_b: Lines) -> None:
@@ -115,16 +131,30 @@ def _check_running(a: Launcher, b: Launcher, out_a: Lines, out_b: Lines) -> None
 
 
 def test_required_exit_stops_the_others_with_its_code(tmp_path):
-    path = chatter_graph(tmp_path, talker={"required": True,
-                                           "overrides": {"exit_after": 0.5, "fail_code": 7}},
-                         extra=[{"command": ["sleep", "60"]}])
-    proc = subprocess.run([PY, "-m", "piezo_stage.cli", "launch", str(path), "--ns", "req"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    path = chatter_graph(
+        tmp_path,
+        talker={"required": True, "overrides": {"exit_after": 0.5, "fail_code": 7}},
+        extra=[{"command": ["sleep", "60"]}],
+    )
+    proc = subprocess.run(
+        [PY, "-m", "piezo_stage.cli", "launch", str(path), "--ns", "req"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 7, proc.stderr
     err = proc.stderr.splitlines()
-    assert any(line.startswith("[launch]   talker exited with code 7 (required") for line in err), err
-    assert any(line.startswith("[talker]   [INFO]") and "exiting by itself with code 7" in line for line in err)
-    assert any(line.startswith("[listener] heard: hello ") for line in proc.stdout.splitlines()), proc.stdout
+    assert any(line.startswith("[launch]   talker exited with code 7 (required") for line in err), (
+        err
+    )
+    assert any(
+        line.startswith("[talker]   [INFO]") and "exiting by itself with code 7" in line
+        for line in err
+    )
+    assert any(line.startswith("[listener] heard: hello ") for line in proc.stdout.splitlines()), (
+        proc.stdout
+    )
     assert "\033[" not in proc.stdout + proc.stderr  # no colour when not a terminal
     pids = [int(line.split("(pid ")[1].split(")")[0]) for line in err if "started " in line]
     assert len(pids) == 3 and not wait_gone(pids, timeout=1.0)
@@ -148,8 +178,13 @@ def _read_until(proc: subprocess.Popen, text: str, seen: list[str], timeout: flo
 
 def test_sigint_to_the_launcher_stops_every_node_cleanly(tmp_path):
     path = chatter_graph(tmp_path)
-    proc = subprocess.Popen([PY, "-m", "piezo_stage.cli", "launch", str(path)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [PY, "-m", "piezo_stage.cli", "launch", str(path)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     seen: list[str] = []
     try:
         assert _read_until(proc, "[launch]   ready after", seen), seen
@@ -169,8 +204,13 @@ def test_sigint_to_the_launcher_stops_every_node_cleanly(tmp_path):
 
 def test_sigkill_of_the_launcher_leaves_no_orphans(tmp_path):
     path = chatter_graph(tmp_path, extra=[{"command": ["sleep", "60"]}])
-    proc = subprocess.Popen([PY, "-m", "piezo_stage.cli", "launch", str(path), "--no-wait"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [PY, "-m", "piezo_stage.cli", "launch", str(path), "--no-wait"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     seen: list[str] = []
     try:
         assert _read_until(proc, "heard: ", seen), seen  # the nodes are up and talking
@@ -185,13 +225,22 @@ def test_sigkill_of_the_launcher_leaves_no_orphans(tmp_path):
 
 
 def test_stubborn_process_is_terminated_then_killed(tmp_path):
-    stubborn = ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-                "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)")
+    stubborn = (
+        "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
+    )
     polite = "import time; print('up', flush=True); time.sleep(60)"
     out = Lines()
-    launch = Launcher({"stop_timeout": 0.3, "nodes": [
-        {"command": [PY, "-c", stubborn], "name": "stubborn", "ready_pattern": "^up$"},
-        {"command": [PY, "-c", polite], "name": "polite", "ready_pattern": "up"}]}, sink=out)
+    launch = Launcher(
+        {
+            "stop_timeout": 0.3,
+            "nodes": [
+                {"command": [PY, "-c", stubborn], "name": "stubborn", "ready_pattern": "^up$"},
+                {"command": [PY, "-c", polite], "name": "polite", "ready_pattern": "up"},
+            ],
+        },
+        sink=out,
+    )
     launch.start()
     assert launch.wait_ready() >= 0.0
     pids = launch.pids
@@ -207,25 +256,57 @@ def test_stubborn_process_is_terminated_then_killed(tmp_path):
 def test_ready_pattern_orders_the_start(tmp_path):
     out = Lines()
     first = "import time; time.sleep(0.3); print('serving', flush=True); time.sleep(60)"
-    with Launcher({"nodes": [{"command": [PY, "-c", first], "name": "first", "ready_pattern": "serv"},
-                             {"command": ["sleep", "60"], "name": "second"}]}, sink=out) as launch:
+    with Launcher(
+        {
+            "nodes": [
+                {"command": [PY, "-c", first], "name": "first", "ready_pattern": "serv"},
+                {"command": ["sleep", "60"], "name": "second"},
+            ]
+        },
+        sink=out,
+    ) as launch:
         order = [(n, line) for n, line in out.items if n == "first" or "started second" in line]
         assert order[0] == ("first", "serving")
         assert launch.process("second").poll() is None
-    silent = Launcher({"nodes": [{"command": ["sleep", "60"], "ready_pattern": "never"},
-                                 {"command": ["sleep", "61"], "name": "later"}]}, sink=out, timeout=0.5)
+    silent = Launcher(
+        {
+            "nodes": [
+                {"command": ["sleep", "60"], "ready_pattern": "never"},
+                {"command": ["sleep", "61"], "name": "later"},
+            ]
+        },
+        sink=out,
+        timeout=0.5,
+    )
     with pytest.raises(LaunchError, match=r"sleep printed no line matching 'never' within 0.5 s"):
         silent.start()
     assert silent.stop() == 0 and list(silent.pids) == ["sleep"]  # 'later' never started
-    with pytest.raises(LaunchError, match=r"early exited with code 3 before printing a line matching 'never'"):
-        Launcher({"nodes": [{"command": [PY, "-c", "raise SystemExit(3)"], "name": "early",
-                             "ready_pattern": "never"}]}, sink=out).start()
+    with pytest.raises(
+        LaunchError, match=r"early exited with code 3 before printing a line matching 'never'"
+    ):
+        Launcher(
+            {
+                "nodes": [
+                    {
+                        "command": [PY, "-c", "raise SystemExit(3)"],
+                        "name": "early",
+                        "ready_pattern": "never",
+                    }
+                ]
+            },
+            sink=out,
+        ).start()
 
 
 def test_missing_topics_time_out_naming_them(tmp_path):
-    launch = Launcher({"namespace": "/quiet", "nodes": [{"command": ["sleep", "60"]}],
-                       "wait_for_topics": ["nobody_publishes", {"topic": "/rosout", "publishers": 99}]},
-                      sink=Lines())
+    launch = Launcher(
+        {
+            "namespace": "/quiet",
+            "nodes": [{"command": ["sleep", "60"]}],
+            "wait_for_topics": ["nobody_publishes", {"topic": "/rosout", "publishers": 99}],
+        },
+        sink=Lines(),
+    )
     launch.start()
     with pytest.raises(TopicsNotReadyError) as info:
         launch.wait_ready(timeout=1.0)
@@ -234,7 +315,9 @@ def test_missing_topics_time_out_naming_them(tmp_path):
     assert launch.stop() == 0
     ended = Launcher({"nodes": [{"command": ["true"]}], "wait_for_topics": ["x"]}, sink=Lines())
     ended.start()
-    with pytest.raises(TopicsNotReadyError, match=r"still waiting for: /piezo/x; exited meanwhile: true \(code 0\)"):
+    with pytest.raises(
+        TopicsNotReadyError, match=r"still waiting for: /piezo/x; exited meanwhile: true \(code 0\)"
+    ):
         ended.wait_ready(timeout=20.0)  # raised as soon as nothing is left running
     assert ended.stop() == 0 and ended.reason == "all processes exited"
 
@@ -251,21 +334,34 @@ def test_cli_not_ready_exits_3_and_stops(tmp_path, capsys):
 
 def test_required_exit_while_waiting_and_module_errors(tmp_path):
     out = Lines()
-    launch = Launcher({"wait_for_topics": ["never"], "nodes": [
-        {"module": "no_such_module_xyz", "required": True}, {"command": ["sleep", "60"]}]}, sink=out)
+    launch = Launcher(
+        {
+            "wait_for_topics": ["never"],
+            "nodes": [
+                {"module": "no_such_module_xyz", "required": True},
+                {"command": ["sleep", "60"]},
+            ],
+        },
+        sink=out,
+    )
     launch.start()
     with pytest.raises(RequiredProcessExited, match="'no_such_module_xyz' exited with code 2"):
         launch.wait_ready(timeout=20.0)
     assert launch.stop() == 2
-    assert any("cannot load module 'no_such_module_xyz'" in line for line in out.of("no_such_module_xyz"))
+    assert any(
+        "cannot load module 'no_such_module_xyz'" in line for line in out.of("no_such_module_xyz")
+    )
 
 
 def test_module_without_main_runs_as_main(tmp_path):
     (tmp_path / "script_mod.py").write_text(
-        "import sys\nif __name__ == '__main__':\n    print('as main', sys.argv[1:])\n    sys.exit(4)\n")
+        "import sys\nif __name__ == '__main__':\n    print('as main', sys.argv[1:])\n    sys.exit(4)\n"
+    )
     out = Lines()
-    launch = Launcher({"env": {"PYTHONPATH": str(tmp_path)},
-                       "nodes": [{"module": "script_mod", "args": ["x"]}]}, sink=out)
+    launch = Launcher(
+        {"env": {"PYTHONPATH": str(tmp_path)}, "nodes": [{"module": "script_mod", "args": ["x"]}]},
+        sink=out,
+    )
     launch.start()
     assert launch.wait(20.0) == 4 and launch.reason == "all processes exited"
     assert out.of("script_mod")[0].startswith("as main ['x', '--ros-args', '-r', '__ns:=/piezo'")
@@ -285,16 +381,22 @@ def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
     ticks: dict[str, list[float]] = {"/stage_a/clock": [], "/stage_b/clock": []}
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     for topic, got in ticks.items():
-        node.create_subscription(Clock, topic, lambda m, got=got: got.append(m.clock.sec + 1e-9 * m.clock.nanosec),
-                                 qos)
+        node.create_subscription(
+            Clock, topic, lambda m, got=got: got.append(m.clock.sec + 1e-9 * m.clock.nanosec), qos
+        )
     try:
         with a, b:
-            assert a.graph.topics()[0] == "/stage_a/clock" and b.graph.topics()[0] == "/stage_b/clock"
+            assert (
+                a.graph.topics()[0] == "/stage_a/clock" and b.graph.topics()[0] == "/stage_b/clock"
+            )
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and min(len(v) for v in ticks.values()) < 200:
                 rclpy.spin_once(node, timeout_sec=0.05)
             assert node.count_publishers("/clock") == 0
-            assert node.count_publishers("/stage_a/clock") == 1 and node.count_publishers("/stage_b/clock") == 1
+            assert (
+                node.count_publishers("/stage_a/clock") == 1
+                and node.count_publishers("/stage_b/clock") == 1
+            )
     finally:
         node.destroy_node()
         rclpy.shutdown()

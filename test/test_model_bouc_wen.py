@@ -30,11 +30,23 @@ def integrate_pieces(rate, x: np.ndarray, start: float) -> np.ndarray:
     out = np.empty_like(x)
     out[0] = start
     direction = np.sign(np.diff(x))
-    ends = [0] + [i for i in range(1, direction.size) if direction[i] != direction[i - 1]] + [x.size - 1]
+    ends = (
+        [0]
+        + [i for i in range(1, direction.size) if direction[i] != direction[i - 1]]
+        + [x.size - 1]
+    )
     for a, b in zip(ends[:-1], ends[1:]):
         s = float(np.sign(x[b] - x[a]))
-        sol = solve_ivp(rate, (x[a], x[b]), [out[a]], method="DOP853", rtol=1e-13, atol=1e-15,
-                        t_eval=x[a : b + 1], args=(s,))
+        sol = solve_ivp(
+            rate,
+            (x[a], x[b]),
+            [out[a]],
+            method="DOP853",
+            rtol=1e-13,
+            atol=1e-15,
+            t_eval=x[a : b + 1],
+            args=(s,),
+        )
         out[a : b + 1] = sol.y[0]
     return out
 
@@ -50,8 +62,15 @@ def reference_w(x: np.ndarray, rho: float, sigma: float, n: float, w0: float = 0
 
 
 def test_parameters_structure_and_kappa_x():
-    p = BoucWenParameters(kappa=[1.401e-7, -5.0949e-11], kappa_w=9.22e-6, rho=0.0047, sigma=0.812,
-                          n=1.12, y0=1.7858e-6, input_sign=-1)
+    p = BoucWenParameters(
+        kappa=[1.401e-7, -5.0949e-11],
+        kappa_w=9.22e-6,
+        rho=0.0047,
+        sigma=0.812,
+        n=1.12,
+        y0=1.7858e-6,
+        input_sign=-1,
+    )
     assert p.kappa == (1.401e-7, -5.0949e-11)
     assert p.kappa_x == 1.401e-7 and p.N == 2
     p.validate()
@@ -63,8 +82,14 @@ def test_parameters_structure_and_kappa_x():
 
 @pytest.mark.parametrize(
     "change, message",
-    [({"sigma": 0.49}, "sigma"), ({"rho": 0.0}, "rho"), ({"kappa_w": -1.0}, "kappa_w"),
-     ({"n": 0.9}, "n must"), ({"rho": float("nan")}, "finite"), ({"kappa": (float("inf"),)}, "kappa_1")],
+    [
+        ({"sigma": 0.49}, "sigma"),
+        ({"rho": 0.0}, "rho"),
+        ({"kappa_w": -1.0}, "kappa_w"),
+        ({"n": 0.9}, "n must"),
+        ({"rho": float("nan")}, "finite"),
+        ({"kappa": (float("inf"),)}, "kappa_1"),
+    ],
 )
 def test_validate_names_the_violated_condition(change, message):
     values = dict(kappa=(2.0,), kappa_w=2.0, rho=1.0, sigma=3.0, n=1.5) | change
@@ -108,7 +133,9 @@ def test_simulate_w_matches_converged_reference_ch9(w0):
     assert w[0] == w0
 
 
-@pytest.mark.parametrize("sigma, n", [(0.9153, 1.176), (0.5, 1.0), (3.0, 1.0), (0.812, 1.12), (2.0, 4.0)])
+@pytest.mark.parametrize(
+    "sigma, n", [(0.9153, 1.176), (0.5, 1.0), (3.0, 1.0), (0.812, 1.12), (2.0, 4.0)]
+)
 def test_simulate_w_general_n_against_reference(sigma, n):
     x = triangle(np.linspace(0.0, 1.5, 1501), 1.0, -1.5, 1.0)  # rho*span = 5: deep saturation
     w = simulate_w(x, 2.0, sigma, n, w0=0.3)
@@ -124,7 +151,9 @@ def test_n_equal_one_closed_form():
 
 def test_exact_on_monotone_pieces_independent_of_sampling():
     coarse = np.array([0.0, 0.3, -0.1, 0.25])
-    fine = np.concatenate([np.linspace(0.0, 0.3, 77), np.linspace(0.3, -0.1, 55)[1:], np.linspace(-0.1, 0.25, 9)[1:]])
+    fine = np.concatenate(
+        [np.linspace(0.0, 0.3, 77), np.linspace(0.3, -0.1, 55)[1:], np.linspace(-0.1, 0.25, 9)[1:]]
+    )
     wc = simulate_w(coarse, **CH9)
     wf = simulate_w(fine, **CH9)
     assert np.allclose(wf[[0, 76, 130, -1]], wc, atol=1e-14, rtol=0)
@@ -161,8 +190,15 @@ def test_simulate_w_bad_input():
 
 
 def test_model_output_is_polynomial_plus_hysteresis_with_input_sign():
-    p = BoucWenParameters(kappa=(1.401e-7, -5.0949e-11), kappa_w=9.22e-6, rho=0.0047, sigma=0.812,
-                          n=1.12, y0=1.7858e-6, input_sign=-1)
+    p = BoucWenParameters(
+        kappa=(1.401e-7, -5.0949e-11),
+        kappa_w=9.22e-6,
+        rho=0.0047,
+        sigma=0.812,
+        n=1.12,
+        y0=1.7858e-6,
+        input_sign=-1,
+    )
     v = triangle(np.linspace(0.0, 20.0, 4001), 10.0, 0.0, 300.0)
     y = model_output(p, v, w0=0.05)
     w = simulate_w(-v, p.rho, p.sigma, p.n, 0.05)

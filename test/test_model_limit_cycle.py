@@ -27,7 +27,9 @@ SETS = [(3.0, 1.5), (0.9153, 1.176), (0.812, 1.12), (0.5, 1.0), (7.0, 3.3)]
 
 def quad_phi(w: float, sigma: float, n: float, sign: float) -> float:
     """Direct quadrature of (9.3) (sign=-1) / (9.4) (sign=+1)."""
-    f = lambda u: 1.0 / (1.0 + sign * (-sigma * abs(u) ** (n - 1) * u) + (sigma - 1.0) * abs(u) ** n)  # noqa: E731
+    f = lambda u: (
+        1.0 / (1.0 + sign * (-sigma * abs(u) ** (n - 1) * u) + (sigma - 1.0) * abs(u) ** n)
+    )  # noqa: E731
     return quad(f, 0.0, w, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
 
 
@@ -48,7 +50,9 @@ def test_closed_forms_n1_and_n2():
     assert np.allclose(phi_minus(w, 3.0, 1.0), np.log1p(5.0 * w) / 5.0, rtol=1e-14, atol=1e-15)
     # n = 2: (9.7) -> artanh(w); (9.6) -> arctan(sqrt(c) w) / sqrt(c)
     assert np.allclose(phi_plus(w, 2.0, 2.0), np.arctanh(w), rtol=1e-14, atol=1e-15)
-    assert np.allclose(phi_minus(w, 2.0, 2.0), np.arctan(np.sqrt(3.0) * w) / np.sqrt(3.0), rtol=1e-14, atol=1e-15)
+    assert np.allclose(
+        phi_minus(w, 2.0, 2.0), np.arctan(np.sqrt(3.0) * w) / np.sqrt(3.0), rtol=1e-14, atol=1e-15
+    )
 
 
 @pytest.mark.parametrize("sigma, n", SETS)
@@ -63,8 +67,14 @@ def test_inverses_and_symmetry(sigma, n):
     assert psi_plus(np.array([np.inf]), sigma, n)[0] == 1.0
 
 
-@pytest.mark.parametrize("rho, sigma, n, low, high", [(1.0, 3.0, 1.5, -0.2, 0.2), (8.566e4, 0.9153, 1.176, 0.0, 3e-5),
-                                                       (0.0047, 0.812, 1.12, -300.0, 0.0)])
+@pytest.mark.parametrize(
+    "rho, sigma, n, low, high",
+    [
+        (1.0, 3.0, 1.5, -0.2, 0.2),
+        (8.566e4, 0.9153, 1.176, 0.0, 3e-5),
+        (0.0047, 0.812, 1.12, -300.0, 0.0),
+    ],
+)
 def test_simulation_converges_to_theorem_2(rho, sigma, n, low, high):
     samples = 400
     periods = 40

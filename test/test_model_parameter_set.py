@@ -28,11 +28,20 @@ def test_shipped_sets_hold_the_thesis_values():
     assert ch9.bouc_wen == BoucWenParameters(kappa=(2.0,), kappa_w=2.0, rho=1.0, sigma=3.0, n=1.5)
     ch10 = shipped_parameter_set("ch10_patch")
     assert ch10.bouc_wen.kappa == (1.401e-7, -5.0949e-11) and ch10.bouc_wen.input_sign == -1
-    assert (ch10.bouc_wen.kappa_w, ch10.bouc_wen.rho, ch10.bouc_wen.sigma, ch10.bouc_wen.n, ch10.bouc_wen.y0) == (
-        9.22e-6, 0.0047, 0.812, 1.12, 1.7858e-6)
+    assert (
+        ch10.bouc_wen.kappa_w,
+        ch10.bouc_wen.rho,
+        ch10.bouc_wen.sigma,
+        ch10.bouc_wen.n,
+        ch10.bouc_wen.y0,
+    ) == (9.22e-6, 0.0047, 0.812, 1.12, 1.7858e-6)
     ch11 = shipped_parameter_set("ch11_rig")
     assert ch11.form == "dynamic" and ch11.dynamics == Dynamics(m=5.3e-3, c=13.0)
-    assert (ch11.bouc_wen.kappa_x, ch11.bouc_wen.kappa_w, ch11.bouc_wen.rho) == (10.35e6, 43.57, 8.566e4)
+    assert (ch11.bouc_wen.kappa_x, ch11.bouc_wen.kappa_w, ch11.bouc_wen.rho) == (
+        10.35e6,
+        43.57,
+        8.566e4,
+    )
     assert (ch11.bouc_wen.sigma, ch11.bouc_wen.n) == (0.9153, 1.176)
     assert (ch11.input_name, ch11.output_name) == ("voltage", "displacement")
     for name in SHIPPED:
@@ -51,7 +60,9 @@ def test_round_trip(name, tmp_path):
 def test_round_trip_keeps_full_precision(tmp_path):
     ps = dataclasses.replace(
         shipped_parameter_set("ch10_patch"),
-        bouc_wen=BoucWenParameters(kappa=(0.1 + 0.2, 1 / 3), kappa_w=2 / 7, rho=1e-300, sigma=0.5, n=1.0),
+        bouc_wen=BoucWenParameters(
+            kappa=(0.1 + 0.2, 1 / 3), kappa_w=2 / 7, rho=1e-300, sigma=0.5, n=1.0
+        ),
         w0=-0.123456789012345678,
         notes="identified: rms 1e-9",
     )

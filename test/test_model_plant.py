@@ -6,12 +6,16 @@ import math
 
 import numpy as np
 import pytest
-
 from scipy.linalg import expm
 
 from piezo_stage.model import _plant_kernels as K
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
-from piezo_stage.model.errors import InitialStateError, InputSignalError, InvalidCommandError, ParameterError
+from piezo_stage.model.errors import (
+    InitialStateError,
+    InputSignalError,
+    InvalidCommandError,
+    ParameterError,
+)
 from piezo_stage.model.limit_cycle import limit_cycle
 from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant, StaticPlant, simulate_reference
@@ -30,7 +34,9 @@ def test_static_plant_equals_model_output():
     plant = StaticPlant(p, w0=0.1, v0=v[0])
     assert np.max(np.abs(plant.simulate(v) - model_output(p, v, w0=0.1))) < 1e-18
     stepper = StaticPlant(p, w0=0.1, v0=v[0])
-    assert np.allclose([stepper.step(x) for x in v[:300]], model_output(p, v[:300], w0=0.1), rtol=0, atol=1e-18)
+    assert np.allclose(
+        [stepper.step(x) for x in v[:300]], model_output(p, v[:300], w0=0.1), rtol=0, atol=1e-18
+    )
     assert stepper.output() == pytest.approx(model_output(p, v[:300], w0=0.1)[-1], abs=1e-18)
     with pytest.raises(InvalidCommandError):
         stepper.step(math.nan)
@@ -53,9 +59,19 @@ def test_linear_step_response_is_exact_with_thesis_frequency_and_damping():
     wn = math.sqrt(KX / M)  # ~ 2 pi 7 kHz
     zeta = C / (2.0 * math.sqrt(KX * M))  # ~ 2.8 %
     wd = wn * math.sqrt(1.0 - zeta**2)
-    exact = u / KX * (1.0 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * t)))
+    exact = (
+        u
+        / KX
+        * (
+            1.0
+            - np.exp(-zeta * wn * t)
+            * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * t))
+        )
+    )
     assert np.max(np.abs(x - exact)) <= 1e-9 * u / KX
-    assert wn / (2 * math.pi) == pytest.approx(7.03e3, rel=1e-2) and zeta == pytest.approx(0.0278, rel=1e-2)
+    assert wn / (2 * math.pi) == pytest.approx(7.03e3, rel=1e-2) and zeta == pytest.approx(
+        0.0278, rel=1e-2
+    )
     # frequency from the zero crossings of x', damping from successive peaks (log decrement)
     crossings = t[1:][np.diff(np.sign(xdot)) != 0]
     assert 2 * math.pi / (2 * np.mean(np.diff(crossings))) == pytest.approx(wd, rel=2e-3)
@@ -120,7 +136,9 @@ def test_quasi_static_limit_is_the_theorem_2_cycle():
     x, xdot, w = plant.simulate(u, dt)
     last = slice(len(t) - int(period / dt) - 1, len(t))
     xs, ws, vs = x[last], w[last], xdot[last]
-    assert np.count_nonzero(np.diff(np.sign(vs[np.abs(vs) > 0])) != 0) <= 2  # T-wave: one turn each way
+    assert (
+        np.count_nonzero(np.diff(np.sign(vs[np.abs(vs) > 0])) != 0) <= 2
+    )  # T-wave: one turn each way
     b = RIG.bouc_wen
     loading, unloading = limit_cycle(b.rho, b.sigma, b.n, xs.min(), xs.max(), xs)
     expected = np.where(vs > 0, loading, unloading)

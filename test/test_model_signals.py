@@ -57,4 +57,6 @@ def test_band_limited_noise_is_seeded_and_band_limited():
     freqs = np.fft.rfftfreq(a.size, 1.0 / fs)
     assert spectrum[freqs > 110.0].sum() < 1e-6 * spectrum.sum()
     # a pure function of t: one sample equals the same instant inside an array
-    assert band_limited_noise(np.array([t[123]]), 100.0, 3.0, seed=7)[0] == pytest.approx(a[123], abs=1e-12)
+    assert band_limited_noise(np.array([t[123]]), 100.0, 3.0, seed=7)[0] == pytest.approx(
+        a[123], abs=1e-12
+    )

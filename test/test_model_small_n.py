@@ -16,9 +16,17 @@ def _reference(x_up: float, x_down: float, rho: float, sigma: float, n: float, x
     def g(w: float, sign: int) -> float:  # (8.9) with dx/dt of sign `sign`
         return 1 - sigma * abs(w) ** (n - 1) * w * sign + (sigma - 1) * abs(w) ** n
 
-    up = solve_ivp(lambda x, w: [rho * g(w[0], 1)], (0, x_up), [0.0], rtol=1e-13, atol=1e-15, dense_output=True)
-    down = solve_ivp(lambda x, w: [rho * g(w[0], -1)], (x_up, x_down), [up.sol(x_up)[0]], rtol=1e-13,
-                     atol=1e-15, dense_output=True)
+    up = solve_ivp(
+        lambda x, w: [rho * g(w[0], 1)], (0, x_up), [0.0], rtol=1e-13, atol=1e-15, dense_output=True
+    )
+    down = solve_ivp(
+        lambda x, w: [rho * g(w[0], -1)],
+        (x_up, x_down),
+        [up.sol(x_up)[0]],
+        rtol=1e-13,
+        atol=1e-15,
+        dense_output=True,
+    )
     return np.concatenate([up.sol(xs_up)[0], down.sol(xs_down)[0]])
 
 

@@ -10,7 +10,8 @@ import pytest
 from piezo_stage.model.bouc_wen import model_output
 from piezo_stage.model.errors import InvalidCommandError, ParameterError
 from piezo_stage.model.parameter_set import shipped_parameter_set
-from piezo_stage.model.plant import DynamicPlant, SimulatedStage as FromPlant
+from piezo_stage.model.plant import DynamicPlant
+from piezo_stage.model.plant import SimulatedStage as FromPlant
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
 
 pytestmark = pytest.mark.unit
@@ -46,9 +47,14 @@ def test_sensor_range_quantisation_and_seeded_noise():
     assert laser.measure(math.nan)[1] == SensorStatus.INVALID
     noisy = [SensorModel(noise_std=1e-8, seed=4).measure(0.0)[0] for _ in range(2)]
     assert noisy[0] == noisy[1] != 0.0  # seeded: reproducible
-    samples = np.array([s[0] for s in map(SensorModel(noise_std=1e-8, seed=1).measure, np.zeros(4000))])
+    samples = np.array(
+        [s[0] for s in map(SensorModel(noise_std=1e-8, seed=1).measure, np.zeros(4000))]
+    )
     assert np.std(samples) == pytest.approx(1e-8, rel=0.1) and abs(np.mean(samples)) < 1e-9
-    assert SensorModel().measure(1.23456789e-7) == (1.23456789e-7, SensorStatus.OK)  # defaults: ideal
+    assert SensorModel().measure(1.23456789e-7) == (
+        1.23456789e-7,
+        SensorStatus.OK,
+    )  # defaults: ideal
     with pytest.raises(ParameterError, match="range_min < range_max"):
         SensorModel(range_min=1.0, range_max=0.0)
 

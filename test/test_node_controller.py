@@ -14,6 +14,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
+
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ctl"
@@ -39,13 +40,21 @@ def _sample(value, status=0, t=0.0):
 def test_invalid_sample_opens_the_loop_and_holds(node):
     from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
-    proc = start_node("controller", "trigger:=sample", "hold_voltage:=50.0", "reference_source:=constant",
-                      "reference:=1e-6", namespace=NS)
+    proc = start_node(
+        "controller",
+        "trigger:=sample",
+        "hold_voltage:=50.0",
+        "reference_source:=constant",
+        "reference:=1e-6",
+        namespace=NS,
+    )
     states: list = []
     cmds: list[float] = []
     diags: list = []
     node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    node.create_subscription(Voltage, "voltage_command", lambda m: cmds.append(m.voltage), COMMAND_QOS)
+    node.create_subscription(
+        Voltage, "voltage_command", lambda m: cmds.append(m.voltage), COMMAND_QOS
+    )
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
     try:
@@ -69,8 +78,15 @@ def test_invalid_sample_opens_the_loop_and_holds(node):
         pub.publish(_sample(float("nan"), status=Displacement.NO_TARGET, t=t))
         assert spin_until(node, lambda: len(cmds) > n_before, 5.0)
         assert cmds[-1] == pytest.approx(50.0)  # hold_voltage
-        assert spin_until(node, lambda: any(st.level == DiagnosticStatus.ERROR and "loop opened" in st.message
-                                            for d in diags for st in d.status), 5.0)
+        assert spin_until(
+            node,
+            lambda: any(
+                st.level == DiagnosticStatus.ERROR and "loop opened" in st.message
+                for d in diags
+                for st in d.status
+            ),
+            5.0,
+        )
         # later valid samples keep the loop open until asked
         pub.publish(_sample(0.0, t=t + 1e-3))
         spin_until(node, lambda: False, 0.3)
@@ -82,8 +98,14 @@ def test_invalid_sample_opens_the_loop_and_holds(node):
 def test_stale_sensor_opens_the_loop(node):
     from piezo_stage_msgs.msg import ControllerState, Displacement
 
-    proc = start_node("controller", "trigger:=timer", "rate_hz:=1000.0", "start_closed:=true",
-                      "stale_periods:=20", namespace=NS)
+    proc = start_node(
+        "controller",
+        "trigger:=timer",
+        "rate_hz:=1000.0",
+        "start_closed:=true",
+        "stale_periods:=20",
+        namespace=NS,
+    )
     states: list = []
     diags: list = []
     node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
@@ -97,7 +119,11 @@ def test_stale_sensor_opens_the_loop(node):
             spin_until(node, lambda: False, 0.002)
         assert spin_until(node, lambda: any(s.loop_closed for s in states), 5.0)
         # the sensor goes silent
-        assert spin_until(node, lambda: any("no sensor sample" in st.message for d in diags for st in d.status), 5.0)
+        assert spin_until(
+            node,
+            lambda: any("no sensor sample" in st.message for d in diags for st in d.status),
+            5.0,
+        )
     finally:
         stop(proc)
 
@@ -110,18 +136,23 @@ def test_unsafe_gain_change_is_refused_with_a_reason(node):
         assert not result.successful and "k2_min" in result.reason
         ok = SetParameters.Request(parameters=[Parameter("k2", value=600.0).to_parameter_msg()])
         assert _call(node, SetParameters, "controller/set_parameters", ok).results[0].successful
-        bad_mode = SetParameters.Request(parameters=[Parameter("mode", value="bang_bang").to_parameter_msg()])
+        bad_mode = SetParameters.Request(
+            parameters=[Parameter("mode", value="bang_bang").to_parameter_msg()]
+        )
         result = _call(node, SetParameters, "controller/set_parameters", bad_mode).results[0]
         assert not result.successful and "bang_bang" in result.reason
     finally:
         stop(proc)
 
 
-@pytest.mark.parametrize("param, reason", [
-    # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (docs/design.md §7)
-    ("rate_hz:=20000.0", "sampled loop unstable"),
-    ("sensor_qos:=fastest", "sensor_qos: 'fastest' is not one of best_effort, reliable"),
-])
+@pytest.mark.parametrize(
+    "param, reason",
+    [
+        # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (docs/design.md §7)
+        ("rate_hz:=20000.0", "sampled loop unstable"),
+        ("sensor_qos:=fastest", "sensor_qos: 'fastest' is not one of best_effort, reliable"),
+    ],
+)
 def test_bad_start_parameters_exit_with_the_reason(param, reason):
     proc = start_node("controller", param, namespace=NS)
     try:
@@ -131,7 +162,9 @@ def test_bad_start_parameters_exit_with_the_reason(param, reason):
     assert reason in err
 
 
-@pytest.mark.parametrize("sensor_qos,reliability", [("best_effort", "BEST_EFFORT"), ("reliable", "RELIABLE")])
+@pytest.mark.parametrize(
+    "sensor_qos,reliability", [("best_effort", "BEST_EFFORT"), ("reliable", "RELIABLE")]
+)
 def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliability):
     """best_effort matches the rig's SensorDataQoS reader; reliable (the lockstep graphs) loses no
     sample of the lockstep plant, so no step waits for the plant's timeout."""
@@ -140,8 +173,15 @@ def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliabi
     from piezo_stage.nodes.qos import LOCKSTEP_QOS
     from piezo_stage_msgs.msg import Displacement, Voltage
 
-    proc = start_node("controller", "trigger:=sample", "rate_hz:=1000.0", f"sensor_qos:={sensor_qos}",
-                      "start_closed:=true", "reference_source:=constant", namespace=NS)
+    proc = start_node(
+        "controller",
+        "trigger:=sample",
+        "rate_hz:=1000.0",
+        f"sensor_qos:={sensor_qos}",
+        "start_closed:=true",
+        "reference_source:=constant",
+        namespace=NS,
+    )
     try:
         topic = f"{NS}/displacement"
         assert spin_until(node, lambda: node.get_subscriptions_info_by_topic(topic), 20)
@@ -149,8 +189,9 @@ def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliabi
         assert info.qos_profile.reliability == getattr(ReliabilityPolicy, reliability)
         commands = []
         node.create_subscription(Voltage, "voltage_command", commands.append, COMMAND_QOS)
-        pub = node.create_publisher(Displacement, "displacement", LOCKSTEP_QOS if sensor_qos == "reliable"
-                                    else SENSOR_QOS)
+        pub = node.create_publisher(
+            Displacement, "displacement", LOCKSTEP_QOS if sensor_qos == "reliable" else SENSOR_QOS
+        )
         assert spin_until(node, lambda: pub.get_subscription_count() > 0, 20)
         k = [0]
 

@@ -17,6 +17,7 @@ from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_run  # no
 from piezo_stage.model.bouc_wen import BoucWenParameters  # noqa: E402
 from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
 from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS  # noqa: E402
+
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ident"
@@ -35,16 +36,26 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
     true = BoucWenParameters(**CH9_EXAMPLE)
     period, runs, t0 = 1.0, [], 10.0
     for k, q in enumerate((0.0, 0.1)):  # x(t) then x(t)+q, one after the other
-        rec = triangle_run(true, -0.2 + q, 0.2 + q, period=period, samples_per_branch=300, periods=3.0)
+        rec = triangle_run(
+            true, -0.2 + q, 0.2 + q, period=period, samples_per_branch=300, periods=3.0
+        )
         runs.append((rec.t + t0 + (3.0 + 1e-3) * k, rec.input, rec.output))  # no shared stamp
     t = np.concatenate([r[0] for r in runs])
     v = np.concatenate([r[1] for r in runs])
     y = np.concatenate([r[2] for r in runs])
     t1 = runs[1][0][0]  # run 1 starts with its first sample, as the excitation node marks it
-    marks = [(t0, 0, False), (t0 + 1.0, 0, True), (t1, 1, False), (t1 + 1.0, 1, True), (t1 + 3.0, 1, False)]
+    marks = [
+        (t0, 0, False),
+        (t0 + 1.0, 0, True),
+        (t1, 1, False),
+        (t1 + 1.0, 1, True),
+        (t1 + 3.0, 1, False),
+    ]
 
     out_file = tmp_path / "identified.yaml"
-    proc = start_node("identifier", f"output_file:={out_file}", namespace=NS)  # stream_qos auto: reliable here
+    proc = start_node(
+        "identifier", f"output_file:={out_file}", namespace=NS
+    )  # stream_qos auto: reliable here
     try:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         pub_v = node.create_publisher(Voltage, "voltage", reliable)
@@ -53,34 +64,68 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
         cycles, params = [], []
         node.create_subscription(LimitCycle, "limit_cycles", cycles.append, COMMAND_QOS)
         node.create_subscription(ParamsMsg, "bouc_wen_parameters", params.append, LATCHED_QOS)
-        assert spin_until(node, lambda: pub_v.get_subscription_count() and pub_y.get_subscription_count()
-                          and pub_e.get_subscription_count(), 15.0)
-        spin_until(node, lambda: False, 1.0)  # both sides of the match settled: no early sample lost
+        assert spin_until(
+            node,
+            lambda: (
+                pub_v.get_subscription_count()
+                and pub_y.get_subscription_count()
+                and pub_e.get_subscription_count()
+            ),
+            15.0,
+        )
+        spin_until(
+            node, lambda: False, 1.0
+        )  # both sides of the match settled: no early sample lost
         mark_iter = iter(marks)
         next_mark = next(mark_iter)
         for i in range(len(t)):
             while next_mark is not None and next_mark[0] <= t[i]:
-                pub_e.publish(_stamp(ExcitationInfo(waveform="triangle", period=period, amplitude=0.4,
-                                                    offset=0.1 * next_mark[1], run=next_mark[1],
-                                                    steady=next_mark[2]), next_mark[0]))
+                pub_e.publish(
+                    _stamp(
+                        ExcitationInfo(
+                            waveform="triangle",
+                            period=period,
+                            amplitude=0.4,
+                            offset=0.1 * next_mark[1],
+                            run=next_mark[1],
+                            steady=next_mark[2],
+                        ),
+                        next_mark[0],
+                    )
+                )
                 next_mark = next(mark_iter, None)
             pub_v.publish(_stamp(Voltage(voltage=float(v[i])), t[i]))
             pub_y.publish(_stamp(Displacement(displacement=float(y[i]), status=0), t[i]))
             if i % 200 == 0:
                 rclpy.spin_once(node, timeout_sec=0)
-        pub_e.publish(_stamp(ExcitationInfo(run=1, steady=False, offset=0.1, period=period), t1 + 3.0))
+        pub_e.publish(
+            _stamp(ExcitationInfo(run=1, steady=False, offset=0.1, period=period), t1 + 3.0)
+        )
         ok = spin_until(node, lambda: len(params) == 1, 60.0)
         if not ok:
             out, err = stop(proc)
-            raise AssertionError(f"no parameters published; cycles {len(cycles)}; node log:\n{err[-3000:]}")
+            raise AssertionError(
+                f"no parameters published; cycles {len(cycles)}; node log:\n{err[-3000:]}"
+            )
         assert len(cycles) == 2 and [c.offset for c in cycles] == [0.0, 0.1]
         assert cycles[0].period == pytest.approx(period, rel=1e-3)
         assert max(cycles[1].input) - max(cycles[0].input) == pytest.approx(0.1, rel=1e-3)
 
-        stamped = np.array([(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
-                            for m in (_stamp(Voltage(), ti) for ti in t)])  # what the node receives
-        recs = recordings_from_series(stamped, v, stamped, y, np.zeros(len(t), np.uint8),
-                                      intervals_from_marks([(m[0], m[1]) for m in marks]), "offline")
+        stamped = np.array(
+            [
+                (m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec)
+                for m in (_stamp(Voltage(), ti) for ti in t)
+            ]
+        )  # what the node receives
+        recs = recordings_from_series(
+            stamped,
+            v,
+            stamped,
+            y,
+            np.zeros(len(t), np.uint8),
+            intervals_from_marks([(m[0], m[1]) for m in marks]),
+            "offline",
+        )
         offline = identify(recs[0], recs[1], IdentifyOptions())
         got = params[0]
         p = offline.parameters
@@ -88,7 +133,9 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
         assert list(got.kappa) == pytest.approx(list(p.kappa), rel=1e-9)
         for name in ("kappa_w", "rho", "sigma", "n", "y0"):
             assert getattr(got, name) == pytest.approx(getattr(p, name), rel=1e-9, abs=1e-15), name
-        assert got.input_sign == 1 and got.input_name == "voltage" and got.samples == offline.samples
+        assert (
+            got.input_sign == 1 and got.input_name == "voltage" and got.samples == offline.samples
+        )
         for name, value in (("kappa_w", 2.0), ("rho", 1.0), ("sigma", 3.0), ("n", 1.5)):
             assert getattr(got, name) == pytest.approx(value, rel=1e-4)
         assert out_file.exists() and "kappa_w" in out_file.read_text()
@@ -100,6 +147,7 @@ def test_identifier_adapts_its_stream_qos_to_the_publishers():
     """stream_qos auto (default): reliable while every publisher is (the lockstep plant, a player),
     best effort once a SensorDataQoS publisher (the rig's laser reader) is there, and samples flow."""
     from diagnostic_msgs.msg import DiagnosticArray
+
     from piezo_stage_msgs.msg import Displacement, Voltage
 
     ns = "/ident_qos"
@@ -107,35 +155,64 @@ def test_identifier_adapts_its_stream_qos_to_the_publishers():
     node = rclpy.create_node("probe", namespace=ns)
     proc = start_node("identifier", namespace=ns)
     try:
+
         def sub_reliability(topic: str):
-            infos = [i for i in node.get_subscriptions_info_by_topic(f"{ns}/{topic}") if i.node_name == "identifier"]
+            infos = [
+                i
+                for i in node.get_subscriptions_info_by_topic(f"{ns}/{topic}")
+                if i.node_name == "identifier"
+            ]
             return infos[0].qos_profile.reliability if len(infos) == 1 else None
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
         node.create_publisher(Voltage, "voltage", reliable)
         pub_y = node.create_publisher(Displacement, "displacement", best_effort)
-        assert spin_until(node, lambda: sub_reliability("voltage") == ReliabilityPolicy.RELIABLE
-                          and sub_reliability("displacement") == ReliabilityPolicy.BEST_EFFORT, 30.0), \
-            (sub_reliability("voltage"), sub_reliability("displacement"))
-        pub_v2 = node.create_publisher(Voltage, "voltage", best_effort)  # a publisher that offers less
-        assert spin_until(node, lambda: sub_reliability("voltage") == ReliabilityPolicy.BEST_EFFORT
-                          and pub_v2.get_subscription_count() == 1, 30.0), sub_reliability("voltage")
+        assert spin_until(
+            node,
+            lambda: (
+                sub_reliability("voltage") == ReliabilityPolicy.RELIABLE
+                and sub_reliability("displacement") == ReliabilityPolicy.BEST_EFFORT
+            ),
+            30.0,
+        ), (sub_reliability("voltage"), sub_reliability("displacement"))
+        pub_v2 = node.create_publisher(
+            Voltage, "voltage", best_effort
+        )  # a publisher that offers less
+        assert spin_until(
+            node,
+            lambda: (
+                sub_reliability("voltage") == ReliabilityPolicy.BEST_EFFORT
+                and pub_v2.get_subscription_count() == 1
+            ),
+            30.0,
+        ), sub_reliability("voltage")
 
         counts: dict[str, int] = {}
 
         def on_diag(msg: DiagnosticArray) -> None:
             for status in msg.status:
                 if status.name == f"{ns}/identifier":
-                    counts.update({kv.key: int(kv.value) for kv in status.values if kv.key.endswith("_samples")})
+                    counts.update(
+                        {
+                            kv.key: int(kv.value)
+                            for kv in status.values
+                            if kv.key.endswith("_samples")
+                        }
+                    )
 
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
         for k in range(20):
             pub_v2.publish(_stamp(Voltage(voltage=float(k)), 1.0 + 0.01 * k))
             pub_y.publish(_stamp(Displacement(displacement=1e-6 * k, status=0), 1.0 + 0.01 * k))
             spin_until(node, lambda: False, 0.02)
-        assert spin_until(node, lambda: counts.get("voltage_samples", 0) > 0
-                          and counts.get("displacement_samples", 0) > 0, 15.0), counts
+        assert spin_until(
+            node,
+            lambda: (
+                counts.get("voltage_samples", 0) > 0 and counts.get("displacement_samples", 0) > 0
+            ),
+            15.0,
+        ), counts
     finally:
         stop(proc)
         node.destroy_node()
@@ -153,37 +230,66 @@ def test_identifier_says_when_the_streams_end_with_one_run_only(method, tmp_path
     true = BoucWenParameters(**CH9_EXAMPLE)
     rec = triangle_run(true, -0.2, 0.2, period=1.0, samples_per_branch=100, periods=3.0)
     t = rec.t + 10.0
-    marks = [(t[0], 0, False), (t[0] + 1.0, 0, True), (t[-1], 0, False)]  # one run, then the plan's end
+    marks = [
+        (t[0], 0, False),
+        (t[0] + 1.0, 0, True),
+        (t[-1], 0, False),
+    ]  # one run, then the plan's end
     rclpy.init()
     node = rclpy.create_node("probe", namespace=NS + "_one")
     out_file = tmp_path / "one_run.yaml"
-    proc = start_node("identifier", "on_done:=exit", "settle_time:=1.0", "stream_qos:=reliable",
-                      f"method:={method}", f"output_file:={out_file}", namespace=NS + "_one")
+    proc = start_node(
+        "identifier",
+        "on_done:=exit",
+        "settle_time:=1.0",
+        "stream_qos:=reliable",
+        f"method:={method}",
+        f"output_file:={out_file}",
+        namespace=NS + "_one",
+    )
     try:
         reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
         pub_v = node.create_publisher(Voltage, "voltage", reliable)
         pub_y = node.create_publisher(Displacement, "displacement", reliable)
         pub_e = node.create_publisher(ExcitationInfo, "excitation", COMMAND_QOS)
-        assert spin_until(node, lambda: pub_v.get_subscription_count() and pub_y.get_subscription_count()
-                          and pub_e.get_subscription_count(), 15.0)
+        assert spin_until(
+            node,
+            lambda: (
+                pub_v.get_subscription_count()
+                and pub_y.get_subscription_count()
+                and pub_e.get_subscription_count()
+            ),
+            15.0,
+        )
         spin_until(node, lambda: False, 0.5)
         k = 0
         for i in range(len(t)):
             while k < len(marks) and marks[k][0] <= t[i]:
-                pub_e.publish(_stamp(ExcitationInfo(waveform="triangle", period=1.0, run=marks[k][1],
-                                                    steady=marks[k][2]), marks[k][0]))
+                pub_e.publish(
+                    _stamp(
+                        ExcitationInfo(
+                            waveform="triangle", period=1.0, run=marks[k][1], steady=marks[k][2]
+                        ),
+                        marks[k][0],
+                    )
+                )
                 k += 1
             pub_v.publish(_stamp(Voltage(voltage=float(rec.input[i])), t[i]))
             pub_y.publish(_stamp(Displacement(displacement=float(rec.output[i]), status=0), t[i]))
-        assert spin_until(node, lambda: proc.poll() is not None, 60.0), "the identifier kept waiting"
+        assert spin_until(node, lambda: proc.poll() is not None, 60.0), (
+            "the identifier kept waiting"
+        )
         assert proc.returncode == (1 if method == "analytic" else 0)
     finally:
         out, err = stop(proc)
         node.destroy_node()
         rclpy.shutdown()
     if method == "analytic":
-        assert "silent for 1 s" in err and "1 complete run(s)" in err and "needs two steady runs" in err, \
-            err[-2000:]
+        assert (
+            "silent for 1 s" in err
+            and "1 complete run(s)" in err
+            and "needs two steady runs" in err
+        ), err[-2000:]
         return
     found = load_parameter_set(out_file).bouc_wen
     for name in ("kappa_w", "rho", "sigma", "n"):

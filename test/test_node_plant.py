@@ -17,6 +17,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
 from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS  # noqa: E402
+
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
 RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
@@ -52,8 +53,15 @@ def test_realtime_plant_follows_commands_and_refuses_nan(node):
         # samples it owes with their own stamps): increasing, spaced by whole periods
         spacing = np.diff([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in xs])
         assert np.all(spacing > 0) and np.all(spacing % 5_000_000 == 0), spacing
-        assert spin_until(node, lambda: any(s.level == DiagnosticStatus.WARN and "rejected" in s.message
-                                            for d in diags for s in d.status), 5.0)
+        assert spin_until(
+            node,
+            lambda: any(
+                s.level == DiagnosticStatus.WARN and "rejected" in s.message
+                for d in diags
+                for s in d.status
+            ),
+            5.0,
+        )
     finally:
         out, err = stop(proc)
     assert "rejected non-finite voltage command" in err
@@ -65,8 +73,14 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
     from piezo_stage_msgs.msg import BoucWenParameters, Displacement, LimitCycle, Voltage
 
     procs = [
-        start_node("plant", "model_file:=ch9_example.yaml", "clock_mode:=lockstep", f"rate_hz:={rate}",
-                   "wait_for_subscribers:=2", namespace=ns),  # the probe and the identifier
+        start_node(
+            "plant",
+            "model_file:=ch9_example.yaml",
+            "clock_mode:=lockstep",
+            f"rate_hz:={rate}",
+            "wait_for_subscribers:=2",
+            namespace=ns,
+        ),  # the probe and the identifier
         start_node("identifier", "use_sim_time:=true", "stream_qos:=reliable", namespace=ns),
     ]
     samples: list = []
@@ -74,16 +88,35 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
     cycles: list = []
     sub = node.create_subscription(Displacement, f"{ns}/displacement", samples.append, RELIABLE)
     sub_v = node.create_subscription(Voltage, f"{ns}/voltage", lambda m: None, RELIABLE)
-    sub_p = node.create_subscription(BoucWenParameters, f"{ns}/bouc_wen_parameters", params.append, LATCHED_QOS)
+    sub_p = node.create_subscription(
+        BoucWenParameters, f"{ns}/bouc_wen_parameters", params.append, LATCHED_QOS
+    )
     sub_c = node.create_subscription(LimitCycle, f"{ns}/limit_cycles", cycles.append, COMMAND_QOS)
     try:
         # everyone listening before the commander appears (the plant starts stepping then)
-        assert spin_until(node, lambda: node.count_subscribers(f"{ns}/voltage") >= 1
-                          and node.count_publishers(f"{ns}/displacement") >= 1, 20.0)
+        assert spin_until(
+            node,
+            lambda: (
+                node.count_subscribers(f"{ns}/voltage") >= 1
+                and node.count_publishers(f"{ns}/displacement") >= 1
+            ),
+            20.0,
+        )
         spin_until(node, lambda: False, 1.0)
-        procs.append(start_node("excitation", "preset:=ch9_example", "trigger:=clock", "use_sim_time:=true",
-                                "on_done:=exit", "wait_for_subscribers:=1", namespace=ns))
-        assert spin_until(node, lambda: procs[-1].poll() is not None, 120.0)  # keep reading meanwhile
+        procs.append(
+            start_node(
+                "excitation",
+                "preset:=ch9_example",
+                "trigger:=clock",
+                "use_sim_time:=true",
+                "on_done:=exit",
+                "wait_for_subscribers:=1",
+                namespace=ns,
+            )
+        )
+        assert spin_until(
+            node, lambda: procs[-1].poll() is not None, 120.0
+        )  # keep reading meanwhile
         assert procs[-1].returncode == 0, stop(procs[-1])
         published = spin_until(node, lambda: len(params) == 1, 30.0)
     finally:
@@ -94,8 +127,12 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
         node.destroy_subscription(sub_c)
     assert published, f"the identifier published nothing: {logs[1][1][-3000:]}"
     # the plant never waited for a command during the experiment (after it: nobody commands)
-    late = [line for _, err in logs for line in err.splitlines() if "no command for step" in line
-            and int(line.split("step ")[1].split()[0]) <= 14400]
+    late = [
+        line
+        for _, err in logs
+        for line in err.splitlines()
+        if "no command for step" in line and int(line.split("step ")[1].split()[0]) <= 14400
+    ]
     assert not late, late
     t = np.array([s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in samples])
     x = np.array([s.displacement for s in samples])
@@ -111,7 +148,9 @@ def test_lockstep_loop_identifies_the_plant_and_is_deterministic(node):
     for name in ("kappa_w", "rho", "sigma", "n"):
         assert getattr(p, name) == pytest.approx(getattr(true, name), rel=1e-4), name
     assert p.kappa[0] == pytest.approx(true.kappa[0], rel=1e-4)
-    assert np.all(np.diff(t1) == pytest.approx(1 / 400.0, abs=1e-9))  # one sample per step, none lost
+    assert np.all(
+        np.diff(t1) == pytest.approx(1 / 400.0, abs=1e-9)
+    )  # one sample per step, none lost
 
     t2, x2, _, _ = _lockstep_run(node, "/lockstep_b", 400.0)
     n = min(len(t2), len(t1))
@@ -128,8 +167,14 @@ def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node
     from piezo_stage_msgs.msg import Displacement, Voltage
 
     ns = "/lockstep_wait"
-    proc = start_node("plant", "model_file:=ch9_example.yaml", "clock_mode:=lockstep", "rate_hz:=1000.0",
-                      "wait_for_subscribers:=2", namespace=ns)
+    proc = start_node(
+        "plant",
+        "model_file:=ch9_example.yaml",
+        "clock_mode:=lockstep",
+        "rate_hz:=1000.0",
+        "wait_for_subscribers:=2",
+        namespace=ns,
+    )
     second = rclpy.create_node("second", namespace=ns)
     ticks: list = []
     seen: list = []
@@ -139,8 +184,14 @@ def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node
     node.create_subscription(Displacement, f"{ns}/displacement", seen.append, RELIABLE)
     node.create_subscription(Voltage, f"{ns}/voltage", lambda m: None, RELIABLE)
     try:
-        assert spin_until(node, lambda: node.count_publishers("/clock") >= 1 and
-                          node.count_subscribers(f"{ns}/displacement") >= 1, 20.0)
+        assert spin_until(
+            node,
+            lambda: (
+                node.count_publishers("/clock") >= 1
+                and node.count_subscribers(f"{ns}/displacement") >= 1
+            ),
+            20.0,
+        )
         spin_until(node, lambda: False, 1.5)
         assert ticks == [] and seen == []  # waiting for its second reader
         second.create_subscription(Displacement, f"{ns}/displacement", late.append, RELIABLE)
@@ -148,7 +199,9 @@ def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node
         assert spin_until(node, lambda: bool(ticks) and bool(seen), 10.0)
         assert spin_until(second, lambda: bool(late), 5.0)
         assert ticks[0].clock.sec == 0 and ticks[0].clock.nanosec == 0
-        assert seen[0].header.stamp == late[0].header.stamp == ticks[0].clock  # step 0, to both readers
+        assert (
+            seen[0].header.stamp == late[0].header.stamp == ticks[0].clock
+        )  # step 0, to both readers
     finally:
         stop(proc)
         second.destroy_node()

@@ -37,11 +37,12 @@ pytestmark = pytest.mark.ros
 
 rclpy = pytest.importorskip("rclpy")
 
+from piezo_stage.config_path import find_config  # noqa: E402
 from piezo_stage.launch import Launcher  # noqa: E402
 from piezo_stage.launch.graph import load_graph  # noqa: E402
 from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
-from piezo_stage.config_path import find_config  # noqa: E402
 from piezo_stage.nodes.qos import LATCHED_QOS, SENSOR_QOS  # noqa: E402
+
 from ros_support import spin_until  # noqa: E402
 
 NS = "/emulated"
@@ -57,8 +58,12 @@ def rig_graph(port: int, link: str):
     """The shipped graph with this test's amplifier port and sensor link appended to the
     emulator's command line (argparse: the last occurrence wins)."""
     g = load_graph("emulated_rig")
-    nodes = tuple(replace(s, args=s.args + ("--amp-tcp", str(port), "--sensor-link", link))
-                  if s.name == "rig" else s for s in g.nodes)
+    nodes = tuple(
+        replace(s, args=s.args + ("--amp-tcp", str(port), "--sensor-link", link))
+        if s.name == "rig"
+        else s
+        for s in g.nodes
+    )
     return replace(g, nodes=nodes)
 
 
@@ -73,10 +78,17 @@ def test_emulated_rig_graph_identifies_the_emulated_patch(probe, tmp_path):
     probe.create_subscription(Displacement, "displacement", xs.append, SENSOR_QOS)
     probe.create_subscription(Voltage, "voltage", vs.append, SENSOR_QOS)
     probe.create_subscription(BoucWenParameters, "bouc_wen_parameters", params.append, LATCHED_QOS)
-    launch = Launcher(rig_graph(port, str(link)), namespace=NS, timeout=30.0,
-                      params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}",
-                              f"identifier.output_file:={tmp_path / 'identified.yaml'}"],
-                      sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"))
+    launch = Launcher(
+        rig_graph(port, str(link)),
+        namespace=NS,
+        timeout=30.0,
+        params=[
+            f"voltage_driver.url:=tcp://127.0.0.1:{port}",
+            f"laser_reader.url:={link}",
+            f"identifier.output_file:={tmp_path / 'identified.yaml'}",
+        ],
+        sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"),
+    )
     try:
         launch.start()
         launch.wait_ready(timeout=30.0)
@@ -96,18 +108,27 @@ def test_emulated_rig_graph_identifies_the_emulated_patch(probe, tmp_path):
     log = "\n".join(line for line in lines if "[launch] started" not in line)[-6000:]
     assert done and params, log
     assert code == 0, log
-    assert any("shut down at 0 V" in line for line in lines), log  # ramped before the emulator stopped
+    assert any("shut down at 0 V" in line for line in lines), (
+        log
+    )  # ramped before the emulator stopped
     assert not os.path.lexists(link), "the emulator leaves no stale link"
     v = np.array([m.voltage for m in vs])
-    assert v.min() >= 0.0 and v.max() <= 400.0 and v.max() > 350.0  # the 0-300 / 100-400 V triangles
+    assert (
+        v.min() >= 0.0 and v.max() <= 400.0 and v.max() > 350.0
+    )  # the 0-300 / 100-400 V triangles
     # the reader starts unlocked: its first relock_frames - 1 samples are withheld (INVALID)
     assert all(m.status == Displacement.OK for m in xs[5:]) and len(xs) > 100
 
     truth = load_parameter_set(find_config("ch10_patch.yaml")).bouc_wen
     p = params[-1]
-    print("relative errors:", {name: float(getattr(p, name) / getattr(truth, name) - 1)
-                               for name in ("y0", "kappa_w", "rho", "sigma", "n")},
-          [float(k / t - 1) for k, t in zip(p.kappa, truth.kappa)])
+    print(
+        "relative errors:",
+        {
+            name: float(getattr(p, name) / getattr(truth, name) - 1)
+            for name in ("y0", "kappa_w", "rho", "sigma", "n")
+        },
+        [float(k / t - 1) for k, t in zip(p.kappa, truth.kappa)],
+    )
     assert p.input_sign == -1 and p.samples > 1000
     assert list(p.kappa) == pytest.approx(list(truth.kappa), rel=0.01)
     assert p.y0 == pytest.approx(truth.y0, rel=0.03)

@@ -19,16 +19,20 @@ from std_srvs.srv import SetBool, Trigger  # noqa: E402
 from piezo_stage.bag import BagWriter, qos, read_raw  # noqa: E402
 from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps  # noqa: E402
 from piezo_stage.nodes.player import playback_qos  # noqa: E402
+
 from ros_support import fill, msg_class, spin_until, start_node, stop  # noqa: E402
 
 NS = "/pl"
-N = 51                 # messages per stream, 10 ms apart: 0.5 s of bag time
+N = 51  # messages per stream, 10 ms apart: 0.5 s of bag time
 T0 = 1_700_000_000_000_000_000
 DT = 10_000_000
-KEEP_ALL = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+KEEP_ALL = QoSProfile(
+    depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+)
 BEST_EFFORT = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 
 
 def _data(type_name: str, seed: int) -> bytes:
@@ -44,12 +48,18 @@ def bag(tmp_path_factory):
     path = tmp_path_factory.mktemp("play") / "bag"
     with BagWriter(path) as writer:
         writer.add_topic(f"{NS}/voltage", "piezo_stage_msgs/msg/Voltage", [qos.RELIABLE])
-        writer.add_topic(f"{NS}/displacement", "piezo_stage_msgs/msg/Displacement", [qos.SENSOR_DATA])
-        writer.add_topic(f"{NS}/bouc_wen_parameters", "piezo_stage_msgs/msg/BoucWenParameters", [qos.LATCHED])
+        writer.add_topic(
+            f"{NS}/displacement", "piezo_stage_msgs/msg/Displacement", [qos.SENSOR_DATA]
+        )
+        writer.add_topic(
+            f"{NS}/bouc_wen_parameters", "piezo_stage_msgs/msg/BoucWenParameters", [qos.LATCHED]
+        )
         writer.write(f"{NS}/bouc_wen_parameters", _data("BoucWenParameters", 999), T0)
         for k in range(N):
             writer.write(f"{NS}/voltage", _data("Voltage", k), T0 + k * DT)
-            writer.write(f"{NS}/displacement", _data("Displacement", 1000 + k), T0 + k * DT + DT // 2)
+            writer.write(
+                f"{NS}/displacement", _data("Displacement", 1000 + k), T0 + k * DT + DT // 2
+            )
     return path
 
 
@@ -60,9 +70,15 @@ class Sink:
         self.got: dict[str, list[tuple[float, bytes]]] = {t: [] for t in topics}
         self.subscriptions = []
         for topic, (type_name, profile) in topics.items():
-            self.subscriptions.append(node.create_subscription(msg_class(type_name), topic,
-                                     lambda data, topic=topic: self.got[topic].append((time.monotonic(), data)),
-                                     profile, raw=True))
+            self.subscriptions.append(
+                node.create_subscription(
+                    msg_class(type_name),
+                    topic,
+                    lambda data, topic=topic: self.got[topic].append((time.monotonic(), data)),
+                    profile,
+                    raw=True,
+                )
+            )
 
     def close(self, node) -> None:
         for sub in self.subscriptions:
@@ -77,14 +93,22 @@ class Sink:
 
 def same_bytes(played: bytes, recorded: bytes) -> bool:
     """Equal, up to the zero padding to 4 bytes Fast DDS adds between processes."""
-    return played[:len(recorded)] == recorded and len(played) - len(recorded) < 4 \
-        and not any(played[len(recorded):])
+    return (
+        played[: len(recorded)] == recorded
+        and len(played) - len(recorded) < 4
+        and not any(played[len(recorded) :])
+    )
 
 
 def _sink_all(node) -> Sink:
-    return Sink(node, {f"{NS}/voltage": ("Voltage", KEEP_ALL),
-                       f"{NS}/displacement": ("Displacement", BEST_EFFORT),
-                       f"{NS}/bouc_wen_parameters": ("BoucWenParameters", LATCHED)})
+    return Sink(
+        node,
+        {
+            f"{NS}/voltage": ("Voltage", KEEP_ALL),
+            f"{NS}/displacement": ("Displacement", BEST_EFFORT),
+            f"{NS}/bouc_wen_parameters": ("BoucWenParameters", LATCHED),
+        },
+    )
 
 
 def _play(node, sink: Sink, bag, *params: str) -> tuple[int, str]:
@@ -111,11 +135,15 @@ def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag)
         assert all(same_bytes(v, r) for v, r in zip(voltages, recorded[f"{NS}/voltage"]))
         got = [d for _, d in sink.got[f"{NS}/displacement"]]
         assert len(got) >= 0.9 * N  # best effort, as recorded
-        index = [next(j for j, r in enumerate(recorded[f"{NS}/displacement"]) if same_bytes(d, r))
-                 for d in got]
+        index = [
+            next(j for j, r in enumerate(recorded[f"{NS}/displacement"]) if same_bytes(d, r))
+            for d in got
+        ]
         assert index == sorted(set(index))
         latched = [d for _, d in sink.got[f"{NS}/bouc_wen_parameters"]]
-        assert len(latched) == 1 and same_bytes(latched[0], recorded[f"{NS}/bouc_wen_parameters"][0])
+        assert len(latched) == 1 and same_bytes(
+            latched[0], recorded[f"{NS}/bouc_wen_parameters"][0]
+        )
         spans[rate] = sink.span(f"{NS}/voltage")
         sink.close(node)
     # 0.5 s of bag time: ~0.5 s at rate 1, ~0.1 s at rate 5 (loose bounds: shared machine)
@@ -125,13 +153,27 @@ def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag)
 
 
 def test_clock_topic_filter_and_remap(node, bag):
-    sink = Sink(node, {"/moved/voltage": ("Voltage", KEEP_ALL), f"{NS}/voltage": ("Voltage", KEEP_ALL),
-                       f"{NS}/displacement": ("Displacement", BEST_EFFORT)})
+    sink = Sink(
+        node,
+        {
+            "/moved/voltage": ("Voltage", KEEP_ALL),
+            f"{NS}/voltage": ("Voltage", KEEP_ALL),
+            f"{NS}/displacement": ("Displacement", BEST_EFFORT),
+        },
+    )
     clocks: list[int] = []
-    node.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
-                             KEEP_ALL)
-    code, err = _play(node, sink, bag, "publish_clock:=true", "clock_rate_hz:=100.0",
-                      f"topics:=['{NS}/voltage']", f"remap:=['{NS}/voltage:=/moved/voltage']")
+    node.create_subscription(
+        Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec), KEEP_ALL
+    )
+    code, err = _play(
+        node,
+        sink,
+        bag,
+        "publish_clock:=true",
+        "clock_rate_hz:=100.0",
+        f"topics:=['{NS}/voltage']",
+        f"remap:=['{NS}/voltage:=/moved/voltage']",
+    )
     assert code == 0, err
     assert sink.count("/moved/voltage") == N
     assert sink.count(f"{NS}/voltage") == 0 and sink.count(f"{NS}/displacement") == 0
@@ -175,8 +217,15 @@ def test_pause_resume_services(node, bag):
 
 def test_loop_replays_until_stopped(node, bag):
     sink = _sink_all(node)
-    proc = start_node("player", f"bag:={bag}", "loop:=true", "rate:=0.0", "wait_for_subscribers:=1",
-                      f"topics:=['{NS}/voltage']", namespace=NS)
+    proc = start_node(
+        "player",
+        f"bag:={bag}",
+        "loop:=true",
+        "rate:=0.0",
+        "wait_for_subscribers:=1",
+        f"topics:=['{NS}/voltage']",
+        namespace=NS,
+    )
     try:
         assert spin_until(node, lambda: sink.count(f"{NS}/voltage") >= 3 * N, 20.0)
         assert proc.poll() is None  # looping: does not exit by itself
@@ -186,7 +235,7 @@ def test_loop_replays_until_stopped(node, bag):
         _, err = stop(proc)
     assert "Traceback" not in err
     first = [d for _, d in sink.got[f"{NS}/voltage"][:N]]
-    second = [d for _, d in sink.got[f"{NS}/voltage"][N:2 * N]]
+    second = [d for _, d in sink.got[f"{NS}/voltage"][N : 2 * N]]
     assert first == second
 
 
@@ -204,10 +253,10 @@ def test_playback_clock_scales_and_freezes_while_paused():
     clock = PlaybackClock(T0, rate=2.0, paused=True)
     assert clock.due(T0) is None and clock.now(5.0) == T0
     clock.resume(10.0)
-    assert clock.now(10.5) == T0 + 1_000_000_000       # 0.5 s wall at rate 2
+    assert clock.now(10.5) == T0 + 1_000_000_000  # 0.5 s wall at rate 2
     assert clock.due(T0 + 3_000_000_000) == pytest.approx(11.5)
     clock.pause(11.0)
-    assert clock.now(20.0) == T0 + 2_000_000_000       # frozen
+    assert clock.now(20.0) == T0 + 2_000_000_000  # frozen
     clock.resume(30.0)
     assert clock.due(T0 + 3_000_000_000) == pytest.approx(30.5)
     with pytest.raises(PlaybackError, match="rate > 0"):

@@ -21,7 +21,10 @@ NS = "/piezo"
 
 
 def _msg(type_name: str, **fields):
-    return serialize(message_class(f"piezo_stage_msgs/msg/{type_name}")(**fields), f"piezo_stage_msgs/msg/{type_name}")
+    return serialize(
+        message_class(f"piezo_stage_msgs/msg/{type_name}")(**fields),
+        f"piezo_stage_msgs/msg/{type_name}",
+    )
 
 
 def _identification_bag(path: Path, with_parameters: bool) -> None:
@@ -32,21 +35,56 @@ def _identification_bag(path: Path, with_parameters: bool) -> None:
     v = 300.0 * (1 - np.abs(((t / 10.0) % 1.0) * 2 - 1)) + 100.0 * run
     y = model_output(p, v)
     with BagWriter(path, compression="zstd") as w:
-        for name, ty in (("voltage", "Voltage"), ("displacement", "Displacement"), ("excitation", "ExcitationInfo")):
+        for name, ty in (
+            ("voltage", "Voltage"),
+            ("displacement", "Displacement"),
+            ("excitation", "ExcitationInfo"),
+        ):
             w.add_topic(f"{NS}/{name}", f"piezo_stage_msgs/msg/{ty}")
         for k, (ti, vi, yi, ri) in enumerate(zip(t, v, y, run)):
             ns = int(round(ti * 1e9))
             w.write(f"{NS}/voltage", _msg("Voltage", header=header(ns), voltage=float(vi)), ns)
-            w.write(f"{NS}/displacement", _msg("Displacement", header=header(ns), displacement=float(yi), status=0), ns)
+            w.write(
+                f"{NS}/displacement",
+                _msg("Displacement", header=header(ns), displacement=float(yi), status=0),
+                ns,
+            )
             if k % 10 == 0:
-                w.write(f"{NS}/excitation", _msg("ExcitationInfo", header=header(ns), waveform="triangle", period=10.0,
-                                                  amplitude=300.0, offset=100.0 * ri, run=int(ri), steady=True), ns)
+                w.write(
+                    f"{NS}/excitation",
+                    _msg(
+                        "ExcitationInfo",
+                        header=header(ns),
+                        waveform="triangle",
+                        period=10.0,
+                        amplitude=300.0,
+                        offset=100.0 * ri,
+                        run=int(ri),
+                        steady=True,
+                    ),
+                    ns,
+                )
         if with_parameters:
             w.add_topic(f"{NS}/bouc_wen_parameters", "piezo_stage_msgs/msg/BoucWenParameters")
             ns = int(40e9)
-            w.write(f"{NS}/bouc_wen_parameters", _msg(
-                "BoucWenParameters", header=header(ns), kappa=np.array(p.kappa), y0=p.y0, kappa_w=p.kappa_w, rho=p.rho,
-                sigma=p.sigma, n=p.n, input_sign=p.input_sign, input_name="voltage", rms_error=0.0, samples=400), ns)
+            w.write(
+                f"{NS}/bouc_wen_parameters",
+                _msg(
+                    "BoucWenParameters",
+                    header=header(ns),
+                    kappa=np.array(p.kappa),
+                    y0=p.y0,
+                    kappa_w=p.kappa_w,
+                    rho=p.rho,
+                    sigma=p.sigma,
+                    n=p.n,
+                    input_sign=p.input_sign,
+                    input_name="voltage",
+                    rms_error=0.0,
+                    samples=400,
+                ),
+                ns,
+            )
 
 
 def _closed_loop_bag(path: Path) -> None:
@@ -58,10 +96,25 @@ def _closed_loop_bag(path: Path) -> None:
         for ti, ci, xi in zip(t, closed, x1):
             ns = int(round(ti * 1e9))
             u_exc = 5.0 * math.sin(2 * math.pi * 100 * ti) if ci else 0.0
-            w.write(f"{NS}/controller_state", _msg(
-                "ControllerState", header=header(ns), mode="pid_tv", loop_closed=bool(ci), saturated=False,
-                reference=1e-5, x0=0.0, x1=float(xi), x2=float(-xi / 0.02), u=float(-5e6 * xi + u_exc),
-                u_pid=float(-5e6 * xi), u_excitation=u_exc, u_ff=0.0), ns)
+            w.write(
+                f"{NS}/controller_state",
+                _msg(
+                    "ControllerState",
+                    header=header(ns),
+                    mode="pid_tv",
+                    loop_closed=bool(ci),
+                    saturated=False,
+                    reference=1e-5,
+                    x0=0.0,
+                    x1=float(xi),
+                    x2=float(-xi / 0.02),
+                    u=float(-5e6 * xi + u_exc),
+                    u_pid=float(-5e6 * xi),
+                    u_excitation=u_exc,
+                    u_ff=0.0,
+                ),
+                ns,
+            )
 
 
 def _png_size(path: Path) -> tuple[int, int]:

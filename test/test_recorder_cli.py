@@ -16,8 +16,8 @@ from rclpy.duration import Duration  # noqa: E402
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from piezo_stage.bag import bag_info, read_messages  # noqa: E402
-from ros_support import ROOT, spin_until  # noqa: E402
 
+from ros_support import ROOT, spin_until  # noqa: E402
 
 NS = "/cli"  # the probe node's namespace (conftest)
 
@@ -25,18 +25,30 @@ NS = "/cli"  # the probe node's namespace (conftest)
 def _cli(*args: str) -> subprocess.Popen:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    return subprocess.Popen([sys.executable, "-m", "piezo_stage.cli", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "piezo_stage.cli", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def test_record_forwards_sigint_and_prints_the_complete_bag(node, tmp_path):
     from piezo_stage_msgs.msg import Voltage
 
     bag = tmp_path / "run1"
-    proc = _cli("record", "--ns", "/cli", "-o", str(bag), "--topics", "voltage", "--compression", "zstd")
+    proc = _cli(
+        "record", "--ns", "/cli", "-o", str(bag), "--topics", "voltage", "--compression", "zstd"
+    )
     try:
-        pub = node.create_publisher(Voltage, "voltage", QoSProfile(
-            depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
+        pub = node.create_publisher(
+            Voltage,
+            "voltage",
+            QoSProfile(
+                depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+            ),
+        )
         assert spin_until(node, lambda: pub.get_subscription_count() >= 1, 15.0)
         spin_until(node, lambda: False, 0.2)
         for k in range(50):

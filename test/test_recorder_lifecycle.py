@@ -18,9 +18,12 @@ from std_srvs.srv import Trigger  # noqa: E402
 from piezo_stage.bag import bag_info, read_messages  # noqa: E402
 from piezo_stage.bag.reader import bag_files  # noqa: E402
 from piezo_stage.cli import main as cli  # noqa: E402
+
 from ros_support import spin_until, start_node, stop  # noqa: E402
 
-KEEP_ALL = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+KEEP_ALL = QoSProfile(
+    depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+)
 
 
 class Stage:
@@ -69,11 +72,18 @@ def _voltages(path) -> list[float]:
 def test_start_stop_split_services_and_regex_selection(node, tmp_path):
     bag = tmp_path / "bag"
     stage = Stage(node, "/svc")
-    proc = start_node("recorder", f"bag:={bag}", "start_paused:=true", "topic_regex:=^/svc/volt",
-                      "discovery_period:=0.1", "diagnostics_period:=0.1", namespace="/svc")
+    proc = start_node(
+        "recorder",
+        f"bag:={bag}",
+        "start_paused:=true",
+        "topic_regex:=^/svc/volt",
+        "discovery_period:=0.1",
+        "diagnostics_period:=0.1",
+        namespace="/svc",
+    )
     try:
         stage.wait_subscribed()
-        stage.send(0)                    # paused: taken, not written
+        stage.send(0)  # paused: taken, not written
         stage.wait_count("ignored", 10)
         assert stage.call("start").success
         stage.send(100)
@@ -102,8 +112,15 @@ def test_start_stop_split_services_and_regex_selection(node, tmp_path):
 def test_sigkill_leaves_flushed_messages_that_reindex_recovers(node, tmp_path, capsys):
     bag = tmp_path / "bag"
     stage = Stage(node, "/crash")
-    proc = start_node("recorder", f"bag:={bag}", "topics:=[voltage]", "flush_period:=0.1",
-                      "discovery_period:=0.1", "diagnostics_period:=0.1", namespace="/crash")
+    proc = start_node(
+        "recorder",
+        f"bag:={bag}",
+        "topics:=[voltage]",
+        "flush_period:=0.1",
+        "discovery_period:=0.1",
+        "diagnostics_period:=0.1",
+        namespace="/crash",
+    )
     try:
         stage.wait_subscribed()
         stage.send(0, 300)
@@ -135,15 +152,25 @@ def test_sim_time_stamps_and_qos_readapted_to_a_best_effort_publisher(node, tmp_
         clock.publish(Clock(clock=Time(sec=sim[0] // 10**9, nanosec=sim[0] % 10**9)))
 
     tick = node.create_timer(0.02, advance)
-    proc = start_node("recorder", f"bag:={bag}", "topics:=[voltage]", "use_sim_time:=true",
-                      "discovery_period:=0.1", "diagnostics_period:=0.1", namespace="/sim")
+    proc = start_node(
+        "recorder",
+        f"bag:={bag}",
+        "topics:=[voltage]",
+        "use_sim_time:=true",
+        "discovery_period:=0.1",
+        "diagnostics_period:=0.1",
+        namespace="/sim",
+    )
     try:
         stage.wait_subscribed()
         stage.send(0)
         stage.wait_count("written", 10)
         # a best-effort publisher joins: the reliable subscription would not match it
-        best_effort = node.create_publisher(stage.Voltage, "/sim/voltage", QoSProfile(
-            depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+        best_effort = node.create_publisher(
+            stage.Voltage,
+            "/sim/voltage",
+            QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT),
+        )
         assert spin_until(node, lambda: best_effort.get_subscription_count() >= 1, 10.0)
         spin_until(node, lambda: False, 0.2)
         for k in range(100, 110):
@@ -158,7 +185,9 @@ def test_sim_time_stamps_and_qos_readapted_to_a_best_effort_publisher(node, tmp_
         _, err = stop(proc)
     assert "Traceback" not in err and "subscription now best effort" in err
     got = [(t, m.voltage) for topic, t, m in read_messages(bag)]
-    assert sorted(v for _, v in got) == [float(k) for k in [*range(10), *range(100, 110), *range(200, 205)]]
+    assert sorted(v for _, v in got) == [
+        float(k) for k in [*range(10), *range(100, 110), *range(200, 205)]
+    ]
     assert all(1234 * 10**9 < t <= sim[0] for t, _ in got)  # receive time = /clock time
     assert all(t % 100_000_000 == 0 for t, _ in got)
     offered = bag_info(bag)["topics"]["/sim/voltage"]["offered_qos_profiles"]

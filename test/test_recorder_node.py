@@ -22,19 +22,35 @@ from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 
 from piezo_stage.bag import bag_info, typestore  # noqa: E402
+
 from ros_support import ROOT, fill, msg_class, spin_until, start_node, stop, to_plain  # noqa: E402
 
 NS = "/rec"
-N_RELIABLE = 2000   # voltage, reliable KEEP_ALL, sent as fast as possible: none may be lost
-N_SENSOR = 200      # displacement, best effort (SensorDataQoS)
-N_STATE = 50        # controller_state, reliable keep-last
-N_LATE = 3          # limit_cycles: the publisher appears after the recording started
-SEEDS = {"voltage": 0, "displacement": 10_000, "controller_state": 20_000,
-         "limit_cycles": 30_000, "bouc_wen_parameters": 40_000}
-TYPES = {"voltage": "Voltage", "displacement": "Displacement", "controller_state": "ControllerState",
-         "limit_cycles": "LimitCycle", "bouc_wen_parameters": "BoucWenParameters"}
-COUNTS = {"voltage": N_RELIABLE, "displacement": N_SENSOR, "controller_state": N_STATE,
-          "limit_cycles": N_LATE, "bouc_wen_parameters": 1}
+N_RELIABLE = 2000  # voltage, reliable KEEP_ALL, sent as fast as possible: none may be lost
+N_SENSOR = 200  # displacement, best effort (SensorDataQoS)
+N_STATE = 50  # controller_state, reliable keep-last
+N_LATE = 3  # limit_cycles: the publisher appears after the recording started
+SEEDS = {
+    "voltage": 0,
+    "displacement": 10_000,
+    "controller_state": 20_000,
+    "limit_cycles": 30_000,
+    "bouc_wen_parameters": 40_000,
+}
+TYPES = {
+    "voltage": "Voltage",
+    "displacement": "Displacement",
+    "controller_state": "ControllerState",
+    "limit_cycles": "LimitCycle",
+    "bouc_wen_parameters": "BoucWenParameters",
+}
+COUNTS = {
+    "voltage": N_RELIABLE,
+    "displacement": N_SENSOR,
+    "controller_state": N_STATE,
+    "limit_cycles": N_LATE,
+    "bouc_wen_parameters": 1,
+}
 
 PUBLISHER = r"""
 import sys, time
@@ -120,20 +136,46 @@ def recording(tmp_path_factory):
     node = rclpy.create_node("probe", namespace=NS)
     watch = DiagnosticsWatch(node)
     publisher = subprocess.Popen(
-        [sys.executable, "-c", PUBLISHER, str(ROOT), NS, str(N_RELIABLE), str(N_SENSOR), str(N_STATE),
-         str(N_LATE)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            PUBLISHER,
+            str(ROOT),
+            NS,
+            str(N_RELIABLE),
+            str(N_SENSOR),
+            str(N_STATE),
+            str(N_LATE),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     recorder = None
     try:
         assert publisher.stdout.readline().strip() == "ready"
-        recorder = start_node("recorder", f"bag:={bag}", "discovery_period:=0.1", "flush_period:=0.2",
-                              "diagnostics_period:=0.1", namespace=NS)
+        recorder = start_node(
+            "recorder",
+            f"bag:={bag}",
+            "discovery_period:=0.1",
+            "flush_period:=0.2",
+            "diagnostics_period:=0.1",
+            namespace=NS,
+        )
         line = ""
         while line.strip() != "done":
             line = publisher.stdout.readline()
             assert line, f"publisher died: {publisher.stderr.read()}"
         # every reliable message reached the recorder's reader; wait until it wrote them
-        assert spin_until(node, lambda: all(watch.count(t, "written") == COUNTS[t] for t in
-                                            ("voltage", "controller_state", "limit_cycles")), 20.0), watch.values
+        assert spin_until(
+            node,
+            lambda: all(
+                watch.count(t, "written") == COUNTS[t]
+                for t in ("voltage", "controller_state", "limit_cycles")
+            ),
+            20.0,
+        ), watch.values
         spin_until(node, lambda: watch.count("displacement", "received") >= N_SENSOR, 1.0)
         diagnostics = dict(watch.values), watch.level
         recorder.send_signal(signal.SIGINT)
@@ -153,8 +195,12 @@ def test_sigint_closes_a_complete_bag_with_counts(recording):
     assert "Traceback" not in recording["stderr"]
     info = bag_info(recording["bag"])
     assert info["complete"]
-    meta = yaml.safe_load((recording["bag"] / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    counts = {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
+    meta = yaml.safe_load((recording["bag"] / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"
+    ]
+    counts = {
+        t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]
+    }
     for topic, n in COUNTS.items():
         if topic != "displacement":
             assert counts[f"{NS}/{topic}"] == n, topic
@@ -170,7 +216,11 @@ def test_sigint_closes_a_complete_bag_with_counts(recording):
 def test_no_loss_reliable_messages_all_written_and_counted(recording):
     values, level = recording["diagnostics"]
     for topic in ("voltage", "controller_state", "limit_cycles"):
-        assert values[f"{NS}/{topic} received"] == values[f"{NS}/{topic} written"] == str(COUNTS[topic])
+        assert (
+            values[f"{NS}/{topic} received"]
+            == values[f"{NS}/{topic} written"]
+            == str(COUNTS[topic])
+        )
         assert values[f"{NS}/{topic} dropped"] == "0"
         assert values[f"{NS}/{topic} lost"] == "0"
     assert values[f"{NS}/displacement dropped"] == "0"
@@ -189,8 +239,10 @@ def _check(topic: str, messages: list) -> None:
     """Every recorded message is the one sent (matched by order, or by header stamp for the
     best-effort topic, where a message may be missing)."""
     if topic == "displacement":
-        by_stamp = {expected(topic, SEEDS[topic] + i).header.stamp.sec: SEEDS[topic] + i
-                    for i in range(N_SENSOR)}
+        by_stamp = {
+            expected(topic, SEEDS[topic] + i).header.stamp.sec: SEEDS[topic] + i
+            for i in range(N_SENSOR)
+        }
         seeds = [by_stamp[m.header.stamp.sec] for m in messages]
         assert seeds == sorted(seeds)
     else:

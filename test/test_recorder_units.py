@@ -24,7 +24,10 @@ from piezo_stage.nodes.spec import ParameterError  # noqa: E402
 def test_adapted_qos_follows_the_weakest_offer():
     reliable = adapted_qos([COMMAND_QOS], 100)
     assert reliable.reliability == ReliabilityPolicy.RELIABLE
-    assert reliable.history == HistoryPolicy.KEEP_ALL and reliable.durability == DurabilityPolicy.VOLATILE
+    assert (
+        reliable.history == HistoryPolicy.KEEP_ALL
+        and reliable.durability == DurabilityPolicy.VOLATILE
+    )
     latched = adapted_qos([LATCHED_QOS, LATCHED_QOS], 100)
     assert latched.durability == DurabilityPolicy.TRANSIENT_LOCAL
     mixed = adapted_qos([LATCHED_QOS, qos_profile_sensor_data], 100)
@@ -52,9 +55,13 @@ def test_default_bag_name_is_rosbag2_style():
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("param, error, message", [
-    ("compression:=lz4", ParameterError, "compression: 'lz4' is not one of none, zstd"),
-    ("topic_regex:=(", recorder.RecorderError, "not a valid regular expression")])
+@pytest.mark.parametrize(
+    "param, error, message",
+    [
+        ("compression:=lz4", ParameterError, "compression: 'lz4' is not one of none, zstd"),
+        ("topic_regex:=(", recorder.RecorderError, "not a valid regular expression"),
+    ],
+)
 def test_bad_parameters_are_refused(tmp_path, param, error, message):
     rclpy.init(args=["x", "--ros-args", "-p", f"bag:={tmp_path / 'bag'}", "-p", param])
     try:

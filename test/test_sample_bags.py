@@ -11,6 +11,7 @@ import yaml
 
 from piezo_stage.cli import main
 from piezo_stage.model.parameter_set import shipped_parameter_set
+
 from ros_support import to_plain
 
 pytestmark = pytest.mark.unit
@@ -68,19 +69,26 @@ def test_sample_bag_reads_the_same_with_rosbags_and_with_mcap_ros2(name):
 
     path = ROOT / "bags" / name
     with AnyReader([path]) as reader:
-        by_rosbags = _by_topic((c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages())
+        by_rosbags = _by_topic(
+            (c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()
+        )
 
     def mcap_messages():
         for file in sorted(path.glob("*.mcap")):
             with open(file, "rb") as stream:
-                decoded = make_reader(stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+                decoded = make_reader(
+                    stream, decoder_factories=[DecoderFactory()]
+                ).iter_decoded_messages()
                 for _, channel, message, msg in decoded:
                     yield channel.topic, message.log_time, msg
 
     by_mcap = _by_topic(mcap_messages())
-    counts = {t["topic_metadata"]["name"]: t["message_count"]
-              for t in yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-              ["topics_with_message_count"]}
+    counts = {
+        t["topic_metadata"]["name"]: t["message_count"]
+        for t in yaml.safe_load((path / "metadata.yaml").read_text())[
+            "rosbag2_bagfile_information"
+        ]["topics_with_message_count"]
+    }
     assert {t: len(v) for t, v in by_rosbags.items()} == {t: n for t, n in counts.items() if n}
     assert by_rosbags.keys() == by_mcap.keys()
     for topic in by_rosbags:
@@ -138,7 +146,9 @@ def test_perturbation_bag_opens_and_closes_the_loop_and_u_returns():
 
     path = ROOT / "bags" / "perturbation_pid_tv"
     assert sum(f.stat().st_size for f in path.iterdir()) < 2e6
-    custom = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+    custom = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"][
+        "custom_data"
+    ]
     assert custom["experiment"] == "piezo-stage experiment perturbation --mode pid_tv"
     msgs = [msg for _, _, msg in read_messages(path, ["/piezo/controller_state"])]
     t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
@@ -158,4 +168,6 @@ def test_perturbation_bag_opens_and_closes_the_loop_and_u_returns():
     assert u_after == pytest.approx(float(custom["u_after"]), rel=2e-3)
     assert abs(u_after - u_before) / u_before < 0.01
     x1 = np.array([m.x1 for m in msgs])
-    assert np.abs(x1[~closed]).max() > 20 * np.abs(x1[t > t[-1] - 0.010]).max()  # perturbed, then regulated
+    assert (
+        np.abs(x1[~closed]).max() > 20 * np.abs(x1[t > t[-1] - 0.010]).max()
+    )  # perturbed, then regulated

@@ -18,16 +18,31 @@ from piezo_stage.experiments.spec import DEFAULT_DURATION
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("name", choices=("regulation", "perturbation", "tracking"),
-                        help="experiment (§11.4 / §11.5 / trajectory tracking)")
-    parser.add_argument("--mode", choices=LAWS, default=None,
-                        help="control law (11.5, 11.17, 11.18; default pid_tv, tracking: pid)")
+    parser.add_argument(
+        "name",
+        choices=("regulation", "perturbation", "tracking"),
+        help="experiment (§11.4 / §11.5 / trajectory tracking)",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=LAWS,
+        default=None,
+        help="control law (11.5, 11.17, 11.18; default pid_tv, tracking: pid)",
+    )
     defaults = ", ".join(f"{name} {seconds:g} s" for name, seconds in DEFAULT_DURATION.items())
-    parser.add_argument("--duration", type=float, default=None, help=f"simulated seconds (default: {defaults})")
-    parser.add_argument("--A", dest="A", type=float, default=None, help="sine amplitude A [V] (pid_sine)")
-    parser.add_argument("--kA", dest="kA", type=float, default=None, help="sine gain kA [V/(m s)] (pid_tv)")
+    parser.add_argument(
+        "--duration", type=float, default=None, help=f"simulated seconds (default: {defaults})"
+    )
+    parser.add_argument(
+        "--A", dest="A", type=float, default=None, help="sine amplitude A [V] (pid_sine)"
+    )
+    parser.add_argument(
+        "--kA", dest="kA", type=float, default=None, help="sine gain kA [V/(m s)] (pid_tv)"
+    )
     parser.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f [Hz]")
-    parser.add_argument("--bag", default=None, help="record controller_state to this MCAP bag folder")
+    parser.add_argument(
+        "--bag", default=None, help="record controller_state to this MCAP bag folder"
+    )
     parser.add_argument("--png", default=None, help="write the figures into this folder")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     _tracking_arguments(parser.add_argument_group("tracking (x_d from --trajectory; SI units)"))
@@ -36,28 +51,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     from piezo_stage.control.feedforward import Compensation
 
-    group.add_argument("--trajectory", default="triangle",
-                       help="triangle | sine | steps | FILE.csv (columns t [s], x [m])")
+    group.add_argument(
+        "--trajectory",
+        default="triangle",
+        help="triangle | sine | steps | FILE.csv (columns t [s], x [m])",
+    )
     group.add_argument("--amplitude", type=float, default=10e-6, help="half the range [m] (10e-6)")
     group.add_argument("--frequency", type=float, default=10.0, help="[Hz] (10)")
-    group.add_argument("--offset", type=float, default=None,
-                       help="mid-range [m] (default: amplitude)")
-    group.add_argument("--rounding", type=float, default=0.2,
-                       help="triangle corner / step transition, share of a half period (0.2)")
+    group.add_argument(
+        "--offset", type=float, default=None, help="mid-range [m] (default: amplitude)"
+    )
+    group.add_argument(
+        "--rounding",
+        type=float,
+        default=0.2,
+        help="triangle corner / step transition, share of a half period (0.2)",
+    )
     group.add_argument("--v-max", type=float, default=float("inf"), help="velocity limit [m/s]")
-    group.add_argument("--a-max", type=float, default=float("inf"),
-                       help="acceleration limit [m/s²]")
+    group.add_argument(
+        "--a-max", type=float, default=float("inf"), help="acceleration limit [m/s²]"
+    )
     group.add_argument("--compensation", choices=[c.value for c in Compensation], default="both")
-    group.add_argument("--model", default=None,
-                       help="feedforward model: a dynamic parameter set (input displacement)")
-    group.add_argument("--plant-model", default="ch11_rig.yaml",
-                       help="the simulated rig (ch11_rig.yaml)")
-    group.add_argument("--periods", type=float, default=3.0,
-                       help="periods to run; the first is not measured")
-    group.add_argument("--compare", action="store_true",
-                       help="also run feedback only and compare")
-    group.add_argument("--identify-model", metavar="OUT.yaml", default=None,
-                       help="first record the simulated rig, fit the model, save it here, use it")
+    group.add_argument(
+        "--model",
+        default=None,
+        help="feedforward model: a dynamic parameter set (input displacement)",
+    )
+    group.add_argument(
+        "--plant-model", default="ch11_rig.yaml", help="the simulated rig (ch11_rig.yaml)"
+    )
+    group.add_argument(
+        "--periods", type=float, default=3.0, help="periods to run; the first is not measured"
+    )
+    group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
+    group.add_argument(
+        "--identify-model",
+        metavar="OUT.yaml",
+        default=None,
+        help="first record the simulated rig, fit the model, save it here, use it",
+    )
 
 
 def _run_tracking(args: argparse.Namespace, progress) -> dict:
@@ -68,13 +100,28 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         progress(0.0, f"recording the simulated rig {args.plant_model} and fitting the model")
         identify_model(args.identify_model, args.plant_model)
         model = args.identify_model
-    spec = TrackingSpec(trajectory=args.trajectory, amplitude=args.amplitude,
-                        frequency=args.frequency, offset=args.offset, rounding=args.rounding,
-                        v_max=args.v_max, a_max=args.a_max, compensation=args.compensation,
-                        model=model, plant_model=args.plant_model, mode=args.mode or "pid",
-                        periods=args.periods)
-    return run_tracking(spec, compare=args.compare, png_dir=args.png, bag=args.bag,
-                        progress=progress, duration=args.duration)
+    spec = TrackingSpec(
+        trajectory=args.trajectory,
+        amplitude=args.amplitude,
+        frequency=args.frequency,
+        offset=args.offset,
+        rounding=args.rounding,
+        v_max=args.v_max,
+        a_max=args.a_max,
+        compensation=args.compensation,
+        model=model,
+        plant_model=args.plant_model,
+        mode=args.mode or "pid",
+        periods=args.periods,
+    )
+    return run_tracking(
+        spec,
+        compare=args.compare,
+        png_dir=args.png,
+        bag=args.bag,
+        progress=progress,
+        duration=args.duration,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -96,9 +143,15 @@ def run(args: argparse.Namespace) -> int:
             if args.name == "tracking":
                 summary = _run_tracking(args, progress)
             else:
-                summary = run_experiment(args.name, args.mode or "pid_tv", bag=args.bag,
-                                         png_dir=args.png, progress=progress,
-                                         duration=args.duration, gains=gains or None)
+                summary = run_experiment(
+                    args.name,
+                    args.mode or "pid_tv",
+                    bag=args.bag,
+                    png_dir=args.png,
+                    progress=progress,
+                    duration=args.duration,
+                    gains=gains or None,
+                )
     except (ExperimentInputError, ControlError) as exc:  # ControlError: gains the check refuses
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -18,44 +18,103 @@ import sys
 from pathlib import Path
 
 from piezo_stage.commands.argtypes import int_range, physical
-from piezo_stage.control.bounds import Bounds, NominalPlant, load_bounds, load_nominal_plant, thesis_bounds_path
-from piezo_stage.control.discrete import (HYSTERESIS_MODELS, MAX_DELAY_SAMPLES, SampledLoopReport,
-                                          check_sampled_loop)
+from piezo_stage.control.bounds import (
+    Bounds,
+    NominalPlant,
+    load_bounds,
+    load_nominal_plant,
+    thesis_bounds_path,
+)
+from piezo_stage.control.discrete import (
+    HYSTERESIS_MODELS,
+    MAX_DELAY_SAMPLES,
+    SampledLoopReport,
+    check_sampled_loop,
+)
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.laws import LAWS, Gains
 from piezo_stage.control.theorem4 import GainReport, validate_gains
 
 _BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
 _NOMINAL_FLAGS = ("m", "c", "kappa_x", "kappa_w", "rho")
-_UNITS = {"m_min": "V s^2/m", "m_max": "V s^2/m", "c_max": "V s/m", "kappa_x_max": "V/m",
-          "kappa_w_max": "V", "sigma_max": "-", "rho_max": "1/m"}
+_UNITS = {
+    "m_min": "V s^2/m",
+    "m_max": "V s^2/m",
+    "c_max": "V s/m",
+    "kappa_x_max": "V/m",
+    "kappa_w_max": "V",
+    "sigma_max": "-",
+    "rho_max": "1/m",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_argument_group("Assumption 2 bounds")
-    src.add_argument("--bounds", type=Path, default=None,
-                     help="bounds YAML (default: the shipped thesis_rig_bounds.yaml)")
+    src.add_argument(
+        "--bounds",
+        type=Path,
+        default=None,
+        help="bounds YAML (default: the shipped thesis_rig_bounds.yaml)",
+    )
     for name in _BOUND_FLAGS:
-        src.add_argument("--" + name.replace("_", "-"), dest=name, type=physical, default=None,
-                         help=f"override {name} [{_UNITS[name]}]")
+        src.add_argument(
+            "--" + name.replace("_", "-"),
+            dest=name,
+            type=physical,
+            default=None,
+            help=f"override {name} [{_UNITS[name]}]",
+        )
     g = parser.add_argument_group("gains")
     g.add_argument("--k1", type=physical, required=True, help="proportional gain k1 [V/m] (> 0)")
     g.add_argument("--k2", type=physical, default=None, help="derivative gain k2 [V s/m]")
     g.add_argument("--k0", type=physical, default=None, help="integral gain k0 [V/(m s)]")
-    g.add_argument("--kA", "--ka", dest="kA", type=physical, default=None,
-                   help="kA of (11.18) [V/(m s)] (--ka: the same)")
-    g.add_argument("--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]")
+    g.add_argument(
+        "--kA",
+        "--ka",
+        dest="kA",
+        type=physical,
+        default=None,
+        help="kA of (11.18) [V/(m s)] (--ka: the same)",
+    )
+    g.add_argument(
+        "--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]"
+    )
     d = parser.add_argument_group("sampled-loop check")
-    d.add_argument("--rate-hz", type=physical, default=None, help="loop rate [Hz]; enables the check")
-    d.add_argument("--delay-samples", type=int_range(0, MAX_DELAY_SAMPLES), default=0, help="output applied this many periods late (default 0)")
-    d.add_argument("--law", choices=LAWS, default="pid",
-                   help="law checked (pid_sine = pid; pid_tv needs --kA, --f, rate/f integer)")
-    d.add_argument("--hysteresis", choices=HYSTERESIS_MODELS, default="disturbance",
-                   help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)")
-    d.add_argument("--derivative-tau", type=physical, default=0.0, help="x2 filter time constant [s] (default 0: off)")
+    d.add_argument(
+        "--rate-hz", type=physical, default=None, help="loop rate [Hz]; enables the check"
+    )
+    d.add_argument(
+        "--delay-samples",
+        type=int_range(0, MAX_DELAY_SAMPLES),
+        default=0,
+        help="output applied this many periods late (default 0)",
+    )
+    d.add_argument(
+        "--law",
+        choices=LAWS,
+        default="pid",
+        help="law checked (pid_sine = pid; pid_tv needs --kA, --f, rate/f integer)",
+    )
+    d.add_argument(
+        "--hysteresis",
+        choices=HYSTERESIS_MODELS,
+        default="disturbance",
+        help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)",
+    )
+    d.add_argument(
+        "--derivative-tau",
+        type=physical,
+        default=0.0,
+        help="x2 filter time constant [s] (default 0: off)",
+    )
     for name in _NOMINAL_FLAGS:
-        d.add_argument("--" + name.replace("_", "-"), dest="nominal_" + name, type=physical, default=None,
-                       help=f"nominal plant {name} (default: the bounds file's nominal section)")
+        d.add_argument(
+            "--" + name.replace("_", "-"),
+            dest="nominal_" + name,
+            type=physical,
+            default=None,
+            help=f"nominal plant {name} (default: the bounds file's nominal section)",
+        )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -71,33 +130,50 @@ def _load(args: argparse.Namespace) -> tuple[Path, Bounds, NominalPlant | None]:
     return path, bounds, nominal
 
 
-def _discrete(args: argparse.Namespace, report: GainReport, nominal: NominalPlant | None) -> SampledLoopReport:
+def _discrete(
+    args: argparse.Namespace, report: GainReport, nominal: NominalPlant | None
+) -> SampledLoopReport:
     if nominal is None:
-        raise ControlError(f"{args.bounds} has no 'nominal' section: give --m, --c and --kappa-x for --rate-hz")
+        raise ControlError(
+            f"{args.bounds} has no 'nominal' section: give --m, --c and --kappa-x for --rate-hz"
+        )
     if report.k2 is None or report.k0 is None:
         raise ControlError("--rate-hz needs --k2 and --k0")
     extra = {"kA": report.kA or 0.0}
     if report.f is not None:
         extra["f"] = report.f
     gains = Gains(k0=report.k0, k1=report.k1, k2=report.k2, **extra)
-    return check_sampled_loop(nominal, gains, args.rate_hz, args.delay_samples, args.law,
-                              args.derivative_tau, args.hysteresis)
+    return check_sampled_loop(
+        nominal,
+        gains,
+        args.rate_hz,
+        args.delay_samples,
+        args.law,
+        args.derivative_tau,
+        args.hysteresis,
+    )
 
 
 def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.6g}"
 
 
-def _print_table(path: Path, bounds: Bounds, report: GainReport, disc: SampledLoopReport | None) -> None:
+def _print_table(
+    path: Path, bounds: Bounds, report: GainReport, disc: SampledLoopReport | None
+) -> None:
     print(f"Assumption 2 bounds ({path}):")
     for name, value in bounds.to_dict().items():
         print(f"  {name:<12} {value:<12.6g} {_UNITS[name]}")
     print("Theorem 4:")
     print(f"  k1 = {_fmt(report.k1):<12}")
     k2_ok = report.k2 is not None and report.k2 > report.k2_min
-    print(f"  k2 = {_fmt(report.k2):<12} k2_min = {_fmt(report.k2_min):<12} (11.6)  {'ok' if k2_ok else 'NOT ok'}")
+    print(
+        f"  k2 = {_fmt(report.k2):<12} k2_min = {_fmt(report.k2_min):<12} (11.6)  {'ok' if k2_ok else 'NOT ok'}"
+    )
     k0_ok = report.k0 is not None and report.k0_max is not None and 0 < report.k0 < report.k0_max
-    print(f"  k0 = {_fmt(report.k0):<12} k0_max = {_fmt(report.k0_max):<12} (11.7)  {'ok' if k0_ok else 'NOT ok'}")
+    print(
+        f"  k0 = {_fmt(report.k0):<12} k0_max = {_fmt(report.k0_max):<12} (11.7)  {'ok' if k0_ok else 'NOT ok'}"
+    )
     if report.kA is not None or report.f is not None:
         print(f"  kA = {_fmt(report.kA):<12} f = {_fmt(report.f)} Hz")
     print(f"  gains {'VALID' if report.valid else 'NOT VALID'}")
@@ -106,11 +182,15 @@ def _print_table(path: Path, bounds: Bounds, report: GainReport, disc: SampledLo
     for note in report.notes:
         print(f"  note: {note}")
     if disc is not None:
-        print(f"Sampled loop ({disc.law}, {disc.rate_hz:g} Hz, delay {disc.delay_samples} sample(s), "
-              f"hysteresis as {disc.hysteresis}):")
-        print(f"  spectral radius {disc.spectral_radius:.6f}  margin {disc.margin:+.3e}  "
-              f"{'STABLE' if disc.stable else 'UNSTABLE'}  (continuous time: "
-              f"{'stable' if disc.continuous_stable else 'unstable'})")
+        print(
+            f"Sampled loop ({disc.law}, {disc.rate_hz:g} Hz, delay {disc.delay_samples} sample(s), "
+            f"hysteresis as {disc.hysteresis}):"
+        )
+        print(
+            f"  spectral radius {disc.spectral_radius:.6f}  margin {disc.margin:+.3e}  "
+            f"{'STABLE' if disc.stable else 'UNSTABLE'}  (continuous time: "
+            f"{'stable' if disc.continuous_stable else 'unstable'})"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -122,12 +202,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"piezo-stage gains: {exc}", file=sys.stderr)
         return 2
     except (ArithmeticError, ValueError) as exc:  # bounds from a file beyond double precision
-        print(f"piezo-stage gains: the bounds and gains overflow double precision ({exc})",
-              file=sys.stderr)
+        print(
+            f"piezo-stage gains: the bounds and gains overflow double precision ({exc})",
+            file=sys.stderr,
+        )
         return 2
     if args.json:
-        out = {"bounds_file": str(path), "bounds": bounds.to_dict(), **report.to_dict(),
-               "discrete": None if disc is None else disc.to_dict()}
+        out = {
+            "bounds_file": str(path),
+            "bounds": bounds.to_dict(),
+            **report.to_dict(),
+            "discrete": None if disc is None else disc.to_dict(),
+        }
         print(json.dumps(out))
     else:
         _print_table(path, bounds, report, disc)

@@ -19,9 +19,9 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from piezo_stage.commands.argtypes import data_error_exit_code
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
-from piezo_stage.commands.argtypes import data_error_exit_code
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
 from piezo_stage.identification.methods import Method, identify_runs

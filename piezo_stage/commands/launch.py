@@ -16,8 +16,13 @@ from pathlib import Path
 from typing import Any
 
 from piezo_stage.launch.commandline import display_argv, shell_line
-from piezo_stage.launch.errors import (GraphError, LaunchError, LaunchInterrupted, RequiredProcessExited,
-                                       TopicsNotReadyError)
+from piezo_stage.launch.errors import (
+    GraphError,
+    LaunchError,
+    LaunchInterrupted,
+    RequiredProcessExited,
+    TopicsNotReadyError,
+)
 from piezo_stage.launch.launcher import DEFAULT_TIMEOUT, Launcher
 
 EXIT_BAD_GRAPH = 2
@@ -27,18 +32,41 @@ _HANDLED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("graph", metavar="GRAPH", help="graph YAML file, or name in config/graphs/")
-    parser.add_argument("--ns", metavar="NAME", default=None,
-                        help="namespace of every node (default: the graph's, normally /piezo)")
-    parser.add_argument("--param", metavar="NODE.KEY:=VALUE", action="append", default=[],
-                        help="parameter override for one node, or KEY:=VALUE for every node (repeatable)")
-    parser.add_argument("--timeout", metavar="S", type=float, default=DEFAULT_TIMEOUT,
-                        help=f"seconds to wait for the graph's topics (default {DEFAULT_TIMEOUT:g})")
+    parser.add_argument(
+        "--ns",
+        metavar="NAME",
+        default=None,
+        help="namespace of every node (default: the graph's, normally /piezo)",
+    )
+    parser.add_argument(
+        "--param",
+        metavar="NODE.KEY:=VALUE",
+        action="append",
+        default=[],
+        help="parameter override for one node, or KEY:=VALUE for every node (repeatable)",
+    )
+    parser.add_argument(
+        "--timeout",
+        metavar="S",
+        type=float,
+        default=DEFAULT_TIMEOUT,
+        help=f"seconds to wait for the graph's topics (default {DEFAULT_TIMEOUT:g})",
+    )
     parser.add_argument("--no-wait", action="store_true", help="do not wait for the graph's topics")
-    parser.add_argument("--color", choices=("auto", "always", "never"), default="auto",
-                        help="colour the name prefixes (auto: when the output is a terminal)")
+    parser.add_argument(
+        "--color",
+        choices=("auto", "always", "never"),
+        default="auto",
+        help="colour the name prefixes (auto: when the output is a terminal)",
+    )
     parser.add_argument("--dry-run", action="store_true", help="print the commands and exit")
-    parser.add_argument("--export-launch-py", metavar="OUT", type=Path, default=None,
-                        help="write an equivalent ros2 launch file (for full ROS installs) and exit")
+    parser.add_argument(
+        "--export-launch-py",
+        metavar="OUT",
+        type=Path,
+        default=None,
+        help="write an equivalent ros2 launch file (for full ROS installs) and exit",
+    )
 
 
 def _error(message: str) -> None:
@@ -47,8 +75,9 @@ def _error(message: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        launcher = Launcher(args.graph, namespace=args.ns, params=args.param, color=args.color,
-                            timeout=args.timeout)
+        launcher = Launcher(
+            args.graph, namespace=args.ns, params=args.param, color=args.color, timeout=args.timeout
+        )
     except GraphError as exc:
         _error(str(exc))
         return EXIT_BAD_GRAPH
@@ -57,7 +86,9 @@ def run(args: argparse.Namespace) -> int:
     for text in args.param:
         head, dot, _ = text.partition(":=")[0].partition(".")
         if dot and head not in names:
-            _error(f"note: --param {text!r} goes to every node ({head!r} is not an entry of the graph)")
+            _error(
+                f"note: --param {text!r} goes to every node ({head!r} is not an entry of the graph)"
+            )
     if args.export_launch_py is not None:
         from piezo_stage.launch.export import write_launch_py
 

@@ -22,13 +22,22 @@ from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("params", metavar="PARAMS", help="parameter-set YAML")
     parser.add_argument("data", metavar="DATA", help="recording: CSV, bag folder or .mcap")
-    parser.add_argument("--out", metavar="DIR", default=".", help="folder for the PNGs (default: .)")
+    parser.add_argument(
+        "--out", metavar="DIR", default=".", help="folder for the PNGs (default: .)"
+    )
     parser.add_argument("--no-plot", action="store_true", help="print the figures only")
     parser.add_argument("--json", action="store_true", help="print one JSON object per run")
-    parser.add_argument("--w0", type=float, default=None,
-                        help="initial hysteretic state (default: (10.18) from the first sample)")
-    parser.add_argument("--no-drift", action="store_true",
-                        help="leave out the parameter set's drift term (its delay always applies)")
+    parser.add_argument(
+        "--w0",
+        type=float,
+        default=None,
+        help="initial hysteretic state (default: (10.18) from the first sample)",
+    )
+    parser.add_argument(
+        "--no-drift",
+        action="store_true",
+        help="leave out the parameter set's drift term (its delay always applies)",
+    )
     parser.add_argument("--input-topic", default="/piezo/voltage")
     parser.add_argument("--output-topic", default="/piezo/displacement")
     parser.add_argument("--excitation-topic", default=DEFAULT_EXCITATION_TOPIC)
@@ -45,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
         if pset.form != "static":
             raise IdentificationError(
                 f"{args.params}: form {pset.form!r}; validate simulates the static model "
-                "(output = Σκ_i v^i + κw·w + y0, ch. 10)")
+                "(output = Σκ_i v^i + κw·w + y0, ch. 10)"
+            )
         runs = load_runs([args.data], args.input_topic, args.output_topic, args.excitation_topic)
         drift = None if args.no_drift else pset.drift
         results = [validate_model(pset.bouc_wen, rec, args.w0, pset.delay, drift) for rec in runs]
@@ -53,7 +63,9 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_plot:
             stem = Path(args.data).stem or "validation"
             for i, res in enumerate(results):
-                written += plot_validation(res, args.out, stem if len(results) == 1 else f"{stem}_run{i}")
+                written += plot_validation(
+                    res, args.out, stem if len(results) == 1 else f"{stem}_run{i}"
+                )
     except (IdentificationError, BagError, ModelError, OSError) as exc:
         print(f"piezo-stage validate: error: {exc}", file=sys.stderr)
         return data_error_exit_code(exc)
@@ -63,10 +75,12 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps({"run": res.recording.label, **s, "unit": unit}))
             continue
-        print(f"{res.recording.label}: RMS {s['rms']:.4g} {unit} ({s['rms_percent']:.3g} % of span), "
-              f"max {s['max']:.4g} {unit} ({s['max_percent']:.3g} %), span {s['span']:.4g} {unit}, "
-              f"w(0) = {s['w0']:.4g}{' (clipped to [-1, 1])' if res.w0_clipped else ''}, "
-              f"{int(s['samples'])} samples")
+        print(
+            f"{res.recording.label}: RMS {s['rms']:.4g} {unit} ({s['rms_percent']:.3g} % of span), "
+            f"max {s['max']:.4g} {unit} ({s['max_percent']:.3g} %), span {s['span']:.4g} {unit}, "
+            f"w(0) = {s['w0']:.4g}{' (clipped to [-1, 1])' if res.w0_clipped else ''}, "
+            f"{int(s['samples'])} samples"
+        )
     for path in written:
         print(f"wrote {path}", file=sys.stderr if args.json else sys.stdout)
     return 0

@@ -6,20 +6,53 @@ calls each period), :mod:`.reference` (§11.4.1 reference), :mod:`.bounds` (Assu
 (closed loop against the model's ``DynamicPlant``).
 """
 
-from .bounds import THESIS_NOMINAL_PLANT, Bounds, NominalPlant, load_bounds, load_nominal_plant, thesis_bounds_path
-from .controller import ControlOutput, ControllerConfig, TimeVaryingPID
+from .bounds import (
+    THESIS_NOMINAL_PLANT,
+    Bounds,
+    NominalPlant,
+    load_bounds,
+    load_nominal_plant,
+    thesis_bounds_path,
+)
+from .controller import ControllerConfig, ControlOutput, TimeVaryingPID
 from .discrete import SampledLoopReport, check_sampled_loop
 from .errors import (
-    BoundsError, ControlError, ControllerConfigError, GainError, MeasurementError, SampledLoopError,
+    BoundsError,
+    ControlError,
+    ControllerConfigError,
+    GainError,
+    MeasurementError,
+    SampledLoopError,
 )
 from .laws import LAWS, THESIS_GAINS, Gains, control_law
 from .reference import SecondOrderReference
 from .theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 __all__ = [
-    "THESIS_NOMINAL_PLANT", "Bounds", "NominalPlant", "load_bounds", "load_nominal_plant", "thesis_bounds_path",
-    "ControlOutput", "ControllerConfig", "TimeVaryingPID", "SampledLoopReport", "check_sampled_loop",
-    "BoundsError", "ControlError", "ControllerConfigError", "GainError", "MeasurementError", "SampledLoopError",
-    "LAWS", "THESIS_GAINS", "Gains", "control_law", "SecondOrderReference",
-    "GainReport", "k0_max", "k2_min", "validate_gains",
+    "THESIS_NOMINAL_PLANT",
+    "Bounds",
+    "NominalPlant",
+    "load_bounds",
+    "load_nominal_plant",
+    "thesis_bounds_path",
+    "ControlOutput",
+    "ControllerConfig",
+    "TimeVaryingPID",
+    "SampledLoopReport",
+    "check_sampled_loop",
+    "BoundsError",
+    "ControlError",
+    "ControllerConfigError",
+    "GainError",
+    "MeasurementError",
+    "SampledLoopError",
+    "LAWS",
+    "THESIS_GAINS",
+    "Gains",
+    "control_law",
+    "SecondOrderReference",
+    "GainReport",
+    "k0_max",
+    "k2_min",
+    "validate_gains",
 ]

@@ -32,7 +32,11 @@ from .errors import BoundsError
 
 def _check_finite(owner: str, values: Mapping[str, float]) -> None:
     for key, value in values.items():
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+        if (
+            not isinstance(value, (int, float))
+            or isinstance(value, bool)
+            or not math.isfinite(value)
+        ):
             raise BoundsError(f"{owner}.{key} must be a finite number, got {value!r}")
 
 
@@ -86,7 +90,9 @@ class Bounds:
             if getattr(self, key) <= 0:
                 raise BoundsError(f"bounds.{key} must be > 0, got {getattr(self, key)}")
         if self.sigma_max < 0.5:
-            raise BoundsError(f"bounds.sigma_max must be >= 1/2 (σ ∈ [1/2, σ_max]), got {self.sigma_max}")
+            raise BoundsError(
+                f"bounds.sigma_max must be >= 1/2 (σ ∈ [1/2, σ_max]), got {self.sigma_max}"
+            )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "Bounds":

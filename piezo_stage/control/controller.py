@@ -63,7 +63,9 @@ class ControllerConfig:
             object.__setattr__(self, "compensation", Compensation(self.compensation))
         except ValueError:
             names = ", ".join(c.value for c in Compensation)
-            raise ControllerConfigError(f"compensation must be one of {names}, got {self.compensation!r}") from None
+            raise ControllerConfigError(
+                f"compensation must be one of {names}, got {self.compensation!r}"
+            ) from None
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable configuration."""
@@ -72,19 +74,27 @@ class ControllerConfig:
         if math.isnan(self.u_min) or math.isnan(self.u_max) or not self.u_min < self.u_max:
             raise ControllerConfigError(f"need u_min < u_max, got [{self.u_min}, {self.u_max}]")
         if self.anti_windup not in ANTI_WINDUP:
-            raise ControllerConfigError(f"anti_windup must be one of {ANTI_WINDUP}, got {self.anti_windup!r}")
+            raise ControllerConfigError(
+                f"anti_windup must be one of {ANTI_WINDUP}, got {self.anti_windup!r}"
+            )
         if self.on_close not in ON_CLOSE:
-            raise ControllerConfigError(f"on_close must be one of {ON_CLOSE}, got {self.on_close!r}")
+            raise ControllerConfigError(
+                f"on_close must be one of {ON_CLOSE}, got {self.on_close!r}"
+            )
         if self.on_close == "bumpless" and self.gains.k0 <= 0:
             raise ControllerConfigError("bumpless transfer solves u for x0 and needs k0 > 0")
         if self.anti_windup == "back_calculation":
             if self.gains.k0 <= 0:
-                raise ControllerConfigError("back-calculation anti-windup acts through x0 and needs k0 > 0")
+                raise ControllerConfigError(
+                    "back-calculation anti-windup acts through x0 and needs k0 > 0"
+                )
             tt = self.tracking_time
             if tt is not None and not (math.isfinite(tt) and tt > 0):
                 raise ControllerConfigError(f"tracking_time must be > 0 s, got {tt}")
             if tt is None and self.gains.k2 <= 0:
-                raise ControllerConfigError("default tracking_time sqrt(Ti·Td) needs k2 > 0; give tracking_time")
+                raise ControllerConfigError(
+                    "default tracking_time sqrt(Ti·Td) needs k2 > 0; give tracking_time"
+                )
         if not (math.isfinite(self.derivative_tau) and self.derivative_tau >= 0):
             raise ControllerConfigError(f"derivative_tau must be >= 0 s, got {self.derivative_tau}")
         if self.hold_voltage is not None and not math.isfinite(self.hold_voltage):
@@ -92,8 +102,10 @@ class ControllerConfig:
         if not (self.dt_max > 0):
             raise ControllerConfigError(f"dt_max must be > 0 s, got {self.dt_max}")
         if self.compensation is not Compensation.FEEDBACK and self.feedforward is None:
-            raise ControllerConfigError(f"compensation {self.compensation.value} needs a "
-                                        "feedforward model (a dynamic parameter set)")
+            raise ControllerConfigError(
+                f"compensation {self.compensation.value} needs a "
+                "feedforward model (a dynamic parameter set)"
+            )
 
     @property
     def effective_tracking_time(self) -> float:
@@ -140,7 +152,9 @@ class TimeVaryingPID:
     (or 0 V), until :meth:`close_loop`.
     """
 
-    def __init__(self, config: ControllerConfig, *, closed: bool = True, x0_initial: float = 0.0) -> None:
+    def __init__(
+        self, config: ControllerConfig, *, closed: bool = True, x0_initial: float = 0.0
+    ) -> None:
         config.validate()
         self._config = config
         self._x0_initial = float(x0_initial)
@@ -191,7 +205,12 @@ class TimeVaryingPID:
         rescaled so that k0·x0 (and hence u) stays continuous when ``on_close`` is bumpless."""
         config.validate()
         old = self._config
-        if self._closed and config.on_close == "bumpless" and old.gains.k0 > 0 and config.gains.k0 != old.gains.k0:
+        if (
+            self._closed
+            and config.on_close == "bumpless"
+            and old.gains.k0 > 0
+            and config.gains.k0 != old.gains.k0
+        ):
             self._x0 *= old.gains.k0 / config.gains.k0
         if config.feedforward != old.feedforward:
             self._ff = Feedforward(config.feedforward) if config.feedforward is not None else None
@@ -215,14 +234,22 @@ class TimeVaryingPID:
             self._pending_close = True
 
     # ----------------------------------------------------------------- period
-    def update(self, t: float, x_measured: float, yr: float = 0.0, yr_dot: float | None = None,
-               yr_ddot: float = 0.0) -> ControlOutput:
+    def update(
+        self,
+        t: float,
+        x_measured: float,
+        yr: float = 0.0,
+        yr_dot: float | None = None,
+        yr_ddot: float = 0.0,
+    ) -> ControlOutput:
         """One period at time ``t`` [s] with measured position ``x_measured`` [m] and reference
         ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used; ÿr [m/s²] for the
         feedforward's m·ÿr term)."""
         for name, value in (("t", t), ("x_measured", x_measured), ("yr", yr)):
             if not math.isfinite(value):
-                raise MeasurementError(f"{name} must be finite, got {value}; open the loop on invalid samples")
+                raise MeasurementError(
+                    f"{name} must be finite, got {value}; open the loop on invalid samples"
+                )
         for name, value in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
             if value is not None and not math.isfinite(value):
                 raise MeasurementError(f"{name} must be finite, got {value}")
@@ -271,8 +298,11 @@ class TimeVaryingPID:
             u_raw = u_pid + u_exc + u_ff
             x0_used = self._x0
             self._u = cfg.clamp(u_raw)
-            if cfg.anti_windup == "back_calculation" and self._u != u_raw \
-                    and cfg.compensation is not Compensation.FEEDFORWARD:
+            if (
+                cfg.anti_windup == "back_calculation"
+                and self._u != u_raw
+                and cfg.compensation is not Compensation.FEEDFORWARD
+            ):
                 gain = min(dt / cfg.effective_tracking_time, 1.0) if dt > 0 else 0.0
                 self._x0 += gain * (self._u - u_raw) / (-cfg.gains.k0)
         else:
@@ -281,8 +311,18 @@ class TimeVaryingPID:
             x0_used = self._x0
             self._u = cfg.clamp(u_raw)
         self._last = ControlOutput(
-            t=t, dt=dt, mode=cfg.mode, loop_closed=self._closed, reference=yr, x0=x0_used, x1=x1, x2=x2,
-            u=self._u, u_pid=u_pid, u_excitation=u_exc, saturated=bool(self._u != u_raw),
+            t=t,
+            dt=dt,
+            mode=cfg.mode,
+            loop_closed=self._closed,
+            reference=yr,
+            x0=x0_used,
+            x1=x1,
+            x2=x2,
+            u=self._u,
+            u_pid=u_pid,
+            u_excitation=u_exc,
+            saturated=bool(self._u != u_raw),
             timing=timing,
             u_ff=u_ff,
         )
@@ -293,7 +333,9 @@ class TimeVaryingPID:
         cfg = self._config
         if cfg.on_close == "bumpless":
             # u(t_close) = −k0·x0 − k1·x1 − k2·x2 + u_ff must equal the output being applied now.
-            self._x0 = -(self._u - self._u_ff + cfg.gains.k1 * x1 + cfg.gains.k2 * x2) / cfg.gains.k0
+            self._x0 = (
+                -(self._u - self._u_ff + cfg.gains.k1 * x1 + cfg.gains.k2 * x2) / cfg.gains.k0
+            )
         elif cfg.on_close == "reset":
             self._x0 = 0.0
         self._closed, self._pending_close, self._t_close, self._hold = True, False, t, None
@@ -308,8 +350,11 @@ class TimeVaryingPID:
             return  # the law is not applied: its integral is not accumulated
         if cfg.anti_windup == "conditional":
             tau = t - self._t_close
-            u_now = float(pid_term(cfg.gains, self._x0, x1, x2) + excitation_term(cfg.mode, cfg.gains, tau, self._x0)
-                          + self._u_ff)
+            u_now = float(
+                pid_term(cfg.gains, self._x0, x1, x2)
+                + excitation_term(cfg.mode, cfg.gains, tau, self._x0)
+                + self._u_ff
+            )
             excess = u_now - cfg.clamp(u_now)
             if excess != 0.0 and excess * x0_coefficient(cfg.mode, cfg.gains, tau) * step > 0:
                 return

@@ -48,13 +48,17 @@ def stiffness(plant: NominalPlant, hysteresis: str = "disturbance") -> float:
     return plant.kappa_x + (plant.kappa_w * plant.rho if hysteresis == "initial_slope" else 0.0)
 
 
-def continuous_poles(plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance") -> np.ndarray:
+def continuous_poles(
+    plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
+) -> np.ndarray:
     """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15), w frozen."""
     k = stiffness(plant, hysteresis)
     return np.roots([plant.m, plant.c + gains.k2, k + gains.k1, gains.k0])
 
 
-def max_meaningful_rate(plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance") -> float:
+def max_meaningful_rate(
+    plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
+) -> float:
     """Highest loop rate [Hz] at which the sampled check resolves the slowest continuous mode:
     |λ_min|·T ≥ ``MARGIN_RESOLUTION`` (beyond it ρ = 1 − |λ|T rounds to noise around 1)."""
     mags = np.abs(continuous_poles(plant, gains, hysteresis))
@@ -62,7 +66,9 @@ def max_meaningful_rate(plant: NominalPlant, gains: Gains, hysteresis: str = "di
     return float(mags.min() / MARGIN_RESOLUTION) if mags.size else math.inf
 
 
-def zoh_plant(plant: NominalPlant, period: float, hysteresis: str = "disturbance") -> tuple[np.ndarray, np.ndarray]:
+def zoh_plant(
+    plant: NominalPlant, period: float, hysteresis: str = "disturbance"
+) -> tuple[np.ndarray, np.ndarray]:
     """(Ad, Bd) of state [x, ẋ] held by a zero-order hold over ``period`` [s]."""
     from scipy.linalg import expm  # lazy: keeps `import piezo_stage.control` light for nodes
 
@@ -75,7 +81,13 @@ def zoh_plant(plant: NominalPlant, period: float, hysteresis: str = "disturbance
 
 
 def _step_matrix(
-    ad: np.ndarray, bd: np.ndarray, period: float, k0_eff: float, gains: Gains, delay: int, alpha: float
+    ad: np.ndarray,
+    bd: np.ndarray,
+    period: float,
+    k0_eff: float,
+    gains: Gains,
+    delay: int,
+    alpha: float,
 ) -> np.ndarray:
     """One period of the loop; state [x, ẋ, x0[k−1], x[k−1], x2f[k−1], v[k−1], ..., v[k−d]]."""
     n = 5 + delay
@@ -127,17 +139,23 @@ def closed_loop_matrices(
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise SampledLoopError(f"rate_hz must be > 0, got {rate_hz}")
     if int(delay_samples) != delay_samples or not 0 <= delay_samples <= MAX_DELAY_SAMPLES:
-        raise SampledLoopError(f"delay_samples must be an integer in [0, {MAX_DELAY_SAMPLES}], "
-                               f"got {delay_samples}")
+        raise SampledLoopError(
+            f"delay_samples must be an integer in [0, {MAX_DELAY_SAMPLES}], got {delay_samples}"
+        )
     if not (math.isfinite(derivative_tau) and derivative_tau >= 0):
         raise SampledLoopError(f"derivative_tau must be >= 0, got {derivative_tau}")
     period = 1.0 / rate_hz
     with np.errstate(all="ignore"):
-        ad, bd = zoh_plant(plant, period, hysteresis) if math.isfinite(period) else (
-            np.full((2, 2), np.inf), np.full(2, np.inf))
+        ad, bd = (
+            zoh_plant(plant, period, hysteresis)
+            if math.isfinite(period)
+            else (np.full((2, 2), np.inf), np.full(2, np.inf))
+        )
     if not (np.all(np.isfinite(ad)) and np.all(np.isfinite(bd))):
-        raise SampledLoopError(f"rate_hz {rate_hz:g} is too low: the plant held over T = "
-                               f"{period:.3g} s overflows double precision")
+        raise SampledLoopError(
+            f"rate_hz {rate_hz:g} is too low: the plant held over T = "
+            f"{period:.3g} s overflows double precision"
+        )
     alpha = period / (derivative_tau + period)
     delay = int(delay_samples)
     if law != "pid_tv":
@@ -151,10 +169,15 @@ def closed_loop_matrices(
             f"pid_tv check needs rate/f to be an integer (Floquet over one period), got {n_per:.6g}"
         )
     if n_int * (5 + delay) ** 2 > MAX_FLOQUET_ENTRIES:
-        raise SampledLoopError(f"pid_tv check over rate/f = {n_int} samples with delay {delay} "
-                               f"needs more than {MAX_FLOQUET_ENTRIES:.0e} matrix entries")
+        raise SampledLoopError(
+            f"pid_tv check over rate/f = {n_int} samples with delay {delay} "
+            f"needs more than {MAX_FLOQUET_ENTRIES:.0e} matrix entries"
+        )
     phase = 2.0 * math.pi * gains.f * period * np.arange(n_int)
-    return [_step_matrix(ad, bd, period, gains.k0 + gains.kA * math.sin(p), gains, delay, alpha) for p in phase]
+    return [
+        _step_matrix(ad, bd, period, gains.k0 + gains.kA * math.sin(p), gains, delay, alpha)
+        for p in phase
+    ]
 
 
 def spectral_radius_per_sample(matrices: list[np.ndarray]) -> float:
@@ -196,12 +219,21 @@ def check_sampled_loop(
             f"rate_hz {rate_hz:g} is beyond where the sampled check means anything (about "
             f"{limit:.3g} Hz here): the slowest closed-loop mode moves less than "
             f"{MARGIN_RESOLUTION:.1e} per sample, so rho = 1 - |lambda| T is rounding noise; "
-            f"the continuous-time verdict applies")
-    mats = closed_loop_matrices(plant, gains, rate_hz, delay_samples, law, derivative_tau, hysteresis)
+            f"the continuous-time verdict applies"
+        )
+    mats = closed_loop_matrices(
+        plant, gains, rate_hz, delay_samples, law, derivative_tau, hysteresis
+    )
     rho = spectral_radius_per_sample(mats)
     cont = bool(np.all(continuous_poles(plant, gains, hysteresis).real < 0))
     return SampledLoopReport(
-        rate_hz=float(rate_hz), delay_samples=int(delay_samples), law=law, hysteresis=hysteresis,
-        derivative_tau=float(derivative_tau), spectral_radius=rho, stable=rho < 1.0, margin=1.0 - rho,
+        rate_hz=float(rate_hz),
+        delay_samples=int(delay_samples),
+        law=law,
+        hysteresis=hysteresis,
+        derivative_tau=float(derivative_tau),
+        spectral_radius=rho,
+        stable=rho < 1.0,
+        margin=1.0 - rho,
         continuous_stable=cont,
     )

@@ -33,7 +33,9 @@ class SecondOrderReference:
             if not math.isfinite(getattr(self, key)):
                 raise ControlError(f"reference {key} must be finite, got {getattr(self, key)}")
         if self.xi <= 0 or self.omega0 <= 0:
-            raise ControlError(f"reference needs xi > 0 and omega0 > 0, got xi={self.xi}, omega0={self.omega0}")
+            raise ControlError(
+                f"reference needs xi > 0 and omega0 > 0, got xi={self.xi}, omega0={self.omega0}"
+            )
 
     def evaluate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(yr, ẏr, ÿr) at times t [s] (vectorised)."""

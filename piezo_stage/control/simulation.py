@@ -51,7 +51,9 @@ class ClosedLoopResult:
     w: np.ndarray
 
 
-def _in_window(t: float, windows: Sequence[tuple[float, float, float | None]]) -> tuple[bool, float | None]:
+def _in_window(
+    t: float, windows: Sequence[tuple[float, float, float | None]]
+) -> tuple[bool, float | None]:
     for start, end, hold in windows:
         if start <= t < end:
             return True, hold
@@ -85,8 +87,24 @@ def simulate_closed_loop(
         raise SampledLoopError(f"delay_samples must be a non-negative integer, got {delay_samples}")
     period = 1.0 / rate_hz
     n = int(round(duration * rate_hz))
-    rec = {k: np.empty(n) for k in ("t", "measured", "reference", "x0", "x1", "x2", "u", "u_pid",
-                                    "u_excitation", "u_applied", "u_ff", "xdot", "w")}
+    rec = {
+        k: np.empty(n)
+        for k in (
+            "t",
+            "measured",
+            "reference",
+            "x0",
+            "x1",
+            "x2",
+            "u",
+            "u_pid",
+            "u_excitation",
+            "u_applied",
+            "u_ff",
+            "xdot",
+            "w",
+        )
+    }
     saturated = np.zeros(n, dtype=bool)
     closed = np.zeros(n, dtype=bool)
     pending: deque[float] = deque([controller.u] * int(delay_samples))
@@ -113,11 +131,20 @@ def simulate_closed_loop(
         rec["t"][k], rec["measured"][k], rec["reference"][k] = t, measured, yr
         rec["x0"][k], rec["x1"][k], rec["x2"][k] = out.x0, out.x1, out.x2
         rec["u"][k], rec["u_pid"][k], rec["u_excitation"][k], rec["u_applied"][k] = (
-            out.u, out.u_pid, out.u_excitation, applied)
+            out.u,
+            out.u_pid,
+            out.u_excitation,
+            applied,
+        )
         rec["u_ff"][k] = out.u_ff
         rec["xdot"][k] = getattr(plant, "xdot", math.nan)
         rec["w"][k] = getattr(plant, "w", math.nan)
         saturated[k], closed[k] = out.saturated, out.loop_closed
         measured = float(plant.step(applied, period))
-    return ClosedLoopResult(rate_hz=float(rate_hz), delay_samples=int(delay_samples), saturated=saturated,
-                            loop_closed=closed, **rec)
+    return ClosedLoopResult(
+        rate_hz=float(rate_hz),
+        delay_samples=int(delay_samples),
+        saturated=saturated,
+        loop_closed=closed,
+        **rec,
+    )

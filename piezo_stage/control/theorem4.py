@@ -113,7 +113,9 @@ def validate_gains(
         k0max = k0_max(bounds, k1, k2)
         e1, e2 = _e1_e2(bounds, k1, k2, k2min)
     if k0 is None:
-        reasons.append("k0 not given" + (f": choose 0 < k0 < k0_max = {k0max:.6g}" if k0max else ""))
+        reasons.append(
+            "k0 not given" + (f": choose 0 < k0 < k0_max = {k0max:.6g}" if k0max else "")
+        )
     else:
         k0 = _finite("k0", k0)
         if k0 <= 0:
@@ -135,6 +137,16 @@ def validate_gains(
         "for its bounds (docs/design.md §7 erratum)"
     )
     return GainReport(
-        k1=k1, k2=k2, k0=k0, kA=kA, f=f, k2_min=k2min, k0_max=k0max, e1=e1, e2=e2,
-        valid=not reasons, reasons=tuple(reasons), notes=tuple(notes),
+        k1=k1,
+        k2=k2,
+        k0=k0,
+        kA=kA,
+        f=f,
+        k2_min=k2min,
+        k0_max=k0max,
+        e1=e1,
+        e2=e2,
+        valid=not reasons,
+        reasons=tuple(reasons),
+        notes=tuple(notes),
     )

@@ -23,11 +23,26 @@ from .errors import (
 from .recording import Recording
 
 __all__ = [
-    "AnalyticEstimateError", "BadFitError", "DataFormatError", "DesignPointError",
-    "IdentificationError", "InconsistentRunsError", "NoSteadyStateError", "NonFiniteDataError",
-    "NonMonotoneBranchError", "NotPeriodicError", "OrientationError", "RefinementError", "SaturatedOutputError",
-    "TooFewSamplesError", "Recording", "identify", "identify_cycles", "IdentifyOptions",
-    "IdentificationResult", "load_runs",
+    "AnalyticEstimateError",
+    "BadFitError",
+    "DataFormatError",
+    "DesignPointError",
+    "IdentificationError",
+    "InconsistentRunsError",
+    "NoSteadyStateError",
+    "NonFiniteDataError",
+    "NonMonotoneBranchError",
+    "NotPeriodicError",
+    "OrientationError",
+    "RefinementError",
+    "SaturatedOutputError",
+    "TooFewSamplesError",
+    "Recording",
+    "identify",
+    "identify_cycles",
+    "IdentifyOptions",
+    "IdentificationResult",
+    "load_runs",
 ]
 
 
@@ -35,11 +50,14 @@ def __getattr__(name: str):
     """Lazy access to the parts that import the model (keeps `import errors` light)."""
     if name in ("identify", "identify_cycles", "IdentifyOptions"):
         from . import pipeline
+
         return getattr(pipeline, name)
     if name == "IdentificationResult":
         from .result import IdentificationResult
+
         return IdentificationResult
     if name == "load_runs":
         from .io import load_runs
+
         return load_runs
     raise AttributeError(name)

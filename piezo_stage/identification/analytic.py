@@ -48,21 +48,23 @@ class DesignPoints:
         for name, value in (("x*1", x1), ("x*2", x2), ("x*3", x3)):
             if not x_min < value < x_max:
                 raise DesignPointError(
-                    f"{name} = {value:.6g} lies outside the loading branch [{x_min:.6g}, {x_max:.6g}]")
+                    f"{name} = {value:.6g} lies outside the loading branch [{x_min:.6g}, {x_max:.6g}]"
+                )
         if not x3 < x_star < x1 < x2:
             raise DesignPointError(
                 f"Table 10.1 needs x*3 < x* < x*1 < x*2, got x*3={x3:.6g}, x*={x_star:.6g}, "
-                f"x*1={x1:.6g}, x*2={x2:.6g}")
+                f"x*1={x1:.6g}, x*2={x2:.6g}"
+            )
         return x1, x2, x3
 
 
 @dataclass(frozen=True)
 class DerivativeOptions:
-    degree: int = 3            #: local polynomial degree
-    rel_tol: float = 2e-4      #: target slope std relative to the mean slope of θ
+    degree: int = 3  #: local polynomial degree
+    rel_tol: float = 2e-4  #: target slope std relative to the mean slope of θ
     min_samples: int = 8
     max_fraction: float = 0.3  #: widest window, fraction of the branch samples
-    slope_corrections: int = 3 #: re-estimates of a on the linearised θ (0: plain Table 10.2)
+    slope_corrections: int = 3  #: re-estimates of a on the linearised θ (0: plain Table 10.2)
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,7 @@ class HystereticEstimate:
     x1: float
     x2: float
     x3: float
-    a_uncorrected: float = float("nan")   #: a from the plain local fit at x*
+    a_uncorrected: float = float("nan")  #: a from the plain local fit at x*
     fits: dict[str, LocalFit] = field(default_factory=dict, compare=False)
 
 
@@ -99,24 +101,32 @@ def find_x_star(x: np.ndarray, th: np.ndarray, noise: float = 0.0) -> float:
         side = "positive" if th.min() > 0 else "negative"
         raise DesignPointError(
             f"θ has no zero on the loading branch (θ is {side} everywhere): x* lies outside the "
-            "data; the excitation does not cover both signs of w̄ or the polynomial part is wrong")
+            "data; the excitation does not cover both signs of w̄ or the polynomial part is wrong"
+        )
     xs = x[r] - th[r] * (x[r + 1] - x[r]) / (th[r + 1] - th[r])
     if np.ptp(xs) > 0.05 * (x[-1] - x[0]):
         raise AnalyticEstimateError(
             f"θ changes sign {len(r)} times over {100 * np.ptp(xs) / (x[-1] - x[0]):.0f} % of the "
-            "branch: it is not increasing as a Bouc-Wen loading branch must be")
+            "branch: it is not increasing as a Bouc-Wen loading branch must be"
+        )
     return float(np.median(xs))
 
 
-def hysteretic_estimate(branch: Branch, kappa: np.ndarray, y0: float, noise: float,
-                        design: DesignPoints = DesignPoints(),
-                        derivative: DerivativeOptions = DerivativeOptions()) -> HystereticEstimate:
+def hysteretic_estimate(
+    branch: Branch,
+    kappa: np.ndarray,
+    y0: float,
+    noise: float,
+    design: DesignPoints = DesignPoints(),
+    derivative: DerivativeOptions = DerivativeOptions(),
+) -> HystereticEstimate:
     """Steps 4-10 (9.38-9.45, Table 10.2) on the loading branch."""
     x = branch.x
     th = theta(branch, kappa, y0)
     slope_scale = float(np.ptp(th) / branch.span)
-    kw = dict(noise=noise, slope_scale=slope_scale, rel_tol=derivative.rel_tol,
-              degree=derivative.degree)
+    kw = dict(
+        noise=noise, slope_scale=slope_scale, rel_tol=derivative.rel_tol, degree=derivative.degree
+    )
     # Step 5: x* with θ(x*) = 0; Step 6: a = dθ/dx at x* (9.23, 9.39)
     fit0 = local_root(x, th, find_x_star(x, th, noise), **kw)
     x_star, a = fit0.x0, fit0.slope
@@ -127,8 +137,14 @@ def hysteretic_estimate(branch: Branch, kappa: np.ndarray, y0: float, noise: flo
     x1, x2, x3 = design.place(x_star, float(x[0]), float(x[-1]))
 
     def fit(x0: float) -> LocalFit:
-        return adaptive_fit(x, th, x0, min_samples=derivative.min_samples,
-                            max_fraction=derivative.max_fraction, **kw)
+        return adaptive_fit(
+            x,
+            th,
+            x0,
+            min_samples=derivative.min_samples,
+            max_fraction=derivative.max_fraction,
+            **kw,
+        )
 
     f1, f2, f3 = fit(x1), fit(x2), fit(x3)
     n, b, kappa_w, rho, sigma = table_10_2(a, f1, f2, f3)
@@ -137,25 +153,46 @@ def hysteretic_estimate(branch: Branch, kappa: np.ndarray, y0: float, noise: flo
         # θ is only C^n at x*: a local polynomial's slope there is biased by |x − x*|^n terms.
         # Removing the known curvature of (9.22)/(9.19) leaves a line of slope a.
         lin = theta_linearised(x, th, x_star, b, (2.0 * sigma - 1.0) * b, n)
-        a = adaptive_fit(x, lin, x_star, min_samples=derivative.min_samples,
-                         max_fraction=derivative.max_fraction, **kw).slope
+        a = adaptive_fit(
+            x,
+            lin,
+            x_star,
+            min_samples=derivative.min_samples,
+            max_fraction=derivative.max_fraction,
+            **kw,
+        ).slope
         n, b, kappa_w, rho, sigma = table_10_2(a, f1, f2, f3)
-    return HystereticEstimate(kappa_w=kappa_w, rho=rho, sigma=sigma, n=n, a=float(a), b=b,
-                              x_star=x_star, x1=x1, x2=x2, x3=x3, a_uncorrected=float(a_first),
-                              fits={"x*": fit0, "x*1": f1, "x*2": f2, "x*3": f3})
+    return HystereticEstimate(
+        kappa_w=kappa_w,
+        rho=rho,
+        sigma=sigma,
+        n=n,
+        a=float(a),
+        b=b,
+        x_star=x_star,
+        x1=x1,
+        x2=x2,
+        x3=x3,
+        a_uncorrected=float(a_first),
+        fits={"x*": fit0, "x*1": f1, "x*2": f2, "x*3": f3},
+    )
 
 
-def table_10_2(a: float, f1: LocalFit, f2: LocalFit, f3: LocalFit) -> tuple[float, float, float, float, float]:
+def table_10_2(
+    a: float, f1: LocalFit, f2: LocalFit, f3: LocalFit
+) -> tuple[float, float, float, float, float]:
     """n, b, κw, ρ, σ from a and the fits at x*1, x*2, x*3 (Steps 7-10, Table 10.2)."""
     # Step 7: n and b (9.24-9.25, 9.40-9.41)
     d1, d2 = f1.slope - a, f2.slope - a
     if not (d1 < 0 and d2 < 0):
         raise AnalyticEstimateError(
             f"dθ/dx − a at x*1, x*2 is {d1:.3g}, {d2:.3g}; both must be negative "
-            "(θ' = a − bθ^n decreases above x*): move x*1 away from x* or filter the data")
+            "(θ' = a − bθ^n decreases above x*): move x*1 away from x* or filter the data"
+        )
     if not (f2.value > f1.value > 0):
         raise AnalyticEstimateError(
-            f"θ(x*1) = {f1.value:.3g}, θ(x*2) = {f2.value:.3g}: need θ(x*2) > θ(x*1) > 0")
+            f"θ(x*1) = {f1.value:.3g}, θ(x*2) = {f2.value:.3g}: need θ(x*2) > θ(x*1) > 0"
+        )
     n = float(np.log(d2 / d1) / np.log(f2.value / f1.value))
     b = float(-d2 / f2.value**n)
     # Step 8: κw and ρ (9.26-9.27, 9.42-9.43)
@@ -173,8 +210,9 @@ def table_10_2(a: float, f1: LocalFit, f2: LocalFit, f3: LocalFit) -> tuple[floa
     return n, b, kappa_w, rho, sigma
 
 
-def theta_linearised(x: np.ndarray, th: np.ndarray, x_star: float, b: float, c: float,
-                     n: float) -> np.ndarray:
+def theta_linearised(
+    x: np.ndarray, th: np.ndarray, x_star: float, b: float, c: float, n: float
+) -> np.ndarray:
     """θ(x) − ∫_{x*}^{x} g(θ) dx with g = −bθ^n for θ ≥ 0 (9.22) and c(−θ)^n for θ < 0
     (9.19, c = (2σ−1)b): a straight line of slope a when b, c, n are right."""
     g = np.where(th >= 0.0, -b * np.abs(th) ** n, c * np.abs(th) ** n)
@@ -182,7 +220,8 @@ def theta_linearised(x: np.ndarray, th: np.ndarray, x_star: float, b: float, c: 
     return th - (integral - np.interp(x_star, x, integral))
 
 
-def initial_w(kappa: np.ndarray | tuple[float, ...], kappa_w: float, y0: float,
-              v0: float, y_at_0: float) -> float:
+def initial_w(
+    kappa: np.ndarray | tuple[float, ...], kappa_w: float, y0: float, v0: float, y_at_0: float
+) -> float:
     """w(0) of (10.18): (y(0) − Σ κ_i v(0)^i − y0) / κw."""
     return float((y_at_0 - polyval(np.asarray(kappa), np.asarray(v0)) - y0) / kappa_w)

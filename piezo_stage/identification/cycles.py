@@ -31,15 +31,15 @@ from .recording import Recording, check_recording
 class CycleOptions:
     """Knobs of the extraction (defaults suit simulated and lab data alike)."""
 
-    min_steady_periods: int = 2          #: periods that must agree to call it steady
-    steady_periods: int | None = None    #: use exactly this many trailing periods (no detection)
-    noise_factor: float = 3.0            #: periods agree if RMS difference ≤ factor·√2·noise ...
-    steady_tolerance: float = 1e-5       #: ... + this fraction of the output span
-    period_tolerance: float = 0.01       #: max relative deviation of one period from the mean
-    input_tolerance: float = 0.01        #: input periods must agree to this fraction of span
-    clip_fraction: float = 0.02          #: see recording.check_recording
-    min_branch_samples: int = 40         #: samples per branch of one period
-    data_filter: bool = False            #: apply the §10.3.2 filter (zero phase) to the cycle
+    min_steady_periods: int = 2  #: periods that must agree to call it steady
+    steady_periods: int | None = None  #: use exactly this many trailing periods (no detection)
+    noise_factor: float = 3.0  #: periods agree if RMS difference ≤ factor·√2·noise ...
+    steady_tolerance: float = 1e-5  #: ... + this fraction of the output span
+    period_tolerance: float = 0.01  #: max relative deviation of one period from the mean
+    input_tolerance: float = 0.01  #: input periods must agree to this fraction of span
+    clip_fraction: float = 0.02  #: see recording.check_recording
+    min_branch_samples: int = 40  #: samples per branch of one period
+    data_filter: bool = False  #: apply the §10.3.2 filter (zero phase) to the cycle
     filter_ratio: float = THESIS_BANDWIDTH_RATIO
     filter_zeta: float = THESIS_ZETA
 
@@ -56,10 +56,10 @@ class SteadyCycle:
     start_time: float
     periods: int
     raw_samples: int
-    noise_input: float           #: white-noise std on the averaged input
-    noise_output: float          #: white-noise std on the averaged output
-    i_max: int                   #: index of the input maximum (end of the v-loading branch)
-    period_rms: tuple[float, ...] = ()   #: robust spread of each period's output minus the last
+    noise_input: float  #: white-noise std on the averaged input
+    noise_output: float  #: white-noise std on the averaged output
+    i_max: int  #: index of the input maximum (end of the v-loading branch)
+    period_rms: tuple[float, ...] = ()  #: robust spread of each period's output minus the last
     name: str = ""
     meta: dict = field(default_factory=dict, compare=False)
 
@@ -92,7 +92,7 @@ def upward_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     ups = np.flatnonzero((s[:-1] == -1) & (s[1:] == 1))
     times = []
     for k in ups:
-        a, b = idx[k], idx[k + 1] + 1          # last 'low' sample .. first 'high' sample
+        a, b = idx[k], idx[k + 1] + 1  # last 'low' sample .. first 'high' sample
         ts, xs = t[a:b], x[a:b]
         slope, icpt = np.polyfit(ts - ts[0], xs, 1)
         if slope <= 0:
@@ -101,7 +101,9 @@ def upward_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.asarray(times)
 
 
-def estimate_period(rec: Recording, options: CycleOptions = CycleOptions()) -> tuple[float, np.ndarray]:
+def estimate_period(
+    rec: Recording, options: CycleOptions = CycleOptions()
+) -> tuple[float, np.ndarray]:
     """Period T of the input and the upward crossing times that delimit whole periods.
 
     With ``steady_periods`` = K only the last K + 1 crossings count: the periods before the ones
@@ -109,7 +111,7 @@ def estimate_period(rec: Recording, options: CycleOptions = CycleOptions()) -> t
     the amplifier's playout for a few tens of ms while the previous run was identified)."""
     crossings = upward_crossings(rec.t, rec.input)
     if options.steady_periods is not None and len(crossings) > options.steady_periods + 1:
-        crossings = crossings[-(options.steady_periods + 1):]
+        crossings = crossings[-(options.steady_periods + 1) :]
     if len(crossings) < 2:
         raise NotPeriodicError(
             f"{rec.label}: the input does not repeat (found {len(crossings)} rising mid-level "
@@ -149,7 +151,9 @@ _MAD_SCALE = 1.482602218505602
 _ROUNDOFF = 1e-12
 
 
-def _steady_count(rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOptions) -> tuple[int, tuple[float, ...]]:
+def _steady_count(
+    rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOptions
+) -> tuple[int, tuple[float, ...]]:
     """Number of trailing periods to average: those within the noise level of the last one
     (the limit cycle is reached when ``min_steady_periods`` agree within the tolerances)."""
     n_periods = X.shape[0]
@@ -165,7 +169,8 @@ def _steady_count(rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOp
         count = options.steady_periods
         if not 1 <= count <= n_periods:
             raise NoSteadyStateError(
-                f"{rec.label}: {count} steady periods requested but only {n_periods} recorded")
+                f"{rec.label}: {count} steady periods requested but only {n_periods} recorded"
+            )
     else:
         # average only the periods that differ from the last by no more than the noise: a
         # settling period within the span tolerance still carries its transient (bias)
@@ -184,16 +189,19 @@ def _steady_count(rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOp
         worst = float(np.max(rms_x[used]) / span_x)
         raise NotPeriodicError(
             f"{rec.label}: input periods differ by {100 * worst:.2g} % of the span: the "
-            "excitation is not periodic")
+            "excitation is not periodic"
+        )
     if options.steady_periods is None and agree < options.min_steady_periods:
         if n_periods < options.min_steady_periods:
             raise NoSteadyStateError(
                 f"{rec.label}: {n_periods} whole period(s) recorded; at least "
-                f"{options.min_steady_periods} are needed to verify the steady state (Theorem 2)")
+                f"{options.min_steady_periods} are needed to verify the steady state (Theorem 2)"
+            )
         raise NoSteadyStateError(
             f"{rec.label}: the last two periods differ by {rms_y[-2] / span_y:.3g} of the "
             f"output span, tolerance {tol_y / span_y:.3g}: the limit cycle is not reached "
-            "(record more periods, or the system drifts)")
+            "(record more periods, or the system drifts)"
+        )
     return count, tuple(float(r) for r in rms_y)
 
 
@@ -217,20 +225,31 @@ def extract_cycle(rec: Recording, options: CycleOptions = CycleOptions()) -> Ste
     v, y = np.roll(v, -i_min), np.roll(y, -i_min)
     i_max = _extreme(v, 1)
     half = 0.5 * period / m
-    raw_samples = int(np.count_nonzero((rec.t >= t0 + (X.shape[0] - count) * period - half)
-                                       & (rec.t < t0 + X.shape[0] * period - half)))
+    raw_samples = int(
+        np.count_nonzero(
+            (rec.t >= t0 + (X.shape[0] - count) * period - half)
+            & (rec.t < t0 + X.shape[0] * period - half)
+        )
+    )
     cycle = SteadyCycle(
-        period=period, input=v, output=y,
+        period=period,
+        input=v,
+        output=y,
         start_time=t0 + (X.shape[0] - count) * period + i_min * period / m,
-        periods=count, raw_samples=raw_samples,
-        noise_input=noise_input, noise_output=noise_output, i_max=i_max,
-        period_rms=period_rms, name=rec.label,
+        periods=count,
+        raw_samples=raw_samples,
+        noise_input=noise_input,
+        noise_output=noise_output,
+        i_max=i_max,
+        period_rms=period_rms,
+        name=rec.label,
     )
     for label, n in (("loading", i_max + 1), ("unloading", m - i_max + 1)):
         if n < options.min_branch_samples:
             raise TooFewSamplesError(
                 f"{rec.label}: the {label} branch holds {n} samples per period; at least "
-                f"{options.min_branch_samples} are needed (sample faster or slow the excitation)")
+                f"{options.min_branch_samples} are needed (sample faster or slow the excitation)"
+            )
     return cycle
 
 
@@ -249,7 +268,7 @@ def _rough_smooth(v: np.ndarray) -> np.ndarray:
     k = max(1, len(v) // 100) | 1
     if k == 1:
         return v
-    pad = np.concatenate((v[-(k // 2):], v, v[: k // 2]))
+    pad = np.concatenate((v[-(k // 2) :], v, v[: k // 2]))
     return np.convolve(pad, np.ones(k) / k, mode="valid")
 
 
@@ -293,16 +312,19 @@ def smooth_input(cycle: SteadyCycle) -> np.ndarray:
         raise NonMonotoneBranchError(
             f"{cycle.name or 'cycle'}: the input reverses by {max(dip, bump) / span:.3g} of its "
             f"span inside a {'loading' if dip >= bump else 'unloading'} branch: not a T-wave "
-            "(one rise and one fall per period) - minor loops cannot be identified by this method")
+            "(one rise and one fall per period) - minor loops cannot be identified by this method"
+        )
     return v
 
 
-def split_branches(cycle: SteadyCycle, input_sign: int, v_smooth: np.ndarray | None = None) -> tuple[Branch, Branch]:
+def split_branches(
+    cycle: SteadyCycle, input_sign: int, v_smooth: np.ndarray | None = None
+) -> tuple[Branch, Branch]:
     """Loading and unloading branches in x = input_sign·v, each sorted by increasing x."""
     v = smooth_input(cycle) if v_smooth is None else v_smooth
     y = cycle.output
     i_max = cycle.i_max
-    up = (v[: i_max + 1], y[: i_max + 1])                                    # v increasing
+    up = (v[: i_max + 1], y[: i_max + 1])  # v increasing
     down = (np.concatenate((v[i_max:], v[:1]))[::-1], np.concatenate((y[i_max:], y[:1]))[::-1])
     if input_sign not in (1, -1):
         raise IdentificationError(f"input_sign must be +1 or -1, got {input_sign!r}")

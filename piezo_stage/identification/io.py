@@ -28,10 +28,22 @@ REQUIRED = ("time", "input", "output")
 _UNIT_RE = re.compile(r"^(?P<name>[^\[\(]*?)\s*(?:[\[\(](?P<unit>[^\]\)]*)[\]\)])?\s*$")
 #: unit as written (case matters: mV is not MV) -> (SI unit, factor)
 _SI = {
-    "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6), "µs": ("s", 1e-6), "μs": ("s", 1e-6),
-    "V": ("V", 1.0), "v": ("V", 1.0), "mV": ("V", 1e-3), "mv": ("V", 1e-3), "kV": ("V", 1e3),
-    "m": ("m", 1.0), "mm": ("m", 1e-3), "um": ("m", 1e-6), "µm": ("m", 1e-6),
-    "μm": ("m", 1e-6), "nm": ("m", 1e-9),
+    "s": ("s", 1.0),
+    "ms": ("s", 1e-3),
+    "us": ("s", 1e-6),
+    "µs": ("s", 1e-6),
+    "μs": ("s", 1e-6),
+    "V": ("V", 1.0),
+    "v": ("V", 1.0),
+    "mV": ("V", 1e-3),
+    "mv": ("V", 1e-3),
+    "kV": ("V", 1e3),
+    "m": ("m", 1.0),
+    "mm": ("m", 1e-3),
+    "um": ("m", 1e-6),
+    "µm": ("m", 1e-6),
+    "μm": ("m", 1e-6),
+    "nm": ("m", 1e-9),
 }
 DEFAULT_EXCITATION_TOPIC = "/piezo/excitation"
 
@@ -88,10 +100,14 @@ def load_csv(path: str | Path, name: str | None = None) -> Recording:
     if header_at is None:
         raise DataFormatError(
             f"{path}: no header line naming the columns {', '.join(REQUIRED)} "
-            "(units in brackets are allowed, e.g. 'time [s],input [V],output [um]')")
+            "(units in brackets are allowed, e.g. 'time [s],input [V],output [um]')"
+        )
     data: dict[str, list[float]] = {r: [] for r in REQUIRED}
-    reader = csv.reader(_io.StringIO("\n".join(lines[header_at + 1:])), delimiter=delimiter) \
-        if delimiter else (ln.split() for ln in lines[header_at + 1:])
+    reader = (
+        csv.reader(_io.StringIO("\n".join(lines[header_at + 1 :])), delimiter=delimiter)
+        if delimiter
+        else (ln.split() for ln in lines[header_at + 1 :])
+    )
     for k, row in enumerate(reader, start=header_at + 2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -104,9 +120,15 @@ def load_csv(path: str | Path, name: str | None = None) -> Recording:
     units = {}
     for r in REQUIRED:
         arrays[r], units[r] = to_si(np.asarray(data[r], dtype=float), columns[r][1])
-    return Recording(arrays["time"], arrays["input"], arrays["output"], name=name or path.name,
-                     input_unit=units["input"], output_unit=units["output"],
-                     meta={"source": str(path)})
+    return Recording(
+        arrays["time"],
+        arrays["input"],
+        arrays["output"],
+        name=name or path.name,
+        input_unit=units["input"],
+        output_unit=units["output"],
+        meta={"source": str(path)},
+    )
 
 
 def is_bag(path: str | Path) -> bool:
@@ -123,8 +145,15 @@ def _resample(t_src: np.ndarray, x_src: np.ndarray, t: np.ndarray, hold: bool) -
     return x_src[np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(x_src) - 1)]
 
 
-def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray, name: str,
-           hold_in: bool = False, hold_out: bool = False) -> Recording:
+def _merge(
+    t_in: np.ndarray,
+    v: np.ndarray,
+    t_out: np.ndarray,
+    y: np.ndarray,
+    name: str,
+    hold_in: bool = False,
+    hold_out: bool = False,
+) -> Recording:
     """One time base for both signals, the other resampled on it.
 
     A voltage series is what the amplifier applied from each stamp until the next (docs/design.md §3:
@@ -140,10 +169,14 @@ def _merge(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray, na
     if output_base:
         keep = (t_out >= lo) & (t_out <= hi)
         t = t_out[keep]
-        return Recording(t, _resample(t_in, v, t, hold_in), y[keep], name=name, input_unit="V", output_unit="m")
+        return Recording(
+            t, _resample(t_in, v, t, hold_in), y[keep], name=name, input_unit="V", output_unit="m"
+        )
     keep = (t_in >= lo) & (t_in <= hi)
     t = t_in[keep]
-    return Recording(t, v[keep], _resample(t_out, y, t, hold_out), name=name, input_unit="V", output_unit="m")
+    return Recording(
+        t, v[keep], _resample(t_out, y, t, hold_out), name=name, input_unit="V", output_unit="m"
+    )
 
 
 def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None):
@@ -154,7 +187,9 @@ def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None)
     return t[unique], values[unique], (status[unique] if status is not None else None)
 
 
-def intervals_from_marks(marks: list[tuple[float, int] | tuple[float, int, bool]]) -> list[tuple[int, float, float]]:
+def intervals_from_marks(
+    marks: list[tuple[float, int] | tuple[float, int, bool]],
+) -> list[tuple[int, float, float]]:
     """``(run, start, stop)`` [s] from ``(stamp, run[, steady])`` marks of the excitation topic:
     each run lasts from its first mark until the next run's first mark, or until its end mark
     (the first non-steady mark after a steady one: the excitation node's "plan done"), so that
@@ -174,11 +209,19 @@ def intervals_from_marks(marks: list[tuple[float, int] | tuple[float, int, bool]
             was_steady = True
         elif steady is False and was_steady:
             ended.setdefault(len(intervals) - 1, stamp)
-    return [(run, start, min(ended.get(i, np.inf), intervals[i + 1][1] if i + 1 < len(intervals) else np.inf))
-            for i, (run, start, _) in enumerate(intervals)]
+    return [
+        (
+            run,
+            start,
+            min(ended.get(i, np.inf), intervals[i + 1][1] if i + 1 < len(intervals) else np.inf),
+        )
+        for i, (run, start, _) in enumerate(intervals)
+    ]
 
 
-def excitation_marks(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[float, int, bool]]:
+def excitation_marks(
+    path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC
+) -> list[tuple[float, int, bool]]:
     """``(stamp [s], run, steady)`` of every excitation message of a bag: the header stamps (as
     for the samples, and as the live ``identifier`` sees them; 0 is a valid stamp on a sim
     clock starting at 0), or the log times when no message is stamped."""
@@ -186,28 +229,43 @@ def excitation_marks(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) ->
 
     marks, log_times = [], []
     for _, log_time, msg in read_messages(path, [topic]):
-        marks.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, int(msg.run), bool(msg.steady)))
+        marks.append(
+            (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, int(msg.run), bool(msg.steady))
+        )
         log_times.append(log_time * 1e-9)
     if marks and not any(m[0] for m in marks):
         marks = [(t, run, steady) for t, (_, run, steady) in zip(log_times, marks)]
     return marks
 
 
-def run_intervals(path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC) -> list[tuple[int, float, float]]:
+def run_intervals(
+    path: str | Path, topic: str = DEFAULT_EXCITATION_TOPIC
+) -> list[tuple[int, float, float]]:
     """``(run, start, stop)`` [s] from the excitation topic's ``run`` field (stamps)."""
     return intervals_from_marks(excitation_marks(path, topic))
 
 
-def recordings_from_series(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y: np.ndarray,
-                           status: np.ndarray | None, intervals: list[tuple[int, float, float]],
-                           source: str, input_unit: str = "V", output_unit: str = "m") -> list[Recording]:
+def recordings_from_series(
+    t_in: np.ndarray,
+    v: np.ndarray,
+    t_out: np.ndarray,
+    y: np.ndarray,
+    status: np.ndarray | None,
+    intervals: list[tuple[int, float, float]],
+    source: str,
+    input_unit: str = "V",
+    output_unit: str = "m",
+) -> list[Recording]:
     """One Recording per run interval from the input and output series (any order, duplicates
     dropped). Shared by :func:`load_bag` and the live ``identifier`` node, so that a bag replayed
     through the node gives the offline result. Output samples flagged invalid are refused. A
     series in volts (the applied ``voltage``) is resampled as held values, the other interpolated."""
     t_in, v, _ = _sorted_series(np.asarray(t_in, float), np.asarray(v, float), None)
-    t_out, y, status = _sorted_series(np.asarray(t_out, float), np.asarray(y, float),
-                                      None if status is None else np.asarray(status))
+    t_out, y, status = _sorted_series(
+        np.asarray(t_out, float),
+        np.asarray(y, float),
+        None if status is None else np.asarray(status),
+    )
     runs = []
     for run, start, stop in intervals:
         name = f"{source} run {run}"
@@ -222,16 +280,27 @@ def recordings_from_series(t_in: np.ndarray, v: np.ndarray, t_out: np.ndarray, y
                 raise SaturatedOutputError(
                     f"{name}: {int(bad.sum())} displacement sample(s) flagged invalid "
                     f"(status {codes}: 1 NO_TARGET, 2 TOO_CLOSE, 3 TOO_FAR, 4 INVALID): the sensor "
-                    "left its range; reduce the excitation or re-position the sensor")
-        rec = _merge(t_in[sel_in], v[sel_in], t_out[sel_out], y[sel_out], name,
-                     hold_in=input_unit == "V", hold_out=output_unit == "V")
+                    "left its range; reduce the excitation or re-position the sensor"
+                )
+        rec = _merge(
+            t_in[sel_in],
+            v[sel_in],
+            t_out[sel_out],
+            y[sel_out],
+            name,
+            hold_in=input_unit == "V",
+            hold_out=output_unit == "V",
+        )
         runs.append(replace(rec, input_unit=input_unit, output_unit=output_unit))
     return runs
 
 
-def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
-             output_topic: str = "/piezo/displacement",
-             excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
+def load_bag(
+    path: str | Path,
+    input_topic: str = "/piezo/voltage",
+    output_topic: str = "/piezo/displacement",
+    excitation_topic: str = DEFAULT_EXCITATION_TOPIC,
+) -> list[Recording]:
     """The runs of a bag: one per ``run`` value of the excitation topic (or one run when the
     bag has no excitation topic). Output samples flagged invalid (status != OK) are refused."""
     from piezo_stage.bag.reader import read_series, topic_types
@@ -239,23 +308,36 @@ def load_bag(path: str | Path, input_topic: str = "/piezo/voltage",
     t_in, v, _ = read_series(path, input_topic)
     t_out, y, status = read_series(path, output_topic)
     if len(t_in) == 0 or len(t_out) == 0:
-        raise DataFormatError(f"{path}: topic {input_topic if len(t_in) == 0 else output_topic} is empty")
+        raise DataFormatError(
+            f"{path}: topic {input_topic if len(t_in) == 0 else output_topic} is empty"
+        )
     if excitation_topic in topic_types(path):
         intervals = run_intervals(path, excitation_topic)
     else:
         intervals = [(0, -np.inf, np.inf)]
     units = {"voltage": "V", "displacement": "m"}
-    runs = recordings_from_series(t_in, v, t_out, y, status, intervals, Path(path).name,
-                                  units.get(input_topic.rsplit("/", 1)[-1], ""),
-                                  units.get(output_topic.rsplit("/", 1)[-1], ""))
+    runs = recordings_from_series(
+        t_in,
+        v,
+        t_out,
+        y,
+        status,
+        intervals,
+        Path(path).name,
+        units.get(input_topic.rsplit("/", 1)[-1], ""),
+        units.get(output_topic.rsplit("/", 1)[-1], ""),
+    )
     if not runs:
         raise DataFormatError(f"{path}: no run with samples on {input_topic} and {output_topic}")
     return runs
 
 
-def load_runs(paths: list[str | Path], input_topic: str = "/piezo/voltage",
-              output_topic: str = "/piezo/displacement",
-              excitation_topic: str = DEFAULT_EXCITATION_TOPIC) -> list[Recording]:
+def load_runs(
+    paths: list[str | Path],
+    input_topic: str = "/piezo/voltage",
+    output_topic: str = "/piezo/displacement",
+    excitation_topic: str = DEFAULT_EXCITATION_TOPIC,
+) -> list[Recording]:
     """Runs from CSV files and/or bags, in the order given (a bag may hold several)."""
     runs: list[Recording] = []
     for p in paths:

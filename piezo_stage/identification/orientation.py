@@ -20,12 +20,14 @@ from .errors import OrientationError
 @dataclass(frozen=True)
 class Orientation:
     input_sign: int
-    mean_gap: float          #: mean over v of y_rising − y_falling [output unit]
-    gap_noise: float         #: noise level of one gap sample
-    reversed_fraction: float #: share of the input range where the gap has the other sign
+    mean_gap: float  #: mean over v of y_rising − y_falling [output unit]
+    gap_noise: float  #: noise level of one gap sample
+    reversed_fraction: float  #: share of the input range where the gap has the other sign
 
 
-def loop_gap(cycle: SteadyCycle, v_smooth: np.ndarray, samples: int = 400) -> tuple[np.ndarray, np.ndarray]:
+def loop_gap(
+    cycle: SteadyCycle, v_smooth: np.ndarray, samples: int = 400
+) -> tuple[np.ndarray, np.ndarray]:
     """y on the v-rising branch minus y on the v-falling branch, on a grid inside the span."""
     i = cycle.i_max
     vr, yr = v_smooth[: i + 1], cycle.output[: i + 1]
@@ -43,8 +45,13 @@ def _sorted(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x[order], y[order]
 
 
-def detect_orientation(cycle: SteadyCycle, v_smooth: np.ndarray, *, min_loop_width: float = 1e-3,
-                       noise_factor: float = 3.0) -> Orientation:
+def detect_orientation(
+    cycle: SteadyCycle,
+    v_smooth: np.ndarray,
+    *,
+    min_loop_width: float = 1e-3,
+    noise_factor: float = 3.0,
+) -> Orientation:
     """Orientation of one cycle; raises :class:`OrientationError` when the loop has no
     detectable hysteresis (mean width below ``min_loop_width`` of the output span and below
     the noise) or crosses itself (a figure-eight is not a Bouc-Wen loop)."""
@@ -57,17 +64,21 @@ def detect_orientation(cycle: SteadyCycle, v_smooth: np.ndarray, *, min_loop_wid
         raise OrientationError(
             f"{cycle.name or 'cycle'}: no detectable hysteresis (mean loop width "
             f"{abs(mean_gap) / span:.2g} of the output span, need > {needed / span:.2g}); the "
-            "Bouc-Wen parameters cannot be identified from a loop without area")
+            "Bouc-Wen parameters cannot be identified from a loop without area"
+        )
     sign = 1 if mean_gap > 0 else -1
     # the gap vanishes at the turning points: judge crossings away from them
-    inner = (grid - grid[0] > 0.05 * (grid[-1] - grid[0])) & (grid[-1] - grid > 0.05 * (grid[-1] - grid[0]))
+    inner = (grid - grid[0] > 0.05 * (grid[-1] - grid[0])) & (
+        grid[-1] - grid > 0.05 * (grid[-1] - grid[0])
+    )
     against = np.sign(gap[inner]) == np.sign(-mean_gap)
     significant = np.abs(gap[inner]) > noise_factor * gap_noise
     reversed_fraction = float(np.mean(against & significant))
     if reversed_fraction > 0.05:
         raise OrientationError(
             f"{cycle.name or 'cycle'}: the loop crosses itself ({100 * reversed_fraction:.0f} % "
-            "of the input range has the other orientation): not a Bouc-Wen limit cycle")
+            "of the input range has the other orientation): not a Bouc-Wen limit cycle"
+        )
     return Orientation(sign, mean_gap, gap_noise, reversed_fraction)
 
 
@@ -76,11 +87,13 @@ def resolve_orientation(orientations: list[Orientation], requested: int | None) 
     signs = {o.input_sign for o in orientations}
     if len(signs) > 1:
         raise OrientationError(
-            "the runs have loops of opposite orientation; they cannot come from one Bouc-Wen system")
+            "the runs have loops of opposite orientation; they cannot come from one Bouc-Wen system"
+        )
     detected = signs.pop()
     if requested is not None and requested != detected:
         raise OrientationError(
             f"input_sign={requested:+d} was requested but the loop orientation requires "
             f"input_sign={detected:+d} (w driven by {'-' if detected < 0 else ''}v): with ρ, κw > 0 "
-            "the requested orientation cannot fit these data")
+            "the requested orientation cannot fit these data"
+        )
     return detected

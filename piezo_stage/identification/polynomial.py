@@ -47,15 +47,16 @@ def polyval(kappa: np.ndarray | tuple[float, ...], v: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class PolynomialFit:
-    kappa: np.ndarray   #: κ_1..κ_N
-    g: np.ndarray       #: g_0..g_{N−1} of (10.7)
-    q: float            #: offset of run B with respect to run A [input unit]
-    residual_rms: float #: RMS of the difference not explained by Σ g_j v^j
+    kappa: np.ndarray  #: κ_1..κ_N
+    g: np.ndarray  #: g_0..g_{N−1} of (10.7)
+    q: float  #: offset of run B with respect to run A [input unit]
+    residual_rms: float  #: RMS of the difference not explained by Σ g_j v^j
     samples: int
 
 
-def offset_between(a: tuple[Branch, Branch], b: tuple[Branch, Branch], *,
-                   span_tolerance: float = 0.02) -> float:
+def offset_between(
+    a: tuple[Branch, Branch], b: tuple[Branch, Branch], *, span_tolerance: float = 0.02
+) -> float:
     """q = offset of run B against run A in v (Step 2), after checking both spans agree."""
     va = np.concatenate((a[0].v, a[1].v))
     vb = np.concatenate((b[0].v, b[1].v))
@@ -64,16 +65,20 @@ def offset_between(a: tuple[Branch, Branch], b: tuple[Branch, Branch], *,
         raise InconsistentRunsError(
             f"the runs' input spans differ ({span_a:.6g} vs {span_b:.6g}, "
             f"{100 * abs(span_a - span_b) / span_a:.2g} %): the method needs x(t) and x(t)+q "
-            "with the same waveform")
+            "with the same waveform"
+        )
     q = 0.5 * ((vb.max() + vb.min()) - (va.max() + va.min()))
     if abs(q) < 0.01 * span_a:
         raise InconsistentRunsError(
             f"the runs' offsets differ by q = {q:.3g} ({100 * abs(q) / span_a:.2g} % of the span): "
-            "q must be clearly non-zero (Step 2; the thesis uses q = span/3 or so)")
+            "q must be clearly non-zero (Step 2; the thesis uses q = span/3 or so)"
+        )
     return float(q)
 
 
-def fit_polynomial(a: tuple[Branch, Branch], b: tuple[Branch, Branch], degree: int, q: float) -> PolynomialFit:
+def fit_polynomial(
+    a: tuple[Branch, Branch], b: tuple[Branch, Branch], degree: int, q: float
+) -> PolynomialFit:
     """Least squares of Φ_B(v+q) − Φ_A(v) = Σ g_j v^j (10.7) on both branches, then (10.11).
 
     Run B is interpolated at v+q along the same branch (loading with loading, unloading with
@@ -90,15 +95,17 @@ def fit_polynomial(a: tuple[Branch, Branch], b: tuple[Branch, Branch], degree: i
     d = np.concatenate(ds)
     if len(v) < 4 * degree + 4:
         raise TooFewSamplesError(
-            f"only {len(v)} matched samples between the two runs for a degree-{degree} polynomial")
+            f"only {len(v)} matched samples between the two runs for a degree-{degree} polynomial"
+        )
     scale = float(np.max(np.abs(v)))
     A = np.vander(v / scale, degree, increasing=True)
     g_scaled, *_ = np.linalg.lstsq(A, d, rcond=None)
     g = g_scaled / scale ** np.arange(degree)
     residual = d - A @ g_scaled
     kappa = kappa_from_g(g, q)
-    return PolynomialFit(kappa=kappa, g=g, q=q, residual_rms=float(np.sqrt(np.mean(residual**2))),
-                         samples=len(v))
+    return PolynomialFit(
+        kappa=kappa, g=g, q=q, residual_rms=float(np.sqrt(np.mean(residual**2))), samples=len(v)
+    )
 
 
 def offset_y0(branches: list[tuple[Branch, Branch]], kappa: np.ndarray) -> float:

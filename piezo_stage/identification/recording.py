@@ -53,8 +53,15 @@ class Recording:
 
     def slice(self, start: int, stop: int) -> "Recording":
         """The samples ``start:stop`` as a new recording (same name and units)."""
-        return Recording(self.t[start:stop], self.input[start:stop], self.output[start:stop],
-                         self.name, self.input_unit, self.output_unit, dict(self.meta))
+        return Recording(
+            self.t[start:stop],
+            self.input[start:stop],
+            self.output[start:stop],
+            self.name,
+            self.input_unit,
+            self.output_unit,
+            dict(self.meta),
+        )
 
 
 def check_recording(rec: Recording, *, clip_fraction: float = 0.02) -> None:
@@ -82,7 +89,8 @@ def check_recording(rec: Recording, *, clip_fraction: float = 0.02) -> None:
             raise DataFormatError(
                 f"{rec.label}: {attr} values out of range (largest |value| {peak:.3g}, span "
                 f"{span:.3g}; supported: |value| <= {MAX_MAGNITUDE:g}, span >= {MIN_SPAN:g}): "
-                "check the units")
+                "check the units"
+            )
     dt = np.diff(rec.t)
     if np.any(dt <= 0):
         first = int(np.argmax(dt <= 0))

@@ -25,7 +25,7 @@ from .errors import RefinementError
 _TAIL = ("y0", "kappa_w", "rho", "sigma", "n")
 #: the hysteretic parameters whose standard errors decide whether the data determine them
 HYSTERETIC = ("kappa_w", "rho", "sigma", "n")
-_FD_STEP = 1.5e-8      #: relative finite-difference step of the Jacobian (√eps)
+_FD_STEP = 1.5e-8  #: relative finite-difference step of the Jacobian (√eps)
 #: |correlation| of two parameters above which the result warns (as the fit by simulation)
 CORRELATION_LIMIT = 0.999
 
@@ -34,12 +34,12 @@ CORRELATION_LIMIT = 0.999
 class RefineOptions:
     enabled: bool = True
     max_nfev: int = 200
-    tolerance: float = 1e-13          #: ftol = xtol = gtol of scipy's least_squares
-    noise_factor: float = 3.0         #: a fit is bad if RMS > noise_factor·noise ...
-    max_rms_fraction: float = 0.005   #: ... and RMS > this fraction of the output span
-    max_rel_std: float = 0.05         #: a hysteretic parameter whose relative standard error
-                                      #: exceeds this is not determined by the data
-    n_max: float = 50.0               #: upper bound of n (keeps |w|^n finite)
+    tolerance: float = 1e-13  #: ftol = xtol = gtol of scipy's least_squares
+    noise_factor: float = 3.0  #: a fit is bad if RMS > noise_factor·noise ...
+    max_rms_fraction: float = 0.005  #: ... and RMS > this fraction of the output span
+    max_rel_std: float = 0.05  #: a hysteretic parameter whose relative standard error
+    #: exceeds this is not determined by the data
+    n_max: float = 50.0  #: upper bound of n (keeps |w|^n finite)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
     for i, extreme in ((int(np.argmin(x)), -1.0), (int(np.argmax(x)), 1.0)):
         c = _line_corner(x, i, m_fit)
         if c is None or extreme * (c[1] - x[i]) < 0:
-            c = (float(i), float(x[i]))       # smooth turning point: the sample itself
+            c = (float(i), float(x[i]))  # smooth turning point: the sample itself
         corners.append(c)
     (p_min, x_lo), (p_max, x_hi) = corners
     # rotate so the path starts at the minimum; phases measured from it in [0, M)
@@ -95,19 +95,20 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
     path_x = list(x[order])
     positions = list(range(m_samples))
     inserted = 0
-    if phases[0] > 1e-9:                         # minimum lies between samples: prepend it
+    if phases[0] > 1e-9:  # minimum lies between samples: prepend it
         path_x.insert(0, x_lo)
         positions = [p + 1 for p in positions]
         inserted = 1
-    else:                                        # on a sample: use the reconstructed value
+    else:  # on a sample: use the reconstructed value
         path_x[0] = x_lo
     ph_max = (p_max - p_min) % m_samples
-    if abs(ph_max - round(ph_max)) > 1e-9:       # maximum between samples: insert it
+    if abs(ph_max - round(ph_max)) > 1e-9:  # maximum between samples: insert it
         k = int(np.searchsorted(phases, ph_max)) + inserted
         path_x.insert(k, x_hi)
         positions = [p + (1 if p >= k else 0) for p in positions]
     else:
         path_x[int(round(ph_max)) % m_samples + inserted] = x_hi
+
     # samples within one sampling interval of a turning point were interpolated across the
     # kink when the periods were averaged (unless the grid hit the corner): leave them out
     def distance(ph: np.ndarray, corner: float) -> np.ndarray:
@@ -115,10 +116,13 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
         return np.minimum(d, m_samples - d)
 
     keep = (distance(phases, 0.0) >= 1.0 - 1e-9) & (distance(phases, ph_max) >= 1.0 - 1e-9)
-    return CyclePath(v=input_sign * np.asarray(path_x),
-                     sample_positions=np.asarray(positions)[keep],
-                     y=cycle.output[order][keep], x_min=min(x_lo, float(x.min())),
-                     x_max=max(x_hi, float(x.max())))
+    return CyclePath(
+        v=input_sign * np.asarray(path_x),
+        sample_positions=np.asarray(positions)[keep],
+        y=cycle.output[order][keep],
+        x_min=min(x_lo, float(x.min())),
+        x_max=max(x_hi, float(x.max())),
+    )
 
 
 def pack(params: BoucWenParameters) -> np.ndarray:
@@ -146,7 +150,8 @@ def residuals(params: BoucWenParameters, paths: list[CyclePath]) -> np.ndarray:
     except (RuntimeError, ModelError) as exc:
         raise RefinementError(
             f"the model cannot be simulated at sigma={params.sigma:.6g}, n={params.n:.6g}, "
-            f"rho={params.rho:.6g} ({type(exc).__name__}: {exc})") from exc
+            f"rho={params.rho:.6g} ({type(exc).__name__}: {exc})"
+        ) from exc
     return np.concatenate(out)
 
 
@@ -157,7 +162,7 @@ class RefinedFit:
     relative_std: dict[str, float]
     nfev: int
     status: str
-    rejected_trials: int = 0     #: trial points the model could not simulate
+    rejected_trials: int = 0  #: trial points the model could not simulate
     #: parameter pairs whose correlation exceeds CORRELATION_LIMIT: (name, name, correlation)
     correlations: tuple[tuple[str, str, float], ...] = ()
 
@@ -165,7 +170,7 @@ class RefinedFit:
 def _bounds(p0: np.ndarray, degree: int, n_max: float) -> tuple[np.ndarray, np.ndarray]:
     lo = np.full_like(p0, -np.inf)
     hi = np.full_like(p0, np.inf)
-    i = degree + 1                       # κw, ρ, σ, n
+    i = degree + 1  # κw, ρ, σ, n
     lo[i] = p0[i] * 1e-6
     lo[i + 1] = p0[i + 1] * 1e-6
     lo[i + 2] = 0.5
@@ -173,30 +178,48 @@ def _bounds(p0: np.ndarray, degree: int, n_max: float) -> tuple[np.ndarray, np.n
     return lo, hi
 
 
-def feasible_start(kappa: np.ndarray, y0: float, kappa_w: float, rho: float, sigma: float,
-                   n: float, input_sign: int, n_max: float = 50.0) -> BoucWenParameters:
+def feasible_start(
+    kappa: np.ndarray,
+    y0: float,
+    kappa_w: float,
+    rho: float,
+    sigma: float,
+    n: float,
+    input_sign: int,
+    n_max: float = 50.0,
+) -> BoucWenParameters:
     """Project an analytic estimate into class I (σ ≥ ½, 1 ≤ n ≤ n_max) to start the
     refinement (κw, ρ > 0 are checked before)."""
-    return BoucWenParameters(kappa=tuple(float(k) for k in kappa), kappa_w=float(kappa_w),
-                             rho=float(rho), sigma=max(float(sigma), 0.5),
-                             n=min(max(float(n), 1.0), n_max), y0=float(y0),
-                             input_sign=input_sign)
+    return BoucWenParameters(
+        kappa=tuple(float(k) for k in kappa),
+        kappa_w=float(kappa_w),
+        rho=float(rho),
+        sigma=max(float(sigma), 0.5),
+        n=min(max(float(n), 1.0), n_max),
+        y0=float(y0),
+        input_sign=input_sign,
+    )
 
 
-def strong_correlations(names: list[str], cov: np.ndarray,
-                        limit: float) -> tuple[tuple[str, str, float], ...]:
+def strong_correlations(
+    names: list[str], cov: np.ndarray, limit: float
+) -> tuple[tuple[str, str, float], ...]:
     """Parameter pairs whose correlation (from the covariance ``cov``) exceeds ``limit`` in
     magnitude; κ_i with y0 left out (the polynomial's offset when the input is not centred)."""
     d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     d[d == 0] = 1.0
     corr = cov / np.outer(d, d)
-    return tuple((names[i], names[j], float(corr[i, j]))
-                 for i in range(len(names)) for j in range(i + 1, len(names))
-                 if not (names[j] == "y0" and names[i].startswith("kappa_"))
-                 and abs(corr[i, j]) > limit)
+    return tuple(
+        (names[i], names[j], float(corr[i, j]))
+        for i in range(len(names))
+        for j in range(i + 1, len(names))
+        if not (names[j] == "y0" and names[i].startswith("kappa_")) and abs(corr[i, j]) > limit
+    )
 
 
-def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOptions = RefineOptions()) -> RefinedFit:
+def refine(
+    start: BoucWenParameters, paths: list[CyclePath], options: RefineOptions = RefineOptions()
+) -> RefinedFit:
     """Least squares (scipy, trust-region reflective, bounded) from ``start``."""
     degree = len(start.kappa)
     sign = start.input_sign
@@ -208,7 +231,7 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
     y_span = max(float(np.ptp(np.concatenate([p.y for p in paths]))), np.finfo(float).tiny)
     scale[degree] = max(abs(p0[degree]), 1e-3 * y_span)
 
-    first = residuals(start, paths)              # raises RefinementError if the start fails
+    first = residuals(start, paths)  # raises RefinementError if the start fails
     failures: list[str] = []
 
     def fun(z: np.ndarray) -> np.ndarray:
@@ -238,7 +261,7 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
         J = np.empty((len(f0), len(z)))
         for j in range(len(z)):
             h = _FD_STEP * max(1.0, abs(z[j]))
-            for step in ((h, -h) if z[j] + h <= hi_z[j] else (-h,)):
+            for step in (h, -h) if z[j] + h <= hi_z[j] else (-h,):
                 zj = z.copy()
                 zj[j] += step
                 col = (fun(zj) - f0) / step
@@ -248,15 +271,26 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
         return J
 
     try:
-        res = least_squares(cached, p0 / scale, jac=jac, bounds=(lo_z, hi_z), method="trf",
-                            ftol=options.tolerance, xtol=options.tolerance, gtol=options.tolerance,
-                            max_nfev=options.max_nfev, x_scale=1.0)
+        res = least_squares(
+            cached,
+            p0 / scale,
+            jac=jac,
+            bounds=(lo_z, hi_z),
+            method="trf",
+            ftol=options.tolerance,
+            xtol=options.tolerance,
+            gtol=options.tolerance,
+            max_nfev=options.max_nfev,
+            x_scale=1.0,
+        )
     except (ValueError, np.linalg.LinAlgError) as exc:
         detail = f"; last model failure: {failures[-1]}" if failures else ""
         raise RefinementError(f"refinement failed: {exc}{detail}") from exc
     if not np.all(np.isfinite(res.fun)) or not np.all(np.isfinite(res.jac)):
-        raise RefinementError(f"refinement ended on a point the model cannot simulate: "
-                              f"{failures[-1] if failures else 'non-finite residuals'}")
+        raise RefinementError(
+            f"refinement ended on a point the model cannot simulate: "
+            f"{failures[-1] if failures else 'non-finite residuals'}"
+        )
     p = res.x * scale
     params = unpack(p, degree, sign)
     r = res.fun * y_span
@@ -267,10 +301,16 @@ def refine(start: BoucWenParameters, paths: list[CyclePath], options: RefineOpti
     cov = np.linalg.pinv(jtj) * s2
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     names = [f"kappa_{i + 1}" for i in range(degree)] + list(_TAIL)
-    rel = {name: float(sd / abs(v)) if v != 0 else float("inf")
-           for name, sd, v in zip(names, std, p)}
+    rel = {
+        name: float(sd / abs(v)) if v != 0 else float("inf") for name, sd, v in zip(names, std, p)
+    }
     pairs = strong_correlations(names, cov, CORRELATION_LIMIT)
-    return RefinedFit(parameters=params, rms_error=float(np.sqrt(np.mean(r**2))),
-                      relative_std=rel, nfev=int(res.nfev), status=str(res.message),
-                      correlations=pairs,
-                      rejected_trials=len(failures))
+    return RefinedFit(
+        parameters=params,
+        rms_error=float(np.sqrt(np.mean(r**2))),
+        relative_std=rel,
+        nfev=int(res.nfev),
+        status=str(res.message),
+        correlations=pairs,
+        rejected_trials=len(failures),
+    )

@@ -21,8 +21,8 @@ from .recording import Recording, check_recording
 @dataclass(frozen=True)
 class ValidationResult:
     recording: Recording
-    model: np.ndarray        #: simulated output at the recording's samples
-    w0: float                #: initial state used, (10.18) clipped to [-1, 1]
+    model: np.ndarray  #: simulated output at the recording's samples
+    w0: float  #: initial state used, (10.18) clipped to [-1, 1]
     w0_clipped: bool
 
     @property
@@ -42,25 +42,38 @@ class ValidationResult:
         return float(np.ptp(self.recording.output))
 
     def summary(self) -> dict[str, float]:
-        return {"rms": self.rms, "max": self.max_abs, "span": self.span,
-                "rms_percent": 100 * self.rms / self.span, "max_percent": 100 * self.max_abs / self.span,
-                "w0": self.w0, "samples": len(self.recording)}
+        return {
+            "rms": self.rms,
+            "max": self.max_abs,
+            "span": self.span,
+            "rms_percent": 100 * self.rms / self.span,
+            "max_percent": 100 * self.max_abs / self.span,
+            "w0": self.w0,
+            "samples": len(self.recording),
+        }
 
 
-def validate_model(params: BoucWenParameters, rec: Recording, w0: float | None = None,
-                   delay: float = 0.0, drift: Drift | None = None) -> ValidationResult:
+def validate_model(
+    params: BoucWenParameters,
+    rec: Recording,
+    w0: float | None = None,
+    delay: float = 0.0,
+    drift: Drift | None = None,
+) -> ValidationResult:
     """Simulate (10.15) on ``rec.input`` delayed by ``delay`` [s] (held before the start),
     plus ``drift`` from the record's start; w(0) from (10.18) unless given."""
     check_recording(rec)
     v = rec.input if delay == 0.0 else np.interp(rec.t - delay, rec.t, rec.input)
     offset = np.zeros(len(rec)) if drift is None else drift.evaluate(rec.t - rec.t[0])
     if w0 is None:
-        w0 = initial_w(params.kappa, params.kappa_w, params.y0, float(v[0]),
-                       float(rec.output[0] - offset[0]))
+        w0 = initial_w(
+            params.kappa, params.kappa_w, params.y0, float(v[0]), float(rec.output[0] - offset[0])
+        )
     clipped = not -1.0 <= w0 <= 1.0
     w0 = float(np.clip(w0, -1.0, 1.0))
-    return ValidationResult(recording=rec, model=model_output(params, v, w0=w0) + offset, w0=w0,
-                            w0_clipped=clipped)
+    return ValidationResult(
+        recording=rec, model=model_output(params, v, w0=w0) + offset, w0=w0, w0_clipped=clipped
+    )
 
 
 def _axis(unit: str) -> tuple[float, str]:
@@ -89,8 +102,10 @@ def plot_validation(result: ValidationResult, out_dir: str | Path, stem: str) ->
     ax1.plot(rec.t, result.model * ys, label="model", lw=1.0, ls="--")
     ax1.set_ylabel(ylab)
     ax1.legend(loc="best")
-    ax1.set_title(f"{rec.label}: RMS {100 * result.rms / result.span:.3g} %, max "
-                  f"{100 * result.max_abs / result.span:.3g} % of span")
+    ax1.set_title(
+        f"{rec.label}: RMS {100 * result.rms / result.span:.3g} %, max "
+        f"{100 * result.max_abs / result.span:.3g} % of span"
+    )
     ax2.plot(rec.t, result.error * ys, lw=0.8, color="C3")
     ax2.set_ylabel(f"model − measured [{yu}]" if yu else "model − measured")
     ax2.set_xlabel("time [s]")

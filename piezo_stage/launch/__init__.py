@@ -6,10 +6,26 @@ and stops everything cleanly; ``piezo-stage launch`` is its command line. Pure P
 `ready` (rclpy graph queries), imported only when topics are awaited.
 """
 
-from piezo_stage.launch.errors import (GraphError, LaunchError, LaunchInterrupted, RequiredProcessExited,
-                                       TopicsNotReadyError)
+from piezo_stage.launch.errors import (
+    GraphError,
+    LaunchError,
+    LaunchInterrupted,
+    RequiredProcessExited,
+    TopicsNotReadyError,
+)
 from piezo_stage.launch.graph import Graph, ProcessSpec, TopicWait, load_graph, parse_graph
 from piezo_stage.launch.launcher import Launcher
 
-__all__ = ["Graph", "GraphError", "LaunchError", "LaunchInterrupted", "Launcher", "ProcessSpec",
-           "RequiredProcessExited", "TopicWait", "TopicsNotReadyError", "load_graph", "parse_graph"]
+__all__ = [
+    "Graph",
+    "GraphError",
+    "LaunchError",
+    "LaunchInterrupted",
+    "Launcher",
+    "ProcessSpec",
+    "RequiredProcessExited",
+    "TopicWait",
+    "TopicsNotReadyError",
+    "load_graph",
+    "parse_graph",
+]

@@ -46,7 +46,9 @@ def defines_main(module: str) -> bool:
         if isinstance(stmt, (ast.Import, ast.ImportFrom)):
             if any((a.asname or a.name) == "main" for a in stmt.names):
                 return True
-        if isinstance(stmt, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "main" for t in stmt.targets):
+        if isinstance(stmt, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "main" for t in stmt.targets
+        ):
             return True
     return False
 
@@ -68,8 +70,10 @@ def run_module(module: str, args: list[str]) -> object:
 def main(argv: list[str] | None = None) -> object:
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) < 3 or argv[1] not in ("module", "exec"):
-        print("usage: python -m piezo_stage.launch.child PPID (module MODULE | exec CMD) [ARGS...]",
-              file=sys.stderr)
+        print(
+            "usage: python -m piezo_stage.launch.child PPID (module MODULE | exec CMD) [ARGS...]",
+            file=sys.stderr,
+        )
         return EXIT_NOT_FOUND
     die_with_parent(int(argv[0]))
     mode, target, rest = argv[1], argv[2], argv[3:]

@@ -64,8 +64,9 @@ def process_argv(spec: ProcessSpec, graph: Graph, parent_pid: int | None = None)
     return [*head, "exec", *spec.command, *spec.args]
 
 
-def process_env(spec: ProcessSpec, graph: Graph, base: Mapping[str, str] | None = None,
-                color: bool = False) -> dict[str, str]:
+def process_env(
+    spec: ProcessSpec, graph: Graph, base: Mapping[str, str] | None = None, color: bool = False
+) -> dict[str, str]:
     env = dict(os.environ if base is None else base)
     for extra in (graph.env, spec.env):
         for key, value in extra.items():
@@ -96,8 +97,11 @@ def shell_line(argv: list[str]) -> str:
 def available_nodes() -> list[str]:
     import piezo_stage.nodes as nodes
 
-    return sorted(m.name for m in pkgutil.iter_modules(nodes.__path__)
-                  if not m.name.startswith("_") and m.name != "common")
+    return sorted(
+        m.name
+        for m in pkgutil.iter_modules(nodes.__path__)
+        if not m.name.startswith("_") and m.name != "common"
+    )
 
 
 def check_runnable(graph: Graph, base_env: Mapping[str, str] | None = None) -> None:
@@ -107,10 +111,14 @@ def check_runnable(graph: Graph, base_env: Mapping[str, str] | None = None) -> N
     for spec in graph.nodes:
         if spec.module is not None and spec.module.startswith(NODE_PACKAGE + "."):
             if importlib.util.find_spec(spec.module) is None:
-                raise GraphError(f"{graph.source or 'graph'}: {spec.name}: no node module {spec.module!r} "
-                                 f"(available: {', '.join(available_nodes()) or 'none'})")
+                raise GraphError(
+                    f"{graph.source or 'graph'}: {spec.name}: no node module {spec.module!r} "
+                    f"(available: {', '.join(available_nodes()) or 'none'})"
+                )
         elif not spec.is_node:
             path = process_env(spec, graph, base_env).get("PATH")
             if shutil.which(spec.command[0], path=path) is None:
-                raise GraphError(f"{graph.source or 'graph'}: {spec.name}: command "
-                                 f"{spec.command[0]!r} not found on the PATH")
+                raise GraphError(
+                    f"{graph.source or 'graph'}: {spec.name}: command "
+                    f"{spec.command[0]!r} not found on the PATH"
+                )

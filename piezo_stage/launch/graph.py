@@ -43,11 +43,27 @@ from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (n
 DEFAULT_STOP_TIMEOUT = 5.0
 NODE_PACKAGE = "piezo_stage.nodes"
 
-_GRAPH_KEYS = ("description", "namespace", "use_sim_time", "clock", "env", "stop_timeout",
-               "wait_for_topics", "nodes")
+_GRAPH_KEYS = (
+    "description",
+    "namespace",
+    "use_sim_time",
+    "clock",
+    "env",
+    "stop_timeout",
+    "wait_for_topics",
+    "nodes",
+)
 _KINDS = ("executable", "module", "command")
-_NODE_KEYS = ("name", "parameters", "overrides", "remappings", "required", "args", "env",
-              "ready_pattern")
+_NODE_KEYS = (
+    "name",
+    "parameters",
+    "overrides",
+    "remappings",
+    "required",
+    "args",
+    "env",
+    "ready_pattern",
+)
 _ROS_ONLY_KEYS = ("parameters", "overrides", "remappings")
 _TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
 _NAMESPACE_RE = re.compile(rf"^/(?:{_TOKEN}(?:/{_TOKEN})*)?$")
@@ -70,7 +86,8 @@ for _cls in (_Loader, _Dumper):
     _cls.add_implicit_resolver(
         "tag:yaml.org,2002:float",
         re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-        list("-+0123456789."))
+        list("-+0123456789."),
+    )
 
 
 def load_yaml(text: str) -> Any:
@@ -95,8 +112,11 @@ class TopicWait:
         return resolve_name(self.topic, namespace)
 
     def describe(self, namespace: str) -> str:
-        need = [f"{n} {what}" for n, what in ((self.publishers, "publisher(s)"),
-                                               (self.subscribers, "subscriber(s)")) if n]
+        need = [
+            f"{n} {what}"
+            for n, what in ((self.publishers, "publisher(s)"), (self.subscribers, "subscriber(s)"))
+            if n
+        ]
         return self.resolve(namespace) + (f" (with {' and '.join(need)})" if need else "")
 
 
@@ -145,8 +165,9 @@ class Graph:
     def with_namespace(self, namespace: str) -> Graph:
         return dataclasses.replace(self, namespace=normalize_namespace(namespace, "--ns"))
 
-    def with_params(self, assignments: Iterable[str],
-                    accepts: Callable[[ProcessSpec, str], bool] | None = None) -> Graph:
+    def with_params(
+        self, assignments: Iterable[str], accepts: Callable[[ProcessSpec, str], bool] | None = None
+    ) -> Graph:
         """Apply ``NODE.KEY:=VALUE`` (that node) and ``KEY:=VALUE`` (every node that
         ``accepts`` the key; an error when none does) overrides.
 
@@ -156,8 +177,13 @@ class Graph:
         overrides = {spec.name: dict(spec.overrides) for spec in self.nodes}
         for text in assignments:
             target, key, value = self._split_assignment(text)
-            takers = [s for s in self.nodes if s.is_node and target in (None, s.name)
-                      and (target is not None or accepts is None or accepts(s, key))]
+            takers = [
+                s
+                for s in self.nodes
+                if s.is_node
+                and target in (None, s.name)
+                and (target is not None or accepts is None or accepts(s, key))
+            ]
             if not takers and any(s.is_node for s in self.nodes):
                 raise GraphError(f"--param {text!r}: no node of the graph has a parameter {key!r}")
             for spec in takers:
@@ -178,7 +204,9 @@ class Graph:
         names = {s.name: s for s in self.nodes}
         if dot and head in names:
             if not names[head].is_node:
-                raise GraphError(f"--param {text!r}: {head!r} is a command, it takes no ROS parameters")
+                raise GraphError(
+                    f"--param {text!r}: {head!r} is a command, it takes no ROS parameters"
+                )
             target, key = head, rest
         else:
             target, key = None, lhs
@@ -201,8 +229,10 @@ def normalize_namespace(namespace: str, where: str = "namespace") -> str:
         raise GraphError(f"{where}: expected a string, got {namespace!r}")
     ns = "/" + namespace.strip().strip("/")
     if not _NAMESPACE_RE.match(ns):
-        raise GraphError(f"{where}: {namespace!r} is not a valid ROS namespace "
-                         "(tokens of letters, digits, '_', not starting with a digit)")
+        raise GraphError(
+            f"{where}: {namespace!r} is not a valid ROS namespace "
+            "(tokens of letters, digits, '_', not starting with a digit)"
+        )
     return ns
 
 
@@ -220,7 +250,9 @@ def find_graph(graph: str | os.PathLike[str]) -> Path:
             return find_config(f"graphs/{name}")
         except ConfigNotFoundError as exc:
             tried.append(str(exc))
-    raise GraphError(f"graph {str(graph)!r} is neither a file nor a shipped graph: " + "; ".join(tried))
+    raise GraphError(
+        f"graph {str(graph)!r} is neither a file nor a shipped graph: " + "; ".join(tried)
+    )
 
 
 def load_graph(graph: str | os.PathLike[str]) -> Graph:
@@ -245,24 +277,36 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     nodes_data = data.get("nodes")
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
-    nodes = tuple(_parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data))
+    nodes = tuple(
+        _parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data)
+    )
     seen: set[str] = set()
     for i, spec in enumerate(nodes):
         if spec.name in seen:
-            raise GraphError(f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
-                             "give each entry a distinct 'name'")
+            raise GraphError(
+                f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
+                "give each entry a distinct 'name'"
+            )
         seen.add(spec.name)
     use_sim_time = data.get("use_sim_time")
     if use_sim_time is not None and not isinstance(use_sim_time, bool):
         raise GraphError(f"{where}: use_sim_time: expected true or false, got {use_sim_time!r}")
     stop_timeout = data.get("stop_timeout", DEFAULT_STOP_TIMEOUT)
-    if isinstance(stop_timeout, bool) or not isinstance(stop_timeout, (int, float)) or not stop_timeout > 0:
-        raise GraphError(f"{where}: stop_timeout: expected a positive number of seconds, got {stop_timeout!r}")
+    if (
+        isinstance(stop_timeout, bool)
+        or not isinstance(stop_timeout, (int, float))
+        or not stop_timeout > 0
+    ):
+        raise GraphError(
+            f"{where}: stop_timeout: expected a positive number of seconds, got {stop_timeout!r}"
+        )
     description = data.get("description", "")
     if not isinstance(description, str):
         raise GraphError(f"{where}: description: expected a string")
-    waits = tuple(_parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
-                  for i, t in enumerate(_list(data.get("wait_for_topics", []), f"{where}: wait_for_topics")))
+    waits = tuple(
+        _parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
+        for i, t in enumerate(_list(data.get("wait_for_topics", []), f"{where}: wait_for_topics"))
+    )
     clock = data.get("clock", "global")
     if clock not in ("global", "namespaced"):
         raise GraphError(f"{where}: clock: expected global or namespaced, got {clock!r}")
@@ -270,7 +314,9 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
         nodes, waits = _namespaced_clock(nodes, waits)
     return Graph(
         nodes=nodes,
-        namespace=normalize_namespace(data.get("namespace", DEFAULT_NAMESPACE), f"{where}: namespace"),
+        namespace=normalize_namespace(
+            data.get("namespace", DEFAULT_NAMESPACE), f"{where}: namespace"
+        ),
         wait_for_topics=waits,
         use_sim_time=use_sim_time,
         env=_env(data.get("env", {}), f"{where}: env"),
@@ -280,15 +326,20 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     )
 
 
-def _namespaced_clock(nodes: tuple[ProcessSpec, ...], waits: tuple[TopicWait, ...]
-                      ) -> tuple[tuple[ProcessSpec, ...], tuple[TopicWait, ...]]:
+def _namespaced_clock(
+    nodes: tuple[ProcessSpec, ...], waits: tuple[TopicWait, ...]
+) -> tuple[tuple[ProcessSpec, ...], tuple[TopicWait, ...]]:
     """``clock: namespaced``: every ROS node remaps ``/clock`` to ``clock``, which rcl resolves in
     the node's namespace (``<ns>/clock``), and a wait for ``/clock`` waits for ``<ns>/clock``.
     ``/clock`` is global in ROS, so two lockstep stages (each plant owns a clock) can only run side
     by side in namespaces this way (or in different ROS domains)."""
-    nodes = tuple(dataclasses.replace(s, remappings={"/clock": "clock", **s.remappings}) if s.is_node else s
-                  for s in nodes)
-    waits = tuple(dataclasses.replace(w, topic="clock") if w.topic == "/clock" else w for w in waits)
+    nodes = tuple(
+        dataclasses.replace(s, remappings={"/clock": "clock", **s.remappings}) if s.is_node else s
+        for s in nodes
+    )
+    waits = tuple(
+        dataclasses.replace(w, topic="clock") if w.topic == "/clock" else w for w in waits
+    )
     return nodes, waits
 
 
@@ -297,11 +348,15 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
     _no_unknown_keys(entry, _KINDS + _NODE_KEYS, where)
     kinds = [k for k in _KINDS if k in entry]
     if len(kinds) != 1:
-        raise GraphError(f"{where}: needs exactly one of 'executable', 'module', 'command' "
-                         f"(found {kinds or 'none'})")
+        raise GraphError(
+            f"{where}: needs exactly one of 'executable', 'module', 'command' "
+            f"(found {kinds or 'none'})"
+        )
     kind = kinds[0]
     node_name = entry.get("name")
-    if node_name is not None and (not isinstance(node_name, str) or not _NODE_NAME_RE.match(node_name)):
+    if node_name is not None and (
+        not isinstance(node_name, str) or not _NODE_NAME_RE.match(node_name)
+    ):
         raise GraphError(f"{where}: name {node_name!r} is not a valid ROS node name")
     module: str | None = None
     command: tuple[str, ...] = ()
@@ -315,9 +370,19 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
                 raise GraphError(f"{where}: {key!r} is for ROS nodes, not for a command")
     else:
         value = entry[kind]
-        if not isinstance(value, str) or not _MODULE_RE.match(value) or (kind == "executable" and "." in value):
-            raise GraphError(f"{where}: {kind} {value!r} is not a "
-                             + ("node module name (e.g. plant)" if kind == "executable" else "python module path"))
+        if (
+            not isinstance(value, str)
+            or not _MODULE_RE.match(value)
+            or (kind == "executable" and "." in value)
+        ):
+            raise GraphError(
+                f"{where}: {kind} {value!r} is not a "
+                + (
+                    "node module name (e.g. plant)"
+                    if kind == "executable"
+                    else "python module path"
+                )
+            )
         module = f"{NODE_PACKAGE}.{value}" if kind == "executable" else value
         default_name = value.rsplit(".", 1)[-1]
     name = node_name or default_name
@@ -330,19 +395,30 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
         try:
             re.compile(ready_pattern)
         except (re.error, TypeError) as exc:
-            raise GraphError(f"{label}: ready_pattern {ready_pattern!r} is not a regular expression: {exc}") from None
-    overrides = _flatten(_mapping(entry.get("overrides", {}), f"{label}: overrides"), f"{label}: overrides")
+            raise GraphError(
+                f"{label}: ready_pattern {ready_pattern!r} is not a regular expression: {exc}"
+            ) from None
+    overrides = _flatten(
+        _mapping(entry.get("overrides", {}), f"{label}: overrides"), f"{label}: overrides"
+    )
     remappings = _mapping(entry.get("remappings", {}), f"{label}: remappings")
     for src, dst in remappings.items():
-        if not (isinstance(src, str) and isinstance(dst, str) and _TOPIC_RE.match(src) and _TOPIC_RE.match(dst)):
+        if not (
+            isinstance(src, str)
+            and isinstance(dst, str)
+            and _TOPIC_RE.match(src)
+            and _TOPIC_RE.match(dst)
+        ):
             raise GraphError(f"{label}: remapping {src!r}: {dst!r} is not NAME: NAME")
     return ProcessSpec(
         name=name,
         module=module,
         command=command,
         node_name=node_name if module is not None else None,
-        parameters=tuple(_params_file(p, f"{label}: parameters", base)
-                         for p in _strings(entry.get("parameters", []), f"{label}: parameters")),
+        parameters=tuple(
+            _params_file(p, f"{label}: parameters", base)
+            for p in _strings(entry.get("parameters", []), f"{label}: parameters")
+        ),
         overrides=overrides,
         remappings=dict(remappings),
         required=required,
@@ -395,8 +471,10 @@ def _check_param_value(value: Any, where: str) -> None:
         kinds = {_KIND_OF.get(type(v)) for v in value}
         if len(kinds) == 1:
             return
-    raise GraphError(f"{where}: {value!r} is not a ROS parameter value "
-                     "(bool, int, float, string, or a non-empty list of one of them)")
+    raise GraphError(
+        f"{where}: {value!r} is not a ROS parameter value "
+        "(bool, int, float, string, or a non-empty list of one of them)"
+    )
 
 
 def _flatten(values: Mapping[str, Any], where: str, prefix: str = "") -> dict[str, Any]:
@@ -438,13 +516,22 @@ def _strings(value: Any, where: str, scalars: bool = False) -> list[str]:
 def _env(value: Any, where: str) -> dict[str, str]:
     env = _mapping(value, where)
     for key, val in env.items():
-        if not isinstance(key, str) or not key or "=" in key or not isinstance(val, (str, int, float)):
+        if (
+            not isinstance(key, str)
+            or not key
+            or "=" in key
+            or not isinstance(val, (str, int, float))
+        ):
             raise GraphError(f"{where}: {key!r}: {val!r} is not NAME: value")
-    return {k: (("true" if v else "false") if isinstance(v, bool) else str(v)) for k, v in env.items()}
+    return {
+        k: (("true" if v else "false") if isinstance(v, bool) else str(v)) for k, v in env.items()
+    }
 
 
 def _no_unknown_keys(data: Mapping[str, Any], allowed: Sequence[str], where: str) -> None:
     unknown = [k for k in data if k not in allowed]
     if unknown:
-        raise GraphError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))} "
-                         f"(allowed: {', '.join(allowed)})")
+        raise GraphError(
+            f"{where}: unknown key(s) {', '.join(map(repr, unknown))} "
+            f"(allowed: {', '.join(allowed)})"
+        )

@@ -17,9 +17,19 @@ import threading
 import time
 from typing import Any, Mapping, Sequence
 
-from piezo_stage.launch.commandline import check_runnable, display_argv, process_argv, process_env, shell_line
-from piezo_stage.launch.errors import (LaunchError, LaunchInterrupted, RequiredProcessExited,
-                                       TopicsNotReadyError)
+from piezo_stage.launch.commandline import (
+    check_runnable,
+    display_argv,
+    process_argv,
+    process_env,
+    shell_line,
+)
+from piezo_stage.launch.errors import (
+    LaunchError,
+    LaunchInterrupted,
+    RequiredProcessExited,
+    TopicsNotReadyError,
+)
 from piezo_stage.launch.graph import Graph, load_graph, parse_graph
 from piezo_stage.launch.output import LAUNCHER_NAME, LineSink, Prefixer, use_color
 from piezo_stage.launch.parameters import accepts, check_parameters
@@ -30,7 +40,11 @@ DEFAULT_TIMEOUT = 30.0
 _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
 
 # why a launch ends
-REQUESTED, REQUIRED_EXIT, ALL_EXITED = "stop requested", "required process exited", "all processes exited"
+REQUESTED, REQUIRED_EXIT, ALL_EXITED = (
+    "stop requested",
+    "required process exited",
+    "all processes exited",
+)
 
 
 class Launcher:
@@ -44,11 +58,18 @@ class Launcher:
     wait_ready() and of `ready_pattern` waits [s]. stop_timeout: replaces the graph's.
     """
 
-    def __init__(self, graph: Graph | Mapping[str, Any] | str | os.PathLike[str], *,
-                 namespace: str | None = None, params: Sequence[str] = (),
-                 sink: LineSink | None = None, color: str | bool | None = None,
-                 env: Mapping[str, str] | None = None, timeout: float = DEFAULT_TIMEOUT,
-                 stop_timeout: float | None = None) -> None:
+    def __init__(
+        self,
+        graph: Graph | Mapping[str, Any] | str | os.PathLike[str],
+        *,
+        namespace: str | None = None,
+        params: Sequence[str] = (),
+        sink: LineSink | None = None,
+        color: str | bool | None = None,
+        env: Mapping[str, str] | None = None,
+        timeout: float = DEFAULT_TIMEOUT,
+        stop_timeout: float | None = None,
+    ) -> None:
         if isinstance(graph, Graph):
             g = graph
         elif isinstance(graph, Mapping):
@@ -90,14 +111,20 @@ class Launcher:
         self._monitor.start()
         try:
             for spec in self.graph.nodes:
-                proc = ManagedProcess(spec, process_argv(spec, self.graph),
-                                      process_env(spec, self.graph, self._env, self._child_color), self._sink)
+                proc = ManagedProcess(
+                    spec,
+                    process_argv(spec, self.graph),
+                    process_env(spec, self.graph, self._env, self._child_color),
+                    self._sink,
+                )
                 with self._lock:
                     if self._state != "starting":
                         break
                     proc.start()
                     self.processes.append(proc)
-                self._log(f"started {spec.name} (pid {proc.pid}): {shell_line(display_argv(spec, self.graph))}")
+                self._log(
+                    f"started {spec.name} (pid {proc.pid}): {shell_line(display_argv(spec, self.graph))}"
+                )
                 if spec.ready_pattern:
                     self._await_pattern(proc)
         except BaseException:
@@ -116,11 +143,15 @@ class Launcher:
             if code is not None:
                 proc.join_output(1.0)
                 if not proc.ready.is_set():
-                    raise LaunchError(f"{proc.name} exited with code {code} before printing a line "
-                                      f"matching {proc.spec.ready_pattern!r}")
+                    raise LaunchError(
+                        f"{proc.name} exited with code {code} before printing a line "
+                        f"matching {proc.spec.ready_pattern!r}"
+                    )
             if time.monotonic() > deadline:
-                raise LaunchError(f"{proc.name} printed no line matching {proc.spec.ready_pattern!r} "
-                                  f"within {self.timeout:g} s")
+                raise LaunchError(
+                    f"{proc.name} printed no line matching {proc.spec.ready_pattern!r} "
+                    f"within {self.timeout:g} s"
+                )
 
     def wait_ready(self, timeout: float | None = None) -> float:
         """Wait until every `wait_for_topics` entry is in the ROS graph; return the seconds it
@@ -133,19 +164,26 @@ class Launcher:
         waits, ns = self.graph.wait_for_topics, self.graph.namespace
         self._raise_if_ended()
         if waits:
-            from piezo_stage.launch.ready import TopicProbe  # rclpy only when there is something to wait for
+            from piezo_stage.launch.ready import (
+                TopicProbe,
+            )  # rclpy only when there is something to wait for
 
             with TopicProbe() as probe:
                 while missing := probe.missing(waits, ns):
                     self._raise_if_ended()
                     ended = self._done.is_set()  # every process exited: nothing will appear
                     if ended or time.monotonic() - t0 > timeout:
-                        raise TopicsNotReadyError([w.describe(ns) for w in missing],
-                                                  time.monotonic() - t0 if ended else timeout,
-                                                  [f"{n} (code {c})" for n, c in self.exited])
+                        raise TopicsNotReadyError(
+                            [w.describe(ns) for w in missing],
+                            time.monotonic() - t0 if ended else timeout,
+                            [f"{n} (code {c})" for n, c in self.exited],
+                        )
                     time.sleep(2 * POLL_S)
         elapsed = time.monotonic() - t0
-        self._log(f"ready after {elapsed:.1f} s" + (": " + ", ".join(self.graph.topics()) if waits else ""))
+        self._log(
+            f"ready after {elapsed:.1f} s"
+            + (": " + ", ".join(self.graph.topics()) if waits else "")
+        )
         return elapsed
 
     def request_stop(self) -> None:

@@ -37,8 +37,13 @@ class Prefixer:
     get a stable colour (by position) and a common width; the launcher's own lines are bold.
     """
 
-    def __init__(self, names: Sequence[str] = (), out: TextIO | None = None, err: TextIO | None = None,
-                 color: str | bool | None = None) -> None:
+    def __init__(
+        self,
+        names: Sequence[str] = (),
+        out: TextIO | None = None,
+        err: TextIO | None = None,
+        color: str | bool | None = None,
+    ) -> None:
         self._out = out
         self._err = err
         self._color_choice = color
@@ -53,7 +58,11 @@ class Prefixer:
         label = f"[{name}]".ljust(self._width + 2)
         if not color:
             return label
-        code = "1" if name == LAUNCHER_NAME else str(self._colors.get(name, _PALETTE[hash(name) % len(_PALETTE)]))
+        code = (
+            "1"
+            if name == LAUNCHER_NAME
+            else str(self._colors.get(name, _PALETTE[hash(name) % len(_PALETTE)]))
+        )
         return f"\033[{code}m{label}{_RESET}"
 
     def __call__(self, name: str, line: str, is_err: bool) -> None:

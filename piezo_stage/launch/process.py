@@ -25,7 +25,9 @@ class ManagedProcess:
     """A started process of the graph. Runs in a new session (its own process group) so that a
     terminal's Ctrl-C reaches only the launcher, which forwards signals to the whole group."""
 
-    def __init__(self, spec: ProcessSpec, argv: Sequence[str], env: dict[str, str], sink: LineSink) -> None:
+    def __init__(
+        self, spec: ProcessSpec, argv: Sequence[str], env: dict[str, str], sink: LineSink
+    ) -> None:
         self.spec = spec
         self.name = spec.name
         self.argv = list(argv)
@@ -39,12 +41,21 @@ class ManagedProcess:
         self.killed = False  # SIGKILL was needed
 
     def start(self) -> None:
-        self._popen = subprocess.Popen(self.argv, env=self._env, stdin=subprocess.DEVNULL,
-                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                       start_new_session=True)
+        self._popen = subprocess.Popen(
+            self.argv,
+            env=self._env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
         for pipe, is_err in ((self._popen.stdout, False), (self._popen.stderr, True)):
-            t = threading.Thread(target=self._read, args=(pipe, is_err), daemon=True,
-                                 name=f"launch-{self.name}-{'err' if is_err else 'out'}")
+            t = threading.Thread(
+                target=self._read,
+                args=(pipe, is_err),
+                daemon=True,
+                name=f"launch-{self.name}-{'err' if is_err else 'out'}",
+            )
             t.start()
             self._readers.append(t)
 
@@ -53,11 +64,17 @@ class ManagedProcess:
             for raw in iter(pipe.readline, b""):
                 line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
                 self.tail.append(line)
-                if self._pattern is not None and not self.ready.is_set() and self._pattern.search(line):
+                if (
+                    self._pattern is not None
+                    and not self.ready.is_set()
+                    and self._pattern.search(line)
+                ):
                     self.ready.set()
                 try:
                     self._sink(self.name, line, is_err)
-                except Exception:  # a failing sink must not stop the draining (the child would block)
+                except (
+                    Exception
+                ):  # a failing sink must not stop the draining (the child would block)
                     pass
 
     @property

@@ -17,7 +17,6 @@ from rclpy.signals import SignalHandlerOptions
 
 from piezo_stage.launch.graph import TopicWait, resolve_name
 
-
 _SERIAL = itertools.count()
 
 
@@ -26,8 +25,12 @@ class TopicProbe:
         self._context = Context()
         rclpy.init(args=[], context=self._context, signal_handler_options=SignalHandlerOptions.NO)
         try:
-            self._node = rclpy.create_node(f"piezo_launch_probe_{os.getpid()}_{next(_SERIAL)}", context=self._context,
-                                           enable_rosout=False, start_parameter_services=False)
+            self._node = rclpy.create_node(
+                f"piezo_launch_probe_{os.getpid()}_{next(_SERIAL)}",
+                context=self._context,
+                enable_rosout=False,
+                start_parameter_services=False,
+            )
         except Exception:
             rclpy.try_shutdown(context=self._context)
             raise
@@ -38,9 +41,11 @@ class TopicProbe:
         left = []
         for w in waits:
             topic = resolve_name(w.topic, namespace)
-            if (topic not in present
-                    or (w.publishers and self._node.count_publishers(topic) < w.publishers)
-                    or (w.subscribers and self._node.count_subscribers(topic) < w.subscribers)):
+            if (
+                topic not in present
+                or (w.publishers and self._node.count_publishers(topic) < w.publishers)
+                or (w.subscribers and self._node.count_subscribers(topic) < w.subscribers)
+            ):
                 left.append(w)
         return left
 

@@ -17,12 +17,36 @@ from .errors import (
     ParameterFileError,
 )
 from .limit_cycle import limit_cycle, phi, phi_minus, phi_plus, psi, psi_minus, psi_plus
-from .parameter_set import Dynamics, ParameterSet, load_parameter_set, save_parameter_set, shipped_parameter_set
+from .parameter_set import (
+    Dynamics,
+    ParameterSet,
+    load_parameter_set,
+    save_parameter_set,
+    shipped_parameter_set,
+)
 
 __all__ = [
-    "BoucWenParameters", "from_standard", "model_output", "simulate_w",
-    "ModelError", "NotClassIError", "ParameterError", "InitialStateError", "InputSignalError",
-    "InvalidCommandError", "ParameterFileError",
-    "limit_cycle", "phi", "phi_minus", "phi_plus", "psi", "psi_minus", "psi_plus",
-    "Dynamics", "ParameterSet", "load_parameter_set", "save_parameter_set", "shipped_parameter_set",
+    "BoucWenParameters",
+    "from_standard",
+    "model_output",
+    "simulate_w",
+    "ModelError",
+    "NotClassIError",
+    "ParameterError",
+    "InitialStateError",
+    "InputSignalError",
+    "InvalidCommandError",
+    "ParameterFileError",
+    "limit_cycle",
+    "phi",
+    "phi_minus",
+    "phi_plus",
+    "psi",
+    "psi_minus",
+    "psi_plus",
+    "Dynamics",
+    "ParameterSet",
+    "load_parameter_set",
+    "save_parameter_set",
+    "shipped_parameter_set",
 ]

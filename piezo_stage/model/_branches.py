@@ -22,8 +22,8 @@ in t = -log(1 - w) (well conditioned up to w -> 1) and also tabulated for speed.
 
 from __future__ import annotations
 
-from functools import lru_cache
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -296,7 +296,9 @@ def tables(sigma: float, n: float) -> np.ndarray:
     first = min(1.0, y_max)
     positive = graded_breaks(0.0, first, _GRADING_LEVELS)
     if y_max > first:
-        positive = np.concatenate([positive[:-1], np.linspace(first, y_max, int(math.ceil(y_max)) + 1)])
+        positive = np.concatenate(
+            [positive[:-1], np.linspace(first, y_max, int(math.ceil(y_max)) + 1)]
+        )
     t_table = fit_interpolant(lambda y: apply("t_of_y", partial, y), positive)
     negative = graded_breaks(-e1, 0.0, _GRADING_LEVELS, toward_low=False)
     w_table = fit_interpolant(lambda y: apply("psi_plus_exact", partial, y), negative)

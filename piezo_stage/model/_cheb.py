@@ -57,8 +57,9 @@ def _antiderivative_coefficients(c: Array, half_width: float) -> Array:
     return big * half_width
 
 
-def _fit_pieces(func: VectorFunction, breaks: Array, degree: int,
-                abs_tol: float = _ABS_TOL) -> tuple[Array, Array]:
+def _fit_pieces(
+    func: VectorFunction, breaks: Array, degree: int, abs_tol: float = _ABS_TOL
+) -> tuple[Array, Array]:
     """Bisect the pieces of ``breaks`` until each fit's tail is below tolerance (batched).
 
     ``abs_tol`` is the absolute floor of the tail: a function computed as a small difference
@@ -75,7 +76,9 @@ def _fit_pieces(func: VectorFunction, breaks: Array, degree: int,
         rows = func(x.ravel()).reshape(x.shape) @ matrix.T
         scale = np.max(np.abs(rows), axis=1)
         tail = np.max(np.abs(rows[:, -3:]), axis=1)
-        split = (tail > np.maximum(_TAIL_TOL * scale, abs_tol)) & (rights - lefts > _MIN_WIDTH * domain)
+        split = (tail > np.maximum(_TAIL_TOL * scale, abs_tol)) & (
+            rights - lefts > _MIN_WIDTH * domain
+        )
         keep = ~split
         done_left.append(lefts[keep])
         done_right.append(rights[keep])
@@ -90,13 +93,16 @@ def _fit_pieces(func: VectorFunction, breaks: Array, degree: int,
     return np.append(left[order], right[-1]), np.concatenate(done_rows)[order]
 
 
-def fit_interpolant(func: VectorFunction, breaks: Array, degree: int = DEGREE) -> tuple[Array, Array]:
+def fit_interpolant(
+    func: VectorFunction, breaks: Array, degree: int = DEGREE
+) -> tuple[Array, Array]:
     """Piecewise Chebyshev interpolant of ``func``: (breaks, coefficients[piece, k])."""
     return _fit_pieces(func, np.asarray(breaks, dtype=float), degree)
 
 
-def fit_antiderivative(func: VectorFunction, breaks: Array, degree: int = DEGREE,
-                       abs_tol: float = _ABS_TOL) -> tuple[Array, Array]:
+def fit_antiderivative(
+    func: VectorFunction, breaks: Array, degree: int = DEGREE, abs_tol: float = _ABS_TOL
+) -> tuple[Array, Array]:
     """Piecewise Chebyshev table of ``F(x) = integral_{breaks[0]}^x func``."""
     new_breaks, rows = _fit_pieces(func, np.asarray(breaks, dtype=float), degree, abs_tol)
     out = np.zeros((rows.shape[0], degree + 2))

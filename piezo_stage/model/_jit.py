@@ -16,7 +16,9 @@ try:  # pragma: no cover - exercised by whichever branch is installed
 
     HAVE_NUMBA = True
 
-    def njit(func: Callable[..., Any] | None = None, *, inline: bool = False, nrt: bool = True) -> Any:
+    def njit(
+        func: Callable[..., Any] | None = None, *, inline: bool = False, nrt: bool = True
+    ) -> Any:
         """Compile ``func`` in nopython mode, cached on disk, fast-math off (exact IEEE), with
         numpy's error model (x/0 gives inf or nan like numpy, no exception check per division).
 
@@ -25,8 +27,9 @@ try:  # pragma: no cover - exercised by whichever branch is installed
         is given (an atomic operation per array per call, the largest cost of a small kernel
         called in a loop); the function must not allocate arrays.
         """
-        options = dict(cache=True, nogil=True, error_model="numpy",
-                       inline="always" if inline else "never")
+        options = dict(
+            cache=True, nogil=True, error_model="numpy", inline="always" if inline else "never"
+        )
         if not nrt:
             options["_nrt"] = False
         if func is None:
@@ -36,7 +39,9 @@ try:  # pragma: no cover - exercised by whichever branch is installed
 except ImportError:  # pragma: no cover
     HAVE_NUMBA = False
 
-    def njit(func: Callable[..., Any] | None = None, *, inline: bool = False, nrt: bool = True) -> Any:
+    def njit(
+        func: Callable[..., Any] | None = None, *, inline: bool = False, nrt: bool = True
+    ) -> Any:
         """Fallback: return ``func`` unchanged and give it ``py_func`` like a numba dispatcher."""
 
         def mark(f: Callable[..., Any]) -> Callable[..., Any]:

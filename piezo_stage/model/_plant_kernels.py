@@ -238,8 +238,12 @@ def _exp_points(a, b, tau, fractions, ops, index, parts, Ez):
 # the next controlled piece grows by 0.9 err^-0.2, at most by _MAX_GROWTH (3 made the ringing inputs
 # reject a piece in ten: 2 halves that, and the rejections' solves, for a few more pieces)
 _MAX_GROWTH = 2.0
-_FULL_GROWTH = (0.9 / _MAX_GROWTH) ** 5  # errors below which it grows by _MAX_GROWTH (no power needed)
-_MOVE_LIMIT = 0.1  # a reversal piece's end moves along its solution by up to this fraction of it in all
+_FULL_GROWTH = (
+    0.9 / _MAX_GROWTH
+) ** 5  # errors below which it grows by _MAX_GROWTH (no power needed)
+_MOVE_LIMIT = (
+    0.1  # a reversal piece's end moves along its solution by up to this fraction of it in all
+)
 _SERIES_TERMS = 24  # Taylor terms of phi_j(L t) when |L| t <= _SERIES_LIMIT
 _SERIES_LIMIT = 0.3
 _TAYLOR_TERMS = 40  # at most, in the Taylor series of a short piece's solution (|L| tau <= 0.3)
@@ -329,8 +333,32 @@ def _forcing(model, kpoly, u, k_loc, x, w):
 
 
 @njit(inline=True)
-def _piece(tab, model, kpoly, st, u, k_loc, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, F, zs, wst, Dn, dwdx,
-           res, jac, tol_x, tol_force, stats):
+def _piece(
+    tab,
+    model,
+    kpoly,
+    st,
+    u,
+    k_loc,
+    tau,
+    points,
+    vinv,
+    invfact,
+    Ez,
+    Gz,
+    pcoef,
+    tmp,
+    F,
+    zs,
+    wst,
+    Dn,
+    dwdx,
+    res,
+    jac,
+    tol_x,
+    tol_force,
+    stats,
+):
     """Solve the collocation equations of one piece (Newton on the nodal forcing F_1..F_{q-1}).
 
     Uses the piece matrices Ez, Gz already computed for (tau, k_loc) and F as initial guess.
@@ -355,8 +383,16 @@ def _piece(tab, model, kpoly, st, u, k_loc, tau, points, vinv, invfact, Ez, Gz, 
                 vi += Gz[i - 1, 1, j] * F[j]
             zs[i - 1, 0] = xi
             zs[i - 1, 1] = vi
-            s, xa, ya, xc, wc = advance(tab, rho, wst[i - 1, 0], wst[i - 1, 1], wst[i - 1, 2], wst[i - 1, 3],
-                                        wst[i - 1, 4], sgn * xi)
+            s, xa, ya, xc, wc = advance(
+                tab,
+                rho,
+                wst[i - 1, 0],
+                wst[i - 1, 1],
+                wst[i - 1, 2],
+                wst[i - 1, 3],
+                wst[i - 1, 4],
+                sgn * xi,
+            )
             wst[i, 0], wst[i, 1], wst[i, 2], wst[i, 3], wst[i, 4] = s, xa, ya, xc, wc
             if it == 0:
                 _, hi_slope = _poly_hi(kpoly, xi)
@@ -504,7 +540,9 @@ def _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs):
         floor = 1e-19 * (abs(x0) + abs(ys[1]))
         for n in range(size - 2):
             beta = pcoef[n] * h2 / m if n < q else 0.0
-            ys[n + 2] = (beta - b * tau * (n + 1) * ys[n + 1] - a * h2 * ys[n]) / ((n + 1) * (n + 2))
+            ys[n + 2] = (beta - b * tau * (n + 1) * ys[n + 1] - a * h2 * ys[n]) / (
+                (n + 1) * (n + 2)
+            )
             if n + 2 >= q and abs(ys[n + 1]) + abs(ys[n + 2]) <= floor:
                 size = n + 3
                 break
@@ -532,8 +570,29 @@ def _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs):
 
 
 @njit(inline=True)
-def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef, tmp, plan, F, zs,
-                 wst, phi2, phi3, tol_x, stats):
+def _piece_small(
+    tab,
+    model,
+    st,
+    k_loc,
+    tau,
+    points,
+    vinv,
+    invfact,
+    lagrange,
+    Ez,
+    Gz,
+    pcoef,
+    tmp,
+    plan,
+    F,
+    zs,
+    wst,
+    phi2,
+    phi3,
+    tol_x,
+    stats,
+):
     """Small-amplitude piece: forcing from the quadratic Taylor model of Phi along the branch.
 
     F(t) = F0 - phi2/2 (x(t) - x0)^2 on the linear prediction of x (a one-shot collocation, no
@@ -553,7 +612,12 @@ def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez
     v0 = st[V]
     for i in range(1, q):
         # response to the unit constant forcing: (1 - exp(L t)_00) / k
-        d = Ez[i - 1, 0, 0] * x0 + Ez[i - 1, 0, 1] * v0 + (1.0 - Ez[i - 1, 0, 0]) / k_loc * F[0] - x0
+        d = (
+            Ez[i - 1, 0, 0] * x0
+            + Ez[i - 1, 0, 1] * v0
+            + (1.0 - Ez[i - 1, 0, 0]) / k_loc * F[0]
+            - x0
+        )
         F[i] = F[0] - 0.5 * phi2 * d * d
     _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs)
     reach = 0.0
@@ -573,7 +637,9 @@ def _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez
     cubic = abs(phi3) * reach * reach * reach / 6.0
     for j in range(5):
         wst[0, j] = st[S + j]
-    s, xa, ya, xc, wc = advance(tab, rho, wst[0, 0], wst[0, 1], wst[0, 2], wst[0, 3], wst[0, 4], sgn * zs[q - 2, 0])
+    s, xa, ya, xc, wc = advance(
+        tab, rho, wst[0, 0], wst[0, 1], wst[0, 2], wst[0, 3], wst[0, 4], sgn * zs[q - 2, 0]
+    )
     wst[q - 1, 0], wst[q - 1, 1], wst[q - 1, 2], wst[q - 1, 3], wst[q - 1, 4] = s, xa, ya, xc, wc
     return (cubic + mismatch) * min(tau * tau / (8.0 * m), 1.0 / k_loc) / tol_x
 
@@ -589,7 +655,9 @@ def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
         i = 0
         while i + 1 < q and nodes[i + 1] <= points[p]:
             i += 1
-        walker = advance(tab, rho, wst[i, 0], wst[i, 1], wst[i, 2], wst[i, 3], wst[i, 4], sgn * zs[p, 0])
+        walker = advance(
+            tab, rho, wst[i, 0], wst[i, 1], wst[i, 2], wst[i, 3], wst[i, 4], sgn * zs[p, 0]
+        )
         actual = _forcing(model, kpoly, u, k_loc, zs[p, 0], walker[4])
         interp = 0.0
         for j in range(q):
@@ -616,8 +684,10 @@ def _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
         val = val * xi + pcoef[k]
     e00, e01, e10, e11 = _exp_l(a, b, t)
     d0 = pcoef[1] * inv_tau if q > 1 else 0.0
-    return (e00 * (x0 - pcoef[0]) + e01 * (v0 - d0) + val,
-            e10 * (x0 - pcoef[0]) + e11 * (v0 - d0) + der * inv_tau)
+    return (
+        e00 * (x0 - pcoef[0]) + e01 * (v0 - d0) + val,
+        e10 * (x0 - pcoef[0]) + e11 * (v0 - d0) + der * inv_tau,
+    )
 
 
 @njit(inline=True)
@@ -687,16 +757,54 @@ def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
     powers = np.arange(q)
     vpow = points[:, None] ** powers  # xi_p^k
     dpow = powers * points[:, None] ** np.maximum(powers - 1, 0)  # d/dxi xi^k at xi_p
-    plan = (fractions, ops, index, np.empty((fractions.size, 3)), vpow, dpow, np.empty((q, q)),
-            np.empty(_TAYLOR_TERMS))
-    return (points, np.empty((npts, 2, 2)), np.empty((npts, 2, q)), np.empty(q), np.empty((2, q)), invfact,
-            np.empty(q), np.empty((npts, 2)), np.empty((q, 5)), np.empty(q), np.empty(q), np.empty(q),
-            np.empty((q, q)), plan)
+    plan = (
+        fractions,
+        ops,
+        index,
+        np.empty((fractions.size, 3)),
+        vpow,
+        dpow,
+        np.empty((q, q)),
+        np.empty(_TAYLOR_TERMS),
+    )
+    return (
+        points,
+        np.empty((npts, 2, 2)),
+        np.empty((npts, 2, q)),
+        np.empty(q),
+        np.empty((2, q)),
+        invfact,
+        np.empty(q),
+        np.empty((npts, 2)),
+        np.empty((q, 5)),
+        np.empty(q),
+        np.empty(q),
+        np.empty(q),
+        np.empty((q, q)),
+        plan,
+    )
 
 
 @njit(nrt=False)
-def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min, st, u, x_out, v_out, w_out,
-              stats, work):
+def integrate(
+    tab,
+    model,
+    kpoly,
+    nodes,
+    checks,
+    vinv,
+    lagrange,
+    dt,
+    tol_x,
+    h_min,
+    st,
+    u,
+    x_out,
+    v_out,
+    w_out,
+    stats,
+    work,
+):
     """Advance the plant over len(u) output steps of length dt with u held on each.
 
     ``model`` = (rho, kappa_w, kappa_x, -, m, c, input_sign). Outputs are the states at the end
@@ -723,7 +831,9 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
             tau = min(st[HPREF], remaining)
             if remaining - tau < 1e-9 * dt:
                 tau = remaining
-            controlled = tau == st[HPREF]  # length chosen by the error control (not cut by an event)
+            controlled = (
+                tau == st[HPREF]
+            )  # length chosen by the error control (not cut by an event)
             # direction of the piece: the velocity's, unless it is about to reverse anyway (the
             # excursion v0^2 / 2|a0| left before the reversal is far below the tolerance)
             v_pred = v0
@@ -731,7 +841,9 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                 direction = 1.0 if a0 > 0.0 else -1.0
                 v_pred = 0.0
             else:
-                direction = 1.0 if v0 > 0.0 else (-1.0 if v0 < 0.0 else (1.0 if a0 >= 0.0 else -1.0))
+                direction = (
+                    1.0 if v0 > 0.0 else (-1.0 if v0 < 0.0 else (1.0 if a0 >= 0.0 else -1.0))
+                )
             s_in = direction * model[6]
             k_loc, phi2, phi3 = _branch_derivatives(tab, model, kpoly, x0, s_in, st[WC])
             if k_loc < 0.05 * model[2]:
@@ -751,13 +863,60 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
             err = 0.0
             while True:
                 F[0] = _forcing(model, kpoly, uk, k_loc, x0, st[WC])
-                small_err = _piece_small(tab, model, st, k_loc, tau, points, vinv, invfact, lagrange, Ez, Gz, pcoef,
-                                         tmp, plan, F, zs, wst, phi2, phi3, tol_x, stats)
+                small_err = _piece_small(
+                    tab,
+                    model,
+                    st,
+                    k_loc,
+                    tau,
+                    points,
+                    vinv,
+                    invfact,
+                    lagrange,
+                    Ez,
+                    Gz,
+                    pcoef,
+                    tmp,
+                    plan,
+                    F,
+                    zs,
+                    wst,
+                    phi2,
+                    phi3,
+                    tol_x,
+                    stats,
+                )
                 small = small_err <= 1.0
                 if not small:  # full collocation, started from the quadratic prediction in F
-                    _piece_matrices(k_loc / m, c / m, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, plan)
-                    _piece(tab, model, kpoly, st, uk, k_loc, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, F, zs,
-                           wst, Dn, dwdx, res, jac, tol_x, tol_force, stats)
+                    _piece_matrices(
+                        k_loc / m, c / m, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, plan
+                    )
+                    _piece(
+                        tab,
+                        model,
+                        kpoly,
+                        st,
+                        uk,
+                        k_loc,
+                        tau,
+                        points,
+                        vinv,
+                        invfact,
+                        Ez,
+                        Gz,
+                        pcoef,
+                        tmp,
+                        F,
+                        zs,
+                        wst,
+                        Dn,
+                        dwdx,
+                        res,
+                        jac,
+                        tol_x,
+                        tol_force,
+                        stats,
+                    )
                 # first point (in time) whose velocity has the wrong sign; a backward excursion
                 # far below the tolerance is left to the walker (no piece boundary)
                 t_bad = -1.0
@@ -768,7 +927,9 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                         if t_bad < 0.0 or points[p] * tau < t_bad:
                             t_bad = points[p] * tau
                 if t_bad > 0.0 and not rooted and backward * tau > 1e-3 * tol_x:
-                    t_rev = _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_bad, stats)
+                    t_rev = _reversal_time(
+                        model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_bad, stats
+                    )
                     if t_rev > h_min:
                         tau = t_rev
                         ends_reversal = True
@@ -794,16 +955,31 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                         if not rooted and abs(v_end) > 0.05 * v_peak:
                             ends_reversal = False
                             break
-                        if not (a_end * direction < 0.0 and v_end * v_end > 2e-3 * tol_x * abs(a_end)):
+                        if not (
+                            a_end * direction < 0.0 and v_end * v_end > 2e-3 * tol_x * abs(a_end)
+                        ):
                             break
                         shift = -v_end / a_end
                         polish += 1
-                        if movable and abs(tau + shift - tau_solved) <= _MOVE_LIMIT * tau_solved and \
-                                h_min < tau + shift <= remaining:
+                        if (
+                            movable
+                            and abs(tau + shift - tau_solved) <= _MOVE_LIMIT * tau_solved
+                            and h_min < tau + shift <= remaining
+                        ):
                             tau += shift
-                            x_e, v_e = _state_at(model, k_loc, tau_solved, vinv, F, pcoef, x0, v0, tau)
-                            walker = advance(tab, model[0], wst[0, 0], wst[0, 1], wst[0, 2], wst[0, 3], wst[0, 4],
-                                             model[6] * x_e)
+                            x_e, v_e = _state_at(
+                                model, k_loc, tau_solved, vinv, F, pcoef, x0, v0, tau
+                            )
+                            walker = advance(
+                                tab,
+                                model[0],
+                                wst[0, 0],
+                                wst[0, 1],
+                                wst[0, 2],
+                                wst[0, 3],
+                                wst[0, 4],
+                                model[6] * x_e,
+                            )
                             zs[q - 2, 0] = x_e
                             zs[q - 2, 1] = v_e
                             for j in range(5):
@@ -822,7 +998,7 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
                     err = _defect(tab, model, kpoly, uk, k_loc, points, nodes, lagrange, F, zs, wst)
                     err *= min(tau * tau / (8.0 * m), 1.0 / k_loc) / tol_x
                 if err > 1.0 and tau > h_min:
-                    tau = max(h_min, tau * max(0.2, 0.9 * err ** -0.2))
+                    tau = max(h_min, tau * max(0.2, 0.9 * err**-0.2))
                     controlled = True
                     ends_reversal = False
                     rooted = False
@@ -838,7 +1014,7 @@ def integrate(tab, model, kpoly, nodes, checks, vinv, lagrange, dt, tol_x, h_min
             if ends_reversal:
                 stats[REVERSALS] += 1
             if controlled:  # the next piece may grow by up to _MAX_GROWTH
-                st[HPREF] = min(dt, tau * (_MAX_GROWTH if err <= _FULL_GROWTH else 0.9 * err ** -0.2))
+                st[HPREF] = min(dt, tau * (_MAX_GROWTH if err <= _FULL_GROWTH else 0.9 * err**-0.2))
             t += tau
         x_out[k] = st[X]
         v_out[k] = st[V]

@@ -12,8 +12,8 @@ samples (see :mod:`piezo_stage.model._branches`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -85,7 +85,9 @@ class BoucWenParameters:
         try:
             kappa = tuple(float(k) for k in np.atleast_1d(np.asarray(self.kappa, dtype=float)))
         except (TypeError, ValueError) as exc:
-            raise ParameterError(f"kappa must be a sequence of numbers, got {self.kappa!r}") from exc
+            raise ParameterError(
+                f"kappa must be a sequence of numbers, got {self.kappa!r}"
+            ) from exc
         if not kappa:
             raise ParameterError("kappa must hold at least kappa_1 (kappa_x)")
         object.__setattr__(self, "kappa", kappa)
@@ -93,7 +95,9 @@ class BoucWenParameters:
             try:
                 object.__setattr__(self, name, float(getattr(self, name)))
             except (TypeError, ValueError) as exc:
-                raise ParameterError(f"{name} must be a number, got {getattr(self, name)!r}") from exc
+                raise ParameterError(
+                    f"{name} must be a number, got {getattr(self, name)!r}"
+                ) from exc
         if self.input_sign not in (1, -1):
             raise ParameterError(f"input_sign must be +1 or -1, got {self.input_sign!r}")
         object.__setattr__(self, "input_sign", int(self.input_sign))

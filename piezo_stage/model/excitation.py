@@ -69,7 +69,9 @@ class ExcitationPlan:
         if self.period <= 0:
             raise ParameterError(f"period must be > 0 s, got {self.period}")
         if not self.offsets or not all(math.isfinite(q) for q in self.offsets):
-            raise ParameterError(f"offsets must be a non-empty list of finite values, got {self.offsets}")
+            raise ParameterError(
+                f"offsets must be a non-empty list of finite values, got {self.offsets}"
+            )
         if self.settle_periods < 0 or self.record_periods < 1:
             raise ParameterError("need settle_periods >= 0 and record_periods >= 1")
         if not self.v_min < self.v_max:
@@ -79,7 +81,9 @@ class ExcitationPlan:
         if self.waveform == "random":
             if self.bandwidth <= 1.0 / self.period:
                 raise ParameterError("random waveform: bandwidth must exceed 1/period")
-            object.__setattr__(self, "_random_table", _random_table(self.seed, self.period, self.bandwidth))
+            object.__setattr__(
+                self, "_random_table", _random_table(self.seed, self.period, self.bandwidth)
+            )
 
     # ------------------------------------------------------------------ timing
     @property
@@ -139,9 +143,14 @@ class ExcitationPlan:
         done = t >= self.duration
         run = min(int(t // self.run_duration), len(self.offsets) - 1) if t >= 0 else 0
         start, end = self.steady_window(run)
-        return ExcitationSample(voltage=float(self.values(t)), run=run, offset=self.offsets[run],
-                                steady=(not done) and start <= t < end, done=done,
-                                phase=float(np.mod(t / self.period, 1.0)))
+        return ExcitationSample(
+            voltage=float(self.values(t)),
+            run=run,
+            offset=self.offsets[run],
+            steady=(not done) and start <= t < end,
+            done=done,
+            phase=float(np.mod(t / self.period, 1.0)),
+        )
 
     def with_limits(self, v_min: float, v_max: float) -> "ExcitationPlan":
         return replace(self, v_min=v_min, v_max=v_max)
@@ -163,12 +172,26 @@ def _random_table(seed: int, period: float, bandwidth: float) -> tuple:
 
 PRESETS: dict[str, ExcitationPlan] = {
     # from w(0) = 0 the patch's cycle needs ~8 periods to agree within 1e-5 of the span
-    "ch10_patch": ExcitationPlan(waveform="triangle", period=10.0, low=0.0, amplitude=300.0,
-                                 offsets=(0.0, 100.0), settle_periods=8, record_periods=2),
+    "ch10_patch": ExcitationPlan(
+        waveform="triangle",
+        period=10.0,
+        low=0.0,
+        amplitude=300.0,
+        offsets=(0.0, 100.0),
+        settle_periods=8,
+        record_periods=2,
+    ),
     # rho * span = 0.4: the cycle converges by only ~x0.37 per period from w(0) = 0 (the thesis
     # used [4T, 5T], not yet steady); 16 settling periods bring it within 1e-6 of the span
-    "ch9_example": ExcitationPlan(waveform="triangle", period=1.0, low=-0.2, amplitude=0.4,
-                                  offsets=(0.0, 0.1), settle_periods=16, record_periods=2),
+    "ch9_example": ExcitationPlan(
+        waveform="triangle",
+        period=1.0,
+        low=-0.2,
+        amplitude=0.4,
+        offsets=(0.0, 0.1),
+        settle_periods=16,
+        record_periods=2,
+    ),
 }
 
 
@@ -177,6 +200,9 @@ def plan_from(preset: str | None = None, **overrides: object) -> ExcitationPlan:
     if preset and preset not in PRESETS:
         raise ParameterError(f"unknown preset {preset!r}; known: {sorted(PRESETS)}")
     base = PRESETS[preset] if preset else ExcitationPlan()
-    clean = {k: (tuple(v) if isinstance(v, Sequence) and not isinstance(v, str) else v)
-             for k, v in overrides.items() if v is not None}
+    clean = {
+        k: (tuple(v) if isinstance(v, Sequence) and not isinstance(v, str) else v)
+        for k, v in overrides.items()
+        if v is not None
+    }
     return replace(base, **clean)

@@ -68,11 +68,15 @@ def psi(y: Array, sigma: float, n: float) -> Array:
     return _apply("psi", sigma, n, y)
 
 
-def limit_cycle_bounds(rho: float, sigma: float, n: float, x_min: float, x_max: float) -> tuple[float, float]:
+def limit_cycle_bounds(
+    rho: float, sigma: float, n: float, x_min: float, x_max: float
+) -> tuple[float, float]:
     """(w at tau = 0, w at tau = T+) = (-psi(rho (X_max - X_min)), +psi(...)) (9.15)."""
     check_class_i(rho, sigma, n)
     if not x_max > x_min:
-        raise InputSignalError(f"a T-wave needs X_max > X_min, got X_min={x_min!r}, X_max={x_max!r}")
+        raise InputSignalError(
+            f"a T-wave needs X_max > X_min, got X_min={x_min!r}, X_max={x_max!r}"
+        )
     top = float(psi(np.array([rho * (x_max - x_min)]), sigma, n)[0])
     return -top, top
 

@@ -21,7 +21,8 @@ import numpy as np
 from numpy.polynomial import legendre
 from scipy.integrate import solve_ivp
 
-from . import _branches, _plant_kernels as K
+from . import _branches
+from . import _plant_kernels as K
 from .bouc_wen import BoucWenParameters, check_w0, polynomial
 from .errors import InputSignalError, InvalidCommandError, ParameterError
 from .parameter_set import Dynamics
@@ -160,7 +161,9 @@ class DynamicPlant:
         if not isinstance(dynamics, Dynamics):
             raise ParameterError("dynamics must be a Dynamics(m, c)")
         if not params.kappa_x > 0.0:
-            raise ParameterError(f"the dynamic plant needs kappa_x > 0 (11.2), got {params.kappa_x!r}")
+            raise ParameterError(
+                f"the dynamic plant needs kappa_x > 0 (11.2), got {params.kappa_x!r}"
+            )
         if not (1e-14 <= tol <= 1e-2):
             raise ParameterError(f"tol must be in [1e-14, 1e-2], got {tol!r}")
         if nodes not in (4, 5):  # 3 nodes showed a systematic drift in long ZOH-ringing runs
@@ -169,8 +172,15 @@ class DynamicPlant:
         self.dynamics = dynamics
         self.tol = float(tol)
         self._tab = _branches.tables(params.sigma, params.n)
-        self._model = (params.rho, params.kappa_w, params.kappa_x, 0.0, dynamics.m, dynamics.c,
-                       float(params.input_sign))
+        self._model = (
+            params.rho,
+            params.kappa_w,
+            params.kappa_x,
+            0.0,
+            dynamics.m,
+            dynamics.c,
+            float(params.input_sign),
+        )
         self._kpoly = np.array(params.kappa[1:], dtype=float)
         self._nodes = lobatto_nodes(nodes)
         self._checks = np.array([0.5 * (self._nodes[-2] + self._nodes[-1])])  # defect check point
@@ -216,8 +226,25 @@ class DynamicPlant:
 
     # ------------------------------------------------------------------ integration
     def _run(self, u: Array, dt: float, x: Array, v: Array, w: Array) -> None:
-        K.integrate(self._tab, self._model, self._kpoly, self._nodes, self._checks, self._vinv, self._lagrange, dt,
-                    self._tol_x, 1e-7 * dt, self._state, u, x, v, w, self.stats, self._work)
+        K.integrate(
+            self._tab,
+            self._model,
+            self._kpoly,
+            self._nodes,
+            self._checks,
+            self._vinv,
+            self._lagrange,
+            dt,
+            self._tol_x,
+            1e-7 * dt,
+            self._state,
+            u,
+            x,
+            v,
+            w,
+            self.stats,
+            self._work,
+        )
 
     def simulate(self, u: Array, dt: float) -> tuple[Array, Array, Array]:
         """States (x, x', w) at the end of each step k, u[k] held over [k dt, (k+1) dt]."""
@@ -272,7 +299,11 @@ def simulate_reference(
     omega = math.sqrt((params.kappa_x + kw * rho) / m)
     u = np.asarray(u, dtype=float)
     u_peak = float(np.max(np.abs(u))) if u.size else 0.0
-    scale = min(length_scale(params), u_peak / abs(params.kappa_x)) if u_peak > 0.0 else length_scale(params)
+    scale = (
+        min(length_scale(params), u_peak / abs(params.kappa_x))
+        if u_peak > 0.0
+        else length_scale(params)
+    )
     atol = rtol * np.array([scale, scale * omega, 1.0])
 
     def rhs(_t, z, uk):
@@ -301,9 +332,13 @@ def simulate_reference(
                 if after_event is not None:
                     events = rising if after_event is falling else falling
                 else:
-                    moving = state[1] if state[1] != 0.0 else rhs(t, state, uk)[1]  # at rest: where it goes
+                    moving = (
+                        state[1] if state[1] != 0.0 else rhs(t, state, uk)[1]
+                    )  # at rest: where it goes
                     events = falling if moving > 0.0 else (rising if moving < 0.0 else None)
-            sol = solve_ivp(rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=events, args=(uk,))
+            sol = solve_ivp(
+                rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=events, args=(uk,)
+            )
             state = sol.y[:, -1].copy()
             if sol.status == 1 and sol.t[-1] < end:
                 t = sol.t[-1]
@@ -311,7 +346,11 @@ def simulate_reference(
             else:
                 t = end
                 # once the velocity has the sign of the new direction, it picks the next event
-                if after_event is not None and (state[1] < 0.0) == (after_event is falling) and state[1] != 0.0:
+                if (
+                    after_event is not None
+                    and (state[1] < 0.0) == (after_event is falling)
+                    and state[1] != 0.0
+                ):
                     after_event = None
         state[2] = min(1.0, max(-1.0, state[2]))
         out[:, k] = state

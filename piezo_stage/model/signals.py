@@ -63,7 +63,9 @@ def t_wave_pair(
     return x, x + q
 
 
-def sine(t: Array, frequency: float, amplitude: float, offset: float = 0.0, phase: float = 0.0) -> Array:
+def sine(
+    t: Array, frequency: float, amplitude: float, offset: float = 0.0, phase: float = 0.0
+) -> Array:
     """offset + amplitude * sin(2 pi f t + phase) (the dither of (11.17)-(11.18))."""
     check_period(frequency, "frequency")
     return offset + amplitude * np.sin(2.0 * np.pi * frequency * np.asarray(t, dtype=float) + phase)

@@ -45,11 +45,13 @@ def find_topics(bag: str | Path) -> BagTopics:
     from piezo_stage.bag.reader import topic_types
 
     types = topic_types(bag)
-    return BagTopics(voltage=_pick(types, VOLTAGE, "voltage"),
-                     displacement=_pick(types, DISPLACEMENT, "displacement"),
-                     excitation=_pick(types, EXCITATION, "excitation"),
-                     parameters=_pick(types, PARAMETERS, "bouc_wen_parameters"),
-                     controller_state=_pick(types, CONTROLLER, "controller_state"))
+    return BagTopics(
+        voltage=_pick(types, VOLTAGE, "voltage"),
+        displacement=_pick(types, DISPLACEMENT, "displacement"),
+        excitation=_pick(types, EXCITATION, "excitation"),
+        parameters=_pick(types, PARAMETERS, "bouc_wen_parameters"),
+        controller_state=_pick(types, CONTROLLER, "controller_state"),
+    )
 
 
 def _runs(bag: Path, topics: BagTopics) -> list:
@@ -66,8 +68,10 @@ def _steady_mask(bag: Path, topic: str, t: np.ndarray) -> np.ndarray:
     """True where the latest ExcitationInfo at or before each time says ``steady``."""
     from piezo_stage.bag.reader import read_messages
 
-    marks = sorted((m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, bool(m.steady))
-                   for _, _, m in read_messages(bag, [topic]))
+    marks = sorted(
+        (m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, bool(m.steady))
+        for _, _, m in read_messages(bag, [topic])
+    )
     if not marks:
         return np.zeros(len(t), dtype=bool)
     times = np.array([m[0] for m in marks])
@@ -85,8 +89,15 @@ def _last_parameters(bag: Path, topic: str):
         last = msg
     if last is None:
         return None
-    return BoucWenParameters(kappa=tuple(float(k) for k in last.kappa), kappa_w=last.kappa_w, rho=last.rho,
-                             sigma=last.sigma, n=last.n, y0=last.y0, input_sign=int(last.input_sign) or 1)
+    return BoucWenParameters(
+        kappa=tuple(float(k) for k in last.kappa),
+        kappa_w=last.kappa_w,
+        rho=last.rho,
+        sigma=last.sigma,
+        n=last.n,
+        y0=last.y0,
+        input_sign=int(last.input_sign) or 1,
+    )
 
 
 def _model_curve(params, rec) -> np.ndarray:
@@ -94,7 +105,9 @@ def _model_curve(params, rec) -> np.ndarray:
     from piezo_stage.identification.analytic import initial_w
     from piezo_stage.model.bouc_wen import model_output
 
-    w0 = initial_w(params.kappa, params.kappa_w, params.y0, float(rec.input[0]), float(rec.output[0]))
+    w0 = initial_w(
+        params.kappa, params.kappa_w, params.y0, float(rec.input[0]), float(rec.output[0])
+    )
     return model_output(params, rec.input, w0=float(np.clip(w0, -1.0, 1.0)))
 
 
@@ -117,7 +130,9 @@ def _controller_series(bag: Path, topic: str) -> dict[str, np.ndarray] | None:
     return out
 
 
-def plot_bag(bag: str | Path, out_dir: str | Path | None = None, *, stem: str | None = None) -> list[Path]:
+def plot_bag(
+    bag: str | Path, out_dir: str | Path | None = None, *, stem: str | None = None
+) -> list[Path]:
     """Write the PNGs a bag supports into ``out_dir`` (default: the bag's folder's parent
     ``<bag>_plots``) and return their paths:
 
@@ -142,8 +157,17 @@ def plot_bag(bag: str | Path, out_dir: str | Path | None = None, *, stem: str | 
         if len(t_v) > 1 and len(t_y) > 1:
             runs = _runs(bag, topics) if topics.excitation else []
             shaded = [(r.name, float(r.t[0]), float(r.t[-1])) for r in runs]
-            written.append(figures.timeseries_figure(out / f"{stem}_timeseries.png", t_v, v, t_y, y, runs=shaded,
-                                                     title=f"{stem}: voltage and displacement"))
+            written.append(
+                figures.timeseries_figure(
+                    out / f"{stem}_timeseries.png",
+                    t_v,
+                    v,
+                    t_y,
+                    y,
+                    runs=shaded,
+                    title=f"{stem}: voltage and displacement",
+                )
+            )
             steady = None
             if runs:
                 loops = [(f"run {i}", r.input, r.output) for i, r in enumerate(runs)]
@@ -151,21 +175,46 @@ def plot_bag(bag: str | Path, out_dir: str | Path | None = None, *, stem: str | 
             else:
                 held = np.clip(np.searchsorted(t_v, t_y, side="right") - 1, 0, len(v) - 1)
                 loops = [("recorded", v[held], y)]
-            written.append(figures.hysteresis_figure(out / f"{stem}_hysteresis.png", loops, steady=steady,
-                                                     title=f"{stem}: hysteresis loops"))
+            written.append(
+                figures.hysteresis_figure(
+                    out / f"{stem}_hysteresis.png",
+                    loops,
+                    steady=steady,
+                    title=f"{stem}: hysteresis loops",
+                )
+            )
             params = _last_parameters(bag, topics.parameters) if topics.parameters else None
             if params is not None and runs:
                 rec = runs[-1]
-                written.append(figures.model_figure(out / f"{stem}_model.png", rec.t, rec.input, rec.output,
-                                                    _model_curve(params, rec)))
+                written.append(
+                    figures.model_figure(
+                        out / f"{stem}_model.png",
+                        rec.t,
+                        rec.input,
+                        rec.output,
+                        _model_curve(params, rec),
+                    )
+                )
     if topics.controller_state:
         s = _controller_series(bag, topics.controller_state)
         if s is not None:
-            written.append(figures.closed_loop_figure(
-                out / f"{stem}_closed_loop.png", s["t"], s["x1"], s["x2"], s["u"], s["u_pid"],
-                s["u_excitation"], s["loop_closed"], mode=str(s["mode"]),
-                title=f"{stem}: closed loop ({s['mode']})" if s["mode"] else ""))
+            written.append(
+                figures.closed_loop_figure(
+                    out / f"{stem}_closed_loop.png",
+                    s["t"],
+                    s["x1"],
+                    s["x2"],
+                    s["u"],
+                    s["u_pid"],
+                    s["u_excitation"],
+                    s["loop_closed"],
+                    mode=str(s["mode"]),
+                    title=f"{stem}: closed loop ({s['mode']})" if s["mode"] else "",
+                )
+            )
     if not written:
-        raise PlotError(f"{bag}: nothing to plot (no voltage+displacement pair and no controller_state; "
-                        f"topics found: {topics})")
+        raise PlotError(
+            f"{bag}: nothing to plot (no voltage+displacement pair and no controller_state; "
+            f"topics found: {topics})"
+        )
     return written

@@ -35,8 +35,16 @@ def _shade_runs(ax: Any, runs: Sequence[tuple[str, float, float]]) -> None:
         ax.axvspan(start, stop, color=f"C{i}", alpha=0.08, lw=0)
 
 
-def timeseries_figure(path: str | Path, t_v: np.ndarray, v: np.ndarray, t_y: np.ndarray, y: np.ndarray,
-                      *, runs: Sequence[tuple[str, float, float]] = (), title: str = "") -> Path:
+def timeseries_figure(
+    path: str | Path,
+    t_v: np.ndarray,
+    v: np.ndarray,
+    t_y: np.ndarray,
+    y: np.ndarray,
+    *,
+    runs: Sequence[tuple[str, float, float]] = (),
+    title: str = "",
+) -> Path:
     """Input voltage [V] and displacement [µm] over time, excitation runs shaded."""
     plt = _pyplot()
     fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(9, 5.5))
@@ -48,13 +56,20 @@ def timeseries_figure(path: str | Path, t_v: np.ndarray, v: np.ndarray, t_y: np.
     for ax in (ax1, ax2):
         _shade_runs(ax, runs)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside: the signal fills the axes
+        ax.legend(
+            loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0
+        )  # beside: the signal fills the axes
     ax1.set_title(title or "input and output over time" + (" (runs shaded)" if runs else ""))
     return _save(fig, path)
 
 
-def hysteresis_figure(path: str | Path, loops: Sequence[tuple[str, np.ndarray, np.ndarray]],
-                      *, title: str = "", steady: Sequence[np.ndarray | None] | None = None) -> Path:
+def hysteresis_figure(
+    path: str | Path,
+    loops: Sequence[tuple[str, np.ndarray, np.ndarray]],
+    *,
+    title: str = "",
+    steady: Sequence[np.ndarray | None] | None = None,
+) -> Path:
     """Hysteresis loops: displacement [µm] against input voltage [V], one colour per run.
 
     ``steady``: per loop, a mask of the samples the excitation marked steady (the limit cycle
@@ -77,8 +92,15 @@ def hysteresis_figure(path: str | Path, loops: Sequence[tuple[str, np.ndarray, n
     return _save(fig, path)
 
 
-def model_figure(path: str | Path, t: np.ndarray, v: np.ndarray, y: np.ndarray, model: np.ndarray,
-                 *, title: str = "") -> Path:
+def model_figure(
+    path: str | Path,
+    t: np.ndarray,
+    v: np.ndarray,
+    y: np.ndarray,
+    model: np.ndarray,
+    *,
+    title: str = "",
+) -> Path:
     """Bouc-Wen model (10.15) against the data: loops, outputs over time, and the error."""
     plt = _pyplot()
     y, model = np.asarray(y), np.asarray(model)
@@ -105,13 +127,23 @@ def model_figure(path: str | Path, t: np.ndarray, v: np.ndarray, y: np.ndarray, 
     for ax in (ax_loop, ax_t, ax_e):
         ax.grid(alpha=0.3)
     rms = float(np.sqrt(np.mean(err**2)))
-    fig.suptitle(title or f"model vs data: RMS error {rms * UM:.3g} µm ({100 * rms / span:.2g} % of span), "
-                 f"max {np.max(np.abs(err)) * UM:.3g} µm")
+    fig.suptitle(
+        title
+        or f"model vs data: RMS error {rms * UM:.3g} µm ({100 * rms / span:.2g} % of span), "
+        f"max {np.max(np.abs(err)) * UM:.3g} µm"
+    )
     return _save(fig, path)
 
 
-def validation_figure(path: str | Path, t: np.ndarray, v: np.ndarray, true: np.ndarray,
-                      identified: np.ndarray, *, title: str = "") -> Path:
+def validation_figure(
+    path: str | Path,
+    t: np.ndarray,
+    v: np.ndarray,
+    true: np.ndarray,
+    identified: np.ndarray,
+    *,
+    title: str = "",
+) -> Path:
     """Identified vs true model on a validation input: input, both outputs, their difference."""
     plt = _pyplot()
     fig, (ax_v, ax_y, ax_e) = plt.subplots(3, 1, sharex=True, figsize=(9, 7))
@@ -130,9 +162,19 @@ def validation_figure(path: str | Path, t: np.ndarray, v: np.ndarray, true: np.n
     return _save(fig, path)
 
 
-def closed_loop_figure(path: str | Path, t: np.ndarray, x1: np.ndarray, x2: np.ndarray, u: np.ndarray,
-                       u_pid: np.ndarray, u_excitation: np.ndarray, loop_closed: np.ndarray,
-                       *, mode: str = "", title: str = "") -> Path:
+def closed_loop_figure(
+    path: str | Path,
+    t: np.ndarray,
+    x1: np.ndarray,
+    x2: np.ndarray,
+    u: np.ndarray,
+    u_pid: np.ndarray,
+    u_excitation: np.ndarray,
+    loop_closed: np.ndarray,
+    *,
+    mode: str = "",
+    title: str = "",
+) -> Path:
     """Closed-loop signals of the time-varying PID (ch. 11, cf. Figs. 11.5-11.11): tracking
     error x1 [µm], velocity x2 [m/s] (the thesis's unit: x2(0) = 0.2 m/s), control u and its
     terms u_pid, u_excitation [V] against time (ms for runs shorter than 2 s, as the thesis's
@@ -155,17 +197,32 @@ def closed_loop_figure(path: str | Path, t: np.ndarray, x1: np.ndarray, x2: np.n
     edges = np.flatnonzero(np.diff(np.concatenate([[0], closed.astype(int), [0]])))
     for ax in (a1, a2, a3):
         for start, stop in zip(edges[::2], edges[1::2]):
-            ax.axvspan(t[start], t[min(stop, len(t)) - 1], color="0.5", alpha=0.12, lw=0,
-                       label="loop closed" if ax is a1 and start == edges[0] else None)
+            ax.axvspan(
+                t[start],
+                t[min(stop, len(t)) - 1],
+                color="0.5",
+                alpha=0.12,
+                lw=0,
+                label="loop closed" if ax is a1 and start == edges[0] else None,
+            )
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
     a1.set_title(title or f"closed loop{' (' + mode + ')' if mode else ''}")
     return _save(fig, path)
 
 
-def tracking_figure(path: str | Path, t: np.ndarray, x_d: np.ndarray, x: np.ndarray, u: np.ndarray,
-                    u_ff: np.ndarray, *, feedback: tuple[np.ndarray, np.ndarray] | None = None,
-                    t_from: float = 0.0, title: str = "") -> Path:
+def tracking_figure(
+    path: str | Path,
+    t: np.ndarray,
+    x_d: np.ndarray,
+    x: np.ndarray,
+    u: np.ndarray,
+    u_ff: np.ndarray,
+    *,
+    feedback: tuple[np.ndarray, np.ndarray] | None = None,
+    t_from: float = 0.0,
+    title: str = "",
+) -> Path:
     """Tracking (issue 17): x_d and x [µm], the error x − x_d [nm], u and the feedforward u_ff
     [V] against time; ``feedback`` = (t, x) of the feedback-only run, drawn faint; the part
     before ``t_from`` (left out of the figures) shaded."""
@@ -183,7 +240,9 @@ def tracking_figure(path: str | Path, t: np.ndarray, x_d: np.ndarray, x: np.ndar
     err = (np.asarray(x) - x_d) * 1e9
     steady = t >= t_from
     if steady.any() and np.abs(err).max() > 3 * np.abs(err[steady]).max() > 0:
-        lim = 3 * np.abs(err[steady]).max()  # the settling period off-scale, the steady error readable
+        lim = (
+            3 * np.abs(err[steady]).max()
+        )  # the settling period off-scale, the steady error readable
         a2.set_ylim(-lim, lim)
     a3.plot(t * scale, u, lw=1.0, color="C2", label="u")
     a3.plot(t * scale, u_ff, lw=0.8, ls="--", color="C1", label="u_ff")
