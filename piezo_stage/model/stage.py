@@ -7,8 +7,8 @@ the ``plant`` node and the rig emulator call; the node only schedules it. Defaul
 
 from __future__ import annotations
 
-from enum import IntEnum
 import math
+from enum import IntEnum
 
 import numpy as np
 
@@ -173,3 +173,30 @@ class SimulatedStage:
         self.time += dt
         value, status = self.sensor.measure(y)
         return applied, value, status
+
+    def step_many(self, commands: np.ndarray, dt: float, every: int = 1) -> np.ndarray:
+        """:meth:`step` for each of ``commands`` in turn; rows (applied, reading, status) after
+        steps every-1, 2 every-1, ... (one integrator call when the amplifier is ideal and the
+        plant dynamic: the rig emulator's substeps)."""
+        commands = np.asarray(commands, dtype=float)
+        ideal = self.amplifier.bandwidth_hz == 0.0 and self.amplifier.slew_rate == 0.0
+        out = np.empty((commands.size // every, 3))
+        if not (ideal and isinstance(self.plant, DynamicPlant)):
+            for k, command in enumerate(commands):
+                row = self.step(float(command), dt)
+                if (k + 1) % every == 0:
+                    out[k // every] = row
+            return out
+        if not np.all(np.isfinite(commands)):
+            raise InvalidCommandError("command voltages must be finite")
+        applied = np.clip(commands, self.amplifier.v_min, self.amplifier.v_max)
+        x, _, _ = self.plant.simulate(applied, dt)
+        if commands.size:
+            self.amplifier.voltage = float(applied[-1])
+        self.steps += commands.size
+        self.time += commands.size * dt
+        y0 = self.plant.params.y0
+        for k in range(out.shape[0]):
+            i = (k + 1) * every - 1
+            out[k] = (applied[i], *self.sensor.measure(float(x[i]) + y0))
+        return out

@@ -34,6 +34,43 @@ class Stage(Protocol):
     def step(self, command_voltage: float, dt: float) -> tuple[float, float, int]: ...
 
 
+class AmplifierLowPass:
+    """The amplifier's finite bandwidth: a Butterworth low-pass (order 1 or 2, corner
+    ``bandwidth_hz``) from the commanded to the applied voltage, exact for a command held over
+    each step ``h`` (ZOH discretisation), starting at rest at ``initial_voltage``."""
+
+    def __init__(self, bandwidth_hz: float, order: int, h: float, initial_voltage: float) -> None:
+        from scipy import signal
+
+        if order not in (1, 2) or not bandwidth_hz > 0.0:
+            raise ConfigError(f"amplifier low-pass: order 1 or 2 and bandwidth > 0 Hz, got "
+                              f"{order}, {bandwidth_hz!r}")
+        b, a = signal.butter(order, 2.0 * math.pi * bandwidth_hz, analog=True)
+        bd, ad, _ = signal.cont2discrete((b, a), h, method="zoh")
+        self.b, self.a = np.ravel(bd), np.ravel(ad)
+        self.zi = signal.lfilter_zi(self.b, self.a) * float(initial_voltage)  # at rest
+
+    def run(self, commands: np.ndarray) -> np.ndarray:
+        """The applied voltage at the end of each step, ``commands[i]`` held over step i."""
+        from scipy import signal
+
+        out, self.zi = signal.lfilter(self.b, self.a, commands, zi=self.zi)
+        return out
+
+
+def substeps_for(stage: Stage, rate: float, bandwidth_hz: float) -> int:
+    """Plant steps per sensor sample under a low-pass: 20 per period of its corner and 7 per
+    period of the stage's natural frequency sqrt(kappa_x/m)/(2 pi) (11.1), whichever is more
+    (a staircase any coarser rings the resonance and dithers the hysteresis away)."""
+    if not bandwidth_hz > 0.0:
+        return 1
+    f = 20.0 * bandwidth_hz
+    ps = getattr(stage, "parameter_set", None)
+    if ps is not None and ps.form == "dynamic":
+        f = max(f, 7.0 * math.sqrt(ps.bouc_wen.kappa_x / ps.dynamics.m) / (2.0 * math.pi))
+    return max(1, math.ceil(f / rate))
+
+
 class RigCoupling:
     """The sensor's displacement source: steps the stage with the amplifier's applied voltage.
 
@@ -49,9 +86,18 @@ class RigCoupling:
         standoff: float,
         initial_voltage: float = 0.0,
         clock=time.monotonic,
+        bandwidth_hz: float = 0.0,
+        filter_order: int = 2,
     ) -> None:
         self.stage = stage
         self.dt = 1.0 / rate
+        #: the stage is stepped this many times per sample through the amplifier's low-pass
+        self.substeps = substeps_for(stage, rate, bandwidth_hz)
+        self.lowpass = (
+            AmplifierLowPass(bandwidth_hz, filter_order, self.dt / self.substeps, initial_voltage)
+            if bandwidth_hz > 0.0
+            else None
+        )
         self.standoff = standoff
         self.clock = clock
         self.origin = lambda: 0.0  # absolute time of relative sample time 0 (set by RigEmulator)
@@ -68,22 +114,55 @@ class RigCoupling:
                 t = self._history[-1][0]
             self._history.append((t, float(value)))
 
+    def _step_many(self, voltages: np.ndarray, h: float) -> np.ndarray:
+        """Rows (applied, reading, status) at the end of each sample (every ``substeps``)."""
+        step_many = getattr(self.stage, "step_many", None)
+        if step_many is not None:
+            return step_many(voltages, h, self.substeps)
+        out = np.empty((voltages.size // self.substeps, 3))
+        for i, v in enumerate(voltages):
+            row = self.stage.step(float(v), h)
+            if (i + 1) % self.substeps == 0:
+                out[i // self.substeps] = row
+        return out
+
     def __call__(self, times: np.ndarray) -> np.ndarray:
         out = np.empty(len(times))
         t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
             history = self._history
-            for k in range(len(times)):
-                while len(history) > 1 and history[1][0] <= t_abs[k]:
-                    history.popleft()
-                applied, y, status = self.stage.step(history[0][1], self.dt)
-                self.applied, self.displacement = float(applied), float(y)
-                out[k] = self.standoff + y if int(status) == 0 and math.isfinite(y) else math.nan
+            if self.lowpass is None:
+                for k in range(len(times)):
+                    while len(history) > 1 and history[1][0] <= t_abs[k]:
+                        history.popleft()
+                    applied, y, status = self.stage.step(history[0][1], self.dt)
+                    out[k] = self._reading(applied, y, status)
+                return out
+            # the command in force at each substep, through the amplifier's low-pass
+            n = self.substeps
+            h = self.dt / n
+            t_sub = (t_abs[:, None] - (n - 1 - np.arange(n))[None, :] * h).ravel()
+            hist_t = np.array([t for t, _ in history])
+            hist_v = np.array([v for _, v in history])
+            idx = np.clip(np.searchsorted(hist_t, t_sub, side="right") - 1, 0, None)
+            rows = self._step_many(self.lowpass.run(hist_v[idx]), h)
+            for k, (applied, y, status) in enumerate(rows):
+                out[k] = self._reading(applied, y, status)
+            keep = max(int(idx[-1]), 0) if idx.size else 0
+            for _ in range(keep):
+                history.popleft()
         return out
+
+    def _reading(self, applied: float, y: float, status: float) -> float:
+        self.applied, self.displacement = float(applied), float(y)
+        return self.standoff + y if int(status) == 0 and math.isfinite(y) else math.nan
 
 
 class RigEmulator:
-    """Amplifier (GCS on TCP or pty, or MDT69x on pty) + optoNCDT sensor (pty) around one stage."""
+    """Amplifier (GCS on TCP or pty, or MDT69x on pty) + optoNCDT sensor (pty) around one stage.
+
+    ``amplifier_bandwidth`` [Hz] (0: ideal) and ``amplifier_filter_order`` (1 or 2): the
+    amplifier's output low-pass (:class:`AmplifierLowPass`) between command and stage."""
 
     def __init__(
         self,
@@ -103,6 +182,8 @@ class RigEmulator:
         amplifier_link: str | None = None,
         amplifier_range: tuple[float, float] | None = None,
         realtime_priority: int = 0,
+        amplifier_bandwidth: float = 0.0,
+        amplifier_filter_order: int = 2,
     ) -> None:
         if amplifier_range is not None and amplifier != "gcs":
             raise ConfigError(
@@ -124,7 +205,14 @@ class RigEmulator:
         else:
             raise ConfigError(f"amplifier must be 'gcs' or 'mdt69x', got {amplifier!r}")
         standoff = 0.5 * measuring_range if standoff is None else standoff
-        self.coupling = RigCoupling(stage, rate, standoff, self.amplifier.applied_voltage)
+        self.coupling = RigCoupling(
+            stage,
+            rate,
+            standoff,
+            self.amplifier.applied_voltage,
+            bandwidth_hz=amplifier_bandwidth,
+            filter_order=amplifier_filter_order,
+        )
         self.amplifier.on_voltage = self.coupling.on_voltage
         self.sensor = OptoNCDTDeviceModel(
             sensor_format,
