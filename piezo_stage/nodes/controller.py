@@ -145,6 +145,8 @@ PARAMETERS = ParameterTable("controller", (
           "path)"),
     Param("open_at", -1.0, "open the loop at this time of the node clock (< 0: never); "
           "deterministic in lockstep, e.g. the §11.5 perturbation", "s", read_only=True),
+    Param("open_after", -1.0, "open the loop this long after start_closed closed it (< 0: "
+          "never); the §11.5 perturbation on a rig's wall clock", "s", read_only=True),
     Param("open_duration", 0.0, "close it again this long after it opened (0: stay open)", "s",
           (0.0, 1e6), read_only=True),
     Param("allow_unverified_gains", False, "accept gains that fail Theorem 4 or the sampled-loop "
@@ -186,6 +188,8 @@ class ControllerNode(Node):
         self._saturated_steps = 0
         self._start_closed = bool(self.get_parameter("start_closed").value)
         self._window, self._window_t = "pending", math.nan
+        self._open_after = float(self.get_parameter("open_after").value)
+        self._closed_at = math.nan  # when start_closed closed the loop (open_after counts from it)
         self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
 
         # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or
@@ -358,6 +362,8 @@ class ControllerNode(Node):
     def _scheduled_window(self, t: float) -> None:
         """The open_at / open_duration window: opens with the hold voltage, closes after."""
         open_at = self._hot["open_at"]
+        if open_at < 0 <= self._open_after and math.isfinite(self._closed_at):
+            open_at = self._closed_at + self._open_after
         if open_at < 0 or self._window == "done":
             return
         if self._window == "pending" and t >= open_at:
@@ -376,6 +382,7 @@ class ControllerNode(Node):
         if self._start_closed and not self.pid.loop_closed and not self._fault:
             self._start_closed = False
             self.pid.close_loop()
+            self._closed_at = t
         yr, yr_dot, yr_ddot = self._reference(t, stamp)
         out = self.pid.update(t, self._x, yr, yr_dot, yr_ddot)
         self._publish(out, stamp)
