@@ -1,5 +1,6 @@
 """piezo-stage commission over ROS: the sim graph on a plant file the procedure does not know
-(ch11_rig with kappa_w +20 %, m -15 %), the emulated rig (short), a graph without a sensor."""
+(ch11_rig with kappa_w +20 %, m -15 %), the emulated rig (one frequency, physical m and c), a
+graph without a sensor."""
 
 from __future__ import annotations
 
@@ -87,24 +88,55 @@ def test_sim_graph_commissions_an_unknown_plant(tmp_path):
 
 
 @pytest.mark.slow
-def test_emulated_rig_stops_with_its_reason_and_releases_nothing(tmp_path):
+def test_emulated_rig_commissions_with_physical_m_and_c(tmp_path):
+    """The emulated rig (ch11_rig behind a 1 kHz sensor and a 1 kHz amplifier bandwidth): one
+    sweep frequency the sensor resolves, m and c from physical data (its 1 kHz cannot resolve
+    the ~7 kHz resonance), gains at the sensor's rate, the perturbation through the rig graph."""
     out = tmp_path / "out"
     proc = _commission(
         str(out),
         "--graph",
         "emulated_rig",
         "--frequencies",
-        "1",
-        "--amplitude",
-        "250",
-        "--settle-periods",
-        "1",
-        timeout=300.0,
+        "2",
+        "--m",
+        "5.3e-3",
+        "--c",
+        "13",
+        "--json",
+        timeout=600.0,
     )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads(proc.stdout)
+    truth = {**TRUTH, "kappa_w": 43.57, "m": 5.3e-3}  # ch11_rig
+    assert s["identified"]["kappa_x"] == pytest.approx(truth["kappa_x"], rel=0.01)
+    for key in ("kappa_w", "rho", "sigma", "n"):  # a 1 kHz rig: ~1 ms of timing per sample
+        assert s["identified"][key] == pytest.approx(truth[key], rel=0.2), key
+    assert set(s["bounds"]) >= {
+        "m_min",
+        "m_max",
+        "c_max",
+        "kappa_x_max",
+        "kappa_w_max",
+        "sigma_max",
+        "rho_max",
+    }
+    assert s["rate_hz"] == 1000.0 and s["spectral_radius"] < 1.0
+    assert set(s["gains"]) == {"k0", "k1", "k2", "kA", "f"}
+    loop = s["closed_loop"]
+    assert abs(loop["u_after"] - loop["u_before"]) <= 0.01 * abs(loop["u_before"])
+    assert loop["settling_time"] >= 0.0
+    assert (out / "report.md").is_file() and not (out / "FAILED.md").exists()
+
+
+@pytest.mark.slow
+def test_emulated_rig_without_m_and_c_stops_at_the_dynamics(tmp_path):
+    """Its 1 kHz sensor cannot resolve the resonance: the step is refused with the rule."""
+    out = tmp_path / "out"
+    proc = _commission(str(out), "--graph", "emulated_rig", "--frequencies", "2", timeout=600.0)
     assert proc.returncode == 1, proc.stderr[-3000:]
-    assert "step " in proc.stderr and "failed" in proc.stderr
+    assert "step dynamics failed" in proc.stderr and "--m" in proc.stderr
     assert (out / "FAILED.md").is_file()
-    assert (out / "bags" / "sweep_1Hz").is_dir()
     assert not any(
         (out / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml")
     )

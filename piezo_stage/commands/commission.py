@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -60,8 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument(
         "--frequencies",
         type=_floats,
-        default=(10.0, 20.0, 50.0, 100.0),
-        help="comma-separated [Hz] (default 10,20,50,100; >= 200 sensor samples per period each)",
+        default=None,
+        help="comma-separated [Hz] (default 10,20,50,100 where the sensor takes >= 200 samples "
+        "per period, else rate/1000, rate/500: 1,2 Hz at 1 kHz)",
     )
     s.add_argument("--low", type=float, default=0.0, help="lowest voltage of the excitation [V]")
     s.add_argument(
@@ -76,6 +78,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--m", type=float, default=None, help="m [V s^2/m] from physical data (skips the step fit)"
     )
     d.add_argument("--c", type=float, default=None, help="c [V s/m] from physical data (with --m)")
+    d.add_argument(
+        "--m-std", type=float, default=0.0, help="standard uncertainty of --m (widens the bounds)"
+    )
+    d.add_argument("--c-std", type=float, default=0.0, help="standard uncertainty of --c")
     g = parser.add_argument_group("bounds and gains (steps 3-4)")
     g.add_argument(
         "--margin", type=float, default=0.2, help="bounds margin, fraction (default 0.2)"
@@ -114,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from piezo_stage.commissioning import Commissioning, Options, StepFailed, SweepSettings
     from piezo_stage.commissioning.graphs import GraphRunError, make_rig
     from piezo_stage.commissioning.procedure import OtherCommissioningError
-    from piezo_stage.commissioning.sweep import SweepError
+    from piezo_stage.commissioning.sweep import SweepError, default_frequencies
     from piezo_stage.config_path import find_config
 
     started = time.monotonic()
@@ -131,24 +137,33 @@ def run(args: argparse.Namespace) -> int:
             find_config(model)  # a shipped name, else ConfigNotFoundError (an OSError)
         if (args.m is None) != (args.c is None):
             raise ValueError("give both --m and --c, or neither")
+        for name in ("m", "c"):
+            value, std = getattr(args, name), getattr(args, f"{name}_std")
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"--{name} must be > 0, got {value:g}")
+            if not (math.isfinite(std) and std >= 0) or (std > 0 and value is None):
+                raise ValueError(f"--{name}-std must be >= 0 and comes with --{name}")
         for name in ("margin", "gain_margin"):
             if not 0.0 <= getattr(args, name) < 1.0:
                 raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1)")
+        rig = make_rig(
+            args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress
+        )
         settings = SweepSettings(
-            frequencies=args.frequencies,
+            frequencies=args.frequencies or default_frequencies(rig.rate_hz),
             low=args.low,
             amplitude=args.amplitude,
             offset=args.offset,
             settle_periods=args.settle_periods,
             record_periods=args.record_periods,
         )
-        rig = make_rig(
-            args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress
-        )
         settings.check(rig.rate_hz, rig.v_min, rig.v_max)
     except (ValueError, SweepError, OSError) as exc:
         print(f"piezo-stage commission: {exc}", file=sys.stderr)
         return 2
+    if args.frequencies is None:
+        progress("sweep", f"frequencies {', '.join(f'{f:g}' for f in settings.frequencies)} Hz "
+                 f"(chosen for the {rig.rate_hz:g} Hz sensor)")
     options = Options(
         sweep=settings,
         step_size=args.step_size,
@@ -159,6 +174,8 @@ def run(args: argparse.Namespace) -> int:
         rate_hz=args.rate_hz,
         m=args.m,
         c=args.c,
+        m_std=args.m_std,
+        c_std=args.c_std,
     )
     if args.restart and args.out_dir.exists():
         shutil.rmtree(args.out_dir)

@@ -34,6 +34,7 @@ _TOPICS = {
     "excitation": "piezo_stage_msgs/msg/ExcitationInfo",
 }
 SIM_SENSOR_NOISE = 2e-9  #: [m] standard deviation of the sim graph's sensor
+RIG_SETTLE = 1.0  #: [s] a rig's closed loop before the §11.5 opening (it starts at rest at 0 V)
 _counter = iter(range(1, 1 << 30))
 
 
@@ -78,6 +79,11 @@ class RosRig:
     progress: Callable[[str, str], None] = lambda step, text: None
     wall_timeout: float = 600.0
     data_timeout: float = 30.0  #: [s] for the graph's topics and the first sample and mark
+
+    @property
+    def attempts(self) -> int:
+        """sim: 1 (deterministic); a rig: 3 (a stalled host bends a period; the run is redone)."""
+        return 1 if self.lockstep else 3
 
     @property
     def loop_rates(self) -> tuple[float, ...]:
@@ -200,12 +206,9 @@ class RosRig:
 
     # ------------------------------------------------------------------ acceptance
     def accept(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:
-        """The §11.5 perturbation experiment under pid_tv with the designed gains (sim only)."""
+        """The §11.5 perturbation experiment under pid_tv with the designed gains."""
         if not self.lockstep:
-            raise GraphRunError(
-                f"the acceptance experiment runs on the sim graph only: on {self.name} the loop "
-                "would run at the sensor's rate, far below the rate the gains need"
-            )
+            return self._accept_rig(run, bag, png_dir)
         from dataclasses import replace
 
         from piezo_stage.experiments import make_plan, run_experiment
@@ -258,6 +261,158 @@ class RosRig:
             )
         except (ExperimentError, LaunchError) as exc:
             raise GraphRunError(f"acceptance run: {exc}") from exc
+
+    def _accept_rig(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:
+        """§11.5 on a rig graph: the controller at the sensor's rate (trigger=sample) closes the
+        loop at its first sample around x_eq = U_SET / kappa_x with the U_SET feedforward, opens
+        it RIG_SETTLE s later for OPEN_FOR with u forced to U_OPEN (open_after: the rig's clock
+        is the wall clock), then closes it; ``duration`` s are recorded after the re-closing."""
+        import rclpy
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.serialization import deserialize_message
+
+        from piezo_stage.experiments.plots import plot_run
+        from piezo_stage.experiments.spec import OPEN_FOR, SIGNALS, U_OPEN, U_SET, Plan, summarize
+        from piezo_stage.launch import Launcher, LaunchError
+        from piezo_stage.nodes.executor import LeanExecutor
+        from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
+        from piezo_stage_msgs.msg import ControllerState
+
+        rate = float(run["rate_hz"])
+        x_eq = U_SET / float(run["kappa_x"])
+        gains = {k: float(run["gains"][k]) for k in ("k0", "k1", "k2", "kA", "f")}
+        total = RIG_SETTLE + OPEN_FOR + float(run["duration"])
+        controller = {
+            "trigger": "sample",  # a step per sensor sample (a late burst is no stale sample)
+            "rate_hz": rate,
+            "delay_samples": int(run["delay_samples"]),
+            "mode": "pid_tv",
+            "bounds_file": run["bounds_file"],
+            "start_closed": True,
+            "on_close": "reset",
+            "reference_source": "constant",
+            "reference": x_eq,
+            "u_bias": U_SET,
+            "hold_voltage": U_OPEN,
+            "open_after": RIG_SETTLE,
+            "open_duration": OPEN_FOR,
+            **gains,
+        }
+        plan = Plan(
+            "perturbation",
+            "pid_tv",
+            rate,
+            math.nan,
+            total,
+            {},
+            controller,
+            RIG_SETTLE,
+            RIG_SETTLE + OPEN_FOR,
+            gains,
+        )
+        namespace = f"/commission_{os.getpid()}_{next(_counter)}"
+        graph = {
+            "description": f"commission acceptance ({self.name})",
+            "namespace": namespace,
+            "stop_timeout": 10.0,
+            "nodes": copy.deepcopy(self.base_nodes)
+            + [{"executable": "controller", "overrides": controller, "required": True}],
+            "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
+        }
+        lines: list[str] = []
+        raw: list[tuple[int, bytes]] = []
+        launch = None
+        try:
+            launch = Launcher(
+                graph,
+                params=self.extra_params,
+                timeout=self.data_timeout,
+                sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
+            )
+            ctx = rclpy.Context()
+            rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+            node = rclpy.create_node("commission", namespace=namespace, context=ctx)
+            node.create_subscription(
+                ControllerState,
+                "controller_state",
+                lambda d: raw.append((_stamp_ns(d), d)),
+                # trigger=sample publishes its state reliable and deep (nodes.qos.LOCKSTEP_QOS)
+                QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
+                raw=True,
+            )
+            executor = LeanExecutor(context=ctx)
+            executor.add_node(node)
+            try:
+                launch.start()
+                launch.wait_ready()
+                started = time.monotonic()
+                next_note = started + 2.0
+                while not raw or (raw[-1][0] - raw[0][0]) * 1e-9 < total:
+                    waited = time.monotonic() - started
+                    if waited > self.wall_timeout or (not raw and waited > self.data_timeout):
+                        raise GraphRunError(
+                            f"acceptance: {len(raw)} controller states after {waited:.0f} s"
+                        )
+                    executor.spin_once(timeout_sec=0.05)
+                    if raw and time.monotonic() > next_note:
+                        next_note += 2.0
+                        done = (raw[-1][0] - raw[0][0]) * 1e-9
+                        self.progress("acceptance", f"{min(done / total, 1.0) * 100:.0f} %")
+            finally:
+                executor.shutdown()
+                node.destroy_node()
+                rclpy.try_shutdown(context=ctx)
+        except (GraphRunError, LaunchError) as exc:
+            tail = "\n".join(lines[-15:])
+            raise GraphRunError(
+                f"acceptance run: {exc}" + (f"; node output:\n{tail}" if tail else "")
+            ) from exc
+        finally:
+            if launch is not None:
+                launch.stop()
+        raw.sort(key=lambda p: p[0])
+        t0 = raw[0][0]
+        rows = []
+        for ns, d in raw:
+            m = deserialize_message(d, ControllerState)
+            rows.append(
+                (
+                    (ns - t0) * 1e-9,
+                    m.x0,
+                    m.x1,
+                    m.x2,
+                    m.u,
+                    m.u_pid,
+                    m.u_excitation,
+                    m.loop_closed,
+                    m.reference,
+                )
+            )
+        data = {
+            k: np.asarray(v, dtype=bool if k == "loop_closed" else float)
+            for k, v in zip(SIGNALS, zip(*rows))
+        }
+        from piezo_stage.bag.writer import BagWriter
+        from piezo_stage.experiments import ExperimentError
+
+        with BagWriter(bag) as writer:
+            writer.add_topic(
+                f"{namespace}/controller_state", "piezo_stage_msgs/msg/ControllerState"
+            )
+            for ns, d in raw:
+                writer.write(f"{namespace}/controller_state", d, ns)
+        closed = data["loop_closed"]
+        try:
+            if closed.size and not closed[-1]:
+                raise ExperimentError("the loop was open at the end of the run")
+            result = summarize(plan, data)
+        except ExperimentError as exc:
+            said = "\n".join(ln for ln in lines if "controller" in ln)[-2000:]
+            raise GraphRunError(f"acceptance run: {exc}; controller output:\n{said}") from exc
+        result["bag"] = str(bag)
+        result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
+        result["delay_samples"] = int(run["delay_samples"])
+        return result
 
 
 def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:
@@ -353,6 +508,7 @@ def make_rig(
     nodes = [n for n in data["nodes"] if n.get("executable") not in ("excitation", "identifier")]
     params = list(params or [])
     if graph == "emulated_rig":
+        model_file = model_file or "ch11_rig.yaml"  # a stage of the ch. 11 form (11.1)-(11.3)
         # the emulator on a port and a link of its own (a test or another rig may hold the
         # graph's fixed ones), on the given plant file; the driver and the reader follow it
         with socket.socket() as sock:

@@ -24,7 +24,11 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from piezo_stage.identification.dynamics import DynamicsError, fit_step_response, predicted_response
+from piezo_stage.identification.dynamics import (
+    DynamicsError,
+    fit_step_response,
+    predicted_response,
+)
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.excitation import ExcitationPlan
 
@@ -73,6 +77,7 @@ class Rig(Protocol):
     rate_hz: float  #: sensor sample rate
     loop_rates: tuple[float, ...]  #: loop rates the graph can run (the lowest stable is used)
     delay_samples: int  #: output delay of a loop on this graph
+    attempts: int  #: runs of a sweep frequency before its identification counts as failed
     v_min: float
     v_max: float
 
@@ -94,6 +99,8 @@ class Options:
     rate_hz: float | None = None  #: loop rate (None: the lowest stable candidate)
     m: float | None = None  #: physical data instead of the step fit (as §11.2.1)
     c: float | None = None
+    m_std: float = 0.0  #: [V s^2/m] standard uncertainty of the physical m (the bounds widen by it)
+    c_std: float = 0.0  #: [V s/m]
     acceptance_duration: float = 0.4
 
     def to_dict(self) -> dict[str, Any]:
@@ -222,9 +229,20 @@ class Commissioning:
                 f"{i + 1}/{len(settings.frequencies)}: {f:g} Hz ({plan.duration:.3g} s of "
                 "excitation)",
             )
-            series = self.rig.excite(plan, self._bag(f"sweep_{key}Hz"), f"sweep {f:g} Hz")
-            sweep.check_clipping(series, plan, self.rig.v_min, self.rig.v_max)
-            res = sweep.identify_frequency(series, plan)
+            attempts = max(1, int(getattr(self.rig, "attempts", 1)))
+            for attempt in range(attempts):
+                name = f"sweep_{key}Hz" + (f"_retry{attempt}" if attempt else "")
+                series = self.rig.excite(plan, self._bag(name), f"sweep {f:g} Hz")
+                sweep.check_clipping(series, plan, self.rig.v_min, self.rig.v_max)
+                try:
+                    res = sweep.identify_frequency(series, plan)
+                    break
+                except SweepError as exc:
+                    if attempt + 1 == attempts:
+                        raise SweepError(f"{exc} (after {attempts} runs)") from exc
+                    # a real-time rig: a host that stalled the command stream for tens of ms
+                    # bends one period; the run is repeated, the failure said
+                    self.progress("sweep", f"{exc}; run again ({attempt + 2}/{attempts})")
             results.append(res)
             done[key] = res.to_dict()
             self.state["sweep_partial"] = done
@@ -252,8 +270,8 @@ class Commissioning:
                 "source": "physical data (--m, --c)",
                 "m": o.m,
                 "c": o.c,
-                "m_std": 0.0,
-                "c_std": 0.0,
+                "m_std": o.m_std,
+                "c_std": o.c_std,
             }
         half = max(o.step_duration, 20.0 / self.rig.rate_hz)
         plan = ExcitationPlan(
@@ -276,7 +294,13 @@ class Commissioning:
         idx = np.searchsorted(series.t_v, t, side="right") - 1
         u = series.v[np.clip(idx, 0, None)]
         bw = self._bouc_wen()
-        fit = fit_step_response(t, u, x, bw, voltage_offset=bw.y0)
+        try:
+            fit = fit_step_response(t, u, x, bw, voltage_offset=bw.y0)
+        except DynamicsError as exc:  # e.g. UnresolvedResonanceError: a 1 kHz sensor, 7 kHz
+            raise DynamicsError(
+                f"{exc}; give m and c from the stage's physical data (--m, --c, with --m-std, "
+                "--c-std), as thesis §11.2.1 did"
+            ) from exc
         t_fit, x_fit = predicted_response(fit, bw, t, u, voltage_offset=bw.y0)
         return {
             "source": f"{o.step_low:g} -> {o.step_low + o.step_size:g} V",
@@ -347,7 +371,7 @@ class Commissioning:
             self.dir / "pending" / FILES["controller"],
             d,
             (self.dir / FILES["bounds"]).resolve(),
-            "sample" if self.rig.delay_samples == 0 else "timer",
+            "sample",  # one step per sensor sample: the loop runs at the sensor's rate
         )
         return d.to_dict()
 

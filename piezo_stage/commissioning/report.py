@@ -90,6 +90,7 @@ def write_report(out_dir: Path, state: dict[str, Any], files: dict[str, str]) ->
     figures.mkdir(exist_ok=True)
     sweep_png = plot_sweep(s["sweep"]["frequencies"], figures / "sweep_parameters.png")
     dyn = s["dynamics"]
+    freqs = [r["frequency"] for r in s["sweep"]["frequencies"]]
     lines = [
         "# Commissioning report",
         "",
@@ -97,9 +98,15 @@ def write_report(out_dir: Path, state: dict[str, Any], files: dict[str, str]) ->
         "",
         "## 1. Frequency sweep (Fig. 11.3, input x, output u)",
         "",
+        f"Frequencies {', '.join(f'{f:g}' for f in freqs)} Hz: "
+        f"{state['key']['rate_hz'] / max(freqs):.0f} sensor samples per period at least (the "
+        "default list keeps >= 200; a 1 kHz rig gets rate/1000 and rate/500). Delay: from the "
+        "voltage command's stamp to the sample it is paired with (a rig: the one of 0-1.6 ms "
+        "that fits the loop best).",
+        "",
     ]
-    lines.append(_row(["f [Hz]", *PARAMETERS, "rms [V]"]))
-    lines.append(_row(["---"] * (len(PARAMETERS) + 2)))
+    lines.append(_row(["f [Hz]", *PARAMETERS, "rms [V]", "delay [ms]"]))
+    lines.append(_row(["---"] * (len(PARAMETERS) + 3)))
     for r in s["sweep"]["frequencies"]:
         lines.append(
             _row(
@@ -107,6 +114,7 @@ def write_report(out_dir: Path, state: dict[str, Any], files: dict[str, str]) ->
                     f"{r['frequency']:g}",
                     *(f"{r[p]:.5g}" for p in PARAMETERS),
                     f"{r['rms_error']:.3g}",
+                    f"{1e3 * r.get('input_delay', 0.0):.2g}",
                 ]
             )
         )

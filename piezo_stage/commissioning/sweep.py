@@ -36,6 +36,16 @@ class SweepError(Exception):
     """A frequency of the sweep could not be identified (the message says which and why)."""
 
 
+def default_frequencies(rate_hz: float) -> tuple[float, ...]:
+    """The sweep's frequencies for a sensor at ``rate_hz``: those of 10, 20, 50, 100 Hz (Fig.
+    11.3) it takes >= :data:`MIN_SAMPLES_PER_PERIOD` samples per period of, else rate/1000 and
+    rate/500 (1 and 2 Hz at 1 kHz: 500 samples per period and more, as a period of a real-time
+    rig bends by a millisecond of host jitter; the static part (11.2)-(11.3) is rate-independent
+    there, m and c act far above)."""
+    fits = tuple(f for f in (10.0, 20.0, 50.0, 100.0) if rate_hz / f >= MIN_SAMPLES_PER_PERIOD)
+    return fits if len(fits) >= 2 else (rate_hz / 1000.0, rate_hz / 500.0)
+
+
 @dataclass(frozen=True)
 class SweepSettings:
     """What each frequency's runs look like (voltages [V])."""
@@ -98,15 +108,20 @@ class Series:
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
 
 
-def paired(series: Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, x, u) on the displacement samples (module docstring), NaN-free samples only."""
+def _same_stamps(series: Series) -> bool:
+    t_v, t_x = series.t_v, series.t_x
+    return len(t_v) == len(t_x) and np.allclose(t_v, t_x, rtol=0, atol=1e-9)
+
+
+def paired(series: Series, delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, x, u) on the displacement samples (module docstring), NaN-free samples only;
+    ``delay`` [s]: on other stamps, x(t) is paired with the voltage held at t - delay."""
     t_x, x = series.t_x, series.x
-    same = len(series.t_v) == len(t_x) and np.allclose(series.t_v, t_x, rtol=0, atol=1e-9)
-    if same:
+    if _same_stamps(series):
         v = series.v
         u = np.concatenate(((v[:-1] + v[1:]) / 2, v[-1:]))
     else:
-        idx = np.searchsorted(series.t_v, t_x, side="right") - 1
+        idx = np.searchsorted(series.t_v, t_x - delay, side="right") - 1
         u = np.where(idx >= 0, series.v[np.clip(idx, 0, None)], np.nan)
     ok = np.isfinite(x) & np.isfinite(u)
     return t_x[ok], x[ok], u[ok]
@@ -144,11 +159,13 @@ def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: fl
             )
 
 
-def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Recording]:
+def run_recordings(
+    series: Series, plan: ExcitationPlan, delay: float = 0.0
+) -> tuple[Recording, Recording]:
     """The two runs (input x, output u): the steady part of each, with the sample at its end."""
     from piezo_stage.identification.io import intervals_from_marks
 
-    t, x, u = paired(series)
+    t, x, u = paired(series, delay)
     intervals = intervals_from_marks(series.marks)
     if len(intervals) < 2:
         raise SweepError(f"the excitation marked {len(intervals)} run(s); 2 are needed")
@@ -158,12 +175,24 @@ def run_recordings(series: Series, plan: ExcitationPlan) -> tuple[Recording, Rec
         hi = steady_from + plan.record_periods * plan.period
         dt = float(np.median(np.diff(t)))
         # one sample past the end: record_periods whole periods from the first sample
+        same = _same_stamps(series)
         keep = (t >= steady_from - 0.5 * dt) & (t <= hi + 1.5 * dt)
+        if not same:
+            # a rig's sensor clock is not the excitation's: the samples before the run's end
+            # (after it the stage follows the next run's jump), over a little more than whole
+            # periods (reaching back into the settled part; half the cycle check's 1 % period
+            # tolerance more, for a period estimated from jittered samples)
+            span = plan.record_periods * plan.period
+            last = int(np.searchsorted(t, hi, side="left")) - 1
+            first = int(np.searchsorted(t, t[max(last, 0)] - span - max(1.5 * dt, 0.005 * span)))
+            keep = np.zeros_like(keep)
+            keep[first : last + 1] = True
+        u_run = u[keep]
         runs.append(
             Recording(
                 t[keep],
                 x[keep],
-                u[keep],
+                u_run,
                 name=f"{1 / plan.period:g} Hz run {run}",
                 input_unit="m",
                 output_unit="V",
@@ -183,18 +212,56 @@ class FrequencyResult:
     y0: float  #: voltage offset of u = kappa_x x + kappa_w w + y0
     rms_error: float  #: [V]
     samples: int
+    input_delay: float = 0.0  #: [s] command-to-sensor delay used in the pairing (rigs)
 
     def to_dict(self) -> dict:
         return {k: float(v) if k != "samples" else int(v) for k, v in asdict(self).items()}
 
 
+#: [s] candidate command-to-sensor delays on a rig (amplifier group delay, link, sensor)
+DELAY_GRID = tuple(np.arange(0.0, 1.61e-3, 2e-4))
+DELAY_STEP = 1e-4
+
+
 def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
-    """Identify (11.2)-(11.3) at one frequency (input x, output u); SweepError with the reason."""
+    """Identify (11.2)-(11.3) at one frequency (input x, output u); SweepError with the reason.
+
+    On a rig (voltage and displacement on stamps of their own) the delay from the command's
+    stamp to the stage's response is not known: 1 ms of it widens or narrows the loop of a
+    2 Hz sweep by ~10 % of kappa_w. The delay taken is the one of :data:`DELAY_GRID` (then
+    +-:data:`DELAY_STEP` around the best) whose identified model fits the loop best (least RMS
+    error)."""
+    if _same_stamps(series):
+        return _identify_at(series, plan, 0.0)
+    tried: dict[float, FrequencyResult | SweepError] = {}
+
+    def attempt(delay: float) -> None:
+        key = round(delay, 7)
+        if key not in tried and key >= 0.0:
+            try:
+                tried[key] = _identify_at(series, plan, key)
+            except SweepError as exc:
+                tried[key] = exc
+
+    def best() -> FrequencyResult | None:
+        ok = [r for r in tried.values() if isinstance(r, FrequencyResult)]
+        return min(ok, key=lambda r: r.rms_error) if ok else None
+
+    for delay in DELAY_GRID:
+        attempt(float(delay))
+    if (first := best()) is None:
+        raise next(iter(tried.values()))  # type: ignore[misc]
+    for delay in (first.input_delay - DELAY_STEP, first.input_delay + DELAY_STEP):
+        attempt(delay)
+    return best()  # type: ignore[return-value]
+
+
+def _identify_at(series: Series, plan: ExcitationPlan, delay: float) -> FrequencyResult:
     from piezo_stage.identification.pipeline import IdentifyOptions, identify
 
     f = 1.0 / plan.period
     try:
-        run_a, run_b = run_recordings(series, plan)
+        run_a, run_b = run_recordings(series, plan, delay)
         options = IdentifyOptions(
             degree=1,
             input_name="displacement",
@@ -215,6 +282,7 @@ def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
         y0=p.y0,
         rms_error=result.rms_error,
         samples=result.samples,
+        input_delay=delay,
     )
 
 
