@@ -80,7 +80,9 @@ from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from piezo_stage_msgs.msg import Displacement, Voltage
 rclpy.init()
 node = rclpy.create_node("echo", namespace=sys.argv[1])
-pub = node.create_publisher(Voltage, "voltage_command", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+pub = node.create_publisher(
+    Voltage, "voltage_command", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+)
 out = Voltage()
 def on_sample(msg):
     out.header = msg.header
@@ -199,7 +201,8 @@ def _fifo(cmd: list[str], priority: int) -> list[str]:
 def measure(
     label: str, commander: list[str], sensor: list[str], seconds: float, rate: float, match: str
 ) -> LoopFigures:
-    """Start sensor + commander, wait for the loop to run, record ``seconds``, return the figures."""
+    """Start sensor + commander, wait for the loop to run, record ``seconds``, return the
+    figures."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -359,7 +362,8 @@ def main() -> int:
     runs = [LoopFigures.merge(p) for p in parts.values()]
     load = os.getloadavg()
     print(
-        f"{args.rate:g} Hz loop over ROS topics, sensor = {args.sensor}, {args.seconds:g} s per run "
+        f"{args.rate:g} Hz loop over ROS topics, sensor = {args.sensor}, "
+        f"{args.seconds:g} s per run "
         f"({args.repeat} slices in turn), SCHED_FIFO {args.fifo or 'off'}, "
         f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
     )
@@ -375,7 +379,8 @@ def main() -> int:
         met = p99 <= TARGET_P99 and r.missed == 0
         ok &= met
         print(
-            f"  {r.label}: p99 {p99 * 1e3:.3f} ms = {p99 / base_p99:.2f} x the echo's; target p99 <= "
+            f"  {r.label}: p99 {p99 * 1e3:.3f} ms = {p99 / base_p99:.2f} x the echo's; "
+            "target p99 <= "
             f"{TARGET_P99 * 1e3:g} ms and no missed cycle: {'met' if met else 'NOT met'}"
         )
     return 0 if ok else 1

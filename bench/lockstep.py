@@ -243,7 +243,8 @@ def main() -> int:
     finally:
         rclpy.try_shutdown()
     print(
-        f"baseline: rclpy ping-pong between two processes (SingleThreadedExecutor): {rt:8.0f} round trips/s"
+        "baseline: rclpy ping-pong between two processes (SingleThreadedExecutor): "
+        f"{rt:8.0f} round trips/s"
     )
     for name, (rate, cpu_plant, cpu_commander) in steps.items():
         print(

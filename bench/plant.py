@@ -21,7 +21,8 @@ triangles 0-300 V; 150 V + band-limited noise 0-100 Hz, 50 V rms), prints
   longer than its catch-up limit (its /diagnostics).
 
 Run:  python bench/plant.py [--realtime-seconds 30] [--skip-integrator | --skip-realtime]
-      (about a minute on 2 cores: the integrator part ~10 s plus its references, then 30 s of realtime)
+      (about a minute on 2 cores: the integrator part ~10 s plus its references, then 30 s of
+      realtime)
 """
 
 from __future__ import annotations
@@ -226,12 +227,17 @@ def main() -> int:
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         r, catch_up = realtime_rate(args.realtime_seconds)
         print(
-            f"realtime plant node, 1 kHz, {args.realtime_seconds:g} s wall: {r['samples']} samples received, "
-            f"{r['rate']:.1f} Hz ({r['error_pct']:+.2f} %, target within 5 %); stamps {r['stamp_rate']:.1f} Hz, "
+            f"realtime plant node, 1 kHz, {args.realtime_seconds:g} s wall: "
+            f"{r['samples']} samples received, "
+            f"{r['rate']:.1f} Hz ({r['error_pct']:+.2f} %, target within 5 %); "
+            f"stamps {r['stamp_rate']:.1f} Hz, "
             f"spacing median {r['gap_median'] * 1e3:.3f} ms, p99 {r['gap_p99'] * 1e3:.3f} ms, "
-            f"max {r['gap_max'] * 1e3:.3f} ms; arrival spacing p99 {r['arrival_p99'] * 1e3:.3f} ms; stamp to "
-            f"arrival median {r['latency_median'] * 1e3:.3f} ms, p99 {r['latency_p99'] * 1e3:.3f} ms; "
-            f"samples the plant dropped after a stall > {catch_up:g} s: {r['dropped']}; duplicates {r['duplicates']}, "
+            f"max {r['gap_max'] * 1e3:.3f} ms; "
+            f"arrival spacing p99 {r['arrival_p99'] * 1e3:.3f} ms; stamp to "
+            f"arrival median {r['latency_median'] * 1e3:.3f} ms, "
+            f"p99 {r['latency_p99'] * 1e3:.3f} ms; "
+            f"samples the plant dropped after a stall > {catch_up:g} s: {r['dropped']}; "
+            f"duplicates {r['duplicates']}, "
             f"min spacing {r['min_gap'] * 1e3:.3f} ms"
         )
     print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
@@ -242,7 +248,8 @@ def integrator() -> None:
     print(f"ch. 11 rig, output step {DT * 1e6:g} us (10 kHz), DynamicPlant tol {DEFAULT_TOL:g}")
     print(
         f"{'input':16s} {'ours xRT':>9s} {'(CPU)':>7s} {'ours err':>9s} {'pieces/out':>10s}   "
-        f"{'Radau xRT':>9s} {'err':>8s}   {'LSODA xRT':>9s} {'err':>8s}   {'ours/Radau':>10s} {'ours/LSODA':>10s}"
+        f"{'Radau xRT':>9s} {'err':>8s}   {'LSODA xRT':>9s} {'err':>8s}   "
+        f"{'ours/Radau':>10s} {'ours/LSODA':>10s}"
     )
     long = inputs(SPEED_SAMPLES, DT)
     for name, u in long.items():
@@ -261,7 +268,8 @@ def integrator() -> None:
     for dt, label in ((1e-4, "10 kHz"), (1e-5, "100 kHz")):
         plant_us, stage_us = per_call(dt)
         print(
-            f"per call at {label:7s}: DynamicPlant.step {plant_us:6.2f} us, SimulatedStage.step {stage_us:6.2f} us"
+            f"per call at {label:7s}: DynamicPlant.step {plant_us:6.2f} us, "
+            f"SimulatedStage.step {stage_us:6.2f} us"
             f"  ({dt * 1e6 / stage_us:.0f}x real time through the stage)"
         )
 

@@ -73,7 +73,8 @@ def test_bad_input_exit_2(capsys, tmp_path):
     assert code == 2 and "--k2 and --k0" in err
     flat = tmp_path / "b.yaml"
     flat.write_text(
-        "m_min: 1e-3\nm_max: 2e-3\nc_max: 1\nkappa_x_max: 1e6\nkappa_w_max: 1\nsigma_max: 1\nrho_max: 1\n"
+        "m_min: 1e-3\nm_max: 2e-3\nc_max: 1\nkappa_x_max: 1e6\nkappa_w_max: 1\nsigma_max: 1\n"
+        "rho_max: 1\n"
     )
     code, _, err = gains(
         capsys, "--bounds", str(flat), "--k1", "1e6", "--k2", "200", "--k0", "1", "--rate-hz", "1e3"

@@ -1,4 +1,5 @@
-"""TimeVaryingPID: discrete x0/x2 (§11.5), clamp + anti-windup, hold, bumpless transfer, dt guards."""
+"""TimeVaryingPID: discrete x0/x2 (§11.5), clamp + anti-windup, hold, bumpless transfer, dt
+guards."""
 
 import math
 
@@ -62,7 +63,8 @@ def test_sine_laws_phase_from_closing_time():
 
 
 def _windup_recovery(mode):
-    """Saturate against u_min = -10 V for 50 steps, then reverse the error; steps until unsaturated."""
+    """Saturate against u_min = -10 V for 50 steps, then reverse the error; steps until
+    unsaturated."""
     ctrl = TimeVaryingPID(ControllerConfig(gains=G, u_min=-10.0, u_max=10.0, anti_windup=mode))
     out = run(ctrl, [1e-6] * 50)
     assert all(o.saturated and o.u == -10.0 for o in out[10:])

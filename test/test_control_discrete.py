@@ -16,7 +16,8 @@ from piezo_stage.control.laws import THESIS_GAINS as G
 
 pytestmark = pytest.mark.unit
 
-# docs/design.md §7: stable at 1 kHz and >= 100 kHz, unstable at 5-50 kHz; >= 200 kHz with one sample of delay.
+# docs/design.md §7: stable at 1 kHz and >= 100 kHz, unstable at 5-50 kHz; >= 200 kHz with one
+# sample of delay.
 CASES = [
     (1e3, 0, True),
     (5e3, 0, False),
@@ -44,7 +45,8 @@ def test_continuous_loop_of_the_linear_part_is_stable():
 def test_rate_and_delay_decide_stability(rate, delay, stable):
     report = check_sampled_loop(PLANT, G, rate, delay)
     print(
-        f"{rate:>9.0f} Hz delay {delay}: rho = {report.spectral_radius:.6f} margin {report.margin:+.3e}"
+        f"{rate:>9.0f} Hz delay {delay}: rho = {report.spectral_radius:.6f} "
+        f"margin {report.margin:+.3e}"
     )
     assert report.stable is stable
     assert report.margin == pytest.approx(1 - report.spectral_radius)
@@ -59,7 +61,8 @@ def test_matrix_reproduces_the_controller_and_zoh_plant():
     ad, bd = zoh_plant(PLANT, period)
     ctrl = TimeVaryingPID(ControllerConfig(gains=G, anti_windup="none"))
     z = np.array([2e-6, 0.0])
-    # the controller's first sample neither integrates nor differentiates: x0[-1] = -T·x[0], x[-1] = x[0]
+    # the controller's first sample neither integrates nor differentiates: x0[-1] = -T·x[0],
+    # x[-1] = x[0]
     s = np.array([z[0], z[1], -period * z[0], z[0], 0.0, 0.0])
     pending = 0.0
     for k in range(12):

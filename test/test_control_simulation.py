@@ -1,4 +1,5 @@
-"""Closed loop against the model's DynamicPlant: sampled-check predictions and §11.4-11.5 behaviour."""
+"""Closed loop against the model's DynamicPlant: sampled-check predictions and §11.4-11.5
+behaviour."""
 
 import numpy as np
 import pytest
@@ -71,7 +72,8 @@ def test_pid_tv_restores_the_control_after_a_perturbation():
 
 
 class BiasedPlant:
-    """The plant driven by u_bias + the controller's u (the perturbation experiment's feedforward)."""
+    """The plant driven by u_bias + the controller's u (the perturbation experiment's
+    feedforward)."""
 
     def __init__(self, bias, **state):
         self.bias, self.inner = bias, plant(**state)

@@ -92,13 +92,14 @@ def test_bounds_errors(tmp_path):
         THESIS.replace(sigma_max=0.3)
     bad = tmp_path / "b.yaml"
     bad.write_text(
-        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1}\n"
+        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, "
+        "sigma_max: 1}\n"
     )
     with pytest.raises(BoundsError, match="missing key.*rho_max"):
         load_bounds(bad)
     bad.write_text(
-        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, sigma_max: 1, "
-        "rho_max: 1, rho_mx: 2}\n"
+        "bounds: {m_min: 1e-3, m_max: 2e-3, c_max: 1, kappa_x_max: 1, kappa_w_max: 1, "
+        "sigma_max: 1, rho_max: 1, rho_mx: 2}\n"
     )
     with pytest.raises(BoundsError, match="unknown key.*rho_mx"):
         load_bounds(bad)

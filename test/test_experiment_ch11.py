@@ -20,7 +20,8 @@ from piezo_stage.experiments import (
     run_experiment,
 )
 
-REG = 0.1  # simulated seconds of the pid / pid_tv regulation runs (pid_tv's u needs them to approach 0 V)
+# simulated seconds of the pid / pid_tv regulation runs (pid_tv's u needs them to approach 0 V)
+REG = 0.1
 REG_SINE = (
     0.05  # simulated seconds of the pid_sine regulation runs (steady oscillation from ~20 ms)
 )
@@ -31,7 +32,8 @@ PERT = 0.035  # simulated seconds of the short perturbation runs (loop open 5-15
 def test_plan_picks_a_stable_rate_and_rejects_bad_input():
     plan = make_plan("regulation", "pid")
     assert plan.rate_hz == 100e3 and plan.spectral_radius < 1  # 5-50 kHz are unstable (DESIGN §7)
-    # §11.4: x1(0) = 20 µm, x2(0) = 0.2 m/s, w(0) = 0, u = 0 V before t = 0, yr(0) = x1(0), ẏr(0) = x2(0)
+    # §11.4: x1(0) = 20 µm, x2(0) = 0.2 m/s, w(0) = 0, u = 0 V before t = 0, yr(0) = x1(0),
+    # ẏr(0) = x2(0)
     x0, xdot0 = plan.plant["initial_displacement"], plan.plant["initial_velocity"]
     assert x0 - plan.controller["reference_y0"] == pytest.approx(20e-6, rel=1e-12)
     assert xdot0 - plan.controller["reference_ydot0"] == pytest.approx(0.2, rel=1e-12)

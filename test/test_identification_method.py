@@ -161,12 +161,17 @@ def test_plain_table_10_2_without_slope_correction(ch9_runs):
         br[0][0], np.array([2.0]), 0.0, 0.0, derivative=DerivativeOptions(slope_corrections=0)
     )
     corrected = hysteretic_estimate(br[0][0], np.array([2.0]), 0.0, 0.0)
-    err = lambda h: max(abs(getattr(h, k) / getattr(CH9, k) - 1) for k in HYSTERETIC)
+
+    def err(h):
+        return max(abs(getattr(h, k) / getattr(CH9, k) - 1) for k in HYSTERETIC)
+
     assert err(corrected) < err(plain) < 1e-4
 
 
 def test_table_10_2_rejects_a_non_bouc_wen_shape():
-    fit = lambda value, slope: LocalFit(0.0, value, slope, 0.0, 0.0, 8, 0.01)
+    def fit(value, slope):
+        return LocalFit(0.0, value, slope, 0.0, 0.0, 8, 0.01)
+
     with pytest.raises(AnalyticEstimateError, match="both must be negative"):
         table_10_2(2.0, fit(0.1, 2.5), fit(0.3, 1.0), fit(-0.3, 3.0))
     with pytest.raises(AnalyticEstimateError, match="w̄ < 0"):

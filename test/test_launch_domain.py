@@ -19,7 +19,10 @@ def test_claims_are_exclusive_across_processes():
     domain, lock = claim_domain_id(start=40)
     try:
         # another process asking from the same start gets another id while this one is held
-        code = "from piezo_stage.launch.domain import claim_domain_id; print(claim_domain_id(start=40)[0])"
+        code = (
+            "from piezo_stage.launch.domain import claim_domain_id; "
+            "print(claim_domain_id(start=40)[0])"
+        )
         other = subprocess.run(
             [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
         ).stdout.strip()

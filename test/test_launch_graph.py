@@ -327,8 +327,8 @@ def test_cli_dry_run_prints_the_commands(tmp_path, capsys):
     out, err = capsys.readouterr()
     assert "two nodes" in out and "waits for: /b/displacement, /clock" in out
     assert (
-        "plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b -p rate_hz:=5.0 "
-        "-p sensor_noise:=1.0e-09"
+        "plant (required): python -m piezo_stage.nodes.plant --ros-args -r __ns:=/b "
+        "-p rate_hz:=5.0 -p sensor_noise:=1.0e-09"
     ) in out
     assert "piezo_stage: piezo-stage emulate rig" in out
 

@@ -18,10 +18,10 @@ pytestmark = pytest.mark.ros
 pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
 
 from piezo_stage.cli import main  # noqa: E402
-from piezo_stage.launch import (
+from piezo_stage.launch import (  # noqa: E402
     Launcher,
     LaunchError,
-    RequiredProcessExited,  # noqa: E402
+    RequiredProcessExited,
     TopicsNotReadyError,
 )
 
@@ -355,7 +355,8 @@ def test_required_exit_while_waiting_and_module_errors(tmp_path):
 
 def test_module_without_main_runs_as_main(tmp_path):
     (tmp_path / "script_mod.py").write_text(
-        "import sys\nif __name__ == '__main__':\n    print('as main', sys.argv[1:])\n    sys.exit(4)\n"
+        "import sys\nif __name__ == '__main__':\n    print('as main', sys.argv[1:])\n"
+        "    sys.exit(4)\n"
     )
     out = Lines()
     launch = Launcher(

@@ -27,9 +27,10 @@ SETS = [(3.0, 1.5), (0.9153, 1.176), (0.812, 1.12), (0.5, 1.0), (7.0, 3.3)]
 
 def quad_phi(w: float, sigma: float, n: float, sign: float) -> float:
     """Direct quadrature of (9.3) (sign=-1) / (9.4) (sign=+1)."""
-    f = lambda u: (
-        1.0 / (1.0 + sign * (-sigma * abs(u) ** (n - 1) * u) + (sigma - 1.0) * abs(u) ** n)
-    )  # noqa: E731
+
+    def f(u):
+        return 1.0 / (1.0 + sign * (-sigma * abs(u) ** (n - 1) * u) + (sigma - 1.0) * abs(u) ** n)
+
     return quad(f, 0.0, w, epsabs=1e-14, epsrel=1e-13, limit=200)[0]
 
 

@@ -148,7 +148,8 @@ def test_unsafe_gain_change_is_refused_with_a_reason(node):
 @pytest.mark.parametrize(
     "param, reason",
     [
-        # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable (docs/design.md §7)
+        # 20 kHz with the thesis gains and a one-sample delay: the sampled loop is unstable
+        # (docs/design.md §7)
         ("rate_hz:=20000.0", "sampled loop unstable"),
         ("sensor_qos:=fastest", "sensor_qos: 'fastest' is not one of best_effort, reliable"),
     ],

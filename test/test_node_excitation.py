@@ -160,7 +160,9 @@ def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(nod
             t = 100.0 + k * dt
             sec, nanosec = int(t), int(round((t - int(t)) * 1e9))
             clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
-            assert spin_until(node, lambda: (sec, nanosec) in seen, 5.0), f"no command for tick {k}"
+            assert spin_until(node, lambda sec=sec, nanosec=nanosec: (sec, nanosec) in seen, 5.0), (
+                f"no command for tick {k}"
+            )
         assert spin_until(lagging, lambda: len(late_cmds) >= n_ticks, 30.0), (
             f"the lagging reader got {len(late_cmds)} of {n_ticks} commands"
         )

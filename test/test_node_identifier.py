@@ -145,7 +145,8 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
 
 def test_identifier_adapts_its_stream_qos_to_the_publishers():
     """stream_qos auto (default): reliable while every publisher is (the lockstep plant, a player),
-    best effort once a SensorDataQoS publisher (the rig's laser reader) is there, and samples flow."""
+    best effort once a SensorDataQoS publisher (the rig's laser reader) is there, and samples
+    flow."""
     from diagnostic_msgs.msg import DiagnosticArray
 
     from piezo_stage_msgs.msg import Displacement, Voltage

@@ -11,9 +11,10 @@ Tolerances, against config/ch10_patch.yaml (Tables 10.4-10.5):
   ≤ 1.4 % for y0.
 - κw, ρ, σ, n: 6 % — the hysteretic part is ~10 % of the output and, at these amplitudes
   (ρ·Δv ≈ 1.4), weakly conditioned, and the triangle (T = 3 s) rises 200 V/s, so 1 ms of
-  stamp bias between voltage and displacement costs 3-5 % on n. The driver writes the 200 Hz commands as
-  a first-order hold in 0.9 ms steps and publishes every value it writes on ``voltage``; the
-  identifier takes that as held values on the sensor's sample times (identification/io.py).
+  stamp bias between voltage and displacement costs 3-5 % on n. The driver writes the 200 Hz
+  commands as a first-order hold in 0.9 ms steps and publishes every value it writes on
+  ``voltage``; the identifier takes that as held values on the sensor's sample times
+  (identification/io.py).
   The reader publishes every 1 kHz sample, stamped on the sensor's sample clock from a read
   thread, minus the emulation chain's 0.2 ms latency (see config/graphs/emulated_rig.yaml).
   Seen: ≤ 0.6 % in 9 runs (before, at T = 1.5 s: 1.2-7 %, from a 5-sample mean at 200 Hz, a

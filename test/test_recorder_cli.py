@@ -1,4 +1,5 @@
-"""`piezo-stage record`: starts the recorder node in a namespace, forwards Ctrl-C, prints the bag."""
+"""`piezo-stage record`: starts the recorder node in a namespace, forwards Ctrl-C, prints the
+bag."""
 
 from __future__ import annotations
 

@@ -65,7 +65,9 @@ rclpy.init()
 node = rclpy.create_node("source", namespace=ns)
 latched = node.create_publisher(msg_class("BoucWenParameters"), "bouc_wen_parameters", LATCHED_QOS)
 latched.publish(fill(msg_class("BoucWenParameters")(), 40000))
-keep_all = QoSProfile(depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+keep_all = QoSProfile(
+    depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE
+)
 volt = node.create_publisher(msg_class("Voltage"), "voltage", keep_all)
 disp = node.create_publisher(msg_class("Displacement"), "displacement", SENSOR_QOS)
 state = node.create_publisher(msg_class("ControllerState"), "controller_state", COMMAND_QOS)

@@ -1,4 +1,5 @@
-"""The committed sample bags: small, readable by rosbags, identified to the true parameters offline."""
+"""The committed sample bags: small, readable by rosbags, identified to the true parameters
+offline."""
 
 from __future__ import annotations
 

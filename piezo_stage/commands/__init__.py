@@ -1,1 +1,2 @@
-"""Sub-commands of the `piezo-stage` CLI: one module each, with `add_arguments(parser)` and `run(args) -> int`."""
+"""Sub-commands of the `piezo-stage` CLI: one module each, with `add_arguments(parser)` and
+`run(args) -> int`."""

@@ -6,7 +6,8 @@ Theorem 4, and with --rate-hz the spectral radius of the sampled loop (ZOH plant
 x0, Euler-difference x2, optional output delay). Exit status: 0 valid (and stable when checked),
 1 not, 2 bad input. Values beyond 1e±150, a delay over 1000 samples, a rate so low that the held
 plant overflows, or so high that the slowest closed-loop mode moves less than 1e6·eps per sample
-(|λ_min|/2.2e-10 Hz: ρ would be rounding noise around 1) are refused with the reason. Note: §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
+(|λ_min|/2.2e-10 Hz: ρ would be rounding noise around 1) are refused with the reason. Note:
+§11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
 give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
 """
 
@@ -99,7 +100,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--hysteresis",
         choices=HYSTERESIS_MODELS,
         default="disturbance",
-        help="w as bounded disturbance (k = kappa_x) or by its initial slope (k = kappa_x + kappa_w rho)",
+        help=(
+            "w as bounded disturbance (k = kappa_x) or by its initial slope "
+            "(k = kappa_x + kappa_w rho)"
+        ),
     )
     d.add_argument(
         "--derivative-tau",
@@ -168,11 +172,13 @@ def _print_table(
     print(f"  k1 = {_fmt(report.k1):<12}")
     k2_ok = report.k2 is not None and report.k2 > report.k2_min
     print(
-        f"  k2 = {_fmt(report.k2):<12} k2_min = {_fmt(report.k2_min):<12} (11.6)  {'ok' if k2_ok else 'NOT ok'}"
+        f"  k2 = {_fmt(report.k2):<12} k2_min = {_fmt(report.k2_min):<12} (11.6)  "
+        f"{'ok' if k2_ok else 'NOT ok'}"
     )
     k0_ok = report.k0 is not None and report.k0_max is not None and 0 < report.k0 < report.k0_max
     print(
-        f"  k0 = {_fmt(report.k0):<12} k0_max = {_fmt(report.k0_max):<12} (11.7)  {'ok' if k0_ok else 'NOT ok'}"
+        f"  k0 = {_fmt(report.k0):<12} k0_max = {_fmt(report.k0_max):<12} (11.7)  "
+        f"{'ok' if k0_ok else 'NOT ok'}"
     )
     if report.kA is not None or report.f is not None:
         print(f"  kA = {_fmt(report.kA):<12} f = {_fmt(report.f)} Hz")

@@ -1,4 +1,5 @@
-"""Time-varying PID control laws, Theorem 4 gain design and sampled-loop checks (thesis ch. 11). No rclpy.
+"""Time-varying PID control laws, Theorem 4 gain design and sampled-loop checks (thesis ch. 11).
+No rclpy.
 
 Modules: :mod:`.laws` (11.5, 11.17, 11.18), :mod:`.controller` (the sampled controller a node
 calls each period), :mod:`.reference` (§11.4.1 reference), :mod:`.bounds` (Assumption 2),

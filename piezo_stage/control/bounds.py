@@ -1,4 +1,5 @@
-"""Assumption 2 parameter bounds and the nominal linear plant, loaded from YAML (thesis §11.1, §11.4.1).
+"""Assumption 2 parameter bounds and the nominal linear plant, loaded from YAML (thesis §11.1,
+§11.4.1).
 
 YAML layout (see ``config/thesis_rig_bounds.yaml``)::
 

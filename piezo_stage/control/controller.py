@@ -1,8 +1,9 @@
 """Stateful time-varying PID (11.5, 11.17, 11.18) for a sampled loop, as §11.5 implements it.
 
 x1 = x − yr; x0 by rectangle sums x0[k] = x0[k−1] + x1[k]·Δt[k] (right rectangles: the current
-sample is included); x2 by Euler differences of the measurement x2[k] = (x[k] − x[k−1])/Δt[k] − ẏr[k]
-(ẏr given, or the Euler difference of yr), optionally through a first-order filter. Δt comes from
+sample is included); x2 by Euler differences of the measurement
+x2[k] = (x[k] − x[k−1])/Δt[k] − ẏr[k] (ẏr given, or the Euler difference of yr), optionally
+through a first-order filter. Δt comes from
 the caller's timestamps, with guards. Around the law: output clamp to the amplifier limits with
 anti-windup, open loop with a hold voltage, bumpless open→closed transfer.
 
@@ -33,8 +34,8 @@ class ControllerConfig:
 
     - ``u_min``/``u_max``: amplifier limits [V] (thesis amplifier: ±450 V, §11.2.1).
     - ``anti_windup``: ``"conditional"`` (freeze x0 while u is beyond a limit and integrating
-      would push it further), ``"back_calculation"`` (bleed x0 back with time constant ``tracking_time``) or
-      ``"none"``.
+      would push it further), ``"back_calculation"`` (bleed x0 back with time constant
+      ``tracking_time``) or ``"none"``.
     - ``tracking_time``: Tt [s] of back-calculation; None → sqrt(Ti·Td), Ti = k1/k0, Td = k2/k1.
     - ``derivative_tau``: time constant [s] of the first-order filter on x2; 0 = off (thesis).
     - ``hold_voltage``: u while the loop is open; None → the last output.
@@ -68,7 +69,8 @@ class ControllerConfig:
             ) from None
 
     def validate(self) -> None:
-        """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable configuration."""
+        """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable
+        configuration."""
         check_law(self.mode)
         self.gains.validate(self.mode)
         if math.isnan(self.u_min) or math.isnan(self.u_max) or not self.u_min < self.u_max:
@@ -124,8 +126,9 @@ class ControlOutput:
 
     ``u = clamp(u_pid + u_excitation + u_ff)`` when the loop is closed (u_pid = u_excitation = 0
     under ``feedforward``, u_ff = 0 under ``feedback``), the (clamped) hold voltage when open.
-    ``timing`` is ``"ok"``, ``"first"`` (no previous sample: x2 from ẏr only, no integration), ``"gap"`` (Δt > dt_max: likewise) or ``"nonpositive_dt"`` (sample ignored, the
-    previous output repeated).
+    ``timing`` is ``"ok"``, ``"first"`` (no previous sample: x2 from ẏr only, no integration),
+    ``"gap"`` (Δt > dt_max: likewise) or ``"nonpositive_dt"`` (sample ignored, the previous
+    output repeated).
     """
 
     t: float
@@ -217,7 +220,8 @@ class TimeVaryingPID:
         self._config = config
 
     def open_loop(self, hold: float | None = None) -> None:
-        """Open the loop: u = ``hold``, else ``config.hold_voltage``, else the last output (clamped)."""
+        """Open the loop: u = ``hold``, else ``config.hold_voltage``, else the last output
+        (clamped)."""
         if hold is not None and not math.isfinite(hold):
             raise MeasurementError(f"hold voltage must be finite, got {hold}")
         if hold is None:
@@ -229,7 +233,8 @@ class TimeVaryingPID:
             self._ff.unseed()  # the stage leaves x_d: re-seeded from it at closing
 
     def close_loop(self) -> None:
-        """Close the loop at the next :meth:`update` (x0 set per ``config.on_close``, sine phase 0)."""
+        """Close the loop at the next :meth:`update` (x0 set per ``config.on_close``, sine
+        phase 0)."""
         if not self._closed:
             self._pending_close = True
 

@@ -1,4 +1,5 @@
-"""Stability of the sampled closed loop: ZOH plant + the discrete law of §11.5, at a given rate and delay.
+"""Stability of the sampled closed loop: ZOH plant + the discrete law of §11.5, at a given rate
+and delay.
 
 Plant: the linear part of (11.1)-(11.3), m·ẍ + c·ẋ + k·x = u, held by a zero-order hold over each
 period T = 1/rate. The hysteresis enters one of two ways (``hysteresis=``):
@@ -51,7 +52,8 @@ def stiffness(plant: NominalPlant, hysteresis: str = "disturbance") -> float:
 def continuous_poles(
     plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
 ) -> np.ndarray:
-    """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15), w frozen."""
+    """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15),
+    w frozen."""
     k = stiffness(plant, hysteresis)
     return np.roots([plant.m, plant.c + gains.k2, k + gains.k1, gains.k0])
 

@@ -29,7 +29,8 @@ def check_law(mode: str) -> str:
 
 @dataclass(frozen=True)
 class Gains:
-    """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V], f [Hz].
+    """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V],
+    f [Hz].
 
     Thesis values (§11.4.1, §11.5.3): k1 = 5e6, k2 = 580, k0 = 1e9, kA = 1.5e9, f = 100 Hz;
     §11.5.2 uses A = 15 V with f = 10 Hz.
@@ -43,7 +44,8 @@ class Gains:
     f: float = 100.0
 
     def validate(self, mode: str = "pid") -> None:
-        """Raise :class:`GainError` for non-finite or negative gains, or f <= 0 for the sine laws."""
+        """Raise :class:`GainError` for non-finite or negative gains, or f <= 0 for the sine
+        laws."""
         check_law(mode)
         for key, value in asdict(self).items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -1,7 +1,9 @@
-"""The thesis's reference yr(t) (§11.4.1): a second-order linear system driven by initial conditions.
+"""The thesis's reference yr(t) (§11.4.1): a second-order linear system driven by initial
+conditions.
 
-yr is the output of ω0/(s² + 2ξω0 s + ω0²) with zero input, i.e. ÿr + 2ξω0·ẏr + ω0²·(yr − target) = 0,
-with yr(0) = y0, ẏr(0) = ydot0; the thesis uses ξ = 0.7, ω0 = 2π·500 rad/s and target = 0.
+yr is the output of ω0/(s² + 2ξω0 s + ω0²) with zero input, i.e.
+ÿr + 2ξω0·ẏr + ω0²·(yr − target) = 0, with yr(0) = y0, ẏr(0) = ydot0; the thesis uses
+ξ = 0.7, ω0 = 2π·500 rad/s and target = 0.
 A non-zero ``target`` makes the same system a smooth set-point transition (yr → target),
 whose derivatives all vanish exponentially as the Theorem 4 setting requires.
 """
@@ -19,7 +21,8 @@ from .errors import ControlError
 
 @dataclass(frozen=True)
 class SecondOrderReference:
-    """yr(t), ẏr(t), ÿr(t) in closed form; ``t`` is measured from ``t_start`` (before it, yr = y0)."""
+    """yr(t), ẏr(t), ÿr(t) in closed form; ``t`` is measured from ``t_start`` (before it,
+    yr = y0)."""
 
     y0: float
     ydot0: float = 0.0

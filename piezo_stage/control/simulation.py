@@ -74,8 +74,8 @@ def simulate_closed_loop(
 
     Each period k: measure, call ``controller.update(t[k], measured, yr, ẏr)``, hold the output
     computed ``delay_samples`` periods earlier over the period (zero-order hold), step the plant.
-    ``reference(t)`` returns yr, (yr, ẏr) or (yr, ẏr, ÿr) (a trajectory, for the feedforward), e.g. a
-    :class:`~piezo_stage.control.reference.SecondOrderReference`; default yr = 0, ẏr = 0.
+    ``reference(t)`` returns yr, (yr, ẏr) or (yr, ẏr, ÿr) (a trajectory, for the feedforward),
+    e.g. a :class:`~piezo_stage.control.reference.SecondOrderReference`; default yr = 0, ẏr = 0.
     ``open_windows``: (start, end, hold) intervals (relative to t0) with the loop open at
     ``hold`` volts (None: the last output), closed again at ``end`` (§11.5: 10 ms at 72 V).
     """

@@ -1,7 +1,7 @@
 """Theorem 4 gain design for the PID (11.5): k2_min (11.6), k0_max (11.7) and a gain report.
 
-Erratum (docs/design.md §7): §11.4.1 quotes k2_min = 567.6 (k1 = 5e6) and k0_max = 1.16e9 (k2 = 580),
-but evaluating (11.6)-(11.7) with the bounds printed there gives k2_min ≈ 515.9 and
+Erratum (docs/design.md §7): §11.4.1 quotes k2_min = 567.6 (k1 = 5e6) and k0_max = 1.16e9
+(k2 = 580), but evaluating (11.6)-(11.7) with the bounds printed there gives k2_min ≈ 515.9 and
 k0_max ≈ 1.515e9. This module implements the formulas as printed; the thesis gains
 k1 = 5e6, k2 = 580, k0 = 1e9 satisfy both versions.
 """
@@ -62,7 +62,8 @@ def k0_max(bounds: Bounds, k1: float, k2: float) -> float:
 
 @dataclass(frozen=True)
 class GainReport:
-    """Outcome of :func:`validate_gains`: Theorem 4 limits, the gains and why they fail (if they do)."""
+    """Outcome of :func:`validate_gains`: Theorem 4 limits, the gains and why they fail (if they
+    do)."""
 
     k1: float
     k2: float | None

@@ -1,4 +1,5 @@
-"""Analytic limit-cycle identification of the (modified) normalized Bouc-Wen model (thesis ch. 9-10). No rclpy.
+"""Analytic limit-cycle identification of the (modified) normalized Bouc-Wen model (thesis
+ch. 9-10). No rclpy.
 
 Entry points: :func:`identify` (two recorded runs) and :func:`identify_cycles` (two steady
 cycles), returning an :class:`IdentificationResult`; :func:`load_runs` reads CSV files and bags.

@@ -48,7 +48,8 @@ class DesignPoints:
         for name, value in (("x*1", x1), ("x*2", x2), ("x*3", x3)):
             if not x_min < value < x_max:
                 raise DesignPointError(
-                    f"{name} = {value:.6g} lies outside the loading branch [{x_min:.6g}, {x_max:.6g}]"
+                    f"{name} = {value:.6g} lies outside the loading branch "
+                    f"[{x_min:.6g}, {x_max:.6g}]"
                 )
         if not x3 < x_star < x1 < x2:
             raise DesignPointError(

@@ -156,8 +156,9 @@ def _merge(
 ) -> Recording:
     """One time base for both signals, the other resampled on it.
 
-    A voltage series is what the amplifier applied from each stamp until the next (docs/design.md §3:
-    ``voltage`` is stamped when applied), so it is resampled as held values (``hold_*``), which is
+    A voltage series is what the amplifier applied from each stamp until the next
+    (docs/design.md §3: ``voltage`` is stamped when applied), so it is resampled as held values
+    (``hold_*``), which is
     exact; linear interpolation of a held staircase would make the input lead the stage by half a
     step (a 200 Hz staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled
     from a continuous signal: its own sample times are the time base when the other signal is
@@ -259,7 +260,8 @@ def recordings_from_series(
     """One Recording per run interval from the input and output series (any order, duplicates
     dropped). Shared by :func:`load_bag` and the live ``identifier`` node, so that a bag replayed
     through the node gives the offline result. Output samples flagged invalid are refused. A
-    series in volts (the applied ``voltage``) is resampled as held values, the other interpolated."""
+    series in volts (the applied ``voltage``) is resampled as held values, the other
+    interpolated."""
     t_in, v, _ = _sorted_series(np.asarray(t_in, float), np.asarray(v, float), None)
     t_out, y, status = _sorted_series(
         np.asarray(t_out, float),

@@ -93,7 +93,8 @@ def resolve_orientation(orientations: list[Orientation], requested: int | None) 
     if requested is not None and requested != detected:
         raise OrientationError(
             f"input_sign={requested:+d} was requested but the loop orientation requires "
-            f"input_sign={detected:+d} (w driven by {'-' if detected < 0 else ''}v): with ρ, κw > 0 "
+            f"input_sign={detected:+d} (w driven by {'-' if detected < 0 else ''}v): "
+            "with ρ, κw > 0 "
             "the requested orientation cannot fit these data"
         )
     return detected

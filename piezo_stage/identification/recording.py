@@ -111,7 +111,8 @@ def _check_clipping(rec: Recording, clip_fraction: float) -> None:
         widest = _widest_input_range(at_level, v)
         if widest > clip_fraction * span_v:
             raise SaturatedOutputError(
-                f"{rec.label}: the output sits at its {level} ({float(y.max() if level == 'maximum' else y.min()):.6g}) "
+                f"{rec.label}: the output sits at its {level} "
+                f"({float(y.max() if level == 'maximum' else y.min()):.6g}) "
                 f"while the input moves over {100 * widest / span_v:.1f} % of its span: "
                 "sensor or amplifier saturated (clipped), reduce the excitation amplitude"
             )

@@ -123,7 +123,8 @@ class Launcher:
                     proc.start()
                     self.processes.append(proc)
                 self._log(
-                    f"started {spec.name} (pid {proc.pid}): {shell_line(display_argv(spec, self.graph))}"
+                    f"started {spec.name} (pid {proc.pid}): "
+                    f"{shell_line(display_argv(spec, self.graph))}"
                 )
                 if spec.ready_pattern:
                     self._await_pattern(proc)

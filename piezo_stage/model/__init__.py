@@ -1,4 +1,5 @@
-"""Bouc-Wen hysteresis models and piezo plant dynamics (thesis ch. 8, 9.1.1-9.1.2, 10.2, 11.2). No rclpy.
+"""Bouc-Wen hysteresis models and piezo plant dynamics (thesis ch. 8, 9.1.1-9.1.2, 10.2, 11.2).
+No rclpy.
 
 Modules: ``bouc_wen`` (parameters, (8.10), exact simulation of (9.2)), ``limit_cycle``
 (phi/psi of (9.3)-(9.9), Theorem 2), ``signals`` (T-wave excitation), ``parameter_set``

@@ -946,7 +946,8 @@ def integrate(
                         v_peak = max(v_peak, abs(zs[p, 1]))
                     f_end = F[q - 1]
                     tau_solved = tau  # the length F was solved for
-                    # (moves only on long pieces: the polynomial form of _state_at cancels on short ones)
+                    # (moves only on long pieces: the polynomial form of _state_at cancels on
+                    # short ones)
                     movable = max(math.sqrt(k_loc / m), c / m) * tau > _SERIES_LIMIT
                     resolve = False
                     while polish < 4:

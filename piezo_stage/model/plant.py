@@ -8,7 +8,8 @@
   the stiff ~7 kHz mode of the thesis rig is propagated exactly, the hysteresis exactly along
   the x path, sub-steps chosen by an error estimate.
 - :class:`AmplifierModel`, :class:`SensorModel`, :class:`SimulatedStage` (defined in
-  :mod:`.stage`, importable from here too): ``step(command_voltage, dt) -> (applied, displacement, status)``.
+  :mod:`.stage`, importable from here too):
+  ``step(command_voltage, dt) -> (applied, displacement, status)``.
 - :func:`simulate_reference`: scipy ``solve_ivp`` with velocity-reversal events, the slow
   converged baseline used by the tests and ``bench/plant.py``.
 """
@@ -16,6 +17,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.polynomial import legendre
@@ -26,6 +28,9 @@ from . import _plant_kernels as K
 from .bouc_wen import BoucWenParameters, check_w0, polynomial
 from .errors import InputSignalError, InvalidCommandError, ParameterError
 from .parameter_set import Dynamics
+
+if TYPE_CHECKING:  # at run time these come lazily from .stage (see __getattr__ below)
+    from .stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
 
 Array = np.ndarray
 
@@ -53,7 +58,8 @@ def __getattr__(name: str):  # PEP 562: the stage classes live in .stage (which 
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-#: default local tolerance of DynamicPlant: <= 1e-6 relative error on the bench inputs (bench/plant.py)
+#: default local tolerance of DynamicPlant: <= 1e-6 relative error on the bench inputs
+#: (bench/plant.py)
 DEFAULT_TOL = 3e-8
 
 

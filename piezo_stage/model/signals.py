@@ -32,7 +32,8 @@ def triangle(
     phase: float = 0.0,
     rise_fraction: float = 0.5,
 ) -> Array:
-    """T-wave triangle (9.1.1): ``low`` at t = 0 (phase 0), rising to ``high`` at T+ = rise_fraction*T.
+    """T-wave triangle (9.1.1): ``low`` at t = 0 (phase 0), rising to ``high`` at
+    T+ = rise_fraction*T.
 
     ``phase`` is in cycles (0.25 starts a quarter period later in the cycle).
     """
