@@ -276,7 +276,7 @@ class RosRig:
         from piezo_stage.launch import Launcher, LaunchError
         from piezo_stage.nodes.executor import LeanExecutor
         from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
-        from piezo_stage_msgs.msg import ControllerState
+        from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
         rate = float(run["rate_hz"])
         x_eq = U_SET / float(run["kappa_x"])
@@ -321,6 +321,7 @@ class RosRig:
         }
         lines: list[str] = []
         raw: list[tuple[int, bytes]] = []
+        streams: dict[str, list[tuple[int, bytes]]] = {"displacement": [], "voltage": []}
         launch = None
         try:
             launch = Launcher(
@@ -340,6 +341,14 @@ class RosRig:
                 QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
                 raw=True,
             )
+            for topic, msg_type in (("displacement", Displacement), ("voltage", Voltage)):
+                node.create_subscription(  # the rig's own record, in the bag beside the states
+                    msg_type,
+                    topic,
+                    lambda d, k=topic: streams[k].append((_stamp_ns(d), d)),
+                    QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
+                    raw=True,
+                )
             executor = LeanExecutor(context=ctx)
             executor.add_node(node)
             try:
@@ -401,6 +410,10 @@ class RosRig:
             )
             for ns, d in raw:
                 writer.write(f"{namespace}/controller_state", d, ns)
+            for topic, items in streams.items():
+                writer.add_topic(f"{namespace}/{topic}", _TOPICS[topic])
+                for ns, d in sorted(items, key=lambda p: p[0]):
+                    writer.write(f"{namespace}/{topic}", d, ns)
         closed = data["loop_closed"]
         try:
             if closed.size and not closed[-1]:
