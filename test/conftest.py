@@ -32,6 +32,12 @@ def _claim_domain() -> int:
     return domain
 
 
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Release this process's ROS domain claim (closing the lock file)."""
+    if _held_lock is not None:
+        _held_lock.close()
+
+
 def pytest_configure(config: pytest.Config) -> None:
     if "PIEZO_TEST_DOMAIN_ID" not in os.environ:
         os.environ["PIEZO_TEST_DOMAIN_ID"] = str(_claim_domain())

@@ -18,6 +18,7 @@ pytest.importorskip("rclpy")
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
     out = tmp_path / "demo"
     proc = subprocess.run(

@@ -69,6 +69,7 @@ def regulation():
     return get
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_regulation_pid_regulates_with_nonzero_final_u(regulation, tmp_path):
     r = regulation("pid", bag=tmp_path / "bag", png_dir=tmp_path / "png")
@@ -83,6 +84,7 @@ def test_regulation_pid_regulates_with_nonzero_final_u(regulation, tmp_path):
     assert (tmp_path / "png" / "regulation_pid.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_regulation_pid_sine_oscillation_shrinks_with_A(regulation):
     big, small = regulation("pid_sine", 15.0), regulation("pid_sine", 5.0)
@@ -91,6 +93,7 @@ def test_regulation_pid_sine_oscillation_shrinks_with_A(regulation):
     assert small["oscillation_x1"] < big["oscillation_x1"]
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_regulation_pid_tv_regulates(regulation):
     r, pid = regulation("pid_tv"), regulation("pid")
@@ -110,6 +113,7 @@ def perturbation():
     }
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_perturbation_opens_for_10_ms_at_72_V(perturbation):
     for r in perturbation.values():
@@ -118,6 +122,7 @@ def test_perturbation_opens_for_10_ms_at_72_V(perturbation):
         assert r["max_abs_error"] > 5e-6  # the 128 V drop moved the stage
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 def test_perturbation_pid_moves_the_equilibrium_pid_tv_keeps_it(perturbation):
     pid, tv = perturbation["pid"], perturbation["pid_tv"]

@@ -368,6 +368,7 @@ def test_module_without_main_runs_as_main(tmp_path):
     assert out.of("script_mod")[0].startswith("as main ['x', '--ros-args', '-r', '__ns:=/piezo'")
 
 
+@pytest.mark.slow
 def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
     """The shipped sim_closed_loop graph twice (`clock: namespaced`): each lockstep plant steps on
     <ns>/clock under its own controller, and nothing publishes the global /clock."""

@@ -166,6 +166,7 @@ def test_bad_start_parameters_exit_with_the_reason(param, reason):
 @pytest.mark.parametrize(
     "sensor_qos,reliability", [("best_effort", "BEST_EFFORT"), ("reliable", "RELIABLE")]
 )
+@pytest.mark.slow
 def test_sensor_qos_sets_the_displacement_subscription(node, sensor_qos, reliability):
     """best_effort matches the rig's SensorDataQoS reader; reliable (the lockstep graphs) loses no
     sample of the lockstep plant, so no step waits for the plant's timeout."""

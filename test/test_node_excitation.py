@@ -110,6 +110,7 @@ def test_timer_trigger_runs_on_wall_clock_and_stops_cleanly_on_sigint(node):
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(node):
     """trigger=clock runs as fast as the graph: a reliable reader that falls behind (a recorder
     under load) must still get every command and mark, including those published just before the

@@ -220,6 +220,7 @@ def test_identifier_adapts_its_stream_qos_to_the_publishers():
         rclpy.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["analytic", "auto"])
 def test_identifier_says_when_the_streams_end_with_one_run_only(method, tmp_path):
     """A replay of a bag holding one run: once the streams are silent for settle_time, the node

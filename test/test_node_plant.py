@@ -140,6 +140,7 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
     return t, x[first], params, cycles
 
 
+@pytest.mark.slow
 def test_lockstep_loop_identifies_the_plant_and_is_deterministic(node):
     true = shipped_parameter_set("ch9_example").bouc_wen
     t1, x1, params, cycles = _lockstep_run(node, "/lockstep_a", 400.0)
@@ -159,6 +160,7 @@ def test_lockstep_loop_identifies_the_plant_and_is_deterministic(node):
     np.testing.assert_array_equal(x1[:n], x2[:n])  # the same run twice: identical samples
 
 
+@pytest.mark.slow
 def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node):
     """wait_for_subscribers:=2: with a commander present but one reader per stream, no /clock and
     no sample; once a second reader is matched, step 0 comes first, to both."""

@@ -386,6 +386,7 @@ def test_use_sim_time_cannot_be_switched_on_at_run_time(probe, gcs):
         stop(d.proc)
 
 
+@pytest.mark.slow
 def test_watchdog_clears_queued_commands_when_the_publisher_stops(probe, gcs):
     """apply_at_stamp, commands stamped 4 s ahead: the publisher stops; the watchdog fires
     command_timeout after the last *received* command and the queued commands never reach the

@@ -68,6 +68,7 @@ def rig_graph(port: int, link: str):
     return replace(g, nodes=nodes)
 
 
+@pytest.mark.slow
 def test_emulated_rig_graph_identifies_the_emulated_patch(probe, tmp_path):
     from piezo_stage_msgs.msg import BoucWenParameters, Displacement, Voltage
 

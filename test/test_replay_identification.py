@@ -64,6 +64,7 @@ def _offline(bag: str, degree: int, capsys, method: str = "auto") -> dict:
         ),
     ],
 )
+@pytest.mark.slow
 def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
     node, bag, degree, params, method, tmp_path, capsys
 ):

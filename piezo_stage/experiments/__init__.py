@@ -20,4 +20,12 @@ def run_experiment(*args, **kwargs):  # noqa: D103 - rclpy is imported lazily
 
 run_experiment.__doc__ = "See :func:`piezo_stage.experiments.runner.run_experiment`."
 
-__all__ = ["EXPERIMENTS", "ExperimentError", "ExperimentInputError", "UnknownExperimentError", "make_plan", "pick_rate", "run_experiment"]
+__all__ = [
+    "EXPERIMENTS",
+    "ExperimentError",
+    "ExperimentInputError",
+    "UnknownExperimentError",
+    "make_plan",
+    "pick_rate",
+    "run_experiment",
+]

@@ -17,7 +17,16 @@ def plot_run(plan: Plan, data: dict[str, np.ndarray], out_dir: Path) -> list[Pat
     """x1 [µm], x2 [m/s], u and its terms [V] against t, loop-closed time shaded; one PNG,
     returns its path."""
     path = Path(out_dir) / f"{plan.name}_{plan.mode}.png"
-    closed_loop_figure(path, data["t"], data["x1"], data["x2"], data["u"], data["u_pid"], data["u_excitation"],
-                       data["loop_closed"], mode=plan.mode,
-                       title=f"{plan.name} — {plan.mode} at {plan.rate_hz / 1e3:g} kHz (lockstep)")
+    closed_loop_figure(
+        path,
+        data["t"],
+        data["x1"],
+        data["x2"],
+        data["u"],
+        data["u_pid"],
+        data["u_excitation"],
+        data["loop_closed"],
+        mode=plan.mode,
+        title=f"{plan.name} — {plan.mode} at {plan.rate_hz / 1e3:g} kHz (lockstep)",
+    )
     return [path]

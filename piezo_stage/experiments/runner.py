@@ -21,8 +21,14 @@ _counter = iter(range(1, 1 << 30))
 _STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
 
 
-def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | None,
-             wall_timeout: float, launch: Any) -> tuple[dict[str, np.ndarray], list[tuple[int, bytes]]]:
+def _collect(
+    plan: Plan,
+    namespace: str,
+    domain_id: int,
+    progress: Progress | None,
+    wall_timeout: float,
+    launch: Any,
+) -> tuple[dict[str, np.ndarray], list[tuple[int, bytes]]]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -47,10 +53,18 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
             return  # the plant re-offers step 0 to a late commander: keep one sample per step
         raw.append((ns, data))
         if progress is not None and len(raw) % 2000 == 0:
-            progress(min(ns * 1e-9 / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {ns * 1e-6:.1f} ms")
+            progress(
+                min(ns * 1e-9 / plan.duration, 1.0),
+                f"{plan.name}/{plan.mode}: t = {ns * 1e-6:.1f} ms",
+            )
 
-    node.create_subscription(ControllerState, "controller_state", on_state,
-                             QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE), raw=True)
+    node.create_subscription(
+        ControllerState,
+        "controller_state",
+        on_state,
+        QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
+        raw=True,
+    )
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     try:
@@ -59,8 +73,10 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
         deadline = time.monotonic() + wall_timeout
         while len(raw) < n_expected and (not raw or raw[-1][0] < end_ns):
             if time.monotonic() > deadline:
-                raise ExperimentError(f"{plan.name}/{plan.mode}: only {len(raw)} of {n_expected} steps "
-                                      f"after {wall_timeout:g} s")
+                raise ExperimentError(
+                    f"{plan.name}/{plan.mode}: only {len(raw)} of {n_expected} steps "
+                    f"after {wall_timeout:g} s"
+                )
             executor.spin_once(timeout_sec=0.1)
     finally:
         executor.shutdown()
@@ -69,10 +85,23 @@ def _collect(plan: Plan, namespace: str, domain_id: int, progress: Progress | No
     rows = []
     for ns, data in raw:
         msg = deserialize_message(data, ControllerState)
-        rows.append((ns * 1e-9, msg.x0, msg.x1, msg.x2, msg.u, msg.u_pid, msg.u_excitation, msg.loop_closed,
-                     msg.reference))
+        rows.append(
+            (
+                ns * 1e-9,
+                msg.x0,
+                msg.x1,
+                msg.x2,
+                msg.u,
+                msg.u_pid,
+                msg.u_excitation,
+                msg.loop_closed,
+                msg.reference,
+            )
+        )
     cols = list(zip(*rows))
-    data = {k: np.asarray(v, dtype=bool if k == "loop_closed" else float) for k, v in zip(SIGNALS, cols)}
+    data = {
+        k: np.asarray(v, dtype=bool if k == "loop_closed" else float) for k, v in zip(SIGNALS, cols)
+    }
     return data, raw
 
 
@@ -86,10 +115,18 @@ def _write_bag(path: Path, namespace: str, raw: list[tuple[int, bytes]]) -> None
             bag.write(topic, data, ns)
 
 
-def run_experiment(name: str, mode: str, *, bag: str | os.PathLike[str] | None = None,
-                   png_dir: str | os.PathLike[str] | None = None, progress: Progress | None = None,
-                   duration: float | None = None, gains: dict[str, float] | None = None,
-                   wall_timeout: float = 300.0, plan: Plan | None = None) -> dict[str, Any]:
+def run_experiment(
+    name: str,
+    mode: str,
+    *,
+    bag: str | os.PathLike[str] | None = None,
+    png_dir: str | os.PathLike[str] | None = None,
+    progress: Progress | None = None,
+    duration: float | None = None,
+    gains: dict[str, float] | None = None,
+    wall_timeout: float = 300.0,
+    plan: Plan | None = None,
+) -> dict[str, Any]:
     """Run experiment ``name`` (regulation | perturbation) under law ``mode`` (pid | pid_sine |
     pid_tv) on the simulated ch. 11 rig in lockstep; return the JSON-ready summary.
 
@@ -106,11 +143,15 @@ def run_experiment(name: str, mode: str, *, bag: str | os.PathLike[str] | None =
     if bag is not None and Path(bag).exists():
         raise ExperimentError(f"bag {bag} already exists")
     namespace = f"/experiment_{os.getpid()}_{next(_counter)}"
-    domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)  # the launcher checks readiness there
+    domain_id = int(
+        os.environ.get("ROS_DOMAIN_ID", "0") or 0
+    )  # the launcher checks readiness there
     lines: list[str] = []
     if progress is not None:
         progress(0.0, f"{name}/{mode}: starting the graph at {plan.rate_hz:g} Hz")
-    launch = Launcher(graph_for(plan, namespace), sink=lambda n, line, err: lines.append(f"[{n}] {line}"))
+    launch = Launcher(
+        graph_for(plan, namespace), sink=lambda n, line, err: lines.append(f"[{n}] {line}")
+    )
     started = time.monotonic()
     result: dict[str, Any] = {}
     try:

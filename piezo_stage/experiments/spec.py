@@ -25,8 +25,8 @@
   the end of that period measured from the re-closing.
 
 Why the perturbation runs 0.4 s (for ``pid_tv``): after re-closing, x1 and x2 are back near 0
-within ~30 ms, but u relaxes to u_before only as w does (at rest κw·w = u − u_before, the law's x0 term),
-and w is erased only by the dither the law itself drives, whose amplitude kA·|x0| is
+within ~30 ms, but u relaxes to u_before only as w does (at rest κw·w = u − u_before, the
+law's x0 term), and w is erased only by the dither the law itself drives, whose amplitude kA·|x0| is
 proportional to |w|. Over one period of an oscillation of x with small amplitude X, the
 Bouc-Wen flow (11.3) moves w towards 0 by ≈ 4σρX|w|^n (ẇ = ρẋ(1 − |w|^n) moving away from 0,
 ρẋ(1 + (2σ − 1)|w|^n) towards it), and X ∝ |w|: dw/dt ≈ −a|w|^(n+1), so w decays algebraically,
@@ -83,17 +83,21 @@ class Plan:
 
 
 def pick_rate(mode: str, gains: dict[str, float] | None = None) -> tuple[float, float]:
-    """(rate [Hz], per-sample spectral radius): the lowest stable candidate at the lockstep's delay."""
+    """(rate [Hz], per-sample spectral radius): the lowest stable candidate at the lockstep's
+    delay."""
     g = THESIS_GAINS if not gains else THESIS_GAINS.__class__(**{**THESIS_GAINS.to_dict(), **gains})
     for rate in RATE_CANDIDATES:
         report = check_sampled_loop(THESIS_NOMINAL_PLANT, g, rate, LOCKSTEP_DELAY, mode)
         if report.stable:
             return rate, float(report.spectral_radius)
-    raise ExperimentError(f"the sampled loop of {mode} is unstable at every rate of {RATE_CANDIDATES}")
+    raise ExperimentError(
+        f"the sampled loop of {mode} is unstable at every rate of {RATE_CANDIDATES}"
+    )
 
 
-def make_plan(name: str, mode: str, *, duration: float | None = None,
-              gains: dict[str, float] | None = None) -> Plan:
+def make_plan(
+    name: str, mode: str, *, duration: float | None = None, gains: dict[str, float] | None = None
+) -> Plan:
     """The plan of experiment ``name`` under law ``mode`` (see the module docstring); ``duration``
     in simulated seconds (default :data:`DEFAULT_DURATION`), ``gains`` overriding the thesis's."""
     if name not in EXPERIMENTS:
@@ -110,35 +114,74 @@ def make_plan(name: str, mode: str, *, duration: float | None = None,
     if not (math.isfinite(duration) and duration > 0):
         raise ExperimentInputError(f"duration must be > 0 s, got {duration}")
     rate, radius = pick_rate(mode, gains)
-    controller = {"use_sim_time": True, "trigger": "sample", "sensor_qos": "reliable", "rate_hz": rate, "delay_samples": LOCKSTEP_DELAY,
-                  "mode": mode, "start_closed": True, "on_close": "reset",
-                  "wait_for_state_subscribers": 1, **gains}
-    plant = {"model_file": MODEL_FILE, "clock_mode": "lockstep", "rate_hz": rate, "lockstep_timeout": 2.0,
-             "v_min": -450.0, "v_max": 450.0, "w0": 0.0}
+    controller = {
+        "use_sim_time": True,
+        "trigger": "sample",
+        "sensor_qos": "reliable",
+        "rate_hz": rate,
+        "delay_samples": LOCKSTEP_DELAY,
+        "mode": mode,
+        "start_closed": True,
+        "on_close": "reset",
+        "wait_for_state_subscribers": 1,
+        **gains,
+    }
+    plant = {
+        "model_file": MODEL_FILE,
+        "clock_mode": "lockstep",
+        "rate_hz": rate,
+        "lockstep_timeout": 2.0,
+        "v_min": -450.0,
+        "v_max": 450.0,
+        "w0": 0.0,
+    }
     if name == "regulation":
         # x = x1 + yr (11.4)
-        plant.update(initial_displacement=X1_INIT + YR_INIT,
-                     initial_velocity=X2_INIT + YRDOT_INIT, initial_voltage=0.0)
-        controller.update(reference_source="second_order", reference_y0=YR_INIT, reference_ydot0=YRDOT_INIT)
+        plant.update(
+            initial_displacement=X1_INIT + YR_INIT,
+            initial_velocity=X2_INIT + YRDOT_INIT,
+            initial_voltage=0.0,
+        )
+        controller.update(
+            reference_source="second_order", reference_y0=YR_INIT, reference_ydot0=YRDOT_INIT
+        )
         return Plan(name, mode, rate, radius, duration, plant, controller, gains=gains)
     if duration <= T_OPEN + OPEN_FOR:
-        raise ExperimentInputError(f"perturbation needs a duration > {T_OPEN + OPEN_FOR} s, got {duration}")
+        raise ExperimentInputError(
+            f"perturbation needs a duration > {T_OPEN + OPEN_FOR} s, got {duration}"
+        )
     rig = shipped_parameter_set("ch11_rig").bouc_wen
     x_eq = U_SET / rig.kappa_x  # w(0) = 0: κx·x = u (11.2)
     plant.update(initial_displacement=x_eq, initial_velocity=0.0, initial_voltage=U_SET)
     # the window is scheduled in the controller on sim time: deterministic, no service slip
-    controller.update(reference_source="constant", reference=x_eq, u_bias=U_SET, hold_voltage=U_OPEN,
-                      open_at=T_OPEN, open_duration=OPEN_FOR)
-    return Plan(name, mode, rate, radius, duration, plant, controller, T_OPEN, T_OPEN + OPEN_FOR, gains)
+    controller.update(
+        reference_source="constant",
+        reference=x_eq,
+        u_bias=U_SET,
+        hold_voltage=U_OPEN,
+        open_at=T_OPEN,
+        open_duration=OPEN_FOR,
+    )
+    return Plan(
+        name, mode, rate, radius, duration, plant, controller, T_OPEN, T_OPEN + OPEN_FOR, gains
+    )
 
 
 def graph_for(plan: Plan, namespace: str) -> dict[str, Any]:
     """The launch graph (mapping form of config/graphs) of a plan."""
-    return {"description": f"experiment {plan.name} ({plan.mode})", "namespace": namespace,
-            "stop_timeout": 3.0,
-            "wait_for_topics": [{"topic": "/clock", "publishers": 1}, {"topic": "voltage_command", "publishers": 1}],
-            "nodes": [{"executable": "plant", "overrides": plan.plant, "required": True},
-                      {"executable": "controller", "overrides": plan.controller, "required": True}]}
+    return {
+        "description": f"experiment {plan.name} ({plan.mode})",
+        "namespace": namespace,
+        "stop_timeout": 3.0,
+        "wait_for_topics": [
+            {"topic": "/clock", "publishers": 1},
+            {"topic": "voltage_command", "publishers": 1},
+        ],
+        "nodes": [
+            {"executable": "plant", "overrides": plan.plant, "required": True},
+            {"executable": "controller", "overrides": plan.controller, "required": True},
+        ],
+    }
 
 
 SIGNALS = ("t", "x0", "x1", "x2", "u", "u_pid", "u_excitation", "loop_closed", "reference")
@@ -155,17 +198,30 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
         raise ExperimentError(f"only {t.size} samples recorded")
     end = t[-1]
     period = 1.0 / THESIS_GAINS.f if "f" not in plan.gains else 1.0 / plan.gains["f"]
-    tail = np.zeros(t.size, dtype=bool)  # the last whole period 1/f of the sine: whole-period figures
-    tail[-min(t.size, max(1, int(round(period * plan.rate_hz)))):] = True
-    out: dict[str, Any] = {"experiment": plan.name, "mode": plan.mode, "rate_hz": plan.rate_hz,
-                           "delay_samples": LOCKSTEP_DELAY, "spectral_radius": plan.spectral_radius,
-                           "duration": float(end), "samples": int(t.size),
-                           "lost_samples": int(round((end - t[0]) * plan.rate_hz)) + 1 - int(t.size),
-                           "gains": {**THESIS_GAINS.to_dict(), **plan.gains}}
-    out.update(final_abs_x1=float(np.abs(data["x1"][tail]).max()), final_abs_x2=float(np.abs(data["x2"][tail]).max()),
-               final_u=float(data["u"][tail].mean()),
-               oscillation_x1=float(np.ptp(data["x1"][tail]) / 2), oscillation_u=float(np.ptp(data["u"][tail]) / 2),
-               max_abs_x1=float(np.abs(data["x1"]).max()), initial_x1=float(data["x1"][0]))
+    tail = np.zeros(
+        t.size, dtype=bool
+    )  # the last whole period 1/f of the sine: whole-period figures
+    tail[-min(t.size, max(1, int(round(period * plan.rate_hz)))) :] = True
+    out: dict[str, Any] = {
+        "experiment": plan.name,
+        "mode": plan.mode,
+        "rate_hz": plan.rate_hz,
+        "delay_samples": LOCKSTEP_DELAY,
+        "spectral_radius": plan.spectral_radius,
+        "duration": float(end),
+        "samples": int(t.size),
+        "lost_samples": int(round((end - t[0]) * plan.rate_hz)) + 1 - int(t.size),
+        "gains": {**THESIS_GAINS.to_dict(), **plan.gains},
+    }
+    out.update(
+        final_abs_x1=float(np.abs(data["x1"][tail]).max()),
+        final_abs_x2=float(np.abs(data["x2"][tail]).max()),
+        final_u=float(data["u"][tail].mean()),
+        oscillation_x1=float(np.ptp(data["x1"][tail]) / 2),
+        oscillation_u=float(np.ptp(data["u"][tail]) / 2),
+        max_abs_x1=float(np.abs(data["x1"]).max()),
+        initial_x1=float(data["x1"][0]),
+    )
     if plan.name == "regulation":  # u = 0 V for negative times (§11.4.1)
         out.update(u_before=float(plan.plant["initial_voltage"]), u_after=out["final_u"])
         out["u_change"] = out["u_after"] - out["u_before"]
@@ -174,17 +230,26 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
         opened = np.flatnonzero(~closed)
         if opened.size == 0:
             raise ExperimentError("the loop was never opened")
-        t_open, t_close = float(t[opened[0]]), float(t[opened[-1] + 1]) if opened[-1] + 1 < t.size else math.nan
+        t_open, t_close = (
+            float(t[opened[0]]),
+            float(t[opened[-1] + 1]) if opened[-1] + 1 < t.size else math.nan,
+        )
         before = _window(t, t_open - 0.002, t_open)
         after = t >= t_close
         err = np.abs(data["x1"][after])
         threshold = 0.02 * err.max() if err.size else math.nan
         beyond = np.flatnonzero(err > threshold)
-        out.update(t_open=t_open, t_close=t_close, open_for=t_close - t_open,
-                   u_before=float(data["u"][before].mean()), u_after=out["final_u"], u_after_at=float(end - t_close),
-                   max_abs_error=float(err.max()),
-                   settling_time=float(t[after][beyond[-1]] - t_close) if beyond.size else 0.0,
-                   settling_threshold=float(threshold))
+        out.update(
+            t_open=t_open,
+            t_close=t_close,
+            open_for=t_close - t_open,
+            u_before=float(data["u"][before].mean()),
+            u_after=out["final_u"],
+            u_after_at=float(end - t_close),
+            max_abs_error=float(err.max()),
+            settling_time=float(t[after][beyond[-1]] - t_close) if beyond.size else 0.0,
+            settling_threshold=float(threshold),
+        )
         out["u_change"] = out["u_after"] - out["u_before"]
         out["u_change_relative"] = out["u_change"] / out["u_before"]
     return out

@@ -16,7 +16,14 @@ from .errors import InvalidCommandError, ParameterError
 from .parameter_set import ParameterSet
 from .plant import DEFAULT_TOL, DynamicPlant, StaticPlant, _check_dt
 
-__all__ = ["AmplifierModel", "SensorModel", "SimulatedStage", "SensorStatus", "LASER_RANGE", "LASER_RESOLUTION"]
+__all__ = [
+    "AmplifierModel",
+    "SensorModel",
+    "SimulatedStage",
+    "SensorStatus",
+    "LASER_RANGE",
+    "LASER_RESOLUTION",
+]
 
 #: Micro-Epsilon optoNCDT 1607-500 of the thesis rig (11.2.1): 500 um range, 0.1 um resolution
 LASER_RANGE = 500e-6
@@ -51,8 +58,14 @@ class AmplifierModel:
     first-order lag with the target held); the change is limited to slew_rate * dt.
     """
 
-    def __init__(self, v_min: float = -math.inf, v_max: float = math.inf, bandwidth_hz: float = 0.0,
-                 slew_rate: float = 0.0, initial_voltage: float = 0.0) -> None:
+    def __init__(
+        self,
+        v_min: float = -math.inf,
+        v_max: float = math.inf,
+        bandwidth_hz: float = 0.0,
+        slew_rate: float = 0.0,
+        initial_voltage: float = 0.0,
+    ) -> None:
         v_min, v_max = float(v_min), float(v_max)
         if math.isnan(v_min) or math.isnan(v_max) or not v_min < v_max:
             raise ParameterError(f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]")
@@ -79,7 +92,9 @@ class AmplifierModel:
         dt = _check_dt(dt)
         new = target
         if self.bandwidth_hz > 0.0:
-            new = target + (self.voltage - target) * math.exp(-2.0 * math.pi * self.bandwidth_hz * dt)
+            new = target + (self.voltage - target) * math.exp(
+                -2.0 * math.pi * self.bandwidth_hz * dt
+            )
         if self.slew_rate > 0.0:
             limit = self.slew_rate * dt
             new = self.voltage + min(limit, max(-limit, new - self.voltage))
@@ -95,14 +110,22 @@ class SensorModel:
     and ``noise_std`` = 0 turn those effects off.
     """
 
-    def __init__(self, noise_std: float = 0.0, resolution: float = 0.0, range_min: float = -math.inf,
-                 range_max: float = math.inf, seed: int = 0) -> None:
+    def __init__(
+        self,
+        noise_std: float = 0.0,
+        resolution: float = 0.0,
+        range_min: float = -math.inf,
+        range_max: float = math.inf,
+        seed: int = 0,
+    ) -> None:
         if not (math.isfinite(noise_std) and noise_std >= 0.0):
             raise ParameterError(f"noise_std must be >= 0, got {noise_std!r}")
         if not (math.isfinite(resolution) and resolution >= 0.0):
             raise ParameterError(f"resolution must be >= 0, got {resolution!r}")
         if math.isnan(range_min) or math.isnan(range_max) or not range_min < range_max:
-            raise ParameterError(f"sensor range needs range_min < range_max, got [{range_min!r}, {range_max!r}]")
+            raise ParameterError(
+                f"sensor range needs range_min < range_max, got [{range_min!r}, {range_max!r}]"
+            )
         self.noise_std = float(noise_std)
         self.resolution = float(resolution)
         self.range_min, self.range_max = float(range_min), float(range_max)
@@ -111,10 +134,16 @@ class SensorModel:
 
     @classmethod
     def laser(cls, midpoint: float = 0.0, noise_std: float = 0.0, seed: int = 0) -> "SensorModel":
-        """The thesis laser (optoNCDT 1607-500): 500 um range centred on ``midpoint``, 0.1 um steps."""
+        """The thesis laser (optoNCDT 1607-500): 500 um range centred on ``midpoint``, 0.1 um
+        steps."""
         half = 0.5 * LASER_RANGE
-        return cls(noise_std=noise_std, resolution=LASER_RESOLUTION, range_min=midpoint - half,
-                   range_max=midpoint + half, seed=seed)
+        return cls(
+            noise_std=noise_std,
+            resolution=LASER_RESOLUTION,
+            range_min=midpoint - half,
+            range_max=midpoint + half,
+            seed=seed,
+        )
 
     def measure(self, displacement: float) -> tuple[float, int]:
         """(reading, status) for the true displacement; the reading is NaN unless status is OK."""
@@ -135,9 +164,17 @@ class SensorModel:
 class SimulatedStage:
     """Amplifier -> plant (static (10.15) or dynamic (11.1)) -> sensor, one step at a time."""
 
-    def __init__(self, parameter_set: ParameterSet, amplifier: AmplifierModel | None = None,
-                 sensor: SensorModel | None = None, x0: float = 0.0, xdot0: float = 0.0,
-                 w0: float | None = None, initial_voltage: float = 0.0, tol: float = DEFAULT_TOL) -> None:
+    def __init__(
+        self,
+        parameter_set: ParameterSet,
+        amplifier: AmplifierModel | None = None,
+        sensor: SensorModel | None = None,
+        x0: float = 0.0,
+        xdot0: float = 0.0,
+        w0: float | None = None,
+        initial_voltage: float = 0.0,
+        tol: float = DEFAULT_TOL,
+    ) -> None:
         self.parameter_set = parameter_set
         self.amplifier = amplifier if amplifier is not None else AmplifierModel()
         self.sensor = sensor if sensor is not None else SensorModel()
@@ -145,7 +182,8 @@ class SimulatedStage:
         w0 = parameter_set.w0 if w0 is None else w0
         if parameter_set.form == "dynamic":
             self.plant: StaticPlant | DynamicPlant = DynamicPlant(
-                parameter_set.bouc_wen, parameter_set.dynamics, x0=x0, xdot0=xdot0, w0=w0, tol=tol)
+                parameter_set.bouc_wen, parameter_set.dynamics, x0=x0, xdot0=xdot0, w0=w0, tol=tol
+            )
         else:
             self.plant = StaticPlant(parameter_set.bouc_wen, w0=w0, v0=self.amplifier.voltage)
         self.steps = 0
