@@ -42,6 +42,12 @@ class GraphRunError(RigError):
     """The graph did not deliver what the step needs (no sensor, a node died, a timeout)."""
 
 
+def _run_error(label: str, exc: Exception, lines: list[str]) -> GraphRunError:
+    """A run's failure with the last lines the graph's nodes printed."""
+    tail = "\n".join(lines[-15:])
+    return GraphRunError(f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else ""))
+
+
 def _stamp_ns(data: bytes) -> int:
     sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
     return sec * 1_000_000_000 + nanosec
@@ -128,10 +134,7 @@ class RosRig:
             )
             raw = self._collect(launch, namespace, plan, label)
         except (GraphRunError, LaunchError) as exc:
-            tail = "\n".join(lines[-15:])
-            raise GraphRunError(
-                f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else "")
-            ) from exc
+            raise _run_error(label, exc, lines) from exc
         finally:
             if launch is not None:
                 launch.stop()
@@ -372,10 +375,7 @@ class RosRig:
                 node.destroy_node()
                 rclpy.try_shutdown(context=ctx)
         except (GraphRunError, LaunchError) as exc:
-            tail = "\n".join(lines[-15:])
-            raise GraphRunError(
-                f"acceptance run: {exc}" + (f"; node output:\n{tail}" if tail else "")
-            ) from exc
+            raise _run_error("acceptance run", exc, lines) from exc
         finally:
             if launch is not None:
                 launch.stop()
