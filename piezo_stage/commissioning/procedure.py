@@ -389,7 +389,8 @@ class Commissioning:
         png = self.dir / "figures"
         png.mkdir(exist_ok=True)
         summary = self.rig.accept(run, self._bag("acceptance"), png)
-        rel = abs(summary["u_after"] - summary["u_before"]) / abs(summary["u_before"])
+        u_before = abs(summary["u_before"])  # 0: nothing held before opening, a failed run
+        rel = abs(summary["u_after"] - summary["u_before"]) / u_before if u_before else math.inf
         summary["u_change_relative"] = rel
         if not rel <= 0.01:
             raise StepFailed(

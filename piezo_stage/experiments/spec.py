@@ -251,5 +251,8 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
             settling_threshold=float(threshold),
         )
         out["u_change"] = out["u_after"] - out["u_before"]
-        out["u_change_relative"] = out["u_change"] / out["u_before"]
+        # u_before = 0: the loop held nothing before it opened; no relative change to report
+        out["u_change_relative"] = (
+            out["u_change"] / out["u_before"] if out["u_before"] != 0.0 else math.nan
+        )
     return out
