@@ -242,3 +242,35 @@ def test_clipping_is_told_from_a_command_held_at_a_limit(tmp_path):
     with pytest.raises(StepFailed, match="clip"):
         Commissioning(tmp_path, rig, Options(sweep=SweepSettings(frequencies=(50.0,)))).run()
     assert not (tmp_path / "pending").exists() and rig.excited == []
+
+
+class HeldNothingRig(FakeRig):
+    """An acceptance run that held 0 V before the opening (the loop never settled)."""
+
+    def accept(self, run, bag, png_dir):
+        bag.mkdir(parents=True)
+        return {"u_before": 0.0, "u_after": 201.0, "settling_time": 0.1, "png": []}
+
+
+def test_acceptance_that_held_nothing_fails_with_its_reason(tmp_path):
+    options = Options(sweep=SweepSettings(frequencies=(50.0,)))
+    with pytest.raises(StepFailed) as info:
+        Commissioning(tmp_path, HeldNothingRig(), options).run()
+    assert info.value.step is Step.ACCEPTANCE
+    assert "before 0 V by inf %" in info.value.reason
+    assert not (tmp_path / "report.md").exists()
+
+
+def test_the_acceptance_drives_the_amplifier_on_arrival_the_sweep_at_stamps():
+    """A controller's command carries its (past) sample's stamp: applied on arrival, as in
+    rig_closed_loop.yaml; the sweep's excitation keeps apply_at_stamp."""
+    from piezo_stage.commissioning.graphs import _closed_loop_devices, make_rig
+
+    rig = make_rig("rig")
+
+    def driver(nodes):
+        return next(n for n in nodes if n.get("executable") == "voltage_driver")["overrides"]
+
+    assert driver(rig.base_nodes)["apply_at_stamp"] is True
+    assert driver(_closed_loop_devices(rig.base_nodes))["apply_at_stamp"] is False
+    assert driver(rig.base_nodes)["apply_at_stamp"] is True  # the sweep's graph is untouched

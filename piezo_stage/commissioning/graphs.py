@@ -287,6 +287,7 @@ class RosRig:
         total = RIG_SETTLE + OPEN_FOR + float(run["duration"])
         controller = {
             "trigger": "sample",  # a step per sensor sample (a late burst is no stale sample)
+            "wait_for_state_subscribers": 1,  # our record holds the loop's first state
             "rate_hz": rate,
             "delay_samples": int(run["delay_samples"]),
             "mode": "pid_tv",
@@ -318,7 +319,7 @@ class RosRig:
             "description": f"commission acceptance ({self.name})",
             "namespace": namespace,
             "stop_timeout": 10.0,
-            "nodes": copy.deepcopy(self.base_nodes)
+            "nodes": _closed_loop_devices(self.base_nodes)
             + [{"executable": "controller", "overrides": controller, "required": True}],
             "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
         }
@@ -426,6 +427,18 @@ class RosRig:
         result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
         result["delay_samples"] = int(run["delay_samples"])
         return result
+
+
+def _closed_loop_devices(nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rig's device nodes for a closed loop: the driver applies each command on arrival,
+    as config/graphs/rig_closed_loop.yaml has it. The sweep's apply_at_stamp (an open-loop
+    excitation stamped ahead) would hold a controller's command, stamped with its past sample,
+    in a real-time playout thread that takes a core from the loop on a small host."""
+    out = copy.deepcopy(nodes)
+    for node in out:
+        if node.get("executable") == "voltage_driver":
+            node.setdefault("overrides", {})["apply_at_stamp"] = False
+    return out
 
 
 def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:

@@ -18,7 +18,8 @@
 - ``perturbation`` (§11.5): loop closed around a set point with u ≈ 200 V (a 200 V feedforward
   ``u_bias``, the plant resting at its equilibrium for 200 V, yr there), opened for 10 ms with
   u forced to 72 V, closed again with x0 = 0 (the closing instant is t = 0 of §11.4).
-  ``u_before`` is the mean of u over the 2 ms before the opening (the loop is at rest there under
+  ``u_before`` is the mean of u over the 2 ms (at least 10 sample periods) before the opening,
+  closed-loop states only (the loop is at rest there under
   ``pid`` and ``pid_tv``; under ``pid_sine`` it is a part-period mean of its sine); ``u_after``
   the mean over the last whole period 1/f of the sine at the end of the run (a whole period, so
   that the −kA·x0·sin term of (11.18) and the oscillation it drives average out); ``u_after_at``
@@ -60,6 +61,7 @@ EXPERIMENTS: tuple[str, ...] = ("regulation", "perturbation")
 RATE_CANDIDATES: tuple[float, ...] = (100e3, 200e3, 500e3, 1e6)
 LOCKSTEP_DELAY = 0
 MODEL_FILE = "ch11_rig.yaml"
+U_BEFORE_WINDOW, U_BEFORE_SAMPLES = 0.002, 10  # [s], []: u_before's window before the opening
 X1_INIT, X2_INIT = 20e-6, 0.2  # §11.4: x1(0) [m], x2(0) [m/s] (x0(0) = 0, w(0) = 0)
 YR_INIT, YRDOT_INIT = X1_INIT, X2_INIT  # yr(0) [m], ẏr(0) [m/s]: see the module docstring
 U_SET, U_OPEN, T_OPEN, OPEN_FOR = 200.0, 72.0, 0.005, 0.010  # §11.5
@@ -227,14 +229,24 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
         out["u_change"] = out["u_after"] - out["u_before"]
     if plan.name == "perturbation":
         closed = data["loop_closed"].astype(bool)
-        opened = np.flatnonzero(~closed)
-        if opened.size == 0:
-            raise ExperimentError("the loop was never opened")
-        t_open, t_close = (
-            float(t[opened[0]]),
-            float(t[opened[-1] + 1]) if opened[-1] + 1 < t.size else math.nan,
-        )
-        before = _window(t, t_open - 0.002, t_open)
+        # the opening: the first open state after a closed one (a record may start open)
+        openings = np.flatnonzero(closed[:-1] & ~closed[1:]) + 1
+        if openings.size == 0:
+            raise ExperimentError("the loop was never opened after being closed")
+        first = int(openings[0])
+        reclosed = np.flatnonzero(closed[first:])
+        t_open = float(t[first])
+        if reclosed.size == 0:
+            raise ExperimentError(f"the loop opened at t = {t_open:.6g} s and never closed again")
+        t_close = float(t[first + reclosed[0]])
+        # u_before over U_BEFORE_WINDOW, widened to U_BEFORE_SAMPLES sample periods at low rates
+        width = max(U_BEFORE_WINDOW, U_BEFORE_SAMPLES / plan.rate_hz)
+        before = _window(t, t_open - width, t_open) & closed
+        if not before.any():
+            raise ExperimentError(
+                f"no closed-loop state in the {width * 1e3:.3g} ms before the opening at "
+                f"t = {t_open:.6g} s (lost samples?)"
+            )
         after = t >= t_close
         err = np.abs(data["x1"][after])
         threshold = 0.02 * err.max() if err.size else math.nan
