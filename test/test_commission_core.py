@@ -274,3 +274,10 @@ def test_the_acceptance_drives_the_amplifier_on_arrival_the_sweep_at_stamps():
     assert driver(rig.base_nodes)["apply_at_stamp"] is True
     assert driver(_closed_loop_devices(rig.base_nodes))["apply_at_stamp"] is False
     assert driver(rig.base_nodes)["apply_at_stamp"] is True  # the sweep's graph is untouched
+
+
+def test_progress_stays_within_0_and_100_percent():
+    from piezo_stage.commissioning.graphs import percent
+
+    assert percent(-1.0, 0.04) == "0 %"  # the marks lead the samples by 1 s on a rig
+    assert percent(0.02, 0.04) == "50 %" and percent(0.05, 0.04) == "100 %"

@@ -200,7 +200,7 @@ class RosRig:
                     break
                 if time.monotonic() > next_note:
                     next_note += 2.0
-                    self.progress("graph", f"{label}: {min(done / plan.duration, 1.0) * 100:.0f} %")
+                    self.progress("graph", f"{label}: {percent(done, plan.duration)}")
         finally:
             executor.shutdown()
             node.destroy_node()
@@ -370,7 +370,7 @@ class RosRig:
                     if raw and time.monotonic() > next_note:
                         next_note += 2.0
                         done = (raw[-1][0] - raw[0][0]) * 1e-9
-                        self.progress("acceptance", f"{min(done / total, 1.0) * 100:.0f} %")
+                        self.progress("acceptance", percent(done, total))
             finally:
                 executor.shutdown()
                 node.destroy_node()
@@ -427,6 +427,12 @@ class RosRig:
         result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
         result["delay_samples"] = int(run["delay_samples"])
         return result
+
+
+def percent(done: float, total: float) -> str:
+    """Progress as the terminal shows it, within 0-100 % (a rig's excitation marks lead its
+    samples by 1 s: negative until the plan starts)."""
+    return f"{min(max(done / total, 0.0), 1.0) * 100:.0f} %"
 
 
 def _closed_loop_devices(nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
