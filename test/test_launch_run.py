@@ -404,4 +404,7 @@ def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
         rclpy.shutdown()
     for topic, got in ticks.items():
         assert len(got) >= 200, topic  # each plant advanced: its controller answered every step
-        assert all(t1 > t0 for t0, t1 in zip(got[1:], got[2:])), topic  # one clock each, monotone
+        # one clock each, monotone: step 0 is re-offered every 0.1 s until its controller answers
+        # (any number of times on a loaded host); every later step is published once
+        later = [t for t in got if t > got[0]]
+        assert len(later) >= 150 and all(t1 > t0 for t0, t1 in zip(later, later[1:])), topic

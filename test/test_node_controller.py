@@ -3,6 +3,8 @@ sensor samples, run-time gain changes checked against Theorem 4 and the sampled-
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -112,17 +114,26 @@ def test_stale_sensor_opens_the_loop(node):
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
     try:
-        assert spin_until(node, lambda: node.count_subscribers("displacement") >= 1, 15.0)
+        assert spin_until(
+            node,
+            lambda: (
+                node.count_subscribers("displacement") >= 1
+                and node.count_publishers("controller_state") >= 1
+            ),
+            15.0,
+        )
         clock = node.get_clock()
-        for _ in range(100):
+        # samples until a closed-loop state is seen (matching can lag the graph on a busy host)
+        deadline = time.monotonic() + 15.0
+        while not any(s.loop_closed for s in states) and time.monotonic() < deadline:
             pub.publish(_sample(0.0, t=clock.now().nanoseconds * 1e-9))
             spin_until(node, lambda: False, 0.002)
-        assert spin_until(node, lambda: any(s.loop_closed for s in states), 5.0)
+        assert any(s.loop_closed for s in states)
         # the sensor goes silent
         assert spin_until(
             node,
             lambda: any("no sensor sample" in st.message for d in diags for st in d.status),
-            5.0,
+            10.0,
         )
     finally:
         stop(proc)
