@@ -281,3 +281,27 @@ def test_progress_stays_within_0_and_100_percent():
 
     assert percent(-1.0, 0.04) == "0 %"  # the marks lead the samples by 1 s on a rig
     assert percent(0.02, 0.04) == "50 %" and percent(0.05, 0.04) == "100 %"
+
+
+def test_a_rig_pairing_interpolates_across_lost_voltage_messages():
+    """Driver (0.9 ms holds) and sensor (1 ms) on clocks of their own: 60 ms of voltage messages
+    lost on a busy host must not pair the samples in the gap with a 60 ms old voltage."""
+    from piezo_stage.commissioning.sweep import paired
+
+    def sine(t):
+        return 150.0 + 150.0 * np.sin(2 * np.pi * 2.0 * t)
+
+    t_v = np.arange(0.0, 1.0, 0.9e-3)
+    t_x = np.arange(0.0005, 1.0, 1e-3)
+    lost = (t_v > 0.40) & (t_v < 0.46)
+    series = Series(t_v[~lost], sine(t_v[~lost]), t_x, np.zeros_like(t_x), np.zeros(t_x.size))
+    t, _, u = paired(series)
+    w = 2 * np.pi * 2.0
+    step = w * 150.0 * 0.9e-3  # the most a 0.9 ms hold of the sine lags
+    chord = 0.061**2 / 8 * w**2 * 150.0  # the most a chord over the gap leaves the sine
+    err = np.abs(u - sine(t))
+    in_gap = (t > 0.40) & (t < 0.46)
+    assert np.max(err[~in_gap]) < 1.01 * step and np.max(err[in_gap]) < chord + step
+    assert chord + step < 15.0  # a 60 ms old hold would be off by up to w * 150 * 0.06 = 113 V
+    whole = Series(t_v, sine(t_v), t_x, np.zeros_like(t_x), np.zeros(t_x.size))
+    assert np.allclose(paired(whole)[2][t_x < 0.4], u[t_x < 0.4])  # unchanged outside the gap
