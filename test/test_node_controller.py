@@ -3,6 +3,7 @@ sensor samples, run-time gain changes checked against Theorem 4 and the sampled-
 
 from __future__ import annotations
 
+import math
 import time
 
 import pytest
@@ -135,6 +136,46 @@ def test_stale_sensor_opens_the_loop(node):
             lambda: any("no sensor sample" in st.message for d in diags for st in d.status),
             10.0,
         )
+    finally:
+        stop(proc)
+
+
+def test_start_closed_waits_out_a_stale_or_invalid_sensor_before_closing(node):
+    """An invalid (or stale) sample before start_closed has closed the loop delays the closing
+    (WARN), it does not latch a fault that would keep the loop open for good."""
+    from piezo_stage_msgs.msg import ControllerState, Displacement
+
+    proc = start_node(
+        "controller",
+        "trigger:=timer",
+        "rate_hz:=1000.0",
+        "start_closed:=true",
+        "stale_periods:=20",
+        namespace=NS,
+    )
+    states: list = []
+    diags: list = []
+    node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
+    try:
+        assert spin_until(node, lambda: node.count_subscribers("displacement") >= 1, 15.0)
+        clock = node.get_clock()
+        # invalid samples (a sensor that sees no target yet): no closing, a WARN saying why
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline and not any(
+            "waiting to close" in st.message for d in diags for st in d.status
+        ):
+            pub.publish(_sample(math.nan, status=Displacement.NO_TARGET))
+            spin_until(node, lambda: False, 0.05)
+        assert any("waiting to close" in st.message for d in diags for st in d.status)
+        assert not any(s.loop_closed for s in states)
+        # valid samples flow: the loop closes
+        deadline = time.monotonic() + 15.0
+        while not any(s.loop_closed for s in states) and time.monotonic() < deadline:
+            pub.publish(_sample(0.0, t=clock.now().nanoseconds * 1e-9))
+            spin_until(node, lambda: False, 0.002)
+        assert any(s.loop_closed for s in states)
     finally:
         stop(proc)
 

@@ -10,7 +10,9 @@ per displacement sample, stamped with the sample's time: the lockstep plant's mo
 
 Safety: a sample with status != OK, or no sample for ``stale_periods`` periods, opens the loop,
 holds the output (``hold_voltage``, NaN = last output) and reports ERROR on ``/diagnostics``;
-the loop closes again by service. Gain changes at run time are checked against Theorem 4 (the
+the loop closes again by service. Before ``start_closed`` has closed the loop, such a sample
+only delays the closing (WARN "waiting to close the loop") to the next valid one. Gain changes
+at run time are checked against Theorem 4 (the
 Assumption 2 bounds of ``bounds_file``) and the sampled-loop check at the running rate and
 delay, and refused with the reason unless ``allow_unverified_gains`` is true.
 
@@ -187,6 +189,7 @@ class ControllerNode(Node):
         self._steps = 0
         self._saturated_steps = 0
         self._start_closed = bool(self.get_parameter("start_closed").value)
+        self._waiting = ""  # why start_closed has not closed the loop yet (stale, invalid sample)
         self._window, self._window_t = "pending", math.nan
         self._open_after = float(self.get_parameter("open_after").value)
         self._closed_at = math.nan  # when start_closed closed the loop (open_after counts from it)
@@ -380,7 +383,7 @@ class ControllerNode(Node):
     def _step(self, t: float, stamp) -> None:
         self._scheduled_window(t)
         if self._start_closed and not self.pid.loop_closed and not self._fault:
-            self._start_closed = False
+            self._start_closed, self._waiting = False, ""
             self.pid.close_loop()
             self._closed_at = t
         yr, yr_dot, yr_ddot = self._reference(t, stamp)
@@ -396,7 +399,10 @@ class ControllerNode(Node):
         if self.pid.loop_closed:
             self.get_logger().error(f"opening the loop: {reason}")
             self.pid.open_loop(self._hold_value())
-        self._fault = reason
+        if self._start_closed:  # never closed yet: start_closed closes at the next good sample
+            self._waiting = reason
+        else:
+            self._fault = reason
         if self.pid.last_output is not None:  # keep commanding the hold value: the stage stays put
             u = self._hold_value() if not self.pid.loop_closed else self.pid.u
             self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
@@ -435,6 +441,8 @@ class ControllerNode(Node):
                   "steps": self._steps, "saturated_steps": self._saturated_steps}
         if self._fault:
             return Diagnosis(ERROR, f"loop opened: {self._fault}", values)
+        if self._start_closed and self._waiting:
+            return Diagnosis(WARN, f"waiting to close the loop: {self._waiting}", values)
         last = self.pid.last_output
         if self._saturated_steps and last is not None and last.saturated:
             return Diagnosis(WARN, "output saturated", values)
