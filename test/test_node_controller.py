@@ -98,23 +98,28 @@ def test_invalid_sample_opens_the_loop_and_holds(node):
         stop(proc)
 
 
-def test_stale_sensor_opens_the_loop(node):
-    from piezo_stage_msgs.msg import ControllerState, Displacement
+class _StartClosed:
+    """A start_closed controller at 1 kHz (timer, stale after 20 periods) and what it says."""
 
-    proc = start_node(
-        "controller",
-        "trigger:=timer",
-        "rate_hz:=1000.0",
-        "start_closed:=true",
-        "stale_periods:=20",
-        namespace=NS,
-    )
-    states: list = []
-    diags: list = []
-    node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
-    try:
+    def __init__(self, node) -> None:
+        from piezo_stage_msgs.msg import ControllerState, Displacement
+
+        self.node = node
+        self.proc = start_node(
+            "controller",
+            "trigger:=timer",
+            "rate_hz:=1000.0",
+            "start_closed:=true",
+            "stale_periods:=20",
+            namespace=NS,
+        )
+        self.states: list = []
+        self.diags: list = []
+        node.create_subscription(
+            ControllerState, "controller_state", self.states.append, COMMAND_QOS
+        )
+        node.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        self.pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
         assert spin_until(
             node,
             lambda: (
@@ -123,61 +128,51 @@ def test_stale_sensor_opens_the_loop(node):
             ),
             15.0,
         )
-        clock = node.get_clock()
-        # samples until a closed-loop state is seen (matching can lag the graph on a busy host)
+
+    def closed(self) -> bool:
+        return any(s.loop_closed for s in self.states)
+
+    def said(self, text: str) -> bool:
+        return any(text in st.message for d in self.diags for st in d.status)
+
+    def feed_until(self, done, sample, period: float) -> bool:
+        """Publish ``sample()`` every ``period`` s until ``done()`` (15 s at most: matching can
+        lag the graph on a busy host)."""
         deadline = time.monotonic() + 15.0
-        while not any(s.loop_closed for s in states) and time.monotonic() < deadline:
-            pub.publish(_sample(0.0, t=clock.now().nanoseconds * 1e-9))
-            spin_until(node, lambda: False, 0.002)
-        assert any(s.loop_closed for s in states)
+        while not done() and time.monotonic() < deadline:
+            self.pub.publish(sample())
+            spin_until(self.node, lambda: False, period)
+        return done()
+
+    def fresh(self):
+        return _sample(0.0, t=self.node.get_clock().now().nanoseconds * 1e-9)
+
+
+def test_stale_sensor_opens_the_loop(node):
+    c = _StartClosed(node)
+    try:
+        assert c.feed_until(c.closed, c.fresh, 0.002)
         # the sensor goes silent
-        assert spin_until(
-            node,
-            lambda: any("no sensor sample" in st.message for d in diags for st in d.status),
-            10.0,
-        )
+        assert spin_until(node, lambda: c.said("no sensor sample"), 10.0)
     finally:
-        stop(proc)
+        stop(c.proc)
 
 
 def test_start_closed_waits_out_a_stale_or_invalid_sensor_before_closing(node):
     """An invalid (or stale) sample before start_closed has closed the loop delays the closing
     (WARN), it does not latch a fault that would keep the loop open for good."""
-    from piezo_stage_msgs.msg import ControllerState, Displacement
+    from piezo_stage_msgs.msg import Displacement
 
-    proc = start_node(
-        "controller",
-        "trigger:=timer",
-        "rate_hz:=1000.0",
-        "start_closed:=true",
-        "stale_periods:=20",
-        namespace=NS,
-    )
-    states: list = []
-    diags: list = []
-    node.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
+    c = _StartClosed(node)
     try:
-        assert spin_until(node, lambda: node.count_subscribers("displacement") >= 1, 15.0)
-        clock = node.get_clock()
         # invalid samples (a sensor that sees no target yet): no closing, a WARN saying why
-        deadline = time.monotonic() + 15.0
-        while time.monotonic() < deadline and not any(
-            "waiting to close" in st.message for d in diags for st in d.status
-        ):
-            pub.publish(_sample(math.nan, status=Displacement.NO_TARGET))
-            spin_until(node, lambda: False, 0.05)
-        assert any("waiting to close" in st.message for d in diags for st in d.status)
-        assert not any(s.loop_closed for s in states)
+        no_target = lambda: _sample(math.nan, status=Displacement.NO_TARGET)  # noqa: E731
+        assert c.feed_until(lambda: c.said("waiting to close"), no_target, 0.05)
+        assert not c.closed()
         # valid samples flow: the loop closes
-        deadline = time.monotonic() + 15.0
-        while not any(s.loop_closed for s in states) and time.monotonic() < deadline:
-            pub.publish(_sample(0.0, t=clock.now().nanoseconds * 1e-9))
-            spin_until(node, lambda: False, 0.002)
-        assert any(s.loop_closed for s in states)
+        assert c.feed_until(c.closed, c.fresh, 0.002)
     finally:
-        stop(proc)
+        stop(c.proc)
 
 
 def test_unsafe_gain_change_is_refused_with_a_reason(node):
