@@ -8,6 +8,7 @@ node records ``voltage``, ``displacement`` and ``excitation`` (raw CDR) into an 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
@@ -16,7 +17,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import yaml
@@ -144,16 +145,11 @@ class RosRig:
     def _collect(
         self, launch: Any, namespace: str, plan: ExcitationPlan, label: str
     ) -> dict[str, list]:
-        import rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-        from piezo_stage.nodes.executor import LeanExecutor
         from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
         from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
-        node = rclpy.create_node("commission", namespace=namespace, context=ctx)
         raw: dict[str, list] = {k: [] for k in _TOPICS}
         stream = (
             QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -162,17 +158,12 @@ class RosRig:
             else QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
         )
         marks_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        for topic, msg_type, qos in (
-            ("voltage", Voltage, stream),
-            ("displacement", Displacement, stream),
-            ("excitation", ExcitationInfo, marks_qos),
-        ):
-            node.create_subscription(
-                msg_type, topic, lambda d, k=topic: raw[k].append((_stamp_ns(d), d)), qos, raw=True
-            )
-        executor = LeanExecutor(context=ctx)  # a sample per wake-up at 1-2 kHz on a loaded host
-        executor.add_node(node)
-        try:
+        topics = [
+            ("voltage", Voltage, stream, raw["voltage"]),
+            ("displacement", Displacement, stream, raw["displacement"]),
+            ("excitation", ExcitationInfo, marks_qos, raw["excitation"]),
+        ]
+        with _listener(namespace, topics) as executor:
             launch.start()
             launch.wait_ready()
             started = time.monotonic()
@@ -201,10 +192,6 @@ class RosRig:
                 if time.monotonic() > next_note:
                     next_note += 2.0
                     self.progress("graph", f"{label}: {percent(done, plan.duration)}")
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.try_shutdown(context=ctx)
         return raw
 
     # ------------------------------------------------------------------ acceptance
@@ -270,14 +257,12 @@ class RosRig:
         loop at its first sample around x_eq = U_SET / kappa_x with the U_SET feedforward, opens
         it RIG_SETTLE s later for OPEN_FOR with u forced to U_OPEN (open_after: the rig's clock
         is the wall clock), then closes it; ``duration`` s are recorded after the re-closing."""
-        import rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from rclpy.serialization import deserialize_message
 
         from piezo_stage.experiments.plots import plot_run
         from piezo_stage.experiments.spec import OPEN_FOR, SIGNALS, U_OPEN, U_SET, Plan, summarize
         from piezo_stage.launch import Launcher, LaunchError
-        from piezo_stage.nodes.executor import LeanExecutor
         from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
         from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
@@ -334,28 +319,22 @@ class RosRig:
                 timeout=self.data_timeout,
                 sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
             )
-            ctx = rclpy.Context()
-            rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
-            node = rclpy.create_node("commission", namespace=namespace, context=ctx)
-            node.create_subscription(
-                ControllerState,
-                "controller_state",
-                lambda d: raw.append((_stamp_ns(d), d)),
-                # trigger=sample publishes its state reliable and deep (nodes.qos.LOCKSTEP_QOS)
-                QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
-                raw=True,
+            best_effort = QoSProfile(
+                depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT
             )
-            for topic, msg_type in (("displacement", Displacement), ("voltage", Voltage)):
-                node.create_subscription(  # the rig's own record, in the bag beside the states
-                    msg_type,
-                    topic,
-                    lambda d, k=topic: streams[k].append((_stamp_ns(d), d)),
-                    QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT),
-                    raw=True,
-                )
-            executor = LeanExecutor(context=ctx)
-            executor.add_node(node)
-            try:
+            topics = [
+                # trigger=sample publishes its state reliable and deep (nodes.qos.LOCKSTEP_QOS)
+                (
+                    "controller_state",
+                    ControllerState,
+                    QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
+                    raw,
+                ),
+                # the rig's own record, in the bag beside the states
+                ("displacement", Displacement, best_effort, streams["displacement"]),
+                ("voltage", Voltage, best_effort, streams["voltage"]),
+            ]
+            with _listener(namespace, topics) as executor:
                 launch.start()
                 launch.wait_ready()
                 started = time.monotonic()
@@ -371,10 +350,6 @@ class RosRig:
                         next_note += 2.0
                         done = (raw[-1][0] - raw[0][0]) * 1e-9
                         self.progress("acceptance", percent(done, total))
-            finally:
-                executor.shutdown()
-                node.destroy_node()
-                rclpy.try_shutdown(context=ctx)
         except (GraphRunError, LaunchError) as exc:
             raise _run_error("acceptance run", exc, lines) from exc
         finally:
@@ -427,6 +402,33 @@ class RosRig:
         result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
         result["delay_samples"] = int(run["delay_samples"])
         return result
+
+
+@contextlib.contextmanager
+def _listener(
+    namespace: str, topics: list[tuple[str, type, Any, list[tuple[int, bytes]]]]
+) -> Iterator[Any]:
+    """A node in a context of its own in ``namespace`` that appends each message of every
+    (topic, type, QoS, sink) as (stamp ns, raw bytes) to its sink; yields its executor."""
+    import rclpy
+
+    from piezo_stage.nodes.executor import LeanExecutor
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+    node = rclpy.create_node("commission", namespace=namespace, context=ctx)
+    for topic, msg_type, qos, sink in topics:
+        node.create_subscription(
+            msg_type, topic, lambda d, sink=sink: sink.append((_stamp_ns(d), d)), qos, raw=True
+        )
+    executor = LeanExecutor(context=ctx)  # a sample per wake-up at 1-2 kHz on a loaded host
+    executor.add_node(node)
+    try:
+        yield executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
 
 
 def percent(done: float, total: float) -> str:
