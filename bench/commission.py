@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""`piezo-stage commission` on the sim graph: wall time of each step against the issue's
+"""`piezo-stage commission` on the sim graph: wall time of each step against the time
 budget (the whole procedure in under 5 minutes), and the accuracy of what it identified against
 the plant file it ran on (which the procedure is not told): ch11_rig with kappa_w +20 %,
 m -15 % by default.
@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-BUDGET = 300.0  # [s] the issue's "under 5 minutes"
+BUDGET = 300.0  # [s] the whole procedure "under 5 minutes"
 PERTURBED = """name: perturbed_ch11
 form: dynamic
 bouc_wen: {kappa: [10.35e+6], kappa_w: 52.284, rho: 8.566e+4, sigma: 0.9153, n: 1.176, y0: 0.0,

@@ -1,4 +1,4 @@
-"""Fault injection counts for the hardware paths (issue 18): the voltage driver and the optoNCDT
+"""Fault injection counts for the hardware paths: the voltage driver and the optoNCDT
 reader against their emulators, under seeded random fault schedules.
 
 Driver: the PI GCS emulator behind an in-process loopback link on a fake clock (deterministic);
@@ -14,7 +14,7 @@ Reader: every frame family, the emulator's encoding of a slow sine (ground truth
 corruption; mixed damage. Printed: OK values, OK values off the truth by > 1e-3 of the
 measuring range, the worst error, and the frames until publishing again after garbage.
 
-Baseline: the figures measured on the code before issue 18 (from the issue): 100 V single
+Baseline: the figures measured on the driver and reader before their fault hardening: 100 V single
 steps at 2000 V/s, 4.86 s to safe with queued commands, 396 OK values per 10^5 random bytes,
 210 wrong OK values from 2000 frames with one random byte each.
 
@@ -172,7 +172,7 @@ def main() -> None:
           "of random commands, hang-ups and 1 % corrupted replies")
     for key, value in bench_driver(args.seconds, args.seed).items():
         print(f"  {key:58s} {value:.4g}" if isinstance(value, float) else f"  {key:58s} {value}")
-    print("  baseline (before issue 18): single steps of 100 V at 2000 V/s (cap 20 V); "
+    print("  baseline (earlier driver): single steps of 100 V at 2000 V/s (cap 20 V); "
           "4.86 s to safe with queued commands")
     print("reader: MR 2 mm, 1 kHz, true motion 0.31 mm/s, max_speed 1 mm/s, relock 6 frames; "
           "tolerance 1e-3 MR")
@@ -180,7 +180,7 @@ def main() -> None:
         print(f"  {row.pop('family')}")
         for key, value in row.items():
             print(f"    {key:38s} {value}")
-    print("  baseline (before issue 18): 396 OK values per 1e5 random bytes; 210 wrong OK values "
+    print("  baseline (earlier reader): 396 OK values per 1e5 random bytes; 210 wrong OK values "
           "(up to 4.5 mm) from 2000 frames with one random byte each")
 
 

@@ -8,7 +8,7 @@ with the number of fits reported bad); the ch. 10 patch with N = 2; the time per
 identification of a 10k-sample cycle pair; and a baseline: plain least squares from a generic
 start, run side by side, to show what the analytic start buys.
 
-Fit by simulation error (issue 13), beside the analytic method and a plain scipy fit of all
+Fit by simulation error, beside the analytic method and a plain scipy fit of all
 parameters from a generic start: one noiseless run from w(0) = 0; two runs before the limit
 cycle; the ch. 9 example over 24 periods (steady-state averaging bias); one run with 1e-3 noise
 over 20 seeds with the coverage of the standard errors; the real P-885 record (fit on the
@@ -290,7 +290,7 @@ def ch9_24() -> None:
         r = identify_runs(runs)
         print(f"{spb} samples/branch: {r.method}, steady periods averaged "
               f"{r.diagnostics['steady_periods']}, error {max_rel_error(r.parameters, CH9):.2e}"
-              "   target <= 1e-8 (before issue 13: 3.6e-5)")
+              "   target <= 1e-8 (transient periods averaged in: 3.6e-5)")
 
 
 def noisy_one_run() -> None:

@@ -13,7 +13,7 @@ triangles 0-300 V; 150 V + band-limited noise 0-100 Hz, 50 V rms), prints
   time and error, and the speed ratio ours / baseline;
 - the per-call cost of DynamicPlant.step and SimulatedStage.step (what the plant node pays),
   at 10 kHz and at 100 kHz (lockstep) output;
-- the realtime clock of the ``plant`` node (issue 4: the output rate held within 5 %
+- the realtime clock of the ``plant`` node (the output rate must hold within 5 %
   over 30 s at 1 kHz): the node runs as its own process (ch. 11 rig, clock_mode realtime,
   1 kHz) and this process counts the displacement samples it receives over 30 s of wall time
   (real DDS): rate, its error against 1 kHz, the spacing of the sample stamps (median, p99,

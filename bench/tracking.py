@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Tracking with the Bouc-Wen feedforward (issue 17): the figures table against its targets.
+"""Tracking with the Bouc-Wen feedforward: the figures table against its targets.
 
 The compensator's model is identified from recordings of the simulated ch. 11 rig (two slow
 raised-cosine voltage runs and a voltage step, :mod:`piezo_stage.control.model_fit`), never

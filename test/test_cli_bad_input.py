@@ -59,7 +59,7 @@ def files(tmp_path_factory) -> dict[str, str]:
 
 #: (argv with {name} placeholders, expected exit code, text expected in the message)
 TABLE: list[tuple[list[str], int, str]] = [
-    # gains (issue 14: overflow, underflow, LinAlgError, 74.5 GiB, rounding-noise verdicts)
+    # gains: exit 2, never overflow, underflow, LinAlgError, 74.5 GiB or a verdict on rounding noise
     ([*GAINS, "--m-max", "1e308"], 2, "magnitude"),
     ([*GAINS, "--m-min", "1e-320"], 2, "magnitude"),
     ([*GAINS, "--k1", "1e308"], 2, "magnitude"),

@@ -1,4 +1,4 @@
-"""Bouc-Wen feedforward (issue 17): u_ff along x_d, the compensation modes in the controller,
+"""Bouc-Wen feedforward: u_ff along x_d, the compensation modes in the controller,
 the re-seeding of w when the loop closes, and tracking against the ch. 11 rig."""
 
 import math

@@ -1,5 +1,5 @@
-"""Tracking in pure core (issue 17): the model fitted from the simulated rig's recordings, and
-the figures of the issue's table with that model (bench/tracking.py prints them all)."""
+"""Tracking in pure core: the model fitted from the simulated rig's recordings, and
+the tracking figures against their targets with that model (bench/tracking.py prints them all)."""
 
 import numpy as np
 import pytest

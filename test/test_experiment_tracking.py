@@ -1,4 +1,4 @@
-"""Tracking experiment (issue 17) through the ROS graph: lockstep plant + controller generating the
+"""Tracking experiment through the ROS graph: lockstep plant + controller generating the
 trajectory, with the feedforward's model fitted from recordings of the simulated rig."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def test_command_tracks_a_100_hz_sine_and_compares_with_feedback(model, tmp_path
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["range"] == pytest.approx(10e-6, rel=1e-3) and out["samples"] >= 2999
-    assert out["rms_relative"] <= 0.02  # the issue's target for the 100 Hz sine
+    assert out["rms_relative"] <= 0.02  # the target for the 100 Hz sine
     assert out["feedback"]["rms_error"] > 10 * out["rms_error"] and out["rms_ratio"] < 0.1
     assert all((tmp_path / "png" / name).is_file() for name in ("tracking_sine_both.png",))
     states = [m for _, _, m in read_messages(tmp_path / "bag")]

@@ -1,4 +1,4 @@
-"""Voltage driver under faults (issue 18): ramps that hold after pauses, reconnects, watchdog and
+"""Voltage driver under faults: ramps that hold after pauses, reconnects, watchdog and
 shutdown; watchdog from the last received command; reconnects that never block; stamp checks.
 
 The amplifier is the GCS emulator behind an in-process loopback transport on a fake clock: every
@@ -26,7 +26,7 @@ from piezo_stage.hardware.timing import CommandPlayout
 
 pytestmark = pytest.mark.unit
 
-CAP_TIME = 0.025  # s: the most slew one write may carry (issue 18)
+CAP_TIME = 0.025  # s: the most slew one write may carry
 WRITE_PERIOD = 0.01  # s: the driver's default write (tick) period, the period the tests tick at
 
 

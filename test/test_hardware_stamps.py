@@ -1,4 +1,4 @@
-"""Stamp checks of voltage commands (issue 18): every bad stamp is a verdict, never an exception."""
+"""Stamp checks of voltage commands: every bad stamp is a verdict, never an exception."""
 
 from __future__ import annotations
 

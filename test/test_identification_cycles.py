@@ -84,7 +84,7 @@ def test_transient_periods_are_left_out():
     cycle = extract_cycle(rec)
     # noiseless: every earlier period still differs from the last (by ~1e-10 of the span,
     # above the noise level): only the last one is the cycle, not an average carrying the
-    # transient (issue 13: 24 periods gave 3.6e-5 parameter error instead of 1e-9)
+    # transient (averaging 24 periods gave 3.6e-5 parameter error instead of 1e-9)
     assert cycle.periods == 1
     assert cycle.start_time > 18.0
     assert cycle.period_rms[0] > 1e-3 and cycle.period_rms[-2] < 1e-5

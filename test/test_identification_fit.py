@@ -1,4 +1,4 @@
-"""Fit by simulation error (issue 13): one run, any input, transients, delay, drift, standard
+"""Fit by simulation error: one run, any input, transients, delay, drift, standard
 errors, held-out check, --method analytic|fit|auto, and the real P-885 record."""
 
 from __future__ import annotations

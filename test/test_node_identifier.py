@@ -225,7 +225,7 @@ def test_identifier_adapts_its_stream_qos_to_the_publishers():
 def test_identifier_says_when_the_streams_end_with_one_run_only(method, tmp_path):
     """A replay of a bag holding one run: once the streams are silent for settle_time, the node
     with method analytic reports that identification needs two runs (in its log, as an error)
-    and, with on_done=exit, exits 1 instead of waiting for ever; with method auto (issue 13) it
+    and, with on_done=exit, exits 1 instead of waiting for ever; with method auto it
     fits the simulated model to the one run, writes the parameters and exits 0."""
     from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 

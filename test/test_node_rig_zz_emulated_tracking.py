@@ -1,4 +1,4 @@
-"""Tracking on the rig graph (issue 17): the emulated rig (``piezo-stage emulate rig`` around the
+"""Tracking on the rig graph: the emulated rig (``piezo-stage emulate rig`` around the
 ch. 11 rig, GCS amplifier on TCP + optoNCDT on a pty) with voltage_driver and laser_reader from
 config/graphs/emulated_rig.yaml, and the controller stepping on each 1 kHz sensor sample
 (trigger=sample: a stall of this loaded host delays steps instead of opening the loop on a

@@ -1,5 +1,5 @@
 """Replaying the sample bags through the identifier node reproduces the offline
-`piezo-stage identify` result on the same bag (issue 7): the shipped graph
+`piezo-stage identify` result on the same bag: the shipped graph
 config/graphs/replay_identification.yaml (player -> identifier, separate processes, real DDS)
 run by `piezo-stage launch`, ending by itself once the identifier has its result."""
 
@@ -48,7 +48,7 @@ def _offline(bag: str, degree: int, capsys, method: str = "auto") -> dict:
             ["--param", "player.bag:=bags/ch9_identification", "--param", "identifier.degree:=1"],
             "auto",
         ),
-        # issue 13: the fit by simulation error over the whole runs, as `identify --method fit`
+        # the fit by simulation error over the whole runs, as `identify --method fit`
         (
             "bags/ch9_identification",
             1,

@@ -1,4 +1,4 @@
-"""The per-user run-time folder (issue 18: no predictable names in a shared /tmp)."""
+"""The per-user run-time folder: no predictable names in a shared /tmp."""
 
 from __future__ import annotations
 

@@ -180,7 +180,7 @@ def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> Sta
 
 
 def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageResult:
-    """(d) tracking (issue 17): a 10 Hz triangle over 20 µm, feedforward + PID vs PID alone, the
+    """(d) tracking: a 10 Hz triangle over 20 µm, feedforward + PID vs PID alone, the
     feedforward's model fitted from recordings of the simulated rig."""
     from piezo_stage.experiments.tracking import TrackingSpec, identify_model, run_tracking
     from piezo_stage.launch.domain import isolated_domain
@@ -197,7 +197,7 @@ def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageR
                          progress=lambda f, text="": progress.bar(f))
     progress.done(f"{r['samples']} steps")
     fb = r["feedback"]
-    print("\ntracking (issue 17): 10 Hz triangle over 20 µm, RMS error over the second period")
+    print("\ntracking: 10 Hz triangle over 20 µm, RMS error over the second period")
     print(f"{'compensation':<13} {'RMS [nm]':>9} {'max [nm]':>9} {'of range':>9}")
     for label, f in (("both", r), ("feedback", fb)):
         print(f"{label:<13} {1e9 * f['rms_error']:>9.4g} {1e9 * f['max_error']:>9.4g} "

@@ -1,4 +1,4 @@
-"""Run a thesis ch. 11 experiment (regulation | perturbation), or tracking (issue 17), through the
+"""Run a thesis ch. 11 experiment (regulation | perturbation), or tracking, through the
 ROS graph on the simulated rig.
 
 The plant node (ch. 11 rig, dynamic form) and the controller node run in lockstep at the lowest

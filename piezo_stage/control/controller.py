@@ -43,7 +43,7 @@ class ControllerConfig:
       ``"reset"`` (x0 = 0, as the §11.4 simulations start) or ``"keep"`` (x0 frozen while open).
     - ``dt_max``: a larger Δt between samples is a gap: no integration, x2 re-baselined.
     - ``compensation``: ``feedback`` (the law alone), ``feedforward`` (u_ff of ``feedforward``
-      alone) or ``both`` (u_ff + the law): tracking, issue 17 (see :mod:`.feedforward`).
+      alone) or ``both`` (u_ff + the law), for tracking (see :mod:`.feedforward`).
     """
 
     mode: str = "pid"

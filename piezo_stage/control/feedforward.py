@@ -1,4 +1,4 @@
-"""Bouc-Wen feedforward for tracking (issue 17), from the ch. 11 model (11.1)-(11.3).
+"""Bouc-Wen feedforward for tracking, from the ch. 11 model (11.1)-(11.3).
 
 The ch. 11 model has the displacement as the Bouc-Wen input: m ẍ + c ẋ + κx·x + κw·w(x) = u,
 w driven by x (11.3). The voltage that makes the stage follow x_d is therefore the model itself

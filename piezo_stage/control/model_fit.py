@@ -1,4 +1,4 @@
-"""The feedforward's model from recordings of a rig (issue 17): the ch. 11 form, input x, output u.
+"""The feedforward's model from recordings of a rig: the ch. 11 form, input x, output u.
 
 - Bouc-Wen part: two slow wave-periodic runs (a raised-cosine voltage, the second shifted by
   ΔU) recorded on the rig; at low frequency m·ẍ + c·ẋ is negligible, so u = Σ κ_i x^i + κw·w(x)

@@ -1,4 +1,4 @@
-"""Tracking figures and the tracking loop in pure core (issue 17).
+"""Tracking figures and the tracking loop in pure core.
 
 :func:`tracking_errors` is what the experiment, the bench and the demo report: over the steady
 part of a run (from ``t_from``: the first period, where the loop and w settle, is left out),

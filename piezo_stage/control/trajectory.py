@@ -1,4 +1,4 @@
-"""Trajectories x_d(t) to track (issue 17; the thesis leaves tracking to future work, §11.6).
+"""Trajectories x_d(t) to track (the thesis leaves tracking to future work, §11.6).
 
 Every trajectory gives position, velocity and acceleration in closed form (vectorised
 :meth:`Trajectory.evaluate`), so the feedforward m ẍ_d + c ẋ_d + ... and the controller's

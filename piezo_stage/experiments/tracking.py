@@ -1,4 +1,4 @@
-"""Tracking experiment (issue 17): follow a trajectory on the simulated rig through the ROS graph.
+"""Tracking experiment: follow a trajectory on the simulated rig through the ROS graph.
 
 The lockstep plant node (default the ch. 11 rig, ``config/ch11_rig.yaml``; ``plant_model``
 another file) and the controller node, which generates x_d itself (``reference_source:

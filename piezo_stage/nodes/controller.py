@@ -18,7 +18,7 @@ delay, and refused with the reason unless ``allow_unverified_gains`` is true.
 
 Services: ``~/close_loop``, ``~/open_loop`` (std_srvs/Trigger).
 
-Tracking (issue 17): ``reference_source: trajectory`` generates x_d, ẋ_d, ẍ_d in closed form
+Tracking: ``reference_source: trajectory`` generates x_d, ẋ_d, ẍ_d in closed form
 (:mod:`piezo_stage.control.trajectory`, time from the first step) and publishes x_d on
 ``reference`` (recorders and plots see it as an external set point); ``compensation``
 (feedback | feedforward | both) adds the Bouc-Wen feedforward of ``feedforward_model`` (a

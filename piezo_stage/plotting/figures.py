@@ -223,7 +223,7 @@ def tracking_figure(
     t_from: float = 0.0,
     title: str = "",
 ) -> Path:
-    """Tracking (issue 17): x_d and x [µm], the error x − x_d [nm], u and the feedforward u_ff
+    """Tracking: x_d and x [µm], the error x − x_d [nm], u and the feedforward u_ff
     [V] against time; ``feedback`` = (t, x) of the feedback-only run, drawn faint; the part
     before ``t_from`` (left out of the figures) shaded."""
     plt = _pyplot()
