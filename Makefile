@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 ENV := source scripts/env.sh &&
 
-.PHONY: setup demo test test-fast lint bench clean
+.PHONY: setup demo test test-fast fuzz lint bench clean
 setup:            ## .venv + pinned wheels, wheel fixes, piezo_stage_msgs build (idempotent)
 	@bash scripts/setup.sh
 demo: setup       ## the simulated stage, end to end
@@ -11,6 +11,9 @@ test: setup lint  ## lint, then every test (pytest over test/: the unit, ros and
 	@$(ENV) python -m pytest test -q -p no:cacheprovider
 test-fast: setup  ## the unit layer without slow tests (no ROS processes, no sockets; < 1 min)
 	@$(ENV) python -m pytest test -q -p no:cacheprovider -m "unit and not slow"
+fuzz: setup       ## property tests with random seeds, FUZZ x their examples (default 50)
+	@$(ENV) PIEZO_FUZZ_FACTOR=$${FUZZ:-50} python -m pytest test -q -p no:cacheprovider \
+	  -m hypothesis --hypothesis-profile=fuzz --hypothesis-show-statistics
 lint: setup       ## ruff (rules and reasons in pyproject.toml)
 	@$(ENV) ruff check .
 bench: setup      ## speed/accuracy figures against their baselines

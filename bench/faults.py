@@ -11,8 +11,10 @@ safe_voltage, minus command_timeout and the ramp time).
 
 Reader: every frame family, the emulator's encoding of a slow sine (ground truth per frame):
 10^6 random bytes; one byte lost in every frame; one byte replaced in every frame; 1e-3 byte
-corruption; mixed damage. Printed: OK values, OK values off the truth by > 1e-3 of the
-measuring range, the worst error, and the frames until publishing again after garbage.
+corruption; mixed damage. Printed: OK values (of them from damaged or inserted frames, and of
+those the ones with no exact value in reach before them), OK values off the truth by > 1e-3 of
+the measuring range, the worst error, OK values past the speed gate (0 by construction), and the
+frames until publishing again after garbage.
 
 Baseline: the figures measured on the driver and reader before their fault hardening: 100 V single
 steps at 2000 V/s, 4.86 s to safe with queued commands, 396 OK values per 10^5 random bytes,
@@ -147,7 +149,9 @@ def bench_reader(seed: int, mr: float = 2e-3, rate: float = 1000.0) -> list[dict
                          ("mixed 1e-3", dict(corrupt=1e-3, drop=1e-3, garbage=1e-3))):
             d, o = damage(data, origin, np.random.default_rng(seed), fmt.bytes_per_value, **kw)
             s = score(OptoNCDTParser(fmt, mr, check), d, o, truth, 1e-3 * mr)
-            row[name] = f"{s.ok} OK, {s.wrong} off, worst {s.worst / mr:.2e} MR"
+            row[name] = (f"{s.ok} OK ({s.damaged_ok} damaged, {s.chained} chained), "
+                         f"{s.wrong} off, worst {s.worst / mr:.2e} MR, "
+                         f"{s.gate_breaks + s.beyond_gate} past the gate")
         rng = np.random.default_rng(seed)
         good, _, _ = sensor_stream(fmt, truth_d[:40], mr)
         latency = 0

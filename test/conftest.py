@@ -45,6 +45,42 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     os.environ.setdefault("MPLBACKEND", "Agg")
+    _build_font_cache()
+    _load_hypothesis_profile(config)
+
+
+def _build_font_cache() -> None:
+    """Build matplotlib's font cache once, before any test runs.
+
+    A fresh home has none: the first ``import matplotlib.pyplot`` scans the system fonts with
+    ``fc-list`` in a child process, which the unit layer's guard refuses inside a test. Paying it
+    here keeps the guard whole and makes the first plotting test independent of the machine's
+    history."""
+    if _importable("matplotlib"):
+        import matplotlib.font_manager  # noqa: F401  (builds or loads the cache)
+
+
+# --- hypothesis profiles -----------------------------------------------------------------------
+#: No deadlines anywhere: time enters tests only as generous timeouts.
+#: ``ci``: derandomized (the same examples on every run and machine), no example database;
+#: ``dev``: random examples, the database in .hypothesis/ (counterexamples are replayed first);
+#: ``fuzz``: random and wide, for ``make fuzz`` (scale with PIEZO_FUZZ_FACTOR, see
+#: property_support.examples).
+def _load_hypothesis_profile(config: pytest.Config) -> None:
+    if not _importable("hypothesis"):
+        return
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile("ci", derandomize=True, database=None, deadline=None, print_blob=True)
+    settings.register_profile("dev", deadline=None, print_blob=True)
+    settings.register_profile(
+        "fuzz",
+        deadline=None,
+        print_blob=True,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    )
+    chosen = config.getoption("--hypothesis-profile", default=None)
+    settings.load_profile(chosen or ("ci" if os.environ.get("CI") else "dev"))
 
 
 # --- test layers -----------------------------------------------------------------------------

@@ -19,6 +19,8 @@ from piezo_stage.cli import COMMANDS, main
 from piezo_stage.identification.synthetic import CH10_PATCH, triangle_pair
 from piezo_stage.model.bouc_wen import BoucWenParameters
 
+from property_support import examples
+
 pytestmark = pytest.mark.unit
 
 DATA = Path(__file__).resolve().parent / "data" / "rosbag2"
@@ -160,7 +162,7 @@ NUMBERS = st.one_of(
 ).map(repr)
 
 
-@settings(max_examples=60, deadline=None,
+@settings(max_examples=examples(60), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(option=st.sampled_from(["--m-max", "--m-min", "--c-max", "--kappa-x-max", "--k1", "--k2",
                                "--k0", "--rate-hz", "--derivative-tau", "--m", "--kappa-x"]),
@@ -170,7 +172,7 @@ def test_gains_numeric_options(option, value, capsys):
     _run(argv, capsys)
 
 
-@settings(max_examples=40, deadline=None,
+@settings(max_examples=examples(40), deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(device=st.sampled_from(["gcs", "optoncdt"]),
        option=st.sampled_from(["--drop", "--corrupt", "--slow", "--linger", "--duration"]),

@@ -15,6 +15,8 @@ from piezo_stage.control.trajectory import (
     make_trajectory,
 )
 
+from property_support import examples
+
 pytestmark = pytest.mark.unit
 
 
@@ -61,7 +63,7 @@ def test_acceleration_limit_lengthens_the_corners_and_impossible_limits_are_refu
         make_trajectory("square")
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(shape=st.sampled_from(list(Shape)), amplitude=st.floats(1e-7, 5e-5),
        frequency=st.floats(0.5, 500.0), rounding=st.floats(0.05, 1.0),
        t=st.lists(st.floats(0.0, 10.0), min_size=1, max_size=20))

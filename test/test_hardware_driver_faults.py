@@ -24,6 +24,8 @@ from piezo_stage.hardware.emulators.gcs_device import IDN
 from piezo_stage.hardware.errors import HardwareError
 from piezo_stage.hardware.timing import CommandPlayout
 
+from property_support import examples
+
 pytestmark = pytest.mark.unit
 
 CAP_TIME = 0.025  # s: the most slew one write may carry
@@ -296,7 +298,7 @@ EVENTS = st.one_of(
 )
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=examples(200), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     slew=st.sampled_from([50.0, 200.0, 2000.0, 1e5]),
     schedule=st.lists(EVENTS, max_size=120),

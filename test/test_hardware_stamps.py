@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.hardware.errors import ConfigError
 from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
+
+from property_support import examples
 
 pytestmark = pytest.mark.unit
 
@@ -41,6 +43,7 @@ def test_without_checks_unstamped_is_fine_and_bad_config_is_refused():
             StampPolicy(**bad)
 
 
+@settings(max_examples=examples(100))
 @given(sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(-2**31, 2**32 - 1),
        now=st.floats(0.0, 4e9), max_age=st.floats(0.0, 3600.0))
 def test_property_any_stamp_gives_a_verdict(sec, nanosec, now, max_age):

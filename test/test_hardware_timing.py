@@ -87,25 +87,44 @@ def test_sample_clock_validation_and_reset():
     assert clock.stamps(T0, 0).size == 0
 
 
+class HeldClock:
+    """Wall time that stands still until ``release()``: commands are queued against one fixed
+    "now", however long the host takes to push them, then time runs (on the monotonic clock)."""
+
+    def __init__(self) -> None:
+        self.base = time.time()
+        self._released: float | None = None
+
+    def release(self) -> None:
+        self._released = time.monotonic()
+
+    def __call__(self) -> float:
+        if self._released is None:
+            return self.base
+        return self.base + time.monotonic() - self._released
+
+
 def test_playout_applies_each_command_at_its_stamp_in_stamp_order():
     applied: list[tuple[float, float]] = []
     done = threading.Event()
+    clock = HeldClock()
 
     def apply(v: float, command: bool, received: float | None) -> None:
         assert command  # no hold_period: only the commands themselves
-        applied.append((time.time(), v))
+        applied.append((clock(), v))
         if len(applied) == 20:
             done.set()
 
-    playout = CommandPlayout(apply, delay=0.05).start()
+    playout = CommandPlayout(apply, delay=0.05, clock=clock, max_ahead=1.0).start()
     try:
-        now = time.time()
+        now = clock.base
         stamps = now + 0.02 * np.arange(18)
         order = np.random.default_rng(1).permutation(18)  # arrive out of order (two publishers)
         for i in order:
             playout.push(float(stamps[i]), float(i))
         playout.push(now - 1.0, -1.0)  # a second late: applied at once, counted
         playout.push(now + 100.0, 99.0)  # a foreign clock: held max_ahead only, counted
+        clock.release()
         assert done.wait(30.0)
     finally:
         playout.stop()
@@ -115,6 +134,7 @@ def test_playout_applies_each_command_at_its_stamp_in_stamp_order():
     assert values[19] == 99.0 and playout.ahead == 1
     for t, v in applied[1:19]:
         assert t >= stamps[int(v)] + 0.05  # never before its time
+    assert applied[19][0] >= now + 1.0  # the foreign-clock command after max_ahead, not before
     assert playout.pending == 0 and playout.applied == 20 and playout.error is None
 
 

@@ -41,6 +41,8 @@ from piezo_stage.model.parameter_set import (
 )
 from piezo_stage.model.signals import sine
 
+from property_support import examples
+
 pytestmark = pytest.mark.unit
 
 CH9 = BoucWenParameters(**CH9_EXAMPLE)
@@ -246,7 +248,7 @@ def test_cli_extreme_values_give_a_reason_not_a_traceback(tmp_path, capsys, scal
 # ------------------------------------------------------------------ parameter sets
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=examples(30), deadline=None)
 @given(delay=st.floats(-1.0, 1.0), kind=st.sampled_from([DriftKind.LINEAR, DriftKind.LOG]),
        coefficient=st.floats(-1e-3, 1e-3), time_constant=st.floats(1e-3, 1e3))
 def test_parameter_set_drift_and_delay_round_trip(delay, kind, coefficient, time_constant):

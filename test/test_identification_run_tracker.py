@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.identification.io import intervals_from_marks
 from piezo_stage.identification.run_tracker import Phase, Poll, RunTracker
+
+from property_support import examples
 
 pytestmark = pytest.mark.unit
 
@@ -76,6 +78,7 @@ def test_without_marks_the_whole_stream_is_run_0():
     assert RunTracker().intervals() == [(0, -math.inf, math.inf)]
 
 
+@settings(max_examples=examples(100))
 @given(st.lists(st.tuples(st.integers(0, 3), st.booleans()), max_size=40))
 def test_each_run_completes_at_most_once_and_only_after_a_steady_mark(marks):
     tracker = RunTracker()

@@ -3,8 +3,8 @@
 :func:`sensor_stream` encodes displacements the way the sensor emulator does and records, for
 every byte, the frame it came from; :func:`damage` loses, replaces or inserts bytes and keeps
 that record aligned (inserted garbage has origin -1). :func:`score` reads a stream with
-:class:`~piezo_stage.hardware.optoncdt.OptoNCDTParser` and compares every OK value with the true
-value of the frame its last byte came from.
+:class:`~piezo_stage.hardware.optoncdt.OptoNCDTParser` and checks every OK value against the
+truth at its place and against the speed gate (:class:`Score`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optoncdt import FrameCheck, FrameFormat, OptoNCDTParser, encode_values
+from ..optoncdt import FrameCheck, FrameFormat, OptoNCDTParser, SampleBlock, encode_values
 
 
 def sensor_stream(
@@ -71,10 +71,25 @@ def damage(
 
 @dataclass(frozen=True)
 class Score:
+    """What the parser made of a damaged stream, against the truth.
+
+    The *place* of a frame is the sensor frame of the last sensor byte at or before its end
+    (an inserted frame sits where it was inserted). A frame is *exact* when all its bytes are
+    one sensor frame's and its value is that frame's. Two OK values are *in reach* when no
+    framing error lies between them and they are fewer than ``relock_frames`` frames apart:
+    the parser then compared the second with the first (the speed gate).
+    """
+
     frames: int  # well-formed frames the parser found
     ok: int  # OK values
-    wrong: int  # OK values off the true value by more than the tolerance
+    wrong: int  # OK values off the truth at their place by more than the tolerance
     worst: float  # largest |error| of an OK value [m] (0 when none)
+    damaged_ok: int  # OK values from frames that are not exact (damaged or inserted bytes)
+    gate_breaks: int  # OK values further from the OK value in reach before them than the gate
+    beyond_gate: int  # damaged OK values further from the truth than the gate allows, counted
+    #                   from the exact OK value in reach before them
+    chained: int  # damaged OK values with no exact OK value in reach before them (the only ones
+    #               whose error the gate does not bound: it adds up along such a chain)
 
 
 def score(
@@ -85,21 +100,43 @@ def score(
     tolerance: float,
     chunk: int = 4096,
 ) -> Score:
-    """Feed ``data`` in chunks; compare each OK value with the truth of its last byte's frame."""
+    """Feed ``data`` in chunks and score every OK value (see :class:`Score`)."""
+    fmt, check = parser.fmt, parser.check
     blocks = [parser.feed(data[i : i + chunk].tobytes()) for i in range(0, data.size, chunk)]
-    status = np.concatenate([b.status for b in blocks]) if blocks else np.empty(0)
-    value = np.concatenate([b.displacement for b in blocks]) if blocks else np.empty(0)
-    ends = frame_ends(parser.fmt, data)
-    first = data[ends] < 0xC0 if parser.fmt.bytes_per_value == 3 else np.ones(ends.size, bool)
-    ends = ends[first][: status.size]
-    ok = status == 0
-    src = origin[ends[ok]]
-    err = np.where(src >= 0, np.abs(value[ok] - truth[np.maximum(src, 0)]), np.inf)
+    block = SampleBlock.concat(blocks)
+    ends = frame_ends(fmt, data)
+    width = fmt.bytes_per_value
+    lock = np.cumsum(np.diff(np.concatenate([[-width], ends])) > width)  # +1 at each gap
+    first = data[ends] < 0xC0 if width == 3 else np.ones(ends.size, bool)
+    ends, lock = ends[first][: len(block)], lock[first][: len(block)]
+    place = np.maximum.accumulate(np.maximum(origin, 0))[ends]
+    own = origin[ends]
+    one_frame = np.all([origin[ends - k] == own for k in range(1, width)], axis=0) & (own >= 0)
+    exact = one_frame & (block.raw == fmt.from_metres(truth[place], parser.measuring_range))
+
+    idx = np.flatnonzero(block.status == 0)
+    value, err = block.displacement[idx], np.abs(block.displacement[idx] - truth[place[idx]])
+    # successive OK values in reach of each other, and the speed gate between them
+    steps = np.diff(idx)
+    reach = (steps < check.relock_frames) & (np.diff(lock[idx]) == 0)
+    gate = check.max_speed / check.rate * steps + 2.0 * abs(fmt.scale) * parser.measuring_range
+    quantum = abs(fmt.scale) * parser.measuring_range
+    breaks = reach & (np.abs(np.diff(value)) > gate * (1 + 1e-9))
+    after_exact = reach & exact[idx[:-1]] & ~exact[idx[1:]]
+    bound = gate + np.abs(np.diff(truth[place[idx]])) + quantum
+    beyond = after_exact & (err[1:] > bound * (1 + 1e-9))
+    damaged = ~exact[idx]
+    chained = damaged.copy()
+    chained[1:] &= ~after_exact
     return Score(
-        int(status.size),
-        int(ok.sum()),
-        int(np.count_nonzero(err > tolerance)),
-        float(err.max()) if err.size else 0.0,
+        frames=len(block),
+        ok=int(idx.size),
+        wrong=int(np.count_nonzero(err > tolerance)),
+        worst=float(err.max()) if err.size else 0.0,
+        damaged_ok=int(damaged.sum()),
+        gate_breaks=int(breaks.sum()),
+        beyond_gate=int(beyond.sum()),
+        chained=int(chained.sum()),
     )
 
 
