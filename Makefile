@@ -7,13 +7,14 @@ setup:            ## .venv + pinned wheels, wheel fixes, piezo_stage_msgs build 
 	@bash scripts/setup.sh
 demo: setup       ## the simulated stage, end to end
 	@$(ENV) piezo-stage demo --out demo_out
-test: setup lint  ## lint, then every test (pytest over test/: the unit, ros and slow layers)
-	@$(ENV) python -m pytest test -q -p no:cacheprovider
+PYTEST := python -m pytest test -q -p no:cacheprovider
+test: setup lint  ## lint, then every test: all but `realtime` on two workers, then `realtime` alone
+	@$(ENV) $(PYTEST) -n 2 --dist loadfile -m "not realtime" && $(PYTEST) -m realtime
 test-fast: setup  ## the unit layer without slow tests (no ROS processes, no sockets; < 1 min)
-	@$(ENV) python -m pytest test -q -p no:cacheprovider -m "unit and not slow"
+	@$(ENV) $(PYTEST) -n 2 -m "unit and not slow"
 fuzz: setup       ## property tests with random seeds, FUZZ x their examples (default 50)
-	@$(ENV) PIEZO_FUZZ_FACTOR=$${FUZZ:-50} python -m pytest test -q -p no:cacheprovider \
-	  -m hypothesis --hypothesis-profile=fuzz --hypothesis-show-statistics
+	@$(ENV) PIEZO_FUZZ_FACTOR=$${FUZZ:-50} $(PYTEST) -m hypothesis \
+	  --hypothesis-profile=fuzz --hypothesis-show-statistics
 lint: setup       ## ruff (rules and reasons in pyproject.toml)
 	@$(ENV) ruff check .
 bench: setup      ## speed/accuracy figures against their baselines

@@ -1,8 +1,9 @@
 """Test-session set-up shared by every test.
 
-ROS domain isolation: each pytest process takes a ROS_DOMAIN_ID that no other running test
-process holds (an exclusive flock on a file per id), and keeps DDS discovery on localhost, so
-parallel test runs on one machine cannot hear each other. Child processes inherit the id.
+ROS domain isolation: each pytest process (and each xdist worker) takes a ROS_DOMAIN_ID that no
+other running test process holds (an exclusive flock on a file per id), and keeps DDS discovery
+on localhost, so parallel test runs on one machine cannot hear each other. Child processes
+inherit the id.
 """
 
 from __future__ import annotations
@@ -39,14 +40,33 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    if "PIEZO_TEST_DOMAIN_ID" not in os.environ:
+    # an xdist worker inherits its controller's environment: it claims a domain of its own, so
+    # two workers' graphs never hear each other
+    owner = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    if (
+        "PIEZO_TEST_DOMAIN_ID" not in os.environ
+        or os.environ.get("PIEZO_TEST_DOMAIN_OWNER", owner) != owner
+    ):
         os.environ["PIEZO_TEST_DOMAIN_ID"] = str(_claim_domain())
+        os.environ["PIEZO_TEST_DOMAIN_OWNER"] = owner
     os.environ["ROS_DOMAIN_ID"] = os.environ["PIEZO_TEST_DOMAIN_ID"]
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     os.environ.setdefault("MPLBACKEND", "Agg")
+    _restore_sigint()
     _build_font_cache()
     _load_hypothesis_profile(config)
+
+
+def _restore_sigint() -> None:
+    """Take SIGINT back when the session was started with it ignored (a shell's background job,
+    a CI runner): an ignored signal is inherited across exec, so every child the tests stop with
+    SIGINT (emulators, nodes, launched graphs) would ignore it and hang until its timeout. A
+    handled one is reset to the default in the child, as from a terminal."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _build_font_cache() -> None:

@@ -88,6 +88,7 @@ def test_sim_graph_commissions_an_unknown_plant(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_emulated_rig_commissions_with_physical_m_and_c(tmp_path):
     """The emulated rig (ch11_rig behind a 1 kHz sensor and a 1 kHz amplifier bandwidth): one
     sweep frequency the sensor resolves, m and c from physical data (its 1 kHz cannot resolve
@@ -130,6 +131,7 @@ def test_emulated_rig_commissions_with_physical_m_and_c(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_emulated_rig_without_m_and_c_stops_at_the_dynamics(tmp_path):
     """Its 1 kHz sensor cannot resolve the resonance: the step is refused with the rule."""
     out = tmp_path / "out"

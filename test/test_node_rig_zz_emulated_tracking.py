@@ -24,7 +24,7 @@ import socket
 import numpy as np
 import pytest
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.realtime]
 
 rclpy = pytest.importorskip("rclpy")
 
