@@ -3,6 +3,8 @@ starts before the loop closed, states lost before the opening, a loop that never
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -66,3 +68,19 @@ def test_a_loop_that_never_closes_again_is_said():
     never["loop_closed"][:] = False
     with pytest.raises(ExperimentError, match="never opened"):
         summarize(_plan(), never)
+
+
+def test_u_after_is_the_mean_over_the_last_period_in_time_whatever_was_lost():
+    """A busy host loses states: the last whole period is taken by time, and u is averaged over
+    it as a function of time (a count of samples spans more than a period when some are lost,
+    and the mean of a sine over part of a period is not its centre)."""
+    f = 20.0  # the sine's frequency: a 50 ms period
+    plan = replace(_plan(), gains={"f": f})
+    data = _record()
+    after = data["t"] >= T_OPEN + OPEN_FOR
+    data["u"] = np.where(after, 200.0 + 30.0 * np.sin(2 * np.pi * f * data["t"]), data["u"])
+    rng = np.random.default_rng(7)
+    lost = (data["t"] > data["t"][-1] - 0.08) & (rng.random(data["t"].size) < 0.4)
+    s = summarize(plan, _drop(data, lost))
+    assert s["u_after"] == pytest.approx(200.0, abs=0.3)  # the sine's centre, 0.15 % of u
+    assert s["oscillation_u"] == pytest.approx(30.0, rel=0.02)

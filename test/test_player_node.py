@@ -148,9 +148,9 @@ def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag)
         )
         spans[rate] = sink.span(f"{NS}/voltage")
         sink.close(node)
-    # 0.5 s of bag time: ~0.5 s at rate 1, ~0.1 s at rate 5 (loose bounds: shared machine)
+    # 0.5 s of bag time: ~0.5 s at rate 1, ~0.1 s at rate 5. A busy host only lengthens a span,
+    # so rate 1 has a lower bound and rate 5 is compared with it, never with the wall clock
     assert spans[1.0] > 0.35
-    assert spans[5.0] < 0.3
     assert spans[1.0] > 2.0 * spans[5.0]
 
 

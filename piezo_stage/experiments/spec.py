@@ -189,6 +189,14 @@ def graph_for(plan: Plan, namespace: str) -> dict[str, Any]:
 SIGNALS = ("t", "x0", "x1", "x2", "u", "u_pid", "u_excitation", "loop_closed", "reference")
 
 
+def time_mean(t: np.ndarray, y: np.ndarray) -> float:
+    """Mean of y(t) over [t[0], t[-1]] as a function of time: ∫ y dt / (t[-1] − t[0]) by the
+    trapezoidal rule, so lost samples do not weight the rest; the plain mean for one sample."""
+    if t.size < 2 or t[-1] <= t[0]:
+        return float(np.mean(y))
+    return float(np.trapezoid(y, t) / (t[-1] - t[0]))
+
+
 def _window(t: np.ndarray, start: float, end: float) -> np.ndarray:
     return (t >= start) & (t < end)
 
@@ -200,10 +208,8 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
         raise ExperimentError(f"only {t.size} samples recorded")
     end = t[-1]
     period = 1.0 / THESIS_GAINS.f if "f" not in plan.gains else 1.0 / plan.gains["f"]
-    tail = np.zeros(
-        t.size, dtype=bool
-    )  # the last whole period 1/f of the sine: whole-period figures
-    tail[-min(t.size, max(1, int(round(period * plan.rate_hz)))) :] = True
+    # the last whole period 1/f of the sine, by time (a host that lost states gives fewer)
+    tail = t >= end - period
     out: dict[str, Any] = {
         "experiment": plan.name,
         "mode": plan.mode,
@@ -218,7 +224,7 @@ def summarize(plan: Plan, data: dict[str, np.ndarray]) -> dict[str, Any]:
     out.update(
         final_abs_x1=float(np.abs(data["x1"][tail]).max()),
         final_abs_x2=float(np.abs(data["x2"][tail]).max()),
-        final_u=float(data["u"][tail].mean()),
+        final_u=time_mean(t[tail], data["u"][tail]),
         oscillation_x1=float(np.ptp(data["x1"][tail]) / 2),
         oscillation_u=float(np.ptp(data["u"][tail]) / 2),
         max_abs_x1=float(np.abs(data["x1"]).max()),
