@@ -109,7 +109,9 @@ LAYERS = ("unit", "ros")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """A test without its layer is a collection error, not a silent member of no layer."""
+    """A test without its layer is a collection error, not a silent member of no layer. Files
+    that hold slow tests run first (stable order otherwise): on two workers the long ones then
+    start early instead of leaving one worker alone at the end."""
     missing = [
         item.nodeid
         for item in items
@@ -120,6 +122,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             "tests need exactly one layer marker (unit or ros; "
             "`pytestmark = pytest.mark.unit` in the file): " + ", ".join(missing[:10])
         )
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow_files)
 
 
 class _NotInUnitLayer(RuntimeError):
