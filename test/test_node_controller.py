@@ -40,7 +40,6 @@ def _sample(value, status=0, t=0.0):
     return msg
 
 
-@pytest.mark.realtime
 def test_invalid_sample_opens_the_loop_and_holds(node):
     from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
@@ -149,7 +148,6 @@ class _StartClosed:
         return _sample(0.0, t=self.node.get_clock().now().nanoseconds * 1e-9)
 
 
-@pytest.mark.realtime
 def test_stale_sensor_opens_the_loop(node):
     c = _StartClosed(node)
     try:
@@ -160,7 +158,6 @@ def test_stale_sensor_opens_the_loop(node):
         stop(c.proc)
 
 
-@pytest.mark.realtime
 def test_start_closed_waits_out_a_stale_or_invalid_sensor_before_closing(node):
     """An invalid (or stale) sample before start_closed has closed the loop delays the closing
     (WARN), it does not latch a fault that would keep the loop open for good."""

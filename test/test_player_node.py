@@ -122,7 +122,6 @@ def _play(node, sink: Sink, bag, *params: str) -> tuple[int, str]:
 
 
 @pytest.mark.slow
-@pytest.mark.realtime
 def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag):
     recorded: dict[str, list[bytes]] = {}
     for topic, _, _, data in read_raw(bag):
