@@ -58,19 +58,40 @@ def test_silence_hands_out_what_is_complete_and_reports_too_few_runs_once():
     tracker.mark(1.0, 0, True)
     tracker.mark(3.0, 0, False)  # the plan's end after one run: one complete run
     assert tracker.poll(50, latest=2.0, now=0.0, settle_time=SETTLE) == Poll((), False, False)
-    quiet = tracker.poll(50, latest=2.0, now=SETTLE + 1, settle_time=SETTLE)
+    assert not tracker.poll(50, latest=2.0, now=SETTLE + 1, settle_time=SETTLE).silent  # quiet
+    quiet = tracker.poll(50, latest=2.0, now=SETTLE + 1.1, settle_time=SETTLE)
     assert quiet == Poll((0,), True, True)
     again = tracker.poll(50, latest=2.0, now=SETTLE + 2, settle_time=SETTLE)
     assert again.silent and not again.stalled  # said once per silence
     tracker.poll(60, latest=2.5, now=SETTLE + 3, settle_time=SETTLE)  # data again, then silence
-    assert tracker.poll(60, latest=2.5, now=2 * SETTLE + 4, settle_time=SETTLE).stalled
+    tracker.poll(60, latest=2.5, now=2 * SETTLE + 4, settle_time=SETTLE)
+    assert tracker.poll(60, latest=2.5, now=2 * SETTLE + 4.1, settle_time=SETTLE).stalled
+
+
+def test_a_stall_of_the_host_is_not_silence_when_the_samples_were_waiting():
+    """The node's timer runs first after a stall: the first quiet poll only arms; the samples
+    that arrived during the stall are taken before the next poll and cancel it."""
+    tracker = RunTracker()
+    tracker.mark(0.0, 0, False)
+    tracker.mark(1.0, 0, True)
+    tracker.mark(3.0, 0, False)
+    tracker.poll(50, latest=1.5, now=0.0, settle_time=SETTLE)
+    stalled_host = tracker.poll(50, latest=1.5, now=SETTLE + 0.2, settle_time=SETTLE)
+    assert stalled_host == Poll((), False, False)
+    taken = tracker.poll(80, latest=3.0, now=SETTLE + 0.3, settle_time=SETTLE)
+    assert taken == Poll((0,), False, False)  # ready because the streams passed its end
+    # two quiet polls further apart than confirm_within: the second only arms again
+    tracker.poll(80, latest=3.0, now=2 * SETTLE + 1, settle_time=SETTLE)
+    assert not tracker.poll(80, latest=3.0, now=2 * SETTLE + 3, settle_time=SETTLE).silent
+    assert tracker.poll(80, latest=3.0, now=2 * SETTLE + 3.1, settle_time=SETTLE).stalled
 
 
 def test_no_failure_without_samples_or_once_identified():
     tracker = RunTracker()
     assert not tracker.poll(0, latest=-math.inf, now=100.0, settle_time=SETTLE).silent
     tracker.poll(10, latest=1.0, now=0.0, settle_time=SETTLE)
-    late = tracker.poll(10, latest=1.0, now=SETTLE + 1, settle_time=SETTLE, identified=True)
+    tracker.poll(10, latest=1.0, now=SETTLE + 1, settle_time=SETTLE, identified=True)
+    late = tracker.poll(10, latest=1.0, now=SETTLE + 1.1, settle_time=SETTLE, identified=True)
     assert late.silent and not late.stalled
 
 

@@ -48,7 +48,12 @@ class RunTracker:
     A run is complete when a steady mark of it is followed by another mark that is not a
     steady mark of the same run (the next run's first mark, or the plan's end mark). It is
     ready once both streams have passed that mark's stamp (topics arrive independently), or
-    when the streams have been silent for ``settle_time`` wall seconds."""
+    when the streams have been silent for ``settle_time`` wall seconds.
+
+    Silence is said from the second of quiet polls each at most ``confirm_within`` seconds
+    after the one before: after a stall of the host the node's timer runs before it takes the
+    messages that arrived meanwhile, so the first quiet poll may only mean that the node itself
+    was not running (seen: a run identified from 162 of its samples on a loaded host)."""
 
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
     offsets: dict[int, float] = field(default_factory=dict)
@@ -58,6 +63,8 @@ class RunTracker:
     _count: int = 0
     _changed_at: float | None = None
     _reported: bool = False
+    confirm_within: float = 1.0
+    _quiet_at: float | None = None  # the last poll that found the streams quiet
 
     def mark(self, t: float, run: int, steady: bool, offset: float = 0.0) -> Phase | None:
         """Record an excitation mark at stamp ``t`` [s]; return its phase when it changes the
@@ -91,10 +98,14 @@ class RunTracker:
              identified: bool = False) -> Poll:
         """``samples``: samples received so far (both streams); ``latest``: the stamp [s] both
         streams have reached (the smaller of their last stamps); ``now``: wall time [s];
-        ``identified``: a result exists (silence is then no failure)."""
+        ``identified``: a result exists (silence is then no failure). Call it periodically
+        (every 0.1 s in the node): silence needs two quiet polls (see the class)."""
         if samples != self._count or self._changed_at is None:
             self._count, self._changed_at, self._reported = samples, now, False
-        silent = samples > 0 and now - self._changed_at > settle_time
+        quiet = samples > 0 and now - self._changed_at > settle_time
+        confirmed = self._quiet_at is not None and now - self._quiet_at <= self.confirm_within
+        silent = quiet and confirmed
+        self._quiet_at = now if quiet else None
         ready = []
         while self._pending and (self._pending[0][0] <= latest or silent):
             ready.append(self._pending.pop(0)[1])
