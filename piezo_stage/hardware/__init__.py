@@ -13,6 +13,7 @@ For the ROS nodes:
 """
 
 from .amplifier import Amplifier, DeviceInfo, GCSAmplifier, MDT69xAmplifier, make_amplifier
+from .decimation import Decimated, Decimator
 from .driver import DriverConfig, DriverState, SetResult, VoltageDriver, Watchdog
 from .errors import (
     ConfigError,
@@ -41,6 +42,8 @@ __all__ = [
     "CommandPlayout",
     "ConfigError",
     "ConnectionLost",
+    "Decimated",
+    "Decimator",
     "DeviceError",
     "DeviceInfo",
     "DeviceTimeout",

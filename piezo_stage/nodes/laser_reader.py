@@ -9,9 +9,9 @@ nothing OK next to damaged bytes), error values and link handling are
 
 - the output convention: ``displacement = sign · (d − zero_offset)`` with d the distance from
   the start of the measuring range [m];
-- decimation: ``decimation`` = N consecutive samples -> one message, the mean of the N when all
-  are OK; a group holding any non-OK sample takes the status of its first non-OK sample and NaN
-  (N = 1: every sample is published);
+- decimation (:class:`piezo_stage.hardware.decimation.Decimator`): ``decimation`` = N
+  consecutive samples -> one message, the mean of the N when all are OK; a group holding any
+  non-OK sample takes the status of its first non-OK sample and NaN (N = 1: every sample);
 - stamps on the sensor's sample clock (:class:`piezo_stage.hardware.timing.SampleClock`): the
   k-th sample since (re)connecting was taken at ``t0 + k / rate_hz``, ``t0`` being the lower
   envelope of ``t_reception − k / rate_hz`` over ``stamp_window`` seconds (frames reach the host
@@ -26,14 +26,13 @@ import math
 import sys
 import threading
 import time
-from dataclasses import dataclass
 
-import numpy as np
 from rclpy.node import Node
 from rclpy.time import Time
 from std_msgs.msg import Header
 
-from piezo_stage.hardware import SampleBlock, SensorConfig, SensorReader, Status, TransportError
+from piezo_stage.hardware import SensorConfig, SensorReader, Status, TransportError
+from piezo_stage.hardware.decimation import Decimator
 from piezo_stage.hardware.optoncdt import FAMILIES
 from piezo_stage.hardware.timing import SampleClock
 from piezo_stage_msgs.msg import Displacement
@@ -43,51 +42,6 @@ from .parameters import declare_table, on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run
 from .spec import Param, ParameterTable
-
-
-@dataclass(frozen=True)
-class Decimated:
-    """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the
-    group's)."""
-
-    displacement: np.ndarray
-    status: np.ndarray
-    stamp: np.ndarray
-
-
-class Decimator:
-    """N samples -> one (see the module docstring); keeps an incomplete group for the next block."""
-
-    def __init__(self, n: int) -> None:
-        if n < 1:
-            raise ValueError(f"decimation must be >= 1, got {n}")
-        self.n = n
-        self.reset()
-
-    def reset(self) -> None:
-        """Drop an incomplete group (after a reconnect its samples are not contiguous)."""
-        self._d = np.empty(0)
-        self._s = np.empty(0, dtype=np.uint8)
-        self._t = np.empty(0, dtype=np.int64)
-
-    def feed(self, block: SampleBlock, stamps: np.ndarray) -> Decimated:
-        """Groups completed by ``block`` whose samples were taken at ``stamps`` [ns]."""
-        d = np.concatenate([self._d, block.displacement])
-        s = np.concatenate([self._s, block.status])
-        t = np.concatenate([self._t, np.asarray(stamps, dtype=np.int64)])
-        groups = d.size // self.n
-        used = groups * self.n
-        self._d, self._s, self._t = d[used:], s[used:], t[used:]
-        d, s = d[:used].reshape(groups, self.n), s[:used].reshape(groups, self.n)
-        t = t[:used].reshape(groups, self.n)
-        bad = s != Status.OK
-        any_bad = bad.any(axis=1)
-        status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)],
-                          Status.OK).astype(np.uint8)
-        value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
-        stamp = t[:, 0] + (t[:, -1] - t[:, 0]) // 2  # mean time of equally spaced samples
-        return Decimated(value, status, stamp)
-
 
 PARAMETERS = ParameterTable("laser_reader", (
     Param("url", "/dev/ttyUSB0", "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, "
