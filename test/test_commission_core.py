@@ -19,7 +19,7 @@ from piezo_stage.commissioning import (
     design,
     sweep,
 )
-from piezo_stage.commissioning.graphs import SIM_SENSOR_NOISE
+from piezo_stage.commissioning.graphs import SIM_SENSOR_NOISE, recorded_to_the_end
 from piezo_stage.commissioning.procedure import OtherCommissioningError
 from piezo_stage.commissioning.sweep import Series, SweepError
 from piezo_stage.control.discrete import check_sampled_loop
@@ -305,3 +305,19 @@ def test_a_rig_pairing_interpolates_across_lost_voltage_messages():
     assert chord + step < 15.0  # a 60 ms old hold would be off by up to w * 150 * 0.06 = 113 V
     whole = Series(t_v, sine(t_v), t_x, np.zeros_like(t_x), np.zeros(t_x.size))
     assert np.allclose(paired(whole)[2][t_x < 0.4], u[t_x < 0.4])  # unchanged outside the gap
+
+
+def test_a_graph_run_is_recorded_only_once_the_end_mark_has_arrived():
+    """Marks and samples come on separate topics: a busy host delivered the samples past the
+    plan's end before its end mark, and a record cut there held one run of two."""
+    rate, duration = 1000.0, 2.0
+    ns = lambda t: round(t * 1e9)  # noqa: E731
+    samples = [(ns(k / rate), b"") for k in range(int(duration * rate) + 3)]
+    marks = [(0, b""), (ns(1.0), b"")]  # run 0 from 0 s, run 1 from 1 s
+    raw = {"excitation": marks, "displacement": samples, "voltage": list(samples)}
+    assert not recorded_to_the_end(raw, duration, rate)  # the end mark is still on its way
+    marks.append((ns(duration), b""))
+    assert recorded_to_the_end(raw, duration, rate)
+    assert not recorded_to_the_end({**raw, "voltage": samples[:-1]}, duration, rate)
+    assert not recorded_to_the_end({**raw, "displacement": samples[:-2]}, duration, rate)
+    assert not recorded_to_the_end({**raw, "voltage": []}, duration, rate)

@@ -183,11 +183,7 @@ class RosRig:
                     continue
                 t0 = raw["excitation"][0][0]  # marks arrive in order (reliable, one writer)
                 done = (raw["displacement"][-1][0] - t0) * 1e-9
-                if (
-                    done >= plan.duration + 2.0 / self.rate_hz
-                    and len(raw["voltage"]) > 0
-                    and raw["voltage"][-1][0] >= raw["displacement"][-1][0]
-                ):
+                if recorded_to_the_end(raw, plan.duration, self.rate_hz):
                     break
                 if time.monotonic() > next_note:
                     next_note += 2.0
@@ -458,6 +454,24 @@ def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:
         for topic in _TOPICS:
             for ns, data in raw[topic]:
                 bag.write(f"{namespace}/{topic}", data, ns)
+
+
+def recorded_to_the_end(raw: dict[str, list], duration: float, rate_hz: float) -> bool:
+    """Whether an excitation run of ``duration`` s is recorded in ``raw`` (per topic, lists of
+    ``(stamp [ns], message)`` in arrival order, the first mark the plan's start): the sensor has
+    passed the plan's end by two samples, the voltage has reached the last sample, and the
+    excitation's end mark has arrived. Topics arrive independently: on a busy host the end mark
+    can come after the samples past it, and a record cut before it holds one run, not two."""
+    marks, x, v = raw["excitation"], raw["displacement"], raw["voltage"]
+    if not (marks and x and v):
+        return False
+    t0 = marks[0][0]
+    end = t0 + round(duration * 1e9)
+    return (
+        x[-1][0] >= end + round(2e9 / rate_hz)
+        and v[-1][0] >= x[-1][0]
+        and marks[-1][0] >= end - round(0.5e9 / rate_hz)
+    )
 
 
 def _series(raw: dict[str, list]) -> Series:
