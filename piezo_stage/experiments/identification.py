@@ -199,9 +199,31 @@ def _run_stage(stage_graph: dict, commander_graph: dict, sim_steps: float,
         while time.monotonic() < deadline and "identifier" not in dict(stage.exited):
             time.sleep(0.1)  # on_done: exit -> it leaves once it has identified or failed
     finally:
+        _stop_plant_first(stage)
         stage.stop()
     codes: dict[str, int | None] = {"identifier": None, **dict(stage.exited)}
     return output, codes
+
+
+def _stop_plant_first(stage: Any, timeout: float = 15.0) -> None:
+    """Stop the plant before the recorder: a node leaving waits for its reliable subscribers to
+    acknowledge what it published (nodes.runtime.wait_acked), so the recorder takes the tail of
+    a run it lags behind. Signalled together, the recorder closed the bag first (seen on a busy
+    host: the last 18 s of a 200 s run missing from the bag, which the live identifier had)."""
+    import signal
+
+    try:
+        plant = stage.process("plant")
+    except KeyError:
+        return
+    if not plant.group_alive():
+        return
+    plant.send(signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and plant.group_alive():
+        time.sleep(0.05)
+    if plant.spec.required:  # its exit stops the others (SIGINT); a stop() meanwhile would
+        stage.wait(stage.stop_timeout)  # escalate to SIGTERM: let that stop end first
 
 
 def replay_identification(bag: str | Path, namespace: str, params_file: str | Path, *,
