@@ -183,7 +183,8 @@ def test_an_inserted_frame_inside_the_gate_is_ok_and_off_by_less_than_one_gate()
     data, origin = damage(
         data, origin, np.random.default_rng(505656), 2, drop=1e-3, corrupt=1e-3, garbage=1e-2
     )
-    result = score(OptoNCDTParser(fmt, MR, CHECK), data, origin, truth, TOL, chunk=1)
+    parser = OptoNCDTParser(fmt, MR, CHECK)
+    result = score(parser, data, origin, truth, TOL, chunk=1)
     assert result.damaged_ok >= 1 and result.chained == 0 and result.beyond_gate == 0, result
-    gate = CHECK.max_speed / CHECK.rate + 2 * fmt.scale * MR
+    gate = parser.gate(1)
     assert result.worst < gate + 0.05 * MR * np.pi / RATE < TOL, result

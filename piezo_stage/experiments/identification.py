@@ -14,6 +14,7 @@ Failures are the nodes' own reports: exit codes (the excitation and the identifi
 from __future__ import annotations
 
 import os
+import signal
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -210,8 +211,6 @@ def _stop_plant_first(stage: Any, timeout: float = 15.0) -> None:
     acknowledge what it published (nodes.runtime.wait_acked), so the recorder takes the tail of
     a run it lags behind. Signalled together, the recorder closed the bag first (seen on a busy
     host: the last 18 s of a 200 s run missing from the bag, which the live identifier had)."""
-    import signal
-
     try:
         plant = stage.process("plant")
     except KeyError:

@@ -330,6 +330,12 @@ class OptoNCDTParser:
         self._quantum = 2.0 * abs(fmt.scale) * self.measuring_range
         self.reset()
 
+    def gate(self, frames: np.ndarray | int) -> np.ndarray | float:
+        """The speed gate: the largest change [m] an accepted value may show over ``frames``
+        frames since the last accepted one (``max_speed`` × frames / rate + two digital
+        steps)."""
+        return self.check.max_speed / self.check.rate * frames + self._quantum
+
     def reset(self) -> None:
         """Forget the stream (after (re)connecting: unlocked until relock_frames agree)."""
         self._tail = np.empty(0, dtype=np.uint8)

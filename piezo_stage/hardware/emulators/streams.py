@@ -119,7 +119,7 @@ def score(
     # successive OK values in reach of each other, and the speed gate between them
     steps = np.diff(idx)
     reach = (steps < check.relock_frames) & (np.diff(lock[idx]) == 0)
-    gate = check.max_speed / check.rate * steps + 2.0 * abs(fmt.scale) * parser.measuring_range
+    gate = parser.gate(steps)
     quantum = abs(fmt.scale) * parser.measuring_range
     breaks = reach & (np.abs(np.diff(value)) > gate * (1 + 1e-9))
     after_exact = reach & exact[idx[:-1]] & ~exact[idx[1:]]
