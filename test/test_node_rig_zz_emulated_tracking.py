@@ -33,7 +33,7 @@ from piezo_stage.control.tracking import tracking_errors  # noqa: E402
 from piezo_stage.launch import Launcher  # noqa: E402
 from piezo_stage.launch.graph import find_graph, load_yaml, parse_graph  # noqa: E402
 from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
 
 from ros_support import spin_until  # noqa: E402
 
@@ -69,7 +69,7 @@ def tracking_graph(port: int, link: str, model_file: str):
 
 
 def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
-    from piezo_stage_msgs.msg import ControllerState, Displacement
+    from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
     model = tmp_path / "model.yaml"
     rig = shipped_parameter_set("ch11_rig")  # recorded as a simulated rig: the model is fitted
@@ -77,7 +77,17 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
     port, link = free_port(), str(tmp_path / "sensor")
     states: list = []
     refs: list = []
-    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    driving: list = []  # the driver has applied a command: the loop acts on the stage
+    # the controller may close the loop before the driver's command subscription has matched
+    # (the driver then ramps to 0 V for lack of commands); the record starts once it drives
+    probe.create_subscription(
+        Voltage, "voltage", lambda m: driving.append(True) if m.voltage > 1.0 else None,
+        SENSOR_QOS,
+    )
+    probe.create_subscription(
+        ControllerState, "controller_state", lambda m: states.append(m) if driving else None,
+        COMMAND_QOS,
+    )
     probe.create_subscription(Displacement, "reference", refs.append, COMMAND_QOS)
     lines: list[str] = []
     launch = Launcher(tracking_graph(port, link, str(model)), namespace=NS, timeout=30.0,
