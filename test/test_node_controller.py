@@ -110,7 +110,7 @@ class _StartClosed:
             "trigger:=timer",
             "rate_hz:=1000.0",
             "start_closed:=true",
-            "stale_periods:=20",
+            "max_gap:=0.02",
             namespace=NS,
         )
         self.states: list = []

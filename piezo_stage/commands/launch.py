@@ -105,7 +105,7 @@ def _print_plan(launcher: Launcher) -> None:
     g = launcher.graph
     print(f"# {g.source or 'graph'}" + (f": {g.description}" if g.description else ""))
     print(f"# namespace {g.namespace}; waits for: {', '.join(g.topics()) or 'nothing'}")
-    for spec in g.nodes:
+    for spec in g.processes():
         flags = " (required)" if spec.required else ""
         print(f"{spec.name}{flags}: {shell_line(display_argv(spec, g))}")
 

@@ -36,6 +36,17 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     """``--ros-args`` and what follows, in rcl's order of precedence (later wins): params files,
     the graph's use_sim_time, then the entry's overrides (including --param ones)."""
     args = ["--ros-args", "-r", f"__ns:={graph.namespace}"]
+    if spec.members:  # a composition host: each member's parameters scoped to its node name
+        for path in dict.fromkeys(p for m in spec.members for p in m.parameters):
+            args += ["--params-file", str(path)]
+        if graph.use_sim_time is not None:
+            args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
+        for m in spec.members:
+            args += [a for key, value in m.overrides.items()
+                     for a in ("-p", f"{m.name}:{key}:={ros_value(value)}")]
+            args += [a for src, dst in m.remappings.items()
+                     for a in ("-r", f"{m.name}:{src}:={dst}")]
+        return args
     if spec.node_name:
         args += ["-r", f"__node:={spec.node_name}"]
     for path in spec.parameters:
@@ -108,7 +119,7 @@ def check_runnable(graph: Graph, base_env: Mapping[str, str] | None = None) -> N
     """Before anything starts: every `executable` is a piezo_stage node module and every
     `command` is found on the PATH. (A `module` is checked by the process itself, which may
     have another PYTHONPATH.)"""
-    for spec in graph.nodes:
+    for spec in graph.processes():
         if spec.module is not None and spec.module.startswith(NODE_PACKAGE + "."):
             if importlib.util.find_spec(spec.module) is None:
                 raise GraphError(

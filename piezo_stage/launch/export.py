@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from piezo_stage.config_path import ConfigNotFoundError, find_config
-from piezo_stage.launch.commandline import ros_value
+from piezo_stage.launch.commandline import ros_arguments, ros_value
 from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec
 
 PACKAGE = "piezo_stage"
@@ -74,6 +74,8 @@ def _node(spec: ProcessSpec, graph: Graph) -> str:
             kw.append(f"remappings={list(spec.remappings.items())!r}")
         if spec.args:
             kw.append(f"arguments={list(spec.args)!r}")
+        if spec.members:  # a composition host: its members' parameters, scoped to their nodes
+            kw.append(f"ros_arguments={ros_arguments(spec, graph)[3:]!r}")
         return _call("Node", kw)
     return _module_process(spec, graph)
 
@@ -124,7 +126,8 @@ def launch_py_source(graph: Graph) -> str:
                 "here they start at once"
             )
     actions = [
-        f"        {_node(s, graph) if s.is_node else _command(s, graph)}," for s in graph.nodes
+        f"        {_node(s, graph) if s.is_node else _command(s, graph)},"
+        for s in graph.processes()
     ]
     doc = (graph.description or f"graph {graph.source.name if graph.source else ''}").replace(
         '"""', "'''"

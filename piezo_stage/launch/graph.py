@@ -21,6 +21,10 @@ Format (documented with examples in ``config/graphs/README.md``)::
       - module: my_pkg.my_node          # any python module with main() (or runnable with -m)
       - command: [piezo-stage, emulate, rig]  # a helper process (no ROS arguments)
         ready_pattern: "listening on"   # later entries start once a line matches
+      - executable: controller
+        process: rig_loop               # composed: the entries naming one host node module run
+                                        # in one process (piezo_stage.nodes.rig_loop), each
+                                        # with its own parameters (-p controller:KEY:=VALUE)
 
 This module is pure Python (yaml only): parsing, validation and the `--ns`/`--param` edits.
 """
@@ -63,6 +67,7 @@ _NODE_KEYS = (
     "args",
     "env",
     "ready_pattern",
+    "process",
 )
 _ROS_ONLY_KEYS = ("parameters", "overrides", "remappings")
 _TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
@@ -135,6 +140,8 @@ class ProcessSpec:
     args: tuple[str, ...] = ()
     env: Mapping[str, str] = field(default_factory=dict)
     ready_pattern: str | None = None
+    process: str | None = None  # composed into the process of this host node module
+    members: tuple[ProcessSpec, ...] = ()  # a host's composed entries
 
     @property
     def is_node(self) -> bool:
@@ -157,6 +164,21 @@ class Graph:
             if spec.name == name:
                 return spec
         raise KeyError(name)
+
+    def processes(self) -> tuple[ProcessSpec, ...]:
+        """What runs, in graph order: each entry on its own, except the entries composed into
+        one host (``process:``), which become one spec at the place of the first of them."""
+        out: list[ProcessSpec] = []
+        for spec in self.nodes:
+            if spec.process is None:
+                out.append(spec)
+            elif not any(p.name == spec.process for p in out):
+                members = tuple(s for s in self.nodes if s.process == spec.process)
+                out.append(ProcessSpec(
+                    name=spec.process, module=f"{NODE_PACKAGE}.{spec.process}",
+                    required=any(m.required for m in members),
+                    env={k: v for m in members for k, v in m.env.items()}, members=members))
+        return tuple(out)
 
     def topics(self) -> list[str]:
         """Fully qualified names of the topics waited for."""
@@ -281,7 +303,10 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
         _parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data)
     )
     seen: set[str] = set()
+    hosts = {spec.process for spec in nodes if spec.process is not None}
     for i, spec in enumerate(nodes):
+        if spec.name in hosts:
+            raise GraphError(f"{where}: nodes[{i}]: name {spec.name!r} is also a 'process'")
         if spec.name in seen:
             raise GraphError(
                 f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
@@ -390,6 +415,15 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
     required = entry.get("required", False)
     if not isinstance(required, bool):
         raise GraphError(f"{label}: required: expected true or false, got {required!r}")
+    process = entry.get("process")
+    if process is not None:
+        if kind != "executable" or not isinstance(process, str) or not _NODE_NAME_RE.match(process):
+            raise GraphError(f"{label}: process: only an 'executable' entry is composed, into a "
+                             f"host node module name (e.g. rig_loop), got {process!r}")
+        for key in ("name", "args", "ready_pattern"):
+            if key in entry:
+                raise GraphError(f"{label}: {key!r} is not for a composed entry (process: "
+                                 f"{process})")
     ready_pattern = entry.get("ready_pattern")
     if ready_pattern is not None:
         try:
@@ -425,6 +459,7 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
         args=tuple(_strings(entry.get("args", []), f"{label}: args", scalars=True)),
         env=_env(entry.get("env", {}), f"{label}: env"),
         ready_pattern=ready_pattern,
+        process=process,
     )
 
 

@@ -110,7 +110,7 @@ class Launcher:
         self._monitor = threading.Thread(target=self._watch, name="launch-monitor", daemon=True)
         self._monitor.start()
         try:
-            for spec in self.graph.nodes:
+            for spec in self.graph.processes():
                 proc = ManagedProcess(
                     spec,
                     process_argv(spec, self.graph),

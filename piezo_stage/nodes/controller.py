@@ -8,13 +8,15 @@ adapts it to topics, parameters and services.
 Triggers: ``timer`` (``rate_hz`` on the node's clock, wall or sim time) or ``sample`` (one step
 per displacement sample, stamped with the sample's time: the lockstep plant's mode).
 
-Safety: a sample with status != OK, or no sample for ``stale_periods`` periods, opens the loop,
-holds the output (``hold_voltage``, NaN = last output) and reports ERROR on ``/diagnostics``;
-the loop closes again by service. Before ``start_closed`` has closed the loop, such a sample
-only delays the closing (WARN "waiting to close the loop") to the next valid one. Gain changes
-at run time are checked against Theorem 4 (the
-Assumption 2 bounds of ``bounds_file``) and the sampled-loop check at the running rate and
-delay, and refused with the reason unless ``allow_unverified_gains`` is true.
+Safety (:class:`piezo_stage.control.supervision.LoopSupervisor`, shared with the composed rig
+loop): a sample with status != OK opens the loop, holds the output (``hold_voltage``, NaN = last
+output) and reports ERROR on ``/diagnostics``; a sensor silence up to ``max_gap`` holds the
+output and resumes (``gaps_held`` on /diagnostics), a longer one opens the loop; the loop
+closes again by service. Before ``start_closed`` has closed the loop, such a sample only delays
+the closing (WARN "waiting to close the loop") to the next valid one. Gain changes at run time
+are checked against Theorem 4 (the Assumption 2 bounds of ``bounds_file``) and the sampled-loop
+check at the running rate and delay, and refused with the reason unless
+``allow_unverified_gains`` is true.
 
 Services: ``~/close_loop``, ``~/open_loop`` (std_srvs/Trigger).
 
@@ -34,8 +36,10 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
+from dataclasses import replace
 from enum import Enum
-from typing import Any
+from typing import Any, Callable
 
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -50,26 +54,29 @@ from piezo_stage.control.controller import (
     ControlOutput,
     TimeVaryingPID,
 )
-from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import LAWS, THESIS_GAINS, Gains
-from piezo_stage.control.reference import SecondOrderReference
-from piezo_stage.control.theorem4 import validate_gains
+from piezo_stage.control.setpoint import ReferenceSource, SetPoint
+from piezo_stage.control.supervision import (
+    GainCheck,
+    Gap,
+    Health,
+    LoopSupervisor,
+    SupervisionConfig,
+)
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched
+from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, to_stamp
 from .spec import Param, ParameterError, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
                            "derivative_tau", "hold_voltage", "on_close")
-#: parameters the loop reads every period (cached in ``_hot``)
-HOT_KEYS = ("stale_periods", "reference_source", "reference", "open_at", "open_duration")
 
 
 class StepTrigger(str, Enum):
@@ -82,11 +89,7 @@ class SensorQos(str, Enum):
     RELIABLE = "reliable"        # the lockstep plant: no sample lost, no step waits for its timeout
 
 
-class ReferenceSource(str, Enum):
-    TOPIC = "topic"                # the reference topic
-    SECOND_ORDER = "second_order"  # the thesis's yr
-    CONSTANT = "constant"          # the reference parameter
-    TRAJECTORY = "trajectory"      # x_d of the trajectory_* parameters, published on reference
+LEVELS = {Health.OK: OK, Health.WARN: WARN, Health.ERROR: ERROR}
 
 
 _G = THESIS_GAINS
@@ -119,7 +122,8 @@ PARAMETERS = ParameterTable("controller", (
     Param("wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
           "has this many subscribers (an experiment's recorder sees step 0)", range=(0, 100),
           read_only=True),
-    Param("stale_periods", 5, "no sample for this many periods opens the loop", range=(1, 100000)),
+    Param("max_gap", 0.02, "a sensor silence up to this long holds the output (counted as "
+          "gaps_held); a longer one opens the loop", "s", (1e-5, 60.0)),
     Param("reference_source", "topic", "where the set point comes from: the reference topic, the "
           "thesis's second-order yr, the reference parameter, or the trajectory_* parameters (x_d "
           "then published on reference)", choices=ReferenceSource),
@@ -157,60 +161,59 @@ PARAMETERS = ParameterTable("controller", (
 
 
 class ControllerNode(Node):
-    def __init__(self) -> None:
-        super().__init__("controller", namespace=DEFAULT_NAMESPACE)
-        declare_table(self, PARAMETERS)
+    """``composed``: part of the rig loop (:mod:`.rig_loop`), which calls :meth:`on_sample` from
+    its loop thread and routes every publication through ``handoff``; no displacement
+    subscription, no timer."""
 
-        self._bounds_path = find_config(self.get_parameter("bounds_file").value)
-        self._bounds = load_bounds(self._bounds_path)
-        self._plant = load_nominal_plant(self._bounds_path) or THESIS_NOMINAL_PLANT
-        self._rate = float(self.get_parameter("rate_hz").value)
-        self._bias = float(self.get_parameter("u_bias").value)  # read-only: cached
+    def __init__(self, composed: bool = False, handoff: Any = None) -> None:
+        super().__init__("controller", namespace=DEFAULT_NAMESPACE)
+        self.settings = s = PARAMETERS.settings(declare_table(self, PARAMETERS))
+
+        bounds_path = find_config(s.bounds_file)
+        self._bias = float(s.u_bias)  # read-only: cached
+        self._rate = float(s.rate_hz)
+        self._gain_check = GainCheck(load_bounds(bounds_path),
+                                     load_nominal_plant(bounds_path) or THESIS_NOMINAL_PLANT,
+                                     self._rate, int(s.delay_samples))
         self._feedforward = self._load_feedforward()
-        self._trajectory = self._load_trajectory()
-        self._t_ref: float | None = None  # the trajectory's time origin: the first step
+        trajectory = self._load_trajectory()
         config = self._config({})
-        report = self._verify(config)
-        if report and not self.get_parameter("allow_unverified_gains").value:
+        report = self._gain_check.reasons(config)
+        if report and not s.allow_unverified_gains:
             raise ControlError(f"unsafe gains at start: {report} (set allow_unverified_gains to "
                                "override)")
         self.pid = TimeVaryingPID(config, closed=False)
+        self.supervisor = LoopSupervisor(self.pid, SupervisionConfig(
+            rate_hz=self._rate, u_bias=self._bias, u_min=float(s.u_min), u_max=float(s.u_max),
+            start_closed=bool(s.start_closed),
+            max_gap=float(s.max_gap), open_at=float(s.open_at), open_after=float(s.open_after),
+            open_duration=float(s.open_duration)), notify=self._notify)
+        self.setpoint = SetPoint(s.reference_source, float(s.reference), trajectory=trajectory,
+                                 y0=float(s.reference_y0), ydot0=float(s.reference_ydot0))
+        #: the loop thread (composed) and the executor (parameters, services) share the law
+        self.lock = threading.Lock()
         on_set(self, self._check_params)
-        # parameters read on every step, cached (refreshed after each successful set)
-        self._hot = {k: self.get_parameter(k).value for k in HOT_KEYS}
-        self.add_post_set_parameters_callback(self._refresh_hot)
-
-        self._yr = float(self.get_parameter("reference").value)
-        self._ref_gen: SecondOrderReference | None = None
-        self._x: float | None = None
-        self._x_stamp: float | None = None
-        self._status = Displacement.OK
-        self._fault = ""
-        self._steps = 0
-        self._saturated_steps = 0
-        self._start_closed = bool(self.get_parameter("start_closed").value)
-        self._waiting = ""  # why start_closed has not closed the loop yet (stale, invalid sample)
-        self._window, self._window_t = "pending", math.nan
-        self._open_after = float(self.get_parameter("open_after").value)
-        self._closed_at = math.nan  # when start_closed closed the loop (open_after counts from it)
-        self._wait_subs = int(self.get_parameter("wait_for_state_subscribers").value)
+        self.add_post_set_parameters_callback(self._after_set)
+        self._wait_subs = int(s.wait_for_state_subscribers)
+        self._handoff = handoff
 
         # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or
         # state
-        out_qos = LOCKSTEP_QOS if self.get_parameter("trigger").value == "sample" else COMMAND_QOS
+        out_qos = LOCKSTEP_QOS if s.trigger is StepTrigger.SAMPLE else COMMAND_QOS
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
         self._pub_state = self.create_publisher(ControllerState, "controller_state", out_qos)
-        reliable = self.get_parameter("sensor_qos").value == SensorQos.RELIABLE
-        self.create_subscription(Displacement, "displacement", self._on_displacement,
-                                 LOCKSTEP_QOS if reliable else SENSOR_QOS)
         self._ref_qos = out_qos
         self._sub_ref = self._pub_ref = None  # made when first needed (never its own echo)
-        self._reference_io(self.get_parameter("reference_source").value)
+        self._reference_io(self.setpoint.source)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
-        self._trigger = self.get_parameter("trigger").value
-        if self._trigger == "timer":
-            self.create_timer(1.0 / self._rate, self._on_timer)
+        self._trigger = s.trigger
+        if not composed:
+            reliable = s.sensor_qos is SensorQos.RELIABLE
+            self.create_subscription(Displacement, "displacement", self._on_displacement,
+                                     LOCKSTEP_QOS if reliable else SENSOR_QOS)
+            if self._trigger is StepTrigger.TIMER:
+                self.create_timer(1.0 / self._rate, self._on_timer)
         Diagnostics(self, "controller", self._diagnose)
 
     # ------------------------------------------------------------------ configuration
@@ -226,18 +229,18 @@ class ControllerNode(Node):
             tracking_time=float(p["tracking_time"]) or None,
             derivative_tau=float(p["derivative_tau"]),
             hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"],
-            compensation=self.get_parameter("compensation").value, feedforward=self._feedforward)
+            compensation=self.settings.compensation, feedforward=self._feedforward)
         config.validate()
         return config
 
     def _load_feedforward(self) -> FeedforwardModel | None:
         """The feedforward model (None under feedback); bad files and combinations exit 2."""
-        name = self.get_parameter("feedforward_model").value
-        compensation = self.get_parameter("compensation").value
-        if compensation == Compensation.FEEDBACK:
+        name, compensation = self.settings.feedforward_model, self.settings.compensation
+        if compensation is Compensation.FEEDBACK:
             return None
         if not name:
-            raise ParameterError(f"controller: compensation {compensation} needs feedforward_model")
+            raise ParameterError(f"controller: compensation {compensation.value} needs "
+                                 "feedforward_model")
         if self._bias != 0.0:
             raise ParameterError("controller: u_bias and the feedforward both set the operating "
                                  "voltage; use one (u_bias: 0)")
@@ -248,81 +251,103 @@ class ControllerNode(Node):
 
     def _load_trajectory(self) -> Trajectory | None:
         """The trajectory of reference_source=trajectory, built (and checked) at start."""
-        p = {k: self.get_parameter(f"trajectory{k}").value
-             for k in ("", "_amplitude", "_frequency", "_offset", "_rounding", "_v_max", "_a_max")}
+        s = self.settings
         try:
-            return make_trajectory(p[""], amplitude=p["_amplitude"], frequency=p["_frequency"],
-                                   offset=None if math.isnan(p["_offset"]) else p["_offset"],
-                                   rounding=p["_rounding"], v_max=p["_v_max"], a_max=p["_a_max"])
+            return make_trajectory(s.trajectory, amplitude=s.trajectory_amplitude,
+                                   frequency=s.trajectory_frequency,
+                                   offset=None if math.isnan(s.trajectory_offset)
+                                   else s.trajectory_offset,
+                                   rounding=s.trajectory_rounding, v_max=s.trajectory_v_max,
+                                   a_max=s.trajectory_a_max)
         except ControlError as exc:
-            if self.get_parameter("reference_source").value == ReferenceSource.TRAJECTORY:
+            if s.reference_source is ReferenceSource.TRAJECTORY:
                 raise ParameterError(f"controller: {exc}") from None
             return None  # not used unless reference_source is switched to it (refused then)
 
-    def _verify(self, config: ControllerConfig) -> str:
-        """'' when Theorem 4 and the sampled-loop check accept the gains, else the reasons."""
-        g = config.gains
-        report = validate_gains(self._bounds, g.k1, g.k2, g.k0,
-                                g.kA if config.mode == "pid_tv" else None,
-                                g.f if config.mode != "pid" else None)
-        reasons = list(report.reasons)
-        sampled = check_sampled_loop(self._plant, g, self._rate,
-                                     int(self.get_parameter("delay_samples").value), config.mode,
-                                     config.derivative_tau)
-        if not sampled.stable:
-            reasons.append(f"sampled loop unstable at {self._rate:g} Hz with "
-                           f"{sampled.delay_samples} "
-                           f"sample(s) delay: spectral radius {sampled.spectral_radius:.4f} >= 1")
-        return "; ".join(reasons)
-
     def _check_params(self, changed: dict[str, Any]) -> str | None:
         if changed.get("reference_source") == ReferenceSource.TRAJECTORY \
-                and self._trajectory is None:
+                and self.setpoint.trajectory is None:
             return "refused: the trajectory_* parameters give no valid trajectory"
+        if "max_gap" in changed:
+            try:
+                replace(self.supervisor.config, max_gap=float(changed["max_gap"]))
+            except ControlError as exc:
+                return f"refused: {exc}"
         if not set(changed) & set(CONFIG_KEYS + ("delay_samples",)):
             return None
         try:
             config = self._config(changed)
         except (ControlError, ValueError, TypeError) as exc:
             return str(exc)
-        report = self._verify(config)
+        check = self._gain_check
+        if "delay_samples" in changed:
+            check = replace(check, delay_samples=int(changed["delay_samples"]))
+        report = check.reasons(config)
         if report and not self.get_parameter("allow_unverified_gains").value:
             return f"refused: {report}"
         if report:
             self.get_logger().warn(f"unverified gains accepted: {report}")
-        self.pid.reconfigure(config)
+        with self.lock:
+            self.pid.reconfigure(config)
+        self._gain_check = check
         return None
 
-    def _refresh_hot(self, params: list) -> None:
-        self._hot.update({p.name: p.value for p in params if p.name in HOT_KEYS})
-        self._reference_io(self._hot["reference_source"])
+    def _after_set(self, params: list) -> None:
+        """Parameters the loop reads at each step, taken over once a set succeeded."""
+        with self.lock:
+            for p in params:
+                if p.name == "reference_source":
+                    self.setpoint.source = ReferenceSource(p.value)
+                elif p.name == "reference":
+                    self.setpoint.reference = float(p.value)
+                elif p.name in ("max_gap", "u_min", "u_max"):
+                    self.supervisor.config = replace(self.supervisor.config,
+                                                     **{p.name: float(p.value)})
+        self._reference_io(self.setpoint.source)
 
-    def _reference_io(self, source: str) -> None:
+    def _reference_io(self, source: ReferenceSource) -> None:
         """trajectory: a publisher of x_d on ``reference``; otherwise the subscription to it."""
-        if source == ReferenceSource.TRAJECTORY:
+        if source is ReferenceSource.TRAJECTORY:
             if self._pub_ref is None:
                 self._pub_ref = self.create_publisher(Displacement, "reference", self._ref_qos)
         elif self._sub_ref is None:
             self._sub_ref = self.create_subscription(Displacement, "reference", self._on_reference,
                                                      COMMAND_QOS)
 
+    def _notify(self, level: Health, text: str) -> None:
+        (self.get_logger().error if level is Health.ERROR else self.get_logger().info)(text)
+
     # ------------------------------------------------------------------ inputs
     def _on_reference(self, msg: Displacement) -> None:
-        if msg.status == Displacement.OK and math.isfinite(msg.displacement):
-            self._yr = msg.displacement
+        if msg.status == Displacement.OK:
+            self.setpoint.receive(msg.displacement)
 
     def _on_displacement(self, msg: Displacement) -> None:
         t = stamp_to_s(msg.header.stamp)
-        if msg.status != Displacement.OK or not math.isfinite(msg.displacement):
-            self._status = msg.status if msg.status != Displacement.OK else Displacement.INVALID
-            self._fail(f"invalid sensor sample (status {self._status})", t)
+        ok = msg.status == Displacement.OK and math.isfinite(msg.displacement)
+        if not self.supervisor.sample(t, msg.displacement, ok):
+            self._send_hold(t)
             return
-        self._status = Displacement.OK
-        self._x, self._x_stamp = msg.displacement, t
-        if self._trigger == "sample":
+        if self._trigger is StepTrigger.SAMPLE:
             if self._waiting_for_subscribers():
                 return  # the lockstep plant re-offers step 0 until a command answers it
             self._step(t, msg.header.stamp)
+
+    def on_sample(self, stamp_ns: int, x: float, ok: bool) -> float | None:
+        """The composed loop's step: one sensor sample taken at ``stamp_ns`` → the voltage to
+        write now (None: nothing to write). Publishes through the hand-off."""
+        t = stamp_ns * 1e-9
+        with self.lock:
+            if not self.supervisor.sample(t, x, ok):
+                return self._send_hold(t)
+            return self._step(t, stamp_ns)
+
+    def check_gap(self, t: float) -> float | None:
+        """The composed loop's tick without a sample: the voltage to write now, or None."""
+        with self.lock:
+            if self.supervisor.check_gap(t) is Gap.OPENED:
+                return self._send_hold(t)
+        return None
 
     def _waiting_for_subscribers(self) -> bool:
         if not subscribers_matched((self._pub_state,), self._wait_subs):
@@ -333,86 +358,45 @@ class ControllerNode(Node):
     def _on_timer(self) -> None:
         now = self.get_clock().now()
         t = now.nanoseconds * 1e-9
-        if self._x_stamp is None:
-            return
-        if t - self._x_stamp > self._hot["stale_periods"] / self._rate:
-            self._fail(f"no sensor sample for {t - self._x_stamp:.4f} s", t)
-            return
-        self._step(t, now.to_msg())
+        gap = self.supervisor.check_gap(t)
+        if gap is Gap.OPENED:
+            self._send_hold(t)
+        elif gap is Gap.NONE and self.supervisor.valid:
+            self._step(t, now.to_msg())
 
     # ------------------------------------------------------------------ loop
-    def _reference(self, t: float, stamp) -> tuple[float, float | None, float]:
-        """(yr, ẏr or None, ÿr) at time t."""
-        source = self._hot["reference_source"]
-        if source == "second_order":
-            if self._ref_gen is None:
-                self._ref_gen = SecondOrderReference(
-                    y0=float(self.get_parameter("reference_y0").value),
-                    ydot0=float(self.get_parameter("reference_ydot0").value), t_start=t)
-            yr, yr_dot, yr_ddot = self._ref_gen.evaluate(t)
-            return float(yr), float(yr_dot), float(yr_ddot)
-        if source == "trajectory" and self._trajectory is not None and self._pub_ref is not None:
-            if self._t_ref is None:
-                self._t_ref = t
-            x, v, a = (float(value) for value in self._trajectory.evaluate(t - self._t_ref))
-            self._pub_ref.publish(Displacement(header=Header(stamp=stamp), displacement=x,
-                                               status=Displacement.OK))
-            return x, v, a
-        if source == "constant":
-            return float(self._hot["reference"]), 0.0, 0.0
-        return self._yr, None, 0.0
+    def _step(self, t: float, stamp: Any) -> float:
+        yr, yr_dot, yr_ddot = self.setpoint.evaluate(t)
+        if self.setpoint.publishes and self._pub_ref is not None:
+            self._emit(self._publish_reference, stamp, yr)
+        out = self.supervisor.step(t, yr, yr_dot, yr_ddot)
+        u = self.supervisor.command(out)
+        self._emit(self._publish, out, u, stamp)
+        return u
 
-    def _scheduled_window(self, t: float) -> None:
-        """The open_at / open_duration window: opens with the hold voltage, closes after."""
-        open_at = self._hot["open_at"]
-        if open_at < 0 <= self._open_after and math.isfinite(self._closed_at):
-            open_at = self._closed_at + self._open_after
-        if open_at < 0 or self._window == "done":
-            return
-        if self._window == "pending" and t >= open_at:
-            self.get_logger().info(f"scheduled opening at t = {t:.6g} s, holding "
-                                   f"{self._hold_value():.6g} V")
-            self.pid.open_loop(self._hold_value())
-            self._window, self._window_t = "open", t
-        elif self._window == "open" and self._hot["open_duration"] > 0 \
-                and t >= self._window_t + self._hot["open_duration"] - 0.5 / self._rate:
-            self.get_logger().info(f"scheduled closing at t = {t:.6g} s")
-            self.pid.close_loop()
-            self._window = "done"
+    def _send_hold(self, t: float) -> float | None:
+        """Keep commanding the hold value while the loop is open: the stage stays put."""
+        u = self.supervisor.hold_command()
+        if u is not None:
+            self._emit(self._publish_command, u, t)
+        return u
 
-    def _step(self, t: float, stamp) -> None:
-        self._scheduled_window(t)
-        if self._start_closed and not self.pid.loop_closed and not self._fault:
-            self._start_closed, self._waiting = False, ""
-            self.pid.close_loop()
-            self._closed_at = t
-        yr, yr_dot, yr_ddot = self._reference(t, stamp)
-        out = self.pid.update(t, self._x, yr, yr_dot, yr_ddot)
-        self._publish(out, stamp)
-
-    def _hold_value(self) -> float:
-        """The open-loop output in the law's frame (amplifier volts − u_bias)."""
-        hold = self.pid.config.hold_voltage
-        return self.pid.config.clamp(self.pid.u if hold is None else hold)
-
-    def _fail(self, reason: str, t: float) -> None:
-        if self.pid.loop_closed:
-            self.get_logger().error(f"opening the loop: {reason}")
-            self.pid.open_loop(self._hold_value())
-        if self._start_closed:  # never closed yet: start_closed closes at the next good sample
-            self._waiting = reason
+    def _emit(self, publish: Callable[..., None], *args: Any) -> None:
+        if self._handoff is None:
+            publish(*args)
         else:
-            self._fault = reason
-        if self.pid.last_output is not None:  # keep commanding the hold value: the stage stays put
-            u = self._hold_value() if not self.pid.loop_closed else self.pid.u
-            self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
-                                          voltage=self._bias + u))
+            self._handoff.put(publish, *args)
 
-    def _publish(self, out: ControlOutput, stamp) -> None:
-        header = Header(stamp=stamp)
-        self._steps += 1
-        self._saturated_steps += int(out.saturated)
-        u = self._bias + out.u
+    def _publish_reference(self, stamp: Any, x: float) -> None:
+        self._pub_ref.publish(Displacement(header=Header(stamp=to_stamp(stamp)), displacement=x,
+                                           status=Displacement.OK))
+
+    def _publish_command(self, u: float, t: float) -> None:
+        self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
+                                      voltage=u))
+
+    def _publish(self, out: ControlOutput, u: float, stamp: Any) -> None:
+        header = Header(stamp=to_stamp(stamp))
         self._pub_cmd.publish(Voltage(header=header, voltage=u))
         self._pub_state.publish(ControllerState(
             header=header, mode=out.mode, loop_closed=out.loop_closed, saturated=out.saturated,
@@ -421,32 +405,18 @@ class ControllerNode(Node):
 
     # ------------------------------------------------------------------ services
     def _srv_close(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        if self._status != Displacement.OK or self._x is None:
-            response.success, response.message = False, "no valid sensor sample: loop stays open"
-            return response
-        self._fault = ""
-        self.pid.close_loop()
-        response.success, response.message = True, "loop closed"
+        with self.lock:
+            response.success, response.message = self.supervisor.close()
         return response
 
     def _srv_open(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        hold = self._hold_value()
-        self.pid.open_loop(hold)
-        response.success, response.message = True, f"loop open, holding {self._bias + hold:.6g} V"
+        with self.lock:
+            response.success, response.message = True, self.supervisor.open()
         return response
 
     def _diagnose(self) -> Diagnosis:
-        values = {"mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed,
-                  "u": self._bias + self.pid.u,
-                  "steps": self._steps, "saturated_steps": self._saturated_steps}
-        if self._fault:
-            return Diagnosis(ERROR, f"loop opened: {self._fault}", values)
-        if self._start_closed and self._waiting:
-            return Diagnosis(WARN, f"waiting to close the loop: {self._waiting}", values)
-        last = self.pid.last_output
-        if self._saturated_steps and last is not None and last.saturated:
-            return Diagnosis(WARN, "output saturated", values)
-        return Diagnosis(OK, "closed" if self.pid.loop_closed else "open", values)
+        level, message, values = self.supervisor.diagnose()
+        return Diagnosis(LEVELS[level], message, values)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -26,7 +26,9 @@ import math
 import sys
 import threading
 import time
+from typing import Any, Callable
 
+import numpy as np
 from rclpy.node import Node
 from rclpy.time import Time
 from std_msgs.msg import Header
@@ -78,9 +80,19 @@ PARAMETERS = ParameterTable("laser_reader", (
 ), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
 
 
+#: the composed loop's step: (displacement [m], status, stamp [ns]) arrays of new samples
+SampleSink = Callable[[np.ndarray, np.ndarray, np.ndarray], None]
+
+
 class LaserReaderNode(Node):
-    def __init__(self) -> None:
+    """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
+    samples to ``loop`` before they are published, ``idle(now_ns)`` is called after a read that
+    timed out, and every publication goes through ``handoff``."""
+
+    def __init__(self, loop: SampleSink | None = None,
+                 idle: Callable[[int], None] | None = None, handoff: Any = None) -> None:
         super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE)
+        self._loop, self._idle, self._handoff = loop, idle, handoff
         p = declare_table(self, PARAMETERS)
         on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "
                "depend on it)" if "use_sim_time" in changed else None)
@@ -133,6 +145,8 @@ class LaserReaderNode(Node):
         """Stop the read thread before the node goes away (called by ``common.run``)."""
         self._reader_stop.set()
         self._thread.join(timeout=2.0)
+        if self._handoff is not None:
+            self._handoff.drain()
 
     def _poll(self, timeout: float = 0.0) -> None:
         """Read what arrived (waiting up to ``timeout`` s for it), stamp, decimate, publish."""
@@ -151,18 +165,28 @@ class LaserReaderNode(Node):
             self.get_logger().error(f"sensor link: {exc}", throttle_duration_sec=1.0)
             self._reader_stop.wait(timeout)  # a dead link fails at once: retry at the poll pace
             return
+        now = self.get_clock().now().nanoseconds
         if not len(block):
+            if self._idle is not None:
+                self._idle(now)
             return
-        stamps = self.sample_clock.stamps(self.get_clock().now().nanoseconds, len(block))
+        stamps = self.sample_clock.stamps(now, len(block))
         out = self.decimator.feed(block, stamps - int(round(self.latency * 1e9)))
-        value = self.sign * (out.displacement - self.zero_offset)
-        for x, status, ns in zip(value, out.status, out.stamp):
-            stamp = Time(nanoseconds=int(ns), clock_type=self.get_clock().clock_type)
-            value = float(x) if status == Status.OK else math.nan
-            self._pub.publish(Displacement(header=Header(stamp=stamp.to_msg()), displacement=value,
-                                           status=int(status)))
-            self.by_status[Status(int(status))] += 1
-        self.published += len(out.status)
+        value = np.where(out.status == Status.OK,
+                         self.sign * (out.displacement - self.zero_offset), math.nan)
+        if self._loop is None:
+            self._publish(value, out.status, out.stamp)
+            return
+        self._loop(value, out.status, out.stamp)  # the control step first, then the topics
+        self._handoff.put(self._publish, value, out.status, out.stamp)
+
+    def _publish(self, value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
+        clock_type = self.get_clock().clock_type
+        for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
+            header = Header(stamp=Time(nanoseconds=ns, clock_type=clock_type).to_msg())
+            self._pub.publish(Displacement(header=header, displacement=x, status=st))
+            self.by_status[Status(st)] += 1
+        self.published += len(status)
 
     def _diagnose(self) -> Diagnosis:
         stats = self.reader.parser.stats

@@ -10,7 +10,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import rclpy
 from rclpy.clock import Clock, ClockType
@@ -32,6 +32,15 @@ def wall_clock() -> Clock:
 
 def stamp_to_s(stamp: Any) -> float:
     return stamp.sec + 1e-9 * stamp.nanosec
+
+
+def to_stamp(stamp: Any) -> Any:
+    """A header stamp from a stamp message (returned as is) or integer nanoseconds."""
+    if isinstance(stamp, int):
+        from builtin_interfaces.msg import Time as Stamp
+
+        return Stamp(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000)
+    return stamp
 
 
 def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
@@ -79,14 +88,15 @@ def warm_log_lookup(cls: type) -> None:
             return
 
 
-def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
+def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] | None = None, *,
         lean: bool = False) -> int:
-    """Run a node until SIGINT/SIGTERM, then call its ``on_shutdown()`` (if any) while the
-    context is still valid (so a driver can ramp to its safe voltage and publish it), give its
-    reliable subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge what it published, then destroy it.
-    Returns the exit code for ``sys.exit``.
+    """Run a node (or the nodes composed in one process) until SIGINT/SIGTERM, then call each
+    one's ``on_shutdown()`` (if any; the last made first) while the context is still valid (so a
+    driver can ramp to its safe voltage and publish it), give their reliable subscribers
+    ``EXIT_ACK_TIMEOUT`` to acknowledge what they published, then destroy them. Returns the exit
+    code for ``sys.exit``.
 
-    ``lean`` runs it with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
+    ``lean`` runs them with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
     SingleThreadedExecutor.
     """
     argv = list(sys.argv if args is None else args)
@@ -98,26 +108,30 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
-    node = None
+    nodes: list[Node] = []
     code = 0
     try:
-        node = node_factory()
-        warm_log_lookup(type(node))
+        made = node_factory()
+        for node in [made] if isinstance(made, Node) else made:  # a generator: one at a time,
+            nodes.append(node)  # so that those made before a failure are shut down safely
         executor = LeanExecutor() if lean else SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok() and not getattr(node, "finished", False):
+        for node in nodes:
+            warm_log_lookup(type(node))
+            executor.add_node(node)
+        while not stop.is_set() and rclpy.ok() \
+                and not any(getattr(n, "finished", False) for n in nodes):
             executor.spin_once(timeout_sec=0.05)
-        code = int(getattr(node, "exit_code", 0))
+        code = max((int(getattr(n, "exit_code", 0)) for n in nodes), default=0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ParameterError as exc:  # bad input: one line, exit 2
         print(f"error: {exc}", file=sys.stderr)
         code = 2
     except Exception as exc:  # a node that cannot start says why and exits non-zero
-        print(f"[{getattr(node, 'get_name', lambda: 'node')()}] fatal: {exc}", file=sys.stderr)
+        print(f"[{nodes[-1].get_name() if nodes else 'node'}] fatal: {exc}", file=sys.stderr)
         code = 1
     finally:
-        if node is not None:
+        for node in reversed(nodes):
             shutdown = getattr(node, "on_shutdown", None)
             if shutdown is not None:
                 try:
@@ -125,13 +139,13 @@ def run(node_factory: Callable[[], Node], args: Sequence[str] | None = None, *,
                 except Exception as exc:  # report, still tear down, and exit non-zero
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
                     code = code or 1
-            if rclpy.ok():
+        if rclpy.ok():
+            for node in nodes:
                 late = wait_acked(node, EXIT_ACK_TIMEOUT)
                 if late:
                     print(f"[{node.get_name()}] left before every subscriber acknowledged "
-                          f"{', '.join(late)}",
-                          file=sys.stderr)
+                          f"{', '.join(late)}", file=sys.stderr)
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
-

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import difflib
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, make_dataclass, replace
 from enum import Enum
+from functools import cached_property
 from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 #: declared by rclpy itself on every node (and accepted by every node)
@@ -112,6 +113,16 @@ class Param:
         return text
 
 
+def _field(name: str) -> str:
+    return name.replace(".", "_")
+
+
+def _typed(p: Param, value: Any) -> Any:
+    if isinstance(p.choices, type) and issubclass(p.choices, Enum):
+        return p.choices(value)
+    return list(value) if isinstance(value, tuple) else value
+
+
 def is_ros_own(name: str) -> bool:
     return name in ROS_OWN or name.startswith(ROS_OWN_PREFIXES)
 
@@ -147,6 +158,20 @@ class ParameterTable:
 
     def defaults(self) -> dict[str, Any]:
         return {p.name: p.default for p in self.params}
+
+    @cached_property
+    def settings_class(self) -> type:
+        """A frozen dataclass with one field per parameter (dots become underscores), named
+        after the node: what :meth:`settings` returns."""
+        name = "".join(part.title() for part in self.node.split("_")) + "Settings"
+        return make_dataclass(name, [(_field(p.name), Any) for p in self.params], frozen=True)
+
+    def settings(self, values: Mapping[str, Any]) -> Any:
+        """The node's settings as a frozen dataclass: ``values`` (every parameter of the table)
+        with the choices of an Enum class as its members, so a node compares enums, not
+        strings."""
+        return self.settings_class(**{_field(p.name): _typed(p, values[p.name])
+                                      for p in self.params})
 
     def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable:
         """The same table with other defaults (e.g. the excitation's preset)."""

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.time import Time
@@ -108,8 +109,13 @@ PARAMETERS = ParameterTable("voltage_driver", (
 
 
 class VoltageDriverNode(Node):
-    def __init__(self) -> None:
+    """``composed``: part of the rig loop (:mod:`.rig_loop`), whose loop thread calls
+    :meth:`command` directly; no voltage_command subscription (the controller in the same
+    process still publishes the topic), every publication through ``handoff``."""
+
+    def __init__(self, composed: bool = False, handoff: Any = None) -> None:
         super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE)
+        self._handoff = handoff
         p = declare_table(self, PARAMETERS)
 
         amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None,
@@ -157,7 +163,8 @@ class VoltageDriverNode(Node):
             self._executor_priority = set_realtime_priority(p["realtime_priority"])
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
-        self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
+        if not composed:
+            self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
         self.create_timer(p["watchdog_period"], self._watchdog, clock=wall_clock())
         if p["readback_rate_hz"] > 0:
             self.create_timer(1.0 / p["readback_rate_hz"], self._readback, clock=wall_clock())
@@ -190,6 +197,12 @@ class VoltageDriverNode(Node):
             self._playout.push(stamp_to_s(stamp), msg.voltage, received)
         else:
             self._apply(msg.voltage, True, received)
+
+    def command(self, voltage: float) -> None:
+        """A command from the composed loop (its own thread): the watchdog counts from now."""
+        received = self.driver.clock()
+        self.driver.command_received(received)
+        self._apply(voltage, True, received)
 
     def _apply(self, voltage: float, command: bool = True, received: float | None = None) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
@@ -274,6 +287,12 @@ class VoltageDriverNode(Node):
     def _publish(self, voltage: float, stamp: Time | None = None) -> None:
         self._applied = voltage
         stamp = self.get_clock().now() if stamp is None else stamp
+        if self._handoff is None:
+            self._send(voltage, stamp)
+        else:
+            self._handoff.put(self._send, voltage, stamp)
+
+    def _send(self, voltage: float, stamp: Time) -> None:
         self._pub.publish(Voltage(header=Header(stamp=stamp.to_msg()), voltage=voltage))
 
     # ------------------------------------------------------------------ health, shutdown
@@ -313,6 +332,8 @@ class VoltageDriverNode(Node):
             self._playout.stop()  # queued commands are dropped: the ramp owns the output now
         applied = self.driver.shutdown()  # SafeStateNotReached: run() exits 1 with the reason
         self._publish(applied)
+        if self._handoff is not None:
+            self._handoff.drain()  # the executor no longer spins: publish what is left now
         self.get_logger().info(f"shut down at {applied:g} V (safe_voltage "
                                f"{self.driver.config.safe_voltage:g} V)")
 

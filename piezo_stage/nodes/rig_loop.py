@@ -1,0 +1,98 @@
+"""`rig_loop`: the rig's closed loop in one process — sensor → law → amplifier by direct calls.
+
+The ``voltage_driver``, ``controller`` and ``laser_reader`` nodes of ``rig_closed_loop``, with
+their names, parameter tables, topics, services and /diagnostics, composed in one process (as
+ros2_control's controller manager calls read/update/write in one thread while broadcasters
+publish): the reader's thread, blocked in the sensor link's read, wakes on the sensor's bytes,
+stamps and decimates the samples, steps the controller's law
+(:meth:`ControllerNode.on_sample`: :class:`~piezo_stage.control.supervision.LoopSupervisor`
+around :class:`~piezo_stage.control.controller.TimeVaryingPID`) and writes the amplifier
+(:meth:`VoltageDriverNode.command`: every safety rule of
+:class:`~piezo_stage.hardware.driver.VoltageDriver`) — no DDS hop, no executor wake-up on
+the path. A read that times out (``laser_reader.poll_period``) checks the sensor's silence:
+within ``controller.max_gap`` the output holds, beyond it the loop opens.
+
+Topics leave through a :class:`Handoff`: the loop thread queues what to publish (a deque append,
+no lock, no wake-up) and the executor's thread publishes it every ``PUBLISH_PERIOD`` — every
+sample on ``displacement``, ``voltage_command``, ``controller_state`` and ``voltage``, so a
+recorder gets every one. The watchdog, the read-back, /diagnostics, parameters and services run
+in the executor's thread as in the separate nodes; the controller's law is shared under a lock.
+
+One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
+the loop thread's wake-up by up to the switch interval (5 ms by default), so the process runs
+with ``SWITCH_INTERVAL``. Run it with ``piezo-stage launch rig_loop`` (config/graphs/rig_loop.yaml).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+from typing import Any, Callable, Iterator
+
+import numpy as np
+from rclpy.node import Node
+
+from .controller import ControllerNode
+from .laser_reader import LaserReaderNode
+from .runtime import run, wall_clock
+from .voltage_driver import VoltageDriverNode
+
+#: s between the executor's publications of what the loop queued
+PUBLISH_PERIOD = 0.005
+#: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
+SWITCH_INTERVAL = 1e-4
+
+
+class Handoff:
+    """What the loop thread publishes, handed to the executor's thread (realtime_tools'
+    RealtimePublisher): :meth:`put` is a deque append; a wall-clock timer :meth:`drain` s the
+    queue in order."""
+
+    def __init__(self) -> None:
+        self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
+
+    def attach(self, node: Node, period: float = PUBLISH_PERIOD) -> None:
+        node.create_timer(period, self.drain, clock=wall_clock())
+
+    def put(self, publish: Callable[..., None], *args: Any) -> None:
+        self._queue.append((publish, args))
+
+    def drain(self) -> None:
+        queue = self._queue
+        while queue:
+            publish, args = queue.popleft()
+            publish(*args)
+
+
+def compose() -> Iterator[Node]:
+    """The driver (connected first: the loop needs the amplifier), the controller, then the
+    reader, whose thread starts the loop. Shut down in reverse: the loop stops before the
+    driver ramps to its safe voltage."""
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    handoff = Handoff()
+    driver = VoltageDriverNode(composed=True, handoff=handoff)
+    handoff.attach(driver)
+    yield driver
+    controller = ControllerNode(composed=True, handoff=handoff)
+    yield controller
+
+    def step(value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
+        for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
+            u = controller.on_sample(ns, x, st == 0)
+            if u is not None:
+                driver.command(u)
+
+    def idle(now_ns: int) -> None:
+        u = controller.check_gap(now_ns * 1e-9)
+        if u is not None:
+            driver.command(u)
+
+    yield LaserReaderNode(loop=step, idle=idle, handoff=handoff)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(compose, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
