@@ -1,42 +1,37 @@
 #!/usr/bin/env python3
-"""Closed loop over ROS topics in real time (docs/design.md §5: a 1 kHz loop on this 2-core machine,
-p99 sensor->command latency <= 1 ms, no missed cycle in 60 s), beside a baseline: a raw rclpy
-echo between two processes at the same rate.
+"""The rig's loop measured from outside: rig_closed_loop (three processes) beside rig_loop (one).
 
-Graph (each its own process, real DDS, namespace /bench_loop):
-- sensor side: the plant node in ``realtime`` mode at ``--rate`` (ch. 11 rig; it applies the
-  commands it receives, so the loop is really closed), or ``--sensor publisher``: a minimal
-  rclpy publisher of ``displacement`` at the same rate (sleeps to absolute deadlines);
-- the controller node (``--trigger sample``: one step per displacement sample, the command
-  stamped with the sample's stamp; ``--trigger timer``: its own wall timer at ``--rate``), law
-  ``pid`` with the thesis gains (stable at 1 kHz with one sample of delay, the check says);
-- baseline: instead of the controller, an echo process that republishes each sample as a
-  ``voltage_command`` with the sample's stamp (rclpy SingleThreadedExecutor, the same QoS).
+This process runs the devices: an optoNCDT sensor on a pty (ILD1320 at 1 kHz, ILD2300-class at
+10 kHz) and a PI GCS amplifier on TCP, both the project's emulators. The sensor streams a
+sawtooth of ``LEVELS`` distinct positions (one step of ``STEP`` per sample), the controller is a
+proportional law around ``U_BIAS`` (mode pid, k0 = k2 = 0, so every applied voltage names the
+sample it was computed from), and the amplifier logs when each ``SVA`` arrived (the kernel's
+receive stamp). For every sample:
 
-This process subscribes to ``displacement`` and ``voltage_command``. The sample's stamp is the
-sensor's ROS (system) clock when it published it; the latency of a sample is the system clock
-here when the matching command arrives minus that stamp (one machine, one clock). Matching:
-trigger=sample, the command with the same stamp; trigger=timer, the first command received after
-the sample whose stamp is at or after it. Missed cycles: samples seen here without a command
-(sample trigger), timer periods without a command (gaps between commands > 1.5 periods). Sensor
-gaps (> 1.5 periods between samples) are reported apart: they are the sensor's, not the loop's.
+- latency: from the moment its frame was written to the pty to the arrival of the first voltage
+  computed from it or from a later sample (a read that brings several samples is answered by
+  the newest);
+- unanswered: no such voltage within half a sawtooth period (``LEVELS`` / 2 samples);
+- CPU per sample: user + system time of the graph's processes over the window / samples.
 
-    python bench/control_loop.py [--seconds 60] [--rate 1000] [--trigger sample|timer|both]
-                                 [--sensor plant|publisher] [--repeat 3] [--fifo PRIO]
+Runs, each with its processes started afresh: both forms at 1 kHz, at 1 kHz beside one busy
+background process, and at 10 kHz. ``--soak SECONDS`` runs rig_loop alone at 1 kHz for that long
+(the 1-hour soak: RSS growth and unanswered samples; outside CI).
 
-The runs are taken in --repeat slices in turn (baseline, controller, ...) so that they see the
-same machine load; each slice starts its processes afresh and records after one second of loop.
+    python bench/control_loop.py [--seconds 10] [--forms rig_closed_loop,rig_loop]
+                                 [--rates 1000,10000] [--soak 3600]
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import os
+import socket
 import subprocess
 import sys
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -44,346 +39,220 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-NS = "/bench_loop"
-TARGET_P99 = 1e-3  # [s] docs/design.md §5
+from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel  # noqa: E402
+from piezo_stage.hardware.emulators.optoncdt_device import OptoNCDTDeviceModel  # noqa: E402
+from piezo_stage.hardware.optoncdt import frame_format  # noqa: E402
+from piezo_stage.launch import Launcher  # noqa: E402
 
-PUBLISHER = r"""
-import sys, time, rclpy
-from rclpy.qos import qos_profile_sensor_data
-from piezo_stage_msgs.msg import Displacement
-rate = float(sys.argv[1])
-rclpy.init()
-node = rclpy.create_node("sensor", namespace=sys.argv[2])
-pub = node.create_publisher(Displacement, "displacement", qos_profile_sensor_data)
-clock = node.get_clock()
-msg = Displacement()
-period = 1.0 / rate
-deadline = time.monotonic()
-try:
-    while rclpy.ok():
-        deadline += period
-        delay = deadline - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        else:
-            deadline = time.monotonic()  # late: restart the grid, do not burst
-        msg.header.stamp = clock.now().to_msg()
-        msg.displacement = 1e-5
-        pub.publish(msg)
-except Exception:
-    pass
-"""
+NS = "/bench_rig"
+LEVELS = 500          # distinct positions of the sawtooth
+STEP = 100e-9         # m per sample
+BASE = 0.5e-3         # m from the start of the range: the sawtooth's bottom
+MR = 2e-3             # measuring range [m]
+K1 = 2e6              # V/m: 100 nm -> 0.2 V
+U_BIAS = 200.0        # V
+REFERENCE = BASE + 0.5 * LEVELS * STEP - 1e-3  # m, in the reader's frame (zero_offset 1 mm)
+FAMILY = {1000.0: "ild1320", 10000.0: "ild2300"}
+TARGETS = "1 kHz: p99 <= 0.3 ms and <= 0.2x; CPU <= 250 us and <= 0.25x; busy p99 <= 0.5 ms; " \
+          "10 kHz: p99 <= 0.5 ms, CPU <= 70 us; none unanswered"
 
-ECHO = r"""
-import sys, rclpy
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
-from piezo_stage_msgs.msg import Displacement, Voltage
-rclpy.init()
-node = rclpy.create_node("echo", namespace=sys.argv[1])
-pub = node.create_publisher(
-    Voltage, "voltage_command", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-)
-out = Voltage()
-def on_sample(msg):
-    out.header = msg.header
-    out.voltage = 0.0
-    pub.publish(out)
-node.create_subscription(Displacement, "displacement", on_sample, qos_profile_sensor_data)
-try:
-    rclpy.spin(node)  # rclpy's SingleThreadedExecutor
-except Exception:
-    pass
-"""
+
+class LoggingSensor(OptoNCDTDeviceModel):
+    """The sensor model, keeping (write time, first sample, end sample) of each burst."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.log: list[tuple[float, int, int]] = []
+
+    def stream(self, now: float) -> bytes:
+        first = self.sent_samples
+        data = super().stream(now)
+        if self.sent_samples > first:
+            self.log.append((now, first, self.sent_samples))
+        return data
+
+
+def sawtooth(rate: float):
+    def source(t: np.ndarray) -> np.ndarray:
+        k = np.rint(np.asarray(t) * rate).astype(np.int64)
+        return BASE + (k % LEVELS) * STEP
+    return source
 
 
 @dataclass
-class LoopFigures:
-    """What one run measured (latencies in seconds)."""
-
+class Figures:
     label: str
-    seconds: float
-    samples: int
-    commands: int
-    latencies: np.ndarray
-    missed: int
-    sensor_gaps: int
-    command_interval_std: float
+    samples: int = 0
+    latencies: np.ndarray = field(default_factory=lambda: np.empty(0))
+    unanswered: int = 0
+    cpu_per_sample: float = float("nan")
+    rss_growth: float = float("nan")  # bytes
 
-    @staticmethod
-    def merge(parts: list["LoopFigures"]) -> "LoopFigures":
-        """One run's figures from its slices (latencies pooled, counts summed)."""
-        intervals_std = max(p.command_interval_std for p in parts)
-        return LoopFigures(
-            parts[0].label,
-            sum(p.seconds for p in parts),
-            sum(p.samples for p in parts),
-            sum(p.commands for p in parts),
-            np.concatenate([p.latencies for p in parts]),
-            sum(p.missed for p in parts),
-            sum(p.sensor_gaps for p in parts),
-            intervals_std,
-        )
+    def p99(self) -> float:
+        return float(np.percentile(self.latencies, 99)) if self.latencies.size else float("nan")
 
     def line(self) -> str:
-        lat = self.latencies * 1e3
-        if lat.size == 0:
-            return f"{self.label:<34} no matched command in {self.seconds:.0f} s"
-        p50, p99 = np.percentile(lat, [50, 99])
-        return (
-            f"{self.label:<34} samples {self.samples:6d}  commands {self.commands:6d}  latency ms: "
-            f"p50 {p50:6.3f}  p99 {p99:6.3f}  max {lat.max():7.3f}  missed {self.missed:4d}  "
-            f"sensor gaps {self.sensor_gaps:3d}  command-interval std (worst slice) "
-            f"{self.command_interval_std * 1e3:.3f} ms"
-        )
+        if not self.latencies.size:
+            return f"{self.label:<34} no sample answered ({self.samples} samples)"
+        p50, p99 = np.percentile(self.latencies, [50, 99]) * 1e3
+        text = (f"{self.label:<34} samples {self.samples:7d}  latency ms: p50 {p50:6.3f}  "
+                f"p99 {p99:6.3f}  max {self.latencies.max() * 1e3:7.3f}  unanswered "
+                f"{self.unanswered:5d}  CPU/sample {self.cpu_per_sample * 1e6:7.1f} us")
+        if np.isfinite(self.rss_growth):
+            text += f"  RSS growth {self.rss_growth / 1e6:.2f} MB"
+        return text
 
 
-def _env() -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    return env
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
-def _sensor_cmd(sensor: str, rate: float) -> list[str]:
-    if sensor == "publisher":
-        return [sys.executable, "-c", PUBLISHER, str(rate), NS]
-    return [
-        sys.executable,
-        "-m",
-        "piezo_stage.nodes.plant",
-        "--ros-args",
-        "-r",
-        f"__ns:={NS}",
-        "-p",
-        "model_file:=ch11_rig.yaml",
-        "-p",
-        "clock_mode:=realtime",
-        "-p",
-        f"rate_hz:={rate}",
-        "-p",
-        "v_min:=-450.0",
-        "-p",
-        "v_max:=450.0",
+def graph_params(form: str, rate: float, port: int, link: str) -> list[str]:
+    params = [
+        f"voltage_driver.url:=tcp://127.0.0.1:{port}", "voltage_driver.v_max:=400.0",
+        "voltage_driver.slew_rate:=0.0", "voltage_driver.max_command_age:=0.0",
+        "voltage_driver.command_timeout:=1.0",
+        f"laser_reader.url:={link}", f"laser_reader.family:={FAMILY[rate]}",
+        f"laser_reader.measuring_range:={MR}", "laser_reader.zero_offset:=0.001",
+        f"laser_reader.rate_hz:={rate}", "laser_reader.max_speed:=10.0",
+        "controller.trigger:=sample", f"controller.rate_hz:={rate}", "controller.mode:=pid",
+        "controller.k0:=0.0", f"controller.k1:={K1}", "controller.k2:=0.0",
+        "controller.on_close:=reset", "controller.allow_unverified_gains:=true",
+        f"controller.u_bias:={U_BIAS}", "controller.u_min:=0.0", "controller.u_max:=400.0",
+        "controller.reference_source:=constant", f"controller.reference:={REFERENCE}",
+        "controller.start_closed:=true", "controller.max_gap:=1.0",
     ]
+    return params
 
 
-def _controller_cmd(trigger: str, rate: float) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "piezo_stage.nodes.controller",
-        "--ros-args",
-        "-r",
-        f"__ns:={NS}",
-        "-p",
-        f"trigger:={trigger}",
-        "-p",
-        f"rate_hz:={rate}",
-        "-p",
-        "delay_samples:=1",
-        "-p",
-        "start_closed:=true",
-        "-p",
-        "reference_source:=constant",
-        "-p",
-        "reference:=1e-5",
-        "-p",
-        "mode:=pid",
-        "-p",
-        "stale_periods:=1000",
-    ]
+def cpu_seconds(pids: list[int]) -> float:
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / tick
+    return total
 
 
-def _fifo(cmd: list[str], priority: int) -> list[str]:
-    """``cmd`` under SCHED_FIFO ``priority`` (chrt), unchanged for 0."""
-    return ["chrt", "-f", str(priority), *cmd] if priority > 0 else cmd
+def rss_bytes(pids: list[int]) -> int:
+    total = 0
+    for pid in pids:
+        try:
+            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) * 1024
+        except OSError:
+            continue
+    return total
 
 
-def measure(
-    label: str, commander: list[str], sensor: list[str], seconds: float, rate: float, match: str
-) -> LoopFigures:
-    """Start sensor + commander, wait for the loop to run, record ``seconds``, return the
-    figures."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-
-    from piezo_stage_msgs.msg import Displacement, Voltage
-
-    env = _env()
-    procs = [subprocess.Popen(commander, env=env), subprocess.Popen(sensor, env=env)]
-    node = rclpy.create_node("control_loop_bench", namespace=NS)
-    samples: list[tuple[int, int]] = []  # (stamp ns, receive ns)
-    commands: list[tuple[int, int]] = []
-    recording = {"samples": False, "commands": False}
-
-    def on_sample(msg: Displacement) -> None:
-        if recording["samples"]:
-            samples.append(
-                (msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, time.time_ns())
-            )
-
-    def on_command(msg: Voltage) -> None:
-        now = time.time_ns()
-        if recording["commands"]:
-            commands.append((msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec, now))
-        else:
-            commands.append((0, now))  # warm-up: only counted to know the loop runs
-
-    node.create_subscription(Displacement, "displacement", on_sample, qos_profile_sensor_data)
-    node.create_subscription(
-        Voltage,
-        "voltage_command",
-        on_command,
-        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE),
-    )
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
+def measure(form: str, rate: float, seconds: float, busy: bool = False,
+            label: str | None = None) -> Figures:
+    """One run: devices up, the graph launched, ``seconds`` of loop measured."""
+    label = label or f"{form} {rate / 1000:g} kHz" + (" + busy" if busy else "")
+    applied: list[tuple[float, float]] = []
+    amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0,
+                               on_voltage=lambda v, at: applied.append(
+                                   (time.monotonic() if at is None else at, v)))
+    sensor = LoggingSensor(frame_format(FAMILY[rate]), MR, rate, source=sawtooth(rate))
+    port = free_port()
+    tmp = tempfile.mkdtemp(prefix="bench_rig_")
+    link = str(Path(tmp) / "sensor")
+    amp = EmulatorServer(amp_model, tcp_port=port)
+    sens = EmulatorServer(sensor, pty=True, pty_link=link)
+    hog = None
+    amp.start()
+    sens.start()
     try:
-        deadline = time.monotonic() + 60
-        while len(commands) < int(rate):  # one second of commands: discovery done, loop running
-            executor.spin_once(timeout_sec=0.05)
-            if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
-                raise RuntimeError(f"{label}: the loop did not start")
-        commands.clear()
-        recording.update(samples=True, commands=True)
-        start = time.monotonic()
-        while time.monotonic() - start < seconds:
-            executor.spin_once(timeout_sec=0.05)
-        recording["samples"] = False
-        grace = time.monotonic() + 0.2  # the commands of the last samples are still in flight
-        while time.monotonic() < grace:
-            executor.spin_once(timeout_sec=0.01)
+        lines: list[str] = []
+        with Launcher(form, namespace=NS, params=graph_params(form, rate, port, link),
+                      sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+                      timeout=30.0) as launch:
+            if busy:
+                hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            pids = list(launch.pids.values())
+            deadline = time.monotonic() + 30.0
+            while len(applied) < rate and time.monotonic() < deadline:  # the loop runs
+                time.sleep(0.1)
+            if len(applied) < rate:
+                raise RuntimeError(f"{label}: the loop did not start\n" + "\n".join(lines[-20:]))
+            time.sleep(1.0)
+            t0, cpu0, rss0 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
+            time.sleep(seconds)
+            t1, cpu1, rss1 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
+            time.sleep(0.3)  # answers to the last samples
+            log, answers = list(sensor.log), list(applied)
     finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        executor.shutdown()
-        node.destroy_node()
-    return _figures(label, seconds, rate, samples, [c for c in commands if c[0]], match)
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+        sens.stop()
+        amp.stop()
+    return figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
 
 
-def _figures(
-    label: str,
-    seconds: float,
-    rate: float,
-    samples: list[tuple[int, int]],
-    commands: list[tuple[int, int]],
-    match: str,
-) -> LoopFigures:
-    period_ns = 1e9 / rate
-    s_stamp = np.array([s for s, _ in samples], dtype=np.int64)
-    c_stamp = np.array([s for s, _ in commands], dtype=np.int64)
-    c_recv = np.array([r for _, r in commands], dtype=np.int64)
-    sensor_gaps = (
-        int(np.count_nonzero(np.diff(s_stamp) > 1.5 * period_ns)) if s_stamp.size > 1 else 0
-    )
-    if match == "stamp":
-        first = {}
-        for stamp, recv in commands:
-            first.setdefault(stamp, recv)
-        lat = np.array([first[s] - s for s in s_stamp.tolist() if s in first], dtype=float) * 1e-9
-        missed = int(sum(1 for s in s_stamp.tolist() if s not in first))
-        intervals = np.diff(c_recv)
-    else:  # timer: the first command received after the sample whose stamp is at or after it
-        order = np.argsort(c_recv)
-        c_stamp, c_recv = c_stamp[order], c_recv[order]
-        lat_list = []
-        for s in s_stamp.tolist():
-            k = int(np.searchsorted(c_stamp, s, side="left"))
-            if k < c_stamp.size:
-                lat_list.append((c_recv[k] - s) * 1e-9)
-        lat = np.array(lat_list)
-        intervals = np.diff(c_stamp)
-        missed = int(np.sum(np.maximum(np.round(intervals / period_ns) - 1, 0)))
-    std = float(np.std(intervals) * 1e-9) if intervals.size else math.nan
-    return LoopFigures(
-        label, seconds, int(s_stamp.size), int(c_stamp.size), lat, missed, sensor_gaps, std
-    )
+def figures(label: str, log: list[tuple[float, int, int]], answers: list[tuple[float, float]],
+            rate: float, t0: float, t1: float, cpu: float, rss: float) -> Figures:
+    """Each sample written in [t0, t1) is answered by the first voltage computed from it or from
+    a later sample (a read that brings several samples at once is answered by the newest)."""
+    written = np.array([(t, k) for t, a, b in log for k in range(a, b)])
+    t_all, k_all = written[:, 0], written[:, 1].astype(np.int64)
+    at = np.array([a for a, _ in answers])
+    volts = np.array([v for _, v in answers])
+    x = REFERENCE + 1e-3 - (volts - U_BIAS) / K1  # the position each voltage was computed from
+    level = np.rint((x - BASE) / STEP).astype(np.int64) % LEVELS
+    # the sample each answer was computed from: the newest one written before it with its level
+    newest = k_all[np.clip(np.searchsorted(t_all, at, side="right") - 1, 0, None)]
+    source = newest - (newest - level) % LEVELS
+    keep = (at >= t_all[0]) & (np.abs(newest - source) < LEVELS // 2)
+    at, source = at[keep], np.maximum.accumulate(source[keep])
+    inside = (t_all >= t0) & (t_all < t1)
+    t_write, k = t_all[inside], k_all[inside]
+    first = np.searchsorted(source, k)  # the first answer from this sample or a later one
+    answered = first < source.size
+    latencies = np.full(k.size, np.inf)
+    latencies[answered] = at[first[answered]] - t_write[answered]
+    late = latencies > 0.5 * LEVELS / rate
+    return Figures(label, int(k.size), latencies[~late], int(np.count_nonzero(late)),
+                   cpu / max(k.size, 1), rss)
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument(
-        "--seconds", type=float, default=60.0, help="recorded seconds per run (default 60)"
-    )
-    parser.add_argument("--rate", type=float, default=1000.0, help="loop rate [Hz] (default 1000)")
-    parser.add_argument("--trigger", choices=("sample", "timer", "both"), default="both")
-    parser.add_argument("--sensor", choices=("plant", "publisher"), default="plant")
-    parser.add_argument(
-        "--repeat", type=int, default=3, help="slices per run, taken in turn (default 3)"
-    )
-    parser.add_argument(
-        "--fifo",
-        type=int,
-        default=0,
-        metavar="PRIO",
-        help="run sensor, commander and this process under SCHED_FIFO PRIO (root; 0: off)",
-    )
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run")
+    parser.add_argument("--forms", default="rig_closed_loop,rig_loop")
+    parser.add_argument("--rates", default="1000,10000")
+    parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
+                        help="instead: rig_loop alone at 1 kHz for this long (RSS, unanswered)")
     args = parser.parse_args()
-    os.environ.setdefault("ROS_DOMAIN_ID", "43")  # this process and its children
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    import rclpy
-
-    sensor = _fifo(_sensor_cmd(args.sensor, args.rate), args.fifo)
-    if args.fifo > 0:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.fifo))
-    triggers = ("sample", "timer") if args.trigger == "both" else (args.trigger,)
-    configs = [
-        (
-            "baseline: rclpy echo (2 processes)",
-            _fifo([sys.executable, "-c", ECHO, NS], args.fifo),
-            "stamp",
-        )
-    ]
-    configs += [
-        (
-            f"controller node, trigger={trigger}",
-            _fifo(_controller_cmd(trigger, args.rate), args.fifo),
-            "stamp" if trigger == "sample" else "next",
-        )
-        for trigger in triggers
-    ]
-    parts: dict[str, list[LoopFigures]] = {label: [] for label, _, _ in configs}
-    rclpy.init()
-    try:  # round robin in --repeat slices: the runs share the machine's (varying) load
-        for _ in range(args.repeat):
-            for label, commander, match in configs:
-                parts[label].append(
-                    measure(label, commander, sensor, args.seconds / args.repeat, args.rate, match)
-                )
-    finally:
-        rclpy.try_shutdown()
-    runs = [LoopFigures.merge(p) for p in parts.values()]
-    load = os.getloadavg()
-    print(
-        f"{args.rate:g} Hz loop over ROS topics, sensor = {args.sensor}, "
-        f"{args.seconds:g} s per run "
-        f"({args.repeat} slices in turn), SCHED_FIFO {args.fifo or 'off'}, "
-        f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
-    )
-    for r in runs:
-        print(r.line())
-    base = runs[0]
-    ok = True
-    for r in runs[1:]:
-        if r.latencies.size == 0 or base.latencies.size == 0:
-            ok = False
-            continue
-        p99, base_p99 = np.percentile(r.latencies, 99), np.percentile(base.latencies, 99)
-        met = p99 <= TARGET_P99 and r.missed == 0
-        ok &= met
-        print(
-            f"  {r.label}: p99 {p99 * 1e3:.3f} ms = {p99 / base_p99:.2f} x the echo's; "
-            "target p99 <= "
-            f"{TARGET_P99 * 1e3:g} ms and no missed cycle: {'met' if met else 'NOT met'}"
-        )
-    return 0 if ok else 1
+    if args.soak > 0:
+        print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
+        return 0
+    forms = args.forms.split(",")
+    rates = [float(r) for r in args.rates.split(",")]
+    runs = [(f, r, False) for r in rates for f in forms]
+    if 1000.0 in rates:
+        runs[len(forms):len(forms)] = [(f, 1000.0, True) for f in forms]
+    results = []
+    for form, rate, busy in runs:
+        fig = measure(form, rate, args.seconds, busy)
+        results.append((form, rate, busy, fig))
+        print(fig.line(), flush=True)
+    by = {(f, r, b): fig for f, r, b, fig in results}
+    for rate in rates:
+        base, new = by.get(("rig_closed_loop", rate, False)), by.get(("rig_loop", rate, False))
+        if base and new and base.latencies.size and new.latencies.size:
+            print(f"{rate / 1000:g} kHz, rig_loop / rig_closed_loop: p99 "
+                  f"{new.p99() / base.p99():.3f}x, CPU per sample "
+                  f"{new.cpu_per_sample / base.cpu_per_sample:.3f}x")
+    print(f"targets: {TARGETS}")
+    return 0
 
 
 if __name__ == "__main__":

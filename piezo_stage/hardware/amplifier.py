@@ -110,9 +110,10 @@ class GCSAmplifier(Amplifier):
 
     def write_voltage(self, voltage: float) -> None:
         command = f"SVA {self.axis} {self.format_voltage(voltage)}"
-        self.conn.send(command)
         if self.check_errors:
-            self.conn.check(command)
+            self.conn.command(command)
+        else:
+            self.conn.send(command)
 
     def read_voltage(self) -> float:
         ch = str(self.channel)

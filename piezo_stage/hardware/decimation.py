@@ -45,6 +45,11 @@ class Decimator:
 
     def feed(self, block: SampleBlock, stamps: np.ndarray) -> Decimated:
         """Groups completed by ``block`` whose samples were taken at ``stamps`` [ns]."""
+        if self.n == 1:  # every sample is a group
+            bad = block.status != Status.OK
+            value = np.where(bad, math.nan, block.displacement) if bad.any() \
+                else block.displacement
+            return Decimated(value, block.status, np.asarray(stamps, dtype=np.int64))
         d = np.concatenate([self._d, block.displacement])
         s = np.concatenate([self._s, block.status])
         t = np.concatenate([self._t, np.asarray(stamps, dtype=np.int64)])

@@ -100,6 +100,16 @@ def format_value(value: float) -> str:
     return format(float(value), ".10g")
 
 
+def _error_code(lines: list[str]) -> int:
+    """The code of an ``ERR?`` reply."""
+    if len(lines) != 1:
+        raise ProtocolError(f"ERR? answered {lines!r}")
+    try:
+        return int(lines[0].strip())
+    except ValueError as exc:
+        raise ProtocolError(f"ERR? answered {lines[0]!r}, not an integer") from exc
+
+
 class GCSConnection(DeviceConnection):
     """Command/reply exchange with one GCS controller over any :class:`Transport`."""
 
@@ -132,13 +142,7 @@ class GCSConnection(DeviceConnection):
 
     def error_code(self) -> int:
         """``ERR?``: the latched error code (reading clears it on the controller)."""
-        lines = self.query("ERR?")
-        if len(lines) != 1:
-            raise ProtocolError(f"ERR? answered {lines!r}")
-        try:
-            return int(lines[0].strip())
-        except ValueError as exc:
-            raise ProtocolError(f"ERR? answered {lines[0]!r}, not an integer") from exc
+        return _error_code(self.query("ERR?"))
 
     def check(self, command: str = "") -> None:
         """Raise :class:`GCSError` if the controller latched an error."""
@@ -147,9 +151,13 @@ class GCSConnection(DeviceConnection):
             raise GCSError(code, gcs_error_message(code), command)
 
     def command(self, command: str) -> None:
-        """Send a setter and verify it with ``ERR?``."""
-        self.send(command)
-        self.check(command)
+        """Send a setter and verify it with ``ERR?`` (both lines in one write: one system call,
+        and the device gets the pair at once)."""
+        self.transport.write(command.encode("ascii") + b"\nERR?\n")
+        code = _error_code(split_reply(self._replies.read_reply(
+            gcs_reply_end, self.timeout, what=f"reply to 'ERR?' after {command!r}")))
+        if code:
+            raise GCSError(code, gcs_error_message(code), command)
 
     def query_items(self, command: str) -> dict[str, str]:
         return parse_item_values(self.query(command))

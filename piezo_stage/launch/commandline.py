@@ -36,16 +36,11 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     """``--ros-args`` and what follows, in rcl's order of precedence (later wins): params files,
     the graph's use_sim_time, then the entry's overrides (including --param ones)."""
     args = ["--ros-args", "-r", f"__ns:={graph.namespace}"]
-    if spec.members:  # a composition host: each member's parameters scoped to its node name
+    if spec.members:  # a composition host: the members' params files (their overrides: host_args)
         for path in dict.fromkeys(p for m in spec.members for p in m.parameters):
             args += ["--params-file", str(path)]
         if graph.use_sim_time is not None:
             args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
-        for m in spec.members:
-            args += [a for key, value in m.overrides.items()
-                     for a in ("-p", f"{m.name}:{key}:={ros_value(value)}")]
-            args += [a for src, dst in m.remappings.items()
-                     for a in ("-r", f"{m.name}:{src}:={dst}")]
         return args
     if spec.node_name:
         args += ["-r", f"__node:={spec.node_name}"]
@@ -60,10 +55,19 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     return args
 
 
+def host_args(spec: ProcessSpec) -> list[str]:
+    """A composition host's arguments: ``NODE.KEY:=VALUE`` for each member's overrides, which
+    the host gives to that node (rcl's node-scoped ``-p NODE:KEY:=VALUE`` matches no node in a
+    namespace, and would lose to the params files)."""
+    return [f"{m.name}.{key}:={ros_value(value)}" for m in spec.members
+            for key, value in m.overrides.items()]
+
+
 def display_argv(spec: ProcessSpec, graph: Graph) -> list[str]:
     """What the process is equivalent to (shown by --dry-run and in the launch log)."""
     if spec.is_node:
-        return ["python", "-m", str(spec.module), *spec.args, *ros_arguments(spec, graph)]
+        return ["python", "-m", str(spec.module), *spec.args, *host_args(spec),
+                *ros_arguments(spec, graph)]
     return [*spec.command, *spec.args]
 
 
@@ -71,7 +75,8 @@ def process_argv(spec: ProcessSpec, graph: Graph, parent_pid: int | None = None)
     """The argv actually started: the bootstrap, then the module or command."""
     head = [sys.executable, "-m", BOOTSTRAP, str(os.getpid() if parent_pid is None else parent_pid)]
     if spec.is_node:
-        return [*head, "module", str(spec.module), *spec.args, *ros_arguments(spec, graph)]
+        return [*head, "module", str(spec.module), *spec.args, *host_args(spec),
+                *ros_arguments(spec, graph)]
     return [*head, "exec", *spec.command, *spec.args]
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from piezo_stage.config_path import ConfigNotFoundError, find_config
-from piezo_stage.launch.commandline import ros_arguments, ros_value
+from piezo_stage.launch.commandline import host_args, ros_arguments, ros_value
 from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec
 
 PACKAGE = "piezo_stage"
@@ -74,7 +74,8 @@ def _node(spec: ProcessSpec, graph: Graph) -> str:
             kw.append(f"remappings={list(spec.remappings.items())!r}")
         if spec.args:
             kw.append(f"arguments={list(spec.args)!r}")
-        if spec.members:  # a composition host: its members' parameters, scoped to their nodes
+        if spec.members:  # a composition host: its members' overrides, then their params files
+            kw.append(f"arguments={host_args(spec)!r}")
             kw.append(f"ros_arguments={ros_arguments(spec, graph)[3:]!r}")
         return _call("Node", kw)
     return _module_process(spec, graph)

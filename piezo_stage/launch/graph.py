@@ -24,7 +24,7 @@ Format (documented with examples in ``config/graphs/README.md``)::
       - executable: controller
         process: rig_loop               # composed: the entries naming one host node module run
                                         # in one process (piezo_stage.nodes.rig_loop), each
-                                        # with its own parameters (-p controller:KEY:=VALUE)
+                                        # with its own parameters
 
 This module is pure Python (yaml only): parsing, validation and the `--ns`/`--param` edits.
 """
@@ -420,7 +420,7 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
         if kind != "executable" or not isinstance(process, str) or not _NODE_NAME_RE.match(process):
             raise GraphError(f"{label}: process: only an 'executable' entry is composed, into a "
                              f"host node module name (e.g. rig_loop), got {process!r}")
-        for key in ("name", "args", "ready_pattern"):
+        for key in ("name", "args", "ready_pattern", "remappings"):
             if key in entry:
                 raise GraphError(f"{label}: {key!r} is not for a composed entry (process: "
                                  f"{process})")

@@ -39,9 +39,10 @@ import sys
 import threading
 from dataclasses import replace
 from enum import Enum
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -165,8 +166,10 @@ class ControllerNode(Node):
     its loop thread and routes every publication through ``handoff``; no displacement
     subscription, no timer."""
 
-    def __init__(self, composed: bool = False, handoff: Any = None) -> None:
-        super().__init__("controller", namespace=DEFAULT_NAMESPACE)
+    def __init__(self, composed: bool = False, handoff: Any = None,
+                 overrides: Sequence[Parameter] = ()) -> None:
+        super().__init__("controller", namespace=DEFAULT_NAMESPACE,
+                         parameter_overrides=list(overrides))
         self.settings = s = PARAMETERS.settings(declare_table(self, PARAMETERS))
 
         bounds_path = find_config(s.bounds_file)

@@ -26,10 +26,11 @@ import math
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.time import Time
 from std_msgs.msg import Header
 
@@ -90,8 +91,10 @@ class LaserReaderNode(Node):
     timed out, and every publication goes through ``handoff``."""
 
     def __init__(self, loop: SampleSink | None = None,
-                 idle: Callable[[int], None] | None = None, handoff: Any = None) -> None:
-        super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE)
+                 idle: Callable[[int], None] | None = None, handoff: Any = None,
+                 overrides: Sequence[Parameter] = ()) -> None:
+        super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE,
+                         parameter_overrides=list(overrides))
         self._loop, self._idle, self._handoff = loop, idle, handoff
         p = declare_table(self, PARAMETERS)
         on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "

@@ -27,15 +27,25 @@ from __future__ import annotations
 
 import sys
 from collections import deque
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
+from piezo_stage.launch.graph import load_yaml
+
+from .controller import PARAMETERS as CONTROLLER_PARAMETERS
 from .controller import ControllerNode
+from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
 from .runtime import run, wall_clock
+from .spec import ParameterError
+from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
+
+PARAMETER_TABLES = {"voltage_driver": DRIVER_PARAMETERS, "controller": CONTROLLER_PARAMETERS,
+                    "laser_reader": READER_PARAMETERS}
 
 #: s between the executor's publications of what the loop queued
 PUBLISH_PERIOD = 0.005
@@ -64,34 +74,61 @@ class Handoff:
             publish(*args)
 
 
-def compose() -> Iterator[Node]:
+MEMBERS = ("voltage_driver", "controller", "laser_reader")
+
+
+def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
+    """``NODE.KEY:=VALUE`` arguments (before ``--ros-args``; VALUE in YAML, as the launcher
+    writes them) as parameter overrides per member node; ParameterError for anything else."""
+    found: dict[str, list[Parameter]] = {name: [] for name in MEMBERS}
+    for text in argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv:
+        lhs, sep, rhs = text.partition(":=")
+        node, dot, key = lhs.partition(".")
+        if not (sep and dot and key) or node not in found:
+            raise ParameterError(f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of "
+                                 f"{', '.join(MEMBERS)}")
+        value = load_yaml(rhs) if rhs.strip() else ""
+        PARAMETER_TABLES[node].check({key: value})
+        found[node].append(Parameter(key, value=value))
+    return found
+
+
+def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     """The driver (connected first: the loop needs the amplifier), the controller, then the
     reader, whose thread starts the loop. Shut down in reverse: the loop stops before the
     driver ramps to its safe voltage."""
+    overrides = member_overrides(argv)
     sys.setswitchinterval(SWITCH_INTERVAL)
     handoff = Handoff()
-    driver = VoltageDriverNode(composed=True, handoff=handoff)
+    driver = VoltageDriverNode(composed=True, handoff=handoff,
+                               overrides=overrides["voltage_driver"])
     handoff.attach(driver)
     yield driver
-    controller = ControllerNode(composed=True, handoff=handoff)
+    controller = ControllerNode(composed=True, handoff=handoff, overrides=overrides["controller"])
     yield controller
 
     def step(value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
+        """The law steps on every sample; the amplifier gets the newest output (the samples of
+        one read arrived together: the older outputs are already superseded)."""
+        u = None
         for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
-            u = controller.on_sample(ns, x, st == 0)
-            if u is not None:
-                driver.command(u)
+            out = controller.on_sample(ns, x, st == 0)
+            u = u if out is None else out
+        if u is not None:
+            driver.command(u)
 
     def idle(now_ns: int) -> None:
         u = controller.check_gap(now_ns * 1e-9)
         if u is not None:
             driver.command(u)
 
-    yield LaserReaderNode(loop=step, idle=idle, handoff=handoff)
+    yield LaserReaderNode(loop=step, idle=idle, handoff=handoff,
+                          overrides=overrides["laser_reader"])
 
 
 def main(args: list[str] | None = None) -> int:
-    return run(compose, args)
+    argv = list(sys.argv if args is None else args)
+    return run(lambda: compose(argv[1:]), argv)
 
 
 if __name__ == "__main__":

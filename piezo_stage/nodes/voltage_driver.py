@@ -33,9 +33,10 @@ from __future__ import annotations
 import math
 import sys
 import threading
-from typing import Any
+from typing import Any, Sequence
 
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.time import Time
 from std_msgs.msg import Header
 
@@ -113,8 +114,10 @@ class VoltageDriverNode(Node):
     :meth:`command` directly; no voltage_command subscription (the controller in the same
     process still publishes the topic), every publication through ``handoff``."""
 
-    def __init__(self, composed: bool = False, handoff: Any = None) -> None:
-        super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE)
+    def __init__(self, composed: bool = False, handoff: Any = None,
+                 overrides: Sequence[Parameter] = ()) -> None:
+        super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE,
+                         parameter_overrides=list(overrides))
         self._handoff = handoff
         p = declare_table(self, PARAMETERS)
 
