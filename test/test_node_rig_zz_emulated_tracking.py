@@ -1,9 +1,8 @@
-"""Tracking on the rig graph: the emulated rig (``piezo-stage emulate rig`` around the
+"""Tracking on the rig's loop: the emulated rig (``piezo-stage emulate rig`` around the
 ch. 11 rig, GCS amplifier on TCP + optoNCDT on a pty) with voltage_driver and laser_reader from
-config/graphs/emulated_rig.yaml, and the controller stepping on each 1 kHz sensor sample
-(trigger=sample: a stall of this loaded host delays steps instead of opening the loop on a
-stale sample, as the wall timer does) generating a triangle (``reference_source: trajectory``)
-with the Bouc-Wen feedforward plus the PID (``both``).
+config/graphs/emulated_rig.yaml and the controller composed in one process (``rig_loop``),
+stepping on each 1 kHz sensor sample and generating a triangle (``reference_source:
+trajectory``) with the Bouc-Wen feedforward plus the PID (``both``).
 
 The feedforward's model is fitted from recordings of the simulated rig (never its file). What
 is checked: x_d goes out on ``reference``, controller_state carries u_ff (the voltage the model
@@ -12,9 +11,8 @@ error ≤ 5 % of the 10 µm range. Scale of that bound: the hysteresis alone is 
 1 kHz loop the command is a staircase whose steps ring the rig's 7 kHz resonance, and the
 ringing wears w down (the ch. 11 dither: |w| peaks at 0.11 instead of 0.61), so the model's
 hysteresis term over-compensates: the feedforward alone leaves 0.9 µm RMS (9 %, pure-core
-simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 2.5-3.5 %
-(seen). The loop through DDS also applies u 1-2 ms late (~0.05 µm on this 40 µm/s ramp); the
-sensor's quantum is 7.8 nm. Runs ~30 s of real time.
+simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 0.3 %
+(seen in one process; 2.5-3.5 % through three processes and DDS). The sensor's quantum is 7.8 nm. Runs ~30 s of real time.
 """
 
 from __future__ import annotations
@@ -57,9 +55,12 @@ def tracking_graph(port: int, link: str, model_file: str):
             command = ["ch11_rig.yaml" if a == "ch10_patch.yaml" else a for a in entry["command"]]
             command += ["--amp-tcp", str(port), "--sensor-link", link]
             nodes.append({**entry, "command": command})
-        elif entry.get("executable") in ("voltage_driver", "laser_reader"):
-            nodes.append(entry)
-    nodes.append({"executable": "controller", "required": True, "overrides": {
+        elif entry.get("executable") == "voltage_driver":  # commands applied on arrival
+            nodes.append({**entry, "process": "rig_loop",
+                          "overrides": {**entry["overrides"], "apply_at_stamp": False}})
+        elif entry.get("executable") == "laser_reader":
+            nodes.append({**entry, "process": "rig_loop"})
+    nodes.append({"executable": "controller", "process": "rig_loop", "overrides": {
         "trigger": "sample", "rate_hz": 1000.0, "mode": "pid", "start_closed": True,
         "u_min": 0.0, "u_max": 400.0, "reference_source": "trajectory", "trajectory": "triangle",
         "trajectory_amplitude": AMPLITUDE, "trajectory_offset": OFFSET,
