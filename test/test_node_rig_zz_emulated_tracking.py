@@ -12,7 +12,8 @@ error ≤ 5 % of the 10 µm range. Scale of that bound: the hysteresis alone is 
 ringing wears w down (the ch. 11 dither: |w| peaks at 0.11 instead of 0.61), so the model's
 hysteresis term over-compensates: the feedforward alone leaves 0.9 µm RMS (9 %, pure-core
 simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 0.3 %
-(seen in one process; 2.5-3.5 % through three processes and DDS). The sensor's quantum is 7.8 nm. Runs ~30 s of real time.
+(seen in one process; 2.5-3.5 % through three processes and DDS). The sensor's quantum is
+7.8 nm. Runs ~30 s of real time.
 """
 
 from __future__ import annotations

@@ -26,6 +26,9 @@ ON_CLOSE: tuple[str, ...] = ("bumpless", "reset", "keep")
 
 #: ControlOutput.timing values
 TIMING_OK, TIMING_FIRST, TIMING_GAP, TIMING_NONPOSITIVE = "ok", "first", "gap", "nonpositive_dt"
+# members looked up once: an Enum class attribute costs a metaclass __getattr__ per access, and
+# update() runs once per sample
+_FEEDBACK, _FEEDFORWARD = Compensation.FEEDBACK, Compensation.FEEDFORWARD
 
 
 @dataclass(frozen=True)
@@ -280,7 +283,7 @@ class TimeVaryingPID:
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
 
         u_ff = 0.0
-        use_ff = self._ff is not None and cfg.compensation is not Compensation.FEEDBACK
+        use_ff = self._ff is not None and cfg.compensation is not _FEEDBACK
         if use_ff and (self._closed or self._pending_close):
             assert self._ff is not None
             if not self._ff.seeded:  # closing now, or the first sample of a loop started closed
@@ -298,7 +301,7 @@ class TimeVaryingPID:
             tau = t - self._t_close
             u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
             u_exc = float(excitation_term(cfg.mode, cfg.gains, tau, self._x0))
-            if cfg.compensation is Compensation.FEEDFORWARD:
+            if cfg.compensation is _FEEDFORWARD:
                 u_pid = u_exc = 0.0
             u_raw = u_pid + u_exc + u_ff
             x0_used = self._x0
@@ -306,7 +309,7 @@ class TimeVaryingPID:
             if (
                 cfg.anti_windup == "back_calculation"
                 and self._u != u_raw
-                and cfg.compensation is not Compensation.FEEDFORWARD
+                and cfg.compensation is not _FEEDFORWARD
             ):
                 gain = min(dt / cfg.effective_tracking_time, 1.0) if dt > 0 else 0.0
                 self._x0 += gain * (self._u - u_raw) / (-cfg.gains.k0)
@@ -351,7 +354,7 @@ class TimeVaryingPID:
         push u further beyond it."""
         cfg = self._config
         step = x1 * dt
-        if cfg.compensation is Compensation.FEEDFORWARD:
+        if cfg.compensation is _FEEDFORWARD:
             return  # the law is not applied: its integral is not accumulated
         if cfg.anti_windup == "conditional":
             tau = t - self._t_close

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ConfigError
-from .optoncdt import SampleBlock, Status
+from .optoncdt import SampleBlock
+
+_OK = 0  # Status.OK as a plain int: looked up once, not per block
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,7 @@ class Decimator:
     def feed(self, block: SampleBlock, stamps: np.ndarray) -> Decimated:
         """Groups completed by ``block`` whose samples were taken at ``stamps`` [ns]."""
         if self.n == 1:  # every sample is a group
-            bad = block.status != Status.OK
+            bad = block.status != _OK
             value = np.where(bad, math.nan, block.displacement) if bad.any() \
                 else block.displacement
             return Decimated(value, block.status, np.asarray(stamps, dtype=np.int64))
@@ -58,10 +60,10 @@ class Decimator:
         self._d, self._s, self._t = d[used:], s[used:], t[used:]
         d, s = d[:used].reshape(groups, self.n), s[:used].reshape(groups, self.n)
         t = t[:used].reshape(groups, self.n)
-        bad = s != Status.OK
+        bad = s != _OK
         any_bad = bad.any(axis=1)
         status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)],
-                          Status.OK).astype(np.uint8)
+                          _OK).astype(np.uint8)
         value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
         stamp = t[:, 0] + (t[:, -1] - t[:, 0]) // 2  # mean time of equally spaced samples
         return Decimated(value, status, stamp)

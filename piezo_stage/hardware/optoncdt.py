@@ -48,6 +48,11 @@ class Status(enum.IntEnum):
     INVALID = 4
 
 
+# the members as plain ints, looked up once (a per-frame path)
+_OK, _TOO_CLOSE, _TOO_FAR, _INVALID = (int(s) for s in (Status.OK, Status.TOO_CLOSE, Status.TOO_FAR,
+                                                         Status.INVALID))
+
+
 # Error value tables. ILD1700 codes from the ILD1700 manual §7.4 ("Digital error modes").
 # ILD1320-family codes are from memory of the ILD1320/1420 manuals and NOT verified here (the
 # manual page could not be retrieved): 262075 too much data for the baud rate, 262076 no peak,
@@ -399,17 +404,17 @@ class OptoNCDTParser:
         raw &= self.fmt.mask
         status = self.fmt.status_lut[raw].copy()
         distance = self.fmt.to_metres(raw, self.measuring_range)
-        ok = status == Status.OK
-        status[ok & (distance < 0.0)] = Status.TOO_CLOSE
-        status[ok & (distance > self.measuring_range)] = Status.TOO_FAR
-        self.stats.errors += int(np.count_nonzero((status != Status.OK) & first))
+        ok = status == _OK
+        status[ok & (distance < 0.0)] = _TOO_CLOSE
+        status[ok & (distance > self.measuring_range)] = _TOO_FAR
+        self.stats.errors += int(np.count_nonzero((status != _OK) & first))
         status = self._lock(status, distance, first, gaps)
         keep = first
         status, distance, raw = status[keep], distance[keep], raw[keep]
-        distance[status != Status.OK] = np.nan
+        distance[status != _OK] = np.nan
         self.stats.frames += int(raw.size)
         self.stats.later_values += int(ends.size - raw.size)
-        self.stats.ok += int(np.count_nonzero(status == Status.OK))
+        self.stats.ok += int(np.count_nonzero(status == _OK))
         return SampleBlock(distance, status, raw)
 
     def _lock(
@@ -419,7 +424,7 @@ class OptoNCDTParser:
         check, stats = self.check, self.stats
         k, step, slack = check.relock_frames, check.max_speed / check.rate, self._quantum
         out = status.copy()
-        ok_value = int(Status.OK)
+        ok_value = _OK
         for i, (st, d, is_first, gap) in enumerate(
             zip(status.tolist(), distance.tolist(), first.tolist(), gaps.tolist())
         ):
@@ -451,5 +456,5 @@ class OptoNCDTParser:
                 else:
                     stats.relock_withheld += 1
                 self._good, self._ref, self._since = 1, d, 0
-            out[i] = Status.INVALID
+            out[i] = _INVALID
         return out

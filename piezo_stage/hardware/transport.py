@@ -14,6 +14,8 @@ replies (lines, prompts) on top of any transport.
 
 from __future__ import annotations
 
+import os
+import select
 import socket
 import time
 from abc import ABC, abstractmethod
@@ -58,6 +60,10 @@ class Transport(ABC):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: bytes one read takes at most (a second of the fastest optoNCDT stream is ~150 kB)
+READ_SIZE = 65536
 
 
 class SerialTransport(Transport):
@@ -118,20 +124,23 @@ class SerialTransport(Transport):
             raise ConnectionLost(f"write to {self.port} failed: {exc}") from exc
 
     def read(self, timeout: float) -> bytes:
-        import serial
-
+        """What arrived, waiting up to ``timeout`` s for the first byte: one ``select`` and one
+        ``read`` of the port's descriptor (pyserial opens it non-blocking; its own ``read``
+        reconfigures the port whenever the timeout changes and reads byte by byte first)."""
         ser = self._port()
         try:
-            ser.timeout = max(timeout, 0.0)
-            data = ser.read(1)
-            waiting = ser.in_waiting
-            if data and waiting:
-                data += ser.read(waiting)
-            return bytes(data)
-        except (serial.SerialException, OSError, TypeError) as exc:
-            # pyserial raises SerialException("device reports readiness to read but returned no
-            # data") when the other side of a pty or a USB adapter goes away.
+            fd = ser.fileno()
+            if not select.select([fd], [], [], max(timeout, 0.0))[0]:
+                return b""
+            data = os.read(fd, READ_SIZE)
+        except BlockingIOError:
+            return b""
+        except (OSError, ValueError, TypeError) as exc:
             raise ConnectionLost(f"read from {self.port} failed: {exc}") from exc
+        if not data:  # readable but empty: the other side of a pty or a USB adapter went away
+            raise ConnectionLost(f"read from {self.port} failed: the device reports readiness "
+                                 "to read but returned no data")
+        return data
 
     def reset_input(self) -> None:
         import serial

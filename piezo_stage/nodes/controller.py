@@ -72,7 +72,7 @@ from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, to_stamp
+from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_to_s, subscribers_matched, to_stamp
 from .spec import Param, ParameterError, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
@@ -205,6 +205,7 @@ class ControllerNode(Node):
         out_qos = LOCKSTEP_QOS if s.trigger is StepTrigger.SAMPLE else COMMAND_QOS
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
         self._pub_state = self.create_publisher(ControllerState, "controller_state", out_qos)
+        self._cmd_msg, self._state_msg = Voltage(), ControllerState()
         self._ref_qos = out_qos
         self._sub_ref = self._pub_ref = None  # made when first needed (never its own echo)
         self._reference_io(self.setpoint.source)
@@ -399,12 +400,16 @@ class ControllerNode(Node):
                                       voltage=u))
 
     def _publish(self, out: ControlOutput, u: float, stamp: Any) -> None:
-        header = Header(stamp=to_stamp(stamp))
-        self._pub_cmd.publish(Voltage(header=header, voltage=u))
-        self._pub_state.publish(ControllerState(
-            header=header, mode=out.mode, loop_closed=out.loop_closed, saturated=out.saturated,
-            reference=out.reference, x0=out.x0, x1=out.x1, x2=out.x2, u=u, u_pid=out.u_pid,
-            u_excitation=out.u_excitation, u_ff=out.u_ff))
+        cmd, state = self._cmd_msg, self._state_msg  # reused: rclpy serializes at publish
+        set_stamp(cmd.header, stamp)
+        cmd.voltage = u
+        self._pub_cmd.publish(cmd)
+        state.header = cmd.header
+        state.mode, state.loop_closed, state.saturated = out.mode, out.loop_closed, out.saturated
+        state.reference, state.x0, state.x1, state.x2 = out.reference, out.x0, out.x1, out.x2
+        state.u, state.u_pid, state.u_excitation, state.u_ff = u, out.u_pid, out.u_excitation, \
+            out.u_ff
+        self._pub_state.publish(state)
 
     # ------------------------------------------------------------------ services
     def _srv_close(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -31,8 +31,6 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.time import Time
-from std_msgs.msg import Header
 
 from piezo_stage.hardware import SensorConfig, SensorReader, Status, TransportError
 from piezo_stage.hardware.decimation import Decimator
@@ -43,7 +41,7 @@ from piezo_stage_msgs.msg import Displacement
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run
+from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
 from .spec import Param, ParameterTable
 
 PARAMETERS = ParameterTable("laser_reader", (
@@ -115,13 +113,15 @@ class LaserReaderNode(Node):
         self.sample_clock = SampleClock(self.rate, p["stamp_window"])
         self.connected = True
         self.published = 0
-        self.by_status = {s: 0 for s in Status}
+        self.by_status = {s: 0 for s in Status}  # keyed by value too (an IntEnum)
         self.link_errors = 0
         self.last_error = ""
         # (time, frames, published, errors, discarded, withheld + refused)
         self._last_diag = (time.monotonic(), 0, 0, 0, 0, 0)
 
+        self._now_ns = stamp_clock(self)  # use_sim_time is fixed (refused above)
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
+        self._msg = Displacement()  # reused: rclpy serializes at publish
         # a thread blocked in read() stamps each block when it arrives: a periodic poll would
         # stamp it up to a poll period late, a constant lag (the poll's phase against the
         # sensor's frames) that the sample clock cannot remove, since it only takes away the
@@ -168,14 +168,14 @@ class LaserReaderNode(Node):
             self.get_logger().error(f"sensor link: {exc}", throttle_duration_sec=1.0)
             self._reader_stop.wait(timeout)  # a dead link fails at once: retry at the poll pace
             return
-        now = self.get_clock().now().nanoseconds
+        now = self._now_ns()
         if not len(block):
             if self._idle is not None:
                 self._idle(now)
             return
         stamps = self.sample_clock.stamps(now, len(block))
         out = self.decimator.feed(block, stamps - int(round(self.latency * 1e9)))
-        value = np.where(out.status == Status.OK,
+        value = np.where(out.status == 0,  # Status.OK
                          self.sign * (out.displacement - self.zero_offset), math.nan)
         if self._loop is None:
             self._publish(value, out.status, out.stamp)
@@ -184,11 +184,12 @@ class LaserReaderNode(Node):
         self._handoff.put(self._publish, value, out.status, out.stamp)
 
     def _publish(self, value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
-        clock_type = self.get_clock().clock_type
+        msg, publish, counts = self._msg, self._pub.publish, self.by_status
         for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
-            header = Header(stamp=Time(nanoseconds=ns, clock_type=clock_type).to_msg())
-            self._pub.publish(Displacement(header=header, displacement=x, status=st))
-            self.by_status[Status(st)] += 1
+            set_stamp(msg.header, ns)
+            msg.displacement, msg.status = x, st
+            publish(msg)
+            counts[st] += 1
         self.published += len(status)
 
     def _diagnose(self) -> Diagnosis:

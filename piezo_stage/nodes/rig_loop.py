@@ -20,7 +20,8 @@ in the executor's thread as in the separate nodes; the controller's law is share
 
 One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
 the loop thread's wake-up by up to the switch interval (5 ms by default), so the process runs
-with ``SWITCH_INTERVAL``. Run it with ``piezo-stage launch rig_loop`` (config/graphs/rig_loop.yaml).
+with ``SWITCH_INTERVAL`` (50 µs). Run it with ``piezo-stage launch rig_loop``
+(config/graphs/rig_loop.yaml).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ PARAMETER_TABLES = {"voltage_driver": DRIVER_PARAMETERS, "controller": CONTROLLE
 #: s between the executor's publications of what the loop queued
 PUBLISH_PERIOD = 0.005
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
-SWITCH_INTERVAL = 1e-4
+SWITCH_INTERVAL = 5e-5
 
 
 class Handoff:
@@ -128,7 +129,7 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv if args is None else args)
-    return run(lambda: compose(argv[1:]), argv)
+    return run(lambda: compose(argv[1:]), argv, lean=True)
 
 
 if __name__ == "__main__":

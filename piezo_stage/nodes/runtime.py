@@ -43,6 +43,26 @@ def to_stamp(stamp: Any) -> Any:
     return stamp
 
 
+def stamp_clock(node: Node) -> Callable[[], int]:
+    """The node clock's now in integer nanoseconds, cheaply: the system clock itself when the
+    node keeps ROS time without sim time (a node on a per-sample path must then refuse
+    use_sim_time changes), else the node clock."""
+    if not node.get_parameter("use_sim_time").value:
+        return time.time_ns
+    clock = node.get_clock()
+    return lambda: clock.now().nanoseconds
+
+
+def set_stamp(header: Any, stamp: Any) -> None:
+    """Set ``header.stamp`` in place from a stamp message or integer nanoseconds (publishers that
+    reuse one message per topic: rclpy serializes it at ``publish``)."""
+    if isinstance(stamp, int):
+        sec, nanosec = divmod(stamp, 1_000_000_000)
+        header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    else:
+        header.stamp = stamp
+
+
 def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
     """True when each publisher has at least ``count`` matched subscriptions, as its own writer
     sees them (a graph query from another node may see a reader before the writer has matched it,

@@ -37,8 +37,6 @@ from typing import Any, Sequence
 
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.time import Time
-from std_msgs.msg import Header
 
 from piezo_stage.hardware import (
     ConfigError,
@@ -58,7 +56,7 @@ from piezo_stage_msgs.msg import Voltage
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, wall_clock
+from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, stamp_to_s, wall_clock
 from .spec import Param, ParameterTable
 
 PARAMETERS = ParameterTable("voltage_driver", (
@@ -137,6 +135,7 @@ class VoltageDriverNode(Node):
         # the limits and safety settings are read-only in the table; so is the clock they use
         on_set(self, lambda changed: "use_sim_time is fixed at start (the stamp checks and the "
                "watchdog depend on it)" if "use_sim_time" in changed else None)
+        self._now_ns = stamp_clock(self)
         self.url = p["url"]
         self.info = self.driver.connect()
         self._applied = self.info.applied
@@ -166,11 +165,17 @@ class VoltageDriverNode(Node):
             self._executor_priority = set_realtime_priority(p["realtime_priority"])
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
+        self._msg = Voltage()
         if not composed:
             self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
         self.create_timer(p["watchdog_period"], self._watchdog, clock=wall_clock())
-        if p["readback_rate_hz"] > 0:
-            self.create_timer(1.0 / p["readback_rate_hz"], self._readback, clock=wall_clock())
+        # composed: the loop thread reads back right after a write, when one is due (a timer's
+        # device round trip would hold the driver while a sample waits to be answered)
+        self._readback_period = 1.0 / p["readback_rate_hz"] if p["readback_rate_hz"] > 0 \
+            else math.inf
+        self._readback_due = 0.0
+        if p["readback_rate_hz"] > 0 and not composed:
+            self.create_timer(self._readback_period, self._readback, clock=wall_clock())
         self._diagnostics = Diagnostics(self, f"{p['backend']} {self.url}", self._diagnose)
         self._reported_down = False
         lim = self.driver.limits
@@ -202,10 +207,14 @@ class VoltageDriverNode(Node):
             self._apply(msg.voltage, True, received)
 
     def command(self, voltage: float) -> None:
-        """A command from the composed loop (its own thread): the watchdog counts from now."""
+        """A command from the composed loop (its own thread): the watchdog counts from now; the
+        device read-back follows the write when one is due."""
         received = self.driver.clock()
         self.driver.command_received(received)
         self._apply(voltage, True, received)
+        if received >= self._readback_due:
+            self._readback_due = received + self._readback_period
+            self._readback()
 
     def _apply(self, voltage: float, command: bool = True, received: float | None = None) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
@@ -214,7 +223,7 @@ class VoltageDriverNode(Node):
         as held values)."""
         with self._lock:
             if not command:
-                sent_at = self.get_clock().now()
+                sent_at = self._now_ns()
                 try:
                     result = self.driver.set_voltage(voltage, received)
                 except CommandExpired:
@@ -225,7 +234,7 @@ class VoltageDriverNode(Node):
                 self._publish(result.sent, sent_at)
                 return
             self._last_command = voltage
-            sent_at = self.get_clock().now()  # applied when the device gets it, not after ERR?
+            sent_at = self._now_ns()  # applied when the device gets it, not after ERR?
             try:
                 result = self.driver.set_voltage(voltage, received)
             except NonFiniteVoltageError as exc:  # not after the check above; kept for safety
@@ -287,16 +296,20 @@ class VoltageDriverNode(Node):
         except HardwareError as exc:
             self._link_error(exc)
 
-    def _publish(self, voltage: float, stamp: Time | None = None) -> None:
+    def _publish(self, voltage: float, stamp: int | None = None) -> None:
+        """Publish an applied voltage, stamped [ns] when it was sent (default: now)."""
         self._applied = voltage
-        stamp = self.get_clock().now() if stamp is None else stamp
+        stamp = self._now_ns() if stamp is None else stamp
         if self._handoff is None:
             self._send(voltage, stamp)
         else:
             self._handoff.put(self._send, voltage, stamp)
 
-    def _send(self, voltage: float, stamp: Time) -> None:
-        self._pub.publish(Voltage(header=Header(stamp=stamp.to_msg()), voltage=voltage))
+    def _send(self, voltage: float, stamp: int) -> None:
+        msg = self._msg  # reused: rclpy serializes at publish
+        set_stamp(msg.header, stamp)
+        msg.voltage = voltage
+        self._pub.publish(msg)
 
     # ------------------------------------------------------------------ health, shutdown
     def _diagnose(self) -> Diagnosis:
