@@ -301,7 +301,7 @@ class RosRig:
             "namespace": namespace,
             "stop_timeout": 10.0,
             "nodes": _closed_loop_devices(self.base_nodes)
-            + [{"executable": "controller", "overrides": controller, "required": True}],
+            + [{"executable": "controller", "process": "rig_loop", "overrides": controller}],
             "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
         }
         lines: list[str] = []
@@ -434,14 +434,18 @@ def percent(done: float, total: float) -> str:
 
 
 def _closed_loop_devices(nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The rig's device nodes for a closed loop: the driver applies each command on arrival,
-    as config/graphs/rig_closed_loop.yaml has it. The sweep's apply_at_stamp (an open-loop
-    excitation stamped ahead) would hold a controller's command, stamped with its past sample,
-    in a real-time playout thread that takes a core from the loop on a small host."""
+    """The rig's device nodes for a closed loop, composed with the controller in one process as
+    config/graphs/rig_loop.yaml has them (``process: rig_loop``): the loop by direct calls. The
+    driver applies each command on arrival: the sweep's apply_at_stamp (an open-loop excitation
+    stamped ahead) would hold a controller's command, stamped with its past sample, in a
+    playout thread."""
     out = copy.deepcopy(nodes)
     for node in out:
         if node.get("executable") == "voltage_driver":
             node.setdefault("overrides", {})["apply_at_stamp"] = False
+        if node.get("executable") in ("voltage_driver", "laser_reader"):
+            node["process"] = "rig_loop"
+            node.pop("name", None)
     return out
 
 

@@ -120,8 +120,9 @@ PARAMETERS = ParameterTable("controller", (
           "publisher: the rig's laser_reader) or reliable (the lockstep plant: no sample lost, so "
           "no step waits for the plant's timeout)", choices=SensorQos, read_only=True),
     Param("start_closed", False, "close the loop at the first valid sample"),
-    Param("wait_for_state_subscribers", 0, "trigger=sample: ignore samples until controller_state "
-          "has this many subscribers (an experiment's recorder sees step 0)", range=(0, 100),
+    Param("wait_for_state_subscribers", 0, "trigger=sample and rig_loop: ignore samples until "
+          "controller_state has this many subscribers (an experiment's recorder sees step 0)",
+          range=(0, 100),
           read_only=True),
     Param("max_gap", 0.02, "a sensor silence up to this long holds the output (counted as "
           "gaps_held); a longer one opens the loop", "s", (1e-5, 60.0)),
@@ -344,6 +345,8 @@ class ControllerNode(Node):
         with self.lock:
             if not self.supervisor.sample(t, x, ok):
                 return self._send_hold(t)
+            if self._wait_subs and self._waiting_for_subscribers():
+                return None  # the loop starts once a recorder sees its first state
             return self._step(t, stamp_ns)
 
     def check_gap(self, t: float) -> float | None:

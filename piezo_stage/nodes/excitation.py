@@ -124,16 +124,16 @@ class ExcitationNode(Node):
         self._info_period = 1.0 / max(self.get_parameter("info_rate_hz").value, 1e-9)
 
         self._wait_subs = int(self.get_parameter("wait_for_subscribers").value)
-        trigger = self.get_parameter("trigger").value
+        trigger = StepTrigger(self.get_parameter("trigger").value)
         # lockstep (trigger=clock): the graph runs as fast as the plant and this node, so a slower
         # reader (the recorder, the identifier) falls behind by thousands of samples; a reliable
         # writer keeping only the last 10 would drop what it has not acknowledged
-        out_qos = LOCKSTEP_QOS if trigger == "clock" else COMMAND_QOS
+        out_qos = LOCKSTEP_QOS if trigger is StepTrigger.CLOCK else COMMAND_QOS
         self._pub_cmd = self.create_publisher(Voltage, "voltage_command", out_qos)
         self._pub_info = self.create_publisher(ExcitationInfo, "excitation", out_qos)
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
-        if trigger == "clock":
+        if trigger is StepTrigger.CLOCK:
             self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
         else:
             self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
@@ -187,7 +187,8 @@ class ExcitationNode(Node):
         sample = self.plan.sample(now - self._t_start)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
         self._publish_info(stamp, now, sample)
-        if sample.done and self.get_parameter("on_done").value == "exit" and not self._exiting:
+        if sample.done and OnDone(self.get_parameter("on_done").value) is OnDone.EXIT \
+                and not self._exiting:
             self.get_logger().info("excitation plan done")
             self._exiting = True
             # let the last messages reach the subscribers (reliable delivery needs the process)

@@ -165,7 +165,7 @@ class IdentifierNode(Node):
     def __init__(self) -> None:
         super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
         declare_table(self, PARAMETERS)
-        self._input = self.get_parameter("input").value
+        self._input = Input(self.get_parameter("input").value)
         stream_qos = self.get_parameter("stream_qos").value
         self._reset()
         self.result: IdentificationResult | None = None
@@ -176,7 +176,7 @@ class IdentifierNode(Node):
                                                  LATCHED_QOS)
         self._streams = {"voltage": _Stream(Voltage, self._on_voltage),
                          "displacement": _Stream(Displacement, self._on_displacement)}
-        self._adapt = stream_qos == "auto"
+        self._adapt = StreamQos(stream_qos) is StreamQos.AUTO
         if not self._adapt:
             for name in self._streams:
                 self._subscribe(name, STREAM_QOS[stream_qos])
@@ -290,7 +290,7 @@ class IdentifierNode(Node):
         status = np.array(self._displacement.status, dtype=np.uint8)
         intervals = self._runs.intervals() if intervals is None else intervals
         name = self.get_name()
-        if self._input == "voltage":  # ch. 10: voltage -> displacement
+        if self._input is Input.VOLTAGE:  # ch. 10: voltage -> displacement
             return recordings_from_series(tv, v, td, d, status, intervals, name, "V", "m")
         ok = status == Displacement.OK  # ch. 11: u = Phi(x); invalid sensor samples are no input
         return recordings_from_series(td[ok], d[ok], tv, v, None, intervals, name, "m", "V")
@@ -307,8 +307,8 @@ class IdentifierNode(Node):
             cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value),
                                steady_periods=k or None),
             refinement=RefineOptions(**self._max_rms()),
-            input_name=self._input,
-            output_name="displacement" if self._input == "voltage" else "voltage")
+            input_name=self._input.value,
+            output_name="displacement" if self._input is Input.VOLTAGE else "voltage")
 
     def _max_rms(self) -> dict[str, float]:
         value = float(self.get_parameter("max_rms").value)
@@ -341,7 +341,7 @@ class IdentifierNode(Node):
 
     def _done(self, code: int) -> None:
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
-        if self.get_parameter("on_done").value != "exit":
+        if OnDone(self.get_parameter("on_done").value) is not OnDone.EXIT:
             return
         wait_acked(self, 2 * EXIT_ACK_TIMEOUT, (self._pub_cycle, self._pub_params))
         self.exit_code, self.finished = code, True
@@ -362,7 +362,8 @@ class IdentifierNode(Node):
             header=Header(stamp=self.get_clock().now().to_msg()), kappa=[float(k) for k in p.kappa],
             y0=float(p.y0), kappa_w=float(p.kappa_w), rho=float(p.rho), sigma=float(p.sigma),
             n=float(p.n),
-            input_sign=int(p.input_sign), input_name=self._input, rms_error=float(result.rms_error),
+            input_sign=int(p.input_sign), input_name=self._input.value,
+            rms_error=float(result.rms_error),
             samples=int(result.samples)))
         path = self.get_parameter("output_file").value
         if path:

@@ -35,7 +35,7 @@ from rclpy.parameter import Parameter
 from piezo_stage.hardware import SensorConfig, SensorReader, Status, TransportError
 from piezo_stage.hardware.decimation import Decimator
 from piezo_stage.hardware.optoncdt import FAMILIES
-from piezo_stage.hardware.timing import SampleClock
+from piezo_stage.hardware.timing import SampleClock, set_realtime_priority
 from piezo_stage_msgs.msg import Displacement
 
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
@@ -86,14 +86,16 @@ SampleSink = Callable[[np.ndarray, np.ndarray, np.ndarray], None]
 class LaserReaderNode(Node):
     """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
     samples to ``loop`` before they are published, ``idle(now_ns)`` is called after a read that
-    timed out, and every publication goes through ``handoff``."""
+    timed out, every publication goes through ``handoff``, and the thread runs SCHED_FIFO at
+    ``loop_priority`` (when > 0 and allowed)."""
 
     def __init__(self, loop: SampleSink | None = None,
                  idle: Callable[[int], None] | None = None, handoff: Any = None,
-                 overrides: Sequence[Parameter] = ()) -> None:
+                 overrides: Sequence[Parameter] = (), loop_priority: int = 0) -> None:
         super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE,
                          parameter_overrides=list(overrides))
         self._loop, self._idle, self._handoff = loop, idle, handoff
+        self._loop_priority = loop_priority
         p = declare_table(self, PARAMETERS)
         on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "
                "depend on it)" if "use_sim_time" in changed else None)
@@ -136,6 +138,9 @@ class LaserReaderNode(Node):
                                f"decimation {p['decimation']}, rate {self.rate:g} Hz")
 
     def _read_loop(self) -> None:
+        refused = set_realtime_priority(self._loop_priority)
+        if refused:
+            self.get_logger().warn(f"loop thread: {refused}")
         while not self._reader_stop.is_set():
             try:
                 self._poll(self._wait)

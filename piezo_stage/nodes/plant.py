@@ -117,7 +117,7 @@ class PlantNode(Node):
             x0=p["initial_displacement"], xdot0=p["initial_velocity"], w0=w0,
             initial_voltage=p["initial_voltage"])
         self.dt = 1.0 / p["rate_hz"]
-        self.mode = p["clock_mode"]
+        self.mode = ClockMode(p["clock_mode"])
         self._command = float(p["initial_voltage"])
         self._rejected = 0
         self._commands = 0
@@ -126,7 +126,7 @@ class PlantNode(Node):
         self._steps = 0
         self._started_wall = time.monotonic()
 
-        lockstep = self.mode == "lockstep"
+        lockstep = self.mode is ClockMode.LOCKSTEP
         stream_qos = LOCKSTEP_QOS if lockstep else SENSOR_QOS
         self._pub_x = self.create_publisher(Displacement, "displacement", stream_qos)
         self._pub_v = self.create_publisher(Voltage, "voltage", stream_qos)
@@ -150,7 +150,7 @@ class PlantNode(Node):
             self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
             self.create_timer(self.dt, self._realtime_tick)
         self.get_logger().info(f"{self.parameter_set.name} ({self.parameter_set.form}) at "
-                               f"{p['rate_hz']:g} Hz, clock {self.mode}")
+                               f"{p['rate_hz']:g} Hz, clock {self.mode.value}")
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
@@ -159,12 +159,12 @@ class PlantNode(Node):
             self.get_logger().warn(f"rejected non-finite voltage command {msg.voltage}: holding "
                                    f"{self._command:g} V",
                                    throttle_duration_sec=1.0)
-            if self.mode == "lockstep" and self._matches_step(msg):
+            if self.mode is ClockMode.LOCKSTEP and self._matches_step(msg):
                 self._advance()  # the commander answered this step: do not wait for a timeout
             return
         self._command = msg.voltage
         self._commands += 1
-        if self.mode == "lockstep" and self._matches_step(msg):
+        if self.mode is ClockMode.LOCKSTEP and self._matches_step(msg):
             self._advance()
 
     # ------------------------------------------------------------------ realtime
@@ -259,7 +259,7 @@ class PlantNode(Node):
         dropped = self._grid.dropped if self._grid is not None else 0
         elapsed = time.monotonic() - self._started_wall
         values = {"model": self.parameter_set.name, "form": self.parameter_set.form,
-                  "clock_mode": self.mode,
+                  "clock_mode": self.mode.value,
                   "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
                   "command": self._command, "rejected_commands": self._rejected,
                   "late_steps": self._late,

@@ -34,6 +34,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from piezo_stage.hardware.timing import set_realtime_priority
 from piezo_stage.launch.graph import load_yaml
 
 from .controller import PARAMETERS as CONTROLLER_PARAMETERS
@@ -123,8 +124,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
         if u is not None:
             driver.command(u)
 
+    # the loop thread, and the executor's (this one: a GIL holder preempted by other processes
+    # would stall the loop thread, a priority inversion), at the driver's realtime_priority
+    priority = int(driver.get_parameter("realtime_priority").value)
+    refused = set_realtime_priority(priority)
+    if refused:
+        driver.get_logger().warn(f"executor thread: {refused}")
     yield LaserReaderNode(loop=step, idle=idle, handoff=handoff,
-                          overrides=overrides["laser_reader"])
+                          overrides=overrides["laser_reader"], loop_priority=priority)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -30,6 +30,7 @@ only what needs the ROS clock:
 
 from __future__ import annotations
 
+import enum
 import math
 import sys
 import threading
@@ -98,13 +99,23 @@ PARAMETERS = ParameterTable("voltage_driver", (
           "commands every hold_period s (first-order hold; 0: hold each command)", "s", (0.0, 1.0),
           read_only=True),
     Param("realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
-          "the executor's thread (1-99, when the system allows it; 0: normal)", range=(0, 99),
+          "the executor's thread, and in rig_loop of the loop thread (1-99, when the system "
+          "allows it; 0: normal)", range=(0, 99),
           read_only=True),
     Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round (in a "
           "background thread, every round until it is back; 0: never)", range=(0, 100),
           read_only=True),
 ), summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, "
            "with limits, slew and watchdog.")
+
+
+class Rejection(enum.Enum):
+    """Why a voltage command was not applied."""
+
+    NONFINITE = "nonfinite"
+    LATE = "late"          # older than max_command_age
+    STAMP = "stamp"        # a stamp the StampPolicy refuses
+    EXPIRED = "expired"    # received before the watchdog fired
 
 
 class VoltageDriverNode(Node):
@@ -185,18 +196,18 @@ class VoltageDriverNode(Node):
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
         if not math.isfinite(msg.voltage):
-            self._reject("nonfinite", f"non-finite voltage command {msg.voltage}")
+            self._reject(Rejection.NONFINITE, f"non-finite voltage command {msg.voltage}")
             return
         stamp = msg.header.stamp
         now = self.get_clock().now().nanoseconds * 1e-9
         verdict, age = self.stamps.check(stamp.sec, stamp.nanosec, now)
         if verdict is StampVerdict.TOO_OLD:
-            self._reject("late", f"late voltage command ({age:.3g} s old > max_command_age "
+            self._reject(Rejection.LATE, f"late voltage command ({age:.3g} s old > max_command_age "
                          f"{self.max_age:g} s)")
             return
         if verdict is not StampVerdict.OK:
             self._rejected_stamp[verdict.value] += 1
-            self._reject("stamp", f"voltage command with a {verdict.value} stamp "
+            self._reject(Rejection.STAMP, f"voltage command with a {verdict.value} stamp "
                          f"({stamp.sec} s {stamp.nanosec} ns)")
             return
         received = self.driver.clock()
@@ -238,10 +249,10 @@ class VoltageDriverNode(Node):
             try:
                 result = self.driver.set_voltage(voltage, received)
             except NonFiniteVoltageError as exc:  # not after the check above; kept for safety
-                self._reject("nonfinite", str(exc))
+                self._reject(Rejection.NONFINITE, str(exc))
                 return
             except CommandExpired as exc:  # queued before the watchdog fired
-                self._reject("expired", str(exc))
+                self._reject(Rejection.EXPIRED, str(exc))
                 return
             except HardwareError as exc:
                 self._link_error(exc)
@@ -250,15 +261,15 @@ class VoltageDriverNode(Node):
             self._clamped += int(result.clamped)
             self._publish(result.sent, sent_at)
 
-    def _reject(self, kind: str, text: str) -> None:
+    def _reject(self, kind: Rejection, text: str) -> None:
         # one log call site per kind: rclpy throttles per call site
         text = f"rejected {text}: output stays at {self.driver.last_sent:g} V"
-        if kind == "late":
+        if kind is Rejection.LATE:
             self._rejected_late += 1
             self.get_logger().warn(text, throttle_duration_sec=1.0)
-        elif kind == "stamp":  # counted by the caller, per verdict
+        elif kind is Rejection.STAMP:  # counted by the caller, per verdict
             self.get_logger().warn(text, throttle_duration_sec=1.0)
-        elif kind == "expired":  # counted by the driver
+        elif kind is Rejection.EXPIRED:  # counted by the driver
             self.get_logger().warn(text, throttle_duration_sec=1.0)
         else:
             self._rejected_nonfinite += 1
