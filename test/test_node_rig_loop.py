@@ -7,8 +7,9 @@ write, and SIGINT ramps the amplifier to safe_voltage with exit code 0.
 
 The loop rides through gaps of up to 1 s here (``max_gap``): through DDS a busy host loses
 samples between the nodes for hundreds of ms at start-up, and these tests are about other
-things (the gap rule has its unit tests). The emulated rig runs in this process (RigEmulator: GCS amplifier on TCP, optoNCDT ILD1320 at
-1 kHz on a pty, around the ch. 11 stage); what reached the amplifier is its command log.
+things (the gap rule has its unit tests). The emulated rig runs in this process (RigEmulator:
+GCS amplifier on TCP, optoNCDT ILD1320 at 1 kHz on a pty, around the ch. 11 stage); what
+reached the amplifier is its command log.
 """
 
 from __future__ import annotations
