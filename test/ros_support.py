@@ -21,6 +21,7 @@ MSG_TYPES = [
     "BoucWenParameters",
     "LimitCycle",
     "ExcitationInfo",
+    "LoopSamples",
 ]
 
 
@@ -35,6 +36,12 @@ def fill(msg: Any, seed: int = 1) -> Any:
         k += 1
         if ftype.startswith("sequence<double") or ftype.startswith("double["):
             setattr(msg, field, [0.5 * k, -1.25e-6 * k, 3.0e5 + k])
+        elif ftype == "sequence<int64>":
+            setattr(msg, field, [1_700_000_000_000_000_000 + k, -k, 0])
+        elif ftype == "sequence<uint8>":
+            setattr(msg, field, [k % 5, 0, 4])
+        elif ftype == "sequence<boolean>":
+            setattr(msg, field, [True, False, k % 2 == 0])
         elif ftype == "double":
             setattr(msg, field, 1.0e-6 * k + 0.125)
         elif ftype in ("int8",):

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.unit
 
 SEP = "=" * 80 + "\n"
 PROJECT = ["BoucWenParameters", "ControllerState", "Displacement", "ExcitationInfo",
-           "LimitCycle", "Voltage"]
+           "LimitCycle", "LoopSamples", "Voltage"]
 
 
 def sections(text: str) -> list[tuple[str, str]]:

@@ -19,7 +19,7 @@ from .errors import (
 from .export import export_csv
 from .info import bag_info, format_info
 from .qos import LATCHED, RELIABLE, SENSOR_DATA, qos_from_profile, qos_profile
-from .reader import read_messages, read_raw, read_series
+from .reader import read_loop_samples, read_messages, read_raw, read_series
 from .reindex import reindex
 from .types import (
                      deserialize,
@@ -38,6 +38,7 @@ __all__ = [
     "InvalidTopicNameError", "LATCHED", "RELIABLE", "SENSOR_DATA", "UnknownMessageTypeError",
     "UnknownTopicError", "WrongTopicTypeError", "bag_info", "deserialize", "export_csv",
     "format_info", "header", "message_class", "message_definition", "qos_from_profile",
-    "qos_profile", "read_messages", "read_raw", "read_series", "reindex", "serialize",
+    "qos_profile", "read_loop_samples", "read_messages", "read_raw", "read_series", "reindex",
+    "serialize",
     "type_hash", "typestore",
 ]

@@ -198,6 +198,14 @@ def read_series(path: str | Path, topic: str
         raise UnknownTopicError(
             f"topic {topic!r} is not in bag {path}; it has {', '.join(sorted(types)) or 'none'}")
     type_name = types[topic]
+    if type_name == LOOP_SAMPLES:
+        samples = read_loop_samples(path, topic)
+        column = field or "displacement"
+        if column not in samples or column == "stamp":
+            raise UnknownTopicError(f"{topic}: LoopSamples has no column {column!r}; it has "
+                                    f"{', '.join(k for k in samples if k != 'stamp')}")
+        status = samples["status"] if column == "displacement" else None
+        return samples["stamp"] * 1e-9, samples[column].astype(np.float64), status
     if type_name in SERIES_FIELDS and not field:
         datas = [data for _, _, _, data in read_raw(path, topic)]
         t, values, status = decode_series(datas, type_name)
@@ -209,6 +217,29 @@ def read_series(path: str | Path, topic: str
         t, values = t[order], values[order]
         status = None if status is None else status[order]
     return t, values, status
+
+
+LOOP_SAMPLES = "piezo_stage_msgs/msg/LoopSamples"
+_LOOP_COLUMNS = {"stamp": np.int64, "displacement": np.float64, "status": np.uint8,
+                 "reference": np.float64, "u": np.float64, "u_ff": np.float64,
+                 "loop_closed": bool, "applied": np.float64}
+
+
+def read_loop_samples(path: str | Path, topic: str) -> dict[str, np.ndarray]:
+    """The samples of a LoopSamples topic (rig_loop's ``loop_samples``: every sample of the loop,
+    in batches) as one array per column, in stamp order; ``stamp`` in ns."""
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in _LOOP_COLUMNS}
+    for _, _, message in read_messages(path, topic):
+        n = len(message.stamp)
+        for name, dtype in _LOOP_COLUMNS.items():
+            column = np.asarray(getattr(message, name), dtype=dtype)
+            if column.size != n:
+                raise CorruptBagError(f"{topic}: a LoopSamples message has {n} stamps but "
+                                      f"{column.size} {name} values")
+            parts[name].append(column)
+    out = {k: np.concatenate(v) if v else np.empty(0, _LOOP_COLUMNS[k]) for k, v in parts.items()}
+    order = np.argsort(out["stamp"], kind="stable")
+    return {k: v[order] for k, v in out.items()}
 
 
 _NUMERIC = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16",

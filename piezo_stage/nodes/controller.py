@@ -124,6 +124,9 @@ PARAMETERS = ParameterTable("controller", (
           "controller_state has this many subscribers (an experiment's recorder sees step 0)",
           range=(0, 100),
           read_only=True),
+    Param("topics_rate_hz", 2000.0, "rig_loop: most samples per second on displacement, "
+          "voltage_command, controller_state and voltage (decimated above it); loop_samples "
+          "carries every sample, in batches", "Hz", (1.0, 1e6), read_only=True),
     Param("max_gap", 0.02, "a sensor silence up to this long holds the output (counted as "
           "gaps_held); a longer one opens the loop", "s", (1e-5, 60.0)),
     Param("reference_source", "topic", "where the set point comes from: the reference topic, the "
@@ -184,8 +187,8 @@ class ControllerNode(Node):
         config = self._config({})
         report = self._gain_check.reasons(config)
         if report and not s.allow_unverified_gains:
-            raise ControlError(f"unsafe gains at start: {report} (set allow_unverified_gains to "
-                               "override)")
+            raise ControlError(f"controller: unsafe gains at start: {report} (set "
+                               "allow_unverified_gains to override)")
         self.pid = TimeVaryingPID(config, closed=False)
         self.supervisor = LoopSupervisor(self.pid, SupervisionConfig(
             rate_hz=self._rate, u_bias=self._bias, u_min=float(s.u_min), u_max=float(s.u_max),
@@ -200,6 +203,7 @@ class ControllerNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
         self._wait_subs = int(s.wait_for_state_subscribers)
         self._handoff = handoff
+        self.last_step: ControlOutput | None = None
 
         # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or
         # state
@@ -338,16 +342,19 @@ class ControllerNode(Node):
                 return  # the lockstep plant re-offers step 0 until a command answers it
             self._step(t, msg.header.stamp)
 
-    def on_sample(self, stamp_ns: int, x: float, ok: bool) -> float | None:
+    def on_sample(self, stamp_ns: int, x: float, ok: bool,
+                  publish: bool = True) -> float | None:
         """The composed loop's step: one sensor sample taken at ``stamp_ns`` → the voltage to
-        write now (None: nothing to write). Publishes through the hand-off."""
+        write now (None: nothing to write); ``last_step`` is the law's output when it stepped.
+        Publishes through the hand-off (``publish`` False: not this sample's state)."""
         t = stamp_ns * 1e-9
+        self.last_step = None
         with self.lock:
             if not self.supervisor.sample(t, x, ok):
                 return self._send_hold(t)
             if self._wait_subs and self._waiting_for_subscribers():
                 return None  # the loop starts once a recorder sees its first state
-            return self._step(t, stamp_ns)
+            return self._step(t, stamp_ns, publish)
 
     def check_gap(self, t: float) -> float | None:
         """The composed loop's tick without a sample: the voltage to write now, or None."""
@@ -372,13 +379,15 @@ class ControllerNode(Node):
             self._step(t, now.to_msg())
 
     # ------------------------------------------------------------------ loop
-    def _step(self, t: float, stamp: Any) -> float:
+    def _step(self, t: float, stamp: Any, publish: bool = True) -> float:
         yr, yr_dot, yr_ddot = self.setpoint.evaluate(t)
-        if self.setpoint.publishes and self._pub_ref is not None:
+        if publish and self.setpoint.publishes and self._pub_ref is not None:
             self._emit(self._publish_reference, stamp, yr)
         out = self.supervisor.step(t, yr, yr_dot, yr_ddot)
+        self.last_step = out
         u = self.supervisor.command(out)
-        self._emit(self._publish, out, u, stamp)
+        if publish:
+            self._emit(self._publish, out, u, stamp)
         return u
 
     def _send_hold(self, t: float) -> float | None:

@@ -79,8 +79,9 @@ PARAMETERS = ParameterTable("laser_reader", (
 ), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
 
 
-#: the composed loop's step: (displacement [m], status, stamp [ns]) arrays of new samples
-SampleSink = Callable[[np.ndarray, np.ndarray, np.ndarray], None]
+#: the composed loop's step: (displacement [m], status, stamp [ns]) arrays of new samples ->
+#: which of them go on the topic (None: all)
+SampleSink = Callable[[np.ndarray, np.ndarray, np.ndarray], "np.ndarray | None"]
 
 
 class LaserReaderNode(Node):
@@ -185,8 +186,11 @@ class LaserReaderNode(Node):
         if self._loop is None:
             self._publish(value, out.status, out.stamp)
             return
-        self._loop(value, out.status, out.stamp)  # the control step first, then the topics
-        self._handoff.put(self._publish, value, out.status, out.stamp)
+        keep = self._loop(value, out.status, out.stamp)  # the control step first, then topics
+        if keep is None:
+            self._handoff.put(self._publish, value, out.status, out.stamp)
+        elif keep.any():
+            self._handoff.put(self._publish, value[keep], out.status[keep], out.stamp[keep])
 
     def _publish(self, value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
         msg, publish, counts = self._msg, self._pub.publish, self.by_status

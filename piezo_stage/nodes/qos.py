@@ -31,6 +31,8 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 #: A reliable publisher also serves the best-effort (SensorDataQoS) subscribers of the rig.
 LOCKSTEP_DEPTH = 100_000
 LOCKSTEP_QOS = QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+#: batches of samples (rig_loop's loop_samples): reliable, a few seconds of batches queued
+BATCH_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 #: identified parameters and other results: reliable + transient local (latched)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,

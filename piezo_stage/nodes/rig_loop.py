@@ -13,9 +13,11 @@ the path. A read that times out (``laser_reader.poll_period``) checks the sensor
 within ``controller.max_gap`` the output holds, beyond it the loop opens.
 
 Topics leave through a :class:`Handoff`: the loop thread queues what to publish (a deque append,
-no lock, no wake-up) and the executor's thread publishes it every ``PUBLISH_PERIOD`` — every
-sample on ``displacement``, ``voltage_command``, ``controller_state`` and ``voltage``, so a
-recorder gets every one. The watchdog, the read-back, /diagnostics, parameters and services run
+no lock, no wake-up) and the executor's thread publishes it every ``PUBLISH_PERIOD``: on
+``displacement``, ``voltage_command``, ``controller_state`` and ``voltage`` every sample up to
+``controller.topics_rate_hz`` (every N-th above it: what rclpy and a browser can take), and on
+``loop_samples`` every sample, in one LoopSamples message per period (:class:`SampleBatch`),
+which the recorder records. The watchdog, the read-back, /diagnostics, parameters and services run
 in the executor's thread as in the separate nodes; the controller's law is shared under a lock.
 
 One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
@@ -26,6 +28,7 @@ with ``SWITCH_INTERVAL`` (50 µs). Run it with ``piezo-stage launch rig_loop``
 
 from __future__ import annotations
 
+import math
 import sys
 from collections import deque
 from typing import Any, Callable, Iterator, Sequence
@@ -41,7 +44,8 @@ from .controller import PARAMETERS as CONTROLLER_PARAMETERS
 from .controller import ControllerNode
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
-from .runtime import run, wall_clock
+from .qos import BATCH_QOS
+from .runtime import run, set_stamp, wall_clock
 from .spec import ParameterError
 from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
@@ -62,6 +66,7 @@ class Handoff:
 
     def __init__(self) -> None:
         self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
+        self.after_drain: list[Callable[[], None]] = []
 
     def attach(self, node: Node, period: float = PUBLISH_PERIOD) -> None:
         node.create_timer(period, self.drain, clock=wall_clock())
@@ -74,9 +79,66 @@ class Handoff:
         while queue:
             publish, args = queue.popleft()
             publish(*args)
+        for done in self.after_drain:
+            done()
+
+
+#: one row of LoopSamples per sample: stamp [ns], displacement, status, reference, u, u_ff,
+#: loop_closed (the applied voltage is the block's)
+Row = tuple[int, float, int, float, float, float, bool]
+
+
+class SampleBatch:
+    """Every sample of the loop since the last publication, published as one LoopSamples
+    message on ``loop_samples`` (after each drain of the hand-off)."""
+
+    def __init__(self, node: Node) -> None:
+        from piezo_stage_msgs.msg import LoopSamples
+
+        self._msg_type = LoopSamples
+        self._pub = node.create_publisher(LoopSamples, "loop_samples", BATCH_QOS)
+        self._rows: list[Row] = []
+        self._applied: list[float] = []
+
+    def add(self, rows: list[Row], applied: float) -> None:
+        """A block's rows and the amplifier's output after it (executor thread)."""
+        self._rows.extend(rows)
+        self._applied.extend([applied] * len(rows))
+
+    def publish(self) -> None:
+        if not self._rows:
+            return
+        columns = list(zip(*self._rows))
+        msg = self._msg_type()
+        set_stamp(msg.header, columns[0][0])
+        msg.stamp = np.array(columns[0], dtype=np.int64)
+        msg.displacement = np.array(columns[1], dtype=np.float64)
+        msg.status = np.array(columns[2], dtype=np.uint8)
+        msg.reference = np.array(columns[3], dtype=np.float64)
+        msg.u = np.array(columns[4], dtype=np.float64)
+        msg.u_ff = np.array(columns[5], dtype=np.float64)
+        msg.loop_closed = list(columns[6])
+        msg.applied = np.array(self._applied, dtype=np.float64)
+        self._rows, self._applied = [], []
+        self._pub.publish(msg)
 
 
 MEMBERS = ("voltage_driver", "controller", "laser_reader")
+
+
+class TopicDecimation:
+    """Which samples go on the per-sample topics: every ``every``-th, ``every`` the smallest
+    that keeps them at or below ``topics_rate`` [Hz] for a ``sample_rate`` [Hz] stream."""
+
+    def __init__(self, sample_rate: float, topics_rate: float) -> None:
+        self.every = max(1, math.ceil(sample_rate / topics_rate - 1e-9))
+        self._count = 0
+
+    def due(self, n: int) -> np.ndarray:
+        """Of the next ``n`` samples, those due (boolean mask)."""
+        k = self._count + np.arange(n)
+        self._count += n
+        return k % self.every == 0
 
 
 def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
@@ -108,16 +170,31 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     yield driver
     controller = ControllerNode(composed=True, handoff=handoff, overrides=overrides["controller"])
     yield controller
+    batch = SampleBatch(controller)
+    handoff.after_drain.append(batch.publish)
+    # the loop steps once per sample: its rate (checked with the gains) is the sample rate
+    rate = float(controller.settings.rate_hz)
+    topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
+    nan = math.nan
 
-    def step(value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
+    def step(value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> np.ndarray | None:
         """The law steps on every sample; the amplifier gets the newest output (the samples of
-        one read arrived together: the older outputs are already superseded)."""
+        one read arrived together: the older outputs are already superseded). Every sample
+        goes into the batch; the per-sample topics take the due ones."""
+        due = topics.due(len(value))
         u = None
-        for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
-            out = controller.on_sample(ns, x, st == 0)
+        rows: list[Row] = []
+        for x, st, ns, publish in zip(value.tolist(), status.tolist(), stamp.tolist(),
+                                      due.tolist()):
+            out = controller.on_sample(ns, x, st == 0, publish)
             u = u if out is None else out
+            law = controller.last_step
+            rows.append((ns, x, st, nan, nan if out is None else out, 0.0, False) if law is None
+                        else (ns, x, st, law.reference, out, law.u_ff, law.loop_closed))
         if u is not None:
-            driver.command(u)
+            driver.command(u, publish=bool(due[-1]))
+        handoff.put(batch.add, rows, driver.driver.last_sent)
+        return None if topics.every == 1 else due
 
     def idle(now_ns: int) -> None:
         u = controller.check_gap(now_ns * 1e-9)
@@ -130,8 +207,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     refused = set_realtime_priority(priority)
     if refused:
         driver.get_logger().warn(f"executor thread: {refused}")
-    yield LaserReaderNode(loop=step, idle=idle, handoff=handoff,
-                          overrides=overrides["laser_reader"], loop_priority=priority)
+    reader = LaserReaderNode(loop=step, idle=idle, handoff=handoff,
+                             overrides=overrides["laser_reader"], loop_priority=priority)
+    yield reader
+    sample_rate = reader.rate / reader.decimator.n
+    if abs(sample_rate - rate) > 1e-6 * rate:
+        controller.get_logger().warn(
+            f"controller.rate_hz {rate:g} Hz is not the sensor's sample rate {sample_rate:g} Hz "
+            "(laser_reader.rate_hz / decimation): the gains were checked at the wrong rate")
 
 
 def main(args: list[str] | None = None) -> int:

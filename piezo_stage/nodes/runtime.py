@@ -129,11 +129,13 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     nodes: list[Node] = []
+    started = False  # every node made (a failure before names no node: the error says which)
     code = 0
     try:
         made = node_factory()
         for node in [made] if isinstance(made, Node) else made:  # a generator: one at a time,
             nodes.append(node)  # so that those made before a failure are shut down safely
+        started = True
         executor = LeanExecutor() if lean else SingleThreadedExecutor()
         for node in nodes:
             warm_log_lookup(type(node))
@@ -148,7 +150,7 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
         print(f"error: {exc}", file=sys.stderr)
         code = 2
     except Exception as exc:  # a node that cannot start says why and exits non-zero
-        print(f"[{nodes[-1].get_name() if nodes else 'node'}] fatal: {exc}", file=sys.stderr)
+        print(f"[{nodes[-1].get_name() if started else 'node'}] fatal: {exc}", file=sys.stderr)
         code = 1
     finally:
         for node in reversed(nodes):

@@ -217,17 +217,19 @@ class VoltageDriverNode(Node):
         else:
             self._apply(msg.voltage, True, received)
 
-    def command(self, voltage: float) -> None:
+    def command(self, voltage: float, publish: bool = True) -> None:
         """A command from the composed loop (its own thread): the watchdog counts from now; the
-        device read-back follows the write when one is due."""
+        device read-back follows the write when one is due (``publish`` False: the value
+        written is not published on ``voltage``)."""
         received = self.driver.clock()
         self.driver.command_received(received)
-        self._apply(voltage, True, received)
+        self._apply(voltage, True, received, publish)
         if received >= self._readback_due:
             self._readback_due = received + self._readback_period
             self._readback()
 
-    def _apply(self, voltage: float, command: bool = True, received: float | None = None) -> None:
+    def _apply(self, voltage: float, command: bool = True, received: float | None = None,
+               publish: bool = True) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
         publish it; ``command`` False: a value the playout interpolated, sent and published too
         (``voltage`` is what the device applies, stamped when applied: the identification reads it
@@ -259,7 +261,10 @@ class VoltageDriverNode(Node):
                 return
             self._commands += 1
             self._clamped += int(result.clamped)
-            self._publish(result.sent, sent_at)
+            if publish:
+                self._publish(result.sent, sent_at)
+            else:
+                self._applied = result.sent
 
     def _reject(self, kind: Rejection, text: str) -> None:
         # one log call site per kind: rclpy throttles per call site
