@@ -109,6 +109,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+EXTRA: list[str] = []  # --param NODE.KEY:=VALUE given on the command line
+
+
 def graph_params(form: str, rate: float, port: int, link: str) -> list[str]:
     params = [
         f"voltage_driver.url:=tcp://127.0.0.1:{port}", "voltage_driver.v_max:=400.0",
@@ -124,7 +127,7 @@ def graph_params(form: str, rate: float, port: int, link: str) -> list[str]:
         "controller.reference_source:=constant", f"controller.reference:={REFERENCE}",
         "controller.start_closed:=true", "controller.max_gap:=1.0",
     ]
-    return params
+    return params + EXTRA
 
 
 def cpu_seconds(pids: list[int]) -> float:
@@ -230,7 +233,11 @@ def main() -> int:
     parser.add_argument("--rates", default="1000,10000")
     parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
                         help="instead: rig_loop alone at 1 kHz for this long (RSS, unanswered)")
+    parser.add_argument("--param", action="append", default=[], metavar="NODE.KEY:=VALUE",
+                        help="one more parameter for every run, e.g. "
+                        "controller.topics_rate_hz:=500.0")
     args = parser.parse_args()
+    EXTRA.extend(args.param)
     if args.soak > 0:
         print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
         return 0

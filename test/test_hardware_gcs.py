@@ -163,3 +163,38 @@ def test_pipython_drives_the_emulator_over_tcp():
             del device  # PIPython closes its socket in __del__ (closing twice raises EBADF there)
             gc.collect()
     assert model.applied_voltage == 12.5
+
+
+def test_pipelined_setters_are_checked_as_their_replies_arrive(served):
+    """command_pipelined: no wait per setter, at most ``pipeline`` ERR? replies outstanding, a
+    refusal raised at a later setter or before the next query, the order of the device's
+    replies kept."""
+    model, conn = served
+    conn.pipeline = 3
+    conn.command("SVO A 0")
+    for k in range(20):
+        conn.command_pipelined(f"SVA A {k}")
+        assert len(conn._pending) <= 3
+    assert conn.query_float("SVA? A", "A") == 19.0  # the query waited for the ERR? replies
+    assert not conn._pending
+    conn.command_pipelined("SVA A 500")  # outside the device's range: error 66
+    with pytest.raises(GCSError) as err:
+        for k in range(5):
+            conn.command_pipelined(f"SVA A {k}")
+    assert err.value.code == 66 and err.value.command == "SVA A 500"
+    conn.settle()
+    assert model.applied_voltage < 5.0
+
+
+def test_a_full_pipeline_waits_for_the_oldest_reply_and_times_out_on_a_silent_device():
+    """Replies 0.5 s late, timeout 0.2 s, pipeline 2: two setters go out without waiting, the
+    third waits for the oldest ERR? reply and times out."""
+    with EmulatorServer(GCSDeviceModel(), tcp_port=0, faults=Faults(reply_delay=0.5)) as server:
+        with make_transport(server.url) as transport:
+            conn = GCSConnection(transport, timeout=0.2, pipeline=2)
+            sent = 0
+            with pytest.raises(DeviceTimeout, match="ERR\\?"):
+                for k in range(3):
+                    conn.command_pipelined(f"SVA 1 {k}")
+                    sent += 1
+            assert sent == 2

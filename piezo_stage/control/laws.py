@@ -64,20 +64,29 @@ class Gains:
 THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 
 
+def _num(value: ArrayLike) -> np.ndarray | float:
+    """``value`` as is when a float or an array (a controller's per-sample scalars stay Python
+    floats: numpy costs microseconds per scalar operation), else as an array."""
+    return value if isinstance(value, (float, np.ndarray)) else np.asarray(value)
+
+
 def pid_term(gains: Gains, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike) -> np.ndarray | float:
     """u_pid = −k0·x0 − k1·x1 − k2·x2, the PID of (11.5)."""
-    return -gains.k0 * np.asarray(x0) - gains.k1 * np.asarray(x1) - gains.k2 * np.asarray(x2)
+    return -gains.k0 * _num(x0) - gains.k1 * _num(x1) - gains.k2 * _num(x2)
 
 
 def excitation_term(mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike) -> np.ndarray | float:
     """The added term: 0 (11.5), −A·sin(2πft) (11.17) or −kA·x0·sin(2πft) (11.18)."""
     check_law(mode)
+    t, x0 = _num(t), _num(x0)
+    scalar = isinstance(t, float) and isinstance(x0, float)
     if mode == "pid":
-        return np.zeros(np.broadcast(np.asarray(t), np.asarray(x0)).shape)[()]
-    s = np.sin(2.0 * np.pi * gains.f * np.asarray(t))
+        return 0.0 if scalar else np.zeros(np.broadcast(t, x0).shape)[()]
+    s = math.sin(2.0 * math.pi * gains.f * t) if isinstance(t, float) \
+        else np.sin(2.0 * np.pi * gains.f * t)
     if mode == "pid_sine":
         return -gains.A * s
-    return -gains.kA * np.asarray(x0) * s
+    return -gains.kA * x0 * s
 
 
 def x0_coefficient(mode: str, gains: Gains, t: float) -> float:

@@ -63,7 +63,10 @@ class GCSAmplifier(Amplifier):
 
     ``axis`` None picks the first axis ``SAI?`` lists (axis names are not fixed). ``channel`` is
     the piezo output channel for ``VOL?``/``VMA?``/``VMI?``/``ONL``. With ``check_errors`` every
-    ``SVA`` is followed by ``ERR?`` (one extra round trip, but a refused command is never silent).
+    ``SVA`` is followed by ``ERR?`` (a refused command is never silent): its reply is waited for
+    (``pipeline`` 0), or checked as it arrives with at most ``pipeline`` outstanding, so a loop
+    writing every sample does not wait for the device's round trip and hears of a refusal at most
+    ``pipeline`` writes late.
     """
 
     decimals = 6
@@ -75,9 +78,10 @@ class GCSAmplifier(Amplifier):
         channel: int = 1,
         timeout: float = 1.0,
         check_errors: bool = True,
+        pipeline: int = 0,
     ) -> None:
         super().__init__(transport)
-        self.conn = GCSConnection(transport, timeout)
+        self.conn = GCSConnection(transport, timeout, pipeline)
         self.requested_axis = axis
         self.axis = axis or ""
         self.channel = int(channel)
@@ -110,10 +114,12 @@ class GCSAmplifier(Amplifier):
 
     def write_voltage(self, voltage: float) -> None:
         command = f"SVA {self.axis} {self.format_voltage(voltage)}"
-        if self.check_errors:
-            self.conn.command(command)
-        else:
+        if not self.check_errors:
             self.conn.send(command)
+        elif self.conn.pipeline:
+            self.conn.command_pipelined(command)
+        else:
+            self.conn.command(command)
 
     def read_voltage(self) -> float:
         ch = str(self.channel)
@@ -171,12 +177,15 @@ def make_amplifier(
     channel: int = 1,
     timeout: float = 1.0,
     baudrate: int | None = None,
+    pipeline: int = 0,
 ) -> Amplifier:
-    """Build (not open) an amplifier of ``kind`` ("gcs" or "mdt69x") on the link at ``url``."""
+    """Build (not open) an amplifier of ``kind`` ("gcs" or "mdt69x") on the link at ``url``
+    (``pipeline``: outstanding ``ERR?`` replies a GCS controller may have)."""
     if kind not in AMPLIFIERS:
         raise ConfigError(f"unknown amplifier {kind!r}; choose from {sorted(AMPLIFIERS)}")
     cls, default_baud = AMPLIFIERS[kind]
     transport = make_transport(url, baudrate or default_baud)
     if cls is GCSAmplifier:
-        return GCSAmplifier(transport, axis=axis, channel=channel, timeout=timeout)
+        return GCSAmplifier(transport, axis=axis, channel=channel, timeout=timeout,
+                            pipeline=pipeline)
     return MDT69xAmplifier(transport, axis=axis or "x", timeout=timeout)

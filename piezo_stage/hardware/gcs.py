@@ -9,9 +9,10 @@ space before the LF; axis/channel queries answer ``<item>=<value>`` per line.
 from __future__ import annotations
 
 import math
+from collections import deque
 
 from .errors import DeviceTimeout, GCSError, ProtocolError, TransportError
-from .transport import DeviceConnection
+from .transport import DeviceConnection, Transport
 
 #: GCS controller error codes -> messages, texts as in PIPython 2.11 ``pidevice/gcserror.py``.
 GCS_ERROR_MESSAGES: dict[int, str] = {
@@ -111,7 +112,20 @@ def _error_code(lines: list[str]) -> int:
 
 
 class GCSConnection(DeviceConnection):
-    """Command/reply exchange with one GCS controller over any :class:`Transport`."""
+    """Command/reply exchange with one GCS controller over any :class:`Transport`.
+
+    :meth:`command_pipelined` sends a setter with its ``ERR?`` without waiting for the reply:
+    the replies are checked as they arrive (at the next setter, or before any query), at most
+    ``pipeline`` outstanding; a refusal is raised at most ``pipeline`` setters late."""
+
+    def __init__(self, transport: Transport, timeout: float = 1.0, pipeline: int = 0) -> None:
+        super().__init__(transport, timeout)
+        self.pipeline = pipeline
+        self._pending: deque[str] = deque()  # setters whose ERR? reply is still to be read
+
+    def flush(self) -> None:
+        self._pending.clear()
+        super().flush()
 
     def send(self, command: str) -> None:
         """Send a setter; GCS setters have no reply."""
@@ -123,6 +137,7 @@ class GCSConnection(DeviceConnection):
         A controller answers nothing to a query it refuses; on a timeout ``ERR?`` tells a
         refused query (raised as :class:`GCSError`) from a dead link (:class:`DeviceTimeout`).
         """
+        self.settle()
         self.send(command)
         try:
             reply = self._replies.read_reply(
@@ -153,11 +168,43 @@ class GCSConnection(DeviceConnection):
     def command(self, command: str) -> None:
         """Send a setter and verify it with ``ERR?`` (both lines in one write: one system call,
         and the device gets the pair at once)."""
+        self.settle()
         self.transport.write(command.encode("ascii") + b"\nERR?\n")
         code = _error_code(split_reply(self._replies.read_reply(
             gcs_reply_end, self.timeout, what=f"reply to 'ERR?' after {command!r}")))
         if code:
             raise GCSError(code, gcs_error_message(code), command)
+
+    def command_pipelined(self, command: str) -> None:
+        """Send a setter and its ``ERR?`` without waiting: the replies already there are checked
+        first (GCSError for a refused earlier setter), and with ``pipeline`` replies outstanding
+        this waits for the oldest."""
+        self._collect(wait=len(self._pending) >= max(self.pipeline, 1))
+        self.transport.write(command.encode("ascii") + b"\nERR?\n")
+        self._pending.append(command)
+
+    def settle(self) -> None:
+        """Read every outstanding ``ERR?`` reply (GCSError for the first refusal)."""
+        while self._pending:
+            self._collect(wait=True)
+
+    def _collect(self, wait: bool) -> None:
+        """Check the outstanding replies that arrived (``wait``: at least the oldest)."""
+        while self._pending:
+            try:
+                reply = self._replies.read_reply(gcs_reply_end, self.timeout if wait else 0.0,
+                                                 what=f"reply to 'ERR?' after "
+                                                      f"{self._pending[0]!r}")
+            except DeviceTimeout:
+                if wait:
+                    self._pending.clear()
+                    raise
+                return
+            wait = False
+            command = self._pending.popleft()
+            code = _error_code(split_reply(reply))
+            if code:
+                raise GCSError(code, gcs_error_message(code), command)
 
     def query_items(self, command: str) -> dict[str, str]:
         return parse_item_values(self.query(command))

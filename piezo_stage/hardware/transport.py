@@ -199,7 +199,7 @@ class TcpTransport(Transport):
     def read(self, timeout: float) -> bytes:
         sock = self._socket()
         try:
-            sock.settimeout(max(timeout, 1e-4))
+            sock.settimeout(max(timeout, 0.0))  # 0: non-blocking (BlockingIOError: nothing)
             data = sock.recv(65536)
         except (socket.timeout, BlockingIOError):
             return b""
@@ -260,6 +260,7 @@ class ReplyBuffer:
         self, complete: Callable[[bytes], int], timeout: float, what: str = "reply"
     ) -> bytes:
         deadline = time.monotonic() + timeout
+        read = False  # timeout 0: one read of what is there, without waiting
         while True:
             end = complete(bytes(self._buf)) if self._buf else -1
             if end >= 0:
@@ -267,13 +268,14 @@ class ReplyBuffer:
                 del self._buf[:end]
                 return reply
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if remaining <= 0 and read:
                 partial = bytes(self._buf[:80])
                 raise DeviceTimeout(
                     f"no complete {what} from {self.transport.url} within "
                     f"{timeout:.3g} s (got {partial!r})"
                 )
-            self._buf += self.transport.read(min(remaining, 0.05))
+            self._buf += self.transport.read(min(max(remaining, 0.0), 0.05))
+            read = True
 
 
 class DeviceConnection:

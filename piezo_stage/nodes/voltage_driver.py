@@ -70,6 +70,10 @@ PARAMETERS = ParameterTable("voltage_driver", (
     Param("axis", "", "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)",
           read_only=True),
     Param("channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", range=(1, 64), read_only=True),
+    Param("error_pipeline", 0, "GCS: ERR? replies that may be outstanding (0: each write waits "
+          "for its ERR?; rig_loop: the loop does not wait for the device's round trip, and a "
+          "refused write is reported at most this many writes late)", range=(0, 64),
+          read_only=True),
     Param("io_timeout", 0.5, "reply timeout of one device exchange", "s", (0.01, 10.0),
           read_only=True),
     Param("v_min", 0.0, "configured lower limit (intersected with the device's)", "V",
@@ -132,7 +136,8 @@ class VoltageDriverNode(Node):
 
         amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None,
                                    channel=p["channel"],
-                                   timeout=p["io_timeout"], baudrate=p["baud"] or None)
+                                   timeout=p["io_timeout"], baudrate=p["baud"] or None,
+                                   pipeline=p["error_pipeline"])
         config = DriverConfig(
             v_min=p["v_min"], v_max=p["v_max"], safe_voltage=p["safe_voltage"],
             slew_rate=p["slew_rate"] or math.inf,
