@@ -7,6 +7,8 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from piezo_stage.hardware.errors import ConfigError
 from piezo_stage.hardware.optoncdt import (
@@ -17,6 +19,8 @@ from piezo_stage.hardware.optoncdt import (
     encode_values,
     frame_format,
 )
+
+from property_support import examples
 
 pytestmark = pytest.mark.unit
 
@@ -221,3 +225,36 @@ def test_fuzz_mixed_stream_with_ascii_and_faults(name):
     assert np.all((block.displacement[ok] >= 0) & (block.displacement[ok] <= MR))
     assert block.raw.tolist() == reference_frames(fmt, data)
     assert parser.stats.text_bytes > 0
+
+
+# --- the few-frames path -------------------------------------------------------------------------
+@given(st.sampled_from(list(FORMATS)), st.integers(0, 2**32 - 1),
+       st.lists(st.tuples(st.integers(0, 3), st.integers(1, 40)), min_size=1, max_size=40))
+@settings(max_examples=examples(150))
+@example("ild1320-18", 1, [(0, 12), (2, 3), (0, 12)])
+def test_the_few_frames_path_decides_as_the_numpy_path(name, seed, pieces):
+    """Invariant for any stream (runs of frames with error values, later values, garbage and
+    ASCII text) cut into any chunks: the Python path for chunks of a few whole frames gives the
+    same samples, statuses and statistics as the numpy path alone."""
+    fmt = fmt_of(name)
+    rng = np.random.default_rng(seed)
+    width = fmt.bytes_per_value
+    chunks: list[bytes] = []  # frames in chunks of whole frames, or cut anywhere
+    for kind, n in pieces:
+        raw = rng.integers(0, 1 << fmt.value_bits, n)
+        if kind == 0:  # a slow ramp of measurements (the gate passes it)
+            raw = fmt.from_metres(np.linspace(0.004, 0.0041, n) + rng.normal(0, 1e-7), MR)
+        later = rng.random(n) < 0.2 if kind == 1 and width == 3 else None
+        data = encode_values(fmt, raw, later=later)
+        step = width * int(rng.integers(1, 6)) if rng.random() < 0.7 else int(rng.integers(1, 7))
+        chunks += [data[i:i + step] for i in range(0, len(data), step)]
+        if kind == 3:
+            chunks.append(b"MEASRATE 1.000\r\n->" if fmt.ascii_commands
+                          else bytes(rng.integers(0, 256, 5, dtype=np.uint8)))
+    fast, slow = OptoNCDTParser(fmt, MR), OptoNCDTParser(fmt, MR)
+    slow.few_frames = 0
+    a = SampleBlock.concat([fast.feed(c) for c in chunks])
+    b = SampleBlock.concat([slow.feed(c) for c in chunks])
+    assert a.raw.tolist() == b.raw.tolist() and a.status.tolist() == b.status.tolist()
+    np.testing.assert_array_equal(a.displacement, b.displacement)
+    assert fast.stats == slow.stats

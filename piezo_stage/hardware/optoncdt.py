@@ -48,6 +48,8 @@ class Status(enum.IntEnum):
     INVALID = 4
 
 
+#: chunks of at most this many frames (the stream of a loop that keeps up) take the Python path
+FEW_FRAMES = 32
 # the members as plain ints, looked up once (a per-frame path)
 _OK, _TOO_CLOSE, _TOO_FAR, _INVALID = (int(s) for s in (Status.OK, Status.TOO_CLOSE, Status.TOO_FAR,
                                                          Status.INVALID))
@@ -333,6 +335,7 @@ class OptoNCDTParser:
         self.stats = ParserStats()
         # the speed gate's slack: two digital steps (rounding on both sides)
         self._quantum = 2.0 * abs(fmt.scale) * self.measuring_range
+        self.few_frames = FEW_FRAMES  # 0: every chunk through the numpy path
         self.reset()
 
     def gate(self, frames: np.ndarray | int) -> np.ndarray | float:
@@ -355,6 +358,10 @@ class OptoNCDTParser:
         """Parse the next chunk; the bytes of an incomplete frame wait for the next chunk."""
         if not data:
             return SampleBlock.empty()
+        if len(data) <= self.few_frames * self.fmt.bytes_per_value and not self._tail.size:
+            block = self._feed_frames(data)
+            if block is not None:
+                return block
         buf = np.concatenate([self._tail, np.frombuffer(data, dtype=np.uint8)])
         width = self.fmt.bytes_per_value
         ends = self._frame_ends(buf)  # index of each frame's last byte
@@ -408,7 +415,8 @@ class OptoNCDTParser:
         status[ok & (distance < 0.0)] = _TOO_CLOSE
         status[ok & (distance > self.measuring_range)] = _TOO_FAR
         self.stats.errors += int(np.count_nonzero((status != _OK) & first))
-        status = self._lock(status, distance, first, gaps)
+        status = np.array(self._lock(status.tolist(), distance.tolist(), first.tolist(),
+                                     gaps.tolist()), dtype=np.uint8)
         keep = first
         status, distance, raw = status[keep], distance[keep], raw[keep]
         distance[status != _OK] = np.nan
@@ -418,16 +426,14 @@ class OptoNCDTParser:
         return SampleBlock(distance, status, raw)
 
     def _lock(
-        self, status: np.ndarray, distance: np.ndarray, first: np.ndarray, gaps: np.ndarray
-    ) -> np.ndarray:
+        self, status: list[int], distance: list[float], first: list[bool], gaps: list[int]
+    ) -> list[int]:
         """Frame lock and speed gate, frame by frame: OK values not passing become INVALID."""
         check, stats = self.check, self.stats
         k, step, slack = check.relock_frames, check.max_speed / check.rate, self._quantum
-        out = status.copy()
+        out = list(status)
         ok_value = _OK
-        for i, (st, d, is_first, gap) in enumerate(
-            zip(status.tolist(), distance.tolist(), first.tolist(), gaps.tolist())
-        ):
+        for i, (st, d, is_first, gap) in enumerate(zip(status, distance, first, gaps)):
             if gap > 0:
                 stats.framing_errors += 1
                 if self._good >= k:
@@ -458,3 +464,50 @@ class OptoNCDTParser:
                 self._good, self._ref, self._since = 1, d, 0
             out[i] = _INVALID
         return out
+
+    def _feed_frames(self, data: bytes) -> SampleBlock | None:
+        """The common case of a stream in lock, decoded with Python ints (numpy costs more than
+        the work for a few frames): ``data`` is whole well-formed frames and nothing else, as
+        :meth:`_frame_ends` would find them. None for anything else (the general path)."""
+        fmt = self.fmt
+        width, mask = fmt.bytes_per_value, fmt.mask
+        raws: list[int] = []
+        first: list[bool] = []
+        if width == 3:  # L (flags 00), M (01), H (10 first value, 11 later value)
+            for i in range(0, len(data) - 2, 3):
+                lo, mid, hi = data[i], data[i + 1], data[i + 2]
+                if lo >= 0x40 or mid >> 6 != 1 or hi < 0x80:
+                    return None
+                raws.append((((hi & 0x3F) << 12) | ((mid & 0x3F) << 6) | (lo & 0x3F)) & mask)
+                first.append(hi < 0xC0)
+        else:  # H (bit 7 set), L (bit 7 clear)
+            for i in range(0, len(data) - 1, 2):
+                hi, lo = data[i], data[i + 1]
+                if hi < 0x80 or lo >= 0x80:
+                    return None
+                raws.append((((hi & 0x7F) << 7) | (lo & 0x7F)) & mask)
+                first.append(True)
+        if len(raws) * width != len(data):
+            return None
+        lut, mr, scale, offset = fmt.status_lut, self.measuring_range, fmt.scale, fmt.offset
+        status = [int(lut[r]) for r in raws]
+        distance = [(r * scale - offset) * mr for r in raws]
+        for i, (st, d) in enumerate(zip(status, distance)):
+            if st == _OK and d < 0.0:
+                status[i] = _TOO_CLOSE
+            elif st == _OK and d > mr:
+                status[i] = _TOO_FAR
+        stats = self.stats
+        stats.errors += sum(1 for st, f in zip(status, first) if st != _OK and f)
+        gaps = [self._gap] + [0] * (len(raws) - 1)
+        self._gap = 0
+        status = self._lock(status, distance, first, gaps)
+        keep = [i for i, f in enumerate(first) if f]
+        out_status = [status[i] for i in keep]
+        out_distance = [distance[i] if status[i] == _OK else math.nan for i in keep]
+        stats.frames += len(keep)
+        stats.later_values += len(raws) - len(keep)
+        stats.ok += out_status.count(_OK)
+        return SampleBlock(np.array(out_distance, dtype=np.float64),
+                           np.array(out_status, dtype=np.uint8),
+                           np.array([raws[i] for i in keep], dtype=np.int64))
