@@ -69,6 +69,28 @@ def test_every_node_has_a_well_formed_table(name):
         assert p.check(p.default) is None, p.name
 
 
+@pytest.mark.unit
+def test_settings_are_a_frozen_dataclass_with_enum_members():
+    import dataclasses
+
+    settings = TABLE.settings({"v_max": 20.0, "colour": "green", "names": ("a",)})
+    assert settings.colour is Colour.GREEN and settings.v_max == 20.0 and settings.names == ["a"]
+    assert type(settings).__name__ == "DemoSettings"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.v_max = 5.0
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("name", NODES)
+def test_every_node_table_gives_settings_with_enums(name):
+    table = importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS
+    settings = table.settings(table.defaults())
+    for p in table:
+        value = getattr(settings, p.name.replace(".", "_"))
+        if isinstance(p.choices, type) and issubclass(p.choices, Enum):
+            assert isinstance(value, p.choices), p.name
+
+
 @pytest.mark.ros
 @pytest.mark.parametrize("node, args, message", [
     ("voltage_driver", ["-p", "vmax:=50.0"],

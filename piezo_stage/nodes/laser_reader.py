@@ -97,23 +97,23 @@ class LaserReaderNode(Node):
                          parameter_overrides=list(overrides))
         self._loop, self._idle, self._handoff = loop, idle, handoff
         self._loop_priority = loop_priority
-        p = declare_table(self, PARAMETERS)
+        p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
         on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "
                "depend on it)" if "use_sim_time" in changed else None)
 
-        config = SensorConfig(p["family"], p["measuring_range"], bits=p["bits"] or None,
-                              stale_timeout=p["stale_timeout"], rate=p["rate_hz"],
-                              max_speed=p["max_speed"], relock_frames=p["relock_frames"])
-        self.reader = SensorReader.from_url(p["url"], config, baudrate=p["baud"] or None)
+        config = SensorConfig(p.family, p.measuring_range, bits=p.bits or None,
+                              stale_timeout=p.stale_timeout, rate=p.rate_hz,
+                              max_speed=p.max_speed, relock_frames=p.relock_frames)
+        self.reader = SensorReader.from_url(p.url, config, baudrate=p.baud or None)
         self.reader.connect()
-        self.url = p["url"]
-        self.family = p["family"]
-        self.zero_offset = float(p["zero_offset"])
-        self.sign = float(p["sign"])
-        self.rate = float(p["rate_hz"])
-        self.latency = float(p["latency"])
-        self.decimator = Decimator(int(p["decimation"]))
-        self.sample_clock = SampleClock(self.rate, p["stamp_window"])
+        self.url = p.url
+        self.family = p.family
+        self.zero_offset = float(p.zero_offset)
+        self.sign = float(p.sign)
+        self.rate = float(p.rate_hz)
+        self.latency = float(p.latency)
+        self.decimator = Decimator(int(p.decimation))
+        self.sample_clock = SampleClock(self.rate, p.stamp_window)
         self.connected = True
         self.published = 0
         self.by_status = {s: 0 for s in Status}  # keyed by value too (an IntEnum)
@@ -130,13 +130,13 @@ class LaserReaderNode(Node):
         # sensor's frames) that the sample clock cannot remove, since it only takes away the
         # jitter above the smallest delay
         self._reader_stop = threading.Event()
-        self._wait = float(p["poll_period"])
+        self._wait = float(p.poll_period)
         self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
         self._thread.start()
         Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
         self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR "
-                               f"{p['measuring_range']:g} m, "
-                               f"decimation {p['decimation']}, rate {self.rate:g} Hz")
+                               f"{p.measuring_range:g} m, "
+                               f"decimation {p.decimation}, rate {self.rate:g} Hz")
 
     def _read_loop(self) -> None:
         refused = set_realtime_priority(self._loop_priority)

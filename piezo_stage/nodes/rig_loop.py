@@ -203,7 +203,7 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
 
     # the loop thread, and the executor's (this one: a GIL holder preempted by other processes
     # would stall the loop thread, a priority inversion), at the driver's realtime_priority
-    priority = int(driver.get_parameter("realtime_priority").value)
+    priority = driver.settings.realtime_priority
     refused = set_realtime_priority(priority)
     if refused:
         driver.get_logger().warn(f"executor thread: {refused}")

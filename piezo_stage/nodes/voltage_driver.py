@@ -132,27 +132,27 @@ class VoltageDriverNode(Node):
         super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE,
                          parameter_overrides=list(overrides))
         self._handoff = handoff
-        p = declare_table(self, PARAMETERS)
+        p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
 
-        amplifier = make_amplifier(p["backend"], p["url"], axis=p["axis"] or None,
-                                   channel=p["channel"],
-                                   timeout=p["io_timeout"], baudrate=p["baud"] or None,
-                                   pipeline=p["error_pipeline"])
+        amplifier = make_amplifier(p.backend, p.url, axis=p.axis or None,
+                                   channel=p.channel,
+                                   timeout=p.io_timeout, baudrate=p.baud or None,
+                                   pipeline=p.error_pipeline)
         config = DriverConfig(
-            v_min=p["v_min"], v_max=p["v_max"], safe_voltage=p["safe_voltage"],
-            slew_rate=p["slew_rate"] or math.inf,
-            command_timeout=p["command_timeout"] or math.inf,
-            write_period=p["watchdog_period"],
-            reconnect_attempts=p["reconnect_attempts"])
+            v_min=p.v_min, v_max=p.v_max, safe_voltage=p.safe_voltage,
+            slew_rate=p.slew_rate or math.inf,
+            command_timeout=p.command_timeout or math.inf,
+            write_period=p.watchdog_period,
+            reconnect_attempts=p.reconnect_attempts)
         self.driver = VoltageDriver(amplifier, config)
-        self.max_age = float(p["max_command_age"])
-        self.stamps = StampPolicy(self.max_age, p["max_stamp_ahead"],
-                                  require_stamp=self.max_age > 0 or p["apply_at_stamp"])
+        self.max_age = float(p.max_command_age)
+        self.stamps = StampPolicy(self.max_age, p.max_stamp_ahead,
+                                  require_stamp=self.max_age > 0 or p.apply_at_stamp)
         # the limits and safety settings are read-only in the table; so is the clock they use
         on_set(self, lambda changed: "use_sim_time is fixed at start (the stamp checks and the "
                "watchdog depend on it)" if "use_sim_time" in changed else None)
         self._now_ns = stamp_clock(self)
-        self.url = p["url"]
+        self.url = p.url
         self.info = self.driver.connect()
         self._applied = self.info.applied
         self._last_command = math.nan
@@ -166,33 +166,33 @@ class VoltageDriverNode(Node):
         self._last_error = ""
         self._lock = threading.Lock()  # commands come from the executor or from the playout thread
         self._playout: CommandPlayout | None = None
-        if p["apply_at_stamp"]:
+        if p.apply_at_stamp:
             if self.get_parameter("use_sim_time").value:
                 raise ConfigError("apply_at_stamp needs wall-clock stamps: not with use_sim_time")
             sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
-            self._playout = CommandPlayout(self._apply, p["command_delay"],
-                                           realtime_priority=p["realtime_priority"],
-                                           hold_period=p["hold_period"],
-                                           max_ahead=max(p["max_stamp_ahead"],
-                                                         p["command_delay"])).start()
+            self._playout = CommandPlayout(self._apply, p.command_delay,
+                                           realtime_priority=p.realtime_priority,
+                                           hold_period=p.hold_period,
+                                           max_ahead=max(p.max_stamp_ahead,
+                                                         p.command_delay)).start()
             self.driver.on_timeout.append(self._playout.clear)  # the watchdog owns the output
             # the executor's thread too: the playout needs the GIL, and a normal-priority holder
             # preempted by other processes would stall it for tens of ms (priority inversion)
-            self._executor_priority = set_realtime_priority(p["realtime_priority"])
+            self._executor_priority = set_realtime_priority(p.realtime_priority)
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
         self._msg = Voltage()
         if not composed:
             self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
-        self.create_timer(p["watchdog_period"], self._watchdog, clock=wall_clock())
+        self.create_timer(p.watchdog_period, self._watchdog, clock=wall_clock())
         # composed: the loop thread reads back right after a write, when one is due (a timer's
         # device round trip would hold the driver while a sample waits to be answered)
-        self._readback_period = 1.0 / p["readback_rate_hz"] if p["readback_rate_hz"] > 0 \
+        self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 \
             else math.inf
         self._readback_due = 0.0
-        if p["readback_rate_hz"] > 0 and not composed:
+        if p.readback_rate_hz > 0 and not composed:
             self.create_timer(self._readback_period, self._readback, clock=wall_clock())
-        self._diagnostics = Diagnostics(self, f"{p['backend']} {self.url}", self._diagnose)
+        self._diagnostics = Diagnostics(self, f"{p.backend} {self.url}", self._diagnose)
         self._reported_down = False
         lim = self.driver.limits
         self.get_logger().info(f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
