@@ -15,6 +15,7 @@ reached the amplifier is its command log.
 from __future__ import annotations
 
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 
+from piezo_stage.hardware.emulators import Faults  # noqa: E402
 from piezo_stage.hardware.emulators.rig import RigEmulator  # noqa: E402
 from piezo_stage.hardware.optoncdt import frame_format  # noqa: E402
 from piezo_stage.launch import Launcher  # noqa: E402
@@ -54,10 +56,12 @@ class Rig:
 
     def __init__(self, form: str, tmp_path, *params: str, sensor_errors: float = 0.0) -> None:
         self.port, self.link = free_port(), str(tmp_path / "sensor")
+        self.sensor_faults = Faults()  # .silent switches the sensor off and on
         self.emulator = RigEmulator(
             SimulatedStage(shipped_parameter_set("ch11_rig")), frame_format("ild1320"), MR,
             amplifier_tcp_port=self.port, rate=1000.0, amplifier_range=(0.0, 400.0),
-            sensor_link=self.link, sensor_errors=sensor_errors, amplifier_bandwidth=1000.0)
+            sensor_link=self.link, sensor_errors=sensor_errors, amplifier_bandwidth=1000.0,
+            sensor_faults=self.sensor_faults)
         self.lines: list[str] = []
         self.launch = Launcher(form, namespace=NS, timeout=30.0, params=[
             f"voltage_driver.url:=tcp://127.0.0.1:{self.port}", "voltage_driver.v_max:=400.0",
@@ -148,6 +152,35 @@ def test_invalid_samples_open_the_loop_and_hold_the_hold_voltage(probe, tmp_path
     assert ok, rig.log
     assert states and not states[-1].loop_closed and states[-1].u == pytest.approx(42.0)
     assert applied[-1] == pytest.approx(42.0, abs=1e-6), rig.log
+
+
+def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(probe, tmp_path):
+    """rig_loop, max_gap 0.2 s: a 50 ms silence of the sensor is held through (gaps_held on
+    /diagnostics, the loop stays closed); a 1 s one opens the loop ("no sensor sample"). (Only
+    the composed form: through DDS the hops themselves lose samples for longer at start-up.)"""
+    from piezo_stage_msgs.msg import ControllerState
+
+    states, diagnostics = [], []
+    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.extend(
+        s for s in m.status if s.name == f"{NS}/controller"), 10)
+
+    def value(key: str) -> str:
+        return {kv.key: kv.value for kv in diagnostics[-1].values}.get(key, "") \
+            if diagnostics else ""
+
+    with Rig("rig_loop", tmp_path, "controller.max_gap:=0.2") as rig:
+        assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 300, 30.0), rig.log
+        rig.sensor_faults.silent = True
+        time.sleep(0.05)
+        rig.sensor_faults.silent = False
+        assert spin_until(probe, lambda: value("gaps_held") not in ("", "0"), 10.0), rig.log
+        assert value("loop_closed") == "True" and diagnostics[-1].level == DiagnosticStatus.OK
+        rig.sensor_faults.silent = True
+        opened = spin_until(probe, lambda: "no sensor sample" in diagnostics[-1].message, 10.0)
+        rig.sensor_faults.silent = False
+    assert opened, rig.log
+    assert diagnostics[-1].level == ERROR and value("loop_closed") == "False"
 
 
 @pytest.mark.parametrize("form", FORMS)
