@@ -176,12 +176,12 @@ class GCSConnection(DeviceConnection):
             raise GCSError(code, gcs_error_message(code), command)
 
     def command_pipelined(self, command: str) -> None:
-        """Send a setter and its ``ERR?`` without waiting: the replies already there are checked
-        first (GCSError for a refused earlier setter), and with ``pipeline`` replies outstanding
-        this waits for the oldest."""
-        self._collect(wait=len(self._pending) >= max(self.pipeline, 1))
+        """Send a setter and its ``ERR?`` without waiting for the reply; then check the replies
+        already there (GCSError for a refused setter, this one or an earlier one), waiting for
+        the oldest while more than ``pipeline`` are outstanding."""
         self.transport.write(command.encode("ascii") + b"\nERR?\n")
         self._pending.append(command)
+        self._collect(wait=len(self._pending) > max(self.pipeline, 1))
 
     def settle(self) -> None:
         """Read every outstanding ``ERR?`` reply (GCSError for the first refusal)."""
