@@ -15,16 +15,19 @@ receive stamp). For every sample:
 - CPU per sample: user + system time of the graph's processes over the window / samples.
 
 Runs, each with its processes started afresh: both forms at 1 kHz, at 1 kHz beside one busy
-background process, and at 10 kHz. ``--soak SECONDS`` runs rig_loop alone at 1 kHz for that long
-(the 1-hour soak: RSS growth and unanswered samples; outside CI).
+background process, and at 10 kHz; beside them ``minimal``, a one-thread Python loop (pty ->
+parse -> proportional law -> TCP, no checks, no topics): the floor of this host.
+``--soak SECONDS`` runs rig_loop alone at 1 kHz for that long (the 1-hour soak: RSS growth and
+unanswered samples; outside CI).
 
-    python bench/control_loop.py [--seconds 10] [--forms rig_closed_loop,rig_loop]
-                                 [--rates 1000,10000] [--soak 3600]
+    python bench/control_loop.py [--seconds 10] [--forms rig_closed_loop,rig_loop,minimal]
+                                 [--rates 1000,10000] [--param NODE.KEY:=VALUE] [--soak 3600]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import socket
 import subprocess
@@ -33,6 +36,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -55,6 +59,35 @@ REFERENCE = BASE + 0.5 * LEVELS * STEP - 1e-3  # m, in the reader's frame (zero_
 FAMILY = {1000.0: "ild1320", 10000.0: "ild2300"}
 TARGETS = "1 kHz: p99 <= 0.3 ms and <= 0.2x; CPU <= 250 us and <= 0.25x; busy p99 <= 0.5 ms; " \
           "10 kHz: p99 <= 0.5 ms, CPU <= 70 us; none unanswered"
+
+
+#: the floor of this host for a Python loop: pty -> parse -> proportional law -> TCP, one thread,
+#: nothing else (no ERR? check, no limits beyond the clamp, no stamps, no topics)
+MINIMAL = r"""
+import os, select, socket, sys, tty
+link, port = sys.argv[1], int(sys.argv[2])
+mr, zero, k1, bias, ref = (float(a) for a in sys.argv[3:8])
+fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
+tty.setraw(fd)
+sock = socket.create_connection(("127.0.0.1", port))
+sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+sock.sendall(b"SVO 1 0\n")
+scale, offset, buf = 1.02 / 65520, 0.01, b""
+while True:
+    select.select([fd], [], [])
+    buf += os.read(fd, 65536)
+    u = None
+    while len(buf) >= 3:
+        lo, mid, hi = buf[0], buf[1], buf[2]
+        if lo >> 6 == 0 and mid >> 6 == 1 and hi >> 6 == 2:
+            x = ((((hi & 63) << 12) | ((mid & 63) << 6) | (lo & 63)) * scale - offset) * mr - zero
+            u = min(max(bias - k1 * (x - ref), 0.0), 400.0)
+            buf = buf[3:]
+        else:
+            buf = buf[1:]
+    if u is not None:
+        sock.sendall(b"SVA 1 %.6f\n" % u)
+"""
 
 
 class LoggingSensor(OptoNCDTDeviceModel):
@@ -154,31 +187,66 @@ def rss_bytes(pids: list[int]) -> int:
     return total
 
 
+@contextlib.contextmanager
+def loop_under_test(form: str, rate: float, port: int, link: str, lines: list[str]
+                    ) -> Iterator[list[int]]:
+    """The graph ``form`` launched (or the ``minimal`` loop started); yields its pids."""
+    if form == "minimal":
+        proc = subprocess.Popen([sys.executable, "-c", MINIMAL, link, str(port), str(MR),
+                                 "1e-3", str(K1), str(U_BIAS), str(REFERENCE)])
+        try:
+            yield [proc.pid]
+        finally:
+            proc.kill()
+            proc.wait()
+        return
+    with Launcher(form, namespace=NS, params=graph_params(form, rate, port, link),
+                  sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+                  timeout=30.0) as launch:
+        yield list(launch.pids.values())
+
+
+def serve_sensor(rate: float, link: str, log_path: str) -> None:
+    """The sensor in a process of its own (``--serve-sensor``): its thread takes the time of a
+    frame and writes it with no other thread of this process between (in the measuring process
+    the amplifier's thread could hold the GIL there); the log goes to ``log_path`` on SIGTERM."""
+    import signal
+    import threading
+
+    sensor = LoggingSensor(frame_format(FAMILY[rate]), MR, rate, source=sawtooth(rate))
+    server = EmulatorServer(sensor, pty=True, pty_link=link)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    server.start()
+    stop.wait()
+    server.stop()
+    np.save(log_path, np.array(sensor.log, dtype=np.float64).reshape(-1, 3))
+
+
 def measure(form: str, rate: float, seconds: float, busy: bool = False,
             label: str | None = None) -> Figures:
-    """One run: devices up, the graph launched, ``seconds`` of loop measured."""
+    """One run: devices up, the loop started, ``seconds`` of loop measured."""
     label = label or f"{form} {rate / 1000:g} kHz" + (" + busy" if busy else "")
     applied: list[tuple[float, float]] = []
     amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0,
                                on_voltage=lambda v, at: applied.append(
                                    (time.monotonic() if at is None else at, v)))
-    sensor = LoggingSensor(frame_format(FAMILY[rate]), MR, rate, source=sawtooth(rate))
     port = free_port()
-    tmp = tempfile.mkdtemp(prefix="bench_rig_")
-    link = str(Path(tmp) / "sensor")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_rig_"))
+    link, log_path = str(tmp / "sensor"), str(tmp / "sensor_log.npy")
     amp = EmulatorServer(amp_model, tcp_port=port)
-    sens = EmulatorServer(sensor, pty=True, pty_link=link)
+    sensor = subprocess.Popen([sys.executable, __file__, "--serve-sensor", str(rate), link,
+                               log_path])
     hog = None
     amp.start()
-    sens.start()
     try:
+        deadline = time.monotonic() + 30.0
+        while not Path(link).exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
         lines: list[str] = []
-        with Launcher(form, namespace=NS, params=graph_params(form, rate, port, link),
-                      sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
-                      timeout=30.0) as launch:
+        with loop_under_test(form, rate, port, link, lines) as pids:
             if busy:
                 hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            pids = list(launch.pids.values())
             deadline = time.monotonic() + 30.0
             while len(applied) < rate and time.monotonic() < deadline:  # the loop runs
                 time.sleep(0.1)
@@ -189,13 +257,15 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
             time.sleep(seconds)
             t1, cpu1, rss1 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
             time.sleep(0.3)  # answers to the last samples
-            log, answers = list(sensor.log), list(applied)
+            answers = list(applied)
     finally:
         if hog is not None:
             hog.kill()
             hog.wait()
-        sens.stop()
+        sensor.terminate()
+        sensor.wait(timeout=10.0)
         amp.stop()
+    log = [(t, int(a), int(b)) for t, a, b in np.load(log_path)]
     return figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
 
 
@@ -229,14 +299,21 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run")
-    parser.add_argument("--forms", default="rig_closed_loop,rig_loop")
+    parser.add_argument("--forms", default="rig_closed_loop,rig_loop,minimal",
+                        help="graphs to run (minimal: a one-thread Python loop, this host's "
+                        "floor)")
     parser.add_argument("--rates", default="1000,10000")
     parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
                         help="instead: rig_loop alone at 1 kHz for this long (RSS, unanswered)")
     parser.add_argument("--param", action="append", default=[], metavar="NODE.KEY:=VALUE",
                         help="one more parameter for every run, e.g. "
                         "controller.topics_rate_hz:=500.0")
+    parser.add_argument("--serve-sensor", nargs=3, metavar=("RATE", "LINK", "LOG"),
+                        help=argparse.SUPPRESS)  # the sensor's own process (see serve_sensor)
     args = parser.parse_args()
+    if args.serve_sensor:
+        serve_sensor(float(args.serve_sensor[0]), args.serve_sensor[1], args.serve_sensor[2])
+        return 0
     EXTRA.extend(args.param)
     if args.soak > 0:
         print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
