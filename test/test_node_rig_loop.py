@@ -102,6 +102,16 @@ def test_rig_loop_graph_composes_the_three_nodes_into_one_process():
         ["voltage_driver", "laser_reader", "controller"]
 
 
+def test_topics_take_every_nth_sample_across_reads():
+    from piezo_stage.nodes.rig_loop import TopicDecimation
+
+    assert TopicDecimation(1000.0, 2000.0).every == 1 and TopicDecimation(2000.0, 2000.0).every == 1
+    topics = TopicDecimation(10_000.0, 2000.0)
+    masks = [topics.due(n) for n in (3, 1, 7, 4)]  # reads of 3, 1, 7 and 4 samples
+    assert topics.every == 5
+    assert np.flatnonzero(np.concatenate(masks)).tolist() == [0, 5, 10]
+
+
 @pytest.mark.parametrize("form", FORMS)
 def test_the_loop_closes_on_the_emulated_rig_and_holds_the_set_point(probe, tmp_path, form):
     from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
