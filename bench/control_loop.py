@@ -18,7 +18,9 @@ Runs, each with its processes started afresh: both forms at 1 kHz, at 1 kHz besi
 background process, and at 10 kHz; beside them ``minimal``, a one-thread Python loop (pty ->
 parse -> proportional law -> TCP, no checks, no topics): the floor of this host.
 ``--soak SECONDS`` runs rig_loop alone at 1 kHz for that long (the 1-hour soak: RSS growth and
-unanswered samples; outside CI).
+unanswered samples; outside CI). ``--designs`` runs rig_loop's alternatives instead: Python's
+default 5 ms switch interval, and publishing from the loop thread after its write (no hand-off),
+beside the shipped design (hand-off to the executor's thread, 50 µs switch interval).
 
     python bench/control_loop.py [--seconds 10] [--forms rig_closed_loop,rig_loop,minimal]
                                  [--rates 1000,10000] [--param NODE.KEY:=VALUE] [--soak 3600]
@@ -295,6 +297,31 @@ def figures(label: str, log: list[tuple[float, int, int]], answers: list[tuple[f
                    cpu / max(k.size, 1), rss)
 
 
+DESIGNS = {"hand-off, 50 us switch": {},
+           "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
+           "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"}}
+
+
+def compare_designs(seconds: float, rates: list[float]) -> int:
+    """rig_loop's design alternatives (the environment of its process), in turn."""
+    for rate in rates:
+        for busy in (False, True):
+            for name, env in DESIGNS.items():
+                saved = {k: os.environ.get(k) for k in env}
+                os.environ.update(env)
+                try:
+                    label = f"{name}, {rate / 1000:g} kHz" + (" + busy" if busy else "")
+                    print(measure("rig_loop", rate, seconds, busy, label=label).line(),
+                          flush=True)
+                finally:
+                    for k, v in saved.items():
+                        if v is None:
+                            os.environ.pop(k, None)
+                        else:
+                            os.environ[k] = v
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -308,6 +335,8 @@ def main() -> int:
     parser.add_argument("--param", action="append", default=[], metavar="NODE.KEY:=VALUE",
                         help="one more parameter for every run, e.g. "
                         "controller.topics_rate_hz:=500.0")
+    parser.add_argument("--designs", action="store_true",
+                        help="instead: rig_loop's design alternatives side by side")
     parser.add_argument("--serve-sensor", nargs=3, metavar=("RATE", "LINK", "LOG"),
                         help=argparse.SUPPRESS)  # the sensor's own process (see serve_sensor)
     args = parser.parse_args()
@@ -315,6 +344,8 @@ def main() -> int:
         serve_sensor(float(args.serve_sensor[0]), args.serve_sensor[1], args.serve_sensor[2])
         return 0
     EXTRA.extend(args.param)
+    if args.designs:
+        return compare_designs(args.seconds, [float(r) for r in args.rates.split(",")])
     if args.soak > 0:
         print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
         return 0

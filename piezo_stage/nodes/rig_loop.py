@@ -29,6 +29,7 @@ with ``SWITCH_INTERVAL`` (50 µs). Run it with ``piezo-stage launch rig_loop``
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections import deque
 from typing import Any, Callable, Iterator, Sequence
@@ -62,16 +63,21 @@ SWITCH_INTERVAL = 5e-5
 class Handoff:
     """What the loop thread publishes, handed to the executor's thread (realtime_tools'
     RealtimePublisher): :meth:`put` is a deque append; a wall-clock timer :meth:`drain` s the
-    queue in order."""
+    queue in order. ``inline`` (the alternative bench/control_loop.py measures, environment
+    ``PIEZO_RIG_LOOP_INLINE=1``): the loop thread publishes itself, after its write."""
 
-    def __init__(self) -> None:
+    def __init__(self, inline: bool = False) -> None:
         self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self.after_drain: list[Callable[[], None]] = []
+        self.inline = inline
 
     def attach(self, node: Node, period: float = PUBLISH_PERIOD) -> None:
         node.create_timer(period, self.drain, clock=wall_clock())
 
     def put(self, publish: Callable[..., None], *args: Any) -> None:
+        if self.inline:
+            publish(*args)
+            return
         self._queue.append((publish, args))
 
     def drain(self) -> None:
@@ -162,8 +168,10 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     reader, whose thread starts the loop. Shut down in reverse: the loop stops before the
     driver ramps to its safe voltage."""
     overrides = member_overrides(argv)
-    sys.setswitchinterval(SWITCH_INTERVAL)
-    handoff = Handoff()
+    # the environment's alternatives are for bench/control_loop.py, which measures them
+    sys.setswitchinterval(float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL",
+                                               SWITCH_INTERVAL)))
+    handoff = Handoff(inline=os.environ.get("PIEZO_RIG_LOOP_INLINE") == "1")
     driver = VoltageDriverNode(composed=True, handoff=handoff,
                                overrides=overrides["voltage_driver"])
     handoff.attach(driver)
