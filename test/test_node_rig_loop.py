@@ -194,6 +194,24 @@ def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(p
 
 
 @pytest.mark.parametrize("form", FORMS)
+def test_a_lost_sensor_link_leaves_the_amplifier_to_the_watchdog(probe, tmp_path, form):
+    """The sensor's link goes away (its emulator stops): no sample, so no command, and the
+    driver's watchdog (command_timeout 0.5 s) ramps the amplifier to safe_voltage (0 V)."""
+    from piezo_stage_msgs.msg import ControllerState
+
+    states = []
+    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    with Rig(form, tmp_path) as rig:
+        assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 300, 30.0), rig.log
+        assert max(rig.applied()[-100:]) > 1.0  # the loop drives the stage
+        rig.emulator.sensor_server.stop()
+        safe = spin_until(probe, lambda: rig.applied()[-1] == 0.0, 10.0)
+        log = rig.log
+    assert safe, log
+    assert "ramping to 0 V" in log
+
+
+@pytest.mark.parametrize("form", FORMS)
 def test_every_write_is_within_the_slew_cap_and_sigint_ramps_to_safe(probe, tmp_path, form):
     """slew_rate 2000 V/s and watchdog_period 10 ms: no two writes differ by more than 20 V
     (max_step), from the start of the loop to the shutdown ramp, which ends at safe_voltage
