@@ -116,7 +116,7 @@ class LaserReaderNode(Node):
         self.sample_clock = SampleClock(self.rate, p.stamp_window)
         self.connected = True
         self.published = 0
-        self.by_status = {s: 0 for s in Status}  # keyed by value too (an IntEnum)
+        self.by_status = np.zeros(len(Status), dtype=np.int64)  # samples read, per status
         self.link_errors = 0
         self.last_error = ""
         # (time, frames, published, errors, discarded, withheld + refused)
@@ -181,6 +181,7 @@ class LaserReaderNode(Node):
             return
         stamps = self.sample_clock.stamps(now, len(block))
         out = self.decimator.feed(block, stamps - int(round(self.latency * 1e9)))
+        self.by_status += np.bincount(out.status, minlength=len(Status))[:len(Status)]
         value = np.where(out.status == 0,  # Status.OK
                          self.sign * (out.displacement - self.zero_offset), math.nan)
         if self._loop is None:
@@ -193,12 +194,11 @@ class LaserReaderNode(Node):
             self._handoff.put(self._publish, value[keep], out.status[keep], out.stamp[keep])
 
     def _publish(self, value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
-        msg, publish, counts = self._msg, self._pub.publish, self.by_status
+        msg, publish = self._msg, self._pub.publish
         for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
             set_stamp(msg.header, ns)
             msg.displacement, msg.status = x, st
             publish(msg)
-            counts[st] += 1
         self.published += len(status)
 
     def _diagnose(self) -> Diagnosis:
@@ -212,7 +212,7 @@ class LaserReaderNode(Node):
                   "frame_rate": (stats.frames - frames0) / dt,
                   "publish_rate": (self.published - published0) / dt,
                   "frames": stats.frames, "published": self.published,
-                  **{f"samples_{s.name.lower()}": n for s, n in self.by_status.items()},
+                  **{f"samples_{s.name.lower()}": int(self.by_status[s]) for s in Status},
                   "sample_errors": stats.errors, "resync_bytes_discarded": stats.discarded,
                   "framing_errors": stats.framing_errors, "lock_losses": stats.lock_losses,
                   "relock_withheld": stats.relock_withheld, "speed_rejected": stats.speed_rejected,
