@@ -55,7 +55,7 @@ PARAMETER_TABLES = {"voltage_driver": DRIVER_PARAMETERS, "controller": CONTROLLE
                     "laser_reader": READER_PARAMETERS}
 
 #: s between the executor's publications of what the loop queued
-PUBLISH_PERIOD = 0.005
+PUBLISH_PERIOD = 0.01
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
 SWITCH_INTERVAL = 5e-5
 
