@@ -232,6 +232,7 @@ def test_every_write_is_within_the_slew_cap_and_sigint_ramps_to_safe(probe, tmp_
     assert steps.max() <= 20.0 + 1e-6, rig.log
 
 
+@pytest.mark.realtime  # a 10 kHz loop beside another test worker would fall behind its sensor
 def test_at_10_khz_the_recorder_gets_every_sample_on_loop_samples(probe, tmp_path):
     """An ILD2300-class sensor at 10 kHz: the per-sample topics go out at topics_rate_hz (every
     5th sample at 2 kHz), loop_samples carries every sample in batches, and the project's
@@ -279,7 +280,7 @@ def test_at_10_khz_the_recorder_gets_every_sample_on_loop_samples(probe, tmp_pat
     samples = read_loop_samples(tmp_path / "bag", f"{NS}/loop_samples")
     steps = np.diff(samples["stamp"])
     assert samples["stamp"].size > 5000, log
-    # no batch lost (one is ~50 samples): no step of more than 1.5 periods, and as many samples
+    # no batch lost (one is ~100 samples): no step of more than 1.5 periods, and as many samples
     # as the span holds (the sample clock moves its origin back now and then, by less than a
     # period: a short step, one sample more than the span)
     assert steps.min() > 0 and steps.max() < 150_000, (steps.min(), steps.max())
