@@ -5,8 +5,9 @@ Subscribes ``displacement`` (sensor-data QoS) and ``reference`` (set point yr [m
 hold and bumpless logic is :class:`piezo_stage.control.controller.TimeVaryingPID`; this node only
 adapts it to topics, parameters and services.
 
-Triggers: ``timer`` (``rate_hz`` on the node's clock, wall or sim time) or ``sample`` (one step
-per displacement sample, stamped with the sample's time: the lockstep plant's mode).
+Triggers: ``timer`` (``rate_hz`` on the node's clock, wall or sim time; a tick steps on the
+newest sample when one came since the last step, else it holds the output) or ``sample`` (one
+step per displacement sample, stamped with the sample's time: the lockstep plant's mode).
 
 Safety (:class:`piezo_stage.control.supervision.LoopSupervisor`, shared with the composed rig
 loop): a sample with status != OK opens the loop, holds the output (``hold_voltage``, NaN = last
