@@ -116,8 +116,13 @@ def test_topics_take_every_nth_sample_across_reads():
 def test_the_loop_closes_on_the_emulated_rig_and_holds_the_set_point(probe, tmp_path, form):
     from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
-    states, commands, samples, diagnostics = [], [], [], {}
-    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
+    states, commands, samples, diagnostics, driving = [], [], [], {}, []
+    # through DDS the controller may close the loop before the driver's command subscription
+    # has matched (the driver holds 0 V meanwhile): the record starts once the driver drives
+    probe.create_subscription(Voltage, "voltage", lambda m: driving.append(True)
+                              if m.voltage > 1.0 else None, SENSOR_QOS)
+    probe.create_subscription(ControllerState, "controller_state",
+                              lambda m: states.append(m) if driving else None, COMMAND_QOS)
     probe.create_subscription(Voltage, "voltage_command", commands.append, COMMAND_QOS)
     probe.create_subscription(Displacement, "displacement", samples.append, SENSOR_QOS)
     probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.update(
