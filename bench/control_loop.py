@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """The rig's loop measured from outside: rig_closed_loop (three processes) beside rig_loop (one).
 
-This process runs the devices: an optoNCDT sensor on a pty (ILD1320 at 1 kHz, ILD2300-class at
-10 kHz) and a PI GCS amplifier on TCP, both the project's emulators. The sensor streams a
+The devices are the project's emulators, each in a process of its own with the collector off
+(as hardware, they never pause): an optoNCDT sensor on a pty (ILD1320 at 1 kHz, ILD2300-class
+at 10 kHz) and a PI GCS amplifier on TCP. The sensor streams a
 sawtooth of ``LEVELS`` distinct positions (one step of ``STEP`` per sample), the controller is a
 proportional law around ``U_BIAS`` (mode pid, k0 = k2 = 0, so every applied voltage names the
 sample it was computed from), and the amplifier logs when each ``SVA`` arrived (the kernel's
@@ -208,66 +209,79 @@ def loop_under_test(form: str, rate: float, port: int, link: str, lines: list[st
         yield list(launch.pids.values())
 
 
-def serve_sensor(rate: float, link: str, log_path: str) -> None:
-    """The sensor in a process of its own (``--serve-sensor``): its thread takes the time of a
-    frame and writes it with no other thread of this process between (in the measuring process
-    the amplifier's thread could hold the GIL there); the log goes to ``log_path`` on SIGTERM."""
+def serve(device: str, args: list[str]) -> None:
+    """A device in a process of its own (``--serve sensor RATE LINK LOG`` or ``--serve
+    amplifier PORT LOG``), as real devices are: no thread of the measuring process between
+    taking a time and writing a frame, or between a voltage's arrival and its log entry, and
+    the collector off (a device does not pause; a full collection over a long log would stall
+    the emulator for tens of ms, which the loop under test would be charged for). The log goes
+    to LOG on SIGTERM."""
+    import gc
     import signal
     import threading
 
-    sensor = LoggingSensor(frame_format(FAMILY[rate]), MR, rate, source=sawtooth(rate))
-    server = EmulatorServer(sensor, pty=True, pty_link=link)
+    gc.disable()
+    if device == "sensor":
+        rate, link, log_path = float(args[0]), args[1], args[2]
+        sensor = LoggingSensor(frame_format(FAMILY[rate]), MR, rate, source=sawtooth(rate))
+        server = EmulatorServer(sensor, pty=True, pty_link=link)
+        log: list = sensor.log
+    else:
+        port, log_path = int(args[0]), args[1]
+        log = []
+        amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0, on_voltage=lambda v, at: log.append(
+            (time.monotonic() if at is None else at, v)))
+        server = EmulatorServer(amp_model, tcp_port=port)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     server.start()
+    Path(log_path + ".ready").touch()
     stop.wait()
     server.stop()
-    np.save(log_path, np.array(sensor.log, dtype=np.float64).reshape(-1, 3))
+    np.save(log_path, np.array(log, dtype=np.float64).reshape(len(log), -1))
+
+
+def _wait_for(path: Path, label: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{label} did not start")
+        time.sleep(0.05)
 
 
 def measure(form: str, rate: float, seconds: float, busy: bool = False,
             label: str | None = None) -> Figures:
     """One run: devices up, the loop started, ``seconds`` of loop measured."""
     label = label or f"{form} {rate / 1000:g} kHz" + (" + busy" if busy else "")
-    applied: list[tuple[float, float]] = []
-    amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0,
-                               on_voltage=lambda v, at: applied.append(
-                                   (time.monotonic() if at is None else at, v)))
     port = free_port()
     tmp = Path(tempfile.mkdtemp(prefix="bench_rig_"))
-    link, log_path = str(tmp / "sensor"), str(tmp / "sensor_log.npy")
-    amp = EmulatorServer(amp_model, tcp_port=port)
-    sensor = subprocess.Popen([sys.executable, __file__, "--serve-sensor", str(rate), link,
-                               log_path])
+    link, sensor_log, amp_log = str(tmp / "sensor"), str(tmp / "sensor.npy"), str(tmp / "amp.npy")
+    devices = [subprocess.Popen([sys.executable, __file__, "--serve", *argv]) for argv in
+               (["sensor", str(rate), link, sensor_log], ["amplifier", str(port), amp_log])]
     hog = None
-    amp.start()
     try:
-        deadline = time.monotonic() + 30.0
-        while not Path(link).exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
+        _wait_for(Path(sensor_log + ".ready"), "the sensor")
+        _wait_for(Path(amp_log + ".ready"), "the amplifier")
         lines: list[str] = []
         with loop_under_test(form, rate, port, link, lines) as pids:
             if busy:
                 hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            deadline = time.monotonic() + 30.0
-            while len(applied) < rate and time.monotonic() < deadline:  # the loop runs
-                time.sleep(0.1)
-            if len(applied) < rate:
-                raise RuntimeError(f"{label}: the loop did not start\n" + "\n".join(lines[-20:]))
-            time.sleep(1.0)
+            time.sleep(3.0)  # the loop starts (its answers are checked below)
             t0, cpu0, rss0 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
             time.sleep(seconds)
             t1, cpu1, rss1 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
             time.sleep(0.3)  # answers to the last samples
-            answers = list(applied)
     finally:
         if hog is not None:
             hog.kill()
             hog.wait()
-        sensor.terminate()
-        sensor.wait(timeout=10.0)
-        amp.stop()
-    log = [(t, int(a), int(b)) for t, a, b in np.load(log_path)]
+        for device in devices:
+            device.terminate()
+            device.wait(timeout=30.0)
+    log = [(t, int(a), int(b)) for t, a, b in np.load(sensor_log)]
+    answers = [(float(t), float(v)) for t, v in np.load(amp_log)]
+    if not any(t < t0 for t, _ in answers):
+        raise RuntimeError(f"{label}: the loop did not start\n" + "\n".join(lines[-20:]))
     return figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
 
 
@@ -337,11 +351,11 @@ def main() -> int:
                         "controller.topics_rate_hz:=500.0")
     parser.add_argument("--designs", action="store_true",
                         help="instead: rig_loop's design alternatives side by side")
-    parser.add_argument("--serve-sensor", nargs=3, metavar=("RATE", "LINK", "LOG"),
-                        help=argparse.SUPPRESS)  # the sensor's own process (see serve_sensor)
+    parser.add_argument("--serve", nargs="+", metavar="DEVICE",
+                        help=argparse.SUPPRESS)  # a device's own process (see serve)
     args = parser.parse_args()
-    if args.serve_sensor:
-        serve_sensor(float(args.serve_sensor[0]), args.serve_sensor[1], args.serve_sensor[2])
+    if args.serve:
+        serve(args.serve[0], args.serve[1:])
         return 0
     EXTRA.extend(args.param)
     if args.designs:

@@ -16,7 +16,7 @@ from piezo_stage.hardware.gcs import (
     parse_item_values,
     split_reply,
 )
-from piezo_stage.hardware.transport import make_transport
+from piezo_stage.hardware.transport import ReplyBuffer, make_transport
 
 pytestmark = pytest.mark.ros
 
@@ -186,6 +186,33 @@ def test_pipelined_setters_are_checked_as_their_replies_arrive(served):
     conn.command_pipelined("SVA A 3.5")
     conn.settle()
     assert model.applied_voltage == 3.5
+
+
+class ScriptedTransport:
+    """What a device sends, one chunk per read; nothing once the script ends."""
+
+    url = "scripted"
+
+    def __init__(self, chunks: list[bytes]) -> None:
+        self.chunks = list(chunks)
+        self.reads = 0
+
+    def read(self, timeout: float) -> bytes:
+        assert timeout == 0.0  # poll never waits
+        self.reads += 1
+        return self.chunks.pop(0) if self.chunks else b""
+
+
+def test_poll_returns_a_reply_only_once_it_is_complete_and_keeps_what_follows():
+    """ReplyBuffer.poll: one read per call, None until the reply's end arrived (a reply split
+    across reads, as TCP may split it), the bytes after it kept for the next poll."""
+    transport = ScriptedTransport([b"", b"0", b"\n1", b"5\n"])
+    replies = ReplyBuffer(transport)
+    assert replies.poll(gcs_reply_end) is None  # nothing there
+    assert replies.poll(gcs_reply_end) is None  # "0" without its end
+    assert replies.poll(gcs_reply_end) == b"0\n"  # "1" stays buffered
+    assert replies.poll(gcs_reply_end) == b"15\n"
+    assert replies.poll(gcs_reply_end) is None and transport.reads == 5
 
 
 def test_a_full_pipeline_waits_for_the_oldest_reply_and_times_out_on_a_silent_device():

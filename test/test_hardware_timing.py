@@ -40,7 +40,7 @@ def test_sample_clock_recovers_the_sensor_clock_from_bursty_reception():
     errors, backwards = [], 0
     last = None
     for t_recv, truth in bursts(20_000, rng):
-        stamps = clock.stamps(t_recv, len(truth))
+        stamps = np.asarray(clock.stamps(t_recv, len(truth)))
         assert np.all(stamps <= t_recv)  # never later than received
         errors.append(stamps - truth)
         if last is not None and stamps[0] <= last:
@@ -84,7 +84,7 @@ def test_sample_clock_validation_and_reset():
     assert list(np.diff(a)) == [10_000_000, 10_000_000] and a[-1] == T0 and clock.count == 3
     clock.reset()
     assert clock.count == 0 and clock.stamps(T0 + 10**9, 1)[0] == T0 + 10**9
-    assert clock.stamps(T0, 0).size == 0
+    assert clock.stamps(T0, 0) == []
 
 
 class HeldClock:

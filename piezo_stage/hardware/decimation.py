@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from .errors import ConfigError
-from .optoncdt import SampleBlock
 
 _OK = 0  # Status.OK as a plain int: looked up once, not per block
 
@@ -22,11 +22,11 @@ _OK = 0  # Status.OK as a plain int: looked up once, not per block
 @dataclass(frozen=True)
 class Decimated:
     """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the
-    group's)."""
+    group's), as Python lists (the loop steps on them one by one)."""
 
-    displacement: np.ndarray
-    status: np.ndarray
-    stamp: np.ndarray
+    displacement: list[float]
+    status: list[int]
+    stamp: list[int]
 
 
 class Decimator:
@@ -41,29 +41,29 @@ class Decimator:
 
     def reset(self) -> None:
         """Drop an incomplete group (after a reconnect its samples are not contiguous)."""
-        self._d = np.empty(0)
-        self._s = np.empty(0, dtype=np.uint8)
-        self._t = np.empty(0, dtype=np.int64)
+        self._d: list[float] = []
+        self._s: list[int] = []
+        self._t: list[int] = []
 
-    def feed(self, block: SampleBlock, stamps: np.ndarray) -> Decimated:
-        """Groups completed by ``block`` whose samples were taken at ``stamps`` [ns]."""
+    def feed(self, displacement: Sequence[float], status: Sequence[int],
+             stamps: Sequence[int]) -> Decimated:
+        """Groups completed by the samples ``displacement`` (NaN unless OK), ``status`` taken
+        at ``stamps`` [ns]."""
         if self.n == 1:  # every sample is a group
-            bad = block.status != _OK
-            value = np.where(bad, math.nan, block.displacement) if bad.any() \
-                else block.displacement
-            return Decimated(value, block.status, np.asarray(stamps, dtype=np.int64))
-        d = np.concatenate([self._d, block.displacement])
-        s = np.concatenate([self._s, block.status])
-        t = np.concatenate([self._t, np.asarray(stamps, dtype=np.int64)])
-        groups = d.size // self.n
+            return Decimated([x if st == _OK else math.nan for x, st in zip(displacement, status)],
+                             list(status), list(stamps))
+        d, s, t = self._d + list(displacement), self._s + list(status), self._t + list(stamps)
+        groups = len(d) // self.n
         used = groups * self.n
         self._d, self._s, self._t = d[used:], s[used:], t[used:]
-        d, s = d[:used].reshape(groups, self.n), s[:used].reshape(groups, self.n)
-        t = t[:used].reshape(groups, self.n)
-        bad = s != _OK
+        if not groups:
+            return Decimated([], [], [])
+        dg = np.array(d[:used]).reshape(groups, self.n)
+        sg = np.array(s[:used], dtype=np.uint8).reshape(groups, self.n)
+        tg = np.array(t[:used], dtype=np.int64).reshape(groups, self.n)
+        bad = sg != _OK
         any_bad = bad.any(axis=1)
-        status = np.where(any_bad, s[np.arange(groups), bad.argmax(axis=1)],
-                          _OK).astype(np.uint8)
-        value = np.where(any_bad, math.nan, np.where(bad, 0.0, d).mean(axis=1))
-        stamp = t[:, 0] + (t[:, -1] - t[:, 0]) // 2  # mean time of equally spaced samples
-        return Decimated(value, status, stamp)
+        out_status = np.where(any_bad, sg[np.arange(groups), bad.argmax(axis=1)], _OK)
+        value = np.where(any_bad, math.nan, np.where(bad, 0.0, dg).mean(axis=1))
+        stamp = tg[:, 0] + (tg[:, -1] - tg[:, 0]) // 2  # mean time of equally spaced samples
+        return Decimated(value.tolist(), out_status.tolist(), stamp.tolist())

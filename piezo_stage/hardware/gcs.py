@@ -191,16 +191,20 @@ class GCSConnection(DeviceConnection):
     def _collect(self, wait: bool) -> None:
         """Check the outstanding replies that arrived (``wait``: at least the oldest)."""
         while self._pending:
-            try:
-                reply = self._replies.read_reply(gcs_reply_end, self.timeout if wait else 0.0,
-                                                 what=f"reply to 'ERR?' after "
-                                                      f"{self._pending[0]!r}")
-            except DeviceTimeout:
-                if wait:
+            if wait:
+                try:
+                    reply = self._replies.read_reply(
+                        gcs_reply_end, self.timeout,
+                        what=f"reply to 'ERR?' after {self._pending[0]!r}")
+                except DeviceTimeout:
                     self._pending.clear()
                     raise
-                return
-            wait = False
+                wait = False
+            else:
+                polled = self._replies.poll(gcs_reply_end)
+                if polled is None:
+                    return
+                reply = polled
             command = self._pending.popleft()
             code = _error_code(split_reply(reply))
             if code:

@@ -116,9 +116,8 @@ class SensorReader:
         """Samples received since the last call, waiting up to ``timeout`` s if there are none."""
         if not self._pending:
             self._receive(timeout)
-        block = SampleBlock.concat(self._pending)
-        self._pending = []
-        return block
+        pending, self._pending = self._pending, []
+        return pending[0] if len(pending) == 1 else SampleBlock.concat(pending)
 
     def samples(self, timeout: float = 0.05) -> Iterator[SampleBlock]:
         """Endless iterator of non-empty sample blocks (ConnectionLost when the link drops)."""

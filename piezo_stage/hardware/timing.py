@@ -37,8 +37,6 @@ import time
 from collections import deque
 from typing import Callable
 
-import numpy as np
-
 from .errors import ConfigError
 
 
@@ -92,22 +90,25 @@ class SampleClock:
         """Samples stamped since the last reset."""
         return self._count
 
-    def stamps(self, t_ns: int, n: int) -> np.ndarray:
+    def stamps(self, t_ns: int, n: int) -> list[int]:
+        """The stamps [ns] of ``n`` samples, the last of them received at ``t_ns`` (Python ints:
+        a loop that steps per sample takes them one by one)."""
         if n <= 0:
-            return np.empty(0, dtype=np.int64)
+            return []
         if self._base_ns is None:
             self._base_ns = int(t_ns)
-        t = (int(t_ns) - self._base_ns) * 1e-9
-        k = self._count + np.arange(n)
-        offset = t - k[-1] / self.rate
-        while self._offsets and self._offsets[-1][1] >= offset:
-            self._offsets.pop()  # monotone deque: its front is the window's minimum
-        self._offsets.append((t, offset))
-        while self._offsets[0][0] < t - self.window:
-            self._offsets.popleft()
-        t0 = self._offsets[0][1]
-        self._count += n
-        return self._base_ns + np.round((t0 + k / self.rate) * 1e9).astype(np.int64)
+        base, rate, count = self._base_ns, self.rate, self._count
+        t = (int(t_ns) - base) * 1e-9
+        offset = t - (count + n - 1) / rate
+        offsets = self._offsets
+        while offsets and offsets[-1][1] >= offset:
+            offsets.pop()  # monotone deque: its front is the window's minimum
+        offsets.append((t, offset))
+        while offsets[0][0] < t - self.window:
+            offsets.popleft()
+        t0 = offsets[0][1]
+        self._count = count + n
+        return [base + round((t0 + k / rate) * 1e9) for k in range(count, count + n)]
 
 
 class CommandPlayout:

@@ -256,6 +256,18 @@ class ReplyBuffer:
     def clear(self) -> None:
         self._buf.clear()
 
+    def poll(self, complete: Callable[[bytes], int]) -> bytes | None:
+        """A complete reply if one is there after one read of what arrived (no waiting), else
+        None."""
+        if not self._buf or complete(bytes(self._buf)) < 0:
+            self._buf += self.transport.read(0.0)
+        end = complete(bytes(self._buf)) if self._buf else -1
+        if end < 0:
+            return None
+        reply = bytes(self._buf[:end])
+        del self._buf[:end]
+        return reply
+
     def read_reply(
         self, complete: Callable[[bytes], int], timeout: float, what: str = "reply"
     ) -> bytes:

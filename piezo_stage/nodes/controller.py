@@ -125,7 +125,7 @@ PARAMETERS = ParameterTable("controller", (
           "controller_state has this many subscribers (an experiment's recorder sees step 0)",
           range=(0, 100),
           read_only=True),
-    Param("topics_rate_hz", 2000.0, "rig_loop: most samples per second on displacement, "
+    Param("topics_rate_hz", 1000.0, "rig_loop: most samples per second on displacement, "
           "voltage_command, controller_state and voltage (decimated above it); loop_samples "
           "carries every sample, in batches", "Hz", (1.0, 1e6), read_only=True),
     Param("max_gap", 0.02, "a sensor silence up to this long holds the output (counted as "

@@ -28,7 +28,6 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -79,9 +78,11 @@ PARAMETERS = ParameterTable("laser_reader", (
 ), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
 
 
-#: the composed loop's step: (displacement [m], status, stamp [ns]) arrays of new samples ->
+#: the composed loop's step: (displacement [m], status, stamp [ns]) of the new samples ->
 #: which of them go on the topic (None: all)
-SampleSink = Callable[[np.ndarray, np.ndarray, np.ndarray], "np.ndarray | None"]
+SampleSink = Callable[[list[float], list[int], list[int]], "list[bool] | None"]
+
+_OK = int(Status.OK)
 
 
 class LaserReaderNode(Node):
@@ -112,11 +113,12 @@ class LaserReaderNode(Node):
         self.sign = float(p.sign)
         self.rate = float(p.rate_hz)
         self.latency = float(p.latency)
+        self._latency_ns = round(self.latency * 1e9)
         self.decimator = Decimator(int(p.decimation))
         self.sample_clock = SampleClock(self.rate, p.stamp_window)
         self.connected = True
         self.published = 0
-        self.by_status = np.zeros(len(Status), dtype=np.int64)  # samples read, per status
+        self.by_status = [0] * len(Status)  # samples read, per status
         self.link_errors = 0
         self.last_error = ""
         # (time, frames, published, errors, discarded, withheld + refused)
@@ -179,23 +181,30 @@ class LaserReaderNode(Node):
             if self._idle is not None:
                 self._idle(now)
             return
+        latency, zero, sign = self._latency_ns, self.zero_offset, self.sign
         stamps = self.sample_clock.stamps(now, len(block))
-        out = self.decimator.feed(block, stamps - int(round(self.latency * 1e9)))
-        self.by_status += np.bincount(out.status, minlength=len(Status))[:len(Status)]
-        value = np.where(out.status == 0,  # Status.OK
-                         self.sign * (out.displacement - self.zero_offset), math.nan)
+        out = self.decimator.feed(block.displacement.tolist(), block.status.tolist(),
+                                  [t - latency for t in stamps] if latency else stamps)
+        counts = self.by_status
+        for st in out.status:
+            counts[st] += 1
+        value = [sign * (x - zero) if st == _OK else math.nan
+                 for x, st in zip(out.displacement, out.status)]
         if self._loop is None:
             self._publish(value, out.status, out.stamp)
             return
         keep = self._loop(value, out.status, out.stamp)  # the control step first, then topics
         if keep is None:
             self._handoff.put(self._publish, value, out.status, out.stamp)
-        elif keep.any():
-            self._handoff.put(self._publish, value[keep], out.status[keep], out.stamp[keep])
+        elif any(keep):
+            self._handoff.put(self._publish, *(
+                [x for x, due in zip(column, keep) if due]
+                for column in (value, out.status, out.stamp)))
 
-    def _publish(self, value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> None:
+    def _publish(self, value: Sequence[float], status: Sequence[int],
+                 stamp: Sequence[int]) -> None:
         msg, publish = self._msg, self._pub.publish
-        for x, st, ns in zip(value.tolist(), status.tolist(), stamp.tolist()):
+        for x, st, ns in zip(value, status, stamp):
             set_stamp(msg.header, ns)
             msg.displacement, msg.status = x, st
             publish(msg)

@@ -28,6 +28,7 @@ with ``SWITCH_INTERVAL`` (50 µs). Run it with ``piezo-stage launch rig_loop``
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import sys
@@ -140,11 +141,11 @@ class TopicDecimation:
         self.every = max(1, math.ceil(sample_rate / topics_rate - 1e-9))
         self._count = 0
 
-    def due(self, n: int) -> np.ndarray:
-        """Of the next ``n`` samples, those due (boolean mask)."""
-        k = self._count + np.arange(n)
-        self._count += n
-        return k % self.every == 0
+    def due(self, n: int) -> list[bool]:
+        """Of the next ``n`` samples, those due."""
+        count, every = self._count, self.every
+        self._count = count + n
+        return [k % every == 0 for k in range(count, count + n)]
 
 
 def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
@@ -185,22 +186,21 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
     nan = math.nan
 
-    def step(value: np.ndarray, status: np.ndarray, stamp: np.ndarray) -> np.ndarray | None:
+    def step(value: list[float], status: list[int], stamp: list[int]) -> list[bool] | None:
         """The law steps on every sample; the amplifier gets the newest output (the samples of
         one read arrived together: the older outputs are already superseded). Every sample
         goes into the batch; the per-sample topics take the due ones."""
         due = topics.due(len(value))
         u = None
         rows: list[Row] = []
-        for x, st, ns, publish in zip(value.tolist(), status.tolist(), stamp.tolist(),
-                                      due.tolist()):
+        for x, st, ns, publish in zip(value, status, stamp, due):
             out = controller.on_sample(ns, x, st == 0, publish)
             u = u if out is None else out
             law = controller.last_step
             rows.append((ns, x, st, nan, nan if out is None else out, 0.0, False) if law is None
                         else (ns, x, st, law.reference, out, law.u_ff, law.loop_closed))
         if u is not None:
-            driver.command(u, publish=bool(due[-1]))
+            driver.command(u, publish=due[-1])
         handoff.put(batch.add, rows, driver.driver.last_sent)
         return None if topics.every == 1 else due
 
@@ -218,6 +218,10 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     reader = LaserReaderNode(loop=step, idle=idle, handoff=handoff,
                              overrides=overrides["laser_reader"], loop_priority=priority)
     yield reader
+    # what the start made lives as long as the process: out of the collector's reach, so that a
+    # collection in the loop thread scans only what the loop itself allocated
+    gc.collect()
+    gc.freeze()
     sample_rate = reader.rate / reader.decimator.n
     if abs(sample_rate - rate) > 1e-6 * rate:
         controller.get_logger().warn(
