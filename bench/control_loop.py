@@ -211,8 +211,9 @@ def loop_under_test(form: str, rate: float, port: int, link: str, lines: list[st
 
 def serve(device: str, args: list[str]) -> None:
     """A device in a process of its own (``--serve sensor RATE LINK LOG`` or ``--serve
-    amplifier PORT LOG``), as real devices are: no thread of the measuring process between
-    taking a time and writing a frame, or between a voltage's arrival and its log entry, and
+    amplifier PORT LOG N``: LOG.running appears after N voltages), as real devices are: no
+    thread of the measuring process between taking a time and writing a frame, or between a
+    voltage's arrival and its log entry, and
     the collector off (a device does not pause; a full collection over a long log would stall
     the emulator for tens of ms, which the loop under test would be charged for). The log goes
     to LOG on SIGTERM."""
@@ -227,10 +228,15 @@ def serve(device: str, args: list[str]) -> None:
         server = EmulatorServer(sensor, pty=True, pty_link=link)
         log: list = sensor.log
     else:
-        port, log_path = int(args[0]), args[1]
+        port, log_path, running_after = int(args[0]), args[1], int(args[2])
         log = []
-        amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0, on_voltage=lambda v, at: log.append(
-            (time.monotonic() if at is None else at, v)))
+
+        def on_voltage(v: float, at: float | None) -> None:
+            log.append((time.monotonic() if at is None else at, v))
+            if len(log) == running_after:  # the loop runs
+                Path(log_path + ".running").touch()
+
+        amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0, on_voltage=on_voltage)
         server = EmulatorServer(amp_model, tcp_port=port)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -257,7 +263,8 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
     tmp = Path(tempfile.mkdtemp(prefix="bench_rig_"))
     link, sensor_log, amp_log = str(tmp / "sensor"), str(tmp / "sensor.npy"), str(tmp / "amp.npy")
     devices = [subprocess.Popen([sys.executable, __file__, "--serve", *argv]) for argv in
-               (["sensor", str(rate), link, sensor_log], ["amplifier", str(port), amp_log])]
+               (["sensor", str(rate), link, sensor_log],
+                ["amplifier", str(port), amp_log, str(int(rate))])]
     hog = None
     try:
         _wait_for(Path(sensor_log + ".ready"), "the sensor")
@@ -266,7 +273,11 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
         with loop_under_test(form, rate, port, link, lines) as pids:
             if busy:
                 hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            time.sleep(3.0)  # the loop starts (its answers are checked below)
+            try:  # a second's worth of voltages: the loop runs
+                _wait_for(Path(amp_log + ".running"), f"{label}: the loop")
+            except RuntimeError as exc:
+                raise RuntimeError(f"{exc}\n" + "\n".join(lines[-20:])) from None
+            time.sleep(1.0)
             t0, cpu0, rss0 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
             time.sleep(seconds)
             t1, cpu1, rss1 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
@@ -280,8 +291,6 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
             device.wait(timeout=30.0)
     log = [(t, int(a), int(b)) for t, a, b in np.load(sensor_log)]
     answers = [(float(t), float(v)) for t, v in np.load(amp_log)]
-    if not any(t < t0 for t, _ in answers):
-        raise RuntimeError(f"{label}: the loop did not start\n" + "\n".join(lines[-20:]))
     return figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
 
 
