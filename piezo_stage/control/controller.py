@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 from .errors import ControllerConfigError, MeasurementError
 from .feedforward import Compensation, Feedforward, FeedforwardModel
 from .laws import THESIS_GAINS, Gains, check_law, excitation_term, pid_term, x0_coefficient
+from .learning import FeedforwardTable
 
 ANTI_WINDUP: tuple[str, ...] = ("none", "conditional", "back_calculation")
 ON_CLOSE: tuple[str, ...] = ("bumpless", "reset", "keep")
@@ -47,6 +48,9 @@ class ControllerConfig:
     - ``dt_max``: a larger Δt between samples is a gap: no integration, x2 re-baselined.
     - ``compensation``: ``feedback`` (the law alone), ``feedforward`` (u_ff of ``feedforward``
       alone) or ``both`` (u_ff + the law), for tracking (see :mod:`.feedforward`).
+    - ``feedforward_table``: u_ff read from a table (:mod:`.learning`: the staircase a sampled
+      loop needs, learned or computed from the model) at the time since the first update,
+      instead of the model stepped along yr.
     """
 
     mode: str = "pid"
@@ -61,6 +65,7 @@ class ControllerConfig:
     dt_max: float = 0.1
     compensation: Compensation = Compensation.FEEDBACK
     feedforward: FeedforwardModel | None = None
+    feedforward_table: FeedforwardTable | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -106,10 +111,11 @@ class ControllerConfig:
             raise ControllerConfigError(f"hold_voltage must be finite, got {self.hold_voltage}")
         if not (self.dt_max > 0):
             raise ControllerConfigError(f"dt_max must be > 0 s, got {self.dt_max}")
-        if self.compensation is not Compensation.FEEDBACK and self.feedforward is None:
+        if (self.compensation is not Compensation.FEEDBACK and self.feedforward is None
+                and self.feedforward_table is None):
             raise ControllerConfigError(
                 f"compensation {self.compensation.value} needs a "
-                "feedforward model (a dynamic parameter set)"
+                "feedforward model (a dynamic parameter set) or a feedforward table"
             )
 
     @property
@@ -182,6 +188,7 @@ class TimeVaryingPID:
         self._hold: float | None = None
         self._last: ControlOutput | None = None
         self._u_ff = 0.0
+        self._t_table: float | None = None  # the table's time origin: the first update
         model = self._config.feedforward
         self._ff = Feedforward(model) if model is not None else None
 
@@ -283,12 +290,18 @@ class TimeVaryingPID:
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
 
         u_ff = 0.0
-        use_ff = self._ff is not None and cfg.compensation is not _FEEDBACK
+        table = cfg.feedforward_table
+        if self._t_table is None:
+            self._t_table = t
+        use_ff = (self._ff is not None or table is not None) and cfg.compensation is not _FEEDBACK
         if use_ff and (self._closed or self._pending_close):
-            assert self._ff is not None
-            if not self._ff.seeded:  # closing now, or the first sample of a loop started closed
-                self._ff.seed(x_measured, self._u)
-            u_ff = self._ff.step(yr, yr_dot if yr_dot is not None else 0.0, yr_ddot)
+            if table is not None:
+                u_ff = table.value(t - self._t_table)
+            else:
+                assert self._ff is not None
+                if not self._ff.seeded:  # closing now, or the first sample of a closed start
+                    self._ff.seed(x_measured, self._u)
+                u_ff = self._ff.step(yr, yr_dot if yr_dot is not None else 0.0, yr_ddot)
         self._u_ff = u_ff
         if self._pending_close:
             self._close_now(t, x1, x2)

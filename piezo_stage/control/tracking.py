@@ -10,7 +10,7 @@ a trajectory; it reproduces what the lockstep graph computes, without the graph.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,6 +22,7 @@ from .controller import ControllerConfig, TimeVaryingPID
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
 from .laws import THESIS_GAINS, Gains
+from .learning import FeedforwardTable, IterativeLearning, LearningConfig, feedforward_response
 from .simulation import ClosedLoopResult, simulate_closed_loop
 from .trajectory import Trajectory
 
@@ -39,6 +40,7 @@ class TrackingErrors:
     max_error: float
     range: float
     samples: int
+    learning: tuple[float, ...] = ()  # RMS error [m] of each learning period before them
 
     @property
     def relative(self) -> float:
@@ -51,6 +53,7 @@ class TrackingErrors:
             "range": self.range,
             "rms_relative": self.relative,
             "measured_samples": self.samples,
+            "learning": list(self.learning),
         }
 
 
@@ -94,9 +97,17 @@ def simulate_tracking(
     duration: float | None = None,
     u_min: float = -450.0,
     u_max: float = 450.0,
+    table: FeedforwardTable | None = None,
+    learn_periods: int = 0,
+    learning: LearningConfig | None = None,
 ) -> tuple[ClosedLoopResult, TrackingErrors]:
     """Run the loop closed from t = 0 with the plant at rest at x_d(0) (w = 0, u = its static
-    voltage there); return the record and the figures (see :func:`tracking_errors`)."""
+    voltage there); return the record and the figures (see :func:`tracking_errors`).
+
+    ``table``: u_ff from it (:mod:`.learning`) instead of the model stepped along x_d. With
+    ``learn_periods`` N > 0 (a periodic trajectory and a table), the first N periods learn the
+    table (:class:`~.learning.IterativeLearning`, in place), then ``duration`` more seconds run
+    with it frozen; the figures are over those, their first period left out."""
     if plant.dynamics is None:
         raise ControlError(f"plant {plant.name!r} needs the dynamic form (11.1)")
     x_start = float(trajectory.evaluate(0.0)[0])
@@ -111,6 +122,7 @@ def simulate_tracking(
         hold_voltage=u_start,
         compensation=Compensation(compensation),
         feedforward=model,
+        feedforward_table=table,
     )
     pid = TimeVaryingPID(config, closed=True)
     stage = DynamicPlant(bw, plant.dynamics, x0=x_start - bw.y0)
@@ -120,7 +132,25 @@ def simulate_tracking(
         return float(x), float(v), float(a)
 
     duration = run_duration(trajectory) if duration is None else duration
-    result = simulate_closed_loop(pid, stage, rate_hz, duration, reference)
-    return result, tracking_errors(
-        result.t, result.measured, result.reference, settle_time(trajectory)
-    )
+    t_learned, history = 0.0, []
+    if learn_periods > 0:
+        if table is None or model is None or getattr(trajectory, "shape", None) is None:
+            raise ControlError("learning needs a periodic trajectory, a feedforward table and "
+                               "the model (it gives L)")
+        feedback = None if config.compensation is Compensation.FEEDFORWARD else gains
+        learner = IterativeLearning(
+            table, feedforward_response(model, rate_hz, len(table), gains=feedback),
+            learning or LearningConfig(u_min=u_min, u_max=u_max))
+        for j in range(learn_periods):
+            run = simulate_closed_loop(pid, stage, rate_hz, trajectory.period, reference,
+                                       t0=j * trajectory.period)
+            e = run.measured - run.reference
+            history.append(float(np.sqrt(np.mean(e * e))))
+            learner.update(e)
+            t_learned = (j + 1) * trajectory.period
+            if learner.done:
+                break
+    result = simulate_closed_loop(pid, stage, rate_hz, duration, reference, t0=t_learned)
+    errors = tracking_errors(result.t, result.measured, result.reference,
+                             t_learned + settle_time(trajectory))
+    return result, replace(errors, learning=tuple(history))
