@@ -113,9 +113,12 @@ def test_settling_periods_are_not_learned_from_and_learning_stops_when_the_error
     table = FeedforwardTable(np.zeros(n), RATE)
     learning = IterativeLearning(table, g, LearningConfig(cutoff_hz=RATE / 2, settle_periods=1,
                                                           patience=2))
+    learning.update(np.full(n, 1.0))  # the start settles: ignored, whatever it holds
+    assert not table.u.any()
     learning.update(error(table.u))  # learned: the table changes
     changed = table.u.copy()
-    learning.update(np.full(n, 1.0))  # a settling period: ignored, whatever it holds
+    assert changed.any()
+    learning.update(np.full(n, 1.0))  # a settling period after the change: ignored
     assert np.array_equal(table.u, changed)
     periods = 0
     while not learning.done:
@@ -124,7 +127,7 @@ def test_settling_periods_are_not_learned_from_and_learning_stops_when_the_error
         assert periods < 20
     # the first update converged (second entry), then two learned periods without
     # improvement stop it
-    assert len(learning.history) == 4 and learning.periods == 2 + periods
+    assert len(learning.history) == 4 and learning.periods == 3 + periods
     assert learning.history[1] < 1e-12 * learning.history[0]
     frozen = table.u.copy()
     learning.update(error(table.u) + 1e-6)

@@ -81,9 +81,33 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         "--plant-model", default="ch11_rig.yaml", help="the simulated rig (ch11_rig.yaml)"
     )
     group.add_argument(
-        "--periods", type=float, default=3.0, help="periods to run; the first is not measured"
+        "--periods", type=float, default=3.0,
+        help="periods to run, the first not measured (with --learn: measured after learning)",
     )
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
+    group.add_argument(
+        "--graph", choices=("sim", "emulated_rig"), default="sim",
+        help="sim: the lockstep plant; emulated_rig: `emulate rig` around the plant model with "
+        "the driver, reader and controller in one process (real time; x_d from 6 um up unless "
+        "--offset)",
+    )
+    group.add_argument(
+        "--rate-hz", type=float, default=None,
+        help="the loop rate (sim: 100000; emulated_rig: its sensor's, 1000 or 10000); refused "
+        "where the law's gains fail the sampled-loop check",
+    )
+    group.add_argument(
+        "--learn", type=int, default=0, metavar="N",
+        help="learn the feedforward over N periods, then measure --periods more (after one "
+        "settling period) with it frozen",
+    )
+    group.add_argument(
+        "--feedforward-form", choices=("auto", "sampled", "continuous"), default="auto",
+        help="the staircase the model says the sampled loop needs, or the model stepped along "
+        "x_d (auto: sampled below 10x the model's resonance)",
+    )
+    group.add_argument("--table", default=None, help="replay a saved (learned) feedforward table")
+    group.add_argument("--table-out", default=None, help="save the learned table here (JSON)")
     group.add_argument(
         "--identify-model",
         metavar="OUT.yaml",
@@ -93,6 +117,7 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
 
 
 def _run_tracking(args: argparse.Namespace, progress) -> dict:
+    from piezo_stage.control.tracking import TRACKING_RATE_HZ
     from piezo_stage.experiments.tracking import TrackingSpec, identify_model, run_tracking
 
     model = args.model
@@ -113,6 +138,12 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         plant_model=args.plant_model,
         mode=args.mode or "pid",
         periods=args.periods,
+        rate_hz=args.rate_hz or (TRACKING_RATE_HZ if args.graph == "sim" else 1000.0),
+        learn=args.learn,
+        graph=args.graph,
+        feedforward_form=args.feedforward_form,
+        table=args.table,
+        table_out=args.table_out,
     )
     return run_tracking(
         spec,

@@ -189,6 +189,7 @@ class TimeVaryingPID:
         self._last: ControlOutput | None = None
         self._u_ff = 0.0
         self._t_table: float | None = None  # the table's time origin: the first update
+        self.table_index = -1  # the table's sample the last update read (-1: none)
         model = self._config.feedforward
         self._ff = Feedforward(model) if model is not None else None
 
@@ -296,7 +297,8 @@ class TimeVaryingPID:
         use_ff = (self._ff is not None or table is not None) and cfg.compensation is not _FEEDBACK
         if use_ff and (self._closed or self._pending_close):
             if table is not None:
-                u_ff = table.value(t - self._t_table)
+                self.table_index = table.index(t - self._t_table)
+                u_ff = float(table.u[self.table_index])
             else:
                 assert self._ff is not None
                 if not self._ff.seeded:  # closing now, or the first sample of a closed start

@@ -10,7 +10,7 @@ Learning (iterative learning control, Bristow, Tharayil & Alleyne, "A survey of 
 learning control", IEEE Control Systems Magazine 26(3), 2006, §"Frequency-domain analysis"):
 after period j with error e_j = x − x_d at the samples,
 
-    u_{j+1} = Q·(u_j + L·e_j),   L = −α·G⁻¹,
+    u_{j+1} = u_j + Q·L·e_j,   L = −α·G⁻¹,
 
 computed per harmonic of the period (the signals are N-periodic, so the lifted operators are
 circulant and the FFT diagonalises them). G is the model's map from u_ff to x at the samples:
@@ -24,15 +24,16 @@ command's delay in samples, C(z) = k1 + k0·T/(1 − z⁻¹) + k2·(1 − z⁻¹
 under ``both`` compensation, C = 0 under ``feedforward``. With the integrator of C, S(1) = 0:
 the mean of u_ff is the law's business and is not learned.
 
-Convergence: the error of the true plant G₀ evolves as E_{j+1} = Q·(1 − α·G₀/G)·E_j (plus
-what Q removes), so the learning converges monotonically in the 2-norm when
+Convergence: at a harmonic Q passes, the error of the true plant G₀ evolves as
+E_{j+1} = (1 − α·G₀/G)·E_j, so the learning converges monotonically in the 2-norm when
 
-    |Q(ω)·(1 − α·G₀(ω)/G(ω))| < 1 at every harmonic ω,
+    |1 − α·G₀(ω)/G(ω)| < 1 at every harmonic ω with Q(ω) = 1,
 
 i.e. for 0 < α ≤ 1 whenever the model's phase error stays below 90° and its gain error below
-(2 − α)/α at the harmonics Q passes. The Q-filter (zero-phase, ideal low-pass at ``cutoff_hz``)
-keeps the learning away from the harmonics where the model is least sure (near the sampled
-resonance, at Nyquist); what it removes stays as error. The hysteresis makes G₀ vary along
+(2 − α)/α there; at the others u keeps what the model gave. Q (zero-phase, ideal low-pass at
+``cutoff_hz``, on the correction: the filtered-learning form of the survey's Q-filter) keeps
+the learning away from the harmonics where the model is least sure (near the resonance, near
+Nyquist); what the model leaves there stays as error. The hysteresis makes G₀ vary along
 the loop (k between κx and κx + κw·ρ): the midpoint keeps the ratio within ±20 %.
 """
 
@@ -41,8 +42,9 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field, replace
+from enum import Enum
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy import signal
@@ -53,9 +55,39 @@ from piezo_stage.model.plant import DynamicPlant
 from .errors import ControlError
 from .feedforward import FeedforwardModel, feedforward
 from .laws import Gains
+from .trajectory import PeriodicTrajectory, Trajectory
 
 #: file format of a saved table
 TABLE_FORMAT = "piezo_stage feedforward table 1"
+
+
+class FeedforwardForm(str, Enum):
+    """The feedforward of a known trajectory in a sampled loop."""
+
+    AUTO = "auto"  #: sampled below :data:`SAMPLED_BELOW` times the resonance, else continuous
+    SAMPLED = "sampled"  #: the staircase the model says the loop needs
+    CONTINUOUS = "continuous"  #: the model stepped along x_d, sampled
+
+
+#: ``auto`` takes the sampled form below this many times the resonance sqrt(κx/m)/2π: the ch. 11
+#: rig (7 kHz), 10 Hz triangle: continuous 4.2 / 1.7 / 0.014 % at 1 / 10 / 100 kHz, sampled
+#: 0.012 / 0.012 / 0.08 % (a table starts from the periodic steady state, the stage from rest)
+SAMPLED_BELOW = 10.0
+
+
+def resonance(model: FeedforwardModel) -> float:
+    """sqrt(κx/m)/2π [Hz] (inf without a mass)."""
+    return math.sqrt(model.bouc_wen.kappa_x / model.m) / (2 * math.pi) if model.m > 0 \
+        else math.inf
+
+
+def choose_form(form: FeedforwardForm, model: FeedforwardModel, rate_hz: float
+                ) -> FeedforwardForm:
+    """``form``, with ``auto`` resolved for a loop at ``rate_hz``."""
+    if form is not FeedforwardForm.AUTO:
+        return form
+    return FeedforwardForm.SAMPLED if rate_hz < SAMPLED_BELOW * resonance(model) \
+        else FeedforwardForm.CONTINUOUS
 
 
 class LearningError(ControlError):
@@ -67,6 +99,13 @@ def incremental_stiffness(model: FeedforwardModel) -> float:
     κx + κw·ρ (at reversal, w = 0) of (11.1)-(11.3)."""
     bw = model.bouc_wen
     return float(bw.kappa_x + 0.5 * bw.kappa_w * bw.rho)
+
+
+def default_cutoff(model: FeedforwardModel | None, rate_hz: float) -> float:
+    """Q's cutoff [Hz] when none is given: a quarter of the rate, and at most half the
+    resonance sqrt(κx/m)/2π (near it the response's phase turns fast and the stiffness the
+    hysteresis adds moves the peak: the per-harmonic inverse is least sure there)."""
+    return min(0.25 * rate_hz, 0.5 * resonance(model)) if model is not None else 0.25 * rate_hz
 
 
 def harmonics(n: int, rate_hz: float) -> np.ndarray:
@@ -112,12 +151,14 @@ def feedforward_response(
 
 @dataclass(frozen=True)
 class LearningConfig:
-    """How a table learns: ``gain`` α of L = −α·G⁻¹ (0 < α ≤ 1), Q's ``cutoff_hz`` (None: a
-    quarter of the rate, half the Nyquist frequency: above it the hysteresis's harmonics of a
-    fast trajectory couple the bins and the per-harmonic inverse can diverge), the amplifier's
+    """How a table learns: ``gain`` α of L = −α·G⁻¹ (0 < α ≤ 1), Q's ``cutoff_hz`` (None:
+    :func:`default_cutoff`, a quarter of the rate — above it the hysteresis's harmonics of a
+    fast trajectory couple the bins and the per-harmonic inverse can diverge — and at most
+    half the stage's resonance), the amplifier's
     limits ``u_min``/``u_max`` [V] and ``slew_rate`` [V/s] (inf: none) every table value keeps;
-    ``settle_periods`` after each change of the table are not learned from (the loop still
-    answers the change: its error is not the table's); the stop rule: learning ends after
+    ``settle_periods`` at the start and after each change of the table are not learned from
+    (the loop still answers the change: its error is not the table's); the stop rule: learning
+    ends after
     ``patience`` learned periods without the RMS error falling below ``1 − min_improvement``
     times the best so far."""
 
@@ -226,11 +267,12 @@ class FeedforwardTable:
 
 
 class IterativeLearning:
-    """u_{j+1} = Q·(u_j + L·e_j) on ``table`` (module docstring), in place: call
+    """u_{j+1} = u_j + Q·L·e_j on ``table`` (module docstring), in place: call
     :meth:`update` with each period's error; ``done`` once the stop rule holds."""
 
     def __init__(self, table: FeedforwardTable, response: np.ndarray,
-                 config: LearningConfig = LearningConfig()) -> None:
+                 config: LearningConfig = LearningConfig(),
+                 model: FeedforwardModel | None = None) -> None:
         n = len(table)
         if response.shape != (n // 2 + 1,):
             raise LearningError(f"response has {response.shape} bins, a {n}-sample period "
@@ -238,13 +280,15 @@ class IterativeLearning:
         self.table, self.config = table, config
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse = np.where(np.abs(response) > 0, 1.0 / response, 0.0)
-        cutoff = 0.25 * table.rate_hz if config.cutoff_hz is None else config.cutoff_hz
+        cutoff = default_cutoff(model, table.rate_hz) if config.cutoff_hz is None \
+            else config.cutoff_hz
         q = (harmonics(n, table.rate_hz) <= cutoff).astype(float)
         self._learn = -config.gain * inverse * q
         self._q = q
         self.history: list[float] = []  # RMS error of each period learned from
         self.periods = 0  # periods given, settling ones included
-        self._best, self._stale, self._settling = math.inf, 0, 0
+        # the start is a change too: the loop settles from wherever it started
+        self._best, self._stale, self._settling = math.inf, 0, config.settle_periods
 
     @property
     def done(self) -> bool:
@@ -269,12 +313,103 @@ class IterativeLearning:
         if self.done:
             return self.table
         u = self.table.u
-        # Q passes the mean; under both the law's integrator owns it (G = 0 there: L = 0)
-        spectrum = self._q * np.fft.rfft(u) + self._learn * np.fft.rfft(e)
+        # Q filters the correction, not u: what the model gave above the cutoff stays; under
+        # both, the law's integrator owns the mean (G = 0 there: L = 0)
+        spectrum = np.fft.rfft(u) + self._learn * np.fft.rfft(e)
         self.table.u = limit(np.fft.irfft(spectrum, u.size), self.config, self.table.rate_hz,
                              self.table.periodic)
         self._settling = self.config.settle_periods
         return self.table
+
+
+class PeriodicLearner:
+    """Feeds :class:`IterativeLearning` from a running loop: :meth:`record` the error at each
+    table index as the loop steps; a period ends when the index wraps. A period with a sample
+    missing (a gap, the loop open) is not learned from. After ``periods`` periods, or once the
+    stop rule holds, the table is frozen and ``on_done(self)`` is called once."""
+
+    def __init__(self, learning: IterativeLearning, periods: int,
+                 on_done: Callable[["PeriodicLearner"], None] | None = None) -> None:
+        if periods < 1:
+            raise LearningError(f"learning periods must be >= 1, got {periods}")
+        self.learning, self.periods, self._on_done = learning, periods, on_done
+        self._error = np.full(len(learning.table), math.nan)
+        self._last = -1
+        self.completed = 0  # periods seen, learned from or not
+        self.frozen = False
+
+    def record(self, index: int, error: float) -> bool:
+        """The error x − x_d [m] of the sample at ``index``; True when it completed a period."""
+        if self.frozen:
+            return False
+        wrapped = index < self._last
+        self._last = index
+        if wrapped:
+            self._period_done()
+        self._error[index] = error
+        return wrapped
+
+    def _period_done(self) -> None:
+        e = self._error
+        if np.all(np.isfinite(e)):
+            self.learning.update(e)
+        e.fill(math.nan)
+        self.completed += 1
+        if self.completed >= self.periods or self.learning.done:
+            self.frozen = True
+            if self._on_done is not None:
+                self._on_done(self)
+
+
+def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[np.ndarray, bool]:
+    """(x_d at k/rate over one period, periodic): a periodic trajectory's period must be a whole
+    number of samples (a table indexed modulo N would drift against it otherwise); a file's
+    record is taken whole, not periodic."""
+    periodic = isinstance(trajectory, PeriodicTrajectory)
+    exact = trajectory.period * rate_hz
+    n = int(round(exact))
+    if periodic and abs(exact - n) > 1e-6 * max(n, 1):
+        raise LearningError(
+            f"the trajectory's period ({trajectory.period:g} s) is {exact:.6g} samples at "
+            f"{rate_hz:g} Hz: a feedforward table needs a whole number")
+    if n < 2:
+        raise LearningError(f"the trajectory's period holds {n} sample(s) at {rate_hz:g} Hz")
+    return np.asarray(trajectory.evaluate(np.arange(n) / rate_hz)[0], dtype=float), periodic
+
+
+class _ModelLoop:
+    """The model run open loop by a command staircase, kept running from one period to the
+    next: ZOH at ``rate_hz``, ``delay`` whole samples, an amplifier of ``bandwidth`` [Hz]
+    (first-order, applied over ``SUBSTEPS`` sub-steps of each period)."""
+
+    SUBSTEPS = 8
+
+    def __init__(self, model: FeedforwardModel, rate_hz: float, x0: float, w0: float,
+                 u0: float, delay: int, bandwidth: float) -> None:
+        bw = model.bouc_wen
+        self.stage = DynamicPlant(bw, Dynamics(model.m, model.c), x0=x0 - bw.y0, w0=w0)
+        self.period = 1.0 / rate_hz
+        self.pending = [u0] * delay
+        self.v = u0  # the amplifier's output
+        self.decay = math.exp(-2.0 * math.pi * bandwidth * self.period / self.SUBSTEPS) \
+            if math.isfinite(bandwidth) else 0.0
+
+    def run(self, u: np.ndarray) -> np.ndarray:
+        """x at each sample of the staircase ``u`` (measured before that sample's command)."""
+        x = np.empty(u.size)
+        h, a = self.period / self.SUBSTEPS, self.decay
+        for k, command in enumerate(u.tolist()):
+            x[k] = self.stage.output()
+            self.pending.append(command)
+            applied = self.pending.pop(0)
+            if a == 0.0:
+                self.stage.step(applied, self.period)
+                continue
+            for _ in range(self.SUBSTEPS):  # v → applied exponentially; its mean over h drives
+                v_next = applied + (self.v - applied) * a
+                self.stage.step(0.5 * (self.v + v_next), h)
+                self.v = v_next
+        return x
 
 
 def sampled_feedforward(
@@ -290,9 +425,11 @@ def sampled_feedforward(
 ) -> FeedforwardTable:
     """The command staircase the model says makes x follow ``x_d`` at the samples (x_d[k] at
     t = k/rate, one period when ``periodic``): the continuous u_ff of (11.1) along x_d, then
-    ``iterations`` of the learning above against the model itself run open loop (ZOH at
-    ``rate_hz``, the delay rounded to whole samples) — the model's ringing, ZOH and delay
-    included, its hysteresis in steady periodic state."""
+    ``iterations`` of the learning above against the model itself, run open loop (ZOH at
+    ``rate_hz``, the delay rounded to whole samples, the amplifier's bandwidth) — its ringing
+    and its hysteresis included. Periodic: the model runs on from period to period (two to
+    settle, then one settling period after each change), so the table is the one of the
+    periodic steady state; a record: each iteration runs it once from rest."""
     xd = np.asarray(x_d, dtype=float)
     n = xd.size
     T = 1.0 / rate_hz
@@ -305,30 +442,42 @@ def sampled_feedforward(
     response = feedforward_response(model, rate_hz, n, delay_samples=delay_samples,
                                     amplifier_bandwidth=amplifier_bandwidth)
     learning = IterativeLearning(table, response, replace(
-        config, patience=iterations + 1, min_improvement=0.0, settle_periods=0))
-    bw, dynamics = model.bouc_wen, Dynamics(model.m, model.c)
+        config, patience=iterations + 1, min_improvement=0.0, settle_periods=0), model)
     d = int(round(delay_samples))
+
+    def start() -> _ModelLoop:
+        return _ModelLoop(model, rate_hz, float(xd[0]), float(w[0]), float(u_cont[0]), d,
+                          amplifier_bandwidth)
+
+    loop = start()
+    if periodic:
+        loop.run(table.u)
+        loop.run(table.u)
     for _ in range(iterations):
-        stage = DynamicPlant(bw, dynamics, x0=float(xd[0]) - bw.y0, w0=float(w[0]))
-        x = np.empty(n * reps)
-        u_seq = np.tile(table.u, reps)
-        u_applied = np.concatenate([np.full(d, u_seq[0]), u_seq])[: u_seq.size]
-        for k in range(u_seq.size):
-            x[k] = stage.output()
-            stage.step(float(u_applied[k]), T)
-        learning.update(x[-n:] - xd)
+        if periodic:
+            loop.run(table.u)  # settles after the last change
+        else:
+            loop = start()
+        learning.update(loop.run(table.u) - xd)
     return table
 
 
 __all__ = [
     "TABLE_FORMAT",
+    "FeedforwardForm",
     "FeedforwardTable",
     "IterativeLearning",
     "LearningConfig",
     "LearningError",
+    "PeriodicLearner",
+    "SAMPLED_BELOW",
+    "choose_form",
+    "resonance",
+    "default_cutoff",
     "feedforward_response",
     "harmonics",
     "incremental_stiffness",
     "limit",
     "sampled_feedforward",
+    "trajectory_samples",
 ]

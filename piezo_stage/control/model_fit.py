@@ -147,3 +147,19 @@ def perturbed(ps: ParameterSet, factor: float, name: str | None = None) -> Param
     )
     dyn = None if ps.dynamics is None else Dynamics(ps.dynamics.m * factor, ps.dynamics.c * factor)
     return replace(ps, name=name or f"{ps.name}_x{factor:g}", bouc_wen=bw, dynamics=dyn)
+
+
+def perturbed_each(ps: ParameterSet, scale: float, seed: int = 0,
+                   name: str | None = None) -> ParameterSet:
+    """``ps`` with each of κ_i, κw, ρ, σ, n, m, c scaled by 1 ± ``scale``, the signs drawn from
+    ``seed`` (a model off its plant by that much per parameter); σ and n stay in class I."""
+    signs = iter(np.random.default_rng(seed).choice([-1.0, 1.0], size=len(ps.bouc_wen.kappa) + 6))
+
+    def f() -> float:
+        return 1.0 + scale * next(signs)
+
+    bw = ps.bouc_wen
+    bw = replace(bw, kappa=tuple(k * f() for k in bw.kappa), kappa_w=bw.kappa_w * f(),
+                 rho=bw.rho * f(), sigma=max(bw.sigma * f(), 0.5), n=max(bw.n * f(), 1.0))
+    dyn = None if ps.dynamics is None else Dynamics(ps.dynamics.m * f(), ps.dynamics.c * f())
+    return replace(ps, name=name or f"{ps.name}_pm{scale:g}_{seed}", bouc_wen=bw, dynamics=dyn)

@@ -140,7 +140,7 @@ def simulate_tracking(
         feedback = None if config.compensation is Compensation.FEEDFORWARD else gains
         learner = IterativeLearning(
             table, feedforward_response(model, rate_hz, len(table), gains=feedback),
-            learning or LearningConfig(u_min=u_min, u_max=u_max))
+            learning or LearningConfig(u_min=u_min, u_max=u_max), model)
         for j in range(learn_periods):
             run = simulate_closed_loop(pid, stage, rate_hz, trajectory.period, reference,
                                        t0=j * trajectory.period)

@@ -1,14 +1,23 @@
-"""Tracking experiment: follow a trajectory on the simulated rig through the ROS graph.
+"""Tracking experiment: follow a trajectory through the ROS graph, and learn to.
 
-The lockstep plant node (default the ch. 11 rig, ``config/ch11_rig.yaml``; ``plant_model``
-another file) and the controller node, which generates x_d itself (``reference_source:
-trajectory``; published on ``reference``) and applies the compensation asked for (feedback |
-feedforward | both, the feedforward from ``model``, a dynamic parameter set). The loop runs at
-100 kHz, the lowest rate at which the sampled loop of the thesis gains is stable at the
-lockstep's delay 0; the plant starts at rest at x_d(0). Figures over every period but the first
-(:func:`piezo_stage.control.tracking.tracking_errors`): ``rms_error``, ``max_error``, ``range``
-[m] and ``rms_relative``; with ``compare`` the same for the feedback-only run under
-``feedback`` and the ratio ``rms_ratio``.
+``graph`` ``sim``: the lockstep plant node (default the ch. 11 rig, ``config/ch11_rig.yaml``;
+``plant_model`` another file) and the controller node, which generates x_d itself
+(``reference_source: trajectory``; published on ``reference``) and applies the compensation
+asked for (feedback | feedforward | both, the feedforward from ``model``, a dynamic parameter
+set) at ``rate_hz`` (default 100 kHz, the lowest rate at which the sampled loop of the thesis
+gains is stable at the lockstep's delay 0; a rate where the gains fail that check is refused
+with the reason). ``emulated_rig``: the same controller composed with the voltage driver and the
+laser reader (``rig_loop``) on ``piezo-stage emulate rig`` around the plant model, in real
+time at the sensor's rate (1 or 10 kHz). The plant starts at rest at x_d(0).
+
+The feedforward of a trajectory is the staircase the model says the sampled loop needs
+(:mod:`piezo_stage.control.learning`; ``feedforward_form``). ``learn`` N: the controller learns
+it over the first N periods (then keeps it; ``table_out`` saves it, ``table`` replays a saved
+one). Figures (:func:`piezo_stage.control.tracking.tracking_errors`): ``rms_error``,
+``max_error``, ``range`` [m] and ``rms_relative`` over the measured periods — without learning
+every period but the first (it settles), with learning the ``periods`` after the N learning
+periods and one settling period — and ``learning``, the RMS error of each learning period;
+with ``compare`` the same for the feedback-only run under ``feedback`` and ``rms_ratio``.
 
 :func:`identify_model` records the identification runs on the simulated rig and fits the model
 (:mod:`piezo_stage.control.model_fit`): the compensator never reads the plant's own file.
@@ -18,8 +27,8 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import tempfile
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -32,30 +41,37 @@ from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel, compensation
 from piezo_stage.control.laws import LAWS, THESIS_GAINS
+from piezo_stage.control.learning import FeedforwardForm, FeedforwardTable, trajectory_samples
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
-from piezo_stage.control.tracking import (
-    DEFAULT_PERIODS,
-    TRACKING_RATE_HZ,
-    run_duration,
-    settle_time,
-    tracking_errors,
-)
+from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, save_parameter_set
 
 from .errors import ExperimentError, ExperimentInputError
-from .spec import Plan, graph_for
+from .harness import ControllerStates, HarnessError, Recording, Stream, record, span
+from .runner import STATE_TYPE, run_plan
+from .spec import Plan
 
 Progress = Callable[[float, str], None]
 DEFAULT_PLANT = "ch11_rig.yaml"
-#: decoded from controller_state for the figures and the PNG
-TRACKING_SIGNALS = ("t", "reference", "x1", "u", "u_pid", "u_ff", "loop_closed")
+GRAPHS = ("sim", "emulated_rig")
+#: the emulated rig's sensor (optoNCDT family) at each rate it serves
+RIG_RATES = {1000.0: "ild1320", 10000.0: "ild2300"}
+#: [V] the emulated rig's amplifier range
+RIG_RANGE = (0.0, 400.0)
+#: [m] lowest x_d on the emulated rig when no offset is given: above κw/κx (4.2 µm on the ch. 11
+#: rig), where the voltage the hysteresis needs on the way down stays above the amplifier's 0 V
+RIG_FLOOR = 6e-6
+_counter = iter(range(1, 1 << 30))
 
 
 @dataclass(frozen=True)
 class TrackingSpec:
-    """What to track and how; ``model`` a parameter-set file or an already loaded set."""
+    """What to track and how; ``model`` a parameter-set file or an already loaded set.
+    ``rate_hz``: the loop's (sim: the lockstep rate; emulated_rig: the sensor's); ``learn``
+    N: periods the controller learns the feedforward over; ``table``: a saved table to replay;
+    ``table_out``: where the learned table goes."""
 
     trajectory: str = "triangle"
     amplitude: float = 10e-6
@@ -69,6 +85,12 @@ class TrackingSpec:
     plant_model: str = DEFAULT_PLANT
     mode: str = "pid"
     periods: float = DEFAULT_PERIODS
+    rate_hz: float = TRACKING_RATE_HZ
+    learn: int = 0
+    graph: str = "sim"
+    feedforward_form: str = "auto"
+    table: str | None = None
+    table_out: str | None = None
 
     def make_trajectory(self) -> Trajectory:
         try:
@@ -83,6 +105,15 @@ class TrackingSpec:
             )
         except ControlError as exc:
             raise ExperimentInputError(str(exc)) from exc
+
+    def timing(self, trajectory: Trajectory) -> tuple[float, float]:
+        """(seconds run, where the measured part starts) — see the module docstring."""
+        period = trajectory.period
+        if getattr(trajectory, "shape", None) is None:  # a file: once, all of it measured
+            return 1.1 * period, 0.0
+        if self.learn > 0:
+            return (self.learn + 1 + self.periods) * period, (self.learn + 1) * period
+        return self.periods * period, period
 
 
 def _load(source: str | ParameterSet, what: str) -> ParameterSet:
@@ -113,23 +144,103 @@ def _model_file(spec: TrackingSpec, folder: Path) -> str:
     return str(path)
 
 
-def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
-    """The plant + controller plan of one tracking run."""
+def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
+    """The spec's compensation, and the spectral radius of its loop at the rate (delay 0: the
+    lockstep's, and rig_loop's answer within a fraction of a sample); refused with the
+    reason where the law's gains fail the sampled-loop check (its output is not applied
+    under feedforward alone)."""
     if spec.mode not in LAWS:
         raise ExperimentInputError(f"unknown law {spec.mode!r}; expected one of {LAWS}")
+    if spec.graph not in GRAPHS:
+        raise ExperimentInputError(f"unknown graph {spec.graph!r}; expected one of {GRAPHS}")
     try:
         comp = compensation(spec.compensation)
+        FeedforwardForm(spec.feedforward_form)
+    except (ControlError, ValueError) as exc:
+        raise ExperimentInputError(str(exc)) from exc
+    rate = float(spec.rate_hz)
+    if not (math.isfinite(rate) and rate > 0):
+        raise ExperimentInputError(f"--rate-hz must be > 0, got {rate}")
+    if spec.graph == "emulated_rig" and rate not in RIG_RATES:
+        raise ExperimentInputError(f"the emulated rig's sensor runs at "
+                                   f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}")
+    if spec.learn < 0 or spec.learn > 100_000:
+        raise ExperimentInputError(f"--learn must be in [0, 100000], got {spec.learn}")
+    if spec.learn and comp is Compensation.FEEDBACK:
+        raise ExperimentInputError("--learn learns the feedforward: use --compensation both or "
+                                   "feedforward")
+    if spec.learn and getattr(spec.make_trajectory(), "shape", None) is None:
+        raise ExperimentInputError("--learn needs a periodic trajectory (triangle, sine, steps): "
+                                   "a file is tracked once")
+    if spec.table:
+        _check_table(spec, rate)
+    report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
+    if comp is not Compensation.FEEDFORWARD and not report.stable:
+        raise ExperimentInputError(
+            f"the {spec.mode} law with the thesis gains is unstable sampled at {rate:g} Hz "
+            f"(spectral radius {report.spectral_radius:.4g} >= 1, delay 0): choose another "
+            "--rate-hz")
+    return comp, float(report.spectral_radius)
+
+
+def _check_table(spec: TrackingSpec, rate: float) -> None:
+    """A table to replay must load and be made for this trajectory at this rate."""
+    try:
+        table = FeedforwardTable.load(spec.table)
+        x_d, _ = trajectory_samples(spec.make_trajectory(), rate)
     except ControlError as exc:
         raise ExperimentInputError(str(exc)) from exc
+    why = table.matches(rate, x_d.size)
+    if why:
+        raise ExperimentInputError(f"--table {spec.table}: {why}")
+
+
+def _controller(spec: TrackingSpec, comp: Compensation, model_file: str, u_start: float,
+                rate: float) -> dict[str, Any]:
+    """The controller's overrides of one run (the trajectory, the compensation, learning)."""
+    controller: dict[str, Any] = {
+        "trigger": "sample",
+        "rate_hz": rate,
+        "delay_samples": 0,
+        "mode": spec.mode,
+        "start_closed": True,
+        "on_close": "reset",
+        "hold_voltage": u_start,
+        "wait_for_state_subscribers": 1,
+        "reference_source": "trajectory",
+        "trajectory": spec.trajectory
+        if spec.trajectory in ("sine", "triangle", "steps")
+        else str(Path(spec.trajectory).resolve()),
+        "trajectory_amplitude": spec.amplitude,
+        "trajectory_frequency": spec.frequency,
+        "trajectory_offset": math.nan if spec.offset is None else spec.offset,
+        "trajectory_rounding": spec.rounding,
+        "compensation": comp.value,
+        "feedforward_model": model_file,
+        "feedforward_form": spec.feedforward_form,
+        "learn_periods": int(spec.learn),
+    }
+    for key in ("v_max", "a_max"):
+        if math.isfinite(getattr(spec, key)):
+            controller[f"trajectory_{key}"] = getattr(spec, key)
+    if spec.table:
+        controller["feedforward_table"] = str(Path(spec.table).resolve())
+    if spec.table_out:
+        controller["feedforward_table_out"] = str(Path(spec.table_out).resolve())
+    return controller
+
+
+def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
+    """The lockstep plant + controller plan of one tracking run on the ``sim`` graph."""
+    comp, radius = _check(spec)
     trajectory = spec.make_trajectory()
     plant_ps = _load(spec.plant_model, "plant model")
     if plant_ps.dynamics is None:
         raise ExperimentInputError(
             f"plant model {spec.plant_model} is static: the loop needs the dynamic form (11.1)"
         )
-    rate = TRACKING_RATE_HZ
-    report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
-    duration = run_duration(trajectory, spec.periods) if duration is None else duration
+    rate = float(spec.rate_hz)
+    duration = spec.timing(trajectory)[0] if duration is None else duration
     x_start = float(trajectory.evaluate(0.0)[0])
     bw = plant_ps.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
@@ -144,86 +255,101 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         "v_max": 450.0,
         "w0": 0.0,
         "initial_displacement": x_start - bw.y0,
-        "initial_velocity": 0.0,
         "initial_voltage": u_start,
+        "initial_velocity": 0.0,
     }
-    ref = {
-        "trajectory": spec.trajectory
-        if spec.trajectory in ("sine", "triangle", "steps")
-        else str(Path(spec.trajectory).resolve()),
-        "trajectory_amplitude": spec.amplitude,
-        "trajectory_frequency": spec.frequency,
-        "trajectory_offset": math.nan if spec.offset is None else spec.offset,
-        "trajectory_rounding": spec.rounding,
-    }
-    for key in ("v_max", "a_max"):
-        if math.isfinite(getattr(spec, key)):
-            ref[f"trajectory_{key}"] = getattr(spec, key)
-    controller = {
-        "use_sim_time": True,
-        "trigger": "sample",
-        "sensor_qos": "reliable",
-        "rate_hz": rate,
-        "delay_samples": 0,
-        "mode": spec.mode,
-        "start_closed": True,
-        "on_close": "reset",
-        "hold_voltage": u_start,
-        "wait_for_state_subscribers": 1,
-        "reference_source": "trajectory",
-        "compensation": comp.value,
-        "feedforward_model": model_file,
-        **ref,
-    }
-    return Plan(
-        "tracking", spec.mode, rate, float(report.spectral_radius), duration, plant, controller
-    )
+    controller = {"use_sim_time": True, "sensor_qos": "reliable",
+                  **_controller(spec, comp, model_file, u_start, rate)}
+    return Plan("tracking", spec.mode, rate, radius, duration, plant, controller)
 
 
-def _decode(raw: list[tuple[int, bytes]]) -> dict[str, np.ndarray]:
-    from rclpy.serialization import deserialize_message
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
+
+def emulated_rig_graph(spec: TrackingSpec, model_file: str, namespace: str, folder: Path
+                       ) -> tuple[dict[str, Any], float]:
+    """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
+    controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
+    seconds to record."""
+    from piezo_stage.launch.graph import find_graph, load_yaml
+
+    comp, _ = _check(spec)
+    trajectory = spec.make_trajectory()
+    rate = float(spec.rate_hz)
+    port, link = _free_port(), str(folder / "sensor")
+    data = load_yaml(find_graph("emulated_rig").read_text())
+    plant = str(find_config(spec.plant_model)) if isinstance(spec.plant_model, str) else ""
+    if not plant:
+        raise ExperimentInputError("the emulated rig needs --plant-model as a file")
+    nodes = []
+    for entry in data["nodes"]:
+        if entry.get("name") == "rig":
+            command = list(entry["command"])
+            command[command.index("--params") + 1] = plant
+            command[command.index("--family") + 1] = RIG_RATES[rate]
+            command[command.index("--rate") + 1] = f"{rate:g}"
+            nodes.append({**entry, "command": command + ["--amp-tcp", str(port),
+                                                         "--sensor-link", link]})
+        elif entry.get("executable") == "voltage_driver":  # commands applied on arrival
+            nodes.append({**entry, "process": "rig_loop", "overrides": {
+                **entry["overrides"], "url": f"tcp://127.0.0.1:{port}",
+                "apply_at_stamp": False}})
+        elif entry.get("executable") == "laser_reader":
+            nodes.append({**entry, "process": "rig_loop", "overrides": {
+                **entry["overrides"], "url": link, "family": RIG_RATES[rate],
+                "rate_hz": rate}})
+    controller = _controller(spec, comp, model_file, RIG_RANGE[0], rate)
+    controller.update(u_min=RIG_RANGE[0], u_max=RIG_RANGE[1], hold_voltage=math.nan)
+    if spec.offset is None:  # x_d from RIG_FLOOR up: the amplifier's 0 V is no floor to track on
+        controller["trajectory_offset"] = spec.amplitude + RIG_FLOOR
+    nodes.append({"executable": "controller", "process": "rig_loop", "overrides": controller})
+    graph = {**data, "namespace": namespace, "nodes": nodes,
+             "description": f"tracking on the emulated rig ({spec.trajectory})"}
+    return graph, spec.timing(trajectory)[0]
+
+
+def _run_once(spec: TrackingSpec, plan: Plan | None, model_file: str, folder: Path,
+              progress: Progress | None, wall_timeout: float) -> Recording:
+    namespace = f"/tracking_{os.getpid()}_{next(_counter)}"
+    if plan is not None:
+        return run_plan(plan, namespace, progress, wall_timeout)
     from piezo_stage_msgs.msg import ControllerState
 
-    rows = []
-    for ns, data in raw:
-        m = deserialize_message(data, ControllerState)
-        rows.append((ns * 1e-9, m.reference, m.x1, m.u, m.u_pid, m.u_ff, m.loop_closed))
-    cols = list(zip(*rows)) if rows else [[] for _ in TRACKING_SIGNALS]
-    return {
-        k: np.asarray(v, dtype=bool if k == "loop_closed" else float)
-        for k, v in zip(TRACKING_SIGNALS, cols)
-    }
+    graph, seconds = emulated_rig_graph(spec, model_file, namespace, folder)
 
+    def note(raw) -> None:
+        states = raw["controller_state"]
+        if progress is not None and states:
+            done = (states[-1][0] - states[0][0]) * 1e-9
+            progress(min(done / seconds, 1.0), f"tracking on the emulated rig: {done:.1f} s")
 
-def _run_once(
-    plan: Plan, progress: Progress | None, wall_timeout: float
-) -> tuple[dict[str, np.ndarray], list[tuple[int, bytes]], float]:
-    from piezo_stage.launch import Launcher
-
-    from .runner import _collect
-
-    namespace = f"/tracking_{os.getpid()}_{time.monotonic_ns() % 10**9}"
-    domain_id = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
-    lines: list[str] = []
-    launch = Launcher(
-        graph_for(plan, namespace), sink=lambda n, line, err: lines.append(f"[{n}] {line}")
-    )
-    started = time.monotonic()
     try:
-        _, raw = _collect(plan, namespace, domain_id, progress, wall_timeout, launch)
-    except ExperimentError as exc:
-        raise ExperimentError(f"{exc}; node output:\n" + "\n".join(lines[-20:])) from exc
-    finally:
-        launch.stop()
-    return _decode(raw), raw, time.monotonic() - started
+        return record(graph, [Stream("controller_state", ControllerState, monotonic=True)],
+                      span("controller_state", seconds), wall_timeout=wall_timeout,
+                      data_timeout=60.0, progress=note, node_name="tracking")
+    except HarnessError as exc:
+        raise ExperimentError(f"tracking on the emulated rig: {exc.with_output()}") from exc
 
 
-def _figures(data: dict[str, np.ndarray], t_from: float) -> dict[str, Any]:
-    if data["t"].size < 10:
-        raise ExperimentError(f"only {data['t'].size} controller steps recorded")
-    x = data["x1"] + data["reference"]
-    return tracking_errors(data["t"], x, data["reference"], t_from).to_dict()
+def _period_rms(states: ControllerStates, period: float, count: int) -> list[float]:
+    """The RMS error of each of the first ``count`` periods."""
+    out = []
+    for j in range(count):
+        inside = (states.t >= j * period) & (states.t < (j + 1) * period)
+        e = states.x1[inside]
+        out.append(float(np.sqrt(np.mean(e * e))) if e.size else math.nan)
+    return out
+
+
+def _figures(states: ControllerStates, t_from: float) -> dict[str, Any]:
+    if states.t.size < 10:
+        raise ExperimentError(f"only {states.t.size} controller steps recorded")
+    figures = tracking_errors(states.t, states.x, states.reference, t_from).to_dict()
+    figures.pop("learning", None)
+    return figures
 
 
 def run_tracking(
@@ -240,66 +366,68 @@ def run_tracking(
     if bag is not None and Path(bag).exists():
         raise ExperimentInputError(f"bag {bag} already exists")
     trajectory = spec.make_trajectory()
-    t_from = settle_time(trajectory)
+    seconds, t_from = spec.timing(trajectory)
+    if duration is not None:
+        seconds = duration
+    sim = spec.graph == "sim"
     with tempfile.TemporaryDirectory(prefix="tracking_") as tmp:
-        plan = make_tracking_plan(spec, _model_file(spec, Path(tmp)), duration)
-        runs = [(spec.compensation, plan)]
+        folder = Path(tmp)
+        specs = [(spec.compensation, spec)]
         if compare and compensation(spec.compensation) is not Compensation.FEEDBACK:
-            runs.append(
-                (
-                    "feedback",
-                    make_tracking_plan(replace(spec, compensation="feedback"), "", duration),
-                )
-            )
-        results: dict[str, Any] = {}
-        for label, p in runs:
+            specs.append(("feedback", replace(spec, compensation="feedback", learn=0,
+                                              table=None, table_out=None)))
+        runs: dict[str, tuple[ControllerStates, Recording]] = {}
+        for label, s in specs:
+            model_file = _model_file(s, folder)
+            plan = make_tracking_plan(s, model_file, seconds) if sim else None
+            _check(s)
             if progress is not None:
-                progress(
-                    0.0,
-                    f"tracking/{label}: {spec.trajectory} at {p.rate_hz / 1e3:g} kHz, "
-                    f"{p.duration:g} s simulated",
-                )
-            # generous: ~2000 steps/s on an idle machine, 10x slower under load
-            timeout = wall_timeout or 60.0 + p.duration * p.rate_hz / 200.0
-            data, raw, wall = _run_once(p, progress, timeout)
-            results[label] = (data, raw, wall)
-    data, raw, wall = results[spec.compensation]
+                progress(0.0, f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
+                         f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""))
+            # sim: generous, ~2000 steps/s on an idle machine, 10x slower under load
+            timeout = wall_timeout or (60.0 + seconds * s.rate_hz / 200.0 if sim
+                                       else 120.0 + 3 * seconds)
+            recording = _run_once(s, plan, model_file, folder, progress, timeout)
+            runs[label] = (recording.states(relative=not sim), recording)
+    states, recording = runs[spec.compensation]
     out: dict[str, Any] = {
         "experiment": "tracking",
+        "graph": spec.graph,
         "trajectory": spec.trajectory,
         "mode": spec.mode,
         "compensation": spec.compensation,
         "amplitude": spec.amplitude,
         "frequency": spec.frequency,
-        "rate_hz": plan.rate_hz,
-        "duration": float(data["t"][-1]) if data["t"].size else 0.0,
-        "samples": int(data["t"].size),
+        "rate_hz": float(spec.rate_hz),
+        "duration": float(states.t[-1]) if states.t.size else 0.0,
+        "samples": int(states.t.size),
         "measured_from": t_from,
         "plant_model": str(spec.plant_model),
         "model": spec.model
         if isinstance(spec.model, str) or spec.model is None
         else spec.model.name,
-        **_figures(data, t_from),
-        "max_abs_u": float(np.abs(data["u"]).max()),
-        "wall_time": wall,
-        "steps_per_wall_second": data["t"].size / wall,
+        **_figures(states, t_from),
+        "learning": _period_rms(states, trajectory.period, spec.learn) if spec.learn else [],
+        "max_abs_u": float(np.abs(states.u).max()),
+        "wall_time": recording.wall_time,
+        "steps_per_wall_second": states.t.size / recording.wall_time,
     }
-    if "feedback" in results and spec.compensation != "feedback":
-        fb = _figures(results["feedback"][0], t_from)
+    if spec.table_out and spec.learn:
+        out["table"] = str(spec.table_out)
+    if "feedback" in runs and spec.compensation != "feedback":
+        fb = _figures(runs["feedback"][0], t_from)
         out["feedback"] = fb
         out["rms_ratio"] = out["rms_error"] / fb["rms_error"] if fb["rms_error"] > 0 else math.nan
     if bag is not None:
-        from .runner import _write_bag
-
-        _write_bag(Path(bag), "/tracking", raw)
+        recording.write_bag(bag, {"controller_state": STATE_TYPE})
         out["bag"] = str(bag)
     if png_dir is not None:
-        fb = (
-            results["feedback"][0]
-            if "feedback" in results and spec.compensation != "feedback"
-            else None
-        )
-        out["png"] = [str(plot_tracking(data, Path(png_dir), spec, fb, t_from))]
+        fb_states = runs["feedback"][0] if "feedback" in runs and spec.compensation != \
+            "feedback" else None
+        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, t_from))]
+        if spec.learn:
+            out["png"].append(str(plot_learning(states, Path(png_dir), spec, trajectory.period,
+                                                out["learning"])))
     if progress is not None:
         progress(
             1.0,
@@ -309,30 +437,47 @@ def run_tracking(
     return out
 
 
+def _name(spec: TrackingSpec) -> str:
+    return Path(spec.trajectory).stem if spec.trajectory.endswith(".csv") else spec.trajectory
+
+
 def plot_tracking(
-    data: dict[str, np.ndarray],
+    states: ControllerStates,
     out_dir: Path,
     spec: TrackingSpec,
-    feedback: dict[str, np.ndarray] | None,
+    feedback: ControllerStates | None,
     t_from: float,
 ) -> Path:
     """The run's PNG (x_d and x, the error, u and u_ff), the feedback-only run faint beside."""
     from piezo_stage.plotting.figures import tracking_figure
 
-    name = Path(spec.trajectory).stem if spec.trajectory.endswith(".csv") else spec.trajectory
-    fb = None if feedback is None else (feedback["t"], feedback["x1"] + feedback["reference"])
+    name = _name(spec)
+    fb = None if feedback is None else (feedback.t, feedback.x)
+    where = "lockstep" if spec.graph == "sim" else "emulated rig"
     return tracking_figure(
         Path(out_dir) / f"tracking_{name}_{spec.compensation}.png",
-        data["t"],
-        data["reference"],
-        data["x1"] + data["reference"],
-        data["u"],
-        data["u_ff"],
+        states.t,
+        states.reference,
+        states.x,
+        states.u,
+        states.u_ff,
         feedback=fb,
         t_from=t_from,
         title=f"tracking {name}, {spec.frequency:g} Hz — {spec.compensation} "
-        f"({spec.mode}, {TRACKING_RATE_HZ / 1e3:g} kHz lockstep)",
+        f"({spec.mode}, {spec.rate_hz / 1e3:g} kHz {where})",
     )
+
+
+def plot_learning(states: ControllerStates, out_dir: Path, spec: TrackingSpec, period: float,
+                  learning: list[float]) -> Path:
+    """The error over the learning periods, and the RMS of each."""
+    from piezo_stage.plotting.figures import learning_figure
+
+    name = _name(spec)
+    return learning_figure(
+        Path(out_dir) / f"tracking_{name}_learning.png", states.t, states.x1, period, learning,
+        title=f"learning the feedforward: {name}, {spec.frequency:g} Hz at "
+        f"{spec.rate_hz / 1e3:g} kHz ({spec.graph})")
 
 
 def identify_model(out: str | os.PathLike[str], plant_model: str = DEFAULT_PLANT) -> ParameterSet:

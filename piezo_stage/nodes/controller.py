@@ -59,6 +59,18 @@ from piezo_stage.control.controller import (
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import LAWS, THESIS_GAINS, Gains
+from piezo_stage.control.learning import (
+    FeedforwardForm,
+    FeedforwardTable,
+    IterativeLearning,
+    LearningConfig,
+    LearningError,
+    PeriodicLearner,
+    choose_form,
+    feedforward_response,
+    sampled_feedforward,
+    trajectory_samples,
+)
 from piezo_stage.control.setpoint import ReferenceSource, SetPoint
 from piezo_stage.control.supervision import (
     GainCheck,
@@ -153,6 +165,23 @@ PARAMETERS = ParameterTable("controller", (
           "(u_ff + the law)", choices=Compensation, read_only=True),
     Param("feedforward_model", "", "dynamic parameter set of the feedforward (input displacement; "
           "name in config/ or path); needed unless compensation=feedback", read_only=True),
+    Param("feedforward_form", "auto", "feedforward of a trajectory: sampled (the command "
+          "staircase the model says the loop at rate_hz needs, computed at start), continuous "
+          "(the model stepped along x_d) or auto (sampled below 10 times the model's "
+          "resonance)", choices=FeedforwardForm, read_only=True),
+    Param("feedforward_table", "", "a saved feedforward table (JSON, e.g. learned) replayed "
+          "instead; made for this trajectory at rate_hz", read_only=True),
+    Param("learn_periods", 0, "learn the feedforward table over this many periods of the "
+          "trajectory, then keep it (0: no learning)", range=(0, 1_000_000), read_only=True),
+    Param("learn_gain", 1.0, "learning gain of L = -gain/G (G: the model's loop)", "",
+          (1e-3, 1.0), read_only=True),
+    Param("learn_cutoff_hz", 0.0, "learning Q-filter cutoff (0: a quarter of rate_hz, at most "
+          "half the model's resonance)", "Hz",
+          (0.0, 1e7), read_only=True),
+    Param("learn_slew_rate", math.inf, "slew limit every table value keeps (the amplifier's)",
+          "V/s", read_only=True),
+    Param("feedforward_table_out", "", "save the learned table here (JSON) once learning ends",
+          read_only=True),
     Param("bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or "
           "path)"),
     Param("open_at", -1.0, "open the loop at this time of the node clock (< 0: never); "
@@ -185,6 +214,8 @@ class ControllerNode(Node):
                                      self._rate, int(s.delay_samples))
         self._feedforward = self._load_feedforward()
         trajectory = self._load_trajectory()
+        self._table = self._load_table(trajectory)
+        self._learner: PeriodicLearner | None = None
         config = self._config({})
         report = self._gain_check.reasons(config)
         if report and not s.allow_unverified_gains:
@@ -198,6 +229,8 @@ class ControllerNode(Node):
             open_duration=float(s.open_duration)), notify=self._notify)
         self.setpoint = SetPoint(s.reference_source, float(s.reference), trajectory=trajectory,
                                  y0=float(s.reference_y0), ydot0=float(s.reference_ydot0))
+        if s.learn_periods > 0:
+            self._learner = self._make_learner(config)
         #: the loop thread (composed) and the executor (parameters, services) share the law
         self.lock = threading.Lock()
         on_set(self, self._check_params)
@@ -239,7 +272,8 @@ class ControllerNode(Node):
             tracking_time=float(p["tracking_time"]) or None,
             derivative_tau=float(p["derivative_tau"]),
             hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"],
-            compensation=self.settings.compensation, feedforward=self._feedforward)
+            compensation=self.settings.compensation, feedforward=self._feedforward,
+            feedforward_table=self._table)
         config.validate()
         return config
 
@@ -258,6 +292,82 @@ class ControllerNode(Node):
             return FeedforwardModel.load(find_config(name))
         except (ControlError, OSError) as exc:
             raise ParameterError(f"controller: feedforward_model: {exc}") from None
+
+    def _load_table(self, trajectory: Trajectory | None) -> FeedforwardTable | None:
+        """The feedforward table: ``feedforward_table`` loaded, or the sampled form computed for
+        the trajectory at rate_hz; None for the continuous form or without a trajectory."""
+        s = self.settings
+        if s.compensation is Compensation.FEEDBACK:
+            return None
+        uses_trajectory = s.reference_source is ReferenceSource.TRAJECTORY \
+            and trajectory is not None
+        # learning needs a table: it starts from the sampled form whatever the rate
+        form = FeedforwardForm.SAMPLED if s.learn_periods > 0 else s.feedforward_form
+        if not s.feedforward_table and (not uses_trajectory or self._feedforward is None or
+                                        choose_form(form, self._feedforward, self._rate)
+                                        is FeedforwardForm.CONTINUOUS):
+            return None
+        if not uses_trajectory:
+            raise ParameterError("controller: feedforward_table needs reference_source "
+                                 "trajectory (the table follows the trajectory's time)")
+        try:
+            x_d, periodic = trajectory_samples(trajectory, self._rate)
+            if s.feedforward_table:
+                table = FeedforwardTable.load(find_config(s.feedforward_table))
+                why = table.matches(self._rate, x_d.size)
+                if why:
+                    raise LearningError(f"feedforward_table {s.feedforward_table}: {why}")
+                return table
+            assert self._feedforward is not None
+            table = sampled_feedforward(self._feedforward, x_d, self._rate, periodic=periodic,
+                                        delay_samples=int(s.delay_samples))
+        except (ControlError, OSError) as exc:
+            raise ParameterError(f"controller: {exc}") from None
+        table.meta = {"trajectory": s.trajectory, "amplitude": s.trajectory_amplitude,
+                      "frequency": s.trajectory_frequency, "offset": s.trajectory_offset,
+                      "rounding": s.trajectory_rounding, "model": s.feedforward_model,
+                      "form": "sampled"}
+        return table
+
+    def _make_learner(self, config: ControllerConfig) -> PeriodicLearner:
+        """Learning over learn_periods periods (a periodic trajectory, its table, the model)."""
+        s, table = self.settings, self._table
+        if table is None or not table.periodic or self._feedforward is None:
+            raise ParameterError("controller: learn_periods needs compensation feedforward or "
+                                 "both, reference_source trajectory with a periodic trajectory, "
+                                 "and feedforward_form sampled or a feedforward_table")
+        gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
+        response = feedforward_response(self._feedforward, self._rate, len(table),
+                                        delay_samples=int(s.delay_samples), gains=gains)
+        try:
+            learning = IterativeLearning(table, response, LearningConfig(
+                gain=float(s.learn_gain), cutoff_hz=float(s.learn_cutoff_hz) or None,
+                u_min=float(s.u_min), u_max=float(s.u_max),
+                slew_rate=float(s.learn_slew_rate)), self._feedforward)
+        except ControlError as exc:
+            raise ParameterError(f"controller: {exc}") from None
+        return PeriodicLearner(learning, int(s.learn_periods), on_done=self._learned)
+
+    def _learned(self, learner: PeriodicLearner) -> None:
+        """Learning ended (loop thread): saving and logging go through the hand-off."""
+        self._emit(self._save_table, learner)
+
+    def _save_table(self, learner: PeriodicLearner) -> None:
+        history = learner.learning.history
+        table = learner.learning.table
+        table.meta.update({"learned_periods": learner.completed,
+                           "learning_rms": list(history)})
+        text = (f"feedforward learned over {learner.completed} periods: RMS error "
+                f"{history[0]:.3g} m -> {history[-1]:.3g} m" if history else
+                f"feedforward learning ended after {learner.completed} periods")
+        out = self.settings.feedforward_table_out
+        if out:
+            try:
+                table.save(out)
+                text += f"; table saved to {out}"
+            except OSError as exc:
+                text += f"; could not save it to {out}: {exc}"
+        self.get_logger().info(text)
 
     def _load_trajectory(self) -> Trajectory | None:
         """The trajectory of reference_source=trajectory, built (and checked) at start."""
@@ -386,6 +496,9 @@ class ControllerNode(Node):
             self._emit(self._publish_reference, stamp, yr)
         out = self.supervisor.step(t, yr, yr_dot, yr_ddot)
         self.last_step = out
+        learner = self._learner
+        if learner is not None and out.loop_closed and not learner.frozen:
+            learner.record(self.pid.table_index, out.x1)
         u = self.supervisor.command(out)
         if publish:
             self._emit(self._publish, out, u, stamp)
@@ -437,6 +550,12 @@ class ControllerNode(Node):
 
     def _diagnose(self) -> Diagnosis:
         level, message, values = self.supervisor.diagnose()
+        learner = self._learner
+        if learner is not None:
+            history = learner.learning.history
+            values.update({"learning_periods": learner.completed,
+                           "learning_frozen": learner.frozen,
+                           "learning_rms": history[-1] if history else math.nan})
         return Diagnosis(LEVELS[level], message, values)
 
 

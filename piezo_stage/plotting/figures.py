@@ -257,3 +257,45 @@ def tracking_figure(
         ax.legend(loc="upper right")
     a1.set_title(title or "tracking")
     return _save(fig, path)
+
+
+def learning_figure(
+    path: str | Path,
+    t: np.ndarray,
+    error: np.ndarray,
+    period: float,
+    learning: Sequence[float],
+    *,
+    title: str = "",
+) -> Path:
+    """Learning a feedforward: the RMS error of each learning period [nm] (log scale), and the
+    error x − x_d [nm] against the time within the period, one line per learning period
+    (light to dark) and the measured periods after it (black)."""
+    plt = _pyplot()
+    t, error = np.asarray(t, dtype=float), np.asarray(error, dtype=float)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 7))
+    k = np.arange(1, len(learning) + 1)
+    a1.semilogy(k, np.asarray(learning) * 1e9, "o-", color="C0")
+    a1.set_xlabel("learning period")
+    a1.set_ylabel("RMS error [nm]")
+    a1.grid(alpha=0.3, which="both")
+    n_learn = len(learning)
+    cmap = plt.get_cmap("viridis")
+    index = np.floor((t - t[0]) / period + 1e-9).astype(int) if t.size else t
+    for j in range(int(index.max()) + 1 if t.size else 0):
+        mask = index == j
+        if not mask.any():
+            continue
+        phase = (t[mask] - t[0] - j * period) * 1e3
+        if j < n_learn:
+            a2.plot(phase, error[mask] * 1e9, lw=0.8, color=cmap(j / max(n_learn, 1)),
+                    label="learning" if j == 0 else None)
+        else:
+            a2.plot(phase, error[mask] * 1e9, lw=1.0, color="k",
+                    label="learned (frozen)" if j == n_learn else None)
+    a2.set_xlabel("time in the period [ms]")
+    a2.set_ylabel("error x − x_d [nm]")
+    a2.grid(alpha=0.3)
+    a2.legend(loc="upper right")
+    a1.set_title(title or "learning the feedforward")
+    return _save(fig, path)

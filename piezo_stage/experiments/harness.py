@@ -1,0 +1,238 @@
+"""One harness for every closed-loop or excitation run through the ROS graph: launch a graph,
+record the topics it publishes (raw CDR, stamped with the message's header, decoded after the
+run so that the recorder keeps pace with a lockstep graph), stop when the record holds what the
+run needs, give back a typed :class:`Recording`.
+
+Used by the ch. 11 experiments, tracking and commissioning (its sweeps and its acceptance run)
+alike::
+
+    recording = record(graph, [Stream("controller_state", ControllerState, monotonic=True)],
+                       until=samples("controller_state", 3000), wall_timeout=120.0)
+    states = recording.states()          # ControllerStates: t, x0, x1, x2, u, ... as arrays
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+import time
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from .errors import ExperimentError
+
+#: header.stamp (sec, nanosec) after the 4-byte CDR encapsulation (byte 1: 1 little-, 0 big-endian)
+_STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
+
+Raw = dict[str, list[tuple[int, bytes]]]
+#: when the record holds what the run needs
+Until = Callable[[Mapping[str, list[tuple[int, bytes]]]], bool]
+
+
+class HarnessError(ExperimentError):
+    """The graph did not deliver what the run needs (a node died, no data, a timeout);
+    ``lines``: what the graph's nodes printed last."""
+
+    def __init__(self, message: str, lines: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.lines = list(lines)
+
+    def with_output(self, last: int = 20) -> str:
+        tail = "\n".join(self.lines[-last:])
+        return f"{self}; node output:\n{tail}" if tail else str(self)
+
+
+def stamp_ns(data: bytes) -> int:
+    """header.stamp [ns] of a serialized message whose first field is a std_msgs/Header."""
+    sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+@dataclass(frozen=True)
+class Stream:
+    """A topic to record (relative to the graph's namespace), its message class, QoS
+    (reliable, or best effort to match the devices' SensorDataQoS; ``depth`` deep, so a busy
+    moment loses nothing) and ``monotonic``: keep only messages stamped after the last one (a
+    lockstep plant re-offers step 0 to a late controller)."""
+
+    topic: str
+    msg_type: type
+    reliable: bool = True
+    depth: int = 0  # 0: the lockstep depth
+    monotonic: bool = False
+
+
+def samples(topic: str, n: int) -> Until:
+    """Until ``topic`` holds ``n`` messages."""
+    return lambda raw: len(raw[topic]) >= n
+
+
+def span(topic: str, seconds: float) -> Until:
+    """Until the stamps of ``topic`` span ``seconds`` from its first message."""
+    end = int(round(seconds * 1e9))
+    return lambda raw: bool(raw[topic]) and raw[topic][-1][0] - raw[topic][0][0] >= end
+
+
+@dataclass(frozen=True)
+class ControllerStates:
+    """controller_state decoded, one array per field; ``t`` [s] from the stamps (minus ``t0``)."""
+
+    t: np.ndarray
+    reference: np.ndarray
+    x0: np.ndarray
+    x1: np.ndarray
+    x2: np.ndarray
+    u: np.ndarray
+    u_pid: np.ndarray
+    u_excitation: np.ndarray
+    u_ff: np.ndarray
+    loop_closed: np.ndarray
+
+    @classmethod
+    def decode(cls, raw: Sequence[tuple[int, bytes]], t0_ns: int = 0) -> "ControllerStates":
+        from rclpy.serialization import deserialize_message
+
+        from piezo_stage_msgs.msg import ControllerState
+
+        names = [f.name for f in fields(cls)][1:]
+        rows = [((ns - t0_ns) * 1e-9, *(getattr(m, k) for k in names))
+                for ns, m in ((ns, deserialize_message(d, ControllerState)) for ns, d in raw)]
+        cols = list(zip(*rows)) if rows else [[] for _ in range(len(names) + 1)]
+        return cls(*(np.asarray(c, dtype=bool if k == "loop_closed" else float)
+                     for k, c in zip(["t", *names], cols)))
+
+    @property
+    def x(self) -> np.ndarray:
+        """The measured position x1 + x_d [m]."""
+        return self.x1 + self.reference
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class Recording:
+    """What :func:`record` recorded: per topic (stamp ns, raw CDR) in arrival order."""
+
+    namespace: str
+    raw: Raw
+    wall_time: float
+    lines: list[str] = field(default_factory=list)
+
+    def states(self, topic: str = "controller_state", relative: bool = False) -> ControllerStates:
+        """``topic`` decoded (``relative``: t from its first stamp, as a rig's wall clock)."""
+        items = self.raw[topic]
+        return ControllerStates.decode(items, items[0][0] if relative and items else 0)
+
+    def write_bag(self, path: str | os.PathLike[str], types: Mapping[str, str],
+                  sort: bool = False) -> None:
+        """The recorded ``types`` (topic → 'pkg/msg/Type') into an MCAP bag folder, under the
+        namespace (``sort``: each topic by stamp, for best-effort streams)."""
+        from piezo_stage.bag.writer import BagWriter
+
+        with BagWriter(Path(path)) as bag:
+            for topic, type_name in types.items():
+                name = f"{self.namespace}/{topic}"
+                bag.add_topic(name, type_name)
+                items = self.raw[topic]
+                for ns, data in sorted(items, key=lambda p: p[0]) if sort else items:
+                    bag.write(name, data, ns)
+
+
+def record(
+    graph: Mapping[str, Any],
+    streams: Sequence[Stream],
+    until: Until,
+    *,
+    params: Sequence[str] = (),
+    launch_timeout: float = 30.0,
+    wall_timeout: float = 600.0,
+    data_timeout: float = math.inf,
+    required: Sequence[str] | None = None,
+    progress: Callable[[Raw], None] | None = None,
+    node_name: str = "recorder",
+) -> Recording:
+    """Launch ``graph`` (a graph mapping with its ``namespace``; ``params`` as ``--param``),
+    record ``streams`` from before its first message until ``until(raw)``, stop the graph.
+
+    HarnessError (with the nodes' last output) when the graph fails to start, when a
+    ``required`` topic (default: every stream) has no message ``data_timeout`` s after the
+    start, or when ``until`` does not hold ``wall_timeout`` s after it. ``progress(raw)`` is
+    called every 2 s of wall time."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from piezo_stage.launch import Launcher, LaunchError
+    from piezo_stage.nodes.executor import LeanExecutor
+    from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
+
+    namespace = str(graph["namespace"])
+    raw: Raw = {s.topic: [] for s in streams}
+    needed = [s.topic for s in streams] if required is None else list(required)
+    lines: list[str] = []
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+    node = rclpy.create_node(node_name, namespace=namespace, context=ctx)
+    for stream in streams:
+        sink = raw[stream.topic]
+
+        def on_message(data: bytes, sink: list = sink, monotonic: bool = stream.monotonic) -> None:
+            ns = stamp_ns(data)
+            if monotonic and sink and ns <= sink[-1][0]:
+                return
+            sink.append((ns, data))
+
+        qos = QoSProfile(depth=stream.depth or LOCKSTEP_DEPTH,
+                         reliability=ReliabilityPolicy.RELIABLE if stream.reliable
+                         else ReliabilityPolicy.BEST_EFFORT)
+        node.create_subscription(stream.msg_type, stream.topic, on_message, qos, raw=True)
+    executor = LeanExecutor(context=ctx)  # a message per wake-up at 1-2 kHz on a loaded host
+    executor.add_node(node)
+    launch = None
+    started = time.monotonic()
+    try:
+        launch = Launcher(dict(graph), params=list(params), timeout=launch_timeout,
+                          sink=lambda name, line, err: lines.append(f"[{name}] {line}"))
+        launch.start()  # the subscriptions exist before the graph's first message
+        launch.wait_ready()
+        started = time.monotonic()
+        next_note = started + 2.0
+        while not until(raw):
+            now = time.monotonic()
+            if now - started > wall_timeout:
+                counts = ", ".join(f"{len(v)} on {k}" for k, v in raw.items())
+                raise HarnessError(f"not done after {wall_timeout:g} s ({counts})", lines)
+            missing = [k for k in needed if not raw[k]]
+            if missing and now - started > data_timeout:
+                raise HarnessError(f"no {' and no '.join(missing)} message within "
+                                   f"{data_timeout:g} s", lines)
+            executor.spin_once(timeout_sec=0.05)
+            if progress is not None and now > next_note:
+                next_note += 2.0
+                progress(raw)
+    except LaunchError as exc:
+        raise HarnessError(str(exc), lines) from exc
+    finally:
+        if launch is not None:
+            launch.stop()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    return Recording(namespace, raw, time.monotonic() - started, lines)
+
+
+__all__ = [
+    "ControllerStates",
+    "HarnessError",
+    "Recording",
+    "Stream",
+    "Until",
+    "record",
+    "samples",
+    "span",
+    "stamp_ns",
+]
