@@ -80,3 +80,50 @@ def test_csv_trajectory_with_feedforward_alone(model, tmp_path, capsys):
     assert out["range"] == pytest.approx(2e-6, rel=0.02) and out["measured_from"] == 0.0
     assert out["rms_error"] < 0.05 * out["range"]  # open loop on a fitted model: close
     assert main(["experiment", "tracking", "--compensation", "both"]) == 2  # no --model
+
+
+@pytest.mark.unit
+def test_rates_tables_and_learning_that_cannot_run_are_refused(model, tmp_path, capsys):
+    """Exit 2 with the reason, before any graph starts: a rate where the thesis gains fail the
+    sampled-loop check, learning on a trajectory that does not repeat, a table made for
+    another period, a rate the emulated rig's sensor does not serve."""
+    from piezo_stage.cli import main
+    from piezo_stage.control.learning import FeedforwardTable
+
+    csv = tmp_path / "scan.csv"
+    csv.write_text("t, x\n0, 0\n0.01, 1e-6\n0.02, 2e-6\n")
+    table = FeedforwardTable(np.zeros(50), 1000.0).save(tmp_path / "table.json")
+    base = ["experiment", "tracking", "--model", str(model)]
+    for extra, reason in ((["--rate-hz", "10000"], "unstable sampled at 10000 Hz"),
+                          (["--trajectory", str(csv), "--learn", "5"], "periodic trajectory"),
+                          (["--rate-hz", "1000", "--table", str(table)], "holds 50 samples"),
+                          (["--graph", "emulated_rig", "--rate-hz", "2000"], "1000 or 10000"),
+                          (["--compensation", "feedback", "--learn", "5"], "learns the")):
+        assert main(base + extra) == 2, extra
+        assert reason in capsys.readouterr().err
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_learning_at_1_khz_then_replaying_the_saved_table(model, tmp_path, capsys):
+    """The sim graph at 1 kHz: the sampled feedforward's first period, then 20 learning periods
+    to under 0.2 % of the range (the figure asked; 0.009 % measured), the table saved with its
+    history; a second run replaying it without learning tracks as well."""
+    from piezo_stage.cli import main
+    from piezo_stage.control.learning import FeedforwardTable
+
+    table = tmp_path / "table.json"
+    assert main(["experiment", "tracking", "--rate-hz", "1000", "--learn", "20", "--model",
+                 str(model), "--table-out", str(table), "--png", str(tmp_path / "png"),
+                 "--json"]) == 0
+    learned = json.loads(capsys.readouterr().out)
+    assert learned["rate_hz"] == 1000.0 and len(learned["learning"]) == 20
+    assert learned["rms_relative"] <= 0.002
+    assert learned["learning"][0] > 5 * learned["rms_error"]  # it learned
+    assert (tmp_path / "png" / "tracking_triangle_learning.png").is_file()
+    saved = FeedforwardTable.load(table)
+    assert len(saved) == 100 and saved.rate_hz == 1000.0 and saved.meta["learned_periods"] >= 2
+    assert main(["experiment", "tracking", "--rate-hz", "1000", "--table", str(table),
+                 "--model", str(model), "--json"]) == 0
+    replayed = json.loads(capsys.readouterr().out)
+    assert replayed["learning"] == [] and replayed["rms_relative"] <= 0.002

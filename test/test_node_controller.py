@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -210,6 +211,25 @@ def test_bad_start_parameters_exit_with_the_reason(param, reason):
     finally:
         out, err = stop(proc)
     assert reason in err
+
+
+def test_learning_and_tables_that_cannot_serve_exit_with_the_reason(tmp_path):
+    """A table made for another period, learning without a feedforward to learn, a period that
+    is no whole number of samples: each refused at start (exit 2) with what is wrong."""
+    from piezo_stage.control.learning import FeedforwardTable
+
+    table = FeedforwardTable(np.zeros(50), 1000.0).save(tmp_path / "table.json")
+    tracking = ("compensation:=both", "feedforward_model:=ch11_rig.yaml",
+                "reference_source:=trajectory", "rate_hz:=1000.0", "delay_samples:=0")
+    for params, reason in (((*tracking, f"feedforward_table:={table}"), "holds 50 samples"),
+                           (("learn_periods:=5",), "learn_periods needs compensation"),
+                           ((*tracking, "trajectory_frequency:=3.0"), "a whole number")):
+        proc = start_node("controller", *params, namespace=NS)
+        try:
+            assert proc.wait(timeout=30) == 2
+        finally:
+            out, err = stop(proc)
+        assert reason in err, err[-2000:]
 
 
 @pytest.mark.parametrize(

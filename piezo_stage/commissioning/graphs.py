@@ -3,21 +3,19 @@ parameter-set file, lockstep: deterministic, as fast as the graph goes), ``emula
 device emulators behind the real drivers, real time) and ``rig`` (the real devices of
 config/graphs/rig_identification.yaml). Each excitation is its own launch: the graph without its
 excitation/identifier entries, plus an ``excitation`` node with the step's plan; an in-process
-node records ``voltage``, ``displacement`` and ``excitation`` (raw CDR) into an MCAP bag.
+node records ``voltage``, ``displacement`` and ``excitation`` (raw CDR, the experiments'
+harness) into an MCAP bag.
 """
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
 import os
 import socket
-import struct
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -28,7 +26,6 @@ from .procedure import RigError
 from .sweep import Series
 
 GRAPHS = ("sim", "emulated_rig", "rig")
-_STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
 _TOPICS = {
     "voltage": "piezo_stage_msgs/msg/Voltage",
     "displacement": "piezo_stage_msgs/msg/Displacement",
@@ -47,11 +44,6 @@ def _run_error(label: str, exc: Exception, lines: list[str]) -> GraphRunError:
     """A run's failure with the last lines the graph's nodes printed."""
     tail = "\n".join(lines[-15:])
     return GraphRunError(f"{label}: {exc}" + (f"; node output:\n{tail}" if tail else ""))
-
-
-def _stamp_ns(data: bytes) -> int:
-    sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 def _plan_overrides(plan: ExcitationPlan) -> dict[str, Any]:
@@ -121,74 +113,31 @@ class RosRig:
 
     def excite(self, plan: ExcitationPlan, bag: Path, label: str) -> Series:
         """Run ``plan`` on the graph; record it to ``bag``; return what was recorded."""
-        from piezo_stage.launch import Launcher, LaunchError
-
-        namespace = f"/commission_{os.getpid()}_{next(_counter)}"
-        lines: list[str] = []
-        launch = None
-        try:
-            launch = Launcher(
-                self._graph(plan, namespace),
-                params=self.extra_params,
-                timeout=self.data_timeout,
-                sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
-            )
-            raw = self._collect(launch, namespace, plan, label)
-        except (GraphRunError, LaunchError) as exc:
-            raise _run_error(label, exc, lines) from exc
-        finally:
-            if launch is not None:
-                launch.stop()
-        _write_bag(bag, namespace, raw)
-        return _series(raw)
-
-    def _collect(
-        self, launch: Any, namespace: str, plan: ExcitationPlan, label: str
-    ) -> dict[str, list]:
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
+        from piezo_stage.experiments.harness import HarnessError, Stream, record
         from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
-        raw: dict[str, list] = {k: [] for k in _TOPICS}
-        stream = (
-            QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-            if self.lockstep
-            # best effort matches the devices' SensorDataQoS; deep, so a busy moment loses nothing
-            else QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
-        )
-        marks_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        topics = [
-            ("voltage", Voltage, stream, raw["voltage"]),
-            ("displacement", Displacement, stream, raw["displacement"]),
-            ("excitation", ExcitationInfo, marks_qos, raw["excitation"]),
-        ]
-        with _listener(namespace, topics) as executor:
-            launch.start()
-            launch.wait_ready()
-            started = time.monotonic()
-            next_note = started + 2.0
-            while True:
-                if time.monotonic() - started > self.wall_timeout:
-                    raise GraphRunError(f"not done after {self.wall_timeout:g} s")
-                executor.spin_once(timeout_sec=0.05)
-                if not raw["excitation"] or not raw["displacement"]:
-                    if time.monotonic() - started > self.data_timeout:
-                        missing = [k for k in ("displacement", "excitation") if not raw[k]]
-                        raise GraphRunError(
-                            f"no {' and no '.join(missing)} message within "
-                            f"{self.data_timeout:g} s: "
-                            "the graph has no working sensor or excitation"
-                        )
-                    continue
-                t0 = raw["excitation"][0][0]  # marks arrive in order (reliable, one writer)
-                done = (raw["displacement"][-1][0] - t0) * 1e-9
-                if recorded_to_the_end(raw, plan.duration, self.rate_hz):
-                    break
-                if time.monotonic() > next_note:
-                    next_note += 2.0
-                    self.progress("graph", f"{label}: {percent(done, plan.duration)}")
-        return raw
+        namespace = f"/commission_{os.getpid()}_{next(_counter)}"
+        # a rig's streams best effort (they match the devices' SensorDataQoS), deep either way
+        streams = [Stream("voltage", Voltage, reliable=self.lockstep),
+                   Stream("displacement", Displacement, reliable=self.lockstep),
+                   Stream("excitation", ExcitationInfo, depth=1000)]
+
+        def note(raw: dict[str, list]) -> None:
+            if raw["excitation"] and raw["displacement"]:
+                done = (raw["displacement"][-1][0] - raw["excitation"][0][0]) * 1e-9
+                self.progress("graph", f"{label}: {percent(done, plan.duration)}")
+
+        try:
+            recording = record(
+                self._graph(plan, namespace), streams,
+                lambda raw: recorded_to_the_end(raw, plan.duration, self.rate_hz),
+                params=self.extra_params, launch_timeout=self.data_timeout,
+                wall_timeout=self.wall_timeout, data_timeout=self.data_timeout,
+                required=("displacement", "excitation"), progress=note, node_name="commission")
+        except HarnessError as exc:
+            raise _run_error(label, exc, exc.lines) from exc
+        recording.write_bag(bag, _TOPICS)
+        return _series(recording.raw)
 
     # ------------------------------------------------------------------ acceptance
     def accept(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:
@@ -253,13 +202,10 @@ class RosRig:
         loop at its first sample around x_eq = U_SET / kappa_x with the U_SET feedforward, opens
         it RIG_SETTLE s later for OPEN_FOR with u forced to U_OPEN (open_after: the rig's clock
         is the wall clock), then closes it; ``duration`` s are recorded after the re-closing."""
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-        from rclpy.serialization import deserialize_message
-
+        from piezo_stage.experiments.harness import HarnessError, Stream, record, span
         from piezo_stage.experiments.plots import plot_run
-        from piezo_stage.experiments.spec import OPEN_FOR, SIGNALS, U_OPEN, U_SET, Plan, summarize
-        from piezo_stage.launch import Launcher, LaunchError
-        from piezo_stage.nodes.qos import LOCKSTEP_DEPTH
+        from piezo_stage.experiments.runner import STATE_TYPE
+        from piezo_stage.experiments.spec import OPEN_FOR, U_OPEN, U_SET, Plan, summarize
         from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
         rate = float(run["rate_hz"])
@@ -304,88 +250,34 @@ class RosRig:
             + [{"executable": "controller", "process": "rig_loop", "overrides": controller}],
             "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
         }
-        lines: list[str] = []
-        raw: list[tuple[int, bytes]] = []
-        streams: dict[str, list[tuple[int, bytes]]] = {"displacement": [], "voltage": []}
-        launch = None
+        streams = [
+            # trigger=sample publishes its state reliable and deep (nodes.qos.LOCKSTEP_QOS)
+            Stream("controller_state", ControllerState, monotonic=True),
+            # the rig's own record, in the bag beside the states
+            Stream("displacement", Displacement, reliable=False),
+            Stream("voltage", Voltage, reliable=False),
+        ]
+
+        def note(raw: dict[str, list]) -> None:
+            states = raw["controller_state"]
+            if states:
+                self.progress("acceptance", percent((states[-1][0] - states[0][0]) * 1e-9, total))
+
         try:
-            launch = Launcher(
-                graph,
-                params=self.extra_params,
-                timeout=self.data_timeout,
-                sink=lambda n, line, err: lines.append(f"[{n}] {line}"),
-            )
-            best_effort = QoSProfile(
-                depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT
-            )
-            topics = [
-                # trigger=sample publishes its state reliable and deep (nodes.qos.LOCKSTEP_QOS)
-                (
-                    "controller_state",
-                    ControllerState,
-                    QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RELIABLE),
-                    raw,
-                ),
-                # the rig's own record, in the bag beside the states
-                ("displacement", Displacement, best_effort, streams["displacement"]),
-                ("voltage", Voltage, best_effort, streams["voltage"]),
-            ]
-            with _listener(namespace, topics) as executor:
-                launch.start()
-                launch.wait_ready()
-                started = time.monotonic()
-                next_note = started + 2.0
-                while not raw or (raw[-1][0] - raw[0][0]) * 1e-9 < total:
-                    waited = time.monotonic() - started
-                    if waited > self.wall_timeout or (not raw and waited > self.data_timeout):
-                        raise GraphRunError(
-                            f"acceptance: {len(raw)} controller states after {waited:.0f} s"
-                        )
-                    executor.spin_once(timeout_sec=0.05)
-                    if raw and time.monotonic() > next_note:
-                        next_note += 2.0
-                        done = (raw[-1][0] - raw[0][0]) * 1e-9
-                        self.progress("acceptance", percent(done, total))
-        except (GraphRunError, LaunchError) as exc:
-            raise _run_error("acceptance run", exc, lines) from exc
-        finally:
-            if launch is not None:
-                launch.stop()
-        raw.sort(key=lambda p: p[0])
-        t0 = raw[0][0]
-        rows = []
-        for ns, d in raw:
-            m = deserialize_message(d, ControllerState)
-            rows.append(
-                (
-                    (ns - t0) * 1e-9,
-                    m.x0,
-                    m.x1,
-                    m.x2,
-                    m.u,
-                    m.u_pid,
-                    m.u_excitation,
-                    m.loop_closed,
-                    m.reference,
-                )
-            )
-        data = {
-            k: np.asarray(v, dtype=bool if k == "loop_closed" else float)
-            for k, v in zip(SIGNALS, zip(*rows))
-        }
-        from piezo_stage.bag.writer import BagWriter
+            recording = record(graph, streams, span("controller_state", total),
+                               params=self.extra_params, launch_timeout=self.data_timeout,
+                               wall_timeout=self.wall_timeout, data_timeout=self.data_timeout,
+                               required=("controller_state",), progress=note,
+                               node_name="commission")
+        except HarnessError as exc:
+            raise _run_error("acceptance run", exc, exc.lines) from exc
+        lines = recording.lines
+        data = recording.states(relative=True).as_dict()
+        recording.write_bag(bag, {"controller_state": STATE_TYPE,
+                                  **{k: _TOPICS[k] for k in ("displacement", "voltage")}},
+                            sort=True)
         from piezo_stage.experiments import ExperimentError
 
-        with BagWriter(bag) as writer:
-            writer.add_topic(
-                f"{namespace}/controller_state", "piezo_stage_msgs/msg/ControllerState"
-            )
-            for ns, d in raw:
-                writer.write(f"{namespace}/controller_state", d, ns)
-            for topic, items in streams.items():
-                writer.add_topic(f"{namespace}/{topic}", _TOPICS[topic])
-                for ns, d in sorted(items, key=lambda p: p[0]):
-                    writer.write(f"{namespace}/{topic}", d, ns)
         closed = data["loop_closed"]
         try:
             if closed.size and not closed[-1]:
@@ -398,33 +290,6 @@ class RosRig:
         result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
         result["delay_samples"] = int(run["delay_samples"])
         return result
-
-
-@contextlib.contextmanager
-def _listener(
-    namespace: str, topics: list[tuple[str, type, Any, list[tuple[int, bytes]]]]
-) -> Iterator[Any]:
-    """A node in a context of its own in ``namespace`` that appends each message of every
-    (topic, type, QoS, sink) as (stamp ns, raw bytes) to its sink; yields its executor."""
-    import rclpy
-
-    from piezo_stage.nodes.executor import LeanExecutor
-
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
-    node = rclpy.create_node("commission", namespace=namespace, context=ctx)
-    for topic, msg_type, qos, sink in topics:
-        node.create_subscription(
-            msg_type, topic, lambda d, sink=sink: sink.append((_stamp_ns(d), d)), qos, raw=True
-        )
-    executor = LeanExecutor(context=ctx)  # a sample per wake-up at 1-2 kHz on a loaded host
-    executor.add_node(node)
-    try:
-        yield executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
 
 
 def percent(done: float, total: float) -> str:
@@ -447,17 +312,6 @@ def _closed_loop_devices(nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
             node["process"] = "rig_loop"
             node.pop("name", None)
     return out
-
-
-def _write_bag(path: Path, namespace: str, raw: dict[str, list]) -> None:
-    from piezo_stage.bag.writer import BagWriter
-
-    with BagWriter(path) as bag:
-        for topic, type_name in _TOPICS.items():
-            bag.add_topic(f"{namespace}/{topic}", type_name)
-        for topic in _TOPICS:
-            for ns, data in raw[topic]:
-                bag.write(f"{namespace}/{topic}", data, ns)
 
 
 def recorded_to_the_end(raw: dict[str, list], duration: float, rate_hz: float) -> bool:

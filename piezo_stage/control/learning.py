@@ -162,7 +162,7 @@ class LearningConfig:
     ``patience`` learned periods without the RMS error falling below ``1 − min_improvement``
     times the best so far."""
 
-    gain: float = 1.0
+    gain: float = 0.5
     cutoff_hz: float | None = None
     settle_periods: int = 1
     u_min: float = -math.inf
@@ -441,8 +441,9 @@ def sampled_feedforward(
     table = FeedforwardTable(u_cont[-n:], rate_hz, periodic)
     response = feedforward_response(model, rate_hz, n, delay_samples=delay_samples,
                                     amplifier_bandwidth=amplifier_bandwidth)
+    # the model has no noise to average: the full gain, no settling period, no early stop
     learning = IterativeLearning(table, response, replace(
-        config, patience=iterations + 1, min_improvement=0.0, settle_periods=0), model)
+        config, gain=1.0, patience=iterations + 1, min_improvement=0.0, settle_periods=0), model)
     d = int(round(delay_samples))
 
     def start() -> _ModelLoop:

@@ -159,7 +159,7 @@ def record(
     """Launch ``graph`` (a graph mapping with its ``namespace``; ``params`` as ``--param``),
     record ``streams`` from before its first message until ``until(raw)``, stop the graph.
 
-    HarnessError (with the nodes' last output) when the graph fails to start, when a
+    HarnessError (with the nodes' last output) when the graph fails to start or ends, when a
     ``required`` topic (default: every stream) has no message ``data_timeout`` s after the
     start, or when ``until`` does not hold ``wall_timeout`` s after it. ``progress(raw)`` is
     called every 2 s of wall time."""
@@ -203,6 +203,9 @@ def record(
         next_note = started + 2.0
         while not until(raw):
             now = time.monotonic()
+            if not launch.running:
+                ended = ", ".join(f"{name} (code {code})" for name, code in launch.exited)
+                raise HarnessError(f"the graph ended before the run: {ended}", lines)
             if now - started > wall_timeout:
                 counts = ", ".join(f"{len(v)} on {k}" for k, v in raw.items())
                 raise HarnessError(f"not done after {wall_timeout:g} s ({counts})", lines)

@@ -173,7 +173,7 @@ PARAMETERS = ParameterTable("controller", (
           "instead; made for this trajectory at rate_hz", read_only=True),
     Param("learn_periods", 0, "learn the feedforward table over this many periods of the "
           "trajectory, then keep it (0: no learning)", range=(0, 1_000_000), read_only=True),
-    Param("learn_gain", 1.0, "learning gain of L = -gain/G (G: the model's loop)", "",
+    Param("learn_gain", 0.5, "learning gain of L = -gain/G (G: the model's loop)", "",
           (1e-3, 1.0), read_only=True),
     Param("learn_cutoff_hz", 0.0, "learning Q-filter cutoff (0: a quarter of rate_hz, at most "
           "half the model's resonance)", "Hz",

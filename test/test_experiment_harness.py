@@ -1,0 +1,80 @@
+"""The experiments' harness (piezo_stage.experiments.harness): stamps read in place from CDR of
+either byte order, controller_state decoded into typed columns, the stop rules, a bag written
+from a recording; a graph that cannot start fails with its nodes' output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.serialization import serialize_message  # noqa: E402
+
+from piezo_stage.bag.reader import read_messages  # noqa: E402
+from piezo_stage.experiments.harness import (  # noqa: E402
+    ControllerStates,
+    HarnessError,
+    Recording,
+    Stream,
+    record,
+    samples,
+    span,
+    stamp_ns,
+)
+from piezo_stage_msgs.msg import ControllerState  # noqa: E402
+
+
+def state(ns: int, x1: float, closed: bool = True) -> bytes:
+    msg = ControllerState()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
+    msg.x1, msg.reference, msg.u, msg.u_ff, msg.loop_closed = x1, 1e-5, 100.0 + x1, 7.0, closed
+    return serialize_message(msg)
+
+
+def test_stamps_are_read_in_place_in_either_byte_order():
+    data = state(12_345_678_901, 0.0)
+    assert stamp_ns(data) == 12_345_678_901
+    big = bytearray(data)  # the same stamp in a big-endian encapsulation
+    big[1] = 0
+    big[4:8] = (12).to_bytes(4, "big")
+    big[8:12] = (345_678_901).to_bytes(4, "big")
+    assert stamp_ns(bytes(big)) == 12_345_678_901
+
+
+def test_controller_state_decodes_into_typed_columns_and_the_stop_rules_count_right():
+    raw = [(1_000_000_000 + k * 1_000_000, state(1_000_000_000 + k * 1_000_000, k * 1e-9, k > 0))
+           for k in range(5)]
+    states = ControllerStates.decode(raw)
+    assert np.allclose(states.t, 1.0 + np.arange(5) * 1e-3)
+    assert np.allclose(states.x, np.arange(5) * 1e-9 + 1e-5) and np.all(states.u_ff == 7.0)
+    assert states.loop_closed.dtype == bool and list(states.loop_closed) == [False] + [True] * 4
+    relative = Recording("/ns", {"controller_state": raw}, 1.0).states(relative=True)
+    assert relative.t[0] == 0.0 and set(states.as_dict()) >= {"t", "x1", "u_ff", "loop_closed"}
+    rec = {"controller_state": raw}
+    assert samples("controller_state", 5)(rec) and not samples("controller_state", 6)(rec)
+    assert span("controller_state", 0.004)(rec) and not span("controller_state", 0.0041)(rec)
+    assert not span("controller_state", 0.001)({"controller_state": []})
+    assert ControllerStates.decode([]).t.size == 0
+
+
+def test_a_recording_writes_a_bag_under_its_namespace(tmp_path):
+    raw = [(k * 1_000_000, state(k * 1_000_000, 0.0)) for k in (2, 1, 3)]
+    recording = Recording("/ns", {"controller_state": raw}, 1.0)
+    recording.write_bag(tmp_path / "bag", {"controller_state":
+                                           "piezo_stage_msgs/msg/ControllerState"}, sort=True)
+    got = list(read_messages(tmp_path / "bag"))
+    assert [topic for topic, _, _ in got] == ["/ns/controller_state"] * 3
+    assert [ns for _, ns, _ in got] == [1_000_000, 2_000_000, 3_000_000]
+
+
+def test_a_graph_that_cannot_start_fails_with_its_nodes_output():
+    graph = {"namespace": "/harness_fail", "nodes": [
+        {"executable": "controller", "required": True,
+         "overrides": {"compensation": "both"}}]}  # no feedforward_model: exits 2 at start
+    with pytest.raises(HarnessError) as err:
+        record(graph, [Stream("controller_state", ControllerState)],
+               samples("controller_state", 1), launch_timeout=20.0, wall_timeout=20.0)
+    assert "feedforward_model" in err.value.with_output(40)
