@@ -19,6 +19,7 @@ from piezo_stage.experiments.harness import (  # noqa: E402
     HarnessError,
     Recording,
     Stream,
+    node_overrides,
     record,
     samples,
     span,
@@ -78,3 +79,13 @@ def test_a_graph_that_cannot_start_fails_with_its_nodes_output():
         record(graph, [Stream("controller_state", ControllerState)],
                samples("controller_state", 1), launch_timeout=20.0, wall_timeout=20.0)
     assert "feedforward_model" in err.value.with_output(40)
+
+
+def test_overrides_are_checked_against_the_nodes_table_before_a_graph_starts():
+    from piezo_stage.experiments.errors import ExperimentInputError
+
+    assert node_overrides("controller", {"learn_periods": 3}) == {"learn_periods": 3}
+    with pytest.raises(ExperimentInputError, match="learn_periods"):
+        node_overrides("controller", {"learn_period": 3})
+    with pytest.raises(ExperimentInputError, match="feedforward_form"):
+        node_overrides("controller", {"feedforward_form": "exact"})

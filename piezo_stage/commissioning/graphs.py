@@ -202,7 +202,13 @@ class RosRig:
         loop at its first sample around x_eq = U_SET / kappa_x with the U_SET feedforward, opens
         it RIG_SETTLE s later for OPEN_FOR with u forced to U_OPEN (open_after: the rig's clock
         is the wall clock), then closes it; ``duration`` s are recorded after the re-closing."""
-        from piezo_stage.experiments.harness import HarnessError, Stream, record, span
+        from piezo_stage.experiments.harness import (
+            HarnessError,
+            Stream,
+            node_overrides,
+            record,
+            span,
+        )
         from piezo_stage.experiments.plots import plot_run
         from piezo_stage.experiments.runner import STATE_TYPE
         from piezo_stage.experiments.spec import OPEN_FOR, U_OPEN, U_SET, Plan, summarize
@@ -247,7 +253,8 @@ class RosRig:
             "namespace": namespace,
             "stop_timeout": 10.0,
             "nodes": _closed_loop_devices(self.base_nodes)
-            + [{"executable": "controller", "process": "rig_loop", "overrides": controller}],
+            + [{"executable": "controller", "process": "rig_loop",
+                "overrides": node_overrides("controller", controller)}],
             "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
         }
         streams = [

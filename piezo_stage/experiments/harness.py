@@ -52,6 +52,21 @@ def stamp_ns(data: bytes) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
+def node_overrides(executable: str, values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` for the piezo_stage node ``executable``, checked against its parameter table
+    (names, types, choices, ranges) before any graph starts: :class:`ExperimentInputError`
+    naming every problem (and the closest valid name)."""
+    import importlib
+
+    from .errors import ExperimentInputError
+
+    table = importlib.import_module(f"piezo_stage.nodes.{executable}").PARAMETERS
+    problems = table.problems(dict(values))
+    if problems:
+        raise ExperimentInputError(f"{executable}: " + "; ".join(problems))
+    return dict(values)
+
+
 @dataclass(frozen=True)
 class Stream:
     """A topic to record (relative to the graph's namespace), its message class, QoS
@@ -234,6 +249,7 @@ __all__ = [
     "Recording",
     "Stream",
     "Until",
+    "node_overrides",
     "record",
     "samples",
     "span",

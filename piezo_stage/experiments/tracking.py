@@ -49,7 +49,15 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, save_parameter_set
 
 from .errors import ExperimentError, ExperimentInputError
-from .harness import ControllerStates, HarnessError, Recording, Stream, record, span
+from .harness import (
+    ControllerStates,
+    HarnessError,
+    Recording,
+    Stream,
+    node_overrides,
+    record,
+    span,
+)
 from .runner import STATE_TYPE, run_plan
 from .spec import Plan
 
@@ -227,7 +235,7 @@ def _controller(spec: TrackingSpec, comp: Compensation, model_file: str, u_start
         controller["feedforward_table"] = str(Path(spec.table).resolve())
     if spec.table_out:
         controller["feedforward_table_out"] = str(Path(spec.table_out).resolve())
-    return controller
+    return node_overrides("controller", controller)
 
 
 def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
@@ -260,7 +268,8 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
     }
     controller = {"use_sim_time": True, "sensor_qos": "reliable",
                   **_controller(spec, comp, model_file, u_start, rate)}
-    return Plan("tracking", spec.mode, rate, radius, duration, plant, controller)
+    return Plan("tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant),
+                controller)
 
 
 def _free_port() -> int:
