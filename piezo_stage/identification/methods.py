@@ -4,7 +4,9 @@ fit by simulation error (any runs, see simfit.py), and the fit's result as an
 
 auto: the analytic method with its refinement when its preconditions hold (two wave-periodic
 runs x(t), x(t)+q whose limit cycle is reached; a bad fit there is refused as such), the fit
-otherwise. fit: the fit, seeded by whatever the analytic method produced.
+otherwise. fit: the fit, seeded by whatever the analytic method produced. The analytic method
+assumes no lag between input and output: a lag the input's corners show (:mod:`.lag`) is
+taken off the output first (and reported); the fit starts its delay from it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from .errors import (
     NonFiniteDataError,
     SaturatedOutputError,
 )
+from .lag import LAG_TOLERANCE, LagEstimate, runs_lag, shift_output
 from .pipeline import IdentifyOptions, check_fit, correlation_warning, identify
 from .recording import Recording, check_recording
 from .refine import HYSTERETIC
@@ -64,23 +67,40 @@ def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = N
             "range the method handles (check units and scaling)") from exc
 
 
+def _analytic(runs: list[Recording], options: IdentifyOptions,
+              lag: LagEstimate | None) -> IdentificationResult:
+    """The analytic method (with its refinement), which assumes the output answers the input
+    at once: on the outputs shifted back by a lag the corners show, with the lag reported."""
+    if lag is None or abs(lag.samples) < LAG_TOLERANCE:
+        return identify(runs[0], runs[1], options)
+    shifted = [shift_output(r, lag.seconds) for r in runs]
+    result = identify(shifted[0], shifted[1], options)
+    note = (f"the output lags the input by {lag.samples:.2f} samples ({1e3 * lag.seconds:.3g} ms, "
+            f"at the input's {lag.corners} corners): the analytic method ran on the output "
+            "shifted back by it")
+    return replace(result, delay=lag.seconds, warnings=(*result.warnings, note),
+                   diagnostics={**result.diagnostics, "lag_samples": lag.samples,
+                                "lag_spread": lag.spread})
+
+
 def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
               fit: FitOptions) -> IdentificationResult:
     if not runs:
         raise IdentificationError("no runs to identify from")
     for rec in runs:
         check_recording(rec, clip_fraction=options.cycle.clip_fraction)
+    lag = runs_lag(runs)
     if method is Method.ANALYTIC:
         if len(runs) != 2:
             raise IdentificationError(
                 f"the analytic method needs exactly two runs (x(t) and x(t)+q), got "
                 f"{len(runs)}; --method fit identifies from any runs")
-        return identify(runs[0], runs[1], options)
+        return _analytic(runs, options, lag)
     analytic: IdentificationResult | None = None
     problem = f"{len(runs)} run(s): the analytic method needs two (x(t) and x(t)+q)"
     if len(runs) == 2:
         try:
-            analytic = identify(runs[0], runs[1], options)
+            analytic = _analytic(runs, options, lag)
             if method is Method.AUTO:
                 return analytic
             problem = ""
@@ -96,8 +116,10 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
     seeds: list[Seed] = []
     if analytic is not None:
         p = analytic.parameters
-        seeds.append(seed_from(p, [initial_w(p.kappa, p.kappa_w, p.y0, float(r.input[0]),
-                                             float(r.output[0])) for r in runs]))
+        seeds.append(replace(seed_from(p, [initial_w(p.kappa, p.kappa_w, p.y0,
+                                                     float(r.input[0]), float(r.output[0]))
+                                           for r in runs]),
+                             delay=0.0 if lag is None else lag.seconds))
     return fit_runs(runs, fit, seeds, analytic=analytic, analytic_problem=problem,
                     input_name=options.input_name, output_name=options.output_name)
 
