@@ -3,10 +3,12 @@ fit by simulation error (any runs, see simfit.py), and the fit's result as an
 :class:`IdentificationResult`.
 
 auto: the analytic method with its refinement when its preconditions hold (two wave-periodic
-runs x(t), x(t)+q whose limit cycle is reached; a bad fit there is refused as such), the fit
-otherwise. fit: the fit, seeded by whatever the analytic method produced. The analytic method
-assumes no lag between input and output: a lag the input's corners show (:mod:`.lag`) is
-taken off the output first (and reported); the fit starts its delay from it.
+runs x(t), x(t)+q whose limit cycle is reached; a bad fit there is refused as such), held
+against the fit started from it: when the two disagree beyond their standard errors, the one
+with the smaller residual is returned with a warning naming both; the fit otherwise. fit: the
+fit, seeded by whatever the analytic method produced. The analytic method assumes no lag
+between input and output: a lag the input's corners show (:mod:`.lag`) is taken off the
+output first (and reported); the fit starts its delay from it.
 """
 
 from __future__ import annotations
@@ -83,6 +85,52 @@ def _analytic(runs: list[Recording], options: IdentifyOptions,
                                 "lag_spread": lag.spread})
 
 
+#: standard errors (combined) beyond which the analytic method and the fit disagree
+DISAGREEMENT = 3.0
+#: and the relative difference below which they agree anyway (noiseless data have standard
+#: errors of 1e-10 that rounding alone exceeds)
+AGREEMENT_FLOOR = 1e-3
+
+
+def disagreement(a: IdentificationResult, b: IdentificationResult) -> list[str]:
+    """The hysteretic parameters on which ``a`` and ``b`` differ by more than DISAGREEMENT
+    combined standard errors and AGREEMENT_FLOOR of the value, as 'name a ± sa vs b ± sb'."""
+    sa, sb = a.diagnostics.get("std") or {}, b.diagnostics.get("std") or {}
+    out = []
+    for key in HYSTERETIC:
+        va, vb = getattr(a.parameters, key), getattr(b.parameters, key)
+        ea, eb = sa.get(key, float("nan")), sb.get(key, float("nan"))
+        sigma = float(np.hypot(ea, eb))
+        if np.isfinite(sigma) and abs(va - vb) > max(DISAGREEMENT * sigma,
+                                                     AGREEMENT_FLOOR * abs(va)):
+            out.append(f"{key} {va:.4g} ± {ea:.2g} vs {vb:.4g} ± {eb:.2g}")
+    return out
+
+
+def _cross_checked(analytic: IdentificationResult, runs: list[Recording],
+                   options: IdentifyOptions, fit: FitOptions,
+                   lag: LagEstimate | None) -> IdentificationResult:
+    """auto's analytic result held against the fit by simulation error from it (which also
+    models a delay and a drift): the analytic result when they agree within their standard
+    errors, else the one with the smaller residual, with a warning naming both (never one
+    confidently wrong)."""
+    try:
+        fitted = _fit(runs, options, fit, analytic, "", lag)
+    except IdentificationError as exc:  # the fit cannot check it: say so, keep the analytic
+        note = f"the fit by simulation error could not cross-check the analytic result: {exc}"
+        return replace(analytic, warnings=(*analytic.warnings, note))
+    differ = disagreement(analytic, fitted)
+    if not differ:
+        return replace(analytic, diagnostics={**analytic.diagnostics,
+                                              "cross_check_rms": fitted.rms_error})
+    keep = fitted if fitted.rms_error < analytic.rms_error else analytic
+    note = (f"the analytic method and the fit by simulation error disagree beyond "
+            f"{DISAGREEMENT:g} standard errors ({'; '.join(differ)}; analytic vs fit; residual "
+            f"RMS {analytic.rms_error:.3g} vs {fitted.rms_error:.3g}): the {keep.method} "
+            "result, whose model follows the data closer, is returned")
+    return replace(keep, warnings=(*keep.warnings, note))
+
+
 def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
               fit: FitOptions) -> IdentificationResult:
     if not runs:
@@ -102,7 +150,7 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
         try:
             analytic = _analytic(runs, options, lag)
             if method is Method.AUTO:
-                return analytic
+                return _cross_checked(analytic, runs, options, fit, lag)
             problem = ""
         except _DATA_ERRORS:
             raise
@@ -112,6 +160,13 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
             problem, analytic = str(exc), exc.result
         except IdentificationError as exc:
             problem = str(exc)
+    return _fit(runs, options, fit, analytic, problem, lag)
+
+
+def _fit(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
+         analytic: IdentificationResult | None, problem: str,
+         lag: LagEstimate | None) -> IdentificationResult:
+    """The fit by simulation error, started from the analytic result and the lag if any."""
     fit = replace(fit, degree=options.degree, input_sign=options.input_sign)
     seeds: list[Seed] = []
     if analytic is not None:
