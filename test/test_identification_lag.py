@@ -39,12 +39,12 @@ def test_a_kink_is_found_between_samples():
     assert kink(y, 5.0, 12.0) == pytest.approx(8.3, abs=0.021)
 
 
-def test_shifting_the_output_moves_it_earlier_and_drops_what_falls_past_the_end():
+def test_taking_the_lag_off_delays_the_input_and_keeps_the_output_as_measured():
     t = np.arange(10) * 0.1
-    rec = Recording(t, t.copy(), 3.0 * t)
+    rec = Recording(t, 3.0 * t, t.copy())
     shifted = shift_output(rec, 0.25)
-    assert len(shifted) == 7 and np.allclose(shifted.output, 3.0 * (shifted.t + 0.25))
-    assert np.array_equal(shifted.input, t[:7])
+    assert len(shifted) == 7 and np.allclose(shifted.input, 3.0 * (shifted.t - 0.25))
+    assert np.array_equal(shifted.output, t[3:])
 
 
 @pytest.mark.parametrize("samples_per_branch", [50, 100])

@@ -115,14 +115,16 @@ def runs_lag(runs: "list[Recording]") -> LagEstimate | None:
 
 
 def shift_output(rec: Recording, seconds: float) -> Recording:
-    """``rec`` with its output moved ``seconds`` earlier (y'(t) = y(t + seconds), linearly
-    interpolated), the samples whose shifted output would fall past the end dropped."""
+    """``rec`` with the lag taken off: the input delayed by ``seconds`` (x'(t) = x(t − seconds),
+    linearly interpolated: the input is the clean, commanded signal; the noisy output is left
+    as measured), the first samples, whose delayed input falls before the start, dropped. So
+    the run's last period stays whole (the cycle extraction averages whole periods; the first
+    one settles anyway)."""
     t = np.asarray(rec.t, dtype=float)
-    keep = t + seconds <= t[-1] + 1e-12 * max(abs(t[-1]), 1.0)
-    if seconds < 0:
-        keep = t + seconds >= t[0] - 1e-12 * max(abs(t[0]), 1.0)
-    y = np.interp(t[keep] + seconds, t, np.asarray(rec.output, dtype=float))
-    return Recording(t[keep], np.asarray(rec.input)[keep], y, name=rec.name)
+    eps = 1e-12 * max(abs(t[0]), abs(t[-1]), 1.0)
+    keep = t - seconds >= t[0] - eps if seconds >= 0 else t - seconds <= t[-1] + eps
+    x = np.interp(t[keep] - seconds, t, np.asarray(rec.input, dtype=float))
+    return Recording(t[keep], x, np.asarray(rec.output, dtype=float)[keep], name=rec.name)
 
 
 __all__ = ["LAG_TOLERANCE", "LagEstimate", "corners", "estimate_lag", "kink", "runs_lag",
