@@ -100,3 +100,27 @@ def test_when_the_analytic_method_and_the_fit_disagree_it_is_said_and_the_closer
     assert "sigma" in note and "the fit result" in note
     assert result.parameters.sigma == pytest.approx(PATCH.sigma, rel=0.03)
     assert result.analytic is not None and abs(result.analytic.sigma / PATCH.sigma - 1) > 0.5
+
+
+def test_the_analytic_method_gets_the_held_out_check_of_the_fit():
+    """Runs of 6 periods: the analytic method identified from their first 75 % predicts the
+    rest as well as it fits (noise level, no warning); an output that creeps off in the last
+    quarter (a sensor mount slipping) is not returned silently (here the steady-state check
+    refuses it before the held-out one would warn)."""
+    from piezo_stage.identification.errors import NoSteadyStateError
+
+    runs = []
+    for low, high in ((0.0, 300.0), (100.0, 400.0)):
+        runs.append(triangle_run(PATCH, low, high, samples_per_branch=50, periods=6.0,
+                                 noise=1e-3, rng=np.random.default_rng(int(low))))
+    result = identify_runs(runs, IdentifyOptions(degree=2), method="analytic")
+    d = result.diagnostics
+    assert d["holdout_fraction"] == 0.25 and d["holdout_rms"] < 2 * d["train_rms"]
+    assert d["holdout_rms_percent"] < 0.5
+    assert not any("held-out" in w for w in result.warnings)
+    crept = []
+    for r in runs:
+        late = np.clip((r.t - 0.75 * r.t[-1]) / (0.25 * r.t[-1]), 0.0, 1.0)
+        crept.append(Recording(r.t, r.input, r.output + 0.03 * np.ptp(r.output) * late))
+    with pytest.raises(NoSteadyStateError):
+        identify_runs(crept, IdentifyOptions(degree=2), method="analytic")

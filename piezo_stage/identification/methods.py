@@ -19,6 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
+from piezo_stage.model.bouc_wen import model_output
+
 from .analytic import initial_w
 from .errors import (
     BadFitError,
@@ -36,6 +38,7 @@ from .simfit import (
     FitOptions,
     Seed,
     SimulationFit,
+    count_periods,
     holdout_check,
     noise_level,
     seed_from,
@@ -69,20 +72,59 @@ def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = N
             "range the method handles (check units and scaling)") from exc
 
 
-def _analytic(runs: list[Recording], options: IdentifyOptions,
+def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
               lag: LagEstimate | None) -> IdentificationResult:
     """The analytic method (with its refinement), which assumes the output answers the input
-    at once: on the outputs shifted back by a lag the corners show, with the lag reported."""
-    if lag is None or abs(lag.samples) < LAG_TOLERANCE:
-        return identify(runs[0], runs[1], options)
-    shifted = [shift_output(r, lag.seconds) for r in runs]
-    result = identify(shifted[0], shifted[1], options)
-    note = (f"the output lags the input by {lag.samples:.2f} samples ({1e3 * lag.seconds:.3g} ms, "
-            f"at the input's {lag.corners} corners): the analytic method ran on the output "
-            "shifted back by it")
-    return replace(result, delay=lag.seconds, warnings=(*result.warnings, note),
-                   diagnostics={**result.diagnostics, "lag_samples": lag.samples,
-                                "lag_spread": lag.spread})
+    at once: on the outputs shifted back by a lag the corners show, with the lag reported, and
+    the fit's held-out check (:func:`analytic_holdout`)."""
+    lagging = lag is not None and abs(lag.samples) >= LAG_TOLERANCE
+    if lagging:
+        runs = [shift_output(r, lag.seconds) for r in runs]
+    result = identify(runs[0], runs[1], options)
+    warnings, diagnostics = list(result.warnings), dict(result.diagnostics)
+    if lagging:
+        warnings.append(f"the output lags the input by {lag.samples:.2f} samples "
+                        f"({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} corners): "
+                        "the analytic method ran on the output shifted back by it")
+        diagnostics.update(lag_samples=lag.samples, lag_spread=lag.spread)
+    figures = analytic_holdout(runs, options, fit)
+    if figures is not None:
+        diagnostics.update(figures)
+        if figures["holdout_rms"] > 2.0 * figures["train_rms"]:
+            warnings.append(
+                f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
+                f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits the "
+                f"rest ({figures['train_rms_percent']:.3g} %): it may not generalise")
+    return replace(result, delay=lag.seconds if lagging else result.delay,
+                   warnings=tuple(warnings), diagnostics=diagnostics)
+
+
+def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: FitOptions
+                     ) -> dict[str, float] | None:
+    """The fit's held-out check for the analytic method: identified from the first
+    (1 − holdout) of both runs (whole periods of it), the model run over each whole run from
+    w(0) of (10.18) at its start; the RMS of its error there (train) and on the rest (held
+    out). None when a run holds too few periods or the shorter runs cannot be identified."""
+    if not fit.holdout > 0 or any(count_periods(r) <= fit.min_holdout_periods for r in runs):
+        return None
+    cut = [int(round(len(r) * (1.0 - fit.holdout))) for r in runs]
+    try:
+        p = identify(runs[0].slice(0, cut[0]), runs[1].slice(0, cut[1]), options).parameters
+    except IdentificationError:
+        return None
+    train, held = [], []
+    for r, k in zip(runs, cut):
+        w0 = float(np.clip(initial_w(p.kappa, p.kappa_w, p.y0, float(r.input[0]),
+                                     float(r.output[0])), -1.0, 1.0))
+        err = model_output(p, np.asarray(r.input), w0=w0) - np.asarray(r.output)
+        train.append(err[:k])
+        held.append(err[k:])
+    span = max(float(np.ptp(r.output)) for r in runs)
+    rms_train = float(np.sqrt(np.mean(np.concatenate(train) ** 2)))
+    rms_held = float(np.sqrt(np.mean(np.concatenate(held) ** 2)))
+    return {"holdout_fraction": float(fit.holdout), "holdout_rms": rms_held,
+            "holdout_rms_percent": 100.0 * rms_held / span, "train_rms": rms_train,
+            "train_rms_percent": 100.0 * rms_train / span}
 
 
 #: standard errors (combined) beyond which the analytic method and the fit disagree
@@ -143,12 +185,12 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
             raise IdentificationError(
                 f"the analytic method needs exactly two runs (x(t) and x(t)+q), got "
                 f"{len(runs)}; --method fit identifies from any runs")
-        return _analytic(runs, options, lag)
+        return _analytic(runs, options, fit, lag)
     analytic: IdentificationResult | None = None
     problem = f"{len(runs)} run(s): the analytic method needs two (x(t) and x(t)+q)"
     if len(runs) == 2:
         try:
-            analytic = _analytic(runs, options, lag)
+            analytic = _analytic(runs, options, fit, lag)
             if method is Method.AUTO:
                 return _cross_checked(analytic, runs, options, fit, lag)
             problem = ""
