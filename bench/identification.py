@@ -29,23 +29,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from piezo_stage.identification.analytic import DerivativeOptions  # noqa: E402
-from piezo_stage.identification.cycles import CycleOptions, smooth_input  # noqa: E402
-from piezo_stage.identification.errors import IdentificationError  # noqa: E402
-from piezo_stage.identification.io import load_csv  # noqa: E402
-from piezo_stage.identification.methods import identify_runs  # noqa: E402
-from piezo_stage.identification.pipeline import IdentifyOptions, identify  # noqa: E402
-from piezo_stage.identification.recording import Recording  # noqa: E402
-from piezo_stage.identification.refine import RefineOptions, cycle_path, refine  # noqa: E402
-from piezo_stage.identification.simfit import FitOptions, holdout_check  # noqa: E402
-from piezo_stage.identification.synthetic import (  # noqa: E402
+from piezo_stage.identification.analytic import DerivativeOptions
+from piezo_stage.identification.cycles import CycleOptions, smooth_input
+from piezo_stage.identification.errors import IdentificationError
+from piezo_stage.identification.io import load_csv
+from piezo_stage.identification.methods import identify_runs
+from piezo_stage.identification.pipeline import IdentifyOptions, identify
+from piezo_stage.identification.recording import Recording
+from piezo_stage.identification.refine import RefineOptions, cycle_path, refine
+from piezo_stage.identification.simfit import FitOptions, holdout_check
+from piezo_stage.identification.synthetic import (
     CH9_EXAMPLE,
     CH10_PATCH,
     triangle_pair,
     triangle_run,
 )
-from piezo_stage.model.bouc_wen import BoucWenParameters, model_output  # noqa: E402
-from piezo_stage.model.parameter_set import DriftKind  # noqa: E402
+from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
+from piezo_stage.model.parameter_set import DriftKind
 
 P885 = Path(__file__).resolve().parents[1] / "test" / "data" / "p885" / "p885_raised_cosine.csv"
 
@@ -228,7 +228,7 @@ def plain_fit(runs, degree: int, true: BoucWenParameters | None = None):
         hi[degree + 4] = 50.0
         try:
             res = least_squares(fun, p0 / scale, bounds=(lo / scale, hi / scale), x_scale="jac")
-        except Exception as exc:     # noqa: BLE001 - a baseline that fails is a figure too
+        except Exception as exc:
             print(f"    (plain fit failed: {exc})")
             continue
         if best is None or res.cost < best[1]:
@@ -394,7 +394,7 @@ def lag() -> None:
                         p = identify_runs(runs, IdentifyOptions(degree=2), method=method)
                         sink.append(max(abs(getattr(p.parameters, k) / getattr(PATCH, k) - 1)
                                         for k in keys))
-                    except Exception:  # noqa: BLE001 - a refusal is a row, not a crash
+                    except Exception:
                         sink.append(float("nan"))
                         continue
                     if method == "auto":

@@ -119,7 +119,7 @@ def test_closing_reseeds_w_from_the_stage_and_transfers_bumplessly():
             w_stage, x_stage = plant.w, x
         out = ctrl.update(t, x, *map(float, tr.evaluate(t)))
         if abs(t - t_close) < 0.5 / RATE:
-            closing = (u_prev, out.u, ctrl._ff.w)  # noqa: SLF001 - the state under test
+            closing = (u_prev, out.u, ctrl._ff.w)
         u_prev = out.u
         x = plant.step(out.u, 1.0 / RATE)
     u_before, u_at, _ = closing

@@ -15,7 +15,7 @@ from piezo_stage.nodes.spec import Kind, Param, ParameterError, ParameterTable
 
 pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
 
-from piezo_stage.cli import main  # noqa: E402
+from piezo_stage.cli import main
 
 
 class Colour(str, Enum):

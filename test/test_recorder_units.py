@@ -13,7 +13,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy, qos_pr
 
 from piezo_stage.nodes import (  # noqa: E402
     dds,
-    recorder,  # noqa: E402
+    recorder,
     topics,
 )
 from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, adapted_qos  # noqa: E402

@@ -12,7 +12,7 @@ from .errors import ExperimentError, ExperimentInputError, UnknownExperimentErro
 from .spec import EXPERIMENTS, make_plan, pick_rate
 
 
-def run_experiment(*args, **kwargs):  # noqa: D103 - rclpy is imported lazily
+def run_experiment(*args, **kwargs):
     from .runner import run_experiment as _run
 
     return _run(*args, **kwargs)

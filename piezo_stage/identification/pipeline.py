@@ -50,7 +50,7 @@ class IdentifyOptions:
 
 
 def identify(run_a: Recording, run_b: Recording,
-             options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:  # noqa: B008
+             options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:
     """Identify from two recorded runs (any phase, transients included)."""
     cycles = (extract_cycle(run_a, options.cycle), extract_cycle(run_b, options.cycle))
     result = identify_cycles(cycles[0], cycles[1], options)

@@ -108,7 +108,7 @@ class BoucWenParameters:
         return self.kappa[0]
 
     @property
-    def N(self) -> int:  # noqa: N802 - thesis symbol
+    def N(self) -> int:
         """Degree N of the polynomial term of (10.4)."""
         return len(self.kappa)
 
@@ -135,7 +135,7 @@ def from_standard(
     beta: float,
     gamma: float,
     n: float,
-    D: float | None = None,  # noqa: N803 - thesis symbol
+    D: float | None = None,
 ) -> BoucWenParameters:
     """Normalized parameters (8.10) of the standard Bouc-Wen model (8.1)-(8.2).
 
