@@ -243,3 +243,47 @@ def test_reconnects_after_the_sensor_link_drops(probe, tmp_path):
     assert all(s.status == Status.OK and s.displacement == quantised("ild1320", 4e-3) for s in got)
     t = np.array([s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in got])
     assert np.all(np.diff(t) > 0)
+
+
+def test_a_reader_started_late_forgets_what_the_link_held(probe):
+    """``start=False`` (rig_loop starts the loop once the process is built): samples the sensor
+    sent before :meth:`start` never reach the loop, which would otherwise step the law through
+    a late block of stale samples."""
+    import threading
+    import time
+
+    from rclpy.parameter import Parameter
+
+    from piezo_stage.nodes.laser_reader import LaserReaderNode
+
+    blocks: list[int] = []
+    got = threading.Event()
+
+    def loop(value, status, stamp):
+        blocks.append(len(value))
+        got.set()
+
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=Level(5e-3))
+    with EmulatorServer(model, pty=True) as server:
+        node = LaserReaderNode(loop=loop, handoff=_Inline(), start=False, overrides=[
+            Parameter("url", value=server.url), Parameter("family", value="ild1320"),
+            Parameter("measuring_range", value=MR), Parameter("rate_hz", value=1000.0)])
+        try:
+            time.sleep(0.3)  # 300 samples reach the link
+            assert not blocks
+            node.start()
+            assert got.wait(5.0)
+            time.sleep(0.05)
+        finally:
+            node.on_shutdown()
+            node.destroy_node()
+    assert blocks[0] < 30, blocks[:5]
+    assert sum(blocks) < 200, blocks
+
+
+class _Inline:
+    def put(self, publish, *args) -> None:
+        publish(*args)
+
+    def drain(self) -> None:
+        pass

@@ -89,11 +89,14 @@ class LaserReaderNode(Node):
     """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
     samples to ``loop`` before they are published, ``idle(now_ns)`` is called after a read that
     timed out, every publication goes through ``handoff``, and the thread runs SCHED_FIFO at
-    ``loop_priority`` (when > 0 and allowed)."""
+    ``loop_priority`` (when > 0 and allowed). ``start`` False: the read thread waits for
+    :meth:`start` (a composing process starts it once the rest is built, so that no start-up
+    work holds the GIL while samples pile up)."""
 
     def __init__(self, loop: SampleSink | None = None,
                  idle: Callable[[int], None] | None = None, handoff: Any = None,
-                 overrides: Sequence[Parameter] = (), loop_priority: int = 0) -> None:
+                 overrides: Sequence[Parameter] = (), loop_priority: int = 0,
+                 start: bool = True) -> None:
         super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE,
                          parameter_overrides=list(overrides))
         self._loop, self._idle, self._handoff = loop, idle, handoff
@@ -134,11 +137,19 @@ class LaserReaderNode(Node):
         self._reader_stop = threading.Event()
         self._wait = float(p.poll_period)
         self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
-        self._thread.start()
+        if start:
+            self.start()
         Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
         self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR "
                                f"{p.measuring_range:g} m, "
                                f"decimation {p.decimation}, rate {self.rate:g} Hz")
+
+    def start(self) -> None:
+        """Start the read thread, forgetting what the link held (samples older than the start
+        would reach the loop in one late block)."""
+        self.reader.transport.reset_input()
+        self.reader.parser.reset()
+        self._thread.start()
 
     def _read_loop(self) -> None:
         refused = set_realtime_priority(self._loop_priority)
@@ -155,7 +166,8 @@ class LaserReaderNode(Node):
     def on_shutdown(self) -> None:
         """Stop the read thread before the node goes away (called by ``common.run``)."""
         self._reader_stop.set()
-        self._thread.join(timeout=2.0)
+        if self._thread.ident is not None:
+            self._thread.join(timeout=2.0)
         if self._handoff is not None:
             self._handoff.drain()
 
