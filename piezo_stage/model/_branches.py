@@ -24,13 +24,15 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from typing import TypeAlias
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._cheb import fit_antiderivative, fit_interpolant, flat_eval, graded_breaks, pack
 from ._jit import njit
 
-Array = np.ndarray
+Array: TypeAlias = NDArray[np.float64]
 _GRADING_LEVELS = 52
 _T_MAX = 40.0  # beyond t = -log(1-w) = 40, w == 1.0 in double precision
 
@@ -74,7 +76,9 @@ def _h_integrand(v: Array, n: float) -> Array:
 
 
 @njit(inline=True, nrt=False)
-def _newton_step(x, f, df, lo, hi):
+def _newton_step(
+    x: float, f: float, df: float, lo: float, hi: float
+) -> tuple[float, float, float, bool]:
     """One safeguarded Newton step for an increasing f with f(x) = ``f``, f'(x) = ``df`` and the
     root in [lo, hi]: narrows the bracket, bisects when Newton leaves it. Returns
     (x_new, lo, hi, converged)."""
@@ -93,14 +97,14 @@ def _newton_step(x, f, df, lo, hi):
 
 
 @njit
-def _t_solve(tab, y, with_e):
+def _t_solve(tab: Array, y: float, with_e: bool) -> float:
     """t >= 0 with t/n + H(a) (+ E(a)) = y, a = 1 - exp(-t): safeguarded Newton.
 
     Inverts P (phi+ for w >= 0) or, with ``with_e``, P + E (phi of (9.5) for w >= 0).
     """
-    n = tab[0]
-    h1 = tab[2]
-    e1 = tab[3]
+    n: float = tab[0]
+    h1: float = tab[2]
+    e1: float = tab[3]
     if y <= 0.0:
         return 0.0
     if y == math.inf:
@@ -133,10 +137,10 @@ def _t_solve(tab, y, with_e):
 
 
 @njit
-def _e_solve(tab, y, with_p):
+def _e_solve(tab: Array, y: float, with_p: bool) -> float:
     """a in [0, 1] with E(a) (+ P(a)) = y, for the w <= 0 side: safeguarded Newton."""
-    n = tab[0]
-    c = tab[1]
+    n: float = tab[0]
+    c: float = tab[1]
     if y <= 0.0:
         return 0.0
     if not with_p and y >= tab[3]:
@@ -158,19 +162,21 @@ def _e_solve(tab, y, with_p):
 
 
 @njit(inline=True)
-def phi_plus_k(tab, w):
+def phi_plus_k(tab: Array, w: float) -> float:
     """phi+(w) (9.4): +inf at w = 1, -E(1) at w = -1 (inputs clipped to [-1, 1])."""
     if w >= 1.0:
         return math.inf
     if w >= 0.0:
-        return -math.log1p(-w) / tab[0] + flat_eval(tab, TAB_H, w)
+        value: float = -math.log1p(-w) / tab[0] + flat_eval(tab, TAB_H, w)
+        return value
     if w <= -1.0:
-        return -tab[3]
+        e1: float = tab[3]
+        return -e1
     return -flat_eval(tab, TAB_E, -w)
 
 
 @njit
-def psi_plus_exact(tab, y):
+def psi_plus_exact(tab: Array, y: float) -> float:
     """Inverse of phi+ by Newton on the H/E tables (clipped to [-1, 1])."""
     if y >= 0.0:
         return -math.expm1(-_t_solve(tab, y, False))
@@ -180,7 +186,7 @@ def psi_plus_exact(tab, y):
 
 
 @njit(inline=True)
-def psi_plus_k(tab, y):
+def psi_plus_k(tab: Array, y: float) -> float:
     """Inverse of phi+ from its tables (fast path; agrees with psi_plus_exact to ~1e-15)."""
     if y >= 0.0:
         if y >= tab[4]:
@@ -192,7 +198,7 @@ def psi_plus_k(tab, y):
 
 
 @njit
-def phi_total_k(tab, w):
+def phi_total_k(tab: Array, w: float) -> float:
     """phi(w) = phi+(w) + phi-(w) (9.5), odd in w; +-inf at w = +-1."""
     a = abs(w)
     if a >= 1.0:
@@ -203,14 +209,14 @@ def phi_total_k(tab, w):
 
 
 @njit
-def psi_total_k(tab, y):
+def psi_total_k(tab: Array, y: float) -> float:
     """psi, inverse of phi (9.5), by Newton (in t = -log(1 - |w|))."""
     magnitude = -math.expm1(-_t_solve(tab, abs(y), True))
     return magnitude if y >= 0.0 else -magnitude
 
 
 @njit
-def walk(tab, rho, x, w0, out):
+def walk(tab: Array, rho: float, x: Array, w0: float, out: Array) -> None:
     """w at every sample of the path x (linear between samples), exact on monotone pieces.
 
     A monotone piece starting at (x_a, w_a) in direction s = +-1 gives
@@ -236,7 +242,7 @@ def walk(tab, rho, x, w0, out):
 
 
 @njit
-def _map(kernel_id, tab, values, out):
+def _map(kernel_id: int, tab: Array, values: Array, out: Array) -> None:
     for i in range(values.size):
         v = values.flat[i]
         if kernel_id == 0:
@@ -256,7 +262,7 @@ def _map(kernel_id, tab, values, out):
 KERNELS = {"phi_plus": 0, "psi_plus": 1, "psi_plus_exact": 2, "phi": 3, "psi": 4, "t_of_y": 5}
 
 
-def apply(name: str, tab: tuple, values: Array) -> Array:
+def apply(name: str, tab: Array, values: Array) -> Array:
     """Apply a scalar kernel (see KERNELS) elementwise to an array."""
     values = np.ascontiguousarray(values, dtype=float)
     out = np.empty_like(values)
@@ -264,14 +270,16 @@ def apply(name: str, tab: tuple, values: Array) -> Array:
     return out
 
 
-def _assemble(n: float, c: float, h1: float, e1: float, y_max: float, parts: list) -> np.ndarray:
+def _assemble(
+    n: float, c: float, h1: float, e1: float, y_max: float, parts: list[tuple[Array, Array]]
+) -> Array:
     data, headers = pack(parts)
     headers = [h + HEADER if i % 4 in (0, 2) else h for i, h in enumerate(headers)]
     return np.concatenate([[n, c, h1, e1, y_max], np.array(headers, dtype=float), data])
 
 
 @lru_cache(maxsize=64)
-def tables(sigma: float, n: float) -> np.ndarray:
+def tables(sigma: float, n: float) -> Array:
     """Flat float array of the tables the kernels take, for sigma >= 1/2, n >= 1 (cached).
 
     Layout: n, c = 2 sigma - 1, H(1), E(1), Ymax, then headers of the packed tables

@@ -10,13 +10,14 @@ antiderivative of a fitted integrand is integrated exactly term by term, so a ta
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Callable
+from typing import Callable, TypeAlias
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._jit import njit
 
-Array = np.ndarray
+Array: TypeAlias = NDArray[np.float64]
 VectorFunction = Callable[[Array], Array]
 
 DEGREE = 20  # polynomial degree per piece
@@ -127,7 +128,7 @@ def graded_breaks(low: float, high: float, levels: int, toward_low: bool = True)
 def pw_eval(breaks: Array, coefs: Array, x: float) -> float:
     """Value at ``x`` of the piecewise Chebyshev table (clamped to its domain)."""
     last = breaks.size - 2
-    k = np.searchsorted(breaks, x, side="right") - 1
+    k = int(np.searchsorted(breaks, x, side="right")) - 1
     if k < 0:
         k = 0
     elif k > last:
@@ -146,7 +147,8 @@ def pw_eval(breaks: Array, coefs: Array, x: float) -> float:
         b0 = coefs[k, j] + two_t * b1 - b2
         b2 = b1
         b1 = b0
-    return coefs[k, 0] + t * b1 - b2
+    value: float = coefs[k, 0] + t * b1 - b2
+    return value
 
 
 def pack(tables: list[tuple[Array, Array]]) -> tuple[Array, list[int]]:
@@ -196,4 +198,5 @@ def flat_eval(T: Array, header: int, x: float) -> float:
         b0 = T[base + j] + two_t * b1 - b2
         b2 = b1
         b1 = b0
-    return T[base] + t * b1 - b2
+    value: float = T[base] + t * b1 - b2
+    return value

@@ -36,11 +36,26 @@ h_pref the preferred piece length.
 from __future__ import annotations
 
 import math
+from typing import TypeAlias
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._branches import phi_plus_k, psi_plus_k
 from ._jit import njit
+
+Array: TypeAlias = NDArray[np.float64]
+IntArray: TypeAlias = NDArray[np.int64]
+#: (rho, kappa_w, kappa_x, -, m, c, input_sign): see :func:`integrate`
+Model: TypeAlias = tuple[float, float, float, float, float, float, float]
+#: the walker state (s, x_anchor, y_anchor, x_cur, w_cur): see :func:`advance`
+Walker: TypeAlias = tuple[float, float, float, float, float]
+#: :func:`exp_plan`'s (fractions, ops, index), then the work arrays of :func:`workspace`
+Plan: TypeAlias = tuple[Array, IntArray, IntArray, Array, Array, Array, Array, Array]
+#: :func:`workspace`: (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac, plan)
+Workspace: TypeAlias = tuple[
+    Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, Array, Plan
+]
 
 # indices in the state vector
 X, V, S, XA, YA, XC, WC, HPREF = range(8)
@@ -51,7 +66,9 @@ STATS_SIZE = 7
 
 
 @njit(inline=True)
-def advance(tab, rho, s, xa, ya, xc, wc, x_new):
+def advance(
+    tab: Array, rho: float, s: float, xa: float, ya: float, xc: float, wc: float, x_new: float
+) -> Walker:
     """Move the hysteresis input from xc to x_new (monotone), exact branch solution.
 
     A new monotone piece starts at the current point when the direction changes:
@@ -70,15 +87,17 @@ def advance(tab, rho, s, xa, ya, xc, wc, x_new):
 
 
 @njit(inline=True)
-def g_plus(tab, w):
+def g_plus(tab: Array, w: float) -> float:
     """g+(w) with dw/dx = rho g+(w) on an increasing piece ((8.11)-(8.12))."""
     if w >= 0.0:
-        return 1.0 - w ** tab[0]
-    return 1.0 + tab[1] * (-w) ** tab[0]
+        g: float = 1.0 - w ** tab[0]
+    else:
+        g = 1.0 + tab[1] * (-w) ** tab[0]
+    return g
 
 
 @njit(nrt=False)
-def static_walk(tab, rho, state, x_in, out):
+def static_walk(tab: Array, rho: float, state: Array, x_in: Array, out: Array) -> None:
     """Advance the walker state [s, xa, ya, xc, wc] (in place) through the samples x_in."""
     s, xa, ya, xc, wc = state[0], state[1], state[2], state[3], state[4]
     for k in range(x_in.size):
@@ -88,7 +107,7 @@ def static_walk(tab, rho, state, x_in, out):
 
 
 @njit(inline=True)
-def _poly_hi(kpoly, x):
+def _poly_hi(kpoly: Array, x: float) -> tuple[float, float]:
     """sum_{i>=2} kappa_i x^i and its derivative (kpoly = kappa_2..kappa_N)."""
     p = 0.0
     dp = 0.0
@@ -99,7 +118,7 @@ def _poly_hi(kpoly, x):
 
 
 @njit(inline=True)
-def _lu_factor(a, size):
+def _lu_factor(a: Array, size: int) -> None:
     """In-place LU factorization without pivoting of a[:size, :size] (I minus a small matrix)."""
     for col in range(size):
         for r in range(col + 1, size):
@@ -110,7 +129,7 @@ def _lu_factor(a, size):
 
 
 @njit(inline=True)
-def _lu_solve(a, b, size):
+def _lu_solve(a: Array, b: Array, size: int) -> None:
     """Solve with the factors of :func:`_lu_factor`, b[:size] in place."""
     for r in range(size):
         for cc in range(r):
@@ -123,7 +142,7 @@ def _lu_solve(a, b, size):
 
 
 @njit(inline=True)
-def _exp_parts(a, b, t):
+def _exp_parts(a: float, b: float, t: float) -> tuple[float, float, float]:
     """(cos(beta t), sin(beta t)/beta, exp(-b t/2)), beta^2 = a - b^2/4 (cosh/sinh if negative):
     the three numbers exp(L t) is built from, L = [[0, 1], [-a, -b]]."""
     al = 0.5 * b
@@ -143,14 +162,16 @@ def _exp_parts(a, b, t):
 
 
 @njit(inline=True)
-def _exp_matrix(a, b, cc, ss, ex):
+def _exp_matrix(
+    a: float, b: float, cc: float, ss: float, ex: float
+) -> tuple[float, float, float, float]:
     """exp(L t) from its parts (:func:`_exp_parts`)."""
     al = 0.5 * b
     return ex * (cc + ss * al), ex * ss, -ex * ss * a, ex * (cc - ss * al)
 
 
 @njit(inline=True)
-def _exp_l(a, b, t):
+def _exp_l(a: float, b: float, t: float) -> tuple[float, float, float, float]:
     """exp(L t) for L = [[0, 1], [-a, -b]] (closed form; under-, over- and critically damped)."""
     cc, ss, ex = _exp_parts(a, b, t)
     return _exp_matrix(a, b, cc, ss, ex)
@@ -160,7 +181,7 @@ def _exp_l(a, b, t):
 _DIRECT, _DOUBLE, _DIFFERENCE = 0, 1, 2
 
 
-def exp_plan(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def exp_plan(points: Array) -> tuple[Array, IntArray, IntArray]:
     """A recipe for exp(L tau xi) at all the ``points`` xi with few sin/cos/exp evaluations.
 
     exp(L t) is a one-parameter group, so its parts (cos(beta t), sin(beta t)/beta, e^(-b t/2))
@@ -201,7 +222,16 @@ def exp_plan(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(inline=True)
-def _exp_points(a, b, tau, fractions, ops, index, parts, Ez):
+def _exp_points(
+    a: float,
+    b: float,
+    tau: float,
+    fractions: Array,
+    ops: IntArray,
+    index: IntArray,
+    parts: Array,
+    Ez: Array,
+) -> None:
     """Ez[p] = exp(L tau points[p]) following the plan of :func:`exp_plan` (parts: work array)."""
     al = 0.5 * b
     beta2 = a - al * al
@@ -250,7 +280,20 @@ _TAYLOR_TERMS = 40  # at most, in the Taylor series of a short piece's solution 
 
 
 @njit(inline=True)
-def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, plan):
+def _piece_matrices(
+    a: float,
+    b: float,
+    m: float,
+    tau: float,
+    points: Array,
+    vinv: Array,
+    invfact: Array,
+    Ez: Array,
+    Gz: Array,
+    pcoef: Array,
+    tmp: Array,
+    plan: Plan,
+) -> None:
     """z(tau xi_p) = Ez[p] z(0) + Gz[p] F for the points xi_p, F the nodal forcing values.
 
     Forcing sum_k beta_k xi^k, beta = vinv F, xi = t/tau. Long pieces (|L| tau > 1): the
@@ -326,7 +369,7 @@ def _piece_matrices(a, b, m, tau, points, vinv, invfact, Ez, Gz, pcoef, tmp, pla
 
 
 @njit(inline=True)
-def _forcing(model, kpoly, u, k_loc, x, w):
+def _forcing(model: Model, kpoly: Array, u: float, k_loc: float, x: float, w: float) -> float:
     """F = u - sum_i kappa_i x^i - kappa_w w + k_loc x."""
     hi_val, _ = _poly_hi(kpoly, x)
     return u - model[2] * x - hi_val - model[1] * w + k_loc * x
@@ -334,31 +377,31 @@ def _forcing(model, kpoly, u, k_loc, x, w):
 
 @njit(inline=True)
 def _piece(
-    tab,
-    model,
-    kpoly,
-    st,
-    u,
-    k_loc,
-    tau,
-    points,
-    vinv,
-    invfact,
-    Ez,
-    Gz,
-    pcoef,
-    tmp,
-    F,
-    zs,
-    wst,
-    Dn,
-    dwdx,
-    res,
-    jac,
-    tol_x,
-    tol_force,
-    stats,
-):
+    tab: Array,
+    model: Model,
+    kpoly: Array,
+    st: Array,
+    u: float,
+    k_loc: float,
+    tau: float,
+    points: Array,
+    vinv: Array,
+    invfact: Array,
+    Ez: Array,
+    Gz: Array,
+    pcoef: Array,
+    tmp: Array,
+    F: Array,
+    zs: Array,
+    wst: Array,
+    Dn: Array,
+    dwdx: Array,
+    res: Array,
+    jac: Array,
+    tol_x: float,
+    tol_force: float,
+    stats: Array,
+) -> None:
     """Solve the collocation equations of one piece (Newton on the nodal forcing F_1..F_{q-1}).
 
     Uses the piece matrices Ez, Gz already computed for (tau, k_loc) and F as initial guess.
@@ -446,7 +489,9 @@ def _piece(
 
 
 @njit(inline=True)
-def _branch_derivatives(tab, model, kpoly, x, s_in, w):
+def _branch_derivatives(
+    tab: Array, model: Model, kpoly: Array, x: float, s_in: float, w: float
+) -> tuple[float, float, float]:
     """First, second and third derivatives of Phi at x along the branch of direction s_in.
 
     One power evaluation. With wt = s_in w and dw/dx_in = rho g+(wt): w_x = sgn rho g,
@@ -494,7 +539,7 @@ def _branch_derivatives(tab, model, kpoly, x, s_in, w):
 
 
 @njit(inline=True)
-def _monomial_forcing(vinv, F, pcoef):
+def _monomial_forcing(vinv: Array, F: Array, pcoef: Array) -> None:
     """pcoef = coefficients beta_k of the forcing interpolant sum_k beta_k xi^k (nodal values F)."""
     q = vinv.shape[0]
     for k in range(q):
@@ -505,7 +550,7 @@ def _monomial_forcing(vinv, F, pcoef):
 
 
 @njit(inline=True)
-def _particular(a, b, m, inv_tau, pcoef):
+def _particular(a: float, b: float, m: float, inv_tau: float, pcoef: Array) -> None:
     """In place: forcing coefficients beta_k -> those of the polynomial particular solution P(xi)
     of m x'' + c x' + k x = sum beta_k xi^k (a = k/m, b = c/m, xi = t/tau), from the top degree."""
     q = pcoef.size
@@ -520,7 +565,20 @@ def _particular(a, b, m, inv_tau, pcoef):
 
 
 @njit(inline=True)
-def _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs):
+def _states_at_points(
+    a: float,
+    b: float,
+    m: float,
+    tau: float,
+    vinv: Array,
+    F: Array,
+    plan: Plan,
+    Ez: Array,
+    pcoef: Array,
+    x0: float,
+    v0: float,
+    zs: Array,
+) -> None:
     """zs[p] = (x, x') at the points for the nodal forcing F (exp(L t) at the points in Ez).
 
     Long pieces: as :func:`_piece_matrices`'s long form for one forcing, the polynomial
@@ -571,28 +629,28 @@ def _states_at_points(a, b, m, tau, vinv, F, plan, Ez, pcoef, x0, v0, zs):
 
 @njit(inline=True)
 def _piece_small(
-    tab,
-    model,
-    st,
-    k_loc,
-    tau,
-    points,
-    vinv,
-    invfact,
-    lagrange,
-    Ez,
-    Gz,
-    pcoef,
-    tmp,
-    plan,
-    F,
-    zs,
-    wst,
-    phi2,
-    phi3,
-    tol_x,
-    stats,
-):
+    tab: Array,
+    model: Model,
+    st: Array,
+    k_loc: float,
+    tau: float,
+    points: Array,
+    vinv: Array,
+    invfact: Array,
+    lagrange: Array,
+    Ez: Array,
+    Gz: Array,
+    pcoef: Array,
+    tmp: Array,
+    plan: Plan,
+    F: Array,
+    zs: Array,
+    wst: Array,
+    phi2: float,
+    phi3: float,
+    tol_x: float,
+    stats: Array,
+) -> float:
     """Small-amplitude piece: forcing from the quadratic Taylor model of Phi along the branch.
 
     F(t) = F0 - phi2/2 (x(t) - x0)^2 on the linear prediction of x (a one-shot collocation, no
@@ -645,7 +703,19 @@ def _piece_small(
 
 
 @njit(inline=True)
-def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
+def _defect(
+    tab: Array,
+    model: Model,
+    kpoly: Array,
+    u: float,
+    k_loc: float,
+    points: Array,
+    nodes: Array,
+    lagrange: Array,
+    F: Array,
+    zs: Array,
+    wst: Array,
+) -> float:
     """Largest |F(actual state) - F(interpolated)| at the check points."""
     rho, sgn = model[0], model[6]
     q = nodes.size
@@ -667,7 +737,17 @@ def _defect(tab, model, kpoly, u, k_loc, points, nodes, lagrange, F, zs, wst):
 
 
 @njit(inline=True)
-def _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
+def _state_at(
+    model: Model,
+    k_loc: float,
+    tau: float,
+    vinv: Array,
+    F: Array,
+    pcoef: Array,
+    x0: float,
+    v0: float,
+    t: float,
+) -> tuple[float, float]:
     """(x(t), x'(t)) on the piece for the nodal forcing F (exact for the interpolated forcing)."""
     m, c = model[4], model[5]
     a = k_loc / m
@@ -691,7 +771,19 @@ def _state_at(model, k_loc, tau, vinv, F, pcoef, x0, v0, t):
 
 
 @njit(inline=True)
-def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi, stats):
+def _reversal_time(
+    model: Model,
+    k_loc: float,
+    tau: float,
+    vinv: Array,
+    F: Array,
+    pcoef: Array,
+    x0: float,
+    v0: float,
+    direction: float,
+    t_hi: float,
+    stats: Array,
+) -> float:
     """Root of x'(t) in (0, t_hi] (x' has the sign of ``direction`` at 0, the other at t_hi)."""
     lo = 0.0
     hi = t_hi
@@ -721,7 +813,7 @@ def _reversal_time(model, k_loc, tau, vinv, F, pcoef, x0, v0, direction, t_hi, s
 
 
 @njit(inline=True)
-def _predicted_reversal(a, b, dx, v0, direction):
+def _predicted_reversal(a: float, b: float, dx: float, v0: float, direction: float) -> float:
     """First t > 0 with x'(t) = 0 for x'' + b x' + a (x - x_eq) = 0, x - x_eq = dx (inf if none).
 
     Under-damped: x'(t) = e^(-b t/2) (cos(beta t) v0 - sin(beta t)/beta (a dx + b v0/2)).
@@ -740,7 +832,7 @@ def _predicted_reversal(a, b, dx, v0, direction):
     return theta / be
 
 
-def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
+def workspace(nodes: Array, checks: Array) -> Workspace:
     """The arrays :func:`integrate` works in, allocated once per plant (it allocates nothing):
     (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac, plan), plan the
     :func:`exp_plan` of the points, its work array of parts, the tables xi_p^k and
@@ -748,7 +840,7 @@ def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
     :func:`_states_at_points`."""
     q = nodes.size
     npts = q - 1 + checks.size
-    points = np.concatenate([nodes[1:], checks])
+    points: Array = np.concatenate([nodes[1:], checks])
     invfact = np.empty(_SERIES_TERMS + q + 2)
     invfact[0] = 1.0
     for i in range(1, invfact.size):
@@ -787,24 +879,24 @@ def workspace(nodes: np.ndarray, checks: np.ndarray) -> tuple:
 
 @njit(nrt=False)
 def integrate(
-    tab,
-    model,
-    kpoly,
-    nodes,
-    checks,
-    vinv,
-    lagrange,
-    dt,
-    tol_x,
-    h_min,
-    st,
-    u,
-    x_out,
-    v_out,
-    w_out,
-    stats,
-    work,
-):
+    tab: Array,
+    model: Model,
+    kpoly: Array,
+    nodes: Array,
+    checks: Array,
+    vinv: Array,
+    lagrange: Array,
+    dt: float,
+    tol_x: float,
+    h_min: float,
+    st: Array,
+    u: Array,
+    x_out: Array,
+    v_out: Array,
+    w_out: Array,
+    stats: Array,
+    work: Workspace,
+) -> None:
     """Advance the plant over len(u) output steps of length dt with u held on each.
 
     ``model`` = (rho, kappa_w, kappa_x, -, m, c, input_sign). Outputs are the states at the end

@@ -16,6 +16,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from . import _branches
 from .errors import (
@@ -165,7 +166,7 @@ def from_standard(
     )
 
 
-def _as_path(x: np.ndarray, name: str = "x") -> np.ndarray:
+def _as_path(x: NDArray[np.float64], name: str = "x") -> NDArray[np.float64]:
     path = np.ascontiguousarray(x, dtype=float)
     if path.ndim != 1:
         raise InputSignalError(f"{name} must be a 1-D array of samples, got shape {path.shape}")
@@ -174,7 +175,9 @@ def _as_path(x: np.ndarray, name: str = "x") -> np.ndarray:
     return path
 
 
-def simulate_w(x: np.ndarray, rho: float, sigma: float, n: float, w0: float = 0.0) -> np.ndarray:
+def simulate_w(
+    x: NDArray[np.float64], rho: float, sigma: float, n: float, w0: float = 0.0
+) -> NDArray[np.float64]:
     """w at every sample of the input path ``x`` for (9.2) with w(x[0]) = w0.
 
     Rate independent: only the sequence of values matters. The path is taken linear between
@@ -191,7 +194,7 @@ def simulate_w(x: np.ndarray, rho: float, sigma: float, n: float, w0: float = 0.
     return out
 
 
-def polynomial(kappa: tuple[float, ...], v: np.ndarray) -> np.ndarray:
+def polynomial(kappa: tuple[float, ...], v: NDArray[np.float64]) -> NDArray[np.float64]:
     """sum_{i=1..N} kappa_i v^i, the non-hysteretic term of (10.4) (Horner)."""
     v = np.asarray(v, dtype=float)
     total = np.zeros_like(v)
@@ -200,7 +203,9 @@ def polynomial(kappa: tuple[float, ...], v: np.ndarray) -> np.ndarray:
     return total
 
 
-def model_output(params: BoucWenParameters, v: np.ndarray, w0: float = 0.0) -> np.ndarray:
+def model_output(
+    params: BoucWenParameters, v: NDArray[np.float64], w0: float = 0.0
+) -> NDArray[np.float64]:
     """y = sum_i kappa_i v^i + kappa_w w + y0 (10.15), w from (9.2) driven by input_sign * v."""
     params.validate()
     v = _as_path(v, "v")

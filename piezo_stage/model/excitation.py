@@ -15,15 +15,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Any, Sequence, TypeAlias
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import ParameterError
 
 WAVEFORMS = ("triangle", "sine", "random", "step", "constant")
 #: what the plan outputs after its last run: the last value, the first run's low, or zero
 HOLDS = ("last", "low", "zero")
+#: the random waveform's (frequencies, phases, weights, min, span): see :func:`_random_table`
+RandomTable: TypeAlias = tuple[
+    NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float
+]
 
 
 @dataclass(frozen=True)
@@ -58,7 +63,7 @@ class ExcitationPlan:
     hold: str = "last"  # after the last run: "last" value, "low" of the first run, or "zero"
     seed: int = 0  # random waveform
     bandwidth: float = 1.0  # [Hz] random waveform: highest frequency
-    _random_table: tuple = field(default=(), repr=False, compare=False)
+    _random_table: RandomTable | tuple[()] = field(default=(), repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.waveform not in WAVEFORMS:
@@ -107,9 +112,9 @@ class ExcitationPlan:
         return start, start + self.record_periods * self.period
 
     # ------------------------------------------------------------------ values
-    def shape(self, phase: np.ndarray | float) -> np.ndarray:
+    def shape(self, phase: NDArray[np.float64] | float) -> NDArray[np.float64]:
         """Normalised waveform in [0, 1] at ``phase`` = t/period (any real)."""
-        p = np.mod(np.asarray(phase, dtype=float), 1.0)
+        p: NDArray[np.float64] = np.mod(np.asarray(phase, dtype=float), 1.0)
         if self.waveform == "triangle":
             return 1.0 - np.abs(1.0 - 2.0 * p)
         if self.waveform == "sine":
@@ -118,11 +123,13 @@ class ExcitationPlan:
             return (p >= 0.5).astype(float)
         if self.waveform == "constant":
             return np.ones_like(p)
-        freqs, phases, weights, lo, span = self._random_table
+        table = self._random_table
+        assert table, "built by __post_init__ for the random waveform"
+        freqs, phases, weights, lo, span = table
         s = np.sin(2 * np.pi * np.multiply.outer(p * self.period, freqs) + phases) @ weights
         return (s - lo) / span
 
-    def values(self, t: np.ndarray | float) -> np.ndarray:
+    def values(self, t: NDArray[np.float64] | float) -> NDArray[np.float64]:
         """Command voltage at times ``t`` [s] (vectorised; after the end: the hold value)."""
         t = np.asarray(t, dtype=float)
         run = np.clip((t // self.run_duration).astype(int), 0, len(self.offsets) - 1)
@@ -156,7 +163,7 @@ class ExcitationPlan:
         return replace(self, v_min=v_min, v_max=v_max)
 
 
-def _random_table(seed: int, period: float, bandwidth: float) -> tuple:
+def _random_table(seed: int, period: float, bandwidth: float) -> RandomTable:
     """Frequencies (harmonics of 1/period up to bandwidth), random phases, equal weights, and
     the min/span of the sum over one period (so the shape is periodic and lies in [0, 1])."""
     rng = np.random.default_rng(seed)
@@ -200,7 +207,8 @@ def plan_from(preset: str | None = None, **overrides: object) -> ExcitationPlan:
     if preset and preset not in PRESETS:
         raise ParameterError(f"unknown preset {preset!r}; known: {sorted(PRESETS)}")
     base = PRESETS[preset] if preset else ExcitationPlan()
-    clean = {
+    # values of any of the plan's field types: the dataclass checks them
+    clean: dict[str, Any] = {
         k: (tuple(v) if isinstance(v, Sequence) and not isinstance(v, str) else v)
         for k, v in overrides.items()
         if v is not None

@@ -9,13 +9,16 @@ psi+/-, psi are their inverses. All are evaluated to ~1e-15 from tables built on
 
 from __future__ import annotations
 
+from typing import TypeAlias
+
 import numpy as np
+from numpy.typing import NDArray
 
 from . import _branches
 from .bouc_wen import _as_path, check_class_i
 from .errors import InputSignalError
 
-Array = np.ndarray
+Array: TypeAlias = NDArray[np.float64]
 
 __all__ = [
     "phi_plus",
@@ -29,7 +32,7 @@ __all__ = [
 ]
 
 
-def _tables(sigma: float, n: float) -> tuple:
+def _tables(sigma: float, n: float) -> Array:
     check_class_i(1.0, sigma, n)
     return _branches.tables(float(sigma), float(n))
 

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from piezo_stage.config_path import read_yaml
 
@@ -117,13 +118,15 @@ class Drift:
         if not (math.isfinite(self.time_constant) and self.time_constant > 0.0):
             raise ParameterError(f"drift.time_constant must be > 0 [s], got {self.time_constant!r}")
 
-    def evaluate(self, t: np.ndarray) -> np.ndarray:
+    def evaluate(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """The drift at times ``t`` [s] from the start of the recording."""
         t = np.asarray(t, dtype=float)
         return self.coefficient * drift_basis(self.kind, t, self.time_constant)
 
 
-def drift_basis(kind: DriftKind, t: np.ndarray, time_constant: float) -> np.ndarray:
+def drift_basis(
+    kind: DriftKind, t: NDArray[np.float64], time_constant: float
+) -> NDArray[np.float64]:
     """t / τ (linear) or ln(1 + t/τ) (log), t >= 0 from the start of the recording."""
     s = np.maximum(t, 0.0) / time_constant
     return s if kind is DriftKind.LINEAR else np.log1p(s)

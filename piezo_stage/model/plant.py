@@ -17,10 +17,11 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, TypeAlias, cast
 
 import numpy as np
 from numpy.polynomial import legendre
+from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 
 from . import _branches
@@ -32,7 +33,7 @@ from .parameter_set import Dynamics
 if TYPE_CHECKING:  # at run time these come lazily from .stage (see __getattr__ below)
     from .stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
 
-Array = np.ndarray
+Array: TypeAlias = NDArray[np.float64]
 
 __all__ = [
     "StaticPlant",
@@ -50,7 +51,8 @@ __all__ = [
 _FROM_STAGE = ("SensorStatus", "SensorModel", "AmplifierModel", "SimulatedStage")
 
 
-def __getattr__(name: str):  # PEP 562: the stage classes live in .stage (which imports this module)
+# PEP 562: the stage classes live in .stage (which imports this module)
+def __getattr__(name: str) -> object:
     if name in _FROM_STAGE:
         from . import stage
 
@@ -190,7 +192,8 @@ class DynamicPlant:
         self._kpoly = np.array(params.kappa[1:], dtype=float)
         self._nodes = lobatto_nodes(nodes)
         self._checks = np.array([0.5 * (self._nodes[-2] + self._nodes[-1])])  # defect check point
-        self._vinv = np.linalg.inv(np.vander(self._nodes, nodes, increasing=True))
+        # (numpy's stubs type the inverse of any float matrix as floating[Any]: this one is float64)
+        self._vinv = cast(Array, np.linalg.inv(np.vander(self._nodes, nodes, increasing=True)))
         self._lagrange = _lagrange_weights(self._nodes, self._checks)
         self.stats = np.zeros(K.STATS_SIZE)
         self._tol_x = self.tol * length_scale(params)
@@ -276,6 +279,23 @@ def length_scale(params: BoucWenParameters) -> float:
     return max(1.0 / params.rho, params.kappa_w / abs(params.kappa_x))
 
 
+#: the solve_ivp methods :func:`simulate_reference` can use
+IvpMethod: TypeAlias = Literal["RK23", "RK45", "DOP853", "Radau", "BDF", "LSODA"]
+
+
+class _Reversal:
+    """A terminal solve_ivp event of :func:`simulate_reference`: x' = 0, crossed in
+    ``direction`` (-1: downwards, a maximum of x; 1: upwards, a minimum of x)."""
+
+    terminal = True
+
+    def __init__(self, direction: float) -> None:
+        self.direction = direction
+
+    def __call__(self, _t: float, z: Array, _uk: float) -> float:
+        return float(z[1])
+
+
 def simulate_reference(
     params: BoucWenParameters,
     dynamics: Dynamics,
@@ -284,7 +304,7 @@ def simulate_reference(
     x0: float = 0.0,
     xdot0: float = 0.0,
     w0: float = 0.0,
-    method: str = "DOP853",
+    method: IvpMethod = "DOP853",
     rtol: float = 1e-12,
     reversal_events: bool = True,
 ) -> tuple[Array, Array, Array]:
@@ -312,28 +332,22 @@ def simulate_reference(
     )
     atol = rtol * np.array([scale, scale * omega, 1.0])
 
-    def rhs(_t, z, uk):
+    def rhs(_t: float, z: Array, uk: float) -> list[float]:
         x, v, w = z
         a = abs(w)
         vin = sgn * v
         wdot = rho * (vin - sigma * abs(vin) * a ** (n - 1.0) * w + (sigma - 1.0) * vin * a**n)
         return [v, (uk - c * v - float(np.dot(kappa, x**powers)) - kw * w) / m, wdot]
 
-    def falling(_t, z, _uk):  # x' crosses zero downwards: a maximum of x
-        return z[1]
-
-    def rising(_t, z, _uk):  # x' crosses zero upwards: a minimum of x
-        return z[1]
-
-    falling.terminal = rising.terminal = True
-    falling.direction, rising.direction = -1.0, 1.0
+    falling = _Reversal(-1.0)  # x' crosses zero downwards: a maximum of x
+    rising = _Reversal(1.0)  # x' crosses zero upwards: a minimum of x
     state = np.array([x0, xdot0, check_w0(w0)], dtype=float)
     out = np.empty((3, len(u)))
-    after_event = None  # the event just handled: the next one is of the other kind
+    after_event: _Reversal | None = None  # the event just handled: the next one is the other
     for k, uk in enumerate(u):
         t, end = 0.0, dt
         while t < end:
-            events = None
+            events: _Reversal | None = None
             if reversal_events:
                 if after_event is not None:
                     events = rising if after_event is falling else falling
@@ -343,7 +357,14 @@ def simulate_reference(
                     )  # at rest: where it goes
                     events = falling if moving > 0.0 else (rising if moving < 0.0 else None)
             sol = solve_ivp(
-                rhs, (t, end), state, method=method, rtol=rtol, atol=atol, events=events, args=(uk,)
+                rhs,
+                (t, end),
+                state,
+                method=method,
+                rtol=rtol,
+                atol=atol,
+                events=events,  # type: ignore[arg-type]  # stubs: events(t, y), but scipy adds args
+                args=(uk,),
             )
             state = sol.y[:, -1].copy()
             if sol.status == 1 and sol.t[-1] < end:

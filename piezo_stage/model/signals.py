@@ -7,11 +7,14 @@ them, x(t) and x(t) + q (Step 2 of 9.1.3).
 
 from __future__ import annotations
 
+from typing import TypeAlias
+
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import InputSignalError
 
-Array = np.ndarray
+Array: TypeAlias = NDArray[np.float64]
 
 __all__ = ["triangle", "t_wave_pair", "sine", "step", "band_limited_noise", "check_period"]
 
@@ -99,5 +102,6 @@ def band_limited_noise(
     freqs[freqs == 0.0] = bandwidth
     phases = rng.uniform(0.0, 2.0 * np.pi, components)
     t = np.asarray(t, dtype=float)
-    total = np.sin(2.0 * np.pi * np.multiply.outer(t, freqs) + phases).sum(axis=-1)
-    return offset + amplitude * np.sqrt(2.0 / components) * total
+    total: Array = np.sin(2.0 * np.pi * np.multiply.outer(t, freqs) + phases).sum(axis=-1)
+    noise: Array = offset + amplitude * np.sqrt(2.0 / components) * total
+    return noise

@@ -11,6 +11,7 @@ import math
 from enum import IntEnum
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import InvalidCommandError, ParameterError
 from .parameter_set import ParameterSet
@@ -181,8 +182,10 @@ class SimulatedStage:
         self.amplifier.reset(initial_voltage)
         w0 = parameter_set.w0 if w0 is None else w0
         if parameter_set.form == "dynamic":
+            dynamics = parameter_set.dynamics
+            assert dynamics is not None  # ParameterSet: the dynamic form has dynamics
             self.plant: StaticPlant | DynamicPlant = DynamicPlant(
-                parameter_set.bouc_wen, parameter_set.dynamics, x0=x0, xdot0=xdot0, w0=w0, tol=tol
+                parameter_set.bouc_wen, dynamics, x0=x0, xdot0=xdot0, w0=w0, tol=tol
             )
         else:
             self.plant = StaticPlant(parameter_set.bouc_wen, w0=w0, v0=self.amplifier.voltage)
@@ -212,7 +215,9 @@ class SimulatedStage:
         value, status = self.sensor.measure(y)
         return applied, value, status
 
-    def step_many(self, commands: np.ndarray, dt: float, every: int = 1) -> np.ndarray:
+    def step_many(
+        self, commands: NDArray[np.float64], dt: float, every: int = 1
+    ) -> NDArray[np.float64]:
         """:meth:`step` for each of ``commands`` in turn; rows (applied, reading, status) after
         steps every-1, 2 every-1, ... (one integrator call when the amplifier is ideal and the
         plant dynamic: the rig emulator's substeps)."""
