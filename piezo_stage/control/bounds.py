@@ -24,11 +24,24 @@ from __future__ import annotations
 import math
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, TypeVar
 
 from piezo_stage.config_path import read_yaml
 
 from .errors import BoundsError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+    class _Checked(DataclassInstance, Protocol):
+        """A dataclass of floats with ``validate()``: :class:`Bounds`, :class:`NominalPlant`."""
+
+        def __init__(self, **values: float) -> None: ...
+
+        def validate(self) -> None: ...
+
+
+_C = TypeVar("_C", bound="_Checked")
 
 
 def _check_finite(owner: str, values: Mapping[str, float]) -> None:
@@ -41,7 +54,7 @@ def _check_finite(owner: str, values: Mapping[str, float]) -> None:
             raise BoundsError(f"{owner}.{key} must be a finite number, got {value!r}")
 
 
-def _from_mapping(cls, owner: str, data: Mapping[str, Any]):
+def _from_mapping(cls: type[_C], owner: str, data: Mapping[str, Any]) -> _C:
     if not isinstance(data, Mapping):
         raise BoundsError(f"{owner}: expected a mapping, got {type(data).__name__}")
     names = [f.name for f in fields(cls)]

@@ -266,9 +266,9 @@ class TimeVaryingPID:
                 raise MeasurementError(
                     f"{name} must be finite, got {value}; open the loop on invalid samples"
                 )
-        for name, value in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
-            if value is not None and not math.isfinite(value):
-                raise MeasurementError(f"{name} must be finite, got {value}")
+        for name, given in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
+            if given is not None and not math.isfinite(given):
+                raise MeasurementError(f"{name} must be finite, got {given}")
         cfg = self._config
         if self._t_prev is None:
             timing, dt = TIMING_FIRST, 0.0
@@ -313,6 +313,7 @@ class TimeVaryingPID:
             self._integrate(t, x1, x2, dt)
 
         if self._closed:
+            assert self._t_close is not None  # set whenever the loop is closed
             tau = t - self._t_close
             u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
             u_exc = float(excitation_term(cfg.mode, cfg.gains, tau, self._x0))
@@ -372,6 +373,7 @@ class TimeVaryingPID:
         if cfg.compensation is _FEEDFORWARD:
             return  # the law is not applied: its integral is not accumulated
         if cfg.anti_windup == "conditional":
+            assert self._t_close is not None  # integrating: the loop is closed
             tau = t - self._t_close
             u_now = float(
                 pid_term(cfg.gains, self._x0, x1, x2)

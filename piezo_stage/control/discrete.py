@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .bounds import NominalPlant
 from .errors import SampledLoopError
@@ -51,7 +52,7 @@ def stiffness(plant: NominalPlant, hysteresis: str = "disturbance") -> float:
 
 def continuous_poles(
     plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
-) -> np.ndarray:
+) -> NDArray[np.floating] | NDArray[np.complexfloating]:
     """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15),
     w frozen."""
     k = stiffness(plant, hysteresis)
@@ -70,7 +71,7 @@ def max_meaningful_rate(
 
 def zoh_plant(
     plant: NominalPlant, period: float, hysteresis: str = "disturbance"
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(Ad, Bd) of state [x, ẋ] held by a zero-order hold over ``period`` [s]."""
     from scipy.linalg import expm  # lazy: keeps `import piezo_stage.control` light for nodes
 
@@ -83,14 +84,14 @@ def zoh_plant(
 
 
 def _step_matrix(
-    ad: np.ndarray,
-    bd: np.ndarray,
+    ad: NDArray[np.float64],
+    bd: NDArray[np.float64],
     period: float,
     k0_eff: float,
     gains: Gains,
     delay: int,
     alpha: float,
-) -> np.ndarray:
+) -> NDArray[np.float64]:
     """One period of the loop; state [x, ẋ, x0[k−1], x[k−1], x2f[k−1], v[k−1], ..., v[k−d]]."""
     n = 5 + delay
     eye = np.eye(n)
@@ -122,7 +123,7 @@ class SampledLoopReport:
     margin: float
     continuous_stable: bool
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, object]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
@@ -134,7 +135,7 @@ def closed_loop_matrices(
     law: str = "pid",
     derivative_tau: float = 0.0,
     hysteresis: str = "disturbance",
-) -> list[np.ndarray]:
+) -> list[NDArray[np.float64]]:
     """Per-sample matrices of the sampled loop: one for (11.5)/(11.17), N = rate/f for (11.18)."""
     check_law(law)
     plant.validate()
@@ -182,7 +183,7 @@ def closed_loop_matrices(
     ]
 
 
-def spectral_radius_per_sample(matrices: list[np.ndarray]) -> float:
+def spectral_radius_per_sample(matrices: list[NDArray[np.float64]]) -> float:
     """ρ(Φ[N−1]···Φ[0])^(1/N); for long periods the product is renormalised to avoid overflow."""
     n = len(matrices)
     if n == 1:

@@ -25,7 +25,7 @@ from enum import Enum
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, polynomial, simulate_w
 from piezo_stage.model.errors import ModelError
@@ -97,7 +97,7 @@ class FeedforwardModel:
         except ModelError as exc:
             raise FeedforwardError(str(exc)) from exc
 
-    def static_force(self, x: ArrayLike, w: ArrayLike) -> np.ndarray:
+    def static_force(self, x: ArrayLike, w: ArrayLike) -> NDArray[np.float64]:
         """Σ κ_i x^i + κw·w, x from the model's offset (the hysteretic restoring term of (11.1))."""
         return polynomial(self.bouc_wen.kappa, np.asarray(x)) + self.bouc_wen.kappa_w * np.asarray(
             w
@@ -114,7 +114,7 @@ class FeedforwardModel:
 
 def feedforward(
     model: FeedforwardModel, xd: ArrayLike, vd: ArrayLike, ad: ArrayLike, w0: float = 0.0
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(u_ff, w) along the sampled path x_d with ẋ_d, ẍ_d; w(x_d[0]) = w0 (pure, vectorised)."""
     bw = model.bouc_wen
     x = np.asarray(xd, dtype=float) - bw.y0

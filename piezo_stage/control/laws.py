@@ -13,7 +13,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .errors import GainError
 
@@ -64,18 +64,22 @@ class Gains:
 THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 
 
-def _num(value: ArrayLike) -> np.ndarray | float:
+def _num(value: ArrayLike) -> NDArray[np.float64] | float:
     """``value`` as is when a float or an array (a controller's per-sample scalars stay Python
     floats: numpy costs microseconds per scalar operation), else as an array."""
     return value if isinstance(value, (float, np.ndarray)) else np.asarray(value)
 
 
-def pid_term(gains: Gains, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike) -> np.ndarray | float:
+def pid_term(
+    gains: Gains, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike
+) -> NDArray[np.float64] | float:
     """u_pid = −k0·x0 − k1·x1 − k2·x2, the PID of (11.5)."""
     return -gains.k0 * _num(x0) - gains.k1 * _num(x1) - gains.k2 * _num(x2)
 
 
-def excitation_term(mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike) -> np.ndarray | float:
+def excitation_term(
+    mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike
+) -> NDArray[np.float64] | float:
     """The added term: 0 (11.5), −A·sin(2πft) (11.17) or −kA·x0·sin(2πft) (11.18)."""
     check_law(mode)
     t, x0 = _num(t), _num(x0)
@@ -99,6 +103,6 @@ def x0_coefficient(mode: str, gains: Gains, t: float) -> float:
 
 def control_law(
     mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike
-) -> np.ndarray | float:
+) -> NDArray[np.float64] | float:
     """u of law ``mode`` (11.5, 11.17 or 11.18); t is the time since the loop was closed [s]."""
     return pid_term(gains, x0, x1, x2) + excitation_term(mode, gains, t, x0)

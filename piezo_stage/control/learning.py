@@ -44,9 +44,10 @@ import math
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, cast
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy import signal
 
 from piezo_stage.model.parameter_set import Dynamics
@@ -108,9 +109,10 @@ def default_cutoff(model: FeedforwardModel | None, rate_hz: float) -> float:
     return min(0.25 * rate_hz, 0.5 * resonance(model)) if model is not None else 0.25 * rate_hz
 
 
-def harmonics(n: int, rate_hz: float) -> np.ndarray:
+def harmonics(n: int, rate_hz: float) -> NDArray[np.float64]:
     """Frequencies [Hz] of the rfft bins of an ``n``-sample period at ``rate_hz``."""
-    return np.fft.rfftfreq(n, 1.0 / rate_hz)
+    # (numpy's stubs give floating[Any] for any float input: these are float64)
+    return cast(NDArray[np.float64], np.fft.rfftfreq(n, 1.0 / rate_hz))
 
 
 def feedforward_response(
@@ -121,7 +123,7 @@ def feedforward_response(
     delay_samples: float = 0.0,
     amplifier_bandwidth: float = math.inf,
     gains: Gains | None = None,
-) -> np.ndarray:
+) -> NDArray[np.complex128]:
     """G at the harmonics of an ``n``-sample period (module docstring): u_ff → x at the samples,
     through the ZOH, the amplifier, ``delay_samples`` (may be fractional) and, with ``gains``,
     the closed loop of the PID law. Complex, one value per rfft bin."""
@@ -134,6 +136,7 @@ def feedforward_response(
     den = np.trim_zeros(den, "f")  # m = 0 (and c = 0): first order (static)
     omega = 2.0 * math.pi * harmonics(n, rate_hz) * T
     z = np.exp(1j * omega)
+    P: NDArray[np.complex128]
     if den.size == 1:  # static: x[k + 1] = u[k] / k
         P = 1.0 / (den[0] * z)
     else:
@@ -144,7 +147,7 @@ def feedforward_response(
         return P
     with np.errstate(divide="ignore", invalid="ignore"):
         C = gains.k1 + gains.k0 * T / (1.0 - 1.0 / z) + gains.k2 * (1.0 - 1.0 / z) / T
-        G = P / (1.0 + C * P)
+        G: NDArray[np.complex128] = P / (1.0 + C * P)
     G[0] = 0.0  # the integrator: no mean passes to x
     return G
 
@@ -186,15 +189,15 @@ class LearningConfig:
             raise LearningError("need 0 <= min_improvement < 1 and patience >= 1")
 
 
-def limit(u: np.ndarray, config: LearningConfig, rate_hz: float, periodic: bool = True
-          ) -> np.ndarray:
+def limit(u: NDArray[np.float64], config: LearningConfig, rate_hz: float, periodic: bool = True
+          ) -> NDArray[np.float64]:
     """``u`` within [u_min, u_max] with |u[k+1] − u[k]| ≤ slew_rate/rate (around the period too
     when ``periodic``): clipped, then each value brought within the slew cap of the one before
     (one forward pass; clipping and this pass move a value towards its neighbour, never out
     of range); a periodic table whose step from its end back to its start still exceeds the
     cap is scaled about its mean by cap/step (scaling shrinks every step alike, clipping then
     grows none)."""
-    out = np.clip(np.asarray(u, dtype=float), config.u_min, config.u_max)
+    out = np.clip(np.asarray(u, dtype=np.float64), config.u_min, config.u_max)
     if not math.isfinite(config.slew_rate):
         return out
     cap = config.slew_rate / rate_hz
@@ -213,7 +216,7 @@ class FeedforwardTable:
     False: one record (the last value holds after it). ``meta``: what it was made for
     (trajectory, model, learning history), saved with it."""
 
-    u: np.ndarray
+    u: NDArray[np.float64]
     rate_hz: float
     periodic: bool = True
     meta: dict[str, Any] = field(default_factory=dict)
@@ -270,7 +273,7 @@ class IterativeLearning:
     """u_{j+1} = u_j + Q·L·e_j on ``table`` (module docstring), in place: call
     :meth:`update` with each period's error; ``done`` once the stop rule holds."""
 
-    def __init__(self, table: FeedforwardTable, response: np.ndarray,
+    def __init__(self, table: FeedforwardTable, response: NDArray[np.complex128],
                  config: LearningConfig = LearningConfig(),
                  model: FeedforwardModel | None = None) -> None:
         n = len(table)
@@ -294,7 +297,7 @@ class IterativeLearning:
     def done(self) -> bool:
         return self._stale >= self.config.patience
 
-    def update(self, error: Sequence[float]) -> FeedforwardTable:
+    def update(self, error: Sequence[float] | NDArray[np.float64]) -> FeedforwardTable:
         """One period's error e = x − x_d [m] at the table's samples: learned from (the table
         changes) unless it is a settling period or learning is done."""
         e = np.asarray(error, dtype=float)
@@ -361,7 +364,7 @@ class PeriodicLearner:
                 self._on_done(self)
 
 
-def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[np.ndarray, bool]:
+def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[NDArray[np.float64], bool]:
     """(x_d at k/rate over one period, periodic): a periodic trajectory's period must be a whole
     number of samples (a table indexed modulo N would drift against it otherwise); a file's
     record is taken whole, not periodic."""
@@ -394,7 +397,7 @@ class _ModelLoop:
         self.decay = math.exp(-2.0 * math.pi * bandwidth * self.period / self.SUBSTEPS) \
             if math.isfinite(bandwidth) else 0.0
 
-    def run(self, u: np.ndarray) -> np.ndarray:
+    def run(self, u: NDArray[np.float64]) -> NDArray[np.float64]:
         """x at each sample of the staircase ``u`` (measured before that sample's command)."""
         x = np.empty(u.size)
         h, a = self.period / self.SUBSTEPS, self.decay

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.identification import IdentificationError, IdentifyOptions, Recording, identify
 from piezo_stage.identification.dynamics import fit_step_response
@@ -43,9 +44,9 @@ class RigRecordings:
 
     run_a: Recording
     run_b: Recording
-    step_t: np.ndarray
-    step_u: np.ndarray
-    step_x: np.ndarray
+    step_t: NDArray[np.float64]
+    step_u: NDArray[np.float64]
+    step_x: NDArray[np.float64]
 
 
 def rig_recordings(
@@ -68,13 +69,16 @@ def rig_recordings(
     the model); ``noise`` [m] is white sensor noise on the displacement."""
     if rig.dynamics is None:
         raise ModelFitError("the simulated rig needs the dynamic form (11.1)")
+    dynamics = rig.dynamics
     rng = np.random.default_rng(seed)
     bw = rig.bouc_wen
 
-    def sampled(u: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    def sampled(
+        u: NDArray[np.float64], rate: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(x at each sample, u held over the interval ending there): what the plant node
         publishes, from rest at u[0] (w = 0 there)."""
-        plant = DynamicPlant(bw, rig.dynamics, x0=u[0] / bw.kappa_x)
+        plant = DynamicPlant(bw, dynamics, x0=u[0] / bw.kappa_x)
         x = np.concatenate([[plant.output()], plant.simulate(u, 1.0 / rate)[0][:-1] + bw.y0])
         return x + noise * rng.standard_normal(u.size), np.concatenate([u[:1], u[:-1]])
 
@@ -156,7 +160,8 @@ def perturbed_each(ps: ParameterSet, scale: float, seed: int = 0,
     signs = iter(np.random.default_rng(seed).choice([-1.0, 1.0], size=len(ps.bouc_wen.kappa) + 6))
 
     def f() -> float:
-        return 1.0 + scale * next(signs)
+        sign: float = next(signs)
+        return 1.0 + scale * sign
 
     bw = ps.bouc_wen
     bw = replace(bw, kappa=tuple(k * f() for k in bw.kappa), kappa_w=bw.kappa_w * f(),

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .errors import ControlError
 
@@ -40,7 +40,9 @@ class SecondOrderReference:
                 f"reference needs xi > 0 and omega0 > 0, got xi={self.xi}, omega0={self.omega0}"
             )
 
-    def evaluate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def evaluate(
+        self, t: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """(yr, ẏr, ÿr) at times t [s] (vectorised)."""
         tau = np.maximum(np.asarray(t, dtype=float) - self.t_start, 0.0)
         xi, w0 = self.xi, self.omega0

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .controller import TimeVaryingPID
 from .errors import SampledLoopError
@@ -34,21 +35,21 @@ class ClosedLoopResult:
 
     rate_hz: float
     delay_samples: int
-    t: np.ndarray
-    measured: np.ndarray
-    reference: np.ndarray
-    x0: np.ndarray
-    x1: np.ndarray
-    x2: np.ndarray
-    u: np.ndarray
-    u_pid: np.ndarray
-    u_excitation: np.ndarray
-    u_applied: np.ndarray
-    u_ff: np.ndarray
-    saturated: np.ndarray
-    loop_closed: np.ndarray
-    xdot: np.ndarray
-    w: np.ndarray
+    t: NDArray[np.float64]
+    measured: NDArray[np.float64]
+    reference: NDArray[np.float64]
+    x0: NDArray[np.float64]
+    x1: NDArray[np.float64]
+    x2: NDArray[np.float64]
+    u: NDArray[np.float64]
+    u_pid: NDArray[np.float64]
+    u_excitation: NDArray[np.float64]
+    u_applied: NDArray[np.float64]
+    u_ff: NDArray[np.float64]
+    saturated: NDArray[np.bool_]
+    loop_closed: NDArray[np.bool_]
+    xdot: NDArray[np.float64]
+    w: NDArray[np.float64]
 
 
 def _in_window(
@@ -119,6 +120,7 @@ def simulate_closed_loop(
         elif was_open and not is_open:
             controller.close_loop()
         was_open = is_open
+        yr_dot: float | None  # None: the controller differentiates yr
         yr, yr_dot, yr_ddot = 0.0, 0.0, 0.0
         if reference is not None:
             value = reference(t)

@@ -78,7 +78,7 @@ class GainReport:
     reasons: tuple[str, ...] = ()
     notes: tuple[str, ...] = field(default=())
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, object]:
         data = asdict(self)
         data["reasons"] = list(self.reasons)
         data["notes"] = list(self.notes)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.plant import DynamicPlant
@@ -58,7 +59,7 @@ class TrackingErrors:
 
 
 def tracking_errors(
-    t: np.ndarray, x: np.ndarray, x_d: np.ndarray, t_from: float = 0.0
+    t: NDArray[np.float64], x: NDArray[np.float64], x_d: NDArray[np.float64], t_from: float = 0.0
 ) -> TrackingErrors:
     """Figures of x against x_d over t >= ``t_from``."""
     steady = np.asarray(t) >= t_from

@@ -25,9 +25,10 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
+from typing import cast
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .errors import ControlError
 
@@ -45,7 +46,7 @@ class Shape(str, Enum):
 #: default share of a half period taken by a triangle's corner or a step's transition
 DEFAULT_ROUNDING = 0.2
 
-Evaluation = tuple[np.ndarray, np.ndarray, np.ndarray]
+Evaluation = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 def _finite(name: str, value: float, positive: bool = False) -> float:
@@ -73,7 +74,7 @@ class PeriodicTrajectory:
         _finite("frequency", self.frequency, positive=True)
         if self.offset is None:
             object.__setattr__(self, "offset", float(self.amplitude))  # from 0 up to 2A
-        _finite("offset", self.offset)
+        _finite("offset", self._center)
         if not 0.0 < self.rounding <= 1.0:
             raise TrajectoryError(f"rounding must be in (0, 1], got {self.rounding}")
         for name in ("v_max", "a_max"):
@@ -98,6 +99,11 @@ class PeriodicTrajectory:
         return 1.0 / self.frequency
 
     @property
+    def _center(self) -> float:
+        """``offset`` once set: the amplitude when it was given as None [m]."""
+        return cast(float, self.offset)  # __post_init__ replaced None
+
+    @property
     def range(self) -> float:
         """Peak-to-peak range [m]."""
         return 2.0 * self.amplitude
@@ -105,7 +111,8 @@ class PeriodicTrajectory:
     @property
     def blend_time(self) -> float:
         """T_c (triangle corner) or T_r (step transition) [s]; 0 for the sine."""
-        return self._blend  # type: ignore[attr-defined]
+        blend: float = self._blend  # type: ignore[attr-defined]  # set in __post_init__
+        return blend
 
     def _ramp_velocity(self, tc: float) -> float:
         """Triangle: the ramp velocity v with corners T_c: 2·v·T_c/π + v·(P/2 − T_c) = 2A."""
@@ -153,12 +160,12 @@ class PeriodicTrajectory:
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, t: ArrayLike) -> Evaluation:
         """(x_d, ẋ_d, ẍ_d) at times ``t`` [s] (vectorised)."""
-        t = np.maximum(np.asarray(t, dtype=float), 0.0)
+        t = np.maximum(np.asarray(t, dtype=np.float64), 0.0)
         if self.shape is Shape.SINE:
             w = 2.0 * math.pi * self.frequency
             c, s = np.cos(w * t), np.sin(w * t)
             return (
-                self.offset - self.amplitude * c,
+                self._center - self.amplitude * c,
                 self.amplitude * w * s,
                 self.amplitude * w * w * c,
             )
@@ -170,10 +177,10 @@ class PeriodicTrajectory:
             x, v, a = self._rising_triangle(tau)
         else:
             x, v, a = self._rising_step(tau)
-        low = self.offset - self.amplitude
+        low = self._center - self.amplitude
         return low + np.where(sign > 0, x, self.range - x), sign * v, sign * a
 
-    def _rising_triangle(self, tau: np.ndarray) -> Evaluation:
+    def _rising_triangle(self, tau: NDArray[np.float64]) -> Evaluation:
         """One rise from the bottom corner's middle to the top corner's middle."""
         tc, half = self.blend_time, 0.5 * self.period
         v = self._ramp_velocity(tc)
@@ -193,7 +200,7 @@ class PeriodicTrajectory:
         )
         return x, vel, acc
 
-    def _rising_step(self, tau: np.ndarray) -> Evaluation:
+    def _rising_step(self, tau: NDArray[np.float64]) -> Evaluation:
         """Transition over [0, T_r], then held at the top for the rest of the half period."""
         tr = self.blend_time
         s = np.clip(tau / tr, 0.0, 1.0)
@@ -209,8 +216,8 @@ class PeriodicTrajectory:
 class CsvTrajectory:
     """x_d(t) from samples through a clamped C² cubic spline (analytic ẋ_d, ẍ_d)."""
 
-    t: np.ndarray
-    x: np.ndarray
+    t: NDArray[np.float64]
+    x: NDArray[np.float64]
     name: str = ""
     v_max: float = math.inf
     a_max: float = math.inf
