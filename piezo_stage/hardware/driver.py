@@ -163,6 +163,7 @@ class VoltageDriver:
             self._may_reconnect = True
             self._stop.clear()
             lim = self.limits
+            assert lim is not None  # set by _install
             log.info(
                 "connected to %s axis %s, limits [%g, %g] V, output %g V",
                 info.identity,

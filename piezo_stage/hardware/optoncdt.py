@@ -31,9 +31,10 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Protocol, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import ConfigError
 
@@ -96,7 +97,7 @@ class FrameFormat:
     offset: float
     ascii_commands: bool  # answers the ASCII command set (GETINFO, MEASRATE, ...)
     default_baudrate: int
-    status_lut: np.ndarray = field(init=False, repr=False, compare=False)
+    status_lut: NDArray[np.uint8] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         lut = np.full(1 << self.value_bits, Status.INVALID, dtype=np.uint8)
@@ -108,11 +109,13 @@ class FrameFormat:
         lut.setflags(write=False)
         object.__setattr__(self, "status_lut", lut)
 
-    def to_metres(self, raw: np.ndarray, measuring_range: float) -> np.ndarray:
+    def to_metres(self, raw: NDArray[np.int64], measuring_range: float) -> NDArray[np.float64]:
         """Digital value(s) -> metres from the start of the measuring range."""
         return (np.asarray(raw, dtype=np.float64) * self.scale - self.offset) * measuring_range
 
-    def from_metres(self, distance: np.ndarray, measuring_range: float) -> np.ndarray:
+    def from_metres(
+        self, distance: NDArray[np.float64], measuring_range: float
+    ) -> NDArray[np.int64]:
         """Inverse of :meth:`to_metres`, rounded to the nearest digital value and clipped."""
         x = (np.asarray(distance, dtype=np.float64) / measuring_range + self.offset) / self.scale
         return np.clip(np.rint(x), 0, self.measurement_max).astype(np.int64)
@@ -125,7 +128,13 @@ class FrameFormat:
         return self.error_range[0]
 
 
-def _make_formats() -> dict[str, Callable[[int], FrameFormat]]:
+class _FormatFactory(Protocol):
+    """A family's :class:`FrameFormat` for its output bits (default: the family's usual)."""
+
+    def __call__(self, bits: int = ...) -> FrameFormat: ...
+
+
+def _make_formats() -> dict[str, _FormatFactory]:
     def ild1700(bits: int = 14) -> FrameFormat:
         if bits != 14:
             raise ConfigError("the ILD1700/ILD1402 format carries 14-bit values")
@@ -213,7 +222,9 @@ def frame_format(family: str, bits: int | None = None) -> FrameFormat:
     return FAMILIES[key]() if bits is None else FAMILIES[key](bits)
 
 
-def encode_values(fmt: FrameFormat, raw: np.ndarray, later: np.ndarray | None = None) -> bytes:
+def encode_values(
+    fmt: FrameFormat, raw: NDArray[np.int64], later: NDArray[np.bool_] | None = None
+) -> bytes:
     """Encode digital values as frames (the sensor side; used by the emulator and tests).
 
     ``later`` marks values that are later values of an output block (H flag 11, 3-byte formats).
@@ -238,9 +249,9 @@ def encode_values(fmt: FrameFormat, raw: np.ndarray, later: np.ndarray | None = 
 class SampleBlock:
     """Samples decoded from one chunk, in arrival order."""
 
-    displacement: np.ndarray  # float64 [m], NaN where status != OK
-    status: np.ndarray  # uint8, Status values
-    raw: np.ndarray  # int64 digital values as received
+    displacement: NDArray[np.float64]  # float64 [m], NaN where status != OK
+    status: NDArray[np.uint8]  # Status values
+    raw: NDArray[np.int64]  # digital values as received
 
     @staticmethod
     def empty() -> "SampleBlock":
@@ -301,7 +312,7 @@ class AsciiChannel:
         self._text = bytearray()
         self._replies: list[bytes] = []
 
-    def feed(self, data: np.ndarray) -> int:
+    def feed(self, data: NDArray[np.uint8]) -> int:
         """Keep printable ASCII, CR and LF; return how many bytes were dropped."""
         keep = ((data >= 0x20) & (data < 0x7F)) | (data == 0x0D) | (data == 0x0A)
         self._text += data[keep].tobytes()
@@ -338,7 +349,7 @@ class OptoNCDTParser:
         self.few_frames = FEW_FRAMES  # 0: every chunk through the numpy path
         self.reset()
 
-    def gate(self, frames: np.ndarray | int) -> np.ndarray | float:
+    def gate(self, frames: NDArray[np.intp] | int) -> NDArray[np.floating] | float:
         """The speed gate: the largest change [m] an accepted value may show over ``frames``
         frames since the last accepted one (``max_speed`` × frames / rate + two digital
         steps)."""
@@ -374,7 +385,9 @@ class OptoNCDTParser:
         self._route_other(other)
         # non-frame bytes in front of each frame (the first one also those of earlier chunks)
         starts = ends - (width - 1)
-        gaps = np.diff(np.concatenate([[-1], ends]).astype(np.int64)) - width
+        # (numpy's stubs type the diff of an int64 array as timedelta64)
+        steps = cast(NDArray[np.int64], np.diff(np.concatenate([[-1], ends]).astype(np.int64)))
+        gaps = steps - width
         if gaps.size:
             gaps[0] = self._gap + int(starts[0])
             self._gap = decided - (int(ends[-1]) + 1)
@@ -382,13 +395,13 @@ class OptoNCDTParser:
             self._gap += decided
         return self._decode(buf, ends, gaps)
 
-    def _frame_ends(self, buf: np.ndarray) -> np.ndarray:
+    def _frame_ends(self, buf: NDArray[np.uint8]) -> NDArray[np.intp]:
         if self.fmt.bytes_per_value == 2:  # H (bit 7 set) followed by L (bit 7 clear)
             return np.flatnonzero((buf[:-1] >= 0x80) & (buf[1:] < 0x80)) + 1
         flags = buf >> 6  # L: 00, M: 01, H: 10 (first value) or 11 (later value of a block)
         return np.flatnonzero((flags[2:] >= 2) & (flags[1:-1] == 1) & (flags[:-2] == 0)) + 2
 
-    def _route_other(self, other: np.ndarray) -> None:
+    def _route_other(self, other: NDArray[np.uint8]) -> None:
         if not other.size:
             return
         if self.fmt.ascii_commands:
@@ -398,7 +411,9 @@ class OptoNCDTParser:
         else:
             self.stats.discarded += int(other.size)
 
-    def _decode(self, buf: np.ndarray, ends: np.ndarray, gaps: np.ndarray) -> SampleBlock:
+    def _decode(
+        self, buf: NDArray[np.uint8], ends: NDArray[np.intp], gaps: NDArray[np.int64]
+    ) -> SampleBlock:
         if not ends.size:
             return SampleBlock.empty()
         b = buf.astype(np.int64)

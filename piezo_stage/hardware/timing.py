@@ -160,7 +160,8 @@ class CommandPlayout:
         self.error: Exception | None = None  # last exception raised by apply()
         self.realtime_priority = realtime_priority  # SCHED_FIFO priority of the thread (0: normal)
         self.realtime_error: str | None = None  # why it could not be had
-        self._queue: list[tuple[float, int, float]] = []  # (due, seq, voltage)
+        # (due, seq, voltage, received)
+        self._queue: list[tuple[float, int, float, float | None]] = []
         self._seq = itertools.count()
         self._cv = threading.Condition()
         self._stop = False
@@ -210,7 +211,7 @@ class CommandPlayout:
         emitted = -math.inf  # time of the last output (command or interpolated)
         while True:
             with self._cv:
-                item = None
+                item: tuple[tuple[float, int, float, float | None], bool] | None = None
                 while not self._stop:
                     if not self._queue:
                         self._cv.wait()
@@ -235,6 +236,7 @@ class CommandPlayout:
                     self._cv.wait(wake - now)
                 if self._stop:
                     return
+            assert item is not None  # the loop only ends without one when stopped
             (t, _, voltage, received), is_command = item
             if is_command:
                 last = (t, voltage)

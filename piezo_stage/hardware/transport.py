@@ -19,10 +19,13 @@ import select
 import socket
 import time
 from abc import ABC, abstractmethod
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 from urllib.parse import parse_qs, urlparse
 
 from .errors import ConfigError, ConnectionLost, DeviceTimeout, NotConnected
+
+if TYPE_CHECKING:  # pyserial is imported when a port is opened
+    import serial
 
 
 class Transport(ABC):
@@ -75,7 +78,7 @@ class SerialTransport(Transport):
         self.port = port
         self.baudrate = int(baudrate)
         self.url = f"serial://{port}?baudrate={self.baudrate}"
-        self._ser = None
+        self._ser: serial.Serial | None = None
 
     def open(self) -> None:
         if self._ser is not None:
@@ -107,7 +110,7 @@ class SerialTransport(Transport):
     def is_open(self) -> bool:
         return self._ser is not None
 
-    def _port(self):
+    def _port(self) -> serial.Serial:
         if self._ser is None:
             raise NotConnected(f"{self.url} is not open")
         return self._ser

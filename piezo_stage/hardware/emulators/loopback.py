@@ -15,7 +15,7 @@ from typing import Callable
 
 from ..errors import ConnectionLost, NotConnected
 from ..transport import Transport
-from .server import DeviceModel, Faults
+from .server import DeviceModel, Faults, Session
 
 
 class ManualClock:
@@ -46,7 +46,7 @@ class LoopbackTransport(Transport):
         self.url = f"loopback://{model.name}"
         self.down = False  # open() fails while set
         self.opened = 0
-        self._session = None
+        self._session: Session | None = None
         self._buf = bytearray()
         self._hung_up = False
 
@@ -72,19 +72,21 @@ class LoopbackTransport(Transport):
         """Hang up (like pulling the cable and plugging it back in)."""
         self._hung_up = True
 
-    def _check(self) -> None:
+    def _check(self) -> Session:
+        """The open session (raises when there is none or the line hung up)."""
         if self._session is None:
             raise NotConnected(f"{self.url} is not open")
         if self._hung_up:
             self.close()
             raise ConnectionLost(f"{self.url}: hung up")
+        return self._session
 
     def write(self, data: bytes) -> None:
-        self._check()
+        session = self._check()
         now = self.clock()
         if self.faults.muted(now):
             return
-        reply, hang_up = self.faults.inject(self._session.handle(data, now), now)
+        reply, hang_up = self.faults.inject(session.handle(data, now), now)
         self._buf += reply
         self._hung_up = hang_up
 

@@ -19,11 +19,12 @@ import threading
 from typing import Callable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import ConfigError
 from ..optoncdt import FrameFormat, Status, encode_values
 
-Source = Callable[[np.ndarray], np.ndarray]
+Source = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 
 class OptoNCDTDeviceModel:
@@ -70,7 +71,7 @@ class OptoNCDTDeviceModel:
     def stream_period(self) -> float:
         return min(1.0 / self.rate, 0.002)
 
-    def _default_source(self, t: np.ndarray) -> np.ndarray:
+    def _default_source(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         mr = self.measuring_range
         return 0.5 * mr + 0.1 * mr * np.sin(2 * np.pi * t)
 
@@ -88,7 +89,7 @@ class OptoNCDTDeviceModel:
         return _AsciiSession(self)
 
     # --- measurement stream ---------------------------------------------------------------------
-    def encode(self, distance: np.ndarray) -> np.ndarray:
+    def encode(self, distance: NDArray[np.float64]) -> NDArray[np.int64]:
         """Metres from the start of the range -> digital values, out-of-range as error values."""
         d = np.asarray(distance, dtype=np.float64)
         raw = self.fmt.from_metres(np.nan_to_num(d, nan=0.0), self.measuring_range)
@@ -116,7 +117,7 @@ class OptoNCDTDeviceModel:
             frames = self._frames(self.encode(distance))
             return self._interleave(frames)
 
-    def _frames(self, raw: np.ndarray) -> list[bytes]:
+    def _frames(self, raw: NDArray[np.int64]) -> list[bytes]:
         if not self.extra_values:
             data = encode_values(self.fmt, raw)
             w = self.fmt.bytes_per_value

@@ -18,9 +18,10 @@ import math
 import threading
 import time
 from collections import deque
-from typing import Protocol
+from typing import Callable, Protocol, TypedDict
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import ConfigError
 from ..optoncdt import FrameFormat
@@ -28,6 +29,14 @@ from .gcs_device import GCSDeviceModel
 from .mdt_device import MDTDeviceModel
 from .optoncdt_device import OptoNCDTDeviceModel
 from .server import EmulatorServer, Faults
+
+
+class _Endpoint(TypedDict, total=False):
+    """Where :class:`EmulatorServer` serves the amplifier: a pty (and its link) or TCP."""
+
+    pty: bool
+    pty_link: str | None
+    tcp_port: int
 
 
 class Stage(Protocol):
@@ -50,7 +59,7 @@ class AmplifierLowPass:
         self.b, self.a = np.ravel(bd), np.ravel(ad)
         self.zi = signal.lfilter_zi(self.b, self.a) * float(initial_voltage)  # at rest
 
-    def run(self, commands: np.ndarray) -> np.ndarray:
+    def run(self, commands: NDArray[np.float64]) -> NDArray[np.float64]:
         """The applied voltage at the end of each step, ``commands[i]`` held over step i."""
         from scipy import signal
 
@@ -85,7 +94,7 @@ class RigCoupling:
         rate: float,
         standoff: float,
         initial_voltage: float = 0.0,
-        clock=time.monotonic,
+        clock: Callable[[], float] = time.monotonic,
         bandwidth_hz: float = 0.0,
         filter_order: int = 2,
     ) -> None:
@@ -100,7 +109,8 @@ class RigCoupling:
         )
         self.standoff = standoff
         self.clock = clock
-        self.origin = lambda: 0.0  # absolute time of relative sample time 0 (set by RigEmulator)
+        # absolute time of relative sample time 0 (set by RigEmulator)
+        self.origin: Callable[[], float] = lambda: 0.0
         self.lock = threading.Lock()
         self._history: deque[tuple[float, float]] = deque([(-math.inf, float(initial_voltage))])
         self.applied = 0.0  # last voltage the plant received [V]
@@ -114,11 +124,12 @@ class RigCoupling:
                 t = self._history[-1][0]
             self._history.append((t, float(value)))
 
-    def _step_many(self, voltages: np.ndarray, h: float) -> np.ndarray:
+    def _step_many(self, voltages: NDArray[np.float64], h: float) -> NDArray[np.float64]:
         """Rows (applied, reading, status) at the end of each sample (every ``substeps``)."""
         step_many = getattr(self.stage, "step_many", None)
         if step_many is not None:
-            return step_many(voltages, h, self.substeps)
+            rows: NDArray[np.float64] = step_many(voltages, h, self.substeps)
+            return rows
         out = np.empty((voltages.size // self.substeps, 3))
         for i, v in enumerate(voltages):
             row = self.stage.step(float(v), h)
@@ -126,7 +137,7 @@ class RigCoupling:
                 out[i // self.substeps] = row
         return out
 
-    def __call__(self, times: np.ndarray) -> np.ndarray:
+    def __call__(self, times: NDArray[np.float64]) -> NDArray[np.float64]:
         out = np.empty(len(times))
         t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
@@ -191,12 +202,10 @@ class RigEmulator:
                 "the MDT69x has its vlimit switch"
             )
         if amplifier == "gcs":
-            self.amplifier = GCSDeviceModel(
-                **(
-                    {}
-                    if amplifier_range is None
-                    else {"v_min": amplifier_range[0], "v_max": amplifier_range[1]}
-                )
+            self.amplifier: GCSDeviceModel | MDTDeviceModel = (
+                GCSDeviceModel()
+                if amplifier_range is None
+                else GCSDeviceModel(v_min=amplifier_range[0], v_max=amplifier_range[1])
             )
         elif amplifier == "mdt69x":
             if amplifier_tcp_port is not None:
@@ -226,7 +235,7 @@ class RigEmulator:
         if amplifier_tcp_port is not None:
             if amplifier_link is not None:
                 raise ConfigError("an amplifier link names a pty: not with a TCP amplifier")
-            amp_endpoint = {"tcp_port": amplifier_tcp_port}
+            amp_endpoint: _Endpoint = {"tcp_port": amplifier_tcp_port}
         else:
             amp_endpoint = {"pty": True, "pty_link": amplifier_link}
         self.amplifier_server = EmulatorServer(

@@ -47,8 +47,12 @@ class Session(Protocol):
 
 
 class DeviceModel(Protocol):
-    name: str
-    stream_period: float | None
+    # read-only: a model may hold either as a class constant or a property
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def stream_period(self) -> float | None: ...
 
     def session(self) -> Session: ...
 
@@ -229,7 +233,8 @@ class EmulatorServer:
     @property
     def port(self) -> int:
         assert self._listener is not None
-        return self._listener.getsockname()[1]
+        port: int = self._listener.getsockname()[1]
+        return port
 
     @property
     def url(self) -> str:

@@ -12,13 +12,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..optoncdt import FrameCheck, FrameFormat, OptoNCDTParser, SampleBlock, encode_values
 
 
 def sensor_stream(
-    fmt: FrameFormat, distance: np.ndarray, measuring_range: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    fmt: FrameFormat, distance: NDArray[np.float64], measuring_range: float
+) -> tuple[NDArray[np.uint8], NDArray[np.intp], NDArray[np.float64]]:
     """(bytes as uint8, frame index of each byte, true value of each frame [m])."""
     raw = fmt.from_metres(np.asarray(distance, dtype=np.float64), measuring_range)
     data = np.frombuffer(encode_values(fmt, raw), dtype=np.uint8)
@@ -27,8 +28,8 @@ def sensor_stream(
 
 
 def damage(
-    data: np.ndarray,
-    origin: np.ndarray,
+    data: NDArray[np.uint8],
+    origin: NDArray[np.intp],
     rng: np.random.Generator,
     width: int,
     *,
@@ -37,7 +38,7 @@ def damage(
     corrupt: float = 0.0,
     drop: float = 0.0,
     garbage: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[NDArray[np.uint8], NDArray[np.intp]]:
     """Damage a stream: one byte of every frame lost (``lose_one``) or replaced (``replace_one``),
     bytes replaced/lost with probability ``corrupt``/``drop``, and before a frame with probability
     ``garbage`` a burst of 1-32 random bytes inserted."""
@@ -94,9 +95,9 @@ class Score:
 
 def score(
     parser: OptoNCDTParser,
-    data: np.ndarray,
-    origin: np.ndarray,
-    truth: np.ndarray,
+    data: NDArray[np.uint8],
+    origin: NDArray[np.intp],
+    truth: NDArray[np.float64],
     tolerance: float,
     chunk: int = 4096,
 ) -> Score:
@@ -140,6 +141,6 @@ def score(
     )
 
 
-def frame_ends(fmt: FrameFormat, buf: np.ndarray) -> np.ndarray:
+def frame_ends(fmt: FrameFormat, buf: NDArray[np.uint8]) -> NDArray[np.intp]:
     """Index of the last byte of every well-formed frame (flag bits only)."""
     return OptoNCDTParser(fmt, 1.0, FrameCheck())._frame_ends(np.asarray(buf, dtype=np.uint8))
