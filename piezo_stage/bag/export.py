@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, cast
 
 from rosbags.interfaces import Nodetype
+from rosbags.interfaces.typing import FieldDesc
 from rosbags.typesys.base import normalize_fieldname
 
 from .decode import BagTypes
@@ -69,7 +70,7 @@ def _has_sequences(fielddefs: dict[str, Any], type_name: str) -> bool:
     return False
 
 
-def _flatten_array(fielddefs: dict[str, Any], values: Any, column: str, element: tuple,
+def _flatten_array(fielddefs: dict[str, Any], values: Any, column: str, element: FieldDesc,
                    unit: str | None) -> list[tuple[str, Any]]:
     kind, detail = element
     if kind == Nodetype.NAME:
@@ -79,7 +80,8 @@ def _flatten_array(fielddefs: dict[str, Any], values: Any, column: str, element:
                 cells.append((f"{column}[{i}] [s]",
                               seconds_text(item.sec * 1_000_000_000 + item.nanosec)))
             else:
-                cells += flatten(fielddefs, item, detail, f"{column}[{i}].")
+                # a NAME field's detail is the name of its type
+                cells += flatten(fielddefs, item, cast(str, detail), f"{column}[{i}].")
         return cells
     items = [_cell(v) for v in values]
     if len(items) > MAX_ARRAY_COLUMNS:

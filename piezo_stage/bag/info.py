@@ -159,7 +159,8 @@ def format_info(info: dict[str, Any]) -> str:
         f"End:               {_stamp(info['end_ns'])}",
         f"Messages:          {info['message_count']}",
     ]
-    topic_lines, service_lines = [], []
+    topic_lines: list[str] = []
+    service_lines: list[str] = []
     for name, t in info["topics"].items():
         line = (f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
                 f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: "

@@ -14,10 +14,11 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import TYPE_CHECKING, Any, Iterable, Iterator
 
 import numpy as np
 from mcap.records import Channel, Schema
+from numpy.typing import NDArray
 
 from .decode import BagTypes
 from .errors import (
@@ -33,6 +34,9 @@ from .records import McapWalk, is_mcap_name
 from .series import SERIES_FIELDS, decode_series
 
 _INDEX_RE = re.compile(r"_(\d+)\.mcap(?:\.zstd)?$")
+
+if TYPE_CHECKING:
+    from rosbags.interfaces.typing import Typesdict
 
 
 def _file_order(path: Path) -> tuple[int, str]:
@@ -185,7 +189,7 @@ def topic_types(path: str | Path) -> dict[str, str]:
 
 
 def read_series(path: str | Path, topic: str
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     """``(t [s], values, status or None)`` of a topic, in stamp order: Voltage (V) and
     Displacement (m, status) vectorised; any other type by one numeric field -- ``TOPIC.FIELD``
     (dotted path), or the message's only numeric scalar field -- with t from ``header.stamp``
@@ -225,10 +229,14 @@ _LOOP_COLUMNS = {"stamp": np.int64, "displacement": np.float64, "status": np.uin
                  "loop_closed": bool, "applied": np.float64}
 
 
-def read_loop_samples(path: str | Path, topic: str) -> dict[str, np.ndarray]:
+# a LoopSamples column's dtype depends on the column (_LOOP_COLUMNS)
+LoopColumns = dict[str, NDArray[Any]]
+
+
+def read_loop_samples(path: str | Path, topic: str) -> LoopColumns:
     """The samples of a LoopSamples topic (rig_loop's ``loop_samples``: every sample of the loop,
     in batches) as one array per column, in stamp order; ``stamp`` in ns."""
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in _LOOP_COLUMNS}
+    parts: dict[str, list[NDArray[Any]]] = {k: [] for k in _LOOP_COLUMNS}
     for _, _, message in read_messages(path, topic):
         n = len(message.stamp)
         for name, dtype in _LOOP_COLUMNS.items():
@@ -253,14 +261,16 @@ def normalize_fieldname(name: str) -> str:
     return normalize(name)
 
 
-def _numeric_fields(fielddefs: dict[str, Any], type_name: str) -> list[str]:
+def _numeric_fields(fielddefs: Typesdict, type_name: str) -> list[str]:
     from rosbags.interfaces import Nodetype
 
     return [name for name, (kind, detail) in fielddefs[type_name][1]
             if kind == Nodetype.BASE and detail[0] in _NUMERIC]
 
 
-def _generic_series(path: str | Path, topic: str, field: str) -> tuple[np.ndarray, np.ndarray]:
+def _generic_series(
+    path: str | Path, topic: str, field: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     types = BagTypes()
     t: list[float] = []
     values: list[float] = []

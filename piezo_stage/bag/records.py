@@ -27,7 +27,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, TypeAlias, TypeVar
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
@@ -36,6 +36,10 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Header, Metadata, Schema, Statistics
 
 from .errors import CorruptBagError
+
+#: an MCAP file's bytes (:func:`open_buffer`) or a part of them
+Buffer: TypeAlias = bytes | mmap.mmap | memoryview
+_Record = TypeVar("_Record", Schema, Channel, Metadata, Header, Statistics)
 
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD = struct.Struct("<BQ")
@@ -90,7 +94,7 @@ def open_buffer(path: str | Path) -> Iterator[bytes | mmap.mmap]:
         yield mapped
 
 
-def _check_magic(path: Path, buf) -> bool:
+def _check_magic(path: Path, buf: Buffer) -> bool:
     """True if ``buf`` starts with the magic; False if it is a prefix of it (killed before
     the first flush); else CorruptBagError."""
     if buf[:len(MAGIC)] == MAGIC:
@@ -128,7 +132,7 @@ def scan(path: str | Path) -> Scan:
     return Scan(size, end, False, compression or "")
 
 
-def _footer_at(buf) -> int | None:
+def _footer_at(buf: Buffer) -> int | None:
     """Offset of the footer record if the file ends with footer + magic, else None."""
     at = len(buf) - len(MAGIC) - _FOOTER_RECORD
     if at < len(MAGIC) or bytes(buf[-len(MAGIC):]) != MAGIC:
@@ -137,11 +141,12 @@ def _footer_at(buf) -> int | None:
     return at if opcode == Opcode.FOOTER and length == _FOOTER.size else None
 
 
-def _parse(record_type, body: memoryview):
-    return record_type.read(ReadDataStream(io.BytesIO(bytes(body))))
+def _parse(record_type: type[_Record], body: bytes | memoryview) -> _Record:
+    record: _Record = record_type.read(ReadDataStream(io.BytesIO(bytes(body))))
+    return record
 
 
-def _decompress(compression: str, data: memoryview, size: int) -> bytes | memoryview:
+def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes | memoryview:
     if compression == "":
         return data
     if compression == "zstd":
@@ -149,7 +154,8 @@ def _decompress(compression: str, data: memoryview, size: int) -> bytes | memory
         return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
     if compression == "lz4":
         import lz4.frame
-        return lz4.frame.decompress(bytes(data))
+        out: bytes = lz4.frame.decompress(bytes(data))
+        return out
     raise CorruptBagError(f"unsupported MCAP chunk compression {compression!r}")
 
 
@@ -227,7 +233,7 @@ class McapWalk:
         i = bisect.bisect_right(self._chunk_starts, at)
         return self._chunk_starts[i] if i < len(self._chunk_starts) else None
 
-    def _records(self, buf, start: int, top: bool, end: int | None = None
+    def _records(self, buf: Buffer, start: int, top: bool, end: int | None = None
                  ) -> Iterator[MessageTuple]:
         pos, n = start, len(buf) if end is None else end
         unpack_record, unpack_message = _RECORD.unpack_from, _MESSAGE.unpack_from
@@ -282,7 +288,7 @@ class McapWalk:
             else:
                 self.errors.append(f"garbled record: chunk ends inside a record at {pos}")
 
-    def _definition(self, opcode: int, body) -> None:
+    def _definition(self, opcode: int, body: bytes | memoryview) -> None:
         if opcode == Opcode.SCHEMA:
             schema = _parse(Schema, body)
             self.schemas[schema.id] = schema
@@ -293,12 +299,12 @@ class McapWalk:
         else:
             self.header = _parse(Header, body)
 
-    def _check_data_crc(self, buf, data_end_at: int, body) -> None:
+    def _check_data_crc(self, buf: Buffer, data_end_at: int, body: bytes | memoryview) -> None:
         (crc,) = struct.unpack_from("<I", body, 0) if len(body) >= 4 else (0,)
         if crc and zlib.crc32(buf[:data_end_at]) != crc:
             self.errors.append("data CRC error: the data section fails its CRC")
 
-    def _chunk_data(self, body: memoryview, at: int) -> bytes | memoryview | None:
+    def _chunk_data(self, body: bytes | memoryview, at: int) -> bytes | memoryview | None:
         """The chunk's records, decompressed and CRC-checked; None (error noted) if damaged."""
         try:
             _, _, size, crc, n = _CHUNK.unpack_from(body, 0)
@@ -320,7 +326,7 @@ class McapWalk:
             return None
         return data
 
-    def _chunk(self, body: memoryview, at: int) -> Iterator[MessageTuple]:
+    def _chunk(self, body: bytes | memoryview, at: int) -> Iterator[MessageTuple]:
         data = self._chunk_data(body, at)
         if data is not None:
             yield from self._records(data, 0, top=False)
@@ -388,7 +394,7 @@ class McapWalk:
             pos = end
         return found if indexed or not self._chunk_starts else None
 
-    def _read_summary(self, buf) -> None:
+    def _read_summary(self, buf: Buffer) -> None:
         """Statistics and chunk offsets from the summary (if the file has an intact one)."""
         footer = _footer_at(buf)
         if footer is None:

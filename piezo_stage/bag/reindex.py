@@ -16,6 +16,7 @@ import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Schema
@@ -115,7 +116,7 @@ class _TopicTable:
 class _Rewriter:
     """Copies the readable part of a damaged MCAP file into a new, complete one."""
 
-    def __init__(self, out, compression: str) -> None:
+    def __init__(self, out: BinaryIO, compression: str) -> None:
         self.writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE,
                              compression=_COMPRESSION.get(compression, CompressionType.ZSTD))
         self.writer.start(profile="ros2", library=f"{LIBRARY} reindexed")
@@ -241,7 +242,7 @@ def reindex(path: str | Path) -> ReindexReport:
         scan = records.scan(file)
         count = listed.get(file.name) or None
         if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
-            kept = _keep(file, table, metadata, count) or FileReport(
+            kept: FileReport | None = _keep(file, table, metadata, count) or FileReport(
                 file, 0, False, reason="file-compressed: checked, not rewritten")
         else:
             kept = _keep(file, table, metadata, count) if scan.has_footer else None

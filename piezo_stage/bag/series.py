@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import CorruptBagError
 from .types import deserialize
@@ -26,13 +27,17 @@ _CDR_LE = (0x00, 0x01)
 _ENCAPSULATION = 4
 
 
-def _gather(buffer: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:
+def _gather(
+    buffer: NDArray[np.uint8], offsets: NDArray[np.int64], dtype: str
+) -> NDArray[np.generic]:
+    """The ``dtype`` value (a numpy type string) at each offset of ``buffer``."""
     size = np.dtype(dtype).itemsize
-    return buffer[offsets[:, None] + np.arange(size)].view(dtype).ravel()
+    values: NDArray[np.generic] = buffer[offsets[:, None] + np.arange(size)].view(dtype).ravel()
+    return values
 
 
 def _decode_generic(datas: Sequence[bytes], type_name: str
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     field, has_status = SERIES_FIELDS[type_name]
     messages = [deserialize(d, type_name) for d in datas]
     t = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in messages])
@@ -42,7 +47,7 @@ def _decode_generic(datas: Sequence[bytes], type_name: str
 
 
 def decode_series(datas: Sequence[bytes], type_name: str
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     """``(t [s], values, status|None)`` of serialised Voltage/Displacement messages."""
     _, has_status = SERIES_FIELDS[type_name]
     n = len(datas)
@@ -69,8 +74,8 @@ def decode_series(datas: Sequence[bytes], type_name: str
     return t, values.astype(np.float64), status
 
 
-def encode_series(type_name: str, t_ns: np.ndarray, values: np.ndarray,
-                  status: np.ndarray | None = None, frame_id: str = "") -> list[bytes]:
+def encode_series(type_name: str, t_ns: NDArray[np.int64], values: NDArray[np.float64],
+                  status: NDArray[np.uint8] | None = None, frame_id: str = "") -> list[bytes]:
     """Serialised Voltage/Displacement messages (CDR, little endian) for stamps ``t_ns``
     [int ns], ``values`` and, for Displacement, ``status`` (default OK = 0), vectorised:
     the inverse of ``decode_series``, byte for byte what rosbags/rclpy produce."""

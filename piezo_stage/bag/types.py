@@ -18,7 +18,7 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -209,6 +209,16 @@ def header(t_ns: int, frame_id: str = "") -> Any:
     return message_class("std_msgs/msg/Header")(stamp=time_message(t_ns), frame_id=frame_id)
 
 
-def stamp_seconds(stamp: Any) -> float:
+class Stamp(Protocol):
+    """A ``builtin_interfaces`` Time or Duration (rosbags' or rclpy's message)."""
+
+    @property
+    def sec(self) -> int: ...
+
+    @property
+    def nanosec(self) -> int: ...
+
+
+def stamp_seconds(stamp: Stamp) -> float:
     """Seconds (float) of a ``builtin_interfaces`` Time or Duration."""
     return stamp.sec + stamp.nanosec * 1e-9

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import re
-from typing import Any
+from typing import Any, TypeGuard
 
 _PLAIN_RE = re.compile(r"[A-Za-z0-9_/.][A-Za-z0-9_/.\-+]*")
 _NUMBER_RE = re.compile(r"[-+]?(\.[0-9]+|[0-9][0-9_]*(\.[0-9]*)?)([eE][-+]?[0-9]+)?"
@@ -35,7 +35,9 @@ def scalar(value: Any) -> str:
     return json.dumps(text, ensure_ascii=False)
 
 
-def _is_block(value: Any) -> bool:
+def _is_block(
+    value: object,
+) -> TypeGuard[dict[object, object] | list[object] | tuple[object, ...]]:
     return isinstance(value, (dict, list, tuple)) and len(value) > 0
 
 
@@ -47,7 +49,7 @@ def _inline(value: Any) -> str:
     return scalar(value)
 
 
-def _mapping(mapping: dict, indent: int) -> list[str]:
+def _mapping(mapping: dict[object, object], indent: int) -> list[str]:
     pad = " " * indent
     lines: list[str] = []
     for key, value in mapping.items():
@@ -62,7 +64,7 @@ def _mapping(mapping: dict, indent: int) -> list[str]:
     return lines
 
 
-def _sequence(items: list | tuple, indent: int) -> list[str]:
+def _sequence(items: list[object] | tuple[object, ...], indent: int) -> list[str]:
     pad = " " * indent
     lines: list[str] = []
     for item in items:
