@@ -259,7 +259,7 @@ class CsvTrajectory:
         t = np.asarray(t, dtype=float)
         inside = (t >= 0.0) & (t <= self.t[-1])
         tc = np.clip(t, 0.0, self.t[-1])
-        spline = self._spline  # type: ignore[attr-defined]
+        spline = self._spline  # type: ignore[attr-defined]  # set in __post_init__
         return (
             spline(tc),
             np.where(inside, spline(tc, 1), 0.0),
