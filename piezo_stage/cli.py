@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "play": "play",
     "bag": "bag",
     "plot": "plot",
+    "view": "view",
 }
 
 

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.commands.argtypes import int_range
 from piezo_stage.launch.commandline import display_argv, shell_line
 from piezo_stage.launch.errors import (
     GraphError,
@@ -23,6 +24,7 @@ from piezo_stage.launch.errors import (
     RequiredProcessExited,
     TopicsNotReadyError,
 )
+from piezo_stage.launch.graph import load_graph
 from piezo_stage.launch.launcher import DEFAULT_TIMEOUT, Launcher
 
 EXIT_BAD_GRAPH = 2
@@ -59,6 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="colour the name prefixes (auto: when the output is a terminal)",
     )
+    parser.add_argument("--view", action="store_true",
+                        help="also run live_view: the graph's topics live in the Foxglove app "
+                             "(ws://127.0.0.1:8765; piezo-stage view --help)")
+    parser.add_argument("--view-port", metavar="PORT", type=int_range(0, 65535), default=None,
+                        help="live_view's port (default 8765; implies --view)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands and exit")
     parser.add_argument(
         "--export-launch-py",
@@ -75,8 +82,13 @@ def _error(message: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        graph_source = args.graph
+        if args.view or args.view_port is not None:
+            view = {"executable": "live_view", "overrides": {"port": args.view_port or 8765}}
+            graph_source = load_graph(args.graph).with_node(view)
         launcher = Launcher(
-            args.graph, namespace=args.ns, params=args.param, color=args.color, timeout=args.timeout
+            graph_source, namespace=args.ns, params=args.param, color=args.color,
+            timeout=args.timeout
         )
     except GraphError as exc:
         _error(str(exc))

@@ -184,6 +184,14 @@ class Graph:
         """Fully qualified names of the topics waited for."""
         return [w.resolve(self.namespace) for w in self.wait_for_topics]
 
+    def with_node(self, entry: Mapping[str, Any]) -> Graph:
+        """This graph with one more entry (a ``nodes:`` item of a graph file)."""
+        where = f"{self.source or 'graph'}: added entry"
+        spec = _parse_entry(dict(entry), where, Path.cwd())
+        if any(s.name == spec.name or s.process == spec.name for s in self.nodes):
+            raise GraphError(f"{where}: name {spec.name!r} is already an entry of the graph")
+        return dataclasses.replace(self, nodes=(*self.nodes, spec))
+
     def with_namespace(self, namespace: str) -> Graph:
         return dataclasses.replace(self, namespace=normalize_namespace(namespace, "--ns"))
 

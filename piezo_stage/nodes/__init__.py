@@ -8,4 +8,4 @@ DEFAULT_NAMESPACE = "/piezo"
 
 #: the node executables: module piezo_stage.nodes.<name>, console script <name>
 NODES = ("voltage_driver", "laser_reader", "plant", "excitation", "identifier", "controller",
-         "recorder", "player")
+         "recorder", "player", "live_view")

@@ -1,0 +1,52 @@
+"""Watch a namespace live in the Foxglove app: runs the live_view node until Ctrl-C.
+
+  piezo-stage view                          /piezo's topics + /diagnostics on ws://127.0.0.1:8765
+  piezo-stage view --ns /stage2 --port 8766 another stage beside it
+  piezo-stage view --max-rate 500           draw up to 500 messages/s per topic
+
+In the app (desktop or app.foxglove.dev): Open connection > Foxglove WebSocket > the URL
+printed; Layouts > Import config/foxglove/piezo_stage.json for the stage's panels. --host
+another than 127.0.0.1 serves the stage's topics to the network, unauthenticated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from piezo_stage.commands.argtypes import int_range, non_negative
+from piezo_stage.commands.record import run_node
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ns", default="/piezo", metavar="NS",
+                        help="namespace served (default /piezo)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to serve on (default 127.0.0.1: this machine only)")
+    parser.add_argument("--port", type=int_range(0, 65535), default=8765,
+                        help="WebSocket port (default 8765, the app's default; 0 = any free)")
+    parser.add_argument("--max-rate", type=non_negative, metavar="HZ", default=100.0,
+                        help="most messages per second and topic sent to the app (0 = all)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
+                        help="only these topics (relative names are in --ns)")
+
+
+def ros_args(args: argparse.Namespace) -> list[str]:
+    from piezo_stage.launch.commandline import ros_value
+
+    params = {"host": args.host, "port": args.port, "max_rate_hz": float(args.max_rate)}
+    if args.topics:
+        params["topics"] = list(args.topics)
+    out = ["-r", f"__ns:={args.ns}"]
+    for key, value in params.items():
+        out += ["-p", f"{key}:={ros_value(value)}"]
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    print(f"serving {args.ns} to the Foxglove app on ws://{args.host}:{args.port} "
+          "(Ctrl-C to stop)", flush=True)
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"piezo-stage view: warning: {args.host} serves the stage's topics to the network, "
+              "unauthenticated", file=sys.stderr)
+    return run_node("piezo_stage.nodes.live_view", ros_args(args))

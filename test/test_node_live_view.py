@@ -1,0 +1,271 @@
+"""live_view over real DDS and a real WebSocket client (``websockets``, foxglove.sdk.v1): channels
+advertised with encoding cdr and their ros2msg schemas, subscribed messages decoding with the
+advertised schema to the values published, the rate cap, unsubscribing, channels going with
+their topics, latched topics reaching a late client, an abrupt client leaving the graph alone,
+and `piezo-stage launch sim_closed_loop --view` serving the loop's topics."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+
+import pytest
+from foxglove_client import FoxgloveClient, decoder
+from hypothesis import example, given
+from hypothesis import strategies as st
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from piezo_stage.nodes.live_view import RateGate, parse_topic_rates
+from piezo_stage.nodes.spec import ParameterError
+
+from ros_support import start_node, stop
+
+pytestmark = pytest.mark.ros
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def ns() -> str:
+    return f"/view_{os.getpid()}_{time.monotonic_ns() % 10**9}"
+
+
+# ---------------------------------------------------------------------------------- units
+@given(rate=st.floats(0.5, 5000.0), gaps=st.lists(st.integers(0, 10**8), min_size=1,
+                                                   max_size=300))
+@example(rate=100.0, gaps=[0] * 50)
+@example(rate=1000.0, gaps=[10**6] * 300)
+def test_the_rate_gate_never_bursts_nor_exceeds_its_rate(rate, gaps):
+    """Over any stream of receive times the first message passes, no two that pass are less
+    than half a period apart, and no more pass than one per period over the span (+1.5)."""
+    gate = RateGate(rate)
+    t, passed = 10**12, []
+    for gap in gaps:
+        t += gap
+        if gate(t):
+            passed.append(t)
+    assert passed and passed[0] == 10**12 + gaps[0]
+    period = round(1e9 / rate)
+    assert all(b - a >= period // 2 for a, b in zip(passed, passed[1:]))
+    assert len(passed) <= (passed[-1] - passed[0]) / period + 1.5
+
+
+def test_rate_gate_zero_passes_everything_and_a_steady_stream_is_thinned_evenly():
+    everything = RateGate(0.0)
+    assert all(everything(t) for t in [5, 5, 5, 6])
+    gate = RateGate(100.0)
+    kept = [t for t in range(0, 10**9, 10**6) if gate(t)]  # 1 kHz for 1 s
+    assert len(kept) == 100
+    assert {b - a for a, b in zip(kept, kept[1:])} == {10**7}
+
+
+def test_topic_rates_parse_or_say_what_is_wrong():
+    resolve = lambda t: t if t.startswith("/") else "/piezo/" + t  # noqa: E731
+    assert parse_topic_rates(["displacement=500", "/diagnostics=0"], resolve) == {
+        "/piezo/displacement": 500.0, "/diagnostics": 0.0}
+    for bad in ["displacement", "=5", "x=fast", "x=-1", "x=nan", "x=1e7"]:
+        with pytest.raises(ParameterError, match="TOPIC=HZ"):
+            parse_topic_rates([bad], resolve)
+
+
+# ---------------------------------------------------------------------------------- node
+class View:
+    def __init__(self, namespace: str, *params: str) -> None:
+        self.port = free_port()
+        self.proc = start_node("live_view", f"port:={self.port}", "discovery_period:=0.1",
+                               *params, namespace=namespace)
+        self.url = f"ws://127.0.0.1:{self.port}"
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.2):
+                    return
+            except OSError:
+                assert self.proc.poll() is None, stop(self.proc)
+                time.sleep(0.1)
+        raise AssertionError(stop(self.proc))
+
+
+def publish_for(node, pub, make, seconds: float, rate: float) -> list:
+    sent, k, t_end = [], 0, time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        msg = make(k)
+        pub.publish(msg)
+        sent.append(msg)
+        k += 1
+        time.sleep(1.0 / rate)
+    return sent
+
+
+def displacement(k: int):
+    from piezo_stage_msgs.msg import Displacement
+
+    msg = Displacement()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + k, 7 * k
+    msg.displacement = 1e-6 * k
+    return msg
+
+
+def test_channels_schemas_values_rate_cap_and_unsubscribing(node):
+    from piezo_stage_msgs.msg import Displacement
+
+    space = ns()
+    pub = node.create_publisher(Displacement, f"{space}/displacement", 10)
+    other = node.create_publisher(Displacement, "/elsewhere/displacement", 10)
+    view = View(space, "max_rate_hz:=40.0")
+    client = None
+    try:
+        client = FoxgloveClient(view.url)
+        assert client.subprotocol == "foxglove.sdk.v1"
+        assert client.wait(lambda: client.channel(f"{space}/displacement") is not None), \
+            client.channels
+        channel = client.channel(f"{space}/displacement")
+        assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
+        assert channel["schemaName"] == "piezo_stage_msgs/msg/Displacement"
+        assert "MSG: std_msgs/Header" in channel["schema"]  # the dependencies come along
+        assert client.channel("/elsewhere/displacement") is None  # another namespace's
+        decode = decoder(channel)
+        sub = client.subscribe(channel["id"])
+        time.sleep(0.5)  # the view subscribes on the client's request
+        sent = publish_for(node, pub, displacement, 2.0, 500.0)
+        assert client.wait(lambda: len(client.received(sub)) >= 20)
+        got = client.received(sub)
+        values = [decode(m.payload) for m in got]
+        by_value = {round(m.displacement * 1e6): m for m in sent}
+        for v in values:  # each is one message published, byte for byte what the topic had
+            k = round(v.displacement * 1e6)
+            assert v.displacement == by_value[k].displacement
+            assert (v.header.stamp.sec, v.header.stamp.nanosec) == (1000 + k, 7 * k)
+        span = (got[-1].log_time - got[0].log_time) * 1e-9
+        # 500 msg/s published, 40 msg/s asked: even thinning, at most one per 25 ms
+        assert len(got) <= 40 * span + 2 and len(got) >= 20, (len(got), span)
+        client.unsubscribe(sub)
+        time.sleep(0.5)
+        before = len(client.received(sub))
+        publish_for(node, pub, displacement, 1.0, 200.0)
+        time.sleep(0.3)
+        assert len(client.received(sub)) == before
+        node.destroy_publisher(pub)  # the topic goes: so does its channel
+        assert client.wait(lambda: channel["id"] in client.unadvertised, 10.0), client.channels
+    finally:
+        if client is not None:
+            client.close()
+        node.destroy_publisher(other)
+        out, err = stop(view.proc)
+    assert view.proc.returncode == 0, err
+
+
+def test_a_latched_topic_reaches_a_late_client_and_a_vanished_client_disturbs_nothing(node):
+    from piezo_stage_msgs.msg import Displacement
+
+    space = ns()
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub_latched = node.create_publisher(Displacement, f"{space}/parameters_like", latched)
+    pub_latched.publish(displacement(42))
+    pub = node.create_publisher(Displacement, f"{space}/displacement", 10)
+    view = View(space)
+    try:
+        rude = FoxgloveClient(view.url)
+        assert rude.wait(lambda: rude.channel(f"{space}/displacement") is not None)
+        rude.subscribe(rude.channel(f"{space}/displacement")["id"])
+        time.sleep(0.3)
+        publish_for(node, pub, displacement, 0.3, 200.0)
+        rude.drop()  # no closing handshake
+        polite = FoxgloveClient(view.url)
+        assert polite.wait(lambda: polite.channel(f"{space}/parameters_like") is not None)
+        ch = polite.channel(f"{space}/parameters_like")
+        sub = polite.subscribe(ch["id"])
+        assert polite.wait(lambda: polite.received(sub), 10.0)
+        assert decoder(ch)(polite.received(sub)[0].payload).displacement == 42e-6
+        sub2 = polite.subscribe(polite.channel(f"{space}/displacement")["id"])
+        time.sleep(0.3)
+        publish_for(node, pub, displacement, 0.5, 200.0)
+        assert polite.wait(lambda: len(polite.received(sub2)) >= 5)
+        polite.close()
+        assert view.proc.poll() is None
+    finally:
+        out, err = stop(view.proc)
+        node.destroy_publisher(pub)
+        node.destroy_publisher(pub_latched)
+    assert view.proc.returncode == 0, err
+
+
+@pytest.mark.parametrize("param, why", [
+    ("topic_rates:=['displacement']", "TOPIC=HZ"),
+    ("max_rate_hz:=-1.0", "max_rate_hz"),
+    ("no_such:=1", "no_such"),
+])
+def test_bad_parameters_exit_2_with_one_line(param, why):
+    proc = start_node("live_view", f"port:={free_port()}", param, namespace=ns())
+    out, err = stop(proc, timeout=30.0) if proc.wait(timeout=30.0) is None else proc.communicate()
+    assert proc.returncode == 2, err
+    assert why in err
+
+
+def test_a_busy_port_is_refused_with_exit_2():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        proc = start_node("live_view", f"port:={s.getsockname()[1]}", namespace=ns())
+        proc.wait(timeout=30.0)
+        _, err = proc.communicate()
+    assert proc.returncode == 2 and "cannot serve on 127.0.0.1" in err, err
+
+
+def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
+    """`piezo-stage launch sim_closed_loop --view`: displacement, voltage_command,
+    controller_state and /diagnostics reach a client at >= 20 msg/s each and decode with the
+    advertised schemas."""
+    from piezo_stage.launch import Launcher
+    from piezo_stage.launch.graph import load_graph
+
+    port = free_port()
+    space = ns()
+    graph = load_graph("sim_closed_loop").with_node(
+        {"executable": "live_view", "overrides": {"port": port}})
+    lines: list[str] = []
+    launcher = Launcher(graph, namespace=space, sink=lambda name, line, *_: lines.append(line))
+    wanted = [f"{space}/displacement", f"{space}/voltage_command", f"{space}/controller_state",
+              "/diagnostics"]
+    launcher.start()
+    client = None
+    try:
+        launcher.wait_ready(timeout=60.0)
+        deadline = time.monotonic() + 30.0
+        while client is None and time.monotonic() < deadline:
+            try:
+                client = FoxgloveClient(f"ws://127.0.0.1:{port}")
+            except OSError:
+                time.sleep(0.2)
+        assert client is not None, "\n".join(lines[-30:])
+        assert client.wait(lambda: all(client.channel(t) for t in wanted), 30.0), \
+            (client.channels, "\n".join(lines[-30:]))
+        subs = {t: (client.subscribe(client.channel(t)["id"]), decoder(client.channel(t)))
+                for t in wanted}
+        time.sleep(3.5)
+        rates = {}
+        for topic, (sub, decode) in subs.items():
+            got = [m for m in client.received(sub)]
+            window = [m for m in got if m.arrived >= got[-1].arrived - 2.0] if got else []
+            rates[topic] = len(window) / 2.0
+            for m in got[-5:]:
+                decode(m.payload)  # decodes with the advertised schema
+        decode_diag = subs["/diagnostics"][1]
+        names = {s.name for m in client.received(subs["/diagnostics"][0])
+                 for s in decode_diag(m.payload).status}
+        assert {f"{space}/controller", f"{space}/live_view"} <= names, names
+        state = subs[f"{space}/controller_state"][1](
+            client.received(subs[f"{space}/controller_state"][0])[-1].payload)
+        assert state.mode == "pid_tv"
+    finally:
+        if client is not None:
+            client.close()
+        launcher.stop()
+    # /diagnostics: every node's status at 1 Hz each; the loop's topics at the view's cap
+    assert all(rates[t] >= 20.0 for t in wanted[:3]), rates
+    assert rates["/diagnostics"] >= 2.0, rates
