@@ -22,9 +22,13 @@ parse -> proportional law -> TCP, no checks, no topics): the floor of this host.
 unanswered samples; outside CI). ``--designs`` runs rig_loop's alternatives instead: Python's
 default 5 ms switch interval, and publishing from the loop thread after its write (no hand-off),
 beside the shipped design (hand-off to the executor's thread, 50 µs switch interval).
+``--view`` runs rig_loop at 1 kHz without and with the live view (the live_view node and a
+Foxglove WebSocket client watching displacement, voltage_command and controller_state): the
+loop's figures side by side, the view's CPU (% of one core) and the messages the client got.
 
     python bench/control_loop.py [--seconds 10] [--forms rig_closed_loop,rig_loop,minimal]
                                  [--rates 1000,10000] [--param NODE.KEY:=VALUE] [--soak 3600]
+                                 [--view]
 """
 
 from __future__ import annotations
@@ -123,6 +127,7 @@ class Figures:
     unanswered: int = 0
     cpu_per_sample: float = float("nan")
     rss_growth: float = float("nan")  # bytes
+    view: str = ""  # the live view's figures, when it watched
 
     def p99(self) -> float:
         return float(np.percentile(self.latencies, 99)) if self.latencies.size else float("nan")
@@ -136,7 +141,7 @@ class Figures:
                 f"{self.unanswered:5d}  CPU/sample {self.cpu_per_sample * 1e6:7.1f} us")
         if np.isfinite(self.rss_growth):
             text += f"  RSS growth {self.rss_growth / 1e6:.2f} MB"
-        return text
+        return text + (f"\n{'':<34} {self.view}" if self.view else "")
 
 
 def free_port() -> int:
@@ -255,9 +260,71 @@ def _wait_for(path: Path, label: str, timeout: float = 30.0) -> None:
         time.sleep(0.05)
 
 
+VIEWED = ("displacement", "voltage_command", "controller_state")
+
+
+@contextlib.contextmanager
+def watched(port: int) -> Iterator[tuple[int, dict[str, int]]]:
+    """The live_view node on ``port`` and a Foxglove client subscribed to ``VIEWED``; yields
+    the node's pid and the client's message counts per topic."""
+    import json
+    import threading
+
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    view = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.live_view", "--ros-args",
+                             "-r", f"__ns:={NS}", "-p", f"port:={port}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    counts: dict[str, int] = {}
+    try:
+        deadline = time.monotonic() + 30.0
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("live_view did not start") from None
+                time.sleep(0.1)
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            by_sub: dict[int, str] = {}
+
+            def receive() -> None:
+                try:
+                    while True:
+                        frame = ws.recv()
+                        if isinstance(frame, bytes):
+                            topic = by_sub.get(int.from_bytes(frame[1:5], "little"))
+                            if topic:
+                                counts[topic] = counts.get(topic, 0) + 1
+                            continue
+                        msg = json.loads(frame)
+                        if msg["op"] != "advertise":
+                            continue
+                        for ch in msg["channels"]:
+                            short = ch["topic"].rsplit("/", 1)[-1]
+                            if ch["topic"] == f"{NS}/{short}" and short in VIEWED \
+                                    and short not in by_sub.values():
+                                sub = len(by_sub) + 1
+                                by_sub[sub] = short
+                                ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                                    {"id": sub, "channelId": ch["id"]}]}))
+                except ConnectionClosed:
+                    pass
+
+            thread = threading.Thread(target=receive, daemon=True)
+            thread.start()
+            yield view.pid, counts
+    finally:
+        view.terminate()
+        view.wait(timeout=30.0)
+
+
 def measure(form: str, rate: float, seconds: float, busy: bool = False,
-            label: str | None = None) -> Figures:
-    """One run: devices up, the loop started, ``seconds`` of loop measured."""
+            label: str | None = None, view: bool = False) -> Figures:
+    """One run: devices up, the loop started, ``seconds`` of loop measured (``view``: with
+    the live view watching)."""
     label = label or f"{form} {rate / 1000:g} kHz" + (" + busy" if busy else "")
     port = free_port()
     tmp = Path(tempfile.mkdtemp(prefix="bench_rig_"))
@@ -270,7 +337,8 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
         _wait_for(Path(sensor_log + ".ready"), "the sensor")
         _wait_for(Path(amp_log + ".ready"), "the amplifier")
         lines: list[str] = []
-        with loop_under_test(form, rate, port, link, lines) as pids:
+        with loop_under_test(form, rate, port, link, lines) as pids, \
+                (watched(free_port()) if view else contextlib.nullcontext((0, {}))) as viewer:
             if busy:
                 hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
             try:  # a second's worth of voltages: the loop runs
@@ -278,9 +346,12 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
             except RuntimeError as exc:
                 raise RuntimeError(f"{exc}\n" + "\n".join(lines[-20:])) from None
             time.sleep(1.0)
+            view_pid, counts = viewer
             t0, cpu0, rss0 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
+            view0, got0 = cpu_seconds([view_pid]) if view else 0.0, dict(counts)
             time.sleep(seconds)
             t1, cpu1, rss1 = time.monotonic(), cpu_seconds(pids), rss_bytes(pids)
+            view1, got1 = cpu_seconds([view_pid]) if view else 0.0, dict(counts)
             time.sleep(0.3)  # answers to the last samples
     finally:
         if hog is not None:
@@ -291,7 +362,12 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
             device.wait(timeout=30.0)
     log = [(t, int(a), int(b)) for t, a, b in np.load(sensor_log)]
     answers = [(float(t), float(v)) for t, v in np.load(amp_log)]
-    return figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
+    fig = figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
+    if view:
+        rates = [(got1.get(t, 0) - got0.get(t, 0)) / (t1 - t0) for t in VIEWED]
+        fig.view = (f"view: {100 * (view1 - view0) / (t1 - t0):.1f} % of a core; client got "
+                    + ", ".join(f"{t} {r:.0f}/s" for t, r in zip(VIEWED, rates)))
+    return fig
 
 
 def figures(label: str, log: list[tuple[float, int, int]], answers: list[tuple[float, float]],
@@ -360,6 +436,8 @@ def main() -> int:
                         "controller.topics_rate_hz:=500.0")
     parser.add_argument("--designs", action="store_true",
                         help="instead: rig_loop's design alternatives side by side")
+    parser.add_argument("--view", action="store_true",
+                        help="instead: rig_loop at 1 kHz without and with the live view")
     parser.add_argument("--serve", nargs="+", metavar="DEVICE",
                         help=argparse.SUPPRESS)  # a device's own process (see serve)
     args = parser.parse_args()
@@ -369,6 +447,14 @@ def main() -> int:
     EXTRA.extend(args.param)
     if args.designs:
         return compare_designs(args.seconds, [float(r) for r in args.rates.split(",")])
+    if args.view:
+        for view in (False, True, False, True):
+            print(measure("rig_loop", 1000.0, args.seconds, view=view,
+                          label="rig_loop 1 kHz" + (" + view" if view else "")).line(),
+                  flush=True)
+        print("target: the view <= 10 % of a core at 1 kHz on three topics, the loop's "
+              "figures unchanged")
+        return 0
     if args.soak > 0:
         print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
         return 0

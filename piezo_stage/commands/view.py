@@ -5,7 +5,8 @@
   piezo-stage view --max-rate 500           draw up to 500 messages/s per topic
 
 In the app (desktop or app.foxglove.dev): Open connection > Foxglove WebSocket > the URL
-printed; Layouts > Import config/foxglove/piezo_stage.json for the stage's panels. --host
+printed; Layouts > Import from file: config/foxglove/piezo_stage.json (/piezo), or the file
+`piezo-stage view --ns NS --write-layout FILE` writes for another namespace. --host
 another than 127.0.0.1 serves the stage's topics to the network, unauthenticated.
 """
 
@@ -29,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="most messages per second and topic sent to the app (0 = all)")
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
                         help="only these topics (relative names are in --ns)")
+    parser.add_argument("--write-layout", metavar="FILE", default=None,
+                        help="write the stage's Foxglove layout for --ns to FILE and exit "
+                             "(config/foxglove/piezo_stage.json is the one for /piezo)")
 
 
 def ros_args(args: argparse.Namespace) -> list[str]:
@@ -44,6 +48,16 @@ def ros_args(args: argparse.Namespace) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.write_layout:
+        from piezo_stage.plotting.live_layout import write_layout
+
+        try:
+            path = write_layout(args.write_layout, args.ns)
+        except OSError as exc:
+            print(f"piezo-stage view: cannot write {args.write_layout}: {exc}", file=sys.stderr)
+            return 2
+        print(f"wrote {path}: import it in the Foxglove app (Layouts > Import from file)")
+        return 0
     print(f"serving {args.ns} to the Foxglove app on ws://{args.host}:{args.port} "
           "(Ctrl-C to stop)", flush=True)
     if args.host not in ("127.0.0.1", "localhost", "::1"):
