@@ -8,8 +8,11 @@ inherit the id.
 
 from __future__ import annotations
 
+import functools
+import importlib
 import os
 import sys
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -53,6 +56,7 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     os.environ.setdefault("MPLBACKEND", "Agg")
+    _check_needs_rclpy()
     _restore_sigint()
     _build_font_cache()
     _load_hypothesis_profile(config)
@@ -124,6 +128,83 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         )
     slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
     items.sort(key=lambda item: item.path not in slow_files)
+
+
+# --- modules that need rclpy -------------------------------------------------------------------
+#: Test modules that need rclpy to be imported at all (they import it, piezo_stage's nodes or
+#: piezo_stage.cli at the top) or to run (they start ROS processes). Where rclpy does not import
+#: (outside the environment of scripts/env.sh) each is reported skipped, whole, without being
+#: imported, so their imports stay at the top of the file. A module added here must exist
+#: (checked at start, so that a renamed file is not silently dropped).
+NEEDS_RCLPY = frozenset({
+    "test_bag_play.py",
+    "test_demo.py",
+    "test_env_messages.py",
+    "test_experiment_harness.py",
+    "test_launch_run.py",
+    "test_node_controller.py",
+    "test_node_excitation.py",
+    "test_node_executor.py",
+    "test_node_identifier.py",
+    "test_node_parameters.py",
+    "test_node_plant.py",
+    "test_node_rig_driver.py",
+    "test_node_rig_loop.py",
+    "test_node_rig_reader.py",
+    "test_node_rig_zz_emulated_graph.py",
+    "test_node_rig_zz_emulated_tracking.py",
+    "test_player_cli.py",
+    "test_player_node.py",
+    "test_recorder_cli.py",
+    "test_recorder_lifecycle.py",
+    "test_recorder_node.py",
+    "test_recorder_units.py",
+    "test_replay_identification.py",
+})
+TEST_DIR = Path(__file__).resolve().parent
+
+
+def _check_needs_rclpy() -> None:
+    unknown = sorted(name for name in NEEDS_RCLPY if not (TEST_DIR / name).is_file())
+    if unknown:
+        raise pytest.UsageError("conftest.NEEDS_RCLPY names no test file: " + ", ".join(unknown))
+
+
+@functools.cache
+def _rclpy_missing() -> str | None:
+    """Why rclpy does not import here, or None when it does. As ``pytest.importorskip`` judges
+    it: only a missing module skips; one that is there but fails to import fails the collection
+    with its own error."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ImportWarnings of a same-named directory
+        try:
+            importlib.import_module("rclpy")
+        except ModuleNotFoundError as exc:
+            return str(exc)
+    return None
+
+
+class _WithoutRclpy(pytest.Module):
+    """A module of NEEDS_RCLPY where rclpy does not import: reported skipped, never imported."""
+
+
+def pytest_pycollect_makemodule(
+    module_path: Path, parent: pytest.Collector
+) -> pytest.Module | None:
+    if module_path.name in NEEDS_RCLPY and _rclpy_missing() is not None:
+        return _WithoutRclpy.from_parent(parent, path=module_path)
+    return None
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_make_collect_report(collector: pytest.Collector) -> pytest.CollectReport | None:
+    if not isinstance(collector, _WithoutRclpy):
+        return None
+    reason = (f"Skipped: needs rclpy, which does not import here ({_rclpy_missing()}): "
+              "run inside the environment of scripts/env.sh")
+    # located at the module (no line: nothing in it ran), not at this conftest
+    return pytest.CollectReport(collector.nodeid, "skipped", (str(collector.path), None, reason),
+                                [])
 
 
 class _NotInUnitLayer(RuntimeError):

@@ -14,10 +14,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-pytestmark = pytest.mark.ros
+from ros_support import ROOT
 
-pytest.importorskip("rclpy")
-from ros_support import ROOT  # noqa: E402
+pytestmark = pytest.mark.ros
 
 DATA = Path(__file__).resolve().parent / "data" / "rosbag2"
 

@@ -14,7 +14,6 @@ from piezo_stage.model.parameter_set import shipped_parameter_set
 
 pytestmark = pytest.mark.ros
 
-pytest.importorskip("rclpy")
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -7,14 +7,13 @@ import os
 from pathlib import Path
 
 import pytest
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+
+from ros_support import MSG_TYPES, ROOT, fill, msg_class, spawn_python, spin_until, stop, to_plain
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
-
-from ros_support import MSG_TYPES, ROOT, fill, msg_class, spawn_python, spin_until, stop, to_plain  # noqa: E402
 
 ECHO = r"""
 import sys, rclpy

@@ -6,15 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from rclpy.serialization import serialize_message
 
-pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-
-from rclpy.serialization import serialize_message  # noqa: E402
-
-from piezo_stage.bag.reader import read_messages  # noqa: E402
-from piezo_stage.experiments.harness import (  # noqa: E402
+from piezo_stage.bag.reader import read_messages
+from piezo_stage.experiments.harness import (
     ControllerStates,
     HarnessError,
     Recording,
@@ -25,7 +20,9 @@ from piezo_stage.experiments.harness import (  # noqa: E402
     span,
     stamp_ns,
 )
-from piezo_stage_msgs.msg import ControllerState  # noqa: E402
+from piezo_stage_msgs.msg import ControllerState
+
+pytestmark = pytest.mark.ros
 
 
 def state(ns: int, x1: float, closed: bool = True) -> bytes:

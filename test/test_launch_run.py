@@ -13,19 +13,17 @@ from pathlib import Path
 import pytest
 import yaml
 
-pytestmark = pytest.mark.ros
-
-pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
-
-from piezo_stage.cli import main  # noqa: E402
-from piezo_stage.launch import (  # noqa: E402
+from piezo_stage.cli import main
+from piezo_stage.launch import (
     Launcher,
     LaunchError,
     RequiredProcessExited,
     TopicsNotReadyError,
 )
 
-from ros_support import ROOT  # noqa: E402
+from ros_support import ROOT
+
+pytestmark = pytest.mark.ros
 
 TEST_DIR = str(Path(__file__).parent)
 PY = sys.executable

@@ -8,18 +8,16 @@ import time
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
+
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
-from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
-
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ctl"
 

@@ -5,17 +5,16 @@ from __future__ import annotations
 import signal
 
 import pytest
+import rclpy
+from builtin_interfaces.msg import Time
+from rosgraph_msgs.msg import Clock
+
+from piezo_stage.model.excitation import plan_from
+from piezo_stage.nodes.qos import COMMAND_QOS
+
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from builtin_interfaces.msg import Time  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-
-from piezo_stage.model.excitation import plan_from  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS  # noqa: E402
-
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 PLAN = [
     "waveform:=triangle",

@@ -8,17 +8,16 @@ from __future__ import annotations
 import time
 
 import pytest
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from piezo_stage.nodes.executor import LeanExecutor
+from piezo_stage.nodes.parameters import parameter_overrides
+from piezo_stage.nodes.qos import COMMAND_QOS
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy", reason="run inside the environment of scripts/env.sh")
-from rclpy.node import Node  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
-from piezo_stage.nodes.executor import LeanExecutor  # noqa: E402
-from piezo_stage.nodes.parameters import parameter_overrides  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS  # noqa: E402
 
 WAIT_SET_METHODS = ("clear_entities", "add_subscription", "add_timer", "add_service",
                     "add_guard_condition",

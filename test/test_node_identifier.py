@@ -5,20 +5,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from piezo_stage.identification.io import intervals_from_marks, recordings_from_series
+from piezo_stage.identification.pipeline import IdentifyOptions, identify
+from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_run
+from piezo_stage.model.bouc_wen import BoucWenParameters
+from piezo_stage.model.parameter_set import load_parameter_set
+from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS
+
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-
-from piezo_stage.identification.io import intervals_from_marks, recordings_from_series  # noqa: E402
-from piezo_stage.identification.pipeline import IdentifyOptions, identify  # noqa: E402
-from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_run  # noqa: E402
-from piezo_stage.model.bouc_wen import BoucWenParameters  # noqa: E402
-from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS  # noqa: E402
-
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/ident"
 

@@ -8,17 +8,16 @@ import math
 
 import numpy as np
 import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from piezo_stage.model.parameter_set import shipped_parameter_set
+from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-
-from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS  # noqa: E402
-
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -8,18 +8,17 @@ import math
 import signal
 
 import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.time import Time
+
+from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+
+from rig_support import DiagnosticsProbe, sva_values
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.time import Time  # noqa: E402
-
-from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
-
-from rig_support import DiagnosticsProbe, sva_values  # noqa: E402
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/rig"
 CAP_TIME = 0.025  # s: no write carries more slew than this

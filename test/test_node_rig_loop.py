@@ -19,25 +19,22 @@ import time
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+from piezo_stage.hardware.emulators import Faults
+from piezo_stage.hardware.emulators.rig import RigEmulator
+from piezo_stage.hardware.optoncdt import frame_format
+from piezo_stage.launch import Launcher
+from piezo_stage.launch.graph import load_graph
+from piezo_stage.model.parameter_set import shipped_parameter_set
+from piezo_stage.model.plant import SimulatedStage
+from piezo_stage.nodes.controller import PARAMETERS as CONTROLLER_PARAMETERS
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+
+from rig_support import sva_values
+from ros_support import spin_until
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
-
-rclpy = pytest.importorskip("rclpy")
-
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-
-from piezo_stage.hardware.emulators import Faults  # noqa: E402
-from piezo_stage.hardware.emulators.rig import RigEmulator  # noqa: E402
-from piezo_stage.hardware.optoncdt import frame_format  # noqa: E402
-from piezo_stage.launch import Launcher  # noqa: E402
-from piezo_stage.launch.graph import load_graph  # noqa: E402
-from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
-from piezo_stage.model.plant import SimulatedStage  # noqa: E402
-from piezo_stage.nodes.controller import PARAMETERS as CONTROLLER_PARAMETERS  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
-
-from rig_support import sva_values  # noqa: E402
-from ros_support import spin_until  # noqa: E402
 
 NS = "/rig_forms"
 ERROR = DiagnosticStatus.ERROR

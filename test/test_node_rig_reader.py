@@ -9,18 +9,16 @@ import math
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
+
+from piezo_stage.hardware.emulators import EmulatorServer, Faults, OptoNCDTDeviceModel
+from piezo_stage.hardware.optoncdt import Status, frame_format
+from piezo_stage.nodes.qos import SENSOR_QOS
+
+from rig_support import DiagnosticsProbe
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
-
-from piezo_stage.hardware.emulators import EmulatorServer, Faults, OptoNCDTDeviceModel  # noqa: E402
-from piezo_stage.hardware.optoncdt import Status, frame_format  # noqa: E402
-from piezo_stage.nodes.qos import SENSOR_QOS  # noqa: E402
-
-from rig_support import DiagnosticsProbe  # noqa: E402
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 NS = "/rig"
 MR = 10e-3

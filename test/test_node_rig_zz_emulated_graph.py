@@ -34,17 +34,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from piezo_stage.config_path import find_config
+from piezo_stage.launch import Launcher
+from piezo_stage.launch.graph import load_graph
+from piezo_stage.model.parameter_set import load_parameter_set
+from piezo_stage.nodes.qos import LATCHED_QOS, SENSOR_QOS
+
+from ros_support import spin_until
+
 pytestmark = [pytest.mark.ros, pytest.mark.realtime]
-
-rclpy = pytest.importorskip("rclpy")
-
-from piezo_stage.config_path import find_config  # noqa: E402
-from piezo_stage.launch import Launcher  # noqa: E402
-from piezo_stage.launch.graph import load_graph  # noqa: E402
-from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import LATCHED_QOS, SENSOR_QOS  # noqa: E402
-
-from ros_support import spin_until  # noqa: E402
 
 NS = "/emulated"
 

@@ -23,18 +23,16 @@ import socket
 import numpy as np
 import pytest
 
+from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
+from piezo_stage.control.tracking import tracking_errors
+from piezo_stage.launch import Launcher
+from piezo_stage.launch.graph import find_graph, load_yaml, parse_graph
+from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+
+from ros_support import spin_until
+
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.realtime]
-
-rclpy = pytest.importorskip("rclpy")
-
-from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings  # noqa: E402
-from piezo_stage.control.tracking import tracking_errors  # noqa: E402
-from piezo_stage.launch import Launcher  # noqa: E402
-from piezo_stage.launch.graph import find_graph, load_yaml, parse_graph  # noqa: E402
-from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS  # noqa: E402
-
-from ros_support import spin_until  # noqa: E402
 
 NS = "/emulated_tracking"
 AMPLITUDE, OFFSET, FREQUENCY, PERIODS = 5e-6, 7e-6, 2.0, 3

@@ -7,17 +7,15 @@ import subprocess
 import sys
 
 import pytest
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from piezo_stage.bag import BagWriter, qos, read_raw
+from piezo_stage.bag.series import encode_series
+
+from ros_support import ROOT, spin_until
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-
-from piezo_stage.bag import BagWriter, qos, read_raw  # noqa: E402
-from piezo_stage.bag.series import encode_series  # noqa: E402
-
-from ros_support import ROOT, spin_until  # noqa: E402
 
 T0 = 1_700_000_000_000_000_000
 

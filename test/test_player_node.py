@@ -7,20 +7,19 @@ import signal
 import time
 
 import pytest
+import rclpy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import SetBool, Trigger
+
+from piezo_stage.bag import BagWriter, qos, read_raw
+from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
+from piezo_stage.nodes.player import playback_qos
+
+from ros_support import fill, msg_class, spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from rosgraph_msgs.msg import Clock  # noqa: E402
-from std_srvs.srv import SetBool, Trigger  # noqa: E402
-
-from piezo_stage.bag import BagWriter, qos, read_raw  # noqa: E402
-from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps  # noqa: E402
-from piezo_stage.nodes.player import playback_qos  # noqa: E402
-
-from ros_support import fill, msg_class, spin_until, start_node, stop  # noqa: E402
 
 NS = "/pl"
 N = 51  # messages per stream, 10 ms apart: 0.5 s of bag time

@@ -9,16 +9,14 @@ import subprocess
 import sys
 
 import pytest
+from rclpy.duration import Duration
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from piezo_stage.bag import bag_info, read_messages
+
+from ros_support import ROOT, spin_until
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from rclpy.duration import Duration  # noqa: E402
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-
-from piezo_stage.bag import bag_info, read_messages  # noqa: E402
-
-from ros_support import ROOT, spin_until  # noqa: E402
 
 NS = "/cli"  # the probe node's namespace (conftest)
 

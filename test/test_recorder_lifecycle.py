@@ -7,19 +7,18 @@ import signal
 import time
 
 import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
+
+from piezo_stage.bag import bag_info, read_messages
+from piezo_stage.bag.reader import bag_files
+from piezo_stage.cli import main as cli
+
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-
-from piezo_stage.bag import bag_info, read_messages  # noqa: E402
-from piezo_stage.bag.reader import bag_files  # noqa: E402
-from piezo_stage.cli import main as cli  # noqa: E402
-
-from ros_support import spin_until, start_node, stop  # noqa: E402
 
 KEEP_ALL = QoSProfile(
     depth=1, history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE

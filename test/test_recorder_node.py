@@ -11,19 +11,18 @@ import sys
 from pathlib import Path
 
 import pytest
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+
+from piezo_stage.bag import bag_info, typestore
+
+from ros_support import ROOT, fill, msg_class, spin_until, start_node, stop, to_plain
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-import yaml  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from mcap.reader import make_reader  # noqa: E402
-from mcap_ros2.decoder import DecoderFactory  # noqa: E402
-from rosbags.highlevel import AnyReader  # noqa: E402
-
-from piezo_stage.bag import bag_info, typestore  # noqa: E402
-
-from ros_support import ROOT, fill, msg_class, spin_until, start_node, stop, to_plain  # noqa: E402
 
 NS = "/rec"
 N_RELIABLE = 2000  # voltage, reliable KEEP_ALL, sent as fast as possible: none may be lost

@@ -7,17 +7,16 @@ import os
 import re
 
 import pytest
+import rclpy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy, qos_profile_sensor_data
 
-rclpy = pytest.importorskip("rclpy")
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
-
-from piezo_stage.nodes import (  # noqa: E402
+from piezo_stage.nodes import (
     dds,
     recorder,
     topics,
 )
-from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, adapted_qos  # noqa: E402
-from piezo_stage.nodes.spec import ParameterError  # noqa: E402
+from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, adapted_qos
+from piezo_stage.nodes.spec import ParameterError
 
 
 @pytest.mark.unit

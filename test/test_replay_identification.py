@@ -11,17 +11,15 @@ import sys
 from pathlib import Path
 
 import pytest
+from std_srvs.srv import Trigger
+
+from piezo_stage.cli import main
+from piezo_stage.model.parameter_set import load_parameter_set
+from piezo_stage.nodes.qos import LATCHED_QOS
+
+from ros_support import spin_until
 
 pytestmark = pytest.mark.ros
-
-rclpy = pytest.importorskip("rclpy")
-from std_srvs.srv import Trigger  # noqa: E402
-
-from piezo_stage.cli import main  # noqa: E402
-from piezo_stage.model.parameter_set import load_parameter_set  # noqa: E402
-from piezo_stage.nodes.qos import LATCHED_QOS  # noqa: E402
-
-from ros_support import spin_until  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = ("y0", "kappa_w", "rho", "sigma", "n")
