@@ -139,6 +139,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 NEEDS_RCLPY = frozenset({
     "test_bag_play.py",
     "test_demo.py",
+    "test_emulated_rig_graph.py",
+    "test_emulated_rig_tracking.py",
     "test_env_messages.py",
     "test_experiment_harness.py",
     "test_launch_run.py",
@@ -151,8 +153,6 @@ NEEDS_RCLPY = frozenset({
     "test_node_rig_driver.py",
     "test_node_rig_loop.py",
     "test_node_rig_reader.py",
-    "test_node_rig_zz_emulated_graph.py",
-    "test_node_rig_zz_emulated_tracking.py",
     "test_player_cli.py",
     "test_player_node.py",
     "test_recorder_cli.py",

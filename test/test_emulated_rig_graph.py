@@ -1,5 +1,6 @@
-"""Last step: the whole `emulated_rig` graph (emulate rig + voltage_driver + laser_reader +
-identifier + excitation) started by piezo_stage.launch.Launcher: the excitation's voltage reaches
+"""The rig nodes together: the whole `emulated_rig` graph (emulate rig + voltage_driver +
+laser_reader + identifier + excitation) started by piezo_stage.launch.Launcher (each node alone:
+test_node_rig_driver.py, test_node_rig_reader.py): the excitation's voltage reaches
 the emulated amplifier, the emulated ch. 10 patch moves the emulated sensor, the reader publishes
 it, the identifier recovers the patch's parameters from the two runs, and Ctrl-C ramps the
 amplifier to safe_voltage before the emulator goes away (the sensor's pty link is removed).
