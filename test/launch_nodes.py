@@ -32,6 +32,7 @@ class Talker(Node):
         self.text, exit_after, self.fail_code = p["text"], p["exit_after"], p["fail_code"]
         self.pub = self.create_publisher(String, "chatter", COMMAND_QOS)
         self.count = 0
+        self.finished = False  # from the start, as run() asks (nodes.runtime.Finishes)
         self.create_timer(0.05, self.tick)
         if exit_after > 0:
             self.create_timer(exit_after, self.finish)

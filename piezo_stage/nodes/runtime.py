@@ -1,6 +1,7 @@
 """How a piezo_stage node runs: :func:`run` (a clean SIGINT/SIGTERM shutdown that lets the node
-put its device in a safe state before the context goes away, exit codes), waiting for
-subscribers to match and to acknowledge, and the clocks and stamps nodes share.
+put its device in a safe state before the context goes away, exit codes) and the lifecycle hooks
+it reads from its nodes (:class:`Finishes`, :class:`ExitsWithCode`, :class:`ShutsDown`), waiting
+for subscribers to match and to acknowledge, and the clocks and stamps nodes share.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Protocol, Sequence, runtime_checkable
 
 import rclpy
 from rclpy.clock import Clock, ClockType
@@ -108,13 +109,59 @@ def warm_log_lookup(cls: type) -> None:
             return
 
 
+# --- lifecycle hooks -------------------------------------------------------------------------
+# What run() reads from the nodes it runs. Each hook is optional and stands alone: a node has
+# none, some or all of them, matched by structure (attributes and methods; nothing to inherit).
+
+
+@runtime_checkable
+class Finishes(Protocol):
+    """A node that can end its process by itself: an excitation whose plan is over, an identifier
+    that has published its result, a player at the end of its bag.
+
+    :func:`run` reads ``finished`` after every turn of the executor; once a node of the process
+    has it true, the spin stops and the process shuts down as on SIGINT (``on_shutdown``, the
+    subscribers' acknowledgements, the exit code). The attribute must exist from the node's
+    construction (``False`` in ``__init__``): run() sees which nodes have it once, before it
+    spins, so that a turn costs one attribute read per such node."""
+
+    finished: bool
+
+
+@runtime_checkable
+class ExitsWithCode(Protocol):
+    """A node that sets its process's exit code (1: the identification or the playback failed).
+
+    :func:`run` reads ``exit_code`` once, when the spin has ended without an error (SIGINT or
+    SIGTERM, a node finished, the context shut down), and returns the largest of its nodes' (a
+    node without the hook counts 0). After an error the exit code is the error's (2 for a
+    ParameterError, 1 otherwise); a failing ``on_shutdown`` turns a 0 into 1."""
+
+    exit_code: int
+
+
+@runtime_checkable
+class ShutsDown(Protocol):
+    """A node with something to do before it goes away: ramp the amplifier to its safe voltage,
+    close the bag, release the device.
+
+    :func:`run` calls ``on_shutdown()`` once on every way out (SIGINT/SIGTERM, a node finished,
+    an error while making or spinning the nodes), for each node made so far, the last made
+    first, while the context is still valid: it may still publish (run() then gives the reliable
+    subscribers ``EXIT_ACK_TIMEOUT`` to acknowledge). An exception from it is printed and makes
+    the exit code non-zero; the other nodes are still shut down and destroyed."""
+
+    def on_shutdown(self) -> None: ...
+
+
 def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] | None = None, *,
         lean: bool = False) -> int:
-    """Run a node (or the nodes composed in one process) until SIGINT/SIGTERM, then call each
-    one's ``on_shutdown()`` (if any; the last made first) while the context is still valid (so a
-    driver can ramp to its safe voltage and publish it), give their reliable subscribers
+    """Run a node (or the nodes composed in one process) until SIGINT/SIGTERM or until one of
+    them has ``finished`` (:class:`Finishes`), then call each one's ``on_shutdown()``
+    (:class:`ShutsDown`, the last made first) while the context is still valid (so a driver can
+    ramp to its safe voltage and publish it), give their reliable subscribers
     ``EXIT_ACK_TIMEOUT`` to acknowledge what they published, then destroy them. Returns the exit
-    code for ``sys.exit``.
+    code for ``sys.exit`` (:class:`ExitsWithCode`).
 
     ``lean`` runs them with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
     SingleThreadedExecutor.
@@ -140,10 +187,11 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
         for node in nodes:
             warm_log_lookup(type(node))
             executor.add_node(node)
-        while not stop.is_set() and rclpy.ok() \
-                and not any(getattr(n, "finished", False) for n in nodes):
+        # the isinstance checks once here: a turn of a 10 kHz loop reads only the attributes
+        finishing = [n for n in nodes if isinstance(n, Finishes)]
+        while not stop.is_set() and rclpy.ok() and not any(n.finished for n in finishing):
             executor.spin_once(timeout_sec=0.05)
-        code = max((int(getattr(n, "exit_code", 0)) for n in nodes), default=0)
+        code = max((int(n.exit_code) for n in nodes if isinstance(n, ExitsWithCode)), default=0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ParameterError as exc:  # bad input: one line, exit 2
@@ -154,10 +202,9 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
         code = 1
     finally:
         for node in reversed(nodes):
-            shutdown = getattr(node, "on_shutdown", None)
-            if shutdown is not None:
+            if isinstance(node, ShutsDown):
                 try:
-                    shutdown()
+                    node.on_shutdown()
                 except Exception as exc:  # report, still tear down, and exit non-zero
                     print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
                     code = code or 1
