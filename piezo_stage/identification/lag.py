@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -114,6 +115,59 @@ def runs_lag(runs: "list[Recording]") -> LagEstimate | None:
     return LagEstimate(samples, spread, sum(e.corners for e in found), seconds)
 
 
+#: [samples] (half-width, step) of the grids around the corners' estimate on which
+#: :func:`refine_lag` measures the model's residual: a coarse one, then a fine one around its
+#: least value (the residual's growth is not symmetric about the lag: a parabola over a wide
+#: step puts its vertex off by a share of the step)
+REFINE_GRIDS = ((0.3, 0.1), (0.04, 0.02), (0.01, 0.005))
+
+
+def refine_lag(lag: LagEstimate, residual: Callable[[float], tuple[float, int]]) -> LagEstimate:
+    """The lag that minimises a model's residual, with its standard error.
+
+    ``residual(samples)`` is the sum of squared output errors and their count of the model
+    identified on the runs shifted by ``samples``: the corners locate the lag to a few hundredths
+    of a sample, but the analytic method moves ~0.5 % per hundredth (the ch. 10 patch at 100
+    samples per period). On each grid of ``REFINE_GRIDS`` (extended while the least value is at
+    an edge), the parabola through the least mean square S/N and its neighbours gives τ* and
+    S/N ≈ σ² + a(τ − τ*)², whence var(τ*) = σ² / (N a), σ² the noise variance (the profile
+    likelihood of a Gaussian error). Returned as ``samples`` = τ*, ``spread`` = its standard
+    error [samples]; ``lag`` itself when the residual has no minimum to find."""
+    dt = lag.seconds / lag.samples if lag.samples else math.nan
+    seen: dict[float, tuple[float, int]] = {}
+
+    def mean_square(tau: float) -> float:
+        key = round(tau, 6)
+        if key not in seen:
+            seen[key] = residual(key)
+        sse, n = seen[key]
+        return sse / n if n > 0 else math.inf
+
+    centre, found = lag.samples, None
+    for reach, step in REFINE_GRIDS:
+        taus = [centre + k * step for k in range(-round(reach / step), round(reach / step) + 1)]
+        for _ in range(10):  # the least value at an edge: walk on
+            best = min(taus, key=mean_square)
+            if best not in (taus[0], taus[-1]):
+                break
+            taus.append(best - step if best == taus[0] else best + step)
+            taus.sort()
+        i = taus.index(min(taus, key=mean_square))
+        if i in (0, len(taus) - 1):
+            return lag
+        # per sample: a shift past a whole sample drops one sample from the runs' start
+        m0, m1, m2 = (mean_square(t) for t in taus[i - 1:i + 2])
+        a = (m0 - 2.0 * m1 + m2) / (2.0 * step * step)
+        if not (a > 0 and math.isfinite(a)):
+            return lag
+        tau = taus[i] - (m2 - m0) / (4.0 * a * step)
+        n = seen[round(taus[i], 6)][1]
+        found = (tau, math.sqrt(max(m1 - a * (taus[i] - tau) ** 2, 0.0) / (n * a)))
+        centre = tau
+    assert found is not None
+    return LagEstimate(float(found[0]), float(found[1]), lag.corners, float(found[0] * dt))
+
+
 def shift_output(rec: Recording, seconds: float) -> Recording:
     """``rec`` with the lag taken off: the input delayed by ``seconds`` (x'(t) = x(t − seconds),
     linearly interpolated: the input is the clean, commanded signal; the noisy output is left
@@ -127,5 +181,5 @@ def shift_output(rec: Recording, seconds: float) -> Recording:
     return Recording(t[keep], x, np.asarray(rec.output, dtype=float)[keep], name=rec.name)
 
 
-__all__ = ["LAG_TOLERANCE", "LagEstimate", "corners", "estimate_lag", "kink", "runs_lag",
-           "shift_output"]
+__all__ = ["LAG_TOLERANCE", "LagEstimate", "corners", "estimate_lag", "kink", "refine_lag",
+           "runs_lag", "shift_output"]

@@ -13,13 +13,14 @@ output first (and reported); the fit starts its delay from it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from enum import Enum
 from typing import Sequence
 
 import numpy as np
 
-from piezo_stage.model.bouc_wen import model_output
+from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 
 from .analytic import initial_w
 from .errors import (
@@ -29,7 +30,7 @@ from .errors import (
     NonFiniteDataError,
     SaturatedOutputError,
 )
-from .lag import LAG_TOLERANCE, LagEstimate, runs_lag, shift_output
+from .lag import LAG_TOLERANCE, LagEstimate, refine_lag, runs_lag, shift_output
 from .pipeline import IdentifyOptions, check_fit, correlation_warning, identify
 from .recording import Recording, check_recording
 from .refine import HYSTERETIC
@@ -75,18 +76,29 @@ def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = N
 def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
               lag: LagEstimate | None) -> IdentificationResult:
     """The analytic method (with its refinement), which assumes the output answers the input
-    at once: on the outputs shifted back by a lag the corners show, with the lag reported, and
-    the fit's held-out check (:func:`analytic_holdout`)."""
+    at once: on the runs with the lag the corners show taken off (refined to the model's least
+    residual, :func:`~.lag.refine_lag`, its uncertainty added to the standard errors), with the
+    lag reported, and the fit's held-out check (:func:`analytic_holdout`)."""
     lagging = lag is not None and abs(lag.samples) >= LAG_TOLERANCE
+    slopes: dict[str, float] = {}
     if lagging:
+        assert lag is not None
+        lag, slopes = _refined_lag(runs, options, lag)
         runs = [shift_output(r, lag.seconds) for r in runs]
     result = identify(runs[0], runs[1], options)
     warnings, diagnostics = list(result.warnings), dict(result.diagnostics)
     if lagging:
-        warnings.append(f"the output lags the input by {lag.samples:.2f} samples "
-                        f"({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} corners): "
-                        "the analytic method ran on the output shifted back by it")
+        assert lag is not None
+        warnings.append(f"the output lags the input by {lag.samples:.2f} ± {lag.spread:.2f} "
+                        f"samples ({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} "
+                        "corners and the model's least residual): the analytic method ran on "
+                        "the output shifted back by it")
         diagnostics.update(lag_samples=lag.samples, lag_spread=lag.spread)
+        std = dict(diagnostics.get("std") or {})
+        for key, slope in slopes.items():  # the lag's uncertainty, propagated
+            if key in std:
+                std[key] = float(np.hypot(std[key], slope * lag.spread))
+        diagnostics["std"] = std
     figures = analytic_holdout(runs, options, fit)
     if figures is not None:
         diagnostics.update(figures)
@@ -95,8 +107,54 @@ def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
                 f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
                 f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits the "
                 f"rest ({figures['train_rms_percent']:.3g} %): it may not generalise")
-    return replace(result, delay=lag.seconds if lagging else result.delay,
+    return replace(result, delay=lag.seconds if lagging and lag is not None else result.delay,
                    warnings=tuple(warnings), diagnostics=diagnostics)
+
+
+def _refined_lag(runs: list[Recording], options: IdentifyOptions, lag: LagEstimate
+                 ) -> tuple[LagEstimate, dict[str, float]]:
+    """The lag at the analytic model's least residual (:func:`~.lag.refine_lag`), and each
+    hysteretic parameter's slope against it [per sample] (central difference over one standard
+    error of the lag, at least 0.02 sample)."""
+    dt = lag.seconds / lag.samples
+
+    def identified(samples: float) -> tuple[list[Recording], IdentificationResult]:
+        shifted = [shift_output(r, samples * dt) for r in runs]
+        return shifted, identify(shifted[0], shifted[1], options)
+
+    def residual(samples: float) -> tuple[float, int]:
+        try:
+            shifted, result = identified(samples)
+        except IdentificationError:
+            return math.inf, 0
+        errors = np.concatenate([_model_errors(result.parameters, r)[_settled(r):]
+                                 for r in shifted])
+        return float(errors @ errors), int(errors.size)
+
+    refined = refine_lag(lag, residual)
+    if refined is lag:
+        return lag, {}
+    h = max(refined.spread, 0.02)
+    try:
+        up = identified(refined.samples + h)[1].parameters
+        down = identified(refined.samples - h)[1].parameters
+    except IdentificationError:
+        return refined, {}
+    return refined, {key: (getattr(up, key) - getattr(down, key)) / (2.0 * h)
+                     for key in HYSTERETIC}
+
+
+def _settled(rec: Recording) -> int:
+    """Samples of a run's first period (it settles: the model's w(0) of (10.18) is a guess)."""
+    periods = count_periods(rec)
+    return len(rec) // (periods + 1) if periods >= 1 else 0
+
+
+def _model_errors(p: BoucWenParameters, rec: Recording) -> np.ndarray:
+    """The model's output error over ``rec``, run from w(0) of (10.18) at its start."""
+    w0 = float(np.clip(initial_w(p.kappa, p.kappa_w, p.y0, float(rec.input[0]),
+                                 float(rec.output[0])), -1.0, 1.0))
+    return model_output(p, np.asarray(rec.input), w0=w0) - np.asarray(rec.output)
 
 
 def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: FitOptions
@@ -114,9 +172,7 @@ def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: F
         return None
     train, held = [], []
     for r, k in zip(runs, cut):
-        w0 = float(np.clip(initial_w(p.kappa, p.kappa_w, p.y0, float(r.input[0]),
-                                     float(r.output[0])), -1.0, 1.0))
-        err = model_output(p, np.asarray(r.input), w0=w0) - np.asarray(r.output)
+        err = _model_errors(p, r)
         train.append(err[:k])
         held.append(err[k:])
     span = max(float(np.ptp(r.output)) for r in runs)
