@@ -382,3 +382,22 @@ def test_namespaced_clock_remaps_every_node_and_the_wait():
     )
     with pytest.raises(GraphError, match="clock: expected global or namespaced"):
         parse_graph({"clock": "local", "nodes": [{"executable": "plant"}]})
+
+
+def test_cli_view_adds_the_live_view_to_any_graph(tmp_path, capsys):
+    """`launch GRAPH --view [--view-port P]`: one more entry, live_view in the graph's namespace
+    on the port asked (8765 by default); a graph that already has an entry of that name is
+    refused, and so is a port out of range."""
+    assert main(["launch", "sim_closed_loop", "--view", "--ns", "/s2", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("live_view:"))
+    assert "piezo_stage.nodes.live_view" in line and "__ns:=/s2" in line
+    assert "port:=8765" in line
+    assert main(["launch", "sim_closed_loop", "--view-port", "8799", "--dry-run"]) == 0
+    assert "port:=8799" in capsys.readouterr().out
+    path = write(tmp_path, {"nodes": [{"executable": "live_view"}]}, "v.yaml")
+    assert main(["launch", str(path), "--view", "--dry-run"]) == 2
+    assert "already an entry" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["launch", "sim_closed_loop", "--view-port", "70000"])
+    assert exc.value.code == 2
