@@ -266,6 +266,7 @@ def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
         if client is not None:
             client.close()
         launcher.stop()
+    print("live view of sim_closed_loop, msg/s:", {t: round(r, 1) for t, r in rates.items()})
     # /diagnostics: every node's status at 1 Hz each; the loop's topics at the view's cap
     assert all(rates[t] >= 20.0 for t in wanted[:3]), rates
     assert rates["/diagnostics"] >= 2.0, rates
