@@ -10,10 +10,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.errors import PiezoStageError
+
 PACKAGE = "piezo_stage"
 
 
-class ConfigNotFoundError(FileNotFoundError):
+class ConfigNotFoundError(PiezoStageError, FileNotFoundError):
     """A shipped configuration file could not be found in any known location."""
 
 

@@ -18,10 +18,12 @@ import stat
 import tempfile
 from pathlib import Path
 
+from piezo_stage.errors import PiezoStageError
+
 PREFIX = "run:"
 
 
-class RuntimeDirError(OSError):
+class RuntimeDirError(PiezoStageError, OSError):
     """The run-time folder exists but is not safe to use (not ours, a symlink, open to others)."""
 
 

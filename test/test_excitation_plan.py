@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from piezo_stage.model.errors import ParameterError
+from piezo_stage.model.errors import ParameterValueError
 from piezo_stage.model.excitation import PRESETS, ExcitationPlan, plan_from
 
 pytestmark = pytest.mark.unit
@@ -75,12 +75,12 @@ def test_random_waveform_is_seeded_bounded_and_periodic():
     ],
 )
 def test_bad_plans_are_refused(bad):
-    with pytest.raises(ParameterError):
+    with pytest.raises(ParameterValueError):
         ExcitationPlan(**bad)
 
 
 def test_plan_from_preset_with_overrides():
     plan = plan_from("ch9_example", period=2.0, offsets=[0.0, 0.05], seed=None)
     assert plan.period == 2.0 and plan.offsets == (0.0, 0.05) and plan.amplitude == 0.4
-    with pytest.raises(ParameterError):
+    with pytest.raises(ParameterValueError):
         plan_from("nope")

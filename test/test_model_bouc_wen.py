@@ -12,7 +12,7 @@ from piezo_stage.model.bouc_wen import (
     InitialStateError,
     InputSignalError,
     NotClassIError,
-    ParameterError,
+    ParameterValueError,
     from_standard,
     model_output,
     polynomial,
@@ -74,9 +74,9 @@ def test_parameters_structure_and_kappa_x():
     assert p.kappa == (1.401e-7, -5.0949e-11)
     assert p.kappa_x == 1.401e-7 and p.N == 2
     p.validate()
-    with pytest.raises(ParameterError, match="at least"):
+    with pytest.raises(ParameterValueError, match="at least"):
         BoucWenParameters(kappa=(), kappa_w=1, rho=1, sigma=1, n=1)
-    with pytest.raises(ParameterError, match="input_sign"):
+    with pytest.raises(ParameterValueError, match="input_sign"):
         BoucWenParameters(kappa=(1.0,), kappa_w=1, rho=1, sigma=1, n=1, input_sign=2)
 
 

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from piezo_stage.model.bouc_wen import BoucWenParameters
-from piezo_stage.model.errors import ParameterError, ParameterFileError
+from piezo_stage.model.errors import ParameterFileError, ParameterValueError
 from piezo_stage.model.parameter_set import (
     SHIPPED,
     Dynamics,
@@ -95,9 +95,9 @@ def test_layout_errors(tmp_path):
 
 def test_construction_errors():
     bw = BoucWenParameters(kappa=(1.0,), kappa_w=1.0, rho=1.0, sigma=1.0, n=1.0)
-    with pytest.raises(ParameterError, match="form"):
+    with pytest.raises(ParameterValueError, match="form"):
         ParameterSet(name="x", form="quasi", bouc_wen=bw, dynamics=None)
-    with pytest.raises(ParameterError, match="no dynamics"):
+    with pytest.raises(ParameterValueError, match="no dynamics"):
         ParameterSet(name="x", form="static", bouc_wen=bw, dynamics=Dynamics(1.0, 1.0))
-    with pytest.raises(ParameterError, match="dynamics.c"):
+    with pytest.raises(ParameterValueError, match="dynamics.c"):
         Dynamics(1.0, -1.0)

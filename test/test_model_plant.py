@@ -14,7 +14,7 @@ from piezo_stage.model.errors import (
     InitialStateError,
     InputSignalError,
     InvalidCommandError,
-    ParameterError,
+    ParameterValueError,
 )
 from piezo_stage.model.limit_cycle import limit_cycle
 from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
@@ -166,9 +166,9 @@ def test_dynamic_plant_bad_inputs():
         plant.simulate(np.ones(2), 0.0)
     with pytest.raises(InvalidCommandError):
         plant.step(math.nan, 1e-4)
-    with pytest.raises(ParameterError, match="tol"):
+    with pytest.raises(ParameterValueError, match="tol"):
         DynamicPlant(RIG.bouc_wen, RIG.dynamics, tol=1.0)
-    with pytest.raises(ParameterError, match="Dynamics"):
+    with pytest.raises(ParameterValueError, match="Dynamics"):
         DynamicPlant(RIG.bouc_wen, (5e-3, 13.0))  # type: ignore[arg-type]
-    with pytest.raises(ParameterError, match="dynamics.m"):
+    with pytest.raises(ParameterValueError, match="dynamics.m"):
         Dynamics(m=0.0, c=1.0)

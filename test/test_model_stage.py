@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from piezo_stage.model.bouc_wen import model_output
-from piezo_stage.model.errors import InvalidCommandError, ParameterError
+from piezo_stage.model.errors import InvalidCommandError, ParameterValueError
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
 from piezo_stage.model.plant import SimulatedStage as FromPlant
@@ -30,9 +30,9 @@ def test_amplifier_limits_bandwidth_and_slew():
     with pytest.raises(InvalidCommandError):
         slew.step(math.nan, 1e-4)
     assert slew.voltage == 3.0  # rejected command: state unchanged
-    with pytest.raises(ParameterError, match="v_min < v_max"):
+    with pytest.raises(ParameterValueError, match="v_min < v_max"):
         AmplifierModel(v_min=1.0, v_max=0.0)
-    with pytest.raises(ParameterError, match="bandwidth"):
+    with pytest.raises(ParameterValueError, match="bandwidth"):
         AmplifierModel(bandwidth_hz=-1.0)
 
 
@@ -55,7 +55,7 @@ def test_sensor_range_quantisation_and_seeded_noise():
         1.23456789e-7,
         SensorStatus.OK,
     )  # defaults: ideal
-    with pytest.raises(ParameterError, match="range_min < range_max"):
+    with pytest.raises(ParameterValueError, match="range_min < range_max"):
         SensorModel(range_min=1.0, range_max=0.0)
 
 

@@ -16,8 +16,8 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from piezo_stage.nodes.errors import RosParameterError
 from piezo_stage.nodes.live_view import RateGate, parse_topic_rates
-from piezo_stage.nodes.spec import ParameterError
 
 from ros_support import start_node, stop
 
@@ -68,7 +68,7 @@ def test_topic_rates_parse_or_say_what_is_wrong():
     assert parse_topic_rates(["displacement=500", "/diagnostics=0"], resolve) == {
         "/piezo/displacement": 500.0, "/diagnostics": 0.0}
     for bad in ["displacement", "=5", "x=fast", "x=-1", "x=nan", "x=1e7"]:
-        with pytest.raises(ParameterError, match="TOPIC=HZ"):
+        with pytest.raises(RosParameterError, match="TOPIC=HZ"):
             parse_topic_rates([bad], resolve)
 
 

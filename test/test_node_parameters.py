@@ -12,7 +12,8 @@ import pytest
 
 from piezo_stage.cli import main
 from piezo_stage.nodes import NODES
-from piezo_stage.nodes.spec import Kind, Param, ParameterError, ParameterTable
+from piezo_stage.nodes.errors import RosParameterError
+from piezo_stage.nodes.spec import Kind, Param, ParameterTable
 
 
 class Colour(str, Enum):
@@ -31,7 +32,7 @@ TABLE = ParameterTable("demo", (
 def test_unknown_names_get_the_closest_valid_one():
     assert TABLE.problems({"vmax": 5.0}) == ["demo has no parameter 'vmax' (did you mean 'v_max'?)"]
     assert TABLE.problems({"use_sim_time": True, "qos_overrides./x.publisher.depth": 5}) == []
-    with pytest.raises(ParameterError, match=r"'colr' \(did you mean 'colour'\?\)"):
+    with pytest.raises(RosParameterError, match=r"'colr' \(did you mean 'colour'\?\)"):
         TABLE.check_names(["colr"])
 
 

@@ -15,8 +15,8 @@ from piezo_stage.nodes import (
     recorder,
     topics,
 )
+from piezo_stage.nodes.errors import RosParameterError
 from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS, adapted_qos
-from piezo_stage.nodes.spec import ParameterError
 
 
 @pytest.mark.unit
@@ -57,7 +57,7 @@ def test_default_bag_name_is_rosbag2_style():
 @pytest.mark.parametrize(
     "param, error, message",
     [
-        ("compression:=lz4", ParameterError, "compression: 'lz4' is not one of none, zstd"),
+        ("compression:=lz4", RosParameterError, "compression: 'lz4' is not one of none, zstd"),
         ("topic_regex:=(", recorder.RecorderError, "not a valid regular expression"),
     ],
 )

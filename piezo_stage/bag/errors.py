@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from piezo_stage.errors import PiezoStageError
 
-class BagError(Exception):
+
+class BagError(PiezoStageError):
     """Base class of every error raised by ``piezo_stage.bag``."""
 
 

@@ -5,8 +5,10 @@ from __future__ import annotations
 import time
 from typing import Sequence
 
+from .errors import BagError
 
-class PlaybackError(ValueError):
+
+class PlaybackError(BagError, ValueError):
     """A playback setting is invalid (unknown topic in the filter, malformed remap, rate, ...)."""
 
 

@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from piezo_stage.commands.argtypes import data_error_exit_code
+from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.errors import IdentificationError
@@ -32,7 +33,7 @@ from piezo_stage.identification.simfit import FitOptions
 from piezo_stage.model.parameter_set import DriftKind
 
 
-class UsageError(ValueError):
+class UsageError(PiezoStageError, ValueError):
     """An option value that makes no sense (exit 2, before any data are read)."""
 
 

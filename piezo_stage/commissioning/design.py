@@ -24,13 +24,15 @@ from piezo_stage.control.discrete import SampledLoopReport, check_sampled_loop
 from piezo_stage.control.laws import Gains
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
+from .errors import CommissioningError
+
 RATE_CANDIDATES: tuple[float, ...] = (100e3, 200e3, 500e3, 1e6)
 THESIS_F = 100.0  # §11.4.3: f = 100 Hz
 THESIS_KA_RATIO = 1.5  # kA / k0 of the ch. 11 runs (1.5e9 / 1e9)
 STD_FACTOR = 3.0  # m, c bounds: estimate ± 3 standard errors before the margin
 
 
-class DesignError(Exception):
+class DesignError(CommissioningError):
     """No gains pass Theorem 4 and the sampled-loop check (the message says why)."""
 
 

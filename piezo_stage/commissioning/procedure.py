@@ -33,6 +33,7 @@ from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.excitation import ExcitationPlan
 
 from . import design, sweep
+from .errors import CommissioningError
 from .sweep import Series, SweepError, SweepSettings
 
 Progress = Callable[[str, str], None]
@@ -56,17 +57,17 @@ FILES = {
 }
 
 
-class StepFailed(Exception):
+class StepFailed(CommissioningError):
     def __init__(self, step: Step, reason: str) -> None:
         super().__init__(f"{step.value}: {reason}")
         self.step, self.reason = step, reason
 
 
-class OtherCommissioningError(ValueError):
+class OtherCommissioningError(CommissioningError, ValueError):
     """The output folder holds a commissioning with other options (nothing is touched)."""
 
 
-class RigError(Exception):
+class RigError(CommissioningError):
     """The graph did not deliver what a step needs (no sensor, a node died, a timeout)."""
 
 

@@ -26,6 +26,8 @@ from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.recording import Recording
 from piezo_stage.model.excitation import ExcitationPlan
 
+from .errors import CommissioningError
+
 #: the Bouc-Wen parameters of Fig. 11.3 / Table 11.1, in the table's order
 PARAMETERS = ("n", "sigma", "rho", "kappa_w", "kappa_x")
 UNITS = {"n": "-", "sigma": "-", "rho": "1/m", "kappa_w": "V", "kappa_x": "V/m"}
@@ -35,7 +37,7 @@ GAP_PERIODS = 3.0
 MIN_SAMPLES_PER_PERIOD = 200
 
 
-class SweepError(Exception):
+class SweepError(CommissioningError):
     """A frequency of the sweep could not be identified (the message says which and why)."""
 
 

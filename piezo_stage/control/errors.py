@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from piezo_stage.errors import PiezoStageError
 
-class ControlError(ValueError):
+
+class ControlError(PiezoStageError, ValueError):
     """Base class for errors of the control core."""
 
 

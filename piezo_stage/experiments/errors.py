@@ -1,7 +1,9 @@
 """Exceptions of the experiment orchestration."""
 
+from piezo_stage.errors import PiezoStageError
 
-class ExperimentError(Exception):
+
+class ExperimentError(PiezoStageError):
     """An experiment cannot run or did not produce usable data."""
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from piezo_stage.errors import PiezoStageError
 
-class HardwareError(Exception):
+
+class HardwareError(PiezoStageError):
     """Base class for every error raised by piezo_stage.hardware."""
 
 

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from piezo_stage.errors import PiezoStageError
 
-class IdentificationError(ValueError):
+
+class IdentificationError(PiezoStageError, ValueError):
     """Base class: the data cannot support the requested identification."""
 
 

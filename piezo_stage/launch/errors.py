@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from piezo_stage.errors import PiezoStageError
 
-class LaunchError(RuntimeError):
+
+class LaunchError(PiezoStageError, RuntimeError):
     """Base class of the launcher's errors."""
 
 

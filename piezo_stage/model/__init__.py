@@ -14,8 +14,8 @@ from .errors import (
     InvalidCommandError,
     ModelError,
     NotClassIError,
-    ParameterError,
     ParameterFileError,
+    ParameterValueError,
 )
 from .limit_cycle import limit_cycle, phi, phi_minus, phi_plus, psi, psi_minus, psi_plus
 from .parameter_set import (
@@ -33,7 +33,7 @@ __all__ = [
     "simulate_w",
     "ModelError",
     "NotClassIError",
-    "ParameterError",
+    "ParameterValueError",
     "InitialStateError",
     "InputSignalError",
     "InvalidCommandError",

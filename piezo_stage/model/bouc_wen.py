@@ -24,13 +24,13 @@ from .errors import (
     InputSignalError,
     ModelError,
     NotClassIError,
-    ParameterError,
+    ParameterValueError,
 )
 
 __all__ = [
     "ModelError",
     "NotClassIError",
-    "ParameterError",
+    "ParameterValueError",
     "InitialStateError",
     "InputSignalError",
     "BoucWenParameters",
@@ -86,21 +86,21 @@ class BoucWenParameters:
         try:
             kappa = tuple(float(k) for k in np.atleast_1d(np.asarray(self.kappa, dtype=float)))
         except (TypeError, ValueError) as exc:
-            raise ParameterError(
+            raise ParameterValueError(
                 f"kappa must be a sequence of numbers, got {self.kappa!r}"
             ) from exc
         if not kappa:
-            raise ParameterError("kappa must hold at least kappa_1 (kappa_x)")
+            raise ParameterValueError("kappa must hold at least kappa_1 (kappa_x)")
         object.__setattr__(self, "kappa", kappa)
         for name in ("kappa_w", "rho", "sigma", "n", "y0"):
             try:
                 object.__setattr__(self, name, float(getattr(self, name)))
             except (TypeError, ValueError) as exc:
-                raise ParameterError(
+                raise ParameterValueError(
                     f"{name} must be a number, got {getattr(self, name)!r}"
                 ) from exc
         if self.input_sign not in (1, -1):
-            raise ParameterError(f"input_sign must be +1 or -1, got {self.input_sign!r}")
+            raise ParameterValueError(f"input_sign must be +1 or -1, got {self.input_sign!r}")
         object.__setattr__(self, "input_sign", int(self.input_sign))
 
     @property

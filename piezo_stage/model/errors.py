@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from piezo_stage.errors import PiezoStageError
 
-class ModelError(ValueError):
+
+class ModelError(PiezoStageError, ValueError):
     """Base class of every error raised by :mod:`piezo_stage.model`."""
 
 
@@ -14,8 +16,9 @@ class NotClassIError(ModelError):
     """
 
 
-class ParameterError(ModelError):
-    """A malformed parameter (empty kappa, input_sign not +1/-1, m <= 0, unknown form, ...)."""
+class ParameterValueError(ModelError):
+    """A malformed parameter value of a model, a parameter set, an excitation or the simulated
+    stage (empty kappa, input_sign not +1/-1, m <= 0, unknown form, v_min >= v_max, ...)."""
 
 
 class InitialStateError(ModelError):

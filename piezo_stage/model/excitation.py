@@ -20,7 +20,7 @@ from typing import Any, Sequence, TypeAlias
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ParameterError
+from .errors import ParameterValueError
 
 WAVEFORMS = ("triangle", "sine", "random", "step", "constant")
 #: what the plan outputs after its last run: the last value, the first run's low, or zero
@@ -67,25 +67,25 @@ class ExcitationPlan:
 
     def __post_init__(self) -> None:
         if self.waveform not in WAVEFORMS:
-            raise ParameterError(f"waveform must be one of {WAVEFORMS}, got {self.waveform!r}")
+            raise ParameterValueError(f"waveform must be one of {WAVEFORMS}, got {self.waveform!r}")
         for name in ("period", "low", "amplitude", "bandwidth"):
             if not math.isfinite(getattr(self, name)):
-                raise ParameterError(f"{name} must be finite, got {getattr(self, name)}")
+                raise ParameterValueError(f"{name} must be finite, got {getattr(self, name)}")
         if self.period <= 0:
-            raise ParameterError(f"period must be > 0 s, got {self.period}")
+            raise ParameterValueError(f"period must be > 0 s, got {self.period}")
         if not self.offsets or not all(math.isfinite(q) for q in self.offsets):
-            raise ParameterError(
+            raise ParameterValueError(
                 f"offsets must be a non-empty list of finite values, got {self.offsets}"
             )
         if self.settle_periods < 0 or self.record_periods < 1:
-            raise ParameterError("need settle_periods >= 0 and record_periods >= 1")
+            raise ParameterValueError("need settle_periods >= 0 and record_periods >= 1")
         if not self.v_min < self.v_max:
-            raise ParameterError(f"need v_min < v_max, got [{self.v_min}, {self.v_max}]")
+            raise ParameterValueError(f"need v_min < v_max, got [{self.v_min}, {self.v_max}]")
         if self.hold not in HOLDS:
-            raise ParameterError(f"hold must be last, low or zero, got {self.hold!r}")
+            raise ParameterValueError(f"hold must be last, low or zero, got {self.hold!r}")
         if self.waveform == "random":
             if self.bandwidth <= 1.0 / self.period:
-                raise ParameterError("random waveform: bandwidth must exceed 1/period")
+                raise ParameterValueError("random waveform: bandwidth must exceed 1/period")
             object.__setattr__(
                 self, "_random_table", _random_table(self.seed, self.period, self.bandwidth)
             )
@@ -205,7 +205,7 @@ PRESETS: dict[str, ExcitationPlan] = {
 def plan_from(preset: str | None = None, **overrides: object) -> ExcitationPlan:
     """A preset with overrides (None values ignored), or a plan from the overrides alone."""
     if preset and preset not in PRESETS:
-        raise ParameterError(f"unknown preset {preset!r}; known: {sorted(PRESETS)}")
+        raise ParameterValueError(f"unknown preset {preset!r}; known: {sorted(PRESETS)}")
     base = PRESETS[preset] if preset else ExcitationPlan()
     # values of any of the plan's field types: the dataclass checks them
     clean: dict[str, Any] = {

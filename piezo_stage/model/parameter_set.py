@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from piezo_stage.config_path import read_yaml
 
 from .bouc_wen import BoucWenParameters, check_w0
-from .errors import ModelError, ParameterError, ParameterFileError
+from .errors import ModelError, ParameterFileError, ParameterValueError
 
 __all__ = [
     "Dynamics",
@@ -75,12 +75,13 @@ class Dynamics:
             try:
                 value = float(value)
             except (TypeError, ValueError) as exc:
-                raise ParameterError(f"dynamics.{name} must be a number, got {value!r}") from exc
+                raise ParameterValueError(
+                    f"dynamics.{name} must be a number, got {value!r}") from exc
             object.__setattr__(self, name, value)
         if not (math.isfinite(self.m) and self.m > 0.0):
-            raise ParameterError(f"dynamics.m must be > 0 (11.1), got {self.m!r}")
+            raise ParameterValueError(f"dynamics.m must be > 0 (11.1), got {self.m!r}")
         if not (math.isfinite(self.c) and self.c >= 0.0):
-            raise ParameterError(f"dynamics.c must be >= 0 (11.1), got {self.c!r}")
+            raise ParameterValueError(f"dynamics.c must be >= 0 (11.1), got {self.c!r}")
 
 
 class DriftKind(str, Enum):
@@ -103,20 +104,21 @@ class Drift:
         try:
             object.__setattr__(self, "kind", DriftKind(self.kind))
         except ValueError as exc:
-            raise ParameterError(
+            raise ParameterValueError(
                 f"drift.kind must be 'linear' or 'log', got {self.kind!r}") from exc
         if self.kind is DriftKind.NONE:
-            raise ParameterError("drift.kind 'none': write drift: null instead")
+            raise ParameterValueError("drift.kind 'none': write drift: null instead")
         for name in ("coefficient", "time_constant"):
             try:
                 object.__setattr__(self, name, float(getattr(self, name)))
             except (TypeError, ValueError) as exc:
-                raise ParameterError(
+                raise ParameterValueError(
                     f"drift.{name} must be a number, got {getattr(self, name)!r}") from exc
         if not math.isfinite(self.coefficient):
-            raise ParameterError(f"drift.coefficient must be finite, got {self.coefficient!r}")
+            raise ParameterValueError(f"drift.coefficient must be finite, got {self.coefficient!r}")
         if not (math.isfinite(self.time_constant) and self.time_constant > 0.0):
-            raise ParameterError(f"drift.time_constant must be > 0 [s], got {self.time_constant!r}")
+            raise ParameterValueError(
+                f"drift.time_constant must be > 0 [s], got {self.time_constant!r}")
 
     def evaluate(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """The drift at times ``t`` [s] from the start of the recording."""
@@ -149,23 +151,23 @@ class ParameterSet:
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
-            raise ParameterError(f"form must be one of {FORMS}, got {self.form!r}")
+            raise ParameterValueError(f"form must be one of {FORMS}, got {self.form!r}")
         if self.form == "dynamic" and self.dynamics is None:
-            raise ParameterError("a dynamic parameter set needs dynamics {m, c} (11.1)")
+            raise ParameterValueError("a dynamic parameter set needs dynamics {m, c} (11.1)")
         if self.form == "static" and self.dynamics is not None:
-            raise ParameterError("a static parameter set has no dynamics (use form: dynamic)")
+            raise ParameterValueError("a static parameter set has no dynamics (use form: dynamic)")
         if not isinstance(self.bouc_wen, BoucWenParameters):
-            raise ParameterError("bouc_wen must be a BoucWenParameters")
+            raise ParameterValueError("bouc_wen must be a BoucWenParameters")
         object.__setattr__(self, "w0", check_w0(self.w0))
         try:
             delay = float(self.delay)
         except (TypeError, ValueError) as exc:
-            raise ParameterError(f"delay must be a number [s], got {self.delay!r}") from exc
+            raise ParameterValueError(f"delay must be a number [s], got {self.delay!r}") from exc
         if not math.isfinite(delay):
-            raise ParameterError(f"delay must be finite [s], got {self.delay!r}")
+            raise ParameterValueError(f"delay must be finite [s], got {self.delay!r}")
         object.__setattr__(self, "delay", delay)
         if self.drift is not None and not isinstance(self.drift, Drift):
-            raise ParameterError("drift must be a Drift or None")
+            raise ParameterValueError("drift must be a Drift or None")
 
     def validate(self) -> None:
         """Class-I check of the Bouc-Wen part (raises NotClassIError)."""

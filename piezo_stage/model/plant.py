@@ -27,7 +27,7 @@ from scipy.integrate import solve_ivp
 from . import _branches
 from . import _plant_kernels as K
 from .bouc_wen import BoucWenParameters, check_w0, polynomial
-from .errors import InputSignalError, InvalidCommandError, ParameterError
+from .errors import InputSignalError, InvalidCommandError, ParameterValueError
 from .parameter_set import Dynamics
 
 if TYPE_CHECKING:  # at run time these come lazily from .stage (see __getattr__ below)
@@ -167,15 +167,15 @@ class DynamicPlant:
     ) -> None:
         params.validate()
         if not isinstance(dynamics, Dynamics):
-            raise ParameterError("dynamics must be a Dynamics(m, c)")
+            raise ParameterValueError("dynamics must be a Dynamics(m, c)")
         if not params.kappa_x > 0.0:
-            raise ParameterError(
+            raise ParameterValueError(
                 f"the dynamic plant needs kappa_x > 0 (11.2), got {params.kappa_x!r}"
             )
         if not (1e-14 <= tol <= 1e-2):
-            raise ParameterError(f"tol must be in [1e-14, 1e-2], got {tol!r}")
+            raise ParameterValueError(f"tol must be in [1e-14, 1e-2], got {tol!r}")
         if nodes not in (4, 5):  # 3 nodes showed a systematic drift in long ZOH-ringing runs
-            raise ParameterError(f"nodes must be 4 or 5, got {nodes!r}")
+            raise ParameterValueError(f"nodes must be 4 or 5, got {nodes!r}")
         self.params = params
         self.dynamics = dynamics
         self.tol = float(tol)

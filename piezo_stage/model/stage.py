@@ -13,7 +13,7 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import InvalidCommandError, ParameterError
+from .errors import InvalidCommandError, ParameterValueError
 from .parameter_set import ParameterSet
 from .plant import DEFAULT_TOL, DynamicPlant, StaticPlant, _check_dt
 
@@ -69,11 +69,12 @@ class AmplifierModel:
     ) -> None:
         v_min, v_max = float(v_min), float(v_max)
         if math.isnan(v_min) or math.isnan(v_max) or not v_min < v_max:
-            raise ParameterError(f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]")
+            raise ParameterValueError(
+                f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]")
         if not (math.isfinite(bandwidth_hz) and bandwidth_hz >= 0.0):
-            raise ParameterError(f"bandwidth_hz must be >= 0 (0: ideal), got {bandwidth_hz!r}")
+            raise ParameterValueError(f"bandwidth_hz must be >= 0 (0: ideal), got {bandwidth_hz!r}")
         if not (math.isfinite(slew_rate) and slew_rate >= 0.0):
-            raise ParameterError(f"slew_rate must be >= 0 (0: none), got {slew_rate!r}")
+            raise ParameterValueError(f"slew_rate must be >= 0 (0: none), got {slew_rate!r}")
         self.v_min, self.v_max = v_min, v_max
         self.bandwidth_hz = float(bandwidth_hz)
         self.slew_rate = float(slew_rate)
@@ -120,11 +121,11 @@ class SensorModel:
         seed: int = 0,
     ) -> None:
         if not (math.isfinite(noise_std) and noise_std >= 0.0):
-            raise ParameterError(f"noise_std must be >= 0, got {noise_std!r}")
+            raise ParameterValueError(f"noise_std must be >= 0, got {noise_std!r}")
         if not (math.isfinite(resolution) and resolution >= 0.0):
-            raise ParameterError(f"resolution must be >= 0, got {resolution!r}")
+            raise ParameterValueError(f"resolution must be >= 0, got {resolution!r}")
         if math.isnan(range_min) or math.isnan(range_max) or not range_min < range_max:
-            raise ParameterError(
+            raise ParameterValueError(
                 f"sensor range needs range_min < range_max, got [{range_min!r}, {range_max!r}]"
             )
         self.noise_std = float(noise_std)

@@ -83,10 +83,11 @@ from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_tr
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_to_s, subscribers_matched, to_stamp
-from .spec import Param, ParameterError, ParameterTable
+from .spec import Param, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
 CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
@@ -283,15 +284,15 @@ class ControllerNode(Node):
         if compensation is Compensation.FEEDBACK:
             return None
         if not name:
-            raise ParameterError(f"controller: compensation {compensation.value} needs "
-                                 "feedforward_model")
+            raise RosParameterError(f"controller: compensation {compensation.value} needs "
+                                    "feedforward_model")
         if self._bias != 0.0:
-            raise ParameterError("controller: u_bias and the feedforward both set the operating "
-                                 "voltage; use one (u_bias: 0)")
+            raise RosParameterError("controller: u_bias and the feedforward both set the operating "
+                                    "voltage; use one (u_bias: 0)")
         try:
             return FeedforwardModel.load(find_config(name))
         except (ControlError, OSError) as exc:
-            raise ParameterError(f"controller: feedforward_model: {exc}") from None
+            raise RosParameterError(f"controller: feedforward_model: {exc}") from None
 
     def _load_table(self, trajectory: Trajectory | None) -> FeedforwardTable | None:
         """The feedforward table: ``feedforward_table`` loaded, or the sampled form computed for
@@ -308,8 +309,8 @@ class ControllerNode(Node):
                                         is FeedforwardForm.CONTINUOUS):
             return None
         if not uses_trajectory:
-            raise ParameterError("controller: feedforward_table needs reference_source "
-                                 "trajectory (the table follows the trajectory's time)")
+            raise RosParameterError("controller: feedforward_table needs reference_source "
+                                    "trajectory (the table follows the trajectory's time)")
         try:
             x_d, periodic = trajectory_samples(trajectory, self._rate)
             if s.feedforward_table:
@@ -322,7 +323,7 @@ class ControllerNode(Node):
             table = sampled_feedforward(self._feedforward, x_d, self._rate, periodic=periodic,
                                         delay_samples=int(s.delay_samples))
         except (ControlError, OSError) as exc:
-            raise ParameterError(f"controller: {exc}") from None
+            raise RosParameterError(f"controller: {exc}") from None
         table.meta = {"trajectory": s.trajectory, "amplitude": s.trajectory_amplitude,
                       "frequency": s.trajectory_frequency, "offset": s.trajectory_offset,
                       "rounding": s.trajectory_rounding, "model": s.feedforward_model,
@@ -333,9 +334,9 @@ class ControllerNode(Node):
         """Learning over learn_periods periods (a periodic trajectory, its table, the model)."""
         s, table = self.settings, self._table
         if table is None or not table.periodic or self._feedforward is None:
-            raise ParameterError("controller: learn_periods needs compensation feedforward or "
-                                 "both, reference_source trajectory with a periodic trajectory, "
-                                 "and feedforward_form sampled or a feedforward_table")
+            raise RosParameterError("controller: learn_periods needs compensation feedforward or "
+                                    "both, reference_source trajectory with a periodic trajectory, "
+                                    "and feedforward_form sampled or a feedforward_table")
         gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
         response = feedforward_response(self._feedforward, self._rate, len(table),
                                         delay_samples=int(s.delay_samples), gains=gains)
@@ -345,7 +346,7 @@ class ControllerNode(Node):
                 u_min=float(s.u_min), u_max=float(s.u_max),
                 slew_rate=float(s.learn_slew_rate)), self._feedforward)
         except ControlError as exc:
-            raise ParameterError(f"controller: {exc}") from None
+            raise RosParameterError(f"controller: {exc}") from None
         return PeriodicLearner(learning, int(s.learn_periods), on_done=self._learned)
 
     def _learned(self, learner: PeriodicLearner) -> None:
@@ -381,7 +382,7 @@ class ControllerNode(Node):
                                    a_max=s.trajectory_a_max)
         except ControlError as exc:
             if s.reference_source is ReferenceSource.TRAJECTORY:
-                raise ParameterError(f"controller: {exc}") from None
+                raise RosParameterError(f"controller: {exc}") from None
             return None  # not used unless reference_source is switched to it (refused then)
 
     def _check_params(self, changed: dict[str, Any]) -> str | None:

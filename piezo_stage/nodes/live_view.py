@@ -38,9 +38,10 @@ from piezo_stage.bag.errors import BagError
 from piezo_stage.bag.types import message_definition
 
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .parameters import declare_table, on_set
 from .runtime import DEFAULT_NAMESPACE, run
-from .spec import Kind, Param, ParameterError, ParameterTable
+from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
 
 #: topics outside the namespace served by default
@@ -86,7 +87,7 @@ class RateGate:
 
 
 def parse_topic_rates(items: list[str], resolve: Any) -> dict[str, float]:
-    """``TOPIC=HZ`` items → {fully qualified topic: Hz}; ParameterError for anything else."""
+    """``TOPIC=HZ`` items → {fully qualified topic: Hz}; RosParameterError for anything else."""
     rates = {}
     for item in items:
         topic, sep, value = item.partition("=")
@@ -95,8 +96,8 @@ def parse_topic_rates(items: list[str], resolve: Any) -> dict[str, float]:
         except ValueError:
             hz = float("nan")
         if not sep or not topic.strip() or not (0.0 <= hz <= 1e6):
-            raise ParameterError(f"live_view: topic_rates item {item!r} is not TOPIC=HZ with "
-                                 "0 <= HZ <= 1e6")
+            raise RosParameterError(f"live_view: topic_rates item {item!r} is not TOPIC=HZ with "
+                                    "0 <= HZ <= 1e6")
         rates[resolve(topic.strip())] = hz
     return rates
 
@@ -171,8 +172,8 @@ class LiveViewNode(Node):
                 context=self._fox, server_listener=_Listener(self._requests,
                                                                  self._wake.trigger))
         except Exception as exc:  # the SDK raises its own error types for a busy port
-            raise ParameterError(f"live_view: cannot serve on {p['host']}:{p['port']}: "
-                                 f"{exc}") from None
+            raise RosParameterError(f"live_view: cannot serve on {p['host']}:{p['port']}: "
+                                    f"{exc}") from None
         self.port = self.server.port
         self.create_timer(float(p["discovery_period"]), self.discover)
         Diagnostics(self, "live_view", self._diagnose, p["diagnostics_period"])
@@ -189,7 +190,7 @@ class LiveViewNode(Node):
         if "topic_rates" in changed:
             try:
                 parse_topic_rates(list(changed["topic_rates"]), self.resolve_topic_name)
-            except ParameterError as exc:
+            except RosParameterError as exc:
                 return str(exc)
         return None
 

@@ -5,7 +5,7 @@ params file or a launch graph; with the closest valid name), declares every para
 ``ParameterDescriptor`` (description with unit and choices, range, read-only) so rclpy refuses
 out-of-range values from YAML, ``-p`` and ``set_parameters`` alike, checks the choices on
 start and on set, and turns rclpy's type and range refusals at start into
-:class:`~piezo_stage.nodes.spec.ParameterError` (exit code 2 from
+:class:`~piezo_stage.nodes.errors.RosParameterError` (exit code 2 from
 :func:`piezo_stage.nodes.runtime.run`).
 """
 
@@ -24,7 +24,8 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .spec import Kind, Param, ParameterError, ParameterTable
+from .errors import RosParameterError
+from .spec import Kind, Param, ParameterTable
 
 _EMPTY_ARRAY = {Kind.INT_ARRAY: Parameter.Type.INTEGER_ARRAY,
                 Kind.FLOAT_ARRAY: Parameter.Type.DOUBLE_ARRAY,
@@ -59,7 +60,7 @@ def declare_table(node: Node, table: ParameterTable, *, only: Collection[str] | 
     """Declare the parameters of ``table`` (or the names in ``only``) on ``node``, with
     ``defaults`` replacing the table's where given; return their values by name.
 
-    Raises ParameterError for a parameter given at start that the node does not have, a value
+    Raises RosParameterError for a parameter given at start that the node does not have, a value
     outside the choices or range, or of the wrong type."""
     given = parameter_overrides(node)
     table.check_names(given)
@@ -73,7 +74,7 @@ def declare_table(node: Node, table: ParameterTable, *, only: Collection[str] | 
         try:
             value = node.declare_parameter(p.name, initial, descriptor(p)).value
         except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            raise ParameterError(f"{table.node}: parameter {p.name!r}: {exc}") from None
+            raise RosParameterError(f"{table.node}: parameter {p.name!r}: {exc}") from None
         values[p.name] = list(value or []) if p.kind in _ARRAYS else value
     table.check(values)
     names = set(values)

@@ -46,6 +46,7 @@ from piezo_stage.bag import BagError, BagWriter, qos_from_profile
 
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .errors import NodeError
 from .parameters import declare_table
 from .qos import adapted_qos
 from .runtime import DEFAULT_NAMESPACE, run
@@ -57,7 +58,7 @@ BATCH = 2000
 COMPRESSIONS = {"none": None, "zstd": "zstd"}
 
 
-class RecorderError(ValueError):
+class RecorderError(NodeError, ValueError):
     """A recorder parameter is invalid (compression, regex, sizes)."""
 
 

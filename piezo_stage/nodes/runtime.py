@@ -21,8 +21,8 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from . import DEFAULT_NAMESPACE  # noqa: F401 (re-exported: nodes import it from here)
+from .errors import RosParameterError
 from .executor import LeanExecutor
-from .spec import ParameterError
 
 
 def wall_clock() -> Clock:
@@ -135,7 +135,7 @@ class ExitsWithCode(Protocol):
     :func:`run` reads ``exit_code`` once, when the spin has ended without an error (SIGINT or
     SIGTERM, a node finished, the context shut down), and returns the largest of its nodes' (a
     node without the hook counts 0). After an error the exit code is the error's (2 for a
-    ParameterError, 1 otherwise); a failing ``on_shutdown`` turns a 0 into 1."""
+    RosParameterError, 1 otherwise); a failing ``on_shutdown`` turns a 0 into 1."""
 
     exit_code: int
 
@@ -194,7 +194,7 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
         code = max((int(n.exit_code) for n in nodes if isinstance(n, ExitsWithCode)), default=0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ParameterError as exc:  # bad input: one line, exit 2
+    except RosParameterError as exc:  # bad input: one line, exit 2
         print(f"error: {exc}", file=sys.stderr)
         code = 2
     except Exception as exc:  # a node that cannot start says why and exits non-zero

@@ -17,14 +17,12 @@ from enum import Enum
 from functools import cached_property
 from typing import Any, Iterable, Iterator, Mapping, Sequence
 
+from .errors import RosParameterError
+
 #: declared by rclpy itself on every node (and accepted by every node)
 ROS_OWN = ("use_sim_time", "start_type_description_service")
 #: prefixes rclpy reads itself (QoS overrides of publishers and subscriptions)
 ROS_OWN_PREFIXES = ("qos_overrides.",)
-
-
-class ParameterError(ValueError):
-    """A parameter given to a node is unknown or invalid (bad input: exit code 2)."""
 
 
 class Kind(str, Enum):
@@ -203,17 +201,17 @@ class ParameterTable:
         return found
 
     def check(self, values: Mapping[str, Any]) -> None:
-        """Raise :class:`ParameterError` naming every problem of ``values``."""
+        """Raise :class:`RosParameterError` naming every problem of ``values``."""
         found = self.problems(values)
         if found:
-            raise ParameterError("; ".join(found))
+            raise RosParameterError("; ".join(found))
 
     def check_names(self, names: Iterable[str]) -> None:
-        """Raise :class:`ParameterError` for names this node does not have."""
+        """Raise :class:`RosParameterError` for names this node does not have."""
         found = [f"{self.node} has no parameter {n!r}{self.suggest(n)}" for n in names
                  if not is_ros_own(n) and n not in self._by_name]
         if found:
-            raise ParameterError("; ".join(found))
+            raise RosParameterError("; ".join(found))
 
     def markdown(self) -> str:
         """This table for docs/parameters.md."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 
+from .errors import NodeError
+
 #: topics of the interface contract (docs/design.md §3), relative to the node's namespace
 CONTRACT_TOPICS = ("voltage_command", "voltage", "displacement", "reference", "controller_state",
                    "excitation", "limit_cycles", "bouc_wen_parameters", "loop_samples")
@@ -11,7 +13,7 @@ CONTRACT_TOPICS = ("voltage_command", "voltage", "displacement", "reference", "c
 GLOBAL_TOPICS = ("/clock", "/diagnostics")
 
 
-class MessageTypeError(LookupError):
+class MessageTypeError(NodeError, LookupError):
     """A topic's message type has no importable Python class."""
 
 

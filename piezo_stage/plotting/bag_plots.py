@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from piezo_stage.errors import PiezoStageError
+
 from . import figures
 
 VOLTAGE = "piezo_stage_msgs/msg/Voltage"
@@ -16,7 +18,7 @@ PARAMETERS = "piezo_stage_msgs/msg/BoucWenParameters"
 CONTROLLER = "piezo_stage_msgs/msg/ControllerState"
 
 
-class PlotError(ValueError):
+class PlotError(PiezoStageError, ValueError):
     """The bag holds nothing that can be plotted (or the topics asked for are missing)."""
 
 

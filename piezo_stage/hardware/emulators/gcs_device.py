@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 from typing import Callable
 
+from ..errors import HardwareError
 from ..gcs import (
     ERR_INVALID_AXIS,
     ERR_PARAM_RANGE,
@@ -32,7 +33,7 @@ IDN = (
 )
 
 
-class _CommandError(Exception):
+class _CommandError(HardwareError):
     def __init__(self, code: int) -> None:
         self.code = code
 
