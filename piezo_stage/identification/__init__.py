@@ -5,6 +5,8 @@ Entry points: :func:`identify` (two recorded runs) and :func:`identify_cycles` (
 cycles), returning an :class:`IdentificationResult`; :func:`load_runs` reads CSV files and bags.
 """
 
+from typing import TYPE_CHECKING
+
 from .errors import (
     AnalyticEstimateError,
     BadFitError,
@@ -22,6 +24,11 @@ from .errors import (
     TooFewSamplesError,
 )
 from .recording import Recording
+
+if TYPE_CHECKING:  # loaded on first access by __getattr__ below
+    from .io import load_runs
+    from .pipeline import IdentifyOptions, identify, identify_cycles
+    from .result import IdentificationResult
 
 __all__ = [
     "AnalyticEstimateError",
@@ -47,7 +54,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> object:
     """Lazy access to the parts that import the model (keeps `import errors` light)."""
     if name in ("identify", "identify_cycles", "IdentifyOptions"):
         from . import pipeline

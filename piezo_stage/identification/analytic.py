@@ -8,8 +8,10 @@ Values and slopes of θ at the design points come from local polynomial fits (de
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 
 from .cycles import Branch
@@ -86,12 +88,12 @@ class HystereticEstimate:
     fits: dict[str, LocalFit] = field(default_factory=dict, compare=False)
 
 
-def theta(branch: Branch, kappa: np.ndarray, y0: float) -> np.ndarray:
+def theta(branch: Branch, kappa: NDArray[np.float64], y0: float) -> NDArray[np.float64]:
     """θ = y − Σ κ_i v^i − y0 = κw·w̄ on a branch (9.21, 9.38, 10.14)."""
     return branch.y - polyval(kappa, branch.v) - y0
 
 
-def find_x_star(x: np.ndarray, th: np.ndarray, noise: float = 0.0) -> float:
+def find_x_star(x: NDArray[np.float64], th: NDArray[np.float64], noise: float = 0.0) -> float:
     """Rough zero of θ (Step 5): the sign change of the sampled θ, linearly interpolated
     (9.38-9.39); noisy θ is first smoothed (Savitzky-Golay over 5 % of the branch) and the
     middle of the remaining sign changes taken."""
@@ -113,9 +115,18 @@ def find_x_star(x: np.ndarray, th: np.ndarray, noise: float = 0.0) -> float:
     return float(np.median(xs))
 
 
+class _FitKeywords(TypedDict):
+    """The keyword arguments every local fit of :func:`hysteretic_estimate` shares."""
+
+    noise: float
+    slope_scale: float
+    rel_tol: float
+    degree: int
+
+
 def hysteretic_estimate(
     branch: Branch,
-    kappa: np.ndarray,
+    kappa: NDArray[np.float64],
     y0: float,
     noise: float,
     design: DesignPoints = DesignPoints(),
@@ -125,9 +136,10 @@ def hysteretic_estimate(
     x = branch.x
     th = theta(branch, kappa, y0)
     slope_scale = float(np.ptp(th) / branch.span)
-    kw = dict(
-        noise=noise, slope_scale=slope_scale, rel_tol=derivative.rel_tol, degree=derivative.degree
-    )
+    kw: _FitKeywords = {
+        "noise": noise, "slope_scale": slope_scale, "rel_tol": derivative.rel_tol,
+        "degree": derivative.degree,
+    }
     # Step 5: x* with θ(x*) = 0; Step 6: a = dθ/dx at x* (9.23, 9.39)
     fit0 = local_root(x, th, find_x_star(x, th, noise), **kw)
     x_star, a = fit0.x0, fit0.slope
@@ -212,8 +224,8 @@ def table_10_2(
 
 
 def theta_linearised(
-    x: np.ndarray, th: np.ndarray, x_star: float, b: float, c: float, n: float
-) -> np.ndarray:
+    x: NDArray[np.float64], th: NDArray[np.float64], x_star: float, b: float, c: float, n: float
+) -> NDArray[np.float64]:
     """θ(x) − ∫_{x*}^{x} g(θ) dx with g = −bθ^n for θ ≥ 0 (9.22) and c(−θ)^n for θ < 0
     (9.19, c = (2σ−1)b): a straight line of slope a when b, c, n are right."""
     g = np.where(th >= 0.0, -b * np.abs(th) ** n, c * np.abs(th) ** n)
@@ -222,7 +234,11 @@ def theta_linearised(
 
 
 def initial_w(
-    kappa: np.ndarray | tuple[float, ...], kappa_w: float, y0: float, v0: float, y_at_0: float
+    kappa: NDArray[np.float64] | tuple[float, ...],
+    kappa_w: float,
+    y0: float,
+    v0: float,
+    y_at_0: float,
 ) -> float:
     """w(0) of (10.18): (y(0) − Σ κ_i v(0)^i − y0) / κw."""
     return float((y_at_0 - polyval(np.asarray(kappa), np.asarray(v0)) - y0) / kappa_w)

@@ -11,8 +11,10 @@ part is the loading branch of v.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 
 from .derivatives import noise_std
@@ -51,8 +53,8 @@ class SteadyCycle:
     ``start_time + j * period / len(input)``."""
 
     period: float
-    input: np.ndarray
-    output: np.ndarray
+    input: NDArray[np.float64]
+    output: NDArray[np.float64]
     start_time: float
     periods: int
     raw_samples: int
@@ -61,12 +63,14 @@ class SteadyCycle:
     i_max: int  #: index of the input maximum (end of the v-loading branch)
     period_rms: tuple[float, ...] = ()  #: robust spread of each period's output minus the last
     name: str = ""
-    meta: dict = field(default_factory=dict, compare=False)
+    meta: dict[str, object] = field(default_factory=dict, compare=False)
 
     @property
-    def t(self) -> np.ndarray:
+    def t(self) -> NDArray[np.float64]:
         """Phase times [s] of the samples, from 0."""
-        return np.arange(len(self.input)) * (self.period / len(self.input))
+        # (numpy's stubs give floating[Any] for an integer array times a float: float64 here)
+        m = len(self.input)
+        return cast(NDArray[np.float64], np.arange(m) * (self.period / m))
 
     @property
     def input_span(self) -> float:
@@ -77,7 +81,7 @@ class SteadyCycle:
         return float(np.ptp(self.output))
 
 
-def upward_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+def upward_crossings(t: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
     """Times at which ``x`` rises through its mid level, with a Schmitt trigger of ±¼ span
     against noise; each time comes from a line fitted to the samples inside the band."""
     lo, hi = np.percentile(x, [1.0, 99.0])
@@ -103,7 +107,7 @@ def upward_crossings(t: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def estimate_period(
     rec: Recording, options: CycleOptions = CycleOptions()
-) -> tuple[float, np.ndarray]:
+) -> tuple[float, NDArray[np.float64]]:
     """Period T of the input and the upward crossing times that delimit whole periods.
 
     With ``steady_periods`` = K only the last K + 1 crossings count: the periods before the ones
@@ -128,7 +132,9 @@ def estimate_period(
     return period, crossings
 
 
-def _period_grid(rec: Recording, period: float) -> tuple[np.ndarray, np.ndarray, float]:
+def _period_grid(
+    rec: Recording, period: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """Interpolate every whole period onto a common grid of M = round(T/dt) phases, from the
     first sample on. When T is within 2 % of a sample of a whole number of sampling intervals
     it is taken as exactly that, so the grid falls on the samples (no interpolation error)."""
@@ -152,7 +158,7 @@ _ROUNDOFF = 1e-12
 
 
 def _steady_count(
-    rec: Recording, X: np.ndarray, Y: np.ndarray, options: CycleOptions
+    rec: Recording, X: NDArray[np.float64], Y: NDArray[np.float64], options: CycleOptions
 ) -> tuple[int, tuple[float, ...]]:
     """Number of trailing periods to average: those within the noise level of the last one
     (the limit cycle is reached when ``min_steady_periods`` agree within the tolerances)."""
@@ -253,7 +259,7 @@ def extract_cycle(rec: Recording, options: CycleOptions = CycleOptions()) -> Ste
     return cycle
 
 
-def _extreme(v: np.ndarray, sign: int) -> int:
+def _extreme(v: NDArray[np.float64], sign: int) -> int:
     """Index of the cycle's maximum (sign=1) or minimum (-1): located on a smoothed copy
     (robust to noise), then on the samples within that smoothing width (a moving average
     shifts the peak of an asymmetric T-wave)."""
@@ -263,7 +269,7 @@ def _extreme(v: np.ndarray, sign: int) -> int:
     return int(idx[np.argmax(sign * v[idx])])
 
 
-def _rough_smooth(v: np.ndarray) -> np.ndarray:
+def _rough_smooth(v: NDArray[np.float64]) -> NDArray[np.float64]:
     """Circular moving average over ~1 % of the period, only to locate the extremes robustly."""
     k = max(1, len(v) // 100) | 1
     if k == 1:
@@ -280,9 +286,9 @@ class Branch:
     """A branch of the cycle in the model's input x = input_sign·v, sorted by increasing x.
     ``loading`` means x increases with time (9.16-9.17)."""
 
-    x: np.ndarray
-    v: np.ndarray
-    y: np.ndarray
+    x: NDArray[np.float64]
+    v: NDArray[np.float64]
+    y: NDArray[np.float64]
     loading: bool
 
     @property
@@ -290,7 +296,7 @@ class Branch:
         return float(self.x[-1] - self.x[0])
 
 
-def smooth_input(cycle: SteadyCycle) -> np.ndarray:
+def smooth_input(cycle: SteadyCycle) -> NDArray[np.float64]:
     """The cycle's input with measurement noise removed branch by branch (cubic
     Savitzky-Golay in time: exact on triangles; untouched when the input is noise-free),
     checked to be monotone on each branch (a T-wave, 9.1.1)."""
@@ -318,7 +324,7 @@ def smooth_input(cycle: SteadyCycle) -> np.ndarray:
 
 
 def split_branches(
-    cycle: SteadyCycle, input_sign: int, v_smooth: np.ndarray | None = None
+    cycle: SteadyCycle, input_sign: int, v_smooth: NDArray[np.float64] | None = None
 ) -> tuple[Branch, Branch]:
     """Loading and unloading branches in x = input_sign·v, each sorted by increasing x."""
     v = smooth_input(cycle) if v_smooth is None else v_smooth

@@ -11,13 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 #: 1.4826 * MAD = std for Gaussian noise; the third difference of white noise has variance 20 σ²
 _MAD_TO_STD = 1.482602218505602
 _D3_VARIANCE = 20.0
 
 
-def noise_std(y: np.ndarray) -> float:
+def noise_std(y: NDArray[np.float64]) -> float:
     """Standard deviation of the white noise on a smooth sampled signal.
 
     Estimated from the third differences (a smooth signal contributes ~h³·y''', negligible;
@@ -45,7 +46,7 @@ class LocalFit:
     half_width: float
 
 
-def _window(x: np.ndarray, x0: float, m: int) -> slice:
+def _window(x: NDArray[np.float64], x0: float, m: int) -> slice:
     """Contiguous index window of ``m`` samples of the sorted ``x`` centred on ``x0``
     (one-sided near the ends)."""
     c = int(np.searchsorted(x, x0))
@@ -55,7 +56,7 @@ def _window(x: np.ndarray, x0: float, m: int) -> slice:
     return slice(lo, hi)
 
 
-def local_fit(x: np.ndarray, y: np.ndarray, x0: float, m: int, *, degree: int = 3,
+def local_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, m: int, *, degree: int = 3,
               noise: float = 0.0) -> LocalFit:
     """Least-squares polynomial of ``degree`` through the ``m`` samples of sorted ``x`` nearest
     ``x0``; returns its value and slope at ``x0``."""
@@ -79,8 +80,8 @@ def local_fit(x: np.ndarray, y: np.ndarray, x0: float, m: int, *, degree: int = 
     )
 
 
-def adaptive_fit(x: np.ndarray, y: np.ndarray, x0: float, *, noise: float, slope_scale: float,
-                 rel_tol: float = 2e-4, degree: int = 3, min_samples: int = 8,
+def adaptive_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, *, noise: float,
+                 slope_scale: float, rel_tol: float = 2e-4, degree: int = 3, min_samples: int = 8,
                  max_fraction: float = 0.1) -> LocalFit:
     """:func:`local_fit` with the narrowest window whose slope standard deviation is below
     ``rel_tol * slope_scale`` (noise-free data keep the narrowest window, which keeps the bias
@@ -100,8 +101,9 @@ def adaptive_fit(x: np.ndarray, y: np.ndarray, x0: float, *, noise: float, slope
     return fit
 
 
-def local_root(x: np.ndarray, y: np.ndarray, x_start: float, *, noise: float, slope_scale: float,
-               rel_tol: float = 2e-4, degree: int = 3, iterations: int = 4) -> LocalFit:
+def local_root(x: NDArray[np.float64], y: NDArray[np.float64], x_start: float, *, noise: float,
+               slope_scale: float, rel_tol: float = 2e-4, degree: int = 3,
+               iterations: int = 4) -> LocalFit:
     """Zero of the smoothed ``y(x)`` near ``x_start`` (Newton steps on local fits, 9.38-9.39's
     'linear interpolation' made robust); the returned fit is centred on the zero."""
     x0 = float(x_start)

@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import cast
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from piezo_stage.model.bouc_wen import BoucWenParameters
@@ -76,7 +78,7 @@ class DynamicsFit:
         }
 
 
-def _first_peak_samples(x: np.ndarray, step_at: int) -> int:
+def _first_peak_samples(x: NDArray[np.float64], step_at: int) -> int:
     """Samples from the step to the first extremum of the response in the step's direction."""
     d = x[step_at:] - x[step_at]
     sign = 1.0 if d[-1] >= 0 else -1.0
@@ -88,9 +90,9 @@ def _first_peak_samples(x: np.ndarray, step_at: int) -> int:
 
 
 def fit_step_response(
-    t: np.ndarray,
-    u: np.ndarray,
-    x: np.ndarray,
+    t: NDArray[np.float64],
+    u: NDArray[np.float64],
+    x: NDArray[np.float64],
     bouc_wen: BoucWenParameters,
     *,
     step_at: int | None = None,
@@ -149,14 +151,14 @@ def fit_step_response(
     m_guess = kx / (2.0 * math.pi * f_guess) ** 2
     c_guess = 2.0 * 0.05 * math.sqrt(kx * m_guess)
 
-    def simulate(p: np.ndarray) -> np.ndarray:
+    def simulate(p: NDArray[np.float64]) -> NDArray[np.float64]:
         plant = DynamicPlant(
             bouc_wen, Dynamics(m=math.exp(p[0]), c=math.exp(p[1])), x0=x_rest, w0=w0
         )
         xs, _, _ = plant.simulate(held, dt)
         return xs
 
-    def residual(p: np.ndarray) -> np.ndarray:
+    def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
         return (simulate(p) - measured) / scale
 
     try:
@@ -164,7 +166,7 @@ def fit_step_response(
             residual,
             np.log([m_guess, c_guess]),
             x_scale=1.0,
-            diff_step=1e-4,
+            diff_step=1e-4,  # type: ignore[arg-type]  # scipy takes a scalar; the stubs want 1-D
             bounds=(
                 np.log([m_guess * 1e-2, c_guess * 1e-4]),
                 np.log([m_guess * 1e2, c_guess * 1e3]),
@@ -175,7 +177,9 @@ def fit_step_response(
     m, c = (float(v) for v in np.exp(fit.x))
     r = fit.fun
     dof = max(1, r.size - 2)
-    jtj = fit.jac.T @ fit.jac
+    # dense (the stubs also allow a sparse or operator Jacobian: jac_sparsity or tr_solver='lsmr')
+    jac = cast(NDArray[np.float64], fit.jac)
+    jtj = jac.T @ jac
     try:
         cov = np.linalg.inv(jtj) * float(r @ r) / dof
     except np.linalg.LinAlgError as exc:
@@ -234,10 +238,10 @@ def fit_step_response(
 def predicted_response(
     fit: DynamicsFit,
     bouc_wen: BoucWenParameters,
-    t: np.ndarray,
-    u: np.ndarray,
+    t: NDArray[np.float64],
+    u: NDArray[np.float64],
     voltage_offset: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(t, x) of the fitted model over the samples from the step on (same input as the fit)."""
     t, u = np.asarray(t, dtype=float), np.asarray(u, dtype=float)
     dt = float(np.median(np.diff(t)))

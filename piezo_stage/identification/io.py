@@ -18,8 +18,10 @@ import io as _io
 import re
 from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import DataFormatError, SaturatedOutputError
 from .recording import Recording
@@ -56,7 +58,7 @@ def parse_column(header: str) -> tuple[str, str]:
     return match.group("name").strip().lower(), (match.group("unit") or "").strip()
 
 
-def to_si(values: np.ndarray, unit: str) -> tuple[np.ndarray, str]:
+def to_si(values: NDArray[np.float64], unit: str) -> tuple[NDArray[np.float64], str]:
     """Scale to SI when the unit is a known prefix of s, V or m; otherwise unchanged."""
     si = _SI.get(unit)
     if si is None:
@@ -137,7 +139,9 @@ def is_bag(path: str | Path) -> bool:
     return p.is_dir() or p.suffix == ".mcap"
 
 
-def _resample(t_src: np.ndarray, x_src: np.ndarray, t: np.ndarray, hold: bool) -> np.ndarray:
+def _resample(
+    t_src: NDArray[np.float64], x_src: NDArray[np.float64], t: NDArray[np.float64], hold: bool
+) -> NDArray[np.float64]:
     """``x_src`` at times ``t`` (within its span): the value in force (zero-order hold) for a
     held signal, else linear interpolation."""
     if not hold:
@@ -146,10 +150,10 @@ def _resample(t_src: np.ndarray, x_src: np.ndarray, t: np.ndarray, hold: bool) -
 
 
 def _merge(
-    t_in: np.ndarray,
-    v: np.ndarray,
-    t_out: np.ndarray,
-    y: np.ndarray,
+    t_in: NDArray[np.float64],
+    v: NDArray[np.float64],
+    t_out: NDArray[np.float64],
+    y: NDArray[np.float64],
     name: str,
     hold_in: bool = False,
     hold_out: bool = False,
@@ -180,7 +184,9 @@ def _merge(
     )
 
 
-def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None):
+def _sorted_series(
+    t: NDArray[np.float64], values: NDArray[np.float64], status: NDArray[np.uint8] | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     order = np.argsort(t, kind="stable")
     t, values = t[order], values[order]
     status = status[order] if status is not None else None
@@ -189,7 +195,7 @@ def _sorted_series(t: np.ndarray, values: np.ndarray, status: np.ndarray | None)
 
 
 def intervals_from_marks(
-    marks: list[tuple[float, int] | tuple[float, int, bool]],
+    marks: Sequence[tuple[float, int] | tuple[float, int, bool]],
 ) -> list[tuple[int, float, float]]:
     """``(run, start, stop)`` [s] from ``(stamp, run[, steady])`` marks of the excitation topic:
     each run lasts from its first mark until the next run's first mark, or until its end mark
@@ -247,11 +253,11 @@ def run_intervals(
 
 
 def recordings_from_series(
-    t_in: np.ndarray,
-    v: np.ndarray,
-    t_out: np.ndarray,
-    y: np.ndarray,
-    status: np.ndarray | None,
+    t_in: NDArray[np.float64],
+    v: NDArray[np.float64],
+    t_out: NDArray[np.float64],
+    y: NDArray[np.float64],
+    status: NDArray[np.uint8] | None,
     intervals: list[tuple[int, float, float]],
     source: str,
     input_unit: str = "V",

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .recording import Recording
 
@@ -39,7 +40,7 @@ class LagEstimate:
     seconds: float
 
 
-def kink(y: np.ndarray, lo: float, hi: float) -> float:
+def kink(y: NDArray[np.float64], lo: float, hi: float) -> float:
     """The location in [lo, hi] (index units) where two pieces fitted to ``y`` meet with least
     squared error: y ≈ c + s1·m + s2·p + c1·m² + c2·p², m = min(k − τ, 0), p = max(k − τ, 0)
     (the curvature terms take the output's bend after a reversal, which would otherwise pull
@@ -57,7 +58,7 @@ def kink(y: np.ndarray, lo: float, hi: float) -> float:
     return best_tau
 
 
-def corners(x: np.ndarray, min_gap: int) -> np.ndarray:
+def corners(x: NDArray[np.float64], min_gap: int) -> NDArray[np.int_]:
     """Indices where the input turns (the slope changes sign), at least ``min_gap`` apart."""
     slope = np.sign(np.diff(x))
     nz = np.flatnonzero(slope)

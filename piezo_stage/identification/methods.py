@@ -19,6 +19,7 @@ from enum import Enum
 from typing import Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 
@@ -150,7 +151,7 @@ def _settled(rec: Recording) -> int:
     return len(rec) // (periods + 1) if periods >= 1 else 0
 
 
-def _model_errors(p: BoucWenParameters, rec: Recording) -> np.ndarray:
+def _model_errors(p: BoucWenParameters, rec: Recording) -> NDArray[np.float64]:
     """The model's output error over ``rec``, run from w(0) of (10.18) at its start."""
     w0 = float(np.clip(initial_w(p.kappa, p.kappa_w, p.y0, float(rec.input[0]),
                                  float(rec.output[0])), -1.0, 1.0))

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .cycles import SteadyCycle
 from .errors import OrientationError
@@ -26,8 +27,8 @@ class Orientation:
 
 
 def loop_gap(
-    cycle: SteadyCycle, v_smooth: np.ndarray, samples: int = 400
-) -> tuple[np.ndarray, np.ndarray]:
+    cycle: SteadyCycle, v_smooth: NDArray[np.float64], samples: int = 400
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """y on the v-rising branch minus y on the v-falling branch, on a grid inside the span."""
     i = cycle.i_max
     vr, yr = v_smooth[: i + 1], cycle.output[: i + 1]
@@ -40,14 +41,16 @@ def loop_gap(
     return grid, rise - fall
 
 
-def _sorted(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _sorted(
+    x: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     order = np.argsort(x, kind="stable")
     return x[order], y[order]
 
 
 def detect_orientation(
     cycle: SteadyCycle,
-    v_smooth: np.ndarray,
+    v_smooth: NDArray[np.float64],
     *,
     min_loop_width: float = 1e-3,
     noise_factor: float = 3.0,

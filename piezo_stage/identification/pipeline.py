@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.errors import ModelError
@@ -113,12 +114,14 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
             if not options.refine:
                 raise
             analytic_problem = str(exc)
+    correlations: tuple[tuple[str, str, float], ...] = ()
     if options.refine:
         start = analytic if analytic is not None else feasible_start(
             poly.kappa, y0, hyst.kappa_w, hyst.rho, hyst.sigma, hyst.n, sign,
             options.refinement.n_max)
         fit = refine(start, paths, options.refinement)
         final, rms = fit.parameters, fit.rms_error
+        correlations = fit.correlations
         values = dict(zip([f"kappa_{i + 1}" for i in range(len(final.kappa))], final.kappa),
                       y0=final.y0, kappa_w=final.kappa_w, rho=final.rho, sigma=final.sigma,
                       n=final.n)
@@ -141,7 +144,7 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
                                       float(cycle_a.input[0]), float(cycle_a.output[0])),
         refined=options.refine, input_name=options.input_name, output_name=options.output_name,
         diagnostics=diagnostics, cycles=cycles,
-        warnings=tuple(correlation_warning(*c) for c in diagnostics.get("correlations", ())))
+        warnings=tuple(correlation_warning(*c) for c in correlations))
     check_fit(result, options.refinement)
     return result
 
@@ -152,7 +155,7 @@ def correlation_warning(a: str, b: str, c: float) -> str:
             "poorly (see their standard errors)")
 
 
-def _analytic_parameters(kappa: np.ndarray, y0: float, h: HystereticEstimate,
+def _analytic_parameters(kappa: NDArray[np.float64], y0: float, h: HystereticEstimate,
                          sign: int) -> tuple[BoucWenParameters | None, str]:
     """The analytic estimate as validated parameters, or (None, reason) outside class I."""
     if not (h.kappa_w > 0 and h.rho > 0):

@@ -11,12 +11,13 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .cycles import Branch
 from .errors import InconsistentRunsError, TooFewSamplesError
 
 
-def q_matrix(q: float, degree: int) -> np.ndarray:
+def q_matrix(q: float, degree: int) -> NDArray[np.float64]:
     """Q of (10.8)-(10.10): G = Q·K, rows j = 0..N−1, columns κ_1..κ_N."""
     if degree < 1:
         raise ValueError(f"polynomial degree must be >= 1, got {degree}")
@@ -27,7 +28,7 @@ def q_matrix(q: float, degree: int) -> np.ndarray:
     return Q
 
 
-def kappa_from_g(g: np.ndarray, q: float) -> np.ndarray:
+def kappa_from_g(g: NDArray[np.float64], q: float) -> NDArray[np.float64]:
     """K = Q⁻¹·G (10.11); Q is invertible for q ≠ 0 (back substitution, upper triangular)."""
     if q == 0.0:
         raise InconsistentRunsError("q = 0: the two runs must differ by a non-zero offset (Step 2)")
@@ -37,7 +38,9 @@ def kappa_from_g(g: np.ndarray, q: float) -> np.ndarray:
     return solve_triangular(q_matrix(q, len(g)), g, lower=False)
 
 
-def polyval(kappa: np.ndarray | tuple[float, ...], v: np.ndarray) -> np.ndarray:
+def polyval(
+    kappa: NDArray[np.float64] | tuple[float, ...], v: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Σ_{i=1..N} κ_i v^i (10.4), Horner's scheme."""
     out = np.zeros_like(np.asarray(v, dtype=float))
     for k in reversed(kappa):
@@ -47,8 +50,8 @@ def polyval(kappa: np.ndarray | tuple[float, ...], v: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class PolynomialFit:
-    kappa: np.ndarray  #: κ_1..κ_N
-    g: np.ndarray  #: g_0..g_{N−1} of (10.7)
+    kappa: NDArray[np.float64]  #: κ_1..κ_N
+    g: NDArray[np.float64]  #: g_0..g_{N−1} of (10.7)
     q: float  #: offset of run B with respect to run A [input unit]
     residual_rms: float  #: RMS of the difference not explained by Σ g_j v^j
     samples: int
@@ -108,7 +111,7 @@ def fit_polynomial(
     )
 
 
-def offset_y0(branches: list[tuple[Branch, Branch]], kappa: np.ndarray) -> float:
+def offset_y0(branches: list[tuple[Branch, Branch]], kappa: NDArray[np.float64]) -> float:
     """y0 of (10.17), the mean of y − Σ κ_i v^i over the cycle.
 
     (10.17) integrates over time using ∫ w̄ dτ = 0, which holds for symmetric triangles. What

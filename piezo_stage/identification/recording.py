@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import DataFormatError, NonFiniteDataError, SaturatedOutputError, TooFewSamplesError
 
@@ -24,13 +25,13 @@ MIN_SPAN = 1e-30
 class Recording:
     """A run: ``output(t)`` in response to ``input(t)`` (the pair (v, y) of (10.15))."""
 
-    t: np.ndarray
-    input: np.ndarray
-    output: np.ndarray
+    t: NDArray[np.float64]
+    input: NDArray[np.float64]
+    output: NDArray[np.float64]
     name: str = ""
     input_unit: str = ""
     output_unit: str = ""
-    meta: dict = field(default_factory=dict, compare=False)
+    meta: dict[str, object] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         for attr in ("t", "input", "output"):
@@ -118,7 +119,7 @@ def _check_clipping(rec: Recording, clip_fraction: float) -> None:
             )
 
 
-def _widest_input_range(mask: np.ndarray, v: np.ndarray) -> float:
+def _widest_input_range(mask: NDArray[np.bool_], v: NDArray[np.float64]) -> float:
     """Largest input range covered by one run of consecutive True samples in ``mask``."""
     if not mask.any():
         return 0.0

@@ -10,8 +10,10 @@ state: w = −ψ_{σ,n}(ρ(Xmax − Xmin)) (9.15).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
@@ -48,14 +50,14 @@ class CyclePath:
     period, with the turning points reconstructed between samples, and the measured output
     at the path positions that are real samples (except those at the turning points)."""
 
-    v: np.ndarray
-    sample_positions: np.ndarray
-    y: np.ndarray
+    v: NDArray[np.float64]
+    sample_positions: NDArray[np.int_]
+    y: NDArray[np.float64]
     x_min: float
     x_max: float
 
 
-def _line_corner(x: np.ndarray, i: int, m: int) -> tuple[float, float] | None:
+def _line_corner(x: NDArray[np.float64], i: int, m: int) -> tuple[float, float] | None:
     """Turning point near sample i as the intersection of lines fitted to the m samples on
     either side (exact for triangles); None when the lines do not meet within one sample of
     i, or overshoot x[i] by more than one sample's worth of slope (a smooth turning point,
@@ -76,7 +78,7 @@ def _line_corner(x: np.ndarray, i: int, m: int) -> tuple[float, float] | None:
     return float(pc), float(xc)
 
 
-def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> CyclePath:
+def cycle_path(cycle: SteadyCycle, v_smooth: NDArray[np.float64], input_sign: int) -> CyclePath:
     """Lay out ``cycle`` for :func:`model_output`, starting at the x = input_sign·v minimum."""
     x = input_sign * v_smooth
     m_samples = len(x)
@@ -91,7 +93,8 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
     # rotate so the path starts at the minimum; phases measured from it in [0, M)
     start = int(np.ceil(p_min - 1e-9))
     order = (start + np.arange(m_samples)) % m_samples
-    phases = (order - p_min) % m_samples
+    # (numpy's stubs give floating[Any] for an integer array minus a float: float64 here)
+    phases = cast(NDArray[np.float64], (order - p_min) % m_samples)
     path_x = list(x[order])
     positions = list(range(m_samples))
     inserted = 0
@@ -111,8 +114,8 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
 
     # samples within one sampling interval of a turning point were interpolated across the
     # kink when the periods were averaged (unless the grid hit the corner): leave them out
-    def distance(ph: np.ndarray, corner: float) -> np.ndarray:
-        d = np.abs(ph - corner) % m_samples
+    def distance(ph: NDArray[np.float64], corner: float) -> NDArray[np.float64]:
+        d: NDArray[np.float64] = np.abs(ph - corner) % m_samples
         return np.minimum(d, m_samples - d)
 
     keep = (distance(phases, 0.0) >= 1.0 - 1e-9) & (distance(phases, ph_max) >= 1.0 - 1e-9)
@@ -125,11 +128,11 @@ def cycle_path(cycle: SteadyCycle, v_smooth: np.ndarray, input_sign: int) -> Cyc
     )
 
 
-def pack(params: BoucWenParameters) -> np.ndarray:
+def pack(params: BoucWenParameters) -> NDArray[np.float64]:
     return np.array([*params.kappa, params.y0, params.kappa_w, params.rho, params.sigma, params.n])
 
 
-def unpack(p: np.ndarray, degree: int, input_sign: int) -> BoucWenParameters:
+def unpack(p: NDArray[np.float64], degree: int, input_sign: int) -> BoucWenParameters:
     kw = dict(zip(_TAIL, (float(v) for v in p[degree:])))
     return BoucWenParameters(kappa=tuple(float(v) for v in p[:degree]), input_sign=input_sign, **kw)
 
@@ -139,7 +142,7 @@ def start_w(params: BoucWenParameters, path: CyclePath) -> float:
     return limit_cycle_bounds(params.rho, params.sigma, params.n, path.x_min, path.x_max)[0]
 
 
-def residuals(params: BoucWenParameters, paths: list[CyclePath]) -> np.ndarray:
+def residuals(params: BoucWenParameters, paths: list[CyclePath]) -> NDArray[np.float64]:
     """Model minus measured output on all samples of all cycles; a model that cannot be
     simulated at these parameters raises :class:`RefinementError`."""
     out = []
@@ -167,7 +170,9 @@ class RefinedFit:
     correlations: tuple[tuple[str, str, float], ...] = ()
 
 
-def _bounds(p0: np.ndarray, degree: int, n_max: float) -> tuple[np.ndarray, np.ndarray]:
+def _bounds(
+    p0: NDArray[np.float64], degree: int, n_max: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     lo = np.full_like(p0, -np.inf)
     hi = np.full_like(p0, np.inf)
     i = degree + 1  # κw, ρ, σ, n
@@ -179,7 +184,7 @@ def _bounds(p0: np.ndarray, degree: int, n_max: float) -> tuple[np.ndarray, np.n
 
 
 def feasible_start(
-    kappa: np.ndarray,
+    kappa: NDArray[np.float64],
     y0: float,
     kappa_w: float,
     rho: float,
@@ -202,7 +207,7 @@ def feasible_start(
 
 
 def strong_correlations(
-    names: list[str], cov: np.ndarray, limit: float
+    names: list[str], cov: NDArray[np.float64], limit: float
 ) -> tuple[tuple[str, str, float], ...]:
     """Parameter pairs whose correlation (from the covariance ``cov``) exceeds ``limit`` in
     magnitude; κ_i with y0 left out (the polynomial's offset when the input is not centred)."""
@@ -234,7 +239,7 @@ def refine(
     first = residuals(start, paths)  # raises RefinementError if the start fails
     failures: list[str] = []
 
-    def fun(z: np.ndarray) -> np.ndarray:
+    def fun(z: NDArray[np.float64]) -> NDArray[np.float64]:
         try:
             # in units of the output span: the tolerances are then relative to the data
             return residuals(unpack(z * scale, degree, sign), paths) / y_span
@@ -245,16 +250,16 @@ def refine(
             return np.full(first.shape, np.nan)
 
     lo_z, hi_z = lo / scale, hi / scale
-    cache: dict[bytes, np.ndarray] = {}
+    cache: dict[bytes, NDArray[np.float64]] = {}
 
-    def cached(z: np.ndarray) -> np.ndarray:
+    def cached(z: NDArray[np.float64]) -> NDArray[np.float64]:
         key = z.tobytes()
         if key not in cache:
             cache.clear()
             cache[key] = fun(z)
         return cache[key]
 
-    def jac(z: np.ndarray) -> np.ndarray:
+    def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Forward differences, backward where the forward point is out of bounds or cannot
         be simulated."""
         f0 = cached(z)
@@ -286,7 +291,9 @@ def refine(
     except (ValueError, np.linalg.LinAlgError) as exc:
         detail = f"; last model failure: {failures[-1]}" if failures else ""
         raise RefinementError(f"refinement failed: {exc}{detail}") from exc
-    if not np.all(np.isfinite(res.fun)) or not np.all(np.isfinite(res.jac)):
+    # dense (the stubs also allow a sparse or operator Jacobian: ``jac`` returns an array)
+    jacobian = cast(NDArray[np.float64], res.jac)
+    if not np.all(np.isfinite(res.fun)) or not np.all(np.isfinite(jacobian)):
         raise RefinementError(
             f"refinement ended on a point the model cannot simulate: "
             f"{failures[-1] if failures else 'non-finite residuals'}"
@@ -296,9 +303,10 @@ def refine(
     r = res.fun * y_span
     dof = max(1, len(r) - len(p))
     s2 = float(r @ r) / dof
-    J = res.jac * y_span
+    J = jacobian * y_span
     jtj = J.T @ J
-    cov = np.linalg.pinv(jtj) * s2
+    # (numpy's stubs give floating[Any] for pinv: float64 for a float64 matrix)
+    cov = cast(NDArray[np.float64], np.linalg.pinv(jtj) * s2)
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scale
     names = [f"kappa_{i + 1}" for i in range(degree)] + list(_TAIL)
     rel = {

@@ -6,8 +6,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from piezo_stage.model.bouc_wen import BoucWenParameters
-from piezo_stage.model.parameter_set import Drift
+from piezo_stage.model.parameter_set import Drift, ParameterSet
 
 from .cycles import SteadyCycle
 
@@ -27,7 +30,7 @@ def parameters_dict(params: BoucWenParameters, rms_error: float, samples: int) -
     }
 
 
-def _finite(value: Any) -> Any:
+def _finite(value: object) -> object:
     """NaN/inf -> None, recursively (strict JSON has no NaN)."""
     if isinstance(value, dict):
         return {k: _finite(v) for k, v in value.items()}
@@ -66,7 +69,7 @@ class IdentificationResult:
     drift: Drift | None = None
     warnings: tuple[str, ...] = ()
     #: the model's output over each run as fitted (method "fit"; empty for the analytic one)
-    fitted: tuple = field(default=(), compare=False, repr=False)
+    fitted: tuple[NDArray[np.float64], ...] = field(default=(), compare=False, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON object of ``piezo-stage identify --json``: the message fields of the final
@@ -93,12 +96,10 @@ class IdentificationResult:
             raw = self.diagnostics.get("analytic_raw", {})
             out["analytic"] = {**raw, "rms_error": None, "samples": int(self.samples),
                                "class_i": False}
-        return _finite(out)
+        return {key: _finite(value) for key, value in out.items()}
 
-    def to_parameter_set(self, name: str = "identified", notes: str = ""):
+    def to_parameter_set(self, name: str = "identified", notes: str = "") -> ParameterSet:
         """The model's ParameterSet (static form, ch. 10) for `save_parameter_set`."""
-        from piezo_stage.model.parameter_set import ParameterSet
-
         if not notes:
             q = self.diagnostics.get("q")
             notes = (f"identified from {self.samples} samples ({self.method} method), "

@@ -17,9 +17,10 @@ scaled by the residual.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, polynomial, simulate_w
@@ -31,6 +32,9 @@ from .derivatives import noise_std
 from .errors import IdentificationError, OrientationError
 from .recording import Recording
 from .refine import strong_correlations
+
+if TYPE_CHECKING:  # the stubs' type of least_squares' result, with its fields typed
+    from scipy.optimize._lsq.least_squares import OptimizeResult as LeastSquaresResult
 
 #: multi-start grid: ρ·(input span), σ, n
 _GRID_RHO = (0.3, 1.0, 3.0, 10.0)
@@ -88,7 +92,7 @@ class SimulationFit:
     std: dict[str, float]
     relative_std: dict[str, float]
     correlations: list[tuple[str, str, float]]
-    model: tuple[np.ndarray, ...]           #: simulated output of each run
+    model: tuple[NDArray[np.float64], ...]  #: simulated output of each run
     nfev: int
     status: str
     diagnostics: dict[str, Any] = field(default_factory=dict)
@@ -125,7 +129,7 @@ class _Problem:
     def n_theta(self) -> int:
         return 3 + len(self.runs) + int(self.options.fit_delay)
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         r = len(self.runs)
         lo = [1e-6, 0.5, 1.0] + [-1.0] * r
         hi = [np.inf, SIGMA_MAX, N_MAX] + [1.0] * r
@@ -134,36 +138,39 @@ class _Problem:
             hi.append(self.options.max_delay_samples)
         return np.array(lo), np.array(hi)
 
-    def theta(self, seed: Seed) -> np.ndarray:
+    def theta(self, seed: Seed) -> NDArray[np.float64]:
         w0 = seed.w0 if seed.w0 is not None else (0.0,) * len(self.runs)
         th = [seed.rho * self.span_v, seed.sigma, seed.n, *w0]
         if self.options.fit_delay:
             th.append(seed.delay / self.dt)
         lo, hi = self.bounds()
-        return np.clip(np.array(th, dtype=float), lo, hi)
+        return np.clip(np.array(th, dtype=np.float64), lo, hi)
 
-    def seed(self, th: np.ndarray) -> Seed:
+    def seed(self, th: NDArray[np.float64]) -> Seed:
         rho, sigma, n, w0, delay = self.split(th)
         return Seed(rho, sigma, n, tuple(float(w) for w in w0), delay)
 
-    def split(self, th: np.ndarray) -> tuple[float, float, float, np.ndarray, float]:
+    def split(self, th: NDArray[np.float64]
+              ) -> tuple[float, float, float, NDArray[np.float64], float]:
         r = len(self.runs)
         delay = float(th[3 + r]) * self.dt if self.options.fit_delay else 0.0
         return float(th[0]) / self.span_v, float(th[1]), float(th[2]), th[3:3 + r], delay
 
-    def inputs(self, delay: float) -> list[np.ndarray]:
+    def inputs(self, delay: float) -> list[NDArray[np.float64]]:
         """Each run's input as it acts on the output: v(t − delay), held before the start."""
         if delay == 0.0:
             return [r.input for r in self.runs]
         return [np.interp(r.t - delay, r.t, r.input) for r in self.runs]
 
-    def states(self, th: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    def states(self, th: NDArray[np.float64]
+               ) -> tuple[list[NDArray[np.float64]], list[NDArray[np.float64]]]:
         rho, sigma, n, w0, delay = self.split(th)
         vs = self.inputs(delay)
         ws = [simulate_w(v, rho, sigma, n, float(np.clip(w, -1.0, 1.0))) for v, w in zip(vs, w0)]
         return vs, ws
 
-    def matrix(self, vs: list[np.ndarray], ws: list[np.ndarray]) -> np.ndarray:
+    def matrix(self, vs: list[NDArray[np.float64]], ws: list[NDArray[np.float64]]
+               ) -> NDArray[np.float64]:
         v, w = np.concatenate(vs), np.concatenate(ws)
         cols = [v ** (i + 1) for i in range(self.degree)] + [np.ones_like(v), w]
         offsets = np.cumsum([0] + self.sizes)
@@ -173,7 +180,8 @@ class _Problem:
             cols.append(col)
         return np.column_stack(cols)
 
-    def linear(self, th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def linear(self, th: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """(coefficients, design matrix, residual model − data) at θ."""
         A = self.matrix(*self.states(th))
         norms = np.linalg.norm(A, axis=0)
@@ -181,7 +189,7 @@ class _Problem:
         c = np.linalg.lstsq(A / norms, self.y, rcond=None)[0] / norms
         return c, A, A @ c - self.y
 
-    def residual(self, th: np.ndarray) -> np.ndarray:
+    def residual(self, th: NDArray[np.float64]) -> NDArray[np.float64]:
         """Model minus data at θ, in units of the output span."""
         try:
             return self.linear(th)[2] / self.y_scale
@@ -198,7 +206,8 @@ def _seeds(given: Sequence[Seed], span_v: float, runs: int) -> list[Seed]:
             for sigma in _GRID_SIGMA for n in _GRID_N for w0 in _GRID_W0]
 
 
-def _solve(problem: _Problem, th0: np.ndarray, max_nfev: int, tol: float):
+def _solve(problem: _Problem, th0: NDArray[np.float64], max_nfev: int, tol: float
+           ) -> LeastSquaresResult:
     lo, hi = problem.bounds()
     return least_squares(problem.residual, th0, jac="2-point", bounds=(lo, hi), method="trf",
                          x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=max_nfev)
@@ -210,7 +219,7 @@ _FIRST_PASS_NFEV = 40
 
 
 def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions,
-             polish: bool = True):
+             polish: bool = True) -> tuple[LeastSquaresResult, int]:
     """Best least-squares optimum over the seeds: seeds are ranked by their cost, the best
     ``options.starts`` get a first pass (on every k-th sample of long runs), the best of those
     is polished on all samples to ``options.tolerance``."""
@@ -223,18 +232,20 @@ def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions,
         coarse = _Problem([Recording(r.t[::k], r.input[::k], r.output[::k], r.name)
                            for r in problem.runs], options, problem.time_constant)
         res, nfev = _optimum(coarse, seeds, options, polish=False)
-        best = _solve(problem, problem.theta(coarse.seed(res.x)), options.max_nfev,
+        fine = _solve(problem, problem.theta(coarse.seed(res.x)), options.max_nfev,
                       options.tolerance)
-        return best, nfev + int(best.nfev)
+        return fine, nfev + int(fine.nfev)
     th_grid = [problem.theta(s) for s in seeds]
     costs = [float(np.sum(problem.residual(th) ** 2)) for th in th_grid]
-    best, nfev = None, 0
+    best: LeastSquaresResult | None = None
+    nfev = 0
     for i in np.argsort(costs)[:max(1, options.starts)]:
         res = _solve(problem, th_grid[i], min(options.max_nfev, _FIRST_PASS_NFEV),
                      max(options.tolerance, _FIRST_PASS_TOL))
         nfev += int(res.nfev)
         if best is None or res.cost < best.cost:
             best = res
+    assert best is not None  # max(1, starts) starts were solved
     if polish:
         best = _solve(problem, best.x, options.max_nfev, options.tolerance)
         nfev += int(best.nfev)
@@ -250,8 +261,9 @@ def _param_names(problem: _Problem) -> list[str]:
     return names
 
 
-def _uncertainty(problem: _Problem, th: np.ndarray, c: np.ndarray, A: np.ndarray,
-                 r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _uncertainty(problem: _Problem, th: NDArray[np.float64], c: NDArray[np.float64],
+                 A: NDArray[np.float64], r: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Standard errors and covariance (of the column-normalised problem: for correlations) of
     all parameters (linear ones, then θ in physical units) from the full Jacobian at the
     optimum, scaled by the residual variance."""
@@ -278,7 +290,8 @@ def _uncertainty(problem: _Problem, th: np.ndarray, c: np.ndarray, A: np.ndarray
     return std, cov_n
 
 
-def _values(problem: _Problem, th: np.ndarray, c: np.ndarray) -> np.ndarray:
+def _values(problem: _Problem, th: NDArray[np.float64], c: NDArray[np.float64]
+            ) -> NDArray[np.float64]:
     rho, sigma, n, w0, delay = problem.split(th)
     vals = [*c, rho, sigma, n, *w0]
     if problem.options.fit_delay:
@@ -338,7 +351,7 @@ def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions()
                          diagnostics={"time_constant": problem.time_constant})
 
 
-def predict(fit: SimulationFit, runs: Sequence[Recording]) -> list[np.ndarray]:
+def predict(fit: SimulationFit, runs: Sequence[Recording]) -> list[NDArray[np.float64]]:
     """The fitted model's output over ``runs`` (same w0, delay and drift as fitted)."""
     p = fit.parameters
     out = []

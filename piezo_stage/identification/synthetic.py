@@ -7,7 +7,10 @@ minimum of input_sign·v), so every recorded period is steady.
 
 from __future__ import annotations
 
+from typing import TypedDict, Unpack, cast
+
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.limit_cycle import limit_cycle
@@ -36,7 +39,8 @@ def triangle_run(params: BoucWenParameters, low: float, high: float, *, period: 
     m = 2 * samples_per_branch
     k0 = int(round(phase * m))
     n = int(round(periods * m)) + 1
-    t_all = np.arange(k0 + n) * (period / m)
+    # (numpy's stubs give floating[Any] for an integer array times a float: float64 here)
+    t_all = cast(NDArray[np.float64], np.arange(k0 + n) * (period / m))
     v_all = triangle(t_all, period, low, high)
     start = limit_cycle_start(params, low, high) if w0 is None else w0
     y_all = model_output(params, v_all, w0=start)
@@ -49,10 +53,23 @@ def triangle_run(params: BoucWenParameters, low: float, high: float, *, period: 
     return Recording(t, v, y, name=name or f"triangle {low:g}..{high:g}")
 
 
-def triangle_pair(params: BoucWenParameters, low: float, high: float, q: float,
-                  **kwargs) -> tuple[Recording, Recording]:
+class _RunOptions(TypedDict, total=False):
+    """The keyword arguments of :func:`triangle_run` that :func:`triangle_pair` passes on."""
+
+    period: float
+    samples_per_branch: int
+    periods: float
+    noise: float
+    input_noise: float
+    phase: float
+    w0: float | None
+
+
+def triangle_pair(params: BoucWenParameters, low: float, high: float, q: float, *,
+                  rng: np.random.Generator | None = None,
+                  **kwargs: Unpack[_RunOptions]) -> tuple[Recording, Recording]:
     """Runs x(t) over [low, high] and x(t)+q (Steps 1-2 of 9.1.3)."""
-    rng = kwargs.pop("rng", None) or np.random.default_rng(0)
+    rng = rng or np.random.default_rng(0)
     a = triangle_run(params, low, high, rng=rng, name="run A", **kwargs)
     b = triangle_run(params, low + q, high + q, rng=rng, name="run B", **kwargs)
     return a, b

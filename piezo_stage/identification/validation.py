@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters, model_output
 from piezo_stage.model.parameter_set import Drift
@@ -21,12 +22,12 @@ from .recording import Recording, check_recording
 @dataclass(frozen=True)
 class ValidationResult:
     recording: Recording
-    model: np.ndarray  #: simulated output at the recording's samples
+    model: NDArray[np.float64]  #: simulated output at the recording's samples
     w0: float  #: initial state used, (10.18) clipped to [-1, 1]
     w0_clipped: bool
 
     @property
-    def error(self) -> np.ndarray:
+    def error(self) -> NDArray[np.float64]:
         return self.model - self.recording.output
 
     @property
