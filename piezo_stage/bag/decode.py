@@ -37,7 +37,8 @@ def _names(fielddefs: dict[str, Any], name: str) -> set[str]:
 
 def _service_event(name: str, text: str) -> dict[str, Any]:
     """Definitions of ``pkg/srv/Name_Event`` from the ``.srv`` text rosbag2 stores for it
-    (request ``---`` response, dependencies after the 80-``=`` lines)."""
+    (request ``---`` response, dependencies after the 80-``=`` lines).
+    """
     root, sep, deps = text.partition(DEFINITION_SEPARATOR.rstrip("\n"))
     deps = sep + deps if sep else ""
     request, _, response = root.partition("\n---")

@@ -34,7 +34,8 @@ def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
 
 def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
     """Size, completeness, damage, counts, times and topics of one MCAP file (``listed``: the
-    count metadata.yaml gives for it, to tell what damage lost when the summary is gone)."""
+    count metadata.yaml gives for it, to tell what damage lost when the summary is gone).
+    """
     scan = records.scan(path)
     topics: dict[str, dict[str, Any]] = {}
     start, end, count = 2**63, -1, 0

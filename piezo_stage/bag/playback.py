@@ -26,7 +26,8 @@ def parse_remaps(items: Sequence[str]) -> dict[str, str]:
 class PlaybackClock:
     """Bag time [ns] as a function of wall time [s, monotonic]: ``start_ns`` at ``resume()``,
     advancing ``rate`` times faster than the wall clock, frozen while paused. Not thread safe:
-    the owner holds a lock."""
+    the owner holds a lock.
+    """
 
     def __init__(self, start_ns: int, rate: float, paused: bool = False) -> None:
         if rate <= 0:

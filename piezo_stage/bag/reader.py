@@ -140,7 +140,8 @@ def decode_bag(path: str | Path, topics: str | Iterable[str] | None = None,
     """``(topic, type_name, log_time_ns, message)``, decoded with the bag's own schemas into
     rosbags dataclasses (a bag recorded before a field was added reads with its own
     definition); topics that cannot be decoded are skipped with a warning each, messages that
-    do not decode are counted in one ``BagDamageWarning`` per topic."""
+    do not decode are counted in one ``BagDamageWarning`` per topic.
+    """
     types = types or BagTypes()
     fallback = _metadata_types(path)
     known: dict[int, str | None] = {}
@@ -193,7 +194,8 @@ def read_series(path: str | Path, topic: str
     """``(t [s], values, status or None)`` of a topic, in stamp order: Voltage (V) and
     Displacement (m, status) vectorised; any other type by one numeric field -- ``TOPIC.FIELD``
     (dotted path), or the message's only numeric scalar field -- with t from ``header.stamp``
-    when the message has one, else the receive time."""
+    when the message has one, else the receive time.
+    """
     types = topic_types(path)
     field = ""
     if topic not in types and "." in topic.rsplit("/", 1)[-1]:
@@ -235,7 +237,8 @@ LoopColumns = dict[str, NDArray[Any]]
 
 def read_loop_samples(path: str | Path, topic: str) -> LoopColumns:
     """The samples of a LoopSamples topic (rig_loop's ``loop_samples``: every sample of the loop,
-    in batches) as one array per column, in stamp order; ``stamp`` in ns."""
+    in batches) as one array per column, in stamp order; ``stamp`` in ns.
+    """
     parts: dict[str, list[NDArray[Any]]] = {k: [] for k in _LOOP_COLUMNS}
     for _, _, message in read_messages(path, topic):
         n = len(message.stamp)
@@ -255,7 +258,7 @@ _NUMERIC = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uin
 
 
 def normalize_fieldname(name: str) -> str:
-    """rosbags' attribute name of a field (``from`` -> ``from_``)."""
+    """The attribute name rosbags gives a field (``from`` -> ``from_``)."""
     from rosbags.typesys.base import normalize_fieldname as normalize
 
     return normalize(name)

@@ -96,7 +96,8 @@ def open_buffer(path: str | Path) -> Iterator[bytes | mmap.mmap]:
 
 def _check_magic(path: Path, buf: Buffer) -> bool:
     """True if ``buf`` starts with the magic; False if it is a prefix of it (killed before
-    the first flush); else CorruptBagError."""
+    the first flush); else CorruptBagError.
+    """
     if buf[:len(MAGIC)] == MAGIC:
         return True
     if len(buf) < len(MAGIC) and MAGIC.startswith(bytes(buf)):
@@ -192,7 +193,8 @@ class Damage:
 class McapWalk:
     """One pass over an MCAP file; ``messages()`` yields ``(channel, log_time_ns,
     publish_time_ns, sequence, data)`` of the wanted topics and fills ``schemas``,
-    ``channels``, ``metadata``, ``header`` and ``errors`` as their records go by."""
+    ``channels``, ``metadata``, ``header`` and ``errors`` as their records go by.
+    """
 
     def __init__(self, path: str | Path, topics: Iterable[str] | None = None,
                  expected: int | None = None) -> None:
@@ -335,7 +337,8 @@ class McapWalk:
         """``{channel id: (messages, first, last log time)}`` of the chunks that pass their
         CRC, from the message index records after each chunk -- no message is unpacked, so
         ``bag info`` runs at decompression speed. None when the file has no intact summary or
-        its indexes disagree with it: then walk ``messages()`` (on a fresh walk)."""
+        its indexes disagree with it: then walk ``messages()`` (on a fresh walk).
+        """
         with open_buffer(self.path) as buf:
             if not _check_magic(self.path, buf):
                 return None

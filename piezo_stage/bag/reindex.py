@@ -217,7 +217,8 @@ def _keep(path: Path, table: _TopicTable, metadata: BagMetadata,
 
 def reindex(path: str | Path) -> ReindexReport:
     """Make every MCAP file of a bag folder (or one ``.mcap``) complete and indexed, and write
-    a fresh ``metadata.yaml`` for a folder."""
+    a fresh ``metadata.yaml`` for a folder.
+    """
     path = Path(path)
     if path.is_dir():
         files = folder_mcap_files(path)

@@ -78,7 +78,8 @@ def encode_series(type_name: str, t_ns: NDArray[np.int64], values: NDArray[np.fl
                   status: NDArray[np.uint8] | None = None, frame_id: str = "") -> list[bytes]:
     """Serialised Voltage/Displacement messages (CDR, little endian) for stamps ``t_ns``
     [int ns], ``values`` and, for Displacement, ``status`` (default OK = 0), vectorised:
-    the inverse of ``decode_series``, byte for byte what rosbags/rclpy produce."""
+    the inverse of ``decode_series``, byte for byte what rosbags/rclpy produce.
+    """
     _, has_status = SERIES_FIELDS[type_name]
     t_ns = np.asarray(t_ns, dtype=np.int64)
     n = t_ns.size

@@ -108,7 +108,8 @@ def typestore() -> Typestore:
 
 def ensure_registered(type_name: str, definition: str | None = None) -> str:
     """Make ``type_name`` known to the typestore (from ``definition``, the ``ros2msg`` text a
-    bag carries, or from the ``.msg`` files found); returns the canonical name."""
+    bag carries, or from the ``.msg`` files found); returns the canonical name.
+    """
     name = full_type_name(type_name)
     store = typestore()
     if name in store.fielddefs:
@@ -156,7 +157,8 @@ def _concatenated_definition(type_name: str) -> str:
 @functools.lru_cache(maxsize=None)
 def message_definition(type_name: str) -> str:
     """Full ``ros2msg`` schema text of ``type_name`` with every nested definition, in the
-    concatenated format rosbag2 (Jazzy) writes into MCAP schema records."""
+    concatenated format rosbag2 (Jazzy) writes into MCAP schema records.
+    """
     name = full_type_name(type_name)
     try:
         return _concatenated_definition(name)
@@ -172,7 +174,8 @@ def message_definition(type_name: str) -> str:
 @functools.lru_cache(maxsize=None)
 def type_hash(type_name: str) -> str:
     """REP-2011 ``RIHS01_...`` type description hash: the one rosidl generated (``.json``
-    beside the installed ``.msg``) when available, else rosbags' computation."""
+    beside the installed ``.msg``) when available, else rosbags' computation.
+    """
     name = full_type_name(type_name)
     path = interface_file(name, ".json")
     if path is not None:

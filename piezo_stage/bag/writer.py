@@ -148,7 +148,8 @@ class BagWriter:
     def add_topic(self, name: str, type_name: str,
                   offered_qos_profiles: str | list[dict[str, Any]] | None = None) -> None:
         """Declare a topic before writing to it. ``offered_qos_profiles``: the publishers'
-        offers, as rosbag2's YAML string or a list of profile dicts (see ``bag.qos``)."""
+        offers, as rosbag2's YAML string or a list of profile dicts (see ``bag.qos``).
+        """
         self._check_open()
         if not isinstance(name, str) or not name.startswith("/") or name.endswith("/") \
                 or "//" in name or " " in name:

@@ -78,7 +78,8 @@ class ControllerConfig:
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable
-        configuration."""
+        configuration.
+        """
         check_law(self.mode)
         self.gains.validate(self.mode)
         if math.isnan(self.u_min) or math.isnan(self.u_max) or not self.u_min < self.u_max:
@@ -216,7 +217,8 @@ class TimeVaryingPID:
 
     def reconfigure(self, config: ControllerConfig) -> None:
         """Swap gains/law/limits keeping the state; with the loop closed and k0 changed, x0 is
-        rescaled so that k0·x0 (and hence u) stays continuous when ``on_close`` is bumpless."""
+        rescaled so that k0·x0 (and hence u) stays continuous when ``on_close`` is bumpless.
+        """
         config.validate()
         old = self._config
         if (
@@ -232,7 +234,8 @@ class TimeVaryingPID:
 
     def open_loop(self, hold: float | None = None) -> None:
         """Open the loop: u = ``hold``, else ``config.hold_voltage``, else the last output
-        (clamped)."""
+        (clamped).
+        """
         if hold is not None and not math.isfinite(hold):
             raise MeasurementError(f"hold voltage must be finite, got {hold}")
         if hold is None:
@@ -245,7 +248,8 @@ class TimeVaryingPID:
 
     def close_loop(self) -> None:
         """Close the loop at the next :meth:`update` (x0 set per ``config.on_close``, sine
-        phase 0)."""
+        phase 0).
+        """
         if not self._closed:
             self._pending_close = True
 
@@ -260,7 +264,8 @@ class TimeVaryingPID:
     ) -> ControlOutput:
         """One period at time ``t`` [s] with measured position ``x_measured`` [m] and reference
         ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used; ÿr [m/s²] for the
-        feedforward's m·ÿr term)."""
+        feedforward's m·ÿr term).
+        """
         for name, value in (("t", t), ("x_measured", x_measured), ("yr", yr)):
             if not math.isfinite(value):
                 raise MeasurementError(
@@ -367,7 +372,8 @@ class TimeVaryingPID:
     def _integrate(self, t: float, x1: float, x2: float, dt: float) -> None:
         """x0 += x1·Δt (rectangle sum, §11.5). Conditional anti-windup (clamping) skips the
         increment when u, computed before it, already violates a limit and the increment would
-        push u further beyond it."""
+        push u further beyond it.
+        """
         cfg = self._config
         step = x1 * dt
         if cfg.compensation is _FEEDFORWARD:

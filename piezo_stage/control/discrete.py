@@ -54,7 +54,8 @@ def continuous_poles(
     plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
 ) -> NDArray[np.floating] | NDArray[np.complexfloating]:
     """Roots of m·s³ + (c + k2)·s² + (k + k1)·s + k0: the continuous loop of (11.13)-(11.15),
-    w frozen."""
+    w frozen.
+    """
     k = stiffness(plant, hysteresis)
     return np.roots([plant.m, plant.c + gains.k2, k + gains.k1, gains.k0])
 
@@ -63,7 +64,8 @@ def max_meaningful_rate(
     plant: NominalPlant, gains: Gains, hysteresis: str = "disturbance"
 ) -> float:
     """Highest loop rate [Hz] at which the sampled check resolves the slowest continuous mode:
-    |λ_min|·T ≥ ``MARGIN_RESOLUTION`` (beyond it ρ = 1 − |λ|T rounds to noise around 1)."""
+    |λ_min|·T ≥ ``MARGIN_RESOLUTION`` (beyond it ρ = 1 − |λ|T rounds to noise around 1).
+    """
     mags = np.abs(continuous_poles(plant, gains, hysteresis))
     mags = mags[mags > 0]
     return float(mags.min() / MARGIN_RESOLUTION) if mags.size else math.inf

@@ -62,7 +62,8 @@ def compensation(value: str | Compensation) -> Compensation:
 @dataclass(frozen=True)
 class FeedforwardModel:
     """The dynamic ch. 11 model used as feedforward: Bouc-Wen part (input x [m], output u [V])
-    and m [V s²/m], c [V s/m]; ``y0`` of the Bouc-Wen part is the displacement offset."""
+    and m [V s²/m], c [V s/m]; ``y0`` of the Bouc-Wen part is the displacement offset.
+    """
 
     bouc_wen: BoucWenParameters
     m: float
@@ -104,7 +105,9 @@ class FeedforwardModel:
         )
 
     def seed_w(self, x_measured: float, u_applied: float) -> float:
-        """w at rest under ``u_applied`` at displacement ``x_measured`` (11.1), within |w| < 1."""
+        """Hysteretic state w at rest under ``u_applied`` at displacement ``x_measured`` (11.1),
+        within |w| < 1.
+        """
         x = x_measured - self.bouc_wen.y0
         w = (
             u_applied - float(polynomial(self.bouc_wen.kappa, np.asarray(x)))

@@ -45,7 +45,8 @@ class Gains:
 
     def validate(self, mode: str = "pid") -> None:
         """Raise :class:`GainError` for non-finite or negative gains, or f <= 0 for the sine
-        laws."""
+        laws.
+        """
         check_law(mode)
         for key, value in asdict(self).items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -66,7 +67,8 @@ THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 
 def _num(value: ArrayLike) -> NDArray[np.float64] | float:
     """``value`` as is when a float or an array (a controller's per-sample scalars stay Python
-    floats: numpy costs microseconds per scalar operation), else as an array."""
+    floats: numpy costs microseconds per scalar operation), else as an array.
+    """
     return value if isinstance(value, (float, np.ndarray)) else np.asarray(value)
 
 
@@ -104,5 +106,7 @@ def x0_coefficient(mode: str, gains: Gains, t: float) -> float:
 def control_law(
     mode: str, gains: Gains, t: ArrayLike, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike
 ) -> NDArray[np.float64] | float:
-    """u of law ``mode`` (11.5, 11.17 or 11.18); t is the time since the loop was closed [s]."""
+    """Command u [V] of law ``mode`` (11.5, 11.17 or 11.18); t is the time since the loop was
+    closed [s].
+    """
     return pid_term(gains, x0, x1, x2) + excitation_term(mode, gains, t, x0)

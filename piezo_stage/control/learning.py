@@ -96,8 +96,9 @@ class LearningError(ControlError):
 
 
 def incremental_stiffness(model: FeedforwardModel) -> float:
-    """k = κx + κw·ρ/2 [V/m]: midway between the hysteresis loop's slopes κx (|w| → 1) and
-    κx + κw·ρ (at reversal, w = 0) of (11.1)-(11.3)."""
+    """Stiffness k = κx + κw·ρ/2 [V/m]: midway between the hysteresis loop's slopes κx (|w| → 1) and
+    κx + κw·ρ (at reversal, w = 0) of (11.1)-(11.3).
+    """
     bw = model.bouc_wen
     return float(bw.kappa_x + 0.5 * bw.kappa_w * bw.rho)
 
@@ -105,7 +106,8 @@ def incremental_stiffness(model: FeedforwardModel) -> float:
 def default_cutoff(model: FeedforwardModel | None, rate_hz: float) -> float:
     """Q's cutoff [Hz] when none is given: a quarter of the rate, and at most half the
     resonance sqrt(κx/m)/2π (near it the response's phase turns fast and the stiffness the
-    hysteresis adds moves the peak: the per-harmonic inverse is least sure there)."""
+    hysteresis adds moves the peak: the per-harmonic inverse is least sure there).
+    """
     return min(0.25 * rate_hz, 0.5 * resonance(model)) if model is not None else 0.25 * rate_hz
 
 
@@ -126,7 +128,8 @@ def feedforward_response(
 ) -> NDArray[np.complex128]:
     """G at the harmonics of an ``n``-sample period (module docstring): u_ff → x at the samples,
     through the ZOH, the amplifier, ``delay_samples`` (may be fractional) and, with ``gains``,
-    the closed loop of the PID law. Complex, one value per rfft bin."""
+    the closed loop of the PID law. Complex, one value per rfft bin.
+    """
     if not (math.isfinite(rate_hz) and rate_hz > 0) or n < 2:
         raise LearningError(f"need rate_hz > 0 and n >= 2, got {rate_hz}, {n}")
     T = 1.0 / rate_hz
@@ -163,7 +166,8 @@ class LearningConfig:
     (the loop still answers the change: its error is not the table's); the stop rule: learning
     ends after
     ``patience`` learned periods without the RMS error falling below ``1 − min_improvement``
-    times the best so far."""
+    times the best so far.
+    """
 
     gain: float = 0.5
     cutoff_hz: float | None = None
@@ -196,7 +200,8 @@ def limit(u: NDArray[np.float64], config: LearningConfig, rate_hz: float, period
     (one forward pass; clipping and this pass move a value towards its neighbour, never out
     of range); a periodic table whose step from its end back to its start still exceeds the
     cap is scaled about its mean by cap/step (scaling shrinks every step alike, clipping then
-    grows none)."""
+    grows none).
+    """
     out = np.clip(np.asarray(u, dtype=np.float64), config.u_min, config.u_max)
     if not math.isfinite(config.slew_rate):
         return out
@@ -214,7 +219,8 @@ def limit(u: NDArray[np.float64], config: LearningConfig, rate_hz: float, period
 class FeedforwardTable:
     """u_ff [V] at each sample of a period of ``len(u)`` samples at ``rate_hz``; ``periodic``
     False: one record (the last value holds after it). ``meta``: what it was made for
-    (trajectory, model, learning history), saved with it."""
+    (trajectory, model, learning history), saved with it.
+    """
 
     u: NDArray[np.float64]
     rate_hz: float
@@ -271,7 +277,8 @@ class FeedforwardTable:
 
 class IterativeLearning:
     """u_{j+1} = u_j + Q·L·e_j on ``table`` (module docstring), in place: call
-    :meth:`update` with each period's error; ``done`` once the stop rule holds."""
+    :meth:`update` with each period's error; ``done`` once the stop rule holds.
+    """
 
     def __init__(self, table: FeedforwardTable, response: NDArray[np.complex128],
                  config: LearningConfig = LearningConfig(),
@@ -299,7 +306,8 @@ class IterativeLearning:
 
     def update(self, error: Sequence[float] | NDArray[np.float64]) -> FeedforwardTable:
         """One period's error e = x − x_d [m] at the table's samples: learned from (the table
-        changes) unless it is a settling period or learning is done."""
+        changes) unless it is a settling period or learning is done.
+        """
         e = np.asarray(error, dtype=float)
         if e.shape != self.table.u.shape or not np.all(np.isfinite(e)):
             raise LearningError(f"need {len(self.table)} finite errors, got {e.shape}")
@@ -329,7 +337,8 @@ class PeriodicLearner:
     """Feeds :class:`IterativeLearning` from a running loop: :meth:`record` the error at each
     table index as the loop steps; a period ends when the index wraps. A period with a sample
     missing (a gap, the loop open) is not learned from. After ``periods`` periods, or once the
-    stop rule holds, the table is frozen and ``on_done(self)`` is called once."""
+    stop rule holds, the table is frozen and ``on_done(self)`` is called once.
+    """
 
     def __init__(self, learning: IterativeLearning, periods: int,
                  on_done: Callable[["PeriodicLearner"], None] | None = None) -> None:
@@ -367,7 +376,8 @@ class PeriodicLearner:
 def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[NDArray[np.float64], bool]:
     """(x_d at k/rate over one period, periodic): a periodic trajectory's period must be a whole
     number of samples (a table indexed modulo N would drift against it otherwise); a file's
-    record is taken whole, not periodic."""
+    record is taken whole, not periodic.
+    """
     periodic = isinstance(trajectory, PeriodicTrajectory)
     exact = trajectory.period * rate_hz
     n = int(round(exact))
@@ -383,7 +393,8 @@ def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[NDArray[
 class _ModelLoop:
     """The model run open loop by a command staircase, kept running from one period to the
     next: ZOH at ``rate_hz``, ``delay`` whole samples, an amplifier of ``bandwidth`` [Hz]
-    (first-order, applied over ``SUBSTEPS`` sub-steps of each period)."""
+    (first-order, applied over ``SUBSTEPS`` sub-steps of each period).
+    """
 
     SUBSTEPS = 8
 
@@ -398,7 +409,9 @@ class _ModelLoop:
             if math.isfinite(bandwidth) else 0.0
 
     def run(self, u: NDArray[np.float64]) -> NDArray[np.float64]:
-        """x at each sample of the staircase ``u`` (measured before that sample's command)."""
+        """Displacement x at each sample of the staircase ``u`` (measured before that sample's
+        command).
+        """
         x = np.empty(u.size)
         h, a = self.period / self.SUBSTEPS, self.decay
         for k, command in enumerate(u.tolist()):
@@ -432,7 +445,8 @@ def sampled_feedforward(
     ``rate_hz``, the delay rounded to whole samples, the amplifier's bandwidth) — its ringing
     and its hysteresis included. Periodic: the model runs on from period to period (two to
     settle, then one settling period after each change), so the table is the one of the
-    periodic steady state; a record: each iteration runs it once from rest."""
+    periodic steady state; a record: each iteration runs it once from rest.
+    """
     xd = np.asarray(x_d, dtype=float)
     n = xd.size
     T = 1.0 / rate_hz

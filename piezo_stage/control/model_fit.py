@@ -66,7 +66,8 @@ def rig_recordings(
     seed: int = 0,
 ) -> RigRecordings:
     """Record the identification runs on the simulated rig ``rig`` (its true file: the rig, not
-    the model); ``noise`` [m] is white sensor noise on the displacement."""
+    the model); ``noise`` [m] is white sensor noise on the displacement.
+    """
     if rig.dynamics is None:
         raise ModelFitError("the simulated rig needs the dynamic form (11.1)")
     dynamics = rig.dynamics
@@ -77,7 +78,8 @@ def rig_recordings(
         u: NDArray[np.float64], rate: float
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(x at each sample, u held over the interval ending there): what the plant node
-        publishes, from rest at u[0] (w = 0 there)."""
+        publishes, from rest at u[0] (w = 0 there).
+        """
         plant = DynamicPlant(bw, dynamics, x0=u[0] / bw.kappa_x)
         x = np.concatenate([[plant.output()], plant.simulate(u, 1.0 / rate)[0][:-1] + bw.y0])
         return x + noise * rng.standard_normal(u.size), np.concatenate([u[:1], u[:-1]])
@@ -156,7 +158,8 @@ def perturbed(ps: ParameterSet, factor: float, name: str | None = None) -> Param
 def perturbed_each(ps: ParameterSet, scale: float, seed: int = 0,
                    name: str | None = None) -> ParameterSet:
     """``ps`` with each of κ_i, κw, ρ, σ, n, m, c scaled by 1 ± ``scale``, the signs drawn from
-    ``seed`` (a model off its plant by that much per parameter); σ and n stay in class I."""
+    ``seed`` (a model off its plant by that much per parameter); σ and n stay in class I.
+    """
     signs = iter(np.random.default_rng(seed).choice([-1.0, 1.0], size=len(ps.bouc_wen.kappa) + 6))
 
     def f() -> float:

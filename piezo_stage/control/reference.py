@@ -22,7 +22,8 @@ from .errors import ControlError
 @dataclass(frozen=True)
 class SecondOrderReference:
     """yr(t), ẏr(t), ÿr(t) in closed form; ``t`` is measured from ``t_start`` (before it,
-    yr = y0)."""
+    yr = y0).
+    """
 
     y0: float
     ydot0: float = 0.0

@@ -24,7 +24,8 @@ class ReferenceSource(str, enum.Enum):
 
 class SetPoint:
     """yr(t) from ``source`` (see the module docstring); ``source`` and ``reference`` may change
-    between steps."""
+    between steps.
+    """
 
     def __init__(self, source: ReferenceSource, reference: float = 0.0, *,
                  trajectory: Trajectory | None = None, y0: float = 20e-6,

@@ -93,7 +93,8 @@ class SupervisionConfig:
 @dataclass(frozen=True)
 class GainCheck:
     """Theorem 4 (the Assumption 2 ``bounds``) and the sampled-loop check of ``plant`` at
-    ``rate_hz`` with ``delay_samples`` of output delay."""
+    ``rate_hz`` with ``delay_samples`` of output delay.
+    """
 
     bounds: Bounds
     plant: NominalPlant
@@ -121,7 +122,8 @@ Notify = Callable[[Health, str], None]
 
 class LoopSupervisor:
     """The decisions around ``pid`` (see the module docstring). ``notify(level, text)`` hears
-    each opening and closing (rare events: a node logs them)."""
+    each opening and closing (rare events: a node logs them).
+    """
 
     def __init__(self, pid: TimeVaryingPID, config: SupervisionConfig,
                  notify: Notify | None = None) -> None:
@@ -146,7 +148,8 @@ class LoopSupervisor:
     # ------------------------------------------------------------------ frames
     def command(self, out: ControlOutput) -> float:
         """The amplifier voltage of a law output: u_bias + u, within [u_min, u_max] also after
-        the rounding of the two frames."""
+        the rounding of the two frames.
+        """
         return self._volts(out.u)
 
     def _volts(self, u: float) -> float:
@@ -168,7 +171,8 @@ class LoopSupervisor:
     def sample(self, t: float, x: float, ok: bool) -> bool:
         """A sensor sample at ``t``: True when the loop may step on it. An invalid one opens the
         loop (or delays start_closed); a valid one after a gap longer than ``max_gap`` that no
-        :meth:`check_gap` saw opens it too."""
+        :meth:`check_gap` saw opens it too.
+        """
         if not ok or not math.isfinite(x):
             self.valid = False
             self.fail("invalid sensor sample", t)
@@ -189,7 +193,8 @@ class LoopSupervisor:
     def check_gap(self, t: float) -> Gap:
         """At a tick of the loop's clock (a timer, a read that timed out): NONE when a sample
         came since the last step; else hold (a gap once the newest sample is more than 1.5
-        periods old), and open the loop once it is more than ``max_gap`` old."""
+        periods old), and open the loop once it is more than ``max_gap`` old.
+        """
         if self.x_stamp is None:
             return Gap.NO_SAMPLE
         age = t - self.x_stamp
@@ -207,7 +212,8 @@ class LoopSupervisor:
 
     def fail(self, reason: str, t: float) -> None:
         """Open the loop holding the hold voltage; latch ``reason`` (or, before start_closed
-        closed the loop, wait for the next valid sample)."""
+        closed the loop, wait for the next valid sample).
+        """
         if self.pid.loop_closed:
             self.notify(Health.ERROR, f"opening the loop at t = {t:.6g} s: {reason}")
             self.pid.open_loop(self.hold_value())

@@ -63,7 +63,8 @@ def k0_max(bounds: Bounds, k1: float, k2: float) -> float:
 @dataclass(frozen=True)
 class GainReport:
     """Outcome of :func:`validate_gains`: Theorem 4 limits, the gains and why they fail (if they
-    do)."""
+    do).
+    """
 
     k1: float
     k2: float | None

@@ -108,7 +108,8 @@ def simulate_tracking(
     ``table``: u_ff from it (:mod:`.learning`) instead of the model stepped along x_d. With
     ``learn_periods`` N > 0 (a periodic trajectory and a table), the first N periods learn the
     table (:class:`~.learning.IterativeLearning`, in place), then ``duration`` more seconds run
-    with it frozen; the figures are over those, their first period left out."""
+    with it frozen; the figures are over those, their first period left out.
+    """
     if plant.dynamics is None:
         raise ControlError(f"plant {plant.name!r} needs the dynamic form (11.1)")
     x_start = float(trajectory.evaluate(0.0)[0])

@@ -129,7 +129,8 @@ class PeriodicTrajectory:
 
     def _blend_time(self) -> float:
         """The shortest blend ≥ rounding·P/2 within the limits (bisection: v and a fall as the
-        blend lengthens up to P/2 for the steps, and over the useful range for the triangle)."""
+        blend lengthens up to P/2 for the steps, and over the useful range for the triangle).
+        """
         if self.shape is Shape.SINE:
             return 0.0
         half = 0.5 * self.period

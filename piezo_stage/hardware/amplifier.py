@@ -180,7 +180,8 @@ def make_amplifier(
     pipeline: int = 0,
 ) -> Amplifier:
     """Build (not open) an amplifier of ``kind`` ("gcs" or "mdt69x") on the link at ``url``
-    (``pipeline``: outstanding ``ERR?`` replies a GCS controller may have)."""
+    (``pipeline``: outstanding ``ERR?`` replies a GCS controller may have).
+    """
     if kind not in AMPLIFIERS:
         raise ConfigError(f"unknown amplifier {kind!r}; choose from {sorted(AMPLIFIERS)}")
     cls, default_baud = AMPLIFIERS[kind]

@@ -22,7 +22,8 @@ _OK = 0  # Status.OK as a plain int: looked up once, not per block
 @dataclass(frozen=True)
 class Decimated:
     """Output samples of one block: value [m] (NaN unless OK), status, stamp [ns] (mean of the
-    group's), as Python lists (the loop steps on them one by one)."""
+    group's), as Python lists (the loop steps on them one by one).
+    """
 
     displacement: list[float]
     status: list[int]
@@ -31,7 +32,8 @@ class Decimated:
 
 class Decimator:
     """N samples -> one (see the module docstring); keeps an incomplete group for the next
-    block."""
+    block.
+    """
 
     def __init__(self, n: int) -> None:
         if n < 1:
@@ -48,7 +50,8 @@ class Decimator:
     def feed(self, displacement: Sequence[float], status: Sequence[int],
              stamps: Sequence[int]) -> Decimated:
         """Groups completed by the samples ``displacement`` (NaN unless OK), ``status`` taken
-        at ``stamps`` [ns]."""
+        at ``stamps`` [ns].
+        """
         if self.n == 1:  # every sample is a group
             return Decimated([x if st == _OK else math.nan for x, st in zip(displacement, status)],
                              list(status), list(stamps))

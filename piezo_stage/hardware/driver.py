@@ -176,7 +176,8 @@ class VoltageDriver:
 
     def _install(self, info: DeviceInfo, first: bool = True) -> None:
         """Take over an opened device: limits, and its read-back as the output now (ramps
-        continue from there). After a reconnect the target and the watchdog's state are kept."""
+        continue from there). After a reconnect the target and the watchdog's state are kept.
+        """
         configured = VoltageLimits(self.config.v_min, self.config.v_max)
         limits = configured.intersect(VoltageLimits(info.v_min, info.v_max))
         if not limits.contains(self.config.safe_voltage):
@@ -459,7 +460,8 @@ class VoltageDriver:
 
     def _write_step(self) -> float:
         """Write one step toward ``target``: at most max_step and slew_rate × (time since the
-        previous write); the clock is read just before the write. Returns the value sent."""
+        previous write); the clock is read just before the write. Returns the value sent.
+        """
         assert self.limits is not None
         now = self.clock()
         dt = max(now - self._t_sent, 0.0)

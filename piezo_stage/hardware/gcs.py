@@ -116,7 +116,8 @@ class GCSConnection(DeviceConnection):
 
     :meth:`command_pipelined` sends a setter with its ``ERR?`` without waiting for the reply:
     the replies are checked as they arrive (at the next setter, or before any query), at most
-    ``pipeline`` outstanding; a refusal is raised at most ``pipeline`` setters late."""
+    ``pipeline`` outstanding; a refusal is raised at most ``pipeline`` setters late.
+    """
 
     def __init__(self, transport: Transport, timeout: float = 1.0, pipeline: int = 0) -> None:
         super().__init__(transport, timeout)
@@ -167,7 +168,8 @@ class GCSConnection(DeviceConnection):
 
     def command(self, command: str) -> None:
         """Send a setter and verify it with ``ERR?`` (both lines in one write: one system call,
-        and the device gets the pair at once)."""
+        and the device gets the pair at once).
+        """
         self.settle()
         self.transport.write(command.encode("ascii") + b"\nERR?\n")
         code = _error_code(split_reply(self._replies.read_reply(
@@ -178,7 +180,8 @@ class GCSConnection(DeviceConnection):
     def command_pipelined(self, command: str) -> None:
         """Send a setter and its ``ERR?`` without waiting for the reply; then check the replies
         already there (GCSError for a refused setter, this one or an earlier one), waiting for
-        the oldest while more than ``pipeline`` are outstanding."""
+        the oldest while more than ``pipeline`` are outstanding.
+        """
         self.transport.write(command.encode("ascii") + b"\nERR?\n")
         self._pending.append(command)
         self._collect(wait=len(self._pending) > max(self.pipeline, 1))

@@ -352,7 +352,8 @@ class OptoNCDTParser:
     def gate(self, frames: NDArray[np.intp] | int) -> NDArray[np.floating] | float:
         """The speed gate: the largest change [m] an accepted value may show over ``frames``
         frames since the last accepted one (``max_speed`` × frames / rate + two digital
-        steps)."""
+        steps).
+        """
         return self.check.max_speed / self.check.rate * frames + self._quantum
 
     def reset(self) -> None:
@@ -483,7 +484,8 @@ class OptoNCDTParser:
     def _feed_frames(self, data: bytes) -> SampleBlock | None:
         """The common case of a stream in lock, decoded with Python ints (numpy costs more than
         the work for a few frames): ``data`` is whole well-formed frames and nothing else, as
-        :meth:`_frame_ends` would find them. None for anything else (the general path)."""
+        :meth:`_frame_ends` would find them. None for anything else (the general path).
+        """
         fmt = self.fmt
         width, mask = fmt.bytes_per_value, fmt.mask
         raws: list[int] = []

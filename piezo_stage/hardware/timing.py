@@ -92,7 +92,8 @@ class SampleClock:
 
     def stamps(self, t_ns: int, n: int) -> list[int]:
         """The stamps [ns] of ``n`` samples, the last of them received at ``t_ns`` (Python ints:
-        a loop that steps per sample takes them one by one)."""
+        a loop that steps per sample takes them one by one).
+        """
         if n <= 0:
             return []
         if self._base_ns is None:
@@ -173,7 +174,8 @@ class CommandPlayout:
 
     def push(self, stamp: float, voltage: float, received: float | None = None) -> None:
         """Queue ``voltage`` for ``stamp`` + delay; ``received`` (when it arrived, on the
-        caller's clock) is handed to ``apply`` with it."""
+        caller's clock) is handed to ``apply`` with it.
+        """
         now = self.clock()
         due = stamp + self.delay
         with self._cv:

@@ -129,7 +129,8 @@ class SerialTransport(Transport):
     def read(self, timeout: float) -> bytes:
         """What arrived, waiting up to ``timeout`` s for the first byte: one ``select`` and one
         ``read`` of the port's descriptor (pyserial opens it non-blocking; its own ``read``
-        reconfigures the port whenever the timeout changes and reads byte by byte first)."""
+        reconfigures the port whenever the timeout changes and reads byte by byte first).
+        """
         ser = self._port()
         try:
             fd = ser.fileno()
@@ -261,7 +262,8 @@ class ReplyBuffer:
 
     def poll(self, complete: Callable[[bytes], int]) -> bytes | None:
         """A complete reply if one is there after one read of what arrived (no waiting), else
-        None."""
+        None.
+        """
         if not self._buf or complete(bytes(self._buf)) < 0:
             self._buf += self.transport.read(0.0)
         end = complete(bytes(self._buf)) if self._buf else -1
@@ -295,7 +297,8 @@ class ReplyBuffer:
 
 class DeviceConnection:
     """Command/reply exchange with one device over any :class:`Transport`; the protocol
-    modules (:mod:`.gcs`, :mod:`.mdt69x`) add their commands and reply formats."""
+    modules (:mod:`.gcs`, :mod:`.mdt69x`) add their commands and reply formats.
+    """
 
     def __init__(self, transport: Transport, timeout: float = 1.0) -> None:
         self.transport = transport

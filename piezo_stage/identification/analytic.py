@@ -25,7 +25,8 @@ class DesignPoints:
     """Table 10.1. By default the points are placed as fractions of the loading branch:
     x*1 = x* + f1·(Xmax − x*) ("linear region"), x*2 = x* + f2·(Xmax − x*) ("close to the
     largest value"), x*3 = Xmin + f3·(x* − Xmin) ("close to the smallest value"). Absolute
-    values (in the model input x = input_sign·v) override the fractions."""
+    values (in the model input x = input_sign·v) override the fractions.
+    """
 
     f1: float = 0.6
     f2: float = 0.95
@@ -96,7 +97,8 @@ def theta(branch: Branch, kappa: NDArray[np.float64], y0: float) -> NDArray[np.f
 def find_x_star(x: NDArray[np.float64], th: NDArray[np.float64], noise: float = 0.0) -> float:
     """Rough zero of θ (Step 5): the sign change of the sampled θ, linearly interpolated
     (9.38-9.39); noisy θ is first smoothed (Savitzky-Golay over 5 % of the branch) and the
-    middle of the remaining sign changes taken."""
+    middle of the remaining sign changes taken.
+    """
     if noise > 0.0 and len(th) >= 20:
         th = savgol_filter(th, max(5, (len(th) // 20) | 1), 2)
     r = np.flatnonzero((th[:-1] <= 0.0) & (th[1:] > 0.0))
@@ -227,7 +229,8 @@ def theta_linearised(
     x: NDArray[np.float64], th: NDArray[np.float64], x_star: float, b: float, c: float, n: float
 ) -> NDArray[np.float64]:
     """θ(x) − ∫_{x*}^{x} g(θ) dx with g = −bθ^n for θ ≥ 0 (9.22) and c(−θ)^n for θ < 0
-    (9.19, c = (2σ−1)b): a straight line of slope a when b, c, n are right."""
+    (9.19, c = (2σ−1)b): a straight line of slope a when b, c, n are right.
+    """
     g = np.where(th >= 0.0, -b * np.abs(th) ** n, c * np.abs(th) ** n)
     integral = np.concatenate(([0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(x))))
     return th - (integral - np.interp(x_star, x, integral))

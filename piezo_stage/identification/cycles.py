@@ -50,7 +50,8 @@ class CycleOptions:
 class SteadyCycle:
     """One period of the steady state, averaged over ``periods`` periods, uniformly sampled
     from ``start_time`` (at the input minimum): ``input[j]``, ``output[j]`` at
-    ``start_time + j * period / len(input)``."""
+    ``start_time + j * period / len(input)``.
+    """
 
     period: float
     input: NDArray[np.float64]
@@ -83,7 +84,8 @@ class SteadyCycle:
 
 def upward_crossings(t: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
     """Times at which ``x`` rises through its mid level, with a Schmitt trigger of ±¼ span
-    against noise; each time comes from a line fitted to the samples inside the band."""
+    against noise; each time comes from a line fitted to the samples inside the band.
+    """
     lo, hi = np.percentile(x, [1.0, 99.0])
     mid, band = 0.5 * (lo + hi), 0.25 * (hi - lo)
     if band <= 0:
@@ -112,7 +114,8 @@ def estimate_period(
 
     With ``steady_periods`` = K only the last K + 1 crossings count: the periods before the ones
     used (the settling ones) may be disturbed without spoiling the run (a host that stalled
-    the amplifier's playout for a few tens of ms while the previous run was identified)."""
+    the amplifier's playout for a few tens of ms while the previous run was identified).
+    """
     crossings = upward_crossings(rec.t, rec.input)
     if options.steady_periods is not None and len(crossings) > options.steady_periods + 1:
         crossings = crossings[-(options.steady_periods + 1) :]
@@ -137,7 +140,8 @@ def _period_grid(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """Interpolate every whole period onto a common grid of M = round(T/dt) phases, from the
     first sample on. When T is within 2 % of a sample of a whole number of sampling intervals
-    it is taken as exactly that, so the grid falls on the samples (no interpolation error)."""
+    it is taken as exactly that, so the grid falls on the samples (no interpolation error).
+    """
     dt = float(np.median(np.diff(rec.t)))
     m = int(round(period / dt))
     if abs(period / dt - m) < 0.02 and np.allclose(np.diff(rec.t), dt, rtol=1e-6, atol=0.0):
@@ -161,7 +165,8 @@ def _steady_count(
     rec: Recording, X: NDArray[np.float64], Y: NDArray[np.float64], options: CycleOptions
 ) -> tuple[int, tuple[float, ...]]:
     """Number of trailing periods to average: those within the noise level of the last one
-    (the limit cycle is reached when ``min_steady_periods`` agree within the tolerances)."""
+    (the limit cycle is reached when ``min_steady_periods`` agree within the tolerances).
+    """
     n_periods = X.shape[0]
     # robust spread (1.4826·median|d|, the std for Gaussian noise): a transient or drift moves
     # every sample, while interpolating across a turning point between samples only spoils one
@@ -262,7 +267,8 @@ def extract_cycle(rec: Recording, options: CycleOptions = CycleOptions()) -> Ste
 def _extreme(v: NDArray[np.float64], sign: int) -> int:
     """Index of the cycle's maximum (sign=1) or minimum (-1): located on a smoothed copy
     (robust to noise), then on the samples within that smoothing width (a moving average
-    shifts the peak of an asymmetric T-wave)."""
+    shifts the peak of an asymmetric T-wave).
+    """
     i = int(np.argmax(sign * _rough_smooth(v)))
     k = max(1, len(v) // 100)
     idx = np.arange(i - k, i + k + 1) % len(v)
@@ -284,7 +290,8 @@ def _rough_smooth(v: NDArray[np.float64]) -> NDArray[np.float64]:
 @dataclass(frozen=True)
 class Branch:
     """A branch of the cycle in the model's input x = input_sign·v, sorted by increasing x.
-    ``loading`` means x increases with time (9.16-9.17)."""
+    ``loading`` means x increases with time (9.16-9.17).
+    """
 
     x: NDArray[np.float64]
     v: NDArray[np.float64]
@@ -299,7 +306,8 @@ class Branch:
 def smooth_input(cycle: SteadyCycle) -> NDArray[np.float64]:
     """The cycle's input with measurement noise removed branch by branch (cubic
     Savitzky-Golay in time: exact on triangles; untouched when the input is noise-free),
-    checked to be monotone on each branch (a T-wave, 9.1.1)."""
+    checked to be monotone on each branch (a T-wave, 9.1.1).
+    """
     v = cycle.input.copy()
     m, i_max = len(v), cycle.i_max
     span = cycle.input_span

@@ -35,7 +35,8 @@ def noise_std(y: NDArray[np.float64]) -> float:
 @dataclass(frozen=True)
 class LocalFit:
     """Value and slope at ``x0`` of a local polynomial fit, with their standard deviations
-    under white noise of the given level."""
+    under white noise of the given level.
+    """
 
     x0: float
     value: float
@@ -48,7 +49,8 @@ class LocalFit:
 
 def _window(x: NDArray[np.float64], x0: float, m: int) -> slice:
     """Contiguous index window of ``m`` samples of the sorted ``x`` centred on ``x0``
-    (one-sided near the ends)."""
+    (one-sided near the ends).
+    """
     c = int(np.searchsorted(x, x0))
     lo = max(0, c - m // 2)
     hi = min(len(x), lo + m)
@@ -59,7 +61,8 @@ def _window(x: NDArray[np.float64], x0: float, m: int) -> slice:
 def local_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, m: int, *, degree: int = 3,
               noise: float = 0.0) -> LocalFit:
     """Least-squares polynomial of ``degree`` through the ``m`` samples of sorted ``x`` nearest
-    ``x0``; returns its value and slope at ``x0``."""
+    ``x0``; returns its value and slope at ``x0``.
+    """
     w = _window(x, x0, m)
     xs, ys = x[w], y[w]
     half = float(max(xs[-1] - x0, x0 - xs[0], np.finfo(float).tiny))
@@ -105,7 +108,8 @@ def local_root(x: NDArray[np.float64], y: NDArray[np.float64], x_start: float, *
                slope_scale: float, rel_tol: float = 2e-4, degree: int = 3,
                iterations: int = 4) -> LocalFit:
     """Zero of the smoothed ``y(x)`` near ``x_start`` (Newton steps on local fits, 9.38-9.39's
-    'linear interpolation' made robust); the returned fit is centred on the zero."""
+    'linear interpolation' made robust); the returned fit is centred on the zero.
+    """
     x0 = float(x_start)
     tol = 1e-12 * (x[-1] - x[0])
     for _ in range(iterations + 1):

@@ -143,7 +143,8 @@ def _resample(
     t_src: NDArray[np.float64], x_src: NDArray[np.float64], t: NDArray[np.float64], hold: bool
 ) -> NDArray[np.float64]:
     """``x_src`` at times ``t`` (within its span): the value in force (zero-order hold) for a
-    held signal, else linear interpolation."""
+    held signal, else linear interpolation.
+    """
     if not hold:
         return np.interp(t, t_src, x_src)
     return x_src[np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(x_src) - 1)]
@@ -166,7 +167,8 @@ def _merge(
     exact; linear interpolation of a held staircase would make the input lead the stage by half a
     step (a 200 Hz staircase biased kappa_w, rho, sigma, n by 10-20 %). A displacement is sampled
     from a continuous signal: its own sample times are the time base when the other signal is
-    held (no interpolation of measurements at all); otherwise the denser series is."""
+    held (no interpolation of measurements at all); otherwise the denser series is.
+    """
     lo, hi = max(t_in[0], t_out[0]), min(t_in[-1], t_out[-1])
     if hi <= lo:
         raise DataFormatError(f"{name}: the input and output topics do not overlap in time")
@@ -200,7 +202,8 @@ def intervals_from_marks(
     """``(run, start, stop)`` [s] from ``(stamp, run[, steady])`` marks of the excitation topic:
     each run lasts from its first mark until the next run's first mark, or until its end mark
     (the first non-steady mark after a steady one: the excitation node's "plan done"), so that
-    what follows the last run (held input, a stage stepping on) is not part of it."""
+    what follows the last run (held input, a stage stepping on) is not part of it.
+    """
     intervals: list[tuple[int, float, float]] = []
     ended: dict[int, float] = {}  # interval index -> stamp of its end mark
     was_steady = False
@@ -231,7 +234,8 @@ def excitation_marks(
 ) -> list[tuple[float, int, bool]]:
     """``(stamp [s], run, steady)`` of every excitation message of a bag: the header stamps (as
     for the samples, and as the live ``identifier`` sees them; 0 is a valid stamp on a sim
-    clock starting at 0), or the log times when no message is stamped."""
+    clock starting at 0), or the log times when no message is stamped.
+    """
     from piezo_stage.bag.reader import read_messages
 
     marks, log_times = [], []
@@ -267,7 +271,8 @@ def recordings_from_series(
     dropped). Shared by :func:`load_bag` and the live ``identifier`` node, so that a bag replayed
     through the node gives the offline result. Output samples flagged invalid are refused. A
     series in volts (the applied ``voltage``) is resampled as held values, the other
-    interpolated."""
+    interpolated.
+    """
     t_in, v, _ = _sorted_series(np.asarray(t_in, float), np.asarray(v, float), None)
     t_out, y, status = _sorted_series(
         np.asarray(t_out, float),
@@ -310,7 +315,8 @@ def load_bag(
     excitation_topic: str = DEFAULT_EXCITATION_TOPIC,
 ) -> list[Recording]:
     """The runs of a bag: one per ``run`` value of the excitation topic (or one run when the
-    bag has no excitation topic). Output samples flagged invalid (status != OK) are refused."""
+    bag has no excitation topic). Output samples flagged invalid (status != OK) are refused.
+    """
     from piezo_stage.bag.reader import read_series, topic_types
 
     t_in, v, _ = read_series(path, input_topic)

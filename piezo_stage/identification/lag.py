@@ -32,7 +32,8 @@ RESOLUTION = 0.02
 class LagEstimate:
     """``samples``: the output's lag [samples] (median over ``corners`` corners); ``spread``:
     the corners' median absolute deviation from it [samples]; ``seconds`` with the run's
-    sample period."""
+    sample period.
+    """
 
     samples: float
     spread: float
@@ -44,7 +45,8 @@ def kink(y: NDArray[np.float64], lo: float, hi: float) -> float:
     """The location in [lo, hi] (index units) where two pieces fitted to ``y`` meet with least
     squared error: y ≈ c + s1·m + s2·p + c1·m² + c2·p², m = min(k − τ, 0), p = max(k − τ, 0)
     (the curvature terms take the output's bend after a reversal, which would otherwise pull
-    a straight-piece kink late)."""
+    a straight-piece kink late).
+    """
     k = np.arange(y.size, dtype=float)
     taus = np.arange(lo, hi + RESOLUTION / 2, RESOLUTION)
     best, best_tau = math.inf, float("nan")
@@ -75,7 +77,8 @@ def corners(x: NDArray[np.float64], min_gap: int) -> NDArray[np.int_]:
 
 def estimate_lag(rec: Recording) -> LagEstimate | None:
     """The output's lag behind the input (module docstring), or None when the run has no
-    corner far enough from its ends to fit (it is no T-wave run)."""
+    corner far enough from its ends to fit (it is no T-wave run).
+    """
     x, y = np.asarray(rec.input, dtype=float), np.asarray(rec.output, dtype=float)
     turns = corners(x, min_gap=8)
     if turns.size < 2:
@@ -133,7 +136,8 @@ def refine_lag(lag: LagEstimate, residual: Callable[[float], tuple[float, int]])
     an edge), the parabola through the least mean square S/N and its neighbours gives τ* and
     S/N ≈ σ² + a(τ − τ*)², whence var(τ*) = σ² / (N a), σ² the noise variance (the profile
     likelihood of a Gaussian error). Returned as ``samples`` = τ*, ``spread`` = its standard
-    error [samples]; ``lag`` itself when the residual has no minimum to find."""
+    error [samples]; ``lag`` itself when the residual has no minimum to find.
+    """
     dt = lag.seconds / lag.samples if lag.samples else math.nan
     seen: dict[float, tuple[float, int]] = {}
 
@@ -174,7 +178,8 @@ def shift_output(rec: Recording, seconds: float) -> Recording:
     linearly interpolated: the input is the clean, commanded signal; the noisy output is left
     as measured), the first samples, whose delayed input falls before the start, dropped. So
     the run's last period stays whole (the cycle extraction averages whole periods; the first
-    one settles anyway)."""
+    one settles anyway).
+    """
     t = np.asarray(rec.t, dtype=float)
     eps = 1e-12 * max(abs(t[0]), abs(t[-1]), 1.0)
     keep = t - seconds >= t[0] - eps if seconds >= 0 else t - seconds <= t[-1] + eps

@@ -79,7 +79,8 @@ def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
     """The analytic method (with its refinement), which assumes the output answers the input
     at once: on the runs with the lag the corners show taken off (refined to the model's least
     residual, :func:`~.lag.refine_lag`, its uncertainty added to the standard errors), with the
-    lag reported, and the fit's held-out check (:func:`analytic_holdout`)."""
+    lag reported, and the fit's held-out check (:func:`analytic_holdout`).
+    """
     lagging = lag is not None and abs(lag.samples) >= LAG_TOLERANCE
     slopes: dict[str, float] = {}
     if lagging:
@@ -116,7 +117,8 @@ def _refined_lag(runs: list[Recording], options: IdentifyOptions, lag: LagEstima
                  ) -> tuple[LagEstimate, dict[str, float]]:
     """The lag at the analytic model's least residual (:func:`~.lag.refine_lag`), and each
     hysteretic parameter's slope against it [per sample] (central difference over one standard
-    error of the lag, at least 0.02 sample)."""
+    error of the lag, at least 0.02 sample).
+    """
     dt = lag.seconds / lag.samples
 
     def identified(samples: float) -> tuple[list[Recording], IdentificationResult]:
@@ -163,7 +165,8 @@ def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: F
     """The fit's held-out check for the analytic method: identified from the first
     (1 − holdout) of both runs (whole periods of it), the model run over each whole run from
     w(0) of (10.18) at its start; the RMS of its error there (train) and on the rest (held
-    out). None when a run holds too few periods or the shorter runs cannot be identified."""
+    out). None when a run holds too few periods or the shorter runs cannot be identified.
+    """
     if not fit.holdout > 0 or any(count_periods(r) <= fit.min_holdout_periods for r in runs):
         return None
     cut = [int(round(len(r) * (1.0 - fit.holdout))) for r in runs]
@@ -193,7 +196,8 @@ AGREEMENT_FLOOR = 1e-3
 
 def disagreement(a: IdentificationResult, b: IdentificationResult) -> list[str]:
     """The hysteretic parameters on which ``a`` and ``b`` differ by more than DISAGREEMENT
-    combined standard errors and AGREEMENT_FLOOR of the value, as 'name a ± sa vs b ± sb'."""
+    combined standard errors and AGREEMENT_FLOOR of the value, as 'name a ± sa vs b ± sb'.
+    """
     sa, sb = a.diagnostics.get("std") or {}, b.diagnostics.get("std") or {}
     out = []
     for key in HYSTERETIC:
@@ -209,10 +213,11 @@ def disagreement(a: IdentificationResult, b: IdentificationResult) -> list[str]:
 def _cross_checked(analytic: IdentificationResult, runs: list[Recording],
                    options: IdentifyOptions, fit: FitOptions,
                    lag: LagEstimate | None) -> IdentificationResult:
-    """auto's analytic result held against the fit by simulation error from it (which also
+    """For auto: the analytic result held against the fit by simulation error from it (which also
     models a delay and a drift): the analytic result when they agree within their standard
     errors, else the one with the smaller residual, with a warning naming both (never one
-    confidently wrong)."""
+    confidently wrong).
+    """
     try:
         fitted = _fit(runs, options, fit, analytic, "", lag)
     except IdentificationError as exc:  # the fit cannot check it: say so, keep the analytic
@@ -297,7 +302,8 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
              analytic_problem: str = "", input_name: str = "voltage",
              output_name: str = "displacement") -> IdentificationResult:
     """The fit by simulation error with its held-out check, as an IdentificationResult
-    (refused with :class:`BadFitError` when the data do not support it)."""
+    (refused with :class:`BadFitError` when the data do not support it).
+    """
     figures: dict[str, float] = {}
     check = holdout_check(runs, fit, seeds)
     if check is not None:

@@ -29,7 +29,7 @@ class Orientation:
 def loop_gap(
     cycle: SteadyCycle, v_smooth: NDArray[np.float64], samples: int = 400
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """y on the v-rising branch minus y on the v-falling branch, on a grid inside the span."""
+    """Output y on the v-rising branch minus y on the v-falling one, on a grid inside the span."""
     i = cycle.i_max
     vr, yr = v_smooth[: i + 1], cycle.output[: i + 1]
     vf = np.concatenate((v_smooth[i:], v_smooth[:1]))[::-1]
@@ -57,7 +57,8 @@ def detect_orientation(
 ) -> Orientation:
     """Orientation of one cycle; raises :class:`OrientationError` when the loop has no
     detectable hysteresis (mean width below ``min_loop_width`` of the output span and below
-    the noise) or crosses itself (a figure-eight is not a Bouc-Wen loop)."""
+    the noise) or crosses itself (a figure-eight is not a Bouc-Wen loop).
+    """
     grid, gap = loop_gap(cycle, v_smooth)
     span = cycle.output_span
     gap_noise = float(np.sqrt(2.0) * cycle.noise_output)

@@ -173,7 +173,8 @@ def _analytic_parameters(kappa: NDArray[np.float64], y0: float, h: HystereticEst
 def check_fit(result: IdentificationResult, options: RefineOptions | FitOptions) -> None:
     """Reject a fit the data do not support: residual above both the noise allowance and the
     span allowance, or a hysteretic parameter with a large relative standard error (the limits
-    of either method's options; the figures from ``result.diagnostics``)."""
+    of either method's options; the figures from ``result.diagnostics``).
+    """
     d = result.diagnostics
     span, noise = d["output_span"], d["noise_output"]
     allowed = max(options.noise_factor * noise, options.max_rms_fraction * span)

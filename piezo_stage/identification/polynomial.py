@@ -60,7 +60,7 @@ class PolynomialFit:
 def offset_between(
     a: tuple[Branch, Branch], b: tuple[Branch, Branch], *, span_tolerance: float = 0.02
 ) -> float:
-    """q = offset of run B against run A in v (Step 2), after checking both spans agree."""
+    """Offset q of run B against run A in v (Step 2), after checking both spans agree."""
     va = np.concatenate((a[0].v, a[1].v))
     vb = np.concatenate((b[0].v, b[1].v))
     span_a, span_b = float(np.ptp(va)), float(np.ptp(vb))

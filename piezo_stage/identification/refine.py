@@ -48,7 +48,8 @@ class RefineOptions:
 class CyclePath:
     """A cycle laid out for simulation: the input path (in v) from the x minimum over one
     period, with the turning points reconstructed between samples, and the measured output
-    at the path positions that are real samples (except those at the turning points)."""
+    at the path positions that are real samples (except those at the turning points).
+    """
 
     v: NDArray[np.float64]
     sample_positions: NDArray[np.int_]
@@ -61,7 +62,8 @@ def _line_corner(x: NDArray[np.float64], i: int, m: int) -> tuple[float, float] 
     """Turning point near sample i as the intersection of lines fitted to the m samples on
     either side (exact for triangles); None when the lines do not meet within one sample of
     i, or overshoot x[i] by more than one sample's worth of slope (a smooth turning point,
-    e.g. a sine, where tangent lines meet above the curve)."""
+    e.g. a sine, where tangent lines meet above the curve).
+    """
     n = len(x)
     left = np.arange(i - m, i) % n
     right = np.arange(i + 1, i + m + 1) % n
@@ -138,13 +140,14 @@ def unpack(p: NDArray[np.float64], degree: int, input_sign: int) -> BoucWenParam
 
 
 def start_w(params: BoucWenParameters, path: CyclePath) -> float:
-    """w at the x minimum on the limit cycle: −ψ_{σ,n}(ρ(Xmax − Xmin)) (9.15)."""
+    """Hysteretic state w at the x minimum on the limit cycle: −ψ_{σ,n}(ρ(Xmax − Xmin)) (9.15)."""
     return limit_cycle_bounds(params.rho, params.sigma, params.n, path.x_min, path.x_max)[0]
 
 
 def residuals(params: BoucWenParameters, paths: list[CyclePath]) -> NDArray[np.float64]:
     """Model minus measured output on all samples of all cycles; a model that cannot be
-    simulated at these parameters raises :class:`RefinementError`."""
+    simulated at these parameters raises :class:`RefinementError`.
+    """
     out = []
     try:
         for path in paths:
@@ -194,7 +197,8 @@ def feasible_start(
     n_max: float = 50.0,
 ) -> BoucWenParameters:
     """Project an analytic estimate into class I (σ ≥ ½, 1 ≤ n ≤ n_max) to start the
-    refinement (κw, ρ > 0 are checked before)."""
+    refinement (κw, ρ > 0 are checked before).
+    """
     return BoucWenParameters(
         kappa=tuple(float(k) for k in kappa),
         kappa_w=float(kappa_w),
@@ -210,7 +214,8 @@ def strong_correlations(
     names: list[str], cov: NDArray[np.float64], limit: float
 ) -> tuple[tuple[str, str, float], ...]:
     """Parameter pairs whose correlation (from the covariance ``cov``) exceeds ``limit`` in
-    magnitude; κ_i with y0 left out (the polynomial's offset when the input is not centred)."""
+    magnitude; κ_i with y0 left out (the polynomial's offset when the input is not centred).
+    """
     d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     d[d == 0] = 1.0
     corr = cov / np.outer(d, d)
@@ -261,7 +266,8 @@ def refine(
 
     def jac(z: NDArray[np.float64]) -> NDArray[np.float64]:
         """Forward differences, backward where the forward point is out of bounds or cannot
-        be simulated."""
+        be simulated.
+        """
         f0 = cached(z)
         J = np.empty((len(f0), len(z)))
         for j in range(len(z)):

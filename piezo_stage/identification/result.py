@@ -73,7 +73,8 @@ class IdentificationResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON object of ``piezo-stage identify --json``: the message fields of the final
-        parameters, ``w0``, ``refined`` and ``analytic`` (same keys, before refinement)."""
+        parameters, ``w0``, ``refined`` and ``analytic`` (same keys, before refinement).
+        """
         out = parameters_dict(self.parameters, self.rms_error, self.samples)
         out["w0"] = float(self.w0)
         out["refined"] = bool(self.refined)

@@ -34,7 +34,8 @@ class Phase(str, Enum):
 class Poll:
     """What :meth:`RunTracker.poll` found: runs whose data has arrived (process them in this
     order), whether the streams are silent, and whether that silence is a failure to report
-    (fewer than two complete runs; said once per silence)."""
+    (fewer than two complete runs; said once per silence).
+    """
 
     ready: tuple[int, ...]
     silent: bool
@@ -53,7 +54,8 @@ class RunTracker:
     Silence is said from the second of quiet polls each at most ``confirm_within`` seconds
     after the one before: after a stall of the host the node's timer runs before it takes the
     messages that arrived meanwhile, so the first quiet poll may only mean that the node itself
-    was not running (seen: a run identified from 162 of its samples on a loaded host)."""
+    was not running (seen: a run identified from 162 of its samples on a loaded host).
+    """
 
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
     offsets: dict[int, float] = field(default_factory=dict)
@@ -68,7 +70,8 @@ class RunTracker:
 
     def mark(self, t: float, run: int, steady: bool, offset: float = 0.0) -> Phase | None:
         """Record an excitation mark at stamp ``t`` [s]; return its phase when it changes the
-        run's state (for the log), else None."""
+        run's state (for the log), else None.
+        """
         self.marks.append((t, run, steady))
         self.offsets[run] = offset
         previous, self._last = self._last, (run, steady)
@@ -99,7 +102,8 @@ class RunTracker:
         """``samples``: samples received so far (both streams); ``latest``: the stamp [s] both
         streams have reached (the smaller of their last stamps); ``now``: wall time [s];
         ``identified``: a result exists (silence is then no failure). Call it periodically
-        (every 0.1 s in the node): silence needs two quiet polls (see the class)."""
+        (every 0.1 s in the node): silence needs two quiet polls (see the class).
+        """
         if samples != self._count or self._changed_at is None:
             self._count, self._changed_at, self._reported = samples, now, False
         quiet = samples > 0 and now - self._changed_at > settle_time

@@ -222,7 +222,8 @@ def _optimum(problem: _Problem, seeds: Sequence[Seed], options: FitOptions,
              polish: bool = True) -> tuple[LeastSquaresResult, int]:
     """Best least-squares optimum over the seeds: seeds are ranked by their cost, the best
     ``options.starts`` get a first pass (on every k-th sample of long runs), the best of those
-    is polished on all samples to ``options.tolerance``."""
+    is polished on all samples to ``options.tolerance``.
+    """
     total = sum(problem.sizes)
     if len(seeds) == 1:
         res = _solve(problem, problem.theta(seeds[0]), options.max_nfev, options.tolerance)
@@ -266,7 +267,8 @@ def _uncertainty(problem: _Problem, th: NDArray[np.float64], c: NDArray[np.float
                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Standard errors and covariance (of the column-normalised problem: for correlations) of
     all parameters (linear ones, then θ in physical units) from the full Jacobian at the
-    optimum, scaled by the residual variance."""
+    optimum, scaled by the residual variance.
+    """
     lo, hi = problem.bounds()
     cols = []
     for j in range(len(th)):
@@ -308,7 +310,8 @@ def simulation_fit(runs: Sequence[Recording], options: FitOptions = FitOptions()
                    seeds: Sequence[Seed] = (), time_constant: Sequence[float] | None = None
                    ) -> SimulationFit:
     """Least-squares fit of (10.15) with w from (9.2) over the whole runs (no checks of
-    fit quality; see :func:`check_simulation_fit`)."""
+    fit quality; see :func:`check_simulation_fit`).
+    """
     if int(options.degree) != options.degree or options.degree < 1:
         raise IdentificationError(
             f"polynomial degree N must be an integer >= 1, got {options.degree!r}")
@@ -368,7 +371,8 @@ def predict(fit: SimulationFit, runs: Sequence[Recording]) -> list[NDArray[np.fl
 def holdout_check(runs: Sequence[Recording], options: FitOptions, seeds: Sequence[Seed] = ()
                   ) -> tuple[SimulationFit, dict[str, float]] | None:
     """Fit on the first (1 − holdout) of every run, predict the rest: (fit, figures), or
-    None when a run holds too few periods (or holdout is 0)."""
+    None when a run holds too few periods (or holdout is 0).
+    """
     if not options.holdout > 0 or any(count_periods(r) <= options.min_holdout_periods
                                       for r in runs):
         return None

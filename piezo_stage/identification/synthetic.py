@@ -20,7 +20,7 @@ from .recording import Recording
 
 
 def limit_cycle_start(params: BoucWenParameters, low: float, high: float) -> float:
-    """w on the limit cycle when the triangle is at its ``low`` end (9.13-9.15)."""
+    """Hysteretic state w on the limit cycle when the triangle is at its ``low`` end (9.13-9.15)."""
     x_lo, x_hi = sorted((params.input_sign * low, params.input_sign * high))
     w_load, w_unload = limit_cycle(params.rho, params.sigma, params.n, x_lo, x_hi,
                                    np.array([x_lo, x_hi]))
@@ -35,7 +35,8 @@ def triangle_run(params: BoucWenParameters, low: float, high: float, *, period: 
     """One run: a triangle between ``low`` and ``high`` (rising first), sampled with
     ``samples_per_branch`` samples per rise, for ``periods`` periods, starting ``phase``
     periods into the wave. ``noise``/``input_noise`` are white-noise standard deviations as
-    fractions of the output/input span. ``w0`` defaults to the limit-cycle state."""
+    fractions of the output/input span. ``w0`` defaults to the limit-cycle state.
+    """
     m = 2 * samples_per_branch
     k0 = int(round(phase * m))
     n = int(round(periods * m)) + 1

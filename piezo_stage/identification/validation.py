@@ -62,7 +62,8 @@ def validate_model(
     drift: Drift | None = None,
 ) -> ValidationResult:
     """Simulate (10.15) on ``rec.input`` delayed by ``delay`` [s] (held before the start),
-    plus ``drift`` from the record's start; w(0) from (10.18) unless given."""
+    plus ``drift`` from the record's start; w(0) from (10.18) unless given.
+    """
     check_recording(rec)
     v = rec.input if delay == 0.0 else np.interp(rec.t - delay, rec.t, rec.input)
     offset = np.zeros(len(rec)) if drift is None else drift.evaluate(rec.t - rec.t[0])

@@ -81,7 +81,8 @@ def _newton_step(
 ) -> tuple[float, float, float, bool]:
     """One safeguarded Newton step for an increasing f with f(x) = ``f``, f'(x) = ``df`` and the
     root in [lo, hi]: narrows the bracket, bisects when Newton leaves it. Returns
-    (x_new, lo, hi, converged)."""
+    (x_new, lo, hi, converged).
+    """
     if f > 0.0:
         hi = x
     else:
@@ -98,7 +99,7 @@ def _newton_step(
 
 @njit
 def _t_solve(tab: Array, y: float, with_e: bool) -> float:
-    """t >= 0 with t/n + H(a) (+ E(a)) = y, a = 1 - exp(-t): safeguarded Newton.
+    """Solve t/n + H(a) (+ E(a)) = y for t >= 0, a = 1 - exp(-t): safeguarded Newton.
 
     Inverts P (phi+ for w >= 0) or, with ``with_e``, P + E (phi of (9.5) for w >= 0).
     """
@@ -138,7 +139,7 @@ def _t_solve(tab: Array, y: float, with_e: bool) -> float:
 
 @njit
 def _e_solve(tab: Array, y: float, with_p: bool) -> float:
-    """a in [0, 1] with E(a) (+ P(a)) = y, for the w <= 0 side: safeguarded Newton."""
+    """Solve E(a) (+ P(a)) = y for a in [0, 1], for the w <= 0 side: safeguarded Newton."""
     n: float = tab[0]
     c: float = tab[1]
     if y <= 0.0:
@@ -217,7 +218,8 @@ def psi_total_k(tab: Array, y: float) -> float:
 
 @njit
 def walk(tab: Array, rho: float, x: Array, w0: float, out: Array) -> None:
-    """w at every sample of the path x (linear between samples), exact on monotone pieces.
+    """Write w at every sample of the path x (linear between samples) into ``out``, exact on
+    monotone pieces.
 
     A monotone piece starting at (x_a, w_a) in direction s = +-1 gives
     w(x) = s * psi+(phi+(s w_a) + rho |x - x_a|) ((9.3)-(9.4) with phi-(w) = -phi+(-w)).

@@ -64,7 +64,8 @@ def _fit_pieces(
     """Bisect the pieces of ``breaks`` until each fit's tail is below tolerance (batched).
 
     ``abs_tol`` is the absolute floor of the tail: a function computed as a small difference
-    of O(1) terms carries rounding noise of that size, which no bisection removes."""
+    of O(1) terms carries rounding noise of that size, which no bisection removes.
+    """
     domain = breaks[-1] - breaks[0]
     nodes = _points(degree)
     matrix = _coefficient_matrix(degree)

@@ -25,7 +25,7 @@ except ImportError:  # pragma: no cover
 
 
 def _compile(func: _F, inline: bool, nrt: bool) -> _F:
-    """numba's dispatcher for ``func`` (see :func:`njit`), or ``func`` itself without numba."""
+    """The numba dispatcher for ``func`` (see :func:`njit`), or ``func`` itself without numba."""
     if not HAVE_NUMBA:  # pragma: no cover
         # give the plain function ``py_func`` like a numba dispatcher
         func.py_func = func  # type: ignore[attr-defined]  # an attribute set on a function object

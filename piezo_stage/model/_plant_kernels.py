@@ -144,7 +144,8 @@ def _lu_solve(a: Array, b: Array, size: int) -> None:
 @njit(inline=True)
 def _exp_parts(a: float, b: float, t: float) -> tuple[float, float, float]:
     """(cos(beta t), sin(beta t)/beta, exp(-b t/2)), beta^2 = a - b^2/4 (cosh/sinh if negative):
-    the three numbers exp(L t) is built from, L = [[0, 1], [-a, -b]]."""
+    the three numbers exp(L t) is built from, L = [[0, 1], [-a, -b]].
+    """
     al = 0.5 * b
     beta2 = a - al * al
     if beta2 > 0.0:
@@ -191,7 +192,8 @@ def exp_plan(points: Array) -> tuple[Array, IntArray, IntArray]:
     fraction already there, else directly. Lobatto nodes with the check point between the last
     two (q = 4: 0.276, 0.724, 1, 0.862) need two evaluations instead of four. Returns
     (fractions, ops[i] = (kind, j, k): direct, double of fraction j, or fraction j minus
-    fraction k; index, fractions[index[p]] = points[p])."""
+    fraction k; index, fractions[index[p]] = points[p]).
+    """
     fractions: list[float] = [1.0]  # 1.0 first: the other fractions may refer to it
     ops: list[tuple[int, int, int]] = [(_DIRECT, 0, 0)]
 
@@ -540,7 +542,9 @@ def _branch_derivatives(
 
 @njit(inline=True)
 def _monomial_forcing(vinv: Array, F: Array, pcoef: Array) -> None:
-    """pcoef = coefficients beta_k of the forcing interpolant sum_k beta_k xi^k (nodal values F)."""
+    """Write into ``pcoef`` the coefficients beta_k of the forcing interpolant sum_k beta_k xi^k
+    (nodal values F).
+    """
     q = vinv.shape[0]
     for k in range(q):
         beta = 0.0
@@ -552,7 +556,8 @@ def _monomial_forcing(vinv: Array, F: Array, pcoef: Array) -> None:
 @njit(inline=True)
 def _particular(a: float, b: float, m: float, inv_tau: float, pcoef: Array) -> None:
     """In place: forcing coefficients beta_k -> those of the polynomial particular solution P(xi)
-    of m x'' + c x' + k x = sum beta_k xi^k (a = k/m, b = c/m, xi = t/tau), from the top degree."""
+    of m x'' + c x' + k x = sum beta_k xi^k (a = k/m, b = c/m, xi = t/tau), from the top degree.
+    """
     q = pcoef.size
     inv_a = 1.0 / a
     for k in range(q - 1, -1, -1):
@@ -585,7 +590,8 @@ def _states_at_points(
     particular solution (pcoef, in xi = t/tau) plus exp(L t) applied to the start offset.
     Short pieces (|L| tau <= _SERIES_LIMIT, where that cancels): the Taylor series of x in
     xi, y_n = x^(n)(0) tau^n / n!, from the recursion of m x'' + c x' + k x = sum beta_n xi^n:
-    y_{n+2} = (beta_n - c/tau (n+1) y_{n+1} - k y_n) tau^2 / (m (n+1)(n+2)), k = a m, c = b m."""
+    y_{n+2} = (beta_n - c/tau (n+1) y_{n+1} - k y_n) tau^2 / (m (n+1)(n+2)), k = a m, c = b m.
+    """
     vpow, dpow, ys = plan[4], plan[5], plan[7]
     q = vinv.shape[0]
     inv_tau = 1.0 / tau
@@ -837,7 +843,8 @@ def workspace(nodes: Array, checks: Array) -> Workspace:
     (points, Ez, Gz, pcoef, tmp, invfact, F, zs, wst, Dn, dwdx, res, jac, plan), plan the
     :func:`exp_plan` of the points, its work array of parts, the tables xi_p^k and
     k xi_p^(k-1), a q x q work array (:func:`_piece_matrices`) and the Taylor coefficients of
-    :func:`_states_at_points`."""
+    :func:`_states_at_points`.
+    """
     q = nodes.size
     npts = q - 1 + checks.size
     points: Array = np.concatenate([nodes[1:], checks])

@@ -178,7 +178,7 @@ def _as_path(x: NDArray[np.float64], name: str = "x") -> NDArray[np.float64]:
 def simulate_w(
     x: NDArray[np.float64], rho: float, sigma: float, n: float, w0: float = 0.0
 ) -> NDArray[np.float64]:
-    """w at every sample of the input path ``x`` for (9.2) with w(x[0]) = w0.
+    """Hysteretic state w at every sample of the input path ``x`` for (9.2) with w(x[0]) = w0.
 
     Rate independent: only the sequence of values matters. The path is taken linear between
     samples (reversals happen at samples), and every monotone piece is solved exactly:
@@ -206,7 +206,9 @@ def polynomial(kappa: tuple[float, ...], v: NDArray[np.float64]) -> NDArray[np.f
 def model_output(
     params: BoucWenParameters, v: NDArray[np.float64], w0: float = 0.0
 ) -> NDArray[np.float64]:
-    """y = sum_i kappa_i v^i + kappa_w w + y0 (10.15), w from (9.2) driven by input_sign * v."""
+    """Output y = sum_i kappa_i v^i + kappa_w w + y0 (10.15), w from (9.2) driven by
+    input_sign * v.
+    """
     params.validate()
     v = _as_path(v, "v")
     w = simulate_w(params.input_sign * v, params.rho, params.sigma, params.n, w0)

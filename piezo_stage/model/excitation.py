@@ -165,7 +165,8 @@ class ExcitationPlan:
 
 def _random_table(seed: int, period: float, bandwidth: float) -> RandomTable:
     """Frequencies (harmonics of 1/period up to bandwidth), random phases, equal weights, and
-    the min/span of the sum over one period (so the shape is periodic and lies in [0, 1])."""
+    the min/span of the sum over one period (so the shape is periodic and lies in [0, 1]).
+    """
     rng = np.random.default_rng(seed)
     freqs = np.arange(1, int(bandwidth * period) + 1) / period
     phases = rng.uniform(0, 2 * np.pi, freqs.size)

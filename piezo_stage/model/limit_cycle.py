@@ -67,7 +67,7 @@ def psi_minus(y: Array, sigma: float, n: float) -> Array:
 
 
 def psi(y: Array, sigma: float, n: float) -> Array:
-    """psi = inverse of phi (9.5) on the whole real line, values in (-1, 1)."""
+    """Inverse psi of phi (9.5) on the whole real line, values in (-1, 1)."""
     return _apply("psi", sigma, n, y)
 
 

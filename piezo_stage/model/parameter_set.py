@@ -129,7 +129,7 @@ class Drift:
 def drift_basis(
     kind: DriftKind, t: NDArray[np.float64], time_constant: float
 ) -> NDArray[np.float64]:
-    """t / τ (linear) or ln(1 + t/τ) (log), t >= 0 from the start of the recording."""
+    """Drift shape t / τ (linear) or ln(1 + t/τ) (log), t >= 0 from the start of the recording."""
     s = np.maximum(t, 0.0) / time_constant
     return s if kind is DriftKind.LINEAR else np.log1p(s)
 

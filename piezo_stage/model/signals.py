@@ -70,7 +70,7 @@ def t_wave_pair(
 def sine(
     t: Array, frequency: float, amplitude: float, offset: float = 0.0, phase: float = 0.0
 ) -> Array:
-    """offset + amplitude * sin(2 pi f t + phase) (the dither of (11.17)-(11.18))."""
+    """Sine offset + amplitude * sin(2 pi f t + phase) (the dither of (11.17)-(11.18))."""
     check_period(frequency, "frequency")
     return offset + amplitude * np.sin(2.0 * np.pi * frequency * np.asarray(t, dtype=float) + phase)
 

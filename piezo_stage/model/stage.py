@@ -81,7 +81,7 @@ class AmplifierModel:
         self.reset(initial_voltage)
 
     def clamp(self, value: float) -> float:
-        """value limited to [v_min, v_max]."""
+        """Clamp ``value`` to [v_min, v_max]."""
         return min(self.v_max, max(self.v_min, value))
 
     def reset(self, voltage: float = 0.0) -> None:
@@ -137,7 +137,8 @@ class SensorModel:
     @classmethod
     def laser(cls, midpoint: float = 0.0, noise_std: float = 0.0, seed: int = 0) -> "SensorModel":
         """The thesis laser (optoNCDT 1607-500): 500 um range centred on ``midpoint``, 0.1 um
-        steps."""
+        steps.
+        """
         half = 0.5 * LASER_RANGE
         return cls(
             noise_std=noise_std,
@@ -221,7 +222,8 @@ class SimulatedStage:
     ) -> NDArray[np.float64]:
         """:meth:`step` for each of ``commands`` in turn; rows (applied, reading, status) after
         steps every-1, 2 every-1, ... (one integrator call when the amplifier is ideal and the
-        plant dynamic: the rig emulator's substeps)."""
+        plant dynamic: the rig emulator's substeps).
+        """
         commands = np.asarray(commands, dtype=float)
         ideal = self.amplifier.bandwidth_hz == 0.0 and self.amplifier.slew_rate == 0.0
         out = np.empty((commands.size // every, 3))

@@ -1,5 +1,6 @@
 """A fixed grid of timer instants that a late timer callback catches up on (the plant's and the
-excitation's timers: no gap in the stamps after a stalled process)."""
+excitation's timers: no gap in the stamps after a stalled process).
+"""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ class TickGrid:
     tick gets every instant it missed (each to be handled with its own stamp), so a stalled
     process leaves no gap in the stamps. After a stall longer than ``max_backlog`` instants the
     older ones are skipped (counted in ``dropped``) and the grid resumes at the latest one.
-    The first call starts the grid at its ``now_ns``."""
+    The first call starts the grid at its ``now_ns``.
+    """
 
     def __init__(self, period_ns: int, max_backlog: int) -> None:
         if period_ns <= 0 or max_backlog < 1:

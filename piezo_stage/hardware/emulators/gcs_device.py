@@ -101,7 +101,8 @@ class GCSDeviceModel:
 
     def execute(self, line: str, now: float | None = None) -> bytes:
         """Run one command line (arrived at server time ``now``); returns the reply bytes (b""
-        for setters and refused queries)."""
+        for setters and refused queries).
+        """
         parts = line.split()
         if not parts:
             return b""

@@ -79,7 +79,8 @@ class OptoNCDTDeviceModel:
         """Server time at which the next sample is due (None before the first): the server wakes
         then, so each frame leaves when its sample is taken, as from a real sensor, and not up to
         a stream period later (a lag the reader's sample clock cannot see, since it only removes
-        the jitter above the smallest delay)."""
+        the jitter above the smallest delay).
+        """
         with self.lock:
             if self._t0 is None:
                 return None

@@ -99,7 +99,8 @@ class Faults:
 
     def inject(self, data: bytes, now: float) -> tuple[bytes, bool]:
         """The bytes that leave the device for ``data`` at ``now``, and whether the link is hung
-        up after them."""
+        up after them.
+        """
         if not data or self.muted(now):
             return b"", False
         if self.stall and self.rng.random() < self.stall:
@@ -144,7 +145,8 @@ class _Channel:
 
     def recv(self) -> tuple[bytes, float]:
         """(data, arrival time in ``time.monotonic`` seconds): the kernel's receive stamp of a TCP
-        segment when there is one, else the time of this read."""
+        segment when there is one, else the time of this read.
+        """
         if self.sock is None:
             return os.read(self.fd, 65536), time.monotonic()
         data, ancillary, _, _ = self.sock.recvmsg(65536, socket.CMSG_SPACE(_TIMESPEC.size))

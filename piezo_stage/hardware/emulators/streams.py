@@ -41,7 +41,8 @@ def damage(
 ) -> tuple[NDArray[np.uint8], NDArray[np.intp]]:
     """Damage a stream: one byte of every frame lost (``lose_one``) or replaced (``replace_one``),
     bytes replaced/lost with probability ``corrupt``/``drop``, and before a frame with probability
-    ``garbage`` a burst of 1-32 random bytes inserted."""
+    ``garbage`` a burst of 1-32 random bytes inserted.
+    """
     data, origin = data.copy(), origin.copy()
     n_frames = data.size // width
     pick = np.arange(n_frames) * width + rng.integers(0, width, n_frames)
