@@ -31,6 +31,7 @@ class TopicRecord:
     serialization_format: str = "cdr"
 
     def to_dict(self) -> dict[str, Any]:
+        """The ``topics_with_message_count`` entry, keys in rosbag2's order."""
         return {
             "topic_metadata": {
                 "name": self.name,
@@ -54,6 +55,7 @@ class FileRecord:
 
     @property
     def duration_ns(self) -> int:
+        """Time from the first to the last message [ns]; 0 for an empty file."""
         return max(0, self.end_time_ns - self.starting_time_ns) if self.message_count else 0
 
     def add(self, first_ns: int, last_ns: int, count: int) -> None:
@@ -68,6 +70,7 @@ class FileRecord:
         self.message_count += count
 
     def to_dict(self) -> dict[str, Any]:
+        """The ``files`` entry, keys in rosbag2's order."""
         return {
             "path": self.path,
             "starting_time": {"nanoseconds_since_epoch": self.starting_time_ns},
@@ -90,20 +93,24 @@ class BagMetadata:
 
     @property
     def message_count(self) -> int:
+        """Messages in all files."""
         return sum(f.message_count for f in self.files)
 
     @property
     def starting_time_ns(self) -> int:
+        """Receive time of the first message [ns] over all files; 0 for an empty bag."""
         starts = [f.starting_time_ns for f in self.files if f.message_count]
         return min(starts) if starts else 0
 
     @property
     def end_time_ns(self) -> int:
+        """Receive time of the last message [ns] over all files; 0 for an empty bag."""
         ends = [f.end_time_ns for f in self.files if f.message_count]
         return max(ends) if ends else 0
 
     @property
     def duration_ns(self) -> int:
+        """Time from the first to the last message of the bag [ns]."""
         return max(0, self.end_time_ns - self.starting_time_ns)
 
     def to_dict(self) -> dict[str, Any]:

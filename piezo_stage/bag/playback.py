@@ -40,6 +40,7 @@ class PlaybackClock:
             self.resume(time.monotonic())
 
     def now(self, wall: float) -> int:
+        """Bag time [ns] at wall time ``wall``; while paused, the bag time it was paused at."""
         if self._wall is None:
             return self._bag_ns
         return self._bag_ns + int((wall - self._wall) * self.rate * 1e9)
@@ -51,9 +52,11 @@ class PlaybackClock:
         return self._wall + (bag_ns - self._bag_ns) / (self.rate * 1e9)
 
     def pause(self, wall: float) -> None:
+        """Freeze the bag time at its value at ``wall`` (no-op while paused)."""
         if not self.paused:
             self._bag_ns, self._wall, self.paused = self.now(wall), None, True
 
     def resume(self, wall: float) -> None:
+        """Let the bag time advance again from ``wall`` on (no-op while running)."""
         if self.paused:
             self._wall, self.paused = wall, False

@@ -65,6 +65,7 @@ class Scan:
 
     @property
     def truncated_bytes(self) -> int:
+        """Bytes after the last complete top-level record."""
         return self.size - self.complete_end
 
 
@@ -171,6 +172,7 @@ class Damage:
 
     @property
     def lost(self) -> int | None:
+        """Messages the summary's statistics count but the walk did not read; None without them."""
         if self.messages_expected is None:
             return None
         return max(0, self.messages_expected - self.messages_read)

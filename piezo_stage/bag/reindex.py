@@ -55,6 +55,7 @@ class ReindexReport:
 
     @property
     def message_count(self) -> int:
+        """Messages in all files of the bag after reindexing."""
         return sum(f.message_count for f in self.files)
 
     def __str__(self) -> str:
@@ -75,6 +76,7 @@ class ReindexReport:
 
     @property
     def damaged(self) -> bool:
+        """Whether any file had CRC or record errors."""
         return any(f.damage for f in self.files)
 
 

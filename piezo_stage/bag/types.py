@@ -216,10 +216,12 @@ class Stamp(Protocol):
     """A ``builtin_interfaces`` Time or Duration (rosbags' or rclpy's message)."""
 
     @property
-    def sec(self) -> int: ...
+    def sec(self) -> int:
+        """Whole seconds."""
 
     @property
-    def nanosec(self) -> int: ...
+    def nanosec(self) -> int:
+        """Nanoseconds past ``sec``."""
 
 
 def stamp_seconds(stamp: Stamp) -> float:

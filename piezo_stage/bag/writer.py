@@ -220,6 +220,7 @@ class BagWriter:
 
     @property
     def closed(self) -> bool:
+        """Whether :meth:`close` has finished the bag."""
         return self._closed
 
     @property

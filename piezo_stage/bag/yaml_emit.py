@@ -1,7 +1,7 @@
-"""A small YAML emitter that writes the block style of yaml-cpp, the emitter rosbag2 uses.
+r"""A small YAML emitter that writes the block style of yaml-cpp, the emitter rosbag2 uses.
 
 Only what bag metadata needs: mappings, sequences, str/int/bool/None scalars. Sequences in a
-mapping are indented two spaces under their key (``key:\\n  - item``), empty containers are
+mapping are indented two spaces under their key (``key:\n  - item``), empty containers are
 written ``[]`` / ``{}``, None is ``~`` and strings are double-quoted only when a plain scalar
 would be read back as something else.
 """
