@@ -114,6 +114,7 @@ class Bounds:
         return _from_mapping(cls, "bounds", data)
 
     def to_dict(self) -> dict[str, float]:
+        """The fields as a mapping, the form :meth:`from_dict` reads."""
         return asdict(self)
 
     def replace(self, **overrides: float | None) -> "Bounds":
@@ -138,6 +139,7 @@ class NominalPlant:
     rho: float = 0.0
 
     def validate(self) -> None:
+        """Raise :class:`BoundsError` unless the values are finite, m > 0 and the others >= 0."""
         _check_finite("nominal", asdict(self))
         if self.m <= 0:
             raise BoundsError(f"nominal.m must be > 0, got {self.m}")
@@ -147,12 +149,15 @@ class NominalPlant:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "NominalPlant":
+        """Build and validate from a mapping of the field names (``kappa_w``, ``rho`` optional)."""
         return _from_mapping(cls, "nominal", data)
 
     def to_dict(self) -> dict[str, float]:
+        """The fields as a mapping, the form :meth:`from_dict` reads."""
         return asdict(self)
 
     def replace(self, **overrides: float | None) -> "NominalPlant":
+        """Copy with the non-None ``overrides`` applied, validated."""
         data = self.to_dict()
         data.update({k: v for k, v in overrides.items() if v is not None})
         return NominalPlant.from_dict(data)

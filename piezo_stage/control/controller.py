@@ -127,6 +127,7 @@ class ControllerConfig:
         return math.sqrt(self.gains.k2 / self.gains.k0)  # Ti·Td = (k1/k0)·(k2/k1)
 
     def clamp(self, u: float) -> float:
+        """Clamp ``u`` to [u_min, u_max], the amplifier limits."""
         return min(max(u, self.u_min), self.u_max)
 
 
@@ -196,14 +197,17 @@ class TimeVaryingPID:
 
     @property
     def config(self) -> ControllerConfig:
+        """The configuration in use (see :meth:`reconfigure`)."""
         return self._config
 
     @property
     def loop_closed(self) -> bool:
+        """Whether the loop is closed or closes at the next sample (:meth:`close_loop`)."""
         return self._closed or self._pending_close
 
     @property
     def x0(self) -> float:
+        """The integral x0 = ∫ x1 dt (11.4) [m s]."""
         return self._x0
 
     @property
@@ -213,6 +217,7 @@ class TimeVaryingPID:
 
     @property
     def last_output(self) -> ControlOutput | None:
+        """The last :class:`ControlOutput`; None before the first update."""
         return self._last
 
     def reconfigure(self, config: ControllerConfig) -> None:

@@ -126,6 +126,7 @@ class SampledLoopReport:
     continuous_stable: bool
 
     def to_dict(self) -> dict[str, object]:
+        """The fields as a mapping."""
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 

@@ -84,6 +84,7 @@ class FeedforwardModel:
 
     @classmethod
     def from_parameter_set(cls, ps: ParameterSet) -> "FeedforwardModel":
+        """The model of a dynamic parameter set (m and c of (11.1)); refused for a static one."""
         if ps.form != "dynamic" or ps.dynamics is None:
             raise FeedforwardError(
                 f"parameter set {ps.name!r} is {ps.form}: the feedforward needs the "
@@ -93,6 +94,7 @@ class FeedforwardModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "FeedforwardModel":
+        """:meth:`from_parameter_set` of the parameter set file at ``path``."""
         try:
             return cls.from_parameter_set(load_parameter_set(path))
         except ModelError as exc:
@@ -135,10 +137,12 @@ class Feedforward:
 
     @property
     def seeded(self) -> bool:
+        """Whether w has been seeded since the loop last opened (:meth:`seed`)."""
         return self._seeded
 
     @property
     def w(self) -> float:
+        """Hysteretic state w after the last :meth:`step` or :meth:`seed`."""
         return self._phi.w
 
     def seed(self, x_measured: float, u_applied: float) -> None:

@@ -58,6 +58,7 @@ class Gains:
             raise GainError(f"law {mode!r} needs a frequency f > 0 Hz, got {self.f}")
 
     def to_dict(self) -> dict[str, float]:
+        """The gains as a mapping."""
         return asdict(self)
 
 

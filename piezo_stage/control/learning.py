@@ -243,9 +243,11 @@ class FeedforwardTable:
         return k % self.u.size if self.periodic else min(max(k, 0), self.u.size - 1)
 
     def value(self, t: float) -> float:
+        """Table value u_ff [V] at ``t`` [s] from the trajectory's start."""
         return float(self.u[self.index(t)])
 
     def save(self, path: str | Path) -> Path:
+        """Write the table as JSON to ``path``; returns the path."""
         path = Path(path)
         path.write_text(json.dumps({"format": TABLE_FORMAT, "rate_hz": self.rate_hz,
                                     "periodic": self.periodic, "meta": self.meta,
@@ -254,6 +256,7 @@ class FeedforwardTable:
 
     @classmethod
     def load(cls, path: str | Path) -> "FeedforwardTable":
+        """Read a table :meth:`save` wrote; :class:`LearningError` when it cannot."""
         try:
             data = json.loads(Path(path).read_text())
         except (OSError, ValueError) as exc:
@@ -302,6 +305,7 @@ class IterativeLearning:
 
     @property
     def done(self) -> bool:
+        """Whether the stop rule holds: ``patience`` learned periods without enough improvement."""
         return self._stale >= self.config.patience
 
     def update(self, error: Sequence[float] | NDArray[np.float64]) -> FeedforwardTable:

@@ -16,6 +16,8 @@ from .trajectory import Trajectory
 
 
 class ReferenceSource(str, enum.Enum):
+    """Where :class:`SetPoint` takes yr from (see the module docstring)."""
+
     TOPIC = "topic"                # the reference topic
     SECOND_ORDER = "second_order"  # the thesis's yr
     CONSTANT = "constant"          # the reference parameter

@@ -24,9 +24,13 @@ ReferenceFn = Callable[[float], "float | tuple[float, float | None] | tuple[floa
 
 
 class SampledPlant(Protocol):
-    def output(self) -> float: ...
+    """What :func:`simulate_closed_loop` drives (see the module docstring)."""
 
-    def step(self, u: float, dt: float) -> float: ...
+    def output(self) -> float:
+        """The current measurement."""
+
+    def step(self, u: float, dt: float) -> float:
+        """Hold ``u`` over ``dt`` by ZOH; returns the new measurement."""
 
 
 @dataclass(frozen=True)

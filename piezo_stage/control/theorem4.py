@@ -80,6 +80,7 @@ class GainReport:
     notes: tuple[str, ...] = field(default=())
 
     def to_dict(self) -> dict[str, object]:
+        """The report as a mapping (tuples as lists)."""
         data = asdict(self)
         data["reasons"] = list(self.reasons)
         data["notes"] = list(self.notes)

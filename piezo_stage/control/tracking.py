@@ -45,9 +45,11 @@ class TrackingErrors:
 
     @property
     def relative(self) -> float:
+        """The RMS error relative to the range; NaN for a zero range."""
         return self.rms_error / self.range if self.range > 0 else math.nan
 
     def to_dict(self) -> dict[str, Any]:
+        """The figures as a mapping (``relative`` as ``rms_relative``)."""
         return {
             "rms_error": self.rms_error,
             "max_error": self.max_error,

@@ -38,6 +38,8 @@ class TrajectoryError(ControlError):
 
 
 class Shape(str, Enum):
+    """The periodic shapes of :class:`PeriodicTrajectory` (see the module docstring)."""
+
     SINE = "sine"
     TRIANGLE = "triangle"
     STEPS = "steps"
@@ -96,6 +98,7 @@ class PeriodicTrajectory:
     # ------------------------------------------------------------------ geometry
     @property
     def period(self) -> float:
+        """One period, 1 / frequency [s]."""
         return 1.0 / self.frequency
 
     @property
@@ -152,10 +155,12 @@ class PeriodicTrajectory:
 
     @property
     def peak_velocity(self) -> float:
+        """Largest |ẋ_d| [m/s]."""
         return self._peaks(self.blend_time)[0]
 
     @property
     def peak_acceleration(self) -> float:
+        """Largest |ẍ_d| [m/s²]."""
         return self._peaks(self.blend_time)[1]
 
     # ------------------------------------------------------------------ evaluation
@@ -253,6 +258,7 @@ class CsvTrajectory:
 
     @property
     def range(self) -> float:
+        """Peak-to-peak range of the samples [m]."""
         return float(np.ptp(self.x))
 
     def evaluate(self, t: ArrayLike) -> Evaluation:
