@@ -33,6 +33,8 @@ RandomTable: TypeAlias = tuple[
 
 @dataclass(frozen=True)
 class ExcitationSample:
+    """The plan's state at one instant (:meth:`ExcitationPlan.sample`)."""
+
     voltage: float  # [V] command, clamped to the limits
     run: int  # index into offsets
     offset: float  # [V] q of this run
@@ -93,17 +95,21 @@ class ExcitationPlan:
     # ------------------------------------------------------------------ timing
     @property
     def periods_per_run(self) -> int:
+        """Periods in one run: settle_periods + record_periods."""
         return self.settle_periods + self.record_periods
 
     @property
     def run_duration(self) -> float:
+        """Length of one run [s]."""
         return self.periods_per_run * self.period
 
     @property
     def duration(self) -> float:
+        """Length of all runs [s]; the hold value follows."""
         return self.run_duration * len(self.offsets)
 
     def run_start(self, run: int) -> float:
+        """Start of run ``run`` [s]."""
         return run * self.run_duration
 
     def steady_window(self, run: int) -> tuple[float, float]:
@@ -138,6 +144,7 @@ class ExcitationPlan:
         return np.clip(v, self.v_min, self.v_max)
 
     def hold_value(self) -> float:
+        """Command voltage after the last run (``hold``), clamped to the limits."""
         if self.hold == "zero":
             value = 0.0
         elif self.hold == "low":
@@ -147,6 +154,7 @@ class ExcitationPlan:
         return float(min(max(value, self.v_min), self.v_max))
 
     def sample(self, t: float) -> ExcitationSample:
+        """The command, run, offset, steady/done flags and phase at time ``t`` [s]."""
         done = t >= self.duration
         run = min(int(t // self.run_duration), len(self.offsets) - 1) if t >= 0 else 0
         start, end = self.steady_window(run)
@@ -160,6 +168,7 @@ class ExcitationPlan:
         )
 
     def with_limits(self, v_min: float, v_max: float) -> "ExcitationPlan":
+        """Copy with the limits [v_min, v_max] replaced, validated."""
         return replace(self, v_min=v_min, v_max=v_max)
 
 
