@@ -64,6 +64,8 @@ class DesignPoints:
 
 @dataclass(frozen=True)
 class DerivativeOptions:
+    """Local polynomial fits for the values and slopes of θ at the design points (Table 10.2)."""
+
     degree: int = 3  #: local polynomial degree
     rel_tol: float = 2e-4  #: target slope std relative to the mean slope of θ
     min_samples: int = 8

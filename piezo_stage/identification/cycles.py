@@ -75,10 +75,12 @@ class SteadyCycle:
 
     @property
     def input_span(self) -> float:
+        """Peak-to-peak range of the cycle's input."""
         return float(np.ptp(self.input))
 
     @property
     def output_span(self) -> float:
+        """Peak-to-peak range of the cycle's output."""
         return float(np.ptp(self.output))
 
 
@@ -300,6 +302,7 @@ class Branch:
 
     @property
     def span(self) -> float:
+        """Extent of the branch in x."""
         return float(self.x[-1] - self.x[0])
 
 

@@ -69,9 +69,11 @@ class DynamicsFit:
 
     @property
     def dynamics(self) -> Dynamics:
+        """The fitted m and c as the model's :class:`Dynamics`."""
         return Dynamics(m=self.m, c=self.c)
 
     def to_dict(self) -> dict[str, float]:
+        """The fields as a mapping (``samples``, ``step_at`` as int, the rest as float)."""
         return {
             k: (int(v) if k in ("samples", "step_at") else float(v))
             for k, v in asdict(self).items()

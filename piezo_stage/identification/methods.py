@@ -50,6 +50,8 @@ from .simfit import (
 
 
 class Method(str, Enum):
+    """Identification method: analytic, fit by simulation error, or auto (module docstring)."""
+
     ANALYTIC = "analytic"
     FIT = "fit"
     AUTO = "auto"

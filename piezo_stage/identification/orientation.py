@@ -20,6 +20,8 @@ from .errors import OrientationError
 
 @dataclass(frozen=True)
 class Orientation:
+    """Outcome of :func:`detect_orientation` on one cycle: input_sign and the loop gap behind it."""
+
     input_sign: int
     mean_gap: float  #: mean over v of y_rising − y_falling [output unit]
     gap_noise: float  #: noise level of one gap sample

@@ -37,6 +37,8 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class IdentifyOptions:
+    """Options of the analytic method (:func:`identify`, :func:`identify_cycles`), step by step."""
+
     degree: int = 1                       #: N of (10.4); 1 is the plain Bouc-Wen κx·x
     refine: bool = True
     input_sign: int | None = None         #: None: detect from the loop orientation

@@ -50,6 +50,8 @@ def polyval(
 
 @dataclass(frozen=True)
 class PolynomialFit:
+    """The polynomial part from two runs (:func:`fit_polynomial`, (10.7)-(10.11))."""
+
     kappa: NDArray[np.float64]  #: κ_1..κ_N
     g: NDArray[np.float64]  #: g_0..g_{N−1} of (10.7)
     q: float  #: offset of run B with respect to run A [input unit]

@@ -47,6 +47,7 @@ class Recording:
 
     @property
     def label(self) -> str:
+        """``name``, or "recording" when it has none (for messages)."""
         return self.name or "recording"
 
     def __len__(self) -> int:

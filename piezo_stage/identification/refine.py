@@ -34,6 +34,8 @@ CORRELATION_LIMIT = 0.999
 
 @dataclass(frozen=True)
 class RefineOptions:
+    """Options of :func:`refine` and of its bad-fit and determinacy checks."""
+
     enabled: bool = True
     max_nfev: int = 200
     tolerance: float = 1e-13  #: ftol = xtol = gtol of scipy's least_squares
@@ -131,10 +133,12 @@ def cycle_path(cycle: SteadyCycle, v_smooth: NDArray[np.float64], input_sign: in
 
 
 def pack(params: BoucWenParameters) -> NDArray[np.float64]:
+    """Optimisation vector (κ_1..κ_N, y0, κw, ρ, σ, n) of ``params``."""
     return np.array([*params.kappa, params.y0, params.kappa_w, params.rho, params.sigma, params.n])
 
 
 def unpack(p: NDArray[np.float64], degree: int, input_sign: int) -> BoucWenParameters:
+    """Parameters of an optimisation vector of :func:`pack` with ``degree`` κ's."""
     kw = dict(zip(_TAIL, (float(v) for v in p[degree:])))
     return BoucWenParameters(kappa=tuple(float(v) for v in p[:degree]), input_sign=input_sign, **kw)
 
@@ -163,6 +167,8 @@ def residuals(params: BoucWenParameters, paths: list[CyclePath]) -> NDArray[np.f
 
 @dataclass(frozen=True)
 class RefinedFit:
+    """Outcome of :func:`refine`: parameters, residual, relative standard errors, solver report."""
+
     parameters: BoucWenParameters
     rms_error: float
     relative_std: dict[str, float]

@@ -90,6 +90,7 @@ class RunTracker:
         return intervals_from_marks(self.marks) if self.marks else [(0, -math.inf, math.inf)]
 
     def interval(self, run: int) -> tuple[int, float, float] | None:
+        """``(run, start, stop)`` of run ``run``; None when the marks do not have it (yet)."""
         return next((i for i in self.intervals() if i[0] == run), None)
 
     @property

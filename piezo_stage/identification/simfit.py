@@ -51,6 +51,8 @@ N_MAX = 50.0
 
 @dataclass(frozen=True)
 class FitOptions:
+    """Options of the fit by simulation error (:func:`simulation_fit`) and of its checks."""
+
     degree: int = 1                        #: N of (10.4)
     input_sign: int | None = None          #: None: from the sign of κw (loop orientation)
     drift: DriftKind = DriftKind.NONE      #: slow additive output drift per run

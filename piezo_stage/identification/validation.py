@@ -21,6 +21,8 @@ from .recording import Recording, check_recording
 
 @dataclass(frozen=True)
 class ValidationResult:
+    """Outcome of :func:`validate_model`: the simulated output against the recorded one."""
+
     recording: Recording
     model: NDArray[np.float64]  #: simulated output at the recording's samples
     w0: float  #: initial state used, (10.18) clipped to [-1, 1]
@@ -28,21 +30,26 @@ class ValidationResult:
 
     @property
     def error(self) -> NDArray[np.float64]:
+        """Model minus recorded output at each sample."""
         return self.model - self.recording.output
 
     @property
     def rms(self) -> float:
+        """RMS of :attr:`error`."""
         return float(np.sqrt(np.mean(self.error**2)))
 
     @property
     def max_abs(self) -> float:
+        """Largest |error|."""
         return float(np.max(np.abs(self.error)))
 
     @property
     def span(self) -> float:
+        """Peak-to-peak range of the recorded output."""
         return float(np.ptp(self.recording.output))
 
     def summary(self) -> dict[str, float]:
+        """The figures, w0 and the sample count as a mapping (errors also in % of the span)."""
         return {
             "rms": self.rms,
             "max": self.max_abs,
