@@ -5,4 +5,8 @@ limit-cycle identification and the time-varying PID. The core sub-packages (mode
 identification, control, hardware, bag) are pure Python + numpy and never import rclpy.
 """
 
+from .errors import PiezoStageError
+
 __version__ = "0.1.0"
+
+__all__ = ["PiezoStageError"]

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from piezo_stage.model import SimulatedStage as FromPackage
 from piezo_stage.model.bouc_wen import model_output
 from piezo_stage.model.errors import InvalidCommandError, ParameterValueError
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
-from piezo_stage.model.plant import SimulatedStage as FromPlant
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
 
 pytestmark = pytest.mark.unit
@@ -85,4 +85,4 @@ def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
     with pytest.raises(InvalidCommandError, match="finite"):
         stage.step(math.inf, 1e-4)
     assert stage.output() == before and stage.steps == 50
-    assert FromPlant is SimulatedStage  # also importable from piezo_stage.model.plant
+    assert FromPackage is SimulatedStage  # also importable from piezo_stage.model

@@ -27,7 +27,7 @@ from piezo_stage.hardware.optoncdt import frame_format
 from piezo_stage.launch import Launcher
 from piezo_stage.launch.graph import load_graph
 from piezo_stage.model.parameter_set import shipped_parameter_set
-from piezo_stage.model.plant import SimulatedStage
+from piezo_stage.model.stage import SimulatedStage
 from piezo_stage.nodes.controller import PARAMETERS as CONTROLLER_PARAMETERS
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
 

@@ -6,18 +6,21 @@ schemas) that ``ros2 bag``, rosbags, the mcap library, Foxglove and PlotJuggler 
 
 from .errors import (
                      BagClosedError,
+                     BagDamageWarning,
                      BagError,
                      BagExistsError,
                      BagNotFoundError,
                      CorruptBagError,
                      DuplicateTopicError,
                      InvalidQosError,
+                     SkippedTopicWarning,
                      UnknownMessageTypeError,
                      UnknownTopicError,
                      WrongTopicTypeError,
 )
 from .export import export_csv
 from .info import bag_info, format_info
+from .playback import PlaybackError
 from .qos import LATCHED, RELIABLE, SENSOR_DATA, qos_from_profile, qos_profile
 from .reader import read_loop_samples, read_messages, read_raw, read_series
 from .reindex import reindex
@@ -33,9 +36,10 @@ from .types import (
 from .writer import BagWriter, InvalidBagOptionError, InvalidTopicNameError
 
 __all__ = [
-    "BagClosedError", "BagError", "BagExistsError", "BagNotFoundError", "BagWriter",
-    "CorruptBagError", "DuplicateTopicError", "InvalidBagOptionError", "InvalidQosError",
-    "InvalidTopicNameError", "LATCHED", "RELIABLE", "SENSOR_DATA", "UnknownMessageTypeError",
+    "BagClosedError", "BagDamageWarning", "BagError", "BagExistsError", "BagNotFoundError",
+    "BagWriter", "CorruptBagError", "DuplicateTopicError", "InvalidBagOptionError",
+    "InvalidQosError", "InvalidTopicNameError", "LATCHED", "PlaybackError", "RELIABLE",
+    "SENSOR_DATA", "SkippedTopicWarning", "UnknownMessageTypeError",
     "UnknownTopicError", "WrongTopicTypeError", "bag_info", "deserialize", "export_csv",
     "format_info", "header", "message_class", "message_definition", "qos_from_profile",
     "qos_profile", "read_loop_samples", "read_messages", "read_raw", "read_series", "reindex",

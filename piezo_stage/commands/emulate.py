@@ -321,7 +321,7 @@ def load_stage(path: str):
 
     from piezo_stage.config_path import find_config
     from piezo_stage.model.parameter_set import load_parameter_set
-    from piezo_stage.model.plant import SimulatedStage
+    from piezo_stage.model.stage import SimulatedStage
 
     return SimulatedStage(load_parameter_set(path if Path(path).exists() else find_config(path)))
 

@@ -5,7 +5,29 @@ report) on a graph (:mod:`.graphs`, over ROS); the maths is in :mod:`.sweep`, :m
 :mod:`piezo_stage.identification.dynamics` (no rclpy in those).
 """
 
-from .procedure import STEPS, Commissioning, Options, Step, StepFailed
-from .sweep import SweepSettings
+from .design import DesignError
+from .errors import CommissioningError
+from .procedure import (
+    STEPS,
+    Commissioning,
+    Options,
+    OtherCommissioningError,
+    RigError,
+    Step,
+    StepFailed,
+)
+from .sweep import SweepError, SweepSettings
 
-__all__ = ["STEPS", "Commissioning", "Options", "Step", "StepFailed", "SweepSettings"]
+__all__ = [
+    "STEPS",
+    "Commissioning",
+    "CommissioningError",
+    "DesignError",
+    "Options",
+    "OtherCommissioningError",
+    "RigError",
+    "Step",
+    "StepFailed",
+    "SweepError",
+    "SweepSettings",
+]

@@ -9,16 +9,8 @@ that orchestrates them (the demo, the CLI and scripts/make_sample_bags.py call t
 """
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
+from .runner import run_experiment
 from .spec import EXPERIMENTS, make_plan, pick_rate
-
-
-def run_experiment(*args, **kwargs):
-    from .runner import run_experiment as _run
-
-    return _run(*args, **kwargs)
-
-
-run_experiment.__doc__ = "See :func:`piezo_stage.experiments.runner.run_experiment`."
 
 __all__ = [
     "EXPERIMENTS",

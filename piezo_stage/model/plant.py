@@ -7,8 +7,9 @@
   output x + y0. Integrated by exponential Lobatto collocation (see ``_plant_kernels``):
   the stiff ~7 kHz mode of the thesis rig is propagated exactly, the hysteresis exactly along
   the x path, sub-steps chosen by an error estimate.
-- :class:`AmplifierModel`, :class:`SensorModel`, :class:`SimulatedStage` (defined in
-  :mod:`.stage`, importable from here too):
+- :class:`~.stage.AmplifierModel`, :class:`~.stage.SensorModel`,
+  :class:`~.stage.SimulatedStage` (in :mod:`.stage`, which builds on this module; all of them
+  importable from :mod:`piezo_stage.model`):
   ``step(command_voltage, dt) -> (applied, displacement, status)``.
 - :func:`simulate_reference`: scipy ``solve_ivp`` with velocity-reversal events, the slow
   converged baseline used by the tests and ``bench/plant.py``.
@@ -17,7 +18,7 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Literal, TypeAlias, cast
+from typing import Literal, TypeAlias, cast
 
 import numpy as np
 from numpy.polynomial import legendre
@@ -30,9 +31,6 @@ from .bouc_wen import BoucWenParameters, check_w0, polynomial
 from .errors import InputSignalError, InvalidCommandError, ParameterValueError
 from .parameter_set import Dynamics
 
-if TYPE_CHECKING:  # at run time these come lazily from .stage (see __getattr__ below)
-    from .stage import AmplifierModel, SensorModel, SensorStatus, SimulatedStage
-
 Array: TypeAlias = NDArray[np.float64]
 
 __all__ = [
@@ -41,23 +39,7 @@ __all__ = [
     "simulate_reference",
     "length_scale",
     "lobatto_nodes",
-    # re-exported from .stage
-    "SensorStatus",
-    "SensorModel",
-    "AmplifierModel",
-    "SimulatedStage",
 ]
-
-_FROM_STAGE = ("SensorStatus", "SensorModel", "AmplifierModel", "SimulatedStage")
-
-
-# PEP 562: the stage classes live in .stage (which imports this module)
-def __getattr__(name: str) -> object:
-    if name in _FROM_STAGE:
-        from . import stage
-
-        return getattr(stage, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 #: default local tolerance of DynamicPlant: <= 1e-6 relative error on the bench inputs

@@ -1,7 +1,12 @@
 """Thin rclpy nodes: one per core module (parameters, topics, timers only).
 
-Pure Python (the launcher, setup.py and scripts/setup.sh read it without rclpy).
+Pure Python (the launcher, setup.py and scripts/setup.sh read it without rclpy): it imports
+only :mod:`.errors`; the node modules import rclpy and are loaded by their executables.
 """
+
+from .errors import NodeError, RosParameterError
+
+__all__ = ["DEFAULT_NAMESPACE", "NODES", "NodeError", "RosParameterError"]
 
 #: nodes are created in this namespace; `--ros-args -r __ns:=/other` overrides it (rcl remap)
 DEFAULT_NAMESPACE = "/piezo"

@@ -2,7 +2,7 @@
 
 Same topics, types and units as the rig (docs/design.md §3): subscribes ``voltage_command``,
 publishes ``voltage`` (what the amplifier applied) and ``displacement`` (the sensor), and
-``/diagnostics``. The mathematics is :class:`piezo_stage.model.plant.SimulatedStage`
+``/diagnostics``. The mathematics is :class:`piezo_stage.model.stage.SimulatedStage`
 (amplifier -> Bouc-Wen plant -> sensor); this node only schedules it.
 
 Clocks (``clock_mode``):

@@ -9,7 +9,7 @@ thread gets round to computing the sample: as on a real rig, the physics run in 
 whatever the host's scheduling, and a late burst of samples still describes the past. Any object
 with
 ``step(command_voltage, dt) -> (applied_voltage, displacement, status)`` serves as the stage
-(``piezo_stage.model.plant.SimulatedStage``).
+(``piezo_stage.model.stage.SimulatedStage``).
 """
 
 from __future__ import annotations
