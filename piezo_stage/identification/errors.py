@@ -18,7 +18,8 @@ class IdentificationError(PiezoStageError, ValueError):
 class InputDataError(IdentificationError):
     """The recording itself is unusable input (unreadable, non-finite, out of range, too short,
     clipped): the CLI exits 2, as for any bad input. Other identification errors mean the data
-    were read but do not support the method (exit 1)."""
+    were read but do not support the method (exit 1).
+    """
 
 
 class NonFiniteDataError(InputDataError):
@@ -31,17 +32,20 @@ class TooFewSamplesError(InputDataError):
 
 class NotPeriodicError(IdentificationError):
     """The input is not a T-wave periodic signal (9.1.1): no stable period, or more than one
-    maximum/minimum per period."""
+    maximum/minimum per period.
+    """
 
 
 class NoSteadyStateError(IdentificationError):
     """Fewer than the required number of successive periods agree (Theorem 2's limit cycle is
-    not reached, or the system drifts)."""
+    not reached, or the system drifts).
+    """
 
 
 class SaturatedOutputError(InputDataError):
     """The output is clipped (flat at its extreme while the input keeps moving) or the sensor
-    flagged samples as invalid."""
+    flagged samples as invalid.
+    """
 
 
 class NonMonotoneBranchError(IdentificationError):
@@ -54,23 +58,27 @@ class InconsistentRunsError(IdentificationError):
 
 class OrientationError(IdentificationError):
     """The loop orientation (input_sign) cannot be determined or contradicts the request:
-    no detectable hysteresis, a figure-eight loop, or runs of opposite orientation."""
+    no detectable hysteresis, a figure-eight loop, or runs of opposite orientation.
+    """
 
 
 class DesignPointError(IdentificationError):
     """A design point of Table 10.1 (x*, x*1, x*2, x*3) lies outside the data or violates the
-    ordering x*3 < x* < x*1 < x*2."""
+    ordering x*3 < x* < x*1 < x*2.
+    """
 
 
 class AnalyticEstimateError(IdentificationError):
     """A Table 10.2 expression has no value for these data (log or root of a non-positive
-    quantity), i.e. the cycle does not have the shape of a Bouc-Wen limit cycle."""
+    quantity), i.e. the cycle does not have the shape of a Bouc-Wen limit cycle.
+    """
 
 
 class BadFitError(IdentificationError):
     """The refined model does not explain the data: residual large relative to the noise level
     and the output span, or a parameter not determined by the data. ``result`` holds the
-    rejected :class:`~piezo_stage.identification.result.IdentificationResult` for inspection."""
+    rejected :class:`~piezo_stage.identification.result.IdentificationResult` for inspection.
+    """
 
     def __init__(self, message: str, result: Any = None) -> None:
         super().__init__(message)

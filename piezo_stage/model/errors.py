@@ -18,7 +18,8 @@ class NotClassIError(ModelError):
 
 class ParameterValueError(ModelError):
     """A malformed parameter value of a model, a parameter set, an excitation or the simulated
-    stage (empty kappa, input_sign not +1/-1, m <= 0, unknown form, v_min >= v_max, ...)."""
+    stage (empty kappa, input_sign not +1/-1, m <= 0, unknown form, v_min >= v_max, ...).
+    """
 
 
 class InitialStateError(ModelError):
