@@ -44,6 +44,7 @@ class Amplifier(ABC):
         """Open the link, select open-loop voltage mode and read limits and the applied voltage."""
 
     def close(self) -> None:
+        """Close the link."""
         self.transport.close()
 
     @abstractmethod
@@ -55,6 +56,7 @@ class Amplifier(ABC):
         """The voltage the device reports as applied [V]."""
 
     def format_voltage(self, voltage: float) -> str:
+        """``voltage`` as the device's argument text, with :attr:`decimals` places."""
         return f"{voltage:.{self.decimals}f}"
 
 
@@ -88,6 +90,9 @@ class GCSAmplifier(Amplifier):
         self.check_errors = check_errors
 
     def open(self) -> DeviceInfo:
+        """``*IDN?``, clear a latched error, the axis from ``SAI?``, ``ONL`` (where the controller
+        has it), ``SVO <axis> 0``, limits from ``VMI?``/``VMA?``, and the applied voltage.
+        """
         self.transport.open()
         self.conn.flush()
         identity = self.conn.query("*IDN?")[0].strip()
@@ -113,6 +118,7 @@ class GCSAmplifier(Amplifier):
         return DeviceInfo(identity, self.axis, v_min, v_max, self.read_voltage())
 
     def write_voltage(self, voltage: float) -> None:
+        """``SVA <axis> <V>``, checked by ``ERR?`` unless ``check_errors`` is off (class docs)."""
         command = f"SVA {self.axis} {self.format_voltage(voltage)}"
         if not self.check_errors:
             self.conn.send(command)
@@ -122,6 +128,7 @@ class GCSAmplifier(Amplifier):
             self.conn.command(command)
 
     def read_voltage(self) -> float:
+        """``VOL? <channel>``."""
         ch = str(self.channel)
         return self.conn.query_float(f"VOL? {ch}", ch)
 
@@ -143,6 +150,9 @@ class MDT69xAmplifier(Amplifier):
         self.axis = axis
 
     def open(self) -> DeviceInfo:
+        """``id?``, limits from ``vlimit?`` and the channel's ``min?``/``max?`` (see the class),
+        and the applied voltage.
+        """
         self.transport.open()
         self.conn.flush()
         identity = self.conn.exchange("id?").splitlines()[0].strip()
@@ -156,9 +166,11 @@ class MDT69xAmplifier(Amplifier):
         return DeviceInfo(identity, self.axis, v_min, v_max, self.read_voltage())
 
     def write_voltage(self, voltage: float) -> None:
+        """``<axis>voltage=<V>``."""
         self.conn.exchange(f"{self.axis}voltage={self.format_voltage(voltage)}")
 
     def read_voltage(self) -> float:
+        """``<axis>voltage?``."""
         return self.conn.query_float(f"{self.axis}voltage?")
 
 

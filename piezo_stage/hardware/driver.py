@@ -110,6 +110,8 @@ class SetResult:
 
 
 class DriverState(enum.Enum):
+    """Driver states (module docstring); SAFE: at ``safe_voltage`` after a watchdog timeout."""
+
     DISCONNECTED = "disconnected"
     ACTIVE = "active"  # commands arriving
     TIMED_OUT = "timed_out"  # watchdog fired, ramping toward safe_voltage
@@ -291,6 +293,7 @@ class VoltageDriver:
 
     @property
     def connected(self) -> bool:
+        """Whether the link is up: neither disconnected nor shut down."""
         return self.state not in (DriverState.DISCONNECTED, DriverState.SHUT_DOWN)
 
     # --- commands -------------------------------------------------------------------------------
@@ -497,10 +500,12 @@ class Watchdog:
         self.error: Exception | None = None
 
     def start(self) -> "Watchdog":
+        """Start the thread; returns the watchdog."""
         self._thread.start()
         return self
 
     def stop(self) -> None:
+        """Stop the thread and wait for it."""
         self._stop.set()
         self._thread.join()
 

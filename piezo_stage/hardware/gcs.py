@@ -87,6 +87,7 @@ def parse_item_values(lines: list[str]) -> dict[str, str]:
 
 
 def parse_float(text: str, what: str) -> float:
+    """``text`` as a finite float; :class:`ProtocolError` naming ``what`` otherwise."""
     try:
         value = float(text)
     except ValueError as exc:
@@ -125,6 +126,7 @@ class GCSConnection(DeviceConnection):
         self._pending: deque[str] = deque()  # setters whose ERR? reply is still to be read
 
     def flush(self) -> None:
+        """Forget stale input and the ``ERR?`` replies still outstanding."""
         self._pending.clear()
         super().flush()
 
@@ -214,6 +216,7 @@ class GCSConnection(DeviceConnection):
                 raise GCSError(code, gcs_error_message(code), command)
 
     def query_items(self, command: str) -> dict[str, str]:
+        """Query ``command`` and return its ``<item>=<value>`` lines as a mapping."""
         return parse_item_values(self.query(command))
 
     def query_float(self, command: str, item: str) -> float:

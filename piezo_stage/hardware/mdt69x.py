@@ -64,4 +64,5 @@ class MDTConnection(DeviceConnection):
         return body
 
     def query_float(self, command: str) -> float:
+        """Send ``command`` and return the number in its reply (``[ 12.34]`` or bare)."""
         return parse_bracketed(self.exchange(command), command)

@@ -255,10 +255,12 @@ class SampleBlock:
 
     @staticmethod
     def empty() -> "SampleBlock":
+        """A block of no samples."""
         return SampleBlock(np.empty(0), np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64))
 
     @staticmethod
     def concat(blocks: list["SampleBlock"]) -> "SampleBlock":
+        """The blocks joined in order into one."""
         if not blocks:
             return SampleBlock.empty()
         return SampleBlock(
@@ -290,6 +292,8 @@ class FrameCheck:
 
 @dataclass
 class ParserStats:
+    """Counters of :class:`OptoNCDTParser`: frames, values and bytes by what became of them."""
+
     frames: int = 0  # well-formed frames (first values of a block)
     later_values: int = 0  # well-formed frames flagged as later values of a block (ignored)
     ok: int = 0  # samples with status OK
@@ -324,9 +328,11 @@ class AsciiChannel:
         return int(data.size - np.count_nonzero(keep))
 
     def pop_reply(self) -> bytes | None:
+        """The oldest complete reply (ending with the prompt), or None."""
         return self._replies.pop(0) if self._replies else None
 
     def clear(self) -> None:
+        """Drop the text and the replies collected so far."""
         self._text.clear()
         self._replies.clear()
 

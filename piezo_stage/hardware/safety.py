@@ -22,6 +22,7 @@ class VoltageLimits:
             raise LimitsError(f"empty voltage range: v_min {self.v_min} V > v_max {self.v_max} V")
 
     def intersect(self, other: "VoltageLimits") -> "VoltageLimits":
+        """The common part of both intervals; :class:`LimitsError` when they do not overlap."""
         lo, hi = max(self.v_min, other.v_min), min(self.v_max, other.v_max)
         if lo > hi:
             raise LimitsError(
@@ -31,9 +32,11 @@ class VoltageLimits:
         return VoltageLimits(lo, hi)
 
     def contains(self, voltage: float) -> bool:
+        """Whether ``voltage`` lies in [v_min, v_max]."""
         return self.v_min <= voltage <= self.v_max
 
     def clamp(self, voltage: float) -> float:
+        """Clamp ``voltage`` to [v_min, v_max]."""
         return min(max(voltage, self.v_min), self.v_max)
 
 

@@ -24,6 +24,8 @@ _ERROR_LINE = re.compile(r"^E(\d+)\b\s*(.*)$")
 
 @dataclass(frozen=True)
 class SensorConfig:
+    """An optoNCDT sensor and how its link and frames are handled (see the module docstring)."""
+
     family: str  # ild1700, ild1402, ild1320, ild1420, ild2300, ild1750, ild1900
     measuring_range: float  # MR [m]
     bits: int | None = None  # 16 or 18 for the ILD1320 family (default 18)
@@ -43,10 +45,13 @@ class SensorConfig:
 
     @property
     def frame_check(self) -> FrameCheck:
+        """The parser's frame lock and speed gate from this configuration."""
         return FrameCheck(self.relock_frames, self.max_speed, self.rate)
 
 
 class SensorReader:
+    """Samples and ASCII commands of one optoNCDT sensor over a transport (module docstring)."""
+
     def __init__(
         self,
         transport: Transport,
@@ -71,17 +76,20 @@ class SensorReader:
         baudrate: int | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> "SensorReader":
+        """A reader on the transport for ``url`` (``baudrate`` default: the frame format's)."""
         fmt = frame_format(config.family, config.bits)
         return cls(make_transport(url, baudrate or fmt.default_baudrate), config, clock)
 
     # --- link -----------------------------------------------------------------------------------
     def connect(self) -> None:
+        """Open the link, drop stale input and reset the parser."""
         self.transport.open()
         self.transport.reset_input()
         self.parser.reset()
         self._t_frame = self.clock()
 
     def reconnect(self) -> None:
+        """Close and reopen the link, ``reconnect_attempts`` tries; ConnectionLost if all fail."""
         self.transport.close()
         last: Exception | None = None
         for attempt in range(max(self.config.reconnect_attempts, 1)):
@@ -97,10 +105,12 @@ class SensorReader:
         raise ConnectionLost(f"could not reconnect to {self.transport.url}: {last}") from last
 
     def close(self) -> None:
+        """Close the link."""
         self.transport.close()
 
     @property
     def stale(self) -> bool:
+        """Whether no frame arrived for ``stale_timeout`` seconds."""
         return self.clock() - self._t_frame > self.config.stale_timeout
 
     # --- samples --------------------------------------------------------------------------------

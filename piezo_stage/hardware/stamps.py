@@ -21,6 +21,8 @@ from .errors import ConfigError
 
 
 class StampVerdict(enum.Enum):
+    """Outcome of :meth:`StampPolicy.check` (module docstring)."""
+
     OK = "ok"
     NEGATIVE = "negative"
     MALFORMED = "malformed"
@@ -31,6 +33,8 @@ class StampVerdict(enum.Enum):
 
 @dataclass(frozen=True)
 class StampPolicy:
+    """Which stamps of incoming commands are refused (module docstring)."""
+
     max_age: float = 0.0  # s; 0: age not checked
     max_ahead: float = 5.0  # s; stamps further in the future are refused
     require_stamp: bool = False  # an unstamped (zero) command is refused

@@ -169,6 +169,7 @@ class CommandPlayout:
         self._thread = threading.Thread(target=self._run, name="command-playout", daemon=True)
 
     def start(self) -> "CommandPlayout":
+        """Start the thread; returns the playout."""
         self._thread.start()
         return self
 
@@ -192,14 +193,17 @@ class CommandPlayout:
 
     @property
     def pending(self) -> int:
+        """Commands queued and not yet applied."""
         with self._cv:
             return len(self._queue)
 
     def clear(self) -> None:
+        """Drop the queued commands."""
         with self._cv:
             self._queue.clear()
 
     def stop(self) -> None:
+        """Drop the queue and end the thread (waits up to 5 s for it)."""
         with self._cv:
             self._stop = True
             self._queue.clear()

@@ -43,7 +43,8 @@ class Transport(ABC):
 
     @property
     @abstractmethod
-    def is_open(self) -> bool: ...
+    def is_open(self) -> bool:
+        """Whether the link is open."""
 
     @abstractmethod
     def write(self, data: bytes) -> None:
@@ -81,6 +82,7 @@ class SerialTransport(Transport):
         self._ser: serial.Serial | None = None
 
     def open(self) -> None:
+        """Open the port (8N1, no flow control); no-op when open."""
         if self._ser is not None:
             return
         import serial
@@ -99,6 +101,7 @@ class SerialTransport(Transport):
             raise ConnectionLost(f"cannot open {self.port}: {exc}") from exc
 
     def close(self) -> None:
+        """Close the port; errors of a dead port are ignored."""
         ser, self._ser = self._ser, None
         if ser is not None:
             try:
@@ -108,6 +111,7 @@ class SerialTransport(Transport):
 
     @property
     def is_open(self) -> bool:
+        """Whether the port is open."""
         return self._ser is not None
 
     def _port(self) -> serial.Serial:
@@ -116,6 +120,7 @@ class SerialTransport(Transport):
         return self._ser
 
     def write(self, data: bytes) -> None:
+        """Write all of ``data``; DeviceTimeout when the port does not take it within 1 s."""
         import serial
 
         ser = self._port()
@@ -147,6 +152,7 @@ class SerialTransport(Transport):
         return data
 
     def reset_input(self) -> None:
+        """Discard the port's input buffer."""
         import serial
 
         try:
@@ -168,6 +174,7 @@ class TcpTransport(Transport):
         self._sock: socket.socket | None = None
 
     def open(self) -> None:
+        """Connect (``connect_timeout``) with Nagle off; no-op when connected."""
         if self._sock is not None:
             return
         try:
@@ -178,6 +185,7 @@ class TcpTransport(Transport):
         self._sock = sock
 
     def close(self) -> None:
+        """Close the socket; errors are ignored."""
         sock, self._sock = self._sock, None
         if sock is not None:
             try:
@@ -187,6 +195,7 @@ class TcpTransport(Transport):
 
     @property
     def is_open(self) -> bool:
+        """Whether the socket is connected."""
         return self._sock is not None
 
     def _socket(self) -> socket.socket:
@@ -195,12 +204,14 @@ class TcpTransport(Transport):
         return self._sock
 
     def write(self, data: bytes) -> None:
+        """Send all of ``data``."""
         try:
             self._socket().sendall(data)
         except OSError as exc:
             raise ConnectionLost(f"send to {self.url} failed: {exc}") from exc
 
     def read(self, timeout: float) -> bytes:
+        """What arrived, waiting up to ``timeout`` s for the first bytes; b"" on timeout."""
         sock = self._socket()
         try:
             sock.settimeout(max(timeout, 0.0))  # 0: non-blocking (BlockingIOError: nothing)
@@ -214,6 +225,7 @@ class TcpTransport(Transport):
         return data
 
     def reset_input(self) -> None:
+        """Read and drop whatever has arrived."""
         while self.read(0.0):
             pass
 
@@ -258,6 +270,7 @@ class ReplyBuffer:
         self._buf = bytearray()
 
     def clear(self) -> None:
+        """Drop the bytes buffered so far."""
         self._buf.clear()
 
     def poll(self, complete: Callable[[bytes], int]) -> bytes | None:
@@ -276,6 +289,9 @@ class ReplyBuffer:
     def read_reply(
         self, complete: Callable[[bytes], int], timeout: float, what: str = "reply"
     ) -> bytes:
+        """The next complete reply, reading for up to ``timeout`` s; DeviceTimeout naming ``what``
+        when it does not complete.
+        """
         deadline = time.monotonic() + timeout
         read = False  # timeout 0: one read of what is there, without waiting
         while True:

@@ -89,13 +89,16 @@ class GCSDeviceModel:
         }
 
     def session(self) -> "_LineSession":
+        """A connection's session: GCS command lines in, replies out."""
         return _LineSession(self)
 
     def stream(self, now: float) -> bytes:
+        """Nothing: a controller does not stream."""
         return b""
 
     @property
     def applied_voltage(self) -> float:
+        """The output voltage [V]."""
         with self.lock:
             return self.voltage
 

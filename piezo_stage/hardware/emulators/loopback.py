@@ -25,13 +25,17 @@ class ManualClock:
         self.t = t
 
     def __call__(self) -> float:
+        """The current time [s]."""
         return self.t
 
     def sleep(self, seconds: float) -> None:
+        """Advance the time by ``seconds``."""
         self.t += seconds
 
 
 class LoopbackTransport(Transport):
+    """A device model reached in process: no pty, socket or thread (see the module docstring)."""
+
     def __init__(
         self,
         model: DeviceModel,
@@ -51,6 +55,7 @@ class LoopbackTransport(Transport):
         self._hung_up = False
 
     def open(self) -> None:
+        """Start a session with the model; ConnectionLost while ``down`` or the device is muted."""
         if self._session is not None:
             return
         if self.down or self.faults.muted(self.clock()):
@@ -61,11 +66,13 @@ class LoopbackTransport(Transport):
         self.opened += 1
 
     def close(self) -> None:
+        """End the session and drop unread replies."""
         self._session = None
         self._buf.clear()
 
     @property
     def is_open(self) -> bool:
+        """Whether a session is open."""
         return self._session is not None
 
     def disconnect(self) -> None:
@@ -82,6 +89,7 @@ class LoopbackTransport(Transport):
         return self._session
 
     def write(self, data: bytes) -> None:
+        """Hand ``data`` to the session; its reply, through the faults, is kept for :meth:`read`."""
         session = self._check()
         now = self.clock()
         if self.faults.muted(now):
@@ -91,6 +99,7 @@ class LoopbackTransport(Transport):
         self._hung_up = hang_up
 
     def read(self, timeout: float) -> bytes:
+        """The buffered replies; when there are none, ``sleep(timeout)`` and b""."""
         if not self._buf:
             self._check()
             self.sleep(timeout)
@@ -99,4 +108,5 @@ class LoopbackTransport(Transport):
         return data
 
     def reset_input(self) -> None:
+        """Drop the buffered replies."""
         self._buf.clear()

@@ -20,6 +20,8 @@ VLIMITS = (75.0, 100.0, 150.0)  # positions of the output-limit switch [V]
 
 
 class MDTDeviceModel:
+    """State of the emulated MDT69xB (see the module docstring), shared by all connections."""
+
     name = "mdt69x"
     stream_period = None
 
@@ -47,9 +49,11 @@ class MDTDeviceModel:
         self.lock = threading.Lock()
 
     def session(self) -> "_MDTSession":
+        """A connection's session: command lines (CR or LF) in, echo, replies and prompt out."""
         return _MDTSession(self)
 
     def stream(self, now: float) -> bytes:
+        """Nothing: an amplifier does not stream."""
         return b""
 
     @property

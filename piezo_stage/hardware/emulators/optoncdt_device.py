@@ -28,6 +28,8 @@ Source = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 
 class OptoNCDTDeviceModel:
+    """State of the emulated sensor (see the module docstring), shared by all connections."""
+
     name = "optoncdt"
 
     def __init__(
@@ -69,6 +71,7 @@ class OptoNCDTDeviceModel:
 
     @property
     def stream_period(self) -> float:
+        """Seconds between :meth:`stream` calls: one sample period, at most 2 ms."""
         return min(1.0 / self.rate, 0.002)
 
     def _default_source(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -87,6 +90,7 @@ class OptoNCDTDeviceModel:
             return self._t0 + self.sent_samples / self.rate + 1e-9
 
     def session(self) -> "_AsciiSession":
+        """A connection's session: ASCII commands in, replies queued into the stream."""
         return _AsciiSession(self)
 
     # --- measurement stream ---------------------------------------------------------------------
@@ -104,6 +108,9 @@ class OptoNCDTDeviceModel:
         return raw
 
     def stream(self, now: float) -> bytes:
+        """The frames of the samples due by ``now`` (at most 1 s of them), the pending reply between
+        them; the first call starts the sample clock.
+        """
         with self.lock:
             if self._t0 is None:
                 self._t0 = now

@@ -40,13 +40,17 @@ class _Endpoint(TypedDict, total=False):
 
 
 class Stage(Protocol):
-    def step(self, command_voltage: float, dt: float) -> tuple[float, float, int]: ...
+    """What the rig steps (see the module docstring), e.g. ``SimulatedStage``."""
+
+    def step(self, command_voltage: float, dt: float) -> tuple[float, float, int]:
+        """Apply ``command_voltage`` over ``dt`` [s]; returns (applied, displacement, status)."""
 
 
 class AmplifierLowPass:
     """The amplifier's finite bandwidth: a Butterworth low-pass (order 1 or 2, corner
     ``bandwidth_hz``) from the commanded to the applied voltage, exact for a command held over
-    each step ``h`` (ZOH discretisation), starting at rest at ``initial_voltage``."""
+    each step ``h`` (ZOH discretisation), starting at rest at ``initial_voltage``.
+    """
 
     def __init__(self, bandwidth_hz: float, order: int, h: float, initial_voltage: float) -> None:
         from scipy import signal
@@ -70,7 +74,8 @@ class AmplifierLowPass:
 def substeps_for(stage: Stage, rate: float, bandwidth_hz: float) -> int:
     """Plant steps per sensor sample under a low-pass: 20 per period of its corner and 7 per
     period of the stage's natural frequency sqrt(kappa_x/m)/(2 pi) (11.1), whichever is more
-    (a staircase any coarser rings the resonance and dithers the hysteresis away)."""
+    (a staircase any coarser rings the resonance and dithers the hysteresis away).
+    """
     if not bandwidth_hz > 0.0:
         return 1
     f = 20.0 * bandwidth_hz
@@ -138,6 +143,9 @@ class RigCoupling:
         return out
 
     def __call__(self, times: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Sensor readings (standoff + displacement [m], NaN when not OK) at ``times`` [s] from
+        ``origin()``, one stage step per sample (class docstring).
+        """
         out = np.empty(len(times))
         t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
@@ -173,7 +181,8 @@ class RigEmulator:
     """Amplifier (GCS on TCP or pty, or MDT69x on pty) + optoNCDT sensor (pty) around one stage.
 
     ``amplifier_bandwidth`` [Hz] (0: ideal) and ``amplifier_filter_order`` (1 or 2): the
-    amplifier's output low-pass (:class:`AmplifierLowPass`) between command and stage."""
+    amplifier's output low-pass (:class:`AmplifierLowPass`) between command and stage.
+    """
 
     def __init__(
         self,
@@ -254,14 +263,17 @@ class RigEmulator:
 
     @property
     def servers(self) -> dict[str, EmulatorServer]:
+        """The two servers by device name (the amplifier's, ``optoncdt``)."""
         return {self.amplifier.name: self.amplifier_server, "optoncdt": self.sensor_server}
 
     def start(self) -> "RigEmulator":
+        """Start both servers; returns the rig."""
         self.amplifier_server.start()
         self.sensor_server.start()
         return self
 
     def stop(self) -> None:
+        """Stop both servers (the sensor first)."""
         self.sensor_server.stop()
         self.amplifier_server.stop()
 

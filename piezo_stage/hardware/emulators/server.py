@@ -43,20 +43,29 @@ _TIMESPEC = struct.Struct("qq")
 
 
 class Session(Protocol):
-    def handle(self, data: bytes, now: float) -> bytes: ...
+    """One connection's command handling."""
+
+    def handle(self, data: bytes, now: float) -> bytes:
+        """Reply bytes to ``data`` received at server time ``now``."""
 
 
 class DeviceModel(Protocol):
+    """What :class:`EmulatorServer` serves (see the module docstring)."""
+
     # read-only: a model may hold either as a class constant or a property
     @property
-    def name(self) -> str: ...
+    def name(self) -> str:
+        """Short device name (thread and URL names)."""
 
     @property
-    def stream_period(self) -> float | None: ...
+    def stream_period(self) -> float | None:
+        """Seconds between :meth:`stream` calls; None: never called on a period."""
 
-    def session(self) -> Session: ...
+    def session(self) -> Session:
+        """A new session for one connection."""
 
-    def stream(self, now: float) -> bytes: ...
+    def stream(self, now: float) -> bytes:
+        """Bytes to broadcast at server time ``now`` (b"" for amplifiers)."""
 
 
 @dataclass
@@ -234,6 +243,7 @@ class EmulatorServer:
 
     @property
     def port(self) -> int:
+        """The TCP port listened on."""
         assert self._listener is not None
         port: int = self._listener.getsockname()[1]
         return port
@@ -249,10 +259,12 @@ class EmulatorServer:
         return sum(1 for channel in list(self._channels.values()) if channel.sock is not None)
 
     def start(self) -> "EmulatorServer":
+        """Start the server thread; returns the server."""
         self._thread.start()
         return self
 
     def stop(self) -> None:
+        """Stop the thread (waiting up to 5 s) and close every connection and the endpoint."""
         self._stop.set()
         self._wake()
         if self._thread.is_alive():
