@@ -267,7 +267,8 @@ IvpMethod: TypeAlias = Literal["RK23", "RK45", "DOP853", "Radau", "BDF", "LSODA"
 
 class _Reversal:
     """A terminal solve_ivp event of :func:`simulate_reference`: x' = 0, crossed in
-    ``direction`` (-1: downwards, a maximum of x; 1: upwards, a minimum of x)."""
+    ``direction`` (-1: downwards, a maximum of x; 1: upwards, a minimum of x).
+    """
 
     terminal = True
 
