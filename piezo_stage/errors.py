@@ -14,11 +14,12 @@ class of the sub-package that raises it:
 - nodes: :class:`~piezo_stage.nodes.errors.NodeError`
 - plotting: :class:`~piezo_stage.plotting.bag_plots.PlotError`
 
-and a few stand-alone ones (``config_path.ConfigNotFoundError``,
-``runtime_dir.RuntimeDirError``, the CLI's ``commands.identify.UsageError``). Many classes
-also derive from the standard exception that describes them (``ValueError`` for bad input,
-``FileNotFoundError`` for a missing file, ``KeyError`` for an unknown name, ``TimeoutError``),
-so code that catches those keeps catching them.
+while the errors of the top-level modules derive from it directly
+(``config_path.ConfigNotFoundError``, ``runtime_dir.RuntimeDirError``, the CLI's
+``commands.identify.UsageError``). Many classes also derive from the standard exception that
+describes them (``ValueError`` for bad input, ``FileNotFoundError`` for a missing file,
+``KeyError`` for an unknown name, ``TimeoutError``), so code that catches those keeps catching
+them.
 
 ``except PiezoStageError`` therefore catches whatever piezo_stage refuses or fails at (bad
 input, unusable data, a device or graph failure), and not a programming error such as an
