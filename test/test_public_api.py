@@ -5,8 +5,10 @@ the CLI relies on (no rclpy from any package, no model behind the identification
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import inspect
 import json
+import pkgutil
 import subprocess
 import sys
 from pathlib import Path
@@ -28,6 +30,21 @@ def test_every_package_has_an_explicit_all(name):
     missing = [export for export in module.__all__ if getattr(module, export, None) is None]
     assert not missing, missing
     assert len(set(module.__all__)) == len(module.__all__)
+
+
+@pytest.mark.unit
+def test_every_module_imports():
+    """A name moved or renamed in one module breaks the import of its users: every module of
+    the package imports (the nodes' only where rclpy does)."""
+    if importlib.util.find_spec("rclpy") is None:
+        pytest.skip("rclpy does not import here (the nodes need it)")
+    failed = {}
+    for info in pkgutil.walk_packages(piezo_stage.__path__, "piezo_stage."):
+        try:
+            importlib.import_module(info.name)
+        except Exception as exc:  # any failure, reported with the module's name
+            failed[info.name] = repr(exc)
+    assert not failed, failed
 
 
 @pytest.mark.unit

@@ -44,11 +44,11 @@ from piezo_stage.launch.graph import load_yaml
 
 from .controller import PARAMETERS as CONTROLLER_PARAMETERS
 from .controller import ControllerNode
+from .errors import RosParameterError
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
 from .qos import BATCH_QOS
 from .runtime import run, set_stamp, wall_clock
-from .spec import ParameterError
 from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
 
@@ -150,14 +150,14 @@ class TopicDecimation:
 
 def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
     """``NODE.KEY:=VALUE`` arguments (before ``--ros-args``; VALUE in YAML, as the launcher
-    writes them) as parameter overrides per member node; ParameterError for anything else."""
+    writes them) as parameter overrides per member node; RosParameterError for anything else."""
     found: dict[str, list[Parameter]] = {name: [] for name in MEMBERS}
     for text in argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv:
         lhs, sep, rhs = text.partition(":=")
         node, dot, key = lhs.partition(".")
         if not (sep and dot and key) or node not in found:
-            raise ParameterError(f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of "
-                                 f"{', '.join(MEMBERS)}")
+            raise RosParameterError(f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of "
+                                    f"{', '.join(MEMBERS)}")
         value = load_yaml(rhs) if rhs.strip() else ""
         PARAMETER_TABLES[node].check({key: value})
         found[node].append(Parameter(key, value=value))
