@@ -118,6 +118,9 @@ TABLE: list[tuple[list[str], int, str]] = [
     (["demo", "--rate", "0"], 2, "--rate"),
     (["commission", "{out}", "--frequencies", "abc"], 2, "--frequencies"),
     (["commission", "{out}", "--graph", "nope"], 2, "--graph"),
+    (["view", "--port", "70000"], 2, "--port"),
+    (["view", "--max-rate", "-1"], 2, "--max-rate"),
+    (["view", "--write-layout", "{missing}/layout.json"], 2, "cannot write"),
     (["nonsense"], 2, "unknown command"),
 ]
 

@@ -41,9 +41,8 @@ def test_committed_reference_is_current():
 
 @pytest.mark.unit
 def test_every_node_executable_has_its_table():
-    assert set(_docs()) == {"controller", "excitation", "identifier", "laser_reader", "plant",
-                            "player",
-                            "recorder", "voltage_driver"}
+    assert set(_docs()) == {"controller", "excitation", "identifier", "laser_reader", "live_view",
+                            "plant", "player", "recorder", "voltage_driver"}
 
 
 #: rclpy's parameter types as the tables name them
@@ -56,11 +55,11 @@ KINDS = {ParameterType.PARAMETER_BOOL: "bool", ParameterType.PARAMETER_INTEGER: 
 
 @pytest.mark.ros
 @pytest.mark.parametrize("name", ["plant", "controller", "identifier", "excitation", "recorder",
-                                  "player"])
+                                  "player", "live_view"])
 def test_running_nodes_declare_exactly_their_table(name, tmp_path):
     """What rclpy reports for the nodes that start without a device is their table: the same
     names, types, defaults, ranges, read-only flags and descriptions (the recorder and the
-    player get the one parameter they need, a bag)."""
+    player get the one parameter they need, a bag; the live view any free port)."""
     import importlib
 
     from piezo_stage.nodes.parameters import descriptor
@@ -68,7 +67,8 @@ def test_running_nodes_declare_exactly_their_table(name, tmp_path):
     module = importlib.import_module(f"piezo_stage.nodes.{name}")
     table = module.PARAMETERS
     given = {"recorder": {"bag": str(tmp_path / "bag")},
-             "player": {"bag": str(ROOT / "bags" / "ch9_identification")}}.get(name, {})
+             "player": {"bag": str(ROOT / "bags" / "ch9_identification")},
+             "live_view": {"port": 0}}.get(name, {})
     args = ["x", "--ros-args", *(a for k, v in given.items() for a in ("-p", f"{k}:={v}"))]
     rclpy.init(args=args)
     try:
