@@ -37,7 +37,7 @@ setup(
     maintainer="piezo_stage maintainers",
     maintainer_email="maintainers@piezo-stage.org",
     description="Identification and control of a piezoelectric stage with the Bouc-Wen model "
-                "(ROS 2).",
+    "(ROS 2).",
     license="Apache-2.0",
     python_requires=">=3.10",
     entry_points={

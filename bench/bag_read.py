@@ -47,8 +47,9 @@ def _best(run: Callable[[], int], repeat: int) -> tuple[float, int]:
 
 def _mcap_iter(file: Path) -> int:
     with open(file, "rb") as stream:
-        return sum(1 for _ in make_reader(stream, validate_crcs=True).iter_messages(
-            log_time_order=False))
+        return sum(
+            1 for _ in make_reader(stream, validate_crcs=True).iter_messages(log_time_order=False)
+        )
 
 
 def _mcap_summary(file: Path) -> int:
@@ -89,8 +90,10 @@ def main() -> None:
             print(f"{label:<36} {seconds * 1e3:9.1f} ms  {args.n / seconds:12.0f} msgs/s")
         read = results["read_raw (every message)"]
         mcap_iter = results["mcap iter_messages validate_crcs"]
-        print(f"read_raw vs mcap iter_messages: {mcap_iter / read:.1f}x faster; "
-              f"vs rosbags: {results['rosbags AnyReader.messages'] / read:.1f}x faster")
+        print(
+            f"read_raw vs mcap iter_messages: {mcap_iter / read:.1f}x faster; "
+            f"vs rosbags: {results['rosbags AnyReader.messages'] / read:.1f}x faster"
+        )
 
 
 if __name__ == "__main__":

@@ -56,16 +56,18 @@ from piezo_stage.hardware.optoncdt import frame_format  # noqa: E402
 from piezo_stage.launch import Launcher  # noqa: E402
 
 NS = "/bench_rig"
-LEVELS = 500          # distinct positions of the sawtooth
-STEP = 100e-9         # m per sample
-BASE = 0.5e-3         # m from the start of the range: the sawtooth's bottom
-MR = 2e-3             # measuring range [m]
-K1 = 2e6              # V/m: 100 nm -> 0.2 V
-U_BIAS = 200.0        # V
+LEVELS = 500  # distinct positions of the sawtooth
+STEP = 100e-9  # m per sample
+BASE = 0.5e-3  # m from the start of the range: the sawtooth's bottom
+MR = 2e-3  # measuring range [m]
+K1 = 2e6  # V/m: 100 nm -> 0.2 V
+U_BIAS = 200.0  # V
 REFERENCE = BASE + 0.5 * LEVELS * STEP - 1e-3  # m, in the reader's frame (zero_offset 1 mm)
 FAMILY = {1000.0: "ild1320", 10000.0: "ild2300"}
-TARGETS = "1 kHz: p99 <= 0.3 ms and <= 0.2x; CPU <= 250 us and <= 0.25x; busy p99 <= 0.5 ms; " \
-          "10 kHz: p99 <= 0.5 ms, CPU <= 70 us; none unanswered"
+TARGETS = (
+    "1 kHz: p99 <= 0.3 ms and <= 0.2x; CPU <= 250 us and <= 0.25x; busy p99 <= 0.5 ms; "
+    "10 kHz: p99 <= 0.5 ms, CPU <= 70 us; none unanswered"
+)
 
 
 #: the floor of this host for a Python loop: pty -> parse -> proportional law -> TCP, one thread,
@@ -116,6 +118,7 @@ def sawtooth(rate: float):
     def source(t: np.ndarray) -> np.ndarray:
         k = np.rint(np.asarray(t) * rate).astype(np.int64)
         return BASE + (k % LEVELS) * STEP
+
     return source
 
 
@@ -136,9 +139,11 @@ class Figures:
         if not self.latencies.size:
             return f"{self.label:<34} no sample answered ({self.samples} samples)"
         p50, p99 = np.percentile(self.latencies, [50, 99]) * 1e3
-        text = (f"{self.label:<34} samples {self.samples:7d}  latency ms: p50 {p50:6.3f}  "
-                f"p99 {p99:6.3f}  max {self.latencies.max() * 1e3:7.3f}  unanswered "
-                f"{self.unanswered:5d}  CPU/sample {self.cpu_per_sample * 1e6:7.1f} us")
+        text = (
+            f"{self.label:<34} samples {self.samples:7d}  latency ms: p50 {p50:6.3f}  "
+            f"p99 {p99:6.3f}  max {self.latencies.max() * 1e3:7.3f}  unanswered "
+            f"{self.unanswered:5d}  CPU/sample {self.cpu_per_sample * 1e6:7.1f} us"
+        )
         if np.isfinite(self.rss_growth):
             text += f"  RSS growth {self.rss_growth / 1e6:.2f} MB"
         return text + (f"\n{'':<34} {self.view}" if self.view else "")
@@ -155,18 +160,32 @@ EXTRA: list[str] = []  # --param NODE.KEY:=VALUE given on the command line
 
 def graph_params(form: str, rate: float, port: int, link: str) -> list[str]:
     params = [
-        f"voltage_driver.url:=tcp://127.0.0.1:{port}", "voltage_driver.v_max:=400.0",
-        "voltage_driver.slew_rate:=0.0", "voltage_driver.max_command_age:=0.0",
+        f"voltage_driver.url:=tcp://127.0.0.1:{port}",
+        "voltage_driver.v_max:=400.0",
+        "voltage_driver.slew_rate:=0.0",
+        "voltage_driver.max_command_age:=0.0",
         "voltage_driver.command_timeout:=1.0",
-        f"laser_reader.url:={link}", f"laser_reader.family:={FAMILY[rate]}",
-        f"laser_reader.measuring_range:={MR}", "laser_reader.zero_offset:=0.001",
-        f"laser_reader.rate_hz:={rate}", "laser_reader.max_speed:=10.0",
-        "controller.trigger:=sample", f"controller.rate_hz:={rate}", "controller.mode:=pid",
-        "controller.k0:=0.0", f"controller.k1:={K1}", "controller.k2:=0.0",
-        "controller.on_close:=reset", "controller.allow_unverified_gains:=true",
-        f"controller.u_bias:={U_BIAS}", "controller.u_min:=0.0", "controller.u_max:=400.0",
-        "controller.reference_source:=constant", f"controller.reference:={REFERENCE}",
-        "controller.start_closed:=true", "controller.max_gap:=1.0",
+        f"laser_reader.url:={link}",
+        f"laser_reader.family:={FAMILY[rate]}",
+        f"laser_reader.measuring_range:={MR}",
+        "laser_reader.zero_offset:=0.001",
+        f"laser_reader.rate_hz:={rate}",
+        "laser_reader.max_speed:=10.0",
+        "controller.trigger:=sample",
+        f"controller.rate_hz:={rate}",
+        "controller.mode:=pid",
+        "controller.k0:=0.0",
+        f"controller.k1:={K1}",
+        "controller.k2:=0.0",
+        "controller.on_close:=reset",
+        "controller.allow_unverified_gains:=true",
+        f"controller.u_bias:={U_BIAS}",
+        "controller.u_min:=0.0",
+        "controller.u_max:=400.0",
+        "controller.reference_source:=constant",
+        f"controller.reference:={REFERENCE}",
+        "controller.start_closed:=true",
+        "controller.max_gap:=1.0",
     ]
     return params + EXTRA
 
@@ -196,21 +215,38 @@ def rss_bytes(pids: list[int]) -> int:
 
 
 @contextlib.contextmanager
-def loop_under_test(form: str, rate: float, port: int, link: str, lines: list[str]
-                    ) -> Iterator[list[int]]:
+def loop_under_test(
+    form: str, rate: float, port: int, link: str, lines: list[str]
+) -> Iterator[list[int]]:
     """The graph ``form`` launched (or the ``minimal`` loop started); yields its pids."""
     if form == "minimal":
-        proc = subprocess.Popen([sys.executable, "-c", MINIMAL, link, str(port), str(MR),
-                                 "1e-3", str(K1), str(U_BIAS), str(REFERENCE)])
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                MINIMAL,
+                link,
+                str(port),
+                str(MR),
+                "1e-3",
+                str(K1),
+                str(U_BIAS),
+                str(REFERENCE),
+            ]
+        )
         try:
             yield [proc.pid]
         finally:
             proc.kill()
             proc.wait()
         return
-    with Launcher(form, namespace=NS, params=graph_params(form, rate, port, link),
-                  sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
-                  timeout=30.0) as launch:
+    with Launcher(
+        form,
+        namespace=NS,
+        params=graph_params(form, rate, port, link),
+        sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+        timeout=30.0,
+    ) as launch:
         yield list(launch.pids.values())
 
 
@@ -273,9 +309,20 @@ def watched(port: int) -> Iterator[tuple[int, dict[str, int]]]:
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
 
-    view = subprocess.Popen([sys.executable, "-m", "piezo_stage.nodes.live_view", "--ros-args",
-                             "-r", f"__ns:={NS}", "-p", f"port:={port}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    view = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "piezo_stage.nodes.live_view",
+            "--ros-args",
+            "-r",
+            f"__ns:={NS}",
+            "-p",
+            f"port:={port}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     counts: dict[str, int] = {}
     try:
         deadline = time.monotonic() + 30.0
@@ -304,12 +351,21 @@ def watched(port: int) -> Iterator[tuple[int, dict[str, int]]]:
                             continue
                         for ch in msg["channels"]:
                             short = ch["topic"].rsplit("/", 1)[-1]
-                            if ch["topic"] == f"{NS}/{short}" and short in VIEWED \
-                                    and short not in by_sub.values():
+                            if (
+                                ch["topic"] == f"{NS}/{short}"
+                                and short in VIEWED
+                                and short not in by_sub.values()
+                            ):
                                 sub = len(by_sub) + 1
                                 by_sub[sub] = short
-                                ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                                    {"id": sub, "channelId": ch["id"]}]}))
+                                ws.send(
+                                    json.dumps(
+                                        {
+                                            "op": "subscribe",
+                                            "subscriptions": [{"id": sub, "channelId": ch["id"]}],
+                                        }
+                                    )
+                                )
                 except ConnectionClosed:
                     pass
 
@@ -321,24 +377,36 @@ def watched(port: int) -> Iterator[tuple[int, dict[str, int]]]:
         view.wait(timeout=30.0)
 
 
-def measure(form: str, rate: float, seconds: float, busy: bool = False,
-            label: str | None = None, view: bool = False) -> Figures:
+def measure(
+    form: str,
+    rate: float,
+    seconds: float,
+    busy: bool = False,
+    label: str | None = None,
+    view: bool = False,
+) -> Figures:
     """One run: devices up, the loop started, ``seconds`` of loop measured (``view``: with
     the live view watching)."""
     label = label or f"{form} {rate / 1000:g} kHz" + (" + busy" if busy else "")
     port = free_port()
     tmp = Path(tempfile.mkdtemp(prefix="bench_rig_"))
     link, sensor_log, amp_log = str(tmp / "sensor"), str(tmp / "sensor.npy"), str(tmp / "amp.npy")
-    devices = [subprocess.Popen([sys.executable, __file__, "--serve", *argv]) for argv in
-               (["sensor", str(rate), link, sensor_log],
-                ["amplifier", str(port), amp_log, str(int(rate))])]
+    devices = [
+        subprocess.Popen([sys.executable, __file__, "--serve", *argv])
+        for argv in (
+            ["sensor", str(rate), link, sensor_log],
+            ["amplifier", str(port), amp_log, str(int(rate))],
+        )
+    ]
     hog = None
     try:
         _wait_for(Path(sensor_log + ".ready"), "the sensor")
         _wait_for(Path(amp_log + ".ready"), "the amplifier")
         lines: list[str] = []
-        with loop_under_test(form, rate, port, link, lines) as pids, \
-                (watched(free_port()) if view else contextlib.nullcontext((0, {}))) as viewer:
+        with (
+            loop_under_test(form, rate, port, link, lines) as pids,
+            watched(free_port()) if view else contextlib.nullcontext((0, {})) as viewer,
+        ):
             if busy:
                 hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
             try:  # a second's worth of voltages: the loop runs
@@ -365,13 +433,23 @@ def measure(form: str, rate: float, seconds: float, busy: bool = False,
     fig = figures(label, log, answers, rate, t0, t1, cpu1 - cpu0, rss1 - rss0)
     if view:
         rates = [(got1.get(t, 0) - got0.get(t, 0)) / (t1 - t0) for t in VIEWED]
-        fig.view = (f"view: {100 * (view1 - view0) / (t1 - t0):.1f} % of a core; client got "
-                    + ", ".join(f"{t} {r:.0f}/s" for t, r in zip(VIEWED, rates)))
+        fig.view = (
+            f"view: {100 * (view1 - view0) / (t1 - t0):.1f} % of a core; client got "
+            + ", ".join(f"{t} {r:.0f}/s" for t, r in zip(VIEWED, rates))
+        )
     return fig
 
 
-def figures(label: str, log: list[tuple[float, int, int]], answers: list[tuple[float, float]],
-            rate: float, t0: float, t1: float, cpu: float, rss: float) -> Figures:
+def figures(
+    label: str,
+    log: list[tuple[float, int, int]],
+    answers: list[tuple[float, float]],
+    rate: float,
+    t0: float,
+    t1: float,
+    cpu: float,
+    rss: float,
+) -> Figures:
     """Each sample written in [t0, t1) is answered by the first voltage computed from it or from
     a later sample (a read that brings several samples at once is answered by the newest)."""
     written = np.array([(t, k) for t, a, b in log for k in range(a, b)])
@@ -392,13 +470,16 @@ def figures(label: str, log: list[tuple[float, int, int]], answers: list[tuple[f
     latencies = np.full(k.size, np.inf)
     latencies[answered] = at[first[answered]] - t_write[answered]
     late = latencies > 0.5 * LEVELS / rate
-    return Figures(label, int(k.size), latencies[~late], int(np.count_nonzero(late)),
-                   cpu / max(k.size, 1), rss)
+    return Figures(
+        label, int(k.size), latencies[~late], int(np.count_nonzero(late)), cpu / max(k.size, 1), rss
+    )
 
 
-DESIGNS = {"hand-off, 50 us switch": {},
-           "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
-           "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"}}
+DESIGNS = {
+    "hand-off, 50 us switch": {},
+    "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
+    "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"},
+}
 
 
 def compare_designs(seconds: float, rates: list[float]) -> int:
@@ -410,8 +491,7 @@ def compare_designs(seconds: float, rates: list[float]) -> int:
                 os.environ.update(env)
                 try:
                     label = f"{name}, {rate / 1000:g} kHz" + (" + busy" if busy else "")
-                    print(measure("rig_loop", rate, seconds, busy, label=label).line(),
-                          flush=True)
+                    print(measure("rig_loop", rate, seconds, busy, label=label).line(), flush=True)
                 finally:
                     for k, v in saved.items():
                         if v is None:
@@ -422,24 +502,43 @@ def compare_designs(seconds: float, rates: list[float]) -> int:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run")
-    parser.add_argument("--forms", default="rig_closed_loop,rig_loop,minimal",
-                        help="graphs to run (minimal: a one-thread Python loop, this host's "
-                        "floor)")
+    parser.add_argument(
+        "--forms",
+        default="rig_closed_loop,rig_loop,minimal",
+        help="graphs to run (minimal: a one-thread Python loop, this host's floor)",
+    )
     parser.add_argument("--rates", default="1000,10000")
-    parser.add_argument("--soak", type=float, default=0.0, metavar="SECONDS",
-                        help="instead: rig_loop alone at 1 kHz for this long (RSS, unanswered)")
-    parser.add_argument("--param", action="append", default=[], metavar="NODE.KEY:=VALUE",
-                        help="one more parameter for every run, e.g. "
-                        "controller.topics_rate_hz:=500.0")
-    parser.add_argument("--designs", action="store_true",
-                        help="instead: rig_loop's design alternatives side by side")
-    parser.add_argument("--view", action="store_true",
-                        help="instead: rig_loop at 1 kHz without and with the live view")
-    parser.add_argument("--serve", nargs="+", metavar="DEVICE",
-                        help=argparse.SUPPRESS)  # a device's own process (see serve)
+    parser.add_argument(
+        "--soak",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="instead: rig_loop alone at 1 kHz for this long (RSS, unanswered)",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NODE.KEY:=VALUE",
+        help="one more parameter for every run, e.g. controller.topics_rate_hz:=500.0",
+    )
+    parser.add_argument(
+        "--designs",
+        action="store_true",
+        help="instead: rig_loop's design alternatives side by side",
+    )
+    parser.add_argument(
+        "--view",
+        action="store_true",
+        help="instead: rig_loop at 1 kHz without and with the live view",
+    )
+    parser.add_argument(
+        "--serve", nargs="+", metavar="DEVICE", help=argparse.SUPPRESS
+    )  # a device's own process (see serve)
     args = parser.parse_args()
     if args.serve:
         serve(args.serve[0], args.serve[1:])
@@ -449,11 +548,20 @@ def main() -> int:
         return compare_designs(args.seconds, [float(r) for r in args.rates.split(",")])
     if args.view:
         for view in (False, True, False, True):
-            print(measure("rig_loop", 1000.0, args.seconds, view=view,
-                          label="rig_loop 1 kHz" + (" + view" if view else "")).line(),
-                  flush=True)
-        print("target: the view <= 10 % of a core at 1 kHz on three topics, the loop's "
-              "figures unchanged")
+            print(
+                measure(
+                    "rig_loop",
+                    1000.0,
+                    args.seconds,
+                    view=view,
+                    label="rig_loop 1 kHz" + (" + view" if view else ""),
+                ).line(),
+                flush=True,
+            )
+        print(
+            "target: the view <= 10 % of a core at 1 kHz on three topics, the loop's "
+            "figures unchanged"
+        )
         return 0
     if args.soak > 0:
         print(measure("rig_loop", 1000.0, args.soak, label="rig_loop 1 kHz soak").line())
@@ -462,7 +570,7 @@ def main() -> int:
     rates = [float(r) for r in args.rates.split(",")]
     runs = [(f, r, False) for r in rates for f in forms]
     if 1000.0 in rates:
-        runs[len(forms):len(forms)] = [(f, 1000.0, True) for f in forms]
+        runs[len(forms) : len(forms)] = [(f, 1000.0, True) for f in forms]
     results = []
     for form, rate, busy in runs:
         fig = measure(form, rate, args.seconds, busy)
@@ -472,9 +580,11 @@ def main() -> int:
     for rate in rates:
         base, new = by.get(("rig_closed_loop", rate, False)), by.get(("rig_loop", rate, False))
         if base and new and base.latencies.size and new.latencies.size:
-            print(f"{rate / 1000:g} kHz, rig_loop / rig_closed_loop: p99 "
-                  f"{new.p99() / base.p99():.3f}x, CPU per sample "
-                  f"{new.cpu_per_sample / base.cpu_per_sample:.3f}x")
+            print(
+                f"{rate / 1000:g} kHz, rig_loop / rig_closed_loop: p99 "
+                f"{new.p99() / base.p99():.3f}x, CPU per sample "
+                f"{new.cpu_per_sample / base.cpu_per_sample:.3f}x"
+            )
     print(f"targets: {TARGETS}")
     return 0
 

@@ -80,8 +80,9 @@ def bench_driver(seconds: float, seed: int, slew: float = 2000.0, timeout: float
     model.on_voltage = lambda v, at=None: applied.append((clock.t, float(v)))
     faults = Faults(corrupt=0.01, seed=seed)
     link = FlakyLink(model, faults, clock=clock)
-    config = DriverConfig(0.0, 100.0, slew_rate=slew, command_timeout=timeout,
-                          reconnect_delay=0.001)
+    config = DriverConfig(
+        0.0, 100.0, slew_rate=slew, command_timeout=timeout, reconnect_delay=0.001
+    )
     driver = VoltageDriver(GCSAmplifier(link, timeout=0.02), config, clock=clock, sleep=clock.sleep)
     driver.connect()
     commands = refused = 0
@@ -118,15 +119,22 @@ def bench_driver(seconds: float, seed: int, slew: float = 2000.0, timeout: float
     steps = np.abs(np.diff(v))
     worst = -math.inf
     for i in range(0, t.size, 256):  # all pairs, in blocks
-        dv = np.abs(v[i:i + 256, None] - v[None, :])
-        dt = np.abs(t[i:i + 256, None] - t[None, :])
+        dv = np.abs(v[i : i + 256, None] - v[None, :])
+        dt = np.abs(t[i : i + 256, None] - t[None, :])
         worst = max(worst, float(np.max(dv - slew * dt - cap)))
-    return {"commands": commands, "refused (link down)": refused, "device writes": len(applied) - 1,
-            "reconnects": driver.reconnects, "watchdog trips": driver.trips,
-            "largest step [V]": float(steps.max()), "per-write cap [V]": cap,
-            "worst slew excess [V]": worst,
-            "watchdog latency beyond timeout + ramp [ms] (max)":
-                1e3 * max(latencies) if latencies else math.nan}
+    return {
+        "commands": commands,
+        "refused (link down)": refused,
+        "device writes": len(applied) - 1,
+        "reconnects": driver.reconnects,
+        "watchdog trips": driver.trips,
+        "largest step [V]": float(steps.max()),
+        "per-write cap [V]": cap,
+        "worst slew excess [V]": worst,
+        "watchdog latency beyond timeout + ramp [ms] (max)": 1e3 * max(latencies)
+        if latencies
+        else math.nan,
+    }
 
 
 def bench_reader(seed: int, mr: float = 2e-3, rate: float = 1000.0) -> list[dict]:
@@ -139,19 +147,24 @@ def bench_reader(seed: int, mr: float = 2e-3, rate: float = 1000.0) -> list[dict
         row = {"family": f"{family}{'-' + str(bits) if bits else ''}"}
         junk = np.random.default_rng(seed).integers(0, 256, 1_000_000, dtype=np.uint8).tobytes()
         parser = OptoNCDTParser(fmt, mr)
-        block = SampleBlock.concat([parser.feed(junk[i:i + 4096])
-                                    for i in range(0, len(junk), 4096)])
+        block = SampleBlock.concat(
+            [parser.feed(junk[i : i + 4096]) for i in range(0, len(junk), 4096)]
+        )
         row["1e6 random bytes: OK"] = int(np.count_nonzero(block.status == Status.OK))
         data, origin, truth = sensor_stream(fmt, truth_d, mr)
-        for name, kw in (("lose 1/frame", dict(lose_one=True)),
-                         ("replace 1/frame", dict(replace_one=True)),
-                         ("corrupt 1e-3", dict(corrupt=1e-3)),
-                         ("mixed 1e-3", dict(corrupt=1e-3, drop=1e-3, garbage=1e-3))):
+        for name, kw in (
+            ("lose 1/frame", dict(lose_one=True)),
+            ("replace 1/frame", dict(replace_one=True)),
+            ("corrupt 1e-3", dict(corrupt=1e-3)),
+            ("mixed 1e-3", dict(corrupt=1e-3, drop=1e-3, garbage=1e-3)),
+        ):
             d, o = damage(data, origin, np.random.default_rng(seed), fmt.bytes_per_value, **kw)
             s = score(OptoNCDTParser(fmt, mr, check), d, o, truth, 1e-3 * mr)
-            row[name] = (f"{s.ok} OK ({s.damaged_ok} damaged, {s.chained} chained), "
-                         f"{s.wrong} off, worst {s.worst / mr:.2e} MR, "
-                         f"{s.gate_breaks + s.beyond_gate} past the gate")
+            row[name] = (
+                f"{s.ok} OK ({s.damaged_ok} damaged, {s.chained} chained), "
+                f"{s.wrong} off, worst {s.worst / mr:.2e} MR, "
+                f"{s.gate_breaks + s.beyond_gate} past the gate"
+            )
         rng = np.random.default_rng(seed)
         good, _, _ = sensor_stream(fmt, truth_d[:40], mr)
         latency = 0
@@ -172,20 +185,28 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR + 10)  # the driver's warnings are the faults we inject
-    print(f"driver: GCS emulator, 2000 V/s, 0-100 V, command_timeout 0.5 s, {args.seconds:g} s "
-          "of random commands, hang-ups and 1 % corrupted replies")
+    print(
+        f"driver: GCS emulator, 2000 V/s, 0-100 V, command_timeout 0.5 s, {args.seconds:g} s "
+        "of random commands, hang-ups and 1 % corrupted replies"
+    )
     for key, value in bench_driver(args.seconds, args.seed).items():
         print(f"  {key:58s} {value:.4g}" if isinstance(value, float) else f"  {key:58s} {value}")
-    print("  baseline (earlier driver): single steps of 100 V at 2000 V/s (cap 20 V); "
-          "4.86 s to safe with queued commands")
-    print("reader: MR 2 mm, 1 kHz, true motion 0.31 mm/s, max_speed 1 mm/s, relock 6 frames; "
-          "tolerance 1e-3 MR")
+    print(
+        "  baseline (earlier driver): single steps of 100 V at 2000 V/s (cap 20 V); "
+        "4.86 s to safe with queued commands"
+    )
+    print(
+        "reader: MR 2 mm, 1 kHz, true motion 0.31 mm/s, max_speed 1 mm/s, relock 6 frames; "
+        "tolerance 1e-3 MR"
+    )
     for row in bench_reader(args.seed):
         print(f"  {row.pop('family')}")
         for key, value in row.items():
             print(f"    {key:38s} {value}")
-    print("  baseline (earlier reader): 396 OK values per 1e5 random bytes; 210 wrong OK values "
-          "(up to 4.5 mm) from 2000 frames with one random byte each")
+    print(
+        "  baseline (earlier reader): 396 OK values per 1e5 random bytes; 210 wrong OK values "
+        "(up to 4.5 mm) from 2000 frames with one random byte each"
+    )
 
 
 if __name__ == "__main__":

@@ -64,8 +64,16 @@ def max_rel_error(found: BoucWenParameters | None, true: BoucWenParameters) -> f
 
 
 def ch9_runs(samples_per_branch: int, noise: float = 0.0, seed: int = 0):
-    return triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=samples_per_branch, periods=3,
-                         noise=noise, rng=np.random.default_rng(seed))
+    return triangle_pair(
+        CH9,
+        -0.2,
+        0.2,
+        0.1,
+        samples_per_branch=samples_per_branch,
+        periods=3,
+        noise=noise,
+        rng=np.random.default_rng(seed),
+    )
 
 
 def generic_start(result) -> BoucWenParameters:
@@ -75,9 +83,15 @@ def generic_start(result) -> BoucWenParameters:
     y = np.concatenate([c.output for c in result.cycles])
     slope, icpt = np.polyfit(v, y, 1)
     degree = len(result.parameters.kappa)
-    return BoucWenParameters(kappa=(slope,) + (0.0,) * (degree - 1), y0=icpt,
-                             kappa_w=0.1 * np.ptp(y), rho=1.0 / np.ptp(v), sigma=1.0, n=2.0,
-                             input_sign=result.parameters.input_sign)
+    return BoucWenParameters(
+        kappa=(slope,) + (0.0,) * (degree - 1),
+        y0=icpt,
+        kappa_w=0.1 * np.ptp(y),
+        rho=1.0 / np.ptp(v),
+        sigma=1.0,
+        n=2.0,
+        input_sign=result.parameters.input_sign,
+    )
 
 
 def baseline(result, true: BoucWenParameters) -> tuple[float, int, float]:
@@ -99,32 +113,44 @@ def section(title: str) -> None:
 
 def noiseless() -> None:
     section("ch. 9 example, noiseless: max relative parameter error")
-    print(f"{'samples/branch':>14}  {'analytic':>10}  {'refined':>10}  {'baseline LSQ':>12}  "
-          f"{'(nfev)':>7}")
+    print(
+        f"{'samples/branch':>14}  {'analytic':>10}  {'refined':>10}  {'baseline LSQ':>12}  "
+        f"{'(nfev)':>7}"
+    )
     for spb in (1000, 2000, 10000):
         result = identify(*ch9_runs(spb))
         err_b, nfev_b, _ = baseline(result, CH9)
-        print(f"{spb:>14}  {max_rel_error(result.analytic, CH9):10.2e}  "
-              f"{max_rel_error(result.parameters, CH9):10.2e}  {err_b:12.2e}  {nfev_b:7d}"
-              f"   refine nfev {result.diagnostics['nfev']}")
-    print(f"{'thesis (9.2)':>14}  {max_rel_error(THESIS_CH9, CH9):10.2e}  {'-':>10}"
-          "   (κw 2.0059, ρ 0.9971, n 1.4954, σ 2.9728)")
+        print(
+            f"{spb:>14}  {max_rel_error(result.analytic, CH9):10.2e}  "
+            f"{max_rel_error(result.parameters, CH9):10.2e}  {err_b:12.2e}  {nfev_b:7d}"
+            f"   refine nfev {result.diagnostics['nfev']}"
+        )
+    print(
+        f"{'thesis (9.2)':>14}  {max_rel_error(THESIS_CH9, CH9):10.2e}  {'-':>10}"
+        "   (κw 2.0059, ρ 0.9971, n 1.4954, σ 2.9728)"
+    )
     # the thesis's procedure: the cycle over [4T, 5T] from w(0) = 0 (not yet the limit cycle
     # for ρ·span = 0.4) and first differences (9.39) instead of local fits
     thesis_like = IdentifyOptions(
-        refine=False, cycle=CycleOptions(steady_periods=1, min_steady_periods=1),
-        derivative=DerivativeOptions(degree=1, min_samples=2, slope_corrections=0, rel_tol=np.inf))
+        refine=False,
+        cycle=CycleOptions(steady_periods=1, min_steady_periods=1),
+        derivative=DerivativeOptions(degree=1, min_samples=2, slope_corrections=0, rel_tol=np.inf),
+    )
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=2000, periods=5, w0=0.0)
     r = identify(*runs, thesis_like)
-    print(f"{'as the thesis':>14}  {max_rel_error(r.parameters, CH9):10.2e}  {'-':>10}"
-          "   (2000 samples, cycle [4T,5T] from w(0)=0, first differences (9.39))")
+    print(
+        f"{'as the thesis':>14}  {max_rel_error(r.parameters, CH9):10.2e}  {'-':>10}"
+        "   (2000 samples, cycle [4T,5T] from w(0)=0, first differences (9.39))"
+    )
     print("targets: analytic <= 1e-4 at 2000 samples, refined <= 1e-6")
 
 
 def noisy() -> None:
     section(f"ch. 9 example with output noise, 2000 samples/branch, {SEEDS} seeds")
-    print(f"{'noise/span':>10}  {'analytic med/worst':>20}  {'refined med/worst':>20}  "
-          f"{'reported bad':>12}  {'silent >target':>14}  {'baseline med/worst (failed)':>28}")
+    print(
+        f"{'noise/span':>10}  {'analytic med/worst':>20}  {'refined med/worst':>20}  "
+        f"{'reported bad':>12}  {'silent >target':>14}  {'baseline med/worst (failed)':>28}"
+    )
     for noise, target in ((1e-4, 5e-3), (1e-3, 5e-2)):
         ana, ref, base = [], [], []
         bad = silent = base_failed = 0
@@ -142,9 +168,11 @@ def noisy() -> None:
             base_failed += not err_b <= target
             base.append(err_b)
         a, r, b = (np.array(x, dtype=float) for x in (ana, ref, base))
-        print(f"{noise:>10.0e}  {np.nanmedian(a):9.2e}/{np.nanmax(a):9.2e}  "
-              f"{np.median(r):9.2e}/{np.max(r):9.2e}  {bad:>12d}  {silent:>14d}  "
-              f"{np.nanmedian(b):9.2e}/{np.nanmax(b):9.2e} ({base_failed:2d})")
+        print(
+            f"{noise:>10.0e}  {np.nanmedian(a):9.2e}/{np.nanmax(a):9.2e}  "
+            f"{np.median(r):9.2e}/{np.max(r):9.2e}  {bad:>12d}  {silent:>14d}  "
+            f"{np.nanmedian(b):9.2e}/{np.nanmax(b):9.2e} ({base_failed:2d})"
+        )
     print("targets: refined <= 5e-3 at 1e-4, <= 5e-2 at 1e-3; no silent answer above target")
 
 
@@ -153,14 +181,20 @@ def patch() -> None:
     runs = triangle_pair(PATCH, 0.0, 300.0, 100.0, period=10.0, samples_per_branch=2000, periods=3)
     result = identify(*runs, IdentifyOptions(degree=2))
     p = result.parameters
-    print(f"input_sign {p.input_sign:+d}; analytic error "
-          f"{max_rel_error(result.analytic, PATCH):.2e}, "
-          f"refined {max_rel_error(p, PATCH):.2e}, y0 rel. error {abs(p.y0 / PATCH.y0 - 1):.1e}")
-    print(f"kappa {p.kappa}, kappa_w {p.kappa_w:.6g}, rho {p.rho:.6g}, sigma {p.sigma:.6g}, "
-          f"n {p.n:.6g}")
+    print(
+        f"input_sign {p.input_sign:+d}; analytic error "
+        f"{max_rel_error(result.analytic, PATCH):.2e}, "
+        f"refined {max_rel_error(p, PATCH):.2e}, y0 rel. error {abs(p.y0 / PATCH.y0 - 1):.1e}"
+    )
+    print(
+        f"kappa {p.kappa}, kappa_w {p.kappa_w:.6g}, rho {p.rho:.6g}, sigma {p.sigma:.6g}, "
+        f"n {p.n:.6g}"
+    )
     err_b, nfev_b, t_b = baseline(result, PATCH)
-    print(f"baseline LSQ from a generic start: error {err_b:.2e} after {nfev_b} evaluations "
-          f"({t_b:.2f} s)")
+    print(
+        f"baseline LSQ from a generic start: error {err_b:.2e} after {nfev_b} evaluations "
+        f"({t_b:.2f} s)"
+    )
     try:
         identify(*runs, IdentifyOptions(degree=1))
         print("N = 1 on these data: accepted (unexpected)")
@@ -186,11 +220,15 @@ def timing() -> None:
     result = identify(*runs)
     _, nfev_b, t_b = baseline(result, CH9)
     print(f"analytic (cycle extraction + Table 10.2): {1e3 * t_ana:7.1f} ms   target < 50 ms")
-    print(f"analytic + refinement:                    {1e3 * t_full:7.1f} ms   "
-          "target refinement < 5 s")
-    print(f"baseline LSQ from generic start:          {1e3 * t_b:7.1f} ms   ({nfev_b} evaluations, "
-          f"refinement from the analytic start: {result.diagnostics['nfev']}); ratio "
-          f"{t_b / max(t_full - t_ana, 1e-9):.1f}x")
+    print(
+        f"analytic + refinement:                    {1e3 * t_full:7.1f} ms   "
+        "target refinement < 5 s"
+    )
+    print(
+        f"baseline LSQ from generic start:          {1e3 * t_b:7.1f} ms   ({nfev_b} evaluations, "
+        f"refinement from the analytic start: {result.diagnostics['nfev']}); ratio "
+        f"{t_b / max(t_full - t_ana, 1e-9):.1f}x"
+    )
 
 
 # ------------------------------------------------------------------ fit by simulation error
@@ -207,16 +245,23 @@ def plain_fit(runs, degree: int, true: BoucWenParameters | None = None):
     slope, icpt = np.polyfit(v, y, 1)
     best = None
     for sign in (1, -1):
-        p0 = np.array([slope] + [0.0] * (degree - 1) + [icpt, 0.1 * np.ptp(y), 1.0 / np.ptp(v),
-                                                         1.0, 2.0])
+        p0 = np.array(
+            [slope] + [0.0] * (degree - 1) + [icpt, 0.1 * np.ptp(y), 1.0 / np.ptp(v), 1.0, 2.0]
+        )
         scale = np.where(p0 != 0, np.abs(p0), 1.0)
-        scale[degree:degree + 1] = max(abs(icpt), np.ptp(y))
+        scale[degree : degree + 1] = max(abs(icpt), np.ptp(y))
 
         def unpack(z, sign=sign, scale=scale):
             p = z * scale
-            return BoucWenParameters(kappa=tuple(p[:degree]), y0=p[degree], kappa_w=p[degree + 1],
-                                     rho=p[degree + 2], sigma=p[degree + 3], n=p[degree + 4],
-                                     input_sign=sign)
+            return BoucWenParameters(
+                kappa=tuple(p[:degree]),
+                y0=p[degree],
+                kappa_w=p[degree + 1],
+                rho=p[degree + 2],
+                sigma=p[degree + 3],
+                n=p[degree + 4],
+                input_sign=sign,
+            )
 
         def fun(z):
             p = unpack(z)
@@ -224,7 +269,7 @@ def plain_fit(runs, degree: int, true: BoucWenParameters | None = None):
 
         lo = np.full(len(p0), -np.inf)
         hi = np.full(len(p0), np.inf)
-        lo[degree + 1:] = [1e-12, 1e-12, 0.5, 1.0]
+        lo[degree + 1 :] = [1e-12, 1e-12, 0.5, 1.0]
         hi[degree + 4] = 50.0
         try:
             res = least_squares(fun, p0 / scale, bounds=(lo / scale, hi / scale), x_scale="jac")
@@ -252,11 +297,13 @@ def _fit_row(label: str, runs, true: BoucWenParameters, target: float, degree: i
     r = identify_runs(runs, IdentifyOptions(degree=degree), method="fit")
     t_fit = time.perf_counter() - t0
     base, _, t_base = plain_fit(runs, degree)
-    print(f"{label}: fit {max_rel_error(r.parameters, true):.2e} ({t_fit:.2f} s)   target "
-          f"<= {target:g}\n    analytic: "
-          f"{_analytic_or_reason(runs) if len(runs) == 2 else 'n/a (one run)'}"
-          f"\n    plain scipy fit from a generic start: {max_rel_error(base, true):.2e} "
-          f"({t_base:.2f} s)")
+    print(
+        f"{label}: fit {max_rel_error(r.parameters, true):.2e} ({t_fit:.2f} s)   target "
+        f"<= {target:g}\n    analytic: "
+        f"{_analytic_or_reason(runs) if len(runs) == 2 else 'n/a (one run)'}"
+        f"\n    plain scipy fit from a generic start: {max_rel_error(base, true):.2e} "
+        f"({t_base:.2f} s)"
+    )
 
 
 def one_run() -> None:
@@ -266,8 +313,10 @@ def one_run() -> None:
 
 
 def one_run_patch() -> None:
-    section("one noiseless run of the ch. 10 patch (N = 2, input -v), a ±150 V 1 Hz sine from "
-            "w(0) = 0.5")
+    section(
+        "one noiseless run of the ch. 10 patch (N = 2, input -v), a ±150 V 1 Hz sine from "
+        "w(0) = 0.5"
+    )
     t = np.arange(6000) * 1e-3
     v = 150.0 * np.sin(2 * np.pi * t)
     run = Recording(t, v, model_output(PATCH, v, w0=0.5), name="patch sine")
@@ -283,14 +332,17 @@ def two_runs() -> None:
 
 
 def ch9_24() -> None:
-    section("ch. 9 example, two runs of 24 periods from w(0) = 0 "
-            "(method auto: analytic + refinement)")
+    section(
+        "ch. 9 example, two runs of 24 periods from w(0) = 0 (method auto: analytic + refinement)"
+    )
     for spb in (1000, 2000):
         runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=spb, periods=24, w0=0.0)
         r = identify_runs(runs)
-        print(f"{spb} samples/branch: {r.method}, steady periods averaged "
-              f"{r.diagnostics['steady_periods']}, error {max_rel_error(r.parameters, CH9):.2e}"
-              "   target <= 1e-8 (transient periods averaged in: 3.6e-5)")
+        print(
+            f"{spb} samples/branch: {r.method}, steady periods averaged "
+            f"{r.diagnostics['steady_periods']}, error {max_rel_error(r.parameters, CH9):.2e}"
+            "   target <= 1e-8 (transient periods averaged in: 3.6e-5)"
+        )
 
 
 def noisy_one_run() -> None:
@@ -303,8 +355,16 @@ def noisy_one_run() -> None:
     true = values(CH9)
     errs, z, base = [], [], []
     for seed in range(SEEDS):
-        run = triangle_run(CH9, -0.2, 0.2, samples_per_branch=833, periods=6, w0=0.0,
-                           noise=1e-3, rng=np.random.default_rng(seed))
+        run = triangle_run(
+            CH9,
+            -0.2,
+            0.2,
+            samples_per_branch=833,
+            periods=6,
+            w0=0.0,
+            noise=1e-3,
+            rng=np.random.default_rng(seed),
+        )
         r = identify_runs([run])
         v, sd = values(r.parameters), np.array([r.diagnostics["std"][k] for k in names])
         errs.append(float(np.max(np.abs(v / true - 1))))
@@ -312,58 +372,74 @@ def noisy_one_run() -> None:
         if seed < 5:
             base.append(max_rel_error(plain_fit([run], 1)[0], CH9))
     z = np.array(z)
-    print(f"max relative error: median {np.median(errs):.2e}, worst {max(errs):.2e}"
-          "   target <= 5e-2")
-    print(f"|error| <= 2 standard errors: {100 * np.mean(z <= 2):.0f} % of parameter estimates "
-          f"(Gaussian: 95 %); all five within 2 SE in {100 * np.mean(np.all(z <= 2, axis=1)):.0f} "
-          f"% of seeds, within 3 SE in {100 * np.mean(np.all(z <= 3, axis=1)):.0f} %"
-          "   target >= 90 %")
+    print(
+        f"max relative error: median {np.median(errs):.2e}, worst {max(errs):.2e}   target <= 5e-2"
+    )
+    print(
+        f"|error| <= 2 standard errors: {100 * np.mean(z <= 2):.0f} % of parameter estimates "
+        f"(Gaussian: 95 %); all five within 2 SE in {100 * np.mean(np.all(z <= 2, axis=1)):.0f} "
+        f"% of seeds, within 3 SE in {100 * np.mean(np.all(z <= 3, axis=1)):.0f} %"
+        "   target >= 90 %"
+    )
     print(f"plain scipy fit (5 seeds): median {np.median(base):.2e}, worst {np.max(base):.2e}")
 
 
 def p885() -> None:
-    section("real P-885.91 record (test/data/p885, 40 periods of a 1 Hz raised cosine, 100 Hz): "
-            "fit on the first 60 %, held-out RMS on the last 40 %")
+    section(
+        "real P-885.91 record (test/data/p885, 40 periods of a 1 Hz raised cosine, 100 Hz): "
+        "fit on the first 60 %, held-out RMS on the last 40 %"
+    )
     rec = load_csv(P885)
     span = float(np.ptp(rec.output))
     for degree in (1, 2):
         for drift in (DriftKind.NONE, DriftKind.LOG):
             t0 = time.perf_counter()
             fit, fig = holdout_check([rec], FitOptions(degree=degree, drift=drift, holdout=0.4))
-            print(f"N = {degree}, drift {drift.value:<4}: fit RMS "
-                  f"{fig['train_rms_percent']:.3g} %, "
-                  f"held-out RMS {fig['holdout_rms_percent']:.3g} % of span, delay "
-                  f"{1e3 * fit.delay:.2g} ms ({time.perf_counter() - t0:.2f} s)   target <= 1.2 %")
+            print(
+                f"N = {degree}, drift {drift.value:<4}: fit RMS "
+                f"{fig['train_rms_percent']:.3g} %, "
+                f"held-out RMS {fig['holdout_rms_percent']:.3g} % of span, delay "
+                f"{1e3 * fit.delay:.2g} ms ({time.perf_counter() - t0:.2f} s)   target <= 1.2 %"
+            )
     cut = int(round(0.6 * len(rec)))
     train, test = rec.slice(0, cut), rec.slice(cut, len(rec))
     poly = np.polyfit(train.input, train.output, 2)
     static = np.polyval(poly, test.input) - test.output
-    print(f"static degree-2 polynomial (no hysteresis): held-out RMS "
-          f"{100 * np.sqrt(np.mean(static ** 2)) / span:.3g} %")
+    print(
+        f"static degree-2 polynomial (no hysteresis): held-out RMS "
+        f"{100 * np.sqrt(np.mean(static**2)) / span:.3g} %"
+    )
     base, _, t_base = plain_fit([train], 2)
     if base is not None:
         pred = model_output(base, rec.input, 0.0)[cut:] - test.output
-        print(f"plain scipy Bouc-Wen fit (N = 2, w(0) = 0): held-out RMS "
-              f"{100 * np.sqrt(np.mean(pred ** 2)) / span:.3g} % ({t_base:.2f} s)")
+        print(
+            f"plain scipy Bouc-Wen fit (N = 2, w(0) = 0): held-out RMS "
+            f"{100 * np.sqrt(np.mean(pred**2)) / span:.3g} % ({t_base:.2f} s)"
+        )
 
 
 def fit_timing() -> None:
     section("time of the fit by simulation error, one 10k-sample run (ch. 9 triangle, 6 periods)")
     run = triangle_run(CH9, -0.2, 0.2, samples_per_branch=833, periods=6, w0=0.0)
-    identify_runs([run], method="fit")       # warm up (numba)
+    identify_runs([run], method="fit")  # warm up (numba)
     times = []
     for _ in range(3):
         t0 = time.perf_counter()
         r = identify_runs([run], method="fit")
         times.append(time.perf_counter() - t0)
-    print(f"{len(run)} samples: {min(times):.2f} s best of 3 (held-out check + final fit, "
-          f"{r.diagnostics['nfev']} evaluations in the final fit)   target <= 5 s")
-    patch_run = triangle_run(PATCH, 0.0, 300.0, period=10.0, samples_per_branch=833, periods=6,
-                             w0=0.0)
+    print(
+        f"{len(run)} samples: {min(times):.2f} s best of 3 (held-out check + final fit, "
+        f"{r.diagnostics['nfev']} evaluations in the final fit)   target <= 5 s"
+    )
+    patch_run = triangle_run(
+        PATCH, 0.0, 300.0, period=10.0, samples_per_branch=833, periods=6, w0=0.0
+    )
     t0 = time.perf_counter()
     r = identify_runs([patch_run], IdentifyOptions(degree=2), method="fit")
-    print(f"ch. 10 patch, N = 2, 10k samples: {time.perf_counter() - t0:.2f} s, error "
-          f"{max_rel_error(r.parameters, PATCH):.2e}")
+    print(
+        f"ch. 10 patch, N = 2, 10k samples: {time.perf_counter() - t0:.2f} s, error "
+        f"{max_rel_error(r.parameters, PATCH):.2e}"
+    )
 
 
 def lag() -> None:
@@ -373,9 +449,11 @@ def lag() -> None:
 
     keys = ("kappa_w", "rho", "sigma", "n")
     seeds = 6
-    print(f"{'per period':>10} {'lag':>3}  {'estimated lag':>14}  "
-          f"{'auto: worst of kw,rho,sigma,n':>30}  {'fit: worst':>10}  "
-          f"{'auto within 3 std errors':>24}   target: auto within 2 %, and covered")
+    print(
+        f"{'per period':>10} {'lag':>3}  {'estimated lag':>14}  "
+        f"{'auto: worst of kw,rho,sigma,n':>30}  {'fit: worst':>10}  "
+        f"{'auto within 3 std errors':>24}   target: auto within 2 %, and covered"
+    )
     for spb in (50, 100):
         for d in range(4):
             est, auto, fit, covered = [], [], [], []
@@ -383,33 +461,58 @@ def lag() -> None:
                 rng = np.random.default_rng(seed)
                 runs = []
                 for low, high in ((0.0, 300.0), (100.0, 400.0)):
-                    ahead = triangle_run(PATCH, low, high, samples_per_branch=spb, periods=3.0,
-                                         phase=d / (2 * spb))
-                    now = triangle_run(PATCH, low, high, samples_per_branch=spb, periods=3.0,
-                                       noise=1e-3, rng=rng)
+                    ahead = triangle_run(
+                        PATCH, low, high, samples_per_branch=spb, periods=3.0, phase=d / (2 * spb)
+                    )
+                    now = triangle_run(
+                        PATCH, low, high, samples_per_branch=spb, periods=3.0, noise=1e-3, rng=rng
+                    )
                     runs.append(Recording(ahead.t, ahead.input, now.output))
                 est.append(estimate_lag(runs[0]).samples)
                 for method, sink in (("auto", auto), ("fit", fit)):
                     try:
                         p = identify_runs(runs, IdentifyOptions(degree=2), method=method)
-                        sink.append(max(abs(getattr(p.parameters, k) / getattr(PATCH, k) - 1)
-                                        for k in keys))
+                        sink.append(
+                            max(abs(getattr(p.parameters, k) / getattr(PATCH, k) - 1) for k in keys)
+                        )
                     except Exception:
                         sink.append(float("nan"))
                         continue
                     if method == "auto":
                         std = p.diagnostics.get("std", {})
-                        covered += [abs(getattr(p.parameters, k) - getattr(PATCH, k))
-                                    <= 3 * std.get(k, float("nan")) for k in keys]
-            print(f"{2 * spb:>10} {d:>3}  {np.mean(est):8.2f} ±{np.std(est):.2f}  "
-                  f"{100 * max(auto):29.2f} %  {100 * max(fit):9.2f} %  "
-                  f"{100 * np.mean(covered):22.0f} %")
-    print("3 standard errors cover 99.7 % of a normal error: a lower share says the reported "
-          "errors are optimistic")
+                        covered += [
+                            abs(getattr(p.parameters, k) - getattr(PATCH, k))
+                            <= 3 * std.get(k, float("nan"))
+                            for k in keys
+                        ]
+            print(
+                f"{2 * spb:>10} {d:>3}  {np.mean(est):8.2f} ±{np.std(est):.2f}  "
+                f"{100 * max(auto):29.2f} %  {100 * max(fit):9.2f} %  "
+                f"{100 * np.mean(covered):22.0f} %"
+            )
+    print(
+        "3 standard errors cover 99.7 % of a normal error: a lower share says the reported "
+        "errors are optimistic"
+    )
 
 
-SECTIONS = {f.__name__: f for f in (noiseless, patch, timing, noisy, one_run, one_run_patch,
-                                     two_runs, ch9_24, noisy_one_run, p885, fit_timing, lag)}
+SECTIONS = {
+    f.__name__: f
+    for f in (
+        noiseless,
+        patch,
+        timing,
+        noisy,
+        one_run,
+        one_run_patch,
+        two_runs,
+        ch9_24,
+        noisy_one_run,
+        p885,
+        fit_timing,
+        lag,
+    )
+}
 
 
 if __name__ == "__main__":

@@ -63,30 +63,39 @@ def rate_rows(rig, fitted, model) -> bool:
         _, cont = simulate_tracking(trajectory, rig, "both", m, rate_hz=rate)
         table = sampled_feedforward(m, x_d, rate)
         _, sampled = simulate_tracking(trajectory, rig, "both", m, rate_hz=rate, table=table)
-        _, learned = simulate_tracking(trajectory, rig, "both", m, rate_hz=rate, table=table,
-                                       learn_periods=20)
+        _, learned = simulate_tracking(
+            trajectory, rig, "both", m, rate_hz=rate, table=table, learn_periods=20
+        )
         passed = sampled.relative <= target_sampled and learned.relative <= target_learned
         ok &= passed
-        print(f"{label:58s} {100 * cont.relative:7.3f}% {100 * sampled.relative:7.3f}% "
-              f"{100 * learned.relative:7.4f}% {len(learned.learning):7d}  sampled <= "
-              f"{100 * target_sampled:g} %, learned <= {100 * target_learned:g} % "
-              f"{'PASS' if passed else 'FAIL'}")
+        print(
+            f"{label:58s} {100 * cont.relative:7.3f}% {100 * sampled.relative:7.3f}% "
+            f"{100 * learned.relative:7.4f}% {len(learned.learning):7d}  sampled <= "
+            f"{100 * target_sampled:g} %, learned <= {100 * target_learned:g} % "
+            f"{'PASS' if passed else 'FAIL'}"
+        )
         return learned
 
     tri = ("triangle", 10e-6, 10.0)
     case("10 Hz triangle, 20 um, identified model", *tri, fitted, 0.02, 0.002)
     for scale, target in ((0.01, 0.002), (0.05, 0.003)):
         for seed in range(3):
-            case(f"10 Hz triangle, 20 um, model ±{100 * scale:g} % per parameter (seed {seed})",
-                 *tri, perturbed_each(rig, scale, seed), 0.02, target)
+            case(
+                f"10 Hz triangle, 20 um, model ±{100 * scale:g} % per parameter (seed {seed})",
+                *tri,
+                perturbed_each(rig, scale, seed),
+                0.02,
+                target,
+            )
     for factor in (1.05, 0.95):
-        case(f"10 Hz triangle, 20 um, model x{factor:g}", *tri, perturbed(rig, factor), 0.02,
-             0.003)
+        case(f"10 Hz triangle, 20 um, model x{factor:g}", *tri, perturbed(rig, factor), 0.02, 0.003)
     sine = case("100 Hz sine, 10 um, identified model", "sine", 5e-6, 100.0, fitted, 0.02, 0.01)
-    print(f"  the 100 Hz sine has 10 samples per period: Q passes its harmonics up to a quarter "
-          f"of the rate (100, 200 Hz); what the hysteresis puts at 300-500 Hz stays "
-          f"({100 * sine.relative:.2g} %): there a per-harmonic inverse of the time-varying "
-          f"stiffness diverges")
+    print(
+        f"  the 100 Hz sine has 10 samples per period: Q passes its harmonics up to a quarter "
+        f"of the rate (100, 200 Hz); what the hysteresis puts at 300-500 Hz stays "
+        f"({100 * sine.relative:.2g} %): there a per-harmonic inverse of the time-varying "
+        f"stiffness diverges"
+    )
     return ok
 
 
@@ -196,16 +205,25 @@ def main() -> int:
                 )
             # at 1 kHz through the graphs: the sampled feedforward's first period, then learned
             for graph, target in (("sim", 0.002), ("emulated_rig", 0.005)):
-                spec = TrackingSpec(trajectory="triangle", amplitude=10e-6, frequency=10.0,
-                                    compensation="both", model=fitted, rate_hz=1000.0,
-                                    learn=20, graph=graph)
+                spec = TrackingSpec(
+                    trajectory="triangle",
+                    amplitude=10e-6,
+                    frequency=10.0,
+                    compensation="both",
+                    model=fitted,
+                    rate_hz=1000.0,
+                    learn=20,
+                    graph=graph,
+                )
                 summary = run_tracking(spec)
                 first = summary["learning"][0] / summary["range"]
                 passed = summary["rms_relative"] <= target
                 ok &= passed
-                print(f"graph {graph:12s} 1 kHz, triangle, 20 learning periods: first period "
-                      f"{100 * first:.3f} %, learned {100 * summary['rms_relative']:.4f} % "
-                      f"(<= {100 * target:g} %) {'PASS' if passed else 'FAIL'}")
+                print(
+                    f"graph {graph:12s} 1 kHz, triangle, 20 learning periods: first period "
+                    f"{100 * first:.3f} %, learned {100 * summary['rms_relative']:.4f} % "
+                    f"(<= {100 * target:g} %) {'PASS' if passed else 'FAIL'}"
+                )
     print(f"total {time.monotonic() - started:.1f} s")
     return 0 if ok else 1
 

@@ -50,11 +50,15 @@ def _ensure(path: Path) -> Path:
         pass
     info = os.lstat(path)
     if not stat.S_ISDIR(info.st_mode):
-        raise RuntimeDirError(f"{path} is not a directory (a symlink or file put there?): "
-                              "remove it or set PIEZO_STAGE_RUNTIME_DIR")
+        raise RuntimeDirError(
+            f"{path} is not a directory (a symlink or file put there?): "
+            "remove it or set PIEZO_STAGE_RUNTIME_DIR"
+        )
     if info.st_uid != os.getuid():
-        raise RuntimeDirError(f"{path} belongs to uid {info.st_uid}, not to this user: remove it "
-                              "or set PIEZO_STAGE_RUNTIME_DIR")
+        raise RuntimeDirError(
+            f"{path} belongs to uid {info.st_uid}, not to this user: remove it "
+            "or set PIEZO_STAGE_RUNTIME_DIR"
+        )
     if info.st_mode & 0o077:
         os.chmod(path, 0o700)  # ours: close it to others
     return path
@@ -64,7 +68,7 @@ def resolve(name: str) -> str:
     """``run:NAME`` -> the path of NAME in the run-time folder; anything else unchanged."""
     if not name.startswith(PREFIX):
         return name
-    leaf = name[len(PREFIX):]
+    leaf = name[len(PREFIX) :]
     if not leaf or "/" in leaf or leaf in (".", ".."):
         raise RuntimeDirError(f"{name!r}: expected run:NAME with a plain file name")
     return str(runtime_dir() / leaf)

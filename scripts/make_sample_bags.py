@@ -66,11 +66,17 @@ def make(sample: SampleBag, out_dir: Path, force: bool) -> Path:
 
     target = _target(out_dir, sample.name, force)
     with tempfile.TemporaryDirectory() as tmp:
-        run = record_identification(Path(tmp) / sample.name, model_file=sample.model_file,
-                                    preset=sample.preset, rate_hz=sample.rate_hz,
-                                    degree=sample.degree, namespace="/piezo",
-                                    live_params_file=Path(tmp) / "live.yaml",
-                                    settle_periods=sample.settle_periods, topics=TOPICS)
+        run = record_identification(
+            Path(tmp) / sample.name,
+            model_file=sample.model_file,
+            preset=sample.preset,
+            rate_hz=sample.rate_hz,
+            degree=sample.degree,
+            namespace="/piezo",
+            live_params_file=Path(tmp) / "live.yaml",
+            settle_periods=sample.settle_periods,
+            topics=TOPICS,
+        )
         if run.live_params_file is None:  # the bag would lack the recorded live result
             raise SystemExit(f"{sample.name}: {run.live_error}")
         shutil.copytree(run.bag, target)
@@ -100,10 +106,14 @@ def make_closed_loop(sample: ClosedLoopBag, out_dir: Path, force: bool) -> Path:
         full = Path(tmp) / sample.name
         summary = run_experiment(sample.experiment, sample.mode, bag=full)
         if summary.get("lost_samples", 0):
-            raise SystemExit(f"{sample.name}: the experiment lost {summary['lost_samples']} of its "
-                             "steps (a busy machine?): run again")
-        custom = {"experiment": f"piezo-stage experiment {sample.experiment} --mode {sample.mode}",
-                  "keep_every": str(sample.keep_every)}
+            raise SystemExit(
+                f"{sample.name}: the experiment lost {summary['lost_samples']} of its "
+                "steps (a busy machine?): run again"
+            )
+        custom = {
+            "experiment": f"piezo-stage experiment {sample.experiment} --mode {sample.mode}",
+            "keep_every": str(sample.keep_every),
+        }
         custom.update({k: repr(summary[k]) for k in SUMMARY_KEYS if k in summary})
         topic = "/piezo/controller_state"
         small = Path(tmp) / "small" / sample.name

@@ -37,8 +37,9 @@ or `--param NODE.KEY:=VALUE`) or with `--ros-args -p KEY:=VALUE`.
 def tables() -> list:
     from piezo_stage.nodes import NODES
 
-    return [importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS
-            for name in sorted(NODES)]
+    return [
+        importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS for name in sorted(NODES)
+    ]
 
 
 def render() -> str:
@@ -46,16 +47,20 @@ def render() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--check", action="store_true",
-                        help="exit 1 when docs/parameters.md is stale")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--check", action="store_true", help="exit 1 when docs/parameters.md is stale"
+    )
     args = parser.parse_args()
     text = render()
     if args.check:
         if not OUT.exists() or OUT.read_text() != text:
-            print(f"{OUT.relative_to(ROOT)} is stale: run python scripts/param_docs.py",
-                  file=sys.stderr)
+            print(
+                f"{OUT.relative_to(ROOT)} is stale: run python scripts/param_docs.py",
+                file=sys.stderr,
+            )
             return 1
         return 0
     OUT.parent.mkdir(exist_ok=True)

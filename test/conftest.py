@@ -136,34 +136,36 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 #: (outside the environment of scripts/env.sh) each is reported skipped, whole, without being
 #: imported, so their imports stay at the top of the file. A module added here must exist
 #: (checked at start, so that a renamed file is not silently dropped).
-NEEDS_RCLPY = frozenset({
-    "test_bag_play.py",
-    "test_demo.py",
-    "test_emulated_rig_graph.py",
-    "test_emulated_rig_tracking.py",
-    "test_env_messages.py",
-    "test_experiment_harness.py",
-    "test_launch_run.py",
-    "test_node_controller.py",
-    "test_node_excitation.py",
-    "test_node_executor.py",
-    "test_node_identifier.py",
-    "test_node_live_view.py",
-    "test_node_parameters.py",
-    "test_node_plant.py",
-    "test_node_rig_driver.py",
-    "test_node_rig_loop.py",
-    "test_node_rig_reader.py",
-    "test_node_runtime.py",
-    "test_param_docs.py",
-    "test_player_cli.py",
-    "test_player_node.py",
-    "test_recorder_cli.py",
-    "test_recorder_lifecycle.py",
-    "test_recorder_node.py",
-    "test_recorder_units.py",
-    "test_replay_identification.py",
-})
+NEEDS_RCLPY = frozenset(
+    {
+        "test_bag_play.py",
+        "test_demo.py",
+        "test_emulated_rig_graph.py",
+        "test_emulated_rig_tracking.py",
+        "test_env_messages.py",
+        "test_experiment_harness.py",
+        "test_launch_run.py",
+        "test_node_controller.py",
+        "test_node_excitation.py",
+        "test_node_executor.py",
+        "test_node_identifier.py",
+        "test_node_live_view.py",
+        "test_node_parameters.py",
+        "test_node_plant.py",
+        "test_node_rig_driver.py",
+        "test_node_rig_loop.py",
+        "test_node_rig_reader.py",
+        "test_node_runtime.py",
+        "test_param_docs.py",
+        "test_player_cli.py",
+        "test_player_node.py",
+        "test_recorder_cli.py",
+        "test_recorder_lifecycle.py",
+        "test_recorder_node.py",
+        "test_recorder_units.py",
+        "test_replay_identification.py",
+    }
+)
 TEST_DIR = Path(__file__).resolve().parent
 
 
@@ -203,11 +205,14 @@ def pytest_pycollect_makemodule(
 def pytest_make_collect_report(collector: pytest.Collector) -> pytest.CollectReport | None:
     if not isinstance(collector, _WithoutRclpy):
         return None
-    reason = (f"Skipped: needs rclpy, which does not import here ({_rclpy_missing()}): "
-              "run inside the environment of scripts/env.sh")
+    reason = (
+        f"Skipped: needs rclpy, which does not import here ({_rclpy_missing()}): "
+        "run inside the environment of scripts/env.sh"
+    )
     # located at the module (no line: nothing in it ran), not at this conftest
-    return pytest.CollectReport(collector.nodeid, "skipped", (str(collector.path), None, reason),
-                                [])
+    return pytest.CollectReport(
+        collector.nodeid, "skipped", (str(collector.path), None, reason), []
+    )
 
 
 class _NotInUnitLayer(RuntimeError):

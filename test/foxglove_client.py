@@ -61,7 +61,8 @@ class FoxgloveClient:
                         _, sub, log_time = _HEADER.unpack_from(frame)
                         with self._lock:
                             self.messages.append(
-                                Received(sub, log_time, frame[_HEADER.size:], now))
+                                Received(sub, log_time, frame[_HEADER.size :], now)
+                            )
                     continue
                 msg = json.loads(frame)
                 with self._lock:
@@ -95,8 +96,9 @@ class FoxgloveClient:
         sub = self._next_id
         self._next_id += 1
         self.subscriptions[sub] = channel_id
-        self._ws.send(json.dumps({"op": "subscribe",
-                                  "subscriptions": [{"id": sub, "channelId": channel_id}]}))
+        self._ws.send(
+            json.dumps({"op": "subscribe", "subscriptions": [{"id": sub, "channelId": channel_id}]})
+        )
         return sub
 
     def unsubscribe(self, sub: int) -> None:

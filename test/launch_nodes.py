@@ -15,11 +15,14 @@ from piezo_stage.nodes.runtime import run
 from piezo_stage.nodes.spec import Param, ParameterTable
 
 #: the talker's parameters (the launcher checks a graph's overrides against it)
-PARAMETERS = ParameterTable("talker", (
-    Param("text", "hello", "what to say"),
-    Param("exit_after", 0.0, "seconds before exiting by itself (0: never)", "s"),
-    Param("fail_code", 0, "exit code when exiting by itself"),
-))
+PARAMETERS = ParameterTable(
+    "talker",
+    (
+        Param("text", "hello", "what to say"),
+        Param("exit_after", 0.0, "seconds before exiting by itself (0: never)", "s"),
+        Param("fail_code", 0, "exit code when exiting by itself"),
+    ),
+)
 
 
 class Talker(Node):

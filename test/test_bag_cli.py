@@ -40,10 +40,15 @@ def test_info_prints_like_ros2_bag_info(bag, capsys):
     assert re.search(r"^Storage id:\s+mcap$", out, re.M)
     assert re.search(r"^Duration:\s+1\.000000000s$", out, re.M)
     assert re.search(r"^Messages:\s+1102$", out, re.M)
-    assert re.search(r"Topic: /piezo/displacement \| Type: piezo_stage_msgs/msg/Displacement \| "
-                     r"Count: 1001 \| Rate: 1000\.0 Hz \| Serialization Format: cdr", out)
-    assert "Topic: /piezo/voltage | Type: piezo_stage_msgs/msg/Voltage | Count: 101 | " \
-           "Rate: 100.0 Hz" in out
+    assert re.search(
+        r"Topic: /piezo/displacement \| Type: piezo_stage_msgs/msg/Displacement \| "
+        r"Count: 1001 \| Rate: 1000\.0 Hz \| Serialization Format: cdr",
+        out,
+    )
+    assert (
+        "Topic: /piezo/voltage | Type: piezo_stage_msgs/msg/Voltage | Count: 101 | "
+        "Rate: 100.0 Hz" in out
+    )
 
 
 def test_info_json(bag, capsys):
@@ -53,8 +58,20 @@ def test_info_json(bag, capsys):
 
 
 def test_export_and_reindex(bag, tmp_path, capsys):
-    assert main(["bag", "export", str(bag), "--csv", str(tmp_path / "csv"),
-                 "--topics", "/piezo/voltage"]) == 0
+    assert (
+        main(
+            [
+                "bag",
+                "export",
+                str(bag),
+                "--csv",
+                str(tmp_path / "csv"),
+                "--topics",
+                "/piezo/voltage",
+            ]
+        )
+        == 0
+    )
     assert "/piezo/voltage -> " in capsys.readouterr().out
     lines = (tmp_path / "csv" / "piezo_voltage.csv").read_text().splitlines()
     assert lines[0] == "log_time [s],header.stamp [s],header.frame_id,voltage [V]"

@@ -22,8 +22,15 @@ from piezo_stage.cli import main
 pytestmark = pytest.mark.unit
 
 DATA = Path(__file__).resolve().parent / "data" / "rosbag2"
-GENUINE = ["talker", "convert_a", "test_bag_for_seek", "wrong_rmw_test", "cdr_test",
-           "bag_with_topics_and_service_events", "multiple_files"]
+GENUINE = [
+    "talker",
+    "convert_a",
+    "test_bag_for_seek",
+    "wrong_rmw_test",
+    "cdr_test",
+    "bag_with_topics_and_service_events",
+    "multiple_files",
+]
 
 
 def _library_counts(folder: Path) -> dict[str, int]:
@@ -69,8 +76,9 @@ def test_cli_info_and_export_succeed(name, tmp_path, capsys):
     assert main(["bag", "export", str(DATA / name), "--csv", str(tmp_path / "csv")]) == 0
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    assert all(line.startswith("piezo-stage bag export: warning: skipped ")
-               for line in err.splitlines())
+    assert all(
+        line.startswith("piezo-stage bag export: warning: skipped ") for line in err.splitlines()
+    )
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -91,10 +99,11 @@ def test_service_events_are_decoded_and_listed_as_services(tmp_path):
     written = export_csv(bag, tmp_path)
     rows = _rows(written["/test_service1/_service_event"])
     assert len(rows) == 4
-    assert {"info.event_type", "request[0].int32_value", "response[0].string_value"} \
-        <= set().union(*rows)
+    assert {"info.event_type", "request[0].int32_value", "response[0].string_value"} <= set().union(
+        *rows
+    )
     info = bag_info(bag)
-    assert info["topics"]["/events/write_split"]["count"] == 0   # a topic without messages
+    assert info["topics"]["/events/write_split"]["count"] == 0  # a topic without messages
     text = main(["bag", "info", str(bag)])
     assert text == 0
 
@@ -121,8 +130,9 @@ def test_file_mode_compression(tmp_path):
     (bag / "talker.mcap").unlink()
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())
     info = meta["rosbag2_bagfile_information"]
-    info.update(compression_format="zstd", compression_mode="FILE",
-                relative_file_paths=["talker.mcap.zstd"])
+    info.update(
+        compression_format="zstd", compression_mode="FILE", relative_file_paths=["talker.mcap.zstd"]
+    )
     (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
     got = bag_info(bag)
     assert got["message_count"] == 20 and got["compression"].startswith("file zstd")
@@ -132,8 +142,13 @@ def test_file_mode_compression(tmp_path):
     assert "file-compressed" in str(reindex(bag)) or reindex(bag).message_count == 20
 
 
-def _rewrite_messages(source: Path, target: Path, transform, compression=CompressionType.ZSTD,
-                      shuffle: int | None = None) -> list[int]:
+def _rewrite_messages(
+    source: Path,
+    target: Path,
+    transform,
+    compression=CompressionType.ZSTD,
+    shuffle: int | None = None,
+) -> list[int]:
     """Copy an MCAP file with the mcap library (small chunks), each message's data through
     ``transform``, in file order or shuffled with seed ``shuffle``; returns the log times
     as written."""
@@ -148,22 +163,27 @@ def _rewrite_messages(source: Path, target: Path, transform, compression=Compres
         for schema, channel, message in records:
             if channel.id not in ids:
                 schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                ids[channel.id] = writer.register_channel(channel.topic, "cdr", schema_id,
-                                                          channel.metadata)
-            writer.add_message(ids[channel.id], message.log_time, transform(message.data),
-                               message.publish_time)
+                ids[channel.id] = writer.register_channel(
+                    channel.topic, "cdr", schema_id, channel.metadata
+                )
+            writer.add_message(
+                ids[channel.id], message.log_time, transform(message.data), message.publish_time
+            )
         writer.finish()
     return [message.log_time for _, _, message in records]
 
 
 def test_message_mode_compression_and_prefixed_paths(tmp_path):
     bag = _copy("talker", tmp_path)
-    _rewrite_messages(DATA / "talker" / "talker.mcap", bag / "talker.mcap",
-                      zstandard.ZstdCompressor().compress)
+    _rewrite_messages(
+        DATA / "talker" / "talker.mcap", bag / "talker.mcap", zstandard.ZstdCompressor().compress
+    )
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())
     meta["rosbag2_bagfile_information"].update(
-        compression_format="zstd", compression_mode="MESSAGE",
-        relative_file_paths=["talker/talker.mcap"])  # as older rosbag2 wrote them
+        compression_format="zstd",
+        compression_mode="MESSAGE",
+        relative_file_paths=["talker/talker.mcap"],
+    )  # as older rosbag2 wrote them
     (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
     plain = [(t, s, m.data) for t, s, m in read_messages(DATA / "talker") if t == "/topic"]
     assert [(t, s, m.data) for t, s, m in read_messages(bag) if t == "/topic"] == plain
@@ -173,9 +193,19 @@ def test_sqlite3_storage_is_named(tmp_path, capsys):
     bag = tmp_path / "db3"
     bag.mkdir()
     (bag / "db3_0.db3").write_bytes(b"SQLite format 3\0")
-    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
-        "version": 5, "storage_identifier": "sqlite3", "relative_file_paths": ["db3_0.db3"],
-        "topics_with_message_count": [], "message_count": 0}}))
+    (bag / "metadata.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "rosbag2_bagfile_information": {
+                    "version": 5,
+                    "storage_identifier": "sqlite3",
+                    "relative_file_paths": ["db3_0.db3"],
+                    "topics_with_message_count": [],
+                    "message_count": 0,
+                }
+            }
+        )
+    )
     assert main(["bag", "info", str(bag)]) == 2  # a storage it cannot read: unusable input
     assert "'sqlite3' storage: only MCAP" in capsys.readouterr().err
 
@@ -193,18 +223,22 @@ def test_metadata_v9_with_qos_as_a_list(tmp_path):
     (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
     got = bag_info(bag)
     assert got["message_count"] == 7
-    assert {t: e["offered_qos_profiles"][0]["depth"] for t, e in got["topics"].items()} \
-        == depths
+    assert {t: e["offered_qos_profiles"][0]["depth"] for t, e in got["topics"].items()} == depths
 
 
 def test_lz4_chunks_and_messages_out_of_time_order(tmp_path):
     out = tmp_path / "shuffled.mcap"
-    times = _rewrite_messages(DATA / "talker" / "talker.mcap", out, lambda data: data,
-                              compression=CompressionType.LZ4, shuffle=1)
+    times = _rewrite_messages(
+        DATA / "talker" / "talker.mcap",
+        out,
+        lambda data: data,
+        compression=CompressionType.LZ4,
+        shuffle=1,
+    )
     info = bag_info(out)
     assert info["compression"] == "lz4" and info["message_count"] == 20
     assert (info["start_ns"], info["end_ns"]) == (min(times), max(times))
-    assert [t for _, t, _ in read_messages(out)] == times   # file order, as recorded
+    assert [t for _, t, _ in read_messages(out)] == times  # file order, as recorded
     assert times != sorted(times)
 
 
@@ -229,7 +263,7 @@ def test_flipped_bytes_are_reported_by_every_bag_command(tmp_path, capsys):
     assert "multiple_files_0.mcap: damaged:" in err and "Traceback" not in err
     assert main(["bag", "info", str(bag), "--allow-damaged"]) == 0
     assert main(["bag", "export", str(bag), "--csv", str(tmp_path / "csv")]) == 1
-    assert (tmp_path / "csv" / "chatter.csv").is_file()          # what was readable is kept
+    assert (tmp_path / "csv" / "chatter.csv").is_file()  # what was readable is kept
     assert "damaged" in capsys.readouterr().err
     report = reindex(bag)
     assert report.damaged and "DAMAGED" in str(report)
@@ -241,4 +275,4 @@ def test_reindex_leaves_a_sound_genuine_bag_alone(tmp_path):
     before = {f.name: f.read_bytes() for f in bag.iterdir()}
     report = reindex(bag)
     assert not report.damaged and not any(f.rewritten for f in report.files)
-    assert {f.name: f.read_bytes() for f in bag.iterdir()} == before   # v8 metadata kept
+    assert {f.name: f.read_bytes() for f in bag.iterdir()} == before  # v8 metadata kept

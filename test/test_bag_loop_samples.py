@@ -25,10 +25,16 @@ T0 = 1_700_000_000_000_000_000
 
 def batch(first: int, n: int, **broken):
     k = np.arange(first, first + n)
-    fields = dict(stamp=T0 + k * 100_000, displacement=np.where(k % 7 == 3, np.nan, 1e-9 * k),
-                  status=np.where(k % 7 == 3, 4, 0).astype(np.uint8), reference=np.full(n, 5e-6),
-                  u=200.0 + 0.01 * k, u_ff=np.zeros(n), loop_closed=k % 2 == 1,
-                  applied=200.0 + 0.01 * k)
+    fields = dict(
+        stamp=T0 + k * 100_000,
+        displacement=np.where(k % 7 == 3, np.nan, 1e-9 * k),
+        status=np.where(k % 7 == 3, 4, 0).astype(np.uint8),
+        reference=np.full(n, 5e-6),
+        u=200.0 + 0.01 * k,
+        u_ff=np.zeros(n),
+        loop_closed=k % 2 == 1,
+        applied=200.0 + 0.01 * k,
+    )
     fields.update(broken)
     return types.message_class(TYPE)(header=types.header(int(fields["stamp"][0])), **fields)
 

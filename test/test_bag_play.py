@@ -24,8 +24,13 @@ DATA = Path(__file__).resolve().parent / "data" / "rosbag2"
 def _play(bag: Path, *extra: str) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    return subprocess.run([sys.executable, "-m", "piezo_stage.cli", "play", str(bag), "--rate", "0",
-                           *extra], env=env, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "piezo_stage.cli", "play", str(bag), "--rate", "0", *extra],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def _talker_with_a_custom_topic(path: Path) -> Path:
@@ -40,10 +45,15 @@ def _talker_with_a_custom_topic(path: Path) -> Path:
             if channel.id not in ids:
                 schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
                 ids[channel.id] = writer.register_channel(channel.topic, "cdr", schema_id, {})
-            writer.add_message(ids[channel.id], message.log_time, message.data,
-                               message.publish_time)
-        custom = writer.register_channel("/wifi", "cdr", writer.register_schema(
-            "wifi_interface/msg/WifiList", "ros2msg", b"string[] names\n"), {})
+            writer.add_message(
+                ids[channel.id], message.log_time, message.data, message.publish_time
+            )
+        custom = writer.register_channel(
+            "/wifi",
+            "cdr",
+            writer.register_schema("wifi_interface/msg/WifiList", "ros2msg", b"string[] names\n"),
+            {},
+        )
         writer.add_message(custom, records[0][2].log_time, b"\x00\x01\x00\x00" + bytes(4), 0)
         writer.finish()
     return path
@@ -53,8 +63,10 @@ def test_play_names_uninstalled_types_and_plays_the_rest(tmp_path):
     done = _play(_talker_with_a_custom_topic(tmp_path / "custom.mcap"))
     assert done.returncode == 0, done.stderr
     out = done.stdout + done.stderr
-    assert "not playing 1 topic(s) whose type is not installed: /wifi " \
-           "(wifi_interface/msg/WifiList); playing the other 2" in out
+    assert (
+        "not playing 1 topic(s) whose type is not installed: /wifi "
+        "(wifi_interface/msg/WifiList); playing the other 2" in out
+    )
     assert "played 20 messages" in out
 
 

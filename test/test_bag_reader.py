@@ -32,8 +32,8 @@ N = 500
 
 def _series(n: int = N):
     k = np.arange(n)
-    stamps = T0 + k * 1_000_000           # header stamps: 1 kHz
-    received = stamps + 250_000           # log times: 0.25 ms later
+    stamps = T0 + k * 1_000_000  # header stamps: 1 kHz
+    received = stamps + 250_000  # log times: 0.25 ms later
     voltage = 150 + 150 * np.sin(2 * np.pi * k / 100)
     displacement = 1e-5 * np.sin(2 * np.pi * k / 100 - 0.3)
     status = np.where(k % 50 == 7, 1, 0).astype(np.uint8)
@@ -77,7 +77,9 @@ def test_read_messages_and_raw(series_bag):
     raw = list(read_raw(series_bag))
     assert len(raw) == 2 * N
     assert {(topic, type_name) for topic, type_name, _, _ in raw} == {
-        ("/piezo/voltage", VOLT), ("/piezo/displacement", DISP)}
+        ("/piezo/voltage", VOLT),
+        ("/piezo/displacement", DISP),
+    }
     first = next(d for topic, _, _, d in raw if topic == "/piezo/displacement")
     assert types.deserialize(first, DISP).header.stamp.sec == T0 // 10**9
 
@@ -139,13 +141,13 @@ def test_unclosed_file_reads_up_to_its_last_complete_chunk(series_bag, tmp_path)
     shutil.copytree(series_bag, copy)
     last = copy / "run_2.mcap"
     data = last.read_bytes()
-    last.write_bytes(data[:len(data) // 2])  # footer, summary and part of the data gone
+    last.write_bytes(data[: len(data) // 2])  # footer, summary and part of the data gone
     info = bag_info(copy)
     assert not info["complete"] and not info["files"][2]["complete"]
     t, v, _ = read_series(copy, "/piezo/voltage")
     assert len(t) == info["topics"]["/piezo/voltage"]["count"] < N
     _, _, voltage, _, _ = _series()
-    np.testing.assert_array_equal(v, voltage[:len(v)])
+    np.testing.assert_array_equal(v, voltage[: len(v)])
 
 
 def _float64_bag(path, rec, t0=T0):
@@ -175,13 +177,35 @@ def test_identify_reads_any_numeric_topic_of_a_foreign_bag(tmp_path, capsys):
     from piezo_stage.identification.synthetic import CH10_PATCH, triangle_pair
     from piezo_stage.model.bouc_wen import BoucWenParameters
 
-    runs = triangle_pair(BoucWenParameters(**CH10_PATCH), 0.0, 300.0, 100.0, period=10.0,
-                         samples_per_branch=200, periods=3)
+    runs = triangle_pair(
+        BoucWenParameters(**CH10_PATCH),
+        0.0,
+        300.0,
+        100.0,
+        period=10.0,
+        samples_per_branch=200,
+        periods=3,
+    )
     bags = [str(_float64_bag(tmp_path / f"run{i}.mcap", rec)) for i, rec in enumerate(runs)]
     t, u, status = read_series(bags[0], "/u.data")
     np.testing.assert_allclose(u, runs[0].input) and status is None
-    assert main(["identify", *bags, "--input-topic", "/u", "--output-topic", "/y",
-                 "--degree", "2", "--no-plot", "--json"]) == 0
+    assert (
+        main(
+            [
+                "identify",
+                *bags,
+                "--input-topic",
+                "/u",
+                "--output-topic",
+                "/y",
+                "--degree",
+                "2",
+                "--no-plot",
+                "--json",
+            ]
+        )
+        == 0
+    )
     result = json.loads(capsys.readouterr().out)
     assert result["rho"] == pytest.approx(CH10_PATCH["rho"], rel=1e-4)
     assert result["n"] == pytest.approx(CH10_PATCH["n"], rel=1e-4)

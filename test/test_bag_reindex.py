@@ -53,8 +53,11 @@ time.sleep(120)
 
 
 def _killed_recording(path: Path, compression: str) -> None:
-    child = subprocess.Popen([sys.executable, "-c", CHILD, str(ROOT), str(path), compression],
-                             stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(ROOT), str(path), compression],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         lines = []
         while not lines or not lines[-1].startswith("unflushed"):
@@ -97,13 +100,12 @@ def test_sigkilled_writer_is_recovered_up_to_its_last_flush(tmp_path, compressio
     with open(path / "killed_1.mcap", "rb") as stream:
         summary = make_reader(stream).get_summary()
     assert summary.statistics.message_count == 2 * BATCH
-    assert {c.topic for c in summary.channels.values()} == {"/piezo/displacement",
-                                                             "/piezo/voltage"}
+    assert {c.topic for c in summary.channels.values()} == {"/piezo/displacement", "/piezo/voltage"}
     after = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert after["message_count"] == 2 * flushed
-    assert {t["topic_metadata"]["name"]: t["message_count"]
-            for t in after["topics_with_message_count"]} == {
-        "/piezo/displacement": flushed, "/piezo/voltage": flushed}
+    assert {
+        t["topic_metadata"]["name"]: t["message_count"] for t in after["topics_with_message_count"]
+    } == {"/piezo/displacement": flushed, "/piezo/voltage": flushed}
     assert [f["message_count"] for f in after["files"]] == [4 * BATCH, 2 * BATCH]
     assert bag_info(path)["complete"]
     assert reindex(path).files[1].rewritten is False  # nothing left to repair
@@ -139,8 +141,8 @@ def test_damaged_chunk_is_skipped_and_reported_by_the_recovery(tmp_path):
     chunks = _chunk_offsets(file)
     assert len(chunks) == 5
     data = bytearray(file.read_bytes())
-    data[(chunks[2][0] + chunks[2][1]) // 2] ^= 0xFF       # a flipped bit inside chunk 3
-    file.write_bytes(bytes(data[:chunks[3][1] + 5]))       # and the tail cut after chunk 4
+    data[(chunks[2][0] + chunks[2][1]) // 2] ^= 0xFF  # a flipped bit inside chunk 3
+    file.write_bytes(bytes(data[: chunks[3][1] + 5]))  # and the tail cut after chunk 4
     report = reindex(tmp_path / "b")
     assert report.message_count == 300 and report.damaged
     assert "chunk CRC error" in report.files[0].damage and "DAMAGED" in str(report)
@@ -154,12 +156,12 @@ def test_damaged_complete_file_is_reported_and_rewritten(tmp_path):
     file = tmp_path / "d" / "d_0.mcap"
     start, end = _chunk_offsets(file)[1]
     data = bytearray(file.read_bytes())
-    data[(start + end) // 2] ^= 0x40                        # footer intact, chunk 2 damaged
+    data[(start + end) // 2] ^= 0x40  # footer intact, chunk 2 damaged
     file.write_bytes(bytes(data))
     report = reindex(tmp_path / "d")
     assert report.damaged and report.files[0].rewritten
     assert "read 300 of 400 messages (100 lost)" in report.files[0].damage
-    assert bag_info(tmp_path / "d")["damage"] == []          # the rewritten file is clean
+    assert bag_info(tmp_path / "d")["damage"] == []  # the rewritten file is clean
 
 
 @pytest.mark.unit
@@ -167,7 +169,7 @@ def test_cut_inside_a_chunk_keeps_the_complete_ones(tmp_path):
     _flushed_bag(tmp_path / "c", chunks=3)
     file = tmp_path / "c" / "c_0.mcap"
     start, end = _chunk_offsets(file)[2]
-    file.write_bytes(file.read_bytes()[:(start + end) // 2])
+    file.write_bytes(file.read_bytes()[: (start + end) // 2])
     report = reindex(file)  # a plain .mcap works too
     assert report.message_count == 200 and report.files[0].dropped_bytes > 0
     with open(file, "rb") as stream:

@@ -17,8 +17,15 @@ from piezo_stage.bag.series import _decode_generic, decode_series, encode_series
 pytestmark = pytest.mark.unit
 
 SEP = "=" * 80 + "\n"
-PROJECT = ["BoucWenParameters", "ControllerState", "Displacement", "ExcitationInfo",
-           "LimitCycle", "LoopSamples", "Voltage"]
+PROJECT = [
+    "BoucWenParameters",
+    "ControllerState",
+    "Displacement",
+    "ExcitationInfo",
+    "LimitCycle",
+    "LoopSamples",
+    "Voltage",
+]
 
 
 def sections(text: str) -> list[tuple[str, str]]:
@@ -50,16 +57,20 @@ def test_displacement_definition_matches_rosbag2_layout():
 def test_dependencies_are_depth_first_in_sorted_order():
     text = types.message_definition("diagnostic_msgs/msg/DiagnosticArray")
     assert [h for h, _ in sections(text)] == [
-        "", "diagnostic_msgs/DiagnosticStatus", "diagnostic_msgs/KeyValue", "std_msgs/Header",
-        "builtin_interfaces/Time"]
+        "",
+        "diagnostic_msgs/DiagnosticStatus",
+        "diagnostic_msgs/KeyValue",
+        "std_msgs/Header",
+        "builtin_interfaces/Time",
+    ]
 
 
 @pytest.mark.parametrize("name", PROJECT)
 def test_definitions_parse_with_independent_parsers(name):
     full = f"piezo_stage_msgs/msg/{name}"
     text = types.message_definition(full)
-    assert full in generate_dynamic(full, text)       # mcap_ros2's own parser
-    parsed = get_types_from_msg(text, full)           # rosbags' parser
+    assert full in generate_dynamic(full, text)  # mcap_ros2's own parser
+    parsed = get_types_from_msg(text, full)  # rosbags' parser
     assert parsed[full] == types.typestore().fielddefs[full]
 
 
@@ -69,8 +80,9 @@ def test_type_hash_matches_rosidl_and_is_rihs01():
     assert types.type_hash("std_msgs/msg/Header") == expected
     for name in PROJECT:
         assert re.fullmatch(r"RIHS01_[0-9a-f]{64}", types.type_hash(f"piezo_stage_msgs/msg/{name}"))
-    assert types.type_hash("piezo_stage_msgs/msg/Voltage") != \
-        types.type_hash("piezo_stage_msgs/msg/Displacement")
+    assert types.type_hash("piezo_stage_msgs/msg/Voltage") != types.type_hash(
+        "piezo_stage_msgs/msg/Displacement"
+    )
     # where piezo_stage_msgs was built (colcon), rosidl's hashes must equal rosbags' ones
     built = types.SOURCE_MSG_DIR.parents[1] / "install" / "piezo_stage_msgs" / "share"
     for path in (built / "piezo_stage_msgs" / "msg").glob("*.json"):
@@ -95,9 +107,14 @@ def test_unknown_types_raise():
         types.message_class("nope_msgs/msg/Nothing")
 
 
-@pytest.mark.parametrize("type_name,frame", [("piezo_stage_msgs/msg/Displacement", "laser"),
-                                             ("piezo_stage_msgs/msg/Voltage", ""),
-                                             ("piezo_stage_msgs/msg/Voltage", "abcdefgh")])
+@pytest.mark.parametrize(
+    "type_name,frame",
+    [
+        ("piezo_stage_msgs/msg/Displacement", "laser"),
+        ("piezo_stage_msgs/msg/Voltage", ""),
+        ("piezo_stage_msgs/msg/Voltage", "abcdefgh"),
+    ],
+)
 def test_series_codec_is_byte_exact_and_inverse(type_name, frame):
     t_ns = np.array([0, 1_700_000_000_000_000_001, 5_000_000_999])
     values = np.array([1.5e-6, -np.inf, 300.0])
@@ -125,8 +142,9 @@ def _decoder_round_trip(schema_name: str, encoding: str, text: str, fields: dict
 
     bag_types = BagTypes()
     channel = Channel(id=1, topic="/t", message_encoding="cdr", schema_id=1, metadata={})
-    name = bag_types.type_of(channel, Schema(id=1, name=schema_name, encoding=encoding,
-                                             data=text.encode()))
+    name = bag_types.type_of(
+        channel, Schema(id=1, name=schema_name, encoding=encoding, data=text.encode())
+    )
     if name is None:
         return None, bag_types.skipped["/t"]
     message = bag_types.store.types[name](**fields)
@@ -157,7 +175,8 @@ def test_export_flattens_fields_named_like_python_keywords():
 
     bag_types = BagTypes()
     channel = Channel(id=1, topic="/k", message_encoding="cdr", schema_id=1, metadata={})
-    name = bag_types.type_of(channel, Schema(id=1, name="p/msg/K", encoding="ros2msg",
-                                             data=b"int32 from\nint32 class\n"))
+    name = bag_types.type_of(
+        channel, Schema(id=1, name="p/msg/K", encoding="ros2msg", data=b"int32 from\nint32 class\n")
+    )
     message = bag_types.store.types[name](from_=1, class_=2)  # rosbags' names for keywords
     assert flatten(bag_types.store.fielddefs, message, name) == [("from", 1), ("class", 2)]

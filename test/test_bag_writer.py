@@ -38,48 +38,99 @@ def _messages(k: int) -> dict[str, tuple[str, object]]:
     kv = c("diagnostic_msgs/msg/KeyValue")
     status = c("diagnostic_msgs/msg/DiagnosticStatus")
     return {
-        "/piezo/voltage": ("piezo_stage_msgs/msg/Voltage",
-                           c("piezo_stage_msgs/msg/Voltage")(header=h, voltage=10.5 * k - 3)),
-        "/piezo/displacement": ("piezo_stage_msgs/msg/Displacement",
-                                c("piezo_stage_msgs/msg/Displacement")(
-                                    header=h, displacement=math.nan if k % 2 else 1.25e-6 * k,
-                                    status=1 if k % 2 else 0)),
-        "/piezo/controller_state": ("piezo_stage_msgs/msg/ControllerState",
-                                    c("piezo_stage_msgs/msg/ControllerState")(
-                                        header=h, mode=["pid", "pid_sine", "pid_tv"][k % 3],
-                                        loop_closed=bool(k % 2), saturated=not k % 2,
-                                        reference=1e-6 * k, x0=-2e-9 * k, x1=3e-7, x2=-4e-3,
-                                        u=55.5 + k, u_pid=50.0, u_excitation=5.5 + k,
-                                        u_ff=0.25 * k)),
-        "/piezo/bouc_wen_parameters": ("piezo_stage_msgs/msg/BoucWenParameters",
-                                       c("piezo_stage_msgs/msg/BoucWenParameters")(
-                                           header=h, kappa=np.array([1.401e-7, -5.0949e-11 * k]),
-                                           y0=1.7858e-6, kappa_w=9.22e-6, rho=0.0047,
-                                           sigma=0.812, n=1.12, input_sign=-1,
-                                           input_name="voltage", rms_error=1e-9 * k,
-                                           samples=2000 + k)),
-        "/piezo/limit_cycles": ("piezo_stage_msgs/msg/LimitCycle",
-                                c("piezo_stage_msgs/msg/LimitCycle")(
-                                    header=h, offset=100.0 * k, period=10.0,
-                                    input=np.linspace(0, 300, 50 + k),
-                                    output=np.linspace(0, 3e-5, 50 + k) ** 2)),
-        "/piezo/excitation": ("piezo_stage_msgs/msg/ExcitationInfo",
-                              c("piezo_stage_msgs/msg/ExcitationInfo")(
-                                  header=h, waveform="triangle", period=10.0, amplitude=300.0,
-                                  offset=100.0 * k, run=k, steady=k > 1)),
-        "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray",
-                         c("diagnostic_msgs/msg/DiagnosticArray")(header=h, status=[
-                             status(level=k % 4, name="laser", message=f"ok {k}",
-                                    hardware_id="ILD", values=[kv(key="rate", value=str(k))]),
-                             status(level=0, name="amp", message="", hardware_id="",
-                                    values=[])])),
-        "/clock": ("rosgraph_msgs/msg/Clock",
-                   c("rosgraph_msgs/msg/Clock")(clock=types.time_message(T0 + k))),
+        "/piezo/voltage": (
+            "piezo_stage_msgs/msg/Voltage",
+            c("piezo_stage_msgs/msg/Voltage")(header=h, voltage=10.5 * k - 3),
+        ),
+        "/piezo/displacement": (
+            "piezo_stage_msgs/msg/Displacement",
+            c("piezo_stage_msgs/msg/Displacement")(
+                header=h, displacement=math.nan if k % 2 else 1.25e-6 * k, status=1 if k % 2 else 0
+            ),
+        ),
+        "/piezo/controller_state": (
+            "piezo_stage_msgs/msg/ControllerState",
+            c("piezo_stage_msgs/msg/ControllerState")(
+                header=h,
+                mode=["pid", "pid_sine", "pid_tv"][k % 3],
+                loop_closed=bool(k % 2),
+                saturated=not k % 2,
+                reference=1e-6 * k,
+                x0=-2e-9 * k,
+                x1=3e-7,
+                x2=-4e-3,
+                u=55.5 + k,
+                u_pid=50.0,
+                u_excitation=5.5 + k,
+                u_ff=0.25 * k,
+            ),
+        ),
+        "/piezo/bouc_wen_parameters": (
+            "piezo_stage_msgs/msg/BoucWenParameters",
+            c("piezo_stage_msgs/msg/BoucWenParameters")(
+                header=h,
+                kappa=np.array([1.401e-7, -5.0949e-11 * k]),
+                y0=1.7858e-6,
+                kappa_w=9.22e-6,
+                rho=0.0047,
+                sigma=0.812,
+                n=1.12,
+                input_sign=-1,
+                input_name="voltage",
+                rms_error=1e-9 * k,
+                samples=2000 + k,
+            ),
+        ),
+        "/piezo/limit_cycles": (
+            "piezo_stage_msgs/msg/LimitCycle",
+            c("piezo_stage_msgs/msg/LimitCycle")(
+                header=h,
+                offset=100.0 * k,
+                period=10.0,
+                input=np.linspace(0, 300, 50 + k),
+                output=np.linspace(0, 3e-5, 50 + k) ** 2,
+            ),
+        ),
+        "/piezo/excitation": (
+            "piezo_stage_msgs/msg/ExcitationInfo",
+            c("piezo_stage_msgs/msg/ExcitationInfo")(
+                header=h,
+                waveform="triangle",
+                period=10.0,
+                amplitude=300.0,
+                offset=100.0 * k,
+                run=k,
+                steady=k > 1,
+            ),
+        ),
+        "/diagnostics": (
+            "diagnostic_msgs/msg/DiagnosticArray",
+            c("diagnostic_msgs/msg/DiagnosticArray")(
+                header=h,
+                status=[
+                    status(
+                        level=k % 4,
+                        name="laser",
+                        message=f"ok {k}",
+                        hardware_id="ILD",
+                        values=[kv(key="rate", value=str(k))],
+                    ),
+                    status(level=0, name="amp", message="", hardware_id="", values=[]),
+                ],
+            ),
+        ),
+        "/clock": (
+            "rosgraph_msgs/msg/Clock",
+            c("rosgraph_msgs/msg/Clock")(clock=types.time_message(T0 + k)),
+        ),
     }
 
 
-OFFERS = {"/piezo/displacement": [qos.SENSOR_DATA], "/piezo/bouc_wen_parameters": [qos.LATCHED],
-          "/piezo/voltage": [qos.RELIABLE, qos.SENSOR_DATA]}
+OFFERS = {
+    "/piezo/displacement": [qos.SENSOR_DATA],
+    "/piezo/bouc_wen_parameters": [qos.LATCHED],
+    "/piezo/voltage": [qos.RELIABLE, qos.SENSOR_DATA],
+}
 N = 4
 
 
@@ -112,8 +163,12 @@ def full_bag(tmp_path_factory) -> tuple[Path, dict[str, list]]:
             for topic, (type_name, msg) in _messages(k).items():
                 if k == 0:
                     writer.add_topic(topic, type_name, OFFERS.get(topic, []))
-                writer.write(topic, types.serialize(msg, type_name), T0 + 10 * k + 1,
-                             publish_time_ns=T0 + 10 * k)
+                writer.write(
+                    topic,
+                    types.serialize(msg, type_name),
+                    T0 + 10 * k + 1,
+                    publish_time_ns=T0 + 10 * k,
+                )
                 written.setdefault(topic, []).append((type_name, msg))
     return path, written
 
@@ -125,7 +180,8 @@ def test_anyreader_reads_every_field(full_bag):
         assert {c.topic: c.msgcount for c in reader.connections} == {t: N for t in written}
         for connection, timestamp, raw in reader.messages():
             got.setdefault(connection.topic, []).append(
-                (timestamp, reader.deserialize(raw, connection.msgtype)))
+                (timestamp, reader.deserialize(raw, connection.msgtype))
+            )
     for topic, messages in written.items():
         assert [ts for ts, _ in got[topic]] == [T0 + 10 * k + 1 for k in range(N)]
         for (type_name, expected), (_, actual) in zip(messages, got[topic]):
@@ -189,15 +245,18 @@ def test_rosbag2_metadata_record_in_the_mcap(full_bag):
 
 def _displacements(n: int, rate_hz: float = 1000.0, t0: int = T0) -> tuple[np.ndarray, list[bytes]]:
     t_ns = t0 + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
-    return t_ns, encode_series("piezo_stage_msgs/msg/Displacement", t_ns,
-                               np.sin(np.arange(n) * 0.01) * 1e-5, frame_id="laser")
+    return t_ns, encode_series(
+        "piezo_stage_msgs/msg/Displacement",
+        t_ns,
+        np.sin(np.arange(n) * 0.01) * 1e-5,
+        frame_id="laser",
+    )
 
 
 def _write(path: Path, n: int, **options) -> tuple[np.ndarray, BagWriter]:
     t_ns, datas = _displacements(n)
     writer = BagWriter(path, **options)
-    writer.add_topic("/piezo/displacement", "piezo_stage_msgs/msg/Displacement",
-                     [qos.SENSOR_DATA])
+    writer.add_topic("/piezo/displacement", "piezo_stage_msgs/msg/Displacement", [qos.SENSOR_DATA])
     for t, data in zip(t_ns.tolist(), datas):
         writer.write("/piezo/displacement", data, t)
     writer.close()
@@ -210,8 +269,9 @@ def _anyreader_times(path: Path) -> list[int]:
 
 
 def test_split_by_size(tmp_path):
-    t_ns, writer = _write(tmp_path / "b", 3000, chunk_size=4096, max_bag_size=40_000,
-                          flush_period_s=0)
+    t_ns, writer = _write(
+        tmp_path / "b", 3000, chunk_size=4096, max_bag_size=40_000, flush_period_s=0
+    )
     files = sorted(p.name for p in (tmp_path / "b").glob("*.mcap"))
     assert len(files) >= 3
     assert [f.name for f in writer.files] == [f"b_{i}.mcap" for i in range(len(files))]
@@ -228,7 +288,8 @@ def test_split_by_duration(tmp_path):
     t_ns, writer = _write(tmp_path / "d", 1000, max_bag_duration_s=0.25, flush_period_s=0)
     assert len(writer.files) == 4
     info = yaml.safe_load((tmp_path / "d" / "metadata.yaml").read_text())[
-        "rosbag2_bagfile_information"]
+        "rosbag2_bagfile_information"
+    ]
     assert [f["message_count"] for f in info["files"]] == [250] * 4
     assert all(f["duration"]["nanoseconds"] < 250_000_000 for f in info["files"])
     assert _anyreader_times(tmp_path / "d") == t_ns.tolist()
@@ -261,9 +322,12 @@ def test_flush_refreshes_metadata_before_close(tmp_path):
     writer.add_topic("/d", "piezo_stage_msgs/msg/Displacement", None)
     for t, data in zip(t_ns.tolist(), datas):
         writer.write("/d", data, t)
+
     def on_disk() -> int:
         return yaml.safe_load((tmp_path / "f" / "metadata.yaml").read_text())[
-            "rosbag2_bagfile_information"]["message_count"]
+            "rosbag2_bagfile_information"
+        ]["message_count"]
+
     assert on_disk() == 0
     writer.flush()
     assert on_disk() == 100 and writer.message_count == 100
@@ -289,8 +353,9 @@ def test_bad_use_raises_specific_errors(tmp_path):
     with pytest.raises(UnknownMessageTypeError):
         writer.add_topic("/n", "nope_msgs/msg/Nothing")
     with pytest.raises(InvalidQosError, match="reliability"):
-        writer.add_topic("/q", "piezo_stage_msgs/msg/Voltage",
-                         [dict(qos.RELIABLE, reliability="sometimes")])
+        writer.add_topic(
+            "/q", "piezo_stage_msgs/msg/Voltage", [dict(qos.RELIABLE, reliability="sometimes")]
+        )
     with pytest.raises(InvalidQosError, match="lacks"):
         writer.add_topic("/q", "piezo_stage_msgs/msg/Voltage", "- history: keep_last")
     with pytest.raises(UnknownTopicError, match="add_topic first"):
@@ -308,7 +373,8 @@ def test_qos_accepts_rosbag2_strings_and_rclpy_like_profiles():
     assert qos.normalize_profiles(text) == [qos.SENSOR_DATA]
     legacy = dict(qos.RELIABLE, history=1, reliability=2, durability=1, liveliness=1)
     assert qos.normalize_profiles([legacy]) == [
-        dict(qos.RELIABLE, reliability="best_effort", durability="transient_local")]
+        dict(qos.RELIABLE, reliability="best_effort", durability="transient_local")
+    ]
 
     class Enum:
         def __init__(self, name: str) -> None:

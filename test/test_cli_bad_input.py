@@ -32,15 +32,26 @@ def files(tmp_path_factory) -> dict[str, str]:
     """Inputs the table refers to as {name}: runs scaled to absurd magnitudes, a binary file,
     a malformed YAML, a damaged bag."""
     root = tmp_path_factory.mktemp("bad_inputs")
-    runs = triangle_pair(BoucWenParameters(**CH10_PATCH), 0.0, 300.0, 100.0, period=10.0,
-                         samples_per_branch=200, periods=3)
+    runs = triangle_pair(
+        BoucWenParameters(**CH10_PATCH),
+        0.0,
+        300.0,
+        100.0,
+        period=10.0,
+        samples_per_branch=200,
+        periods=3,
+    )
     out: dict[str, str] = {}
     for label, scale in (("run", 1.0), ("huge", 1e300), ("tiny", 1e-300)):
         for i, rec in enumerate(runs):
             rows = np.column_stack((rec.t, rec.input * scale, rec.output * scale))
             path = root / f"{label}{i}.csv"
-            path.write_text("time,input,output\n" + "\n".join(
-                ",".join(f"{v:.17g}" for v in r) for r in rows) + "\n", encoding="utf-8")
+            path.write_text(
+                "time,input,output\n"
+                + "\n".join(",".join(f"{v:.17g}" for v in r) for r in rows)
+                + "\n",
+                encoding="utf-8",
+            )
             out[f"{label}{i}"] = str(path)
     binary = root / "binary.yaml"
     binary.write_bytes(bytes(random.Random(0).randrange(256) for _ in range(512)))
@@ -87,7 +98,7 @@ TABLE: list[tuple[list[str], int, str]] = [
     (["emulate", "rig", "--params", "{garbage_yaml}"], 2, "not valid YAML"),
     (["emulate", "gcs", "--realtime", "100"], 2, "99"),
     # identify / validate
-    (["identify", "{huge0}", "{huge1}"], 2, "out of range"),   # unusable input: exit 2
+    (["identify", "{huge0}", "{huge1}"], 2, "out of range"),  # unusable input: exit 2
     (["identify", "{tiny0}", "{tiny1}"], 2, "out of range"),
     (["identify", "{run0}", "{run1}", "--steady-periods", "0"], 2, "--steady-periods"),
     (["identify", "{run0}", "{run1}", "--max-rms", "-1"], 2, "--max-rms"),
@@ -165,21 +176,44 @@ NUMBERS = st.one_of(
 ).map(repr)
 
 
-@settings(max_examples=examples(60), deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(option=st.sampled_from(["--m-max", "--m-min", "--c-max", "--kappa-x-max", "--k1", "--k2",
-                               "--k0", "--rate-hz", "--derivative-tau", "--m", "--kappa-x"]),
-       value=NUMBERS)
+@settings(
+    max_examples=examples(60),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    option=st.sampled_from(
+        [
+            "--m-max",
+            "--m-min",
+            "--c-max",
+            "--kappa-x-max",
+            "--k1",
+            "--k2",
+            "--k0",
+            "--rate-hz",
+            "--derivative-tau",
+            "--m",
+            "--kappa-x",
+        ]
+    ),
+    value=NUMBERS,
+)
 def test_gains_numeric_options(option, value, capsys):
     argv = [*GAINS, "--rate-hz", "1e4", option, value]
     _run(argv, capsys)
 
 
-@settings(max_examples=examples(40), deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(device=st.sampled_from(["gcs", "optoncdt"]),
-       option=st.sampled_from(["--drop", "--corrupt", "--slow", "--linger", "--duration"]),
-       value=NUMBERS.filter(lambda v: v not in ("0.0", "-0.0")))
+@settings(
+    max_examples=examples(40),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    device=st.sampled_from(["gcs", "optoncdt"]),
+    option=st.sampled_from(["--drop", "--corrupt", "--slow", "--linger", "--duration"]),
+    value=NUMBERS.filter(lambda v: v not in ("0.0", "-0.0")),
+)
 def test_emulate_numeric_options_never_start_on_bad_values(device, option, value, capsys):
     number = float(value)
     if np.isfinite(number) and 0 <= number <= (1 if option in ("--drop", "--corrupt") else 1e150):

@@ -140,8 +140,9 @@ def test_emulated_rig_without_m_and_c_stops_at_the_dynamics(tmp_path):
     out = tmp_path / "out"
     proc = _commission(str(out), "--graph", "emulated_rig", "--frequencies", "2", timeout=600.0)
     assert proc.returncode == 1, proc.stderr[-3000:]
-    assert ("step dynamics failed" in proc.stderr and "--m" in proc.stderr) \
-        or "unstable at every rate checked" in proc.stderr, proc.stderr[-3000:]
+    assert (
+        "step dynamics failed" in proc.stderr and "--m" in proc.stderr
+    ) or "unstable at every rate checked" in proc.stderr, proc.stderr[-3000:]
     assert (out / "FAILED.md").is_file()
     assert not any(
         (out / name).exists() for name in ("report.md", "rig_bounds.yaml", "controller.yaml")

@@ -56,8 +56,12 @@ def test_feedforward_alone_drives_the_rig_along_x_d():
 
 def _controller(compensation, **kw):
     cfg = ControllerConfig(
-        gains=THESIS_GAINS, u_min=-450.0, u_max=450.0, compensation=compensation,
-        feedforward=MODEL, **kw
+        gains=THESIS_GAINS,
+        u_min=-450.0,
+        u_max=450.0,
+        compensation=compensation,
+        feedforward=MODEL,
+        **kw,
     )
     return TimeVaryingPID(cfg, closed=True)
 
@@ -68,8 +72,9 @@ def test_modes_combine_the_terms():
         ctrl = _controller(mode)
         ctrl.update(0.0, 0.0, 0.0, 0.0, 0.0)
         outs[mode] = ctrl.update(1e-5, 1e-7, 2e-7, 0.02, 1.0)
-    fb, ffo, both = (outs[c] for c in (Compensation.FEEDBACK, Compensation.FEEDFORWARD,
-                                       Compensation.BOTH))
+    fb, ffo, both = (
+        outs[c] for c in (Compensation.FEEDBACK, Compensation.FEEDFORWARD, Compensation.BOTH)
+    )
     assert fb.u_ff == 0.0 and fb.u == pytest.approx(fb.u_pid)
     assert ffo.u_pid == 0.0 and ffo.u == pytest.approx(ffo.u_ff) and ffo.x0 == 0.0
     assert both.u_ff == pytest.approx(ffo.u_ff) and both.u == pytest.approx(both.u_pid + both.u_ff)

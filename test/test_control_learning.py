@@ -91,15 +91,17 @@ def test_one_update_with_the_exact_response_leaves_only_what_q_removes():
     x_d = 10e-6 * np.sin(2 * math.pi * np.arange(n) / n) + 20e-6
     error = circulant_loop(g, x_d)
     table = FeedforwardTable(np.zeros(n), RATE)
-    learning = IterativeLearning(table, g, LearningConfig(gain=1.0, cutoff_hz=RATE / 2,
-                                                          settle_periods=0))
+    learning = IterativeLearning(
+        table, g, LearningConfig(gain=1.0, cutoff_hz=RATE / 2, settle_periods=0)
+    )
     before = np.sqrt(np.mean(error(table.u) ** 2))
     learning.update(error(table.u))
     assert np.sqrt(np.mean(error(table.u) ** 2)) < 1e-9 * before
     # a half gain halves the error each period
     table2 = FeedforwardTable(np.zeros(n), RATE)
-    half = IterativeLearning(table2, g, LearningConfig(gain=0.5, cutoff_hz=RATE / 2,
-                                                       settle_periods=0))
+    half = IterativeLearning(
+        table2, g, LearningConfig(gain=0.5, cutoff_hz=RATE / 2, settle_periods=0)
+    )
     for _ in range(3):
         half.update(error(table2.u))
     assert np.sqrt(np.mean(error(table2.u) ** 2)) == pytest.approx(before / 8, rel=1e-6)
@@ -112,8 +114,9 @@ def test_settling_periods_are_not_learned_from_and_learning_stops_when_the_error
     x_d = 5e-6 * np.cos(2 * math.pi * np.arange(n) / n)
     error = circulant_loop(g, x_d)
     table = FeedforwardTable(np.zeros(n), RATE)
-    learning = IterativeLearning(table, g, LearningConfig(gain=1.0, cutoff_hz=RATE / 2,
-                                                          settle_periods=1, patience=2))
+    learning = IterativeLearning(
+        table, g, LearningConfig(gain=1.0, cutoff_hz=RATE / 2, settle_periods=1, patience=2)
+    )
     learning.update(np.full(n, 1.0))  # the start settles: ignored, whatever it holds
     assert not table.u.any()
     learning.update(error(table.u))  # learned: the table changes
@@ -138,7 +141,9 @@ def test_settling_periods_are_not_learned_from_and_learning_stops_when_the_error
 @settings(max_examples=200, deadline=None)
 @given(
     u=st.lists(st.floats(-1e3, 1e3), min_size=2, max_size=40),
-    lo=st.floats(-500, 0), span=st.floats(1, 1000), slew=st.floats(1.0, 1e6),
+    lo=st.floats(-500, 0),
+    span=st.floats(1, 1000),
+    slew=st.floats(1.0, 1e6),
     periodic=st.booleans(),
 )
 @example(u=[0.0, 1000.0, -1000.0, 1000.0], lo=-10.0, span=20.0, slew=1.0, periodic=True)
@@ -153,8 +158,15 @@ def test_every_table_value_keeps_the_limits_and_the_slew(u, lo, span, slew, peri
 
 
 def test_bad_configurations_and_errors_are_refused():
-    for kwargs in ({"gain": 0.0}, {"gain": 1.5}, {"cutoff_hz": 0.0}, {"u_min": 1, "u_max": 0},
-                   {"slew_rate": 0.0}, {"patience": 0}, {"settle_periods": -1}):
+    for kwargs in (
+        {"gain": 0.0},
+        {"gain": 1.5},
+        {"cutoff_hz": 0.0},
+        {"u_min": 1, "u_max": 0},
+        {"slew_rate": 0.0},
+        {"patience": 0},
+        {"settle_periods": -1},
+    ):
         with pytest.raises(LearningError):
             LearningConfig(**kwargs)
     table = FeedforwardTable(np.zeros(10), RATE)
@@ -221,9 +233,16 @@ def test_learning_on_a_rig_5_percent_off_its_model_reaches_a_tenth_of_the_target
     model = FeedforwardModel.from_parameter_set(perturbed(RIG, factor))
     trajectory, x_d = rig_triangle()
     table = sampled_feedforward(model, x_d, RATE)
-    _, errors = simulate_tracking(trajectory, RIG, "both", model, rate_hz=RATE, table=table,
-                                  learn_periods=20,
-                                  learning=LearningConfig(u_min=-450.0, u_max=450.0))
+    _, errors = simulate_tracking(
+        trajectory,
+        RIG,
+        "both",
+        model,
+        rate_hz=RATE,
+        table=table,
+        learn_periods=20,
+        learning=LearningConfig(u_min=-450.0, u_max=450.0),
+    )
     assert errors.relative < 3e-4
     assert errors.learning[-1] < 0.1 * errors.learning[0]
 
@@ -234,8 +253,9 @@ def test_learning_stops_itself_once_the_error_stops_falling():
     model = FeedforwardModel.from_parameter_set(RIG)
     trajectory, x_d = rig_triangle()
     table = sampled_feedforward(model, x_d, RATE)
-    _, errors = simulate_tracking(trajectory, RIG, "both", model, rate_hz=RATE, table=table,
-                                  learn_periods=20)
+    _, errors = simulate_tracking(
+        trajectory, RIG, "both", model, rate_hz=RATE, table=table, learn_periods=20
+    )
     assert 4 <= len(errors.learning) < 20 and errors.relative < 3e-4
 
 

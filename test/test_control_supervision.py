@@ -34,13 +34,21 @@ G = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
 def supervisor(bias: float = 0.0, hold: float | None = None, **config) -> LoopSupervisor:
     """A supervisor around the PID as the controller node builds it (``hold`` in amplifier
     volts, the law in u − u_bias)."""
-    pid = TimeVaryingPID(ControllerConfig(gains=G, u_min=-100.0 - bias, u_max=300.0 - bias,
-                                          hold_voltage=None if hold is None else hold - bias),
-                         closed=False)
+    pid = TimeVaryingPID(
+        ControllerConfig(
+            gains=G,
+            u_min=-100.0 - bias,
+            u_max=300.0 - bias,
+            hold_voltage=None if hold is None else hold - bias,
+        ),
+        closed=False,
+    )
     events: list[tuple[Health, str]] = []
-    sup = LoopSupervisor(pid, SupervisionConfig(rate_hz=RATE, u_bias=bias, u_min=-100.0,
-                                                u_max=300.0, **config),
-                         notify=lambda level, text: events.append((level, text)))
+    sup = LoopSupervisor(
+        pid,
+        SupervisionConfig(rate_hz=RATE, u_bias=bias, u_min=-100.0, u_max=300.0, **config),
+        notify=lambda level, text: events.append((level, text)),
+    )
     sup.events = events  # type: ignore[attr-defined]
     return sup
 
@@ -90,8 +98,12 @@ def test_a_short_gap_holds_the_output_is_counted_and_the_loop_resumes():
         run(sup, k * T)
     t = 9 * T
     # ticks of the loop's clock without a sample: held (one gap), not opened
-    assert [sup.check_gap(t + 0.5 * T * j) for j in (1, 2, 4, 30)] == \
-        [Gap.HELD, Gap.HELD, Gap.HELD, Gap.HELD]
+    assert [sup.check_gap(t + 0.5 * T * j) for j in (1, 2, 4, 30)] == [
+        Gap.HELD,
+        Gap.HELD,
+        Gap.HELD,
+        Gap.HELD,
+    ]
     assert sup.gaps_held == 1 and sup.pid.loop_closed
     assert run(sup, t + 0.015) is not None  # the sample after a 15 ms silence: closed, stepping
     assert sup.pid.loop_closed and sup.gaps_held == 1 and sup.longest_gap == pytest.approx(0.015)
@@ -157,18 +169,24 @@ def test_gain_check_gives_the_reasons_of_theorem_4_and_the_sampled_loop():
     assert "k1" in check.reasons(bad) or "k2" in check.reasons(bad)
     slow = GainCheck(check.bounds, check.plant, 100.0, 1)
     assert "sampled loop unstable at 100 Hz" in slow.reasons(
-        ControllerConfig(mode="pid", gains=THESIS_GAINS))
+        ControllerConfig(mode="pid", gains=THESIS_GAINS)
+    )
 
 
-samples = st.lists(st.tuples(st.floats(1e-5, 0.05), st.floats(-1e-4, 1e-4),
-                             st.booleans(), st.booleans()), min_size=1, max_size=60)
+samples = st.lists(
+    st.tuples(st.floats(1e-5, 0.05), st.floats(-1e-4, 1e-4), st.booleans(), st.booleans()),
+    min_size=1,
+    max_size=60,
+)
 
 
 @given(samples, st.floats(-50.0, 250.0))
 @settings(max_examples=examples(200))
 @example([(1e-3, 0.0, False, False), (0.03, 1e-6, True, False)], 0.0)
-@example([(0.03125, -9.184386345071141e-05, True, False), (0.015625, 0.0, True, False)],
-         156.79455215148366)  # bias + (u_min − bias) rounds below u_min
+@example(
+    [(0.03125, -9.184386345071141e-05, True, False), (0.015625, 0.0, True, False)],
+    156.79455215148366,
+)  # bias + (u_min − bias) rounds below u_min
 def test_every_command_is_finite_and_within_the_limits_and_a_fault_holds(seq, bias):
     """Invariant for any sequence of samples (intervals, values, validity) and ticks: whatever
     the supervisor asks to write is finite and within [u_min, u_max]; after an invalid sample

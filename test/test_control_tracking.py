@@ -23,9 +23,15 @@ def fitted():
 
 def test_model_from_the_rigs_recordings(fitted):
     bw, true = fitted.bouc_wen, RIG.bouc_wen
-    for got, want in ((bw.kappa_x, true.kappa_x), (bw.kappa_w, true.kappa_w), (bw.rho, true.rho),
-                      (bw.sigma, true.sigma), (bw.n, true.n), (fitted.dynamics.m, RIG.dynamics.m),
-                      (fitted.dynamics.c, RIG.dynamics.c)):
+    for got, want in (
+        (bw.kappa_x, true.kappa_x),
+        (bw.kappa_w, true.kappa_w),
+        (bw.rho, true.rho),
+        (bw.sigma, true.sigma),
+        (bw.n, true.n),
+        (fitted.dynamics.m, RIG.dynamics.m),
+        (fitted.dynamics.c, RIG.dynamics.c),
+    ):
         assert got == pytest.approx(want, rel=0.015)
     assert abs(bw.y0) < 1e-9  # [m]: the rig has no offset
 

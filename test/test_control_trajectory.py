@@ -64,9 +64,13 @@ def test_acceleration_limit_lengthens_the_corners_and_impossible_limits_are_refu
 
 
 @settings(max_examples=examples(30), deadline=None)
-@given(shape=st.sampled_from(list(Shape)), amplitude=st.floats(1e-7, 5e-5),
-       frequency=st.floats(0.5, 500.0), rounding=st.floats(0.05, 1.0),
-       t=st.lists(st.floats(0.0, 10.0), min_size=1, max_size=20))
+@given(
+    shape=st.sampled_from(list(Shape)),
+    amplitude=st.floats(1e-7, 5e-5),
+    frequency=st.floats(0.5, 500.0),
+    rounding=st.floats(0.05, 1.0),
+    t=st.lists(st.floats(0.0, 10.0), min_size=1, max_size=20),
+)
 def test_stays_within_its_range(shape, amplitude, frequency, rounding, t):
     tr = PeriodicTrajectory(shape, amplitude, frequency, offset=0.0, rounding=rounding)
     x, v, a = tr.evaluate(np.array(t))

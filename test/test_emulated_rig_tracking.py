@@ -55,16 +55,36 @@ def tracking_graph(port: int, link: str, model_file: str):
             command += ["--amp-tcp", str(port), "--sensor-link", link]
             nodes.append({**entry, "command": command})
         elif entry.get("executable") == "voltage_driver":  # commands applied on arrival
-            nodes.append({**entry, "process": "rig_loop",
-                          "overrides": {**entry["overrides"], "apply_at_stamp": False}})
+            nodes.append(
+                {
+                    **entry,
+                    "process": "rig_loop",
+                    "overrides": {**entry["overrides"], "apply_at_stamp": False},
+                }
+            )
         elif entry.get("executable") == "laser_reader":
             nodes.append({**entry, "process": "rig_loop"})
-    nodes.append({"executable": "controller", "process": "rig_loop", "overrides": {
-        "trigger": "sample", "rate_hz": 1000.0, "mode": "pid", "start_closed": True,
-        "u_min": 0.0, "u_max": 400.0, "reference_source": "trajectory", "trajectory": "triangle",
-        "trajectory_amplitude": AMPLITUDE, "trajectory_offset": OFFSET,
-        "trajectory_frequency": FREQUENCY,
-        "compensation": "both", "feedforward_model": model_file}})
+    nodes.append(
+        {
+            "executable": "controller",
+            "process": "rig_loop",
+            "overrides": {
+                "trigger": "sample",
+                "rate_hz": 1000.0,
+                "mode": "pid",
+                "start_closed": True,
+                "u_min": 0.0,
+                "u_max": 400.0,
+                "reference_source": "trajectory",
+                "trajectory": "triangle",
+                "trajectory_amplitude": AMPLITUDE,
+                "trajectory_offset": OFFSET,
+                "trajectory_frequency": FREQUENCY,
+                "compensation": "both",
+                "feedforward_model": model_file,
+            },
+        }
+    )
     return parse_graph({**data, "nodes": nodes}, source)
 
 
@@ -81,19 +101,26 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
     # the controller may close the loop before the driver's command subscription has matched
     # (the driver then ramps to 0 V for lack of commands); the record starts once it drives
     probe.create_subscription(
-        Voltage, "voltage", lambda m: driving.append(True) if m.voltage > 1.0 else None,
+        Voltage,
+        "voltage",
+        lambda m: driving.append(True) if m.voltage > 1.0 else None,
         SENSOR_QOS,
     )
     probe.create_subscription(
-        ControllerState, "controller_state", lambda m: states.append(m) if driving else None,
+        ControllerState,
+        "controller_state",
+        lambda m: states.append(m) if driving else None,
         COMMAND_QOS,
     )
     probe.create_subscription(Displacement, "reference", refs.append, COMMAND_QOS)
     lines: list[str] = []
-    launch = Launcher(tracking_graph(port, link, str(model)), namespace=NS, timeout=30.0,
-                      params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}",
-                              f"laser_reader.url:={link}"],
-                      sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"))
+    launch = Launcher(
+        tracking_graph(port, link, str(model)),
+        namespace=NS,
+        timeout=30.0,
+        params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}"],
+        sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"),
+    )
     n_wanted = int(PERIODS / FREQUENCY * 1000 * 0.9)
     try:
         launch.start()
@@ -118,9 +145,11 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
     gaps = t[1:][np.diff(t) > 5e-3]
     calm = ~np.any((t[:, None] >= gaps[None, :]) & (t[:, None] < gaps[None, :] + 0.02), axis=1)
     errors = tracking_errors(t[calm], x[calm], x_d[calm], t_from=1.0 / FREQUENCY)
-    print(f"emulated rig tracking: RMS {errors.rms_error * 1e9:.1f} nm = "
-          f"{100 * errors.relative:.2f} % of the range, max {errors.max_error * 1e9:.1f} nm "
-          f"({np.count_nonzero(~calm)} samples after {gaps.size} host stalls left out)")
+    print(
+        f"emulated rig tracking: RMS {errors.rms_error * 1e9:.1f} nm = "
+        f"{100 * errors.relative:.2f} % of the range, max {errors.max_error * 1e9:.1f} nm "
+        f"({np.count_nonzero(~calm)} samples after {gaps.size} host stalls left out)"
+    )
     assert errors.samples > 200 and errors.relative <= 0.05, log
 
 
@@ -141,10 +170,20 @@ def test_emulated_rig_learns_the_triangle_and_replays_what_it_learned(tmp_path, 
     from piezo_stage.control.learning import FeedforwardTable
 
     model, table = tmp_path / "model.yaml", tmp_path / "table.json"
-    save_parameter_set(fit_feedforward_model(rig_recordings(shipped_parameter_set("ch11_rig"))),
-                       model)
-    base = ["experiment", "tracking", "--graph", "emulated_rig", "--rate-hz", "1000",
-            "--model", str(model), "--json"]
+    save_parameter_set(
+        fit_feedforward_model(rig_recordings(shipped_parameter_set("ch11_rig"))), model
+    )
+    base = [
+        "experiment",
+        "tracking",
+        "--graph",
+        "emulated_rig",
+        "--rate-hz",
+        "1000",
+        "--model",
+        str(model),
+        "--json",
+    ]
     assert main(base + ["--learn", "20", "--table-out", str(table)]) == 0
     learned = json.loads(capsys.readouterr().out)
     errors = learned["learning"]

@@ -29,8 +29,11 @@ from piezo_stage.runtime_dir import RuntimeDirError
 pytestmark = pytest.mark.unit
 
 PACKAGE = Path(piezo_stage.__file__).parent
-STANDARD = {name: obj for name, obj in vars(builtins).items()
-            if isinstance(obj, type) and issubclass(obj, BaseException)}
+STANDARD = {
+    name: obj
+    for name, obj in vars(builtins).items()
+    if isinstance(obj, type) and issubclass(obj, BaseException)
+}
 
 
 def _classes() -> dict[str, list[tuple[str, list[str]]]]:
@@ -58,8 +61,11 @@ def _ancestors(name: str, seen: frozenset[str] = frozenset()) -> set[str]:
 
 
 EXCEPTIONS = {name: _ancestors(name) for name in CLASSES if _ancestors(name) & set(STANDARD)}
-ERRORS = {name: up for name, up in EXCEPTIONS.items()
-          if not any(issubclass(STANDARD[b], Warning) for b in up if b in STANDARD)}
+ERRORS = {
+    name: up
+    for name, up in EXCEPTIONS.items()
+    if not any(issubclass(STANDARD[b], Warning) for b in up if b in STANDARD)
+}
 
 
 def test_the_scan_sees_the_package():
@@ -67,14 +73,18 @@ def test_the_scan_sees_the_package():
 
 
 def test_every_exception_class_derives_from_piezo_stage_error():
-    outside = sorted(f"{CLASSES[name][0][0]}: {name}" for name, up in ERRORS.items()
-                     if name != "PiezoStageError" and "PiezoStageError" not in up)
+    outside = sorted(
+        f"{CLASSES[name][0][0]}: {name}"
+        for name, up in ERRORS.items()
+        if name != "PiezoStageError" and "PiezoStageError" not in up
+    )
     assert not outside, outside
 
 
 def test_exception_class_names_are_unique():
-    twice = {name: [where for where, _ in CLASSES[name]] for name in EXCEPTIONS
-             if len(CLASSES[name]) > 1}
+    twice = {
+        name: [where for where, _ in CLASSES[name]] for name in EXCEPTIONS if len(CLASSES[name]) > 1
+    }
     assert not twice, twice
 
 
@@ -122,4 +132,5 @@ def test_standard_bases_kept(cls, bases):
 def test_messages_unchanged_by_the_root():
     assert str(UnknownTopicError("no topic /x")) == "no topic /x"  # not KeyError's quotes
     assert str(ParameterValueError("kappa must hold at least kappa_1")) == (
-        "kappa must hold at least kappa_1")
+        "kappa must hold at least kappa_1"
+    )

@@ -43,8 +43,10 @@ def test_stamps_are_read_in_place_in_either_byte_order():
 
 
 def test_controller_state_decodes_into_typed_columns_and_the_stop_rules_count_right():
-    raw = [(1_000_000_000 + k * 1_000_000, state(1_000_000_000 + k * 1_000_000, k * 1e-9, k > 0))
-           for k in range(5)]
+    raw = [
+        (1_000_000_000 + k * 1_000_000, state(1_000_000_000 + k * 1_000_000, k * 1e-9, k > 0))
+        for k in range(5)
+    ]
     states = ControllerStates.decode(raw)
     assert np.allclose(states.t, 1.0 + np.arange(5) * 1e-3)
     assert np.allclose(states.x, np.arange(5) * 1e-9 + 1e-5) and np.all(states.u_ff == 7.0)
@@ -61,20 +63,29 @@ def test_controller_state_decodes_into_typed_columns_and_the_stop_rules_count_ri
 def test_a_recording_writes_a_bag_under_its_namespace(tmp_path):
     raw = [(k * 1_000_000, state(k * 1_000_000, 0.0)) for k in (2, 1, 3)]
     recording = Recording("/ns", {"controller_state": raw}, 1.0)
-    recording.write_bag(tmp_path / "bag", {"controller_state":
-                                           "piezo_stage_msgs/msg/ControllerState"}, sort=True)
+    recording.write_bag(
+        tmp_path / "bag", {"controller_state": "piezo_stage_msgs/msg/ControllerState"}, sort=True
+    )
     got = list(read_messages(tmp_path / "bag"))
     assert [topic for topic, _, _ in got] == ["/ns/controller_state"] * 3
     assert [ns for _, ns, _ in got] == [1_000_000, 2_000_000, 3_000_000]
 
 
 def test_a_graph_that_cannot_start_fails_with_its_nodes_output():
-    graph = {"namespace": "/harness_fail", "nodes": [
-        {"executable": "controller", "required": True,
-         "overrides": {"compensation": "both"}}]}  # no feedforward_model: exits 2 at start
+    graph = {
+        "namespace": "/harness_fail",
+        "nodes": [
+            {"executable": "controller", "required": True, "overrides": {"compensation": "both"}}
+        ],
+    }  # no feedforward_model: exits 2 at start
     with pytest.raises(HarnessError) as err:
-        record(graph, [Stream("controller_state", ControllerState)],
-               samples("controller_state", 1), launch_timeout=20.0, wall_timeout=20.0)
+        record(
+            graph,
+            [Stream("controller_state", ControllerState)],
+            samples("controller_state", 1),
+            launch_timeout=20.0,
+            wall_timeout=20.0,
+        )
     assert "feedforward_model" in err.value.with_output(40)
 
 

@@ -23,8 +23,14 @@ def model(tmp_path_factory):
 
 @pytest.mark.unit
 def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
-    spec = TrackingSpec(trajectory="sine", amplitude=5e-6, frequency=100.0, offset=8e-6,
-                        compensation="both", model=str(model))
+    spec = TrackingSpec(
+        trajectory="sine",
+        amplitude=5e-6,
+        frequency=100.0,
+        offset=8e-6,
+        compensation="both",
+        model=str(model),
+    )
     plan = make_tracking_plan(spec, str(model))
     assert plan.rate_hz == 100e3 and plan.spectral_radius < 1
     assert plan.duration == pytest.approx(0.03)  # three periods
@@ -35,11 +41,13 @@ def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
     assert c["trajectory"] == "sine" and c["trajectory_offset"] == 8e-6
     assert c["hold_voltage"] == plan.plant["initial_voltage"]
     assert math.isnan(make_tracking_plan(TrackingSpec(), "").controller["trajectory_offset"])
-    for bad, match in ((dict(compensation="inverse"), "compensation"),
-                       (dict(mode="pi"), "unknown law"),
-                       (dict(trajectory="sine", frequency=1e3, a_max=1.0), "a_max"),
-                       (dict(plant_model="ch10_patch.yaml"), "static"),
-                       (dict(plant_model="no_such_rig.yaml"), "not found")):
+    for bad, match in (
+        (dict(compensation="inverse"), "compensation"),
+        (dict(mode="pi"), "unknown law"),
+        (dict(trajectory="sine", frequency=1e3, a_max=1.0), "a_max"),
+        (dict(plant_model="ch10_patch.yaml"), "static"),
+        (dict(plant_model="no_such_rig.yaml"), "not found"),
+    ):
         with pytest.raises(ExperimentInputError, match=match):
             make_tracking_plan(TrackingSpec(**bad), "")
 
@@ -49,10 +57,28 @@ def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
 def test_command_tracks_a_100_hz_sine_and_compares_with_feedback(model, tmp_path, capsys):
     from piezo_stage.cli import main
 
-    code = main(["experiment", "tracking", "--trajectory", "sine", "--amplitude", "5e-6",
-                 "--frequency", "100", "--compensation", "both", "--model", str(model),
-                 "--compare", "--png", str(tmp_path / "png"), "--bag", str(tmp_path / "bag"),
-                 "--json"])
+    code = main(
+        [
+            "experiment",
+            "tracking",
+            "--trajectory",
+            "sine",
+            "--amplitude",
+            "5e-6",
+            "--frequency",
+            "100",
+            "--compensation",
+            "both",
+            "--model",
+            str(model),
+            "--compare",
+            "--png",
+            str(tmp_path / "png"),
+            "--bag",
+            str(tmp_path / "bag"),
+            "--json",
+        ]
+    )
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["range"] == pytest.approx(10e-6, rel=1e-3) and out["samples"] >= 2999
@@ -73,8 +99,19 @@ def test_csv_trajectory_with_feedforward_alone(model, tmp_path, capsys):
     t = np.linspace(0.0, 0.01, 11)
     csv = tmp_path / "scan.csv"
     csv.write_text("t, x\n" + "".join(f"{a:.6g},{2e-6 * a / 0.01:.6g}\n" for a in t))
-    code = main(["experiment", "tracking", "--trajectory", str(csv), "--compensation",
-                 "feedforward", "--model", str(model), "--json"])
+    code = main(
+        [
+            "experiment",
+            "tracking",
+            "--trajectory",
+            str(csv),
+            "--compensation",
+            "feedforward",
+            "--model",
+            str(model),
+            "--json",
+        ]
+    )
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert out["range"] == pytest.approx(2e-6, rel=0.02) and out["measured_from"] == 0.0
@@ -94,11 +131,13 @@ def test_rates_tables_and_learning_that_cannot_run_are_refused(model, tmp_path, 
     csv.write_text("t, x\n0, 0\n0.01, 1e-6\n0.02, 2e-6\n")
     table = FeedforwardTable(np.zeros(50), 1000.0).save(tmp_path / "table.json")
     base = ["experiment", "tracking", "--model", str(model)]
-    for extra, reason in ((["--rate-hz", "10000"], "unstable sampled at 10000 Hz"),
-                          (["--trajectory", str(csv), "--learn", "5"], "periodic trajectory"),
-                          (["--rate-hz", "1000", "--table", str(table)], "holds 50 samples"),
-                          (["--graph", "emulated_rig", "--rate-hz", "2000"], "1000 or 10000"),
-                          (["--compensation", "feedback", "--learn", "5"], "learns the")):
+    for extra, reason in (
+        (["--rate-hz", "10000"], "unstable sampled at 10000 Hz"),
+        (["--trajectory", str(csv), "--learn", "5"], "periodic trajectory"),
+        (["--rate-hz", "1000", "--table", str(table)], "holds 50 samples"),
+        (["--graph", "emulated_rig", "--rate-hz", "2000"], "1000 or 10000"),
+        (["--compensation", "feedback", "--learn", "5"], "learns the"),
+    ):
         assert main(base + extra) == 2, extra
         assert reason in capsys.readouterr().err
 
@@ -113,9 +152,26 @@ def test_learning_at_1_khz_then_replaying_the_saved_table(model, tmp_path, capsy
     from piezo_stage.control.learning import FeedforwardTable
 
     table = tmp_path / "table.json"
-    assert main(["experiment", "tracking", "--rate-hz", "1000", "--learn", "20", "--model",
-                 str(model), "--table-out", str(table), "--png", str(tmp_path / "png"),
-                 "--json"]) == 0
+    assert (
+        main(
+            [
+                "experiment",
+                "tracking",
+                "--rate-hz",
+                "1000",
+                "--learn",
+                "20",
+                "--model",
+                str(model),
+                "--table-out",
+                str(table),
+                "--png",
+                str(tmp_path / "png"),
+                "--json",
+            ]
+        )
+        == 0
+    )
     learned = json.loads(capsys.readouterr().out)
     assert learned["rate_hz"] == 1000.0 and len(learned["learning"]) == 20
     assert learned["rms_relative"] <= 0.002
@@ -123,7 +179,21 @@ def test_learning_at_1_khz_then_replaying_the_saved_table(model, tmp_path, capsy
     assert (tmp_path / "png" / "tracking_triangle_learning.png").is_file()
     saved = FeedforwardTable.load(table)
     assert len(saved) == 100 and saved.rate_hz == 1000.0 and saved.meta["learned_periods"] >= 2
-    assert main(["experiment", "tracking", "--rate-hz", "1000", "--table", str(table),
-                 "--model", str(model), "--json"]) == 0
+    assert (
+        main(
+            [
+                "experiment",
+                "tracking",
+                "--rate-hz",
+                "1000",
+                "--table",
+                str(table),
+                "--model",
+                str(model),
+                "--json",
+            ]
+        )
+        == 0
+    )
     replayed = json.loads(capsys.readouterr().out)
     assert replayed["learning"] == [] and replayed["rms_relative"] <= 0.002

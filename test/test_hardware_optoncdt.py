@@ -228,8 +228,11 @@ def test_fuzz_mixed_stream_with_ascii_and_faults(name):
 
 
 # --- the few-frames path -------------------------------------------------------------------------
-@given(st.sampled_from(list(FORMATS)), st.integers(0, 2**32 - 1),
-       st.lists(st.tuples(st.integers(0, 3), st.integers(1, 40)), min_size=1, max_size=40))
+@given(
+    st.sampled_from(list(FORMATS)),
+    st.integers(0, 2**32 - 1),
+    st.lists(st.tuples(st.integers(0, 3), st.integers(1, 40)), min_size=1, max_size=40),
+)
 @settings(max_examples=examples(150))
 @example("ild1320-18", 1, [(0, 12), (2, 3), (0, 12)])
 def test_the_few_frames_path_decides_as_the_numpy_path(name, seed, pieces):
@@ -247,10 +250,13 @@ def test_the_few_frames_path_decides_as_the_numpy_path(name, seed, pieces):
         later = rng.random(n) < 0.2 if kind == 1 and width == 3 else None
         data = encode_values(fmt, raw, later=later)
         step = width * int(rng.integers(1, 6)) if rng.random() < 0.7 else int(rng.integers(1, 7))
-        chunks += [data[i:i + step] for i in range(0, len(data), step)]
+        chunks += [data[i : i + step] for i in range(0, len(data), step)]
         if kind == 3:
-            chunks.append(b"MEASRATE 1.000\r\n->" if fmt.ascii_commands
-                          else bytes(rng.integers(0, 256, 5, dtype=np.uint8)))
+            chunks.append(
+                b"MEASRATE 1.000\r\n->"
+                if fmt.ascii_commands
+                else bytes(rng.integers(0, 256, 5, dtype=np.uint8))
+            )
     fast, slow = OptoNCDTParser(fmt, MR), OptoNCDTParser(fmt, MR)
     slow.few_frames = 0
     a = SampleBlock.concat([fast.feed(c) for c in chunks])

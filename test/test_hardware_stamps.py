@@ -18,14 +18,20 @@ pytestmark = pytest.mark.unit
 NOW = 1.8e9  # s, a wall-clock time in 2027
 
 
-@pytest.mark.parametrize("sec, nanosec, verdict", [
-    (-1, 0, StampVerdict.NEGATIVE), (-2**31, 5, StampVerdict.NEGATIVE),
-    (5, 10**9, StampVerdict.MALFORMED), (5, -1, StampVerdict.MALFORMED),
-    (0, 0, StampVerdict.UNSTAMPED),
-    (2**31 - 1, 0, StampVerdict.AHEAD),  # year 2038
-    (int(NOW) - 3600, 0, StampVerdict.TOO_OLD),  # an hour old
-    (int(NOW), 0, StampVerdict.OK), (int(NOW) + 1, 0, StampVerdict.OK),
-])
+@pytest.mark.parametrize(
+    "sec, nanosec, verdict",
+    [
+        (-1, 0, StampVerdict.NEGATIVE),
+        (-(2**31), 5, StampVerdict.NEGATIVE),
+        (5, 10**9, StampVerdict.MALFORMED),
+        (5, -1, StampVerdict.MALFORMED),
+        (0, 0, StampVerdict.UNSTAMPED),
+        (2**31 - 1, 0, StampVerdict.AHEAD),  # year 2038
+        (int(NOW) - 3600, 0, StampVerdict.TOO_OLD),  # an hour old
+        (int(NOW), 0, StampVerdict.OK),
+        (int(NOW) + 1, 0, StampVerdict.OK),
+    ],
+)
 def test_verdicts(sec, nanosec, verdict):
     policy = StampPolicy(max_age=0.5, max_ahead=5.0, require_stamp=True)
     assert policy.check(sec, nanosec, NOW)[0] is verdict
@@ -44,8 +50,12 @@ def test_without_checks_unstamped_is_fine_and_bad_config_is_refused():
 
 
 @settings(max_examples=examples(100))
-@given(sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(-2**31, 2**32 - 1),
-       now=st.floats(0.0, 4e9), max_age=st.floats(0.0, 3600.0))
+@given(
+    sec=st.integers(-(2**31), 2**31 - 1),
+    nanosec=st.integers(-(2**31), 2**32 - 1),
+    now=st.floats(0.0, 4e9),
+    max_age=st.floats(0.0, 3600.0),
+)
 def test_property_any_stamp_gives_a_verdict(sec, nanosec, now, max_age):
     verdict, age = StampPolicy(max_age, 5.0, True).check(sec, nanosec, now)
     assert isinstance(verdict, StampVerdict)

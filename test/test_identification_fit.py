@@ -57,8 +57,9 @@ def max_rel_error(found: BoucWenParameters, true: BoucWenParameters) -> float:
 
 def write_csv(path: Path, rec: Recording) -> Path:
     rows = np.column_stack((rec.t, rec.input, rec.output))
-    path.write_text("time,input,output\n"
-                    + "\n".join(",".join(f"{v:.17g}" for v in r) for r in rows) + "\n")
+    path.write_text(
+        "time,input,output\n" + "\n".join(",".join(f"{v:.17g}" for v in r) for r in rows) + "\n"
+    )
     return path
 
 
@@ -84,7 +85,7 @@ def test_two_runs_before_the_limit_cycle():
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=300, periods=5, w0=0.0)
     with pytest.raises(NoSteadyStateError, match="limit cycle is not reached"):
         identify_runs(runs, method="analytic")
-    result = identify_runs(runs)                      # auto falls back to the fit
+    result = identify_runs(runs)  # auto falls back to the fit
     assert result.method == "fit" and "limit cycle" in result.diagnostics["analytic_problem"]
     assert max_rel_error(result.parameters, CH9) <= 1e-5
 
@@ -93,7 +94,7 @@ def test_ch9_24_periods_without_averaging_bias():
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=500, periods=24, w0=0.0)
     result = identify_runs(runs)
     assert result.method == "analytic"
-    assert max_rel_error(result.parameters, CH9) <= 1e-8      # was 3.6e-5 (13 periods averaged)
+    assert max_rel_error(result.parameters, CH9) <= 1e-8  # was 3.6e-5 (13 periods averaged)
 
 
 def test_auto_uses_the_analytic_method_on_steady_pairs_and_fit_seeds_from_it():
@@ -114,8 +115,7 @@ def test_sine_input_with_delay_and_drift():
     drift = Drift(DriftKind.LOG, 0.01, 0.06)
     y = model_output(CH9, vd, w0=0.3) + drift.evaluate(t)
     rec = Recording(t, v, y, name="sine")
-    fit = simulation_fit([rec], FitOptions(drift=DriftKind.LOG),
-                         time_constant=[0.06])
+    fit = simulation_fit([rec], FitOptions(drift=DriftKind.LOG), time_constant=[0.06])
     assert max_rel_error(fit.parameters, CH9) <= 1e-6
     assert fit.delay == pytest.approx(delay, abs=1e-8)
     assert fit.drift[0].coefficient == pytest.approx(0.01, rel=1e-6)
@@ -127,12 +127,15 @@ def _filtered_noise(n: int, rng: np.random.Generator) -> np.ndarray:
     return 0.2 * b / np.max(np.abs(b))
 
 
-@pytest.mark.parametrize("name, make_input", [
-    ("random", lambda t, rng: _filtered_noise(len(t), rng)),
-    ("steps", lambda t, rng: np.repeat(rng.uniform(-0.2, 0.2, 20), len(t) // 20)),
-    ("abrupt start", lambda t, rng: np.where(t < 0.5, 0.0, 0.2 * np.sin(2 * np.pi * t))),
-    ("decaying sine", lambda t, rng: 0.2 * np.exp(-t / 3) * np.sin(4 * np.pi * t)),
-])
+@pytest.mark.parametrize(
+    "name, make_input",
+    [
+        ("random", lambda t, rng: _filtered_noise(len(t), rng)),
+        ("steps", lambda t, rng: np.repeat(rng.uniform(-0.2, 0.2, 20), len(t) // 20)),
+        ("abrupt start", lambda t, rng: np.where(t < 0.5, 0.0, 0.2 * np.sin(2 * np.pi * t))),
+        ("decaying sine", lambda t, rng: 0.2 * np.exp(-t / 3) * np.sin(4 * np.pi * t)),
+    ],
+)
 def test_any_input_one_run(name, make_input):
     t = np.arange(4000) * 1e-3
     v = make_input(t, np.random.default_rng(3))
@@ -151,7 +154,7 @@ def test_validate_applies_delay_and_drift():
     rec = Recording(t, v, y, name="bipolar")
     exact = validate_model(PATCH, rec, w0=0.0, delay=delay, drift=drift)
     assert exact.rms < 1e-12 * np.ptp(y)
-    assert validate_model(PATCH, rec, w0=0.0).rms > 1e-3 * np.ptp(y)   # the terms matter
+    assert validate_model(PATCH, rec, w0=0.0).rms > 1e-3 * np.ptp(y)  # the terms matter
 
 
 def test_input_sign_detected_and_a_contradicting_request_refused():
@@ -163,8 +166,16 @@ def test_input_sign_detected_and_a_contradicting_request_refused():
 
 
 def test_noise_standard_errors_cover_the_error():
-    rec = triangle_run(CH9, -0.2, 0.2, samples_per_branch=400, periods=6, w0=0.0,
-                       noise=1e-3, rng=np.random.default_rng(7))
+    rec = triangle_run(
+        CH9,
+        -0.2,
+        0.2,
+        samples_per_branch=400,
+        periods=6,
+        w0=0.0,
+        noise=1e-3,
+        rng=np.random.default_rng(7),
+    )
     result = identify_runs([rec])
     p, std = result.parameters, result.diagnostics["std"]
     assert max_rel_error(p, CH9) <= 0.05
@@ -175,8 +186,16 @@ def test_noise_standard_errors_cover_the_error():
 
 def test_a_loop_too_small_to_separate_the_parameters_is_refused():
     tiny = BoucWenParameters(kappa=(2.0,), kappa_w=2.0, rho=0.05, sigma=3.0, n=1.5)
-    rec = triangle_run(tiny, -0.2, 0.2, samples_per_branch=300, periods=4, w0=0.0,
-                       noise=1e-3, rng=np.random.default_rng(1))
+    rec = triangle_run(
+        tiny,
+        -0.2,
+        0.2,
+        samples_per_branch=300,
+        periods=4,
+        w0=0.0,
+        noise=1e-3,
+        rng=np.random.default_rng(1),
+    )
     with pytest.raises(BadFitError, match="not determined"):
         identify_runs([rec])
 
@@ -196,7 +215,7 @@ def test_p885_held_out_prediction():
     fit, figures = holdout_check([rec], FitOptions(degree=2, holdout=0.4))
     assert figures["holdout_rms_percent"] <= 1.2
     assert fit.parameters.input_sign == -1
-    assert 0 < fit.delay < 0.02                        # about one 200 Hz sample
+    assert 0 < fit.delay < 0.02  # about one 200 Hz sample
 
 
 def test_cli_identify_one_real_run_then_validate_another(tmp_path, capsys):
@@ -205,8 +224,22 @@ def test_cli_identify_one_real_run_then_validate_another(tmp_path, capsys):
     first = write_csv(tmp_path / "first.csv", rec.slice(0, cut))
     last = write_csv(tmp_path / "last.csv", rec.slice(cut, len(rec)))
     params = tmp_path / "p.yaml"
-    assert main(["identify", str(first), "--degree", "2", "--output", str(params),
-                 "--drift", "log", "--json"]) == 0
+    assert (
+        main(
+            [
+                "identify",
+                str(first),
+                "--degree",
+                "2",
+                "--output",
+                str(params),
+                "--drift",
+                "log",
+                "--json",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["method"] == "fit" and out["drift"]["kind"] == "log"
     assert set(out["std"]) >= {"kappa_1", "kappa_2", "rho", "sigma", "n", "delay"}
@@ -221,13 +254,16 @@ def test_cli_identify_one_real_run_then_validate_another(tmp_path, capsys):
 # ------------------------------------------------------------------ CLI input errors
 
 
-@pytest.mark.parametrize("args, reason", [
-    (["--steady-periods", "0"], "--steady-periods must be >= 1"),
-    (["--max-rms", "-1"], "--max-rms must be in"),
-    (["--max-rms", "nan"], "--max-rms must be in"),
-    (["--holdout", "2"], "--holdout must be in"),
-    (["--degree", "0"], "--degree must be"),
-])
+@pytest.mark.parametrize(
+    "args, reason",
+    [
+        (["--steady-periods", "0"], "--steady-periods must be >= 1"),
+        (["--max-rms", "-1"], "--max-rms must be in"),
+        (["--max-rms", "nan"], "--max-rms must be in"),
+        (["--holdout", "2"], "--holdout must be in"),
+        (["--degree", "0"], "--degree must be"),
+    ],
+)
 def test_cli_option_errors_exit_2_with_one_line(tmp_path, one_run, capsys, args, reason):
     path = write_csv(tmp_path / "a.csv", one_run)
     assert main(["identify", str(path), *args]) == 2
@@ -238,8 +274,10 @@ def test_cli_option_errors_exit_2_with_one_line(tmp_path, one_run, capsys, args,
 @pytest.mark.parametrize("scale", [1e300, 1e-300])
 def test_cli_extreme_values_give_a_reason_not_a_traceback(tmp_path, capsys, scale):
     runs = triangle_pair(CH9, -0.2, 0.2, 0.1, samples_per_branch=300, periods=3)
-    paths = [write_csv(tmp_path / f"{i}.csv", Recording(r.t, r.input * scale, r.output * scale))
-             for i, r in enumerate(runs)]
+    paths = [
+        write_csv(tmp_path / f"{i}.csv", Recording(r.t, r.input * scale, r.output * scale))
+        for i, r in enumerate(runs)
+    ]
     assert main(["identify", *map(str, paths)]) == 2
     err = capsys.readouterr().err
     assert "out of range" in err and err.count("\n") == 1
@@ -249,13 +287,19 @@ def test_cli_extreme_values_give_a_reason_not_a_traceback(tmp_path, capsys, scal
 
 
 @settings(max_examples=examples(30), deadline=None)
-@given(delay=st.floats(-1.0, 1.0), kind=st.sampled_from([DriftKind.LINEAR, DriftKind.LOG]),
-       coefficient=st.floats(-1e-3, 1e-3), time_constant=st.floats(1e-3, 1e3))
+@given(
+    delay=st.floats(-1.0, 1.0),
+    kind=st.sampled_from([DriftKind.LINEAR, DriftKind.LOG]),
+    coefficient=st.floats(-1e-3, 1e-3),
+    time_constant=st.floats(1e-3, 1e3),
+)
 def test_parameter_set_drift_and_delay_round_trip(delay, kind, coefficient, time_constant):
     base = shipped_parameter_set("ch10_patch")
     data = parameter_set_to_dict(base)
-    data.update(delay=delay, drift={"kind": kind.value, "coefficient": coefficient,
-                                    "time_constant": time_constant})
+    data.update(
+        delay=delay,
+        drift={"kind": kind.value, "coefficient": coefficient, "time_constant": time_constant},
+    )
     pset = parameter_set_from_dict(data)
     assert pset.delay == delay and pset.drift == Drift(kind, coefficient, time_constant)
     assert parameter_set_from_dict(parameter_set_to_dict(pset)) == pset

@@ -31,10 +31,18 @@ def lagging_pair(lag: int, samples_per_branch: int, seed: int, noise: float = 1e
     runs = []
     m = 2 * samples_per_branch
     for low, high in ((0.0, 300.0), (100.0, 400.0)):
-        ahead = triangle_run(PATCH, low, high, samples_per_branch=samples_per_branch,
-                             periods=3.0, phase=lag / m)  # the input, lag samples later
-        now = triangle_run(PATCH, low, high, samples_per_branch=samples_per_branch,
-                           periods=3.0, noise=noise, rng=rng)
+        ahead = triangle_run(
+            PATCH, low, high, samples_per_branch=samples_per_branch, periods=3.0, phase=lag / m
+        )  # the input, lag samples later
+        now = triangle_run(
+            PATCH,
+            low,
+            high,
+            samples_per_branch=samples_per_branch,
+            periods=3.0,
+            noise=noise,
+            rng=rng,
+        )
         runs.append(Recording(ahead.t, ahead.input, now.output))
     return runs
 
@@ -55,8 +63,7 @@ def test_taking_the_lag_off_delays_the_input_and_keeps_the_output_as_measured():
 
 @pytest.mark.parametrize("samples_per_branch", [50, 100])
 @pytest.mark.parametrize("lag", [0, 1, 2, 3])
-def test_the_lag_is_read_at_the_input_corners_within_a_tenth_of_a_sample(lag,
-                                                                          samples_per_branch):
+def test_the_lag_is_read_at_the_input_corners_within_a_tenth_of_a_sample(lag, samples_per_branch):
     for seed in range(3):
         run = lagging_pair(lag, samples_per_branch, seed)[0]
         estimate = estimate_lag(run)
@@ -72,8 +79,7 @@ def test_no_corner_no_estimate():
 
 @pytest.mark.parametrize("samples_per_branch", [50, 100])
 @pytest.mark.parametrize("lag", [1, 2, 3])
-def test_the_default_method_takes_the_lag_off_before_the_analytic_method(lag,
-                                                                         samples_per_branch):
+def test_the_default_method_takes_the_lag_off_before_the_analytic_method(lag, samples_per_branch):
     """Two T-wave runs at 100 and 200 samples per period whose output lags 1-3 samples, noise
     1e-3 of the span: the analytic method alone was 113 % off in sigma and n at one sample; now
     each of kappa_w, rho, sigma, n is within 2 % and within 3 of its reported standard errors
@@ -124,7 +130,8 @@ def test_a_lag_under_a_quarter_sample_is_left_alone():
 
 
 def test_when_the_analytic_method_and_the_fit_disagree_it_is_said_and_the_closer_one_kept(
-        monkeypatch):
+    monkeypatch,
+):
     """The lag left on the output (as before it was read): the analytic method alone is 111 %
     off in sigma; the fit started from it disagrees beyond the standard errors, follows the
     data closer, and is returned, with a warning naming both."""
@@ -149,8 +156,17 @@ def test_the_analytic_method_gets_the_held_out_check_of_the_fit():
 
     runs = []
     for low, high in ((0.0, 300.0), (100.0, 400.0)):
-        runs.append(triangle_run(PATCH, low, high, samples_per_branch=50, periods=6.0,
-                                 noise=1e-3, rng=np.random.default_rng(int(low))))
+        runs.append(
+            triangle_run(
+                PATCH,
+                low,
+                high,
+                samples_per_branch=50,
+                periods=6.0,
+                noise=1e-3,
+                rng=np.random.default_rng(int(low)),
+            )
+        )
     result = identify_runs(runs, IdentifyOptions(degree=2), method="analytic")
     d = result.diagnostics
     assert d["holdout_fraction"] == 0.25 and d["holdout_rms"] < 2 * d["train_rms"]

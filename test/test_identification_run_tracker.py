@@ -34,8 +34,15 @@ def _plan(tracker: RunTracker, runs: int = 2, period: float = 1.0) -> list[Phase
 def test_a_run_is_complete_at_the_next_runs_mark_and_the_plans_end():
     tracker = RunTracker()
     phases = _plan(tracker)
-    assert phases == [Phase.SETTLING, Phase.STEADY, None, Phase.SETTLING, Phase.STEADY, None,
-                      Phase.OVER]
+    assert phases == [
+        Phase.SETTLING,
+        Phase.STEADY,
+        None,
+        Phase.SETTLING,
+        Phase.STEADY,
+        None,
+        Phase.OVER,
+    ]
     assert tracker.completed == [0, 1] and tracker.offsets == {0: 0.0, 1: 100.0}
     assert tracker.intervals() == intervals_from_marks(tracker.marks)
     assert tracker.interval(1) == (1, 3.0, 6.0) and tracker.interval(7) is None

@@ -36,13 +36,14 @@ def split(path: str, namespace: str = "/piezo") -> tuple[str, list[str]]:
     """(contract topic or global topic, [field, ...]) of a Foxglove message path."""
     topic, _, fields = path.partition(".")
     if topic.startswith(namespace + "/"):
-        topic = topic[len(namespace) + 1:]
+        topic = topic[len(namespace) + 1 :]
     return topic, [re.sub(r"\[.*\]$", "", f) for f in fields.split(".") if f]
 
 
 def test_the_committed_layout_is_current():
-    assert json.loads(COMMITTED.read_text()) == json.loads(layout_json("/piezo")), \
+    assert json.loads(COMMITTED.read_text()) == json.loads(layout_json("/piezo")), (
         "run: piezo-stage view --write-layout config/foxglove/piezo_stage.json"
+    )
 
 
 def test_every_message_path_names_a_real_field():
@@ -63,8 +64,16 @@ def test_every_message_path_names_a_real_field():
         for field in fields:
             assert field in names, (path, names)
     # what the issue of watching the stage asks to see
-    assert {"displacement", "reference", "voltage", "voltage_command", "controller_state",
-            "limit_cycles", "bouc_wen_parameters", "/diagnostics"} <= topics
+    assert {
+        "displacement",
+        "reference",
+        "voltage",
+        "voltage_command",
+        "controller_state",
+        "limit_cycles",
+        "bouc_wen_parameters",
+        "/diagnostics",
+    } <= topics
 
 
 def test_another_namespace_moves_every_path(tmp_path):

@@ -217,11 +217,18 @@ def test_learning_and_tables_that_cannot_serve_exit_with_the_reason(tmp_path):
     from piezo_stage.control.learning import FeedforwardTable
 
     table = FeedforwardTable(np.zeros(50), 1000.0).save(tmp_path / "table.json")
-    tracking = ("compensation:=both", "feedforward_model:=ch11_rig.yaml",
-                "reference_source:=trajectory", "rate_hz:=1000.0", "delay_samples:=0")
-    for params, reason in (((*tracking, f"feedforward_table:={table}"), "holds 50 samples"),
-                           (("learn_periods:=5",), "learn_periods needs compensation"),
-                           ((*tracking, "trajectory_frequency:=3.0"), "a whole number")):
+    tracking = (
+        "compensation:=both",
+        "feedforward_model:=ch11_rig.yaml",
+        "reference_source:=trajectory",
+        "rate_hz:=1000.0",
+        "delay_samples:=0",
+    )
+    for params, reason in (
+        ((*tracking, f"feedforward_table:={table}"), "holds 50 samples"),
+        (("learn_periods:=5",), "learn_periods needs compensation"),
+        ((*tracking, "trajectory_frequency:=3.0"), "a whole number"),
+    ):
         proc = start_node("controller", *params, namespace=NS)
         try:
             assert proc.wait(timeout=30) == 2

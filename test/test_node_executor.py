@@ -19,9 +19,15 @@ from piezo_stage.nodes.qos import COMMAND_QOS
 
 pytestmark = pytest.mark.ros
 
-WAIT_SET_METHODS = ("clear_entities", "add_subscription", "add_timer", "add_service",
-                    "add_guard_condition",
-                    "wait", "get_ready_entities")
+WAIT_SET_METHODS = (
+    "clear_entities",
+    "add_subscription",
+    "add_timer",
+    "add_service",
+    "add_guard_condition",
+    "wait",
+    "get_ready_entities",
+)
 
 
 def test_the_private_rclpy_api_is_still_there():
@@ -37,8 +43,9 @@ def test_the_private_rclpy_api_is_still_there():
         node = Node("guard")
         sub = node.create_subscription(String, "chatter", lambda m: None, COMMAND_QOS)
         assert sub._callback_type is sub.CallbackType.MessageOnly, "_callback_type changed"
-        assert hasattr(sub.handle, "take_message") and hasattr(sub, "raw") and hasattr(sub,
-                                                                                       "msg_type")
+        assert (
+            hasattr(sub.handle, "take_message") and hasattr(sub, "raw") and hasattr(sub, "msg_type")
+        )
         timer = node.create_timer(1.0, lambda: None)
         assert hasattr(timer.handle, "is_timer_ready") and hasattr(timer.handle, "call_timer")
         srv = node.create_service(Trigger, "~/t", lambda req, res: res)
@@ -58,8 +65,9 @@ def test_the_lean_executor_serves_timers_subscriptions_services_and_tasks():
         node.create_subscription(String, "chatter", lambda m: heard.append(m.data), COMMAND_QOS)
         pub = node.create_publisher(String, "chatter", COMMAND_QOS)
         node.create_timer(0.01, lambda: ticks.append(1))
-        node.create_service(Trigger, "~/ping", lambda req, res: setattr(res, "success",
-                                                                        True) or res)
+        node.create_service(
+            Trigger, "~/ping", lambda req, res: setattr(res, "success", True) or res
+        )
         executor = LeanExecutor()
         executor.add_node(node)
         task_ran: list[bool] = []

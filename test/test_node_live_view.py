@@ -11,7 +11,6 @@ import socket
 import time
 
 import pytest
-from foxglove_client import FoxgloveClient, decoder
 from hypothesis import example, given
 from hypothesis import strategies as st
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -19,6 +18,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from piezo_stage.nodes.errors import RosParameterError
 from piezo_stage.nodes.live_view import RateGate, parse_topic_rates
 
+from foxglove_client import FoxgloveClient, decoder
 from ros_support import start_node, stop
 
 pytestmark = pytest.mark.ros
@@ -35,8 +35,7 @@ def ns() -> str:
 
 
 # ---------------------------------------------------------------------------------- units
-@given(rate=st.floats(0.5, 5000.0), gaps=st.lists(st.integers(0, 10**8), min_size=1,
-                                                   max_size=300))
+@given(rate=st.floats(0.5, 5000.0), gaps=st.lists(st.integers(0, 10**8), min_size=1, max_size=300))
 @example(rate=100.0, gaps=[0] * 50)
 @example(rate=1000.0, gaps=[10**6] * 300)
 def test_the_rate_gate_never_bursts_nor_exceeds_its_rate(rate, gaps):
@@ -66,7 +65,9 @@ def test_rate_gate_zero_passes_everything_and_a_steady_stream_is_thinned_evenly(
 def test_topic_rates_parse_or_say_what_is_wrong():
     resolve = lambda t: t if t.startswith("/") else "/piezo/" + t  # noqa: E731
     assert parse_topic_rates(["displacement=500", "/diagnostics=0"], resolve) == {
-        "/piezo/displacement": 500.0, "/diagnostics": 0.0}
+        "/piezo/displacement": 500.0,
+        "/diagnostics": 0.0,
+    }
     for bad in ["displacement", "=5", "x=fast", "x=-1", "x=nan", "x=1e7"]:
         with pytest.raises(RosParameterError, match="TOPIC=HZ"):
             parse_topic_rates([bad], resolve)
@@ -76,8 +77,9 @@ def test_topic_rates_parse_or_say_what_is_wrong():
 class View:
     def __init__(self, namespace: str, *params: str) -> None:
         self.port = free_port()
-        self.proc = start_node("live_view", f"port:={self.port}", "discovery_period:=0.1",
-                               *params, namespace=namespace)
+        self.proc = start_node(
+            "live_view", f"port:={self.port}", "discovery_period:=0.1", *params, namespace=namespace
+        )
         self.url = f"ws://127.0.0.1:{self.port}"
         deadline = time.monotonic() + 20.0
         while time.monotonic() < deadline:
@@ -121,8 +123,9 @@ def test_channels_schemas_values_rate_cap_and_unsubscribing(node):
     try:
         client = FoxgloveClient(view.url)
         assert client.subprotocol == "foxglove.sdk.v1"
-        assert client.wait(lambda: client.channel(f"{space}/displacement") is not None), \
+        assert client.wait(lambda: client.channel(f"{space}/displacement") is not None), (
             client.channels
+        )
         channel = client.channel(f"{space}/displacement")
         assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
         assert channel["schemaName"] == "piezo_stage_msgs/msg/Displacement"
@@ -163,8 +166,9 @@ def test_a_latched_topic_reaches_a_late_client_and_a_vanished_client_disturbs_no
     from piezo_stage_msgs.msg import Displacement
 
     space = ns()
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    latched = QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+    )
     pub_latched = node.create_publisher(Displacement, f"{space}/parameters_like", latched)
     pub_latched.publish(displacement(42))
     pub = node.create_publisher(Displacement, f"{space}/displacement", 10)
@@ -195,11 +199,14 @@ def test_a_latched_topic_reaches_a_late_client_and_a_vanished_client_disturbs_no
     assert view.proc.returncode == 0, err
 
 
-@pytest.mark.parametrize("param, why", [
-    ("topic_rates:=['displacement']", "TOPIC=HZ"),
-    ("max_rate_hz:=-1.0", "max_rate_hz"),
-    ("no_such:=1", "no_such"),
-])
+@pytest.mark.parametrize(
+    "param, why",
+    [
+        ("topic_rates:=['displacement']", "TOPIC=HZ"),
+        ("max_rate_hz:=-1.0", "max_rate_hz"),
+        ("no_such:=1", "no_such"),
+    ],
+)
 def test_bad_parameters_exit_2_with_one_line(param, why):
     proc = start_node("live_view", f"port:={free_port()}", param, namespace=ns())
     out, err = stop(proc, timeout=30.0) if proc.wait(timeout=30.0) is None else proc.communicate()
@@ -227,11 +234,16 @@ def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
     port = free_port()
     space = ns()
     graph = load_graph("sim_closed_loop").with_node(
-        {"executable": "live_view", "overrides": {"port": port}})
+        {"executable": "live_view", "overrides": {"port": port}}
+    )
     lines: list[str] = []
     launcher = Launcher(graph, namespace=space, sink=lambda name, line, *_: lines.append(line))
-    wanted = [f"{space}/displacement", f"{space}/voltage_command", f"{space}/controller_state",
-              "/diagnostics"]
+    wanted = [
+        f"{space}/displacement",
+        f"{space}/voltage_command",
+        f"{space}/controller_state",
+        "/diagnostics",
+    ]
     launcher.start()
     client = None
     try:
@@ -243,10 +255,14 @@ def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
             except OSError:
                 time.sleep(0.2)
         assert client is not None, "\n".join(lines[-30:])
-        assert client.wait(lambda: all(client.channel(t) for t in wanted), 30.0), \
-            (client.channels, "\n".join(lines[-30:]))
-        subs = {t: (client.subscribe(client.channel(t)["id"]), decoder(client.channel(t)))
-                for t in wanted}
+        assert client.wait(lambda: all(client.channel(t) for t in wanted), 30.0), (
+            client.channels,
+            "\n".join(lines[-30:]),
+        )
+        subs = {
+            t: (client.subscribe(client.channel(t)["id"]), decoder(client.channel(t)))
+            for t in wanted
+        }
         time.sleep(3.5)
         rates = {}
         for topic, (sub, decode) in subs.items():
@@ -256,11 +272,15 @@ def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
             for m in got[-5:]:
                 decode(m.payload)  # decodes with the advertised schema
         decode_diag = subs["/diagnostics"][1]
-        names = {s.name for m in client.received(subs["/diagnostics"][0])
-                 for s in decode_diag(m.payload).status}
+        names = {
+            s.name
+            for m in client.received(subs["/diagnostics"][0])
+            for s in decode_diag(m.payload).status
+        }
         assert {f"{space}/controller", f"{space}/live_view"} <= names, names
         state = subs[f"{space}/controller_state"][1](
-            client.received(subs[f"{space}/controller_state"][0])[-1].payload)
+            client.received(subs[f"{space}/controller_state"][0])[-1].payload
+        )
         assert state.mode == "pid_tv"
     finally:
         if client is not None:

@@ -21,11 +21,14 @@ class Colour(str, Enum):
     GREEN = "green"
 
 
-TABLE = ParameterTable("demo", (
-    Param("v_max", 100.0, "upper limit", "V", (0.0, 200.0)),
-    Param("colour", "red", "a colour", choices=Colour),
-    Param("names", [], "some names", kind=Kind.STRING_ARRAY),
-))
+TABLE = ParameterTable(
+    "demo",
+    (
+        Param("v_max", 100.0, "upper limit", "V", (0.0, 200.0)),
+        Param("colour", "red", "a colour", choices=Colour),
+        Param("names", [], "some names", kind=Kind.STRING_ARRAY),
+    ),
+)
 
 
 @pytest.mark.unit
@@ -39,7 +42,8 @@ def test_unknown_names_get_the_closest_valid_one():
 @pytest.mark.unit
 def test_choices_and_ranges_are_checked():
     assert TABLE.problems({"colour": "gren"}) == [
-        "demo: colour: 'gren' is not one of red, green (did you mean 'green'?)"]
+        "demo: colour: 'gren' is not one of red, green (did you mean 'green'?)"
+    ]
     assert TABLE.problems({"v_max": 250.0}) == ["demo: v_max: 250.0 is outside [0, 200]"]
     assert TABLE.problems({"colour": "green", "v_max": 200.0}) == []
     with pytest.raises(ValueError, match="default of"):
@@ -90,17 +94,27 @@ def test_every_node_table_gives_settings_with_enums(name):
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("node, args, message", [
-    ("voltage_driver", ["-p", "vmax:=50.0"],
-     "voltage_driver has no parameter 'vmax' (did you mean 'v_max'?)"),
-    ("plant", ["-p", "clock_mode:=lockstp"], "(did you mean 'lockstep'?)"),
-    ("controller", ["-p", "reference_source:=topc"], "(did you mean 'topic'?)"),
-])
+@pytest.mark.parametrize(
+    "node, args, message",
+    [
+        (
+            "voltage_driver",
+            ["-p", "vmax:=50.0"],
+            "voltage_driver has no parameter 'vmax' (did you mean 'v_max'?)",
+        ),
+        ("plant", ["-p", "clock_mode:=lockstp"], "(did you mean 'lockstep'?)"),
+        ("controller", ["-p", "reference_source:=topc"], "(did you mean 'topic'?)"),
+    ],
+)
 def test_a_node_refuses_an_unknown_name_or_choice_at_start(node, args, message):
     """Before: rclpy ignored the misspelled override and the driver ran with [0, 100] V (exit 0 on
     SIGINT); reference_source 'topc' silently fell back to the topic."""
-    proc = subprocess.run([sys.executable, "-m", f"piezo_stage.nodes.{node}", "--ros-args", *args],
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", f"piezo_stage.nodes.{node}", "--ros-args", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2, proc.stderr
     assert message in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -111,18 +125,21 @@ def test_the_launcher_refuses_unknown_parameters_before_starting(tmp_path, capsy
     import yaml
 
     path = tmp_path / "g.yaml"
-    path.write_text(yaml.safe_dump({"nodes": [{"executable": "controller"},
-                                              {"executable": "plant"}]}))
+    path.write_text(
+        yaml.safe_dump({"nodes": [{"executable": "controller"}, {"executable": "plant"}]})
+    )
     assert main(["launch", str(path), "--param", "controller.nosuchparam:=1", "--dry-run"]) == 2
     assert "controller has no parameter 'nosuchparam'" in capsys.readouterr().err
     assert main(["launch", str(path), "--param", "controller.k_1:=1.0", "--dry-run"]) == 2
     assert "(did you mean 'k1'?)" in capsys.readouterr().err
-    path.write_text(yaml.safe_dump({"nodes": [{"executable": "plant",
-                                               "overrides": {"ratehz": 10.0}}]}))
+    path.write_text(
+        yaml.safe_dump({"nodes": [{"executable": "plant", "overrides": {"ratehz": 10.0}}]})
+    )
     assert main(["launch", str(path), "--dry-run"]) == 2
     assert "plant has no parameter 'ratehz' (did you mean 'rate_hz'?)" in capsys.readouterr().err
-    path.write_text(yaml.safe_dump({"nodes": [{"executable": "plant",
-                                               "overrides": {"rate_hz": 10.0}}]}))
+    path.write_text(
+        yaml.safe_dump({"nodes": [{"executable": "plant", "overrides": {"rate_hz": 10.0}}]})
+    )
     assert main(["launch", str(path), "--dry-run"]) == 0
 
 

@@ -56,21 +56,43 @@ class Rig:
         self.port, self.link = free_port(), str(tmp_path / "sensor")
         self.sensor_faults = Faults()  # .silent switches the sensor off and on
         self.emulator = RigEmulator(
-            SimulatedStage(shipped_parameter_set("ch11_rig")), frame_format("ild1320"), MR,
-            amplifier_tcp_port=self.port, rate=1000.0, amplifier_range=(0.0, 400.0),
-            sensor_link=self.link, sensor_errors=sensor_errors, amplifier_bandwidth=1000.0,
-            sensor_faults=self.sensor_faults)
+            SimulatedStage(shipped_parameter_set("ch11_rig")),
+            frame_format("ild1320"),
+            MR,
+            amplifier_tcp_port=self.port,
+            rate=1000.0,
+            amplifier_range=(0.0, 400.0),
+            sensor_link=self.link,
+            sensor_errors=sensor_errors,
+            amplifier_bandwidth=1000.0,
+            sensor_faults=self.sensor_faults,
+        )
         self.lines: list[str] = []
-        self.launch = Launcher(form, namespace=NS, timeout=30.0, params=[
-            f"voltage_driver.url:=tcp://127.0.0.1:{self.port}", "voltage_driver.v_max:=400.0",
-            "voltage_driver.max_command_age:=0.0", "voltage_driver.slew_rate:=0.0",
-            f"laser_reader.url:={self.link}", "laser_reader.family:=ild1320",
-            f"laser_reader.measuring_range:={MR}", f"laser_reader.zero_offset:={ZERO}",
-            "controller.trigger:=sample", "controller.mode:=pid", "controller.start_closed:=true",
-            "controller.u_min:=0.0", "controller.u_max:=400.0",
-            "controller.reference_source:=constant", f"controller.reference:={SET_POINT}",
-            "controller.max_gap:=1.0", *params],
-            sink=lambda name, line, err: self.lines.append(f"[{name}] {line}"))
+        self.launch = Launcher(
+            form,
+            namespace=NS,
+            timeout=30.0,
+            params=[
+                f"voltage_driver.url:=tcp://127.0.0.1:{self.port}",
+                "voltage_driver.v_max:=400.0",
+                "voltage_driver.max_command_age:=0.0",
+                "voltage_driver.slew_rate:=0.0",
+                f"laser_reader.url:={self.link}",
+                "laser_reader.family:=ild1320",
+                f"laser_reader.measuring_range:={MR}",
+                f"laser_reader.zero_offset:={ZERO}",
+                "controller.trigger:=sample",
+                "controller.mode:=pid",
+                "controller.start_closed:=true",
+                "controller.u_min:=0.0",
+                "controller.u_max:=400.0",
+                "controller.reference_source:=constant",
+                f"controller.reference:={SET_POINT}",
+                "controller.max_gap:=1.0",
+                *params,
+            ],
+            sink=lambda name, line, err: self.lines.append(f"[{name}] {line}"),
+        )
 
     def __enter__(self) -> "Rig":
         self.emulator.start()
@@ -96,8 +118,11 @@ def test_rig_loop_graph_composes_the_three_nodes_into_one_process():
     assert host.name == "rig_loop" and host.module == "piezo_stage.nodes.rig_loop"
     assert [m.name for m in host.members] == ["voltage_driver", "laser_reader", "controller"]
     assert graph.node("controller").overrides["k1"] == 5e6
-    assert [m.name for m in load_graph("rig_closed_loop").processes()] == \
-        ["voltage_driver", "laser_reader", "controller"]
+    assert [m.name for m in load_graph("rig_closed_loop").processes()] == [
+        "voltage_driver",
+        "laser_reader",
+        "controller",
+    ]
 
 
 def test_topics_take_every_nth_sample_across_reads():
@@ -117,21 +142,31 @@ def test_the_loop_closes_on_the_emulated_rig_and_holds_the_set_point(probe, tmp_
     states, commands, samples, diagnostics, driving = [], [], [], {}, []
     # through DDS the controller may close the loop before the driver's command subscription
     # has matched (the driver holds 0 V meanwhile): the record starts once the driver drives
-    probe.create_subscription(Voltage, "voltage", lambda m: driving.append(True)
-                              if m.voltage > 1.0 else None, SENSOR_QOS)
-    probe.create_subscription(ControllerState, "controller_state",
-                              lambda m: states.append(m) if driving else None, COMMAND_QOS)
+    probe.create_subscription(
+        Voltage, "voltage", lambda m: driving.append(True) if m.voltage > 1.0 else None, SENSOR_QOS
+    )
+    probe.create_subscription(
+        ControllerState,
+        "controller_state",
+        lambda m: states.append(m) if driving else None,
+        COMMAND_QOS,
+    )
     probe.create_subscription(Voltage, "voltage_command", commands.append, COMMAND_QOS)
     probe.create_subscription(Displacement, "displacement", samples.append, SENSOR_QOS)
-    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.update(
-        {s.name: s for s in m.status}), 10)
+    probe.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: diagnostics.update({s.name: s for s in m.status}),
+        10,
+    )
     with Rig(form, tmp_path) as rig:
         ok = spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 1500, 40.0)
         spin_until(probe, lambda: len(diagnostics) >= 3, 5.0)
         applied = rig.applied()
     assert ok, rig.log
-    assert {f"{NS}/{n}" for n in ("voltage_driver", "laser_reader", "controller")} \
-        <= set(diagnostics), sorted(diagnostics)
+    assert {f"{NS}/{n}" for n in ("voltage_driver", "laser_reader", "controller")} <= set(
+        diagnostics
+    ), sorted(diagnostics)
     closed = [s for s in states if s.loop_closed]
     x = np.array([s.x1 + s.reference for s in closed[-500:]])
     # the ch. 11 rig under the thesis's PID at 1 kHz: x settles on the set point (the sensor's
@@ -155,8 +190,14 @@ def test_invalid_samples_open_the_loop_and_hold_the_hold_voltage(probe, tmp_path
 
     states, errors = [], []
     probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: errors.extend(
-        s.message for s in m.status if s.name == f"{NS}/controller" and s.level == ERROR), 10)
+    probe.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: errors.extend(
+            s.message for s in m.status if s.name == f"{NS}/controller" and s.level == ERROR
+        ),
+        10,
+    )
     with Rig(form, tmp_path, "controller.hold_voltage:=42.0", sensor_errors=0.01) as rig:
         reason = "invalid sensor sample" if form == "rig_loop" else "loop opened: "
         ok = spin_until(probe, lambda: any(reason in e for e in errors), 30.0)
@@ -175,12 +216,17 @@ def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(p
 
     states, diagnostics = [], []
     probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.extend(
-        s for s in m.status if s.name == f"{NS}/controller"), 10)
+    probe.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: diagnostics.extend(s for s in m.status if s.name == f"{NS}/controller"),
+        10,
+    )
 
     def value(key: str) -> str:
-        return {kv.key: kv.value for kv in diagnostics[-1].values}.get(key, "") \
-            if diagnostics else ""
+        return (
+            {kv.key: kv.value for kv in diagnostics[-1].values}.get(key, "") if diagnostics else ""
+        )
 
     with Rig("rig_loop", tmp_path, "controller.max_gap:=0.2") as rig:
         assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 300, 30.0), rig.log
@@ -223,8 +269,9 @@ def test_every_write_is_within_the_slew_cap_and_sigint_ramps_to_safe(probe, tmp_
 
     states = []
     probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
-    rig = Rig(form, tmp_path, "voltage_driver.slew_rate:=2000.0",
-              "voltage_driver.watchdog_period:=0.01")
+    rig = Rig(
+        form, tmp_path, "voltage_driver.slew_rate:=2000.0", "voltage_driver.watchdog_period:=0.01"
+    )
     with rig:
         assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 500, 40.0), rig.log
     code = rig.launch.exit_code
@@ -245,30 +292,64 @@ def test_at_10_khz_the_recorder_gets_every_sample_on_loop_samples(probe, tmp_pat
 
     port, link = free_port(), str(tmp_path / "sensor")
     emulator = RigEmulator(
-        SimulatedStage(shipped_parameter_set("ch11_rig")), frame_format("ild2300"), MR,
-        amplifier_tcp_port=port, rate=10_000.0, amplifier_range=(0.0, 400.0), sensor_link=link,
-        amplifier_bandwidth=1000.0)
+        SimulatedStage(shipped_parameter_set("ch11_rig")),
+        frame_format("ild2300"),
+        MR,
+        amplifier_tcp_port=port,
+        rate=10_000.0,
+        amplifier_range=(0.0, 400.0),
+        sensor_link=link,
+        amplifier_bandwidth=1000.0,
+    )
     graph = load_graph("rig_loop")
-    data = {"namespace": NS, "stop_timeout": 10.0, "nodes": [
-        {"executable": "recorder", "overrides": {"bag": str(tmp_path / "bag")}},
-        *({"executable": m.name, "process": "rig_loop", "required": m.required,
-           "parameters": [str(p) for p in m.parameters], "overrides": dict(m.overrides)}
-          for m in graph.processes()[0].members)],
-        "wait_for_topics": [{"topic": "displacement", "publishers": 1}]}
+    data = {
+        "namespace": NS,
+        "stop_timeout": 10.0,
+        "nodes": [
+            {"executable": "recorder", "overrides": {"bag": str(tmp_path / "bag")}},
+            *(
+                {
+                    "executable": m.name,
+                    "process": "rig_loop",
+                    "required": m.required,
+                    "parameters": [str(p) for p in m.parameters],
+                    "overrides": dict(m.overrides),
+                }
+                for m in graph.processes()[0].members
+            ),
+        ],
+        "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
+    }
     lines: list[str] = []
-    launch = Launcher(data, timeout=30.0, params=[
-        f"voltage_driver.url:=tcp://127.0.0.1:{port}", "voltage_driver.v_max:=400.0",
-        "voltage_driver.max_command_age:=0.0", f"laser_reader.url:={link}",
-        "laser_reader.family:=ild2300", f"laser_reader.measuring_range:={MR}",
-        f"laser_reader.zero_offset:={ZERO}", "laser_reader.rate_hz:=10000.0",
-        # the thesis's gains fail the sampled-loop check at 10 kHz with a sample of delay (the
-        # derivative meets the 7 kHz resonance), and Theorem 4 needs k2 > 460: a P+I law
-        "controller.rate_hz:=10000.0", "controller.mode:=pid", "controller.start_closed:=true",
-        "controller.k0:=1e9", "controller.k1:=1e6", "controller.k2:=0.0",
-        "controller.allow_unverified_gains:=true",
-        "controller.u_min:=0.0", "controller.u_max:=400.0", "controller.max_gap:=1.0",
-        "controller.reference_source:=constant", f"controller.reference:={SET_POINT}"],
-        sink=lambda name, line, err: lines.append(f"[{name}] {line}"))
+    launch = Launcher(
+        data,
+        timeout=30.0,
+        params=[
+            f"voltage_driver.url:=tcp://127.0.0.1:{port}",
+            "voltage_driver.v_max:=400.0",
+            "voltage_driver.max_command_age:=0.0",
+            f"laser_reader.url:={link}",
+            "laser_reader.family:=ild2300",
+            f"laser_reader.measuring_range:={MR}",
+            f"laser_reader.zero_offset:={ZERO}",
+            "laser_reader.rate_hz:=10000.0",
+            # the thesis's gains fail the sampled-loop check at 10 kHz with a sample of delay (the
+            # derivative meets the 7 kHz resonance), and Theorem 4 needs k2 > 460: a P+I law
+            "controller.rate_hz:=10000.0",
+            "controller.mode:=pid",
+            "controller.start_closed:=true",
+            "controller.k0:=1e9",
+            "controller.k1:=1e6",
+            "controller.k2:=0.0",
+            "controller.allow_unverified_gains:=true",
+            "controller.u_min:=0.0",
+            "controller.u_max:=400.0",
+            "controller.max_gap:=1.0",
+            "controller.reference_source:=constant",
+            f"controller.reference:={SET_POINT}",
+        ],
+        sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+    )
     emulator.start()
     try:
         launch.start()

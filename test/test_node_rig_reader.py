@@ -263,9 +263,17 @@ def test_a_reader_started_late_forgets_what_the_link_held(probe):
 
     model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=Level(5e-3))
     with EmulatorServer(model, pty=True) as server:
-        node = LaserReaderNode(loop=loop, handoff=_Inline(), start=False, overrides=[
-            Parameter("url", value=server.url), Parameter("family", value="ild1320"),
-            Parameter("measuring_range", value=MR), Parameter("rate_hz", value=1000.0)])
+        node = LaserReaderNode(
+            loop=loop,
+            handoff=_Inline(),
+            start=False,
+            overrides=[
+                Parameter("url", value=server.url),
+                Parameter("family", value="ild1320"),
+                Parameter("measuring_range", value=MR),
+                Parameter("rate_hz", value=1000.0),
+            ],
+        )
         try:
             time.sleep(0.3)  # 300 samples reach the link
             assert not blocks

@@ -34,28 +34,43 @@ def _docs() -> dict[str, dict[str, list[str]]]:
 
 @pytest.mark.ros
 def test_committed_reference_is_current():
-    result = subprocess.run([sys.executable, str(SCRIPT), "--check"], capture_output=True,
-                            text=True)
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--check"], capture_output=True, text=True
+    )
     assert result.returncode == 0, result.stderr
 
 
 @pytest.mark.unit
 def test_every_node_executable_has_its_table():
-    assert set(_docs()) == {"controller", "excitation", "identifier", "laser_reader", "live_view",
-                            "plant", "player", "recorder", "voltage_driver"}
+    assert set(_docs()) == {
+        "controller",
+        "excitation",
+        "identifier",
+        "laser_reader",
+        "live_view",
+        "plant",
+        "player",
+        "recorder",
+        "voltage_driver",
+    }
 
 
 #: rclpy's parameter types as the tables name them
-KINDS = {ParameterType.PARAMETER_BOOL: "bool", ParameterType.PARAMETER_INTEGER: "int",
-         ParameterType.PARAMETER_DOUBLE: "float", ParameterType.PARAMETER_STRING: "string",
-         ParameterType.PARAMETER_DOUBLE_ARRAY: "float[]",
-         ParameterType.PARAMETER_STRING_ARRAY: "string[]",
-         ParameterType.PARAMETER_INTEGER_ARRAY: "int[]"}
+KINDS = {
+    ParameterType.PARAMETER_BOOL: "bool",
+    ParameterType.PARAMETER_INTEGER: "int",
+    ParameterType.PARAMETER_DOUBLE: "float",
+    ParameterType.PARAMETER_STRING: "string",
+    ParameterType.PARAMETER_DOUBLE_ARRAY: "float[]",
+    ParameterType.PARAMETER_STRING_ARRAY: "string[]",
+    ParameterType.PARAMETER_INTEGER_ARRAY: "int[]",
+}
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("name", ["plant", "controller", "identifier", "excitation", "recorder",
-                                  "player", "live_view"])
+@pytest.mark.parametrize(
+    "name", ["plant", "controller", "identifier", "excitation", "recorder", "player", "live_view"]
+)
 def test_running_nodes_declare_exactly_their_table(name, tmp_path):
     """What rclpy reports for the nodes that start without a device is their table: the same
     names, types, defaults, ranges, read-only flags and descriptions (the recorder and the
@@ -66,17 +81,18 @@ def test_running_nodes_declare_exactly_their_table(name, tmp_path):
 
     module = importlib.import_module(f"piezo_stage.nodes.{name}")
     table = module.PARAMETERS
-    given = {"recorder": {"bag": str(tmp_path / "bag")},
-             "player": {"bag": str(ROOT / "bags" / "ch9_identification")},
-             "live_view": {"port": 0}}.get(name, {})
+    given = {
+        "recorder": {"bag": str(tmp_path / "bag")},
+        "player": {"bag": str(ROOT / "bags" / "ch9_identification")},
+        "live_view": {"port": 0},
+    }.get(name, {})
     args = ["x", "--ros-args", *(a for k, v in given.items() for a in ("-p", f"{k}:={v}"))]
     rclpy.init(args=args)
     try:
         factory = next(v for k, v in vars(module).items() if k.endswith("Node") and k != "Node")
         node = factory()
         try:
-            declared = {p: node.describe_parameter(p) for p in node._parameters
-                        if p not in ROS_OWN}
+            declared = {p: node.describe_parameter(p) for p in node._parameters if p not in ROS_OWN}
             assert set(declared) == set(table.names)
             for p, described in declared.items():
                 spec = table[p]

@@ -18,8 +18,9 @@ import pytest
 import piezo_stage
 
 PACKAGE = Path(piezo_stage.__file__).parent
-PACKAGES = sorted(".".join(p.parent.relative_to(PACKAGE.parent).parts)
-                  for p in PACKAGE.rglob("__init__.py"))
+PACKAGES = sorted(
+    ".".join(p.parent.relative_to(PACKAGE.parent).parts) for p in PACKAGE.rglob("__init__.py")
+)
 
 
 @pytest.mark.unit
@@ -68,8 +69,13 @@ print(json.dumps(sorted(m for m in ("rclpy", "scipy", "numba") if m in sys.modul
 
 def _loaded(module: str) -> list[str]:
     """The heavy modules a fresh interpreter has loaded after importing ``module``."""
-    out = subprocess.run([sys.executable, "-c", _PROBE, module], capture_output=True, text=True,
-                         check=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", _PROBE, module],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
     return json.loads(out.stdout)
 
 
@@ -80,8 +86,10 @@ def test_no_package_imports_rclpy(name):
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("name", ["piezo_stage.identification.errors",
-                                  "piezo_stage.identification.io", "piezo_stage.nodes"])
+@pytest.mark.parametrize(
+    "name",
+    ["piezo_stage.identification.errors", "piezo_stage.identification.io", "piezo_stage.nodes"],
+)
 def test_light_imports_stay_light(name):
     """The CLI imports these at start-up: the model behind the lazy exports stays unloaded."""
     assert _loaded(name) == []

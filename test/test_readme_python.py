@@ -19,11 +19,11 @@ def _examples() -> list:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     start = text.index(SECTION)
     end = text.find("\n## ", start + len(SECTION))
-    section = text[start:end if end >= 0 else len(text)]
+    section = text[start : end if end >= 0 else len(text)]
     first_line = text[:start].count("\n") + 1
     examples = []
     for match in re.finditer(r"^```python\n(.*?)^```", section, re.S | re.M):
-        line = first_line + section[:match.start(1)].count("\n")
+        line = first_line + section[: match.start(1)].count("\n")
         examples.append(pytest.param(match.group(1), line, id=f"README.md:{line}"))
     return examples
 

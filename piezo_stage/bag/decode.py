@@ -43,14 +43,18 @@ def _service_event(name: str, text: str) -> dict[str, Any]:
     deps = sep + deps if sep else ""
     request, _, response = root.partition("\n---")
     package, _, event = name.split("/")
-    base = f"{package}/msg/{event[:-len('_Event')]}"  # rosbags parses .msg names only
+    base = f"{package}/msg/{event[: -len('_Event')]}"  # rosbags parses .msg names only
     types: dict[str, Any] = {}
     for part, text_part in (("_Request", request), ("_Response", response.lstrip("-"))):
         types.update(get_types_from_msg(text_part.strip("\n") + "\n" + deps, base + part))
-    types[name] = ([], [
-        ("info", (Nodetype.NAME, _EVENT_INFO)),
-        ("request", (Nodetype.SEQUENCE, ((Nodetype.NAME, base + "_Request"), 1))),
-        ("response", (Nodetype.SEQUENCE, ((Nodetype.NAME, base + "_Response"), 1)))])
+    types[name] = (
+        [],
+        [
+            ("info", (Nodetype.NAME, _EVENT_INFO)),
+            ("request", (Nodetype.SEQUENCE, ((Nodetype.NAME, base + "_Request"), 1))),
+            ("response", (Nodetype.SEQUENCE, ((Nodetype.NAME, base + "_Response"), 1))),
+        ],
+    )
     return types
 
 
@@ -75,7 +79,7 @@ class BagTypes:
 
     def __init__(self) -> None:
         self.store: Typestore = get_typestore(Stores.EMPTY)
-        self.skipped: dict[str, str] = {}   # topic -> why it is not decoded
+        self.skipped: dict[str, str] = {}  # topic -> why it is not decoded
         self._by_schema: dict[tuple[str, bytes], str | Exception] = {}
 
     def _copy_shipped(self, name: str) -> None:
@@ -88,7 +92,8 @@ class BagTypes:
             shipped = typestore().fielddefs.get(current)
             if shipped is None:
                 raise UnknownMessageTypeError(
-                    f"no definition of {current}: not in the bag and not installed")
+                    f"no definition of {current}: not in the bag and not installed"
+                )
             self.store.register({current: shipped})
             todo += _names(typestore().fielddefs, current)
 
@@ -126,8 +131,9 @@ class BagTypes:
                 raise known
             return known
         except Exception as exc:
-            self.skipped[channel.topic] = f"type {schema.name if schema else fallback} " \
-                                          f"not decodable: {exc}"
+            self.skipped[channel.topic] = (
+                f"type {schema.name if schema else fallback} not decodable: {exc}"
+            )
             return None
 
     def deserialize(self, data: bytes, type_name: str) -> Any:

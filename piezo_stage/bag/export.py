@@ -27,8 +27,15 @@ UNITS: dict[str, dict[str, str]] = {
     "piezo_stage_msgs/msg/Voltage": {"voltage": "V"},
     "piezo_stage_msgs/msg/Displacement": {"displacement": "m"},
     "piezo_stage_msgs/msg/ControllerState": {
-        "reference": "m", "x0": "m*s", "x1": "m", "x2": "m/s", "u": "V", "u_pid": "V",
-        "u_excitation": "V", "u_ff": "V"},
+        "reference": "m",
+        "x0": "m*s",
+        "x1": "m",
+        "x2": "m/s",
+        "u": "V",
+        "u_pid": "V",
+        "u_excitation": "V",
+        "u_ff": "V",
+    },
     "piezo_stage_msgs/msg/ExcitationInfo": {"period": "s", "amplitude": "V", "offset": "V"},
     "piezo_stage_msgs/msg/LimitCycle": {"period": "s"},
 }
@@ -61,37 +68,50 @@ def _has_sequences(fielddefs: dict[str, Any], type_name: str) -> bool:
     for _, (nodetype, detail) in fielddefs[type_name][1]:
         if nodetype == Nodetype.SEQUENCE:
             return True
-        if nodetype == Nodetype.NAME and detail not in TIME_TYPES \
-                and _has_sequences(fielddefs, detail):
+        if (
+            nodetype == Nodetype.NAME
+            and detail not in TIME_TYPES
+            and _has_sequences(fielddefs, detail)
+        ):
             return True
-        if nodetype == Nodetype.ARRAY and detail[0][0] == Nodetype.NAME \
-                and _has_sequences(fielddefs, detail[0][1]):
+        if (
+            nodetype == Nodetype.ARRAY
+            and detail[0][0] == Nodetype.NAME
+            and _has_sequences(fielddefs, detail[0][1])
+        ):
             return True
     return False
 
 
-def _flatten_array(fielddefs: dict[str, Any], values: Any, column: str, element: FieldDesc,
-                   unit: str | None) -> list[tuple[str, Any]]:
+def _flatten_array(
+    fielddefs: dict[str, Any], values: Any, column: str, element: FieldDesc, unit: str | None
+) -> list[tuple[str, Any]]:
     kind, detail = element
     if kind == Nodetype.NAME:
         cells: list[tuple[str, Any]] = []
         for i, item in enumerate(values):
             if detail in TIME_TYPES:
-                cells.append((f"{column}[{i}] [s]",
-                              seconds_text(item.sec * 1_000_000_000 + item.nanosec)))
+                cells.append(
+                    (f"{column}[{i}] [s]", seconds_text(item.sec * 1_000_000_000 + item.nanosec))
+                )
             else:
                 # a NAME field's detail is the name of its type
                 cells += flatten(fielddefs, item, cast(str, detail), f"{column}[{i}].")
         return cells
     items = [_cell(v) for v in values]
     if len(items) > MAX_ARRAY_COLUMNS:
-        return [(_label(column, unit), " ".join(repr(v) if isinstance(v, float) else str(v)
-                                                for v in items))]
+        return [
+            (
+                _label(column, unit),
+                " ".join(repr(v) if isinstance(v, float) else str(v) for v in items),
+            )
+        ]
     return [(_label(f"{column}[{i}]", unit), v) for i, v in enumerate(items)]
 
 
-def flatten(fielddefs: dict[str, Any], message: Any, type_name: str, prefix: str = ""
-            ) -> list[tuple[str, Any]]:
+def flatten(
+    fielddefs: dict[str, Any], message: Any, type_name: str, prefix: str = ""
+) -> list[tuple[str, Any]]:
     """``[(column, value)]`` of one message (see the module docstring for the naming)."""
     units = UNITS.get(type_name, {})
     cells: list[tuple[str, Any]] = []
@@ -101,8 +121,9 @@ def flatten(fielddefs: dict[str, Any], message: Any, type_name: str, prefix: str
             cells.append((_label(column, units.get(name)), _cell(value)))
         elif nodetype == Nodetype.NAME:
             if detail in TIME_TYPES:
-                cells.append((f"{column} [s]",
-                              seconds_text(value.sec * 1_000_000_000 + value.nanosec)))
+                cells.append(
+                    (f"{column} [s]", seconds_text(value.sec * 1_000_000_000 + value.nanosec))
+                )
             else:
                 cells += flatten(fielddefs, value, detail, column + ".")
         else:
@@ -115,15 +136,17 @@ def csv_name(topic: str) -> str:
     return (topic.strip("/").replace("/", "_") or "root") + ".csv"
 
 
-def export_csv(path: str | Path, out_dir: str | Path,
-               topics: Iterable[str] | None = None) -> dict[str, Path]:
+def export_csv(
+    path: str | Path, out_dir: str | Path, topics: Iterable[str] | None = None
+) -> dict[str, Path]:
     """Write one CSV per topic (with messages) into ``out_dir``; returns ``{topic: csv}``."""
     types = topic_types(path)
     selected = sorted(types) if topics is None else list(topics)
     unknown = [t for t in selected if t not in types]
     if unknown:
-        raise UnknownTopicError(f"topics {unknown} are not in bag {path}; it has "
-                                f"{', '.join(sorted(types)) or 'none'}")
+        raise UnknownTopicError(
+            f"topics {unknown} are not in bag {path}; it has {', '.join(sorted(types)) or 'none'}"
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bag_types = BagTypes()
@@ -135,8 +158,9 @@ def export_csv(path: str | Path, out_dir: str | Path,
     written: dict[str, Path] = {}
     try:
         for topic, type_name, log_time, message in decode_bag(path, selected, bag_types):
-            row = [(LOG_TIME_COLUMN, seconds_text(log_time))] \
-                + flatten(fielddefs, message, type_name)
+            row = [(LOG_TIME_COLUMN, seconds_text(log_time))] + flatten(
+                fielddefs, message, type_name
+            )
             if topic not in variable:
                 variable[topic] = _has_sequences(fielddefs, type_name)
             if variable[topic]:

@@ -27,9 +27,13 @@ def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
         qos = normalize_profiles(channel.metadata.get("offered_qos_profiles", ""))
     except InvalidQosError:
         qos = []
-    return {"type": schema.name if schema else "", "count": 0,
-            "serialization_format": channel.message_encoding, "offered_qos_profiles": qos,
-            "type_description_hash": channel.metadata.get("topic_type_hash", "")}
+    return {
+        "type": schema.name if schema else "",
+        "count": 0,
+        "serialization_format": channel.message_encoding,
+        "offered_qos_profiles": qos,
+        "type_description_hash": channel.metadata.get("topic_type_hash", ""),
+    }
 
 
 def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
@@ -45,7 +49,8 @@ def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
         for channel_id, (n, first, last) in indexed.items():
             channel = walk.channels[channel_id]
             info = topics.setdefault(
-                channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id)))
+                channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id))
+            )
             info["count"] += n
             count += n
             start, end = min(start, first), max(end, last)
@@ -53,21 +58,28 @@ def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
         walk = records.McapWalk(path, expected=listed)
         for channel, log_time, _, _, _ in walk.messages():
             if channel.topic not in topics:
-                topics[channel.topic] = _channel_info(channel,
-                                                      walk.schemas.get(channel.schema_id))
+                topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
             topics[channel.topic]["count"] += 1
             count += 1
             start, end = min(start, log_time), max(end, log_time)
     for channel in walk.channels.values():  # topics without messages (or all lost)
-        topics.setdefault(channel.topic,
-                          _channel_info(channel, walk.schemas.get(channel.schema_id)))
+        topics.setdefault(
+            channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id))
+        )
     compression = scan.chunk_compression
     if path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
         compression = f"file zstd{', chunk ' + compression if compression else ''}"
-    return {"path": str(path), "size_bytes": path.stat().st_size, "complete": scan.has_footer,
-            "compression": compression, "message_count": count,
-            "start_ns": start if count else 0, "end_ns": end if count else 0, "topics": topics,
-            "damage": str(walk.damage()) if walk.errors else ""}
+    return {
+        "path": str(path),
+        "size_bytes": path.stat().st_size,
+        "complete": scan.has_footer,
+        "compression": compression,
+        "message_count": count,
+        "start_ns": start if count else 0,
+        "end_ns": end if count else 0,
+        "topics": topics,
+        "damage": str(walk.damage()) if walk.errors else "",
+    }
 
 
 def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
@@ -101,19 +113,28 @@ def bag_info(path: str | Path) -> dict[str, Any]:
             else:
                 topics[name] = dict(info)
     for record in metadata.topics if metadata else []:
-        entry = topics.setdefault(record.name, {
-            "type": record.type, "count": 0, "serialization_format": record.serialization_format,
-            "offered_qos_profiles": [], "type_description_hash": ""})
+        entry = topics.setdefault(
+            record.name,
+            {
+                "type": record.type,
+                "count": 0,
+                "serialization_format": record.serialization_format,
+                "offered_qos_profiles": [],
+                "type_description_hash": "",
+            },
+        )
         entry["offered_qos_profiles"] = record.offered_qos_profiles or entry["offered_qos_profiles"]
-        entry["type_description_hash"] = (record.type_description_hash
-                                          or entry["type_description_hash"])
+        entry["type_description_hash"] = (
+            record.type_description_hash or entry["type_description_hash"]
+        )
     with_messages = [f for f in files if f["message_count"]]
     start = min((f["start_ns"] for f in with_messages), default=0)
     end = max((f["end_ns"] for f in with_messages), default=0)
     duration_s = (end - start) * 1e-9
     for entry in topics.values():
-        entry["rate_hz"] = (entry["count"] - 1) / duration_s \
-            if entry["count"] > 1 and duration_s > 0 else 0.0
+        entry["rate_hz"] = (
+            (entry["count"] - 1) / duration_s if entry["count"] > 1 and duration_s > 0 else 0.0
+        )
     return {
         "path": str(path),
         "storage_identifier": "mcap",
@@ -124,8 +145,12 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "size_bytes": sum(f["size_bytes"] for f in files),
         "files": files,
         "message_count": sum(f["message_count"] for f in files),
-        "start_ns": start, "end_ns": end, "duration_ns": end - start,
-        "start_s": start * 1e-9, "end_s": end * 1e-9, "duration_s": duration_s,
+        "start_ns": start,
+        "end_ns": end,
+        "duration_ns": end - start,
+        "start_s": start * 1e-9,
+        "end_s": end * 1e-9,
+        "duration_s": duration_s,
         "topics": dict(sorted(topics.items())),
     }
 
@@ -140,15 +165,20 @@ def _size(n: float) -> str:
 
 def _stamp(ns: int) -> str:
     sec, nsec = divmod(ns, 1_000_000_000)
-    return f"{time.strftime('%b %e %Y %H:%M:%S', time.localtime(sec))}.{nsec:09d} " \
-           f"({sec}.{nsec:09d})"
+    return (
+        f"{time.strftime('%b %e %Y %H:%M:%S', time.localtime(sec))}.{nsec:09d} ({sec}.{nsec:09d})"
+    )
 
 
 def format_info(info: dict[str, Any]) -> str:
     """``ros2 bag info``-like text of a ``bag_info`` dict (plus rates and file state)."""
     pad = " " * 19
-    names = [Path(f["path"]).name + ("" if f["complete"] else "  (not closed: reindex it)")
-             + ("  (DAMAGED)" if f["damage"] else "") for f in info["files"]]
+    names = [
+        Path(f["path"]).name
+        + ("" if f["complete"] else "  (not closed: reindex it)")
+        + ("  (DAMAGED)" if f["damage"] else "")
+        for f in info["files"]
+    ]
     lines = [
         "Files:             " + f"\n{pad}".join(names),
         f"Bag size:          {_size(info['size_bytes'])}",
@@ -163,9 +193,11 @@ def format_info(info: dict[str, Any]) -> str:
     topic_lines: list[str] = []
     service_lines: list[str] = []
     for name, t in info["topics"].items():
-        line = (f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
-                f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: "
-                f"{t['serialization_format']}")
+        line = (
+            f"Topic: {name} | Type: {t['type']} | Count: {t['count']} | "
+            f"Rate: {t['rate_hz']:.1f} Hz | Serialization Format: "
+            f"{t['serialization_format']}"
+        )
         is_service = "/srv/" in t["type"] and t["type"].endswith("_Event")
         (service_lines if is_service else topic_lines).append(line)
     lines.append("Topic information: " + f"\n{pad}".join(topic_lines))

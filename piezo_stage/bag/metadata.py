@@ -138,8 +138,9 @@ class BagMetadata:
         """Write ``folder/metadata.yaml`` atomically (temp file + rename)."""
         path = Path(folder) / METADATA_FILENAME
         tmp = path.with_name(METADATA_FILENAME + ".tmp")
-        tmp.write_text(yaml_emit.dump({"rosbag2_bagfile_information": self.to_dict()}) + "\n",
-                       encoding="utf-8")
+        tmp.write_text(
+            yaml_emit.dump({"rosbag2_bagfile_information": self.to_dict()}) + "\n", encoding="utf-8"
+        )
         os.replace(tmp, path)
         return path
 
@@ -149,28 +150,38 @@ class BagMetadata:
         try:
             topics = [
                 TopicRecord(
-                    name=t["topic_metadata"]["name"], type=t["topic_metadata"]["type"],
+                    name=t["topic_metadata"]["name"],
+                    type=t["topic_metadata"]["type"],
                     serialization_format=t["topic_metadata"].get("serialization_format", "cdr"),
                     offered_qos_profiles=normalize_profiles(
-                        t["topic_metadata"].get("offered_qos_profiles")),
+                        t["topic_metadata"].get("offered_qos_profiles")
+                    ),
                     type_description_hash=t["topic_metadata"].get("type_description_hash", ""),
-                    message_count=int(t["message_count"]))
-                for t in info.get("topics_with_message_count") or []]
-            files = [FileRecord(path=f["path"],
-                                starting_time_ns=int(f["starting_time"]["nanoseconds_since_epoch"]),
-                                end_time_ns=int(f["starting_time"]["nanoseconds_since_epoch"])
-                                + int(f["duration"]["nanoseconds"]),
-                                message_count=int(f["message_count"]))
-                     for f in info.get("files") or []]
+                    message_count=int(t["message_count"]),
+                )
+                for t in info.get("topics_with_message_count") or []
+            ]
+            files = [
+                FileRecord(
+                    path=f["path"],
+                    starting_time_ns=int(f["starting_time"]["nanoseconds_since_epoch"]),
+                    end_time_ns=int(f["starting_time"]["nanoseconds_since_epoch"])
+                    + int(f["duration"]["nanoseconds"]),
+                    message_count=int(f["message_count"]),
+                )
+                for f in info.get("files") or []
+            ]
             if not files:  # versions < 5 list only the paths
                 files = [FileRecord(path=p) for p in info.get("relative_file_paths") or []]
-            return cls(topics=topics, files=files,
-                       compression_format=info.get("compression_format") or "",
-                       compression_mode=info.get("compression_mode") or "",
-                       custom_data={str(k): str(v)
-                                    for k, v in (info.get("custom_data") or {}).items()},
-                       ros_distro=info.get("ros_distro") or "",
-                       storage_identifier=info.get("storage_identifier") or "")
+            return cls(
+                topics=topics,
+                files=files,
+                compression_format=info.get("compression_format") or "",
+                compression_mode=info.get("compression_mode") or "",
+                custom_data={str(k): str(v) for k, v in (info.get("custom_data") or {}).items()},
+                ros_distro=info.get("ros_distro") or "",
+                storage_identifier=info.get("storage_identifier") or "",
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise CorruptBagError(f"malformed rosbag2 metadata: {exc!r}") from None
 

@@ -33,7 +33,7 @@ class PlaybackClock:
         if rate <= 0:
             raise PlaybackError(f"a playback clock needs rate > 0, got {rate}")
         self.rate = rate
-        self._bag_ns = start_ns          # bag time at the last pause / resume
+        self._bag_ns = start_ns  # bag time at the last pause / resume
         self._wall: float | None = None  # wall time of the last resume (None = paused)
         self.paused = True
         if not paused:

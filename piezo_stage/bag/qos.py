@@ -20,10 +20,8 @@ INFINITE_NS = 2**63 - 1
 _POLICIES = {
     "history": ("keep_last", "keep_all", "system_default", "unknown"),
     "reliability": ("reliable", "best_effort", "system_default", "best_available", "unknown"),
-    "durability": ("volatile", "transient_local", "system_default", "best_available",
-                   "unknown"),
-    "liveliness": ("automatic", "manual_by_topic", "system_default", "best_available",
-                   "unknown"),
+    "durability": ("volatile", "transient_local", "system_default", "best_available", "unknown"),
+    "liveliness": ("automatic", "manual_by_topic", "system_default", "best_available", "unknown"),
 }
 # Metadata version <= 8 stored the rmw enum values as integers.
 _LEGACY_INTS = {
@@ -33,8 +31,17 @@ _LEGACY_INTS = {
     "liveliness": {0: "system_default", 1: "automatic", 3: "manual_by_topic", 4: "unknown"},
 }
 _DURATIONS = ("deadline", "lifespan", "liveliness_lease_duration")
-FIELDS = ("history", "depth", "reliability", "durability", "deadline", "lifespan",
-          "liveliness", "liveliness_lease_duration", "avoid_ros_namespace_conventions")
+FIELDS = (
+    "history",
+    "depth",
+    "reliability",
+    "durability",
+    "deadline",
+    "lifespan",
+    "liveliness",
+    "liveliness_lease_duration",
+    "avoid_ros_namespace_conventions",
+)
 
 
 def duration(ns: int | None) -> dict[str, int]:
@@ -43,20 +50,32 @@ def duration(ns: int | None) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
-def qos_profile(*, history: str = "keep_last", depth: int = 10, reliability: str = "reliable",
-                durability: str = "volatile", deadline_ns: int | None = None,
-                lifespan_ns: int | None = None, liveliness: str = "automatic",
-                liveliness_lease_duration_ns: int | None = None,
-                avoid_ros_namespace_conventions: bool = False) -> dict[str, Any]:
+def qos_profile(
+    *,
+    history: str = "keep_last",
+    depth: int = 10,
+    reliability: str = "reliable",
+    durability: str = "volatile",
+    deadline_ns: int | None = None,
+    lifespan_ns: int | None = None,
+    liveliness: str = "automatic",
+    liveliness_lease_duration_ns: int | None = None,
+    avoid_ros_namespace_conventions: bool = False,
+) -> dict[str, Any]:
     """One offered QoS profile (durations None = infinite)."""
-    return normalize_profile({
-        "history": history, "depth": depth, "reliability": reliability,
-        "durability": durability, "deadline": duration(deadline_ns),
-        "lifespan": duration(lifespan_ns), "liveliness": liveliness,
-        "liveliness_lease_duration": duration(liveliness_lease_duration_ns),
-        "avoid_ros_namespace_conventions": avoid_ros_namespace_conventions,
-    })
-
+    return normalize_profile(
+        {
+            "history": history,
+            "depth": depth,
+            "reliability": reliability,
+            "durability": durability,
+            "deadline": duration(deadline_ns),
+            "lifespan": duration(lifespan_ns),
+            "liveliness": liveliness,
+            "liveliness_lease_duration": duration(liveliness_lease_duration_ns),
+            "avoid_ros_namespace_conventions": avoid_ros_namespace_conventions,
+        }
+    )
 
 
 def _policy(name: str, value: Any) -> str:
@@ -65,16 +84,16 @@ def _policy(name: str, value: Any) -> str:
             return _LEGACY_INTS[name][value]
     elif isinstance(value, str) and value.lower() in _POLICIES[name]:
         return value.lower()
-    raise InvalidQosError(
-        f"QoS {name} {value!r} is not one of {', '.join(_POLICIES[name])}")
+    raise InvalidQosError(f"QoS {name} {value!r} is not one of {', '.join(_POLICIES[name])}")
 
 
 def _duration(name: str, value: Any) -> dict[str, int]:
     try:
         return {"sec": int(value["sec"]), "nsec": int(value["nsec"])}
     except (TypeError, KeyError, ValueError):
-        raise InvalidQosError(f"QoS {name} must be a mapping {{sec, nsec}}, got {value!r}") \
-            from None
+        raise InvalidQosError(
+            f"QoS {name} must be a mapping {{sec, nsec}}, got {value!r}"
+        ) from None
 
 
 def normalize_profile(profile: dict[str, Any]) -> dict[str, Any]:
@@ -138,10 +157,13 @@ def _nanoseconds(value: Any) -> int:
 def qos_from_profile(profile: Any) -> dict[str, Any]:
     """Profile dict of an rclpy ``QoSProfile``-like object (duck typed: no rclpy import)."""
     return qos_profile(
-        history=str(_enum_name(profile.history)).lower(), depth=int(profile.depth),
+        history=str(_enum_name(profile.history)).lower(),
+        depth=int(profile.depth),
         reliability=str(_enum_name(profile.reliability)).lower(),
         durability=str(_enum_name(profile.durability)).lower(),
-        deadline_ns=_nanoseconds(profile.deadline), lifespan_ns=_nanoseconds(profile.lifespan),
+        deadline_ns=_nanoseconds(profile.deadline),
+        lifespan_ns=_nanoseconds(profile.lifespan),
         liveliness=str(_enum_name(profile.liveliness)).lower(),
         liveliness_lease_duration_ns=_nanoseconds(profile.liveliness_lease_duration),
-        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions),
+    )

@@ -46,8 +46,7 @@ def _file_order(path: Path) -> tuple[int, str]:
 
 def folder_mcap_files(folder: Path) -> list[Path]:
     """Every ``*.mcap`` (or ``*.mcap.zstd``) of a folder, in split order (``_0``, ..., ``_10``)."""
-    return sorted((p for p in folder.iterdir() if p.is_file() and is_mcap_name(p)),
-                  key=_file_order)
+    return sorted((p for p in folder.iterdir() if p.is_file() and is_mcap_name(p)), key=_file_order)
 
 
 def bag_files(path: str | Path) -> list[Path]:
@@ -65,10 +64,13 @@ def bag_files(path: str | Path) -> list[Path]:
         if metadata.storage_identifier not in ("", "mcap"):
             raise BagNotFoundError(
                 f"{path} is a rosbag2 bag in {metadata.storage_identifier!r} storage: only MCAP "
-                f"is read here (`ros2 bag convert` or rosbags-convert make an MCAP copy)")
+                f"is read here (`ros2 bag convert` or rosbags-convert make an MCAP copy)"
+            )
         # older rosbag2 wrote the paths with the bag folder in front: keep the name only
-        files = [path / f.path if (path / f.path).is_file() else path / Path(f.path).name
-                 for f in metadata.files]
+        files = [
+            path / f.path if (path / f.path).is_file() else path / Path(f.path).name
+            for f in metadata.files
+        ]
         files = [f for f in files if f.is_file()]
     if not files:
         files = folder_mcap_files(path)
@@ -101,8 +103,9 @@ def _topic_set(topics: str | Iterable[str] | None) -> set[str] | None:
     return {topics} if isinstance(topics, str) else set(topics)
 
 
-def iter_bag(path: str | Path, topics: str | Iterable[str] | None = None
-             ) -> Iterator[tuple[Channel, Schema | None, int, bytes]]:
+def iter_bag(
+    path: str | Path, topics: str | Iterable[str] | None = None
+) -> Iterator[tuple[Channel, Schema | None, int, bytes]]:
     """``(channel, schema, log_time_ns, data)`` of every message of every file, file order."""
     wanted = _topic_set(topics)
     metadata = _metadata(Path(path))
@@ -121,22 +124,26 @@ def iter_bag(path: str | Path, topics: str | Iterable[str] | None = None
 
 def _zstd_message(data: bytes) -> bytes:
     import zstandard
+
     try:
         return zstandard.ZstdDecompressor().decompressobj().decompress(data)
     except zstandard.ZstdError as exc:
-        raise CorruptBagError(f"a MESSAGE-mode compressed message does not decompress: {exc}"
-                              ) from None
+        raise CorruptBagError(
+            f"a MESSAGE-mode compressed message does not decompress: {exc}"
+        ) from None
 
 
-def read_raw(path: str | Path, topics: str | Iterable[str] | None = None
-             ) -> Iterator[tuple[str, str, int, bytes]]:
+def read_raw(
+    path: str | Path, topics: str | Iterable[str] | None = None
+) -> Iterator[tuple[str, str, int, bytes]]:
     """``(topic, type_name, log_time_ns, cdr_bytes)`` for every message."""
     for channel, schema, log_time, data in iter_bag(path, topics):
         yield channel.topic, schema.name if schema else "", log_time, data
 
 
-def decode_bag(path: str | Path, topics: str | Iterable[str] | None = None,
-               types: BagTypes | None = None) -> Iterator[tuple[str, str, int, Any]]:
+def decode_bag(
+    path: str | Path, topics: str | Iterable[str] | None = None, types: BagTypes | None = None
+) -> Iterator[tuple[str, str, int, Any]]:
     """``(topic, type_name, log_time_ns, message)``, decoded with the bag's own schemas into
     rosbags dataclasses (a bag recorded before a field was added reads with its own
     definition); topics that cannot be decoded are skipped with a warning each, messages that
@@ -151,8 +158,10 @@ def decode_bag(path: str | Path, topics: str | Iterable[str] | None = None,
         if key not in known:
             known[key] = types.type_of(channel, schema, fallback.get(channel.topic, ""))
             if known[key] is None:
-                warnings.warn(SkippedTopicWarning(
-                    f"skipped {channel.topic}: {types.skipped[channel.topic]}"), stacklevel=2)
+                warnings.warn(
+                    SkippedTopicWarning(f"skipped {channel.topic}: {types.skipped[channel.topic]}"),
+                    stacklevel=2,
+                )
         type_name = known[key]
         if type_name is None:
             continue
@@ -164,12 +173,15 @@ def decode_bag(path: str | Path, topics: str | Iterable[str] | None = None,
             continue
         yield channel.topic, type_name, log_time, message
     for topic, (count, first) in bad.items():
-        warnings.warn(BagDamageWarning(
-            f"damaged: {count} message(s) on {topic} do not decode ({first})"), stacklevel=2)
+        warnings.warn(
+            BagDamageWarning(f"damaged: {count} message(s) on {topic} do not decode ({first})"),
+            stacklevel=2,
+        )
 
 
-def read_messages(path: str | Path, topics: str | Iterable[str] | None = None
-                  ) -> Iterator[tuple[str, int, Any]]:
+def read_messages(
+    path: str | Path, topics: str | Iterable[str] | None = None
+) -> Iterator[tuple[str, int, Any]]:
     """``(topic, log_time_ns, message)`` with messages decoded to rosbags dataclasses."""
     for topic, _, log_time, message in decode_bag(path, topics):
         yield topic, log_time, message
@@ -186,11 +198,13 @@ def topic_types(path: str | Path) -> dict[str, str]:
     if found:
         return found
     from .info import mcap_topics  # local import: info builds on this module
+
     return {name: t["type"] for name, t in mcap_topics(path).items()}
 
 
-def read_series(path: str | Path, topic: str
-                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
+def read_series(
+    path: str | Path, topic: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     """``(t [s], values, status or None)`` of a topic, in stamp order: Voltage (V) and
     Displacement (m, status) vectorised; any other type by one numeric field -- ``TOPIC.FIELD``
     (dotted path), or the message's only numeric scalar field -- with t from ``header.stamp``
@@ -202,14 +216,17 @@ def read_series(path: str | Path, topic: str
         topic, field = topic.split(".", 1) if "/" not in topic.split(".", 1)[1] else (topic, "")
     if topic not in types:
         raise UnknownTopicError(
-            f"topic {topic!r} is not in bag {path}; it has {', '.join(sorted(types)) or 'none'}")
+            f"topic {topic!r} is not in bag {path}; it has {', '.join(sorted(types)) or 'none'}"
+        )
     type_name = types[topic]
     if type_name == LOOP_SAMPLES:
         samples = read_loop_samples(path, topic)
         column = field or "displacement"
         if column not in samples or column == "stamp":
-            raise UnknownTopicError(f"{topic}: LoopSamples has no column {column!r}; it has "
-                                    f"{', '.join(k for k in samples if k != 'stamp')}")
+            raise UnknownTopicError(
+                f"{topic}: LoopSamples has no column {column!r}; it has "
+                f"{', '.join(k for k in samples if k != 'stamp')}"
+            )
         status = samples["status"] if column == "displacement" else None
         return samples["stamp"] * 1e-9, samples[column].astype(np.float64), status
     if type_name in SERIES_FIELDS and not field:
@@ -226,9 +243,16 @@ def read_series(path: str | Path, topic: str
 
 
 LOOP_SAMPLES = "piezo_stage_msgs/msg/LoopSamples"
-_LOOP_COLUMNS = {"stamp": np.int64, "displacement": np.float64, "status": np.uint8,
-                 "reference": np.float64, "u": np.float64, "u_ff": np.float64,
-                 "loop_closed": bool, "applied": np.float64}
+_LOOP_COLUMNS = {
+    "stamp": np.int64,
+    "displacement": np.float64,
+    "status": np.uint8,
+    "reference": np.float64,
+    "u": np.float64,
+    "u_ff": np.float64,
+    "loop_closed": bool,
+    "applied": np.float64,
+}
 
 
 # a LoopSamples column's dtype depends on the column (_LOOP_COLUMNS)
@@ -245,16 +269,32 @@ def read_loop_samples(path: str | Path, topic: str) -> LoopColumns:
         for name, dtype in _LOOP_COLUMNS.items():
             column = np.asarray(getattr(message, name), dtype=dtype)
             if column.size != n:
-                raise CorruptBagError(f"{topic}: a LoopSamples message has {n} stamps but "
-                                      f"{column.size} {name} values")
+                raise CorruptBagError(
+                    f"{topic}: a LoopSamples message has {n} stamps but {column.size} {name} values"
+                )
             parts[name].append(column)
     out = {k: np.concatenate(v) if v else np.empty(0, _LOOP_COLUMNS[k]) for k, v in parts.items()}
     order = np.argsort(out["stamp"], kind="stable")
     return {k: v[order] for k, v in out.items()}
 
 
-_NUMERIC = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16",
-                      "uint16", "int32", "uint32", "int64", "uint64"})
+_NUMERIC = frozenset(
+    {
+        "bool",
+        "byte",
+        "char",
+        "float32",
+        "float64",
+        "int8",
+        "uint8",
+        "int16",
+        "uint16",
+        "int32",
+        "uint32",
+        "int64",
+        "uint64",
+    }
+)
 
 
 def normalize_fieldname(name: str) -> str:
@@ -267,8 +307,11 @@ def normalize_fieldname(name: str) -> str:
 def _numeric_fields(fielddefs: Typesdict, type_name: str) -> list[str]:
     from rosbags.interfaces import Nodetype
 
-    return [name for name, (kind, detail) in fielddefs[type_name][1]
-            if kind == Nodetype.BASE and detail[0] in _NUMERIC]
+    return [
+        name
+        for name, (kind, detail) in fielddefs[type_name][1]
+        if kind == Nodetype.BASE and detail[0] in _NUMERIC
+    ]
 
 
 def _generic_series(
@@ -284,7 +327,8 @@ def _generic_series(
                 if len(numeric) != 1:
                     raise WrongTopicTypeError(
                         f"{topic} is {type_name}: name its value field as {topic}.FIELD "
-                        f"(numeric fields: {', '.join(numeric) or 'none'})")
+                        f"(numeric fields: {', '.join(numeric) or 'none'})"
+                    )
                 field = numeric[0]
             stamp = getattr(getattr(message, "header", None), "stamp", None)
         value: Any = message
@@ -293,16 +337,22 @@ def _generic_series(
                 value = getattr(value, normalize_fieldname(part))
             values.append(float(value))
         except (AttributeError, TypeError, ValueError):
-            raise WrongTopicTypeError(f"{topic} ({type_name}) has no numeric field "
-                                      f"{field!r}") from None
-        t.append(message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
-                 if stamp is not None else log_time * 1e-9)
+            raise WrongTopicTypeError(
+                f"{topic} ({type_name}) has no numeric field {field!r}"
+            ) from None
+        t.append(
+            message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
+            if stamp is not None
+            else log_time * 1e-9
+        )
     if not values and not field:  # nothing decoded: judge the field by the shipped type
         from .types import full_type_name, typestore
 
         name = full_type_name(topic_types(path)[topic])
         shipped = typestore().fielddefs
         if name in shipped and len(numeric := _numeric_fields(shipped, name)) != 1:
-            raise WrongTopicTypeError(f"{topic} is {name}: name its value field as "
-                                      f"{topic}.FIELD (numeric fields: {', '.join(numeric)})")
+            raise WrongTopicTypeError(
+                f"{topic} is {name}: name its value field as "
+                f"{topic}.FIELD (numeric fields: {', '.join(numeric)})"
+            )
     return np.asarray(t, dtype=np.float64), np.asarray(values, dtype=np.float64)

@@ -44,9 +44,9 @@ _Record = TypeVar("_Record", Schema, Channel, Metadata, Header, Statistics)
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD = struct.Struct("<BQ")
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-_CHUNK = struct.Struct("<QQQII")   # start, end, uncompressed size, uncompressed crc, len(compr.)
+_CHUNK = struct.Struct("<QQQII")  # start, end, uncompressed size, uncompressed crc, len(compr.)
 _CHUNK_COMPRESSION_AT = 8 + 8 + 8 + 4
-_FOOTER = struct.Struct("<QQI")    # summary start, summary offset start, summary crc
+_FOOTER = struct.Struct("<QQI")  # summary start, summary offset start, summary crc
 _FOOTER_RECORD = _RECORD.size + _FOOTER.size
 #: suffix of a file compressed whole by rosbag2 (``--compression-mode file``)
 FILE_COMPRESSED_SUFFIX = ".zstd"
@@ -58,10 +58,10 @@ MessageTuple = tuple[Channel, int, int, int, bytes]
 class Scan:
     """What the top-level record headers of one MCAP file tell."""
 
-    size: int                 # file size [bytes]
-    complete_end: int         # offset just past the last complete top-level record
-    has_footer: bool          # the file ends with a footer and the closing magic
-    chunk_compression: str    # compression of the first chunk ("" if none or no chunk)
+    size: int  # file size [bytes]
+    complete_end: int  # offset just past the last complete top-level record
+    has_footer: bool  # the file ends with a footer and the closing magic
+    chunk_compression: str  # compression of the first chunk ("" if none or no chunk)
 
     @property
     def truncated_bytes(self) -> int:
@@ -80,6 +80,7 @@ def open_buffer(path: str | Path) -> Iterator[bytes | mmap.mmap]:
     path = Path(path)
     if path.name.endswith(FILE_COMPRESSED_SUFFIX):
         import zstandard
+
         with open(path, "rb") as stream:
             try:
                 data = zstandard.ZstdDecompressor().stream_reader(stream).read()
@@ -90,8 +91,10 @@ def open_buffer(path: str | Path) -> Iterator[bytes | mmap.mmap]:
     if os.path.getsize(path) == 0:
         yield b""
         return
-    with open(path, "rb") as stream, \
-            mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+    with (
+        open(path, "rb") as stream,
+        mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as mapped,
+    ):
         yield mapped
 
 
@@ -99,7 +102,7 @@ def _check_magic(path: Path, buf: Buffer) -> bool:
     """True if ``buf`` starts with the magic; False if it is a prefix of it (killed before
     the first flush); else CorruptBagError.
     """
-    if buf[:len(MAGIC)] == MAGIC:
+    if buf[: len(MAGIC)] == MAGIC:
         return True
     if len(buf) < len(MAGIC) and MAGIC.startswith(bytes(buf)):
         return False
@@ -123,7 +126,7 @@ def scan(path: str | Path) -> Scan:
             if opcode == Opcode.CHUNK and compression is None:
                 at = end + _RECORD.size + _CHUNK_COMPRESSION_AT
                 (n,) = struct.unpack_from("<I", buf, at)
-                compression = bytes(buf[at + 4:at + 4 + n]).decode("utf-8", "replace")
+                compression = bytes(buf[at + 4 : at + 4 + n]).decode("utf-8", "replace")
                 if footer is not None:  # complete: the first chunk is all we wanted
                     break
             end = record_end
@@ -137,7 +140,7 @@ def scan(path: str | Path) -> Scan:
 def _footer_at(buf: Buffer) -> int | None:
     """Offset of the footer record if the file ends with footer + magic, else None."""
     at = len(buf) - len(MAGIC) - _FOOTER_RECORD
-    if at < len(MAGIC) or bytes(buf[-len(MAGIC):]) != MAGIC:
+    if at < len(MAGIC) or bytes(buf[-len(MAGIC) :]) != MAGIC:
         return None
     opcode, length = _RECORD.unpack_from(buf, at)
     return at if opcode == Opcode.FOOTER and length == _FOOTER.size else None
@@ -153,9 +156,11 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes 
         return data
     if compression == "zstd":
         import zstandard
+
         return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
     if compression == "lz4":
         import lz4.frame
+
         out: bytes = lz4.frame.decompress(bytes(data))
         return out
     raise CorruptBagError(f"unsupported MCAP chunk compression {compression!r}")
@@ -186,9 +191,11 @@ class Damage:
             kind = error.split(":")[0]
             kinds[kind] = kinds.get(kind, 0) + 1
         what = ", ".join(f"{n} {kind}" for kind, n in kinds.items())
-        counts = (f"read {self.messages_read} of {self.messages_expected} messages "
-                  f"({self.lost} lost)" if self.messages_expected is not None
-                  else f"read {self.messages_read} messages")
+        counts = (
+            f"read {self.messages_read} of {self.messages_expected} messages ({self.lost} lost)"
+            if self.messages_expected is not None
+            else f"read {self.messages_read} messages"
+        )
         return f"{self.path.name}: damaged: {what}; {counts}; first: {self.errors[0]}"
 
 
@@ -198,8 +205,9 @@ class McapWalk:
     ``channels``, ``metadata``, ``header`` and ``errors`` as their records go by.
     """
 
-    def __init__(self, path: str | Path, topics: Iterable[str] | None = None,
-                 expected: int | None = None) -> None:
+    def __init__(
+        self, path: str | Path, topics: Iterable[str] | None = None, expected: int | None = None
+    ) -> None:
         self.path = Path(path)
         self.expected = expected  # messages metadata.yaml lists for the file (summary lost)
         self.topics = None if topics is None else set(topics)
@@ -209,9 +217,9 @@ class McapWalk:
         self.metadata: list[Metadata] = []
         self.statistics: Statistics | None = None
         self.reached_end = False  # the data section ended normally (DataEnd or Footer)
-        self.damaged = ""         # why the walk stopped early, "" if it did not
+        self.damaged = ""  # why the walk stopped early, "" if it did not
         self.errors: list[str] = []  # damage found (CRC, garbled records), walk went on
-        self.good_end = 0         # offset just past the last top-level record fully read
+        self.good_end = 0  # offset just past the last top-level record fully read
         self.counts: dict[int, int] = {}  # channel id -> messages read (wanted ones)
         self._wanted: set[int] = set()
         self._chunk_starts: list[int] = []
@@ -226,8 +234,11 @@ class McapWalk:
         expected = None
         if self.statistics is not None:
             counts = self.statistics.channel_message_counts
-            expected = sum(counts.get(c, 0) for c in self._wanted) if counts \
+            expected = (
+                sum(counts.get(c, 0) for c in self._wanted)
+                if counts
                 else (self.statistics.message_count if self.topics is None else None)
+            )
         elif self.topics is None:
             expected = self.expected
         return Damage(self.path, list(self.errors), sum(self.counts.values()), expected)
@@ -237,8 +248,9 @@ class McapWalk:
         i = bisect.bisect_right(self._chunk_starts, at)
         return self._chunk_starts[i] if i < len(self._chunk_starts) else None
 
-    def _records(self, buf: Buffer, start: int, top: bool, end: int | None = None
-                 ) -> Iterator[MessageTuple]:
+    def _records(
+        self, buf: Buffer, start: int, top: bool, end: int | None = None
+    ) -> Iterator[MessageTuple]:
         pos, n = start, len(buf) if end is None else end
         unpack_record, unpack_message = _RECORD.unpack_from, _MESSAGE.unpack_from
         wanted, channels, counts = self._wanted, self.channels, self.counts
@@ -265,15 +277,20 @@ class McapWalk:
                 channel_id, sequence, log_time, publish_time = unpack_message(buf, body)
                 if channel_id in wanted:
                     counts[channel_id] = counts.get(channel_id, 0) + 1
-                    yield channels[channel_id], log_time, publish_time, sequence, \
-                        bytes(buf[body + 22:pos])
+                    yield (
+                        channels[channel_id],
+                        log_time,
+                        publish_time,
+                        sequence,
+                        bytes(buf[body + 22 : pos]),
+                    )
                 elif channel_id not in channels:
-                    self.errors.append(f"garbled record: message of unknown channel "
-                                       f"{channel_id}")
+                    self.errors.append(f"garbled record: message of unknown channel {channel_id}")
             elif opcode == Opcode.CHUNK:
                 yield from self._chunk(buf[body:pos], body - 9)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) or (
-                    top and opcode in (Opcode.METADATA, Opcode.HEADER)):
+                top and opcode in (Opcode.METADATA, Opcode.HEADER)
+            ):
                 try:
                     self._definition(opcode, buf[body:pos])
                 except Exception as exc:  # mcap raises assorted errors on garbled bodies
@@ -312,14 +329,14 @@ class McapWalk:
         """The chunk's records, decompressed and CRC-checked; None (error noted) if damaged."""
         try:
             _, _, size, crc, n = _CHUNK.unpack_from(body, 0)
-            compression = bytes(body[_CHUNK.size:_CHUNK.size + n]).decode("utf-8")
+            compression = bytes(body[_CHUNK.size : _CHUNK.size + n]).decode("utf-8")
             (data_len,) = struct.unpack_from("<Q", body, _CHUNK.size + n)
         except (struct.error, UnicodeDecodeError):
             self.errors.append(f"garbled record: chunk header at {at}")
             return None
         data_at = _CHUNK.size + n + 8
         try:
-            data = _decompress(compression, body[data_at:data_at + data_len], size)
+            data = _decompress(compression, body[data_at : data_at + data_len], size)
         except CorruptBagError:
             raise
         except Exception as exc:  # zstd/lz4 raise their own types on damaged data
@@ -356,9 +373,10 @@ class McapWalk:
             return None
         stats = self.statistics
         if not self.errors and (
-                sum(c for c, _, _ in found.values()) != stats.message_count
-                or min(lo for _, lo, _ in found.values()) != stats.message_start_time
-                or max(hi for _, _, hi in found.values()) != stats.message_end_time):
+            sum(c for c, _, _ in found.values()) != stats.message_count
+            or min(lo for _, lo, _ in found.values()) != stats.message_start_time
+            or max(hi for _, _, hi in found.values()) != stats.message_end_time
+        ):
             return None  # indexes (outside any CRC) disagree with the summary: walk instead
         self.counts = {c: n for c, (n, _, _) in found.items()}
         return found
@@ -380,13 +398,15 @@ class McapWalk:
                 chunk_ok = self._chunk_data(view[body:end], pos) is not None
             elif opcode == Opcode.MESSAGE_INDEX and chunk_ok and length >= 6:
                 channel_id, size = struct.unpack_from("<HI", view, body)
-                times = np.frombuffer(view[body + 6:min(end, body + 6 + size)],
-                                      dtype="<u8")[::2]
+                times = np.frombuffer(view[body + 6 : min(end, body + 6 + size)], dtype="<u8")[::2]
                 indexed = True
                 if times.size:
                     count, lo, hi = found.get(channel_id, (0, 2**63, -1))
-                    found[channel_id] = (count + times.size, min(lo, int(times.min())),
-                                         max(hi, int(times.max())))
+                    found[channel_id] = (
+                        count + times.size,
+                        min(lo, int(times.min())),
+                        max(hi, int(times.max())),
+                    )
             elif opcode == 0x05 and length >= _MESSAGE.size:  # a message outside any chunk
                 channel_id, _, log_time, _ = _MESSAGE.unpack_from(view, body)
                 count, lo, hi = found.get(channel_id, (0, 2**63, -1))
@@ -407,13 +427,16 @@ class McapWalk:
         summary_start, offset_start, crc = _FOOTER.unpack_from(buf, footer + _RECORD.size)
         if summary_start == 0:
             return
-        if crc and zlib.crc32(buf[summary_start:footer + _RECORD.size + 16]) != crc:
+        if crc and zlib.crc32(buf[summary_start : footer + _RECORD.size + 16]) != crc:
             self.errors.append("summary CRC error: the summary section fails its CRC")
             return
         try:
             with contextlib.ExitStack() as stack:
-                stream = (io.BytesIO(buf) if isinstance(buf, bytes)
-                          else stack.enter_context(open(self.path, "rb")))
+                stream = (
+                    io.BytesIO(buf)
+                    if isinstance(buf, bytes)
+                    else stack.enter_context(open(self.path, "rb"))
+                )
                 summary = make_reader(stream).get_summary()
         except Exception as exc:  # mcap raises assorted errors on a bad summary
             self.errors.append(f"summary CRC error: unreadable summary ({exc})")

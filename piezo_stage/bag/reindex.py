@@ -30,8 +30,7 @@ from .reader import bag_files, folder_mcap_files
 from .types import message_definition
 from .writer import DEFAULT_CHUNK_SIZE, LIBRARY
 
-_COMPRESSION = {"": CompressionType.NONE, "zstd": CompressionType.ZSTD,
-                "lz4": CompressionType.LZ4}
+_COMPRESSION = {"": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 
 
 @dataclass
@@ -59,18 +58,25 @@ class ReindexReport:
         return sum(f.message_count for f in self.files)
 
     def __str__(self) -> str:
-        lines = [f"reindexed {self.path}: {self.message_count} messages in {len(self.files)} "
-                 f"file(s)"]
+        lines = [
+            f"reindexed {self.path}: {self.message_count} messages in {len(self.files)} file(s)"
+        ]
         for f in self.files:
             if f.damage:
-                state = ("DAMAGED, rewritten with what passed its checks" if f.rewritten
-                         else "DAMAGED, left as is") + f" -- {f.damage}"
+                state = (
+                    "DAMAGED, rewritten with what passed its checks"
+                    if f.rewritten
+                    else "DAMAGED, left as is"
+                ) + f" -- {f.damage}"
             elif f.rewritten:
                 state = f"rewritten, {f.dropped_bytes} bytes dropped ({f.reason})"
             else:
                 state = "complete, kept"
-            lines.append(f"  {f.path.name}: {f.message_count} messages recovered, {state}"
-                         if f.damage else f"  {f.path.name}: {f.message_count} messages, {state}")
+            lines.append(
+                f"  {f.path.name}: {f.message_count} messages recovered, {state}"
+                if f.damage
+                else f"  {f.path.name}: {f.message_count} messages, {state}"
+            )
             lines[-1] = lines[-1].replace(f"-- {f.path.name}: damaged: ", "-- ")
         return "\n".join(lines)
 
@@ -96,19 +102,29 @@ class _TopicTable:
             except InvalidQosError:
                 qos = old.offered_qos_profiles if old else []
             topic = TopicRecord(
-                name=channel.topic, type=schema.name if schema else (old.type if old else ""),
-                serialization_format=channel.message_encoding, offered_qos_profiles=qos,
+                name=channel.topic,
+                type=schema.name if schema else (old.type if old else ""),
+                serialization_format=channel.message_encoding,
+                offered_qos_profiles=qos,
                 type_description_hash=channel.metadata.get("topic_type_hash")
-                or (old.type_description_hash if old else ""))
+                or (old.type_description_hash if old else ""),
+            )
             self.topics[channel.topic] = topic
         topic.message_count += count
 
     def lost(self) -> list[TopicRecord]:
         """Topics the old metadata listed that no file read so far holds (count 0)."""
-        return [TopicRecord(name=t.name, type=t.type, serialization_format=t.serialization_format,
-                            offered_qos_profiles=t.offered_qos_profiles,
-                            type_description_hash=t.type_description_hash)
-                for name, t in self.previous.items() if name not in self.topics]
+        return [
+            TopicRecord(
+                name=t.name,
+                type=t.type,
+                serialization_format=t.serialization_format,
+                offered_qos_profiles=t.offered_qos_profiles,
+                type_description_hash=t.type_description_hash,
+            )
+            for name, t in self.previous.items()
+            if name not in self.topics
+        ]
 
     def records(self) -> list[TopicRecord]:
         """Topics found, then the lost ones."""
@@ -119,8 +135,11 @@ class _Rewriter:
     """Copies the readable part of a damaged MCAP file into a new, complete one."""
 
     def __init__(self, out: BinaryIO, compression: str) -> None:
-        self.writer = Writer(out, chunk_size=DEFAULT_CHUNK_SIZE,
-                             compression=_COMPRESSION.get(compression, CompressionType.ZSTD))
+        self.writer = Writer(
+            out,
+            chunk_size=DEFAULT_CHUNK_SIZE,
+            compression=_COMPRESSION.get(compression, CompressionType.ZSTD),
+        )
         self.writer.start(profile="ros2", library=f"{LIBRARY} reindexed")
         self.schema_ids: dict[str, int] = {}  # schema name -> id in the new file
         self.channel_ids: dict[int, int] = {}
@@ -131,13 +150,17 @@ class _Rewriter:
             definition = message_definition(topic.type)
         except UnknownMessageTypeError:
             return
-        schema = Schema(id=0, name=topic.type, encoding="ros2msg",
-                        data=definition.encode("utf-8"))
-        channel = Channel(id=-len(self.channel_ids) - 1, topic=topic.name, schema_id=0,
-                          message_encoding=topic.serialization_format, metadata={
-                              "offered_qos_profiles": profiles_to_yaml(
-                                  topic.offered_qos_profiles),
-                              "topic_type_hash": topic.type_description_hash})
+        schema = Schema(id=0, name=topic.type, encoding="ros2msg", data=definition.encode("utf-8"))
+        channel = Channel(
+            id=-len(self.channel_ids) - 1,
+            topic=topic.name,
+            schema_id=0,
+            message_encoding=topic.serialization_format,
+            metadata={
+                "offered_qos_profiles": profiles_to_yaml(topic.offered_qos_profiles),
+                "topic_type_hash": topic.type_description_hash,
+            },
+        )
         self.channel_id(channel, schema)
 
     def channel_id(self, channel: Channel, schema: Schema | None) -> int:
@@ -146,16 +169,23 @@ class _Rewriter:
             schema_id = 0
             if schema is not None:
                 schema_id = self.schema_ids.get(schema.name) or self.writer.register_schema(
-                    schema.name, schema.encoding, schema.data)
+                    schema.name, schema.encoding, schema.data
+                )
                 self.schema_ids[schema.name] = schema_id
-            new_id = self.writer.register_channel(channel.topic, channel.message_encoding,
-                                                  schema_id, dict(channel.metadata))
+            new_id = self.writer.register_channel(
+                channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
+            )
             self.channel_ids[channel.id] = new_id
         return new_id
 
 
-def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
-             metadata: BagMetadata, listed: int | None = None) -> FileReport:
+def _rewrite(
+    path: Path,
+    scan: records.Scan,
+    table: _TopicTable,
+    metadata: BagMetadata,
+    listed: int | None = None,
+) -> FileReport:
     walk = records.McapWalk(path, expected=listed)
     tmp = path.with_name(path.name + ".reindex")
     record = FileRecord(path=path.name)
@@ -186,13 +216,19 @@ def _rewrite(path: Path, scan: records.Scan, table: _TopicTable,
         tmp.unlink(missing_ok=True)
         raise
     os.replace(tmp, path)
-    return FileReport(path, record.message_count, True, scan.size - walk.good_end,
-                      walk.damaged or ("damaged" if walk.errors else "no footer"),
-                      str(walk.damage()) if walk.errors else "")
+    return FileReport(
+        path,
+        record.message_count,
+        True,
+        scan.size - walk.good_end,
+        walk.damaged or ("damaged" if walk.errors else "no footer"),
+        str(walk.damage()) if walk.errors else "",
+    )
 
 
-def _keep(path: Path, table: _TopicTable, metadata: BagMetadata,
-          listed: int | None = None) -> FileReport | None:
+def _keep(
+    path: Path, table: _TopicTable, metadata: BagMetadata, listed: int | None = None
+) -> FileReport | None:
     walk = records.McapWalk(path, expected=listed)
     read = sum(1 for _ in walk.messages())
     if walk.errors and not path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
@@ -208,13 +244,20 @@ def _keep(path: Path, table: _TopicTable, metadata: BagMetadata,
         return None
     stats = summary.statistics
     for channel_id, channel in summary.channels.items():
-        table.add(channel, summary.schemas.get(channel.schema_id),
-                  stats.channel_message_counts.get(channel_id, 0))
+        table.add(
+            channel,
+            summary.schemas.get(channel.schema_id),
+            stats.channel_message_counts.get(channel_id, 0),
+        )
     record = FileRecord(path=path.name)
     record.add(stats.message_start_time, stats.message_end_time, stats.message_count)
     metadata.files.append(record)
-    return FileReport(path, read if walk.errors else stats.message_count, False,
-                      damage=str(walk.damage()) if walk.errors else "")
+    return FileReport(
+        path,
+        read if walk.errors else stats.message_count,
+        False,
+        damage=str(walk.damage()) if walk.errors else "",
+    )
 
 
 def reindex(path: str | Path) -> ReindexReport:
@@ -234,10 +277,12 @@ def reindex(path: str | Path) -> ReindexReport:
             previous = BagMetadata.read(path)
         except CorruptBagError:
             previous = None
-    metadata = BagMetadata(custom_data=dict(previous.custom_data) if previous else {},
-                           ros_distro=(previous.ros_distro if previous else "") or "jazzy",
-                           compression_format=previous.compression_format if previous else "",
-                           compression_mode=previous.compression_mode if previous else "")
+    metadata = BagMetadata(
+        custom_data=dict(previous.custom_data) if previous else {},
+        ros_distro=(previous.ros_distro if previous else "") or "jazzy",
+        compression_format=previous.compression_format if previous else "",
+        compression_mode=previous.compression_mode if previous else "",
+    )
     table = _TopicTable(previous)
     report = ReindexReport(path)
     listed = {Path(f.path).name: f.message_count for f in previous.files} if previous else {}
@@ -246,14 +291,18 @@ def reindex(path: str | Path) -> ReindexReport:
         count = listed.get(file.name) or None
         if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
             kept: FileReport | None = _keep(file, table, metadata, count) or FileReport(
-                file, 0, False, reason="file-compressed: checked, not rewritten")
+                file, 0, False, reason="file-compressed: checked, not rewritten"
+            )
         else:
             kept = _keep(file, table, metadata, count) if scan.has_footer else None
         report.files.append(kept or _rewrite(file, scan, table, metadata, count))
     metadata.topics = table.records()
-    untouched = (previous is not None and not any(f.rewritten or f.damage for f in report.files)
-                 and [Path(f.path).name for f in previous.files] == [f.name for f in files]
-                 and previous.message_count == metadata.message_count)  # and it tells the truth
+    untouched = (
+        previous is not None
+        and not any(f.rewritten or f.damage for f in report.files)
+        and [Path(f.path).name for f in previous.files] == [f.name for f in files]
+        and previous.message_count == metadata.message_count
+    )  # and it tells the truth
     if path.is_dir() and not untouched:  # a sound bag keeps its own metadata.yaml (any version)
         metadata.write(path)
     return report

@@ -36,8 +36,9 @@ def _gather(
     return values
 
 
-def _decode_generic(datas: Sequence[bytes], type_name: str
-                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
+def _decode_generic(
+    datas: Sequence[bytes], type_name: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     field, has_status = SERIES_FIELDS[type_name]
     messages = [deserialize(d, type_name) for d in datas]
     t = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in messages])
@@ -46,8 +47,9 @@ def _decode_generic(datas: Sequence[bytes], type_name: str
     return t, values, status
 
 
-def decode_series(datas: Sequence[bytes], type_name: str
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
+def decode_series(
+    datas: Sequence[bytes], type_name: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     """``(t [s], values, status|None)`` of serialised Voltage/Displacement messages."""
     _, has_status = SERIES_FIELDS[type_name]
     n = len(datas)
@@ -74,8 +76,13 @@ def decode_series(datas: Sequence[bytes], type_name: str
     return t, values.astype(np.float64), status
 
 
-def encode_series(type_name: str, t_ns: NDArray[np.int64], values: NDArray[np.float64],
-                  status: NDArray[np.uint8] | None = None, frame_id: str = "") -> list[bytes]:
+def encode_series(
+    type_name: str,
+    t_ns: NDArray[np.int64],
+    values: NDArray[np.float64],
+    status: NDArray[np.uint8] | None = None,
+    frame_id: str = "",
+) -> list[bytes]:
     """Serialised Voltage/Displacement messages (CDR, little endian) for stamps ``t_ns``
     [int ns], ``values`` and, for Displacement, ``status`` (default OK = 0), vectorised:
     the inverse of ``decode_series``, byte for byte what rosbags/rclpy produce.
@@ -85,8 +92,14 @@ def encode_series(type_name: str, t_ns: NDArray[np.int64], values: NDArray[np.fl
     n = t_ns.size
     frame = frame_id.encode("utf-8") + b"\0"
     value_at = (12 + len(frame) + 7) // 8 * 8
-    fields = [("encapsulation", "u1", (4,)), ("sec", "<i4"), ("nanosec", "<u4"),
-              ("frame_len", "<u4"), ("frame", "u1", (value_at - 12,)), ("value", "<f8")]
+    fields = [
+        ("encapsulation", "u1", (4,)),
+        ("sec", "<i4"),
+        ("nanosec", "<u4"),
+        ("frame_len", "<u4"),
+        ("frame", "u1", (value_at - 12,)),
+        ("value", "<f8"),
+    ]
     if has_status:
         fields.append(("status", "u1"))
     record = np.zeros(n, dtype=np.dtype(fields))
@@ -94,9 +107,9 @@ def encode_series(type_name: str, t_ns: NDArray[np.int64], values: NDArray[np.fl
     record["sec"], nanosec = np.divmod(t_ns, 1_000_000_000)
     record["nanosec"] = nanosec
     record["frame_len"] = len(frame)
-    record["frame"][:, :len(frame)] = np.frombuffer(frame, dtype=np.uint8)
+    record["frame"][:, : len(frame)] = np.frombuffer(frame, dtype=np.uint8)
     record["value"] = np.asarray(values, dtype=np.float64)
     if has_status:
         record["status"] = 0 if status is None else np.asarray(status, dtype=np.uint8)
     blob, size = record.tobytes(), record.dtype.itemsize
-    return [blob[i:i + size] for i in range(0, n * size, size)]
+    return [blob[i : i + size] for i in range(0, n * size, size)]

@@ -32,14 +32,31 @@ DEFINITION_SEPARATOR = "=" * 80 + "\n"
 #: Where the source tree keeps the project's .msg files (next to the python package).
 SOURCE_MSG_DIR = Path(__file__).resolve().parents[2] / PROJECT_PACKAGE / "msg"
 
-_PRIMITIVE_TYPES = frozenset({
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-    "int32", "uint32", "int64", "uint64", "string", "wstring",
-})
+_PRIMITIVE_TYPES = frozenset(
+    {
+        "bool",
+        "byte",
+        "char",
+        "float32",
+        "float64",
+        "int8",
+        "uint8",
+        "int16",
+        "uint16",
+        "int32",
+        "uint32",
+        "int64",
+        "uint64",
+        "string",
+        "wstring",
+    }
+)
 # rosbag2's MSG_FIELD_TYPE_REGEX: the type token at the start of each field line.
 _FIELD_TYPE_RE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
-_TYPE_NAME_RE = re.compile(r"^([a-zA-Z][a-zA-Z0-9_]*)/(?:([a-zA-Z][a-zA-Z0-9_]*)/)?"
-                           r"([a-zA-Z][a-zA-Z0-9_]*)$")
+_TYPE_NAME_RE = re.compile(
+    r"^([a-zA-Z][a-zA-Z0-9_]*)/(?:([a-zA-Z][a-zA-Z0-9_]*)/)?"
+    r"([a-zA-Z][a-zA-Z0-9_]*)$"
+)
 
 
 def split_type_name(type_name: str) -> tuple[str, str, str]:
@@ -47,7 +64,8 @@ def split_type_name(type_name: str) -> tuple[str, str, str]:
     match = _TYPE_NAME_RE.match(type_name)
     if match is None:
         raise UnknownMessageTypeError(
-            f"invalid message type name {type_name!r}: expected 'package/msg/Name'")
+            f"invalid message type name {type_name!r}: expected 'package/msg/Name'"
+        )
     package, namespace, name = match.groups()
     return package, namespace or "msg", name
 
@@ -167,7 +185,8 @@ def message_definition(type_name: str) -> str:
         if name not in store.fielddefs:
             raise UnknownMessageTypeError(
                 f"unknown message type {name}: not in the ROS 2 Jazzy typestore and no .msg "
-                f"file under {[str(d) for d in share_dirs()]}") from None
+                f"file under {[str(d) for d in share_dirs()]}"
+            ) from None
         return store.generate_msgdef(name, ros_version=2)[0]
 
 

@@ -53,15 +53,24 @@ class BagWriter:
     past ``max_bag_size`` or its receive-time span to ``max_bag_duration_s``.
     """
 
-    def __init__(self, path: str | Path, *, compression: str | None = None,
-                 max_bag_size: int = 0, max_bag_duration_s: float = 0.0,
-                 chunk_size: int = DEFAULT_CHUNK_SIZE, flush_period_s: float = 1.0,
-                 custom_data: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        compression: str | None = None,
+        max_bag_size: int = 0,
+        max_bag_duration_s: float = 0.0,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        flush_period_s: float = 1.0,
+        custom_data: dict[str, str] | None = None,
+    ) -> None:
         if compression not in _COMPRESSION:
             raise InvalidBagOptionError(f"compression must be None or 'zstd', got {compression!r}")
-        for name, value in (("max_bag_size", max_bag_size),
-                            ("max_bag_duration_s", max_bag_duration_s),
-                            ("flush_period_s", flush_period_s)):
+        for name, value in (
+            ("max_bag_size", max_bag_size),
+            ("max_bag_duration_s", max_bag_duration_s),
+            ("flush_period_s", flush_period_s),
+        ):
             if not value >= 0:
                 raise InvalidBagOptionError(f"{name} must be >= 0, got {value!r}")
         if not chunk_size > 0:
@@ -91,8 +100,9 @@ class BagWriter:
     def _open_file(self) -> None:
         name = f"{self.path.name}_{len(self._metadata.files)}.mcap"
         self._stream = open(self.path / name, "wb")
-        self._mcap = Writer(self._stream, chunk_size=self._chunk_size,
-                            compression=_COMPRESSION[self.compression])
+        self._mcap = Writer(
+            self._stream, chunk_size=self._chunk_size, compression=_COMPRESSION[self.compression]
+        )
         self._mcap.start(profile="ros2", library=LIBRARY)
         self._metadata.files.append(FileRecord(path=name))
         self._file_count = 0
@@ -107,13 +117,20 @@ class BagWriter:
         schema_id = self._schema_ids.get(topic.type)
         if schema_id is None:
             schema_id = self._mcap.register_schema(
-                name=topic.type, encoding="ros2msg",
-                data=message_definition(topic.type).encode("utf-8"))
+                name=topic.type,
+                encoding="ros2msg",
+                data=message_definition(topic.type).encode("utf-8"),
+            )
             self._schema_ids[topic.type] = schema_id
         channel_id = self._mcap.register_channel(
-            topic=topic.name, message_encoding=topic.serialization_format, schema_id=schema_id,
-            metadata={"offered_qos_profiles": profiles_to_yaml(topic.offered_qos_profiles),
-                      "topic_type_hash": topic.type_description_hash})
+            topic=topic.name,
+            message_encoding=topic.serialization_format,
+            schema_id=schema_id,
+            metadata={
+                "offered_qos_profiles": profiles_to_yaml(topic.offered_qos_profiles),
+                "topic_type_hash": topic.type_description_hash,
+            },
+        )
         self._slots.setdefault(topic.name, [0, 0])[0] = channel_id
 
     def _sync_metadata(self) -> None:
@@ -137,54 +154,75 @@ class BagWriter:
             return False
         if self._max_size and self._stream.tell() >= self._max_size:
             return True
-        return bool(self._max_duration_ns
-                    and log_time_ns - self._file_first >= self._max_duration_ns)
+        return bool(
+            self._max_duration_ns and log_time_ns - self._file_first >= self._max_duration_ns
+        )
 
     def _check_open(self) -> None:
         if self._closed:
             raise BagClosedError(f"bag {self.path} is closed")
 
     # -- public API -------------------------------------------------------------------------
-    def add_topic(self, name: str, type_name: str,
-                  offered_qos_profiles: str | list[dict[str, Any]] | None = None) -> None:
+    def add_topic(
+        self,
+        name: str,
+        type_name: str,
+        offered_qos_profiles: str | list[dict[str, Any]] | None = None,
+    ) -> None:
         """Declare a topic before writing to it. ``offered_qos_profiles``: the publishers'
         offers, as rosbag2's YAML string or a list of profile dicts (see ``bag.qos``).
         """
         self._check_open()
-        if not isinstance(name, str) or not name.startswith("/") or name.endswith("/") \
-                or "//" in name or " " in name:
+        if (
+            not isinstance(name, str)
+            or not name.startswith("/")
+            or name.endswith("/")
+            or "//" in name
+            or " " in name
+        ):
             raise InvalidTopicNameError(
-                f"topic name must be fully qualified like '/piezo/voltage', got {name!r}")
+                f"topic name must be fully qualified like '/piezo/voltage', got {name!r}"
+            )
         canonical = full_type_name(type_name)
         existing = self._topics.get(name)
         if existing is not None:
             if existing.type != canonical:
                 raise DuplicateTopicError(
-                    f"topic {name} is already recorded as {existing.type}, not {canonical}")
+                    f"topic {name} is already recorded as {existing.type}, not {canonical}"
+                )
             return
-        topic = TopicRecord(name=name, type=canonical,
-                            offered_qos_profiles=normalize_profiles(offered_qos_profiles),
-                            type_description_hash=type_hash(canonical))
+        topic = TopicRecord(
+            name=name,
+            type=canonical,
+            offered_qos_profiles=normalize_profiles(offered_qos_profiles),
+            type_description_hash=type_hash(canonical),
+        )
         message_definition(canonical)  # fail here, not at the next split, if it is unknown
         self._topics[name] = topic
         self._register(topic)
         self._sync_metadata()
         self._metadata.write(self.path)
 
-    def write(self, topic: str, data: bytes, log_time_ns: int,
-              publish_time_ns: int | None = None) -> None:
+    def write(
+        self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None
+    ) -> None:
         """Append one serialised (CDR) message received at ``log_time_ns`` [ns]."""
         slot = self._slots.get(topic)
         if slot is None:
             self._check_open()
             raise UnknownTopicError(
-                f"topic {topic!r} was not added to bag {self.path} (add_topic first)")
+                f"topic {topic!r} was not added to bag {self.path} (add_topic first)"
+            )
         if self._must_check_split and self._split_due(log_time_ns):
             self.split()
         slot[1] += 1
-        self._mcap.add_message(slot[0], log_time_ns, data,
-                               log_time_ns if publish_time_ns is None else publish_time_ns,
-                               slot[1])
+        self._mcap.add_message(
+            slot[0],
+            log_time_ns,
+            data,
+            log_time_ns if publish_time_ns is None else publish_time_ns,
+            slot[1],
+        )
         self._file_count += 1
         if log_time_ns < self._file_first:
             self._file_first = log_time_ns
@@ -226,8 +264,11 @@ class BagWriter:
     @property
     def message_count(self) -> int:
         """Messages written so far (all topics, all files)."""
-        return sum(slot[1] for slot in self._slots.values()) if not self._closed \
+        return (
+            sum(slot[1] for slot in self._slots.values())
+            if not self._closed
             else self._metadata.message_count
+        )
 
     @property
     def metadata(self) -> BagMetadata:

@@ -13,8 +13,10 @@ import re
 from typing import Any, TypeGuard
 
 _PLAIN_RE = re.compile(r"[A-Za-z0-9_/.][A-Za-z0-9_/.\-+]*")
-_NUMBER_RE = re.compile(r"[-+]?(\.[0-9]+|[0-9][0-9_]*(\.[0-9]*)?)([eE][-+]?[0-9]+)?"
-                        r"|0x[0-9a-fA-F]+|0o[0-7]+|[-+]?\.(inf|Inf|INF)|\.(nan|NaN|NAN)")
+_NUMBER_RE = re.compile(
+    r"[-+]?(\.[0-9]+|[0-9][0-9_]*(\.[0-9]*)?)([eE][-+]?[0-9]+)?"
+    r"|0x[0-9a-fA-F]+|0o[0-7]+|[-+]?\.(inf|Inf|INF)|\.(nan|NaN|NAN)"
+)
 _RESERVED = frozenset({"true", "false", "yes", "no", "on", "off", "y", "n", "null", "~"})
 
 
@@ -29,8 +31,11 @@ def scalar(value: Any) -> str:
     if isinstance(value, float):
         return repr(value)
     text = str(value)
-    if (_PLAIN_RE.fullmatch(text) and text.lower() not in _RESERVED
-            and not _NUMBER_RE.fullmatch(text)):
+    if (
+        _PLAIN_RE.fullmatch(text)
+        and text.lower() not in _RESERVED
+        and not _NUMBER_RE.fullmatch(text)
+    ):
         return text
     return json.dumps(text, ensure_ascii=False)
 
@@ -72,7 +77,7 @@ def _sequence(items: list[object] | tuple[object, ...], indent: int) -> list[str
             lines.append(f"{pad}- {_inline(item)}")
             continue
         body = _mapping(item, indent + 2) if isinstance(item, dict) else _sequence(item, indent + 2)
-        lines.append(f"{pad}- {body[0][indent + 2:]}")
+        lines.append(f"{pad}- {body[0][indent + 2 :]}")
         lines += body[1:]
     return lines
 

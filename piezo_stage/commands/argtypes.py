@@ -31,7 +31,8 @@ def physical(text: str) -> float:
     if value != 0 and not MIN_MAGNITUDE <= abs(value) <= MAX_MAGNITUDE:
         raise argparse.ArgumentTypeError(
             f"{text} is outside [{MIN_MAGNITUDE:g}, {MAX_MAGNITUDE:g}] in magnitude "
-            f"(double precision overflows or underflows)")
+            f"(double precision overflows or underflows)"
+        )
     return value
 
 
@@ -61,6 +62,7 @@ def probability(text: str) -> float:
 
 def int_range(lo: int, hi: int) -> Callable[[str], int]:
     """An integer in [lo, hi]."""
+
     def convert(text: str) -> int:
         try:
             value = int(text)
@@ -69,6 +71,7 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
         if not lo <= value <= hi:
             raise argparse.ArgumentTypeError(f"must be in [{lo}, {hi}], got {value}")
         return value
+
     return convert
 
 

@@ -26,8 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     export.add_argument("--csv", required=True, metavar="DIR", help="output folder")
     export.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
     for sub in (info, export):
-        sub.add_argument("--allow-damaged", action="store_true",
-                         help="exit 0 on a damaged bag (the damage is still reported)")
+        sub.add_argument(
+            "--allow-damaged",
+            action="store_true",
+            help="exit 0 on a damaged bag (the damage is still reported)",
+        )
     reindex = verbs.add_parser("reindex", help="make a killed recording complete and indexed")
     reindex.add_argument("bag", help="rosbag2 folder or .mcap file")
 
@@ -67,7 +70,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"piezo-stage bag {args.verb}: {exc}", file=sys.stderr)
         return bag_error_exit_code(exc)
     if damaged and not args.allow_damaged:
-        print(f"piezo-stage bag {args.verb}: the bag is damaged (see above); "
-              f"--allow-damaged accepts it", file=sys.stderr)
+        print(
+            f"piezo-stage bag {args.verb}: the bag is damaged (see above); "
+            f"--allow-damaged accepts it",
+            file=sys.stderr,
+        )
         return 1
     return 0

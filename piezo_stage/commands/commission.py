@@ -162,8 +162,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"piezo-stage commission: {exc}", file=sys.stderr)
         return 2
     if args.frequencies is None:
-        progress("sweep", f"frequencies {', '.join(f'{f:g}' for f in settings.frequencies)} Hz "
-                 f"(chosen for the {rig.rate_hz:g} Hz sensor)")
+        progress(
+            "sweep",
+            f"frequencies {', '.join(f'{f:g}' for f in settings.frequencies)} Hz "
+            f"(chosen for the {rig.rate_hz:g} Hz sensor)",
+        )
     options = Options(
         sweep=settings,
         step_size=args.step_size,

@@ -25,8 +25,14 @@ from typing import Any, Callable, Sequence
 #: ch. 10 patch sampled at this lockstep rate: 1000 samples per 0.1 Hz triangle period
 DEFAULT_RATE_HZ = 100.0
 #: what the demo records (the stage's topics in its namespace)
-DEMO_TOPICS = ("voltage_command", "voltage", "displacement", "excitation", "limit_cycles",
-               "bouc_wen_parameters")
+DEMO_TOPICS = (
+    "voltage_command",
+    "voltage",
+    "displacement",
+    "excitation",
+    "limit_cycles",
+    "bouc_wen_parameters",
+)
 
 
 # ------------------------------------------------------------------ progress display
@@ -66,8 +72,12 @@ class Progress:
             print(file=self.stream)
         self._last_step = -1
         took = time.monotonic() - self._stage_t0
-        print(f"[{time.monotonic() - self.t0:6.1f} s]   done in {took:.1f} s"
-              + (f": {note}" if note else ""), file=self.stream, flush=True)
+        print(
+            f"[{time.monotonic() - self.t0:6.1f} s]   done in {took:.1f} s"
+            + (f": {note}" if note else ""),
+            file=self.stream,
+            flush=True,
+        )
 
 
 # ------------------------------------------------------------------ stages
@@ -95,8 +105,9 @@ def parameter_table(true: Any, columns: Sequence[tuple[str, Any]]) -> str:
     from piezo_stage.experiments.identification import parameter_values
 
     t = parameter_values(true)
-    head = f"{'parameter':<10} {'true':>13}" + "".join(f" {name:>13} {'rel. error':>10}"
-                                                     for name, _ in columns)
+    head = f"{'parameter':<10} {'true':>13}" + "".join(
+        f" {name:>13} {'rel. error':>10}" for name, _ in columns
+    )
     lines = [head, "-" * len(head)]
     for key in t:
         row = f"{key:<10} {t[key]:>13.6g}"
@@ -113,12 +124,13 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
 
     labels = {
         "record": "(a) ch. 10 identification experiment: plant (lockstep) + excitation + "
-                  "identifier + recorder",
+        "identifier + recorder",
         "replay": "(b) identification by replaying the bag through the identifier node "
-                  "(player -> identifier)",
+        "(player -> identifier)",
         "offline": "(b) identification of the bag offline (piezo-stage identify, same run "
-                   "cutting as the node)",
-        "plots": "plots of the identification"}
+        "cutting as the node)",
+        "plots": "plots of the identification",
+    }
     current: list[str] = []
 
     def report(stage: str, fraction: float | None) -> None:
@@ -130,8 +142,15 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
         current[:] = [stage]
         progress.stage(labels[stage])
 
-    result = identification_experiment(out, rate_hz=args.rate, degree=2, settle_periods=8,
-                                       topics=DEMO_TOPICS, png_dir=out / "png", progress=report)
+    result = identification_experiment(
+        out,
+        rate_hz=args.rate,
+        degree=2,
+        settle_periods=8,
+        topics=DEMO_TOPICS,
+        png_dir=out / "png",
+        progress=report,
+    )
     progress.done(f"namespace {result.run.namespace}, bag {result.run.bag}")
     for label, why in result.failed.items():
         print(f"WARNING: the {label} identification (identifier node) failed: {why}")
@@ -139,17 +158,26 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
     print(parameter_table(result.true, list(result.found.items())))
     if result.spread is not None:
         nodes = ", ".join(label for label in result.found if label != "from bag")
-        print(f"{nodes} vs from bag: largest relative difference {result.spread:.3g} (the node "
-              "cuts and identifies the runs as piezo-stage identify does)")
+        print(
+            f"{nodes} vs from bag: largest relative difference {result.spread:.3g} (the node "
+            "cuts and identifies the runs as piezo-stage identify does)"
+        )
     err = result.validation.summary()
-    print(f"\nmodel error on a validation input (sine 0.05 Hz + random, {err['samples']} samples): "
-          f"RMS {err['rms'] * 1e6:.4g} µm, max {err['max'] * 1e6:.4g} µm "
-          f"({err['rms_percent']:.3g} % / {err['max_percent']:.3g} % of the "
-          f"{err['span'] * 1e6:.3g} µm span)")
-    print(f"largest relative parameter error {result.worst_error:.2e} (accepted up to "
-          f"{TOLERANCE:g}): {'OK' if result.ok else 'FAILED'}")
-    return StageResult(result.ok, result.files,
-                       "" if result.ok else "the identified parameters are not within tolerance")
+    print(
+        f"\nmodel error on a validation input (sine 0.05 Hz + random, {err['samples']} samples): "
+        f"RMS {err['rms'] * 1e6:.4g} µm, max {err['max'] * 1e6:.4g} µm "
+        f"({err['rms_percent']:.3g} % / {err['max_percent']:.3g} % of the "
+        f"{err['span'] * 1e6:.3g} µm span)"
+    )
+    print(
+        f"largest relative parameter error {result.worst_error:.2e} (accepted up to "
+        f"{TOLERANCE:g}): {'OK' if result.ok else 'FAILED'}"
+    )
+    return StageResult(
+        result.ok,
+        result.files,
+        "" if result.ok else "the identified parameters are not within tolerance",
+    )
 
 
 def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> StageResult:
@@ -162,21 +190,29 @@ def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> Sta
     with isolated_domain():
         for mode in LAWS:
             progress.stage(f"(c) ch. 11 perturbation experiment, mode {mode}")
-            result = run_experiment("perturbation", mode, bag=out / f"perturbation_{mode}",
-                                    png_dir=out / "png",
-                                    progress=lambda f, text="": progress.bar(f))
+            result = run_experiment(
+                "perturbation",
+                mode,
+                bag=out / f"perturbation_{mode}",
+                png_dir=out / "png",
+                progress=lambda f, text="": progress.bar(f),
+            )
             progress.done(f"{result.get('samples', 0)} steps")
             rows.append((mode, result))
             files.append(Path(result["bag"]))
             files.extend(Path(p) for p in result.get("png", []))
     print("\nperturbation experiment (ch. 11): loop opened, then closed again")
-    print(f"{'mode':<9} {'u before [V]':>13} {'u after [V]':>12} {'settling [s]':>13} "
-          f"{'max error [µm]':>15}")
+    print(
+        f"{'mode':<9} {'u before [V]':>13} {'u after [V]':>12} {'settling [s]':>13} "
+        f"{'max error [µm]':>15}"
+    )
     for mode, r in rows:
-        u_before, u_after, settling, error = (r.get(k, math.nan) for k in (
-            "u_before", "u_after", "settling_time", "max_abs_error"))
-        print(f"{mode:<9} {u_before:>13.4g} {u_after:>12.4g} {settling:>13.4g} "
-              f"{1e6 * error:>15.4g}")
+        u_before, u_after, settling, error = (
+            r.get(k, math.nan) for k in ("u_before", "u_after", "settling_time", "max_abs_error")
+        )
+        print(
+            f"{mode:<9} {u_before:>13.4g} {u_after:>12.4g} {settling:>13.4g} {1e6 * error:>15.4g}"
+        )
     return StageResult(True, files)
 
 
@@ -191,35 +227,60 @@ def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageR
     identify_model(model)
     progress.done(str(model))
     progress.stage("(d) tracking a 10 Hz triangle over 20 µm: both, then feedback only")
-    spec = TrackingSpec(trajectory="triangle", amplitude=10e-6, frequency=10.0,
-                        compensation="both", model=str(model), periods=2)
+    spec = TrackingSpec(
+        trajectory="triangle",
+        amplitude=10e-6,
+        frequency=10.0,
+        compensation="both",
+        model=str(model),
+        periods=2,
+    )
     with isolated_domain():
-        r = run_tracking(spec, compare=True, bag=out / "tracking", png_dir=out / "png",
-                         progress=lambda f, text="": progress.bar(f))
+        r = run_tracking(
+            spec,
+            compare=True,
+            bag=out / "tracking",
+            png_dir=out / "png",
+            progress=lambda f, text="": progress.bar(f),
+        )
     progress.done(f"{r['samples']} steps")
     fb = r["feedback"]
     print("\ntracking: 10 Hz triangle over 20 µm, RMS error over the second period")
     print(f"{'compensation':<13} {'RMS [nm]':>9} {'max [nm]':>9} {'of range':>9}")
     for label, f in (("both", r), ("feedback", fb)):
-        print(f"{label:<13} {1e9 * f['rms_error']:>9.4g} {1e9 * f['max_error']:>9.4g} "
-              f"{100 * f['rms_relative']:>8.3g}%")
-    progress.stage("(d) the same triangle at a rig's 1 kHz: the feedforward learned over 20 "
-                   "periods")
+        print(
+            f"{label:<13} {1e9 * f['rms_error']:>9.4g} {1e9 * f['max_error']:>9.4g} "
+            f"{100 * f['rms_relative']:>8.3g}%"
+        )
+    progress.stage(
+        "(d) the same triangle at a rig's 1 kHz: the feedforward learned over 20 periods"
+    )
     with isolated_domain():
-        learned = run_tracking(replace(spec, rate_hz=1000.0, learn=20, periods=3),
-                               png_dir=out / "png", progress=lambda f, text="": progress.bar(f))
+        learned = run_tracking(
+            replace(spec, rate_hz=1000.0, learn=20, periods=3),
+            png_dir=out / "png",
+            progress=lambda f, text="": progress.bar(f),
+        )
     progress.done(f"{len(learned['learning'])} learning periods")
     first = learned["learning"][0] / learned["range"]
-    print(f"at 1 kHz: first period {100 * first:.3g} % of the range (the sampled "
-          f"feedforward), after learning {100 * learned['rms_relative']:.3g} %")
-    ok = r["rms_relative"] <= 0.005 and r["rms_ratio"] <= 0.2 \
-        and learned["rms_relative"] <= 0.002
-    return StageResult(ok, [model, Path(r["bag"]), *(Path(p) for p in r.get("png", [])),
-                            *(Path(p) for p in learned.get("png", []))],
-                       problem=f"tracking RMS {100 * r['rms_relative']:.3g} % of the range, "
-                               f"{r['rms_ratio']:.3g} x feedback only, learned at 1 kHz "
-                               f"{100 * learned['rms_relative']:.3g} % (targets 0.5 %, 0.2 x, "
-                               "0.2 %)")
+    print(
+        f"at 1 kHz: first period {100 * first:.3g} % of the range (the sampled "
+        f"feedforward), after learning {100 * learned['rms_relative']:.3g} %"
+    )
+    ok = r["rms_relative"] <= 0.005 and r["rms_ratio"] <= 0.2 and learned["rms_relative"] <= 0.002
+    return StageResult(
+        ok,
+        [
+            model,
+            Path(r["bag"]),
+            *(Path(p) for p in r.get("png", [])),
+            *(Path(p) for p in learned.get("png", [])),
+        ],
+        problem=f"tracking RMS {100 * r['rms_relative']:.3g} % of the range, "
+        f"{r['rms_ratio']:.3g} x feedback only, learned at 1 kHz "
+        f"{100 * learned['rms_relative']:.3g} % (targets 0.5 %, 0.2 x, "
+        "0.2 %)",
+    )
 
 
 #: the demo's stages, in order (add one here: a Stage with a name, its function, and when it runs)
@@ -234,14 +295,23 @@ STAGES: list[Stage] = [
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from piezo_stage.commands.argtypes import positive
 
-    parser.add_argument("--out", "-o", metavar="DIR", default="demo_output",
-                        help="folder for the bags and PNGs (default: ./demo_output); must not "
-                             "hold a previous demo's bags")
-    parser.add_argument("--rate", type=positive, default=DEFAULT_RATE_HZ,
-                        help="lockstep plant rate of the identification run [Hz] "
-                             f"(default {DEFAULT_RATE_HZ:g})")
-    parser.add_argument("--skip-closed-loop", action="store_true",
-                        help="identification only (parts a, b)")
+    parser.add_argument(
+        "--out",
+        "-o",
+        metavar="DIR",
+        default="demo_output",
+        help="folder for the bags and PNGs (default: ./demo_output); must not "
+        "hold a previous demo's bags",
+    )
+    parser.add_argument(
+        "--rate",
+        type=positive,
+        default=DEFAULT_RATE_HZ,
+        help=f"lockstep plant rate of the identification run [Hz] (default {DEFAULT_RATE_HZ:g})",
+    )
+    parser.add_argument(
+        "--skip-closed-loop", action="store_true", help="identification only (parts a, b)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -81,28 +81,39 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         "--plant-model", default="ch11_rig.yaml", help="the simulated rig (ch11_rig.yaml)"
     )
     group.add_argument(
-        "--periods", type=float, default=3.0,
+        "--periods",
+        type=float,
+        default=3.0,
         help="periods to run, the first not measured (with --learn: measured after learning)",
     )
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
     group.add_argument(
-        "--graph", choices=("sim", "emulated_rig"), default="sim",
+        "--graph",
+        choices=("sim", "emulated_rig"),
+        default="sim",
         help="sim: the lockstep plant; emulated_rig: `emulate rig` around the plant model with "
         "the driver, reader and controller in one process (real time; x_d from 6 um up unless "
         "--offset)",
     )
     group.add_argument(
-        "--rate-hz", type=float, default=None,
+        "--rate-hz",
+        type=float,
+        default=None,
         help="the loop rate (sim: 100000; emulated_rig: its sensor's, 1000 or 10000); refused "
         "where the law's gains fail the sampled-loop check",
     )
     group.add_argument(
-        "--learn", type=int, default=0, metavar="N",
+        "--learn",
+        type=int,
+        default=0,
+        metavar="N",
         help="learn the feedforward over N periods, then measure --periods more (after one "
         "settling period) with it frozen",
     )
     group.add_argument(
-        "--feedforward-form", choices=("auto", "sampled", "continuous"), default="auto",
+        "--feedforward-form",
+        choices=("auto", "sampled", "continuous"),
+        default="auto",
         help="the staircase the model says the sampled loop needs, or the model stepped along "
         "x_d (auto: sampled below 10x the model's resonance)",
     )

@@ -38,48 +38,102 @@ class UsageError(PiezoStageError, ValueError):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", metavar="RUN", nargs="+",
-                        help="recorded runs (CSV, bag folder or .mcap); the analytic method "
-                             "needs two, x(t) and x(t)+q (or one bag holding both)")
-    parser.add_argument("--method", choices=[m.value for m in Method], default=Method.AUTO.value,
-                        help="analytic (ch. 9-10), fit (simulation error, any runs) or auto "
-                             "(analytic when its preconditions hold, else fit; default)")
-    parser.add_argument("--degree", "-N", type=int, default=1,
-                        help="degree N of the polynomial part (10.4); 1 = plain Bouc-Wen (default)")
-    parser.add_argument("--no-refine", action="store_true",
-                        help="analytic method: the Table 10.2 estimate without least-squares "
-                             "refinement")
-    parser.add_argument("--drift", choices=[k.value for k in DriftKind], default="none",
-                        help="fit: a slow output drift per run, linear or logarithmic in time "
-                             "(creep; default none)")
-    parser.add_argument("--no-delay", action="store_true",
-                        help="fit: do not estimate an input-to-output delay")
-    parser.add_argument("--holdout", type=float, default=FitOptions.holdout, metavar="FRACTION",
-                        help="fit: share of each run (its end) held out to check the model's "
-                             "prediction when runs hold more than 3 periods (default 0.25; 0: off)")
+    parser.add_argument(
+        "runs",
+        metavar="RUN",
+        nargs="+",
+        help="recorded runs (CSV, bag folder or .mcap); the analytic method "
+        "needs two, x(t) and x(t)+q (or one bag holding both)",
+    )
+    parser.add_argument(
+        "--method",
+        choices=[m.value for m in Method],
+        default=Method.AUTO.value,
+        help="analytic (ch. 9-10), fit (simulation error, any runs) or auto "
+        "(analytic when its preconditions hold, else fit; default)",
+    )
+    parser.add_argument(
+        "--degree",
+        "-N",
+        type=int,
+        default=1,
+        help="degree N of the polynomial part (10.4); 1 = plain Bouc-Wen (default)",
+    )
+    parser.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="analytic method: the Table 10.2 estimate without least-squares refinement",
+    )
+    parser.add_argument(
+        "--drift",
+        choices=[k.value for k in DriftKind],
+        default="none",
+        help="fit: a slow output drift per run, linear or logarithmic in time "
+        "(creep; default none)",
+    )
+    parser.add_argument(
+        "--no-delay", action="store_true", help="fit: do not estimate an input-to-output delay"
+    )
+    parser.add_argument(
+        "--holdout",
+        type=float,
+        default=FitOptions.holdout,
+        metavar="FRACTION",
+        help="fit: share of each run (its end) held out to check the model's "
+        "prediction when runs hold more than 3 periods (default 0.25; 0: off)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--output", "-o", metavar="PARAMS_YAML",
-                        help="write the identified parameter set (YAML) here")
-    parser.add_argument("--plots", metavar="DIR", default=None,
-                        help="folder for PNGs of the fit (default: the folder of --output)")
+    parser.add_argument(
+        "--output",
+        "-o",
+        metavar="PARAMS_YAML",
+        help="write the identified parameter set (YAML) here",
+    )
+    parser.add_argument(
+        "--plots",
+        metavar="DIR",
+        default=None,
+        help="folder for PNGs of the fit (default: the folder of --output)",
+    )
     parser.add_argument("--no-plot", action="store_true", help="write no PNGs")
     parser.add_argument("--name", default="identified", help="name stored in the parameter set")
     parser.add_argument("--input-topic", default="/piezo/voltage")
     parser.add_argument("--output-topic", default="/piezo/displacement")
     parser.add_argument("--excitation-topic", default=DEFAULT_EXCITATION_TOPIC)
-    parser.add_argument("--input-sign", choices=("auto", "+1", "-1"), default="auto",
-                        help="sign of the input driving w (default: from the loop orientation)")
-    parser.add_argument("--design-points", metavar="F1,F2,F3", default=None,
-                        help="Table 10.1 design points as fractions: x*1, x*2 of [x*, Xmax], "
-                             "x*3 of [Xmin, x*] (default 0.6,0.95,0.05)")
-    parser.add_argument("--steady-periods", type=int, default=None, metavar="K",
-                        help="average the last K periods of each run instead of detecting the "
-                             "steady state (periods that agree with the last one)")
-    parser.add_argument("--filter", action="store_true",
-                        help="apply the §10.3.2 second-order filter (zero phase) to the cycles")
-    parser.add_argument("--max-rms", type=float, default=None, metavar="FRACTION",
-                        help="accept a residual RMS up to this fraction of the output span "
-                             "before reporting a bad fit (default 0.005 analytic, 0.02 fit)")
+    parser.add_argument(
+        "--input-sign",
+        choices=("auto", "+1", "-1"),
+        default="auto",
+        help="sign of the input driving w (default: from the loop orientation)",
+    )
+    parser.add_argument(
+        "--design-points",
+        metavar="F1,F2,F3",
+        default=None,
+        help="Table 10.1 design points as fractions: x*1, x*2 of [x*, Xmax], "
+        "x*3 of [Xmin, x*] (default 0.6,0.95,0.05)",
+    )
+    parser.add_argument(
+        "--steady-periods",
+        type=int,
+        default=None,
+        metavar="K",
+        help="average the last K periods of each run instead of detecting the "
+        "steady state (periods that agree with the last one)",
+    )
+    parser.add_argument(
+        "--filter",
+        action="store_true",
+        help="apply the §10.3.2 second-order filter (zero phase) to the cycles",
+    )
+    parser.add_argument(
+        "--max-rms",
+        type=float,
+        default=None,
+        metavar="FRACTION",
+        help="accept a residual RMS up to this fraction of the output span "
+        "before reporting a bad fit (default 0.005 analytic, 0.02 fit)",
+    )
 
 
 def _fraction(name: str, value: float, lo: float, hi: float, *, open_lo: bool = True) -> None:
@@ -96,8 +150,8 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
             f1, f2, f3 = (float(s) for s in args.design_points.split(","))
         except ValueError:
             raise UsageError(  # noqa: B904 - the message says it all
-                "--design-points needs three comma-separated fractions, "
-                f"got {args.design_points!r}")
+                f"--design-points needs three comma-separated fractions, got {args.design_points!r}"
+            )
         for label, f in (("F1", f1), ("F2", f2), ("F3", f3)):
             _fraction(f"--design-points {label}", f, 0.0, 1.0, open_lo=False)
         design = DesignPoints(f1=f1, f2=f2, f3=f3)
@@ -105,7 +159,8 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
         raise UsageError(f"--degree must be an integer >= 1, got {args.degree}")
     if args.steady_periods is not None and args.steady_periods < 1:
         raise UsageError(
-            f"--steady-periods must be >= 1 (periods to average), got {args.steady_periods}")
+            f"--steady-periods must be >= 1 (periods to average), got {args.steady_periods}"
+        )
     fit = FitOptions(drift=DriftKind(args.drift), fit_delay=not args.no_delay)
     _fraction("--holdout", args.holdout, 0.0, 0.9, open_lo=False)
     fit = replace(fit, holdout=args.holdout)
@@ -115,10 +170,13 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
         refinement = RefineOptions(max_rms_fraction=args.max_rms)
         fit = replace(fit, max_rms_fraction=args.max_rms)
     options = IdentifyOptions(
-        degree=args.degree, refine=not args.no_refine,
+        degree=args.degree,
+        refine=not args.no_refine,
         input_sign=None if args.input_sign == "auto" else int(args.input_sign),
         cycle=CycleOptions(data_filter=args.filter, steady_periods=args.steady_periods),
-        design=design, refinement=refinement)
+        design=design,
+        refinement=refinement,
+    )
     return options, fit
 
 
@@ -131,8 +189,14 @@ def _text(result: IdentificationResult) -> str:
 
     def row(label: str, get) -> None:
         sd = std.get(label)
-        rows.append((label, f"{get(final):.6g}", f"{sd:.2g}" if sd is not None else "",
-                     f"{get(first):.6g}" if first is not None else "-"))
+        rows.append(
+            (
+                label,
+                f"{get(final):.6g}",
+                f"{sd:.2g}" if sd is not None else "",
+                f"{get(first):.6g}" if first is not None else "-",
+            )
+        )
 
     for i in range(len(final.kappa)):
         row(f"kappa_{i + 1}", lambda p, i=i: p.kappa[i])
@@ -143,20 +207,26 @@ def _text(result: IdentificationResult) -> str:
     lines = [f"{a:<{width}}  {b:>14}  {c:>8}  {d:>14}" for a, b, c, d in rows]
     d = result.diagnostics
     q = f", q = {d['q']:.6g}" if d.get("q") is not None else ""
-    lines.append(f"method {result.method}, input_sign {final.input_sign:+d}{q}, "
-                 f"w(0) = {result.w0:.6g}, samples {result.samples}"
-                 + (f", steady periods {d['steady_periods']}" if "steady_periods" in d else ""))
+    lines.append(
+        f"method {result.method}, input_sign {final.input_sign:+d}{q}, "
+        f"w(0) = {result.w0:.6g}, samples {result.samples}"
+        + (f", steady periods {d['steady_periods']}" if "steady_periods" in d else "")
+    )
     if fitted:
         extra = [f"delay {1e3 * result.delay:.3g} ms (± {1e3 * std.get('delay', 0.0):.2g})"]
         if result.drift is not None:
             change = d["drift_change"][0]
-            extra.append(f"drift {result.drift.kind.value}: {change:.4g} over the record "
-                         f"({100 * change / d['output_span']:.3g} % of span; coefficient "
-                         f"{result.drift.coefficient:.4g}, time constant "
-                         f"{result.drift.time_constant:.3g} s)")
+            extra.append(
+                f"drift {result.drift.kind.value}: {change:.4g} over the record "
+                f"({100 * change / d['output_span']:.3g} % of span; coefficient "
+                f"{result.drift.coefficient:.4g}, time constant "
+                f"{result.drift.time_constant:.3g} s)"
+            )
         if "holdout_rms" in d:
-            extra.append(f"held-out last {100 * d['holdout_fraction']:.0f} %: RMS "
-                         f"{d['holdout_rms']:.4g} ({d['holdout_rms_percent']:.3g} % of span)")
+            extra.append(
+                f"held-out last {100 * d['holdout_fraction']:.0f} %: RMS "
+                f"{d['holdout_rms']:.4g} ({d['holdout_rms_percent']:.3g} % of span)"
+            )
         lines.append(", ".join(extra))
         if d.get("analytic_problem"):
             lines.append(f"analytic method not used: {d['analytic_problem']}")
@@ -176,8 +246,12 @@ def _plot(result: IdentificationResult, runs, out_dir: Path, stem: str) -> list[
     for i, rec in enumerate(runs):
         label = stem if len(runs) == 1 else f"{stem}_run{i}"
         if result.fitted:
-            res = ValidationResult(recording=rec, model=result.fitted[i],
-                                   w0=result.diagnostics["w0_runs"][i], w0_clipped=False)
+            res = ValidationResult(
+                recording=rec,
+                model=result.fitted[i],
+                w0=result.diagnostics["w0_runs"][i],
+                w0_clipped=False,
+            )
         else:
             res = validate_model(result.parameters, rec)
         written += plot_validation(res, out_dir, label)

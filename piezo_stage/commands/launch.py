@@ -61,11 +61,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="colour the name prefixes (auto: when the output is a terminal)",
     )
-    parser.add_argument("--view", action="store_true",
-                        help="also run live_view: the graph's topics live in the Foxglove app "
-                             "(ws://127.0.0.1:8765; piezo-stage view --help)")
-    parser.add_argument("--view-port", metavar="PORT", type=int_range(0, 65535), default=None,
-                        help="live_view's port (default 8765; implies --view)")
+    parser.add_argument(
+        "--view",
+        action="store_true",
+        help="also run live_view: the graph's topics live in the Foxglove app "
+        "(ws://127.0.0.1:8765; piezo-stage view --help)",
+    )
+    parser.add_argument(
+        "--view-port",
+        metavar="PORT",
+        type=int_range(0, 65535),
+        default=None,
+        help="live_view's port (default 8765; implies --view)",
+    )
     parser.add_argument("--dry-run", action="store_true", help="print the commands and exit")
     parser.add_argument(
         "--export-launch-py",
@@ -87,8 +95,11 @@ def run(args: argparse.Namespace) -> int:
             view = {"executable": "live_view", "overrides": {"port": args.view_port or 8765}}
             graph_source = load_graph(args.graph).with_node(view)
         launcher = Launcher(
-            graph_source, namespace=args.ns, params=args.param, color=args.color,
-            timeout=args.timeout
+            graph_source,
+            namespace=args.ns,
+            params=args.param,
+            color=args.color,
+            timeout=args.timeout,
         )
     except GraphError as exc:
         _error(str(exc))

@@ -12,8 +12,13 @@ import sys
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="BAG", help="rosbag2 folder or .mcap file")
-    parser.add_argument("--out", "-o", metavar="DIR", default=None,
-                        help="folder for the PNGs (default: BAG_plots next to the bag)")
+    parser.add_argument(
+        "--out",
+        "-o",
+        metavar="DIR",
+        default=None,
+        help="folder for the PNGs (default: BAG_plots next to the bag)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

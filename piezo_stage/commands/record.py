@@ -26,25 +26,59 @@ _FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ns", default="/piezo", metavar="NS",
-                        help="namespace recorded (default /piezo)")
-    parser.add_argument("-o", "--output", metavar="BAG", default=None,
-                        help="bag folder to create (default rosbag2_<date>-<time>)")
-    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
-                        help="only these topics (relative names are in --ns)")
-    parser.add_argument("--regex", metavar="RE", default="",
-                        help="also every topic whose full name matches RE (e.g. '.*' for all)")
-    parser.add_argument("--compression", choices=("none", "zstd"), default="none",
-                        help="MCAP chunk compression")
-    parser.add_argument("--duration", type=positive, metavar="S", default=None,
-                        help="stop after S seconds (default: until Ctrl-C)")
-    parser.add_argument("--max-bag-size", type=int_range(0, 2**63 - 1), metavar="BYTES", default=0,
-                        help="split the bag into files of this size")
-    parser.add_argument("--max-bag-duration", type=non_negative, metavar="S", default=0.0,
-                        help="split the bag into files of this span")
+    parser.add_argument(
+        "--ns", default="/piezo", metavar="NS", help="namespace recorded (default /piezo)"
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        metavar="BAG",
+        default=None,
+        help="bag folder to create (default rosbag2_<date>-<time>)",
+    )
+    parser.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        default=[],
+        help="only these topics (relative names are in --ns)",
+    )
+    parser.add_argument(
+        "--regex",
+        metavar="RE",
+        default="",
+        help="also every topic whose full name matches RE (e.g. '.*' for all)",
+    )
+    parser.add_argument(
+        "--compression", choices=("none", "zstd"), default="none", help="MCAP chunk compression"
+    )
+    parser.add_argument(
+        "--duration",
+        type=positive,
+        metavar="S",
+        default=None,
+        help="stop after S seconds (default: until Ctrl-C)",
+    )
+    parser.add_argument(
+        "--max-bag-size",
+        type=int_range(0, 2**63 - 1),
+        metavar="BYTES",
+        default=0,
+        help="split the bag into files of this size",
+    )
+    parser.add_argument(
+        "--max-bag-duration",
+        type=non_negative,
+        metavar="S",
+        default=0.0,
+        help="split the bag into files of this span",
+    )
     parser.add_argument("--use-sim-time", action="store_true", help="stamp with /clock time")
-    parser.add_argument("--start-paused", action="store_true",
-                        help="write nothing until the node's ~/start service is called")
+    parser.add_argument(
+        "--start-paused",
+        action="store_true",
+        help="write nothing until the node's ~/start service is called",
+    )
 
 
 def node_env() -> dict[str, str]:
@@ -63,8 +97,16 @@ def run_node(module: str, ros_args: Sequence[str], stop_after: float | None = No
     """Run a node module as a child process (it dies with this one) until it exits; forward
     SIGINT/SIGTERM/SIGHUP to it as SIGINT; with ``stop_after`` [s], send SIGINT then.
     Returns the child's exit status (128 + N when killed by signal N)."""
-    argv = [sys.executable, "-m", NODE_BOOTSTRAP, str(os.getpid()), "module", module,
-            "--ros-args", *ros_args]
+    argv = [
+        sys.executable,
+        "-m",
+        NODE_BOOTSTRAP,
+        str(os.getpid()),
+        "module",
+        module,
+        "--ros-args",
+        *ros_args,
+    ]
     # own session: a terminal's Ctrl-C reaches only this process, which forwards it once
     child = subprocess.Popen(argv, env=node_env(), start_new_session=True)
 
@@ -92,9 +134,14 @@ def run_node(module: str, ros_args: Sequence[str], stop_after: float | None = No
 def ros_args(args: argparse.Namespace, bag: Path) -> list[str]:
     from piezo_stage.launch.commandline import ros_value
 
-    params = {"bag": str(bag), "compression": args.compression,
-              "max_bag_size": args.max_bag_size, "max_bag_duration": float(args.max_bag_duration),
-              "start_paused": args.start_paused, "use_sim_time": args.use_sim_time}
+    params = {
+        "bag": str(bag),
+        "compression": args.compression,
+        "max_bag_size": args.max_bag_size,
+        "max_bag_duration": float(args.max_bag_duration),
+        "start_paused": args.start_paused,
+        "use_sim_time": args.use_sim_time,
+    }
     if args.topics:
         params["topics"] = list(args.topics)
     if args.regex:
@@ -113,8 +160,9 @@ def run(args: argparse.Namespace) -> int:
     if bag.exists() and (not bag.is_dir() or any(bag.iterdir())):
         print(f"piezo-stage record: {bag} already exists", file=sys.stderr)
         return 1
-    print(f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"),
-          flush=True)
+    print(
+        f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True
+    )
     code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag), args.duration)
     try:
         info = bag_info(bag)
@@ -128,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
     for damage in info["damage"]:
         print(f"piezo-stage record: warning: {damage}", file=sys.stderr)
     if code == 0 and not info["complete"]:  # e.g. a full disk: the recorder could not close it
-        print(f"piezo-stage record: {bag} was not closed (disk full or the recorder failed): "
-              f"run `piezo-stage bag reindex {bag}`", file=sys.stderr)
+        print(
+            f"piezo-stage record: {bag} was not closed (disk full or the recorder failed): "
+            f"run `piezo-stage bag reindex {bag}`",
+            file=sys.stderr,
+        )
         return 1
     return code or (1 if info["damage"] else 0)

@@ -20,19 +20,41 @@ from piezo_stage.commands.record import run_node
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ns", default="/piezo", metavar="NS",
-                        help="namespace served (default /piezo)")
-    parser.add_argument("--host", default="127.0.0.1",
-                        help="address to serve on (default 127.0.0.1: this machine only)")
-    parser.add_argument("--port", type=int_range(0, 65535), default=8765,
-                        help="WebSocket port (default 8765, the app's default; 0 = any free)")
-    parser.add_argument("--max-rate", type=non_negative, metavar="HZ", default=100.0,
-                        help="most messages per second and topic sent to the app (0 = all)")
-    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=[],
-                        help="only these topics (relative names are in --ns)")
-    parser.add_argument("--write-layout", metavar="FILE", default=None,
-                        help="write the stage's Foxglove layout for --ns to FILE and exit "
-                             "(config/foxglove/piezo_stage.json is the one for /piezo)")
+    parser.add_argument(
+        "--ns", default="/piezo", metavar="NS", help="namespace served (default /piezo)"
+    )
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to serve on (default 127.0.0.1: this machine only)",
+    )
+    parser.add_argument(
+        "--port",
+        type=int_range(0, 65535),
+        default=8765,
+        help="WebSocket port (default 8765, the app's default; 0 = any free)",
+    )
+    parser.add_argument(
+        "--max-rate",
+        type=non_negative,
+        metavar="HZ",
+        default=100.0,
+        help="most messages per second and topic sent to the app (0 = all)",
+    )
+    parser.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        default=[],
+        help="only these topics (relative names are in --ns)",
+    )
+    parser.add_argument(
+        "--write-layout",
+        metavar="FILE",
+        default=None,
+        help="write the stage's Foxglove layout for --ns to FILE and exit "
+        "(config/foxglove/piezo_stage.json is the one for /piezo)",
+    )
 
 
 def ros_args(args: argparse.Namespace) -> list[str]:
@@ -58,9 +80,14 @@ def run(args: argparse.Namespace) -> int:
             return 2
         print(f"wrote {path}: import it in the Foxglove app (Layouts > Import from file)")
         return 0
-    print(f"serving {args.ns} to the Foxglove app on ws://{args.host}:{args.port} "
-          "(Ctrl-C to stop)", flush=True)
+    print(
+        f"serving {args.ns} to the Foxglove app on ws://{args.host}:{args.port} (Ctrl-C to stop)",
+        flush=True,
+    )
     if args.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"piezo-stage view: warning: {args.host} serves the stage's topics to the network, "
-              "unauthenticated", file=sys.stderr)
+        print(
+            f"piezo-stage view: warning: {args.host} serves the stage's topics to the network, "
+            "unauthenticated",
+            file=sys.stderr,
+        )
     return run_node("piezo_stage.nodes.live_view", ros_args(args))

@@ -118,9 +118,11 @@ class RosRig:
 
         namespace = f"/commission_{os.getpid()}_{next(_counter)}"
         # a rig's streams best effort (they match the devices' SensorDataQoS), deep either way
-        streams = [Stream("voltage", Voltage, reliable=self.lockstep),
-                   Stream("displacement", Displacement, reliable=self.lockstep),
-                   Stream("excitation", ExcitationInfo, depth=1000)]
+        streams = [
+            Stream("voltage", Voltage, reliable=self.lockstep),
+            Stream("displacement", Displacement, reliable=self.lockstep),
+            Stream("excitation", ExcitationInfo, depth=1000),
+        ]
 
         def note(raw: dict[str, list]) -> None:
             if raw["excitation"] and raw["displacement"]:
@@ -129,11 +131,17 @@ class RosRig:
 
         try:
             recording = record(
-                self._graph(plan, namespace), streams,
+                self._graph(plan, namespace),
+                streams,
                 lambda raw: recorded_to_the_end(raw, plan.duration, self.rate_hz),
-                params=self.extra_params, launch_timeout=self.data_timeout,
-                wall_timeout=self.wall_timeout, data_timeout=self.data_timeout,
-                required=("displacement", "excitation"), progress=note, node_name="commission")
+                params=self.extra_params,
+                launch_timeout=self.data_timeout,
+                wall_timeout=self.wall_timeout,
+                data_timeout=self.data_timeout,
+                required=("displacement", "excitation"),
+                progress=note,
+                node_name="commission",
+            )
         except HarnessError as exc:
             raise _run_error(label, exc, exc.lines) from exc
         recording.write_bag(bag, _TOPICS)
@@ -253,8 +261,13 @@ class RosRig:
             "namespace": namespace,
             "stop_timeout": 10.0,
             "nodes": _closed_loop_devices(self.base_nodes)
-            + [{"executable": "controller", "process": "rig_loop",
-                "overrides": node_overrides("controller", controller)}],
+            + [
+                {
+                    "executable": "controller",
+                    "process": "rig_loop",
+                    "overrides": node_overrides("controller", controller),
+                }
+            ],
             "wait_for_topics": [{"topic": "displacement", "publishers": 1}],
         }
         streams = [
@@ -271,18 +284,30 @@ class RosRig:
                 self.progress("acceptance", percent((states[-1][0] - states[0][0]) * 1e-9, total))
 
         try:
-            recording = record(graph, streams, span("controller_state", total),
-                               params=self.extra_params, launch_timeout=self.data_timeout,
-                               wall_timeout=self.wall_timeout, data_timeout=self.data_timeout,
-                               required=("controller_state",), progress=note,
-                               node_name="commission")
+            recording = record(
+                graph,
+                streams,
+                span("controller_state", total),
+                params=self.extra_params,
+                launch_timeout=self.data_timeout,
+                wall_timeout=self.wall_timeout,
+                data_timeout=self.data_timeout,
+                required=("controller_state",),
+                progress=note,
+                node_name="commission",
+            )
         except HarnessError as exc:
             raise _run_error("acceptance run", exc, exc.lines) from exc
         lines = recording.lines
         data = recording.states(relative=True).as_dict()
-        recording.write_bag(bag, {"controller_state": STATE_TYPE,
-                                  **{k: _TOPICS[k] for k in ("displacement", "voltage")}},
-                            sort=True)
+        recording.write_bag(
+            bag,
+            {
+                "controller_state": STATE_TYPE,
+                **{k: _TOPICS[k] for k in ("displacement", "voltage")},
+            },
+            sort=True,
+        )
         from piezo_stage.experiments import ExperimentError
 
         closed = data["loop_closed"]

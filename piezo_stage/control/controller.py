@@ -112,8 +112,11 @@ class ControllerConfig:
             raise ControllerConfigError(f"hold_voltage must be finite, got {self.hold_voltage}")
         if not (self.dt_max > 0):
             raise ControllerConfigError(f"dt_max must be > 0 s, got {self.dt_max}")
-        if (self.compensation is not Compensation.FEEDBACK and self.feedforward is None
-                and self.feedforward_table is None):
+        if (
+            self.compensation is not Compensation.FEEDBACK
+            and self.feedforward is None
+            and self.feedforward_table is None
+        ):
             raise ControllerConfigError(
                 f"compensation {self.compensation.value} needs a "
                 "feedforward model (a dynamic parameter set) or a feedforward table"

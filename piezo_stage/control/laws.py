@@ -89,8 +89,11 @@ def excitation_term(
     scalar = isinstance(t, float) and isinstance(x0, float)
     if mode == "pid":
         return 0.0 if scalar else np.zeros(np.broadcast(t, x0).shape)[()]
-    s = math.sin(2.0 * math.pi * gains.f * t) if isinstance(t, float) \
+    s = (
+        math.sin(2.0 * math.pi * gains.f * t)
+        if isinstance(t, float)
         else np.sin(2.0 * np.pi * gains.f * t)
+    )
     if mode == "pid_sine":
         return -gains.A * s
     return -gains.kA * x0 * s

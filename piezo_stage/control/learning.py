@@ -78,17 +78,18 @@ SAMPLED_BELOW = 10.0
 
 def resonance(model: FeedforwardModel) -> float:
     """sqrt(κx/m)/2π [Hz] (inf without a mass)."""
-    return math.sqrt(model.bouc_wen.kappa_x / model.m) / (2 * math.pi) if model.m > 0 \
-        else math.inf
+    return math.sqrt(model.bouc_wen.kappa_x / model.m) / (2 * math.pi) if model.m > 0 else math.inf
 
 
-def choose_form(form: FeedforwardForm, model: FeedforwardModel, rate_hz: float
-                ) -> FeedforwardForm:
+def choose_form(form: FeedforwardForm, model: FeedforwardModel, rate_hz: float) -> FeedforwardForm:
     """``form``, with ``auto`` resolved for a loop at ``rate_hz``."""
     if form is not FeedforwardForm.AUTO:
         return form
-    return FeedforwardForm.SAMPLED if rate_hz < SAMPLED_BELOW * resonance(model) \
+    return (
+        FeedforwardForm.SAMPLED
+        if rate_hz < SAMPLED_BELOW * resonance(model)
         else FeedforwardForm.CONTINUOUS
+    )
 
 
 class LearningError(ControlError):
@@ -193,8 +194,9 @@ class LearningConfig:
             raise LearningError("need 0 <= min_improvement < 1 and patience >= 1")
 
 
-def limit(u: NDArray[np.float64], config: LearningConfig, rate_hz: float, periodic: bool = True
-          ) -> NDArray[np.float64]:
+def limit(
+    u: NDArray[np.float64], config: LearningConfig, rate_hz: float, periodic: bool = True
+) -> NDArray[np.float64]:
     """``u`` within [u_min, u_max] with |u[k+1] − u[k]| ≤ slew_rate/rate (around the period too
     when ``periodic``): clipped, then each value brought within the slew cap of the one before
     (one forward pass; clipping and this pass move a value towards its neighbour, never out
@@ -249,9 +251,18 @@ class FeedforwardTable:
     def save(self, path: str | Path) -> Path:
         """Write the table as JSON to ``path``; returns the path."""
         path = Path(path)
-        path.write_text(json.dumps({"format": TABLE_FORMAT, "rate_hz": self.rate_hz,
-                                    "periodic": self.periodic, "meta": self.meta,
-                                    "u": self.u.tolist()}, indent=1))
+        path.write_text(
+            json.dumps(
+                {
+                    "format": TABLE_FORMAT,
+                    "rate_hz": self.rate_hz,
+                    "periodic": self.periodic,
+                    "meta": self.meta,
+                    "u": self.u.tolist(),
+                },
+                indent=1,
+            )
+        )
         return path
 
     @classmethod
@@ -264,8 +275,12 @@ class FeedforwardTable:
         if not isinstance(data, dict) or data.get("format") != TABLE_FORMAT:
             raise LearningError(f"{path} is not a feedforward table ({TABLE_FORMAT!r})")
         try:
-            return cls(np.asarray(data["u"], dtype=float), float(data["rate_hz"]),
-                       bool(data.get("periodic", True)), dict(data.get("meta", {})))
+            return cls(
+                np.asarray(data["u"], dtype=float),
+                float(data["rate_hz"]),
+                bool(data.get("periodic", True)),
+                dict(data.get("meta", {})),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise LearningError(f"feedforward table {path}: {exc}") from exc
 
@@ -283,18 +298,24 @@ class IterativeLearning:
     :meth:`update` with each period's error; ``done`` once the stop rule holds.
     """
 
-    def __init__(self, table: FeedforwardTable, response: NDArray[np.complex128],
-                 config: LearningConfig = LearningConfig(),
-                 model: FeedforwardModel | None = None) -> None:
+    def __init__(
+        self,
+        table: FeedforwardTable,
+        response: NDArray[np.complex128],
+        config: LearningConfig = LearningConfig(),
+        model: FeedforwardModel | None = None,
+    ) -> None:
         n = len(table)
         if response.shape != (n // 2 + 1,):
-            raise LearningError(f"response has {response.shape} bins, a {n}-sample period "
-                                f"{n // 2 + 1}")
+            raise LearningError(
+                f"response has {response.shape} bins, a {n}-sample period {n // 2 + 1}"
+            )
         self.table, self.config = table, config
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse = np.where(np.abs(response) > 0, 1.0 / response, 0.0)
-        cutoff = default_cutoff(model, table.rate_hz) if config.cutoff_hz is None \
-            else config.cutoff_hz
+        cutoff = (
+            default_cutoff(model, table.rate_hz) if config.cutoff_hz is None else config.cutoff_hz
+        )
         q = (harmonics(n, table.rate_hz) <= cutoff).astype(float)
         self._learn = -config.gain * inverse * q
         self._q = q
@@ -331,8 +352,9 @@ class IterativeLearning:
         # Q filters the correction, not u: what the model gave above the cutoff stays; under
         # both, the law's integrator owns the mean (G = 0 there: L = 0)
         spectrum = np.fft.rfft(u) + self._learn * np.fft.rfft(e)
-        self.table.u = limit(np.fft.irfft(spectrum, u.size), self.config, self.table.rate_hz,
-                             self.table.periodic)
+        self.table.u = limit(
+            np.fft.irfft(spectrum, u.size), self.config, self.table.rate_hz, self.table.periodic
+        )
         self._settling = self.config.settle_periods
         return self.table
 
@@ -344,8 +366,12 @@ class PeriodicLearner:
     stop rule holds, the table is frozen and ``on_done(self)`` is called once.
     """
 
-    def __init__(self, learning: IterativeLearning, periods: int,
-                 on_done: Callable[["PeriodicLearner"], None] | None = None) -> None:
+    def __init__(
+        self,
+        learning: IterativeLearning,
+        periods: int,
+        on_done: Callable[["PeriodicLearner"], None] | None = None,
+    ) -> None:
         if periods < 1:
             raise LearningError(f"learning periods must be >= 1, got {periods}")
         self.learning, self.periods, self._on_done = learning, periods, on_done
@@ -388,7 +414,8 @@ def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[NDArray[
     if periodic and abs(exact - n) > 1e-6 * max(n, 1):
         raise LearningError(
             f"the trajectory's period ({trajectory.period:g} s) is {exact:.6g} samples at "
-            f"{rate_hz:g} Hz: a feedforward table needs a whole number")
+            f"{rate_hz:g} Hz: a feedforward table needs a whole number"
+        )
     if n < 2:
         raise LearningError(f"the trajectory's period holds {n} sample(s) at {rate_hz:g} Hz")
     return np.asarray(trajectory.evaluate(np.arange(n) / rate_hz)[0], dtype=float), periodic
@@ -402,15 +429,26 @@ class _ModelLoop:
 
     SUBSTEPS = 8
 
-    def __init__(self, model: FeedforwardModel, rate_hz: float, x0: float, w0: float,
-                 u0: float, delay: int, bandwidth: float) -> None:
+    def __init__(
+        self,
+        model: FeedforwardModel,
+        rate_hz: float,
+        x0: float,
+        w0: float,
+        u0: float,
+        delay: int,
+        bandwidth: float,
+    ) -> None:
         bw = model.bouc_wen
         self.stage = DynamicPlant(bw, Dynamics(model.m, model.c), x0=x0 - bw.y0, w0=w0)
         self.period = 1.0 / rate_hz
         self.pending = [u0] * delay
         self.v = u0  # the amplifier's output
-        self.decay = math.exp(-2.0 * math.pi * bandwidth * self.period / self.SUBSTEPS) \
-            if math.isfinite(bandwidth) else 0.0
+        self.decay = (
+            math.exp(-2.0 * math.pi * bandwidth * self.period / self.SUBSTEPS)
+            if math.isfinite(bandwidth)
+            else 0.0
+        )
 
     def run(self, u: NDArray[np.float64]) -> NDArray[np.float64]:
         """Displacement x at each sample of the staircase ``u`` (measured before that sample's
@@ -460,16 +498,22 @@ def sampled_feedforward(
     ad = np.gradient(vd, T)
     u_cont, w = feedforward(model, path, vd, ad)
     table = FeedforwardTable(u_cont[-n:], rate_hz, periodic)
-    response = feedforward_response(model, rate_hz, n, delay_samples=delay_samples,
-                                    amplifier_bandwidth=amplifier_bandwidth)
+    response = feedforward_response(
+        model, rate_hz, n, delay_samples=delay_samples, amplifier_bandwidth=amplifier_bandwidth
+    )
     # the model has no noise to average: the full gain, no settling period, no early stop
-    learning = IterativeLearning(table, response, replace(
-        config, gain=1.0, patience=iterations + 1, min_improvement=0.0, settle_periods=0), model)
+    learning = IterativeLearning(
+        table,
+        response,
+        replace(config, gain=1.0, patience=iterations + 1, min_improvement=0.0, settle_periods=0),
+        model,
+    )
     d = int(round(delay_samples))
 
     def start() -> _ModelLoop:
-        return _ModelLoop(model, rate_hz, float(xd[0]), float(w[0]), float(u_cont[0]), d,
-                          amplifier_bandwidth)
+        return _ModelLoop(
+            model, rate_hz, float(xd[0]), float(w[0]), float(u_cont[0]), d, amplifier_bandwidth
+        )
 
     loop = start()
     if periodic:

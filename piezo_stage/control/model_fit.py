@@ -155,8 +155,9 @@ def perturbed(ps: ParameterSet, factor: float, name: str | None = None) -> Param
     return replace(ps, name=name or f"{ps.name}_x{factor:g}", bouc_wen=bw, dynamics=dyn)
 
 
-def perturbed_each(ps: ParameterSet, scale: float, seed: int = 0,
-                   name: str | None = None) -> ParameterSet:
+def perturbed_each(
+    ps: ParameterSet, scale: float, seed: int = 0, name: str | None = None
+) -> ParameterSet:
     """``ps`` with each of κ_i, κw, ρ, σ, n, m, c scaled by 1 ± ``scale``, the signs drawn from
     ``seed`` (a model off its plant by that much per parameter); σ and n stay in class I.
     """
@@ -167,7 +168,13 @@ def perturbed_each(ps: ParameterSet, scale: float, seed: int = 0,
         return 1.0 + scale * sign
 
     bw = ps.bouc_wen
-    bw = replace(bw, kappa=tuple(k * f() for k in bw.kappa), kappa_w=bw.kappa_w * f(),
-                 rho=bw.rho * f(), sigma=max(bw.sigma * f(), 0.5), n=max(bw.n * f(), 1.0))
+    bw = replace(
+        bw,
+        kappa=tuple(k * f() for k in bw.kappa),
+        kappa_w=bw.kappa_w * f(),
+        rho=bw.rho * f(),
+        sigma=max(bw.sigma * f(), 0.5),
+        n=max(bw.n * f(), 1.0),
+    )
     dyn = None if ps.dynamics is None else Dynamics(ps.dynamics.m * f(), ps.dynamics.c * f())
     return replace(ps, name=name or f"{ps.name}_pm{scale:g}_{seed}", bouc_wen=bw, dynamics=dyn)

@@ -18,10 +18,10 @@ from .trajectory import Trajectory
 class ReferenceSource(str, enum.Enum):
     """Where :class:`SetPoint` takes yr from (see the module docstring)."""
 
-    TOPIC = "topic"                # the reference topic
+    TOPIC = "topic"  # the reference topic
     SECOND_ORDER = "second_order"  # the thesis's yr
-    CONSTANT = "constant"          # the reference parameter
-    TRAJECTORY = "trajectory"      # x_d of the trajectory_* parameters, published on reference
+    CONSTANT = "constant"  # the reference parameter
+    TRAJECTORY = "trajectory"  # x_d of the trajectory_* parameters, published on reference
 
 
 class SetPoint:
@@ -29,12 +29,18 @@ class SetPoint:
     between steps.
     """
 
-    def __init__(self, source: ReferenceSource, reference: float = 0.0, *,
-                 trajectory: Trajectory | None = None, y0: float = 20e-6,
-                 ydot0: float = 0.0) -> None:
+    def __init__(
+        self,
+        source: ReferenceSource,
+        reference: float = 0.0,
+        *,
+        trajectory: Trajectory | None = None,
+        y0: float = 20e-6,
+        ydot0: float = 0.0,
+    ) -> None:
         self.source = ReferenceSource(source)
-        self.reference = float(reference)   # the constant set point [m]
-        self.received = float(reference)    # the last value from the topic [m]
+        self.reference = float(reference)  # the constant set point [m]
+        self.received = float(reference)  # the last value from the topic [m]
         self.trajectory = trajectory
         self._y0, self._ydot0 = y0, ydot0
         self._second_order: SecondOrderReference | None = None
@@ -55,8 +61,7 @@ class SetPoint:
         source = self.source
         if source is ReferenceSource.SECOND_ORDER:
             if self._second_order is None:
-                self._second_order = SecondOrderReference(y0=self._y0, ydot0=self._ydot0,
-                                                          t_start=t)
+                self._second_order = SecondOrderReference(y0=self._y0, ydot0=self._ydot0, t_start=t)
             yr, yr_dot, yr_ddot = self._second_order.evaluate(t)
             return float(yr), float(yr_dot), float(yr_ddot)
         if source is ReferenceSource.TRAJECTORY and self.trajectory is not None:

@@ -56,8 +56,8 @@ class Window(enum.Enum):
 class Gap(enum.Enum):
     """What :meth:`LoopSupervisor.check_gap` found."""
 
-    NONE = "none"      # the newest sample is recent: step
-    HELD = "held"      # a gap shorter than max_gap: hold the output, do not step
+    NONE = "none"  # the newest sample is recent: step
+    HELD = "held"  # a gap shorter than max_gap: hold the output, do not step
     OPENED = "opened"  # longer: the loop was opened (send :meth:`LoopSupervisor.hold_command`)
     NO_SAMPLE = "no_sample"  # no valid sample yet
 
@@ -104,16 +104,24 @@ class GainCheck:
     def reasons(self, config: ControllerConfig) -> str:
         """'' when both accept the gains of ``config``, else the reasons."""
         g = config.gains
-        report = validate_gains(self.bounds, g.k1, g.k2, g.k0,
-                                g.kA if config.mode == "pid_tv" else None,
-                                g.f if config.mode != "pid" else None)
+        report = validate_gains(
+            self.bounds,
+            g.k1,
+            g.k2,
+            g.k0,
+            g.kA if config.mode == "pid_tv" else None,
+            g.f if config.mode != "pid" else None,
+        )
         reasons = list(report.reasons)
-        sampled = check_sampled_loop(self.plant, g, self.rate_hz, self.delay_samples, config.mode,
-                                     config.derivative_tau)
+        sampled = check_sampled_loop(
+            self.plant, g, self.rate_hz, self.delay_samples, config.mode, config.derivative_tau
+        )
         if not sampled.stable:
-            reasons.append(f"sampled loop unstable at {self.rate_hz:g} Hz with "
-                           f"{sampled.delay_samples} sample(s) delay: spectral radius "
-                           f"{sampled.spectral_radius:.4f} >= 1")
+            reasons.append(
+                f"sampled loop unstable at {self.rate_hz:g} Hz with "
+                f"{sampled.delay_samples} sample(s) delay: spectral radius "
+                f"{sampled.spectral_radius:.4f} >= 1"
+            )
         return "; ".join(reasons)
 
 
@@ -125,25 +133,26 @@ class LoopSupervisor:
     each opening and closing (rare events: a node logs them).
     """
 
-    def __init__(self, pid: TimeVaryingPID, config: SupervisionConfig,
-                 notify: Notify | None = None) -> None:
+    def __init__(
+        self, pid: TimeVaryingPID, config: SupervisionConfig, notify: Notify | None = None
+    ) -> None:
         self.pid = pid
         self.config = config
         self.notify: Notify = notify or (lambda level, text: None)
-        self.x: float | None = None       # the newest valid sample [m] and its time [s]
+        self.x: float | None = None  # the newest valid sample [m] and its time [s]
         self.x_stamp: float | None = None
-        self.valid = False                # the newest sample was valid
-        self.fault = ""                   # why the loop was opened (latched until close())
-        self.waiting = ""                 # why start_closed has not closed the loop yet
+        self.valid = False  # the newest sample was valid
+        self.fault = ""  # why the loop was opened (latched until close())
+        self.waiting = ""  # why start_closed has not closed the loop yet
         self.steps = 0
         self.saturated_steps = 0
-        self.gaps_held = 0                # gaps shorter than max_gap ridden through
-        self.longest_gap = 0.0            # [s]
+        self.gaps_held = 0  # gaps shorter than max_gap ridden through
+        self.longest_gap = 0.0  # [s]
         self._in_gap = False
         self._stepped_on: float | None = None  # the sample time of the last step
         self._start_closed = config.start_closed
         self._window, self._window_t = Window.PENDING, math.nan
-        self._closed_at = math.nan        # when start_closed closed the loop
+        self._closed_at = math.nan  # when start_closed closed the loop
 
     # ------------------------------------------------------------------ frames
     def command(self, out: ControlOutput) -> float:
@@ -223,8 +232,9 @@ class LoopSupervisor:
             self.fault = reason
 
     # ------------------------------------------------------------------ period
-    def step(self, t: float, yr: float, yr_dot: float | None = None,
-             yr_ddot: float = 0.0) -> ControlOutput:
+    def step(
+        self, t: float, yr: float, yr_dot: float | None = None, yr_ddot: float = 0.0
+    ) -> ControlOutput:
         """One period on the newest valid sample: the scheduled window, start_closed, the law."""
         assert self.x is not None, "step() before a valid sample"
         self._scheduled_window(t)
@@ -246,12 +256,17 @@ class LoopSupervisor:
         if open_at < 0 or self._window is Window.DONE:
             return
         if self._window is Window.PENDING and t >= open_at:
-            self.notify(Health.OK, f"scheduled opening at t = {t:.6g} s, holding "
-                        f"{c.u_bias + self.hold_value():.6g} V")
+            self.notify(
+                Health.OK,
+                f"scheduled opening at t = {t:.6g} s, holding {c.u_bias + self.hold_value():.6g} V",
+            )
             self.pid.open_loop(self.hold_value())
             self._window, self._window_t = Window.OPEN, t
-        elif self._window is Window.OPEN and c.open_duration > 0 \
-                and t >= self._window_t + c.open_duration - 0.5 / c.rate_hz:
+        elif (
+            self._window is Window.OPEN
+            and c.open_duration > 0
+            and t >= self._window_t + c.open_duration - 0.5 / c.rate_hz
+        ):
             self.notify(Health.OK, f"scheduled closing at t = {t:.6g} s")
             self.pid.close_loop()
             self._window = Window.DONE
@@ -274,10 +289,14 @@ class LoopSupervisor:
     def diagnose(self) -> tuple[Health, str, dict[str, object]]:
         """Level, message and values for /diagnostics."""
         values: dict[str, object] = {
-            "mode": self.pid.config.mode, "loop_closed": self.pid.loop_closed,
-            "u": self.config.u_bias + self.pid.u, "steps": self.steps,
-            "saturated_steps": self.saturated_steps, "gaps_held": self.gaps_held,
-            "longest_gap": self.longest_gap}
+            "mode": self.pid.config.mode,
+            "loop_closed": self.pid.loop_closed,
+            "u": self.config.u_bias + self.pid.u,
+            "steps": self.steps,
+            "saturated_steps": self.saturated_steps,
+            "gaps_held": self.gaps_held,
+            "longest_gap": self.longest_gap,
+        }
         if self.fault:
             return Health.ERROR, f"loop opened: {self.fault}", values
         if self._start_closed and self.waiting:

@@ -139,15 +139,21 @@ def simulate_tracking(
     t_learned, history = 0.0, []
     if learn_periods > 0:
         if table is None or model is None or getattr(trajectory, "shape", None) is None:
-            raise ControlError("learning needs a periodic trajectory, a feedforward table and "
-                               "the model (it gives L)")
+            raise ControlError(
+                "learning needs a periodic trajectory, a feedforward table and "
+                "the model (it gives L)"
+            )
         feedback = None if config.compensation is Compensation.FEEDFORWARD else gains
         learner = IterativeLearning(
-            table, feedforward_response(model, rate_hz, len(table), gains=feedback),
-            learning or LearningConfig(u_min=u_min, u_max=u_max), model)
+            table,
+            feedforward_response(model, rate_hz, len(table), gains=feedback),
+            learning or LearningConfig(u_min=u_min, u_max=u_max),
+            model,
+        )
         for j in range(learn_periods):
-            run = simulate_closed_loop(pid, stage, rate_hz, trajectory.period, reference,
-                                       t0=j * trajectory.period)
+            run = simulate_closed_loop(
+                pid, stage, rate_hz, trajectory.period, reference, t0=j * trajectory.period
+            )
             e = run.measured - run.reference
             history.append(float(np.sqrt(np.mean(e * e))))
             learner.update(e)
@@ -155,6 +161,7 @@ def simulate_tracking(
             if learner.done:
                 break
     result = simulate_closed_loop(pid, stage, rate_hz, duration, reference, t0=t_learned)
-    errors = tracking_errors(result.t, result.measured, result.reference,
-                             t_learned + settle_time(trajectory))
+    errors = tracking_errors(
+        result.t, result.measured, result.reference, t_learned + settle_time(trajectory)
+    )
     return result, replace(errors, learning=tuple(history))

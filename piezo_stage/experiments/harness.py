@@ -114,11 +114,17 @@ class ControllerStates:
         from piezo_stage_msgs.msg import ControllerState
 
         names = [f.name for f in fields(cls)][1:]
-        rows = [((ns - t0_ns) * 1e-9, *(getattr(m, k) for k in names))
-                for ns, m in ((ns, deserialize_message(d, ControllerState)) for ns, d in raw)]
+        rows = [
+            ((ns - t0_ns) * 1e-9, *(getattr(m, k) for k in names))
+            for ns, m in ((ns, deserialize_message(d, ControllerState)) for ns, d in raw)
+        ]
         cols = list(zip(*rows)) if rows else [[] for _ in range(len(names) + 1)]
-        return cls(*(np.asarray(c, dtype=bool if k == "loop_closed" else float)
-                     for k, c in zip(["t", *names], cols)))
+        return cls(
+            *(
+                np.asarray(c, dtype=bool if k == "loop_closed" else float)
+                for k, c in zip(["t", *names], cols)
+            )
+        )
 
     @property
     def x(self) -> np.ndarray:
@@ -143,8 +149,9 @@ class Recording:
         items = self.raw[topic]
         return ControllerStates.decode(items, items[0][0] if relative and items else 0)
 
-    def write_bag(self, path: str | os.PathLike[str], types: Mapping[str, str],
-                  sort: bool = False) -> None:
+    def write_bag(
+        self, path: str | os.PathLike[str], types: Mapping[str, str], sort: bool = False
+    ) -> None:
         """The recorded ``types`` (topic → 'pkg/msg/Type') into an MCAP bag folder, under the
         namespace (``sort``: each topic by stamp, for best-effort streams)."""
         from piezo_stage.bag.writer import BagWriter
@@ -201,17 +208,24 @@ def record(
                 return
             sink.append((ns, data))
 
-        qos = QoSProfile(depth=stream.depth or LOCKSTEP_DEPTH,
-                         reliability=ReliabilityPolicy.RELIABLE if stream.reliable
-                         else ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(
+            depth=stream.depth or LOCKSTEP_DEPTH,
+            reliability=ReliabilityPolicy.RELIABLE
+            if stream.reliable
+            else ReliabilityPolicy.BEST_EFFORT,
+        )
         node.create_subscription(stream.msg_type, stream.topic, on_message, qos, raw=True)
     executor = LeanExecutor(context=ctx)  # a message per wake-up at 1-2 kHz on a loaded host
     executor.add_node(node)
     launch = None
     started = time.monotonic()
     try:
-        launch = Launcher(dict(graph), params=list(params), timeout=launch_timeout,
-                          sink=lambda name, line, err: lines.append(f"[{name}] {line}"))
+        launch = Launcher(
+            dict(graph),
+            params=list(params),
+            timeout=launch_timeout,
+            sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+        )
         launch.start()  # the subscriptions exist before the graph's first message
         launch.wait_ready()
         started = time.monotonic()
@@ -226,8 +240,9 @@ def record(
                 raise HarnessError(f"not done after {wall_timeout:g} s ({counts})", lines)
             missing = [k for k in needed if not raw[k]]
             if missing and now - started > data_timeout:
-                raise HarnessError(f"no {' and no '.join(missing)} message within "
-                                   f"{data_timeout:g} s", lines)
+                raise HarnessError(
+                    f"no {' and no '.join(missing)} message within {data_timeout:g} s", lines
+                )
             executor.spin_once(timeout_sec=0.05)
             if progress is not None and now > next_note:
                 next_note += 2.0

@@ -58,8 +58,10 @@ def _entries(graph: str) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     from piezo_stage.launch.graph import find_graph, load_yaml
 
     data = load_yaml(find_graph(graph).read_text(encoding="utf-8"))
-    nodes = {entry["executable"]: {**entry, "overrides": dict(entry.get("overrides", {}))}
-             for entry in data["nodes"]}
+    nodes = {
+        entry["executable"]: {**entry, "overrides": dict(entry.get("overrides", {}))}
+        for entry in data["nodes"]
+    }
     for needed in ("plant", "identifier", "excitation"):
         if needed not in nodes:
             raise ExperimentError(f"graph {graph} has no {needed} node")
@@ -70,13 +72,22 @@ def _given(**values: Any) -> dict[str, Any]:
     return {k: v for k, v in values.items() if v is not None}
 
 
-def record_identification(bag: str | Path, *, model_file: str | None = None,
-                          preset: str | None = None, rate_hz: float | None = None,
-                          degree: int | None = None, namespace: str | None = None,
-                          live_params_file: str | Path | None = None,
-                          settle_periods: int | None = None, topics: Sequence[str] = (),
-                          domain_id: int | None = None, progress: Progress | None = None,
-                          timeout: float = 600.0, graph: str = GRAPH) -> IdentificationRun:
+def record_identification(
+    bag: str | Path,
+    *,
+    model_file: str | None = None,
+    preset: str | None = None,
+    rate_hz: float | None = None,
+    degree: int | None = None,
+    namespace: str | None = None,
+    live_params_file: str | Path | None = None,
+    settle_periods: int | None = None,
+    topics: Sequence[str] = (),
+    domain_id: int | None = None,
+    progress: Progress | None = None,
+    timeout: float = 600.0,
+    graph: str = GRAPH,
+) -> IdentificationRun:
     """Run ``graph`` (lockstep plant + identifier + excitation) with a recorder and record the
     experiment to ``bag`` (zstd MCAP); None arguments keep the graph file's values.
 
@@ -94,39 +105,63 @@ def record_identification(bag: str | Path, *, model_file: str | None = None,
     data, nodes = _entries(graph)
     plant, identifier, excitation = nodes["plant"], nodes["identifier"], nodes["excitation"]
     readers = 2  # the identifier and the recorder
-    plant["overrides"].update(_given(model_file=model_file, rate_hz=None if rate_hz is None
-                                     else float(rate_hz)), wait_for_subscribers=readers)
+    plant["overrides"].update(
+        _given(model_file=model_file, rate_hz=None if rate_hz is None else float(rate_hz)),
+        wait_for_subscribers=readers,
+    )
     live = Path(live_params_file).absolute() if live_params_file else None
-    identifier["overrides"].update(_given(degree=None if degree is None else int(degree)),
-                                   on_done="exit")
+    identifier["overrides"].update(
+        _given(degree=None if degree is None else int(degree)), on_done="exit"
+    )
     if live is not None:
         identifier["overrides"]["output_file"] = str(live)
     else:
         identifier["overrides"].pop("output_file", None)
     over = excitation["overrides"]
-    over.update(_given(preset=preset, settle_periods=settle_periods), on_done="exit",
-                autostart=False)
+    over.update(
+        _given(preset=preset, settle_periods=settle_periods), on_done="exit", autostart=False
+    )
     recorded = {t.strip("/") for t in topics} if topics else {"voltage_command", "excitation"}
-    commander_waits = [{"topic": "excitation", "publishers": 1,
-                        "subscribers": 1 + int("excitation" in recorded)},
-                       {"topic": "voltage_command", "publishers": 1,
-                        "subscribers": 1 + int("voltage_command" in recorded)}]
+    commander_waits = [
+        {"topic": "excitation", "publishers": 1, "subscribers": 1 + int("excitation" in recorded)},
+        {
+            "topic": "voltage_command",
+            "publishers": 1,
+            "subscribers": 1 + int("voltage_command" in recorded),
+        },
+    ]
     # the launcher's probe sees a subscriber before the excitation's writers may have matched
     # it: the node itself waits for its matched subscribers, so no reader misses the first marks
     over["wait_for_subscribers"] = min(w["subscribers"] for w in commander_waits)
-    recorder = {"executable": "recorder", "overrides": {
-        "bag": str(bag), "compression": "zstd", "use_sim_time": True, "discovery_period": 0.02,
-        **({"topics": list(topics)} if topics else {})}}
+    recorder = {
+        "executable": "recorder",
+        "overrides": {
+            "bag": str(bag),
+            "compression": "zstd",
+            "use_sim_time": True,
+            "discovery_period": 0.02,
+            **({"topics": list(topics)} if topics else {}),
+        },
+    }
     common = {"namespace": ns, "clock": data.get("clock"), "env": data.get("env", {})}
     common = {k: v for k, v in common.items() if v}
     clock = "clock" if data.get("clock") == "namespaced" else "/clock"
-    stage_graph = {**common, "description": f"{graph}: stage", "stop_timeout": 10.0,
-                   "wait_for_topics": [{"topic": t, "publishers": 1, "subscribers": readers}
-                                       for t in (clock, "voltage", "displacement")],
-                   "nodes": [recorder, plant, identifier]}
-    commander_graph = {**common, "description": f"{graph}: excitation",
-                       "wait_for_topics": commander_waits,
-                       "nodes": [{**excitation, "required": True}]}
+    stage_graph = {
+        **common,
+        "description": f"{graph}: stage",
+        "stop_timeout": 10.0,
+        "wait_for_topics": [
+            {"topic": t, "publishers": 1, "subscribers": readers}
+            for t in (clock, "voltage", "displacement")
+        ],
+        "nodes": [recorder, plant, identifier],
+    }
+    commander_graph = {
+        **common,
+        "description": f"{graph}: excitation",
+        "wait_for_topics": commander_waits,
+        "nodes": [{**excitation, "required": True}],
+    }
     plan = plan_from(over.get("preset") or None, settle_periods=over.get("settle_periods"))
     rate = float(plant["overrides"].get("rate_hz", 1000.0))
     sim_steps = rate * plan.period * plan.periods_per_run * len(plan.offsets)
@@ -137,31 +172,42 @@ def record_identification(bag: str | Path, *, model_file: str | None = None,
     return _outcome(bag, ns, live, output, codes)
 
 
-def _outcome(bag: Path, ns: str, live: Path | None, output: list[str],
-             codes: dict[str, int | None]) -> IdentificationRun:
+def _outcome(
+    bag: Path, ns: str, live: Path | None, output: list[str], codes: dict[str, int | None]
+) -> IdentificationRun:
     """Read the nodes' reports: the recorder's exit code and accounting, the identifier's."""
     from piezo_stage.bag.metadata import BagMetadata
 
     if codes.get("recorder") != 0 or not (bag / "metadata.yaml").exists():
-        raise ExperimentError(f"the recorder node failed (exit code {codes.get('recorder')}):\n"
-                              + _tail(output, "recorder"))
+        raise ExperimentError(
+            f"the recorder node failed (exit code {codes.get('recorder')}):\n"
+            + _tail(output, "recorder")
+        )
     custom = BagMetadata.read(bag).custom_data
     lost = int(custom.get("messages_lost", "0")) + int(custom.get("messages_dropped", "0"))
     if lost:  # the bag would not hold what the live identifier saw
-        raise ExperimentError(f"the bag {bag} is incomplete: {lost} message(s) lost or dropped "
-                              "before reaching the recorder")
+        raise ExperimentError(
+            f"the bag {bag} is incomplete: {lost} message(s) lost or dropped "
+            "before reaching the recorder"
+        )
     code = codes.get("identifier")
     if code == 0 and (live is None or live.exists()):
         return IdentificationRun(bag, ns, live, "", output)
-    why = ("published no result within the time limit" if code is None
-           else f"exited with code {code}")
-    return IdentificationRun(bag, ns, None, f"the identifier node {why}:\n"
-                             + _tail(output, "identifier", 5), output)
+    why = (
+        "published no result within the time limit" if code is None else f"exited with code {code}"
+    )
+    return IdentificationRun(
+        bag, ns, None, f"the identifier node {why}:\n" + _tail(output, "identifier", 5), output
+    )
 
 
-def _run_stage(stage_graph: dict, commander_graph: dict, sim_steps: float,
-               progress: Progress | None, timeout: float
-               ) -> tuple[list[str], dict[str, int | None]]:
+def _run_stage(
+    stage_graph: dict,
+    commander_graph: dict,
+    sim_steps: float,
+    progress: Progress | None,
+    timeout: float,
+) -> tuple[list[str], dict[str, int | None]]:
     """Start the stage, then the commander; wait for the commander's end and the identifier's;
     return the nodes' output and exit codes (None: still running when stopped)."""
     from piezo_stage.launch import Launcher, LaunchError
@@ -191,11 +237,15 @@ def _run_stage(stage_graph: dict, commander_graph: dict, sim_steps: float,
                 progress(min((time.monotonic() - t0) * STEPS_PER_WALL_SECOND / sim_steps, 0.99))
             if not stage.running or time.monotonic() - t0 > timeout:
                 commander.stop()
-                raise ExperimentError(f"the stage stopped ({stage.exited})" if not stage.running
-                                      else f"the experiment did not finish within {timeout:g} s")
+                raise ExperimentError(
+                    f"the stage stopped ({stage.exited})"
+                    if not stage.running
+                    else f"the experiment did not finish within {timeout:g} s"
+                )
         if code != 0:
-            raise ExperimentError(f"the excitation node failed (exit code {code}):\n"
-                                  + _tail(output, "excitation"))
+            raise ExperimentError(
+                f"the excitation node failed (exit code {code}):\n" + _tail(output, "excitation")
+            )
         deadline = time.monotonic() + IDENTIFIER_TIMEOUT + 10.0
         while time.monotonic() < deadline and "identifier" not in dict(stage.exited):
             time.sleep(0.1)  # on_done: exit -> it leaves once it has identified or failed
@@ -225,8 +275,14 @@ def _stop_plant_first(stage: Any, timeout: float = 15.0) -> None:
         stage.wait(stage.stop_timeout)  # escalate to SIGTERM: let that stop end first
 
 
-def replay_identification(bag: str | Path, namespace: str, params_file: str | Path, *,
-                          degree: int = 2, timeout: float = 300.0) -> tuple[Path | None, str]:
+def replay_identification(
+    bag: str | Path,
+    namespace: str,
+    params_file: str | Path,
+    *,
+    degree: int = 2,
+    timeout: float = 300.0,
+) -> tuple[Path | None, str]:
     """Replay ``bag`` through the identifier node: the shipped ``replay_identification`` graph
     (player -> identifier, as fast as the identifier acknowledges) in ``namespace``, in a DDS
     domain of its own (the player publishes /clock). Returns the identifier's parameter file
@@ -235,11 +291,20 @@ def replay_identification(bag: str | Path, namespace: str, params_file: str | Pa
 
     params_file = Path(params_file).absolute()
     output: list[str] = []
-    params = [f"player.bag:={Path(bag).absolute()}", "player.rate:=0.0",
-              f"identifier.degree:={int(degree)}", f"identifier.output_file:={params_file}"]
+    params = [
+        f"player.bag:={Path(bag).absolute()}",
+        "player.rate:=0.0",
+        f"identifier.degree:={int(degree)}",
+        f"identifier.output_file:={params_file}",
+    ]
     with isolated_domain():
-        launcher = Launcher("replay_identification", namespace=namespace, params=params,
-                            sink=lambda n, line, err: output.append(f"[{n}] {line}"), timeout=60.0)
+        launcher = Launcher(
+            "replay_identification",
+            namespace=namespace,
+            params=params,
+            sink=lambda n, line, err: output.append(f"[{n}] {line}"),
+            timeout=60.0,
+        )
         try:
             launcher.start()
             code = launcher.wait(timeout)
@@ -265,8 +330,12 @@ def call_trigger(service: str, timeout: float = 30.0) -> str:
     context = Context()
     rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
     try:
-        node = rclpy.create_node(f"piezo_experiment_client_{os.getpid()}", context=context,
-                                 enable_rosout=False, start_parameter_services=False)
+        node = rclpy.create_node(
+            f"piezo_experiment_client_{os.getpid()}",
+            context=context,
+            enable_rosout=False,
+            start_parameter_services=False,
+        )
         client = node.create_client(Trigger, service)
         if not client.wait_for_service(timeout_sec=timeout):
             raise ExperimentError(f"service {service} did not appear within {timeout:g} s")
@@ -276,8 +345,9 @@ def call_trigger(service: str, timeout: float = 30.0) -> str:
         executor.spin_until_future_complete(future, timeout_sec=timeout)
         response = future.result() if future.done() else None
         if response is None or not response.success:
-            raise ExperimentError(f"service {service} failed: "
-                                  f"{response.message if response else 'no answer'}")
+            raise ExperimentError(
+                f"service {service} failed: {response.message if response else 'no answer'}"
+            )
         return response.message
     finally:
         rclpy.try_shutdown(context=context)
@@ -291,8 +361,9 @@ TOLERANCE = 1e-2
 def parameter_values(p: Any) -> dict[str, float]:
     """kappa_1.., y0, kappa_w, rho, sigma, n of a BoucWenParameters."""
     values = {f"kappa_{i + 1}": float(k) for i, k in enumerate(p.kappa)}
-    values.update({name: float(getattr(p, name))
-                   for name in ("y0", "kappa_w", "rho", "sigma", "n")})
+    values.update(
+        {name: float(getattr(p, name)) for name in ("y0", "kappa_w", "rho", "sigma", "n")}
+    )
     return values
 
 
@@ -301,8 +372,9 @@ def relative_errors(found: Any, true: Any) -> dict[str, float]:
     return {k: abs(f[k] - t[k]) / abs(t[k]) for k in t if k in f}
 
 
-def validation_input(duration: float = 60.0, rate_hz: float = 100.0,
-                     seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
+def validation_input(
+    duration: float = 60.0, rate_hz: float = 100.0, seed: int = 7
+) -> tuple[np.ndarray, np.ndarray]:
     """A validation voltage unlike the identification triangles: a 0.05 Hz sine of 150 V about
     200 V plus a smoothed random signal (±40 V), inside 0-400 V."""
     t = np.arange(0.0, duration, 1.0 / rate_hz)
@@ -343,11 +415,16 @@ class IdentificationExperiment:
         return self.worst_error <= TOLERANCE
 
 
-def identification_experiment(out: str | Path, *, rate_hz: float | None = None,
-                               degree: int = 2, settle_periods: int | None = 8,
-                               topics: Sequence[str] = (), png_dir: str | Path | None = None,
-                               progress: Callable[[str, float | None], None] | None = None
-                               ) -> IdentificationExperiment:
+def identification_experiment(
+    out: str | Path,
+    *,
+    rate_hz: float | None = None,
+    degree: int = 2,
+    settle_periods: int | None = 8,
+    topics: Sequence[str] = (),
+    png_dir: str | Path | None = None,
+    progress: Callable[[str, float | None], None] | None = None,
+) -> IdentificationExperiment:
     """The ch. 10 experiment on the simulated patch: record it with the live identifier, replay
     the bag through the identifier node, identify the bag offline, validate the offline model
     on another input; PNGs in ``png_dir``. ``progress(stage, fraction)``: a stage starting
@@ -366,28 +443,37 @@ def identification_experiment(out: str | Path, *, rate_hz: float | None = None,
     out = Path(out).absolute()
     true = shipped_parameter_set("ch10_patch").bouc_wen
     say("record")
-    run = record_identification(out / "ch10_identification", rate_hz=rate_hz, degree=degree,
-                                settle_periods=settle_periods, topics=topics,
-                                live_params_file=out / "identified_live.yaml",
-                                progress=lambda f: say("record", f))
+    run = record_identification(
+        out / "ch10_identification",
+        rate_hz=rate_hz,
+        degree=degree,
+        settle_periods=settle_periods,
+        topics=topics,
+        live_params_file=out / "identified_live.yaml",
+        progress=lambda f: say("record", f),
+    )
     say("replay")
-    replayed, replay_error = replay_identification(run.bag, run.namespace,
-                                                   out / "identified_replay.yaml", degree=degree)
+    replayed, replay_error = replay_identification(
+        run.bag, run.namespace, out / "identified_replay.yaml", degree=degree
+    )
     say("offline")
     ns = run.namespace
     runs = load_bag(run.bag, f"{ns}/voltage", f"{ns}/displacement", f"{ns}/excitation")
     offline = identify(runs[0], runs[1], IdentifyOptions(degree=degree)).parameters
     found, failed = {}, {}
-    for label, path, error in (("live", run.live_params_file, run.live_error),
-                               ("replayed", replayed, replay_error)):
+    for label, path, error in (
+        ("live", run.live_params_file, run.live_error),
+        ("replayed", replayed, replay_error),
+    ):
         if path is not None:
             found[label] = load_parameter_set(path).bouc_wen
         else:
             failed[label] = error
     found["from bag"] = offline
     t, v = validation_input()
-    truth = Recording(t, v, model_output(true, v, w0=0.0), name="validation", input_unit="V",
-                      output_unit="m")
+    truth = Recording(
+        t, v, model_output(true, v, w0=0.0), name="validation", input_unit="V", output_unit="m"
+    )
     validation = validate_model(offline, truth, w0=0.0)
     files = [run.bag, *(p for p in (run.live_params_file, replayed) if p is not None)]
     if png_dir is not None:
@@ -395,8 +481,14 @@ def identification_experiment(out: str | Path, *, rate_hz: float | None = None,
 
         say("plots")
         files += plot_bag(run.bag, Path(png_dir))
-        files.append(validation_figure(Path(png_dir) / "ch10_validation.png", t, v,
-                                       truth.output, validation.model,
-                                       title="validation input: identified (from bag) vs true "
-                                             "model"))
+        files.append(
+            validation_figure(
+                Path(png_dir) / "ch10_validation.png",
+                t,
+                v,
+                truth.output,
+                validation.model,
+                title="validation input: identified (from bag) vs true model",
+            )
+        )
     return IdentificationExperiment(run, true, found, failed, validation, files)

@@ -17,8 +17,9 @@ _counter = iter(range(1, 1 << 30))
 STATE_TYPE = "piezo_stage_msgs/msg/ControllerState"
 
 
-def run_plan(plan: Plan, namespace: str, progress: Progress | None, wall_timeout: float
-             ) -> Recording:
+def run_plan(
+    plan: Plan, namespace: str, progress: Progress | None, wall_timeout: float
+) -> Recording:
     """The plan's graph (lockstep plant + controller) recorded until every planned step's
     controller_state is in (one per step: the plant's re-offered step 0 kept once)."""
     from piezo_stage_msgs.msg import ControllerState
@@ -36,9 +37,14 @@ def run_plan(plan: Plan, namespace: str, progress: Progress | None, wall_timeout
         return every_step(raw) or bool(states) and states[-1][0] >= end_ns
 
     try:
-        return record(graph_for(plan, namespace),
-                      [Stream("controller_state", ControllerState, monotonic=True)],
-                      done, wall_timeout=wall_timeout, progress=note, node_name="experiment")
+        return record(
+            graph_for(plan, namespace),
+            [Stream("controller_state", ControllerState, monotonic=True)],
+            done,
+            wall_timeout=wall_timeout,
+            progress=note,
+            node_name="experiment",
+        )
     except HarnessError as exc:
         raise ExperimentError(f"{plan.name}/{plan.mode}: {exc.with_output()}") from exc
 

@@ -170,16 +170,20 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
     if not (math.isfinite(rate) and rate > 0):
         raise ExperimentInputError(f"--rate-hz must be > 0, got {rate}")
     if spec.graph == "emulated_rig" and rate not in RIG_RATES:
-        raise ExperimentInputError(f"the emulated rig's sensor runs at "
-                                   f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}")
+        raise ExperimentInputError(
+            f"the emulated rig's sensor runs at "
+            f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}"
+        )
     if spec.learn < 0 or spec.learn > 100_000:
         raise ExperimentInputError(f"--learn must be in [0, 100000], got {spec.learn}")
     if spec.learn and comp is Compensation.FEEDBACK:
-        raise ExperimentInputError("--learn learns the feedforward: use --compensation both or "
-                                   "feedforward")
+        raise ExperimentInputError(
+            "--learn learns the feedforward: use --compensation both or feedforward"
+        )
     if spec.learn and getattr(spec.make_trajectory(), "shape", None) is None:
-        raise ExperimentInputError("--learn needs a periodic trajectory (triangle, sine, steps): "
-                                   "a file is tracked once")
+        raise ExperimentInputError(
+            "--learn needs a periodic trajectory (triangle, sine, steps): a file is tracked once"
+        )
     if spec.table:
         _check_table(spec, rate)
     report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
@@ -187,7 +191,8 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
         raise ExperimentInputError(
             f"the {spec.mode} law with the thesis gains is unstable sampled at {rate:g} Hz "
             f"(spectral radius {report.spectral_radius:.4g} >= 1, delay 0): choose another "
-            "--rate-hz")
+            "--rate-hz"
+        )
     return comp, float(report.spectral_radius)
 
 
@@ -203,8 +208,9 @@ def _check_table(spec: TrackingSpec, rate: float) -> None:
         raise ExperimentInputError(f"--table {spec.table}: {why}")
 
 
-def _controller(spec: TrackingSpec, comp: Compensation, model_file: str, u_start: float,
-                rate: float) -> dict[str, Any]:
+def _controller(
+    spec: TrackingSpec, comp: Compensation, model_file: str, u_start: float, rate: float
+) -> dict[str, Any]:
     """The controller's overrides of one run (the trajectory, the compensation, learning)."""
     controller: dict[str, Any] = {
         "trigger": "sample",
@@ -266,10 +272,14 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         "initial_voltage": u_start,
         "initial_velocity": 0.0,
     }
-    controller = {"use_sim_time": True, "sensor_qos": "reliable",
-                  **_controller(spec, comp, model_file, u_start, rate)}
-    return Plan("tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant),
-                controller)
+    controller = {
+        "use_sim_time": True,
+        "sensor_qos": "reliable",
+        **_controller(spec, comp, model_file, u_start, rate),
+    }
+    return Plan(
+        "tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant), controller
+    )
 
 
 def _free_port() -> int:
@@ -278,8 +288,9 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def emulated_rig_graph(spec: TrackingSpec, model_file: str, namespace: str, folder: Path
-                       ) -> tuple[dict[str, Any], float]:
+def emulated_rig_graph(
+    spec: TrackingSpec, model_file: str, namespace: str, folder: Path
+) -> tuple[dict[str, Any], float]:
     """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
     controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
     seconds to record."""
@@ -300,28 +311,56 @@ def emulated_rig_graph(spec: TrackingSpec, model_file: str, namespace: str, fold
             command[command.index("--params") + 1] = plant
             command[command.index("--family") + 1] = RIG_RATES[rate]
             command[command.index("--rate") + 1] = f"{rate:g}"
-            nodes.append({**entry, "command": command + ["--amp-tcp", str(port),
-                                                         "--sensor-link", link]})
+            nodes.append(
+                {**entry, "command": command + ["--amp-tcp", str(port), "--sensor-link", link]}
+            )
         elif entry.get("executable") == "voltage_driver":  # commands applied on arrival
-            nodes.append({**entry, "process": "rig_loop", "overrides": {
-                **entry["overrides"], "url": f"tcp://127.0.0.1:{port}",
-                "apply_at_stamp": False}})
+            nodes.append(
+                {
+                    **entry,
+                    "process": "rig_loop",
+                    "overrides": {
+                        **entry["overrides"],
+                        "url": f"tcp://127.0.0.1:{port}",
+                        "apply_at_stamp": False,
+                    },
+                }
+            )
         elif entry.get("executable") == "laser_reader":
-            nodes.append({**entry, "process": "rig_loop", "overrides": {
-                **entry["overrides"], "url": link, "family": RIG_RATES[rate],
-                "rate_hz": rate}})
+            nodes.append(
+                {
+                    **entry,
+                    "process": "rig_loop",
+                    "overrides": {
+                        **entry["overrides"],
+                        "url": link,
+                        "family": RIG_RATES[rate],
+                        "rate_hz": rate,
+                    },
+                }
+            )
     controller = _controller(spec, comp, model_file, RIG_RANGE[0], rate)
     controller.update(u_min=RIG_RANGE[0], u_max=RIG_RANGE[1], hold_voltage=math.nan)
     if spec.offset is None:  # x_d from RIG_FLOOR up: the amplifier's 0 V is no floor to track on
         controller["trajectory_offset"] = spec.amplitude + RIG_FLOOR
     nodes.append({"executable": "controller", "process": "rig_loop", "overrides": controller})
-    graph = {**data, "namespace": namespace, "nodes": nodes,
-             "description": f"tracking on the emulated rig ({spec.trajectory})"}
+    graph = {
+        **data,
+        "namespace": namespace,
+        "nodes": nodes,
+        "description": f"tracking on the emulated rig ({spec.trajectory})",
+    }
     return graph, spec.timing(trajectory)[0]
 
 
-def _run_once(spec: TrackingSpec, plan: Plan | None, model_file: str, folder: Path,
-              progress: Progress | None, wall_timeout: float) -> Recording:
+def _run_once(
+    spec: TrackingSpec,
+    plan: Plan | None,
+    model_file: str,
+    folder: Path,
+    progress: Progress | None,
+    wall_timeout: float,
+) -> Recording:
     namespace = f"/tracking_{os.getpid()}_{next(_counter)}"
     if plan is not None:
         return run_plan(plan, namespace, progress, wall_timeout)
@@ -336,9 +375,15 @@ def _run_once(spec: TrackingSpec, plan: Plan | None, model_file: str, folder: Pa
             progress(min(done / seconds, 1.0), f"tracking on the emulated rig: {done:.1f} s")
 
     try:
-        return record(graph, [Stream("controller_state", ControllerState, monotonic=True)],
-                      span("controller_state", seconds), wall_timeout=wall_timeout,
-                      data_timeout=60.0, progress=note, node_name="tracking")
+        return record(
+            graph,
+            [Stream("controller_state", ControllerState, monotonic=True)],
+            span("controller_state", seconds),
+            wall_timeout=wall_timeout,
+            data_timeout=60.0,
+            progress=note,
+            node_name="tracking",
+        )
     except HarnessError as exc:
         raise ExperimentError(f"tracking on the emulated rig: {exc.with_output()}") from exc
 
@@ -383,19 +428,27 @@ def run_tracking(
         folder = Path(tmp)
         specs = [(spec.compensation, spec)]
         if compare and compensation(spec.compensation) is not Compensation.FEEDBACK:
-            specs.append(("feedback", replace(spec, compensation="feedback", learn=0,
-                                              table=None, table_out=None)))
+            specs.append(
+                (
+                    "feedback",
+                    replace(spec, compensation="feedback", learn=0, table=None, table_out=None),
+                )
+            )
         runs: dict[str, tuple[ControllerStates, Recording]] = {}
         for label, s in specs:
             model_file = _model_file(s, folder)
             plan = make_tracking_plan(s, model_file, seconds) if sim else None
             _check(s)
             if progress is not None:
-                progress(0.0, f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
-                         f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""))
+                progress(
+                    0.0,
+                    f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
+                    f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""),
+                )
             # sim: generous, ~2000 steps/s on an idle machine, 10x slower under load
-            timeout = wall_timeout or (60.0 + seconds * s.rate_hz / 200.0 if sim
-                                       else 120.0 + 3 * seconds)
+            timeout = wall_timeout or (
+                60.0 + seconds * s.rate_hz / 200.0 if sim else 120.0 + 3 * seconds
+            )
             recording = _run_once(s, plan, model_file, folder, progress, timeout)
             runs[label] = (recording.states(relative=not sim), recording)
     states, recording = runs[spec.compensation]
@@ -431,12 +484,14 @@ def run_tracking(
         recording.write_bag(bag, {"controller_state": STATE_TYPE})
         out["bag"] = str(bag)
     if png_dir is not None:
-        fb_states = runs["feedback"][0] if "feedback" in runs and spec.compensation != \
-            "feedback" else None
+        fb_states = (
+            runs["feedback"][0] if "feedback" in runs and spec.compensation != "feedback" else None
+        )
         out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, t_from))]
         if spec.learn:
-            out["png"].append(str(plot_learning(states, Path(png_dir), spec, trajectory.period,
-                                                out["learning"])))
+            out["png"].append(
+                str(plot_learning(states, Path(png_dir), spec, trajectory.period, out["learning"]))
+            )
     if progress is not None:
         progress(
             1.0,
@@ -477,16 +532,26 @@ def plot_tracking(
     )
 
 
-def plot_learning(states: ControllerStates, out_dir: Path, spec: TrackingSpec, period: float,
-                  learning: list[float]) -> Path:
+def plot_learning(
+    states: ControllerStates,
+    out_dir: Path,
+    spec: TrackingSpec,
+    period: float,
+    learning: list[float],
+) -> Path:
     """The error over the learning periods, and the RMS of each."""
     from piezo_stage.plotting.figures import learning_figure
 
     name = _name(spec)
     return learning_figure(
-        Path(out_dir) / f"tracking_{name}_learning.png", states.t, states.x1, period, learning,
+        Path(out_dir) / f"tracking_{name}_learning.png",
+        states.t,
+        states.x1,
+        period,
+        learning,
         title=f"learning the feedforward: {name}, {spec.frequency:g} Hz at "
-        f"{spec.rate_hz / 1e3:g} kHz ({spec.graph})")
+        f"{spec.rate_hz / 1e3:g} kHz ({spec.graph})",
+    )
 
 
 def identify_model(out: str | os.PathLike[str], plant_model: str = DEFAULT_PLANT) -> ParameterSet:

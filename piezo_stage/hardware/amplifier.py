@@ -199,6 +199,7 @@ def make_amplifier(
     cls, default_baud = AMPLIFIERS[kind]
     transport = make_transport(url, baudrate or default_baud)
     if cls is GCSAmplifier:
-        return GCSAmplifier(transport, axis=axis, channel=channel, timeout=timeout,
-                            pipeline=pipeline)
+        return GCSAmplifier(
+            transport, axis=axis, channel=channel, timeout=timeout, pipeline=pipeline
+        )
     return MDT69xAmplifier(transport, axis=axis or "x", timeout=timeout)

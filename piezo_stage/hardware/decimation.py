@@ -47,14 +47,18 @@ class Decimator:
         self._s: list[int] = []
         self._t: list[int] = []
 
-    def feed(self, displacement: Sequence[float], status: Sequence[int],
-             stamps: Sequence[int]) -> Decimated:
+    def feed(
+        self, displacement: Sequence[float], status: Sequence[int], stamps: Sequence[int]
+    ) -> Decimated:
         """Groups completed by the samples ``displacement`` (NaN unless OK), ``status`` taken
         at ``stamps`` [ns].
         """
         if self.n == 1:  # every sample is a group
-            return Decimated([x if st == _OK else math.nan for x, st in zip(displacement, status)],
-                             list(status), list(stamps))
+            return Decimated(
+                [x if st == _OK else math.nan for x, st in zip(displacement, status)],
+                list(status),
+                list(stamps),
+            )
         d, s, t = self._d + list(displacement), self._s + list(status), self._t + list(stamps)
         groups = len(d) // self.n
         used = groups * self.n

@@ -174,8 +174,13 @@ class GCSConnection(DeviceConnection):
         """
         self.settle()
         self.transport.write(command.encode("ascii") + b"\nERR?\n")
-        code = _error_code(split_reply(self._replies.read_reply(
-            gcs_reply_end, self.timeout, what=f"reply to 'ERR?' after {command!r}")))
+        code = _error_code(
+            split_reply(
+                self._replies.read_reply(
+                    gcs_reply_end, self.timeout, what=f"reply to 'ERR?' after {command!r}"
+                )
+            )
+        )
         if code:
             raise GCSError(code, gcs_error_message(code), command)
 
@@ -199,8 +204,10 @@ class GCSConnection(DeviceConnection):
             if wait:
                 try:
                     reply = self._replies.read_reply(
-                        gcs_reply_end, self.timeout,
-                        what=f"reply to 'ERR?' after {self._pending[0]!r}")
+                        gcs_reply_end,
+                        self.timeout,
+                        what=f"reply to 'ERR?' after {self._pending[0]!r}",
+                    )
                 except DeviceTimeout:
                     self._pending.clear()
                     raise

@@ -52,8 +52,9 @@ class Status(enum.IntEnum):
 #: chunks of at most this many frames (the stream of a loop that keeps up) take the Python path
 FEW_FRAMES = 32
 # the members as plain ints, looked up once (a per-frame path)
-_OK, _TOO_CLOSE, _TOO_FAR, _INVALID = (int(s) for s in (Status.OK, Status.TOO_CLOSE, Status.TOO_FAR,
-                                                         Status.INVALID))
+_OK, _TOO_CLOSE, _TOO_FAR, _INVALID = (
+    int(s) for s in (Status.OK, Status.TOO_CLOSE, Status.TOO_FAR, Status.INVALID)
+)
 
 
 # Error value tables. ILD1700 codes from the ILD1700 manual §7.4 ("Digital error modes").
@@ -437,8 +438,10 @@ class OptoNCDTParser:
         status[ok & (distance < 0.0)] = _TOO_CLOSE
         status[ok & (distance > self.measuring_range)] = _TOO_FAR
         self.stats.errors += int(np.count_nonzero((status != _OK) & first))
-        status = np.array(self._lock(status.tolist(), distance.tolist(), first.tolist(),
-                                     gaps.tolist()), dtype=np.uint8)
+        status = np.array(
+            self._lock(status.tolist(), distance.tolist(), first.tolist(), gaps.tolist()),
+            dtype=np.uint8,
+        )
         keep = first
         status, distance, raw = status[keep], distance[keep], raw[keep]
         distance[status != _OK] = np.nan
@@ -531,6 +534,8 @@ class OptoNCDTParser:
         stats.frames += len(keep)
         stats.later_values += len(raws) - len(keep)
         stats.ok += out_status.count(_OK)
-        return SampleBlock(np.array(out_distance, dtype=np.float64),
-                           np.array(out_status, dtype=np.uint8),
-                           np.array([raws[i] for i in keep], dtype=np.int64))
+        return SampleBlock(
+            np.array(out_distance, dtype=np.float64),
+            np.array(out_status, dtype=np.uint8),
+            np.array([raws[i] for i in keep], dtype=np.int64),
+        )

@@ -147,8 +147,10 @@ class SerialTransport(Transport):
         except (OSError, ValueError, TypeError) as exc:
             raise ConnectionLost(f"read from {self.port} failed: {exc}") from exc
         if not data:  # readable but empty: the other side of a pty or a USB adapter went away
-            raise ConnectionLost(f"read from {self.port} failed: the device reports readiness "
-                                 "to read but returned no data")
+            raise ConnectionLost(
+                f"read from {self.port} failed: the device reports readiness "
+                "to read but returned no data"
+            )
         return data
 
     def reset_input(self) -> None:

@@ -141,7 +141,9 @@ def hysteretic_estimate(
     th = theta(branch, kappa, y0)
     slope_scale = float(np.ptp(th) / branch.span)
     kw: _FitKeywords = {
-        "noise": noise, "slope_scale": slope_scale, "rel_tol": derivative.rel_tol,
+        "noise": noise,
+        "slope_scale": slope_scale,
+        "rel_tol": derivative.rel_tol,
         "degree": derivative.degree,
     }
     # Step 5: x* with θ(x*) = 0; Step 6: a = dθ/dx at x* (9.23, 9.39)

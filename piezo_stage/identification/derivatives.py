@@ -58,8 +58,15 @@ def _window(x: NDArray[np.float64], x0: float, m: int) -> slice:
     return slice(lo, hi)
 
 
-def local_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, m: int, *, degree: int = 3,
-              noise: float = 0.0) -> LocalFit:
+def local_fit(
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    x0: float,
+    m: int,
+    *,
+    degree: int = 3,
+    noise: float = 0.0,
+) -> LocalFit:
     """Least-squares polynomial of ``degree`` through the ``m`` samples of sorted ``x`` nearest
     ``x0``; returns its value and slope at ``x0``.
     """
@@ -83,9 +90,18 @@ def local_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, m: int,
     )
 
 
-def adaptive_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, *, noise: float,
-                 slope_scale: float, rel_tol: float = 2e-4, degree: int = 3, min_samples: int = 8,
-                 max_fraction: float = 0.1) -> LocalFit:
+def adaptive_fit(
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    x0: float,
+    *,
+    noise: float,
+    slope_scale: float,
+    rel_tol: float = 2e-4,
+    degree: int = 3,
+    min_samples: int = 8,
+    max_fraction: float = 0.1,
+) -> LocalFit:
     """:func:`local_fit` with the narrowest window whose slope standard deviation is below
     ``rel_tol * slope_scale`` (noise-free data keep the narrowest window, which keeps the bias
     of a non-analytic point such as x*, where θ is only C^n, small).
@@ -104,17 +120,26 @@ def adaptive_fit(x: NDArray[np.float64], y: NDArray[np.float64], x0: float, *, n
     return fit
 
 
-def local_root(x: NDArray[np.float64], y: NDArray[np.float64], x_start: float, *, noise: float,
-               slope_scale: float, rel_tol: float = 2e-4, degree: int = 3,
-               iterations: int = 4) -> LocalFit:
+def local_root(
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    x_start: float,
+    *,
+    noise: float,
+    slope_scale: float,
+    rel_tol: float = 2e-4,
+    degree: int = 3,
+    iterations: int = 4,
+) -> LocalFit:
     """Zero of the smoothed ``y(x)`` near ``x_start`` (Newton steps on local fits, 9.38-9.39's
     'linear interpolation' made robust); the returned fit is centred on the zero.
     """
     x0 = float(x_start)
     tol = 1e-12 * (x[-1] - x[0])
     for _ in range(iterations + 1):
-        fit = adaptive_fit(x, y, x0, noise=noise, slope_scale=slope_scale, rel_tol=rel_tol,
-                           degree=degree)
+        fit = adaptive_fit(
+            x, y, x0, noise=noise, slope_scale=slope_scale, rel_tol=rel_tol, degree=degree
+        )
         if fit.slope == 0.0:
             break
         x_new = float(np.clip(x0 - fit.value / fit.slope, x[0], x[-1]))

@@ -15,15 +15,17 @@ THESIS_ZETA = 0.7
 THESIS_BANDWIDTH_RATIO = 50.0
 
 
-def filter_gain(harmonic: ArrayLike, *, ratio: float = THESIS_BANDWIDTH_RATIO,
-                zeta: float = THESIS_ZETA) -> NDArray[np.float64]:
+def filter_gain(
+    harmonic: ArrayLike, *, ratio: float = THESIS_BANDWIDTH_RATIO, zeta: float = THESIS_ZETA
+) -> NDArray[np.float64]:
     """|H(j k ω_s)| of the second-order filter for harmonic numbers k, with ω_n = ratio·ω_s."""
     r = np.asarray(harmonic, dtype=float) / ratio
     return 1.0 / np.sqrt((1.0 - r**2) ** 2 + (2.0 * zeta * r) ** 2)
 
 
-def zero_phase_periodic(signal: NDArray[np.float64], *, ratio: float = THESIS_BANDWIDTH_RATIO,
-                        zeta: float = THESIS_ZETA) -> NDArray[np.float64]:
+def zero_phase_periodic(
+    signal: NDArray[np.float64], *, ratio: float = THESIS_BANDWIDTH_RATIO, zeta: float = THESIS_ZETA
+) -> NDArray[np.float64]:
     """Filter one period of a periodic signal with |H| (§10.3.2), zero phase."""
     signal = np.asarray(signal, dtype=float)
     spectrum = np.fft.rfft(signal)

@@ -91,8 +91,8 @@ def estimate_lag(rec: Recording) -> LagEstimate | None:
         lo, hi = i - half - 1, int(math.ceil(i + half + reach + 1))
         if lo < 0 or hi >= x.size:
             continue
-        tx = kink(x[lo:hi + 1], half - 0.5, half + 2.5)  # the input's own corner, sub-sample
-        ty = kink(y[lo:hi + 1], half - 0.5, half + 1.5 + reach)
+        tx = kink(x[lo : hi + 1], half - 0.5, half + 2.5)  # the input's own corner, sub-sample
+        ty = kink(y[lo : hi + 1], half - 0.5, half + 1.5 + reach)
         if math.isfinite(tx) and math.isfinite(ty):
             lags.append(ty - tx)
     if not lags:
@@ -161,7 +161,7 @@ def refine_lag(lag: LagEstimate, residual: Callable[[float], tuple[float, int]])
         if i in (0, len(taus) - 1):
             return lag
         # per sample: a shift past a whole sample drops one sample from the runs' start
-        m0, m1, m2 = (mean_square(t) for t in taus[i - 1:i + 2])
+        m0, m1, m2 = (mean_square(t) for t in taus[i - 1 : i + 2])
         a = (m0 - 2.0 * m1 + m2) / (2.0 * step * step)
         if not (a > 0 and math.isfinite(a)):
             return lag
@@ -187,5 +187,13 @@ def shift_output(rec: Recording, seconds: float) -> Recording:
     return Recording(t[keep], x, np.asarray(rec.output, dtype=float)[keep], name=rec.name)
 
 
-__all__ = ["LAG_TOLERANCE", "LagEstimate", "corners", "estimate_lag", "kink", "refine_lag",
-           "runs_lag", "shift_output"]
+__all__ = [
+    "LAG_TOLERANCE",
+    "LagEstimate",
+    "corners",
+    "estimate_lag",
+    "kink",
+    "refine_lag",
+    "runs_lag",
+    "shift_output",
+]

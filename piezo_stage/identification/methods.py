@@ -61,23 +61,28 @@ class Method(str, Enum):
 _DATA_ERRORS = (NonFiniteDataError, SaturatedOutputError, DataFormatError)
 
 
-def identify_runs(runs: Sequence[Recording], options: IdentifyOptions | None = None,
-                  method: Method | str = Method.AUTO,
-                  fit: FitOptions | None = None) -> IdentificationResult:
+def identify_runs(
+    runs: Sequence[Recording],
+    options: IdentifyOptions | None = None,
+    method: Method | str = Method.AUTO,
+    fit: FitOptions | None = None,
+) -> IdentificationResult:
     """Identify from one or more runs with ``method`` (see the module docstring)."""
     options = IdentifyOptions() if options is None else options
     fit = FitOptions() if fit is None else fit
     method = Method(method)
     try:
         return _identify(list(runs), options, method, fit)
-    except ArithmeticError as exc:     # overflow or division by zero on extreme data
+    except ArithmeticError as exc:  # overflow or division by zero on extreme data
         raise IdentificationError(
             f"numerical failure ({type(exc).__name__}: {exc}): the data are outside the "
-            "range the method handles (check units and scaling)") from exc
+            "range the method handles (check units and scaling)"
+        ) from exc
 
 
-def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
-              lag: LagEstimate | None) -> IdentificationResult:
+def _analytic(
+    runs: list[Recording], options: IdentifyOptions, fit: FitOptions, lag: LagEstimate | None
+) -> IdentificationResult:
     """The analytic method (with its refinement), which assumes the output answers the input
     at once: on the runs with the lag the corners show taken off (refined to the model's least
     residual, :func:`~.lag.refine_lag`, its uncertainty added to the standard errors), with the
@@ -93,10 +98,12 @@ def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
     warnings, diagnostics = list(result.warnings), dict(result.diagnostics)
     if lagging:
         assert lag is not None
-        warnings.append(f"the output lags the input by {lag.samples:.2f} ± {lag.spread:.2f} "
-                        f"samples ({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} "
-                        "corners and the model's least residual): the analytic method ran on "
-                        "the output shifted back by it")
+        warnings.append(
+            f"the output lags the input by {lag.samples:.2f} ± {lag.spread:.2f} "
+            f"samples ({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} "
+            "corners and the model's least residual): the analytic method ran on "
+            "the output shifted back by it"
+        )
         diagnostics.update(lag_samples=lag.samples, lag_spread=lag.spread)
         std = dict(diagnostics.get("std") or {})
         for key, slope in slopes.items():  # the lag's uncertainty, propagated
@@ -110,13 +117,19 @@ def _analytic(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
             warnings.append(
                 f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
                 f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits the "
-                f"rest ({figures['train_rms_percent']:.3g} %): it may not generalise")
-    return replace(result, delay=lag.seconds if lagging and lag is not None else result.delay,
-                   warnings=tuple(warnings), diagnostics=diagnostics)
+                f"rest ({figures['train_rms_percent']:.3g} %): it may not generalise"
+            )
+    return replace(
+        result,
+        delay=lag.seconds if lagging and lag is not None else result.delay,
+        warnings=tuple(warnings),
+        diagnostics=diagnostics,
+    )
 
 
-def _refined_lag(runs: list[Recording], options: IdentifyOptions, lag: LagEstimate
-                 ) -> tuple[LagEstimate, dict[str, float]]:
+def _refined_lag(
+    runs: list[Recording], options: IdentifyOptions, lag: LagEstimate
+) -> tuple[LagEstimate, dict[str, float]]:
     """The lag at the analytic model's least residual (:func:`~.lag.refine_lag`), and each
     hysteretic parameter's slope against it [per sample] (central difference over one standard
     error of the lag, at least 0.02 sample).
@@ -132,8 +145,9 @@ def _refined_lag(runs: list[Recording], options: IdentifyOptions, lag: LagEstima
             shifted, result = identified(samples)
         except IdentificationError:
             return math.inf, 0
-        errors = np.concatenate([_model_errors(result.parameters, r)[_settled(r):]
-                                 for r in shifted])
+        errors = np.concatenate(
+            [_model_errors(result.parameters, r)[_settled(r) :] for r in shifted]
+        )
         return float(errors @ errors), int(errors.size)
 
     refined = refine_lag(lag, residual)
@@ -145,8 +159,7 @@ def _refined_lag(runs: list[Recording], options: IdentifyOptions, lag: LagEstima
         down = identified(refined.samples - h)[1].parameters
     except IdentificationError:
         return refined, {}
-    return refined, {key: (getattr(up, key) - getattr(down, key)) / (2.0 * h)
-                     for key in HYSTERETIC}
+    return refined, {key: (getattr(up, key) - getattr(down, key)) / (2.0 * h) for key in HYSTERETIC}
 
 
 def _settled(rec: Recording) -> int:
@@ -157,13 +170,19 @@ def _settled(rec: Recording) -> int:
 
 def _model_errors(p: BoucWenParameters, rec: Recording) -> NDArray[np.float64]:
     """The model's output error over ``rec``, run from w(0) of (10.18) at its start."""
-    w0 = float(np.clip(initial_w(p.kappa, p.kappa_w, p.y0, float(rec.input[0]),
-                                 float(rec.output[0])), -1.0, 1.0))
+    w0 = float(
+        np.clip(
+            initial_w(p.kappa, p.kappa_w, p.y0, float(rec.input[0]), float(rec.output[0])),
+            -1.0,
+            1.0,
+        )
+    )
     return model_output(p, np.asarray(rec.input), w0=w0) - np.asarray(rec.output)
 
 
-def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: FitOptions
-                     ) -> dict[str, float] | None:
+def analytic_holdout(
+    runs: Sequence[Recording], options: IdentifyOptions, fit: FitOptions
+) -> dict[str, float] | None:
     """The fit's held-out check for the analytic method: identified from the first
     (1 − holdout) of both runs (whole periods of it), the model run over each whole run from
     w(0) of (10.18) at its start; the RMS of its error there (train) and on the rest (held
@@ -184,9 +203,13 @@ def analytic_holdout(runs: Sequence[Recording], options: IdentifyOptions, fit: F
     span = max(float(np.ptp(r.output)) for r in runs)
     rms_train = float(np.sqrt(np.mean(np.concatenate(train) ** 2)))
     rms_held = float(np.sqrt(np.mean(np.concatenate(held) ** 2)))
-    return {"holdout_fraction": float(fit.holdout), "holdout_rms": rms_held,
-            "holdout_rms_percent": 100.0 * rms_held / span, "train_rms": rms_train,
-            "train_rms_percent": 100.0 * rms_train / span}
+    return {
+        "holdout_fraction": float(fit.holdout),
+        "holdout_rms": rms_held,
+        "holdout_rms_percent": 100.0 * rms_held / span,
+        "train_rms": rms_train,
+        "train_rms_percent": 100.0 * rms_train / span,
+    }
 
 
 #: standard errors (combined) beyond which the analytic method and the fit disagree
@@ -206,15 +229,20 @@ def disagreement(a: IdentificationResult, b: IdentificationResult) -> list[str]:
         va, vb = getattr(a.parameters, key), getattr(b.parameters, key)
         ea, eb = sa.get(key, float("nan")), sb.get(key, float("nan"))
         sigma = float(np.hypot(ea, eb))
-        if np.isfinite(sigma) and abs(va - vb) > max(DISAGREEMENT * sigma,
-                                                     AGREEMENT_FLOOR * abs(va)):
+        if np.isfinite(sigma) and abs(va - vb) > max(
+            DISAGREEMENT * sigma, AGREEMENT_FLOOR * abs(va)
+        ):
             out.append(f"{key} {va:.4g} ± {ea:.2g} vs {vb:.4g} ± {eb:.2g}")
     return out
 
 
-def _cross_checked(analytic: IdentificationResult, runs: list[Recording],
-                   options: IdentifyOptions, fit: FitOptions,
-                   lag: LagEstimate | None) -> IdentificationResult:
+def _cross_checked(
+    analytic: IdentificationResult,
+    runs: list[Recording],
+    options: IdentifyOptions,
+    fit: FitOptions,
+    lag: LagEstimate | None,
+) -> IdentificationResult:
     """For auto: the analytic result held against the fit by simulation error from it (which also
     models a delay and a drift): the analytic result when they agree within their standard
     errors, else the one with the smaller residual, with a warning naming both (never one
@@ -227,18 +255,22 @@ def _cross_checked(analytic: IdentificationResult, runs: list[Recording],
         return replace(analytic, warnings=(*analytic.warnings, note))
     differ = disagreement(analytic, fitted)
     if not differ:
-        return replace(analytic, diagnostics={**analytic.diagnostics,
-                                              "cross_check_rms": fitted.rms_error})
+        return replace(
+            analytic, diagnostics={**analytic.diagnostics, "cross_check_rms": fitted.rms_error}
+        )
     keep = fitted if fitted.rms_error < analytic.rms_error else analytic
-    note = (f"the analytic method and the fit by simulation error disagree beyond "
-            f"{DISAGREEMENT:g} standard errors ({'; '.join(differ)}; analytic vs fit; residual "
-            f"RMS {analytic.rms_error:.3g} vs {fitted.rms_error:.3g}): the {keep.method} "
-            "result, whose model follows the data closer, is returned")
+    note = (
+        f"the analytic method and the fit by simulation error disagree beyond "
+        f"{DISAGREEMENT:g} standard errors ({'; '.join(differ)}; analytic vs fit; residual "
+        f"RMS {analytic.rms_error:.3g} vs {fitted.rms_error:.3g}): the {keep.method} "
+        "result, whose model follows the data closer, is returned"
+    )
     return replace(keep, warnings=(*keep.warnings, note))
 
 
-def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
-              fit: FitOptions) -> IdentificationResult:
+def _identify(
+    runs: list[Recording], options: IdentifyOptions, method: Method, fit: FitOptions
+) -> IdentificationResult:
     if not runs:
         raise IdentificationError("no runs to identify from")
     for rec in runs:
@@ -248,7 +280,8 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
         if len(runs) != 2:
             raise IdentificationError(
                 f"the analytic method needs exactly two runs (x(t) and x(t)+q), got "
-                f"{len(runs)}; --method fit identifies from any runs")
+                f"{len(runs)}; --method fit identifies from any runs"
+            )
         return _analytic(runs, options, fit, lag)
     analytic: IdentificationResult | None = None
     problem = f"{len(runs)} run(s): the analytic method needs two (x(t) and x(t)+q)"
@@ -261,7 +294,7 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
         except _DATA_ERRORS:
             raise
         except BadFitError as exc:
-            if method is Method.AUTO:    # its preconditions hold: its verdict stands
+            if method is Method.AUTO:  # its preconditions hold: its verdict stands
                 raise
             problem, analytic = str(exc), exc.result
         except IdentificationError as exc:
@@ -269,40 +302,73 @@ def _identify(runs: list[Recording], options: IdentifyOptions, method: Method,
     return _fit(runs, options, fit, analytic, problem, lag)
 
 
-def _fit(runs: list[Recording], options: IdentifyOptions, fit: FitOptions,
-         analytic: IdentificationResult | None, problem: str,
-         lag: LagEstimate | None) -> IdentificationResult:
+def _fit(
+    runs: list[Recording],
+    options: IdentifyOptions,
+    fit: FitOptions,
+    analytic: IdentificationResult | None,
+    problem: str,
+    lag: LagEstimate | None,
+) -> IdentificationResult:
     """The fit by simulation error, started from the analytic result and the lag if any."""
     fit = replace(fit, degree=options.degree, input_sign=options.input_sign)
     seeds: list[Seed] = []
     if analytic is not None:
         p = analytic.parameters
-        seeds.append(replace(seed_from(p, [initial_w(p.kappa, p.kappa_w, p.y0,
-                                                     float(r.input[0]), float(r.output[0]))
-                                           for r in runs]),
-                             delay=0.0 if lag is None else lag.seconds))
-    return fit_runs(runs, fit, seeds, analytic=analytic, analytic_problem=problem,
-                    input_name=options.input_name, output_name=options.output_name)
+        seeds.append(
+            replace(
+                seed_from(
+                    p,
+                    [
+                        initial_w(p.kappa, p.kappa_w, p.y0, float(r.input[0]), float(r.output[0]))
+                        for r in runs
+                    ],
+                ),
+                delay=0.0 if lag is None else lag.seconds,
+            )
+        )
+    return fit_runs(
+        runs,
+        fit,
+        seeds,
+        analytic=analytic,
+        analytic_problem=problem,
+        input_name=options.input_name,
+        output_name=options.output_name,
+    )
 
 
 def _warnings(final: SimulationFit, figures: dict[str, float], fit: FitOptions) -> list[str]:
     out = [correlation_warning(*c) for c in final.correlations]
-    loose = [f"{k} ±{100 * v:.2g} %" for k, v in final.relative_std.items()
-             if k in HYSTERETIC and not v <= fit.warn_rel_std]
+    loose = [
+        f"{k} ±{100 * v:.2g} %"
+        for k, v in final.relative_std.items()
+        if k in HYSTERETIC and not v <= fit.warn_rel_std
+    ]
     if loose:
-        out.append(f"loosely determined: {', '.join(loose)} (standard errors assume white "
-                   "noise; model error makes them optimistic)")
+        out.append(
+            f"loosely determined: {', '.join(loose)} (standard errors assume white "
+            "noise; model error makes them optimistic)"
+        )
     if figures and figures["holdout_rms"] > 2.0 * figures["train_rms"]:
-        out.append(f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
-                   f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits "
-                   f"the rest ({figures['train_rms_percent']:.3g} %): it may not generalise")
+        out.append(
+            f"the model predicts the held-out {100 * figures['holdout_fraction']:.0f} % "
+            f"worse (RMS {figures['holdout_rms_percent']:.3g} % of span) than it fits "
+            f"the rest ({figures['train_rms_percent']:.3g} %): it may not generalise"
+        )
     return out
 
 
-def fit_runs(runs: Sequence[Recording], fit: FitOptions,
-             seeds: Sequence[Seed] = (), *, analytic: IdentificationResult | None = None,
-             analytic_problem: str = "", input_name: str = "voltage",
-             output_name: str = "displacement") -> IdentificationResult:
+def fit_runs(
+    runs: Sequence[Recording],
+    fit: FitOptions,
+    seeds: Sequence[Seed] = (),
+    *,
+    analytic: IdentificationResult | None = None,
+    analytic_problem: str = "",
+    input_name: str = "voltage",
+    output_name: str = "displacement",
+) -> IdentificationResult:
     """The fit by simulation error with its held-out check, as an IdentificationResult
     (refused with :class:`BadFitError` when the data do not support it).
     """
@@ -314,14 +380,23 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
     final = simulation_fit(runs, fit, seeds)
     span = max(float(np.ptp(r.output)) for r in runs)
     diagnostics = {
-        "method": "fit", "std": final.std, "relative_std": final.relative_std,
-        "correlations": [list(c) for c in final.correlations], "nfev": final.nfev,
-        "solver": final.status, "noise_output": noise_level(runs), "output_span": span,
-        "w0_runs": list(final.w0), "runs": len(runs), **figures,
+        "method": "fit",
+        "std": final.std,
+        "relative_std": final.relative_std,
+        "correlations": [list(c) for c in final.correlations],
+        "nfev": final.nfev,
+        "solver": final.status,
+        "noise_output": noise_level(runs),
+        "output_span": span,
+        "w0_runs": list(final.w0),
+        "runs": len(runs),
+        **figures,
         "drift_runs": [None if d is None else d.coefficient for d in final.drift],
         #: how far the drift moves each run's output from its start to its end
-        "drift_change": [None if d is None else float(d.evaluate(np.array([r.t[-1] - r.t[0]]))[0])
-                         for d, r in zip(final.drift, runs)],
+        "drift_change": [
+            None if d is None else float(d.evaluate(np.array([r.t[-1] - r.t[0]]))[0])
+            for d, r in zip(final.drift, runs)
+        ],
     }
     if analytic_problem:
         diagnostics["analytic_problem"] = analytic_problem
@@ -332,9 +407,17 @@ def fit_runs(runs: Sequence[Recording], fit: FitOptions,
         analytic=None if analytic is None else analytic.parameters,
         rms_error=final.rms_error,
         analytic_rms_error=float("nan") if analytic is None else analytic.rms_error,
-        samples=sum(len(r) for r in runs), w0=final.w0[0], refined=True,
-        input_name=input_name, output_name=output_name, diagnostics=diagnostics,
-        method="fit", delay=final.delay, drift=final.drift[0],
-        warnings=tuple(_warnings(final, figures, fit)), fitted=final.model)
+        samples=sum(len(r) for r in runs),
+        w0=final.w0[0],
+        refined=True,
+        input_name=input_name,
+        output_name=output_name,
+        diagnostics=diagnostics,
+        method="fit",
+        delay=final.delay,
+        drift=final.drift[0],
+        warnings=tuple(_warnings(final, figures, fit)),
+        fitted=final.model,
+    )
     check_fit(result, fit)
     return result

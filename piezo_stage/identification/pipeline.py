@@ -39,46 +39,57 @@ if TYPE_CHECKING:
 class IdentifyOptions:
     """Options of the analytic method (:func:`identify`, :func:`identify_cycles`), step by step."""
 
-    degree: int = 1                       #: N of (10.4); 1 is the plain Bouc-Wen κx·x
+    degree: int = 1  #: N of (10.4); 1 is the plain Bouc-Wen κx·x
     refine: bool = True
-    input_sign: int | None = None         #: None: detect from the loop orientation
+    input_sign: int | None = None  #: None: detect from the loop orientation
     cycle: CycleOptions = field(default_factory=CycleOptions)
     design: DesignPoints = field(default_factory=DesignPoints)
     derivative: DerivativeOptions = field(default_factory=DerivativeOptions)
     refinement: RefineOptions = field(default_factory=RefineOptions)
-    min_loop_width: float = 1e-3          #: least mean loop width, fraction of output span
-    span_tolerance: float = 0.02          #: the runs' input spans must agree this well
+    min_loop_width: float = 1e-3  #: least mean loop width, fraction of output span
+    span_tolerance: float = 0.02  #: the runs' input spans must agree this well
     input_name: str = "voltage"
     output_name: str = "displacement"
 
 
-def identify(run_a: Recording, run_b: Recording,
-             options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:
+def identify(
+    run_a: Recording, run_b: Recording, options: IdentifyOptions = IdentifyOptions()
+) -> IdentificationResult:
     """Identify from two recorded runs (any phase, transients included)."""
     cycles = (extract_cycle(run_a, options.cycle), extract_cycle(run_b, options.cycle))
     result = identify_cycles(cycles[0], cycles[1], options)
-    w0 = initial_w(result.parameters.kappa, result.parameters.kappa_w, result.parameters.y0,
-                   float(run_a.input[0]), float(run_a.output[0]))
+    w0 = initial_w(
+        result.parameters.kappa,
+        result.parameters.kappa_w,
+        result.parameters.y0,
+        float(run_a.input[0]),
+        float(run_a.output[0]),
+    )
     return replace(result, w0=w0)
 
 
 def _check_options(options: IdentifyOptions) -> None:
     if int(options.degree) != options.degree or options.degree < 1:
         raise IdentificationError(
-            f"polynomial degree N must be an integer >= 1, got {options.degree!r}")
+            f"polynomial degree N must be an integer >= 1, got {options.degree!r}"
+        )
     if options.input_sign not in (None, 1, -1):
         raise IdentificationError(f"input_sign must be +1, -1 or None, got {options.input_sign!r}")
 
 
-def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
-                    options: IdentifyOptions = IdentifyOptions()) -> IdentificationResult:
+def identify_cycles(
+    cycle_a: SteadyCycle, cycle_b: SteadyCycle, options: IdentifyOptions = IdentifyOptions()
+) -> IdentificationResult:
     """Identify from the two steady cycles (run B = run A's input + q)."""
     _check_options(options)
     cycles = (cycle_a, cycle_b)
     smooth = [smooth_input(c) for c in cycles]
-    orientations = [detect_orientation(c, v, min_loop_width=options.min_loop_width,
-                                       noise_factor=options.cycle.noise_factor)
-                    for c, v in zip(cycles, smooth)]
+    orientations = [
+        detect_orientation(
+            c, v, min_loop_width=options.min_loop_width, noise_factor=options.cycle.noise_factor
+        )
+        for c, v in zip(cycles, smooth)
+    ]
     sign = resolve_orientation(orientations, options.input_sign)
     branches = [split_branches(c, sign, v) for c, v in zip(cycles, smooth)]
     # §10.2.2: polynomial part from the difference of the two cycles, then y0 (10.17)
@@ -86,8 +97,9 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
     poly = fit_polynomial(branches[0], branches[1], options.degree, q)
     y0 = offset_y0(branches, poly.kappa)
     # §10.2.3 / 9.1.3 Steps 4-10 on run A's loading branch
-    hyst = hysteretic_estimate(branches[0][0], poly.kappa, y0, cycle_a.noise_output,
-                               options.design, options.derivative)
+    hyst = hysteretic_estimate(
+        branches[0][0], poly.kappa, y0, cycle_a.noise_output, options.design, options.derivative
+    )
     paths = [cycle_path(c, v, sign) for c, v in zip(cycles, smooth)]
     analytic, analytic_problem = _analytic_parameters(poly.kappa, y0, hyst, sign)
     samples = cycle_a.raw_samples + cycle_b.raw_samples
@@ -102,11 +114,22 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
         "noise_output": noise,
         "output_span": span,
         "loop_width": [o.mean_gap for o in orientations],
-        "a": hyst.a, "b": hyst.b, "a_uncorrected": hyst.a_uncorrected,
-        "x_star": hyst.x_star, "x_star1": hyst.x1, "x_star2": hyst.x2, "x_star3": hyst.x3,
-        "analytic_raw": {"kappa": [float(k) for k in poly.kappa], "y0": y0,
-                         "kappa_w": hyst.kappa_w, "rho": hyst.rho, "sigma": hyst.sigma,
-                         "n": hyst.n, "input_sign": sign},
+        "a": hyst.a,
+        "b": hyst.b,
+        "a_uncorrected": hyst.a_uncorrected,
+        "x_star": hyst.x_star,
+        "x_star1": hyst.x1,
+        "x_star2": hyst.x2,
+        "x_star3": hyst.x3,
+        "analytic_raw": {
+            "kappa": [float(k) for k in poly.kappa],
+            "y0": y0,
+            "kappa_w": hyst.kappa_w,
+            "rho": hyst.rho,
+            "sigma": hyst.sigma,
+            "n": hyst.n,
+            "input_sign": sign,
+        },
     }
     analytic_rms = float("nan")
     if analytic is not None:
@@ -118,54 +141,98 @@ def identify_cycles(cycle_a: SteadyCycle, cycle_b: SteadyCycle,
             analytic_problem = str(exc)
     correlations: tuple[tuple[str, str, float], ...] = ()
     if options.refine:
-        start = analytic if analytic is not None else feasible_start(
-            poly.kappa, y0, hyst.kappa_w, hyst.rho, hyst.sigma, hyst.n, sign,
-            options.refinement.n_max)
+        start = (
+            analytic
+            if analytic is not None
+            else feasible_start(
+                poly.kappa,
+                y0,
+                hyst.kappa_w,
+                hyst.rho,
+                hyst.sigma,
+                hyst.n,
+                sign,
+                options.refinement.n_max,
+            )
+        )
         fit = refine(start, paths, options.refinement)
         final, rms = fit.parameters, fit.rms_error
         correlations = fit.correlations
-        values = dict(zip([f"kappa_{i + 1}" for i in range(len(final.kappa))], final.kappa),
-                      y0=final.y0, kappa_w=final.kappa_w, rho=final.rho, sigma=final.sigma,
-                      n=final.n)
-        diagnostics.update(relative_std=fit.relative_std, nfev=fit.nfev, solver=fit.status,
-                           rejected_trials=fit.rejected_trials,
-                           std={k: rel * abs(values[k]) for k, rel in fit.relative_std.items()
-                                if k in values and np.isfinite(rel)},
-                           correlations=[list(c) for c in fit.correlations])
+        values = dict(
+            zip([f"kappa_{i + 1}" for i in range(len(final.kappa))], final.kappa),
+            y0=final.y0,
+            kappa_w=final.kappa_w,
+            rho=final.rho,
+            sigma=final.sigma,
+            n=final.n,
+        )
+        diagnostics.update(
+            relative_std=fit.relative_std,
+            nfev=fit.nfev,
+            solver=fit.status,
+            rejected_trials=fit.rejected_trials,
+            std={
+                k: rel * abs(values[k])
+                for k, rel in fit.relative_std.items()
+                if k in values and np.isfinite(rel)
+            },
+            correlations=[list(c) for c in fit.correlations],
+        )
     else:
         if analytic is None:
             raise AnalyticEstimateError(
                 f"the analytic estimate is outside class I ({analytic_problem}); "
-                "run with refinement to fit the data within the class-I bounds")
+                "run with refinement to fit the data within the class-I bounds"
+            )
         final, rms = analytic, analytic_rms
     if analytic_problem:
         diagnostics["analytic_problem"] = analytic_problem
     result = IdentificationResult(
-        parameters=final, analytic=analytic, rms_error=rms, analytic_rms_error=analytic_rms,
-        samples=samples, w0=initial_w(final.kappa, final.kappa_w, final.y0,
-                                      float(cycle_a.input[0]), float(cycle_a.output[0])),
-        refined=options.refine, input_name=options.input_name, output_name=options.output_name,
-        diagnostics=diagnostics, cycles=cycles,
-        warnings=tuple(correlation_warning(*c) for c in correlations))
+        parameters=final,
+        analytic=analytic,
+        rms_error=rms,
+        analytic_rms_error=analytic_rms,
+        samples=samples,
+        w0=initial_w(
+            final.kappa, final.kappa_w, final.y0, float(cycle_a.input[0]), float(cycle_a.output[0])
+        ),
+        refined=options.refine,
+        input_name=options.input_name,
+        output_name=options.output_name,
+        diagnostics=diagnostics,
+        cycles=cycles,
+        warnings=tuple(correlation_warning(*c) for c in correlations),
+    )
     check_fit(result, options.refinement)
     return result
 
 
 def correlation_warning(a: str, b: str, c: float) -> str:
     """The warning for two strongly correlated parameters (both methods)."""
-    return (f"{a} and {b} are strongly correlated ({c:+.5f}): this record separates them "
-            "poorly (see their standard errors)")
+    return (
+        f"{a} and {b} are strongly correlated ({c:+.5f}): this record separates them "
+        "poorly (see their standard errors)"
+    )
 
 
-def _analytic_parameters(kappa: NDArray[np.float64], y0: float, h: HystereticEstimate,
-                         sign: int) -> tuple[BoucWenParameters | None, str]:
+def _analytic_parameters(
+    kappa: NDArray[np.float64], y0: float, h: HystereticEstimate, sign: int
+) -> tuple[BoucWenParameters | None, str]:
     """The analytic estimate as validated parameters, or (None, reason) outside class I."""
     if not (h.kappa_w > 0 and h.rho > 0):
         raise AnalyticEstimateError(
-            f"Table 10.2 gives κw = {h.kappa_w:.3g}, ρ = {h.rho:.3g}; both must be positive")
+            f"Table 10.2 gives κw = {h.kappa_w:.3g}, ρ = {h.rho:.3g}; both must be positive"
+        )
     try:
-        params = BoucWenParameters(kappa=tuple(float(k) for k in kappa), kappa_w=h.kappa_w,
-                                   rho=h.rho, sigma=h.sigma, n=h.n, y0=float(y0), input_sign=sign)
+        params = BoucWenParameters(
+            kappa=tuple(float(k) for k in kappa),
+            kappa_w=h.kappa_w,
+            rho=h.rho,
+            sigma=h.sigma,
+            n=h.n,
+            y0=float(y0),
+            input_sign=sign,
+        )
         params.validate()
     except ModelError as exc:
         return None, str(exc)
@@ -186,12 +253,15 @@ def check_fit(result: IdentificationResult, options: RefineOptions | FitOptions)
             f"({100 * result.rms_error / span:.3g} % of "
             f"the output span) exceeds both {options.noise_factor:g}x the noise level "
             f"({noise:.3g}) and {100 * options.max_rms_fraction:g} % of the span: the model "
-            "(degree N, Bouc-Wen structure) does not describe these data", result)
+            "(degree N, Bouc-Wen structure) does not describe these data",
+            result,
+        )
     rel = d.get("relative_std", {})
-    loose = {k: v for k, v in rel.items() if k in HYSTERETIC
-             and not v <= options.max_rel_std}
+    loose = {k: v for k, v in rel.items() if k in HYSTERETIC and not v <= options.max_rel_std}
     if loose:
         text = ", ".join(f"{k} ±{100 * v:.2g} %" for k, v in loose.items())
         raise BadFitError(
             f"bad fit: parameters not determined by the data ({text}, limit "
-            f"{100 * options.max_rel_std:g} %): excite a wider loop or reduce the noise", result)
+            f"{100 * options.max_rel_std:g} %): excite a wider loop or reduce the noise",
+            result,
+        )

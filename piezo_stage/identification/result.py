@@ -64,8 +64,8 @@ class IdentificationResult:
     output_name: str = "displacement"
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
     cycles: tuple[SteadyCycle, ...] = field(default=(), compare=False, repr=False)
-    method: str = "analytic"              #: "analytic" (ch. 9-10 + refinement) or "fit"
-    delay: float = 0.0                    #: output lag behind the input [s]
+    method: str = "analytic"  #: "analytic" (ch. 9-10 + refinement) or "fit"
+    delay: float = 0.0  #: output lag behind the input [s]
     drift: Drift | None = None
     warnings: tuple[str, ...] = ()
     #: the model's output over each run as fitted (method "fit"; empty for the analytic one)
@@ -82,32 +82,54 @@ class IdentificationResult:
         out["output_name"] = self.output_name
         out["method"] = self.method
         out["delay"] = float(self.delay)
-        out["drift"] = None if self.drift is None else {
-            "kind": self.drift.kind.value, "coefficient": self.drift.coefficient,
-            "time_constant": self.drift.time_constant}
+        out["drift"] = (
+            None
+            if self.drift is None
+            else {
+                "kind": self.drift.kind.value,
+                "coefficient": self.drift.coefficient,
+                "time_constant": self.drift.time_constant,
+            }
+        )
         out["std"] = {k: float(v) for k, v in self.diagnostics.get("std", {}).items()}
         out["warnings"] = list(self.warnings)
         if "holdout_rms" in self.diagnostics:
-            out["holdout"] = {k: self.diagnostics[k] for k in
-                              ("holdout_fraction", "holdout_rms", "holdout_rms_percent")}
+            out["holdout"] = {
+                k: self.diagnostics[k]
+                for k in ("holdout_fraction", "holdout_rms", "holdout_rms_percent")
+            }
         if self.analytic is not None:
             out["analytic"] = parameters_dict(self.analytic, self.analytic_rms_error, self.samples)
             out["analytic"]["class_i"] = True
-        else:   # outside class I: the raw Table 10.2 values, flagged
+        else:  # outside class I: the raw Table 10.2 values, flagged
             raw = self.diagnostics.get("analytic_raw", {})
-            out["analytic"] = {**raw, "rms_error": None, "samples": int(self.samples),
-                               "class_i": False}
+            out["analytic"] = {
+                **raw,
+                "rms_error": None,
+                "samples": int(self.samples),
+                "class_i": False,
+            }
         return {key: _finite(value) for key, value in out.items()}
 
     def to_parameter_set(self, name: str = "identified", notes: str = "") -> ParameterSet:
         """The model's ParameterSet (static form, ch. 10) for `save_parameter_set`."""
         if not notes:
             q = self.diagnostics.get("q")
-            notes = (f"identified from {self.samples} samples ({self.method} method), "
-                     f"rms_error {self.rms_error:.4g}"
-                     + (f", q = {q:.6g}" if q is not None else "")
-                     + ("" if self.refined else ", analytic estimate (no refinement)"))
-        return ParameterSet(name=name, form="static", bouc_wen=self.parameters, dynamics=None,
-                            input_name=self.input_name, output_name=self.output_name,
-                            w0=float(min(1.0, max(-1.0, self.w0))), notes=notes,
-                            delay=float(self.delay), drift=self.drift)
+            notes = (
+                f"identified from {self.samples} samples ({self.method} method), "
+                f"rms_error {self.rms_error:.4g}"
+                + (f", q = {q:.6g}" if q is not None else "")
+                + ("" if self.refined else ", analytic estimate (no refinement)")
+            )
+        return ParameterSet(
+            name=name,
+            form="static",
+            bouc_wen=self.parameters,
+            dynamics=None,
+            input_name=self.input_name,
+            output_name=self.output_name,
+            w0=float(min(1.0, max(-1.0, self.w0))),
+            notes=notes,
+            delay=float(self.delay),
+            drift=self.drift,
+        )

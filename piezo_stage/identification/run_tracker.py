@@ -26,8 +26,8 @@ class Phase(str, Enum):
     """What a mark says about its run."""
 
     SETTLING = "settling"  # a new run, not yet periodic
-    STEADY = "steady"      # the run's recorded periods
-    OVER = "over"          # the run's end (the plan is done)
+    STEADY = "steady"  # the run's recorded periods
+    OVER = "over"  # the run's end (the plan is done)
 
 
 @dataclass(frozen=True)
@@ -75,8 +75,12 @@ class RunTracker:
         self.marks.append((t, run, steady))
         self.offsets[run] = offset
         previous, self._last = self._last, (run, steady)
-        if previous is not None and previous[1] and self._last != previous \
-                and previous[0] not in self.completed:
+        if (
+            previous is not None
+            and previous[1]
+            and self._last != previous
+            and previous[0] not in self.completed
+        ):
             self.completed.append(previous[0])
             self._pending.append((t, previous[0]))
         if previous == self._last:
@@ -98,8 +102,9 @@ class RunTracker:
         """Completed runs not yet handed out by :meth:`poll`."""
         return bool(self._pending)
 
-    def poll(self, samples: int, latest: float, now: float, settle_time: float,
-             identified: bool = False) -> Poll:
+    def poll(
+        self, samples: int, latest: float, now: float, settle_time: float, identified: bool = False
+    ) -> Poll:
         """``samples``: samples received so far (both streams); ``latest``: the stamp [s] both
         streams have reached (the smaller of their last stamps); ``now``: wall time [s];
         ``identified``: a result exists (silence is then no failure). Call it periodically
@@ -114,7 +119,8 @@ class RunTracker:
         ready = []
         while self._pending and (self._pending[0][0] <= latest or silent):
             ready.append(self._pending.pop(0)[1])
-        stalled = silent and not self._reported and not identified \
-            and len(self.completed) < RUNS_NEEDED
+        stalled = (
+            silent and not self._reported and not identified and len(self.completed) < RUNS_NEEDED
+        )
         self._reported = self._reported or stalled
         return Poll(tuple(ready), silent, stalled)

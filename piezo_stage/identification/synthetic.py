@@ -22,16 +22,28 @@ from .recording import Recording
 def limit_cycle_start(params: BoucWenParameters, low: float, high: float) -> float:
     """Hysteretic state w on the limit cycle when the triangle is at its ``low`` end (9.13-9.15)."""
     x_lo, x_hi = sorted((params.input_sign * low, params.input_sign * high))
-    w_load, w_unload = limit_cycle(params.rho, params.sigma, params.n, x_lo, x_hi,
-                                   np.array([x_lo, x_hi]))
+    w_load, w_unload = limit_cycle(
+        params.rho, params.sigma, params.n, x_lo, x_hi, np.array([x_lo, x_hi])
+    )
     # v = low is the x minimum for input_sign = +1 and the x maximum for input_sign = -1
     return float(w_load[0]) if params.input_sign == 1 else float(w_load[1])
 
 
-def triangle_run(params: BoucWenParameters, low: float, high: float, *, period: float = 1.0,
-                 samples_per_branch: int = 2000, periods: float = 3.0, noise: float = 0.0,
-                 input_noise: float = 0.0, phase: float = 0.0, w0: float | None = None,
-                 rng: np.random.Generator | None = None, name: str = "") -> Recording:
+def triangle_run(
+    params: BoucWenParameters,
+    low: float,
+    high: float,
+    *,
+    period: float = 1.0,
+    samples_per_branch: int = 2000,
+    periods: float = 3.0,
+    noise: float = 0.0,
+    input_noise: float = 0.0,
+    phase: float = 0.0,
+    w0: float | None = None,
+    rng: np.random.Generator | None = None,
+    name: str = "",
+) -> Recording:
     """One run: a triangle between ``low`` and ``high`` (rising first), sampled with
     ``samples_per_branch`` samples per rise, for ``periods`` periods, starting ``phase``
     periods into the wave. ``noise``/``input_noise`` are white-noise standard deviations as
@@ -66,9 +78,15 @@ class _RunOptions(TypedDict, total=False):
     w0: float | None
 
 
-def triangle_pair(params: BoucWenParameters, low: float, high: float, q: float, *,
-                  rng: np.random.Generator | None = None,
-                  **kwargs: Unpack[_RunOptions]) -> tuple[Recording, Recording]:
+def triangle_pair(
+    params: BoucWenParameters,
+    low: float,
+    high: float,
+    q: float,
+    *,
+    rng: np.random.Generator | None = None,
+    **kwargs: Unpack[_RunOptions],
+) -> tuple[Recording, Recording]:
     """Runs x(t) over [low, high] and x(t)+q (Steps 1-2 of 9.1.3)."""
     rng = rng or np.random.default_rng(0)
     a = triangle_run(params, low, high, rng=rng, name="run A", **kwargs)
@@ -78,5 +96,12 @@ def triangle_pair(params: BoucWenParameters, low: float, high: float, q: float, 
 
 #: thesis reference sets (DESIGN §4)
 CH9_EXAMPLE = dict(kappa=(2.0,), kappa_w=2.0, rho=1.0, sigma=3.0, n=1.5)
-CH10_PATCH = dict(kappa=(1.401e-7, -5.0949e-11), kappa_w=9.22e-6, rho=0.0047, sigma=0.812,
-                  n=1.12, y0=1.7858e-6, input_sign=-1)
+CH10_PATCH = dict(
+    kappa=(1.401e-7, -5.0949e-11),
+    kappa_w=9.22e-6,
+    rho=0.0047,
+    sigma=0.812,
+    n=1.12,
+    y0=1.7858e-6,
+    input_sign=-1,
+)

@@ -59,15 +59,24 @@ def host_args(spec: ProcessSpec) -> list[str]:
     """A composition host's arguments: ``NODE.KEY:=VALUE`` for each member's overrides, which
     the host gives to that node (rcl's node-scoped ``-p NODE:KEY:=VALUE`` matches no node in a
     namespace, and would lose to the params files)."""
-    return [f"{m.name}.{key}:={ros_value(value)}" for m in spec.members
-            for key, value in m.overrides.items()]
+    return [
+        f"{m.name}.{key}:={ros_value(value)}"
+        for m in spec.members
+        for key, value in m.overrides.items()
+    ]
 
 
 def display_argv(spec: ProcessSpec, graph: Graph) -> list[str]:
     """What the process is equivalent to (shown by --dry-run and in the launch log)."""
     if spec.is_node:
-        return ["python", "-m", str(spec.module), *spec.args, *host_args(spec),
-                *ros_arguments(spec, graph)]
+        return [
+            "python",
+            "-m",
+            str(spec.module),
+            *spec.args,
+            *host_args(spec),
+            *ros_arguments(spec, graph),
+        ]
     return [*spec.command, *spec.args]
 
 
@@ -75,8 +84,14 @@ def process_argv(spec: ProcessSpec, graph: Graph, parent_pid: int | None = None)
     """The argv actually started: the bootstrap, then the module or command."""
     head = [sys.executable, "-m", BOOTSTRAP, str(os.getpid() if parent_pid is None else parent_pid)]
     if spec.is_node:
-        return [*head, "module", str(spec.module), *spec.args, *host_args(spec),
-                *ros_arguments(spec, graph)]
+        return [
+            *head,
+            "module",
+            str(spec.module),
+            *spec.args,
+            *host_args(spec),
+            *ros_arguments(spec, graph),
+        ]
     return [*head, "exec", *spec.command, *spec.args]
 
 

@@ -174,10 +174,15 @@ class Graph:
                 out.append(spec)
             elif not any(p.name == spec.process for p in out):
                 members = tuple(s for s in self.nodes if s.process == spec.process)
-                out.append(ProcessSpec(
-                    name=spec.process, module=f"{NODE_PACKAGE}.{spec.process}",
-                    required=any(m.required for m in members),
-                    env={k: v for m in members for k, v in m.env.items()}, members=members))
+                out.append(
+                    ProcessSpec(
+                        name=spec.process,
+                        module=f"{NODE_PACKAGE}.{spec.process}",
+                        required=any(m.required for m in members),
+                        env={k: v for m in members for k, v in m.env.items()},
+                        members=members,
+                    )
+                )
         return tuple(out)
 
     def topics(self) -> list[str]:
@@ -426,12 +431,15 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
     process = entry.get("process")
     if process is not None:
         if kind != "executable" or not isinstance(process, str) or not _NODE_NAME_RE.match(process):
-            raise GraphError(f"{label}: process: only an 'executable' entry is composed, into a "
-                             f"host node module name (e.g. rig_loop), got {process!r}")
+            raise GraphError(
+                f"{label}: process: only an 'executable' entry is composed, into a "
+                f"host node module name (e.g. rig_loop), got {process!r}"
+            )
         for key in ("name", "args", "ready_pattern", "remappings"):
             if key in entry:
-                raise GraphError(f"{label}: {key!r} is not for a composed entry (process: "
-                                 f"{process})")
+                raise GraphError(
+                    f"{label}: {key!r} is not for a composed entry (process: {process})"
+                )
     ready_pattern = entry.get("ready_pattern")
     if ready_pattern is not None:
         try:

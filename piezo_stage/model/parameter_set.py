@@ -56,8 +56,18 @@ SHIPPED = ("ch9_example", "ch10_patch", "ch11_rig")
 
 _BW_KEYS = ("kappa", "kappa_w", "rho", "sigma", "n", "y0", "input_sign")
 _BW_REQUIRED = ("kappa", "kappa_w", "rho", "sigma", "n")
-_TOP_KEYS = ("name", "form", "input_name", "output_name", "bouc_wen", "dynamics", "w0", "delay",
-             "drift", "notes")
+_TOP_KEYS = (
+    "name",
+    "form",
+    "input_name",
+    "output_name",
+    "bouc_wen",
+    "dynamics",
+    "w0",
+    "delay",
+    "drift",
+    "notes",
+)
 _DRIFT_KEYS = ("kind", "coefficient", "time_constant")
 _TOP_REQUIRED = ("name", "form", "bouc_wen")
 
@@ -76,7 +86,8 @@ class Dynamics:
                 value = float(value)
             except (TypeError, ValueError) as exc:
                 raise ParameterValueError(
-                    f"dynamics.{name} must be a number, got {value!r}") from exc
+                    f"dynamics.{name} must be a number, got {value!r}"
+                ) from exc
             object.__setattr__(self, name, value)
         if not (math.isfinite(self.m) and self.m > 0.0):
             raise ParameterValueError(f"dynamics.m must be > 0 (11.1), got {self.m!r}")
@@ -88,8 +99,8 @@ class DriftKind(str, Enum):
     """Shape of the slow output drift (creep) added to a recording's model output."""
 
     NONE = "none"
-    LINEAR = "linear"     #: coefficient · t / time_constant
-    LOG = "log"           #: coefficient · ln(1 + t / time_constant)
+    LINEAR = "linear"  #: coefficient · t / time_constant
+    LOG = "log"  #: coefficient · ln(1 + t / time_constant)
 
 
 @dataclass(frozen=True)
@@ -105,7 +116,8 @@ class Drift:
             object.__setattr__(self, "kind", DriftKind(self.kind))
         except ValueError as exc:
             raise ParameterValueError(
-                f"drift.kind must be 'linear' or 'log', got {self.kind!r}") from exc
+                f"drift.kind must be 'linear' or 'log', got {self.kind!r}"
+            ) from exc
         if self.kind is DriftKind.NONE:
             raise ParameterValueError("drift.kind 'none': write drift: null instead")
         for name in ("coefficient", "time_constant"):
@@ -113,12 +125,14 @@ class Drift:
                 object.__setattr__(self, name, float(getattr(self, name)))
             except (TypeError, ValueError) as exc:
                 raise ParameterValueError(
-                    f"drift.{name} must be a number, got {getattr(self, name)!r}") from exc
+                    f"drift.{name} must be a number, got {getattr(self, name)!r}"
+                ) from exc
         if not math.isfinite(self.coefficient):
             raise ParameterValueError(f"drift.coefficient must be finite, got {self.coefficient!r}")
         if not (math.isfinite(self.time_constant) and self.time_constant > 0.0):
             raise ParameterValueError(
-                f"drift.time_constant must be > 0 [s], got {self.time_constant!r}")
+                f"drift.time_constant must be > 0 [s], got {self.time_constant!r}"
+            )
 
     def evaluate(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """The drift at times ``t`` [s] from the start of the recording."""
@@ -146,8 +160,8 @@ class ParameterSet:
     output_name: str = "displacement"
     w0: float = 0.0
     notes: str = ""
-    delay: float = 0.0            #: output lag behind the input [s] (validate applies it)
-    drift: Drift | None = None    #: slow output drift (validate applies it)
+    delay: float = 0.0  #: output lag behind the input [s] (validate applies it)
+    drift: Drift | None = None  #: slow output drift (validate applies it)
 
     def __post_init__(self) -> None:
         if self.form not in FORMS:
@@ -194,9 +208,13 @@ def parameter_set_to_dict(ps: ParameterSet) -> dict[str, Any]:
         "dynamics": None if ps.dynamics is None else {"m": ps.dynamics.m, "c": ps.dynamics.c},
         "w0": ps.w0,
         "delay": ps.delay,
-        "drift": None if ps.drift is None else {"kind": ps.drift.kind.value,
-                                                "coefficient": ps.drift.coefficient,
-                                                "time_constant": ps.drift.time_constant},
+        "drift": None
+        if ps.drift is None
+        else {
+            "kind": ps.drift.kind.value,
+            "coefficient": ps.drift.coefficient,
+            "time_constant": ps.drift.time_constant,
+        },
         "notes": ps.notes,
     }
 

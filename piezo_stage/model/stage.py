@@ -70,7 +70,8 @@ class AmplifierModel:
         v_min, v_max = float(v_min), float(v_max)
         if math.isnan(v_min) or math.isnan(v_max) or not v_min < v_max:
             raise ParameterValueError(
-                f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]")
+                f"amplifier limits need v_min < v_max, got [{v_min!r}, {v_max!r}]"
+            )
         if not (math.isfinite(bandwidth_hz) and bandwidth_hz >= 0.0):
             raise ParameterValueError(f"bandwidth_hz must be >= 0 (0: ideal), got {bandwidth_hz!r}")
         if not (math.isfinite(slew_rate) and slew_rate >= 0.0):

@@ -12,5 +12,14 @@ __all__ = ["DEFAULT_NAMESPACE", "NODES", "NodeError", "RosParameterError"]
 DEFAULT_NAMESPACE = "/piezo"
 
 #: the node executables: module piezo_stage.nodes.<name>, console script <name>
-NODES = ("voltage_driver", "laser_reader", "plant", "excitation", "identifier", "controller",
-         "recorder", "player", "live_view")
+NODES = (
+    "voltage_driver",
+    "laser_reader",
+    "plant",
+    "excitation",
+    "identifier",
+    "controller",
+    "recorder",
+    "player",
+    "live_view",
+)

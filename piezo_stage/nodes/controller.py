@@ -90,110 +90,279 @@ from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_to_s, subscribers_
 from .spec import Param, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
-CONFIG_KEYS = GAIN_KEYS + ("mode", "u_min", "u_max", "anti_windup", "tracking_time",
-                           "derivative_tau", "hold_voltage", "on_close")
+CONFIG_KEYS = GAIN_KEYS + (
+    "mode",
+    "u_min",
+    "u_max",
+    "anti_windup",
+    "tracking_time",
+    "derivative_tau",
+    "hold_voltage",
+    "on_close",
+)
 
 
 class StepTrigger(str, Enum):
-    TIMER = "timer"    # rate_hz on the node clock
+    TIMER = "timer"  # rate_hz on the node clock
     SAMPLE = "sample"  # one step per displacement sample (the lockstep plant)
 
 
 class SensorQos(str, Enum):
     BEST_EFFORT = "best_effort"  # matches every publisher: the rig's laser_reader
-    RELIABLE = "reliable"        # the lockstep plant: no sample lost, no step waits for its timeout
+    RELIABLE = "reliable"  # the lockstep plant: no sample lost, no step waits for its timeout
 
 
 LEVELS = {Health.OK: OK, Health.WARN: WARN, Health.ERROR: ERROR}
 
 
 _G = THESIS_GAINS
-PARAMETERS = ParameterTable("controller", (
-    Param("mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=LAWS),
-    Param("k0", _G.k0, "integral gain k0", "V/(m s)", (0.0, 1e15)),
-    Param("k1", _G.k1, "proportional gain k1", "V/m", (0.0, 1e15)),
-    Param("k2", _G.k2, "derivative gain k2", "V s/m", (0.0, 1e12)),
-    Param("kA", _G.kA, "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
-    Param("A", _G.A, "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
-    Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
-    Param("u_min", -450.0, "amplifier lower limit", "V"),
-    Param("u_max", 450.0, "amplifier upper limit", "V"),
-    Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=ANTI_WINDUP),
-    Param("tracking_time", 0.0, "back-calculation time constant (0: sqrt(Ti*Td))", "s", (0.0, 1e3)),
-    Param("derivative_tau", 0.0, "first-order filter on x2 (0: off, as the thesis)", "s",
-          (0.0, 1.0)),
-    Param("u_bias", 0.0, "feedforward added to the law's output (§11.5 set point)", "V",
-          read_only=True),
-    Param("hold_voltage", math.nan, "output while the loop is open (NaN: last output)", "V"),
-    Param("on_close", "bumpless", "x0 when the loop closes", choices=ON_CLOSE),
-    Param("rate_hz", 1000.0, "loop rate (trigger=timer; also the rate checked)", "Hz", (1.0, 1e7)),
-    Param("trigger", "timer", "timer (rate_hz) or sample (one step per displacement sample)",
-          choices=StepTrigger),
-    Param("delay_samples", 1, "output delay assumed by the sampled-loop check", range=(0, 10)),
-    Param("sensor_qos", "best_effort", "displacement subscription: best_effort (matches every "
-          "publisher: the rig's laser_reader) or reliable (the lockstep plant: no sample lost, so "
-          "no step waits for the plant's timeout)", choices=SensorQos, read_only=True),
-    Param("start_closed", False, "close the loop at the first valid sample"),
-    Param("wait_for_state_subscribers", 0, "trigger=sample and rig_loop: ignore samples until "
-          "controller_state has this many subscribers (an experiment's recorder sees step 0)",
-          range=(0, 100),
-          read_only=True),
-    Param("topics_rate_hz", 1000.0, "rig_loop: most samples per second on displacement, "
-          "voltage_command, controller_state and voltage (decimated above it); loop_samples "
-          "carries every sample, in batches", "Hz", (1.0, 1e6), read_only=True),
-    Param("max_gap", 0.02, "a sensor silence up to this long holds the output (counted as "
-          "gaps_held); a longer one opens the loop", "s", (1e-5, 60.0)),
-    Param("reference_source", "topic", "where the set point comes from: the reference topic, the "
-          "thesis's second-order yr, the reference parameter, or the trajectory_* parameters (x_d "
-          "then published on reference)", choices=ReferenceSource),
-    Param("reference", 0.0, "set point for reference_source=constant, and before a reference "
-          "arrives", "m"),
-    Param("reference_y0", 20e-6, "second_order: yr(0)", "m"),
-    Param("reference_ydot0", 0.0, "second_order: dyr/dt(0)", "m/s"),
-    Param("trajectory", "triangle", "reference_source=trajectory: triangle, sine, steps or the "
-          "path of a CSV file (t [s], x [m])", read_only=True),
-    Param("trajectory_amplitude", 10e-6, "half the trajectory's range", "m", (0.0, 1.0),
-          read_only=True),
-    Param("trajectory_frequency", 10.0, "trajectory frequency", "Hz", (1e-6, 1e5), read_only=True),
-    Param("trajectory_offset", math.nan, "mid-range of the trajectory (NaN: the amplitude, so x_d "
-          "starts at 0)", "m", read_only=True),
-    Param("trajectory_rounding", DEFAULT_ROUNDING, "triangle corner / step transition, share of a "
-          "half period", "", (1e-3, 1.0), read_only=True),
-    Param("trajectory_v_max", math.inf, "velocity limit of the trajectory", "m/s", read_only=True),
-    Param("trajectory_a_max", math.inf, "acceleration limit of the trajectory", "m/s^2",
-          read_only=True),
-    Param("compensation", "feedback", "feedback (the law alone), feedforward (u_ff alone) or both "
-          "(u_ff + the law)", choices=Compensation, read_only=True),
-    Param("feedforward_model", "", "dynamic parameter set of the feedforward (input displacement; "
-          "name in config/ or path); needed unless compensation=feedback", read_only=True),
-    Param("feedforward_form", "auto", "feedforward of a trajectory: sampled (the command "
-          "staircase the model says the loop at rate_hz needs, computed at start), continuous "
-          "(the model stepped along x_d) or auto (sampled below 10 times the model's "
-          "resonance)", choices=FeedforwardForm, read_only=True),
-    Param("feedforward_table", "", "a saved feedforward table (JSON, e.g. learned) replayed "
-          "instead; made for this trajectory at rate_hz", read_only=True),
-    Param("learn_periods", 0, "learn the feedforward table over this many periods of the "
-          "trajectory, then keep it (0: no learning)", range=(0, 1_000_000), read_only=True),
-    Param("learn_gain", 0.5, "learning gain of L = -gain/G (G: the model's loop)", "",
-          (1e-3, 1.0), read_only=True),
-    Param("learn_cutoff_hz", 0.0, "learning Q-filter cutoff (0: a quarter of rate_hz, at most "
-          "half the model's resonance)", "Hz",
-          (0.0, 1e7), read_only=True),
-    Param("learn_slew_rate", math.inf, "slew limit every table value keeps (the amplifier's)",
-          "V/s", read_only=True),
-    Param("feedforward_table_out", "", "save the learned table here (JSON) once learning ends",
-          read_only=True),
-    Param("bounds_file", "thesis_rig_bounds.yaml", "Assumption 2 bounds (YAML; name in config/ or "
-          "path)"),
-    Param("open_at", -1.0, "open the loop at this time of the node clock (< 0: never); "
-          "deterministic in lockstep, e.g. the §11.5 perturbation", "s", read_only=True),
-    Param("open_after", -1.0, "open the loop this long after start_closed closed it (< 0: "
-          "never); the §11.5 perturbation on a rig's wall clock", "s", read_only=True),
-    Param("open_duration", 0.0, "close it again this long after it opened (0: stay open)", "s",
-          (0.0, 1e6), read_only=True),
-    Param("allow_unverified_gains", False, "accept gains that fail Theorem 4 or the sampled-loop "
-          "check"),
-), summary="The thesis's time-varying PID (11.5, 11.17, 11.18) on ROS topics.")
+PARAMETERS = ParameterTable(
+    "controller",
+    (
+        Param(
+            "mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=LAWS
+        ),
+        Param("k0", _G.k0, "integral gain k0", "V/(m s)", (0.0, 1e15)),
+        Param("k1", _G.k1, "proportional gain k1", "V/m", (0.0, 1e15)),
+        Param("k2", _G.k2, "derivative gain k2", "V s/m", (0.0, 1e12)),
+        Param("kA", _G.kA, "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
+        Param("A", _G.A, "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
+        Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
+        Param("u_min", -450.0, "amplifier lower limit", "V"),
+        Param("u_max", 450.0, "amplifier upper limit", "V"),
+        Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=ANTI_WINDUP),
+        Param(
+            "tracking_time", 0.0, "back-calculation time constant (0: sqrt(Ti*Td))", "s", (0.0, 1e3)
+        ),
+        Param(
+            "derivative_tau",
+            0.0,
+            "first-order filter on x2 (0: off, as the thesis)",
+            "s",
+            (0.0, 1.0),
+        ),
+        Param(
+            "u_bias",
+            0.0,
+            "feedforward added to the law's output (§11.5 set point)",
+            "V",
+            read_only=True,
+        ),
+        Param("hold_voltage", math.nan, "output while the loop is open (NaN: last output)", "V"),
+        Param("on_close", "bumpless", "x0 when the loop closes", choices=ON_CLOSE),
+        Param(
+            "rate_hz", 1000.0, "loop rate (trigger=timer; also the rate checked)", "Hz", (1.0, 1e7)
+        ),
+        Param(
+            "trigger",
+            "timer",
+            "timer (rate_hz) or sample (one step per displacement sample)",
+            choices=StepTrigger,
+        ),
+        Param("delay_samples", 1, "output delay assumed by the sampled-loop check", range=(0, 10)),
+        Param(
+            "sensor_qos",
+            "best_effort",
+            "displacement subscription: best_effort (matches every "
+            "publisher: the rig's laser_reader) or reliable (the lockstep plant: no sample lost, "
+            "so "
+            "no step waits for the plant's timeout)",
+            choices=SensorQos,
+            read_only=True,
+        ),
+        Param("start_closed", False, "close the loop at the first valid sample"),
+        Param(
+            "wait_for_state_subscribers",
+            0,
+            "trigger=sample and rig_loop: ignore samples until "
+            "controller_state has this many subscribers (an experiment's recorder sees step 0)",
+            range=(0, 100),
+            read_only=True,
+        ),
+        Param(
+            "topics_rate_hz",
+            1000.0,
+            "rig_loop: most samples per second on displacement, "
+            "voltage_command, controller_state and voltage (decimated above it); loop_samples "
+            "carries every sample, in batches",
+            "Hz",
+            (1.0, 1e6),
+            read_only=True,
+        ),
+        Param(
+            "max_gap",
+            0.02,
+            "a sensor silence up to this long holds the output (counted as "
+            "gaps_held); a longer one opens the loop",
+            "s",
+            (1e-5, 60.0),
+        ),
+        Param(
+            "reference_source",
+            "topic",
+            "where the set point comes from: the reference topic, the "
+            "thesis's second-order yr, the reference parameter, or the trajectory_* parameters "
+            "(x_d "
+            "then published on reference)",
+            choices=ReferenceSource,
+        ),
+        Param(
+            "reference",
+            0.0,
+            "set point for reference_source=constant, and before a reference arrives",
+            "m",
+        ),
+        Param("reference_y0", 20e-6, "second_order: yr(0)", "m"),
+        Param("reference_ydot0", 0.0, "second_order: dyr/dt(0)", "m/s"),
+        Param(
+            "trajectory",
+            "triangle",
+            "reference_source=trajectory: triangle, sine, steps or the "
+            "path of a CSV file (t [s], x [m])",
+            read_only=True,
+        ),
+        Param(
+            "trajectory_amplitude",
+            10e-6,
+            "half the trajectory's range",
+            "m",
+            (0.0, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "trajectory_frequency", 10.0, "trajectory frequency", "Hz", (1e-6, 1e5), read_only=True
+        ),
+        Param(
+            "trajectory_offset",
+            math.nan,
+            "mid-range of the trajectory (NaN: the amplitude, so x_d starts at 0)",
+            "m",
+            read_only=True,
+        ),
+        Param(
+            "trajectory_rounding",
+            DEFAULT_ROUNDING,
+            "triangle corner / step transition, share of a half period",
+            "",
+            (1e-3, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "trajectory_v_max", math.inf, "velocity limit of the trajectory", "m/s", read_only=True
+        ),
+        Param(
+            "trajectory_a_max",
+            math.inf,
+            "acceleration limit of the trajectory",
+            "m/s^2",
+            read_only=True,
+        ),
+        Param(
+            "compensation",
+            "feedback",
+            "feedback (the law alone), feedforward (u_ff alone) or both (u_ff + the law)",
+            choices=Compensation,
+            read_only=True,
+        ),
+        Param(
+            "feedforward_model",
+            "",
+            "dynamic parameter set of the feedforward (input displacement; "
+            "name in config/ or path); needed unless compensation=feedback",
+            read_only=True,
+        ),
+        Param(
+            "feedforward_form",
+            "auto",
+            "feedforward of a trajectory: sampled (the command "
+            "staircase the model says the loop at rate_hz needs, computed at start), continuous "
+            "(the model stepped along x_d) or auto (sampled below 10 times the model's "
+            "resonance)",
+            choices=FeedforwardForm,
+            read_only=True,
+        ),
+        Param(
+            "feedforward_table",
+            "",
+            "a saved feedforward table (JSON, e.g. learned) replayed "
+            "instead; made for this trajectory at rate_hz",
+            read_only=True,
+        ),
+        Param(
+            "learn_periods",
+            0,
+            "learn the feedforward table over this many periods of the "
+            "trajectory, then keep it (0: no learning)",
+            range=(0, 1_000_000),
+            read_only=True,
+        ),
+        Param(
+            "learn_gain",
+            0.5,
+            "learning gain of L = -gain/G (G: the model's loop)",
+            "",
+            (1e-3, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "learn_cutoff_hz",
+            0.0,
+            "learning Q-filter cutoff (0: a quarter of rate_hz, at most "
+            "half the model's resonance)",
+            "Hz",
+            (0.0, 1e7),
+            read_only=True,
+        ),
+        Param(
+            "learn_slew_rate",
+            math.inf,
+            "slew limit every table value keeps (the amplifier's)",
+            "V/s",
+            read_only=True,
+        ),
+        Param(
+            "feedforward_table_out",
+            "",
+            "save the learned table here (JSON) once learning ends",
+            read_only=True,
+        ),
+        Param(
+            "bounds_file",
+            "thesis_rig_bounds.yaml",
+            "Assumption 2 bounds (YAML; name in config/ or path)",
+        ),
+        Param(
+            "open_at",
+            -1.0,
+            "open the loop at this time of the node clock (< 0: never); "
+            "deterministic in lockstep, e.g. the §11.5 perturbation",
+            "s",
+            read_only=True,
+        ),
+        Param(
+            "open_after",
+            -1.0,
+            "open the loop this long after start_closed closed it (< 0: "
+            "never); the §11.5 perturbation on a rig's wall clock",
+            "s",
+            read_only=True,
+        ),
+        Param(
+            "open_duration",
+            0.0,
+            "close it again this long after it opened (0: stay open)",
+            "s",
+            (0.0, 1e6),
+            read_only=True,
+        ),
+        Param(
+            "allow_unverified_gains",
+            False,
+            "accept gains that fail Theorem 4 or the sampled-loop check",
+        ),
+    ),
+    summary="The thesis's time-varying PID (11.5, 11.17, 11.18) on ROS topics.",
+)
 
 
 class ControllerNode(Node):
@@ -201,18 +370,23 @@ class ControllerNode(Node):
     its loop thread and routes every publication through ``handoff``; no displacement
     subscription, no timer."""
 
-    def __init__(self, composed: bool = False, handoff: Any = None,
-                 overrides: Sequence[Parameter] = ()) -> None:
-        super().__init__("controller", namespace=DEFAULT_NAMESPACE,
-                         parameter_overrides=list(overrides))
+    def __init__(
+        self, composed: bool = False, handoff: Any = None, overrides: Sequence[Parameter] = ()
+    ) -> None:
+        super().__init__(
+            "controller", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
+        )
         self.settings = s = PARAMETERS.settings(declare_table(self, PARAMETERS))
 
         bounds_path = find_config(s.bounds_file)
         self._bias = float(s.u_bias)  # read-only: cached
         self._rate = float(s.rate_hz)
-        self._gain_check = GainCheck(load_bounds(bounds_path),
-                                     load_nominal_plant(bounds_path) or THESIS_NOMINAL_PLANT,
-                                     self._rate, int(s.delay_samples))
+        self._gain_check = GainCheck(
+            load_bounds(bounds_path),
+            load_nominal_plant(bounds_path) or THESIS_NOMINAL_PLANT,
+            self._rate,
+            int(s.delay_samples),
+        )
         self._feedforward = self._load_feedforward()
         trajectory = self._load_trajectory()
         self._table = self._load_table(trajectory)
@@ -220,16 +394,33 @@ class ControllerNode(Node):
         config = self._config({})
         report = self._gain_check.reasons(config)
         if report and not s.allow_unverified_gains:
-            raise ControlError(f"controller: unsafe gains at start: {report} (set "
-                               "allow_unverified_gains to override)")
+            raise ControlError(
+                f"controller: unsafe gains at start: {report} (set "
+                "allow_unverified_gains to override)"
+            )
         self.pid = TimeVaryingPID(config, closed=False)
-        self.supervisor = LoopSupervisor(self.pid, SupervisionConfig(
-            rate_hz=self._rate, u_bias=self._bias, u_min=float(s.u_min), u_max=float(s.u_max),
-            start_closed=bool(s.start_closed),
-            max_gap=float(s.max_gap), open_at=float(s.open_at), open_after=float(s.open_after),
-            open_duration=float(s.open_duration)), notify=self._notify)
-        self.setpoint = SetPoint(s.reference_source, float(s.reference), trajectory=trajectory,
-                                 y0=float(s.reference_y0), ydot0=float(s.reference_ydot0))
+        self.supervisor = LoopSupervisor(
+            self.pid,
+            SupervisionConfig(
+                rate_hz=self._rate,
+                u_bias=self._bias,
+                u_min=float(s.u_min),
+                u_max=float(s.u_max),
+                start_closed=bool(s.start_closed),
+                max_gap=float(s.max_gap),
+                open_at=float(s.open_at),
+                open_after=float(s.open_after),
+                open_duration=float(s.open_duration),
+            ),
+            notify=self._notify,
+        )
+        self.setpoint = SetPoint(
+            s.reference_source,
+            float(s.reference),
+            trajectory=trajectory,
+            y0=float(s.reference_y0),
+            ydot0=float(s.reference_ydot0),
+        )
         if s.learn_periods > 0:
             self._learner = self._make_learner(config)
         #: the loop thread (composed) and the executor (parameters, services) share the law
@@ -254,8 +445,12 @@ class ControllerNode(Node):
         self._trigger = s.trigger
         if not composed:
             reliable = s.sensor_qos is SensorQos.RELIABLE
-            self.create_subscription(Displacement, "displacement", self._on_displacement,
-                                     LOCKSTEP_QOS if reliable else SENSOR_QOS)
+            self.create_subscription(
+                Displacement,
+                "displacement",
+                self._on_displacement,
+                LOCKSTEP_QOS if reliable else SENSOR_QOS,
+            )
             if self._trigger is StepTrigger.TIMER:
                 self.create_timer(1.0 / self._rate, self._on_timer)
         Diagnostics(self, "controller", self._diagnose)
@@ -267,14 +462,19 @@ class ControllerNode(Node):
         hold = p["hold_voltage"]
         bias = self._bias
         config = ControllerConfig(
-            mode=p["mode"], gains=Gains(**{k: float(p[k]) for k in GAIN_KEYS}),
-            u_min=float(p["u_min"]) - bias, u_max=float(p["u_max"]) - bias,
+            mode=p["mode"],
+            gains=Gains(**{k: float(p[k]) for k in GAIN_KEYS}),
+            u_min=float(p["u_min"]) - bias,
+            u_max=float(p["u_max"]) - bias,
             anti_windup=p["anti_windup"],
             tracking_time=float(p["tracking_time"]) or None,
             derivative_tau=float(p["derivative_tau"]),
-            hold_voltage=None if math.isnan(hold) else float(hold) - bias, on_close=p["on_close"],
-            compensation=self.settings.compensation, feedforward=self._feedforward,
-            feedforward_table=self._table)
+            hold_voltage=None if math.isnan(hold) else float(hold) - bias,
+            on_close=p["on_close"],
+            compensation=self.settings.compensation,
+            feedforward=self._feedforward,
+            feedforward_table=self._table,
+        )
         config.validate()
         return config
 
@@ -284,11 +484,14 @@ class ControllerNode(Node):
         if compensation is Compensation.FEEDBACK:
             return None
         if not name:
-            raise RosParameterError(f"controller: compensation {compensation.value} needs "
-                                    "feedforward_model")
+            raise RosParameterError(
+                f"controller: compensation {compensation.value} needs feedforward_model"
+            )
         if self._bias != 0.0:
-            raise RosParameterError("controller: u_bias and the feedforward both set the operating "
-                                    "voltage; use one (u_bias: 0)")
+            raise RosParameterError(
+                "controller: u_bias and the feedforward both set the operating "
+                "voltage; use one (u_bias: 0)"
+            )
         try:
             return FeedforwardModel.load(find_config(name))
         except (ControlError, OSError) as exc:
@@ -300,17 +503,22 @@ class ControllerNode(Node):
         s = self.settings
         if s.compensation is Compensation.FEEDBACK:
             return None
-        uses_trajectory = s.reference_source is ReferenceSource.TRAJECTORY \
-            and trajectory is not None
+        uses_trajectory = (
+            s.reference_source is ReferenceSource.TRAJECTORY and trajectory is not None
+        )
         # learning needs a table: it starts from the sampled form whatever the rate
         form = FeedforwardForm.SAMPLED if s.learn_periods > 0 else s.feedforward_form
-        if not s.feedforward_table and (not uses_trajectory or self._feedforward is None or
-                                        choose_form(form, self._feedforward, self._rate)
-                                        is FeedforwardForm.CONTINUOUS):
+        if not s.feedforward_table and (
+            not uses_trajectory
+            or self._feedforward is None
+            or choose_form(form, self._feedforward, self._rate) is FeedforwardForm.CONTINUOUS
+        ):
             return None
         if not uses_trajectory:
-            raise RosParameterError("controller: feedforward_table needs reference_source "
-                                    "trajectory (the table follows the trajectory's time)")
+            raise RosParameterError(
+                "controller: feedforward_table needs reference_source "
+                "trajectory (the table follows the trajectory's time)"
+            )
         try:
             x_d, periodic = trajectory_samples(trajectory, self._rate)
             if s.feedforward_table:
@@ -320,31 +528,56 @@ class ControllerNode(Node):
                     raise LearningError(f"feedforward_table {s.feedforward_table}: {why}")
                 return table
             assert self._feedforward is not None
-            table = sampled_feedforward(self._feedforward, x_d, self._rate, periodic=periodic,
-                                        delay_samples=int(s.delay_samples))
+            table = sampled_feedforward(
+                self._feedforward,
+                x_d,
+                self._rate,
+                periodic=periodic,
+                delay_samples=int(s.delay_samples),
+            )
         except (ControlError, OSError) as exc:
             raise RosParameterError(f"controller: {exc}") from None
-        table.meta = {"trajectory": s.trajectory, "amplitude": s.trajectory_amplitude,
-                      "frequency": s.trajectory_frequency, "offset": s.trajectory_offset,
-                      "rounding": s.trajectory_rounding, "model": s.feedforward_model,
-                      "form": "sampled"}
+        table.meta = {
+            "trajectory": s.trajectory,
+            "amplitude": s.trajectory_amplitude,
+            "frequency": s.trajectory_frequency,
+            "offset": s.trajectory_offset,
+            "rounding": s.trajectory_rounding,
+            "model": s.feedforward_model,
+            "form": "sampled",
+        }
         return table
 
     def _make_learner(self, config: ControllerConfig) -> PeriodicLearner:
         """Learning over learn_periods periods (a periodic trajectory, its table, the model)."""
         s, table = self.settings, self._table
         if table is None or not table.periodic or self._feedforward is None:
-            raise RosParameterError("controller: learn_periods needs compensation feedforward or "
-                                    "both, reference_source trajectory with a periodic trajectory, "
-                                    "and feedforward_form sampled or a feedforward_table")
+            raise RosParameterError(
+                "controller: learn_periods needs compensation feedforward or "
+                "both, reference_source trajectory with a periodic trajectory, "
+                "and feedforward_form sampled or a feedforward_table"
+            )
         gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
-        response = feedforward_response(self._feedforward, self._rate, len(table),
-                                        delay_samples=int(s.delay_samples), gains=gains)
+        response = feedforward_response(
+            self._feedforward,
+            self._rate,
+            len(table),
+            delay_samples=int(s.delay_samples),
+            gains=gains,
+        )
         try:
-            learning = IterativeLearning(table, response, LearningConfig(
-                gain=float(s.learn_gain), cutoff_hz=float(s.learn_cutoff_hz) or None,
-                u_min=float(s.u_min), u_max=float(s.u_max),
-                slew_rate=float(s.learn_slew_rate)), self._feedforward)
+            learning = IterativeLearning(
+                table,
+                response,
+                LearningConfig(
+                    gain=float(s.learn_gain),
+                    cutoff_hz=float(s.learn_cutoff_hz) or None,
+                    u_min=float(s.u_min),
+                    u_max=float(s.u_max),
+                    slew_rate=float(s.learn_slew_rate),
+                ),
+                self._feedforward,
+            )
         except ControlError as exc:
             raise RosParameterError(f"controller: {exc}") from None
         return PeriodicLearner(learning, int(s.learn_periods), on_done=self._learned)
@@ -356,11 +589,13 @@ class ControllerNode(Node):
     def _save_table(self, learner: PeriodicLearner) -> None:
         history = learner.learning.history
         table = learner.learning.table
-        table.meta.update({"learned_periods": learner.completed,
-                           "learning_rms": list(history)})
-        text = (f"feedforward learned over {learner.completed} periods: RMS error "
-                f"{history[0]:.3g} m -> {history[-1]:.3g} m" if history else
-                f"feedforward learning ended after {learner.completed} periods")
+        table.meta.update({"learned_periods": learner.completed, "learning_rms": list(history)})
+        text = (
+            f"feedforward learned over {learner.completed} periods: RMS error "
+            f"{history[0]:.3g} m -> {history[-1]:.3g} m"
+            if history
+            else f"feedforward learning ended after {learner.completed} periods"
+        )
         out = self.settings.feedforward_table_out
         if out:
             try:
@@ -374,20 +609,25 @@ class ControllerNode(Node):
         """The trajectory of reference_source=trajectory, built (and checked) at start."""
         s = self.settings
         try:
-            return make_trajectory(s.trajectory, amplitude=s.trajectory_amplitude,
-                                   frequency=s.trajectory_frequency,
-                                   offset=None if math.isnan(s.trajectory_offset)
-                                   else s.trajectory_offset,
-                                   rounding=s.trajectory_rounding, v_max=s.trajectory_v_max,
-                                   a_max=s.trajectory_a_max)
+            return make_trajectory(
+                s.trajectory,
+                amplitude=s.trajectory_amplitude,
+                frequency=s.trajectory_frequency,
+                offset=None if math.isnan(s.trajectory_offset) else s.trajectory_offset,
+                rounding=s.trajectory_rounding,
+                v_max=s.trajectory_v_max,
+                a_max=s.trajectory_a_max,
+            )
         except ControlError as exc:
             if s.reference_source is ReferenceSource.TRAJECTORY:
                 raise RosParameterError(f"controller: {exc}") from None
             return None  # not used unless reference_source is switched to it (refused then)
 
     def _check_params(self, changed: dict[str, Any]) -> str | None:
-        if changed.get("reference_source") == ReferenceSource.TRAJECTORY \
-                and self.setpoint.trajectory is None:
+        if (
+            changed.get("reference_source") == ReferenceSource.TRAJECTORY
+            and self.setpoint.trajectory is None
+        ):
             return "refused: the trajectory_* parameters give no valid trajectory"
         if "max_gap" in changed:
             try:
@@ -422,8 +662,9 @@ class ControllerNode(Node):
                 elif p.name == "reference":
                     self.setpoint.reference = float(p.value)
                 elif p.name in ("max_gap", "u_min", "u_max"):
-                    self.supervisor.config = replace(self.supervisor.config,
-                                                     **{p.name: float(p.value)})
+                    self.supervisor.config = replace(
+                        self.supervisor.config, **{p.name: float(p.value)}
+                    )
         self._reference_io(self.setpoint.source)
 
     def _reference_io(self, source: ReferenceSource) -> None:
@@ -432,8 +673,9 @@ class ControllerNode(Node):
             if self._pub_ref is None:
                 self._pub_ref = self.create_publisher(Displacement, "reference", self._ref_qos)
         elif self._sub_ref is None:
-            self._sub_ref = self.create_subscription(Displacement, "reference", self._on_reference,
-                                                     COMMAND_QOS)
+            self._sub_ref = self.create_subscription(
+                Displacement, "reference", self._on_reference, COMMAND_QOS
+            )
 
     def _notify(self, level: Health, text: str) -> None:
         (self.get_logger().error if level is Health.ERROR else self.get_logger().info)(text)
@@ -454,8 +696,7 @@ class ControllerNode(Node):
                 return  # the lockstep plant re-offers step 0 until a command answers it
             self._step(t, msg.header.stamp)
 
-    def on_sample(self, stamp_ns: int, x: float, ok: bool,
-                  publish: bool = True) -> float | None:
+    def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
         """The composed loop's step: one sensor sample taken at ``stamp_ns`` → the voltage to
         write now (None: nothing to write); ``last_step`` is the law's output when it stepped.
         Publishes through the hand-off (``publish`` False: not this sample's state)."""
@@ -519,12 +760,16 @@ class ControllerNode(Node):
             self._handoff.put(publish, *args)
 
     def _publish_reference(self, stamp: Any, x: float) -> None:
-        self._pub_ref.publish(Displacement(header=Header(stamp=to_stamp(stamp)), displacement=x,
-                                           status=Displacement.OK))
+        self._pub_ref.publish(
+            Displacement(
+                header=Header(stamp=to_stamp(stamp)), displacement=x, status=Displacement.OK
+            )
+        )
 
     def _publish_command(self, u: float, t: float) -> None:
-        self._pub_cmd.publish(Voltage(header=Header(stamp=self.get_clock().now().to_msg()),
-                                      voltage=u))
+        self._pub_cmd.publish(
+            Voltage(header=Header(stamp=self.get_clock().now().to_msg()), voltage=u)
+        )
 
     def _publish(self, out: ControlOutput, u: float, stamp: Any) -> None:
         cmd, state = self._cmd_msg, self._state_msg  # reused: rclpy serializes at publish
@@ -534,8 +779,12 @@ class ControllerNode(Node):
         state.header = cmd.header
         state.mode, state.loop_closed, state.saturated = out.mode, out.loop_closed, out.saturated
         state.reference, state.x0, state.x1, state.x2 = out.reference, out.x0, out.x1, out.x2
-        state.u, state.u_pid, state.u_excitation, state.u_ff = u, out.u_pid, out.u_excitation, \
-            out.u_ff
+        state.u, state.u_pid, state.u_excitation, state.u_ff = (
+            u,
+            out.u_pid,
+            out.u_excitation,
+            out.u_ff,
+        )
         self._pub_state.publish(state)
 
     # ------------------------------------------------------------------ services
@@ -554,9 +803,13 @@ class ControllerNode(Node):
         learner = self._learner
         if learner is not None:
             history = learner.learning.history
-            values.update({"learning_periods": learner.completed,
-                           "learning_frozen": learner.frozen,
-                           "learning_rms": history[-1] if history else math.nan})
+            values.update(
+                {
+                    "learning_periods": learner.completed,
+                    "learning_frozen": learner.frozen,
+                    "learning_rms": history[-1] if history else math.nan,
+                }
+            )
         return Diagnosis(LEVELS[level], message, values)
 
 

@@ -23,8 +23,9 @@ def use_recorder_transport_profile() -> Path | None:
     """Point Fast DDS at the shipped profile (nothing is written: no shared name in /tmp)
     unless another RMW is chosen or the user set a Fast DDS profile of their own; return its
     path, or None. Call before rclpy.init."""
-    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp" \
-            or any(os.environ.get(v) for v in _PROFILE_VARS):
+    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp" or any(
+        os.environ.get(v) for v in _PROFILE_VARS
+    ):
         return None
     path = find_config(PROFILE_FILE)
     os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(path)

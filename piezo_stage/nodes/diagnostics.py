@@ -10,8 +10,12 @@ from rclpy.node import Node
 
 from .runtime import wall_clock
 
-OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
-                          DiagnosticStatus.STALE)
+OK, WARN, ERROR, STALE = (
+    DiagnosticStatus.OK,
+    DiagnosticStatus.WARN,
+    DiagnosticStatus.ERROR,
+    DiagnosticStatus.STALE,
+)
 
 
 @dataclass
@@ -29,8 +33,9 @@ class Diagnostics:
     says which device (or "simulation").
     """
 
-    def __init__(self, node: Node, hardware_id: str, probe: Callable[[], Diagnosis],
-                 period: float = 1.0) -> None:
+    def __init__(
+        self, node: Node, hardware_id: str, probe: Callable[[], Diagnosis], period: float = 1.0
+    ) -> None:
         self._node = node
         self._probe = probe
         self.hardware_id = hardware_id
@@ -39,10 +44,13 @@ class Diagnostics:
 
     def publish(self) -> None:
         d = self._probe()
-        status = DiagnosticStatus(level=d.level, name=self._node.get_fully_qualified_name(),
-                                  message=d.message, hardware_id=self.hardware_id,
-                                  values=[KeyValue(key=k, value=_fmt(v)) for k,
-                                          v in d.values.items()])
+        status = DiagnosticStatus(
+            level=d.level,
+            name=self._node.get_fully_qualified_name(),
+            message=d.message,
+            hardware_id=self.hardware_id,
+            values=[KeyValue(key=k, value=_fmt(v)) for k, v in d.values.items()],
+        )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
         self._pub.publish(msg)

@@ -48,8 +48,20 @@ from .qos import COMMAND_QOS, LOCKSTEP_QOS
 from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, wait_acked, wall_clock
 from .spec import Param, ParameterTable
 
-PLAN_KEYS = ("waveform", "period", "low", "amplitude", "offsets", "settle_periods",
-             "record_periods", "v_min", "v_max", "hold", "seed", "bandwidth")
+PLAN_KEYS = (
+    "waveform",
+    "period",
+    "low",
+    "amplitude",
+    "offsets",
+    "settle_periods",
+    "record_periods",
+    "v_min",
+    "v_max",
+    "hold",
+    "seed",
+    "bandwidth",
+)
 
 
 class StepTrigger(str, Enum):
@@ -63,43 +75,93 @@ class OnDone(str, Enum):
 
 
 _BASE = PRESETS["ch10_patch"]
-PARAMETERS = ParameterTable("excitation", (
-    Param("preset", "ch10_patch", "plan whose values are the defaults of the plan parameters below "
-          "(their defaults here are ch10_patch's), or ''", choices=(*PRESETS, ""), read_only=True),
-    Param("waveform", _BASE.waveform, "shape of the base waveform", choices=WAVEFORMS),
-    Param("period", _BASE.period, "period of the waveform", "s", (1e-6, 1e6)),
-    Param("low", _BASE.low, "minimum of the base waveform", "V"),
-    Param("amplitude", _BASE.amplitude, "peak-to-peak span of the base waveform", "V"),
-    Param("offsets", list(_BASE.offsets), "one run per offset q, e.g. [0.0, 100.0]", "V"),
-    Param("settle_periods", _BASE.settle_periods, "periods before a run is steady",
-          range=(0, 100000)),
-    Param("record_periods", _BASE.record_periods, "steady periods per run", range=(1, 100000)),
-    Param("v_min", -1e9, "lower clamp of the command", "V"),
-    Param("v_max", 1e9, "upper clamp of the command", "V"),
-    Param("hold", _BASE.hold, "after the last run: the last value, the first run's low, or zero",
-          choices=HOLDS),
-    Param("seed", _BASE.seed, "random waveform seed", range=(0, 2**31 - 1)),
-    Param("bandwidth", _BASE.bandwidth, "random waveform: highest frequency", "Hz", (0.0, 1e6)),
-    Param("rate_hz", 1000.0, "command rate with trigger=timer", "Hz", (0.1, 100000.0)),
-    Param("trigger", "timer", "timer (rate_hz on the node clock) or clock (one command per /clock "
-          "tick)", choices=StepTrigger),
-    Param("catch_up", False, "trigger=timer: commands on a fixed 1/rate_hz grid, the ones a late "
-          "timer missed published with their own stamps (for a driver with apply_at_stamp)",
-          read_only=True),
-    Param("lead", 0.0, "trigger=timer: stamp commands and marks this far ahead of the clock (for a "
-          "driver with apply_at_stamp)", "s", (0.0, 10.0), read_only=True),
-    Param("autostart", True, "start at the first tick (else wait for ~/start)"),
-    Param("on_done", "hold", "after the plan: hold (keep publishing the hold value) or exit",
-          choices=OnDone),
-    Param("wait_for_subscribers", 0, "start the plan once voltage_command and excitation each have "
-          "this many matched subscribers (their first commands and marks are then not lost to "
-          "them)", range=(0, 1000), read_only=True),
-    Param("exit_ack_timeout", 30.0, "on_done=exit: wall seconds to wait for every reliable "
-          "subscriber to acknowledge the last commands and marks before leaving", "s",
-          (0.0, 3600.0)),
-    Param("info_rate_hz", 10.0, "ExcitationInfo rate besides change events", "Hz", (0.0, 10000.0)),
-),
-summary="The identification excitation (thesis ch. 10): a waveform per offset q, with run marks.")
+PARAMETERS = ParameterTable(
+    "excitation",
+    (
+        Param(
+            "preset",
+            "ch10_patch",
+            "plan whose values are the defaults of the plan parameters below "
+            "(their defaults here are ch10_patch's), or ''",
+            choices=(*PRESETS, ""),
+            read_only=True,
+        ),
+        Param("waveform", _BASE.waveform, "shape of the base waveform", choices=WAVEFORMS),
+        Param("period", _BASE.period, "period of the waveform", "s", (1e-6, 1e6)),
+        Param("low", _BASE.low, "minimum of the base waveform", "V"),
+        Param("amplitude", _BASE.amplitude, "peak-to-peak span of the base waveform", "V"),
+        Param("offsets", list(_BASE.offsets), "one run per offset q, e.g. [0.0, 100.0]", "V"),
+        Param(
+            "settle_periods",
+            _BASE.settle_periods,
+            "periods before a run is steady",
+            range=(0, 100000),
+        ),
+        Param("record_periods", _BASE.record_periods, "steady periods per run", range=(1, 100000)),
+        Param("v_min", -1e9, "lower clamp of the command", "V"),
+        Param("v_max", 1e9, "upper clamp of the command", "V"),
+        Param(
+            "hold",
+            _BASE.hold,
+            "after the last run: the last value, the first run's low, or zero",
+            choices=HOLDS,
+        ),
+        Param("seed", _BASE.seed, "random waveform seed", range=(0, 2**31 - 1)),
+        Param("bandwidth", _BASE.bandwidth, "random waveform: highest frequency", "Hz", (0.0, 1e6)),
+        Param("rate_hz", 1000.0, "command rate with trigger=timer", "Hz", (0.1, 100000.0)),
+        Param(
+            "trigger",
+            "timer",
+            "timer (rate_hz on the node clock) or clock (one command per /clock tick)",
+            choices=StepTrigger,
+        ),
+        Param(
+            "catch_up",
+            False,
+            "trigger=timer: commands on a fixed 1/rate_hz grid, the ones a late "
+            "timer missed published with their own stamps (for a driver with apply_at_stamp)",
+            read_only=True,
+        ),
+        Param(
+            "lead",
+            0.0,
+            "trigger=timer: stamp commands and marks this far ahead of the clock (for a "
+            "driver with apply_at_stamp)",
+            "s",
+            (0.0, 10.0),
+            read_only=True,
+        ),
+        Param("autostart", True, "start at the first tick (else wait for ~/start)"),
+        Param(
+            "on_done",
+            "hold",
+            "after the plan: hold (keep publishing the hold value) or exit",
+            choices=OnDone,
+        ),
+        Param(
+            "wait_for_subscribers",
+            0,
+            "start the plan once voltage_command and excitation each have "
+            "this many matched subscribers (their first commands and marks are then not lost to "
+            "them)",
+            range=(0, 1000),
+            read_only=True,
+        ),
+        Param(
+            "exit_ack_timeout",
+            30.0,
+            "on_done=exit: wall seconds to wait for every reliable "
+            "subscriber to acknowledge the last commands and marks before leaving",
+            "s",
+            (0.0, 3600.0),
+        ),
+        Param(
+            "info_rate_hz", 10.0, "ExcitationInfo rate besides change events", "Hz", (0.0, 10000.0)
+        ),
+    ),
+    summary="The identification excitation (thesis ch. 10): a waveform per offset q, "
+    "with run marks.",
+)
 
 
 class ExcitationNode(Node):
@@ -107,10 +169,16 @@ class ExcitationNode(Node):
         super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
         preset = declare_table(self, PARAMETERS, only=("preset",))["preset"]
         base = plan_from(preset or None)
-        declare_table(self, PARAMETERS, only=set(PARAMETERS.names) - {"preset"},
-                      defaults={k: list(v) if isinstance(v, tuple) else v
-                                for k in PLAN_KEYS if k not in ("v_min", "v_max")
-                                and (v := getattr(base, k)) is not None})
+        declare_table(
+            self,
+            PARAMETERS,
+            only=set(PARAMETERS.names) - {"preset"},
+            defaults={
+                k: list(v) if isinstance(v, tuple) else v
+                for k in PLAN_KEYS
+                if k not in ("v_min", "v_max") and (v := getattr(base, k)) is not None
+            },
+        )
 
         self.plan = self._build_plan()
         on_set(self, self._check_params)
@@ -146,7 +214,8 @@ class ExcitationNode(Node):
             f"{self.plan.waveform} {self.plan.low:g}+{self.plan.amplitude:g} V, "
             f"T={self.plan.period:g} s, "
             f"offsets {list(self.plan.offsets)}, {self.plan.duration:g} s in all, "
-            f"trigger={trigger}")
+            f"trigger={trigger}"
+        )
 
     # ------------------------------------------------------------------ parameters
     def _build_plan(self, changed: dict | None = None) -> ExcitationPlan:
@@ -187,8 +256,11 @@ class ExcitationNode(Node):
         sample = self.plan.sample(now - self._t_start)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
         self._publish_info(stamp, now, sample)
-        if sample.done and OnDone(self.get_parameter("on_done").value) is OnDone.EXIT \
-                and not self._exiting:
+        if (
+            sample.done
+            and OnDone(self.get_parameter("on_done").value) is OnDone.EXIT
+            and not self._exiting
+        ):
             self.get_logger().info("excitation plan done")
             self._exiting = True
             # let the last messages reach the subscribers (reliable delivery needs the process)
@@ -209,8 +281,10 @@ class ExcitationNode(Node):
         self._exit_timer.cancel()
         timeout = self.get_parameter("exit_ack_timeout").value
         for topic in wait_acked(self, timeout, (self._pub_cmd, self._pub_info)):
-            self.get_logger().warning(f"{topic}: not every subscriber acknowledged the last "
-                                      f"messages within {timeout:g} s; leaving anyway")
+            self.get_logger().warning(
+                f"{topic}: not every subscriber acknowledged the last "
+                f"messages within {timeout:g} s; leaving anyway"
+            )
         self.finished = True
 
     def _publish_info(self, stamp: Time, now: float, sample: ExcitationSample) -> None:
@@ -218,10 +292,17 @@ class ExcitationNode(Node):
         if key == self._last_info and now - self._last_info_t < self._info_period:
             return
         self._last_info, self._last_info_t = key, now
-        self._pub_info.publish(ExcitationInfo(
-            header=_header(stamp), waveform=self.plan.waveform, period=self.plan.period,
-            amplitude=self.plan.amplitude, offset=sample.offset, run=sample.run,
-            steady=sample.steady))
+        self._pub_info.publish(
+            ExcitationInfo(
+                header=_header(stamp),
+                waveform=self.plan.waveform,
+                period=self.plan.period,
+                amplitude=self.plan.amplitude,
+                offset=sample.offset,
+                run=sample.run,
+                steady=sample.steady,
+            )
+        )
 
 
 def _header(stamp: Time) -> Header:

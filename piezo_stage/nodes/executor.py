@@ -61,20 +61,31 @@ class LeanExecutor(Executor):
         self._node_guards = [g for n in nodes for g in n.guards]
         self._waitables = [w for n in nodes for w in n.waitables]
         if any(True for n in nodes for _ in n.clients):
-            raise RuntimeError("LeanExecutor does not serve clients: run the node with the "
-                               "standard executor")
+            raise RuntimeError(
+                "LeanExecutor does not serve clients: run the node with the standard executor"
+            )
         self._sub_by_ptr = {s.handle.pointer: s for s in self._subs}
         self._timer_by_ptr = {t.handle.pointer: t for t in self._timers}
         self._srv_by_ptr = {s.handle.pointer: s for s in self._services}
         # room for the waitables' own entities too (rclpy's QoS event handlers: one event each)
-        count = NumberOfEntities(len(self._subs), len(self._node_guards) + 1,  # + our guard (wake)
-                                 len(self._timers), 0, len(self._services))
+        count = NumberOfEntities(
+            len(self._subs),
+            len(self._node_guards) + 1,  # + our guard (wake)
+            len(self._timers),
+            0,
+            len(self._services),
+        )
         for w in self._waitables:
             count += w.get_num_entities()
-        self._wait_set = _rclpy.WaitSet(count.num_subscriptions, count.num_guard_conditions,
-                                        count.num_timers,
-                                        count.num_clients, count.num_services, count.num_events,
-                                        self._context.handle)
+        self._wait_set = _rclpy.WaitSet(
+            count.num_subscriptions,
+            count.num_guard_conditions,
+            count.num_timers,
+            count.num_clients,
+            count.num_services,
+            count.num_events,
+            self._context.handle,
+        )
 
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Wait up to ``timeout_sec`` (None: forever) and run what is ready."""
@@ -124,8 +135,11 @@ class LeanExecutor(Executor):
                 except InvalidHandle:
                     continue
                 if info is not None:
-                    _complete(s.callback(info[0]) if s._callback_type is s.CallbackType.MessageOnly
-                              else s.callback(*info))
+                    _complete(
+                        s.callback(info[0])
+                        if s._callback_type is s.CallbackType.MessageOnly
+                        else s.callback(*info)
+                    )
         if self._node_guards:
             ready = ws.get_ready_entities("guard_condition")
             for g in self._node_guards:
@@ -161,13 +175,15 @@ def _drive(coroutine: Any) -> None:
     except StopIteration:
         return
     coroutine.close()
-    raise RuntimeError("a waitable awaited a future: LeanExecutor cannot run it, use the "
-                       "standard executor")
+    raise RuntimeError(
+        "a waitable awaited a future: LeanExecutor cannot run it, use the standard executor"
+    )
 
 
 def _complete(result: Any) -> None:
     """The lean executor runs plain callbacks only: refuse a coroutine rather than drop it."""
     if inspect.iscoroutine(result):
         result.close()
-        raise TypeError("LeanExecutor runs plain callbacks only (got a coroutine): use the "
-                        "standard executor")
+        raise TypeError(
+            "LeanExecutor runs plain callbacks only (got a coroutine): use the standard executor"
+        )

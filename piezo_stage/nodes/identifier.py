@@ -114,14 +114,14 @@ class _Stream:
 
 
 class Input(str, Enum):
-    VOLTAGE = "voltage"            # ch. 10: voltage -> displacement
+    VOLTAGE = "voltage"  # ch. 10: voltage -> displacement
     DISPLACEMENT = "displacement"  # ch. 11: displacement -> voltage
 
 
 class StreamQos(str, Enum):
-    AUTO = "auto"                # adapted to the publishers, as rosbag2 does
+    AUTO = "auto"  # adapted to the publishers, as rosbag2 does
     BEST_EFFORT = "best_effort"  # matches every publisher
-    RELIABLE = "reliable"        # no loss from reliable publishers
+    RELIABLE = "reliable"  # no loss from reliable publishers
 
 
 class OnDone(str, Enum):
@@ -129,36 +129,87 @@ class OnDone(str, Enum):
     EXIT = "exit"  # status 0 when identified, 1 when it failed
 
 
-PARAMETERS = ParameterTable("identifier", (
-    Param("input", "voltage", "recorded input: voltage (ch. 10: voltage -> displacement) or "
-          "displacement (ch. 11: displacement -> voltage)", choices=Input, read_only=True),
-    Param("degree", 1, "degree N of the polynomial part (10.4)", range=(1, 10)),
-    Param("method", "auto", "analytic (ch. 9-10: two steady T-wave runs), fit (the simulated "
-          "model fitted to whole runs: any input, transients, one run) or auto (analytic when its "
-          "preconditions hold, else fit), as piezo-stage identify --method", choices=Method),
-    Param("refine", True, "refine the analytic estimate by nonlinear least squares"),
-    Param("input_sign", 0, "sign of the input driving w: +1, -1, 0 = from the loop orientation",
-          range=(-1, 1)),
-    Param("design_points", [0.6, 0.95, 0.05], "Table 10.1 design points (fractions f1, f2, f3)"),
-    Param("steady_periods", 0, "average the last K periods (0: detect the steady state)",
-          range=(0, 100000)),
-    Param("filter", False, "apply the §10.3.2 zero-phase data filter"),
-    Param("max_rms", 0.0, "largest residual RMS accepted, fraction of the output span (0: the "
-          "method's default, 0.005 analytic, 0.02 fit)", range=(0.0, 1.0)),
-    Param("auto_identify", True, "identify as soon as two runs are complete"),
-    Param("output_file", "", "write the identified parameter-set YAML here ('' = do not)"),
-    Param("name", "identified", "name stored in the parameter set"),
-    Param("stream_qos", "auto", "voltage/displacement subscriptions: auto (adapted to the "
-          "publishers as rosbag2 does: reliable keep-all if every publisher is reliable, else best "
-          "effort), best_effort (matches every publisher) or reliable (no loss from reliable "
-          "publishers)", choices=StreamQos, read_only=True),
-    Param("on_done", "stay", "after the automatic identification: stay (the result stays latched) "
-          "or exit (status 0 when identified, 1 when it failed: one-shot runs, e.g. replaying a "
-          "bag)", choices=OnDone, read_only=True),
-    Param("settle_time", 10.0, "wall seconds of silent streams after which a completed run is "
-          "processed even if the streams did not pass its end, and fewer than two complete runs is "
-          "reported as a failure (on_done=exit: exit 1)", "s", (0.0, 3600.0)),
-), summary="Live (or replayed-bag) identification of the Bouc-Wen model (thesis ch. 10).")
+PARAMETERS = ParameterTable(
+    "identifier",
+    (
+        Param(
+            "input",
+            "voltage",
+            "recorded input: voltage (ch. 10: voltage -> displacement) or "
+            "displacement (ch. 11: displacement -> voltage)",
+            choices=Input,
+            read_only=True,
+        ),
+        Param("degree", 1, "degree N of the polynomial part (10.4)", range=(1, 10)),
+        Param(
+            "method",
+            "auto",
+            "analytic (ch. 9-10: two steady T-wave runs), fit (the simulated "
+            "model fitted to whole runs: any input, transients, one run) or auto (analytic when "
+            "its "
+            "preconditions hold, else fit), as piezo-stage identify --method",
+            choices=Method,
+        ),
+        Param("refine", True, "refine the analytic estimate by nonlinear least squares"),
+        Param(
+            "input_sign",
+            0,
+            "sign of the input driving w: +1, -1, 0 = from the loop orientation",
+            range=(-1, 1),
+        ),
+        Param(
+            "design_points", [0.6, 0.95, 0.05], "Table 10.1 design points (fractions f1, f2, f3)"
+        ),
+        Param(
+            "steady_periods",
+            0,
+            "average the last K periods (0: detect the steady state)",
+            range=(0, 100000),
+        ),
+        Param("filter", False, "apply the §10.3.2 zero-phase data filter"),
+        Param(
+            "max_rms",
+            0.0,
+            "largest residual RMS accepted, fraction of the output span (0: the "
+            "method's default, 0.005 analytic, 0.02 fit)",
+            range=(0.0, 1.0),
+        ),
+        Param("auto_identify", True, "identify as soon as two runs are complete"),
+        Param("output_file", "", "write the identified parameter-set YAML here ('' = do not)"),
+        Param("name", "identified", "name stored in the parameter set"),
+        Param(
+            "stream_qos",
+            "auto",
+            "voltage/displacement subscriptions: auto (adapted to the "
+            "publishers as rosbag2 does: reliable keep-all if every publisher is reliable, else "
+            "best "
+            "effort), best_effort (matches every publisher) or reliable (no loss from reliable "
+            "publishers)",
+            choices=StreamQos,
+            read_only=True,
+        ),
+        Param(
+            "on_done",
+            "stay",
+            "after the automatic identification: stay (the result stays latched) "
+            "or exit (status 0 when identified, 1 when it failed: one-shot runs, e.g. replaying a "
+            "bag)",
+            choices=OnDone,
+            read_only=True,
+        ),
+        Param(
+            "settle_time",
+            10.0,
+            "wall seconds of silent streams after which a completed run is "
+            "processed even if the streams did not pass its end, and fewer than two complete runs "
+            "is "
+            "reported as a failure (on_done=exit: exit 1)",
+            "s",
+            (0.0, 3600.0),
+        ),
+    ),
+    summary="Live (or replayed-bag) identification of the Bouc-Wen model (thesis ch. 10).",
+)
 
 
 class IdentifierNode(Node):
@@ -172,17 +223,24 @@ class IdentifierNode(Node):
         self._error = ""
 
         self._pub_cycle = self.create_publisher(LimitCycle, "limit_cycles", COMMAND_QOS)
-        self._pub_params = self.create_publisher(BoucWenParameters, "bouc_wen_parameters",
-                                                 LATCHED_QOS)
-        self._streams = {"voltage": _Stream(Voltage, self._on_voltage),
-                         "displacement": _Stream(Displacement, self._on_displacement)}
+        self._pub_params = self.create_publisher(
+            BoucWenParameters, "bouc_wen_parameters", LATCHED_QOS
+        )
+        self._streams = {
+            "voltage": _Stream(Voltage, self._on_voltage),
+            "displacement": _Stream(Displacement, self._on_displacement),
+        }
         self._adapt = StreamQos(stream_qos) is StreamQos.AUTO
         if not self._adapt:
             for name in self._streams:
                 self._subscribe(name, STREAM_QOS[stream_qos])
         # deep: marks must not be dropped while a cycle is being extracted (replayed bags burst)
-        self.create_subscription(ExcitationInfo, "excitation", self._on_excitation,
-                                 QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
+        self.create_subscription(
+            ExcitationInfo,
+            "excitation",
+            self._on_excitation,
+            QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
+        )
         self.create_service(Trigger, "~/identify", self._srv_identify)
         self.create_service(Trigger, "~/reset", self._srv_reset)
         self.finished, self.exit_code = False, 0
@@ -213,8 +271,10 @@ class IdentifierNode(Node):
             reliable = qos.reliability == ReliabilityPolicy.RELIABLE
             if stream.subscription is None or (stream.reliable and not reliable):
                 self._subscribe(name, qos)
-                self.get_logger().info(f"{name}: {len(offers)} publisher(s), subscribed "
-                                       f"{'reliable' if reliable else 'best effort'}")
+                self.get_logger().info(
+                    f"{name}: {len(offers)} publisher(s), subscribed "
+                    f"{'reliable' if reliable else 'best effort'}"
+                )
 
     def _tick(self) -> None:
         self._discover()
@@ -225,7 +285,7 @@ class IdentifierNode(Node):
         self._voltage = _Series()
         self._displacement = _Series()
         self._runs = RunTracker()
-        self._attempted = False   # the identification at silence (fit, auto) was tried
+        self._attempted = False  # the identification at silence (fit, auto) was tried
 
     def _on_voltage(self, msg: Voltage) -> None:
         self._voltage.t.append(stamp_to_s(msg.header.stamp))
@@ -240,8 +300,9 @@ class IdentifierNode(Node):
         t = stamp_to_s(msg.header.stamp)
         phase = self._runs.mark(t, int(msg.run), bool(msg.steady), msg.offset)
         if phase is not None:
-            self.get_logger().info(f"excitation run {msg.run} (offset {msg.offset:g}) "
-                                   f"{phase.value} at t = {t:.6g} s")
+            self.get_logger().info(
+                f"excitation run {msg.run} (offset {msg.offset:g}) {phase.value} at t = {t:.6g} s"
+            )
 
     def _process_completed(self) -> None:
         """Handle the completed runs whose data has arrived (:class:`RunTracker`); identify once
@@ -250,12 +311,18 @@ class IdentifierNode(Node):
         v, d = self._voltage.t, self._displacement.t
         latest = min(v[-1] if v else -math.inf, d[-1] if d else -math.inf)
         settle = self.get_parameter("settle_time").value
-        poll = self._runs.poll(len(v) + len(d), latest, time.monotonic(), settle,
-                               identified=self.result is not None)
+        poll = self._runs.poll(
+            len(v) + len(d), latest, time.monotonic(), settle, identified=self.result is not None
+        )
         for run_index in poll.ready:
             self._run_complete(run_index)
-        if poll.ready and len(self._runs.completed) >= RUNS_NEEDED and not self._runs.pending \
-                and self.result is None and self.get_parameter("auto_identify").value:
+        if (
+            poll.ready
+            and len(self._runs.completed) >= RUNS_NEEDED
+            and not self._runs.pending
+            and self.result is None
+            and self.get_parameter("auto_identify").value
+        ):
             self._attempted = True
             try:
                 self.identify_now()
@@ -263,10 +330,14 @@ class IdentifierNode(Node):
                 self._done(1)  # reported by identify_now (log + /diagnostics)
             else:
                 self._done(0)
-        if poll.silent and self.result is None and not self._attempted \
-                and self.get_parameter("method").value != Method.ANALYTIC.value \
-                and self.get_parameter("auto_identify").value:
-            self._attempted = True   # the fit takes whatever runs the silence left
+        if (
+            poll.silent
+            and self.result is None
+            and not self._attempted
+            and self.get_parameter("method").value != Method.ANALYTIC.value
+            and self.get_parameter("auto_identify").value
+        ):
+            self._attempted = True  # the fit takes whatever runs the silence left
             try:
                 self.identify_now()
             except (IdentificationError, ModelError, ValueError):
@@ -276,10 +347,12 @@ class IdentifierNode(Node):
             return
         if poll.stalled:
             count, runs = len(v) + len(d), len(self._runs.completed)
-            self._set_error(f"the streams have been silent for {settle:g} s after {count} samples "
-                            f"and {runs} complete run(s): identification needs two steady runs "
-                            "(x(t) and x(t)+q), each ended by the next run's mark or the "
-                            "plan's end")
+            self._set_error(
+                f"the streams have been silent for {settle:g} s after {count} samples "
+                f"and {runs} complete run(s): identification needs two steady runs "
+                "(x(t) and x(t)+q), each ended by the next run's mark or the "
+                "plan's end"
+            )
             self._done(1)
 
     def recordings(self, intervals: list[tuple[int, float, float]] | None = None):
@@ -303,12 +376,15 @@ class IdentifierNode(Node):
         return IdentifyOptions(
             degree=int(self.get_parameter("degree").value),
             refine=bool(self.get_parameter("refine").value),
-            input_sign=sign or None, design=DesignPoints(f1=f1, f2=f2, f3=f3),
-            cycle=CycleOptions(data_filter=bool(self.get_parameter("filter").value),
-                               steady_periods=k or None),
+            input_sign=sign or None,
+            design=DesignPoints(f1=f1, f2=f2, f3=f3),
+            cycle=CycleOptions(
+                data_filter=bool(self.get_parameter("filter").value), steady_periods=k or None
+            ),
             refinement=RefineOptions(**self._max_rms()),
             input_name=self._input.value,
-            output_name="displacement" if self._input is Input.VOLTAGE else "voltage")
+            output_name="displacement" if self._input is Input.VOLTAGE else "voltage",
+        )
 
     def _max_rms(self) -> dict[str, float]:
         value = float(self.get_parameter("max_rms").value)
@@ -323,21 +399,28 @@ class IdentifierNode(Node):
             cycle = extract_cycle(recs[0], self._options().cycle)
         except (IdentificationError, ModelError, ValueError) as exc:
             text = str(exc)  # the extraction's messages name the run ("<node> run <k>: ...")
-            named = (text if f"run {run_index}:" in text
-                     else f"{self.get_name()} run {run_index}: {text}")
+            named = (
+                text
+                if f"run {run_index}:" in text
+                else f"{self.get_name()} run {run_index}: {text}"
+            )
             if self.get_parameter("method").value == Method.ANALYTIC.value:
                 self._set_error(named)
-            else:   # the fit by simulation error needs no steady cycle
+            else:  # the fit by simulation error needs no steady cycle
                 self.get_logger().info(f"no steady cycle ({named})")
         else:
-            msg = LimitCycle(header=Header(stamp=self.get_clock().now().to_msg()),
-                             offset=float(self._runs.offsets.get(run_index, 0.0)),
-                             period=float(cycle.period),
-                             input=[float(v) for v in cycle.input],
-                             output=[float(v) for v in cycle.output])
+            msg = LimitCycle(
+                header=Header(stamp=self.get_clock().now().to_msg()),
+                offset=float(self._runs.offsets.get(run_index, 0.0)),
+                period=float(cycle.period),
+                input=[float(v) for v in cycle.input],
+                output=[float(v) for v in cycle.output],
+            )
             self._pub_cycle.publish(msg)
-            self.get_logger().info(f"run {run_index}: steady cycle of {cycle.period:.6g} s "
-                                   f"({cycle.periods} periods averaged)")
+            self.get_logger().info(
+                f"run {run_index}: steady cycle of {cycle.period:.6g} s "
+                f"({cycle.periods} periods averaged)"
+            )
 
     def _done(self, code: int) -> None:
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
@@ -349,8 +432,12 @@ class IdentifierNode(Node):
     def identify_now(self) -> IdentificationResult:
         try:
             runs = self.recordings()
-            result = identify_runs(runs, self._options(), self.get_parameter("method").value,
-                                   FitOptions(**self._max_rms()))
+            result = identify_runs(
+                runs,
+                self._options(),
+                self.get_parameter("method").value,
+                FitOptions(**self._max_rms()),
+            )
         except (IdentificationError, ModelError, ValueError) as exc:
             self._set_error(str(exc))
             raise
@@ -358,13 +445,21 @@ class IdentifierNode(Node):
         for text in result.warnings:
             self.get_logger().warning(text)
         p = result.parameters
-        self._pub_params.publish(BoucWenParameters(
-            header=Header(stamp=self.get_clock().now().to_msg()), kappa=[float(k) for k in p.kappa],
-            y0=float(p.y0), kappa_w=float(p.kappa_w), rho=float(p.rho), sigma=float(p.sigma),
-            n=float(p.n),
-            input_sign=int(p.input_sign), input_name=self._input.value,
-            rms_error=float(result.rms_error),
-            samples=int(result.samples)))
+        self._pub_params.publish(
+            BoucWenParameters(
+                header=Header(stamp=self.get_clock().now().to_msg()),
+                kappa=[float(k) for k in p.kappa],
+                y0=float(p.y0),
+                kappa_w=float(p.kappa_w),
+                rho=float(p.rho),
+                sigma=float(p.sigma),
+                n=float(p.n),
+                input_sign=int(p.input_sign),
+                input_name=self._input.value,
+                rms_error=float(result.rms_error),
+                samples=int(result.samples),
+            )
+        )
         path = self.get_parameter("output_file").value
         if path:
             save_parameter_set(result.to_parameter_set(name=self.get_parameter("name").value), path)
@@ -372,7 +467,8 @@ class IdentifierNode(Node):
             f"identified: kappa={list(p.kappa)}, kappa_w={p.kappa_w:.6g}, rho={p.rho:.6g}, "
             f"sigma={p.sigma:.6g}, "
             f"n={p.n:.6g}, y0={p.y0:.6g}, input_sign={p.input_sign:+d}, rms={result.rms_error:.3g}"
-            + (f"; wrote {path}" if path else ""))
+            + (f"; wrote {path}" if path else "")
+        )
         return result
 
     def _set_error(self, reason: str) -> None:
@@ -380,8 +476,9 @@ class IdentifierNode(Node):
         self.get_logger().error(f"identification failed: {reason}")
 
     # ------------------------------------------------------------------ services
-    def _srv_identify(self, request: Trigger.Request,
-                      response: Trigger.Response) -> Trigger.Response:
+    def _srv_identify(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
         try:
             result = self.identify_now()
         except (IdentificationError, ModelError, ValueError) as exc:
@@ -389,9 +486,11 @@ class IdentifierNode(Node):
             return response
         p = result.parameters
         response.success = True
-        response.message = (f"kappa={list(p.kappa)} kappa_w={p.kappa_w:.6g} rho={p.rho:.6g} "
-                            f"sigma={p.sigma:.6g} "
-                            f"n={p.n:.6g} y0={p.y0:.6g} rms={result.rms_error:.3g}")
+        response.message = (
+            f"kappa={list(p.kappa)} kappa_w={p.kappa_w:.6g} rho={p.rho:.6g} "
+            f"sigma={p.sigma:.6g} "
+            f"n={p.n:.6g} y0={p.y0:.6g} rms={result.rms_error:.3g}"
+        )
         return response
 
     def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -401,10 +500,12 @@ class IdentifierNode(Node):
         return response
 
     def _diagnose(self) -> Diagnosis:
-        values = {"voltage_samples": len(self._voltage.t),
-                  "displacement_samples": len(self._displacement.t),
-                  "completed_runs": len(self._runs.completed),
-                  "identified": self.result is not None}
+        values = {
+            "voltage_samples": len(self._voltage.t),
+            "displacement_samples": len(self._displacement.t),
+            "completed_runs": len(self._runs.completed),
+            "identified": self.result is not None,
+        }
         if self._error:
             return Diagnosis(ERROR, self._error, values)
         return Diagnosis(OK, "identified" if self.result else "collecting", values)

@@ -43,39 +43,115 @@ from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
 from .spec import Param, ParameterTable
 
-PARAMETERS = ParameterTable("laser_reader", (
-    Param("url", "/dev/ttyUSB0", "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, "
-          "tcp://host:port", read_only=True),
-    Param("baud", 0, "serial baud rate (0: the family's default)", range=(0, 4_000_000),
-          read_only=True),
-    Param("family", "ild1320", "optoNCDT family", choices=tuple(FAMILIES), read_only=True),
-    Param("bits", 0, "output word width (ILD1320 family: 16 or 18; 0: the family's default)",
-          range=(0, 18), read_only=True),
-    Param("measuring_range", 10e-3, "measuring range MR", "m", (1e-6, 10.0), read_only=True),
-    Param("zero_offset", 0.0, "distance from the start of the range published as zero", "m",
-          read_only=True),
-    Param("sign", 1, "+1: away from the sensor is positive; -1: towards it", range=(-1, 1), step=2,
-          read_only=True),
-    Param("decimation", 1, "N samples -> one message (mean of N OK samples)", range=(1, 100000),
-          read_only=True),
-    Param("rate_hz", 1000.0, "the sensor's measuring rate (stamp correction)", "Hz", (1e-3, 1e6),
-          read_only=True),
-    Param("latency", 0.0, "sensor delay subtracted from the reception time", "s", (0.0, 10.0),
-          read_only=True),
-    Param("stamp_window", 2.0, "window of the sample clock's lower envelope (see module docstring)",
-          "s", (0.01, 3600.0), read_only=True),
-    Param("poll_period", 0.002, "longest wait of the read thread's blocking read before it checks "
-          "the link and shutdown (samples are taken as they arrive)", "s", (1e-4, 1.0),
-          read_only=True),
-    Param("stale_timeout", 0.5, "no frame for this long: stale (diagnostics)", "s", (1e-3, 60.0),
-          read_only=True),
-    Param("max_speed", 0.1, "plausibility gate: a value implying a faster stage since the last "
-          "accepted one is refused (set it a little above the stage's top speed; an accepted "
-          "value is then off by at most max_speed / rate_hz)", "m/s", (1e-6, 1e3),
-          read_only=True),
-    Param("relock_frames", 6, "after a framing error, consecutive well-formed frames that must "
-          "agree (within the gate) before values are OK again", range=(2, 1000), read_only=True),
-), summary="Micro-Epsilon optoNCDT laser sensor -> displacement.")
+PARAMETERS = ParameterTable(
+    "laser_reader",
+    (
+        Param(
+            "url",
+            "/dev/ttyUSB0",
+            "link: /dev/tty..., serial:///dev/ttyUSB0?baudrate=921600, tcp://host:port",
+            read_only=True,
+        ),
+        Param(
+            "baud",
+            0,
+            "serial baud rate (0: the family's default)",
+            range=(0, 4_000_000),
+            read_only=True,
+        ),
+        Param("family", "ild1320", "optoNCDT family", choices=tuple(FAMILIES), read_only=True),
+        Param(
+            "bits",
+            0,
+            "output word width (ILD1320 family: 16 or 18; 0: the family's default)",
+            range=(0, 18),
+            read_only=True,
+        ),
+        Param("measuring_range", 10e-3, "measuring range MR", "m", (1e-6, 10.0), read_only=True),
+        Param(
+            "zero_offset",
+            0.0,
+            "distance from the start of the range published as zero",
+            "m",
+            read_only=True,
+        ),
+        Param(
+            "sign",
+            1,
+            "+1: away from the sensor is positive; -1: towards it",
+            range=(-1, 1),
+            step=2,
+            read_only=True,
+        ),
+        Param(
+            "decimation",
+            1,
+            "N samples -> one message (mean of N OK samples)",
+            range=(1, 100000),
+            read_only=True,
+        ),
+        Param(
+            "rate_hz",
+            1000.0,
+            "the sensor's measuring rate (stamp correction)",
+            "Hz",
+            (1e-3, 1e6),
+            read_only=True,
+        ),
+        Param(
+            "latency",
+            0.0,
+            "sensor delay subtracted from the reception time",
+            "s",
+            (0.0, 10.0),
+            read_only=True,
+        ),
+        Param(
+            "stamp_window",
+            2.0,
+            "window of the sample clock's lower envelope (see module docstring)",
+            "s",
+            (0.01, 3600.0),
+            read_only=True,
+        ),
+        Param(
+            "poll_period",
+            0.002,
+            "longest wait of the read thread's blocking read before it checks "
+            "the link and shutdown (samples are taken as they arrive)",
+            "s",
+            (1e-4, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "stale_timeout",
+            0.5,
+            "no frame for this long: stale (diagnostics)",
+            "s",
+            (1e-3, 60.0),
+            read_only=True,
+        ),
+        Param(
+            "max_speed",
+            0.1,
+            "plausibility gate: a value implying a faster stage since the last "
+            "accepted one is refused (set it a little above the stage's top speed; an accepted "
+            "value is then off by at most max_speed / rate_hz)",
+            "m/s",
+            (1e-6, 1e3),
+            read_only=True,
+        ),
+        Param(
+            "relock_frames",
+            6,
+            "after a framing error, consecutive well-formed frames that must "
+            "agree (within the gate) before values are OK again",
+            range=(2, 1000),
+            read_only=True,
+        ),
+    ),
+    summary="Micro-Epsilon optoNCDT laser sensor -> displacement.",
+)
 
 
 #: the composed loop's step: (displacement [m], status, stamp [ns]) of the new samples ->
@@ -93,21 +169,39 @@ class LaserReaderNode(Node):
     :meth:`start` (a composing process starts it once the rest is built, so that no start-up
     work holds the GIL while samples pile up)."""
 
-    def __init__(self, loop: SampleSink | None = None,
-                 idle: Callable[[int], None] | None = None, handoff: Any = None,
-                 overrides: Sequence[Parameter] = (), loop_priority: int = 0,
-                 start: bool = True) -> None:
-        super().__init__("laser_reader", namespace=DEFAULT_NAMESPACE,
-                         parameter_overrides=list(overrides))
+    def __init__(
+        self,
+        loop: SampleSink | None = None,
+        idle: Callable[[int], None] | None = None,
+        handoff: Any = None,
+        overrides: Sequence[Parameter] = (),
+        loop_priority: int = 0,
+        start: bool = True,
+    ) -> None:
+        super().__init__(
+            "laser_reader", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
+        )
         self._loop, self._idle, self._handoff = loop, idle, handoff
         self._loop_priority = loop_priority
         p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
-        on_set(self, lambda changed: "use_sim_time is fixed at start (the sample clock stamps "
-               "depend on it)" if "use_sim_time" in changed else None)
+        on_set(
+            self,
+            lambda changed: (
+                "use_sim_time is fixed at start (the sample clock stamps depend on it)"
+                if "use_sim_time" in changed
+                else None
+            ),
+        )
 
-        config = SensorConfig(p.family, p.measuring_range, bits=p.bits or None,
-                              stale_timeout=p.stale_timeout, rate=p.rate_hz,
-                              max_speed=p.max_speed, relock_frames=p.relock_frames)
+        config = SensorConfig(
+            p.family,
+            p.measuring_range,
+            bits=p.bits or None,
+            stale_timeout=p.stale_timeout,
+            rate=p.rate_hz,
+            max_speed=p.max_speed,
+            relock_frames=p.relock_frames,
+        )
         self.reader = SensorReader.from_url(p.url, config, baudrate=p.baud or None)
         self.reader.connect()
         self.url = p.url
@@ -140,9 +234,11 @@ class LaserReaderNode(Node):
         if start:
             self.start()
         Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
-        self.get_logger().info(f"optoNCDT {self.family} on {self.url}: MR "
-                               f"{p.measuring_range:g} m, "
-                               f"decimation {p.decimation}, rate {self.rate:g} Hz")
+        self.get_logger().info(
+            f"optoNCDT {self.family} on {self.url}: MR "
+            f"{p.measuring_range:g} m, "
+            f"decimation {p.decimation}, rate {self.rate:g} Hz"
+        )
 
     def start(self) -> None:
         """Start the read thread, forgetting what the link held (samples older than the start
@@ -195,13 +291,18 @@ class LaserReaderNode(Node):
             return
         latency, zero, sign = self._latency_ns, self.zero_offset, self.sign
         stamps = self.sample_clock.stamps(now, len(block))
-        out = self.decimator.feed(block.displacement.tolist(), block.status.tolist(),
-                                  [t - latency for t in stamps] if latency else stamps)
+        out = self.decimator.feed(
+            block.displacement.tolist(),
+            block.status.tolist(),
+            [t - latency for t in stamps] if latency else stamps,
+        )
         counts = self.by_status
         for st in out.status:
             counts[st] += 1
-        value = [sign * (x - zero) if st == _OK else math.nan
-                 for x, st in zip(out.displacement, out.status)]
+        value = [
+            sign * (x - zero) if st == _OK else math.nan
+            for x, st in zip(out.displacement, out.status)
+        ]
         if self._loop is None:
             self._publish(value, out.status, out.stamp)
             return
@@ -209,12 +310,15 @@ class LaserReaderNode(Node):
         if keep is None:
             self._handoff.put(self._publish, value, out.status, out.stamp)
         elif any(keep):
-            self._handoff.put(self._publish, *(
-                [x for x, due in zip(column, keep) if due]
-                for column in (value, out.status, out.stamp)))
+            self._handoff.put(
+                self._publish,
+                *(
+                    [x for x, due in zip(column, keep) if due]
+                    for column in (value, out.status, out.stamp)
+                ),
+            )
 
-    def _publish(self, value: Sequence[float], status: Sequence[int],
-                 stamp: Sequence[int]) -> None:
+    def _publish(self, value: Sequence[float], status: Sequence[int], stamp: Sequence[int]) -> None:
         msg, publish = self._msg, self._pub.publish
         for x, st, ns in zip(value, status, stamp):
             set_stamp(msg.header, ns)
@@ -224,21 +328,36 @@ class LaserReaderNode(Node):
 
     def _diagnose(self) -> Diagnosis:
         stats = self.reader.parser.stats
-        now = (time.monotonic(), stats.frames, self.published, stats.errors, stats.discarded,
-               stats.relock_withheld + stats.speed_rejected)
+        now = (
+            time.monotonic(),
+            stats.frames,
+            self.published,
+            stats.errors,
+            stats.discarded,
+            stats.relock_withheld + stats.speed_rejected,
+        )
         (t0, frames0, published0, errors0, discarded0, refused0) = self._last_diag
         self._last_diag = now
         dt = max(now[0] - t0, 1e-9)
-        values = {"connected": self.connected, "stale": self.reader.stale, "family": self.family,
-                  "frame_rate": (stats.frames - frames0) / dt,
-                  "publish_rate": (self.published - published0) / dt,
-                  "frames": stats.frames, "published": self.published,
-                  **{f"samples_{s.name.lower()}": int(self.by_status[s]) for s in Status},
-                  "sample_errors": stats.errors, "resync_bytes_discarded": stats.discarded,
-                  "framing_errors": stats.framing_errors, "lock_losses": stats.lock_losses,
-                  "relock_withheld": stats.relock_withheld, "speed_rejected": stats.speed_rejected,
-                  "reconnects": self.reader.reconnects, "link_errors": self.link_errors,
-                  "last_error": self.last_error}
+        values = {
+            "connected": self.connected,
+            "stale": self.reader.stale,
+            "family": self.family,
+            "frame_rate": (stats.frames - frames0) / dt,
+            "publish_rate": (self.published - published0) / dt,
+            "frames": stats.frames,
+            "published": self.published,
+            **{f"samples_{s.name.lower()}": int(self.by_status[s]) for s in Status},
+            "sample_errors": stats.errors,
+            "resync_bytes_discarded": stats.discarded,
+            "framing_errors": stats.framing_errors,
+            "lock_losses": stats.lock_losses,
+            "relock_withheld": stats.relock_withheld,
+            "speed_rejected": stats.speed_rejected,
+            "reconnects": self.reader.reconnects,
+            "link_errors": self.link_errors,
+            "last_error": self.last_error,
+        }
         if not self.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         if self.reader.stale:
@@ -246,11 +365,15 @@ class LaserReaderNode(Node):
         errors, discarded = stats.errors - errors0, stats.discarded - discarded0
         refused = now[5] - refused0
         if errors or discarded or refused:
-            return Diagnosis(WARN,
-                             f"{errors} error value(s), {discarded} byte(s) discarded (resync), "
-                             f"{refused} frame(s) withheld or refused (lock, speed gate) "
-                             f"in the last {dt:.3g} s", values)
+            return Diagnosis(
+                WARN,
+                f"{errors} error value(s), {discarded} byte(s) discarded (resync), "
+                f"{refused} frame(s) withheld or refused (lock, speed gate) "
+                f"in the last {dt:.3g} s",
+                values,
+            )
         return Diagnosis(OK, "streaming", values)
+
 
 def main(args: list[str] | None = None) -> int:
     return run(LaserReaderNode, args)

@@ -49,22 +49,59 @@ GLOBAL_VIEW_TOPICS = ("/diagnostics", "/rosout")
 #: KEEP_LAST depth of the view's subscriptions: what arrives between two executor turns
 QUEUE_DEPTH = 10
 
-PARAMETERS = ParameterTable("live_view", (
-    Param("host", "127.0.0.1", "address the WebSocket server binds; another than loopback serves "
-          "the stage's topics to the network, unauthenticated", read_only=True),
-    Param("port", 8765, "WebSocket port (the Foxglove app's default; 0 = any free port, logged)",
-          range=(0, 65535), read_only=True),
-    Param("max_rate_hz", 100.0, "most messages per second and topic sent to the app "
-          "(0 = every message)", "Hz", (0.0, 1e6)),
-    Param("topic_rates", [], "per-topic maxima as TOPIC=HZ (relative names are in the node's "
-          "namespace), over max_rate_hz", kind=Kind.STRING_ARRAY),
-    Param("topics", [], "topics served (relative names are in the node's namespace); empty = "
-          "every topic of the namespace plus /diagnostics and /rosout", kind=Kind.STRING_ARRAY,
-          read_only=True),
-    Param("discovery_period", 0.5, "graph poll for topics that appear or go", "s", (0.01, 60.0),
-          read_only=True),
-    Param("diagnostics_period", 1.0, "/diagnostics period", "s", (0.01, 3600.0), read_only=True),
-), summary="Serves the namespace's topics to the Foxglove app (WebSocket, foxglove-sdk).")
+PARAMETERS = ParameterTable(
+    "live_view",
+    (
+        Param(
+            "host",
+            "127.0.0.1",
+            "address the WebSocket server binds; another than loopback serves "
+            "the stage's topics to the network, unauthenticated",
+            read_only=True,
+        ),
+        Param(
+            "port",
+            8765,
+            "WebSocket port (the Foxglove app's default; 0 = any free port, logged)",
+            range=(0, 65535),
+            read_only=True,
+        ),
+        Param(
+            "max_rate_hz",
+            100.0,
+            "most messages per second and topic sent to the app (0 = every message)",
+            "Hz",
+            (0.0, 1e6),
+        ),
+        Param(
+            "topic_rates",
+            [],
+            "per-topic maxima as TOPIC=HZ (relative names are in the node's "
+            "namespace), over max_rate_hz",
+            kind=Kind.STRING_ARRAY,
+        ),
+        Param(
+            "topics",
+            [],
+            "topics served (relative names are in the node's namespace); empty = "
+            "every topic of the namespace plus /diagnostics and /rosout",
+            kind=Kind.STRING_ARRAY,
+            read_only=True,
+        ),
+        Param(
+            "discovery_period",
+            0.5,
+            "graph poll for topics that appear or go",
+            "s",
+            (0.01, 60.0),
+            read_only=True,
+        ),
+        Param(
+            "diagnostics_period", 1.0, "/diagnostics period", "s", (0.01, 3600.0), read_only=True
+        ),
+    ),
+    summary="Serves the namespace's topics to the Foxglove app (WebSocket, foxglove-sdk).",
+)
 
 
 class RateGate:
@@ -96,8 +133,9 @@ def parse_topic_rates(items: list[str], resolve: Any) -> dict[str, float]:
         except ValueError:
             hz = float("nan")
         if not sep or not topic.strip() or not (0.0 <= hz <= 1e6):
-            raise RosParameterError(f"live_view: topic_rates item {item!r} is not TOPIC=HZ with "
-                                    "0 <= HZ <= 1e6")
+            raise RosParameterError(
+                f"live_view: topic_rates item {item!r} is not TOPIC=HZ with 0 <= HZ <= 1e6"
+            )
         rates[resolve(topic.strip())] = hz
     return rates
 
@@ -168,21 +206,29 @@ class LiveViewNode(Node):
         self._fox = Context()
         try:
             self.server = foxglove.start_server(
-                name=f"piezo_stage {ns or '/'}", host=p["host"], port=int(p["port"]),
-                context=self._fox, server_listener=_Listener(self._requests,
-                                                                 self._wake.trigger))
+                name=f"piezo_stage {ns or '/'}",
+                host=p["host"],
+                port=int(p["port"]),
+                context=self._fox,
+                server_listener=_Listener(self._requests, self._wake.trigger),
+            )
         except Exception as exc:  # the SDK raises its own error types for a busy port
-            raise RosParameterError(f"live_view: cannot serve on {p['host']}:{p['port']}: "
-                                    f"{exc}") from None
+            raise RosParameterError(
+                f"live_view: cannot serve on {p['host']}:{p['port']}: {exc}"
+            ) from None
         self.port = self.server.port
         self.create_timer(float(p["discovery_period"]), self.discover)
         Diagnostics(self, "live_view", self._diagnose, p["diagnostics_period"])
         where = f"ws://{p['host']}:{self.port}"
-        self.get_logger().info(f"Foxglove live view on {where} ({ns or '/'}): open it in the "
-                               "app with 'Open connection' > Foxglove WebSocket")
+        self.get_logger().info(
+            f"Foxglove live view on {where} ({ns or '/'}): open it in the "
+            "app with 'Open connection' > Foxglove WebSocket"
+        )
         if p["host"] not in ("127.0.0.1", "localhost", "::1"):
-            self.get_logger().warning(f"serving {where} beyond this machine: anyone on the "
-                                      "network can watch the stage's topics")
+            self.get_logger().warning(
+                f"serving {where} beyond this machine: anyone on the "
+                "network can watch the stage's topics"
+            )
         self.discover()
 
     # ------------------------------------------------------------------ parameters
@@ -235,9 +281,12 @@ class LiveViewNode(Node):
             self._skipped.add(name)
             self.get_logger().warning(f"not serving {name}: {exc}")
             return
-        channel = Channel(name, message_encoding="cdr", context=self._fox,
-                          schema=Schema(name=type_name, encoding="ros2msg",
-                                        data=definition.encode("utf-8")))
+        channel = Channel(
+            name,
+            message_encoding="cdr",
+            context=self._fox,
+            schema=Schema(name=type_name, encoding="ros2msg", data=definition.encode("utf-8")),
+        )
         topic = _Topic(name, type_name, channel, RateGate(self._rate_of(name)))
         self._topics[name] = topic
         self._by_id[channel.id()] = topic
@@ -263,13 +312,18 @@ class LiveViewNode(Node):
     def _subscribe(self, topic: _Topic) -> None:
         offers = [i.qos_profile for i in self.get_publishers_info_by_topic(topic.name)]
         topic.latched = bool(offers) and all(
-            o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
+            o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers
+        )
         qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=QUEUE_DEPTH,
-            reliability=ReliabilityPolicy.RELIABLE if topic.latched
+            history=HistoryPolicy.KEEP_LAST,
+            depth=QUEUE_DEPTH,
+            reliability=ReliabilityPolicy.RELIABLE
+            if topic.latched
             else ReliabilityPolicy.BEST_EFFORT,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if topic.latched
-            else DurabilityPolicy.VOLATILE)
+            durability=DurabilityPolicy.TRANSIENT_LOCAL
+            if topic.latched
+            else DurabilityPolicy.VOLATILE,
+        )
         log, clock = topic.channel.log, self._clock
         ros_time = clock.ros_time_is_active
         now_ns = (lambda: clock.now().nanoseconds) if ros_time else time.time_ns
@@ -281,8 +335,9 @@ class LiveViewNode(Node):
                 log(data, log_time=now)
                 topic.forwarded += 1
 
-        topic.subscription = self.create_subscription(message_type(topic.type_name), topic.name,
-                                                      forward, qos, raw=True)
+        topic.subscription = self.create_subscription(
+            message_type(topic.type_name), topic.name, forward, qos, raw=True
+        )
 
     def _unsubscribe(self, topic: _Topic) -> None:
         if topic.subscription is not None:
@@ -292,11 +347,14 @@ class LiveViewNode(Node):
     # ------------------------------------------------------------------ status
     def _diagnose(self) -> Diagnosis:
         subscribed = [t for t in self._topics.values() if t.subscription is not None]
-        values = {"port": self.port, "channels": len(self._topics),
-                  "subscribed": len(subscribed),
-                  "received": sum(t.received for t in self._topics.values()),
-                  "forwarded": sum(t.forwarded for t in self._topics.values()),
-                  "max_rate_hz": self._max_rate}
+        values = {
+            "port": self.port,
+            "channels": len(self._topics),
+            "subscribed": len(subscribed),
+            "received": sum(t.received for t in self._topics.values()),
+            "forwarded": sum(t.forwarded for t in self._topics.values()),
+            "max_rate_hz": self._max_rate,
+        }
         if self._skipped:
             return Diagnosis(WARN, f"not serving {', '.join(sorted(self._skipped))}", values)
         return Diagnosis(OK, f"{len(self._topics)} channels, {len(subscribed)} watched", values)

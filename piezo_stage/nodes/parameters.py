@@ -27,9 +27,11 @@ from rclpy.parameter import Parameter
 from .errors import RosParameterError
 from .spec import Kind, Param, ParameterTable
 
-_EMPTY_ARRAY = {Kind.INT_ARRAY: Parameter.Type.INTEGER_ARRAY,
-                Kind.FLOAT_ARRAY: Parameter.Type.DOUBLE_ARRAY,
-                Kind.STRING_ARRAY: Parameter.Type.STRING_ARRAY}
+_EMPTY_ARRAY = {
+    Kind.INT_ARRAY: Parameter.Type.INTEGER_ARRAY,
+    Kind.FLOAT_ARRAY: Parameter.Type.DOUBLE_ARRAY,
+    Kind.STRING_ARRAY: Parameter.Type.STRING_ARRAY,
+}
 _ARRAYS = tuple(_EMPTY_ARRAY)
 
 
@@ -50,13 +52,19 @@ def descriptor(p: Param) -> ParameterDescriptor:
         if p.kind is Kind.INT:
             d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(p.step))]
         else:
-            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
-                                                         step=float(p.step))]
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(lo), to_value=float(hi), step=float(p.step))
+            ]
     return d
 
 
-def declare_table(node: Node, table: ParameterTable, *, only: Collection[str] | None = None,
-                  defaults: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def declare_table(
+    node: Node,
+    table: ParameterTable,
+    *,
+    only: Collection[str] | None = None,
+    defaults: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """Declare the parameters of ``table`` (or the names in ``only``) on ``node``, with
     ``defaults`` replacing the table's where given; return their values by name.
 

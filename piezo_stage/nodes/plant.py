@@ -55,47 +55,135 @@ class ClockMode(str, Enum):
     LOCKSTEP = "lockstep"  # owns /clock: one step per voltage_command
 
 
-PARAMETERS = ParameterTable("plant", (
-    Param("model_file", "ch10_patch.yaml", "parameter-set YAML (name in config/ or path), e.g. "
-          "ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage "
-          "identify --output`", read_only=True),
-    Param("rate_hz", 1000.0, "output (sensor) rate; lockstep: the simulation step", "Hz",
-          (1.0, 1e7), read_only=True),
-    Param("clock_mode", "realtime", "realtime (wall timer) or lockstep (owns /clock)",
-          choices=ClockMode, read_only=True),
-    Param("lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the step's command", "s",
-          (0.0, 3600.0)),
-    Param("wait_for_commander", True, "lockstep: start stepping once a voltage_command publisher "
-          "exists"),
-    Param("wait_for_subscribers", 0, "lockstep: start stepping once displacement and voltage each "
-          "have this many matched subscribers (none of them misses the first samples)",
-          range=(0, 1000), read_only=True),
-    Param("start_time", 0.0, "lockstep: simulated time of the first step", "s", (0.0, 1e9),
-          read_only=True),
-    Param("initial_voltage", 0.0, "command held before the first voltage_command", "V",
-          read_only=True),
-    Param("initial_displacement", 0.0, "initial displacement x(0) (dynamic form)", "m",
-          read_only=True),
-    Param("initial_velocity", 0.0, "initial velocity dx/dt(0) (dynamic form)", "m/s",
-          read_only=True),
-    Param("w0", math.nan, "initial hysteretic state w(0) in [-1, 1] (NaN: the parameter set's)",
-          read_only=True),
-    Param("v_min", -math.inf, "amplifier lower limit", "V", read_only=True),
-    Param("v_max", math.inf, "amplifier upper limit", "V", read_only=True),
-    Param("amplifier_bandwidth_hz", 0.0, "amplifier first-order bandwidth (0: ideal)", "Hz",
-          (0.0, 1e7), read_only=True),
-    Param("amplifier_slew", 0.0, "amplifier slew-rate limit (0: none)", "V/s", (0.0, 1e12),
-          read_only=True),
-    Param("sensor_noise", 0.0, "sensor noise standard deviation", "m", (0.0, 1.0), read_only=True),
-    Param("sensor_resolution", 0.0, "sensor quantisation step (laser: 1e-7)", "m", (0.0, 1.0),
-          read_only=True),
-    Param("sensor_min", -math.inf, "start of the measuring range (below: TOO_CLOSE)", "m",
-          read_only=True),
-    Param("sensor_max", math.inf, "end of the measuring range (above: TOO_FAR)", "m",
-          read_only=True),
-    Param("seed", 0, "noise seed", range=(0, 2**31 - 1), read_only=True),
-),
-summary="Simulated stage: the Bouc-Wen plant with the real stage's topics (realtime or lockstep).")
+PARAMETERS = ParameterTable(
+    "plant",
+    (
+        Param(
+            "model_file",
+            "ch10_patch.yaml",
+            "parameter-set YAML (name in config/ or path), e.g. "
+            "ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage "
+            "identify --output`",
+            read_only=True,
+        ),
+        Param(
+            "rate_hz",
+            1000.0,
+            "output (sensor) rate; lockstep: the simulation step",
+            "Hz",
+            (1.0, 1e7),
+            read_only=True,
+        ),
+        Param(
+            "clock_mode",
+            "realtime",
+            "realtime (wall timer) or lockstep (owns /clock)",
+            choices=ClockMode,
+            read_only=True,
+        ),
+        Param(
+            "lockstep_timeout",
+            1.0,
+            "lockstep: wall seconds to wait for the step's command",
+            "s",
+            (0.0, 3600.0),
+        ),
+        Param(
+            "wait_for_commander",
+            True,
+            "lockstep: start stepping once a voltage_command publisher exists",
+        ),
+        Param(
+            "wait_for_subscribers",
+            0,
+            "lockstep: start stepping once displacement and voltage each "
+            "have this many matched subscribers (none of them misses the first samples)",
+            range=(0, 1000),
+            read_only=True,
+        ),
+        Param(
+            "start_time",
+            0.0,
+            "lockstep: simulated time of the first step",
+            "s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param(
+            "initial_voltage",
+            0.0,
+            "command held before the first voltage_command",
+            "V",
+            read_only=True,
+        ),
+        Param(
+            "initial_displacement",
+            0.0,
+            "initial displacement x(0) (dynamic form)",
+            "m",
+            read_only=True,
+        ),
+        Param(
+            "initial_velocity",
+            0.0,
+            "initial velocity dx/dt(0) (dynamic form)",
+            "m/s",
+            read_only=True,
+        ),
+        Param(
+            "w0",
+            math.nan,
+            "initial hysteretic state w(0) in [-1, 1] (NaN: the parameter set's)",
+            read_only=True,
+        ),
+        Param("v_min", -math.inf, "amplifier lower limit", "V", read_only=True),
+        Param("v_max", math.inf, "amplifier upper limit", "V", read_only=True),
+        Param(
+            "amplifier_bandwidth_hz",
+            0.0,
+            "amplifier first-order bandwidth (0: ideal)",
+            "Hz",
+            (0.0, 1e7),
+            read_only=True,
+        ),
+        Param(
+            "amplifier_slew",
+            0.0,
+            "amplifier slew-rate limit (0: none)",
+            "V/s",
+            (0.0, 1e12),
+            read_only=True,
+        ),
+        Param(
+            "sensor_noise", 0.0, "sensor noise standard deviation", "m", (0.0, 1.0), read_only=True
+        ),
+        Param(
+            "sensor_resolution",
+            0.0,
+            "sensor quantisation step (laser: 1e-7)",
+            "m",
+            (0.0, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "sensor_min",
+            -math.inf,
+            "start of the measuring range (below: TOO_CLOSE)",
+            "m",
+            read_only=True,
+        ),
+        Param(
+            "sensor_max",
+            math.inf,
+            "end of the measuring range (above: TOO_FAR)",
+            "m",
+            read_only=True,
+        ),
+        Param("seed", 0, "noise seed", range=(0, 2**31 - 1), read_only=True),
+    ),
+    summary="Simulated stage: the Bouc-Wen plant with the real stage's topics "
+    "(realtime or lockstep).",
+)
 
 
 class PlantNode(Node):
@@ -108,14 +196,24 @@ class PlantNode(Node):
         w0 = self.parameter_set.w0 if math.isnan(p["w0"]) else p["w0"]
         self.stage = SimulatedStage(
             self.parameter_set,
-            amplifier=AmplifierModel(v_min=p["v_min"], v_max=p["v_max"],
-                                     bandwidth_hz=p["amplifier_bandwidth_hz"],
-                                     slew_rate=p["amplifier_slew"]),
-            sensor=SensorModel(noise_std=p["sensor_noise"], resolution=p["sensor_resolution"],
-                               range_min=p["sensor_min"], range_max=p["sensor_max"],
-                               seed=p["seed"]),
-            x0=p["initial_displacement"], xdot0=p["initial_velocity"], w0=w0,
-            initial_voltage=p["initial_voltage"])
+            amplifier=AmplifierModel(
+                v_min=p["v_min"],
+                v_max=p["v_max"],
+                bandwidth_hz=p["amplifier_bandwidth_hz"],
+                slew_rate=p["amplifier_slew"],
+            ),
+            sensor=SensorModel(
+                noise_std=p["sensor_noise"],
+                resolution=p["sensor_resolution"],
+                range_min=p["sensor_min"],
+                range_max=p["sensor_max"],
+                seed=p["seed"],
+            ),
+            x0=p["initial_displacement"],
+            xdot0=p["initial_velocity"],
+            w0=w0,
+            initial_voltage=p["initial_voltage"],
+        )
         self.dt = 1.0 / p["rate_hz"]
         self.mode = ClockMode(p["clock_mode"])
         self._command = float(p["initial_voltage"])
@@ -131,8 +229,9 @@ class PlantNode(Node):
         self._pub_x = self.create_publisher(Displacement, "displacement", stream_qos)
         self._pub_v = self.create_publisher(Voltage, "voltage", stream_qos)
         self._msg_x, self._msg_v = Displacement(), Voltage()
-        sub = self.create_subscription(Voltage, "voltage_command", self._on_command,
-                                       LOCKSTEP_QOS if lockstep else COMMAND_QOS)
+        sub = self.create_subscription(
+            Voltage, "voltage_command", self._on_command, LOCKSTEP_QOS if lockstep else COMMAND_QOS
+        )
         self._topic_command = sub.topic_name
         Diagnostics(self, "simulation", self._diagnose)
         if lockstep:
@@ -149,16 +248,19 @@ class PlantNode(Node):
             self._dt_ns = int(round(self.dt * 1e9))
             self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
             self.create_timer(self.dt, self._realtime_tick)
-        self.get_logger().info(f"{self.parameter_set.name} ({self.parameter_set.form}) at "
-                               f"{p['rate_hz']:g} Hz, clock {self.mode.value}")
+        self.get_logger().info(
+            f"{self.parameter_set.name} ({self.parameter_set.form}) at "
+            f"{p['rate_hz']:g} Hz, clock {self.mode.value}"
+        )
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
         if not math.isfinite(msg.voltage):
             self._rejected += 1
-            self.get_logger().warn(f"rejected non-finite voltage command {msg.voltage}: holding "
-                                   f"{self._command:g} V",
-                                   throttle_duration_sec=1.0)
+            self.get_logger().warn(
+                f"rejected non-finite voltage command {msg.voltage}: holding {self._command:g} V",
+                throttle_duration_sec=1.0,
+            )
             if self.mode is ClockMode.LOCKSTEP and self._matches_step(msg):
                 self._advance()  # the commander answered this step: do not wait for a timeout
             return
@@ -198,10 +300,14 @@ class PlantNode(Node):
     def _commander_reads_samples(self) -> bool:
         """True when a voltage_command publisher subscribes to our displacement (a controller):
         then the sample is on the step's critical path and goes out before /clock."""
-        commanders = {(i.node_name, i.node_namespace)
-                      for i in self.get_publishers_info_by_topic(self._topic_command)}
-        readers = {(i.node_name, i.node_namespace)
-                   for i in self.get_subscriptions_info_by_topic(self._pub_x.topic_name)}
+        commanders = {
+            (i.node_name, i.node_namespace)
+            for i in self.get_publishers_info_by_topic(self._topic_command)
+        }
+        readers = {
+            (i.node_name, i.node_namespace)
+            for i in self.get_subscriptions_info_by_topic(self._pub_x.topic_name)
+        }
         return bool(commanders & readers)
 
     def _advance(self) -> None:
@@ -211,11 +317,14 @@ class PlantNode(Node):
 
     def _lockstep_watch(self) -> None:
         if not self._started:
-            if self.get_parameter("wait_for_commander").value \
-                    and self.count_publishers("voltage_command") == 0:
+            if (
+                self.get_parameter("wait_for_commander").value
+                and self.count_publishers("voltage_command") == 0
+            ):
                 return
-            if not subscribers_matched((self._pub_x, self._pub_v),
-                                       self.get_parameter("wait_for_subscribers").value):
+            if not subscribers_matched(
+                (self._pub_x, self._pub_v), self.get_parameter("wait_for_subscribers").value
+            ):
                 return
             self._started = True
             self._sample_first = self._commander_reads_samples()
@@ -230,9 +339,11 @@ class PlantNode(Node):
             return
         if self._timeout > 0 and waited > self._timeout:
             self._late += 1
-            self.get_logger().warn(f"no command for step {self._k} after {self._timeout:g} s: "
-                                   f"advancing with {self._command:g} V held",
-                                   throttle_duration_sec=5.0)
+            self.get_logger().warn(
+                f"no command for step {self._k} after {self._timeout:g} s: "
+                f"advancing with {self._command:g} V held",
+                throttle_duration_sec=5.0,
+            )
             self._advance()
 
     # ------------------------------------------------------------------ common
@@ -258,16 +369,24 @@ class PlantNode(Node):
     def _diagnose(self) -> Diagnosis:
         dropped = self._grid.dropped if self._grid is not None else 0
         elapsed = time.monotonic() - self._started_wall
-        values = {"model": self.parameter_set.name, "form": self.parameter_set.form,
-                  "clock_mode": self.mode.value,
-                  "steps": self._steps, "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
-                  "command": self._command, "rejected_commands": self._rejected,
-                  "late_steps": self._late,
-                  "dropped_samples": dropped}
+        values = {
+            "model": self.parameter_set.name,
+            "form": self.parameter_set.form,
+            "clock_mode": self.mode.value,
+            "steps": self._steps,
+            "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
+            "command": self._command,
+            "rejected_commands": self._rejected,
+            "late_steps": self._late,
+            "dropped_samples": dropped,
+        }
         if self._late or self._rejected or dropped:
-            return Diagnosis(WARN,
-                             f"{self._late} late step(s), {self._rejected} rejected command(s), "
-                             f"{dropped} dropped sample(s)", values)
+            return Diagnosis(
+                WARN,
+                f"{self._late} late step(s), {self._rejected} rejected command(s), "
+                f"{dropped} dropped sample(s)",
+                values,
+            )
         return Diagnosis(OK, "simulating", values)
 
 

@@ -59,9 +59,11 @@ def playback_qos(profiles: Sequence[dict[str, Any]], queue_depth: int) -> QoSPro
     offered = max((int(p["depth"]) for p in profiles if p["history"] == "keep_last"), default=0)
     depth = max(offered, 1) if latched else max(offered, queue_depth)
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
 
 
 @dataclass
@@ -76,33 +78,87 @@ def _time_msg(t_ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-PARAMETERS = ParameterTable("player", (
-    Param("bag", "", "rosbag2 folder or .mcap file to play", read_only=True),
-    Param("rate", 1.0, "playback speed (1 = as recorded, 0 = as fast as possible)",
-          range=(0.0, 1000.0), read_only=True),
-    Param("publish_clock", False, "publish /clock with bag time", read_only=True),
-    Param("clock_rate_hz", 100.0, "/clock rate in wall time (0 = before every message)", "Hz",
-          (0.0, 100000.0), read_only=True),
-    Param("start_offset", 0.0, "start this long after the bag's first message", "s", (0.0, 1e9),
-          read_only=True),
-    Param("duration", 0.0, "play this much bag time (0 = to the end)", "s", (0.0, 1e9),
-          read_only=True),
-    Param("loop", False, "start again at the end", read_only=True),
-    Param("topics", [], "play only these topics (default all)", kind=Kind.STRING_ARRAY,
-          read_only=True),
-    Param("remap", [], "topic remappings, 'from:=to'", kind=Kind.STRING_ARRAY, read_only=True),
-    Param("queue_depth", 1000, "least publisher depth of volatile topics", range=(1, 1_000_000),
-          read_only=True),
-    Param("start_paused", False, "wait for ~/resume before playing", read_only=True),
-    Param("wait_for_subscribers", 0, "before playing, wait until every topic has this many "
-          "subscribers", range=(0, 1000), read_only=True),
-    Param("wait_timeout", 10.0, "longest wait for subscribers", "s", (0.0, 1e6), read_only=True),
-    Param("allow_damaged", False, "play a damaged bag (CRC or record errors): what is readable; "
-          "else refuse it, exit 1", read_only=True),
-    Param("drain_timeout", 30.0, "at the end, longest wait for reliable subscribers to acknowledge "
-          "every message (a busy subscriber must not lose the tail)", "s", (0.0, 1e6),
-          read_only=True),
-), summary="Replays a rosbag2 (MCAP) folder or a plain .mcap file.")
+PARAMETERS = ParameterTable(
+    "player",
+    (
+        Param("bag", "", "rosbag2 folder or .mcap file to play", read_only=True),
+        Param(
+            "rate",
+            1.0,
+            "playback speed (1 = as recorded, 0 = as fast as possible)",
+            range=(0.0, 1000.0),
+            read_only=True,
+        ),
+        Param("publish_clock", False, "publish /clock with bag time", read_only=True),
+        Param(
+            "clock_rate_hz",
+            100.0,
+            "/clock rate in wall time (0 = before every message)",
+            "Hz",
+            (0.0, 100000.0),
+            read_only=True,
+        ),
+        Param(
+            "start_offset",
+            0.0,
+            "start this long after the bag's first message",
+            "s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param(
+            "duration",
+            0.0,
+            "play this much bag time (0 = to the end)",
+            "s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param("loop", False, "start again at the end", read_only=True),
+        Param(
+            "topics",
+            [],
+            "play only these topics (default all)",
+            kind=Kind.STRING_ARRAY,
+            read_only=True,
+        ),
+        Param("remap", [], "topic remappings, 'from:=to'", kind=Kind.STRING_ARRAY, read_only=True),
+        Param(
+            "queue_depth",
+            1000,
+            "least publisher depth of volatile topics",
+            range=(1, 1_000_000),
+            read_only=True,
+        ),
+        Param("start_paused", False, "wait for ~/resume before playing", read_only=True),
+        Param(
+            "wait_for_subscribers",
+            0,
+            "before playing, wait until every topic has this many subscribers",
+            range=(0, 1000),
+            read_only=True,
+        ),
+        Param(
+            "wait_timeout", 10.0, "longest wait for subscribers", "s", (0.0, 1e6), read_only=True
+        ),
+        Param(
+            "allow_damaged",
+            False,
+            "play a damaged bag (CRC or record errors): what is readable; else refuse it, exit 1",
+            read_only=True,
+        ),
+        Param(
+            "drain_timeout",
+            30.0,
+            "at the end, longest wait for reliable subscribers to acknowledge "
+            "every message (a busy subscriber must not lose the tail)",
+            "s",
+            (0.0, 1e6),
+            read_only=True,
+        ),
+    ),
+    summary="Replays a rosbag2 (MCAP) folder or a plain .mcap file.",
+)
 
 
 class PlayerNode(Node):
@@ -125,16 +181,18 @@ class PlayerNode(Node):
             raise PlaybackError(str(exc)) from None
         for damage in info["damage"]:
             if not p["allow_damaged"]:
-                raise PlaybackError(f"{damage} -- allow_damaged:=true (play --allow-damaged) "
-                                    f"plays what is readable")
+                raise PlaybackError(
+                    f"{damage} -- allow_damaged:=true (play --allow-damaged) plays what is readable"
+                )
             self.get_logger().warning(damage)
         if info["damage"]:  # said once above: not again per read
             warnings.simplefilter("ignore", BagDamageWarning)
         wanted = {self._absolute(t) for t in topics}
         unknown = sorted(wanted - set(info["topics"]))
         if unknown:
-            raise PlaybackError(f"topics {unknown} are not in {self.bag_path}; it has "
-                              f"{sorted(info['topics'])}")
+            raise PlaybackError(
+                f"topics {unknown} are not in {self.bag_path}; it has {sorted(info['topics'])}"
+            )
         remap = {self._absolute(k): v for k, v in parse_remaps(remaps).items()}
         unknown = sorted(set(remap) - set(info["topics"]))
         if unknown:
@@ -152,22 +210,25 @@ class PlayerNode(Node):
                 continue
             qos = playback_qos(topic["offered_qos_profiles"], queue_depth)
             pub = self.create_publisher(msg_type, remap.get(name, name), qos)
-            self._outputs[name] = _Output(pub.topic_name, pub,
-                                          qos.reliability == ReliabilityPolicy.RELIABLE)
+            self._outputs[name] = _Output(
+                pub.topic_name, pub, qos.reliability == ReliabilityPolicy.RELIABLE
+            )
         if not_installed:
             self.get_logger().warning(
                 f"not playing {len(not_installed)} topic(s) whose type is not installed: "
-                f"{', '.join(not_installed)}; playing the other {len(self._outputs)}")
+                f"{', '.join(not_installed)}; playing the other {len(self._outputs)}"
+            )
             if not self._outputs:
                 raise PlaybackError(f"no topic of {self.bag_path} has an installed type")
-        self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, COMMAND_QOS) \
-            if self.publish_clock else None
+        self._clock_pub = (
+            self.create_publisher(Clock, CLOCK_TOPIC, COMMAND_QOS) if self.publish_clock else None
+        )
 
         self._first_ns = info["start_ns"] + int(round(start_offset * 1e9))
         self._end_ns = self._first_ns + int(round(duration * 1e9)) if duration > 0 else None
         self.finished = False
         self.exit_code = 0
-        self.played = 0           # messages published (all loops)
+        self.played = 0  # messages published (all loops)
         self.loops_done = 0
         self._lock = threading.Condition()
         self._stop = False
@@ -179,7 +240,9 @@ class PlayerNode(Node):
         self.get_logger().info(
             f"playing {self.bag_path}: {len(self._outputs)} topics, rate {self.rate:g}"
             + (", publishing /clock" if self.publish_clock else "")
-            + (", looping" if self.loop else "") + (" (paused: call ~/resume)" if paused else ""))
+            + (", looping" if self.loop else "")
+            + (" (paused: call ~/resume)" if paused else "")
+        )
         self._thread = threading.Thread(target=self._run, name="player", daemon=True)
         self._thread.start()
 
@@ -204,8 +267,9 @@ class PlayerNode(Node):
         response.success, response.message = True, "playing"
         return response
 
-    def _srv_set_paused(self, request: SetBool.Request,
-                        response: SetBool.Response) -> SetBool.Response:
+    def _srv_set_paused(
+        self, request: SetBool.Request, response: SetBool.Response
+    ) -> SetBool.Response:
         self.set_paused(bool(request.data))
         response.success, response.message = True, "paused" if request.data else "playing"
         return response
@@ -231,11 +295,16 @@ class PlayerNode(Node):
         leaving earlier would lose what a busy subscriber has not taken yet."""
         deadline = time.monotonic() + self.drain_timeout
         for out in self._outputs.values():
-            while out.reliable and not self._stop \
-                    and not out.publisher.wait_for_all_acked(Duration(seconds=0.1)):
+            while (
+                out.reliable
+                and not self._stop
+                and not out.publisher.wait_for_all_acked(Duration(seconds=0.1))
+            ):
                 if time.monotonic() > deadline:
-                    self.get_logger().warning(f"{out.topic}: not every subscriber acknowledged the "
-                                              f"last messages within {self.drain_timeout:g} s")
+                    self.get_logger().warning(
+                        f"{out.topic}: not every subscriber acknowledged the "
+                        f"last messages within {self.drain_timeout:g} s"
+                    )
                     return
 
     def _wait_for_subscribers(self) -> None:
@@ -243,8 +312,9 @@ class PlayerNode(Node):
             return
         deadline = time.monotonic() + self.wait_timeout
         while not self._stop and time.monotonic() < deadline:
-            if subscribers_matched([o.publisher for o in self._outputs.values()],
-                                   self.wait_for_subscribers):
+            if subscribers_matched(
+                [o.publisher for o in self._outputs.values()], self.wait_for_subscribers
+            ):
                 return
             time.sleep(0.02)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")
@@ -288,8 +358,11 @@ class PlayerNode(Node):
                     next_tick = max(next_tick + tick, now)
                 if due is not None and now >= due:
                     break
-                wake = min(x for x in (due, next_tick if tick and self.publish_clock else None,
-                                       now + 0.5) if x is not None)
+                wake = min(
+                    x
+                    for x in (due, next_tick if tick and self.publish_clock else None, now + 0.5)
+                    if x is not None
+                )
                 self._lock.wait(max(0.0, wake - now))
         return next_tick
 

@@ -19,8 +19,9 @@ from rclpy.qos import (
 #: displacement / voltage streams: best effort, keep last 10 (SensorDataQoS-compatible)
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
 #: commands and state: reliable, keep last 10
-COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                         history=HistoryPolicy.KEEP_LAST)
+COMMAND_QOS = QoSProfile(
+    depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+)
 #: lockstep streams (the plant's samples and /clock, the controller's state): reliable, because a
 #: lost sample would stall a step until the timeout, and deep, because a reader busy for a while
 #: (the identifier extracting a cycle, a recorder, an experiment's collector) must not lose what
@@ -34,9 +35,12 @@ LOCKSTEP_QOS = QoSProfile(depth=LOCKSTEP_DEPTH, reliability=ReliabilityPolicy.RE
 #: batches of samples (rig_loop's loop_samples): reliable, a few seconds of batches queued
 BATCH_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 #: identified parameters and other results: reliable + transient local (latched)
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL,
-                         history=HistoryPolicy.KEEP_LAST)
+LATCHED_QOS = QoSProfile(
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    history=HistoryPolicy.KEEP_LAST,
+)
 
 
 def adapted_qos(offers: Sequence[QoSProfile], queue_depth: int) -> QoSProfile:
@@ -46,7 +50,15 @@ def adapted_qos(offers: Sequence[QoSProfile], queue_depth: int) -> QoSProfile:
     latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
     durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
     if reliable:
-        return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=queue_depth,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=durability)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=queue_depth,
-                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=durability)
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_ALL,
+            depth=queue_depth,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=durability,
+        )
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=queue_depth,
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=durability,
+    )

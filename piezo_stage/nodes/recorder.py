@@ -71,11 +71,11 @@ def default_bag_name(now: float | None = None) -> str:
 class TopicStats:
     """What happened to the messages of one topic."""
 
-    received: int = 0   # taken from DDS while recording
-    written: int = 0    # handed to the bag writer
-    ignored: int = 0    # taken while paused
-    lost_dds: int = 0   # DDS message-lost events
-    gaps: int = 0       # publication sequence numbers skipped (single publisher)
+    received: int = 0  # taken from DDS while recording
+    written: int = 0  # handed to the bag writer
+    ignored: int = 0  # taken while paused
+    lost_dds: int = 0  # DDS message-lost events
+    gaps: int = 0  # publication sequence numbers skipped (single publisher)
 
     @property
     def dropped(self) -> int:
@@ -108,27 +108,80 @@ class _Slot:
         self.stats.lost_dds += int(status.total_count_change)
 
 
-PARAMETERS = ParameterTable("recorder", (
-    Param("bag", "", "output bag folder ('' = rosbag2_<date>-<time> in the working directory)",
-          read_only=True),
-    Param("compression", "none", "MCAP chunk compression", choices=tuple(COMPRESSIONS),
-          read_only=True),
-    Param("max_bag_size", 0, "split the bag at this file size (0 = never)", "bytes", (0, 2**62),
-          read_only=True),
-    Param("max_bag_duration", 0.0, "split the bag at this span of receive time (0 = never)", "s",
-          (0.0, 1e9), read_only=True),
-    Param("flush_period", 1.0, "complete the chunk and refresh metadata.yaml this often (what "
-          "survives a crash)", "s", (0.01, 3600.0), read_only=True),
-    Param("start_paused", False, "open the bag but write nothing until ~/start", read_only=True),
-    Param("queue_depth", 1000, "KEEP_LAST depth of best-effort subscriptions (reliable ones keep "
-          "all)", range=(1, 1_000_000), read_only=True),
-    Param("discovery_period", 0.5, "graph poll for new topics", "s", (0.01, 60.0), read_only=True),
-    Param("diagnostics_period", 1.0, "/diagnostics period", "s", (0.01, 3600.0), read_only=True),
-    Param("topics", [], "topics to record (relative names are in the node's namespace); empty = "
-          "the contract's topics + /clock + /diagnostics", kind=Kind.STRING_ARRAY, read_only=True),
-    Param("topic_regex", "", "also record every topic whose fully qualified name matches this "
-          "regular expression (re.search)", read_only=True),
-), summary="Records the topics of its namespace to a rosbag2 (MCAP) bag.")
+PARAMETERS = ParameterTable(
+    "recorder",
+    (
+        Param(
+            "bag",
+            "",
+            "output bag folder ('' = rosbag2_<date>-<time> in the working directory)",
+            read_only=True,
+        ),
+        Param(
+            "compression",
+            "none",
+            "MCAP chunk compression",
+            choices=tuple(COMPRESSIONS),
+            read_only=True,
+        ),
+        Param(
+            "max_bag_size",
+            0,
+            "split the bag at this file size (0 = never)",
+            "bytes",
+            (0, 2**62),
+            read_only=True,
+        ),
+        Param(
+            "max_bag_duration",
+            0.0,
+            "split the bag at this span of receive time (0 = never)",
+            "s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param(
+            "flush_period",
+            1.0,
+            "complete the chunk and refresh metadata.yaml this often (what survives a crash)",
+            "s",
+            (0.01, 3600.0),
+            read_only=True,
+        ),
+        Param(
+            "start_paused", False, "open the bag but write nothing until ~/start", read_only=True
+        ),
+        Param(
+            "queue_depth",
+            1000,
+            "KEEP_LAST depth of best-effort subscriptions (reliable ones keep all)",
+            range=(1, 1_000_000),
+            read_only=True,
+        ),
+        Param(
+            "discovery_period", 0.5, "graph poll for new topics", "s", (0.01, 60.0), read_only=True
+        ),
+        Param(
+            "diagnostics_period", 1.0, "/diagnostics period", "s", (0.01, 3600.0), read_only=True
+        ),
+        Param(
+            "topics",
+            [],
+            "topics to record (relative names are in the node's namespace); empty = "
+            "the contract's topics + /clock + /diagnostics",
+            kind=Kind.STRING_ARRAY,
+            read_only=True,
+        ),
+        Param(
+            "topic_regex",
+            "",
+            "also record every topic whose fully qualified name matches this "
+            "regular expression (re.search)",
+            read_only=True,
+        ),
+    ),
+    summary="Records the topics of its namespace to a rosbag2 (MCAP) bag.",
+)
 
 
 class RecorderNode(Node):
@@ -142,19 +195,24 @@ class RecorderNode(Node):
         try:
             self._regex = re.compile(regex) if regex else None
         except re.error as exc:
-            raise RecorderError(f"topic_regex {regex!r} is not a valid regular expression: "
-                                f"{exc}") from None
+            raise RecorderError(
+                f"topic_regex {regex!r} is not a valid regular expression: {exc}"
+            ) from None
         self._explicit = {self.resolve_topic_name(t) for t in topics}
         if not self._explicit and self._regex is None:
-            self._explicit = ({self.resolve_topic_name(t) for t in CONTRACT_TOPICS}
-                              | set(GLOBAL_TOPICS))
+            self._explicit = {self.resolve_topic_name(t) for t in CONTRACT_TOPICS} | set(
+                GLOBAL_TOPICS
+            )
 
         self.bag_path = Path(p["bag"] or default_bag_name()).absolute()
-        self.writer = BagWriter(self.bag_path, compression=COMPRESSIONS[compression],
-                                max_bag_size=p["max_bag_size"],
-                                max_bag_duration_s=p["max_bag_duration"],
-                                flush_period_s=flush_period,
-                                custom_data={"recorder": self.get_fully_qualified_name()})
+        self.writer = BagWriter(
+            self.bag_path,
+            compression=COMPRESSIONS[compression],
+            max_bag_size=p["max_bag_size"],
+            max_bag_duration_s=p["max_bag_duration"],
+            flush_period_s=flush_period,
+            custom_data={"recorder": self.get_fully_qualified_name()},
+        )
         self.paused = bool(p["start_paused"])
         self.finished = False
         self._slots: dict[str, _Slot] = {}
@@ -169,14 +227,16 @@ class RecorderNode(Node):
         self.create_timer(flush_period, self._flush, clock=steady)
         self.create_timer(period, self.discover, clock=steady)
         self._diagnostics = Diagnostics(self, "recorder", self._diagnose, p["diagnostics_period"])
-        self.get_logger().info(f"recording to {self.bag_path}"
-                               + (" (paused: call ~/start)" if self.paused else ""))
+        self.get_logger().info(
+            f"recording to {self.bag_path}" + (" (paused: call ~/start)" if self.paused else "")
+        )
         self.discover()
 
     # ------------------------------------------------------------------ topic selection
     def wanted(self, topic: str) -> bool:
-        return topic in self._explicit \
-            or (self._regex is not None and self._regex.search(topic) is not None)
+        return topic in self._explicit or (
+            self._regex is not None and self._regex.search(topic) is not None
+        )
 
     def discover(self) -> None:
         """Subscribe to wanted topics that have publishers; adapt QoS to new offers."""
@@ -209,19 +269,31 @@ class RecorderNode(Node):
         msg_type = message_type(type_name)
         self.writer.add_topic(name, type_name, [qos_from_profile(o) for o in offers])
         qos = adapted_qos(offers, self._queue_depth)
-        slot = _Slot(self, name, type_name, msg_type,
-                     reliable=qos.reliability == ReliabilityPolicy.RELIABLE,
-                     latched=qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+        slot = _Slot(
+            self,
+            name,
+            type_name,
+            msg_type,
+            reliable=qos.reliability == ReliabilityPolicy.RELIABLE,
+            latched=qos.durability == DurabilityPolicy.TRANSIENT_LOCAL,
+        )
         self._slots[name] = slot
         self._create_subscription(slot, qos)
-        self.get_logger().info(f"recording {name} [{type_name}] "
-                               f"{'reliable' if slot.reliable else 'best effort'}"
-                               f"{', transient local' if slot.latched else ''}")
+        self.get_logger().info(
+            f"recording {name} [{type_name}] "
+            f"{'reliable' if slot.reliable else 'best effort'}"
+            f"{', transient local' if slot.latched else ''}"
+        )
 
     def _create_subscription(self, slot: _Slot, qos: QoSProfile) -> None:
         slot.subscription = self.create_subscription(
-            slot.msg_type, slot.name, slot, qos, raw=True,
-            event_callbacks=SubscriptionEventCallbacks(message_lost=slot.on_lost))
+            slot.msg_type,
+            slot.name,
+            slot,
+            qos,
+            raw=True,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=slot.on_lost),
+        )
 
     def _readapt(self, slot: _Slot, offers: Sequence[QoSProfile]) -> None:
         """A new publisher offers less than the subscription asks (best effort, volatile):
@@ -235,13 +307,20 @@ class RecorderNode(Node):
             self.destroy_subscription(slot.subscription)
             slot.reliable, slot.latched, slot.last_seq = reliable, latched, None
             self._create_subscription(slot, qos)
-            self.get_logger().info(f"{slot.name}: new publisher offers less, subscription now "
-                                   f"{'reliable' if reliable else 'best effort'}"
-                                   f"{', transient local' if latched else ''}")
+            self.get_logger().info(
+                f"{slot.name}: new publisher offers less, subscription now "
+                f"{'reliable' if reliable else 'best effort'}"
+                f"{', transient local' if latched else ''}"
+            )
 
     # ------------------------------------------------------------------ messages
-    def _drain(self, slot: _Slot, data: bytes | None = None, info: dict[str, Any] | None = None,
-               limit: int = BATCH) -> int:
+    def _drain(
+        self,
+        slot: _Slot,
+        data: bytes | None = None,
+        info: dict[str, Any] | None = None,
+        limit: int = BATCH,
+    ) -> int:
         """Write ``data`` (if given) and then every queued message of the slot, up to ``limit``;
         return how many messages were taken."""
         sub = slot.subscription
@@ -333,10 +412,12 @@ class RecorderNode(Node):
 
     def _diagnose(self) -> Diagnosis:
         stats = self.stats()
-        values: dict[str, Any] = {"bag": str(self.bag_path),
-                                  "state": "paused" if self.paused else "recording",
-                                  "topics": len(stats),
-                                  "written": sum(s.written for s in stats.values())}
+        values: dict[str, Any] = {
+            "bag": str(self.bag_path),
+            "state": "paused" if self.paused else "recording",
+            "topics": len(stats),
+            "written": sum(s.written for s in stats.values()),
+        }
         for name, s in sorted(stats.items()):
             values[f"{name} received"] = s.received
             values[f"{name} written"] = s.written
@@ -348,8 +429,9 @@ class RecorderNode(Node):
         if self._error:
             return Diagnosis(ERROR, f"write error: {self._error}", values)
         if dropped or lost:
-            return Diagnosis(WARN, f"{dropped} dropped, {lost} lost before reaching the recorder",
-                             values)
+            return Diagnosis(
+                WARN, f"{dropped} dropped, {lost} lost before reaching the recorder", values
+            )
         return Diagnosis(OK, "paused" if self.paused else f"recording {len(stats)} topics", values)
 
     def on_shutdown(self) -> None:
@@ -366,16 +448,19 @@ class RecorderNode(Node):
         total = sum(s.written for s in stats.values())
         dropped = sum(s.dropped for s in stats.values())
         lost = {name: s.lost for name, s in sorted(stats.items()) if s.lost}
-        self.writer.metadata.custom_data.update(messages_dropped=str(dropped),
-                                                messages_lost=str(sum(lost.values())))
+        self.writer.metadata.custom_data.update(
+            messages_dropped=str(dropped), messages_lost=str(sum(lost.values()))
+        )
         self.writer.close()
         text = f"bag {self.bag_path} closed: {total} messages on {len(self._slots)} topics"
         if dropped or lost:  # the bag is incomplete: say so where a user looks
             self.get_logger().warning(
                 f"{text}, {dropped} dropped, {sum(lost.values())} lost before reaching the "
-                "recorder" + "".join(f"; {name}: {n} lost" for name, n in lost.items()))
+                "recorder" + "".join(f"; {name}: {n} lost" for name, n in lost.items())
+            )
         else:
             self.get_logger().info(text + ", none lost")
+
 
 def main(args: list[str] | None = None) -> int:
     use_recorder_transport_profile()

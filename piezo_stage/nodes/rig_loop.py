@@ -52,8 +52,11 @@ from .runtime import run, set_stamp, wall_clock
 from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
 
-PARAMETER_TABLES = {"voltage_driver": DRIVER_PARAMETERS, "controller": CONTROLLER_PARAMETERS,
-                    "laser_reader": READER_PARAMETERS}
+PARAMETER_TABLES = {
+    "voltage_driver": DRIVER_PARAMETERS,
+    "controller": CONTROLLER_PARAMETERS,
+    "laser_reader": READER_PARAMETERS,
+}
 
 #: s between the executor's publications of what the loop queued
 PUBLISH_PERIOD = 0.01
@@ -152,12 +155,13 @@ def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
     """``NODE.KEY:=VALUE`` arguments (before ``--ros-args``; VALUE in YAML, as the launcher
     writes them) as parameter overrides per member node; RosParameterError for anything else."""
     found: dict[str, list[Parameter]] = {name: [] for name in MEMBERS}
-    for text in argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv:
+    for text in argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv:
         lhs, sep, rhs = text.partition(":=")
         node, dot, key = lhs.partition(".")
         if not (sep and dot and key) or node not in found:
-            raise RosParameterError(f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of "
-                                    f"{', '.join(MEMBERS)}")
+            raise RosParameterError(
+                f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of {', '.join(MEMBERS)}"
+            )
         value = load_yaml(rhs) if rhs.strip() else ""
         PARAMETER_TABLES[node].check({key: value})
         found[node].append(Parameter(key, value=value))
@@ -172,11 +176,11 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     driver ramps to its safe voltage."""
     overrides = member_overrides(argv)
     # the environment's alternatives are for bench/control_loop.py, which measures them
-    sys.setswitchinterval(float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL",
-                                               SWITCH_INTERVAL)))
+    sys.setswitchinterval(float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL", SWITCH_INTERVAL)))
     handoff = Handoff(inline=os.environ.get("PIEZO_RIG_LOOP_INLINE") == "1")
-    driver = VoltageDriverNode(composed=True, handoff=handoff,
-                               overrides=overrides["voltage_driver"])
+    driver = VoltageDriverNode(
+        composed=True, handoff=handoff, overrides=overrides["voltage_driver"]
+    )
     handoff.attach(driver)
     yield driver
     controller = ControllerNode(composed=True, handoff=handoff, overrides=overrides["controller"])
@@ -199,8 +203,11 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
             out = controller.on_sample(ns, x, st == 0, publish)
             u = u if out is None else out
             law = controller.last_step
-            rows.append((ns, x, st, nan, nan if out is None else out, 0.0, False) if law is None
-                        else (ns, x, st, law.reference, out, law.u_ff, law.loop_closed))
+            rows.append(
+                (ns, x, st, nan, nan if out is None else out, 0.0, False)
+                if law is None
+                else (ns, x, st, law.reference, out, law.u_ff, law.loop_closed)
+            )
         if u is not None:
             driver.command(u, publish=due[-1])
         handoff.put(batch.add, rows, driver.driver.last_sent)
@@ -221,9 +228,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     # collection in the loop thread scans only what the loop itself allocated (a collection now
     # takes tens of ms: done before the loop thread runs)
     gc.collect()
-    reader = LaserReaderNode(loop=step, idle=idle, handoff=handoff,
-                             overrides=overrides["laser_reader"], loop_priority=priority,
-                             start=False)
+    reader = LaserReaderNode(
+        loop=step,
+        idle=idle,
+        handoff=handoff,
+        overrides=overrides["laser_reader"],
+        loop_priority=priority,
+        start=False,
+    )
     gc.freeze()
     yield reader
 
@@ -236,7 +248,8 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     if abs(sample_rate - rate) > 1e-6 * rate:
         controller.get_logger().warn(
             f"controller.rate_hz {rate:g} Hz is not the sensor's sample rate {sample_rate:g} Hz "
-            "(laser_reader.rate_hz / decimation): the gains were checked at the wrong rate")
+            "(laser_reader.rate_hz / decimation): the gains were checked at the wrong rate"
+        )
 
 
 def main(args: list[str] | None = None) -> int:

@@ -154,8 +154,12 @@ class ShutsDown(Protocol):
     def on_shutdown(self) -> None: ...
 
 
-def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] | None = None, *,
-        lean: bool = False) -> int:
+def run(
+    node_factory: Callable[[], Node | Iterable[Node]],
+    args: Sequence[str] | None = None,
+    *,
+    lean: bool = False,
+) -> int:
     """Run a node (or the nodes composed in one process) until SIGINT/SIGTERM or until one of
     them has ``finished`` (:class:`Finishes`), then call each one's ``on_shutdown()``
     (:class:`ShutsDown`, the last made first) while the context is still valid (so a driver can
@@ -212,8 +216,11 @@ def run(node_factory: Callable[[], Node | Iterable[Node]], args: Sequence[str] |
             for node in nodes:
                 late = wait_acked(node, EXIT_ACK_TIMEOUT)
                 if late:
-                    print(f"[{node.get_name()}] left before every subscriber acknowledged "
-                          f"{', '.join(late)}", file=sys.stderr)
+                    print(
+                        f"[{node.get_name()}] left before every subscriber acknowledged "
+                        f"{', '.join(late)}",
+                        file=sys.stderr,
+                    )
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -47,8 +47,11 @@ def _kind_of(value: Any) -> Kind:
     if isinstance(value, str):
         return Kind.STRING
     if isinstance(value, (list, tuple)) and value:
-        return {Kind.INT: Kind.INT_ARRAY, Kind.FLOAT: Kind.FLOAT_ARRAY,
-                Kind.STRING: Kind.STRING_ARRAY}[_kind_of(value[0])]
+        return {
+            Kind.INT: Kind.INT_ARRAY,
+            Kind.FLOAT: Kind.FLOAT_ARRAY,
+            Kind.STRING: Kind.STRING_ARRAY,
+        }[_kind_of(value[0])]
     raise TypeError(f"cannot infer a parameter type from {value!r}: give kind=")
 
 
@@ -95,9 +98,13 @@ class Param:
             near = difflib.get_close_matches(str(value), choices, n=1)
             hint = f" (did you mean {near[0]!r}?)" if near else ""
             return f"{self.name}: {value!r} is not one of {', '.join(choices)}{hint}"
-        if self.range is not None and isinstance(value, (int, float)) and not isinstance(value,
-                                                                                         bool) \
-                and not math.isnan(value) and not self.range[0] <= value <= self.range[1]:
+        if (
+            self.range is not None
+            and isinstance(value, (int, float))
+            and not isinstance(value, bool)
+            and not math.isnan(value)
+            and not self.range[0] <= value <= self.range[1]
+        ):
             return f"{self.name}: {value!r} is outside [{self.range[0]:g}, {self.range[1]:g}]"
         return None
 
@@ -168,16 +175,18 @@ class ParameterTable:
         """The node's settings as a frozen dataclass: ``values`` (every parameter of the table)
         with the choices of an Enum class as its members, so a node compares enums, not
         strings."""
-        return self.settings_class(**{_field(p.name): _typed(p, values[p.name])
-                                      for p in self.params})
+        return self.settings_class(
+            **{_field(p.name): _typed(p, values[p.name]) for p in self.params}
+        )
 
     def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable:
         """The same table with other defaults (e.g. the excitation's preset)."""
         unknown = set(defaults) - set(self._by_name)
         if unknown:
             raise KeyError(f"{self.node}: no parameter {sorted(unknown)}")
-        params = tuple(replace(p, default=defaults[p.name]) if p.name in defaults else p
-                       for p in self.params)
+        params = tuple(
+            replace(p, default=defaults[p.name]) if p.name in defaults else p for p in self.params
+        )
         return replace(self, params=params)
 
     def suggest(self, name: str) -> str:
@@ -208,24 +217,31 @@ class ParameterTable:
 
     def check_names(self, names: Iterable[str]) -> None:
         """Raise :class:`RosParameterError` for names this node does not have."""
-        found = [f"{self.node} has no parameter {n!r}{self.suggest(n)}" for n in names
-                 if not is_ros_own(n) and n not in self._by_name]
+        found = [
+            f"{self.node} has no parameter {n!r}{self.suggest(n)}"
+            for n in names
+            if not is_ros_own(n) and n not in self._by_name
+        ]
         if found:
             raise RosParameterError("; ".join(found))
 
     def markdown(self) -> str:
         """This table for docs/parameters.md."""
-        rows = [f"\n## `{self.node}`\n\n{_cell(self.summary)}\n\n"
-                "| parameter | type | default | unit | range / choices | read-only "
-                "| description |\n|---|---|---|---|---|---|---|\n"]
+        rows = [
+            f"\n## `{self.node}`\n\n{_cell(self.summary)}\n\n"
+            "| parameter | type | default | unit | range / choices | read-only "
+            "| description |\n|---|---|---|---|---|---|---|\n"
+        ]
         for p in sorted(self.params, key=lambda p: p.name):
             if p.range is not None:
                 allowed = f"{show(p.range[0])} … {show(p.range[1])}"
             else:
                 allowed = " \\| ".join(f"`{c}`" for c in p.choice_values)
-            rows.append(f"| `{p.name}` | {p.kind.value} | `{_cell(show(p.default))}` | "
-                        f"{_cell(p.unit)} | "
-                        f"{allowed} | {'yes' if p.read_only else ''} | {_cell(p.description)} |\n")
+            rows.append(
+                f"| `{p.name}` | {p.kind.value} | `{_cell(show(p.default))}` | "
+                f"{_cell(p.unit)} | "
+                f"{allowed} | {'yes' if p.read_only else ''} | {_cell(p.description)} |\n"
+            )
         return "".join(rows)
 
 

@@ -7,8 +7,17 @@ import importlib
 from .errors import NodeError
 
 #: topics of the interface contract (docs/design.md §3), relative to the node's namespace
-CONTRACT_TOPICS = ("voltage_command", "voltage", "displacement", "reference", "controller_state",
-                   "excitation", "limit_cycles", "bouc_wen_parameters", "loop_samples")
+CONTRACT_TOPICS = (
+    "voltage_command",
+    "voltage",
+    "displacement",
+    "reference",
+    "controller_state",
+    "excitation",
+    "limit_cycles",
+    "bouc_wen_parameters",
+    "loop_samples",
+)
 #: global topics recorded by default besides the namespace's
 GLOBAL_TOPICS = ("/clock", "/diagnostics")
 

@@ -60,66 +60,180 @@ from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, stamp_to_s, wall_clock
 from .spec import Param, ParameterTable
 
-PARAMETERS = ParameterTable("voltage_driver", (
-    Param("backend", "gcs", "amplifier protocol: gcs (PI E-709/E-625/E-727) or mdt69x (Thorlabs)",
-          choices=tuple(AMPLIFIERS), read_only=True),
-    Param("url", "tcp://127.0.0.1:50000", "link: tcp://host:port, /dev/ttyUSB0, "
-          "serial:///dev/ttyUSB0?baudrate=115200", read_only=True),
-    Param("baud", 0, "serial baud rate (0: the backend's default)", range=(0, 4_000_000),
-          read_only=True),
-    Param("axis", "", "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)",
-          read_only=True),
-    Param("channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", range=(1, 64), read_only=True),
-    Param("error_pipeline", 0, "GCS: ERR? replies that may be outstanding (0: each write waits "
-          "for its ERR?; rig_loop: the loop does not wait for the device's round trip, and a "
-          "refused write is reported at most this many writes late)", range=(0, 64),
-          read_only=True),
-    Param("io_timeout", 0.5, "reply timeout of one device exchange", "s", (0.01, 10.0),
-          read_only=True),
-    Param("v_min", 0.0, "configured lower limit (intersected with the device's)", "V",
-          read_only=True),
-    Param("v_max", 100.0, "configured upper limit (intersected with the device's)", "V",
-          read_only=True),
-    Param("safe_voltage", 0.0, "voltage after a watchdog timeout and on shutdown", "V",
-          read_only=True),
-    Param("slew_rate", 0.0, "slew-rate limit (0: none); one write steps at most slew_rate x "
-          "min(watchdog_period, 25 ms), longer moves are ramps", "V/s", (0.0, 1e9), read_only=True),
-    Param("command_timeout", 0.5, "watchdog: ramp to safe_voltage after this long without a "
-          "command (0: off)", "s", (0.0, 3600.0), read_only=True),
-    Param("watchdog_period", 0.01, "period of the watchdog timer (wall clock), which also writes "
-          "the steps of a ramp", "s", (1e-3, 1.0), read_only=True),
-    Param("readback_rate_hz", 20.0, "rate of the device read-back published on voltage (0: off)",
-          "Hz", (0.0, 1000.0), read_only=True),
-    Param("max_command_age", 0.0, "reject commands stamped longer ago than this w.r.t. the node "
-          "clock (0: off)", "s", (0.0, 3600.0), read_only=True),
-    Param("max_stamp_ahead", 5.0, "reject commands stamped further ahead of the node clock than "
-          "this (a foreign or broken clock)", "s", (1e-3, 3600.0), read_only=True),
-    Param("apply_at_stamp", False, "apply each command at its stamp + command_delay (wall clock) "
-          "instead of on arrival: open-loop runs without the transport's latency jitter",
-          read_only=True),
-    Param("command_delay", 0.0, "with apply_at_stamp: added to the stamps", "s", (0.0, 10.0),
-          read_only=True),
-    Param("hold_period", 0.0, "with apply_at_stamp: write values interpolated between queued "
-          "commands every hold_period s (first-order hold; 0: hold each command)", "s", (0.0, 1.0),
-          read_only=True),
-    Param("realtime_priority", 0, "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
-          "the executor's thread, and in rig_loop of the loop thread (1-99, when the system "
-          "allows it; 0: normal)", range=(0, 99),
-          read_only=True),
-    Param("reconnect_attempts", 3, "tries to reopen a dropped link per attempt round (in a "
-          "background thread, every round until it is back; 0: never)", range=(0, 100),
-          read_only=True),
-), summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, "
-           "with limits, slew and watchdog.")
+PARAMETERS = ParameterTable(
+    "voltage_driver",
+    (
+        Param(
+            "backend",
+            "gcs",
+            "amplifier protocol: gcs (PI E-709/E-625/E-727) or mdt69x (Thorlabs)",
+            choices=tuple(AMPLIFIERS),
+            read_only=True,
+        ),
+        Param(
+            "url",
+            "tcp://127.0.0.1:50000",
+            "link: tcp://host:port, /dev/ttyUSB0, serial:///dev/ttyUSB0?baudrate=115200",
+            read_only=True,
+        ),
+        Param(
+            "baud",
+            0,
+            "serial baud rate (0: the backend's default)",
+            range=(0, 4_000_000),
+            read_only=True,
+        ),
+        Param(
+            "axis",
+            "",
+            "GCS axis (empty: the first SAI? lists) or MDT69x channel x|y|z (empty: x)",
+            read_only=True,
+        ),
+        Param(
+            "channel", 1, "GCS piezo output channel (VOL?/VMA?/VMI?)", range=(1, 64), read_only=True
+        ),
+        Param(
+            "error_pipeline",
+            0,
+            "GCS: ERR? replies that may be outstanding (0: each write waits "
+            "for its ERR?; rig_loop: the loop does not wait for the device's round trip, and a "
+            "refused write is reported at most this many writes late)",
+            range=(0, 64),
+            read_only=True,
+        ),
+        Param(
+            "io_timeout",
+            0.5,
+            "reply timeout of one device exchange",
+            "s",
+            (0.01, 10.0),
+            read_only=True,
+        ),
+        Param(
+            "v_min",
+            0.0,
+            "configured lower limit (intersected with the device's)",
+            "V",
+            read_only=True,
+        ),
+        Param(
+            "v_max",
+            100.0,
+            "configured upper limit (intersected with the device's)",
+            "V",
+            read_only=True,
+        ),
+        Param(
+            "safe_voltage",
+            0.0,
+            "voltage after a watchdog timeout and on shutdown",
+            "V",
+            read_only=True,
+        ),
+        Param(
+            "slew_rate",
+            0.0,
+            "slew-rate limit (0: none); one write steps at most slew_rate x "
+            "min(watchdog_period, 25 ms), longer moves are ramps",
+            "V/s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param(
+            "command_timeout",
+            0.5,
+            "watchdog: ramp to safe_voltage after this long without a command (0: off)",
+            "s",
+            (0.0, 3600.0),
+            read_only=True,
+        ),
+        Param(
+            "watchdog_period",
+            0.01,
+            "period of the watchdog timer (wall clock), which also writes the steps of a ramp",
+            "s",
+            (1e-3, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "readback_rate_hz",
+            20.0,
+            "rate of the device read-back published on voltage (0: off)",
+            "Hz",
+            (0.0, 1000.0),
+            read_only=True,
+        ),
+        Param(
+            "max_command_age",
+            0.0,
+            "reject commands stamped longer ago than this w.r.t. the node clock (0: off)",
+            "s",
+            (0.0, 3600.0),
+            read_only=True,
+        ),
+        Param(
+            "max_stamp_ahead",
+            5.0,
+            "reject commands stamped further ahead of the node clock than "
+            "this (a foreign or broken clock)",
+            "s",
+            (1e-3, 3600.0),
+            read_only=True,
+        ),
+        Param(
+            "apply_at_stamp",
+            False,
+            "apply each command at its stamp + command_delay (wall clock) "
+            "instead of on arrival: open-loop runs without the transport's latency jitter",
+            read_only=True,
+        ),
+        Param(
+            "command_delay",
+            0.0,
+            "with apply_at_stamp: added to the stamps",
+            "s",
+            (0.0, 10.0),
+            read_only=True,
+        ),
+        Param(
+            "hold_period",
+            0.0,
+            "with apply_at_stamp: write values interpolated between queued "
+            "commands every hold_period s (first-order hold; 0: hold each command)",
+            "s",
+            (0.0, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "realtime_priority",
+            0,
+            "SCHED_FIFO priority of the apply_at_stamp playout thread and of "
+            "the executor's thread, and in rig_loop of the loop thread (1-99, when the system "
+            "allows it; 0: normal)",
+            range=(0, 99),
+            read_only=True,
+        ),
+        Param(
+            "reconnect_attempts",
+            3,
+            "tries to reopen a dropped link per attempt round (in a "
+            "background thread, every round until it is back; 0: never)",
+            range=(0, 100),
+            read_only=True,
+        ),
+    ),
+    summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, "
+    "with limits, slew and watchdog.",
+)
 
 
 class Rejection(enum.Enum):
     """Why a voltage command was not applied."""
 
     NONFINITE = "nonfinite"
-    LATE = "late"          # older than max_command_age
-    STAMP = "stamp"        # a stamp the StampPolicy refuses
-    EXPIRED = "expired"    # received before the watchdog fired
+    LATE = "late"  # older than max_command_age
+    STAMP = "stamp"  # a stamp the StampPolicy refuses
+    EXPIRED = "expired"  # received before the watchdog fired
 
 
 class VoltageDriverNode(Node):
@@ -127,30 +241,47 @@ class VoltageDriverNode(Node):
     :meth:`command` directly; no voltage_command subscription (the controller in the same
     process still publishes the topic), every publication through ``handoff``."""
 
-    def __init__(self, composed: bool = False, handoff: Any = None,
-                 overrides: Sequence[Parameter] = ()) -> None:
-        super().__init__("voltage_driver", namespace=DEFAULT_NAMESPACE,
-                         parameter_overrides=list(overrides))
+    def __init__(
+        self, composed: bool = False, handoff: Any = None, overrides: Sequence[Parameter] = ()
+    ) -> None:
+        super().__init__(
+            "voltage_driver", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
+        )
         self._handoff = handoff
         p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
 
-        amplifier = make_amplifier(p.backend, p.url, axis=p.axis or None,
-                                   channel=p.channel,
-                                   timeout=p.io_timeout, baudrate=p.baud or None,
-                                   pipeline=p.error_pipeline)
+        amplifier = make_amplifier(
+            p.backend,
+            p.url,
+            axis=p.axis or None,
+            channel=p.channel,
+            timeout=p.io_timeout,
+            baudrate=p.baud or None,
+            pipeline=p.error_pipeline,
+        )
         config = DriverConfig(
-            v_min=p.v_min, v_max=p.v_max, safe_voltage=p.safe_voltage,
+            v_min=p.v_min,
+            v_max=p.v_max,
+            safe_voltage=p.safe_voltage,
             slew_rate=p.slew_rate or math.inf,
             command_timeout=p.command_timeout or math.inf,
             write_period=p.watchdog_period,
-            reconnect_attempts=p.reconnect_attempts)
+            reconnect_attempts=p.reconnect_attempts,
+        )
         self.driver = VoltageDriver(amplifier, config)
         self.max_age = float(p.max_command_age)
-        self.stamps = StampPolicy(self.max_age, p.max_stamp_ahead,
-                                  require_stamp=self.max_age > 0 or p.apply_at_stamp)
+        self.stamps = StampPolicy(
+            self.max_age, p.max_stamp_ahead, require_stamp=self.max_age > 0 or p.apply_at_stamp
+        )
         # the limits and safety settings are read-only in the table; so is the clock they use
-        on_set(self, lambda changed: "use_sim_time is fixed at start (the stamp checks and the "
-               "watchdog depend on it)" if "use_sim_time" in changed else None)
+        on_set(
+            self,
+            lambda changed: (
+                "use_sim_time is fixed at start (the stamp checks and the watchdog depend on it)"
+                if "use_sim_time" in changed
+                else None
+            ),
+        )
         self._now_ns = stamp_clock(self)
         self.url = p.url
         self.info = self.driver.connect()
@@ -170,11 +301,13 @@ class VoltageDriverNode(Node):
             if self.get_parameter("use_sim_time").value:
                 raise ConfigError("apply_at_stamp needs wall-clock stamps: not with use_sim_time")
             sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
-            self._playout = CommandPlayout(self._apply, p.command_delay,
-                                           realtime_priority=p.realtime_priority,
-                                           hold_period=p.hold_period,
-                                           max_ahead=max(p.max_stamp_ahead,
-                                                         p.command_delay)).start()
+            self._playout = CommandPlayout(
+                self._apply,
+                p.command_delay,
+                realtime_priority=p.realtime_priority,
+                hold_period=p.hold_period,
+                max_ahead=max(p.max_stamp_ahead, p.command_delay),
+            ).start()
             self.driver.on_timeout.append(self._playout.clear)  # the watchdog owns the output
             # the executor's thread too: the playout needs the GIL, and a normal-priority holder
             # preempted by other processes would stall it for tens of ms (priority inversion)
@@ -187,16 +320,17 @@ class VoltageDriverNode(Node):
         self.create_timer(p.watchdog_period, self._watchdog, clock=wall_clock())
         # composed: the loop thread reads back right after a write, when one is due (a timer's
         # device round trip would hold the driver while a sample waits to be answered)
-        self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 \
-            else math.inf
+        self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 else math.inf
         self._readback_due = 0.0
         if p.readback_rate_hz > 0 and not composed:
             self.create_timer(self._readback_period, self._readback, clock=wall_clock())
         self._diagnostics = Diagnostics(self, f"{p.backend} {self.url}", self._diagnose)
         self._reported_down = False
         lim = self.driver.limits
-        self.get_logger().info(f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
-                               f"[{lim.v_min:g}, {lim.v_max:g}] V, output {self.info.applied:g} V")
+        self.get_logger().info(
+            f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
+            f"[{lim.v_min:g}, {lim.v_max:g}] V, output {self.info.applied:g} V"
+        )
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
@@ -207,13 +341,17 @@ class VoltageDriverNode(Node):
         now = self.get_clock().now().nanoseconds * 1e-9
         verdict, age = self.stamps.check(stamp.sec, stamp.nanosec, now)
         if verdict is StampVerdict.TOO_OLD:
-            self._reject(Rejection.LATE, f"late voltage command ({age:.3g} s old > max_command_age "
-                         f"{self.max_age:g} s)")
+            self._reject(
+                Rejection.LATE,
+                f"late voltage command ({age:.3g} s old > max_command_age {self.max_age:g} s)",
+            )
             return
         if verdict is not StampVerdict.OK:
             self._rejected_stamp[verdict.value] += 1
-            self._reject(Rejection.STAMP, f"voltage command with a {verdict.value} stamp "
-                         f"({stamp.sec} s {stamp.nanosec} ns)")
+            self._reject(
+                Rejection.STAMP,
+                f"voltage command with a {verdict.value} stamp ({stamp.sec} s {stamp.nanosec} ns)",
+            )
             return
         received = self.driver.clock()
         self.driver.command_received(received)  # the watchdog counts from arrival
@@ -233,8 +371,13 @@ class VoltageDriverNode(Node):
             self._readback_due = received + self._readback_period
             self._readback()
 
-    def _apply(self, voltage: float, command: bool = True, received: float | None = None,
-               publish: bool = True) -> None:
+    def _apply(
+        self,
+        voltage: float,
+        command: bool = True,
+        received: float | None = None,
+        publish: bool = True,
+    ) -> None:
         """Send one accepted command (from the executor, or from the playout thread when due) and
         publish it; ``command`` False: a value the playout interpolated, sent and published too
         (``voltage`` is what the device applies, stamped when applied: the identification reads it
@@ -303,9 +446,11 @@ class VoltageDriverNode(Node):
             return
         if self.driver.trips != trips:
             self._watchdog_trips = self.driver.trips
-            self.get_logger().warn("no voltage command for "
-                                   f"{self.driver.config.command_timeout:g} s: "
-                                   f"ramping to {self.driver.config.safe_voltage:g} V")
+            self.get_logger().warn(
+                "no voltage command for "
+                f"{self.driver.config.command_timeout:g} s: "
+                f"ramping to {self.driver.config.safe_voltage:g} V"
+            )
         if self.driver.last_sent != self._applied and state is not DriverState.DISCONNECTED:
             self._publish(self.driver.last_sent)  # a step of a ramp (toward a command or safe)
 
@@ -336,31 +481,52 @@ class VoltageDriverNode(Node):
     def _diagnose(self) -> Diagnosis:
         d = self.driver
         lim = d.limits
-        values = {"state": d.state.value, "connected": d.connected, "identity": self.info.identity,
-                  "axis": self.info.axis, "v_min": lim.v_min, "v_max": lim.v_max,
-                  "safe_voltage": d.config.safe_voltage, "last_command": self._last_command,
-                  "last_sent": d.last_sent, "applied": self._applied, "commands": self._commands,
-                  "clamped_commands": self._clamped, "rejected_nonfinite": self._rejected_nonfinite,
-                  "rejected_late": self._rejected_late, "watchdog_trips": self._watchdog_trips,
-                  **{f"rejected_stamp_{k}": n for k, n in self._rejected_stamp.items()},
-                  "rejected_expired": d.expired, "device_writes": d.writes,
-                  "reconnects": d.reconnects, "link_errors": self._link_errors,
-                  "last_error": self._last_error or d.last_link_error}
+        values = {
+            "state": d.state.value,
+            "connected": d.connected,
+            "identity": self.info.identity,
+            "axis": self.info.axis,
+            "v_min": lim.v_min,
+            "v_max": lim.v_max,
+            "safe_voltage": d.config.safe_voltage,
+            "last_command": self._last_command,
+            "last_sent": d.last_sent,
+            "applied": self._applied,
+            "commands": self._commands,
+            "clamped_commands": self._clamped,
+            "rejected_nonfinite": self._rejected_nonfinite,
+            "rejected_late": self._rejected_late,
+            "watchdog_trips": self._watchdog_trips,
+            **{f"rejected_stamp_{k}": n for k, n in self._rejected_stamp.items()},
+            "rejected_expired": d.expired,
+            "device_writes": d.writes,
+            "reconnects": d.reconnects,
+            "link_errors": self._link_errors,
+            "last_error": self._last_error or d.last_link_error,
+        }
         playout = self._playout
         if playout is not None:
-            values.update(command_delay=playout.delay, late_playout=playout.late,
-                          ahead_playout=playout.ahead, pending_playout=playout.pending,
-                          playout_priority=playout.realtime_error or playout.realtime_priority,
-                          executor_priority=self._executor_priority or playout.realtime_priority)
+            values.update(
+                command_delay=playout.delay,
+                late_playout=playout.late,
+                ahead_playout=playout.ahead,
+                pending_playout=playout.pending,
+                playout_priority=playout.realtime_error or playout.realtime_priority,
+                executor_priority=self._executor_priority or playout.realtime_priority,
+            )
         self._reported_down = not d.connected
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         bad_stamps = sum(self._rejected_stamp.values())
         rejected = self._rejected_nonfinite + self._rejected_late + bad_stamps + d.expired
         if rejected or d.state in (DriverState.TIMED_OUT, DriverState.SAFE):
-            return Diagnosis(WARN, f"{d.state.value}; {self._rejected_nonfinite} non-finite, "
-                             f"{self._rejected_late} late, {bad_stamps} badly stamped and "
-                             f"{d.expired} expired command(s) rejected", values)
+            return Diagnosis(
+                WARN,
+                f"{d.state.value}; {self._rejected_nonfinite} non-finite, "
+                f"{self._rejected_late} late, {bad_stamps} badly stamped and "
+                f"{d.expired} expired command(s) rejected",
+                values,
+            )
         return Diagnosis(OK, d.state.value, values)
 
     def on_shutdown(self) -> None:
@@ -371,8 +537,9 @@ class VoltageDriverNode(Node):
         self._publish(applied)
         if self._handoff is not None:
             self._handoff.drain()  # the executor no longer spins: publish what is left now
-        self.get_logger().info(f"shut down at {applied:g} V (safe_voltage "
-                               f"{self.driver.config.safe_voltage:g} V)")
+        self.get_logger().info(
+            f"shut down at {applied:g} V (safe_voltage {self.driver.config.safe_voltage:g} V)"
+        )
 
 
 def main(args: list[str] | None = None) -> int:

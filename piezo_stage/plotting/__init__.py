@@ -8,12 +8,21 @@ when a ``bouc_wen_parameters`` message is present (10.15), and the closed-loop s
 
 from .bag_plots import BagTopics, PlotError, find_topics, plot_bag
 from .figures import (
-                      closed_loop_figure,
-                      hysteresis_figure,
-                      model_figure,
-                      timeseries_figure,
-                      validation_figure,
+    closed_loop_figure,
+    hysteresis_figure,
+    model_figure,
+    timeseries_figure,
+    validation_figure,
 )
 
-__all__ = ["BagTopics", "PlotError", "closed_loop_figure", "find_topics", "hysteresis_figure",
-           "model_figure", "plot_bag", "timeseries_figure", "validation_figure"]
+__all__ = [
+    "BagTopics",
+    "PlotError",
+    "closed_loop_figure",
+    "find_topics",
+    "hysteresis_figure",
+    "model_figure",
+    "plot_bag",
+    "timeseries_figure",
+    "validation_figure",
+]

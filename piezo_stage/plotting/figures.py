@@ -288,11 +288,21 @@ def learning_figure(
             continue
         phase = (t[mask] - t[0] - j * period) * 1e3
         if j < n_learn:
-            a2.plot(phase, error[mask] * 1e9, lw=0.8, color=cmap(j / max(n_learn, 1)),
-                    label="learning" if j == 0 else None)
+            a2.plot(
+                phase,
+                error[mask] * 1e9,
+                lw=0.8,
+                color=cmap(j / max(n_learn, 1)),
+                label="learning" if j == 0 else None,
+            )
         else:
-            a2.plot(phase, error[mask] * 1e9, lw=1.0, color="k",
-                    label="learned (frozen)" if j == n_learn else None)
+            a2.plot(
+                phase,
+                error[mask] * 1e9,
+                lw=1.0,
+                color="k",
+                label="learned (frozen)" if j == n_learn else None,
+            )
     a2.set_xlabel("time in the period [ms]")
     a2.set_ylabel("error x − x_d [nm]")
     a2.grid(alpha=0.3)

@@ -31,28 +31,43 @@ DEFAULT_NAMESPACE = "/piezo"
 
 
 def _series(path: str, label: str, **extra: Any) -> fx.PlotSeries:
-    return fx.PlotSeries(value=path, label=label, enabled=True,
-                         timestamp_method="receiveTime", **extra)
+    return fx.PlotSeries(
+        value=path, label=label, enabled=True, timestamp_method="receiveTime", **extra
+    )
 
 
 def _time_plot(title: str, series: list[fx.PlotSeries], y_label: str) -> fx.PlotPanel:
-    return fx.PlotPanel(title=title, config=fx.PlotConfig(
-        paths=series, show_legend=True, legend_display="top", y_axis_label=y_label,
-        x_axis_val="timestamp", following_view_width=5.0, time_window_mode="sliding"))
+    return fx.PlotPanel(
+        title=title,
+        config=fx.PlotConfig(
+            paths=series,
+            show_legend=True,
+            legend_display="top",
+            y_axis_label=y_label,
+            x_axis_val="timestamp",
+            following_view_width=5.0,
+            time_window_mode="sliding",
+        ),
+    )
 
 
-def _xy_plot(title: str, y: str, x: str, label: str, x_label: str,
-             y_label: str) -> fx.PlotPanel:
+def _xy_plot(title: str, y: str, x: str, label: str, x_label: str, y_label: str) -> fx.PlotPanel:
     """y against x within each message (the arrays of one message: one curve)."""
-    return fx.PlotPanel(title=title, config=fx.PlotConfig(
-        paths=[fx.PlotSeries(value=y, label=label, enabled=True)],
-        x_axis_val="currentCustom", x_axis_path=fx.PlotXAxisPath(value=x, enabled=True),
-        x_axis_label=x_label, y_axis_label=y_label, show_legend=True))
+    return fx.PlotPanel(
+        title=title,
+        config=fx.PlotConfig(
+            paths=[fx.PlotSeries(value=y, label=label, enabled=True)],
+            x_axis_val="currentCustom",
+            x_axis_path=fx.PlotXAxisPath(value=x, enabled=True),
+            x_axis_label=x_label,
+            y_axis_label=y_label,
+            show_legend=True,
+        ),
+    )
 
 
 def _column(*panels: Any) -> fx.SplitContainer:
-    return fx.SplitContainer(direction="column",
-                             items=[fx.SplitItem(content=p) for p in panels])
+    return fx.SplitContainer(direction="column", items=[fx.SplitItem(content=p) for p in panels])
 
 
 def layout(namespace: str = DEFAULT_NAMESPACE) -> fx.Layout:
@@ -62,73 +77,157 @@ def layout(namespace: str = DEFAULT_NAMESPACE) -> fx.Layout:
     def t(topic: str) -> str:
         return f"{ns}/{topic}"
 
-    loop = fx.SplitContainer(direction="row", items=[
-        fx.SplitItem(proportion=3, content=_column(
-            _time_plot("position", [
-                _series(f"{t('displacement')}.displacement", "x (sensor)"),
-                _series(f"{t('reference')}.displacement", "reference topic"),
-                _series(f"{t('controller_state')}.reference", "yr (controller)"),
-            ], "m"),
-            _time_plot("voltage", [
-                _series(f"{t('voltage_command')}.voltage", "command"),
-                _series(f"{t('voltage')}.voltage", "applied"),
-            ], "V"),
-            _time_plot("controller", [
-                _series(f"{t('controller_state')}.x1", "error x1 = x - yr"),
-            ], "m"),
-            _time_plot("controller terms", [
-                _series(f"{t('controller_state')}.u", "u"),
-                _series(f"{t('controller_state')}.u_pid", "u_pid"),
-                _series(f"{t('controller_state')}.u_ff", "u_ff"),
-                _series(f"{t('controller_state')}.u_excitation", "u_excitation"),
-            ], "V"),
-        )),
-        fx.SplitItem(proportion=1, content=_column(
-            fx.IndicatorPanel(title="loop", config=fx.IndicatorConfig(
-                path=f"{t('controller_state')}.loop_closed", style="background",
-                fallback_color="#a0a0a0", fallback_label="no controller",
-                rules=[fx.IndicatorRule(raw_value="true", operator="=", color="#2e7d32",
-                                        label="closed"),
-                       fx.IndicatorRule(raw_value="false", operator="=", color="#c62828",
-                                        label="open")])),
-            fx.IndicatorPanel(title="saturated", config=fx.IndicatorConfig(
-                path=f"{t('controller_state')}.saturated", style="bulb",
-                rules=[fx.IndicatorRule(raw_value="true", operator="=", color="#ef6c00",
-                                        label="at a voltage limit")],
-                fallback_color="#2e7d32", fallback_label="within limits")),
-            fx.RawMessagesPanel(title="controller state", config=fx.RawMessagesConfig(
-                topic_path=t("controller_state"))),
-        )),
-    ])
-    hysteresis = fx.SplitContainer(direction="row", items=[
-        fx.SplitItem(proportion=2, content=_column(
-            _xy_plot("limit cycle (identification)", f"{t('limit_cycles')}.output[:]",
-                     f"{t('limit_cycles')}.input[:]", "output", "input", "output"),
-            _xy_plot("rig loop: displacement vs applied voltage",
-                     f"{t('loop_samples')}.displacement[:]", f"{t('loop_samples')}.applied[:]",
-                     "x", "V", "m"),
-        )),
-        fx.SplitItem(proportion=1, content=_column(
-            fx.RawMessagesPanel(title="identified Bouc-Wen parameters",
-                                config=fx.RawMessagesConfig(
-                                    topic_path=t("bouc_wen_parameters"))),
-            fx.RawMessagesPanel(title="excitation", config=fx.RawMessagesConfig(
-                topic_path=t("excitation"))),
-        )),
-    ])
-    health = fx.SplitContainer(direction="row", items=[
-        fx.SplitItem(content=_column(
-            fx.DiagnosticsSummaryPanel(title="diagnostics", config=fx.DiagnosticsSummaryConfig(
-                topic_to_render="/diagnostics", sort_by_level=True)),
-            fx.DiagnosticsDetailPanel(title="diagnostics detail"),
-        )),
-        fx.SplitItem(content=fx.LogPanel(title="log (/rosout)")),
-    ])
-    return fx.Layout(content=fx.TabContainer(tabs=[
-        fx.TabItem(title="Loop", content=loop),
-        fx.TabItem(title="Hysteresis", content=hysteresis),
-        fx.TabItem(title="Health", content=health),
-    ]))
+    loop = fx.SplitContainer(
+        direction="row",
+        items=[
+            fx.SplitItem(
+                proportion=3,
+                content=_column(
+                    _time_plot(
+                        "position",
+                        [
+                            _series(f"{t('displacement')}.displacement", "x (sensor)"),
+                            _series(f"{t('reference')}.displacement", "reference topic"),
+                            _series(f"{t('controller_state')}.reference", "yr (controller)"),
+                        ],
+                        "m",
+                    ),
+                    _time_plot(
+                        "voltage",
+                        [
+                            _series(f"{t('voltage_command')}.voltage", "command"),
+                            _series(f"{t('voltage')}.voltage", "applied"),
+                        ],
+                        "V",
+                    ),
+                    _time_plot(
+                        "controller",
+                        [
+                            _series(f"{t('controller_state')}.x1", "error x1 = x - yr"),
+                        ],
+                        "m",
+                    ),
+                    _time_plot(
+                        "controller terms",
+                        [
+                            _series(f"{t('controller_state')}.u", "u"),
+                            _series(f"{t('controller_state')}.u_pid", "u_pid"),
+                            _series(f"{t('controller_state')}.u_ff", "u_ff"),
+                            _series(f"{t('controller_state')}.u_excitation", "u_excitation"),
+                        ],
+                        "V",
+                    ),
+                ),
+            ),
+            fx.SplitItem(
+                proportion=1,
+                content=_column(
+                    fx.IndicatorPanel(
+                        title="loop",
+                        config=fx.IndicatorConfig(
+                            path=f"{t('controller_state')}.loop_closed",
+                            style="background",
+                            fallback_color="#a0a0a0",
+                            fallback_label="no controller",
+                            rules=[
+                                fx.IndicatorRule(
+                                    raw_value="true", operator="=", color="#2e7d32", label="closed"
+                                ),
+                                fx.IndicatorRule(
+                                    raw_value="false", operator="=", color="#c62828", label="open"
+                                ),
+                            ],
+                        ),
+                    ),
+                    fx.IndicatorPanel(
+                        title="saturated",
+                        config=fx.IndicatorConfig(
+                            path=f"{t('controller_state')}.saturated",
+                            style="bulb",
+                            rules=[
+                                fx.IndicatorRule(
+                                    raw_value="true",
+                                    operator="=",
+                                    color="#ef6c00",
+                                    label="at a voltage limit",
+                                )
+                            ],
+                            fallback_color="#2e7d32",
+                            fallback_label="within limits",
+                        ),
+                    ),
+                    fx.RawMessagesPanel(
+                        title="controller state",
+                        config=fx.RawMessagesConfig(topic_path=t("controller_state")),
+                    ),
+                ),
+            ),
+        ],
+    )
+    hysteresis = fx.SplitContainer(
+        direction="row",
+        items=[
+            fx.SplitItem(
+                proportion=2,
+                content=_column(
+                    _xy_plot(
+                        "limit cycle (identification)",
+                        f"{t('limit_cycles')}.output[:]",
+                        f"{t('limit_cycles')}.input[:]",
+                        "output",
+                        "input",
+                        "output",
+                    ),
+                    _xy_plot(
+                        "rig loop: displacement vs applied voltage",
+                        f"{t('loop_samples')}.displacement[:]",
+                        f"{t('loop_samples')}.applied[:]",
+                        "x",
+                        "V",
+                        "m",
+                    ),
+                ),
+            ),
+            fx.SplitItem(
+                proportion=1,
+                content=_column(
+                    fx.RawMessagesPanel(
+                        title="identified Bouc-Wen parameters",
+                        config=fx.RawMessagesConfig(topic_path=t("bouc_wen_parameters")),
+                    ),
+                    fx.RawMessagesPanel(
+                        title="excitation", config=fx.RawMessagesConfig(topic_path=t("excitation"))
+                    ),
+                ),
+            ),
+        ],
+    )
+    health = fx.SplitContainer(
+        direction="row",
+        items=[
+            fx.SplitItem(
+                content=_column(
+                    fx.DiagnosticsSummaryPanel(
+                        title="diagnostics",
+                        config=fx.DiagnosticsSummaryConfig(
+                            topic_to_render="/diagnostics", sort_by_level=True
+                        ),
+                    ),
+                    fx.DiagnosticsDetailPanel(title="diagnostics detail"),
+                )
+            ),
+            fx.SplitItem(content=fx.LogPanel(title="log (/rosout)")),
+        ],
+    )
+    return fx.Layout(
+        content=fx.TabContainer(
+            tabs=[
+                fx.TabItem(title="Loop", content=loop),
+                fx.TabItem(title="Hysteresis", content=hysteresis),
+                fx.TabItem(title="Health", content=health),
+            ]
+        )
+    )
 
 
 def layout_json(namespace: str = DEFAULT_NAMESPACE) -> str:
@@ -148,8 +247,11 @@ def message_paths(data: Any) -> list[str]:
     found: list[str] = []
     if isinstance(data, dict):
         for key, value in data.items():
-            if key in ("value", "path", "topicPath", "topicToRender") and isinstance(value, str) \
-                    and value.startswith("/"):
+            if (
+                key in ("value", "path", "topicPath", "topicToRender")
+                and isinstance(value, str)
+                and value.startswith("/")
+            ):
                 found.append(value)
             else:
                 found += message_paths(value)

@@ -56,8 +56,10 @@ class AmplifierLowPass:
         from scipy import signal
 
         if order not in (1, 2) or not bandwidth_hz > 0.0:
-            raise ConfigError(f"amplifier low-pass: order 1 or 2 and bandwidth > 0 Hz, got "
-                              f"{order}, {bandwidth_hz!r}")
+            raise ConfigError(
+                f"amplifier low-pass: order 1 or 2 and bandwidth > 0 Hz, got "
+                f"{order}, {bandwidth_hz!r}"
+            )
         b, a = signal.butter(order, 2.0 * math.pi * bandwidth_hz, analog=True)
         bd, ad, _ = signal.cont2discrete((b, a), h, method="zoh")
         self.b, self.a = np.ravel(bd), np.ravel(ad)
