@@ -3,7 +3,7 @@
 Simulated durations are kept short for the test time (~1000 lockstep steps per wall second at
 100 kHz on this machine) where the thesis's result shows early; the pid_tv perturbation runs the
 experiment's default 0.4 s, which its ≤ 1 % claim needs (the decay is algebraic: see
-piezo_stage.experiments.spec).
+piezo_stage.experiments.plan).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""experiments.spec.summarize on perturbation records as a 1 kHz rig gives them: a record that
+"""experiments.plan.summarize on perturbation records as a 1 kHz rig gives them: a record that
 starts before the loop closed, states lost before the opening, a loop that never re-closes."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from piezo_stage.experiments import ExperimentError
-from piezo_stage.experiments.spec import SIGNALS, Plan, summarize
+from piezo_stage.experiments.plan import SIGNALS, Plan, summarize
 
 pytestmark = pytest.mark.unit
 

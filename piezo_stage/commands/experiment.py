@@ -14,7 +14,7 @@ import json
 import sys
 
 from piezo_stage.control.laws import LAWS
-from piezo_stage.experiments.spec import DEFAULT_DURATION
+from piezo_stage.experiments.plan import DEFAULT_DURATION
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

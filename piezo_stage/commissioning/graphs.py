@@ -155,7 +155,7 @@ class RosRig:
         from dataclasses import replace
 
         from piezo_stage.experiments import make_plan, run_experiment
-        from piezo_stage.experiments.spec import U_SET
+        from piezo_stage.experiments.plan import U_SET
 
         # the §11.5 plan of the experiments, moved to this rig: its plant file, the designed
         # gains, rate and bounds file, and the set point of the identified kappa_x
@@ -217,9 +217,9 @@ class RosRig:
             record,
             span,
         )
+        from piezo_stage.experiments.plan import OPEN_FOR, U_OPEN, U_SET, Plan, summarize
         from piezo_stage.experiments.plots import plot_run
         from piezo_stage.experiments.runner import STATE_TYPE
-        from piezo_stage.experiments.spec import OPEN_FOR, U_OPEN, U_SET, Plan, summarize
         from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
         rate = float(run["rate_hz"])

@@ -9,8 +9,8 @@ that orchestrates them (the demo, the CLI and scripts/make_sample_bags.py call t
 """
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
+from .plan import EXPERIMENTS, make_plan, pick_rate
 from .runner import run_experiment
-from .spec import EXPERIMENTS, make_plan, pick_rate
 
 __all__ = [
     "EXPERIMENTS",

@@ -10,7 +10,7 @@ import numpy as np
 
 from piezo_stage.plotting.figures import closed_loop_figure
 
-from .spec import Plan
+from .plan import Plan
 
 
 def plot_run(plan: Plan, data: dict[str, np.ndarray], out_dir: Path) -> list[Path]:

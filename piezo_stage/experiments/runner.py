@@ -10,7 +10,7 @@ from typing import Any, Callable
 
 from .errors import ExperimentError
 from .harness import HarnessError, Recording, Stream, record, samples
-from .spec import Plan, graph_for, make_plan, summarize
+from .plan import Plan, graph_for, make_plan, summarize
 
 Progress = Callable[[float, str], None]
 _counter = iter(range(1, 1 << 30))

@@ -58,8 +58,8 @@ from .harness import (
     record,
     span,
 )
+from .plan import Plan
 from .runner import STATE_TYPE, run_plan
-from .spec import Plan
 
 Progress = Callable[[float, str], None]
 DEFAULT_PLANT = "ch11_rig.yaml"
