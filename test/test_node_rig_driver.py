@@ -10,6 +10,7 @@ import signal
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.qos import QoSProfile
 from rclpy.time import Time
 
 from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDeviceModel
@@ -43,7 +44,12 @@ class Driver:
             "voltage_driver", f"backend:={backend}", f"url:={url}", *params, namespace=NS
         )
         self.voltages: list = []
-        probe.create_subscription(Voltage, "voltage", self.voltages.append, SENSOR_QOS)
+        # best effort as the driver offers, but a deep history: the sensor-data depth of 5 loses
+        # the playout's 500 Hz values whenever this probe spins late on a loaded host
+        deep = QoSProfile(
+            depth=1000, reliability=SENSOR_QOS.reliability, durability=SENSOR_QOS.durability
+        )
+        probe.create_subscription(Voltage, "voltage", self.voltages.append, deep)
         self.diag = DiagnosticsProbe(probe, f"{NS}/voltage_driver")
         self.cmd = probe.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
         ok = spin_until(
