@@ -477,6 +477,7 @@ def figures(
 
 DESIGNS = {
     "hand-off, 50 us switch": {},
+    "hand-off every 10 ms": {"PIEZO_RIG_LOOP_PUBLISH_PERIOD": "0.01"},
     "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
     "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"},
 }

@@ -13,7 +13,7 @@ the path. A read that times out (``laser_reader.poll_period``) checks the sensor
 within ``controller.max_gap`` the output holds, beyond it the loop opens.
 
 Topics leave through a :class:`Handoff`: the loop thread queues what to publish (a deque append,
-no lock, no wake-up) and the executor's thread publishes it every ``PUBLISH_PERIOD``: on
+no lock, no wake-up) and the executor's thread publishes it every :func:`publish_period`: on
 ``displacement``, ``voltage_command``, ``controller_state`` and ``voltage`` every sample up to
 ``controller.topics_rate_hz`` (every N-th above it: what rclpy and a browser can take), and on
 ``loop_samples`` every sample, in one LoopSamples message per period (:class:`SampleBatch`),
@@ -58,8 +58,22 @@ PARAMETER_TABLES = {
     "laser_reader": READER_PARAMETERS,
 }
 
-#: s between the executor's publications of what the loop queued
+#: s between the executor's publications of what the loop queued: at most, and at least
 PUBLISH_PERIOD = 0.01
+MIN_PUBLISH_PERIOD = 0.002
+#: samples of the loop per publication above 2 kHz (each drain holds the GIL for its whole
+#: length: the one sample that arrives meanwhile waits for it)
+DRAIN_SAMPLES = 20
+
+
+def publish_period(rate_hz: float) -> float:
+    """s between drains of the hand-off at a ``rate_hz`` loop: ``DRAIN_SAMPLES`` samples' worth
+    within [``MIN_PUBLISH_PERIOD``, ``PUBLISH_PERIOD``] (bench/control_loop.py, 10 kHz: a 10 ms
+    drain put p99 at 0.53-0.57 ms, 2 ms at 0.44-0.48 ms for 13 % more CPU, 1 ms at 0.49-0.53 ms;
+    at 1 kHz 10 ms is the better)."""
+    return min(PUBLISH_PERIOD, max(MIN_PUBLISH_PERIOD, DRAIN_SAMPLES / rate_hz))
+
+
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
 SWITCH_INTERVAL = 5e-5
 
@@ -75,7 +89,7 @@ class Handoff:
         self.after_drain: list[Callable[[], None]] = []
         self.inline = inline
 
-    def attach(self, node: Node, period: float = PUBLISH_PERIOD) -> None:
+    def attach(self, node: Node, period: float) -> None:
         node.create_timer(period, self.drain, clock=wall_clock())
 
     def put(self, publish: Callable[..., None], *args: Any) -> None:
@@ -181,7 +195,6 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     driver = VoltageDriverNode(
         composed=True, handoff=handoff, overrides=overrides["voltage_driver"]
     )
-    handoff.attach(driver)
     yield driver
     controller = ControllerNode(composed=True, handoff=handoff, overrides=overrides["controller"])
     yield controller
@@ -189,6 +202,9 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     handoff.after_drain.append(batch.publish)
     # the loop steps once per sample: its rate (checked with the gains) is the sample rate
     rate = float(controller.settings.rate_hz)
+    handoff.attach(
+        driver, float(os.environ.get("PIEZO_RIG_LOOP_PUBLISH_PERIOD", publish_period(rate)))
+    )
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
     nan = math.nan
 
