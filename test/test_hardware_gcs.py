@@ -177,8 +177,10 @@ def test_pipelined_setters_are_checked_as_their_replies_arrive(served):
         assert len(conn._pending) <= 3
     assert conn.query_float("SVA? A", "A") == 19.0  # the query waited for the ERR? replies
     assert not conn._pending
-    conn.command_pipelined("SVA A 500")  # outside the device's range: error 66
     with pytest.raises(GCSError) as err:
+        # outside the device's range: error 66, raised at this setter when its reply is already
+        # in by the poll that follows the send, else at a later one
+        conn.command_pipelined("SVA A 500")
         for k in range(5):
             conn.command_pipelined(f"SVA A {k}")
     assert err.value.code == 66 and err.value.command == "SVA A 500"
