@@ -12,13 +12,15 @@ around :class:`~piezo_stage.control.controller.TimeVaryingPID`) and writes the a
 the path. A read that times out (``laser_reader.poll_period``) checks the sensor's silence:
 within ``controller.max_gap`` the output holds, beyond it the loop opens.
 
-Topics leave through a :class:`Handoff`: the loop thread queues what to publish (a deque append,
-no lock, no wake-up) and the executor's thread publishes it every :func:`publish_period`: on
-``displacement``, ``voltage_command``, ``controller_state`` and ``voltage`` every sample up to
+Topics leave through a :class:`Handoff`: the loop thread queues what to publish (a deque append)
+and publishes the queue itself every :func:`publish_period`, right after an amplifier write (the
+next sample is then furthest away) or after a read that timed out: on ``displacement``,
+``voltage_command``, ``controller_state`` and ``voltage`` every sample up to
 ``controller.topics_rate_hz`` (every N-th above it: what rclpy and a browser can take), and on
-``loop_samples`` every sample, in one LoopSamples message per period (:class:`SampleBatch`),
-which the recorder records. The watchdog, the read-back, /diagnostics, parameters and services run
-in the executor's thread as in the separate nodes; the controller's law is shared under a lock.
+``loop_samples`` every sample, in one LoopSamples message per drain (:class:`SampleBatch`), which
+the recorder records. The watchdog, the read-back, /diagnostics, parameters and services run in
+the executor's thread as in the separate nodes (what they publish joins the queue); the
+controller's law is shared under a lock.
 
 One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
 the loop thread's wake-up by up to the switch interval (5 ms by default), so the process runs
@@ -32,6 +34,7 @@ import gc
 import math
 import os
 import sys
+import time
 from collections import deque
 from typing import Any, Callable, Iterator, Sequence
 
@@ -68,8 +71,8 @@ DRAIN_SAMPLES = 20
 
 def publish_period(rate_hz: float) -> float:
     """s between drains of the hand-off at a ``rate_hz`` loop: ``DRAIN_SAMPLES`` samples' worth
-    within [``MIN_PUBLISH_PERIOD``, ``PUBLISH_PERIOD``] (bench/control_loop.py, 10 kHz: a 10 ms
-    drain put p99 at 0.53-0.57 ms, 2 ms at 0.44-0.48 ms for 13 % more CPU, 1 ms at 0.49-0.53 ms;
+    within [``MIN_PUBLISH_PERIOD``, ``PUBLISH_PERIOD``] (bench/control_loop.py, 10 kHz, the
+    executor's thread draining: 10 ms p99 0.53-0.56 ms, 2 ms 0.41-0.53 ms, 1 ms 0.49-0.53 ms;
     at 1 kHz 10 ms is the better)."""
     return min(PUBLISH_PERIOD, max(MIN_PUBLISH_PERIOD, DRAIN_SAMPLES / rate_hz))
 
@@ -79,17 +82,26 @@ SWITCH_INTERVAL = 5e-5
 
 
 class Handoff:
-    """What the loop thread publishes, handed to the executor's thread (realtime_tools'
-    RealtimePublisher): :meth:`put` is a deque append; a wall-clock timer :meth:`drain` s the
-    queue in order. ``inline`` (the alternative bench/control_loop.py measures, environment
-    ``PIEZO_RIG_LOOP_INLINE=1``): the loop thread publishes itself, after its write."""
+    """What the loop publishes (realtime_tools' RealtimePublisher, without its thread): :meth:`put`
+    is a deque append (from any thread); the loop thread calls :meth:`drain_due` after each write
+    and each idle read, which publishes the queue in order every ``period``. A drain holds the GIL
+    for its whole length, so it runs where the loop has the most time: right after a write
+    (bench/control_loop.py, 10 kHz: p99 0.35 ms, 54 µs per sample, against 0.41-0.53 ms and
+    64 µs for the executor's thread draining every 2 ms). The alternatives bench/control_loop.py
+    measures (environment): ``PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR=1`` a wall-clock timer of the
+    executor drains (:meth:`attach`); ``PIEZO_RIG_LOOP_INLINE=1`` every publication at once."""
 
-    def __init__(self, inline: bool = False) -> None:
+    def __init__(self, inline: bool = False, period: float = PUBLISH_PERIOD) -> None:
         self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
         self.after_drain: list[Callable[[], None]] = []
         self.inline = inline
+        self.period = period
+        self.in_loop = True
+        self._next = 0.0
 
     def attach(self, node: Node, period: float) -> None:
+        """Drain from the executor's thread every ``period`` instead of the loop's."""
+        self.in_loop = False
         node.create_timer(period, self.drain, clock=wall_clock())
 
     def put(self, publish: Callable[..., None], *args: Any) -> None:
@@ -97,6 +109,14 @@ class Handoff:
             publish(*args)
             return
         self._queue.append((publish, args))
+
+    def drain_due(self) -> None:
+        """The loop thread's drain: when ``period`` has gone since the last."""
+        if self.in_loop:
+            now = time.monotonic()
+            if now >= self._next:
+                self._next = now + self.period
+                self.drain()
 
     def drain(self) -> None:
         queue = self._queue
@@ -202,9 +222,9 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     handoff.after_drain.append(batch.publish)
     # the loop steps once per sample: its rate (checked with the gains) is the sample rate
     rate = float(controller.settings.rate_hz)
-    handoff.attach(
-        driver, float(os.environ.get("PIEZO_RIG_LOOP_PUBLISH_PERIOD", publish_period(rate)))
-    )
+    handoff.period = float(os.environ.get("PIEZO_RIG_LOOP_PUBLISH_PERIOD", publish_period(rate)))
+    if os.environ.get("PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR") == "1":
+        handoff.attach(driver, handoff.period)
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
     nan = math.nan
 
@@ -227,12 +247,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
         if u is not None:
             driver.command(u, publish=due[-1])
         handoff.put(batch.add, rows, driver.driver.last_sent)
+        handoff.drain_due()
         return None if topics.every == 1 else due
 
     def idle(now_ns: int) -> None:
         u = controller.check_gap(now_ns * 1e-9)
         if u is not None:
             driver.command(u)
+        handoff.drain_due()  # what the executor's timers queued, while the sensor is silent
 
     # the loop thread, and the executor's (this one: a GIL holder preempted by other processes
     # would stall the loop thread, a priority inversion), at the driver's realtime_priority
