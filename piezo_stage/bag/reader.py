@@ -32,6 +32,7 @@ from .errors import (
 from .metadata import METADATA_FILENAME, BagMetadata
 from .records import McapWalk, is_mcap_name
 from .series import SERIES_FIELDS, decode_series
+from .types import NUMERIC_TYPES
 
 _INDEX_RE = re.compile(r"_(\d+)\.mcap(?:\.zstd)?$")
 
@@ -278,25 +279,6 @@ def read_loop_samples(path: str | Path, topic: str) -> LoopColumns:
     return {k: v[order] for k, v in out.items()}
 
 
-_NUMERIC = frozenset(
-    {
-        "bool",
-        "byte",
-        "char",
-        "float32",
-        "float64",
-        "int8",
-        "uint8",
-        "int16",
-        "uint16",
-        "int32",
-        "uint32",
-        "int64",
-        "uint64",
-    }
-)
-
-
 def normalize_fieldname(name: str) -> str:
     """The attribute name rosbags gives a field (``from`` -> ``from_``)."""
     from rosbags.typesys.base import normalize_fieldname as normalize
@@ -310,7 +292,7 @@ def _numeric_fields(fielddefs: Typesdict, type_name: str) -> list[str]:
     return [
         name
         for name, (kind, detail) in fielddefs[type_name][1]
-        if kind == Nodetype.BASE and detail[0] in _NUMERIC
+        if kind == Nodetype.BASE and detail[0] in NUMERIC_TYPES
     ]
 
 

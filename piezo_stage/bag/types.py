@@ -32,7 +32,7 @@ DEFINITION_SEPARATOR = "=" * 80 + "\n"
 #: Where the source tree keeps the project's .msg files (next to the python package).
 SOURCE_MSG_DIR = Path(__file__).resolve().parents[2] / PROJECT_PACKAGE / "msg"
 
-_PRIMITIVE_TYPES = frozenset(
+PRIMITIVE_TYPES = frozenset(
     {
         "bool",
         "byte",
@@ -51,6 +51,8 @@ _PRIMITIVE_TYPES = frozenset(
         "wstring",
     }
 )
+#: the ROS primitive types a numpy column holds (all but the strings)
+NUMERIC_TYPES = PRIMITIVE_TYPES - {"string", "wstring"}
 # rosbag2's MSG_FIELD_TYPE_REGEX: the type token at the start of each field line.
 _FIELD_TYPE_RE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
 _TYPE_NAME_RE = re.compile(
@@ -146,7 +148,7 @@ def _dependencies(text: str, package: str) -> list[str]:
     deps = set()
     for match in _FIELD_TYPE_RE.finditer(text):
         field_type = match.group(1)
-        if field_type in _PRIMITIVE_TYPES:
+        if field_type in PRIMITIVE_TYPES:
             continue
         deps.add(field_type if "/" in field_type else f"{package}/{field_type}")
     return sorted(deps)
