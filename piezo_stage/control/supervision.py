@@ -15,6 +15,11 @@ One object serves the ``controller`` node (samples from a topic) and the compose
   it closes again (§11.5's perturbation);
 - **frames**: the law works on u − ``u_bias`` (§11.5 closes the loop "with a set point for the
   control around 200 V"); :meth:`LoopSupervisor.command` gives amplifier volts.
+- **saturation**: each step counts whether the law's output was clamped to the amplifier's
+  limits (two integer adds, nothing allocated or logged per sample);
+  :meth:`LoopSupervisor.diagnose`, called by the /diagnostics timer (every second), reports the
+  share of the steps saturated since its previous call (:class:`SaturationWindow`), WARN when
+  any was.
 
 Gain verification (Theorem 4 and the sampled-loop check) is :class:`GainCheck`. No rclpy; the
 caller's clock is whatever stamps its samples (sensor sample clock, node clock or sim time).
@@ -125,6 +130,26 @@ class GainCheck:
         return "; ".join(reasons)
 
 
+class SaturationWindow:
+    """Saturated steps between two reports, from the loop's running totals
+    (:attr:`LoopSupervisor.saturated_steps`, :attr:`LoopSupervisor.steps`): the loop only adds
+    to them; :meth:`report`, from the diagnostics timer (another thread in the composed rig
+    loop), takes the differences since its previous call. A step counted between the reader's
+    two reads lands in one window or the next; the saturated count is kept <= the step count.
+    """
+
+    def __init__(self) -> None:
+        self._saturated = 0
+        self._steps = 0
+
+    def report(self, saturated_total: int, steps_total: int) -> tuple[int, int]:
+        """(saturated steps, steps) since the previous report; read ``saturated_total`` first."""
+        saturated = saturated_total - self._saturated
+        steps = steps_total - self._steps
+        self._saturated, self._steps = saturated_total, steps_total
+        return min(max(saturated, 0), max(steps, 0)), max(steps, 0)
+
+
 Notify = Callable[[Health, str], None]
 
 
@@ -145,7 +170,8 @@ class LoopSupervisor:
         self.fault = ""  # why the loop was opened (latched until close())
         self.waiting = ""  # why start_closed has not closed the loop yet
         self.steps = 0
-        self.saturated_steps = 0
+        self.saturated_steps = 0  # steps whose output was clamped to [u_min, u_max]
+        self._saturation = SaturationWindow()
         self.gaps_held = 0  # gaps shorter than max_gap ridden through
         self.longest_gap = 0.0  # [s]
         self._in_gap = False
@@ -287,13 +313,18 @@ class LoopSupervisor:
         return f"loop open, holding {self.config.u_bias + hold:.6g} V"
 
     def diagnose(self) -> tuple[Health, str, dict[str, object]]:
-        """Level, message and values for /diagnostics."""
+        """Level, message and values for /diagnostics; the saturation figures cover the steps
+        since the previous call (the /diagnostics period).
+        """
+        saturated, steps = self._saturation.report(self.saturated_steps, self.steps)
+        share = saturated / steps if steps else 0.0
         values: dict[str, object] = {
             "mode": self.pid.config.mode,
             "loop_closed": self.pid.loop_closed,
             "u": self.config.u_bias + self.pid.u,
             "steps": self.steps,
             "saturated_steps": self.saturated_steps,
+            "saturated_share": share,
             "gaps_held": self.gaps_held,
             "longest_gap": self.longest_gap,
         }
@@ -301,7 +332,12 @@ class LoopSupervisor:
             return Health.ERROR, f"loop opened: {self.fault}", values
         if self._start_closed and self.waiting:
             return Health.WARN, f"waiting to close the loop: {self.waiting}", values
-        last = self.pid.last_output
-        if self.saturated_steps and last is not None and last.saturated:
-            return Health.WARN, "output saturated", values
+        if saturated:
+            c = self.config
+            return (
+                Health.WARN,
+                f"output saturated on {100 * share:.3g} % of the {steps} steps since the last "
+                f"report (amplifier limits {c.u_min:g} to {c.u_max:g} V)",
+                values,
+            )
         return Health.OK, "closed" if self.pid.loop_closed else "open", values
