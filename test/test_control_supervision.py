@@ -15,6 +15,7 @@ from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.errors import ControllerConfigError
 from piezo_stage.control.laws import THESIS_GAINS, Gains
 from piezo_stage.control.supervision import (
+    START_GRACE,
     GainCheck,
     Gap,
     Health,
@@ -70,10 +71,17 @@ def test_start_closed_closes_at_the_first_valid_sample_and_an_invalid_one_only_d
     assert sup.diagnose()[:2] == (Health.OK, "closed")
 
 
-def test_an_invalid_sample_opens_the_loop_holds_and_latches_until_closed_by_request():
-    sup = supervisor(start_closed=True, hold=50.0)
-    for k in range(5):
+def closed_by_request(sup: LoopSupervisor, samples: int = 10) -> None:
+    """``samples`` samples with the loop closed by request after the first (no start-up grace)."""
+    run(sup, 0.0)
+    assert sup.close() == (True, "loop closed")
+    for k in range(1, samples):
         run(sup, k * T, 1e-6 * k)
+
+
+def test_an_invalid_sample_opens_the_loop_holds_and_latches_until_closed_by_request():
+    sup = supervisor(hold=50.0)
+    closed_by_request(sup, 5)
     assert sup.pid.loop_closed
     assert run(sup, 5 * T, math.nan, ok=False) == 50.0
     assert not sup.pid.loop_closed and sup.fault == "invalid sensor sample"
@@ -114,17 +122,50 @@ def test_a_short_gap_holds_the_output_is_counted_and_the_loop_resumes():
 
 
 def test_a_long_gap_opens_the_loop_whether_a_tick_or_the_next_sample_sees_it():
-    sup = supervisor(start_closed=True, max_gap=0.02, hold=20.0)
-    for k in range(10):
-        run(sup, k * T)
+    sup = supervisor(max_gap=0.02, hold=20.0)
+    closed_by_request(sup)
     assert sup.check_gap(9 * T + 0.021) is Gap.OPENED
     assert not sup.pid.loop_closed and sup.fault.startswith("no sensor sample for 0.02")
     assert sup.hold_command() == 20.0
-    sup2 = supervisor(start_closed=True, max_gap=0.02, hold=20.0)
-    for k in range(10):
-        run(sup2, k * T)
+    sup2 = supervisor(max_gap=0.02, hold=20.0)
+    closed_by_request(sup2)
     assert run(sup2, 9 * T + 0.05) == 20.0
     assert not sup2.pid.loop_closed and "0.05" in sup2.fault
+
+
+def test_a_start_up_gap_re_arms_start_closed_and_later_ones_latch():
+    """A graph's start (DDS matching, a slow first step that overflows a shallow sensor queue)
+    must not leave a loop asked to start closed open for good: within START_GRACE of the first
+    closing a gap or an invalid sample holds and re-closes at the next valid sample; after it,
+    faults latch as always."""
+    sup = supervisor(start_closed=True, max_gap=0.02, hold=20.0)
+    run(sup, 0.0)
+    assert sup.pid.loop_closed
+    # the sample after a 50 ms silence: held, re-armed, closed again on that same sample
+    assert run(sup, 0.05) is not None
+    assert sup.pid.loop_closed and not sup.fault
+    assert sup.events[-1][0] is Health.WARN and "closing again" in sup.events[-1][1]
+    # a tick sees the next silence: open and holding, waiting; the next sample closes it
+    assert sup.check_gap(0.08) is Gap.OPENED and not sup.pid.loop_closed
+    assert sup.hold_command() == 20.0 and sup.waiting and not sup.fault
+    assert sup.diagnose()[0] is Health.WARN
+    run(sup, 0.09)
+    assert sup.pid.loop_closed
+    # an invalid sample inside the grace: the same
+    assert run(sup, 0.1, math.nan, ok=False) == 20.0 and not sup.fault
+    run(sup, 0.1 + T)
+    assert sup.pid.loop_closed
+    # past START_GRACE (counted from the first closing, not from the re-closings): latched
+    t = 0.1 + T
+    while t < START_GRACE + 0.01:
+        t += 0.01  # 10 ms apart: held gaps, never beyond max_gap
+        run(sup, t)
+    assert sup.pid.loop_closed and not sup.fault
+    assert run(sup, t + 0.05) == 20.0
+    assert not sup.pid.loop_closed and "0.05" in sup.fault
+    assert sup.events[-1][0] is Health.ERROR
+    run(sup, t + 0.05 + T)
+    assert not sup.pid.loop_closed  # latched until a close request
 
 
 def test_timer_ticks_step_only_on_new_samples():

@@ -9,7 +9,10 @@ One object serves the ``controller`` node (samples from a topic) and the compose
   command stays on the amplifier) and resumes at the next sample, counted in ``gaps_held``; a
   longer one opens the loop like an invalid sample;
 - **start_closed**: the loop closes at the first valid sample; until then an invalid sample or a
-  gap only delays the closing (``waiting``);
+  gap only delays the closing (``waiting``). Within ``START_GRACE`` of that first closing, a gap
+  or an invalid sample opens the loop and re-arms start_closed instead of latching a fault: a
+  graph's start (DDS matching, a first step that pays for first calls while a shallow sensor
+  queue overflows) must not leave a loop that was asked to start closed open for good;
 - **the scheduled window**: ``open_at`` (a time of the loop's clock) or ``open_after`` (after
   start_closed closed the loop) opens it holding the hold voltage, and ``open_duration`` later
   it closes again (§11.5's perturbation);
@@ -40,6 +43,8 @@ from .theorem4 import validate_gains
 
 #: a sample later than this many periods after the previous one starts a gap
 GAP_PERIODS = 1.5
+#: seconds after start_closed first closed the loop in which a fault re-arms it (start-up)
+START_GRACE = 2.0
 
 
 class Health(enum.IntEnum):
@@ -179,6 +184,7 @@ class LoopSupervisor:
         self._start_closed = config.start_closed
         self._window, self._window_t = Window.PENDING, math.nan
         self._closed_at = math.nan  # when start_closed closed the loop
+        self._first_closed_at = math.nan  # when it first did (START_GRACE counts from there)
 
     # ------------------------------------------------------------------ frames
     def command(self, out: ControlOutput) -> float:
@@ -250,12 +256,34 @@ class LoopSupervisor:
         closed the loop, wait for the next valid sample).
         """
         if self.pid.loop_closed:
+            if self.starting(t):
+                self.notify(
+                    Health.WARN,
+                    f"{reason} {t - self._first_closed_at:.3g} s after start_closed closed the "
+                    "loop: holding, closing again at the next valid sample",
+                )
+                self.pid.open_loop(self.hold_value())
+                self._start_closed, self.waiting = True, reason
+                return
             self.notify(Health.ERROR, f"opening the loop at t = {t:.6g} s: {reason}")
             self.pid.open_loop(self.hold_value())
         if self._start_closed:
             self.waiting = reason
         else:
             self.fault = reason
+
+    def starting(self, t: float) -> bool:
+        """True within ``START_GRACE`` of start_closed's first closing (a fault re-arms it)."""
+        return t - self._first_closed_at < START_GRACE
+
+    @property
+    def closing_pending(self) -> bool:
+        """start_closed will close the loop at the next step."""
+        return self._start_closed and not self.pid.loop_closed and not self.fault
+
+    def hold_off(self, reason: str) -> None:
+        """Keep start_closed waiting (``reason`` on /diagnostics) without a sample's fault."""
+        self.waiting = reason
 
     # ------------------------------------------------------------------ period
     def step(
@@ -264,10 +292,12 @@ class LoopSupervisor:
         """One period on the newest valid sample: the scheduled window, start_closed, the law."""
         assert self.x is not None, "step() before a valid sample"
         self._scheduled_window(t)
-        if self._start_closed and not self.pid.loop_closed and not self.fault:
+        if self.closing_pending:
             self._start_closed, self.waiting = False, ""
             self.pid.close_loop()
             self._closed_at = t
+            if math.isnan(self._first_closed_at):
+                self._first_closed_at = t
         out = self.pid.update(t, self.x, yr, yr_dot, yr_ddot)
         self._stepped_on = self.x_stamp
         self.steps += 1

@@ -732,7 +732,18 @@ class ControllerNode(Node):
             self._step(t, now.to_msg())
 
     # ------------------------------------------------------------------ loop
-    def _step(self, t: float, stamp: Any, publish: bool = True) -> float:
+    def _driver_missing(self) -> bool:
+        """start_closed holds off while no driver listens on voltage_command (the separate
+        nodes: a loop closed before the driver matched would integrate commands nobody
+        applies); the composed loop writes the amplifier directly."""
+        if self._handoff is not None or self._pub_cmd.get_subscription_count() > 0:
+            return False
+        self.supervisor.hold_off("no subscriber on voltage_command (the amplifier driver) yet")
+        return True
+
+    def _step(self, t: float, stamp: Any, publish: bool = True) -> float | None:
+        if self.supervisor.closing_pending and self._driver_missing():
+            return None
         yr, yr_dot, yr_ddot = self.setpoint.evaluate(t)
         if publish and self.setpoint.publishes and self._pub_ref is not None:
             self._emit(self._publish_reference, stamp, yr)
