@@ -6,6 +6,8 @@ run by `piezo-stage launch`, ending by itself once the identifier has its result
 from __future__ import annotations
 
 import json
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +28,19 @@ NAMES = ("y0", "kappa_w", "rho", "sigma", "n")
 
 
 NS = "/piezo"  # the probe node's namespace (conftest)
+
+
+def _launch(cwd: Path, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    """``piezo-stage launch replay_identification ARGS`` run from ``cwd``, output merged."""
+    cmd = [sys.executable, "-m", "piezo_stage.cli", "launch", "replay_identification"]
+    return subprocess.run(
+        [*cmd, "--color", "never", *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _offline(bag: str, degree: int, capsys, method: str = "auto") -> dict:
@@ -187,3 +202,86 @@ def test_runs_end_at_the_next_run_or_at_their_plan_done_mark():
         (0, 0.0, 2.0),
         (1, 2.0, float("inf")),
     ]  # run 1 still going
+
+
+@pytest.mark.slow
+def test_the_graph_as_shipped_plays_the_whole_bag_and_gives_the_offline_result(tmp_path, capsys):
+    """The default (player rate 5, from a folder outside the repository: the sample bag is found
+    in the repository's bags/). The bag has 64 s of receive time without samples (75.6 s to
+    140.02 s, its last burst); played at rate 5 that is 13 wall seconds, more than the
+    identifier's settle_time: it took the stretch for silence and fitted what it had (rho=0.0047
+    from 4825 samples, fit method), and the launch then stopped the player at 10 886-12 885 of
+    its 15 287 messages without a word. Now the player's /clock moving is activity: the bag is
+    played to its end and the analytic result is the offline one, to the last digit."""
+    from piezo_stage.bag import bag_info
+
+    offline = _offline("bags/ch10_identification", 2, capsys)
+    topics = bag_info(ROOT / "bags" / "ch10_identification")["topics"]
+    total = sum(topics[f"/piezo/{t}"]["count"] for t in ("voltage", "displacement", "excitation"))
+    proc = _launch(tmp_path, timeout=900)
+    log = proc.stdout
+    assert proc.returncode == 0, log[-4000:]
+    assert f"played {total} of {total} messages" in log, log[-4000:]
+    assert "identifier exited with code 0" in log and "stopped after" not in log, log[-4000:]
+    replayed = load_parameter_set(tmp_path / "identified_replay.yaml")  # relative: in the cwd
+    p = replayed.bouc_wen
+    assert list(p.kappa) == pytest.approx(offline["kappa"], rel=1e-9)
+    for name in NAMES:
+        assert getattr(p, name) == pytest.approx(offline[name], rel=1e-9, abs=1e-300), name
+    assert f"identified from {offline['samples']} samples (analytic method)" in replayed.notes
+
+
+def test_a_bag_the_player_cannot_find_ends_the_launch_with_exit_2_and_one_line(tmp_path):
+    """A relative bag is looked for where the launch runs, then in the repository; found in
+    neither, the player refuses it in one line and the launch ends with 2 instead of leaving
+    the identifier waiting for ever."""
+    proc = _launch(tmp_path, "--param", "player.bag:=no_such_bag", timeout=300)
+    log = proc.stdout
+    assert proc.returncode == 2, log[-4000:]
+    errors = [line for line in log.splitlines() if "no bag at" in line]
+    assert len(errors) == 1 and str(tmp_path / "no_such_bag") in errors[0], log[-4000:]
+    assert "player exited with code 2" in log and "Traceback" not in log, log[-4000:]
+
+
+def test_a_player_stopped_before_the_end_says_how_much_was_not_played(tmp_path):
+    bag = ROOT / "bags" / "ch10_identification"
+    cmd = [sys.executable, "-m", "piezo_stage.nodes.player", "--ros-args"]
+    cmd += ["-r", "__ns:=/shortfall", "-p", f"bag:={bag}", "-p", "rate:=1.0"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:  # started: playing
+            if "playing" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        err = proc.communicate(timeout=60)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err[-3000:]  # a requested stop is no failure
+    said = re.findall(
+        r"stopped after (\d+) of 15290 messages, at \S+ s of 140.06 s: the rest of "
+        + re.escape(str(bag))
+        + " was not played",
+        err,
+    )
+    assert len(said) == 1 and int(said[0]) < 15290, err[-3000:]
+
+
+def test_a_moving_source_clock_is_no_silence():
+    """A replay crossing a stretch of its bag without samples: the player's /clock moves, so the
+    streams are not silent however long it lasts in wall time; once the clock stands still too
+    (the bag played), silence comes as before."""
+    from piezo_stage.identification.run_tracker import RunTracker
+
+    tracker = RunTracker()
+    tracker.mark(0.0, 0, False)
+    tracker.mark(1.0, 0, True)
+    tracker.mark(3.0, 1, False)
+    tracker.poll(50, latest=2.0, now=0.0, settle_time=1.0, clock=2.0)
+    for k in range(1, 40):  # 4 wall seconds, no sample, the clock advancing
+        moving = tracker.poll(50, latest=2.0, now=0.1 * k, settle_time=1.0, clock=2.0 + 0.5 * k)
+        assert not moving.silent and not moving.stalled
+    tracker.poll(50, latest=2.0, now=5.2, settle_time=1.0, clock=21.5)  # clock now still
+    assert tracker.poll(50, latest=2.0, now=5.3, settle_time=1.0, clock=21.5).stalled

@@ -55,6 +55,12 @@ class RunTracker:
     after the one before: after a stall of the host the node's timer runs before it takes the
     messages that arrived meanwhile, so the first quiet poll may only mean that the node itself
     was not running (seen: a run identified from 162 of its samples on a loaded host).
+
+    The source's clock (``poll(clock=...)``: the node's sim time, which a player or a lockstep
+    plant publishes) moving is activity too: a recording can hold a long stretch without
+    samples (the sample bag ``ch10_identification``: 64 s of receive time, played at rate 5 for
+    13 wall seconds), and a replay crossing it is not silent; silence is then the source
+    stopped (the bag played, the plant gone).
     """
 
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
@@ -63,6 +69,7 @@ class RunTracker:
     _pending: list[tuple[float, int]] = field(default_factory=list)
     _last: tuple[int, bool] | None = None
     _count: int = 0
+    _clock: float | None = None
     _changed_at: float | None = None
     _reported: bool = False
     confirm_within: float = 1.0
@@ -103,14 +110,24 @@ class RunTracker:
         return bool(self._pending)
 
     def poll(
-        self, samples: int, latest: float, now: float, settle_time: float, identified: bool = False
+        self,
+        samples: int,
+        latest: float,
+        now: float,
+        settle_time: float,
+        identified: bool = False,
+        clock: float | None = None,
     ) -> Poll:
         """``samples``: samples received so far (both streams); ``latest``: the stamp [s] both
         streams have reached (the smaller of their last stamps); ``now``: wall time [s];
-        ``identified``: a result exists (silence is then no failure). Call it periodically
-        (every 0.1 s in the node): silence needs two quiet polls (see the class).
+        ``identified``: a result exists (silence is then no failure); ``clock``: the source's
+        time [s] when the node runs on one (sim time), else None: while it moves the streams
+        are not silent. Call it periodically (every 0.1 s in the node): silence needs two quiet
+        polls (see the class).
         """
-        if samples != self._count or self._changed_at is None:
+        moved = clock is not None and clock != self._clock
+        self._clock = clock
+        if samples != self._count or moved or self._changed_at is None:
             self._count, self._changed_at, self._reported = samples, now, False
         quiet = samples > 0 and now - self._changed_at > settle_time
         confirmed = self._quiet_at is not None and now - self._quiet_at <= self.confirm_within

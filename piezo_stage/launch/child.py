@@ -86,7 +86,10 @@ def main(argv: list[str] | None = None) -> object:
             print(f"piezo_stage launch: cannot run {target!r}: {exc}", file=sys.stderr)
             return EXIT_NOT_FOUND
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    return run_module(target, rest)
+    try:
+        return run_module(target, rest)
+    except KeyboardInterrupt:  # stopped while still importing: the status, not a traceback
+        return 128 + int(signal.SIGINT)
 
 
 if __name__ == "__main__":

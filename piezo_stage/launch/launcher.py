@@ -4,7 +4,9 @@ Shutdown, on request (Ctrl-C, SIGTERM, ``stop()``) or when a `required` process 
 every process group still alive, then SIGTERM after the graph's ``stop_timeout``, then SIGKILL
 after another one; each further stop request skips to the next step. Exit code: the required
 process's code when one exited; after a requested stop 0, or 1 when a process had to be
-killed; when every process ended by itself, the first non-zero code (or 0).
+killed; when every process ended by itself, the first non-zero code (or 0). In a graph
+without a `required` process, every one is needed: the first to exit non-zero while others run
+ends the launch with its code (a player refusing its bag must not leave the others waiting).
 """
 
 from __future__ import annotations
@@ -271,9 +273,14 @@ class Launcher:
                 continue
             self.exited.append((p.name, code))
             note = ""
-            if p.spec.required and self._failed is None and self.reason is None:
+            needed = p.spec.required or (  # no required one: a failure ends the launch
+                code != 0
+                and not any(s.required for s in self.graph.nodes)
+                and any(q.poll() is None for q in self.processes)
+            )
+            if needed and self._failed is None and self.reason is None:
                 self._failed = (p.name, code)
-                note = " (required: stopping the launch)"
+                note = f" ({'required' if p.spec.required else 'failed'}: stopping the launch)"
             self._log(f"{p.name} exited with code {code}{note}")
 
     def _stop_all(self) -> None:

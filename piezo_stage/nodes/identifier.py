@@ -200,10 +200,10 @@ PARAMETERS = ParameterTable(
         Param(
             "settle_time",
             10.0,
-            "wall seconds of silent streams after which a completed run is "
-            "processed even if the streams did not pass its end, and fewer than two complete runs "
-            "is "
-            "reported as a failure (on_done=exit: exit 1)",
+            "wall seconds of silent streams (on use_sim_time, with the clock standing still "
+            "too: a player crossing a stretch of its bag without samples moves it) after which a "
+            "completed run is processed even if the streams did not pass its end, and fewer than "
+            "two complete runs is reported as a failure (on_done=exit: exit 1)",
             "s",
             (0.0, 3600.0),
         ),
@@ -311,8 +311,20 @@ class IdentifierNode(Node):
         v, d = self._voltage.t, self._displacement.t
         latest = min(v[-1] if v else -math.inf, d[-1] if d else -math.inf)
         settle = self.get_parameter("settle_time").value
+        # on sim time the source's clock moving is activity: a replay crossing a stretch of
+        # the bag without samples (its player publishing /clock meanwhile) is not silence
+        clock = (
+            self.get_clock().now().nanoseconds * 1e-9
+            if self.get_parameter("use_sim_time").value
+            else None
+        )
         poll = self._runs.poll(
-            len(v) + len(d), latest, time.monotonic(), settle, identified=self.result is not None
+            len(v) + len(d),
+            latest,
+            time.monotonic(),
+            settle,
+            identified=self.result is not None,
+            clock=clock,
         )
         for run_index in poll.ready:
             self._run_complete(run_index)

@@ -16,7 +16,12 @@ reliable / transient-local only if every offer was.
 Services: ``~/pause``, ``~/resume`` (std_srvs/Trigger), ``~/set_paused`` (std_srvs/SetBool);
 while paused the clock keeps being published, frozen. When the bag is done (and ``loop`` is
 off) the node waits until its reliable subscribers have acknowledged everything (at most
-``drain_timeout``), then exits with status 0.
+``drain_timeout``), says ``played N of M messages``, then exits with status 0; stopped before
+that, it says in one line how much of the bag was not played.
+
+``bag``: a path as given (relative to the current folder); failing that, a relative path is
+looked up in the repository beside the package, so ``bags/ch10_identification`` (a sample bag)
+is found from any folder. No bag there is bad input: one line, exit code 2.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from piezo_stage.bag import BagError, bag_info, read_raw
 from piezo_stage.bag.errors import BagDamageWarning
 from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 
+from .errors import RosParameterError
 from .parameters import declare_table
 from .qos import COMMAND_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
@@ -48,6 +54,26 @@ from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
 
 CLOCK_TOPIC = "/clock"
+#: the repository (source checkout) holding the package: its bags/ has the sample bags
+REPOSITORY = Path(__file__).resolve().parents[2]
+
+
+def find_bag(name: str) -> Path:
+    """The bag ``name`` names: as given (``~`` expanded, relative to the current folder);
+    failing that, a relative ``name`` in the repository beside the package (the sample bags:
+    ``bags/ch10_identification``). Raises :class:`RosParameterError` naming the places tried."""
+    path = Path(name).expanduser()
+    if path.exists():
+        return path.absolute()
+    tried = [path.absolute()]
+    if not path.is_absolute():
+        shipped = REPOSITORY / path
+        if shipped.exists():
+            return shipped
+        tried.append(shipped)
+    raise RosParameterError(
+        f"player: parameter 'bag': no bag at {name} (tried {', '.join(map(str, tried))})"
+    )
 
 
 def playback_qos(profiles: Sequence[dict[str, Any]], queue_depth: int) -> QoSProfile:
@@ -81,7 +107,13 @@ def _time_msg(t_ns: int) -> Time:
 PARAMETERS = ParameterTable(
     "player",
     (
-        Param("bag", "", "rosbag2 folder or .mcap file to play", read_only=True),
+        Param(
+            "bag",
+            "",
+            "rosbag2 folder or .mcap file to play (relative: to the current folder, else to "
+            "the repository: bags/... finds the sample bags from anywhere)",
+            read_only=True,
+        ),
         Param(
             "rate",
             1.0,
@@ -173,8 +205,10 @@ class PlayerNode(Node):
         self.wait_timeout, self.drain_timeout = p["wait_timeout"], p["drain_timeout"]
 
         if not bag:
-            raise PlaybackError("parameter 'bag' (rosbag2 folder or .mcap file) is required")
-        self.bag_path = Path(bag)
+            raise RosParameterError(
+                "player: parameter 'bag' (rosbag2 folder or .mcap file) is required"
+            )
+        self.bag_path = find_bag(bag)
         try:
             info = bag_info(self.bag_path)
         except BagError as exc:
@@ -226,9 +260,18 @@ class PlayerNode(Node):
 
         self._first_ns = info["start_ns"] + int(round(start_offset * 1e9))
         self._end_ns = self._first_ns + int(round(duration * 1e9)) if duration > 0 else None
+        self._last_ns = int(info["end_ns"])
+        # messages of one pass over the bag (known when the whole bag is played)
+        self.total: int | None = (
+            sum(info["topics"][name]["count"] for name in self._outputs)
+            if start_offset == 0 and duration == 0
+            else None
+        )
         self.finished = False
         self.exit_code = 0
         self.played = 0  # messages published (all loops)
+        self.complete = False  # the bag (or its window) was played to the end
+        self._at_ns = self._first_ns  # bag time of the last message published
         self.loops_done = 0
         self._lock = threading.Condition()
         self._stop = False
@@ -280,15 +323,31 @@ class PlayerNode(Node):
             self._wait_for_subscribers()
             while not self._stop:
                 self._play_once()
+                if self._stop:
+                    break
                 self.loops_done += 1
                 if not self.loop:
+                    self.complete = True
                     break
             self._drain()
         except Exception as exc:  # the executor thread ends the process with the status
             self.get_logger().error(f"playback failed: {exc}")
             self.exit_code = 1
-        self.get_logger().info(f"played {self.played} messages")
+        if self.complete or self.loops_done:
+            of = f" of {self.total}" if self.total is not None and not self.loop else ""
+            self.get_logger().info(f"played {self.played}{of} messages")
+        else:
+            self.get_logger().warning(self._shortfall())
         self.finished = True
+
+    def _shortfall(self) -> str:
+        """One line: how much of the bag was not played (stopped or failed before its end)."""
+        of = f" of {self.total}" if self.total is not None else ""
+        end_ns = self._last_ns if self._end_ns is None else min(self._end_ns, self._last_ns)
+        return (
+            f"stopped after {self.played}{of} messages, at {1e-9 * self._at_ns:.6g} s of "
+            f"{1e-9 * end_ns:.6g} s: the rest of {self.bag_path} was not played"
+        )
 
     def _drain(self) -> None:
         """Wait (up to ``drain_timeout``) until the reliable subscribers acknowledged everything:
@@ -343,6 +402,7 @@ class PlayerNode(Node):
                 next_tick_ns = t_ns + int(tick * 1e9)
             self._outputs[topic].publisher.publish(data)
             self.played += 1
+            self._at_ns = t_ns
 
     def _wait_until(self, t_ns: int, next_tick: float, tick: float) -> float:
         """Sleep until bag time ``t_ns`` is due, publishing /clock ticks meanwhile; return
