@@ -59,7 +59,11 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--amplitude", type=float, default=10e-6, help="half the range [m] (10e-6)")
     group.add_argument("--frequency", type=float, default=10.0, help="[Hz] (10)")
     group.add_argument(
-        "--offset", type=float, default=None, help="mid-range [m] (default: amplitude)"
+        "--offset",
+        type=float,
+        default=None,
+        help="mid-range [m] (default: amplitude + 6e-6: x_d from 6 um up, where the hysteresis "
+        "needs no voltage below the amplifier's 0 V)",
     )
     group.add_argument(
         "--rounding",
@@ -92,8 +96,9 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         choices=("sim", "emulated_rig"),
         default="sim",
         help="sim: the lockstep plant; emulated_rig: `emulate rig` around the plant model with "
-        "the driver, reader and controller in one process (real time; x_d from 6 um up unless "
-        "--offset)",
+        "the driver, reader and controller in one process (real time); both with the emulated "
+        "rig's 0-400 V amplifier: a trajectory the --model says needs more is refused (exit 2) "
+        "with the largest amplitude that fits",
     )
     group.add_argument(
         "--rate-hz",

@@ -10,6 +10,17 @@ with the reason). ``emulated_rig``: the same controller composed with the voltag
 laser reader (``rig_loop``) on ``piezo-stage emulate rig`` around the plant model, in real
 time at the sensor's rate (1 or 10 kHz). The plant starts at rest at x_d(0).
 
+Both graphs have the emulated rig's amplifier, [v_min, v_max] of its driver in
+config/graphs/emulated_rig.yaml (:func:`rig_amplifier_range`, 0-400 V): the sim plant clamps to
+it and the controller's u_min/u_max are set to it, so the two graphs agree on what is
+possible. A periodic trajectory without ``offset`` runs from :data:`FLOOR` up (the voltage the
+hysteresis needs on the way down to 0 µm is below the amplifier's 0 V). Before anything
+starts, :func:`check_voltage_range` refuses (:class:`ExperimentInputError`, exit 2) a
+trajectory whose voltage need by ``model`` (:func:`piezo_stage.control.voltage_range.voltage_need`,
+the ch. 11 inverse model) leaves the range the run's graph sets (the controller's u_min/u_max
+and the plant's or driver's v_min/v_max) less the PID's margin, naming the largest amplitude
+the range admits at that offset.
+
 The feedforward of a trajectory is the staircase the model says the sampled loop needs
 (:mod:`piezo_stage.control.learning`; ``feedforward_form``). ``learn`` N: the controller learns
 it over the first N periods (then keeps it; ``table_out`` saves it, ``table`` replays a saved
@@ -45,6 +56,12 @@ from piezo_stage.control.learning import FeedforwardForm, FeedforwardTable, traj
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
+from piezo_stage.control.voltage_range import (
+    PID_MARGIN,
+    AmplifierRange,
+    largest_amplitude,
+    voltage_need,
+)
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, save_parameter_set
 
@@ -66,11 +83,10 @@ DEFAULT_PLANT = "ch11_rig.yaml"
 GRAPHS = ("sim", "emulated_rig")
 #: the emulated rig's sensor (optoNCDT family) at each rate it serves
 RIG_RATES = {1000.0: "ild1320", 10000.0: "ild2300"}
-#: [V] the emulated rig's amplifier range
-RIG_RANGE = (0.0, 400.0)
-#: [m] lowest x_d on the emulated rig when no offset is given: above κw/κx (4.2 µm on the ch. 11
-#: rig), where the voltage the hysteresis needs on the way down stays above the amplifier's 0 V
-RIG_FLOOR = 6e-6
+#: [m] lowest x_d of a periodic trajectory when no offset is given: above κw/κx (4.2 µm on the
+#: ch. 11 rig), where the voltage the hysteresis needs on the way down stays above the
+#: amplifier's 0 V
+FLOOR = 6e-6
 _counter = iter(range(1, 1 << 30))
 
 
@@ -100,13 +116,25 @@ class TrackingSpec:
     table: str | None = None
     table_out: str | None = None
 
+    @property
+    def shaped(self) -> bool:
+        """A periodic shape (triangle, sine, steps), not a file."""
+        return self.trajectory in ("sine", "triangle", "steps")
+
+    @property
+    def effective_offset(self) -> float | None:
+        """``offset``, else (a periodic shape) amplitude + :data:`FLOOR`: x_d from FLOOR up."""
+        if self.offset is None and self.shaped:
+            return self.amplitude + FLOOR
+        return self.offset
+
     def make_trajectory(self) -> Trajectory:
         try:
             return make_trajectory(
                 self.trajectory,
                 amplitude=self.amplitude,
                 frequency=self.frequency,
-                offset=self.offset,
+                offset=self.effective_offset,
                 rounding=self.rounding,
                 v_max=self.v_max,
                 a_max=self.a_max,
@@ -222,12 +250,10 @@ def _controller(
         "hold_voltage": u_start,
         "wait_for_state_subscribers": 1,
         "reference_source": "trajectory",
-        "trajectory": spec.trajectory
-        if spec.trajectory in ("sine", "triangle", "steps")
-        else str(Path(spec.trajectory).resolve()),
+        "trajectory": spec.trajectory if spec.shaped else str(Path(spec.trajectory).resolve()),
         "trajectory_amplitude": spec.amplitude,
         "trajectory_frequency": spec.frequency,
-        "trajectory_offset": math.nan if spec.offset is None else spec.offset,
+        "trajectory_offset": math.nan if spec.effective_offset is None else spec.effective_offset,
         "trajectory_rounding": spec.rounding,
         "compensation": comp.value,
         "feedforward_model": model_file,
@@ -258,6 +284,7 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
     x_start = float(trajectory.evaluate(0.0)[0])
     bw = plant_ps.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
+    v_min, v_max = rig_amplifier_range()  # the emulated rig's amplifier: the same limits
     plant = {
         "model_file": str(find_config(spec.plant_model))
         if isinstance(spec.plant_model, str)
@@ -265,8 +292,8 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         "clock_mode": "lockstep",
         "rate_hz": rate,
         "lockstep_timeout": 2.0,
-        "v_min": -450.0,
-        "v_max": 450.0,
+        "v_min": v_min,
+        "v_max": v_max,
         "w0": 0.0,
         "initial_displacement": x_start - bw.y0,
         "initial_voltage": u_start,
@@ -276,9 +303,94 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         "use_sim_time": True,
         "sensor_qos": "reliable",
         **_controller(spec, comp, model_file, u_start, rate),
+        "u_min": v_min,
+        "u_max": v_max,
     }
     return Plan(
         "tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant), controller
+    )
+
+
+def rig_amplifier_range() -> tuple[float, float]:
+    """[V] the emulated rig's amplifier (config/graphs/emulated_rig.yaml): its driver's
+    v_min/v_max within the emulated amplifier's ``--amp-range``."""
+    from piezo_stage.launch.graph import find_graph, load_yaml
+
+    data = load_yaml(find_graph("emulated_rig").read_text())
+    return graph_amplifier_range(data["nodes"])
+
+
+def graph_amplifier_range(
+    nodes: list[dict[str, Any]], plant: dict[str, Any] | None = None
+) -> tuple[float, float]:
+    """[V] the narrowest of what a graph's entries set: the controller's u_min/u_max, the
+    voltage driver's v_min/v_max, the emulator's ``--amp-range`` (and ``plant``'s v_min/v_max:
+    the sim plan's plant node); ±inf where none is set."""
+    low, high = -math.inf, math.inf
+    limits = [] if plant is None else [(plant.get("v_min"), plant.get("v_max"))]
+    for entry in nodes:
+        overrides = entry.get("overrides", {})
+        if entry.get("executable") == "controller":
+            limits.append((overrides.get("u_min"), overrides.get("u_max")))
+        elif entry.get("executable") in ("voltage_driver", "plant"):
+            limits.append((overrides.get("v_min"), overrides.get("v_max")))
+        command = entry.get("command") or []
+        if "--amp-range" in command:
+            i = command.index("--amp-range")
+            limits.append((command[i + 1], command[i + 2]))
+    for lo, hi in limits:
+        low = low if lo is None else max(low, float(lo))
+        high = high if hi is None else min(high, float(hi))
+    return low, high
+
+
+def check_voltage_range(spec: TrackingSpec, amplifier: tuple[float, float]) -> None:
+    """Refuse (:class:`ExperimentInputError`, one line) a trajectory whose voltage need by the
+    feedforward model (the ch. 11 inverse model along x_d; no model: nothing to check) leaves
+    ``amplifier`` less the PID's margin, naming the need, the range and the largest amplitude
+    the range admits at the trajectory's offset (bisection)."""
+    if spec.model is None:
+        return
+    try:
+        # feedforward alone: no law adds to u_ff, so no margin is kept for it
+        share = 0.0 if compensation(spec.compensation) is Compensation.FEEDFORWARD else PID_MARGIN
+        model = FeedforwardModel.from_parameter_set(_load(spec.model, "model"))
+        rng = AmplifierRange(*amplifier, margin_share=share)
+    except ControlError as exc:
+        raise ExperimentInputError(str(exc)) from exc
+    trajectory = spec.make_trajectory()
+    need = voltage_need(model, trajectory)
+    if rng.admits(need):
+        return
+    low, high = rng.usable
+    text = (
+        f"the {spec.graph} graph's amplifier cannot drive this trajectory: {_asked(spec)} needs "
+        f"{need.low:.4g} to {need.high:.4g} V by the model (u = m·ẍ_d + c·ẋ_d + κx·x_d + "
+        f"κw·w(x_d)), the range is {rng.u_min:g} to {rng.u_max:g} V"
+        + (f" ({low:.4g} to {high:.4g} V leaving {rng.margin:.3g} V to the PID)" if share else "")
+    )
+    offset = spec.effective_offset
+    if spec.shaped and offset is not None:
+
+        def at(amplitude: float) -> Trajectory:
+            return replace(spec, amplitude=amplitude, offset=offset).make_trajectory()
+
+        best = largest_amplitude(model, at, rng, spec.amplitude)
+        text += (
+            f"; at offset {offset:.4g} m the largest amplitude it allows is {best:.4g} m "
+            f"(--offset {offset:.4g} --amplitude {best:.4g})"
+            if best > 0
+            else f"; no amplitude at offset {offset:.4g} m: choose another --offset"
+        )
+    raise ExperimentInputError(text)
+
+
+def _asked(spec: TrackingSpec) -> str:
+    if not spec.shaped:
+        return f"trajectory {spec.trajectory}"
+    return (
+        f"a {spec.frequency:g} Hz {spec.trajectory} of amplitude {spec.amplitude:.4g} m at "
+        f"offset {spec.effective_offset:.4g} m"
     )
 
 
@@ -289,17 +401,17 @@ def _free_port() -> int:
 
 
 def emulated_rig_graph(
-    spec: TrackingSpec, model_file: str, namespace: str, folder: Path
+    spec: TrackingSpec, model_file: str, namespace: str, folder: Path, port: int | None = None
 ) -> tuple[dict[str, Any], float]:
     """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
     controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
-    seconds to record."""
+    seconds to record. ``port``: the amplifier's TCP port (default: a free one)."""
     from piezo_stage.launch.graph import find_graph, load_yaml
 
     comp, _ = _check(spec)
     trajectory = spec.make_trajectory()
     rate = float(spec.rate_hz)
-    port, link = _free_port(), str(folder / "sensor")
+    port, link = _free_port() if port is None else port, str(folder / "sensor")
     data = load_yaml(find_graph("emulated_rig").read_text())
     plant = str(find_config(spec.plant_model)) if isinstance(spec.plant_model, str) else ""
     if not plant:
@@ -339,10 +451,9 @@ def emulated_rig_graph(
                     },
                 }
             )
-    controller = _controller(spec, comp, model_file, RIG_RANGE[0], rate)
-    controller.update(u_min=RIG_RANGE[0], u_max=RIG_RANGE[1], hold_voltage=math.nan)
-    if spec.offset is None:  # x_d from RIG_FLOOR up: the amplifier's 0 V is no floor to track on
-        controller["trajectory_offset"] = spec.amplitude + RIG_FLOOR
+    u_min, u_max = graph_amplifier_range(nodes)  # the driver's and the emulator's limits
+    controller = _controller(spec, comp, model_file, u_min, rate)
+    controller.update(u_min=u_min, u_max=u_max, hold_voltage=math.nan)
     nodes.append({"executable": "controller", "process": "rig_loop", "overrides": controller})
     graph = {
         **data,
@@ -351,6 +462,16 @@ def emulated_rig_graph(
         "description": f"tracking on the emulated rig ({spec.trajectory})",
     }
     return graph, spec.timing(trajectory)[0]
+
+
+def run_amplifier_range(spec: TrackingSpec) -> tuple[float, float]:
+    """[V] the amplifier range the run's plan (sim) or graph (emulated_rig) sets."""
+    if spec.graph == "sim":
+        plan = make_tracking_plan(spec, "")
+        controller = {"executable": "controller", "overrides": plan.controller}
+        return graph_amplifier_range([controller], plan.plant)
+    graph, _ = emulated_rig_graph(spec, "", "/range", Path(tempfile.gettempdir()), port=0)
+    return graph_amplifier_range(graph["nodes"])
 
 
 def _run_once(
@@ -420,6 +541,7 @@ def run_tracking(
     if bag is not None and Path(bag).exists():
         raise ExperimentInputError(f"bag {bag} already exists")
     trajectory = spec.make_trajectory()
+    check_voltage_range(spec, run_amplifier_range(spec))
     seconds, t_from = spec.timing(trajectory)
     if duration is not None:
         seconds = duration
