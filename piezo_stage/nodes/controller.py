@@ -19,6 +19,11 @@ are checked against Theorem 4 (the Assumption 2 bounds of ``bounds_file``) and t
 check at the running rate and delay, and refused with the reason unless
 ``allow_unverified_gains`` is true.
 
+Saturation: ``controller_state.saturated`` says whether that step's output was clamped to
+``u_min``/``u_max`` (set alike by the composed form); /diagnostics (every second) warns with the
+share of the steps saturated since its previous report (``saturated_share``). The loop only
+counts; the report is the diagnostics timer's.
+
 Services: ``~/close_loop``, ``~/open_loop`` (std_srvs/Trigger).
 
 Tracking: ``reference_source: trajectory`` generates x_d, ẋ_d, ẍ_d in closed form
