@@ -15,7 +15,6 @@ from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.errors import ControllerConfigError
 from piezo_stage.control.laws import THESIS_GAINS, Gains
 from piezo_stage.control.supervision import (
-    START_GRACE,
     GainCheck,
     Gap,
     Health,
@@ -135,10 +134,10 @@ def test_a_long_gap_opens_the_loop_whether_a_tick_or_the_next_sample_sees_it():
 
 def test_a_start_up_gap_re_arms_start_closed_and_later_ones_latch():
     """A graph's start (DDS matching, a slow first step that overflows a shallow sensor queue)
-    must not leave a loop asked to start closed open for good: within START_GRACE of the first
+    must not leave a loop asked to start closed open for good: within start_grace of the first
     closing a gap or an invalid sample holds and re-closes at the next valid sample; after it,
     faults latch as always."""
-    sup = supervisor(start_closed=True, max_gap=0.02, hold=20.0)
+    sup = supervisor(start_closed=True, max_gap=0.02, hold=20.0, start_grace=1.0)
     run(sup, 0.0)
     assert sup.pid.loop_closed
     # the sample after a 50 ms silence: held, re-armed, closed again on that same sample
@@ -155,9 +154,9 @@ def test_a_start_up_gap_re_arms_start_closed_and_later_ones_latch():
     assert run(sup, 0.1, math.nan, ok=False) == 20.0 and not sup.fault
     run(sup, 0.1 + T)
     assert sup.pid.loop_closed
-    # past START_GRACE (counted from the first closing, not from the re-closings): latched
+    # past start_grace (counted from the first closing, not from the re-closings): latched
     t = 0.1 + T
-    while t < START_GRACE + 0.01:
+    while t < 1.0 + 0.01:
         t += 0.01  # 10 ms apart: held gaps, never beyond max_gap
         run(sup, t)
     assert sup.pid.loop_closed and not sup.fault
@@ -166,6 +165,10 @@ def test_a_start_up_gap_re_arms_start_closed_and_later_ones_latch():
     assert sup.events[-1][0] is Health.ERROR
     run(sup, t + 0.05 + T)
     assert not sup.pid.loop_closed  # latched until a close request
+    # start_grace 0: the first gap latches (the rule before the grace)
+    sup0 = supervisor(start_closed=True, max_gap=0.02, hold=20.0, start_grace=0.0)
+    run(sup0, 0.0)
+    assert run(sup0, 0.05) == 20.0 and "0.05" in sup0.fault
 
 
 def test_timer_ticks_step_only_on_new_samples():

@@ -239,7 +239,7 @@ def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(p
             {kv.key: kv.value for kv in diagnostics[-1].values}.get(key, "") if diagnostics else ""
         )
 
-    with Rig("rig_loop", tmp_path, "controller.max_gap:=0.2") as rig:
+    with Rig("rig_loop", tmp_path, "controller.max_gap:=0.2", "controller.start_grace:=0.0") as rig:
         assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 300, 30.0), rig.log
         rig.sensor_faults.silent = True
         time.sleep(0.05)

@@ -9,7 +9,7 @@ One object serves the ``controller`` node (samples from a topic) and the compose
   command stays on the amplifier) and resumes at the next sample, counted in ``gaps_held``; a
   longer one opens the loop like an invalid sample;
 - **start_closed**: the loop closes at the first valid sample; until then an invalid sample or a
-  gap only delays the closing (``waiting``). Within ``START_GRACE`` of that first closing, a gap
+  gap only delays the closing (``waiting``). Within ``start_grace`` of that first closing, a gap
   or an invalid sample opens the loop and re-arms start_closed instead of latching a fault: a
   graph's start (DDS matching, a first step that pays for first calls while a shallow sensor
   queue overflows) must not leave a loop that was asked to start closed open for good;
@@ -43,8 +43,6 @@ from .theorem4 import validate_gains
 
 #: a sample later than this many periods after the previous one starts a gap
 GAP_PERIODS = 1.5
-#: seconds after start_closed first closed the loop in which a fault re-arms it (start-up)
-START_GRACE = 2.0
 
 
 class Health(enum.IntEnum):
@@ -82,6 +80,7 @@ class SupervisionConfig:
     u_max: float = math.inf
     start_closed: bool = False
     max_gap: float = 0.02
+    start_grace: float = 1.0  # s after start_closed first closed the loop: faults re-arm it
     open_at: float = -1.0
     open_after: float = -1.0
     open_duration: float = 0.0
@@ -96,6 +95,8 @@ class SupervisionConfig:
                 f"max_gap must be at least {GAP_PERIODS} periods ({GAP_PERIODS / self.rate_hz:g} s "
                 f"at {self.rate_hz:g} Hz), got {self.max_gap}"
             )
+        if not 0 <= self.start_grace < math.inf:
+            raise ControllerConfigError(f"start_grace must be >= 0 s, got {self.start_grace}")
         if not self.open_duration >= 0:
             raise ControllerConfigError(f"open_duration must be >= 0 s, got {self.open_duration}")
 
@@ -178,13 +179,16 @@ class LoopSupervisor:
         self.saturated_steps = 0  # steps whose output was clamped to [u_min, u_max]
         self._saturation = SaturationWindow()
         self.gaps_held = 0  # gaps shorter than max_gap ridden through
+        #: outputs never written: a newer sample of the same sensor read superseded them (the
+        #: composed loop writes the newest output of a read; the caller counts)
+        self.superseded = 0
         self.longest_gap = 0.0  # [s]
         self._in_gap = False
         self._stepped_on: float | None = None  # the sample time of the last step
         self._start_closed = config.start_closed
         self._window, self._window_t = Window.PENDING, math.nan
         self._closed_at = math.nan  # when start_closed closed the loop
-        self._first_closed_at = math.nan  # when it first did (START_GRACE counts from there)
+        self._first_closed_at = math.nan  # when it first did (start_grace counts from there)
 
     # ------------------------------------------------------------------ frames
     def command(self, out: ControlOutput) -> float:
@@ -273,8 +277,8 @@ class LoopSupervisor:
             self.fault = reason
 
     def starting(self, t: float) -> bool:
-        """True within ``START_GRACE`` of start_closed's first closing (a fault re-arms it)."""
-        return t - self._first_closed_at < START_GRACE
+        """True within ``start_grace`` of start_closed's first closing (a fault re-arms it)."""
+        return t - self._first_closed_at < self.config.start_grace
 
     @property
     def closing_pending(self) -> bool:
@@ -356,6 +360,7 @@ class LoopSupervisor:
             "saturated_steps": self.saturated_steps,
             "saturated_share": share,
             "gaps_held": self.gaps_held,
+            "superseded": self.superseded,
             "longest_gap": self.longest_gap,
         }
         if self.fault:

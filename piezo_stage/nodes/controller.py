@@ -177,6 +177,15 @@ PARAMETERS = ParameterTable(
         ),
         Param("start_closed", False, "close the loop at the first valid sample"),
         Param(
+            "start_grace",
+            1.0,
+            "after start_closed first closed the loop: a gap or invalid sample this soon "
+            "holds and closes again at the next valid sample instead of latching a fault",
+            "s",
+            range=(0.0, 60.0),
+            read_only=True,
+        ),
+        Param(
             "wait_for_state_subscribers",
             0,
             "trigger=sample and rig_loop: ignore samples until "
@@ -413,6 +422,7 @@ class ControllerNode(Node):
                 u_max=float(s.u_max),
                 start_closed=bool(s.start_closed),
                 max_gap=float(s.max_gap),
+                start_grace=float(s.start_grace),
                 open_at=float(s.open_at),
                 open_after=float(s.open_after),
                 open_duration=float(s.open_duration),

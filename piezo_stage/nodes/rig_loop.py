@@ -226,6 +226,7 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     if os.environ.get("PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR") == "1":
         handoff.attach(driver, handoff.period)
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
+    supervisor = controller.supervisor
     nan = math.nan
 
     def step(value: list[float], status: list[int], stamp: list[int]) -> list[bool] | None:
@@ -234,10 +235,12 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
         goes into the batch; the per-sample topics take the due ones."""
         due = topics.due(len(value))
         u = None
+        outputs = 0
         rows: list[Row] = []
         for x, st, ns, publish in zip(value, status, stamp, due):
             out = controller.on_sample(ns, x, st == 0, publish)
-            u = u if out is None else out
+            if out is not None:
+                u, outputs = out, outputs + 1
             law = controller.last_step
             rows.append(
                 (ns, x, st, nan, nan if out is None else out, 0.0, False)
@@ -246,6 +249,7 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
             )
         if u is not None:
             driver.command(u, publish=due[-1])
+            supervisor.superseded += outputs - 1
         handoff.put(batch.add, rows, driver.driver.last_sent)
         handoff.drain_due()
         return None if topics.every == 1 else due

@@ -6,6 +6,7 @@ for subscribers to match and to acknowledge, and the clocks and stamps nodes sha
 
 from __future__ import annotations
 
+import gc
 import inspect
 import signal
 import sys
@@ -191,6 +192,12 @@ def run(
         for node in nodes:
             warm_log_lookup(type(node))
             executor.add_node(node)
+        # what the start made lives as long as the process: out of the collector's reach, so
+        # that no full collection of the start's heap (tens of ms, more on a busy host) stalls
+        # a callback later; the separate controller lost the sensor samples of such a stall
+        # (a 5-deep best-effort queue) and opened its loop for a gap that was its own
+        gc.collect()
+        gc.freeze()
         # the isinstance checks once here: a turn of a 10 kHz loop reads only the attributes
         finishing = [n for n in nodes if isinstance(n, Finishes)]
         while not stop.is_set() and rclpy.ok() and not any(n.finished for n in finishing):
