@@ -1,5 +1,6 @@
-"""Locate the YAML files shipped in the package's ``config/`` folder, and read YAML files with
-errors that name the file (:func:`read_yaml`).
+"""Locate the YAML files shipped in the package's ``config/`` folder (:func:`find_config`),
+files a user names (:func:`find_user_file`: where the user stands first), and read YAML files
+with errors that name the file (:func:`read_yaml`).
 
 Installed (colcon / ament): ``<share>/piezo_stage/config/<name>``; from a source checkout:
 ``<repository>/config/<name>`` next to the ``piezo_stage`` package folder.
@@ -7,6 +8,7 @@ Installed (colcon / ament): ``<share>/piezo_stage/config/<name>``; from a source
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +43,14 @@ def find_config(name: str) -> Path:
     """Path of the shipped config file ``name`` (e.g. ``"thesis_rig_bounds.yaml"``).
 
     Looks in the ament share directory ``piezo_stage/config`` when ``ament_index_python`` is
-    importable and the package is installed, then in the repository's ``config/`` folder.
-    Raises :class:`ConfigNotFoundError` naming every place tried.
+    importable and the package is installed, then in the repository's ``config/`` folder (an
+    absolute ``name`` is that file). Raises :class:`ConfigNotFoundError` naming every place
+    tried. For a path a user typed, use :func:`find_user_file`.
     """
+    if Path(name).is_absolute():
+        if Path(name).is_file():
+            return Path(name)
+        raise ConfigNotFoundError(f"file {str(name)!r} not found")
     tried = _candidates(name)
     for path in tried:
         if path.is_file():
@@ -51,6 +58,45 @@ def find_config(name: str) -> Path:
     raise ConfigNotFoundError(
         f"config file {name!r} not found; tried: " + ", ".join(str(p) for p in tried)
     )
+
+
+def shipped_names(folder: str, suffixes: tuple[str, ...] = (".yaml", ".yml")) -> list[str]:
+    """The stems of the shipped config files in ``folder`` (e.g. ``"graphs"``), sorted."""
+    names: set[str] = set()
+    for place in _candidates(folder):
+        if place.is_dir():
+            names.update(p.stem for p in place.iterdir() if p.suffix in suffixes and p.is_file())
+    return sorted(names)
+
+
+def find_user_file(name: str | os.PathLike[str]) -> Path:
+    """The absolute path of a file a user named: ``name`` as given (``~`` expanded), relative to
+    the current folder; failing that, a relative ``name`` may be a shipped config file (e.g.
+    ``ch11_rig.yaml``, see :func:`find_config`). Raises :class:`ConfigNotFoundError` naming
+    every place tried.
+
+    Resolve a user's path with this where the user typed it (the command line): a process it is
+    passed on to may run in another folder.
+    """
+    path = Path(os.path.expanduser(os.fspath(name)))
+    if path.is_file():
+        return path.resolve()
+    if path.is_absolute():
+        raise ConfigNotFoundError(f"file {os.fspath(name)!r} not found")
+    shipped = _candidates(os.fspath(path))
+    for candidate in shipped:
+        if candidate.is_file():
+            return candidate
+    raise ConfigNotFoundError(
+        f"file {os.fspath(name)!r} not found; tried: {Path.cwd() / path}, then as a shipped "
+        "config: " + ", ".join(str(p) for p in shipped)
+    )
+
+
+def user_output_path(name: str | os.PathLike[str]) -> Path:
+    """The absolute path a user named for a file to write (``~`` expanded; relative to the
+    current folder), resolved where the user typed it."""
+    return Path(os.path.expanduser(os.fspath(name))).absolute()
 
 
 def read_yaml(path: str | Path, error: type[Exception], what: str = "file") -> Any:

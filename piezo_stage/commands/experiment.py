@@ -1,5 +1,6 @@
-"""Run a thesis ch. 11 experiment (regulation | perturbation), or tracking, through the
-ROS graph on the simulated rig.
+"""Run a ch. 11 experiment (regulation | perturbation) or tracking through a ROS graph.
+
+The experiment runs on the simulated rig (tracking also on the emulated rig, --graph).
 
 The plant node (ch. 11 rig, dynamic form) and the controller node run in lockstep at the lowest
 loop rate at which the sampled loop is stable (the control core's check, delay 0); prints a
@@ -11,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+from pathlib import Path
 
 from piezo_stage.control.laws import LAWS
 from piezo_stage.experiments.plan import DEFAULT_DURATION
@@ -132,6 +135,50 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     )
 
 
+_SHAPES = ("triangle", "sine", "steps")
+
+
+def _user_paths(args: argparse.Namespace) -> None:
+    """Resolve the paths the user typed against the current folder, here at the door: the
+    graph's processes may run elsewhere. Files to read must exist (a bare name such as
+    ``ch11_rig.yaml`` may be a shipped config); a file to write must be writable, checked
+    before anything runs. Raises ExperimentInputError (exit 2) with the reason."""
+    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.experiments import ExperimentInputError
+
+    for key, option in (("model", "--model"), ("plant_model", "--plant-model")):
+        value = getattr(args, key)
+        if value is not None:
+            try:
+                setattr(args, key, str(find_user_file(value)))
+            except ConfigNotFoundError as exc:
+                raise ExperimentInputError(f"{option}: {exc}") from None
+    if args.trajectory not in _SHAPES:
+        args.trajectory = str(user_output_path(args.trajectory))
+    for key in ("table", "table_out", "png", "bag"):
+        if getattr(args, key) is not None:
+            setattr(args, key, str(user_output_path(getattr(args, key))))
+    if args.identify_model:
+        out = user_output_path(args.identify_model)
+        why = _unwritable(out)
+        if why:
+            raise ExperimentInputError(f"--identify-model {args.identify_model}: {why}")
+        args.identify_model = str(out)
+
+
+def _unwritable(path: Path) -> str:
+    """Why the file ``path`` cannot be written ('' when it can)."""
+    if path.is_dir():
+        return "is a folder"
+    if not path.parent.is_dir():
+        return f"no folder {path.parent}"
+    if path.exists() and not os.access(path, os.W_OK):
+        return "not writable"
+    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
+        return f"folder {path.parent} is not writable"
+    return ""
+
+
 def _run_tracking(args: argparse.Namespace, progress) -> dict:
     from piezo_stage.control.tracking import TRACKING_RATE_HZ
     from piezo_stage.experiments.tracking import TrackingSpec, identify_model, run_tracking
@@ -179,11 +226,12 @@ def run(args: argparse.Namespace) -> int:
 
     gains = {k: getattr(args, k) for k in ("A", "kA", "f") if getattr(args, k) is not None}
 
-    def progress(fraction: float, text: str) -> None:
-        if not args.json:
-            print(f"[{fraction * 100:5.1f} %] {text}", file=sys.stderr)
+    def progress(fraction: float, text: str) -> None:  # stderr: --json's stdout stays clean
+        print(f"[{fraction * 100:5.1f} %] {text}", file=sys.stderr, flush=True)
 
     try:
+        if args.name == "tracking":
+            _user_paths(args)
         # the lockstep plant owns /clock, which is global: run on a ROS domain of its own, so
         # that a stage already running on this machine neither drives nor sees this run's clock
         with isolated_domain():

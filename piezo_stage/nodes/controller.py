@@ -52,7 +52,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from piezo_stage.config_path import find_config
+from piezo_stage.config_path import find_user_file
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, load_bounds, load_nominal_plant
 from piezo_stage.control.controller import (
     ANTI_WINDUP,
@@ -392,7 +392,7 @@ class ControllerNode(Node):
         )
         self.settings = s = PARAMETERS.settings(declare_table(self, PARAMETERS))
 
-        bounds_path = find_config(s.bounds_file)
+        bounds_path = find_user_file(s.bounds_file)
         self._bias = float(s.u_bias)  # read-only: cached
         self._rate = float(s.rate_hz)
         self._gain_check = GainCheck(
@@ -508,7 +508,7 @@ class ControllerNode(Node):
                 "voltage; use one (u_bias: 0)"
             )
         try:
-            return FeedforwardModel.load(find_config(name))
+            return FeedforwardModel.load(find_user_file(name))
         except (ControlError, OSError) as exc:
             raise RosParameterError(f"controller: feedforward_model: {exc}") from None
 
@@ -537,7 +537,7 @@ class ControllerNode(Node):
         try:
             x_d, periodic = trajectory_samples(trajectory, self._rate)
             if s.feedforward_table:
-                table = FeedforwardTable.load(find_config(s.feedforward_table))
+                table = FeedforwardTable.load(find_user_file(s.feedforward_table))
                 why = table.matches(self._rate, x_d.size)
                 if why:
                     raise LearningError(f"feedforward_table {s.feedforward_table}: {why}")

@@ -33,7 +33,7 @@ from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from piezo_stage.config_path import find_config
+from piezo_stage.config_path import find_user_file
 from piezo_stage.model.errors import InvalidCommandError
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
@@ -191,7 +191,7 @@ class PlantNode(Node):
         super().__init__("plant", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
 
-        path = find_config(p["model_file"])
+        path = find_user_file(p["model_file"])
         self.parameter_set = load_parameter_set(path)
         w0 = self.parameter_set.w0 if math.isnan(p["w0"]) else p["w0"]
         self.stage = SimulatedStage(
