@@ -69,8 +69,8 @@ def test_human_table(capsys):
 
 
 def test_bad_input_exit_2(capsys, tmp_path):
-    code, _, err = gains(capsys, "--k1", "5e6", "--rate-hz", "1000")
-    assert code == 2 and "--k2 and --k0" in err
+    code, _, err = gains(capsys, "--k1", "5e6", "--k2", "500", "--rate-hz", "1000")
+    assert code == 2 and "no admissible gains" in err and "k2_min" in err  # no k0 exists
     flat = tmp_path / "b.yaml"
     flat.write_text(
         "m_min: 1e-3\nm_max: 2e-3\nc_max: 1\nkappa_x_max: 1e6\nkappa_w_max: 1\nsigma_max: 1\n"

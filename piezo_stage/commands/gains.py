@@ -1,7 +1,7 @@
 """Design/check time-varying PID gains with Theorem 4 (11.6-11.7) and the sampled-loop check.
 
 Prints k2_min (11.6) and k0_max (11.7) for the Assumption 2 bounds (default: the shipped
-thesis_rig_bounds.yaml, §11.4.1; any bound can be overridden), whether the given gains satisfy
+thesis_rig_bounds.yaml, §11.4.1; any bound can be overridden), whether the gains satisfy
 Theorem 4, and with --rate-hz the spectral radius of the sampled loop (ZOH plant, rectangle-sum
 x0, Euler-difference x2, optional output delay). Exit status: 0 valid (and stable when checked),
 1 not, 2 bad input. Values beyond 1e±150, a delay over 1000 samples, a rate so low that the held
@@ -9,6 +9,10 @@ plant overflows, or so high that the slowest closed-loop mode moves less than 1e
 (|λ_min|/2.2e-10 Hz: ρ would be rounding noise around 1) are refused with the reason. Note:
 §11.4.1 quotes k2_min = 567.6 and k0_max = 1.16e9; the printed formulas
 give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
+
+Design: a k2 or k0 not given is designed from k1 strictly inside Theorem 4, as `commission`
+does: k2 = (1 + G) k2_min, k0 = (1 - G) k0_max (--gain-margin G, default 0.1); the output
+marks them as designed, and --rate-hz checks the sampled loop of those gains.
 """
 
 from __future__ import annotations
@@ -34,8 +38,9 @@ from piezo_stage.control.discrete import (
 )
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.laws import LAWS, Gains
-from piezo_stage.control.theorem4 import GainReport, validate_gains
+from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
+DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
 _BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
 _NOMINAL_FLAGS = ("m", "c", "kappa_x", "kappa_w", "rho")
 _UNITS = {
@@ -67,8 +72,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         )
     g = parser.add_argument_group("gains")
     g.add_argument("--k1", type=physical, required=True, help="proportional gain k1 [V/m] (> 0)")
-    g.add_argument("--k2", type=physical, default=None, help="derivative gain k2 [V s/m]")
-    g.add_argument("--k0", type=physical, default=None, help="integral gain k0 [V/(m s)]")
+    g.add_argument(
+        "--k2",
+        type=physical,
+        default=None,
+        help="derivative gain k2 [V s/m] (default: designed, (1 + G) k2_min)",
+    )
+    g.add_argument(
+        "--k0",
+        type=physical,
+        default=None,
+        help="integral gain k0 [V/(m s)] (default: designed, (1 - G) k0_max)",
+    )
+    g.add_argument(
+        "--gain-margin",
+        type=physical,
+        default=DEFAULT_GAIN_MARGIN,
+        metavar="G",
+        help=f"margin of a designed k2 or k0, in (0, 1) (default {DEFAULT_GAIN_MARGIN:g})",
+    )
     g.add_argument(
         "--kA",
         "--ka",
@@ -134,6 +156,25 @@ def _load(args: argparse.Namespace) -> tuple[Path, Bounds, NominalPlant | None]:
     return path, bounds, nominal
 
 
+def _design(args: argparse.Namespace, bounds: Bounds) -> list[str]:
+    """Fill in k2 and k0 when not given (module docstring); the names of those designed."""
+    g = args.gain_margin
+    if not 0.0 < g < 1.0:
+        raise ControlError(f"--gain-margin must be in (0, 1), got {g:g}")
+    if not args.k1 > 0:
+        return []  # validate_gains says why
+    designed = []
+    if args.k2 is None:
+        args.k2 = (1.0 + g) * k2_min(bounds, args.k1)
+        designed.append("k2")
+    if args.k0 is None:
+        limit = k0_max(bounds, args.k1, args.k2)
+        if limit > 0:  # else no admissible k0 for this k2: validate_gains says so
+            args.k0 = (1.0 - g) * limit
+            designed.append("k0")
+    return designed
+
+
 def _discrete(
     args: argparse.Namespace, report: GainReport, nominal: NominalPlant | None
 ) -> SampledLoopReport:
@@ -141,8 +182,8 @@ def _discrete(
         raise ControlError(
             f"{args.bounds} has no 'nominal' section: give --m, --c and --kappa-x for --rate-hz"
         )
-    if report.k2 is None or report.k0 is None:
-        raise ControlError("--rate-hz needs --k2 and --k0")
+    if report.k2 is None or report.k0 is None:  # k2 <= k2_min: no k0 to design or check
+        raise ControlError("--rate-hz: no admissible gains to check: " + "; ".join(report.reasons))
     extra = {"kA": report.kA or 0.0}
     if report.f is not None:
         extra["f"] = report.f
@@ -163,7 +204,12 @@ def _fmt(value: float | None) -> str:
 
 
 def _print_table(
-    path: Path, bounds: Bounds, report: GainReport, disc: SampledLoopReport | None
+    path: Path,
+    bounds: Bounds,
+    report: GainReport,
+    disc: SampledLoopReport | None,
+    designed: list[str],
+    margin: float,
 ) -> None:
     print(f"Assumption 2 bounds ({path}):")
     for name, value in bounds.to_dict().items():
@@ -182,6 +228,9 @@ def _print_table(
     )
     if report.kA is not None or report.f is not None:
         print(f"  kA = {_fmt(report.kA):<12} f = {_fmt(report.f)} Hz")
+    rules = {"k2": f"(1 + {margin:g}) k2_min", "k0": f"(1 - {margin:g}) k0_max"}
+    for name in designed:
+        print(f"  {name} designed: {rules[name]}")
     print(f"  gains {'VALID' if report.valid else 'NOT VALID'}")
     for reason in report.reasons:
         print(f"    - {reason}")
@@ -202,6 +251,7 @@ def _print_table(
 def run(args: argparse.Namespace) -> int:
     try:
         path, bounds, nominal = _load(args)
+        designed = _design(args, bounds)
         report = validate_gains(bounds, args.k1, args.k2, args.k0, args.kA, args.f)
         disc = _discrete(args, report, nominal) if args.rate_hz is not None else None
     except ControlError as exc:
@@ -218,10 +268,12 @@ def run(args: argparse.Namespace) -> int:
             "bounds_file": str(path),
             "bounds": bounds.to_dict(),
             **report.to_dict(),
+            "designed": designed,
+            "gain_margin": args.gain_margin,
             "discrete": None if disc is None else disc.to_dict(),
         }
         print(json.dumps(out))
     else:
-        _print_table(path, bounds, report, disc)
+        _print_table(path, bounds, report, disc, designed, args.gain_margin)
     ok = report.valid and (disc is None or disc.stable)
     return 0 if ok else 1
