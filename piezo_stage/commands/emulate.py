@@ -6,8 +6,9 @@ so a launcher or a user can connect the voltage_driver / laser_reader nodes to i
 ``run:NAME`` puts it in the per-user run-time folder, where the reader's ``url: run:NAME`` finds
 it). Runs until Ctrl-C / SIGTERM (or --duration). Like a real device, it does not vanish under
 a driver that is still ramping its output to a safe voltage: on the first signal it
-keeps serving until its TCP clients have hung up, at most --linger seconds (a pty cannot tell
-whether its client is gone, so pty endpoints stop at once); a second signal stops it at once.
+keeps serving until its TCP clients have hung up, at most --linger seconds, then its ptys one
+second more (a pty cannot tell whether its client is gone: a reader signalled with it stops
+first); a second signal stops it at once.
 Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbage (random bursts),
 --hangup (a reply cut and the line dropped), --stall/--stall-time (the device stops), --slow
 (reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
@@ -16,6 +17,9 @@ Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbag
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
   piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link run:rig_sensor
+
+A TCP port already in use is one line and exit 2 (choose another --tcp / --amp-tcp, or 0 for
+any free one).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from piezo_stage.hardware.emulators import (
 from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
 
 SENSOR_FAMILIES = sorted(FAMILIES)
+PTY_GRACE = 1.0  # s a signalled emulator still serves its ptys (within --linger)
 
 
 def _faults(parser: argparse.ArgumentParser, link: bool = True) -> None:
@@ -184,9 +189,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rig = sub.add_parser("rig", help="amplifier + sensor bound to one simulated stage")
     rig.add_argument(
         "--params",
-        required=True,
+        default="ch11_rig.yaml",
         help="parameter-set YAML of the simulated stage (a path, or a name in config/, "
-        "e.g. ch10_patch.yaml)",
+        "e.g. ch10_patch.yaml; default ch11_rig.yaml, the ch. 11 rig)",
     )
     rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
     rig.add_argument(
@@ -316,14 +321,13 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
 
 
 def load_stage(path: str):
-    """The simulated stage of the parameter set at ``path``, or of the shipped config so named."""
-    from pathlib import Path
-
-    from piezo_stage.config_path import find_config
+    """The simulated stage of the parameter set at ``path`` (relative to the current folder),
+    or of the shipped config so named."""
+    from piezo_stage.config_path import find_user_file
     from piezo_stage.model.parameter_set import load_parameter_set
     from piezo_stage.model.stage import SimulatedStage
 
-    return SimulatedStage(load_parameter_set(path if Path(path).exists() else find_config(path)))
+    return SimulatedStage(load_parameter_set(find_user_file(path)))
 
 
 def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
@@ -333,11 +337,15 @@ def _announce(servers: dict[str, EmulatorServer], note: str = "") -> None:
 
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.config_path import ConfigNotFoundError
+    from piezo_stage.hardware.errors import HardwareError
     from piezo_stage.model.errors import ModelError
 
     try:
         servers = _servers(args)
-    except (ConfigNotFoundError, ModelError) as exc:  # --params missing or not a parameter set
+    except KeyboardInterrupt:  # stopped while starting (a launch stopped early): nothing to stop
+        return 130
+    except (ConfigNotFoundError, ModelError, HardwareError) as exc:
+        # --params missing or not a parameter set; a port another process listens on
         print(f"piezo-stage emulate: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
@@ -387,6 +395,13 @@ def run(args: argparse.Namespace) -> int:
                 time.sleep(0.02)
                 if (failed := _failed(servers)) is not None:
                     return failed
+            # a pty cannot tell whether its client is still there: serve it a little longer, so
+            # that a reader signalled at the same time as this emulator stops first and does not
+            # take the emulator's normal stop for a broken link
+            grace_end = time.monotonic() + min(PTY_GRACE, max(args.linger, 0.0))
+            if any(s.is_pty for s in servers.values()):
+                while signals[0] < 2 and time.monotonic() < grace_end:
+                    time.sleep(0.02)
     except KeyboardInterrupt:
         pass
     finally:

@@ -32,7 +32,7 @@ from typing import Protocol
 import numpy as np
 
 from ...runtime_dir import resolve
-from ..errors import ConfigError
+from ..errors import ConfigError, TransportError
 from ..timing import set_realtime_priority
 
 MAX_OUTPUT_BUFFER = 1 << 20  # bytes queued per connection before the oldest are dropped
@@ -233,13 +233,24 @@ class EmulatorServer:
         # SCHED_FIFO for the device thread: a device does not wait for the host's CPU
         self.realtime_priority = realtime_priority
         self.realtime_error: str | None = None
-        self._open_endpoint()
+        try:
+            self._open_endpoint()
+        except BaseException:
+            self._sel.close()
+            os.close(self._wake_r)
+            os.close(self._wake_w)
+            raise
 
     # --- public ---------------------------------------------------------------------------------
     @property
     def path(self) -> str:
         """The pty path clients open (the symlink if one was requested)."""
         return self.pty_link or self._pty_path
+
+    @property
+    def is_pty(self) -> bool:
+        """Served on a pty (else on TCP)."""
+        return self._use_pty
 
     @property
     def port(self) -> int:
@@ -289,8 +300,20 @@ class EmulatorServer:
             return
         listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        listener.bind((self.host, self._tcp_port or 0))
-        listener.listen(4)
+        try:
+            listener.bind((self.host, self._tcp_port or 0))
+            listener.listen(4)
+        except OSError as exc:
+            listener.close()
+            why = exc.strerror or str(exc)
+            hint = (
+                " (another process listens there: choose another port, or 0 for any free one)"
+                if exc.errno == errno.EADDRINUSE
+                else ""
+            )
+            raise TransportError(
+                f"cannot listen on {self.host}:{self._tcp_port or 0}: {why}{hint}"
+            ) from None
         listener.setblocking(False)
         self._listener = listener
         self._sel.register(listener, selectors.EVENT_READ, "listen")
