@@ -110,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
         head, dot, _ = text.partition(":=")[0].partition(".")
         if dot and head not in names:
             _error(
-                f"note: --param {text!r} goes to every node ({head!r} is not an entry of the graph)"
+                f"note: --param {text!r} goes to every node ({head!r} is not an entry of the "
+                f"graph){graph.entry_hint(text.partition(':=')[0].strip())}"
             )
     if args.export_launch_py is not None:
         from piezo_stage.launch.export import write_launch_py

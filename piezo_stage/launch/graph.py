@@ -26,21 +26,28 @@ Format (documented with examples in ``config/graphs/README.md``)::
                                         # in one process (piezo_stage.nodes.rig_loop), each
                                         # with its own parameters
 
+``$(free_port NAME)`` anywhere in an entry's strings (command, args, overrides) is a TCP port
+free on 127.0.0.1 when the graph is read, the same one for each NAME within the graph: a
+helper's port and the URL of the node that connects to it (two launches side by side each get
+their own).
+
 This module is pure Python (yaml only): parsing, validation and the `--ns`/`--param` edits.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
 import re
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
 
-from piezo_stage.config_path import ConfigNotFoundError, find_config, yaml_problem
+from piezo_stage.config_path import ConfigNotFoundError, find_config, shipped_names, yaml_problem
 from piezo_stage.launch.errors import GraphError
 from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (no rclpy)
 
@@ -220,11 +227,22 @@ class Graph:
                 and (target is not None or accepts is None or accepts(s, key))
             ]
             if not takers and any(s.is_node for s in self.nodes):
-                raise GraphError(f"--param {text!r}: no node of the graph has a parameter {key!r}")
+                raise GraphError(
+                    f"--param {text!r}: no node of the graph has a parameter {key!r}"
+                    + self.entry_hint(key)
+                )
             for spec in takers:
                 overrides[spec.name][key] = value
         nodes = tuple(dataclasses.replace(s, overrides=overrides[s.name]) for s in self.nodes)
         return dataclasses.replace(self, nodes=nodes)
+
+    def entry_hint(self, key: str) -> str:
+        """For ``NODE.KEY`` whose NODE is no entry: ``" (did you mean 'controller.mode'?)"`` with
+        the closest entry name, or ''."""
+        head, dot, rest = key.partition(".")
+        names = [s.name for s in self.nodes if s.is_node]
+        near = difflib.get_close_matches(head, names, n=1, cutoff=0.6) if dot else []
+        return f" (did you mean {near[0] + '.' + rest!r}?)" if near else ""
 
     def _split_assignment(self, text: str) -> tuple[str | None, str, Any]:
         lhs, sep, rhs = text.partition(":=")
@@ -279,14 +297,18 @@ def find_graph(graph: str | os.PathLike[str]) -> Path:
     if path.parent != Path(".") or path.is_absolute():
         raise GraphError(f"graph file {str(graph)!r} not found")
     names = [path.name] if path.suffix in (".yaml", ".yml") else [path.name + ".yaml", path.name]
-    tried: list[str] = []
     for name in names:
         try:
             return find_config(f"graphs/{name}")
-        except ConfigNotFoundError as exc:
-            tried.append(str(exc))
+        except ConfigNotFoundError:
+            pass
+    shipped = shipped_names("graphs")
+    close = difflib.get_close_matches(path.stem, shipped, n=1)
     raise GraphError(
-        f"graph {str(graph)!r} is neither a file nor a shipped graph: " + "; ".join(tried)
+        f"graph {str(graph)!r} is neither a file nor a shipped graph"
+        + (f" (did you mean {close[0]!r}?)" if close else "")
+        + "; shipped graphs: "
+        + (", ".join(shipped) or "none found")
     )
 
 
@@ -302,9 +324,40 @@ def load_graph(graph: str | os.PathLike[str]) -> Graph:
     return parse_graph(data, source=path)
 
 
+_FREE_PORT_RE = re.compile(rf"\$\(free_port(?:\s+({_TOKEN}))?\s*\)")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def substitute_free_ports(value: Any, ports: dict[str, int] | None = None) -> Any:
+    """``value`` (YAML data) with every ``$(free_port NAME)`` in its strings replaced by a TCP
+    port free now on 127.0.0.1, the same for each NAME (in ``ports``, filled as they come)."""
+    ports = {} if ports is None else ports
+
+    def port(match: re.Match[str]) -> str:
+        name = match.group(1) or ""
+        if name not in ports:
+            ports[name] = _free_port()
+        return str(ports[name])
+
+    if isinstance(value, str):
+        return _FREE_PORT_RE.sub(port, value)
+    if isinstance(value, list):
+        return [substitute_free_ports(v, ports) for v in value]
+    if isinstance(value, dict):
+        return {k: substitute_free_ports(v, ports) for k, v in value.items()}
+    return value
+
+
 def parse_graph(data: Any, source: Path | None = None) -> Graph:
     """Validate a graph given as data (the parsed YAML); relative params files are looked up in
-    the folder of `source` (or the current folder), then in the package's ``config/``."""
+    the folder of `source` (or the current folder), then in the package's ``config/``;
+    ``$(free_port NAME)`` in the entries becomes a free TCP port (module docstring)."""
     where = str(source) if source is not None else "graph"
     data = _mapping(data, where)
     _no_unknown_keys(data, _GRAPH_KEYS, where)
@@ -312,6 +365,7 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     nodes_data = data.get("nodes")
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
+    nodes_data = substitute_free_ports(nodes_data)
     nodes = tuple(
         _parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data)
     )
