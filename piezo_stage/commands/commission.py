@@ -8,7 +8,9 @@ the natural frequency; --m/--c give physical data instead), 3 the Assumption 2 b
 stable, 5 acceptance: the §11.5 perturbation under pid_tv on the same graph (u within 1 %),
 6 DIR/report.md and the files the nodes load. A failed step is reported with its reason, the
 procedure stops, and only DIR/FAILED.md says what happened (no gains, bounds or report released).
-Exit status: 0 commissioned, 1 a step failed, 2 bad input.
+Ctrl-C stops the graph (its nodes put the amplifier in its safe state) and exits with 130; a
+rerun of the same command resumes after the last step done. Exit status: 0 commissioned,
+1 a step failed, 2 bad input, 130 interrupted.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import argparse
 import json
 import math
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -105,23 +108,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _model_file(params: list[str]) -> tuple[str | None, list[str]]:
+    """The plant's model file, resolved here where the user typed it (the current folder, then
+    a shipped name), and the other parameters. ConfigNotFoundError when there is none."""
+    from piezo_stage.config_path import find_user_file
+
     model, rest = None, []
     for p in params:
         key, sep, value = p.partition(":=")
         if sep and key in ("plant.model_file", "model_file"):
-            path = Path(value).expanduser()
-            model = str(path.resolve()) if path.exists() else value
+            model = str(find_user_file(value))
         else:
             rest.append(p)
     return model, rest
 
 
+def _interruptible() -> None:
+    """The first SIGINT raises KeyboardInterrupt (the graph is stopped on the way out); later
+    ones are ignored, so that the stop itself, which ramps the amplifier down, completes."""
+
+    def on_sigint(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGINT, lambda *_: None)
+        raise KeyboardInterrupt
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_sigint)
+
+
 def run(args: argparse.Namespace) -> int:
+    _interruptible()
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print(
+            "piezo-stage commission: interrupted; the graph is stopped (rerun the same command "
+            "to resume after the last step done)",
+            file=sys.stderr,
+        )
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     from piezo_stage.commissioning import Commissioning, Options, StepFailed, SweepSettings
     from piezo_stage.commissioning.graphs import GraphRunError, make_rig
     from piezo_stage.commissioning.procedure import OtherCommissioningError
     from piezo_stage.commissioning.sweep import SweepError, default_frequencies
-    from piezo_stage.config_path import find_config
 
     started = time.monotonic()
 
@@ -131,10 +161,9 @@ def run(args: argparse.Namespace) -> int:
                 f"[{time.monotonic() - started:6.1f} s] {step}: {text}", file=sys.stderr, flush=True
             )
 
-    model, params = _model_file(args.param)
+    args.out_dir = args.out_dir.expanduser().absolute()
     try:
-        if model is not None and not Path(model).is_file():
-            find_config(model)  # a shipped name, else ConfigNotFoundError (an OSError)
+        model, params = _model_file(args.param)  # ConfigNotFoundError is an OSError
         if (args.m is None) != (args.c is None):
             raise ValueError("give both --m and --c, or neither")
         for name in ("m", "c"):

@@ -1,5 +1,4 @@
-"""Demonstrate the whole product on the simulated stage: identify live and from a bag, then
-close the loop.
+"""The whole product on the simulated stage: identify live and from a bag, close the loop, track.
 
 The demo is a list of stages (:data:`STAGES`), each running an experiment of
 :mod:`piezo_stage.experiments` and printing its results: (a, b) the ch. 10 identification

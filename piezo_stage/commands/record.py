@@ -158,8 +158,11 @@ def run(args: argparse.Namespace) -> int:
 
     bag = Path(args.output or default_bag_name()).absolute()
     if bag.exists() and (not bag.is_dir() or any(bag.iterdir())):
-        print(f"piezo-stage record: {bag} already exists", file=sys.stderr)
-        return 1
+        print(
+            f"piezo-stage record: {bag} already exists (give another -o, or remove it)",
+            file=sys.stderr,
+        )
+        return 2
     print(
         f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True
     )

@@ -75,11 +75,14 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps({"run": res.recording.label, **s, "unit": unit}))
             continue
+        # a CSV column without [unit] in its header: the figures are in the file's own units
+        u = f" {unit}" if unit else ""
         print(
-            f"{res.recording.label}: RMS {s['rms']:.4g} {unit} ({s['rms_percent']:.3g} % of span), "
-            f"max {s['max']:.4g} {unit} ({s['max_percent']:.3g} %), span {s['span']:.4g} {unit}, "
+            f"{res.recording.label}: RMS {s['rms']:.4g}{u} ({s['rms_percent']:.3g} % of span), "
+            f"max {s['max']:.4g}{u} ({s['max_percent']:.3g} %), span {s['span']:.4g}{u}, "
             f"w(0) = {s['w0']:.4g}{' (clipped to [-1, 1])' if res.w0_clipped else ''}, "
             f"{int(s['samples'])} samples"
+            + ("" if unit else " (the output column names no unit: the file's units)")
         )
     for path in written:
         print(f"wrote {path}", file=sys.stderr if args.json else sys.stdout)
