@@ -136,21 +136,21 @@ def _replayed(out: str, folder: Path, results: dict) -> None:
 
 
 def _theorem4(out: str, folder: Path, results: dict) -> None:
-    """ "(11.6) k2_min, (11.7) k0_max: 515.9 and 1.515e9 with the thesis bounds", stable at 1 kHz."""
+    """The README: "(11.6) k2_min, (11.7) k0_max: 515.9 and 1.515e9 with the thesis bounds"."""
     k2 = float(re.search(r"k2_min = (\S+)", out).group(1))  # type: ignore[union-attr]
     k0 = float(re.search(r"k0_max = (\S+)", out).group(1))  # type: ignore[union-attr]
     assert (f"{k2:.1f}", f"{k0:.4g}") == ("515.9", "1.515e+09"), (k2, k0)
 
 
 def _unstable_at_20khz(out: str, folder: Path, results: dict) -> None:
-    """ "unstable at 5-50 kHz, and stable again at 100 kHz (200 kHz with a one-sample delay)"."""
+    """The README: the thesis gains' sampled loop is "unstable at 5-50 kHz"."""
     got = json.loads(out[out.index("{") :])
     text = json.dumps(got)
     assert re.search(r'"stable": false', text), text[:2000]
 
 
 def _exports(out: str, folder: Path, results: dict) -> None:
-    """ "one CSV per topic, SI units in the headers"."""
+    """The README: "one CSV per topic, SI units in the headers"."""
     files = sorted((folder / "my_run_csv").glob("*.csv"))
     assert files, out
     headers = [f.read_text().splitlines()[0] for f in files]
