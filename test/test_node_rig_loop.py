@@ -212,11 +212,14 @@ def test_invalid_samples_open_the_loop_and_hold_the_hold_voltage(probe, tmp_path
     with Rig(form, tmp_path, "controller.hold_voltage:=42.0", sensor_errors=0.01) as rig:
         reason = "invalid sensor sample" if form == "rig_loop" else "loop opened: "
         ok = spin_until(probe, lambda: any(reason in e for e in errors), 30.0)
-        spin_until(probe, lambda: False, 0.5)
-        applied = rig.applied()
-    assert ok, rig.log
+        # the hold is written on every sample from then on: wait for it to reach the device
+        held = spin_until(
+            probe, lambda: rig.applied()[-1:] == [pytest.approx(42.0, abs=1e-6)], 10.0
+        )
+        log = rig.log
+    assert ok, log
+    assert held, f"applied {rig.applied()[-5:]}\n{log}"
     assert states and not states[-1].loop_closed and states[-1].u == pytest.approx(42.0)
-    assert applied[-1] == pytest.approx(42.0, abs=1e-6), rig.log
 
 
 def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(probe, tmp_path):
@@ -263,7 +266,8 @@ def test_a_lost_sensor_link_leaves_the_amplifier_to_the_watchdog(probe, tmp_path
     probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
     with Rig(form, tmp_path) as rig:
         assert spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 300, 30.0), rig.log
-        assert max(rig.applied()[-100:]) > 1.0  # the loop drives the stage
+        applied = rig.applied()
+        assert applied and max(applied[-100:]) > 1.0, rig.log  # the loop drives the stage
         rig.emulator.sensor_server.stop()
         safe = spin_until(probe, lambda: rig.applied()[-1] == 0.0, 10.0)
         log = rig.log

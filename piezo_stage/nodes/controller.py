@@ -693,7 +693,13 @@ class ControllerNode(Node):
             )
 
     def _notify(self, level: Health, text: str) -> None:
-        (self.get_logger().error if level is Health.ERROR else self.get_logger().info)(text)
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        if level is Health.ERROR:
+            self.get_logger().error(text)
+        elif level is Health.WARN:
+            self.get_logger().warn(text)
+        else:
+            self.get_logger().info(text)
 
     # ------------------------------------------------------------------ inputs
     def _on_reference(self, msg: Displacement) -> None:
