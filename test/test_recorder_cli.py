@@ -80,5 +80,5 @@ def test_record_refuses_an_existing_bag(tmp_path, capsys):
 
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    assert main(["record", "-o", str(tmp_path / "full")]) == 1
+    assert main(["record", "-o", str(tmp_path / "full")]) == 2  # bad input
     assert "already exists" in capsys.readouterr().err
