@@ -321,3 +321,19 @@ def test_sim_closed_loop_moves_the_stage_to_its_default_set_point(node):
     assert states[-1].reference == pytest.approx(10e-6) and states[-1].loop_closed
     assert abs(x(states[-1]) - 10e-6) < 0.1e-6, x(states[-1])
     assert min(x(s) for s in states) < 5e-6  # it started away from the set point and moved
+
+
+@pytest.mark.unit
+def test_launched_nodes_log_a_clock_time_not_epoch_seconds():
+    """rcutils' default stamp is seconds since 1970 (`[INFO] [1795644374.78]`): the launch
+    gives its nodes the time of day unless the user's or the graph's environment sets a format."""
+    from piezo_stage.launch.commandline import process_env
+    from piezo_stage.launch.graph import load_graph
+
+    graph = load_graph("sim_closed_loop")
+    env = process_env(graph.node("plant"), graph, base={})
+    assert "{date_time_with_ms}" in env["RCUTILS_CONSOLE_OUTPUT_FORMAT"]
+    mine = {"RCUTILS_CONSOLE_OUTPUT_FORMAT": "{message}"}
+    assert process_env(graph.node("plant"), graph, base=mine)["RCUTILS_CONSOLE_OUTPUT_FORMAT"] == (
+        "{message}"
+    )

@@ -95,6 +95,10 @@ def process_argv(spec: ProcessSpec, graph: Graph, parent_pid: int | None = None)
     return [*head, "exec", *spec.command, *spec.args]
 
 
+#: rcutils' default format with the wall-clock time of day instead of the epoch seconds
+LOG_FORMAT = "[{severity}] [{date_time_with_ms}] [{name}]: {message}"
+
+
 def process_env(
     spec: ProcessSpec, graph: Graph, base: Mapping[str, str] | None = None, color: bool = False
 ) -> dict[str, str]:
@@ -104,6 +108,8 @@ def process_env(
             env[key] = expand(value, env, key)
     env.setdefault("PYTHONUNBUFFERED", "1")  # lines reach the prefixer as they are printed
     env.setdefault("RCUTILS_COLORIZED_OUTPUT", "1" if color else "0")
+    # a clock time, not seconds since 1970, unless the user or the graph chose a format
+    env.setdefault("RCUTILS_CONSOLE_OUTPUT_FORMAT", LOG_FORMAT)
     root = Path(__file__).resolve().parents[2]  # a source checkout: make its package importable
     if (root / "setup.py").is_file():
         paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
