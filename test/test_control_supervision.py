@@ -163,6 +163,8 @@ def test_a_start_up_gap_re_arms_start_closed_and_later_ones_latch():
     assert run(sup, t + 0.05) == 20.0
     assert not sup.pid.loop_closed and "0.05" in sup.fault
     assert sup.events[-1][0] is Health.ERROR
+    # times in messages count from the first sample (a rig's clock is epoch time)
+    assert f"opening the loop {t + 0.05:.6g} s after the first sample" in sup.events[-1][1]
     run(sup, t + 0.05 + T)
     assert not sup.pid.loop_closed  # latched until a close request
     # start_grace 0: the first gap latches (the rule before the grace)

@@ -189,6 +189,7 @@ class LoopSupervisor:
         self._window, self._window_t = Window.PENDING, math.nan
         self._closed_at = math.nan  # when start_closed closed the loop
         self._first_closed_at = math.nan  # when it first did (start_grace counts from there)
+        self._t0 = math.nan  # the first sample's time: messages count from it
 
     # ------------------------------------------------------------------ frames
     def command(self, out: ControlOutput) -> float:
@@ -218,6 +219,8 @@ class LoopSupervisor:
         loop (or delays start_closed); a valid one after a gap longer than ``max_gap`` that no
         :meth:`check_gap` saw opens it too.
         """
+        if self._t0 != self._t0:  # NaN: the first sample
+            self._t0 = t
         if not ok or not math.isfinite(x):
             self.valid = False
             self.fail("invalid sensor sample", t)
@@ -269,12 +272,16 @@ class LoopSupervisor:
                 self.pid.open_loop(self.hold_value())
                 self._start_closed, self.waiting = True, reason
                 return
-            self.notify(Health.ERROR, f"opening the loop at t = {t:.6g} s: {reason}")
+            self.notify(Health.ERROR, f"opening the loop {self._when(t)}: {reason}")
             self.pid.open_loop(self.hold_value())
         if self._start_closed:
             self.waiting = reason
         else:
             self.fault = reason
+
+    def _when(self, t: float) -> str:
+        """``t`` for a message: seconds after the first sample (a rig's clock is epoch time)."""
+        return f"{t - self._t0:.6g} s after the first sample"
 
     def starting(self, t: float) -> bool:
         """True within ``start_grace`` of start_closed's first closing (a fault re-arms it)."""
@@ -318,7 +325,7 @@ class LoopSupervisor:
         if self._window is Window.PENDING and t >= open_at:
             self.notify(
                 Health.OK,
-                f"scheduled opening at t = {t:.6g} s, holding {c.u_bias + self.hold_value():.6g} V",
+                f"scheduled opening {self._when(t)}, holding {c.u_bias + self.hold_value():.6g} V",
             )
             self.pid.open_loop(self.hold_value())
             self._window, self._window_t = Window.OPEN, t
@@ -327,7 +334,7 @@ class LoopSupervisor:
             and c.open_duration > 0
             and t >= self._window_t + c.open_duration - 0.5 / c.rate_hz
         ):
-            self.notify(Health.OK, f"scheduled closing at t = {t:.6g} s")
+            self.notify(Health.OK, f"scheduled closing {self._when(t)}")
             self.pid.close_loop()
             self._window = Window.DONE
 
