@@ -139,6 +139,7 @@ def ros_args(args: argparse.Namespace, bag: Path) -> list[str]:
         "compression": args.compression,
         "max_bag_size": args.max_bag_size,
         "max_bag_duration": float(args.max_bag_duration),
+        "duration": float(args.duration or 0.0),
         "start_paused": args.start_paused,
         "use_sim_time": args.use_sim_time,
     }
@@ -166,7 +167,9 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True
     )
-    code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag), args.duration)
+    # the node counts the duration from when its bag is open: a slow start (imports on a busy
+    # host) must not eat into it, nor get a SIGINT before it can record anything
+    code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag))
     try:
         info = bag_info(bag)
     except BagError as exc:

@@ -159,6 +159,14 @@ PARAMETERS = ParameterTable(
             read_only=True,
         ),
         Param(
+            "duration",
+            0.0,
+            "stop and close the bag this long after it was opened (0 = until stopped)",
+            "s",
+            (0.0, 1e9),
+            read_only=True,
+        ),
+        Param(
             "discovery_period", 0.5, "graph poll for new topics", "s", (0.01, 60.0), read_only=True
         ),
         Param(
@@ -226,6 +234,8 @@ class RecorderNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # sim time may stop or race
         self.create_timer(flush_period, self._flush, clock=steady)
         self.create_timer(period, self.discover, clock=steady)
+        if p["duration"] > 0:  # counted from here, not from the process's start (imports)
+            self._stop_timer = self.create_timer(p["duration"], self._finish, clock=steady)
         self._diagnostics = Diagnostics(self, "recorder", self._diagnose, p["diagnostics_period"])
         self.get_logger().info(
             f"recording to {self.bag_path}" + (" (paused: call ~/start)" if self.paused else "")
@@ -388,6 +398,11 @@ class RecorderNode(Node):
         self.paused = False
         response.success, response.message = True, f"recording to {self.bag_path}"
         return response
+
+    def _finish(self) -> None:
+        """``duration`` is over: the node finishes (run() closes the bag, exit 0)."""
+        self.destroy_timer(self._stop_timer)
+        self.finished = True
 
     def _srv_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self.paused = True
