@@ -86,9 +86,6 @@ class Sink:
     def count(self, topic: str) -> int:
         return len(self.got[topic])
 
-    def span(self, topic: str) -> float:
-        return self.got[topic][-1][0] - self.got[topic][0][0]
-
 
 def same_bytes(played: bytes, recorded: bytes) -> bool:
     """Equal, up to the zero padding to 4 bytes Fast DDS adds between processes."""
@@ -122,13 +119,28 @@ def _play(node, sink: Sink, bag, *params: str) -> tuple[int, str]:
 
 @pytest.mark.slow
 def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag):
+    """The bytes as recorded, at rate 1 and 5; the rate from the player's /clock, published
+    every TICK of wall time with the bag time then. Each tick is due TICK after the one before
+    and no earlier than the one before was published, so ticks j apart were published at least
+    (j - 1)·TICK apart, and their bag times differ by at least rate·(j - 1)·TICK; ticks lost on
+    the way only widen the true distance. Stamps only, no wall clock here: a busy host makes
+    ticks late, which only widens them more."""
     recorded: dict[str, list[bytes]] = {}
     for topic, _, _, data in read_raw(bag):
         recorded.setdefault(topic, []).append(bytes(data))
-    spans = {}
+    tick_ns = 1_000_000  # clock_rate_hz 1000
     for rate in (1.0, 5.0):
         sink = _sink_all(node)
-        code, err = _play(node, sink, bag, f"rate:={rate}")
+        clocks: list[int] = []
+        clock_sub = node.create_subscription(
+            Clock,
+            "/clock",
+            lambda m, clocks=clocks: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+            KEEP_ALL,
+        )
+        code, err = _play(
+            node, sink, bag, f"rate:={rate}", "publish_clock:=true", "clock_rate_hz:=1000.0"
+        )
         assert code == 0, err
         assert sink.count(f"{NS}/voltage") == N
         voltages = [data for _, data in sink.got[f"{NS}/voltage"]]
@@ -144,12 +156,18 @@ def test_rate_scales_timing_and_recorded_bytes_are_played_as_they_are(node, bag)
         assert len(latched) == 1 and same_bytes(
             latched[0], recorded[f"{NS}/bouc_wen_parameters"][0]
         )
-        spans[rate] = sink.span(f"{NS}/voltage")
         sink.close(node)
-    # 0.5 s of bag time: ~0.5 s at rate 1, ~0.1 s at rate 5. A busy host only lengthens a span,
-    # so rate 1 has a lower bound and rate 5 is compared with it, never with the wall clock
-    assert spans[1.0] > 0.35
-    assert spans[1.0] > 2.0 * spans[5.0]
+        node.destroy_subscription(clock_sub)
+        # 0.5 s of bag time: ~500 ticks at rate 1, ~100 at rate 5 (the first few may come
+        # before this reader is matched)
+        assert len(clocks) >= 3 and clocks == sorted(clocks), clocks
+        assert T0 <= clocks[0]
+        short = [
+            (j, c - clocks[0])
+            for j, c in enumerate(clocks)
+            if c - clocks[0] < rate * (j - 1) * tick_ns - 1000  # 1 µs: int ns rounding
+        ]
+        assert not short, (rate, short[:5])
 
 
 def test_clock_topic_filter_and_remap(node, bag):
