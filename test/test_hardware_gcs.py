@@ -85,6 +85,9 @@ def test_setters_latch_error_codes(served, command, code):
     model, conn = served
     if code is None:
         conn.command(command)
+        assert model.target == 1.0  # stored: closed-loop motion is not simulated
+        assert conn.query_float("MOV? A", "A") == 1.0
+        assert conn.error_code() == 0 and model.applied_voltage == 0.0
         return
     with pytest.raises(GCSError) as err:
         conn.command(command)

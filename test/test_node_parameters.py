@@ -3,6 +3,7 @@ and by the launcher) with the closest valid name and exit code 2; the tables are
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import subprocess
 import sys
@@ -73,8 +74,6 @@ def test_every_node_has_a_well_formed_table(name):
 
 @pytest.mark.unit
 def test_settings_are_a_frozen_dataclass_with_enum_members():
-    import dataclasses
-
     settings = TABLE.settings({"v_max": 20.0, "colour": "green", "names": ("a",)})
     assert settings.colour is Colour.GREEN and settings.v_max == 20.0 and settings.names == ["a"]
     assert type(settings).__name__ == "DemoSettings"
@@ -82,15 +81,47 @@ def test_settings_are_a_frozen_dataclass_with_enum_members():
         settings.v_max = 5.0
 
 
+#: the Python type of a parameter's value in the settings, by its ROS type (arrays: the
+#: elements'); exact, so that an int is no float and a bool no int
+SCALAR_TYPES = {
+    Kind.BOOL: bool,
+    Kind.INT: int,
+    Kind.FLOAT: float,
+    Kind.STRING: str,
+    Kind.INT_ARRAY: int,
+    Kind.FLOAT_ARRAY: float,
+    Kind.STRING_ARRAY: str,
+}
+ARRAYS = (Kind.INT_ARRAY, Kind.FLOAT_ARRAY, Kind.STRING_ARRAY)
+
+
+def _same(value, default) -> bool:
+    return value == default or (value != value and default != default)  # NaN defaults
+
+
 @pytest.mark.unit
 @pytest.mark.parametrize("name", NODES)
 def test_every_node_table_gives_settings_with_enums(name):
+    """Every field of a node's settings: one per parameter, in order; an Enum choice as its
+    member; an array as a list of its element type; anything else as exactly its ROS type's
+    Python type (an int is no float, a bool no int); each the default it was given."""
     table = importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS
     settings = table.settings(table.defaults())
+    fields = [f.name for f in dataclasses.fields(settings)]
+    assert fields == [p.name.replace(".", "_") for p in table]
     for p in table:
         value = getattr(settings, p.name.replace(".", "_"))
         if isinstance(p.choices, type) and issubclass(p.choices, Enum):
-            assert isinstance(value, p.choices), p.name
+            assert isinstance(value, p.choices) and value.value == p.default, p.name
+        elif p.kind in ARRAYS:
+            assert type(value) is list, p.name
+            assert all(type(v) is SCALAR_TYPES[p.kind] for v in value), p.name
+            assert value == p.default, p.name
+        else:
+            assert type(value) is SCALAR_TYPES[p.kind], (p.name, type(value))
+            assert _same(value, p.default), p.name
+            if p.choice_values:
+                assert value in p.choice_values, p.name
 
 
 @pytest.mark.ros
