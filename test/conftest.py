@@ -112,19 +112,10 @@ def _load_hypothesis_profile(config: pytest.Config) -> None:
 LAYERS = ("unit", "ros")
 
 
-#: the xdist group of the `ros` layer: ``make test`` runs with ``--dist loadgroup``, so the
-#: graphs run one at a time on one worker while the unit layer takes both. Two graphs on two
-#: cores starve each other's timing (a graph's samples, a node's start-up): the census of full
-#: runs found tests that pass alone and fail beside another worker's graph.
-GRAPH_GROUP = "graph"
-
-
-@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """A test without its layer is a collection error, not a silent member of no layer. Every
-    `ros` test joins GRAPH_GROUP. Files that hold slow tests run first (stable order otherwise):
-    on two workers the long ones then start early instead of leaving one worker alone at the
-    end."""
+    """A test without its layer is a collection error, not a silent member of no layer. Files
+    that hold slow tests run first (stable order otherwise): on two workers the long ones then
+    start early instead of leaving one worker alone at the end."""
     missing = [
         item.nodeid
         for item in items
@@ -135,9 +126,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             "tests need exactly one layer marker (unit or ros; "
             "`pytestmark = pytest.mark.unit` in the file): " + ", ".join(missing[:10])
         )
-    for item in items:
-        if item.get_closest_marker("ros") is not None:
-            item.add_marker(pytest.mark.xdist_group(GRAPH_GROUP))
     slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
     items.sort(key=lambda item: item.path not in slow_files)
 

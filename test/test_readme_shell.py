@@ -23,7 +23,7 @@ stage's record) are run only with ``PIEZO_README_FULL=1`` and are reported skipp
 with their reason. Budget of the default layer: a few minutes on 2 cores.
 
 The layer is ``ros`` and ``slow`` and one xdist group (the blocks share their folder and run in
-order): ``make test``'s ``--dist loadfile`` keeps it on one worker; ``--dist loadgroup`` too.
+order): ``make test``'s ``--dist loadfile`` keeps it on one worker.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from typing import Callable
 
 import pytest
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.xdist_group("readme_shell")]
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
