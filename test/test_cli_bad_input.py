@@ -6,9 +6,11 @@ Runs in-process (``cli.main``): the inputs are refused before any node, socket o
 
 from __future__ import annotations
 
+import math
 import random
 import shutil
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -16,6 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.cli import COMMANDS, main
+from piezo_stage.commands import emulate
+from piezo_stage.commands.argtypes import MAX_MAGNITUDE, MIN_MAGNITUDE
 from piezo_stage.identification.synthetic import CH10_PATCH, triangle_pair
 from piezo_stage.model.bouc_wen import BoucWenParameters
 
@@ -70,7 +74,8 @@ def files(tmp_path_factory) -> dict[str, str]:
     return out
 
 
-#: (argv with {name} placeholders, expected exit code, text expected in the message)
+#: (argv with {name} placeholders, expected exit code, text expected in the message, with the
+#: same placeholders)
 TABLE: list[tuple[list[str], int, str]] = [
     # gains: exit 2, never overflow, underflow, LinAlgError, 74.5 GiB or a verdict on rounding noise
     ([*GAINS, "--m-max", "1e308"], 2, "magnitude"),
@@ -103,21 +108,21 @@ TABLE: list[tuple[list[str], int, str]] = [
     (["identify", "{run0}", "{run1}", "--steady-periods", "0"], 2, "--steady-periods"),
     (["identify", "{run0}", "{run1}", "--max-rms", "-1"], 2, "--max-rms"),
     (["identify", "{run0}", "{run1}", "--max-rms", "nan"], 2, "--max-rms"),
-    (["identify", "{binary}"], 2, ""),
-    (["identify", "{missing}"], 2, ""),
+    (["identify", "{binary}"], 2, "{binary}: no header line naming the columns time, input"),
+    (["identify", "{missing}"], 2, "cannot read {missing}"),
     (["validate", "{garbage_yaml}", "{run0}"], 2, "not valid YAML"),
     # launch
-    (["launch", "{binary}"], 2, ""),
+    (["launch", "{binary}"], 2, "{binary}: cannot read"),
     (["launch", "{garbage_yaml}"], 2, "not valid YAML"),
     (["launch", "{missing}"], 2, "not found"),
     # bags
     (["bag", "info", "{missing}"], 2, "no bag"),
-    (["bag", "info", "{binary}"], 2, ""),
+    (["bag", "info", "{binary}"], 2, "{binary} is not an .mcap file or a rosbag2 folder"),
     (["bag", "info", "{damaged}"], 1, "damaged"),
     (["bag", "export", "{damaged}", "--csv", "{out}"], 1, "damaged"),
     (["bag", "export", "{genuine}", "--csv", "{out}", "--topics", "/nope"], 2, "/nope"),
-    (["bag", "reindex", "{missing}"], 2, ""),
-    (["plot", "{missing}"], 2, ""),
+    (["bag", "reindex", "{missing}"], 2, "no bag at {missing}"),
+    (["plot", "{missing}"], 2, "no bag at {missing}"),
     (["plot", "{genuine}", "-o", "{out}"], 1, "nothing to plot"),
     (["play", "{missing}"], 2, "no bag"),
     (["play", "{genuine}", "--rate", "-1"], 2, "--rate"),
@@ -125,7 +130,7 @@ TABLE: list[tuple[list[str], int, str]] = [
     (["record", "--duration", "-1"], 2, "--duration"),
     (["record", "--max-bag-size", "-5"], 2, "--max-bag-size"),
     (["experiment", "regulation", "--duration", "nan"], 2, "duration"),
-    (["experiment", "regulation", "--f", "-1"], 2, ""),
+    (["experiment", "regulation", "--f", "-1"], 2, "needs f > 0"),
     (["demo", "--rate", "0"], 2, "--rate"),
     (["commission", "{out}", "--frequencies", "abc"], 2, "--frequencies"),
     (["commission", "{out}", "--graph", "nope"], 2, "--graph"),
@@ -159,15 +164,16 @@ def _check(code: int, out: str, err: str) -> None:
         assert len(errors) <= 1 and (errors or out.strip()), err
 
 
-def test_table_covers_every_sub_command():
+def test_table_covers_every_sub_command_and_names_each_message():
     assert {argv[0] for argv, _, _ in TABLE} >= set(COMMANDS)
+    assert all(text.strip() for _, _, text in TABLE)
 
 
 @pytest.mark.parametrize("argv, expected, text", TABLE, ids=[" ".join(a) for a, _, _ in TABLE])
 def test_bad_input(argv, expected, text, files, capsys):
     code, err = _run([a.format(**files) for a in argv], capsys)
     assert code == expected, err
-    assert text in err
+    assert text.format(**files) in err
 
 
 NUMBERS = st.one_of(
@@ -204,6 +210,16 @@ def test_gains_numeric_options(option, value, capsys):
     _run(argv, capsys)
 
 
+def _emulate_accepts(option: str, number: float) -> bool:
+    """What emulate's converters accept: a probability (--drop, --corrupt), otherwise a
+    non-negative physical magnitude (0, or within [MIN_MAGNITUDE, MAX_MAGNITUDE])."""
+    if not math.isfinite(number):
+        return False
+    if option in ("--drop", "--corrupt"):
+        return 0.0 <= number <= 1.0
+    return number == 0.0 or MIN_MAGNITUDE <= number <= MAX_MAGNITUDE
+
+
 @settings(
     max_examples=examples(40),
     deadline=None,
@@ -212,14 +228,20 @@ def test_gains_numeric_options(option, value, capsys):
 @given(
     device=st.sampled_from(["gcs", "optoncdt"]),
     option=st.sampled_from(["--drop", "--corrupt", "--slow", "--linger", "--duration"]),
-    value=NUMBERS.filter(lambda v: v not in ("0.0", "-0.0")),
+    value=NUMBERS,
 )
 def test_emulate_numeric_options_never_start_on_bad_values(device, option, value, capsys):
-    number = float(value)
-    if np.isfinite(number) and 0 <= number <= (1 if option in ("--drop", "--corrupt") else 1e150):
-        return  # a good value would start the emulator: not for a unit test
-    code, _ = _run(["emulate", device, option, value], capsys)
-    assert code == 2
+    """A bad value: exit 2 naming the option, before anything starts. A good one reaches the
+    command as that number (its run is replaced here: a unit test starts no emulator)."""
+    got = []
+    with mock.patch.object(emulate, "run", side_effect=lambda args: got.append(args) or 0):
+        code, err = _run(["emulate", device, option, value], capsys)
+    if _emulate_accepts(option, float(value)):
+        assert code == 0 and len(got) == 1, err
+        assert getattr(got[0], option[2:]) == float(value)
+    else:
+        assert code == 2 and got == []
+        assert f"argument {option}:" in err
 
 
 def test_sampled_check_is_refused_exactly_where_it_stops_meaning_anything():

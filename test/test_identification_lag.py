@@ -113,8 +113,10 @@ def test_the_lag_is_refined_to_the_least_residual(true_lag, asymmetry):
     found = refine_lag(rough, residual)
     assert found.samples == pytest.approx(true_lag, abs=0.002)
     assert found.seconds == pytest.approx(found.samples * 1e-3)
-    a = 1e-16 * (1.0 + asymmetry) / 2.0
-    assert found.spread == pytest.approx(np.sqrt(noise / (count * a)), rel=0.5)
+    a = 1e-16 * (1.0 + asymmetry) / 2.0  # the mean curvature of the two sides
+    # the parabola through the least point and its neighbours: exact when symmetric, 7 % under
+    # the mean curvature's figure at asymmetry 2.25 (ratio 0.929)
+    assert found.spread == pytest.approx(np.sqrt(noise / (count * a)), rel=0.1)
 
 
 def test_a_residual_without_a_minimum_keeps_the_corners_estimate():

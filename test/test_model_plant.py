@@ -69,15 +69,20 @@ def test_linear_step_response_is_exact_with_thesis_frequency_and_damping():
         )
     )
     assert np.max(np.abs(x - exact)) <= 1e-9 * u / KX
-    assert wn / (2 * math.pi) == pytest.approx(7.03e3, rel=1e-2) and zeta == pytest.approx(
-        0.0278, rel=1e-2
-    )
-    # frequency from the zero crossings of x', damping from successive peaks (log decrement)
+    # the simulated response itself: the damped frequency from the zero crossings of x', the
+    # damping from successive peaks (log decrement), the static gain from the mean level; the
+    # natural frequency and damping they give are those of the ch. 11 rig (~7.03 kHz, ~2.78 %)
     crossings = t[1:][np.diff(np.sign(xdot)) != 0]
-    assert 2 * math.pi / (2 * np.mean(np.diff(crossings))) == pytest.approx(wd, rel=2e-3)
+    wd_measured = 2 * math.pi / (2 * np.mean(np.diff(crossings)))
     peaks = x[1:-1][(x[1:-1] > x[:-2]) & (x[1:-1] > x[2:])] - u / KX
     decrement = np.log(peaks[0] / peaks[1])
-    assert decrement / math.sqrt(4 * math.pi**2 + decrement**2) == pytest.approx(zeta, rel=2e-2)
+    zeta_measured = decrement / math.sqrt(4 * math.pi**2 + decrement**2)
+    wn_measured = wd_measured / math.sqrt(1.0 - zeta_measured**2)
+    assert wd_measured == pytest.approx(wd, rel=2e-3)
+    assert zeta_measured == pytest.approx(zeta, rel=2e-2)
+    assert wn_measured / (2 * math.pi) == pytest.approx(7.03e3, rel=1e-2)
+    assert zeta_measured == pytest.approx(0.0278, rel=1e-2)
+    assert np.mean(x[t > t[-1] - 2 * math.pi / wd]) == pytest.approx(u / KX, rel=1e-2)
 
 
 def test_rig_rings_between_the_elastic_and_the_hysteretic_stiffness():
