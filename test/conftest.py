@@ -19,6 +19,8 @@ from typing import Iterator
 
 import pytest
 
+pytest_plugins = ["assertion_check"]  # a test that passes without a check fails
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
