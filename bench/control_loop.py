@@ -477,8 +477,9 @@ def figures(
 
 
 DESIGNS = {
-    "hand-off, 50 us switch": {},
-    "executor's thread drains": {"PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR": "1"},
+    "loop thread drains, 50 us switch": {},
+    "publisher thread drains (sliced)": {"PIEZO_RIG_LOOP_DRAIN_IN": "publisher"},
+    "executor's thread drains": {"PIEZO_RIG_LOOP_DRAIN_IN": "executor"},
     "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
     "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"},
 }

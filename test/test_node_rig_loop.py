@@ -146,6 +146,46 @@ def test_the_hand_off_drains_twenty_samples_at_a_time_within_2_and_10_ms():
     assert publish_period(100_000.0) == pytest.approx(0.002)
 
 
+def test_the_publisher_thread_drains_in_order_in_slices_and_close_publishes_the_rest():
+    """The loop only appends; the publisher thread publishes the queue in order, sleeping
+    SLICE_GAP every DRAIN_SLICE publications (the CPU goes back to the machine between slices),
+    and close() stops it and publishes what is left."""
+    from piezo_stage.nodes import rig_loop
+    from piezo_stage.nodes.rig_loop import DRAIN_SLICE, Handoff
+
+    published: list[int] = []
+    naps: list[float] = []
+    sleep = rig_loop.time.sleep
+    handoff = Handoff(period=0.005)
+    rig_loop.time.sleep = lambda s: (naps.append(s), sleep(s))[1]  # type: ignore[assignment]
+    try:
+        handoff.start_publisher(0)
+        assert not handoff.in_loop  # the loop thread's drain_due no longer publishes
+        for k in range(3 * DRAIN_SLICE):
+            handoff.put(published.append, k)
+        handoff.drain_due()
+        assert spin_wait(lambda: len(published) == 3 * DRAIN_SLICE, 5.0)
+        assert published == list(range(3 * DRAIN_SLICE))
+        assert naps.count(rig_loop.SLICE_GAP) >= 2  # 24 publications: 3 slices, 2 naps
+        handoff._stop.set()  # the thread stops: close() must still publish what was put
+        handoff._thread.join(timeout=5.0)
+        handoff.put(published.append, -1)
+        handoff.close()
+        assert published[-1] == -1 and handoff.publisher_error is None
+    finally:
+        rig_loop.time.sleep = sleep  # type: ignore[assignment]
+        handoff.close()
+
+
+def spin_wait(condition, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
 @pytest.mark.parametrize("form", FORMS)
 def test_the_loop_closes_on_the_emulated_rig_and_holds_the_set_point(probe, tmp_path, form):
     from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage

@@ -22,7 +22,7 @@ the commands marked ``long`` (minutes each here: experiments, commissioning, the
 stage's record) are run only with ``PIEZO_README_FULL=1`` and are reported skipped otherwise,
 with their reason. Budget of the default layer: a few minutes on 2 cores.
 
-The layer is ``ros`` and ``slow`` and one xdist group (the blocks share their folder and run in
+The layer is ``ros`` and ``slow`` and one file (the blocks share their folder and run in
 order): ``make test``'s ``--dist loadfile`` keeps it on one worker.
 """
 

@@ -265,7 +265,7 @@ class LaserReaderNode(Node):
         if self._thread.ident is not None:
             self._thread.join(timeout=2.0)
         if self._handoff is not None:
-            self._handoff.drain()
+            self._handoff.close()
 
     def _poll(self, timeout: float = 0.0) -> None:
         """Read what arrived (waiting up to ``timeout`` s for it), stamp, decimate, publish."""

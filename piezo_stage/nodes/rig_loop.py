@@ -34,6 +34,7 @@ import gc
 import math
 import os
 import sys
+import threading
 import time
 from collections import deque
 from typing import Any, Callable, Iterator, Sequence
@@ -79,6 +80,10 @@ def publish_period(rate_hz: float) -> float:
 
 #: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
 SWITCH_INTERVAL = 5e-5
+#: publications the publisher thread makes in a row, then it sleeps SLICE_GAP: a drain gives
+#: the CPU back to the machine every ~0.1-0.2 ms instead of holding it for the whole drain
+DRAIN_SLICE = 8
+SLICE_GAP = 2e-4
 
 
 class Handoff:
@@ -88,8 +93,11 @@ class Handoff:
     for its whole length, so it runs where the loop has the most time: right after a write
     (bench/control_loop.py, 10 kHz: p99 0.35 ms, 54 µs per sample, against 0.41-0.53 ms and
     64 µs for the executor's thread draining every 2 ms). The alternatives bench/control_loop.py
-    measures (environment): ``PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR=1`` a wall-clock timer of the
-    executor drains (:meth:`attach`); ``PIEZO_RIG_LOOP_INLINE=1`` every publication at once."""
+    measures (environment): ``PIEZO_RIG_LOOP_DRAIN_IN=executor`` a wall-clock timer of the
+    executor drains (:meth:`attach`); ``PIEZO_RIG_LOOP_DRAIN_IN=publisher`` a thread of its own
+    below the loop's priority, in slices (:meth:`start_publisher`: a drain in the SCHED_FIFO loop
+    thread keeps a CPU from the machine's other processes for its whole length, 1-9 ms of CPU
+    each on a loaded host); ``PIEZO_RIG_LOOP_INLINE=1`` every publication at once."""
 
     def __init__(self, inline: bool = False, period: float = PUBLISH_PERIOD) -> None:
         self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
@@ -98,6 +106,33 @@ class Handoff:
         self.period = period
         self.in_loop = True
         self._next = 0.0
+        self._lock = threading.Lock()  # one drain at a time: publications stay in order
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.publisher_error: str | None = None
+
+    def start_publisher(self, priority: int) -> None:
+        """Drain from a thread of its own every ``period``, in slices of ``DRAIN_SLICE``
+        publications ``SLICE_GAP`` apart, at SCHED_FIFO ``priority`` (0: normal). Below the
+        loop thread's priority, the loop preempts it on a shared CPU; above the machine's
+        ordinary processes, a GIL it holds is never stuck behind them."""
+        self.in_loop = False
+        self._thread = threading.Thread(
+            target=self._publish_loop, args=(priority,), name="loop-publisher", daemon=True
+        )
+        self._thread.start()
+
+    def _publish_loop(self, priority: int) -> None:
+        self.publisher_error = set_realtime_priority(priority)
+        while not self._stop.wait(self.period):
+            self.drain(sliced=True)
+
+    def close(self) -> None:
+        """Stop the publisher thread (if any) and publish what is left."""
+        self._stop.set()
+        if self._thread is not None and self._thread.ident is not None:
+            self._thread.join(timeout=2.0)
+        self.drain()
 
     def attach(self, node: Node, period: float) -> None:
         """Drain from the executor's thread every ``period`` instead of the loop's."""
@@ -118,13 +153,19 @@ class Handoff:
                 self._next = now + self.period
                 self.drain()
 
-    def drain(self) -> None:
+    def drain(self, sliced: bool = False) -> None:
+        """Publish the queue in order (``sliced``: sleeping ``SLICE_GAP`` every ``DRAIN_SLICE``)."""
         queue = self._queue
-        while queue:
-            publish, args = queue.popleft()
-            publish(*args)
-        for done in self.after_drain:
-            done()
+        with self._lock:
+            count = 0
+            while queue:
+                publish, args = queue.popleft()
+                publish(*args)
+                count += 1
+                if sliced and count % DRAIN_SLICE == 0 and queue:
+                    time.sleep(SLICE_GAP)
+            for done in self.after_drain:
+                done()
 
 
 #: one row of LoopSamples per sample: stamp [ns], displacement, status, reference, u, u_ff,
@@ -223,7 +264,10 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     # the loop steps once per sample: its rate (checked with the gains) is the sample rate
     rate = float(controller.settings.rate_hz)
     handoff.period = float(os.environ.get("PIEZO_RIG_LOOP_PUBLISH_PERIOD", publish_period(rate)))
-    if os.environ.get("PIEZO_RIG_LOOP_DRAIN_IN_EXECUTOR") == "1":
+    # the bench's alternatives (bench/control_loop.py --designs, bench/step_probe.py): "loop"
+    # (shipped), "publisher" (a thread of its own, sliced drains), "executor"
+    drain_in = os.environ.get("PIEZO_RIG_LOOP_DRAIN_IN", "loop")
+    if drain_in == "executor":
         handoff.attach(driver, handoff.period)
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
     supervisor = controller.supervisor
@@ -260,10 +304,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
             driver.command(u)
         handoff.drain_due()  # what the executor's timers queued, while the sensor is silent
 
-    # the loop thread, and the executor's (this one: a GIL holder preempted by other processes
-    # would stall the loop thread, a priority inversion), at the driver's realtime_priority
+    # the loop thread at the driver's realtime_priority, and the executor's (a GIL holder
+    # preempted by other processes would stall the loop thread, a priority inversion); with the
+    # publisher thread, it and the executor's one below the loop: still above the machine's
+    # ordinary processes, but the loop preempts them on a shared CPU instead of waiting for them
+    # to block (equal SCHED_FIFO priorities do not preempt each other)
     priority = driver.settings.realtime_priority
-    refused = set_realtime_priority(priority)
+    helpers = max(priority - 1, 1) if priority > 0 and drain_in == "publisher" else priority
+    refused = set_realtime_priority(helpers)
     if refused:
         driver.get_logger().warn(f"executor thread: {refused}")
     # what the start made lives as long as the process: out of the collector's reach, so that a
@@ -283,6 +331,8 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
 
     def start_loop() -> None:
         reader.destroy_timer(first_turn)
+        if drain_in == "publisher":
+            handoff.start_publisher(helpers)
         reader.start()
 
     first_turn = reader.create_timer(0.0, start_loop, clock=wall_clock())
