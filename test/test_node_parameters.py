@@ -174,7 +174,7 @@ def test_the_launcher_refuses_unknown_parameters_before_starting(tmp_path, capsy
     assert main(["launch", str(path), "--dry-run"]) == 0
 
 
-@pytest.mark.unit
+@pytest.mark.ros  # loading a graph binds a socket for each $(free_port NAME) it writes
 def test_every_shipped_graph_passes_the_check():
     from piezo_stage.launch.graph import load_graph
     from piezo_stage.launch.parameters import check_parameters
