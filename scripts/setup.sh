@@ -87,4 +87,13 @@ ln -sfn "$ROOT/config" "$VENV/share/piezo_stage/config"
 for node in $("$PYV" -c "from piezo_stage.nodes import NODES; print(' '.join(NODES))"); do
   ln -sfn "$VENV/bin/$node" "$VENV/lib/piezo_stage/$node"
 done
+# 5. the model's numba kernels, compiled once into their disk cache (a fresh clone has none:
+# the first nodes and tests would each compile them at once, ~20 s of CPU a process) ------
+jit_stamp="$VENV/.piezo-jit.stamp"
+jit_hash="$(hash_of piezo_stage/model/*.py scripts/warm_jit.py)"
+if [ "$(cat "$jit_stamp" 2>/dev/null)" != "$jit_hash" ] || ! ls piezo_stage/model/__pycache__/*.nbi >/dev/null 2>&1; then
+  say "compiling the model kernels (once; a few minutes on a small machine)"
+  ( source "$ROOT/scripts/env.sh" && python "$ROOT/scripts/warm_jit.py" ) || exit 1
+  echo "$jit_hash" > "$jit_stamp"
+fi
 say "ready: source scripts/env.sh"

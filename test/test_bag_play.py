@@ -67,7 +67,7 @@ def test_play_names_uninstalled_types_and_plays_the_rest(tmp_path):
         "not playing 1 topic(s) whose type is not installed: /wifi "
         "(wifi_interface/msg/WifiList); playing the other 2" in out
     )
-    assert "played 20 messages" in out
+    assert "played 20 of 20 messages" in out
 
 
 def test_play_refuses_a_damaged_bag_unless_allowed(tmp_path):

@@ -98,9 +98,11 @@ def test_invalid_sample_opens_the_loop_and_holds(node):
 
 
 class _StartClosed:
-    """A start_closed controller at 1 kHz (timer, stale after 20 periods) and what it says."""
+    """A start_closed controller at 1 kHz (timer, stale after 20 periods) and what it says;
+    ``driver``: the probe listens on voltage_command as the amplifier driver would (without a
+    listener start_closed holds off)."""
 
-    def __init__(self, node) -> None:
+    def __init__(self, node, driver: bool = True) -> None:
         from piezo_stage_msgs.msg import ControllerState, Displacement
 
         self.node = node
@@ -118,6 +120,10 @@ class _StartClosed:
             ControllerState, "controller_state", self.states.append, COMMAND_QOS
         )
         node.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        self.commands: list = []
+        self.driver = None
+        if driver:
+            self.listen()
         self.pub = node.create_publisher(Displacement, "displacement", SENSOR_QOS)
         assert spin_until(
             node,
@@ -126,6 +132,14 @@ class _StartClosed:
                 and node.count_publishers("controller_state") >= 1
             ),
             15.0,
+        )
+
+    def listen(self) -> None:
+        """Subscribe to voltage_command, as the driver does."""
+        from piezo_stage_msgs.msg import Voltage
+
+        self.driver = self.node.create_subscription(
+            Voltage, "voltage_command", self.commands.append, COMMAND_QOS
         )
 
     def closed(self) -> bool:
@@ -171,6 +185,20 @@ def test_start_closed_waits_out_a_stale_or_invalid_sensor_before_closing(node):
         assert c.feed_until(lambda: c.said("waiting to close"), no_target, 0.05)
         assert not c.closed()
         # valid samples flow: the loop closes
+        assert c.feed_until(c.closed, c.fresh, 0.002)
+    finally:
+        stop(c.proc)
+
+
+def test_start_closed_holds_off_until_a_driver_listens_on_voltage_command(node):
+    """The separate controller does not close the loop on commands nobody applies: with valid
+    samples but no subscriber on voltage_command it waits (WARN saying so); once one listens
+    it closes."""
+    c = _StartClosed(node, driver=False)
+    try:
+        assert c.feed_until(lambda: c.said("no subscriber on voltage_command"), c.fresh, 0.002)
+        assert not c.closed() and not c.commands
+        c.listen()
         assert c.feed_until(c.closed, c.fresh, 0.002)
     finally:
         stop(c.proc)

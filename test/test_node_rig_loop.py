@@ -8,8 +8,8 @@ write, and SIGINT ramps the amplifier to safe_voltage with exit code 0.
 The loop rides through gaps of up to 1 s here (``max_gap``): through DDS a busy host loses
 samples between the nodes for hundreds of ms at start-up, and these tests are about other
 things (the gap rule has its unit tests). The emulated rig runs in this process (RigEmulator:
-GCS amplifier on TCP, optoNCDT ILD1320 at 1 kHz on a pty, around the ch. 11 stage); what
-reached the amplifier is its command log.
+GCS amplifier on TCP, optoNCDT ILD1320 at 1 kHz on a pty, around the ch. 11 stage; its device
+threads under SCHED_FIFO where allowed); what reached the amplifier is its command log.
 """
 
 from __future__ import annotations
@@ -66,6 +66,9 @@ class Rig:
             sensor_errors=sensor_errors,
             amplifier_bandwidth=1000.0,
             sensor_faults=self.sensor_faults,
+            # as hardware, the emulated rig never pauses: with two test workers on two cores a
+            # device thread at normal priority missed a 0.5 s reply deadline of the driver
+            realtime_priority=60,
         )
         self.lines: list[str] = []
         self.launch = Launcher(

@@ -246,7 +246,8 @@ def test_reconnects_after_the_sensor_link_drops(probe, tmp_path):
 def test_a_reader_started_late_forgets_what_the_link_held(probe):
     """``start=False`` (rig_loop starts the loop once the process is built): samples the sensor
     sent before :meth:`start` never reach the loop, which would otherwise step the law through
-    a late block of stale samples."""
+    a late block of stale samples. The sensor reads 2 mm before the start and 6 mm after (it is
+    silent while the level changes), so a stale sample is told by its value, not by timing."""
     import threading
     import time
 
@@ -254,15 +255,17 @@ def test_a_reader_started_late_forgets_what_the_link_held(probe):
 
     from piezo_stage.nodes.laser_reader import LaserReaderNode
 
-    blocks: list[int] = []
+    values: list[float] = []
     got = threading.Event()
 
     def loop(value, status, stamp):
-        blocks.append(len(value))
+        ok = np.asarray(status) == Status.OK  # the first frames after the flush relock
+        values.extend(np.asarray(value, dtype=float)[ok].tolist())
         got.set()
 
-    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=Level(5e-3))
-    with EmulatorServer(model, pty=True) as server:
+    level, faults = Level(2e-3), Faults()
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=level)
+    with EmulatorServer(model, pty=True, faults=faults) as server:
         node = LaserReaderNode(
             loop=loop,
             handoff=_Inline(),
@@ -275,16 +278,24 @@ def test_a_reader_started_late_forgets_what_the_link_held(probe):
             ],
         )
         try:
-            time.sleep(0.3)  # 300 samples reach the link
-            assert not blocks
+            deadline = time.monotonic() + 10.0
+            while model.sent_samples < 300 and time.monotonic() < deadline:
+                time.sleep(0.01)  # samples at 2 mm wait in the link
+            assert model.sent_samples >= 300 and not values
+            faults.silent = True
+            time.sleep(0.05)  # the server's last write is out
+            level.d = 6e-3
             node.start()
-            assert got.wait(5.0)
-            time.sleep(0.05)
+            faults.silent = False
+            assert got.wait(10.0)
+            deadline = time.monotonic() + 10.0
+            while len(values) < 50 and time.monotonic() < deadline:
+                time.sleep(0.01)
         finally:
             node.on_shutdown()
             node.destroy_node()
-    assert blocks[0] < 30, blocks[:5]
-    assert sum(blocks) < 200, blocks
+    assert len(values) >= 50
+    assert values == [quantised("ild1320", 6e-3)] * len(values), values[:5]
 
 
 class _Inline:
@@ -292,4 +303,7 @@ class _Inline:
         publish(*args)
 
     def drain(self) -> None:
+        pass
+
+    def close(self) -> None:
         pass

@@ -48,7 +48,6 @@ from typing import Any, Callable, Sequence, cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import signal
 
 from piezo_stage.model.parameter_set import Dynamics
 from piezo_stage.model.plant import DynamicPlant
@@ -144,6 +143,8 @@ def feedforward_response(
     if den.size == 1:  # static: x[k + 1] = u[k] / k
         P = 1.0 / (den[0] * z)
     else:
+        from scipy import signal  # lazy: 3 s of imports a controller without learning skips
+
         b, a, _ = signal.cont2discrete((np.array([1.0]), den), T, method="zoh")
         _, P = signal.freqz(np.ravel(b), a, worN=omega)
     P = P * z ** (-float(delay_samples))

@@ -26,6 +26,8 @@ KINK_HALF_WIDTH = 6
 MAX_LAG_SHARE = 0.2
 #: sub-sample resolution of the kink's location
 RESOLUTION = 0.02
+#: kink locations fitted together (bounds the batch's memory: ~ batch × samples × 5 floats)
+KINK_BATCH = 512
 
 
 @dataclass(frozen=True)
@@ -45,18 +47,28 @@ def kink(y: NDArray[np.float64], lo: float, hi: float) -> float:
     """The location in [lo, hi] (index units) where two pieces fitted to ``y`` meet with least
     squared error: y ≈ c + s1·m + s2·p + c1·m² + c2·p², m = min(k − τ, 0), p = max(k − τ, 0)
     (the curvature terms take the output's bend after a reversal, which would otherwise pull
-    a straight-piece kink late).
+    a straight-piece kink late). τ runs over a grid of step ``RESOLUTION``; the least-squares
+    fits of all τ are solved together (a QR factorisation per τ, batched), a fit of rank < 5
+    (numpy's ``lstsq`` rule) is left out.
     """
     k = np.arange(y.size, dtype=float)
     taus = np.arange(lo, hi + RESOLUTION / 2, RESOLUTION)
     best, best_tau = math.inf, float("nan")
-    for tau in taus:
-        m, p = np.minimum(k - tau, 0.0), np.maximum(k - tau, 0.0)
-        a = np.column_stack([np.ones_like(k), m, p, m * m, p * p])
-        coef, _, rank, _ = np.linalg.lstsq(a, y, rcond=None)
-        r = float(np.sum((a @ coef - y) ** 2))
-        if rank == 5 and r < best:
-            best, best_tau = r, float(tau)
+    for start in range(0, taus.size, KINK_BATCH):
+        tau = taus[start : start + KINK_BATCH, None]
+        d = k[None, :] - tau
+        m, p = np.minimum(d, 0.0), np.maximum(d, 0.0)
+        a = np.stack([np.ones_like(d), m, p, m * m, p * p], axis=-1)  # (taus, samples, 5)
+        q, r = np.linalg.qr(a)
+        sv = np.linalg.svd(r, compute_uv=False)  # the singular values of a
+        full = sv[:, -1] > sv[:, 0] * np.finfo(float).eps * max(y.size, 5)
+        qty = np.einsum("tni,n->ti", q, y)
+        coef = np.linalg.solve(np.where(full[:, None, None], r, np.eye(5)), qty[..., None])
+        res = np.einsum("tni,ti->tn", a, coef[..., 0]) - y
+        err = np.where(full, np.einsum("tn,tn->t", res, res), math.inf)
+        i = int(np.argmin(err))
+        if err[i] < best:
+            best, best_tau = float(err[i]), float(taus[start + i])
     return best_tau
 
 

@@ -23,7 +23,6 @@ from typing import Literal, TypeAlias, cast
 import numpy as np
 from numpy.polynomial import legendre
 from numpy.typing import NDArray
-from scipy.integrate import solve_ivp
 
 from . import _branches
 from . import _plant_kernels as K
@@ -299,6 +298,8 @@ def simulate_reference(
     reference for tests and bench/plant.py. atol is rtol times the displacement scale
     min(length_scale, max|u| / kappa_x) (and that times omega for x', 1 for w).
     """
+    from scipy.integrate import solve_ivp  # lazy: the baseline only, not the nodes' import
+
     params.validate()
     dt = _check_dt(dt)
     m, c = dynamics.m, dynamics.c
