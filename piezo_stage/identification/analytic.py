@@ -12,7 +12,6 @@ from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import savgol_filter
 
 from .cycles import Branch
 from .derivatives import LocalFit, adaptive_fit, local_root
@@ -102,6 +101,8 @@ def find_x_star(x: NDArray[np.float64], th: NDArray[np.float64], noise: float = 
     middle of the remaining sign changes taken.
     """
     if noise > 0.0 and len(th) >= 20:
+        from scipy.signal import savgol_filter  # lazy: scipy.signal costs seconds to import
+
         th = savgol_filter(th, max(5, (len(th) // 20) | 1), 2)
     r = np.flatnonzero((th[:-1] <= 0.0) & (th[1:] > 0.0))
     if len(r) == 0:

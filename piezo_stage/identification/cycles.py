@@ -15,7 +15,6 @@ from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import savgol_filter
 
 from .derivatives import noise_std
 from .errors import (
@@ -315,6 +314,8 @@ def smooth_input(cycle: SteadyCycle) -> NDArray[np.float64]:
     m, i_max = len(v), cycle.i_max
     span = cycle.input_span
     if cycle.noise_input > 1e-9 * span:
+        from scipy.signal import savgol_filter  # lazy: scipy.signal costs seconds to import
+
         for seg in (slice(0, i_max + 1), slice(i_max, m)):
             n = seg.stop - seg.start
             window = min(n - (1 - n % 2), max(7, (n // 10) | 1))
