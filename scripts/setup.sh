@@ -93,7 +93,7 @@ jit_stamp="$VENV/.piezo-jit.stamp"
 jit_hash="$(hash_of piezo_stage/model/*.py scripts/warm_jit.py)"
 if [ "$(cat "$jit_stamp" 2>/dev/null)" != "$jit_hash" ] || ! ls piezo_stage/model/__pycache__/*.nbi >/dev/null 2>&1; then
   say "compiling the model kernels (once; a few minutes on a small machine)"
-  ( source "$ROOT/scripts/env.sh" && python "$ROOT/scripts/warm_jit.py" ) || exit 1
+  "$PYV" "$ROOT/scripts/warm_jit.py" || exit 1  # the core only: no ROS environment needed
   echo "$jit_hash" > "$jit_stamp"
 fi
 say "ready: source scripts/env.sh"
