@@ -67,9 +67,15 @@ def test_record_forwards_sigint_and_prints_the_complete_bag(node, tmp_path):
 
 
 def test_record_duration_stops_by_itself(tmp_path):
+    """--duration counts from the open bag, and "recording" is said once the bag is open (a user,
+    or a script waiting for the line, may stop it then and keep a bag)."""
     bag = tmp_path / "short"
     proc = _cli("record", "--ns", "/cli_short", "-o", str(bag), "--duration", "1.0")
+    first = proc.stdout.readline()
+    opened_before = sorted(p.name for p in bag.glob("*.mcap"))
     out, err = proc.communicate(timeout=30)
+    assert first.startswith(f"recording /cli_short to {bag}"), (first, err)
+    assert opened_before, "said recording before its bag was open"
     assert proc.returncode == 0, err
     assert f"bag: {bag} (complete)" in out
     assert bag_info(bag)["complete"]

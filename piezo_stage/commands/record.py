@@ -17,11 +17,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from piezo_stage.commands.argtypes import int_range, non_negative, positive
 
 NODE_BOOTSTRAP = "piezo_stage.launch.child"
+READY_POLL = 0.05  # [s] how often run_node checks that the node is ready
 _FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -93,9 +94,15 @@ def node_env() -> dict[str, str]:
     return env
 
 
-def run_node(module: str, ros_args: Sequence[str], stop_after: float | None = None) -> int:
+def run_node(
+    module: str,
+    ros_args: Sequence[str],
+    stop_after: float | None = None,
+    ready: tuple[Callable[[], bool], str] | None = None,
+) -> int:
     """Run a node module as a child process (it dies with this one) until it exits; forward
-    SIGINT/SIGTERM/SIGHUP to it as SIGINT; with ``stop_after`` [s], send SIGINT then.
+    SIGINT/SIGTERM/SIGHUP to it as SIGINT; with ``stop_after`` [s], send SIGINT then; with
+    ``ready`` = (test, line), print the line once the test holds (what the node has done).
     Returns the child's exit status (128 + N when killed by signal N)."""
     argv = [
         sys.executable,
@@ -120,11 +127,17 @@ def run_node(module: str, ros_args: Sequence[str], stop_after: float | None = No
         while True:
             try:
                 timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+                if ready is not None:
+                    timeout = READY_POLL if timeout is None else min(timeout, READY_POLL)
                 code = child.wait(timeout=timeout)
                 break
             except subprocess.TimeoutExpired:
-                forward(signal.SIGINT, None)
-                deadline = None
+                if ready is not None and ready[0]():
+                    print(ready[1], flush=True)
+                    ready = None
+                if deadline is not None and time.monotonic() >= deadline:
+                    forward(signal.SIGINT, None)
+                    deadline = None
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -164,12 +177,14 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    print(
-        f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"), flush=True
+    # "recording" once the node's bag is open (its file exists), not when the node is started:
+    # a slow start (imports on a busy host) is not recording yet, and the node counts the
+    # duration from then too
+    opened = (
+        lambda: any(bag.glob("*.mcap")),
+        f"recording {args.ns} to {bag}" + ("" if args.duration else " (Ctrl-C to stop)"),
     )
-    # the node counts the duration from when its bag is open: a slow start (imports on a busy
-    # host) must not eat into it, nor get a SIGINT before it can record anything
-    code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag))
+    code = run_node("piezo_stage.nodes.recorder", ros_args(args, bag), ready=opened)
     try:
         info = bag_info(bag)
     except BagError as exc:
