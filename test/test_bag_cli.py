@@ -93,7 +93,7 @@ def test_record_exits_1_when_its_bag_was_not_closed(tmp_path, monkeypatch, capsy
     """What a full disk leaves: the recorder exits 0 but could not close the bag."""
     import piezo_stage.commands.record as record
 
-    def recorder_that_could_not_close(module, ros_args, stop_after=None):
+    def recorder_that_could_not_close(module, ros_args, stop_after=None, ready=None):
         bag = ros_args[ros_args.index("-p") + 1].split(":=", 1)[1]
         writer = BagWriter(bag, flush_period_s=0)  # flushed chunks, never closed
         writer.add_topic("/piezo/voltage", VOLT, [qos.RELIABLE])

@@ -20,7 +20,7 @@ from piezo_stage.hardware.amplifier import make_amplifier
 from piezo_stage.hardware.driver import DriverConfig, VoltageDriver
 from piezo_stage.hardware.emulators.rig import RigEmulator
 from piezo_stage.hardware.errors import ConnectionLost
-from piezo_stage.hardware.optoncdt import Status, frame_format
+from piezo_stage.hardware.optoncdt import SampleBlock, Status, frame_format
 from piezo_stage.hardware.sensor import SensorConfig, SensorReader
 
 pytestmark = pytest.mark.ros
@@ -195,24 +195,30 @@ def test_rig_command_with_the_simulated_plant(capsys, tmp_path):
         "--rate",
         "2000",
         "--duration",
-        "2.0",
+        "8.0",
     ]
     thread, ends, result = run_in_thread(argv, capsys, 2)
     driver = VoltageDriver(make_amplifier("gcs", ends["gcs"]), DriverConfig(v_min=0, v_max=100))
     reader = SensorReader.from_url(ends["optoncdt"], SensorConfig("ild1750", 2e-3))
     driver.connect()
     reader.connect()
-    time.sleep(0.05)
-    rest = reader.read(0.1)  # the first K - 1 frames are withheld (unlocked), then all OK
+
+    def read_at_least(n: int) -> SampleBlock:
+        """The next n samples or more (a loaded host delivers them late, never fewer)."""
+        blocks, deadline = [], time.monotonic() + 5.0
+        while sum(len(b) for b in blocks) < n and time.monotonic() < deadline:
+            blocks.append(reader.read(0.1))
+        return SampleBlock.concat(blocks)
+
+    k = SensorConfig("ild1750", 2e-3).relock_frames
+    rest = read_at_least(k + 10)  # the first K - 1 frames are withheld (unlocked), then all OK
     driver.set_voltage(100.0)
-    time.sleep(0.2)
-    reader.read(0.05)
-    moved = reader.read(0.1)
+    read_at_least(400)  # 0.2 s at 2 kHz: the stage settles
+    moved = read_at_least(10)
     driver.shutdown()
     reader.close()
-    thread.join(5)
+    thread.join(15)
     assert result["rc"] == 0
-    k = SensorConfig("ild1750", 2e-3).relock_frames
     assert (
         len(rest) > k
         and np.all(rest.status[k - 1 :] == Status.OK)
