@@ -209,6 +209,45 @@ def test_apply_at_stamp_plays_commands_at_their_stamps_with_a_first_order_hold(p
         assert published[v] >= stamp, v  # written at (not before) its stamp
 
 
+def test_a_watchdog_turn_between_a_write_and_its_publication_publishes_it_once(probe, gcs):
+    """The watchdog timer (executor thread) publishes a ramp step when the value last written
+    differs from the one last published. A command written by another thread (the playout, the
+    rig loop) and not yet published is no ramp step: here the timer fires right after the write,
+    and the value is still published once (and, with the read-back off, nothing else is)."""
+    import threading
+
+    from rclpy.parameter import Parameter
+
+    from piezo_stage.nodes.voltage_driver import VoltageDriverNode
+
+    _, server = gcs
+    settings = {"backend": "gcs", "url": server.url, "command_timeout": 0.0}
+    settings["readback_rate_hz"] = 0.0  # only the commands are published
+    node = VoltageDriverNode(overrides=[Parameter(k, value=v) for k, v in settings.items()])
+    published: list[float] = []
+    node._send = lambda voltage, stamp: published.append(voltage)
+    turns: list[threading.Thread] = []
+    write = node.driver.set_voltage
+
+    def write_then_timer(voltage, received=None):
+        result = write(voltage, received)
+        turns.append(threading.Thread(target=node._watchdog))  # the timer fires now
+        turns[-1].start()
+        turns[-1].join(timeout=0.5)  # it may wait for the command to be published
+        return result
+
+    node.driver.set_voltage = write_then_timer
+    try:
+        node.command(12.0)
+        node.command(34.0)
+        for turn in turns:
+            turn.join(timeout=5.0)
+    finally:
+        node.driver.close()
+        node.destroy_node()
+    assert published == [12.0, 34.0]
+
+
 def test_realtime_priority_covers_the_playout_and_the_executor_thread(probe, gcs):
     """realtime_priority: the playout thread and the executor's thread (which holds the GIL the
     playout needs) both run SCHED_FIFO when the system allows it, and /diagnostics says which."""

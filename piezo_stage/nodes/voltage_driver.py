@@ -321,7 +321,7 @@ class VoltageDriverNode(Node):
         # composed: the loop thread reads back right after a write, when one is due (a timer's
         # device round trip would hold the driver while a sample waits to be answered)
         self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 else math.inf
-        self._readback_due = 0.0
+        self._readback_due = 0.0 if p.readback_rate_hz > 0 else math.inf  # 0: never
         if p.readback_rate_hz > 0 and not composed:
             self.create_timer(self._readback_period, self._readback, clock=wall_clock())
         self._diagnostics = Diagnostics(self, f"{p.backend} {self.url}", self._diagnose)
@@ -438,12 +438,17 @@ class VoltageDriverNode(Node):
 
     # ------------------------------------------------------------------ timers
     def _watchdog(self) -> None:
-        trips = self.driver.trips
-        try:
-            state = self.driver.tick()
-        except HardwareError as exc:
-            self._link_error(exc)
-            return
+        # under the command lock: the playout or the loop thread may be between a write and its
+        # publication, which the comparison below would take for a ramp step and publish twice
+        with self._lock:
+            trips = self.driver.trips
+            try:
+                state = self.driver.tick()
+            except HardwareError as exc:
+                self._link_error(exc)
+                return
+            if self.driver.last_sent != self._applied and state is not DriverState.DISCONNECTED:
+                self._publish(self.driver.last_sent)  # a step of a ramp (toward a command or safe)
         if self.driver.trips != trips:
             self._watchdog_trips = self.driver.trips
             self.get_logger().warn(
@@ -451,8 +456,6 @@ class VoltageDriverNode(Node):
                 f"{self.driver.config.command_timeout:g} s: "
                 f"ramping to {self.driver.config.safe_voltage:g} V"
             )
-        if self.driver.last_sent != self._applied and state is not DriverState.DISCONNECTED:
-            self._publish(self.driver.last_sent)  # a step of a ramp (toward a command or safe)
 
     def _readback(self) -> None:
         if not self.driver.connected:
