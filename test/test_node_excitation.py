@@ -114,12 +114,15 @@ def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(nod
     """trigger=clock runs as fast as the graph: a reliable reader that falls behind (a recorder
     under load) must still get every command and mark, including those published just before the
     node leaves (it waits for their acknowledgement). The lagging reader here takes nothing until
-    the plan is done, far more steps than a reader's DDS history holds (5000)."""
+    the plan is done: 6001 steps, more than its KEEP_ALL history holds (Fast DDS: 5000 samples).
+    Past that, the writer keeps what the reader has not acknowledged. Each step then costs the
+    graph about 80 ms instead of about 1 ms (measured: the writer resends what the full reader
+    refuses), so the overflow is kept to a few hundred steps."""
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
-    n_ticks, dt = 8001, 0.4 / 8000  # both runs of PLAN and the first tick after: done
+    n_ticks, dt = 6001, 0.4 / 6000  # both runs of PLAN and the first tick after: done
     proc = start_node(
         "excitation",
         *PLAN,
@@ -127,6 +130,7 @@ def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(nod
         "on_done:=exit",
         "use_sim_time:=true",
         "info_rate_hz:=10000.0",
+        "exit_ack_timeout:=120.0",  # more than the reader below is given: a loaded host is slow
         namespace="/exc",
     )
     lagging = rclpy.create_node("lagging", namespace="/exc")
@@ -163,7 +167,7 @@ def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(nod
             assert spin_until(node, lambda sec=sec, nanosec=nanosec: (sec, nanosec) in seen, 5.0), (
                 f"no command for tick {k}"
             )
-        assert spin_until(lagging, lambda: len(late_cmds) >= n_ticks, 30.0), (
+        assert spin_until(lagging, lambda: len(late_cmds) >= n_ticks, 60.0), (
             f"the lagging reader got {len(late_cmds)} of {n_ticks} commands"
         )
         spin_until(lagging, lambda: proc.poll() is not None, 30.0)
@@ -172,7 +176,7 @@ def test_lockstep_reader_lagging_thousands_of_steps_loses_no_command_or_mark(nod
         spin_until(lagging, lambda: False, 0.5)
         stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for m in late_cmds]
         assert len(stamps) == n_ticks and set(stamps) == seen and stamps == sorted(stamps)
-        assert len(infos) > 3000  # a mark every 2-3 steps at this info rate, plus the changes
+        assert len(infos) > n_ticks // 3  # a mark every 2 steps at this info rate, and the changes
         assert [
             (m.header.stamp.sec, m.header.stamp.nanosec, m.run, m.steady) for m in late_infos
         ] == [(m.header.stamp.sec, m.header.stamp.nanosec, m.run, m.steady) for m in infos]

@@ -117,7 +117,8 @@ def _lockstep_run(node, ns: str, rate: float) -> tuple[np.ndarray, np.ndarray, l
             node, lambda: procs[-1].poll() is not None, 120.0
         )  # keep reading meanwhile
         assert procs[-1].returncode == 0, stop(procs[-1])
-        published = spin_until(node, lambda: len(params) == 1, 30.0)
+        # the identification itself: 36 s seen from the end of the runs on a loaded 2-core host
+        published = spin_until(node, lambda: len(params) == 1, 120.0)
     finally:
         logs = [stop(p) for p in procs]
         node.destroy_subscription(sub)
