@@ -9,7 +9,7 @@ demo: setup       ## the simulated stage, end to end
 	@$(ENV) piezo-stage demo --out demo_out
 PYTEST := python -m pytest test -q -p no:cacheprovider
 test: setup lint  ## lint, then every test: all but `realtime` on two workers, then `realtime` alone
-	@$(ENV) $(PYTEST) -n 2 --dist loadfile -m "not realtime" && $(PYTEST) -m realtime
+	@$(ENV) $(PYTEST) -n 2 --dist loadfile --no-loadscope-reorder -m "not realtime" && $(PYTEST) -m realtime
 test-fast: setup  ## the unit layer without slow tests (no ROS processes, no sockets; < 1 min)
 	@$(ENV) $(PYTEST) -n 2 -m "unit and not slow"
 fuzz: setup       ## property tests with random seeds, FUZZ x their examples (default 50)

@@ -130,7 +130,9 @@ LONGEST = (
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A test without its layer is a collection error, not a silent member of no layer. Files
     that hold slow tests run first, the LONGEST first of all (stable order otherwise): on two
-    workers the long ones then start early instead of leaving one worker alone at the end."""
+    workers the long ones then start early instead of leaving one worker alone at the end
+    (``make test`` passes ``--no-loadscope-reorder``: xdist would otherwise order the files by
+    their number of tests, and the one-test demo came last)."""
     missing = [
         item.nodeid
         for item in items
