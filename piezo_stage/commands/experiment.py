@@ -16,7 +16,7 @@ import os
 import sys
 from pathlib import Path
 
-from piezo_stage.control.laws import LAWS
+from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
 
 
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mode",
-        choices=LAWS,
+        choices=tuple(Law),
         default=None,
         help="control law (11.5, 11.17, 11.18; default pid_tv, tracking: pid)",
     )

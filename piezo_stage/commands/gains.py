@@ -37,7 +37,7 @@ from piezo_stage.control.discrete import (
     check_sampled_loop,
 )
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.laws import LAWS, Gains
+from piezo_stage.control.laws import Gains, Law
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
@@ -114,7 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     d.add_argument(
         "--law",
-        choices=LAWS,
+        choices=tuple(Law),
         default="pid",
         help="law checked (pid_sine = pid; pid_tv needs --kA, --f, rate/f integer)",
     )

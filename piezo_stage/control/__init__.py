@@ -25,7 +25,7 @@ from .errors import (
     MeasurementError,
     SampledLoopError,
 )
-from .laws import LAWS, THESIS_GAINS, Gains, control_law
+from .laws import THESIS_GAINS, Gains, Law, control_law
 from .reference import SecondOrderReference
 from .theorem4 import GainReport, k0_max, k2_min, validate_gains
 
@@ -47,7 +47,7 @@ __all__ = [
     "GainError",
     "MeasurementError",
     "SampledLoopError",
-    "LAWS",
+    "Law",
     "THESIS_GAINS",
     "Gains",
     "control_law",

@@ -16,20 +16,126 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from enum import Enum, StrEnum
+from typing import TypeVar
 
 from .errors import ControllerConfigError, MeasurementError
 from .feedforward import Compensation, Feedforward, FeedforwardModel
-from .laws import THESIS_GAINS, Gains, check_law, excitation_term, pid_term, x0_coefficient
+from .laws import (
+    THESIS_GAINS,
+    Gains,
+    Law,
+    check_law,
+    excitation_term,
+    pid_term,
+    x0_coefficient,
+)
 from .learning import FeedforwardTable
 
-ANTI_WINDUP: tuple[str, ...] = ("none", "conditional", "back_calculation")
-ON_CLOSE: tuple[str, ...] = ("bumpless", "reset", "keep")
 
-#: ControlOutput.timing values
-TIMING_OK, TIMING_FIRST, TIMING_GAP, TIMING_NONPOSITIVE = "ok", "first", "gap", "nonpositive_dt"
-# members looked up once: an Enum class attribute costs a metaclass __getattr__ per access, and
-# update() runs once per sample
+class AntiWindup(StrEnum):
+    """What keeps x0 from winding up while u is clamped."""
+
+    NONE = "none"
+    CONDITIONAL = "conditional"  #: freeze x0 while integrating pushes u further out
+    BACK_CALCULATION = "back_calculation"  #: bleed x0 back with time constant Tt
+
+
+class OnClose(StrEnum):
+    """x0 when the loop closes."""
+
+    BUMPLESS = "bumpless"  #: u continuous across the closing
+    RESET = "reset"  #: x0 = 0, as the §11.4 simulations start
+    KEEP = "keep"  #: x0 as frozen while open
+
+
+class Timing(StrEnum):
+    """How a sample's Δt was classed (:func:`sample_timing`)."""
+
+    OK = "ok"
+    FIRST = "first"  #: no previous sample
+    GAP = "gap"  #: Δt > dt_max
+    NONPOSITIVE = "nonpositive_dt"  #: Δt <= 0: the sample is ignored
+
+
+_E = TypeVar("_E", bound=Enum)
+
+
+def _member(kind: type[_E], name: str, value: object) -> _E:
+    """``kind(value)``, else :class:`ControllerConfigError` naming the choices."""
+    try:
+        return kind(value)
+    except ValueError:
+        names = ", ".join(str(m.value) for m in kind)
+        raise ControllerConfigError(f"{name} must be one of {names}, got {value!r}") from None
+
+
+# ----------------------------------------------------------------- the law's pieces
+def check_sample(
+    t: float, x_measured: float, yr: float, yr_dot: float | None, yr_ddot: float
+) -> None:
+    """Raise :class:`MeasurementError` unless every given value is finite."""
+    if math.isfinite(t) and math.isfinite(x_measured) and math.isfinite(yr):
+        if (yr_dot is None or math.isfinite(yr_dot)) and math.isfinite(yr_ddot):
+            return
+    for name, value in (("t", t), ("x_measured", x_measured), ("yr", yr)):
+        if not math.isfinite(value):
+            raise MeasurementError(
+                f"{name} must be finite, got {value}; open the loop on invalid samples"
+            )
+    for name, given in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
+        if given is not None and not math.isfinite(given):
+            raise MeasurementError(f"{name} must be finite, got {given}")
+
+
+def sample_timing(t_prev: float | None, t: float, dt_max: float) -> tuple[Timing, float]:
+    """Δt[k] = t[k] − t[k−1] from the caller's stamps (§11.5), and its class: FIRST (no
+    t[k−1], Δt = 0), NONPOSITIVE (Δt <= 0), GAP (Δt > dt_max) or OK.
+    """
+    if t_prev is None:
+        return Timing.FIRST, 0.0
+    dt = t - t_prev
+    if not dt > 0:
+        return Timing.NONPOSITIVE, dt
+    return (Timing.OK if dt <= dt_max else Timing.GAP), dt
+
+
+def x2_filtered(x2f: float, x: float, x_prev: float, yr_dot: float, dt: float, tau: float) -> float:
+    """x2[k] = (x[k] − x[k−1])/Δt[k] − ẏr[k] (x2 = ẋ − ẏr, 11.4, by Euler differences) through
+    the first-order filter x2f[k] = x2f[k−1] + α·(x2[k] − x2f[k−1]), α = Δt/(τ + Δt) (τ = 0:
+    no filter).
+    """
+    x2 = (x - x_prev) / dt - yr_dot
+    return x2f + dt / (tau + dt) * (x2 - x2f)
+
+
+def bumpless_x0(gains: Gains, u: float, u_ff: float, x1: float, x2: float) -> float:
+    """x0 that makes u = −k0·x0 − k1·x1 − k2·x2 + u_ff (11.5) equal the output ``u`` being
+    applied: the bumpless open→closed transfer.
+    """
+    return -(u - u_ff + gains.k1 * x1 + gains.k2 * x2) / gains.k0
+
+
+def back_calculation(
+    x0: float, u: float, u_raw: float, dt: float, tracking_time: float, k0: float
+) -> float:
+    """x0 after back-calculation anti-windup: x0 += min(Δt/Tt, 1)·(u − u_raw)/(−k0), so that
+    −k0·x0 moves u_raw towards the clamped u with time constant Tt.
+    """
+    gain = min(dt / tracking_time, 1.0) if dt > 0 else 0.0
+    return x0 + gain * (u - u_raw) / (-k0)
+
+
+def integration_winds_up(excess: float, x0_coefficient: float, step: float) -> bool:
+    """Conditional anti-windup (clamping): the increment x0 += ``step`` is skipped when u is
+    beyond a limit by ``excess`` (u − clamp(u) ≠ 0) and ∂u/∂x0·step has the same sign.
+    """
+    return excess != 0.0 and excess * x0_coefficient * step > 0
+
+
+# members looked up once: update() runs once per sample
 _FEEDBACK, _FEEDFORWARD = Compensation.FEEDBACK, Compensation.FEEDFORWARD
+_OK, _NONPOSITIVE = Timing.OK, Timing.NONPOSITIVE
 
 
 @dataclass(frozen=True)
@@ -53,59 +159,40 @@ class ControllerConfig:
       instead of the model stepped along yr.
     """
 
-    mode: str = "pid"
+    mode: Law = Law.PID
     gains: Gains = THESIS_GAINS
     u_min: float = -math.inf
     u_max: float = math.inf
-    anti_windup: str = "conditional"
+    anti_windup: AntiWindup = AntiWindup.CONDITIONAL
     tracking_time: float | None = None
     derivative_tau: float = 0.0
     hold_voltage: float | None = None
-    on_close: str = "bumpless"
+    on_close: OnClose = OnClose.BUMPLESS
     dt_max: float = 0.1
     compensation: Compensation = Compensation.FEEDBACK
     feedforward: FeedforwardModel | None = None
     feedforward_table: FeedforwardTable | None = None
 
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "compensation", Compensation(self.compensation))
-        except ValueError:
-            names = ", ".join(c.value for c in Compensation)
-            raise ControllerConfigError(
-                f"compensation must be one of {names}, got {self.compensation!r}"
-            ) from None
+        object.__setattr__(self, "mode", check_law(self.mode))
+        for name, kind in (
+            ("compensation", Compensation),
+            ("anti_windup", AntiWindup),
+            ("on_close", OnClose),
+        ):
+            object.__setattr__(self, name, _member(kind, name, getattr(self, name)))
 
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable
         configuration.
         """
-        check_law(self.mode)
         self.gains.validate(self.mode)
         if math.isnan(self.u_min) or math.isnan(self.u_max) or not self.u_min < self.u_max:
             raise ControllerConfigError(f"need u_min < u_max, got [{self.u_min}, {self.u_max}]")
-        if self.anti_windup not in ANTI_WINDUP:
-            raise ControllerConfigError(
-                f"anti_windup must be one of {ANTI_WINDUP}, got {self.anti_windup!r}"
-            )
-        if self.on_close not in ON_CLOSE:
-            raise ControllerConfigError(
-                f"on_close must be one of {ON_CLOSE}, got {self.on_close!r}"
-            )
-        if self.on_close == "bumpless" and self.gains.k0 <= 0:
+        if self.on_close is OnClose.BUMPLESS and self.gains.k0 <= 0:
             raise ControllerConfigError("bumpless transfer solves u for x0 and needs k0 > 0")
-        if self.anti_windup == "back_calculation":
-            if self.gains.k0 <= 0:
-                raise ControllerConfigError(
-                    "back-calculation anti-windup acts through x0 and needs k0 > 0"
-                )
-            tt = self.tracking_time
-            if tt is not None and not (math.isfinite(tt) and tt > 0):
-                raise ControllerConfigError(f"tracking_time must be > 0 s, got {tt}")
-            if tt is None and self.gains.k2 <= 0:
-                raise ControllerConfigError(
-                    "default tracking_time sqrt(Ti·Td) needs k2 > 0; give tracking_time"
-                )
+        if self.anti_windup is AntiWindup.BACK_CALCULATION:
+            self._validate_back_calculation()
         if not (math.isfinite(self.derivative_tau) and self.derivative_tau >= 0):
             raise ControllerConfigError(f"derivative_tau must be >= 0 s, got {self.derivative_tau}")
         if self.hold_voltage is not None and not math.isfinite(self.hold_voltage):
@@ -120,6 +207,19 @@ class ControllerConfig:
             raise ControllerConfigError(
                 f"compensation {self.compensation.value} needs a "
                 "feedforward model (a dynamic parameter set) or a feedforward table"
+            )
+
+    def _validate_back_calculation(self) -> None:
+        if self.gains.k0 <= 0:
+            raise ControllerConfigError(
+                "back-calculation anti-windup acts through x0 and needs k0 > 0"
+            )
+        tt = self.tracking_time
+        if tt is not None and not (math.isfinite(tt) and tt > 0):
+            raise ControllerConfigError(f"tracking_time must be > 0 s, got {tt}")
+        if tt is None and self.gains.k2 <= 0:
+            raise ControllerConfigError(
+                "default tracking_time sqrt(Ti·Td) needs k2 > 0; give tracking_time"
             )
 
     @property
@@ -147,7 +247,7 @@ class ControlOutput:
 
     t: float
     dt: float
-    mode: str
+    mode: Law
     loop_closed: bool
     reference: float
     x0: float
@@ -157,7 +257,7 @@ class ControlOutput:
     u_pid: float
     u_excitation: float
     saturated: bool
-    timing: str = TIMING_OK
+    timing: Timing = Timing.OK
     u_ff: float = 0.0
 
 
@@ -231,7 +331,7 @@ class TimeVaryingPID:
         old = self._config
         if (
             self._closed
-            and config.on_close == "bumpless"
+            and config.on_close is OnClose.BUMPLESS
             and old.gains.k0 > 0
             and config.gains.k0 != old.gains.k0
         ):
@@ -274,78 +374,30 @@ class TimeVaryingPID:
         ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used; ÿr [m/s²] for the
         feedforward's m·ÿr term).
         """
-        for name, value in (("t", t), ("x_measured", x_measured), ("yr", yr)):
-            if not math.isfinite(value):
-                raise MeasurementError(
-                    f"{name} must be finite, got {value}; open the loop on invalid samples"
-                )
-        for name, given in (("yr_dot", yr_dot), ("yr_ddot", yr_ddot)):
-            if given is not None and not math.isfinite(given):
-                raise MeasurementError(f"{name} must be finite, got {given}")
+        check_sample(t, x_measured, yr, yr_dot, yr_ddot)
         cfg = self._config
-        if self._t_prev is None:
-            timing, dt = TIMING_FIRST, 0.0
-        else:
-            dt = t - self._t_prev
-            if not dt > 0:
-                assert self._last is not None
-                return replace(self._last, dt=dt, timing=TIMING_NONPOSITIVE)
-            timing = TIMING_OK if dt <= cfg.dt_max else TIMING_GAP
-
+        timing, dt = sample_timing(self._t_prev, t, cfg.dt_max)
+        if timing is _NONPOSITIVE:
+            assert self._last is not None  # a previous sample exists
+            return replace(self._last, dt=dt, timing=timing)
         x1 = x_measured - yr
-        if timing == TIMING_OK:
-            yd = yr_dot if yr_dot is not None else (yr - self._yr_prev) / dt
-            x2_raw = (x_measured - self._x_prev) / dt - yd
-            alpha = dt / (cfg.derivative_tau + dt)
-            self._x2f += alpha * (x2_raw - self._x2f)
-        else:
-            self._x2f = -(yr_dot or 0.0)
-        x2 = self._x2f
+        x2 = self._x2(timing, dt, x_measured, yr, yr_dot)
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
-
-        u_ff = 0.0
-        table = cfg.feedforward_table
         if self._t_table is None:
             self._t_table = t
-        use_ff = (self._ff is not None or table is not None) and cfg.compensation is not _FEEDBACK
-        if use_ff and (self._closed or self._pending_close):
-            if table is not None:
-                self.table_index = table.index(t - self._t_table)
-                u_ff = float(table.u[self.table_index])
-            else:
-                assert self._ff is not None
-                if not self._ff.seeded:  # closing now, or the first sample of a closed start
-                    self._ff.seed(x_measured, self._u)
-                u_ff = self._ff.step(yr, yr_dot if yr_dot is not None else 0.0, yr_ddot)
-        self._u_ff = u_ff
+        self._u_ff = u_ff = self._feedforward_term(t, x_measured, yr, yr_dot, yr_ddot)
         if self._pending_close:
             self._close_now(t, x1, x2)
         elif self._closed and self._t_close is None:
             self._t_close = t  # started closed: phase origin at the first sample
-        elif self._closed and timing == TIMING_OK:
+        elif self._closed and timing is _OK:
             self._integrate(t, x1, x2, dt)
-
+        x0_used = self._x0
         if self._closed:
-            assert self._t_close is not None  # set whenever the loop is closed
-            tau = t - self._t_close
-            u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
-            u_exc = float(excitation_term(cfg.mode, cfg.gains, tau, self._x0))
-            if cfg.compensation is _FEEDFORWARD:
-                u_pid = u_exc = 0.0
-            u_raw = u_pid + u_exc + u_ff
-            x0_used = self._x0
-            self._u = cfg.clamp(u_raw)
-            if (
-                cfg.anti_windup == "back_calculation"
-                and self._u != u_raw
-                and cfg.compensation is not _FEEDFORWARD
-            ):
-                gain = min(dt / cfg.effective_tracking_time, 1.0) if dt > 0 else 0.0
-                self._x0 += gain * (self._u - u_raw) / (-cfg.gains.k0)
+            u_pid, u_exc, u_raw = self._closed_output(t, dt, x1, x2, u_ff)
         else:
             u_pid = u_exc = 0.0
             u_raw = self._hold if self._hold is not None else self._u
-            x0_used = self._x0
             self._u = cfg.clamp(u_raw)
         self._last = ControlOutput(
             t=t,
@@ -365,15 +417,70 @@ class TimeVaryingPID:
         )
         return self._last
 
+    def _x2(
+        self, timing: Timing, dt: float, x_measured: float, yr: float, yr_dot: float | None
+    ) -> float:
+        """x2 of this sample (:func:`x2_filtered`); after no sample or a gap, x2 = −ẏr."""
+        if timing is _OK:
+            yd = yr_dot if yr_dot is not None else (yr - self._yr_prev) / dt
+            self._x2f = x2_filtered(
+                self._x2f, x_measured, self._x_prev, yd, dt, self._config.derivative_tau
+            )
+        else:
+            self._x2f = -(yr_dot or 0.0)
+        return self._x2f
+
+    def _feedforward_term(
+        self, t: float, x_measured: float, yr: float, yr_dot: float | None, yr_ddot: float
+    ) -> float:
+        """u_ff of this sample while the loop is (or closes) closed: the table's value at the
+        time since the first update, or the model stepped along yr (seeded at the closing).
+        """
+        cfg = self._config
+        table = cfg.feedforward_table
+        if cfg.compensation is _FEEDBACK or not (self._closed or self._pending_close):
+            return 0.0
+        if table is not None:
+            assert self._t_table is not None  # set at the first update
+            self.table_index = table.index(t - self._t_table)
+            return float(table.u[self.table_index])
+        if self._ff is None:
+            return 0.0
+        if not self._ff.seeded:  # closing now, or the first sample of a closed start
+            self._ff.seed(x_measured, self._u)
+        return self._ff.step(yr, yr_dot if yr_dot is not None else 0.0, yr_ddot)
+
+    def _closed_output(
+        self, t: float, dt: float, x1: float, x2: float, u_ff: float
+    ) -> tuple[float, float, float]:
+        """u_pid, u_excitation and the unclamped u = u_pid + u_excitation + u_ff of the law
+        (11.5, 11.17, 11.18); sets the clamped output and applies back-calculation.
+        """
+        cfg = self._config
+        assert self._t_close is not None  # set whenever the loop is closed
+        if cfg.compensation is _FEEDFORWARD:
+            u_pid = u_exc = 0.0
+        else:
+            u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
+            u_exc = float(excitation_term(cfg.mode, cfg.gains, t - self._t_close, self._x0))
+        u_raw = u_pid + u_exc + u_ff
+        self._u = cfg.clamp(u_raw)
+        if (
+            cfg.anti_windup is AntiWindup.BACK_CALCULATION
+            and self._u != u_raw
+            and cfg.compensation is not _FEEDFORWARD
+        ):
+            self._x0 = back_calculation(
+                self._x0, self._u, u_raw, dt, cfg.effective_tracking_time, cfg.gains.k0
+            )
+        return u_pid, u_exc, u_raw
+
     def _close_now(self, t: float, x1: float, x2: float) -> None:
         """Open→closed transfer at time t (the new phase origin: sin(2πf·0) = 0)."""
         cfg = self._config
-        if cfg.on_close == "bumpless":
-            # u(t_close) = −k0·x0 − k1·x1 − k2·x2 + u_ff must equal the output being applied now.
-            self._x0 = (
-                -(self._u - self._u_ff + cfg.gains.k1 * x1 + cfg.gains.k2 * x2) / cfg.gains.k0
-            )
-        elif cfg.on_close == "reset":
+        if cfg.on_close is OnClose.BUMPLESS:
+            self._x0 = bumpless_x0(cfg.gains, self._u, self._u_ff, x1, x2)
+        elif cfg.on_close is OnClose.RESET:
             self._x0 = 0.0
         self._closed, self._pending_close, self._t_close, self._hold = True, False, t, None
 
@@ -386,7 +493,7 @@ class TimeVaryingPID:
         step = x1 * dt
         if cfg.compensation is _FEEDFORWARD:
             return  # the law is not applied: its integral is not accumulated
-        if cfg.anti_windup == "conditional":
+        if cfg.anti_windup is AntiWindup.CONDITIONAL:
             assert self._t_close is not None  # integrating: the loop is closed
             tau = t - self._t_close
             u_now = float(
@@ -394,7 +501,7 @@ class TimeVaryingPID:
                 + excitation_term(cfg.mode, cfg.gains, tau, self._x0)
                 + self._u_ff
             )
-            excess = u_now - cfg.clamp(u_now)
-            if excess != 0.0 and excess * x0_coefficient(cfg.mode, cfg.gains, tau) * step > 0:
+            coefficient = x0_coefficient(cfg.mode, cfg.gains, tau)
+            if integration_winds_up(u_now - cfg.clamp(u_now), coefficient, step):
                 return
         self._x0 += step

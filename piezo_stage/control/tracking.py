@@ -19,10 +19,10 @@ from numpy.typing import NDArray
 from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.plant import DynamicPlant
 
-from .controller import ControllerConfig, TimeVaryingPID
+from .controller import ControllerConfig, OnClose, TimeVaryingPID
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import THESIS_GAINS, Gains
+from .laws import THESIS_GAINS, Gains, check_law
 from .learning import FeedforwardTable, IterativeLearning, LearningConfig, feedforward_response
 from .simulation import ClosedLoopResult, simulate_closed_loop
 from .trajectory import Trajectory
@@ -118,11 +118,11 @@ def simulate_tracking(
     bw = plant.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
     config = ControllerConfig(
-        mode=mode,
+        mode=check_law(mode),
         gains=gains,
         u_min=u_min,
         u_max=u_max,
-        on_close="reset",
+        on_close=OnClose.RESET,
         hold_voltage=u_start,
         compensation=Compensation(compensation),
         feedforward=model,

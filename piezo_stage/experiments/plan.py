@@ -52,7 +52,7 @@ import numpy as np
 
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
 from piezo_stage.control.discrete import check_sampled_loop
-from piezo_stage.control.laws import LAWS, THESIS_GAINS, check_law
+from piezo_stage.control.laws import THESIS_GAINS, Law, check_law
 from piezo_stage.model.parameter_set import shipped_parameter_set
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
@@ -107,7 +107,8 @@ def make_plan(
     try:
         check_law(mode)
     except Exception as exc:
-        raise UnknownExperimentError(f"unknown mode {mode!r}; expected one of {LAWS}") from exc
+        names = ", ".join(Law)
+        raise UnknownExperimentError(f"unknown mode {mode!r}; expected one of {names}") from exc
     gains = dict(gains or {})
     unknown = set(gains) - set(THESIS_GAINS.to_dict())
     if unknown:

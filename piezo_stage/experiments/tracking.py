@@ -51,7 +51,7 @@ from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel, compensation
-from piezo_stage.control.laws import LAWS, THESIS_GAINS
+from piezo_stage.control.laws import THESIS_GAINS, Law
 from piezo_stage.control.learning import FeedforwardForm, FeedforwardTable, trajectory_samples
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
@@ -185,8 +185,8 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
     lockstep's, and rig_loop's answer within a fraction of a sample); refused with the
     reason where the law's gains fail the sampled-loop check (its output is not applied
     under feedforward alone)."""
-    if spec.mode not in LAWS:
-        raise ExperimentInputError(f"unknown law {spec.mode!r}; expected one of {LAWS}")
+    if spec.mode not in tuple(Law):
+        raise ExperimentInputError(f"unknown law {spec.mode!r}; expected one of {', '.join(Law)}")
     if spec.graph not in GRAPHS:
         raise ExperimentInputError(f"unknown graph {spec.graph!r}; expected one of {GRAPHS}")
     try:
@@ -314,7 +314,8 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
 def rig_amplifier_range() -> tuple[float, float]:
     """[V] the emulated rig's amplifier (config/graphs/emulated_rig.yaml): its driver's
     v_min/v_max within the emulated amplifier's ``--amp-range``."""
-    from piezo_stage.launch.graph import find_graph, load_yaml
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
 
     data = load_yaml(find_graph("emulated_rig").read_text())
     return graph_amplifier_range(data["nodes"])
@@ -406,7 +407,8 @@ def emulated_rig_graph(
     """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
     controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
     seconds to record. ``port``: the amplifier's TCP port (default: a free one)."""
-    from piezo_stage.launch.graph import find_graph, load_yaml
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
 
     comp, _ = _check(spec)
     trajectory = spec.make_trajectory()
@@ -548,33 +550,86 @@ def run_tracking(
     sim = spec.graph == "sim"
     with tempfile.TemporaryDirectory(prefix="tracking_") as tmp:
         folder = Path(tmp)
-        specs = [(spec.compensation, spec)]
-        if compare and compensation(spec.compensation) is not Compensation.FEEDBACK:
-            specs.append(
-                (
-                    "feedback",
-                    replace(spec, compensation="feedback", learn=0, table=None, table_out=None),
-                )
-            )
-        runs: dict[str, tuple[ControllerStates, Recording]] = {}
-        for label, s in specs:
-            model_file = _model_file(s, folder)
-            plan = make_tracking_plan(s, model_file, seconds) if sim else None
-            _check(s)
-            if progress is not None:
-                progress(
-                    0.0,
-                    f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
-                    f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""),
-                )
-            # sim: generous, ~2000 steps/s on an idle machine, 10x slower under load
-            timeout = wall_timeout or (
-                60.0 + seconds * s.rate_hz / 200.0 if sim else 120.0 + 3 * seconds
-            )
-            recording = _run_once(s, plan, model_file, folder, progress, timeout)
-            runs[label] = (recording.states(relative=not sim), recording)
+        specs = _runs_to_make(spec, compare)
+        runs = _record_runs(specs, folder, seconds, sim, progress, wall_timeout)
     states, recording = runs[spec.compensation]
-    out: dict[str, Any] = {
+    out = _summary(spec, states, recording, t_from, trajectory)
+    fb_states = _feedback_states(spec, runs)
+    if spec.table_out and spec.learn:
+        out["table"] = str(spec.table_out)
+    if fb_states is not None:
+        fb = _figures(fb_states, t_from)
+        out["feedback"] = fb
+        out["rms_ratio"] = out["rms_error"] / fb["rms_error"] if fb["rms_error"] > 0 else math.nan
+    if bag is not None:
+        recording.write_bag(bag, {"controller_state": STATE_TYPE})
+        out["bag"] = str(bag)
+    if png_dir is not None:
+        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, t_from))]
+        if spec.learn:
+            out["png"].append(
+                str(plot_learning(states, Path(png_dir), spec, trajectory.period, out["learning"]))
+            )
+    if progress is not None:
+        progress(
+            1.0,
+            f"tracking/{spec.compensation}: RMS {out['rms_error'] * 1e9:.3g} nm "
+            f"({100 * out['rms_relative']:.3g} % of the range)",
+        )
+    return out
+
+
+def _runs_to_make(spec: TrackingSpec, compare: bool) -> list[tuple[str, TrackingSpec]]:
+    """The labelled specs to run: ``spec``, then with ``compare`` its feedback-only twin."""
+    specs = [(spec.compensation, spec)]
+    if compare and compensation(spec.compensation) is not Compensation.FEEDBACK:
+        specs.append(
+            (
+                "feedback",
+                replace(spec, compensation="feedback", learn=0, table=None, table_out=None),
+            )
+        )
+    return specs
+
+
+def _record_runs(
+    specs: list[tuple[str, TrackingSpec]],
+    folder: Path,
+    seconds: float,
+    sim: bool,
+    progress: Progress | None,
+    wall_timeout: float | None,
+) -> dict[str, tuple[ControllerStates, Recording]]:
+    """Run each labelled spec in turn: its states (rig: t from the first stamp) and recording."""
+    runs: dict[str, tuple[ControllerStates, Recording]] = {}
+    for label, s in specs:
+        model_file = _model_file(s, folder)
+        plan = make_tracking_plan(s, model_file, seconds) if sim else None
+        _check(s)
+        if progress is not None:
+            progress(
+                0.0,
+                f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
+                f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""),
+            )
+        # sim: generous, ~2000 steps/s on an idle machine, 10x slower under load
+        timeout = wall_timeout or (
+            60.0 + seconds * s.rate_hz / 200.0 if sim else 120.0 + 3 * seconds
+        )
+        recording = _run_once(s, plan, model_file, folder, progress, timeout)
+        runs[label] = (recording.states(relative=not sim), recording)
+    return runs
+
+
+def _summary(
+    spec: TrackingSpec,
+    states: ControllerStates,
+    recording: Recording,
+    t_from: float,
+    trajectory: Trajectory,
+) -> dict[str, Any]:
+    """The JSON-ready figures of the run of ``spec`` (its settings, errors, learning, timing)."""
+    return {
         "experiment": "tracking",
         "graph": spec.graph,
         "trajectory": spec.trajectory,
@@ -596,31 +651,13 @@ def run_tracking(
         "wall_time": recording.wall_time,
         "steps_per_wall_second": states.t.size / recording.wall_time,
     }
-    if spec.table_out and spec.learn:
-        out["table"] = str(spec.table_out)
-    if "feedback" in runs and spec.compensation != "feedback":
-        fb = _figures(runs["feedback"][0], t_from)
-        out["feedback"] = fb
-        out["rms_ratio"] = out["rms_error"] / fb["rms_error"] if fb["rms_error"] > 0 else math.nan
-    if bag is not None:
-        recording.write_bag(bag, {"controller_state": STATE_TYPE})
-        out["bag"] = str(bag)
-    if png_dir is not None:
-        fb_states = (
-            runs["feedback"][0] if "feedback" in runs and spec.compensation != "feedback" else None
-        )
-        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, t_from))]
-        if spec.learn:
-            out["png"].append(
-                str(plot_learning(states, Path(png_dir), spec, trajectory.period, out["learning"]))
-            )
-    if progress is not None:
-        progress(
-            1.0,
-            f"tracking/{spec.compensation}: RMS {out['rms_error'] * 1e9:.3g} nm "
-            f"({100 * out['rms_relative']:.3g} % of the range)",
-        )
-    return out
+
+
+def _feedback_states(
+    spec: TrackingSpec, runs: dict[str, tuple[ControllerStates, Recording]]
+) -> ControllerStates | None:
+    """The feedback-only twin's states when it was run for comparison, else None."""
+    return runs["feedback"][0] if "feedback" in runs and spec.compensation != "feedback" else None
 
 
 def _name(spec: TrackingSpec) -> str:

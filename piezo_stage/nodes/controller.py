@@ -55,15 +55,15 @@ from std_srvs.srv import Trigger
 from piezo_stage.config_path import find_user_file
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, load_bounds, load_nominal_plant
 from piezo_stage.control.controller import (
-    ANTI_WINDUP,
-    ON_CLOSE,
+    AntiWindup,
     ControllerConfig,
     ControlOutput,
+    OnClose,
     TimeVaryingPID,
 )
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
-from piezo_stage.control.laws import LAWS, THESIS_GAINS, Gains
+from piezo_stage.control.laws import THESIS_GAINS, Gains, Law
 from piezo_stage.control.learning import (
     FeedforwardForm,
     FeedforwardTable,
@@ -125,7 +125,7 @@ PARAMETERS = ParameterTable(
     "controller",
     (
         Param(
-            "mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=LAWS
+            "mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=Law
         ),
         Param("k0", _G.k0, "integral gain k0", "V/(m s)", (0.0, 1e15)),
         Param("k1", _G.k1, "proportional gain k1", "V/m", (0.0, 1e15)),
@@ -135,7 +135,7 @@ PARAMETERS = ParameterTable(
         Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
         Param("u_min", -450.0, "amplifier lower limit", "V"),
         Param("u_max", 450.0, "amplifier upper limit", "V"),
-        Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=ANTI_WINDUP),
+        Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=AntiWindup),
         Param(
             "tracking_time", 0.0, "back-calculation time constant (0: sqrt(Ti*Td))", "s", (0.0, 1e3)
         ),
@@ -154,7 +154,7 @@ PARAMETERS = ParameterTable(
             read_only=True,
         ),
         Param("hold_voltage", math.nan, "output while the loop is open (NaN: last output)", "V"),
-        Param("on_close", "bumpless", "x0 when the loop closes", choices=ON_CLOSE),
+        Param("on_close", "bumpless", "x0 when the loop closes", choices=OnClose),
         Param(
             "rate_hz", 1000.0, "loop rate (trigger=timer; also the rate checked)", "Hz", (1.0, 1e7)
         ),
