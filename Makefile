@@ -15,8 +15,9 @@ test-fast: setup  ## the unit layer without slow tests (no ROS processes, no soc
 fuzz: setup       ## property tests with random seeds, FUZZ x their examples (default 50)
 	@$(ENV) PIEZO_FUZZ_FACTOR=$${FUZZ:-50} $(PYTEST) -m hypothesis \
 	  --hypothesis-profile=fuzz --hypothesis-show-statistics
-lint: setup       ## ruff rules (D on the core), ruff format, mypy strict on [tool.mypy] files (pyproject.toml)
-	@$(ENV) ruff check . && ruff format --check . && mypy
+lint: setup       ## ruff (D on the core), ruff format, mypy strict, import layers, complexity <= 20
+	@$(ENV) ruff check . && ruff format --check . && mypy && lint-imports --no-cache \
+	  && python scripts/check_complexity.py
 bench: setup      ## speed/accuracy figures against their baselines
 	@$(ENV) for b in bench/*.py; do echo "== $$b"; python $$b || exit 1; done
 clean:

@@ -26,9 +26,10 @@ import pytest
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import tracking_errors
 from piezo_stage.launch import Launcher
-from piezo_stage.launch.graph import find_graph, load_yaml, parse_graph
+from piezo_stage.launch.graph import find_graph, parse_graph
 from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+from piezo_stage.yaml_values import load_yaml
 
 from ros_support import spin_until
 

@@ -19,8 +19,9 @@ from piezo_stage.launch.commandline import (
     ros_arguments,
     ros_value,
 )
-from piezo_stage.launch.graph import find_graph, load_yaml, normalize_namespace
+from piezo_stage.launch.graph import find_graph, normalize_namespace
 from piezo_stage.launch.output import Prefixer, use_color
+from piezo_stage.yaml_values import load_yaml
 
 pytestmark = pytest.mark.unit
 

@@ -11,15 +11,15 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 from mcap.records import Channel, Schema
 
 from . import records
-from .errors import CorruptBagError, InvalidQosError
-from .metadata import METADATA_FILENAME, BagMetadata
+from .errors import InvalidQosError
+from .metadata import BagMetadata
 from .qos import normalize_profiles
-from .reader import bag_files, listed_counts
+from .reader import _metadata, bag_files, listed_counts
 
 
 def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
@@ -84,9 +84,14 @@ def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
 
 def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
     """Topics of all files of a bag, counts summed."""
+    return _merged_topics(file_summary(file) for file in bag_files(path))
+
+
+def _merged_topics(files: Iterable[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The topics of ``file_summary`` dicts merged by name, counts summed."""
     merged: dict[str, dict[str, Any]] = {}
-    for file in bag_files(path):
-        for name, info in file_summary(file)["topics"].items():
+    for summary in files:
+        for name, info in summary["topics"].items():
             if name in merged:
                 merged[name]["count"] += info["count"]
             else:
@@ -94,25 +99,11 @@ def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
     return merged
 
 
-def bag_info(path: str | Path) -> dict[str, Any]:
-    """Duration, start/end, size, files and per-topic type/count/rate/QoS of a bag."""
-    path = Path(path)
-    listed = listed_counts(path)
-    files = [file_summary(f, listed.get(f.name)) for f in bag_files(path)]
-    metadata = None
-    if path.is_dir() and (path / METADATA_FILENAME).is_file():
-        try:
-            metadata = BagMetadata.read(path)
-        except CorruptBagError:
-            metadata = None
-    topics: dict[str, dict[str, Any]] = {}
-    for summary in files:
-        for name, info in summary["topics"].items():
-            if name in topics:
-                topics[name]["count"] += info["count"]
-            else:
-                topics[name] = dict(info)
-    for record in metadata.topics if metadata else []:
+def _add_metadata_topics(topics: dict[str, dict[str, Any]], metadata: BagMetadata) -> None:
+    """Add the topics metadata.yaml lists (count 0 if no file holds them) and take QoS and
+    type hash from it where it gives them.
+    """
+    for record in metadata.topics:
         entry = topics.setdefault(
             record.name,
             {
@@ -127,14 +118,30 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         entry["type_description_hash"] = (
             record.type_description_hash or entry["type_description_hash"]
         )
-    with_messages = [f for f in files if f["message_count"]]
-    start = min((f["start_ns"] for f in with_messages), default=0)
-    end = max((f["end_ns"] for f in with_messages), default=0)
-    duration_s = (end - start) * 1e-9
+
+
+def _add_rates(topics: dict[str, dict[str, Any]], duration_s: float) -> None:
+    """Set each topic's mean rate ``rate_hz`` over the bag: (count - 1) / duration."""
     for entry in topics.values():
         entry["rate_hz"] = (
             (entry["count"] - 1) / duration_s if entry["count"] > 1 and duration_s > 0 else 0.0
         )
+
+
+def bag_info(path: str | Path) -> dict[str, Any]:
+    """Duration, start/end, size, files and per-topic type/count/rate/QoS of a bag."""
+    path = Path(path)
+    listed = listed_counts(path)
+    files = [file_summary(f, listed.get(f.name)) for f in bag_files(path)]
+    metadata = _metadata(path)
+    topics = _merged_topics(files)
+    if metadata is not None:
+        _add_metadata_topics(topics, metadata)
+    with_messages = [f for f in files if f["message_count"]]
+    start = min((f["start_ns"] for f in with_messages), default=0)
+    end = max((f["end_ns"] for f in with_messages), default=0)
+    duration_s = (end - start) * 1e-9
+    _add_rates(topics, duration_s)
     return {
         "path": str(path),
         "storage_identifier": "mcap",

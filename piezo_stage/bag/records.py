@@ -48,6 +48,10 @@ _CHUNK = struct.Struct("<QQQII")  # start, end, uncompressed size, uncompressed 
 _CHUNK_COMPRESSION_AT = 8 + 8 + 8 + 4
 _FOOTER = struct.Struct("<QQI")  # summary start, summary offset start, summary crc
 _FOOTER_RECORD = _RECORD.size + _FOOTER.size
+# record kinds read by McapWalk._records at the top level and inside a chunk
+_TOP_DEFINITIONS = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA, Opcode.HEADER))
+_CHUNK_DEFINITIONS = frozenset((Opcode.SCHEMA, Opcode.CHANNEL))
+_DATA_ENDS = frozenset((Opcode.DATA_END, Opcode.FOOTER))
 #: suffix of a file compressed whole by rosbag2 (``--compression-mode file``)
 FILE_COMPRESSED_SUFFIX = ".zstd"
 #: (channel, log_time_ns, publish_time_ns, sequence, data)
@@ -254,22 +258,17 @@ class McapWalk:
         pos, n = start, len(buf) if end is None else end
         unpack_record, unpack_message = _RECORD.unpack_from, _MESSAGE.unpack_from
         wanted, channels, counts = self._wanted, self.channels, self.counts
+        definitions = _TOP_DEFINITIONS if top else _CHUNK_DEFINITIONS
+        ends = _DATA_ENDS if top else ()
         while pos + 9 <= n:
             opcode, length = unpack_record(buf, pos)
             body, pos = pos + 9, pos + 9 + length
             if pos > n:
-                where = body - 9
-                if not top:
-                    self.errors.append(f"garbled record: in a chunk at {where}")
+                resync = self._truncated(body - 9, top)
+                if resync is None:
                     return
-                if (resync := self._resync(where)) is not None:
-                    self.errors.append(f"garbled record: header at offset {where}")
-                    pos = resync
-                    continue
-                if self.statistics is not None:  # complete file: this is damage
-                    self.errors.append(f"garbled record: header at offset {where}")
-                self.damaged = f"record at offset {where} is truncated"
-                return
+                pos = resync
+                continue
             if opcode == 0x05:  # Message
                 if length < _MESSAGE.size:
                     self.errors.append(f"garbled record: message at {body - 9}")
@@ -288,37 +287,62 @@ class McapWalk:
                     self.errors.append(f"garbled record: message of unknown channel {channel_id}")
             elif opcode == Opcode.CHUNK:
                 yield from self._chunk(buf[body:pos], body - 9)
-            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) or (
-                top and opcode in (Opcode.METADATA, Opcode.HEADER)
-            ):
-                try:
-                    self._definition(opcode, buf[body:pos])
-                except Exception as exc:  # mcap raises assorted errors on garbled bodies
-                    self.errors.append(f"garbled record: opcode {opcode} at {body - 9}: {exc}")
-            elif top and opcode in (Opcode.DATA_END, Opcode.FOOTER):
-                self.reached_end = True
-                self.good_end = pos
-                if opcode == Opcode.DATA_END:
-                    self._check_data_crc(buf, body - 9, buf[body:pos])
+            elif opcode in definitions:
+                self._definition(opcode, buf[body:pos], body - 9)
+            elif opcode in ends:
+                self._data_end(buf, opcode, body, pos)
                 return
             if top:
                 self.good_end = pos
-        if pos != n:
-            if top:
-                self.damaged = f"record header at offset {pos} is truncated"
-            else:
-                self.errors.append(f"garbled record: chunk ends inside a record at {pos}")
+        self._check_walk_end(pos, n, top)
 
-    def _definition(self, opcode: int, body: bytes | memoryview) -> None:
-        if opcode == Opcode.SCHEMA:
-            schema = _parse(Schema, body)
-            self.schemas[schema.id] = schema
-        elif opcode == Opcode.CHANNEL:
-            self._add_channel(_parse(Channel, body))
-        elif opcode == Opcode.METADATA:
-            self.metadata.append(_parse(Metadata, body))
+    def _truncated(self, at: int, top: bool) -> int | None:
+        """Where to go on after a record at ``at`` that runs past the end: the next indexed
+        chunk (top level only), or None to stop (the error or the truncation noted).
+        """
+        if not top:
+            self.errors.append(f"garbled record: in a chunk at {at}")
+            return None
+        if (resync := self._resync(at)) is not None:
+            self.errors.append(f"garbled record: header at offset {at}")
+            return resync
+        if self.statistics is not None:  # complete file: this is damage
+            self.errors.append(f"garbled record: header at offset {at}")
+        self.damaged = f"record at offset {at} is truncated"
+        return None
+
+    def _check_walk_end(self, pos: int, n: int, top: bool) -> None:
+        """Note a record header cut off at ``pos`` if the walk stopped short of ``n`` (the
+        file's end, or a chunk's).
+        """
+        if pos == n:
+            return
+        if top:
+            self.damaged = f"record header at offset {pos} is truncated"
         else:
-            self.header = _parse(Header, body)
+            self.errors.append(f"garbled record: chunk ends inside a record at {pos}")
+
+    def _data_end(self, buf: Buffer, opcode: int, body: int, end: int) -> None:
+        """The data section ends with the record (DataEnd or Footer) at ``body - 9``."""
+        self.reached_end = True
+        self.good_end = end
+        if opcode == Opcode.DATA_END:
+            self._check_data_crc(buf, body - 9, buf[body:end])
+
+    def _definition(self, opcode: int, body: bytes | memoryview, at: int) -> None:
+        """Read a Schema, Channel, Metadata or Header record (an error noted if garbled)."""
+        try:
+            if opcode == Opcode.SCHEMA:
+                schema = _parse(Schema, body)
+                self.schemas[schema.id] = schema
+            elif opcode == Opcode.CHANNEL:
+                self._add_channel(_parse(Channel, body))
+            elif opcode == Opcode.METADATA:
+                self.metadata.append(_parse(Metadata, body))
+            else:
+                self.header = _parse(Header, body)
+        except Exception as exc:  # mcap raises assorted errors on garbled bodies
+            self.errors.append(f"garbled record: opcode {opcode} at {at}: {exc}")
 
     def _check_data_crc(self, buf: Buffer, data_end_at: int, body: bytes | memoryview) -> None:
         (crc,) = struct.unpack_from("<I", body, 0) if len(body) >= 4 else (0,)

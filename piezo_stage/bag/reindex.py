@@ -23,10 +23,10 @@ from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from . import records
-from .errors import BagNotFoundError, CorruptBagError, InvalidQosError, UnknownMessageTypeError
-from .metadata import METADATA_FILENAME, BagMetadata, FileRecord, TopicRecord
+from .errors import BagNotFoundError, InvalidQosError, UnknownMessageTypeError
+from .metadata import BagMetadata, FileRecord, TopicRecord
 from .qos import normalize_profiles, profiles_to_yaml
-from .reader import bag_files, folder_mcap_files
+from .reader import _metadata, bag_files, folder_mcap_files
 from .types import message_definition
 from .writer import DEFAULT_CHUNK_SIZE, LIBRARY
 
@@ -260,49 +260,71 @@ def _keep(
     )
 
 
+def _mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a bag folder (all of them, whatever metadata.yaml lists) or a file."""
+    if not path.is_dir():
+        return bag_files(path)
+    files = folder_mcap_files(path)
+    if not files:
+        raise BagNotFoundError(f"{path} holds no .mcap file")
+    return files
+
+
+def _fresh_metadata(previous: BagMetadata | None) -> BagMetadata:
+    """Empty metadata keeping the old file's custom data, distro and compression settings."""
+    if previous is None:
+        return BagMetadata(custom_data={}, ros_distro="jazzy")
+    return BagMetadata(
+        custom_data=dict(previous.custom_data),
+        ros_distro=previous.ros_distro or "jazzy",
+        compression_format=previous.compression_format,
+        compression_mode=previous.compression_mode,
+    )
+
+
+def _reindex_file(
+    file: Path, table: _TopicTable, metadata: BagMetadata, listed: int | None
+) -> FileReport:
+    """Check one MCAP file; rewrite it if it lacks its footer or is damaged (not a
+    FILE-mode compressed one).
+    """
+    scan = records.scan(file)
+    if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
+        kept: FileReport | None = _keep(file, table, metadata, listed) or FileReport(
+            file, 0, False, reason="file-compressed: checked, not rewritten"
+        )
+    else:
+        kept = _keep(file, table, metadata, listed) if scan.has_footer else None
+    return kept or _rewrite(file, scan, table, metadata, listed)
+
+
+def _untouched(
+    previous: BagMetadata | None, report: ReindexReport, files: list[Path], metadata: BagMetadata
+) -> bool:
+    """Whether the bag was sound and its old metadata.yaml tells the truth about it."""
+    return (
+        previous is not None
+        and not any(f.rewritten or f.damage for f in report.files)
+        and [Path(f.path).name for f in previous.files] == [f.name for f in files]
+        and previous.message_count == metadata.message_count
+    )
+
+
 def reindex(path: str | Path) -> ReindexReport:
     """Make every MCAP file of a bag folder (or one ``.mcap``) complete and indexed, and write
     a fresh ``metadata.yaml`` for a folder.
     """
     path = Path(path)
-    if path.is_dir():
-        files = folder_mcap_files(path)
-        if not files:
-            raise BagNotFoundError(f"{path} holds no .mcap file")
-    else:
-        files = bag_files(path)
-    previous = None
-    if path.is_dir() and (path / METADATA_FILENAME).is_file():
-        try:
-            previous = BagMetadata.read(path)
-        except CorruptBagError:
-            previous = None
-    metadata = BagMetadata(
-        custom_data=dict(previous.custom_data) if previous else {},
-        ros_distro=(previous.ros_distro if previous else "") or "jazzy",
-        compression_format=previous.compression_format if previous else "",
-        compression_mode=previous.compression_mode if previous else "",
-    )
+    files = _mcap_files(path)
+    previous = _metadata(path)
+    metadata = _fresh_metadata(previous)
     table = _TopicTable(previous)
     report = ReindexReport(path)
     listed = {Path(f.path).name: f.message_count for f in previous.files} if previous else {}
     for file in files:
-        scan = records.scan(file)
-        count = listed.get(file.name) or None
-        if file.name.endswith(records.FILE_COMPRESSED_SUFFIX):
-            kept: FileReport | None = _keep(file, table, metadata, count) or FileReport(
-                file, 0, False, reason="file-compressed: checked, not rewritten"
-            )
-        else:
-            kept = _keep(file, table, metadata, count) if scan.has_footer else None
-        report.files.append(kept or _rewrite(file, scan, table, metadata, count))
+        report.files.append(_reindex_file(file, table, metadata, listed.get(file.name) or None))
     metadata.topics = table.records()
-    untouched = (
-        previous is not None
-        and not any(f.rewritten or f.damage for f in report.files)
-        and [Path(f.path).name for f in previous.files] == [f.name for f in files]
-        and previous.message_count == metadata.message_count
-    )  # and it tells the truth
-    if path.is_dir() and not untouched:  # a sound bag keeps its own metadata.yaml (any version)
+    # a sound bag keeps its own metadata.yaml (any version)
+    if path.is_dir() and not _untouched(previous, report, files, metadata):
         metadata.write(path)
     return report

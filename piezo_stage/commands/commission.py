@@ -23,6 +23,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -164,17 +165,7 @@ def _run(args: argparse.Namespace) -> int:
     args.out_dir = args.out_dir.expanduser().absolute()
     try:
         model, params = _model_file(args.param)  # ConfigNotFoundError is an OSError
-        if (args.m is None) != (args.c is None):
-            raise ValueError("give both --m and --c, or neither")
-        for name in ("m", "c"):
-            value, std = getattr(args, name), getattr(args, f"{name}_std")
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"--{name} must be > 0, got {value:g}")
-            if not (math.isfinite(std) and std >= 0) or (std > 0 and value is None):
-                raise ValueError(f"--{name}-std must be >= 0 and comes with --{name}")
-        for name in ("margin", "gain_margin"):
-            if not 0.0 <= getattr(args, name) < 1.0:
-                raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1)")
+        _check_numbers(args)
         rig = make_rig(
             args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress
         )
@@ -230,7 +221,28 @@ def _run(args: argparse.Namespace) -> int:
         print(f"piezo-stage commission: {exc}", file=sys.stderr)
         return 1
     summary["total_wall_time"] = time.monotonic() - started
-    if args.json:
+    _print_summary(summary, args.json)
+    return 0
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Refuse bad --m/--c, their uncertainties or margins (ValueError) before any graph starts."""
+    if (args.m is None) != (args.c is None):
+        raise ValueError("give both --m and --c, or neither")
+    for name in ("m", "c"):
+        value, std = getattr(args, name), getattr(args, f"{name}_std")
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"--{name} must be > 0, got {value:g}")
+        if not (math.isfinite(std) and std >= 0) or (std > 0 and value is None):
+            raise ValueError(f"--{name}-std must be >= 0 and comes with --{name}")
+    for name in ("margin", "gain_margin"):
+        if not 0.0 <= getattr(args, name) < 1.0:
+            raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1)")
+
+
+def _print_summary(summary: dict[str, Any], as_json: bool) -> None:
+    """Print the commissioning summary on stdout, as JSON or as a few readable lines."""
+    if as_json:
         print(json.dumps(summary, indent=1))
     else:
         print(f"commissioned: report {summary['files']['report']}")
@@ -241,4 +253,3 @@ def _run(args: argparse.Namespace) -> int:
             f"{summary['closed_loop']['u_before']:.5g}/"
             f"{summary['closed_loop']['u_after']:.5g} V"
         )
-    return 0

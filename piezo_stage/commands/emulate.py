@@ -29,6 +29,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Callable
 
 from piezo_stage.commands.argtypes import int_range, non_negative, port, positive, probability
 from piezo_stage.hardware.emulators import (
@@ -356,58 +357,86 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     if threading.current_thread() is threading.main_thread():
-        # both signals only count and set the flag: a Ctrl-C that comes while the endpoints are
-        # being announced (or at any other point) still stops the servers cleanly, exit 0
-        signal.signal(signal.SIGTERM, on_signal)
-        if (
-            signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
-        ):  # a launcher may have us ignore it
-            signal.signal(signal.SIGINT, on_signal)
+        _catch_signals(on_signal)
     for server in servers.values():
         server.start()
     _announce(servers)
     time.sleep(0.01)  # the server threads have set their priority
-    for name, server in servers.items():
-        if server.realtime_error:
-            print(f"{name}: note: {server.realtime_error}", flush=True)
+    _note_realtime(servers)
     t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
     next_hangup = (
         time.monotonic() + args.disconnect_every if args.disconnect_every > 0 else float("inf")
     )
     try:
-        while not stop.is_set() and time.monotonic() < t_end:
-            stop.wait(min(0.05, max(t_end - time.monotonic(), 0.0)))
-            if time.monotonic() >= next_hangup:
-                for server in servers.values():
-                    server.disconnect()
-                time.sleep(0.05)  # let the server threads reopen their endpoints
-                _announce(servers, " (reconnected)")
-                next_hangup += args.disconnect_every
-            if (failed := _failed(servers)) is not None:
-                return failed
+        if (failed := _serve(servers, stop, t_end, next_hangup, args.disconnect_every)) is not None:
+            return failed
         if stop.is_set():  # a signal, not --duration: let connected drivers finish their ramp
-            linger_end = time.monotonic() + max(args.linger, 0.0)
-            while (
-                signals[0] < 2
-                and time.monotonic() < linger_end
-                and any(s.clients for s in servers.values())
-            ):
-                time.sleep(0.02)
-                if (failed := _failed(servers)) is not None:
-                    return failed
-            # a pty cannot tell whether its client is still there: serve it a little longer, so
-            # that a reader signalled at the same time as this emulator stops first and does not
-            # take the emulator's normal stop for a broken link
-            grace_end = time.monotonic() + min(PTY_GRACE, max(args.linger, 0.0))
-            if any(s.is_pty for s in servers.values()):
-                while signals[0] < 2 and time.monotonic() < grace_end:
-                    time.sleep(0.02)
+            if (failed := _linger(servers, signals, args.linger)) is not None:
+                return failed
     except KeyboardInterrupt:
         pass
     finally:
         for server in servers.values():
             server.stop()
     return 0
+
+
+def _catch_signals(on_signal: Callable[..., None]) -> None:
+    """Route SIGTERM and SIGINT (unless ignored) to ``on_signal``: a stop flag, not an error."""
+    # both signals only count and set the flag: a Ctrl-C that comes while the endpoints are
+    # being announced (or at any other point) still stops the servers cleanly, exit 0
+    signal.signal(signal.SIGTERM, on_signal)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a launcher may have us ignore it
+        signal.signal(signal.SIGINT, on_signal)
+
+
+def _note_realtime(servers: dict[str, EmulatorServer]) -> None:
+    """Print a note for each server that could not get its real-time priority."""
+    for name, server in servers.items():
+        if server.realtime_error:
+            print(f"{name}: note: {server.realtime_error}", flush=True)
+
+
+def _serve(
+    servers: dict[str, EmulatorServer],
+    stop: threading.Event,
+    t_end: float,
+    next_hangup: float,
+    disconnect_every: float,
+) -> int | None:
+    """Serve until ``stop`` or ``t_end`` with periodic hang-ups; 1 if a server died, else None."""
+    while not stop.is_set() and time.monotonic() < t_end:
+        stop.wait(min(0.05, max(t_end - time.monotonic(), 0.0)))
+        if time.monotonic() >= next_hangup:
+            for server in servers.values():
+                server.disconnect()
+            time.sleep(0.05)  # let the server threads reopen their endpoints
+            _announce(servers, " (reconnected)")
+            next_hangup += disconnect_every
+        if (failed := _failed(servers)) is not None:
+            return failed
+    return None
+
+
+def _linger(servers: dict[str, EmulatorServer], signals: list[int], linger: float) -> int | None:
+    """Serve on after a signal so drivers finish their ramp; 1 if a server died, else None."""
+    linger_end = time.monotonic() + max(linger, 0.0)
+    while (
+        signals[0] < 2
+        and time.monotonic() < linger_end
+        and any(s.clients for s in servers.values())
+    ):
+        time.sleep(0.02)
+        if (failed := _failed(servers)) is not None:
+            return failed
+    # a pty cannot tell whether its client is still there: serve it a little longer, so
+    # that a reader signalled at the same time as this emulator stops first and does not
+    # take the emulator's normal stop for a broken link
+    grace_end = time.monotonic() + min(PTY_GRACE, max(linger, 0.0))
+    if any(s.is_pty for s in servers.values()):
+        while signals[0] < 2 and time.monotonic() < grace_end:
+            time.sleep(0.02)
+    return None
 
 
 def _failed(servers: dict[str, EmulatorServer]) -> int | None:

@@ -19,11 +19,14 @@ import struct
 import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from .errors import ExperimentError
+
+if TYPE_CHECKING:
+    from piezo_stage.launch import Launcher
 
 #: header.stamp (sec, nanosec) after the 4-byte CDR encapsulation (byte 1: 1 little-, 0 big-endian)
 _STAMP = {1: struct.Struct("<iI"), 0: struct.Struct(">iI")}
@@ -232,17 +235,7 @@ def record(
         next_note = started + 2.0
         while not until(raw):
             now = time.monotonic()
-            if not launch.running:
-                ended = ", ".join(f"{name} (code {code})" for name, code in launch.exited)
-                raise HarnessError(f"the graph ended before the run: {ended}", lines)
-            if now - started > wall_timeout:
-                counts = ", ".join(f"{len(v)} on {k}" for k, v in raw.items())
-                raise HarnessError(f"not done after {wall_timeout:g} s ({counts})", lines)
-            missing = [k for k in needed if not raw[k]]
-            if missing and now - started > data_timeout:
-                raise HarnessError(
-                    f"no {' and no '.join(missing)} message within {data_timeout:g} s", lines
-                )
+            _check_run(launch, raw, needed, lines, now - started, wall_timeout, data_timeout)
             executor.spin_once(timeout_sec=0.05)
             if progress is not None and now > next_note:
                 next_note += 2.0
@@ -256,6 +249,29 @@ def record(
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
     return Recording(namespace, raw, time.monotonic() - started, lines)
+
+
+def _check_run(
+    launch: Launcher,
+    raw: Raw,
+    needed: Sequence[str],
+    lines: list[str],
+    elapsed: float,
+    wall_timeout: float,
+    data_timeout: float,
+) -> None:
+    """Raise HarnessError when the graph ended, the run timed out or a needed topic stays empty."""
+    if not launch.running:
+        ended = ", ".join(f"{name} (code {code})" for name, code in launch.exited)
+        raise HarnessError(f"the graph ended before the run: {ended}", lines)
+    if elapsed > wall_timeout:
+        counts = ", ".join(f"{len(v)} on {k}" for k, v in raw.items())
+        raise HarnessError(f"not done after {wall_timeout:g} s ({counts})", lines)
+    missing = [k for k in needed if not raw[k]]
+    if missing and elapsed > data_timeout:
+        raise HarnessError(
+            f"no {' and no '.join(missing)} message within {data_timeout:g} s", lines
+        )
 
 
 __all__ = [

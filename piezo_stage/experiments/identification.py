@@ -55,7 +55,8 @@ def _tail(lines: Sequence[str], name: str | None = None, n: int = 20) -> str:
 
 def _entries(graph: str) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     """The graph file's data and its node entries by executable."""
-    from piezo_stage.launch.graph import find_graph, load_yaml
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
 
     data = load_yaml(find_graph(graph).read_text(encoding="utf-8"))
     nodes = {

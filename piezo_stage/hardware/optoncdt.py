@@ -496,41 +496,57 @@ class OptoNCDTParser:
         :meth:`_frame_ends` would find them. None for anything else (the general path).
         """
         fmt = self.fmt
-        width, mask = fmt.bytes_per_value, fmt.mask
-        raws: list[int] = []
-        first: list[bool] = []
-        if width == 3:  # L (flags 00), M (01), H (10 first value, 11 later value)
-            for i in range(0, len(data) - 2, 3):
-                lo, mid, hi = data[i], data[i + 1], data[i + 2]
-                if lo >= 0x40 or mid >> 6 != 1 or hi < 0x80:
-                    return None
-                raws.append((((hi & 0x3F) << 12) | ((mid & 0x3F) << 6) | (lo & 0x3F)) & mask)
-                first.append(hi < 0xC0)
-        else:  # H (bit 7 set), L (bit 7 clear)
-            for i in range(0, len(data) - 1, 2):
-                hi, lo = data[i], data[i + 1]
-                if hi < 0x80 or lo >= 0x80:
-                    return None
-                raws.append((((hi & 0x7F) << 7) | (lo & 0x7F)) & mask)
-                first.append(True)
-        if len(raws) * width != len(data):
+        frames = self._split_lmh(data) if fmt.bytes_per_value == 3 else self._split_hl(data)
+        if frames is None or len(frames[0]) * fmt.bytes_per_value != len(data):
             return None
+        raws, first = frames
         lut, mr, scale, offset = fmt.status_lut, self.measuring_range, fmt.scale, fmt.offset
         status = [int(lut[r]) for r in raws]
         distance = [(r * scale - offset) * mr for r in raws]
-        for i, (st, d) in enumerate(zip(status, distance)):
-            if st == _OK and d < 0.0:
-                status[i] = _TOO_CLOSE
-            elif st == _OK and d > mr:
-                status[i] = _TOO_FAR
-        stats = self.stats
-        stats.errors += sum(1 for st, f in zip(status, first) if st != _OK and f)
+        if min(distance, default=0.0) < 0.0 or max(distance, default=0.0) > mr:
+            _mark_out_of_range(status, distance, mr)
+        self.stats.errors += sum(1 for st, f in zip(status, first) if st != _OK and f)
         gaps = [self._gap] + [0] * (len(raws) - 1)
         self._gap = 0
         status = self._lock(status, distance, first, gaps)
+        return self._few_frames_block(raws, first, status, distance)
+
+    def _split_lmh(self, data: bytes) -> tuple[list[int], list[bool]] | None:
+        """Values and first-value flags of L, M, H frames (flags 00, 01, 10 or 11 on H); None
+        at the first byte that does not fit.
+        """
+        mask = self.fmt.mask
+        raws: list[int] = []
+        first: list[bool] = []
+        for i in range(0, len(data) - 2, 3):
+            lo, mid, hi = data[i], data[i + 1], data[i + 2]
+            if lo >= 0x40 or mid >> 6 != 1 or hi < 0x80:
+                return None
+            raws.append((((hi & 0x3F) << 12) | ((mid & 0x3F) << 6) | (lo & 0x3F)) & mask)
+            first.append(hi < 0xC0)
+        return raws, first
+
+    def _split_hl(self, data: bytes) -> tuple[list[int], list[bool]] | None:
+        """Values and first-value flags (all True) of H, L frames (bit 7 set, clear); None at
+        the first byte that does not fit.
+        """
+        mask = self.fmt.mask
+        raws: list[int] = []
+        for i in range(0, len(data) - 1, 2):
+            hi, lo = data[i], data[i + 1]
+            if hi < 0x80 or lo >= 0x80:
+                return None
+            raws.append((((hi & 0x7F) << 7) | (lo & 0x7F)) & mask)
+        return raws, [True] * len(raws)
+
+    def _few_frames_block(
+        self, raws: list[int], first: list[bool], status: list[int], distance: list[float]
+    ) -> SampleBlock:
+        """The samples of the first values (later values dropped), counted in ``stats``."""
         keep = [i for i, f in enumerate(first) if f]
         out_status = [status[i] for i in keep]
         out_distance = [distance[i] if status[i] == _OK else math.nan for i in keep]
+        stats = self.stats
         stats.frames += len(keep)
         stats.later_values += len(raws) - len(keep)
         stats.ok += out_status.count(_OK)
@@ -539,3 +555,12 @@ class OptoNCDTParser:
             np.array(out_status, dtype=np.uint8),
             np.array([raws[i] for i in keep], dtype=np.int64),
         )
+
+
+def _mark_out_of_range(status: list[int], distance: list[float], mr: float) -> None:
+    """Mark OK values below 0 TOO_CLOSE and above ``mr`` TOO_FAR, in place."""
+    for i, (st, d) in enumerate(zip(status, distance)):
+        if st == _OK and d < 0.0:
+            status[i] = _TOO_CLOSE
+        elif st == _OK and d > mr:
+            status[i] = _TOO_FAR

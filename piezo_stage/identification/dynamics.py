@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import cast
+from typing import Callable, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -112,25 +112,9 @@ def fit_step_response(
     (rule in the module docstring) or :class:`DynamicsError`.
     """
     t, u, x = (np.asarray(a, dtype=float) for a in (t, u, x))
-    if not (t.ndim == u.ndim == x.ndim == 1 and len(t) == len(u) == len(x)):
-        raise DynamicsError("t, u and x must be 1-D arrays of one length")
-    if len(t) < 20 or not (
-        np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(x))
-    ):
-        raise DynamicsError(f"need >= 20 finite samples, got {len(t)}")
-    dt = float(np.median(np.diff(t)))
-    if not dt > 0 or np.max(np.abs(np.diff(t) - dt)) > 0.01 * dt:
-        raise DynamicsError("the response must be sampled uniformly")
+    dt = _sample_interval(t, u, x)
     rate = 1.0 / dt
-    if step_at is None:
-        moved = np.flatnonzero(np.abs(u - u[0]) > 1e-6 * max(1.0, float(np.ptp(u))))
-        if moved.size == 0:
-            raise DynamicsError("the applied voltage never changes: no step in the record")
-        step_at = int(moved[0])
-    if step_at < 2 or step_at > len(t) - 10:
-        raise DynamicsError(
-            f"the step must come after >= 2 rest samples and leave >= 10 after it (at {step_at})"
-        )
+    step_at = _step_index(u, step_at)
     peak = _first_peak_samples(x, step_at - 1)
     if peak < min_samples_per_period / 2:
         raise UnresolvedResonanceError(
@@ -142,84 +126,20 @@ def fit_step_response(
             "first peak)"
         )
     x_rest = float(np.mean(x[:step_at]))
-    u_rest = float(np.mean(u[:step_at]))
-    kx, kw = bouc_wen.kappa_x, bouc_wen.kappa_w
-    w0 = float(np.clip((u_rest - voltage_offset - kx * x_rest) / kw, -1.0, 1.0))  # (11.12)
+    w0 = _rest_w(bouc_wen, float(np.mean(u[:step_at])), x_rest, voltage_offset)
     held = u[step_at:] - voltage_offset  # held over (t[k-1], t[k]]
     measured = x[step_at:]
     scale = max(float(np.ptp(measured)), 1e-30)
-    # first guess: the ringing's half period gives f_n, stiffness kappa_x; light damping
-    f_guess = rate / (2.0 * max(peak, 1))
-    m_guess = kx / (2.0 * math.pi * f_guess) ** 2
-    c_guess = 2.0 * 0.05 * math.sqrt(kx * m_guess)
-
-    def simulate(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        plant = DynamicPlant(
-            bouc_wen, Dynamics(m=math.exp(p[0]), c=math.exp(p[1])), x0=x_rest, w0=w0
-        )
-        xs, _, _ = plant.simulate(held, dt)
-        return xs
 
     def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        return (simulate(p) - measured) / scale
+        dynamics = Dynamics(m=math.exp(p[0]), c=math.exp(p[1]))
+        return (_simulate(bouc_wen, dynamics, x_rest, w0, held, dt) - measured) / scale
 
-    try:
-        fit = least_squares(
-            residual,
-            np.log([m_guess, c_guess]),
-            x_scale=1.0,
-            diff_step=1e-4,  # type: ignore[arg-type]  # scipy takes a scalar; the stubs want 1-D
-            bounds=(
-                np.log([m_guess * 1e-2, c_guess * 1e-4]),
-                np.log([m_guess * 1e2, c_guess * 1e3]),
-            ),
-        )
-    except (ModelError, ValueError, FloatingPointError) as exc:
-        raise DynamicsError(f"the step-response fit failed: {exc}") from exc
-    m, c = (float(v) for v in np.exp(fit.x))
-    r = fit.fun
-    dof = max(1, r.size - 2)
-    # dense (the stubs also allow a sparse or operator Jacobian: jac_sparsity or tr_solver='lsmr')
-    jac = cast(NDArray[np.float64], fit.jac)
-    jtj = jac.T @ jac
-    try:
-        cov = np.linalg.inv(jtj) * float(r @ r) / dof
-    except np.linalg.LinAlgError as exc:
-        raise DynamicsError(
-            "m and c are not determined by this response (singular Jacobian)"
-        ) from exc
-    rel = np.sqrt(np.clip(np.diag(cov), 0.0, None))  # std of log m, log c = relative std
-    f_n = math.sqrt(kx / m) / (2.0 * math.pi)
-    if rate < min_samples_per_period * f_n:
-        raise UnresolvedResonanceError(
-            f"natural frequency {f_n:.4g} Hz needs a sensor rate >= "
-            f"{min_samples_per_period * f_n:.4g} Hz "
-            f"(rule: >= {min_samples_per_period:g} samples per period), got {rate:g} Hz"
-        )
-    zeta = c / (2.0 * math.sqrt(kx * m))
-    expected_peak = rate / (2.0 * f_n * math.sqrt(max(1e-12, 1.0 - min(zeta, 0.99) ** 2)))
-    rms = float(np.sqrt(np.mean(r**2)))
-    if zeta < 0.7 and abs(peak - expected_peak) > max(1.5, 0.3 * expected_peak):
-        raise UnresolvedResonanceError(
-            f"the fitted resonance ({f_n:.4g} Hz) would peak {expected_peak:.3g} samples "
-            "after the step, the "
-            f"response peaks after {peak}: an alias of a resonance faster than "
-            f"{rate / min_samples_per_period:.4g} Hz "
-            f"(rule: >= {min_samples_per_period:g} samples per period of the natural frequency)"
-        )
-    if rms > MAX_RMS_FRACTION:
-        raise DynamicsError(
-            f"the model does not describe the step response (residual {100 * rms:.3g} % of "
-            f"its span, limit {100 * MAX_RMS_FRACTION:g} %)"
-        )
-    loose = [
-        f"{name} ±{100 * v:.2g} %" for name, v in zip(("m", "c"), rel) if not v <= MAX_RELATIVE_STD
-    ]
-    if loose:
-        raise DynamicsError(
-            f"m and c not determined by this response ({', '.join(loose)}; limit "
-            f"{100 * MAX_RELATIVE_STD:g} %): a larger step or less noise"
-        )
+    m, c, r, rel = _fit_log_m_c(residual, _first_guess(bouc_wen.kappa_x, rate, peak))
+    f_n = _natural_frequency(bouc_wen.kappa_x, m)
+    zeta = _damping_ratio(bouc_wen.kappa_x, m, c)
+    _check_resolution(rate, f_n, zeta, peak, min_samples_per_period)
+    _check_determined(float(np.sqrt(np.mean(r**2))), rel)
     return DynamicsFit(
         m=m,
         c=c,
@@ -237,6 +157,154 @@ def fit_step_response(
     )
 
 
+def _sample_interval(
+    t: NDArray[np.float64], u: NDArray[np.float64], x: NDArray[np.float64]
+) -> float:
+    """The sample interval [s] of a valid record: 1-D, one length, >= 20 finite, uniform."""
+    if not (t.ndim == u.ndim == x.ndim == 1 and len(t) == len(u) == len(x)):
+        raise DynamicsError("t, u and x must be 1-D arrays of one length")
+    if len(t) < 20 or not (
+        np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(x))
+    ):
+        raise DynamicsError(f"need >= 20 finite samples, got {len(t)}")
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0 or np.max(np.abs(np.diff(t) - dt)) > 0.01 * dt:
+        raise DynamicsError("the response must be sampled uniformly")
+    return dt
+
+
+def _step_index(u: NDArray[np.float64], step_at: int | None) -> int:
+    """``step_at``, or the first sample whose voltage leaves the rest value; checked."""
+    if step_at is None:
+        moved = np.flatnonzero(np.abs(u - u[0]) > 1e-6 * max(1.0, float(np.ptp(u))))
+        if moved.size == 0:
+            raise DynamicsError("the applied voltage never changes: no step in the record")
+        step_at = int(moved[0])
+    if step_at < 2 or step_at > len(u) - 10:
+        raise DynamicsError(
+            f"the step must come after >= 2 rest samples and leave >= 10 after it (at {step_at})"
+        )
+    return step_at
+
+
+def _rest_w(bouc_wen: BoucWenParameters, u_rest: float, x_rest: float, offset: float) -> float:
+    """The rest state's w from u = kappa_x x + kappa_w w + y0, clipped to [-1, 1] (11.12)."""
+    w = (u_rest - offset - bouc_wen.kappa_x * x_rest) / bouc_wen.kappa_w
+    return float(np.clip(w, -1.0, 1.0))
+
+
+def _natural_frequency(kappa_x: float, m: float) -> float:
+    """Natural frequency f_n = sqrt(kappa_x / m) / (2 pi) [Hz] of (11.1)."""
+    return math.sqrt(kappa_x / m) / (2.0 * math.pi)
+
+
+def _damping_ratio(kappa_x: float, m: float, c: float) -> float:
+    """Damping ratio zeta = c / (2 sqrt(kappa_x m)) of (11.1)."""
+    return c / (2.0 * math.sqrt(kappa_x * m))
+
+
+def _first_guess(kappa_x: float, rate: float, peak: int) -> tuple[float, float]:
+    """(m, c) to start from: the ringing's half period gives f_n, stiffness kappa_x; light
+    damping (zeta = 0.05).
+    """
+    f_guess = rate / (2.0 * max(peak, 1))
+    m_guess = kappa_x / (2.0 * math.pi * f_guess) ** 2
+    return m_guess, 2.0 * 0.05 * math.sqrt(kappa_x * m_guess)
+
+
+def _simulate(
+    bouc_wen: BoucWenParameters,
+    dynamics: Dynamics,
+    x_rest: float,
+    w0: float,
+    held: NDArray[np.float64],
+    dt: float,
+) -> NDArray[np.float64]:
+    """Displacement of (11.1) from rest under the held voltages (zero-order hold)."""
+    xs, _, _ = DynamicPlant(bouc_wen, dynamics, x0=x_rest, w0=w0).simulate(held, dt)
+    return xs
+
+
+def _fit_log_m_c(
+    residual: Callable[[NDArray[np.float64]], NDArray[np.float64]], guess: tuple[float, float]
+) -> tuple[float, float, NDArray[np.float64], NDArray[np.float64]]:
+    """Least squares over (log m, log c) from ``guess``: m, c, the residuals at the optimum and
+    the relative standard errors of m and c.
+    """
+    m_guess, c_guess = guess
+    try:
+        fit = least_squares(
+            residual,
+            np.log([m_guess, c_guess]),
+            x_scale=1.0,
+            diff_step=1e-4,  # type: ignore[arg-type]  # scipy takes a scalar; the stubs want 1-D
+            bounds=(
+                np.log([m_guess * 1e-2, c_guess * 1e-4]),
+                np.log([m_guess * 1e2, c_guess * 1e3]),
+            ),
+        )
+    except (ModelError, ValueError, FloatingPointError) as exc:
+        raise DynamicsError(f"the step-response fit failed: {exc}") from exc
+    m, c = (float(v) for v in np.exp(fit.x))
+    r = fit.fun
+    # dense (the stubs also allow a sparse or operator Jacobian: jac_sparsity or tr_solver='lsmr')
+    return m, c, r, _log_std(cast(NDArray[np.float64], fit.jac), r)
+
+
+def _log_std(jac: NDArray[np.float64], r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Standard errors of the fitted (log) parameters: residual variance times (J^T J)^-1."""
+    dof = max(1, r.size - 2)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * float(r @ r) / dof
+    except np.linalg.LinAlgError as exc:
+        raise DynamicsError(
+            "m and c are not determined by this response (singular Jacobian)"
+        ) from exc
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))  # std of log m, log c = relative std
+
+
+def _check_resolution(
+    rate: float, f_n: float, zeta: float, peak: int, min_samples_per_period: float
+) -> None:
+    """The resolution rule after the fit (module docstring): rate >= min_samples_per_period
+    f_n, and the first peak where the fitted resonance puts it (else an alias).
+    """
+    if rate < min_samples_per_period * f_n:
+        raise UnresolvedResonanceError(
+            f"natural frequency {f_n:.4g} Hz needs a sensor rate >= "
+            f"{min_samples_per_period * f_n:.4g} Hz "
+            f"(rule: >= {min_samples_per_period:g} samples per period), got {rate:g} Hz"
+        )
+    expected_peak = rate / (2.0 * f_n * math.sqrt(max(1e-12, 1.0 - min(zeta, 0.99) ** 2)))
+    if zeta < 0.7 and abs(peak - expected_peak) > max(1.5, 0.3 * expected_peak):
+        raise UnresolvedResonanceError(
+            f"the fitted resonance ({f_n:.4g} Hz) would peak {expected_peak:.3g} samples "
+            "after the step, the "
+            f"response peaks after {peak}: an alias of a resonance faster than "
+            f"{rate / min_samples_per_period:.4g} Hz "
+            f"(rule: >= {min_samples_per_period:g} samples per period of the natural frequency)"
+        )
+
+
+def _check_determined(rms: float, rel: NDArray[np.float64]) -> None:
+    """Refuse a fit whose residual (``rms``, fraction of the span) or relative standard errors
+    of m and c (``rel``) exceed :data:`MAX_RMS_FRACTION`, :data:`MAX_RELATIVE_STD`.
+    """
+    if rms > MAX_RMS_FRACTION:
+        raise DynamicsError(
+            f"the model does not describe the step response (residual {100 * rms:.3g} % of "
+            f"its span, limit {100 * MAX_RMS_FRACTION:g} %)"
+        )
+    loose = [
+        f"{name} ±{100 * v:.2g} %" for name, v in zip(("m", "c"), rel) if not v <= MAX_RELATIVE_STD
+    ]
+    if loose:
+        raise DynamicsError(
+            f"m and c not determined by this response ({', '.join(loose)}; limit "
+            f"{100 * MAX_RELATIVE_STD:g} %): a larger step or less noise"
+        )
+
+
 def predicted_response(
     fit: DynamicsFit,
     bouc_wen: BoucWenParameters,
@@ -247,6 +315,7 @@ def predicted_response(
     """(t, x) of the fitted model over the samples from the step on (same input as the fit)."""
     t, u = np.asarray(t, dtype=float), np.asarray(u, dtype=float)
     dt = float(np.median(np.diff(t)))
-    plant = DynamicPlant(bouc_wen, fit.dynamics, x0=fit.x_rest, w0=fit.w0)
-    xs, _, _ = plant.simulate(u[fit.step_at :] - voltage_offset, dt)
+    xs = _simulate(
+        bouc_wen, fit.dynamics, fit.x_rest, fit.w0, u[fit.step_at :] - voltage_offset, dt
+    )
     return t[fit.step_at :], xs

@@ -82,42 +82,9 @@ def _sniff_delimiter(line: str) -> str | None:
 def load_csv(path: str | Path, name: str | None = None) -> Recording:
     """One run from a CSV file with ``time``, ``input``, ``output`` columns."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig", errors="strict")
-    except UnicodeDecodeError:
-        text = path.read_text(encoding="latin-1")
-    except OSError as exc:
-        raise DataFormatError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    text = text.lstrip("\ufeff")
-    lines = text.splitlines()
-    header_at, delimiter, columns = None, None, {}
-    for i, line in enumerate(lines[:200]):
-        d = _sniff_delimiter(line)
-        fields = [parse_column(f) for f in _split(line, d)]
-        names = [f[0].lstrip("\ufeff") for f in fields]
-        if all(r in names for r in REQUIRED):
-            header_at, delimiter = i, d
-            columns = {r: (names.index(r), fields[names.index(r)][1]) for r in REQUIRED}
-            break
-    if header_at is None:
-        raise DataFormatError(
-            f"{path}: no header line naming the columns {', '.join(REQUIRED)} "
-            "(units in brackets are allowed, e.g. 'time [s],input [V],output [um]')"
-        )
-    data: dict[str, list[float]] = {r: [] for r in REQUIRED}
-    reader = (
-        csv.reader(_io.StringIO("\n".join(lines[header_at + 1 :])), delimiter=delimiter)
-        if delimiter
-        else (ln.split() for ln in lines[header_at + 1 :])
-    )
-    for k, row in enumerate(reader, start=header_at + 2):
-        if not row or all(not c.strip() for c in row):
-            continue
-        try:
-            for r in REQUIRED:
-                data[r].append(float(row[columns[r][0]]))
-        except (ValueError, IndexError) as exc:
-            raise DataFormatError(f"{path}:{k}: cannot read a number in {row!r} ({exc})") from exc
+    lines = _read_text(path).lstrip("\ufeff").splitlines()
+    header_at, delimiter, columns = _find_header(lines, path)
+    data = _read_rows(lines[header_at + 1 :], header_at + 2, delimiter, columns, path)
     arrays = {}
     units = {}
     for r in REQUIRED:
@@ -131,6 +98,61 @@ def load_csv(path: str | Path, name: str | None = None) -> Recording:
         output_unit=units["output"],
         meta={"source": str(path)},
     )
+
+
+def _read_text(path: Path) -> str:
+    """The file's text: UTF-8 (BOM dropped), else Latin-1."""
+    try:
+        return path.read_text(encoding="utf-8-sig", errors="strict")
+    except UnicodeDecodeError:
+        return path.read_text(encoding="latin-1")
+    except OSError as exc:
+        raise DataFormatError(f"cannot read {path}: {exc.strerror or exc}") from exc
+
+
+def _find_header(
+    lines: list[str], path: Path
+) -> tuple[int, str | None, dict[str, tuple[int, str]]]:
+    """Index, delimiter and ``{column: (position, unit)}`` of the header line naming
+    :data:`REQUIRED` among the first 200 lines.
+    """
+    for i, line in enumerate(lines[:200]):
+        d = _sniff_delimiter(line)
+        fields = [parse_column(f) for f in _split(line, d)]
+        names = [f[0].lstrip("\ufeff") for f in fields]
+        if all(r in names for r in REQUIRED):
+            return i, d, {r: (names.index(r), fields[names.index(r)][1]) for r in REQUIRED}
+    raise DataFormatError(
+        f"{path}: no header line naming the columns {', '.join(REQUIRED)} "
+        "(units in brackets are allowed, e.g. 'time [s],input [V],output [um]')"
+    )
+
+
+def _read_rows(
+    lines: list[str],
+    first_line: int,
+    delimiter: str | None,
+    columns: dict[str, tuple[int, str]],
+    path: Path,
+) -> dict[str, list[float]]:
+    """The :data:`REQUIRED` columns' numbers from the data ``lines`` (blank rows skipped);
+    ``first_line`` numbers the first of them in messages.
+    """
+    data: dict[str, list[float]] = {r: [] for r in REQUIRED}
+    reader = (
+        csv.reader(_io.StringIO("\n".join(lines)), delimiter=delimiter)
+        if delimiter
+        else (ln.split() for ln in lines)
+    )
+    for k, row in enumerate(reader, start=first_line):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            for r in REQUIRED:
+                data[r].append(float(row[columns[r][0]]))
+        except (ValueError, IndexError) as exc:
+            raise DataFormatError(f"{path}:{k}: cannot read a number in {row!r} ({exc})") from exc
+    return data
 
 
 def is_bag(path: str | Path) -> bool:

@@ -8,7 +8,7 @@ refinement on the whole cycles (refine.py); w(0) by (10.18).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,10 +25,19 @@ from .analytic import (
 )
 from .cycles import CycleOptions, SteadyCycle, extract_cycle, smooth_input, split_branches
 from .errors import AnalyticEstimateError, BadFitError, IdentificationError, RefinementError
-from .orientation import detect_orientation, resolve_orientation
-from .polynomial import fit_polynomial, offset_between, offset_y0
+from .orientation import Orientation, detect_orientation, resolve_orientation
+from .polynomial import PolynomialFit, fit_polynomial, offset_between, offset_y0
 from .recording import Recording
-from .refine import HYSTERETIC, RefineOptions, cycle_path, feasible_start, refine, residuals
+from .refine import (
+    HYSTERETIC,
+    CyclePath,
+    RefinedFit,
+    RefineOptions,
+    cycle_path,
+    feasible_start,
+    refine,
+    residuals,
+)
 from .result import IdentificationResult
 
 if TYPE_CHECKING:
@@ -102,82 +111,20 @@ def identify_cycles(
     )
     paths = [cycle_path(c, v, sign) for c, v in zip(cycles, smooth)]
     analytic, analytic_problem = _analytic_parameters(poly.kappa, y0, hyst, sign)
-    samples = cycle_a.raw_samples + cycle_b.raw_samples
-    span = max(c.output_span for c in cycles)
-    noise = float(np.sqrt(np.mean([c.noise_output**2 for c in cycles])))
-    diagnostics = {
-        "q": q,
-        "g": [float(v) for v in poly.g],
-        "difference_residual_rms": poly.residual_rms,
-        "periods": [c.period for c in cycles],
-        "steady_periods": [c.periods for c in cycles],
-        "noise_output": noise,
-        "output_span": span,
-        "loop_width": [o.mean_gap for o in orientations],
-        "a": hyst.a,
-        "b": hyst.b,
-        "a_uncorrected": hyst.a_uncorrected,
-        "x_star": hyst.x_star,
-        "x_star1": hyst.x1,
-        "x_star2": hyst.x2,
-        "x_star3": hyst.x3,
-        "analytic_raw": {
-            "kappa": [float(k) for k in poly.kappa],
-            "y0": y0,
-            "kappa_w": hyst.kappa_w,
-            "rho": hyst.rho,
-            "sigma": hyst.sigma,
-            "n": hyst.n,
-            "input_sign": sign,
-        },
-    }
-    analytic_rms = float("nan")
-    if analytic is not None:
-        try:
-            analytic_rms = float(np.sqrt(np.mean(residuals(analytic, paths) ** 2)))
-        except RefinementError as exc:
-            if not options.refine:
-                raise
-            analytic_problem = str(exc)
+    diagnostics = _diagnostics(cycles, orientations, poly, y0, hyst, sign)
+    analytic_rms, analytic_problem = _analytic_rms(
+        analytic, paths, analytic_problem, options.refine
+    )
     correlations: tuple[tuple[str, str, float], ...] = ()
     if options.refine:
         start = (
             analytic
             if analytic is not None
-            else feasible_start(
-                poly.kappa,
-                y0,
-                hyst.kappa_w,
-                hyst.rho,
-                hyst.sigma,
-                hyst.n,
-                sign,
-                options.refinement.n_max,
-            )
+            else _feasible_start(poly.kappa, y0, hyst, sign, options.refinement.n_max)
         )
         fit = refine(start, paths, options.refinement)
-        final, rms = fit.parameters, fit.rms_error
-        correlations = fit.correlations
-        values = dict(
-            zip([f"kappa_{i + 1}" for i in range(len(final.kappa))], final.kappa),
-            y0=final.y0,
-            kappa_w=final.kappa_w,
-            rho=final.rho,
-            sigma=final.sigma,
-            n=final.n,
-        )
-        diagnostics.update(
-            relative_std=fit.relative_std,
-            nfev=fit.nfev,
-            solver=fit.status,
-            rejected_trials=fit.rejected_trials,
-            std={
-                k: rel * abs(values[k])
-                for k, rel in fit.relative_std.items()
-                if k in values and np.isfinite(rel)
-            },
-            correlations=[list(c) for c in fit.correlations],
-        )
+        final, rms, correlations = fit.parameters, fit.rms_error, fit.correlations
+        diagnostics.update(_refinement_diagnostics(fit))
     else:
         if analytic is None:
             raise AnalyticEstimateError(
@@ -192,7 +139,7 @@ def identify_cycles(
         analytic=analytic,
         rms_error=rms,
         analytic_rms_error=analytic_rms,
-        samples=samples,
+        samples=cycle_a.raw_samples + cycle_b.raw_samples,
         w0=initial_w(
             final.kappa, final.kappa_w, final.y0, float(cycle_a.input[0]), float(cycle_a.output[0])
         ),
@@ -205,6 +152,96 @@ def identify_cycles(
     )
     check_fit(result, options.refinement)
     return result
+
+
+def _diagnostics(
+    cycles: tuple[SteadyCycle, SteadyCycle],
+    orientations: list[Orientation],
+    poly: PolynomialFit,
+    y0: float,
+    h: HystereticEstimate,
+    sign: int,
+) -> dict[str, Any]:
+    """What the analytic steps saw: cycles, polynomial part (10.7), Table 10.2 raw values."""
+    return {
+        "q": poly.q,
+        "g": [float(v) for v in poly.g],
+        "difference_residual_rms": poly.residual_rms,
+        "periods": [c.period for c in cycles],
+        "steady_periods": [c.periods for c in cycles],
+        "noise_output": float(np.sqrt(np.mean([c.noise_output**2 for c in cycles]))),
+        "output_span": max(c.output_span for c in cycles),
+        "loop_width": [o.mean_gap for o in orientations],
+        "a": h.a,
+        "b": h.b,
+        "a_uncorrected": h.a_uncorrected,
+        "x_star": h.x_star,
+        "x_star1": h.x1,
+        "x_star2": h.x2,
+        "x_star3": h.x3,
+        "analytic_raw": {
+            "kappa": [float(k) for k in poly.kappa],
+            "y0": y0,
+            "kappa_w": h.kappa_w,
+            "rho": h.rho,
+            "sigma": h.sigma,
+            "n": h.n,
+            "input_sign": sign,
+        },
+    }
+
+
+def _analytic_rms(
+    analytic: BoucWenParameters | None, paths: list[CyclePath], problem: str, refining: bool
+) -> tuple[float, str]:
+    """RMS residual of the analytic estimate on the cycles (NaN without one) and the problem.
+
+    A simulation failure becomes the problem when the refinement follows, else it is raised.
+    """
+    if analytic is None:
+        return float("nan"), problem
+    try:
+        return float(np.sqrt(np.mean(residuals(analytic, paths) ** 2))), problem
+    except RefinementError as exc:
+        if not refining:
+            raise
+        return float("nan"), str(exc)
+
+
+def _feasible_start(
+    kappa: NDArray[np.float64], y0: float, h: HystereticEstimate, sign: int, n_max: float
+) -> BoucWenParameters:
+    """The refinement's start when the analytic estimate is outside class I."""
+    return feasible_start(kappa, y0, h.kappa_w, h.rho, h.sigma, h.n, sign, n_max)
+
+
+def _refinement_diagnostics(fit: RefinedFit) -> dict[str, Any]:
+    """What the refinement reports: standard errors (relative and absolute), solver figures."""
+    return {
+        "relative_std": fit.relative_std,
+        "nfev": fit.nfev,
+        "solver": fit.status,
+        "rejected_trials": fit.rejected_trials,
+        "std": _absolute_std(fit.parameters, fit.relative_std),
+        "correlations": [list(c) for c in fit.correlations],
+    }
+
+
+def _absolute_std(params: BoucWenParameters, relative_std: Mapping[str, float]) -> dict[str, float]:
+    """Standard errors in the parameters' units from relative ones (finite ones only)."""
+    values = dict(
+        zip([f"kappa_{i + 1}" for i in range(len(params.kappa))], params.kappa),
+        y0=params.y0,
+        kappa_w=params.kappa_w,
+        rho=params.rho,
+        sigma=params.sigma,
+        n=params.n,
+    )
+    return {
+        k: rel * abs(values[k])
+        for k, rel in relative_std.items()
+        if k in values and np.isfinite(rel)
+    }
 
 
 def correlation_warning(a: str, b: str, c: float) -> str:

@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from piezo_stage.launch.errors import GraphError
-from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec, dump_yaml_value
+from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec
+from piezo_stage.yaml_values import dump_yaml_value
 
 BOOTSTRAP = "piezo_stage.launch.child"
 _VAR = re.compile(r"\$\{(\w+)\}|\$(\w+)")

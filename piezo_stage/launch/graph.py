@@ -50,6 +50,7 @@ import yaml
 from piezo_stage.config_path import ConfigNotFoundError, find_config, shipped_names, yaml_problem
 from piezo_stage.launch.errors import GraphError
 from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (no rclpy)
+from piezo_stage.yaml_values import load_yaml
 
 DEFAULT_STOP_TIMEOUT = 5.0
 NODE_PACKAGE = "piezo_stage.nodes"
@@ -83,33 +84,6 @@ _TOPIC_RE = re.compile(rf"^/?{_TOKEN}(?:/{_TOKEN})*$")
 _NODE_NAME_RE = re.compile(rf"^{_TOKEN}$")
 _MODULE_RE = re.compile(rf"^{_TOKEN}(?:\.{_TOKEN})*$")
 _PARAM_RE = re.compile(rf"^{_TOKEN}(?:\.{_TOKEN})*$")
-
-
-class _Loader(yaml.SafeLoader):
-    """YAML as rcl reads parameter values: ``5e6`` and ``1.0e-6`` are floats (PyYAML's YAML 1.1
-    resolver would make them strings)."""
-
-
-class _Dumper(yaml.SafeDumper):
-    """Quotes the strings that _Loader (and rcl) would read as floats, e.g. ``'5e6'``."""
-
-
-for _cls in (_Loader, _Dumper):
-    _cls.add_implicit_resolver(
-        "tag:yaml.org,2002:float",
-        re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-        list("-+0123456789."),
-    )
-
-
-def load_yaml(text: str) -> Any:
-    return yaml.load(text, Loader=_Loader)
-
-
-def dump_yaml_value(value: Any) -> str:
-    """One value as flow-style YAML on one line (no document end marker)."""
-    text = yaml.dump(value, Dumper=_Dumper, default_flow_style=True, width=1 << 30).strip()
-    return text[:-3].strip() if text.endswith("...") else text
 
 
 @dataclass(frozen=True)
@@ -436,84 +410,28 @@ def _namespaced_clock(
 
 
 def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
+    """One ``nodes:`` item, validated; relative params files are looked up from ``base``."""
     entry = _mapping(entry, where)
     _no_unknown_keys(entry, _KINDS + _NODE_KEYS, where)
-    kinds = [k for k in _KINDS if k in entry]
-    if len(kinds) != 1:
-        raise GraphError(
-            f"{where}: needs exactly one of 'executable', 'module', 'command' "
-            f"(found {kinds or 'none'})"
-        )
-    kind = kinds[0]
-    node_name = entry.get("name")
-    if node_name is not None and (
-        not isinstance(node_name, str) or not _NODE_NAME_RE.match(node_name)
-    ):
-        raise GraphError(f"{where}: name {node_name!r} is not a valid ROS node name")
+    kind = _entry_kind(entry, where)
+    node_name = _node_name(entry.get("name"), where)
     module: str | None = None
     command: tuple[str, ...] = ()
     if kind == "command":
-        command = tuple(_strings(entry["command"], f"{where}: command"))
-        if not command:
-            raise GraphError(f"{where}: command must not be empty")
-        default_name = re.sub(r"\W", "_", Path(command[0]).name)
-        for key in _ROS_ONLY_KEYS:
-            if key in entry:
-                raise GraphError(f"{where}: {key!r} is for ROS nodes, not for a command")
+        command, default_name = _command(entry, where)
     else:
-        value = entry[kind]
-        if (
-            not isinstance(value, str)
-            or not _MODULE_RE.match(value)
-            or (kind == "executable" and "." in value)
-        ):
-            raise GraphError(
-                f"{where}: {kind} {value!r} is not a "
-                + (
-                    "node module name (e.g. plant)"
-                    if kind == "executable"
-                    else "python module path"
-                )
-            )
-        module = f"{NODE_PACKAGE}.{value}" if kind == "executable" else value
-        default_name = value.rsplit(".", 1)[-1]
+        module, default_name = _node_module(entry[kind], kind, where)
     name = node_name or default_name
     label = f"{where} ({name})"
     required = entry.get("required", False)
     if not isinstance(required, bool):
         raise GraphError(f"{label}: required: expected true or false, got {required!r}")
-    process = entry.get("process")
-    if process is not None:
-        if kind != "executable" or not isinstance(process, str) or not _NODE_NAME_RE.match(process):
-            raise GraphError(
-                f"{label}: process: only an 'executable' entry is composed, into a "
-                f"host node module name (e.g. rig_loop), got {process!r}"
-            )
-        for key in ("name", "args", "ready_pattern", "remappings"):
-            if key in entry:
-                raise GraphError(
-                    f"{label}: {key!r} is not for a composed entry (process: {process})"
-                )
-    ready_pattern = entry.get("ready_pattern")
-    if ready_pattern is not None:
-        try:
-            re.compile(ready_pattern)
-        except (re.error, TypeError) as exc:
-            raise GraphError(
-                f"{label}: ready_pattern {ready_pattern!r} is not a regular expression: {exc}"
-            ) from None
+    process = _process(entry, kind, label)
+    ready_pattern = _ready_pattern(entry.get("ready_pattern"), label)
     overrides = _flatten(
         _mapping(entry.get("overrides", {}), f"{label}: overrides"), f"{label}: overrides"
     )
-    remappings = _mapping(entry.get("remappings", {}), f"{label}: remappings")
-    for src, dst in remappings.items():
-        if not (
-            isinstance(src, str)
-            and isinstance(dst, str)
-            and _TOPIC_RE.match(src)
-            and _TOPIC_RE.match(dst)
-        ):
-            raise GraphError(f"{label}: remapping {src!r}: {dst!r} is not NAME: NAME")
+    remappings = _remappings(entry.get("remappings", {}), label)
     return ProcessSpec(
         name=name,
         module=module,
@@ -524,13 +442,102 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
             for p in _strings(entry.get("parameters", []), f"{label}: parameters")
         ),
         overrides=overrides,
-        remappings=dict(remappings),
+        remappings=remappings,
         required=required,
         args=tuple(_strings(entry.get("args", []), f"{label}: args", scalars=True)),
         env=_env(entry.get("env", {}), f"{label}: env"),
         ready_pattern=ready_pattern,
         process=process,
     )
+
+
+def _entry_kind(entry: Mapping[str, Any], where: str) -> str:
+    """Which of ``executable``, ``module``, ``command`` the entry is (exactly one)."""
+    kinds = [k for k in _KINDS if k in entry]
+    if len(kinds) != 1:
+        raise GraphError(
+            f"{where}: needs exactly one of 'executable', 'module', 'command' "
+            f"(found {kinds or 'none'})"
+        )
+    return kinds[0]
+
+
+def _node_name(node_name: Any, where: str) -> str | None:
+    """The entry's ``name``, a valid ROS node name, or None."""
+    if node_name is not None and (
+        not isinstance(node_name, str) or not _NODE_NAME_RE.match(node_name)
+    ):
+        raise GraphError(f"{where}: name {node_name!r} is not a valid ROS node name")
+    return node_name
+
+
+def _command(entry: Mapping[str, Any], where: str) -> tuple[tuple[str, ...], str]:
+    """A ``command`` entry's argv and default name (its program's, as an identifier)."""
+    command = tuple(_strings(entry["command"], f"{where}: command"))
+    if not command:
+        raise GraphError(f"{where}: command must not be empty")
+    for key in _ROS_ONLY_KEYS:
+        if key in entry:
+            raise GraphError(f"{where}: {key!r} is for ROS nodes, not for a command")
+    return command, re.sub(r"\W", "_", Path(command[0]).name)
+
+
+def _node_module(value: Any, kind: str, where: str) -> tuple[str, str]:
+    """An ``executable`` (node module of :data:`NODE_PACKAGE`) or ``module`` entry's python
+    module and default name (the module's last part)."""
+    if (
+        not isinstance(value, str)
+        or not _MODULE_RE.match(value)
+        or (kind == "executable" and "." in value)
+    ):
+        raise GraphError(
+            f"{where}: {kind} {value!r} is not a "
+            + ("node module name (e.g. plant)" if kind == "executable" else "python module path")
+        )
+    module = f"{NODE_PACKAGE}.{value}" if kind == "executable" else value
+    return module, value.rsplit(".", 1)[-1]
+
+
+def _process(entry: Mapping[str, Any], kind: str, label: str) -> str | None:
+    """The host node module an ``executable`` entry is composed into (``process:``), or None."""
+    process = entry.get("process")
+    if process is None:
+        return None
+    if kind != "executable" or not isinstance(process, str) or not _NODE_NAME_RE.match(process):
+        raise GraphError(
+            f"{label}: process: only an 'executable' entry is composed, into a "
+            f"host node module name (e.g. rig_loop), got {process!r}"
+        )
+    for key in ("name", "args", "ready_pattern", "remappings"):
+        if key in entry:
+            raise GraphError(f"{label}: {key!r} is not for a composed entry (process: {process})")
+    return process
+
+
+def _ready_pattern(pattern: Any, label: str) -> str | None:
+    """``ready_pattern``, a regular expression, or None."""
+    if pattern is not None:
+        try:
+            re.compile(pattern)
+        except (re.error, TypeError) as exc:
+            raise GraphError(
+                f"{label}: ready_pattern {pattern!r} is not a regular expression: {exc}"
+            ) from None
+    return pattern
+
+
+def _remappings(value: Any, label: str) -> dict[str, str]:
+    """``remappings``: a mapping of topic names to topic names."""
+    remappings = _mapping(value, f"{label}: remappings")
+    for src, dst in remappings.items():
+        if not (
+            isinstance(src, str)
+            and isinstance(dst, str)
+            and _TOPIC_RE.match(src)
+            and _TOPIC_RE.match(dst)
+        ):
+            raise GraphError(f"{label}: remapping {src!r}: {dst!r} is not NAME: NAME")
+    return remappings
 
 
 def _params_file(name: str, where: str, base: Path) -> Path:

@@ -112,6 +112,10 @@ class LeanExecutor(Executor):
             ws.wait(-1 if timeout_sec is None else int(max(timeout_sec, 0.0) * 1e9))
         if not self._context.ok():
             raise ExternalShutdownException()
+        self._dispatch(ws)
+
+    def _dispatch(self, ws: Any) -> None:
+        """Run the callbacks of what the wait set reports ready, in rclpy's order."""
         for w in self._waitables:
             if w.is_ready(ws):
                 _drive(w.execute(w.take_data()))
@@ -141,22 +145,30 @@ class LeanExecutor(Executor):
                         else s.callback(*info)
                     )
         if self._node_guards:
-            ready = ws.get_ready_entities("guard_condition")
-            for g in self._node_guards:
-                if g.handle.pointer in ready and g.callback is not None:
-                    _complete(g.callback())
+            self._run_guards(ws)
         for ptr in ws.get_ready_entities("service"):
-            srv = self._srv_by_ptr.get(ptr)
-            if srv is not None:
-                try:
-                    with srv.handle:
-                        request, header = srv.handle.service_take_request(srv.srv_type.Request)
-                except InvalidHandle:
-                    continue
-                if header is not None:
-                    response = srv.callback(request, srv.srv_type.Response())
-                    _complete(response)
-                    srv.send_response(response, header)
+            self._serve(ptr)
+
+    def _run_guards(self, ws: Any) -> None:
+        """Call the triggered node guards' callbacks (rare: nodes without guards skip it)."""
+        ready = ws.get_ready_entities("guard_condition")
+        for g in self._node_guards:
+            if g.handle.pointer in ready and g.callback is not None:
+                _complete(g.callback())
+
+    def _serve(self, ptr: Any) -> None:
+        """Answer one request of the ready service at ``ptr`` (rare: parameters, commands)."""
+        srv = self._srv_by_ptr.get(ptr)
+        if srv is not None:
+            try:
+                with srv.handle:
+                    request, header = srv.handle.service_take_request(srv.srv_type.Request)
+            except InvalidHandle:
+                return
+            if header is not None:
+                response = srv.callback(request, srv.srv_type.Response())
+                _complete(response)
+                srv.send_response(response, header)
 
     def _run_tasks(self) -> None:
         with self._tasks_lock:

@@ -204,56 +204,10 @@ class PlayerNode(Node):
         self.loop, self.wait_for_subscribers = p["loop"], p["wait_for_subscribers"]
         self.wait_timeout, self.drain_timeout = p["wait_timeout"], p["drain_timeout"]
 
-        if not bag:
-            raise RosParameterError(
-                "player: parameter 'bag' (rosbag2 folder or .mcap file) is required"
-            )
-        self.bag_path = find_bag(bag)
-        try:
-            info = bag_info(self.bag_path)
-        except BagError as exc:
-            raise PlaybackError(str(exc)) from None
-        for damage in info["damage"]:
-            if not p["allow_damaged"]:
-                raise PlaybackError(
-                    f"{damage} -- allow_damaged:=true (play --allow-damaged) plays what is readable"
-                )
-            self.get_logger().warning(damage)
-        if info["damage"]:  # said once above: not again per read
-            warnings.simplefilter("ignore", BagDamageWarning)
-        wanted = {self._absolute(t) for t in topics}
-        unknown = sorted(wanted - set(info["topics"]))
-        if unknown:
-            raise PlaybackError(
-                f"topics {unknown} are not in {self.bag_path}; it has {sorted(info['topics'])}"
-            )
-        remap = {self._absolute(k): v for k, v in parse_remaps(remaps).items()}
-        unknown = sorted(set(remap) - set(info["topics"]))
-        if unknown:
-            raise PlaybackError(f"remapped topics {unknown} are not in {self.bag_path}")
-
+        info = self._open_bag(bag, p["allow_damaged"])
+        wanted, remap = self._selection(info, topics, remaps)
         self._outputs: dict[str, _Output] = {}
-        not_installed: list[str] = []
-        for name, topic in info["topics"].items():
-            if (wanted and name not in wanted) or (self.publish_clock and name == CLOCK_TOPIC):
-                continue
-            try:
-                msg_type = message_type(topic["type"])
-            except MessageTypeError:
-                not_installed.append(f"{name} ({topic['type']})")
-                continue
-            qos = playback_qos(topic["offered_qos_profiles"], queue_depth)
-            pub = self.create_publisher(msg_type, remap.get(name, name), qos)
-            self._outputs[name] = _Output(
-                pub.topic_name, pub, qos.reliability == ReliabilityPolicy.RELIABLE
-            )
-        if not_installed:
-            self.get_logger().warning(
-                f"not playing {len(not_installed)} topic(s) whose type is not installed: "
-                f"{', '.join(not_installed)}; playing the other {len(self._outputs)}"
-            )
-            if not self._outputs:
-                raise PlaybackError(f"no topic of {self.bag_path} has an installed type")
+        self._add_outputs(info, wanted, remap, queue_depth)
         self._clock_pub = (
             self.create_publisher(Clock, CLOCK_TOPIC, COMMAND_QOS) if self.publish_clock else None
         )
@@ -291,6 +245,69 @@ class PlayerNode(Node):
 
     def _absolute(self, topic: str) -> str:
         return topic if topic.startswith("/") else self.resolve_topic_name(topic)
+
+    def _open_bag(self, bag: str, allow_damaged: bool) -> dict[str, Any]:
+        """Find the bag (sets ``bag_path``) and read its info; refuse damage unless allowed."""
+        if not bag:
+            raise RosParameterError(
+                "player: parameter 'bag' (rosbag2 folder or .mcap file) is required"
+            )
+        self.bag_path = find_bag(bag)
+        try:
+            info = bag_info(self.bag_path)
+        except BagError as exc:
+            raise PlaybackError(str(exc)) from None
+        for damage in info["damage"]:
+            if not allow_damaged:
+                raise PlaybackError(
+                    f"{damage} -- allow_damaged:=true (play --allow-damaged) plays what is readable"
+                )
+            self.get_logger().warning(damage)
+        if info["damage"]:  # said once above: not again per read
+            warnings.simplefilter("ignore", BagDamageWarning)
+        return info
+
+    def _selection(
+        self, info: dict[str, Any], topics: Sequence[str], remaps: Sequence[str]
+    ) -> tuple[set[str], dict[str, str]]:
+        """The topics to play and the remappings, as absolute names; refuse any not in the bag."""
+        wanted = {self._absolute(t) for t in topics}
+        unknown = sorted(wanted - set(info["topics"]))
+        if unknown:
+            raise PlaybackError(
+                f"topics {unknown} are not in {self.bag_path}; it has {sorted(info['topics'])}"
+            )
+        remap = {self._absolute(k): v for k, v in parse_remaps(remaps).items()}
+        unknown = sorted(set(remap) - set(info["topics"]))
+        if unknown:
+            raise PlaybackError(f"remapped topics {unknown} are not in {self.bag_path}")
+        return wanted, remap
+
+    def _add_outputs(
+        self, info: dict[str, Any], wanted: set[str], remap: dict[str, str], queue_depth: int
+    ) -> None:
+        """A publisher per played topic, with the recorded QoS; skip (and say) uninstalled types."""
+        not_installed: list[str] = []
+        for name, topic in info["topics"].items():
+            if (wanted and name not in wanted) or (self.publish_clock and name == CLOCK_TOPIC):
+                continue
+            try:
+                msg_type = message_type(topic["type"])
+            except MessageTypeError:
+                not_installed.append(f"{name} ({topic['type']})")
+                continue
+            qos = playback_qos(topic["offered_qos_profiles"], queue_depth)
+            pub = self.create_publisher(msg_type, remap.get(name, name), qos)
+            self._outputs[name] = _Output(
+                pub.topic_name, pub, qos.reliability == ReliabilityPolicy.RELIABLE
+            )
+        if not_installed:
+            self.get_logger().warning(
+                f"not playing {len(not_installed)} topic(s) whose type is not installed: "
+                f"{', '.join(not_installed)}; playing the other {len(self._outputs)}"
+            )
+            if not self._outputs:
+                raise PlaybackError(f"no topic of {self.bag_path} has an installed type")
 
     # ------------------------------------------------------------------ services
     def set_paused(self, paused: bool) -> None:

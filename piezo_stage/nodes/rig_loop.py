@@ -44,7 +44,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from piezo_stage.hardware.timing import set_realtime_priority
-from piezo_stage.launch.graph import load_yaml
+from piezo_stage.yaml_values import load_yaml
 
 from .controller import PARAMETERS as CONTROLLER_PARAMETERS
 from .controller import ControllerNode

@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterable, Protocol, Sequence, runtime_checkabl
 import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -189,20 +189,7 @@ def run(
             nodes.append(node)  # so that those made before a failure are shut down safely
         started = True
         executor = LeanExecutor() if lean else SingleThreadedExecutor()
-        for node in nodes:
-            warm_log_lookup(type(node))
-            executor.add_node(node)
-        # what the start made lives as long as the process: out of the collector's reach, so
-        # that no full collection of the start's heap (tens of ms, more on a busy host) stalls
-        # a callback later; the separate controller lost the sensor samples of such a stall
-        # (a 5-deep best-effort queue) and opened its loop for a gap that was its own
-        gc.collect()
-        gc.freeze()
-        # the isinstance checks once here: a turn of a 10 kHz loop reads only the attributes
-        finishing = [n for n in nodes if isinstance(n, Finishes)]
-        while not stop.is_set() and rclpy.ok() and not any(n.finished for n in finishing):
-            executor.spin_once(timeout_sec=0.05)
-        code = max((int(n.exit_code) for n in nodes if isinstance(n, ExitsWithCode)), default=0)
+        code = _spin(executor, nodes, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RosParameterError as exc:  # bad input: one line, exit 2
@@ -212,23 +199,52 @@ def run(
         print(f"[{nodes[-1].get_name() if started else 'node'}] fatal: {exc}", file=sys.stderr)
         code = 1
     finally:
-        for node in reversed(nodes):
-            if isinstance(node, ShutsDown):
-                try:
-                    node.on_shutdown()
-                except Exception as exc:  # report, still tear down, and exit non-zero
-                    print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
-                    code = code or 1
-        if rclpy.ok():
-            for node in nodes:
-                late = wait_acked(node, EXIT_ACK_TIMEOUT)
-                if late:
-                    print(
-                        f"[{node.get_name()}] left before every subscriber acknowledged "
-                        f"{', '.join(late)}",
-                        file=sys.stderr,
-                    )
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        code = _shut_down(nodes, code)
+        _tear_down(nodes)
     return code
+
+
+def _spin(executor: Executor, nodes: list[Node], stop: threading.Event) -> int:
+    """Spin ``nodes`` until a signal, the context's end or a finished node; return the exit code."""
+    for node in nodes:
+        warm_log_lookup(type(node))
+        executor.add_node(node)
+    # what the start made lives as long as the process: out of the collector's reach, so
+    # that no full collection of the start's heap (tens of ms, more on a busy host) stalls
+    # a callback later; the separate controller lost the sensor samples of such a stall
+    # (a 5-deep best-effort queue) and opened its loop for a gap that was its own
+    gc.collect()
+    gc.freeze()
+    # the isinstance checks once here: a turn of a 10 kHz loop reads only the attributes
+    finishing = [n for n in nodes if isinstance(n, Finishes)]
+    while not stop.is_set() and rclpy.ok() and not any(n.finished for n in finishing):
+        executor.spin_once(timeout_sec=0.05)
+    return max((int(n.exit_code) for n in nodes if isinstance(n, ExitsWithCode)), default=0)
+
+
+def _shut_down(nodes: list[Node], code: int) -> int:
+    """Call the nodes' ``on_shutdown()``, last made first; ``code``, non-zero if one fails."""
+    for node in reversed(nodes):
+        if isinstance(node, ShutsDown):
+            try:
+                node.on_shutdown()
+            except Exception as exc:  # report, still tear down, and exit non-zero
+                print(f"[{node.get_name()}] shutdown error: {exc}", file=sys.stderr)
+                code = code or 1
+    return code
+
+
+def _tear_down(nodes: list[Node]) -> None:
+    """Give reliable subscribers time to acknowledge, destroy the nodes, end the context."""
+    if rclpy.ok():
+        for node in nodes:
+            late = wait_acked(node, EXIT_ACK_TIMEOUT)
+            if late:
+                print(
+                    f"[{node.get_name()}] left before every subscriber acknowledged "
+                    f"{', '.join(late)}",
+                    file=sys.stderr,
+                )
+    for node in nodes:
+        node.destroy_node()
+    rclpy.try_shutdown()

@@ -81,6 +81,18 @@ class MDTDeviceModel:
 
     def _run(self, cmd: str) -> list[str] | None:
         """Reply lines for ``cmd`` ([] for a setter), or None when the command is not defined."""
+        fixed = self._fixed_reply(cmd)
+        if fixed is not None:
+            return fixed
+        name, sep, arg = cmd.partition("=")
+        if sep:
+            return self._assign(name, arg)
+        if cmd.endswith("?"):
+            return self._query(cmd[:-1])
+        return None
+
+    def _fixed_reply(self, cmd: str) -> list[str] | None:
+        """Reply lines of the queries that take no axis, or None for any other command."""
         if cmd == "id?":
             return [
                 f"{self.model} Piezo Controller (piezo_stage emulator)",
@@ -95,34 +107,41 @@ class MDTDeviceModel:
             return ["Echo On" if self.echo else "Echo Off"]
         if cmd in ("friendly?", "serial?"):
             return ["emulator" if cmd == "friendly?" else "EMU0001"]
-        name, sep, arg = cmd.partition("=")
-        if cmd.endswith("?") and not sep:
-            name, query = cmd[:-1], True
-        elif sep:
-            query = False
-        else:
+        return None
+
+    def _axis_table(self, name: str) -> tuple[str, str, dict[str, float]] | None:
+        """Axis, field and settings table of ``<axis>voltage|min|max``, or None."""
+        axis, field = name[:1], name[1:]
+        if axis not in self.axes or field not in ("voltage", "min", "max"):
             return None
-        if name == "echo" and not query:
+        return axis, field, {"voltage": self.voltage, "min": self.v_min, "max": self.v_max}[field]
+
+    def _query(self, name: str) -> list[str] | None:
+        """Reply to ``<axis>voltage?``, ``<axis>min?`` or ``<axis>max?``; None for others."""
+        found = self._axis_table(name)
+        if found is None:
+            return None
+        axis, _, table = found
+        return [f"[{table[axis]:7.2f}]"]
+
+    def _assign(self, name: str, arg: str) -> list[str] | None:
+        """Run the setter ``name=arg`` ([]), or None if it is not defined or ``arg`` is bad."""
+        if name == "echo":
             if arg not in ("0", "1"):
                 return None
             self.echo = arg == "1"
             return []
-        if name == "allvoltage" and not query:
-            value = _number(arg)
+        value = _number(arg)
+        if name == "allvoltage":
             if value is None:
                 return None
             for axis in self.axes:
                 self._set(axis, value)
             return []
-        axis, field = name[:1], name[1:]
-        if axis not in self.axes or field not in ("voltage", "min", "max"):
+        found = self._axis_table(name)
+        if found is None or value is None or not 0.0 <= value <= self.vlimit:
             return None
-        table = {"voltage": self.voltage, "min": self.v_min, "max": self.v_max}[field]
-        if query:
-            return [f"[{table[axis]:7.2f}]"]
-        value = _number(arg)
-        if value is None or not 0.0 <= value <= self.vlimit:
-            return None
+        axis, field, table = found
         if field == "voltage":
             self._set(axis, value)
         else:
