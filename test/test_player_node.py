@@ -233,6 +233,34 @@ def test_pause_resume_services(node, bag):
     assert "Traceback" not in err
 
 
+def test_a_parameter_set_on_a_playing_node_is_answered(node, bag):
+    """The player keeps rclpy's ROS clock (Node._clock), which stamps parameter events: a
+    set_parameters request (use_sim_time, as `ros2 param set` sends it) succeeds before and
+    during playback, and the node stays up."""
+    from rcl_interfaces.msg import Parameter as ParameterMsg
+    from rcl_interfaces.msg import ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    proc = start_node("player", f"bag:={bag}", "start_paused:=true", "rate:=0.5", namespace=NS)
+    try:
+        client = node.create_client(SetParameters, f"{NS}/player/set_parameters")
+        assert client.wait_for_service(timeout_sec=15.0)
+        for resume in (False, True):  # paused (no playback clock yet), then playing
+            if resume:
+                _call(node, Trigger, "resume", Trigger.Request())
+            value = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=resume)
+            future = client.call_async(
+                SetParameters.Request(parameters=[ParameterMsg(name="use_sim_time", value=value)])
+            )
+            rclpy.spin_until_future_complete(node, future, timeout_sec=10.0)
+            assert future.done(), "the player did not answer set_parameters"
+            assert future.result().results[0].successful, future.result().results[0].reason
+        assert proc.poll() is None or proc.returncode == 0
+    finally:
+        _, err = stop(proc)
+    assert "Traceback" not in err, err
+
+
 def test_loop_replays_until_stopped(node, bag):
     sink = _sink_all(node)
     proc = start_node(

@@ -36,7 +36,6 @@ from typing import Any, Sequence
 
 from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
-from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -46,6 +45,7 @@ from piezo_stage.bag import BagError, bag_info, read_raw
 from piezo_stage.bag.errors import BagDamageWarning
 from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 
+from .base import PiezoNode
 from .errors import RosParameterError
 from .parameters import declare_table
 from .qos import COMMAND_QOS
@@ -193,7 +193,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class PlayerNode(Node):
+class PlayerNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("player", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
@@ -230,7 +230,7 @@ class PlayerNode(Node):
         self._lock = threading.Condition()
         self._stop = False
         self._paused = bool(paused)
-        self._clock: PlaybackClock | None = None
+        self._playback: PlaybackClock | None = None  # (Node._clock is rclpy's ROS clock)
         self.create_service(Trigger, "~/pause", self._srv_pause)
         self.create_service(Trigger, "~/resume", self._srv_resume)
         self.create_service(SetBool, "~/set_paused", self._srv_set_paused)
@@ -313,8 +313,8 @@ class PlayerNode(Node):
     def set_paused(self, paused: bool) -> None:
         with self._lock:
             self._paused = paused
-            if self._clock is not None:
-                (self._clock.pause if paused else self._clock.resume)(time.monotonic())
+            if self._playback is not None:
+                (self._playback.pause if paused else self._playback.resume)(time.monotonic())
             self._lock.notify_all()
 
     def _srv_pause(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -398,7 +398,7 @@ class PlayerNode(Node):
     def _play_once(self) -> None:
         timed = self.rate > 0
         with self._lock:
-            self._clock = PlaybackClock(self._first_ns, self.rate if timed else 1.0, self._paused)
+            self._playback = PlaybackClock(self._first_ns, self.rate if timed else 1.0, self._paused)
         self._publish_clock(self._first_ns)
         tick = 1.0 / self.clock_rate_hz if self.clock_rate_hz > 0 else 0.0
         next_tick = time.monotonic() + tick
@@ -426,7 +426,7 @@ class PlayerNode(Node):
         the wall time of the next tick."""
         with self._lock:
             while not self._stop:
-                clock = self._clock
+                clock = self._playback
                 assert clock is not None
                 now = time.monotonic()
                 due = clock.due(t_ns)
