@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from piezo_stage.control.bounds import Bounds, NominalPlant
 from piezo_stage.control.discrete import SampledLoopReport, check_sampled_loop
@@ -80,7 +81,7 @@ class GainDesign:
     sampled: SampledLoopReport
     tried: tuple[tuple[float, float], ...]  #: (rate, spectral radius) of each rate checked
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         g = self.gains
         return {
             "gains": {"k0": g.k0, "k1": g.k1, "k2": g.k2, "kA": g.kA, "f": g.f},
@@ -190,7 +191,7 @@ def _yaml(value: object) -> str:
     return f'"{value}"'
 
 
-def read_controller_params(path: Path) -> dict:
+def read_controller_params(path: Path) -> dict[str, Any]:
     """The ``ros__parameters`` of a file written by :func:`write_controller_params`."""
     import yaml
 

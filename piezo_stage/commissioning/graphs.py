@@ -15,7 +15,7 @@ import os
 import socket
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 import yaml
@@ -24,6 +24,9 @@ from piezo_stage.model.excitation import ExcitationPlan
 
 from .procedure import RigError
 from .sweep import Series
+
+if TYPE_CHECKING:
+    from piezo_stage.experiments.harness import Raw
 
 GRAPHS = ("sim", "emulated_rig", "rig")
 _TOPICS = {
@@ -124,7 +127,7 @@ class RosRig:
             Stream("excitation", ExcitationInfo, depth=1000),
         ]
 
-        def note(raw: dict[str, list]) -> None:
+        def note(raw: Raw) -> None:
             if raw["excitation"] and raw["displacement"]:
                 done = (raw["displacement"][-1][0] - raw["excitation"][0][0]) * 1e-9
                 self.progress("graph", f"{label}: {percent(done, plan.duration)}")
@@ -278,7 +281,7 @@ class RosRig:
             Stream("voltage", Voltage, reliable=False),
         ]
 
-        def note(raw: dict[str, list]) -> None:
+        def note(raw: Raw) -> None:
             states = raw["controller_state"]
             if states:
                 self.progress("acceptance", percent((states[-1][0] - states[0][0]) * 1e-9, total))
@@ -346,7 +349,9 @@ def _closed_loop_devices(nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def recorded_to_the_end(raw: dict[str, list], duration: float, rate_hz: float) -> bool:
+def recorded_to_the_end(
+    raw: Mapping[str, list[tuple[int, bytes]]], duration: float, rate_hz: float
+) -> bool:
     """Whether an excitation run of ``duration`` s is recorded in ``raw`` (per topic, lists of
     ``(stamp [ns], message)`` in arrival order, the first mark the plan's start): the sensor has
     passed the plan's end by two samples, the voltage has reached the last sample, and the
@@ -364,12 +369,12 @@ def recorded_to_the_end(raw: dict[str, list], duration: float, rate_hz: float) -
     )
 
 
-def _series(raw: dict[str, list]) -> Series:
+def _series(raw: Raw) -> Series:
     from rclpy.serialization import deserialize_message
 
     from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
-    def unique(items: list) -> list:
+    def unique(items: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
         seen, out = set(), []
         for ns, data in sorted(items, key=lambda p: p[0]):
             if ns not in seen:

@@ -166,7 +166,8 @@ class Commissioning:
         tmp.replace(self._state_path)
 
     def result(self, step: Step) -> dict[str, Any]:
-        return self.state["steps"][step.value]
+        result: dict[str, Any] = self.state["steps"][step.value]
+        return result
 
     # ------------------------------------------------------------------ run
     def run(self) -> dict[str, Any]:
@@ -423,7 +424,7 @@ class Commissioning:
             c_std=s["dynamics"]["c_std"],
         )
         acc = s["acceptance"]
-        return _jsonable(
+        summary: dict[str, Any] = _jsonable(
             {
                 "graph": self.rig.name,
                 "identified": ident,
@@ -444,3 +445,4 @@ class Commissioning:
                 "wall_time": {k: v["wall_time"] for k, v in s.items()},
             }
         )
+        return summary

@@ -20,7 +20,7 @@ TABLE_11_1 = {
 }
 
 
-def _plt():
+def _plt() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")

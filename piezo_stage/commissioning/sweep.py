@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -96,7 +97,7 @@ class SweepSettings:
                 "it would clip; reduce --amplitude/--offset"
             )
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
 
@@ -227,7 +228,7 @@ class FrequencyResult:
     samples: int
     input_delay: float = 0.0  #: [s] command-to-sensor delay used in the pairing (rigs)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {k: float(v) if k != "samples" else int(v) for k, v in asdict(self).items()}
 
 

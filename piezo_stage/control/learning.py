@@ -473,7 +473,7 @@ class _ModelLoop:
 
 def sampled_feedforward(
     model: FeedforwardModel,
-    x_d: Sequence[float],
+    x_d: Sequence[float] | NDArray[np.float64],
     rate_hz: float,
     *,
     periodic: bool = True,

@@ -52,7 +52,8 @@ class HarnessError(ExperimentError):
 def stamp_ns(data: bytes) -> int:
     """header.stamp [ns] of a serialized message whose first field is a std_msgs/Header."""
     sec, nanosec = _STAMP[data[1] & 1].unpack_from(data, 4)
-    return sec * 1_000_000_000 + nanosec
+    ns: int = sec * 1_000_000_000 + nanosec
+    return ns
 
 
 def node_overrides(executable: str, values: Mapping[str, Any]) -> dict[str, Any]:
@@ -121,7 +122,9 @@ class ControllerStates:
             ((ns - t0_ns) * 1e-9, *(getattr(m, k) for k in names))
             for ns, m in ((ns, deserialize_message(d, ControllerState)) for ns, d in raw)
         ]
-        cols = list(zip(*rows)) if rows else [[] for _ in range(len(names) + 1)]
+        cols: list[Sequence[Any]] = (
+            list(zip(*rows)) if rows else [[] for _ in range(len(names) + 1)]
+        )
         return cls(
             *(
                 np.asarray(c, dtype=bool if k == "loop_closed" else float)
@@ -132,7 +135,8 @@ class ControllerStates:
     @property
     def x(self) -> np.ndarray:
         """The measured position x1 + x_d [m]."""
-        return self.x1 + self.reference
+        x: np.ndarray = self.x1 + self.reference
+        return x
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -205,7 +209,9 @@ def record(
     for stream in streams:
         sink = raw[stream.topic]
 
-        def on_message(data: bytes, sink: list = sink, monotonic: bool = stream.monotonic) -> None:
+        def on_message(
+            data: bytes, sink: list[tuple[int, bytes]] = sink, monotonic: bool = stream.monotonic
+        ) -> None:
             ns = stamp_ns(data)
             if monotonic and sink and ns <= sink[-1][0]:
                 return

@@ -123,7 +123,7 @@ def record_identification(
         _given(preset=preset, settle_periods=settle_periods), on_done="exit", autostart=False
     )
     recorded = {t.strip("/") for t in topics} if topics else {"voltage_command", "excitation"}
-    commander_waits = [
+    commander_waits: list[dict[str, Any]] = [
         {"topic": "excitation", "publishers": 1, "subscribers": 1 + int("excitation" in recorded)},
         {
             "topic": "voltage_command",
@@ -203,8 +203,8 @@ def _outcome(
 
 
 def _run_stage(
-    stage_graph: dict,
-    commander_graph: dict,
+    stage_graph: dict[str, Any],
+    commander_graph: dict[str, Any],
     sim_steps: float,
     progress: Progress | None,
     timeout: float,
@@ -349,7 +349,8 @@ def call_trigger(service: str, timeout: float = 30.0) -> str:
             raise ExperimentError(
                 f"service {service} failed: {response.message if response else 'no answer'}"
             )
-        return response.message
+        message: str = response.message
+        return message
     finally:
         rclpy.try_shutdown(context=context)
 

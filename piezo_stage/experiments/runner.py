@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from .errors import ExperimentError
-from .harness import HarnessError, Recording, Stream, record, samples
+from .harness import HarnessError, Raw, Recording, Stream, record, samples
 from .plan import Plan, graph_for, make_plan, summarize
 
 Progress = Callable[[float, str], None]
@@ -24,7 +24,7 @@ def run_plan(
     controller_state is in (one per step: the plant's re-offered step 0 kept once)."""
     from piezo_stage_msgs.msg import ControllerState
 
-    def note(raw) -> None:
+    def note(raw: Raw) -> None:
         if progress is not None and raw["controller_state"]:
             t = raw["controller_state"][-1][0] * 1e-9
             progress(min(t / plan.duration, 1.0), f"{plan.name}/{plan.mode}: t = {t * 1e3:.1f} ms")
@@ -32,7 +32,8 @@ def run_plan(
     every_step = samples("controller_state", int(round(plan.duration * plan.rate_hz)))
     end_ns = int(round((plan.duration - 0.5 / plan.rate_hz) * 1e9))
 
-    def done(raw) -> bool:  # every step, or (one lost) the last one
+    # every step, or (one lost) the last one
+    def done(raw: Mapping[str, list[tuple[int, bytes]]]) -> bool:
         states = raw["controller_state"]
         return every_step(raw) or bool(states) and states[-1][0] >= end_ns
 

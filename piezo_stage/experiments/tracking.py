@@ -69,6 +69,7 @@ from .errors import ExperimentError, ExperimentInputError
 from .harness import (
     ControllerStates,
     HarnessError,
+    Raw,
     Recording,
     Stream,
     node_overrides,
@@ -226,6 +227,7 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
 
 def _check_table(spec: TrackingSpec, rate: float) -> None:
     """A table to replay must load and be made for this trajectory at this rate."""
+    assert spec.table is not None  # called only when spec.table is given
     try:
         table = FeedforwardTable.load(spec.table)
         x_d, _ = trajectory_samples(spec.make_trajectory(), rate)
@@ -398,7 +400,8 @@ def _asked(spec: TrackingSpec) -> str:
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        port: int = s.getsockname()[1]
+        return port
 
 
 def emulated_rig_graph(
@@ -491,7 +494,7 @@ def _run_once(
 
     graph, seconds = emulated_rig_graph(spec, model_file, namespace, folder)
 
-    def note(raw) -> None:
+    def note(raw: Raw) -> None:
         states = raw["controller_state"]
         if progress is not None and states:
             done = (states[-1][0] - states[0][0]) * 1e-9

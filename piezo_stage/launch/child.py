@@ -37,7 +37,7 @@ def defines_main(module: str) -> bool:
     spec = importlib.util.find_spec(module)
     if spec is None:
         raise ModuleNotFoundError(module)
-    source = spec.loader.get_source(module) if spec.loader is not None else None  # type: ignore[union-attr]
+    source = spec.loader.get_source(module) if spec.loader is not None else None  # type: ignore[attr-defined]  # typeshed: LoaderProtocol, no get_source
     if source is None:
         return False
     for stmt in ast.parse(source).body:
@@ -53,7 +53,7 @@ def defines_main(module: str) -> bool:
     return False
 
 
-def run_module(module: str, args: list[str]) -> object:
+def run_module(module: str, args: list[str]) -> int | str | None:
     """Run `module` with argv `args`; return what ``sys.exit`` gets (main()'s return value)."""
     sys.argv = [module, *args]
     try:
@@ -62,12 +62,13 @@ def run_module(module: str, args: list[str]) -> object:
         print(f"piezo_stage launch: cannot load module {module!r}: {exc}", file=sys.stderr)
         return EXIT_NOT_FOUND
     if has_main:
-        return importlib.import_module(module).main()
+        code: int | str | None = importlib.import_module(module).main()
+        return code
     runpy.run_module(module, run_name="__main__", alter_sys=True)
     return 0
 
 
-def main(argv: list[str] | None = None) -> object:
+def main(argv: list[str] | None = None) -> int | str | None:
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) < 3 or argv[1] not in ("module", "exec"):
         print(

@@ -523,7 +523,8 @@ def _ready_pattern(pattern: Any, label: str) -> str | None:
             raise GraphError(
                 f"{label}: ready_pattern {pattern!r} is not a regular expression: {exc}"
             ) from None
-    return pattern
+    checked: str | None = pattern
+    return checked
 
 
 def _remappings(value: Any, label: str) -> dict[str, str]:

@@ -21,7 +21,8 @@ from piezo_stage.nodes.spec import ParameterTable, is_ros_own
 
 @lru_cache(maxsize=None)
 def _table(module: str) -> ParameterTable:
-    return importlib.import_module(module).PARAMETERS
+    table: ParameterTable = importlib.import_module(module).PARAMETERS
+    return table
 
 
 def node_table(spec: ProcessSpec) -> ParameterTable | None:

@@ -22,6 +22,7 @@ are applied by ``piezo-stage validate``; the plant ignores them.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -299,7 +300,7 @@ _FlowDumper.add_representer(dict, _represent_dict)
 _FlowDumper.add_representer(list, _represent_list)
 
 
-def save_parameter_set(ps: ParameterSet, path: str | Path) -> None:
+def save_parameter_set(ps: ParameterSet, path: str | os.PathLike[str]) -> None:
     """Write ``ps`` as YAML (exact float round trip)."""
     text = yaml.dump(parameter_set_to_dict(ps), Dumper=_FlowDumper, sort_keys=False, width=100)
     Path(path).write_text(text)

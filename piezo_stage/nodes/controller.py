@@ -47,8 +47,9 @@ from dataclasses import replace
 from enum import Enum
 from typing import Any, Callable, Sequence
 
-from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
+from rclpy.subscription import Subscription
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -87,6 +88,7 @@ from piezo_stage.control.supervision import (
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
+from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
 from .parameters import declare_table, on_set
@@ -379,7 +381,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class ControllerNode(Node):
+class ControllerNode(PiezoNode):
     """``composed``: part of the rig loop (:mod:`.rig_loop`), which calls :meth:`on_sample` from
     its loop thread and routes every publication through ``handoff``; no displacement
     subscription, no timer."""
@@ -453,7 +455,9 @@ class ControllerNode(Node):
         self._pub_state = self.create_publisher(ControllerState, "controller_state", out_qos)
         self._cmd_msg, self._state_msg = Voltage(), ControllerState()
         self._ref_qos = out_qos
-        self._sub_ref = self._pub_ref = None  # made when first needed (never its own echo)
+        # made when first needed (never its own echo)
+        self._sub_ref: Subscription | None = None
+        self._pub_ref: Publisher | None = None
         self._reference_io(self.setpoint.source)
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
@@ -534,6 +538,7 @@ class ControllerNode(Node):
                 "controller: feedforward_table needs reference_source "
                 "trajectory (the table follows the trajectory's time)"
             )
+        assert trajectory is not None  # uses_trajectory says so
         try:
             x_d, periodic = trajectory_samples(trajectory, self._rate)
             if s.feedforward_table:
@@ -668,7 +673,7 @@ class ControllerNode(Node):
         self._gain_check = check
         return None
 
-    def _after_set(self, params: list) -> None:
+    def _after_set(self, params: list[Parameter]) -> None:
         """Parameters the loop reads at each step, taken over once a set succeeded."""
         with self.lock:
             for p in params:
@@ -677,9 +682,8 @@ class ControllerNode(Node):
                 elif p.name == "reference":
                     self.setpoint.reference = float(p.value)
                 elif p.name in ("max_gap", "u_min", "u_max"):
-                    self.supervisor.config = replace(
-                        self.supervisor.config, **{p.name: float(p.value)}
-                    )
+                    bound: dict[str, Any] = {p.name: float(p.value)}  # a float field, by name
+                    self.supervisor.config = replace(self.supervisor.config, **bound)
         self._reference_io(self.setpoint.source)
 
     def _reference_io(self, source: ReferenceSource) -> None:
@@ -792,6 +796,7 @@ class ControllerNode(Node):
             self._handoff.put(publish, *args)
 
     def _publish_reference(self, stamp: Any, x: float) -> None:
+        assert self._pub_ref is not None  # emitted only once it exists; never unset
         self._pub_ref.publish(
             Displacement(
                 header=Header(stamp=to_stamp(stamp)), displacement=x, status=Displacement.OK

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import sys
 from enum import Enum
+from typing import Any
 
 from builtin_interfaces.msg import Time
-from rclpy.node import Node
 from rclpy.time import Time as RosTime
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
@@ -43,6 +43,7 @@ from piezo_stage.model.excitation import (
 from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
+from .base import PiezoNode
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS
 from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, wait_acked, wall_clock
@@ -164,7 +165,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class ExcitationNode(Node):
+class ExcitationNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
         preset = declare_table(self, PARAMETERS, only=("preset",))["preset"]
@@ -202,7 +203,7 @@ class ExcitationNode(Node):
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
         if trigger is StepTrigger.CLOCK:
-            self.create_subscription(Clock, "/clock", lambda m: self._tick(m.clock), COMMAND_QOS)
+            self.create_subscription(Clock, "/clock", self._on_clock, COMMAND_QOS)
         else:
             self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
             self._lead_ns = int(round(self.get_parameter("lead").value * 1e9))
@@ -218,12 +219,12 @@ class ExcitationNode(Node):
         )
 
     # ------------------------------------------------------------------ parameters
-    def _build_plan(self, changed: dict | None = None) -> ExcitationPlan:
+    def _build_plan(self, changed: dict[str, Any] | None = None) -> ExcitationPlan:
         values = {k: self.get_parameter(k).value for k in PLAN_KEYS}
         values.update({k: v for k, v in (changed or {}).items() if k in PLAN_KEYS})
         return plan_from(None, **values)
 
-    def _check_params(self, changed: dict) -> str | None:
+    def _check_params(self, changed: dict[str, Any]) -> str | None:
         if not set(changed) & set(PLAN_KEYS):
             return None
         try:
@@ -265,6 +266,9 @@ class ExcitationNode(Node):
             self._exiting = True
             # let the last messages reach the subscribers (reliable delivery needs the process)
             self._exit_timer = self.create_timer(0.5, self._finish, clock=wall_clock())
+
+    def _on_clock(self, msg: Clock) -> None:
+        self._tick(msg.clock)
 
     def _on_timer(self) -> None:
         now_ns = self.get_clock().now().nanoseconds + self._lead_ns

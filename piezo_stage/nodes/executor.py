@@ -101,14 +101,16 @@ class LeanExecutor(Executor):
             ws.add_subscription(s.handle)
         for t in self._timers:
             ws.add_timer(t.handle)
-        for s in self._services:
-            ws.add_service(s.handle)
+        for srv in self._services:
+            ws.add_service(srv.handle)
         for g in self._node_guards:
             ws.add_guard_condition(g.handle)
         ws.add_guard_condition(self._guard.handle)
         for w in self._waitables:
             w.add_to_wait_set(ws)
-        with self._context.handle:
+        handle = self._context.handle
+        assert handle is not None  # Context.init set it for good; _rebuild gave it to the WaitSet
+        with handle:
             ws.wait(-1 if timeout_sec is None else int(max(timeout_sec, 0.0) * 1e9))
         if not self._context.ok():
             raise ExternalShutdownException()
@@ -160,13 +162,14 @@ class LeanExecutor(Executor):
         """Answer one request of the ready service at ``ptr`` (rare: parameters, commands)."""
         srv = self._srv_by_ptr.get(ptr)
         if srv is not None:
+            srv_type: Any = srv.srv_type  # a rosidl service class (rclpy: an unbound TypeVar)
             try:
                 with srv.handle:
-                    request, header = srv.handle.service_take_request(srv.srv_type.Request)
+                    request, header = srv.handle.service_take_request(srv_type.Request)
             except InvalidHandle:
                 return
             if header is not None:
-                response = srv.callback(request, srv.srv_type.Response())
+                response = srv.callback(request, srv_type.Response())
                 _complete(response)
                 srv.send_response(response, header)
 

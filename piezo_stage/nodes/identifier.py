@@ -32,10 +32,9 @@ import sys
 import time
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Callable
+from typing import Any, Callable, TypedDict
 
 import numpy as np
-from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
 from std_msgs.msg import Header
@@ -47,6 +46,7 @@ from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import recordings_from_series
 from piezo_stage.identification.methods import Method, identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
+from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.run_tracker import RUNS_NEEDED, RunTracker
@@ -61,6 +61,7 @@ from piezo_stage_msgs.msg import (
     Voltage,
 )
 
+from .base import PiezoNode
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, Diagnosis, Diagnostics
 from .parameters import declare_table
@@ -111,6 +112,12 @@ class _Stream:
                 if got is None:
                     break
                 self.on_message(got[0])
+
+
+class _MaxRms(TypedDict, total=False):
+    """The ``max_rms`` override of RefineOptions and FitOptions (empty: their defaults)."""
+
+    max_rms_fraction: float
 
 
 class Input(str, Enum):
@@ -212,7 +219,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class IdentifierNode(Node):
+class IdentifierNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
         declare_table(self, PARAMETERS)
@@ -367,7 +374,9 @@ class IdentifierNode(Node):
             )
             self._done(1)
 
-    def recordings(self, intervals: list[tuple[int, float, float]] | None = None):
+    def recordings(
+        self, intervals: list[tuple[int, float, float]] | None = None
+    ) -> list[Recording]:
         """The runs collected so far (or those of ``intervals``), cut by the excitation marks as
         the CLI cuts a bag."""
         tv, v = np.array(self._voltage.t), np.array(self._voltage.value)
@@ -398,7 +407,7 @@ class IdentifierNode(Node):
             output_name="displacement" if self._input is Input.VOLTAGE else "voltage",
         )
 
-    def _max_rms(self) -> dict[str, float]:
+    def _max_rms(self) -> _MaxRms:
         value = float(self.get_parameter("max_rms").value)
         return {"max_rms_fraction": value} if value > 0 else {}
 

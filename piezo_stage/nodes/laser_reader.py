@@ -28,7 +28,6 @@ import threading
 import time
 from typing import Any, Callable, Sequence
 
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from piezo_stage.hardware import SensorConfig, SensorReader, Status, TransportError
@@ -37,6 +36,7 @@ from piezo_stage.hardware.optoncdt import FAMILIES
 from piezo_stage.hardware.timing import SampleClock, set_realtime_priority
 from piezo_stage_msgs.msg import Displacement
 
+from .base import PiezoNode
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import SENSOR_QOS
@@ -161,7 +161,7 @@ SampleSink = Callable[[list[float], list[int], list[int]], "list[bool] | None"]
 _OK = int(Status.OK)
 
 
-class LaserReaderNode(Node):
+class LaserReaderNode(PiezoNode):
     """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
     samples to ``loop`` before they are published, ``idle(now_ns)`` is called after a read that
     timed out, every publication goes through ``handoff``, and the thread runs SCHED_FIFO at

@@ -26,17 +26,19 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, cast
 
 import foxglove
-from foxglove import Channel, Context, Schema, ServerListener
-from rclpy.node import Node
+from foxglove import Channel, Context, Schema
+from foxglove.websocket import ServerListener
+from rclpy.clock import ROSClock
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
 
 from piezo_stage.bag.errors import BagError
 from piezo_stage.bag.types import message_definition
 
+from .base import PiezoNode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
 from .parameters import declare_table, on_set
@@ -185,7 +187,7 @@ class _Listener(ServerListener):
         self._wake()
 
 
-class LiveViewNode(Node):
+class LiveViewNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("live_view", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
@@ -200,7 +202,7 @@ class LiveViewNode(Node):
         self._topics: dict[str, _Topic] = {}
         self._by_id: dict[int, _Topic] = {}
         self._skipped: set[str] = set()
-        self._clock = self.get_clock()
+        self._node_clock = cast(ROSClock, self.get_clock())  # Node.__init__ makes a ROSClock
         self._requests = _Requests()
         self._wake = self.create_guard_condition(self._apply_requests)
         self._fox = Context()
@@ -324,9 +326,9 @@ class LiveViewNode(Node):
             if topic.latched
             else DurabilityPolicy.VOLATILE,
         )
-        log, clock = topic.channel.log, self._clock
+        log, clock = topic.channel.log, self._node_clock
         ros_time = clock.ros_time_is_active
-        now_ns = (lambda: clock.now().nanoseconds) if ros_time else time.time_ns
+        now_ns: Callable[[], int] = (lambda: clock.now().nanoseconds) if ros_time else time.time_ns
 
         def forward(data: bytes) -> None:
             topic.received += 1

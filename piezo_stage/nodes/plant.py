@@ -30,7 +30,6 @@ import time
 from enum import Enum
 
 from builtin_interfaces.msg import Time
-from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from piezo_stage.config_path import find_user_file
@@ -40,6 +39,7 @@ from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
 from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import Displacement, Voltage
 
+from .base import PiezoNode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
@@ -186,7 +186,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class PlantNode(Node):
+class PlantNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("plant", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
@@ -271,6 +271,7 @@ class PlantNode(Node):
 
     # ------------------------------------------------------------------ realtime
     def _realtime_tick(self) -> None:
+        assert self._grid is not None  # set with this timer (realtime mode)
         for ns in self._grid.due(self.get_clock().now().nanoseconds):
             self._step(self.dt)
             sec, nanosec = divmod(ns, 1_000_000_000)
@@ -284,7 +285,7 @@ class PlantNode(Node):
     def _matches_step(self, msg: Voltage) -> bool:
         if not self._started:
             return False
-        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        ns: int = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         return abs(ns - (self._t0_ns + self._k * self._dt_ns)) < self._dt_ns // 2
 
     def _emit_step(self) -> None:
@@ -330,6 +331,7 @@ class PlantNode(Node):
             self._sample_first = self._commander_reads_samples()
             self._emit_step()
             return
+        assert self._waiting_since is not None  # _emit_step set it when the steps started
         waited = time.monotonic() - self._waiting_since
         if self._k == 0 and self._commands == 0 and waited > 0.1:
             # a commander that has just appeared may have missed the first step: offer it again
@@ -354,7 +356,7 @@ class PlantNode(Node):
             self.get_logger().error(str(exc))
         self._steps += 1
 
-    def _publish(self, stamp) -> None:
+    def _publish(self, stamp: Time) -> None:
         if self._steps == 0:  # before the first step: the initial state
             self._applied, self._x, self._status = self.stage.output()
         # one message of each kind, refilled: publish() serializes before it returns

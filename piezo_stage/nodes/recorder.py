@@ -33,17 +33,17 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence, cast
 
-from rclpy.clock import Clock, ClockType
+from rclpy.clock import Clock, ClockType, ROSClock
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
 from std_srvs.srv import Trigger
 
 from piezo_stage.bag import BagError, BagWriter, qos_from_profile
 
+from .base import PiezoNode
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import NodeError
@@ -192,7 +192,7 @@ PARAMETERS = ParameterTable(
 )
 
 
-class RecorderNode(Node):
+class RecorderNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("recorder", namespace=DEFAULT_NAMESPACE)
         p = declare_table(self, PARAMETERS)
@@ -226,7 +226,7 @@ class RecorderNode(Node):
         self._slots: dict[str, _Slot] = {}
         self._skipped: set[str] = set()  # topics that cannot be recorded (said once)
         self._error = ""
-        self._clock = self.get_clock()
+        self._node_clock = cast(ROSClock, self.get_clock())  # Node.__init__ makes a ROSClock
 
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
@@ -299,7 +299,7 @@ class RecorderNode(Node):
         slot.subscription = self.create_subscription(
             slot.msg_type,
             slot.name,
-            slot,
+            slot,  # type: ignore[arg-type]  # rclpy's annotation omits (msg, info) callbacks
             qos,
             raw=True,
             event_callbacks=SubscriptionEventCallbacks(message_lost=slot.on_lost),
@@ -339,8 +339,10 @@ class RecorderNode(Node):
         write, topic, msg_type, paused = self.writer.write, slot.name, slot.msg_type, self.paused
         # the node clock: /clock time when use_sim_time is on, else the system clock, whose
         # value time.time_ns() gives 30x faster than Clock.now()
-        ros_now = self._clock.now
-        now_ns = (lambda: ros_now().nanoseconds) if self._clock.ros_time_is_active else time.time_ns
+        ros_now = self._node_clock.now
+        now_ns: Callable[[], int] = (
+            (lambda: ros_now().nanoseconds) if self._node_clock.ros_time_is_active else time.time_ns
+        )
         # sequence numbers are per publisher and messages carry no publisher id: count gaps
         # only while exactly one publisher is matched, from the first message after a change
         publishers = sub.get_publisher_count()
@@ -360,6 +362,7 @@ class RecorderNode(Node):
                         break
                     data, info = got
                 taken += 1
+                assert info is not None  # given with data (_Slot.__call__) or taken with it
                 seq = info["publication_sequence_number"]
                 if seq:
                     if track_gaps and last_seq is not None and seq > last_seq + 1:

@@ -37,7 +37,7 @@ import sys
 import threading
 import time
 from collections import deque
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence, cast
 
 import numpy as np
 from rclpy.node import Node
@@ -286,10 +286,11 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
             if out is not None:
                 u, outputs = out, outputs + 1
             law = controller.last_step
+            # a law output (last_step) comes with its voltage: on_sample returned _step's float
             rows.append(
                 (ns, x, st, nan, nan if out is None else out, 0.0, False)
                 if law is None
-                else (ns, x, st, law.reference, out, law.u_ff, law.loop_closed)
+                else (ns, x, st, law.reference, cast(float, out), law.u_ff, law.loop_closed)
             )
         if u is not None:
             driver.command(u, publish=due[-1])

@@ -21,7 +21,7 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from . import DEFAULT_NAMESPACE  # noqa: F401 (re-exported: nodes import it from here)
+from . import DEFAULT_NAMESPACE as DEFAULT_NAMESPACE  # re-exported: nodes import it from here
 from .errors import RosParameterError
 from .executor import LeanExecutor
 
@@ -33,7 +33,8 @@ def wall_clock() -> Clock:
 
 
 def stamp_to_s(stamp: Any) -> float:
-    return stamp.sec + 1e-9 * stamp.nanosec
+    seconds: float = stamp.sec + 1e-9 * stamp.nanosec
+    return seconds
 
 
 def to_stamp(stamp: Any) -> Any:

@@ -233,6 +233,7 @@ class ParameterTable:
             "| description |\n|---|---|---|---|---|---|---|\n"
         ]
         for p in sorted(self.params, key=lambda p: p.name):
+            assert p.kind is not None  # Param.__post_init__ fills it in
             if p.range is not None:
                 allowed = f"{show(p.range[0])} … {show(p.range[1])}"
             else:

@@ -35,6 +35,7 @@ def message_type(type_name: str) -> type:
         raise MessageTypeError(f"invalid message type name {type_name!r}")
     package, namespace, name = parts
     try:
-        return getattr(importlib.import_module(f"{package}.{namespace}"), name)
+        cls: type = getattr(importlib.import_module(f"{package}.{namespace}"), name)
+        return cls
     except (ImportError, AttributeError) as exc:
         raise MessageTypeError(f"cannot import message type {type_name}: {exc}") from None

@@ -36,7 +36,6 @@ import sys
 import threading
 from typing import Any, Sequence
 
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from piezo_stage.hardware import (
@@ -54,6 +53,7 @@ from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
 from piezo_stage.hardware.timing import CommandPlayout, set_realtime_priority
 from piezo_stage_msgs.msg import Voltage
 
+from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
@@ -236,7 +236,7 @@ class Rejection(enum.Enum):
     EXPIRED = "expired"  # received before the watchdog fired
 
 
-class VoltageDriverNode(Node):
+class VoltageDriverNode(PiezoNode):
     """``composed``: part of the rig loop (:mod:`.rig_loop`), whose loop thread calls
     :meth:`command` directly; no voltage_command subscription (the controller in the same
     process still publishes the topic), every publication through ``handoff``."""
@@ -327,6 +327,7 @@ class VoltageDriverNode(Node):
         self._diagnostics = Diagnostics(self, f"{p.backend} {self.url}", self._diagnose)
         self._reported_down = False
         lim = self.driver.limits
+        assert lim is not None  # set by driver.connect() above, never unset
         self.get_logger().info(
             f"{self.info.identity} axis {self.info.axis} on {self.url}: limits "
             f"[{lim.v_min:g}, {lim.v_max:g}] V, output {self.info.applied:g} V"
@@ -484,6 +485,7 @@ class VoltageDriverNode(Node):
     def _diagnose(self) -> Diagnosis:
         d = self.driver
         lim = d.limits
+        assert lim is not None  # set by driver.connect() in __init__, never unset
         values = {
             "state": d.state.value,
             "connected": d.connected,
