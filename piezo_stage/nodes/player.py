@@ -398,7 +398,9 @@ class PlayerNode(PiezoNode):
     def _play_once(self) -> None:
         timed = self.rate > 0
         with self._lock:
-            self._playback = PlaybackClock(self._first_ns, self.rate if timed else 1.0, self._paused)
+            self._playback = PlaybackClock(
+                self._first_ns, self.rate if timed else 1.0, self._paused
+            )
         self._publish_clock(self._first_ns)
         tick = 1.0 / self.clock_rate_hz if self.clock_rate_hz > 0 else 0.0
         next_tick = time.monotonic() + tick
