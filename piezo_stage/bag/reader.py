@@ -32,7 +32,7 @@ from .errors import (
 from .metadata import METADATA_FILENAME, BagMetadata
 from .records import McapWalk, is_mcap_name
 from .series import SERIES_FIELDS, decode_series
-from .types import NUMERIC_TYPES
+from .types import NUMERIC_TYPES, stamp_seconds
 
 _INDEX_RE = re.compile(r"_(\d+)\.mcap(?:\.zstd)?$")
 
@@ -322,11 +322,7 @@ def _generic_series(
             raise WrongTopicTypeError(
                 f"{topic} ({type_name}) has no numeric field {field!r}"
             ) from None
-        t.append(
-            message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
-            if stamp is not None
-            else log_time * 1e-9
-        )
+        t.append(stamp_seconds(message.header.stamp) if stamp is not None else log_time * 1e-9)
     if not values and not field:  # nothing decoded: judge the field by the shipped type
         from .types import full_type_name, typestore
 

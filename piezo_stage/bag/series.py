@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import CorruptBagError
-from .types import deserialize
+from .types import deserialize, stamp_seconds
 
 #: type -> (value field, has status field)
 SERIES_FIELDS: dict[str, tuple[str, bool]] = {
@@ -41,7 +41,7 @@ def _decode_generic(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.uint8] | None]:
     field, has_status = SERIES_FIELDS[type_name]
     messages = [deserialize(d, type_name) for d in datas]
-    t = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in messages])
+    t = np.array([stamp_seconds(m.header.stamp) for m in messages])
     values = np.array([getattr(m, field) for m in messages], dtype=np.float64)
     status = np.array([m.status for m in messages], dtype=np.uint8) if has_status else None
     return t, values, status

@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def ros_args(args: argparse.Namespace) -> list[str]:
-    from piezo_stage.launch.commandline import ros_value
+    from piezo_stage.launch.commandline import param_args
 
     params: dict[str, object] = {
         "bag": str(Path(args.bag).absolute()),
@@ -90,10 +90,7 @@ def ros_args(args: argparse.Namespace) -> list[str]:
         params["topics"] = list(args.topics)
     if args.remap:
         params["remap"] = list(args.remap)
-    out = ["-r", f"__ns:={args.ns}"]
-    for key, value in params.items():
-        out += ["-p", f"{key}:={ros_value(value)}"]
-    return out
+    return ["-r", f"__ns:={args.ns}", *param_args(params)]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -145,7 +145,7 @@ def run_node(
 
 
 def ros_args(args: argparse.Namespace, bag: Path) -> list[str]:
-    from piezo_stage.launch.commandline import ros_value
+    from piezo_stage.launch.commandline import param_args
 
     params = {
         "bag": str(bag),
@@ -160,10 +160,7 @@ def ros_args(args: argparse.Namespace, bag: Path) -> list[str]:
         params["topics"] = list(args.topics)
     if args.regex:
         params["topic_regex"] = args.regex
-    out = ["-r", f"__ns:={args.ns}"]
-    for key, value in params.items():
-        out += ["-p", f"{key}:={ros_value(value)}"]
-    return out
+    return ["-r", f"__ns:={args.ns}", *param_args(params)]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -58,15 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def ros_args(args: argparse.Namespace) -> list[str]:
-    from piezo_stage.launch.commandline import ros_value
+    from piezo_stage.launch.commandline import param_args
 
     params = {"host": args.host, "port": args.port, "max_rate_hz": float(args.max_rate)}
     if args.topics:
         params["topics"] = list(args.topics)
-    out = ["-r", f"__ns:={args.ns}"]
-    for key, value in params.items():
-        out += ["-p", f"{key}:={ros_value(value)}"]
-    return out
+    return ["-r", f"__ns:={args.ns}", *param_args(params)]
 
 
 def run(args: argparse.Namespace) -> int:

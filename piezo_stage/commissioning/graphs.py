@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping
 import numpy as np
 import yaml
 
+from piezo_stage.control.controller import THESIS_AMPLIFIER
 from piezo_stage.model.excitation import ExcitationPlan
 
 from .procedure import RigError
@@ -222,6 +223,7 @@ class RosRig:
         )
         from piezo_stage.experiments.plan import OPEN_FOR, U_OPEN, U_SET, Plan, summarize
         from piezo_stage.experiments.plots import plot_run
+        from piezo_stage.experiments.presets import experiment_controller
         from piezo_stage.experiments.runner import STATE_TYPE
         from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
@@ -229,15 +231,15 @@ class RosRig:
         x_eq = U_SET / float(run["kappa_x"])
         gains = {k: float(run["gains"][k]) for k in ("k0", "k1", "k2", "kA", "f")}
         total = RIG_SETTLE + OPEN_FOR + float(run["duration"])
-        controller = {
-            "trigger": "sample",  # a step per sensor sample (a late burst is no stale sample)
-            "wait_for_state_subscribers": 1,  # our record holds the loop's first state
-            "rate_hz": rate,
-            "delay_samples": int(run["delay_samples"]),
-            "mode": "pid_tv",
-            "bounds_file": run["bounds_file"],
-            "start_closed": True,
-            "on_close": "reset",
+        # a step per sensor sample (a late burst is no stale sample); our record holds the
+        # loop's first state
+        controller = experiment_controller(
+            rate,
+            "pid_tv",
+            delay_samples=int(run["delay_samples"]),
+            bounds_file=run["bounds_file"],
+        )
+        controller |= {
             "reference_source": "constant",
             "reference": x_eq,
             "u_bias": U_SET,
@@ -403,27 +405,22 @@ def make_rig(
     *,
     model_file: str | None = None,
     rate_hz: float = 50e3,
-    v_min: float = -450.0,
-    v_max: float = 450.0,
+    v_min: float = -THESIS_AMPLIFIER,
+    v_max: float = THESIS_AMPLIFIER,
     params: list[str] | None = None,
     progress: Callable[[str, str], None] = lambda s, t: None,
 ) -> RosRig:
     """The :class:`RosRig` of a graph name (``sim``, ``emulated_rig``, ``rig``)."""
     from piezo_stage.config_path import find_config
+    from piezo_stage.experiments.presets import lockstep_plant
 
     if graph == "sim":
         model_file = model_file or "ch11_rig.yaml"
         plant = {
             "executable": "plant",
             "required": True,
-            "overrides": {
-                "model_file": model_file,
-                "clock_mode": "lockstep",
-                "rate_hz": rate_hz,
-                "lockstep_timeout": 2.0,
-                "v_min": v_min,
-                "v_max": v_max,
-                "w0": 0.0,
+            "overrides": lockstep_plant(model_file, rate_hz, v_min, v_max)
+            | {
                 "wait_for_subscribers": 1,
                 # a sensor is never exact: 2 nm of noise (an optoNCDT resolves 0.1 um) hides the
                 # sub-nanometre ZOH ripple at the sine's turning points, which the cycle check

@@ -133,6 +133,9 @@ def integration_winds_up(excess: float, x0_coefficient: float, step: float) -> b
     return excess != 0.0 and excess * x0_coefficient * step > 0
 
 
+#: [V] the thesis's amplifier gives ±450 V (§11.2.1)
+THESIS_AMPLIFIER = 450.0
+
 # members looked up once: update() runs once per sample
 _FEEDBACK, _FEEDFORWARD = Compensation.FEEDBACK, Compensation.FEEDFORWARD
 _OK, _NONPOSITIVE = Timing.OK, Timing.NONPOSITIVE

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.plant import DynamicPlant
 
-from .controller import ControllerConfig, OnClose, TimeVaryingPID
+from .controller import THESIS_AMPLIFIER, ControllerConfig, OnClose, TimeVaryingPID
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
 from .laws import THESIS_GAINS, Gains, check_law
@@ -98,8 +98,8 @@ def simulate_tracking(
     gains: Gains = THESIS_GAINS,
     rate_hz: float = TRACKING_RATE_HZ,
     duration: float | None = None,
-    u_min: float = -450.0,
-    u_max: float = 450.0,
+    u_min: float = -THESIS_AMPLIFIER,
+    u_max: float = THESIS_AMPLIFIER,
     table: FeedforwardTable | None = None,
     learn_periods: int = 0,
     learning: LearningConfig | None = None,

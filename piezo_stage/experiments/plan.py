@@ -51,11 +51,13 @@ from typing import Any
 import numpy as np
 
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
+from piezo_stage.control.controller import THESIS_AMPLIFIER
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.laws import THESIS_GAINS, Law, check_law
 from piezo_stage.model.parameter_set import shipped_parameter_set
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
+from .presets import experiment_controller, lockstep_plant
 
 EXPERIMENTS: tuple[str, ...] = ("regulation", "perturbation")
 RATE_CANDIDATES: tuple[float, ...] = (100e3, 200e3, 500e3, 1e6)
@@ -117,27 +119,15 @@ def make_plan(
     if not (math.isfinite(duration) and duration > 0):
         raise ExperimentInputError(f"duration must be > 0 s, got {duration}")
     rate, radius = pick_rate(mode, gains)
-    controller = {
-        "use_sim_time": True,
-        "trigger": "sample",
-        "sensor_qos": "reliable",
-        "rate_hz": rate,
-        "delay_samples": LOCKSTEP_DELAY,
-        "mode": mode,
-        "start_closed": True,
-        "on_close": "reset",
-        "wait_for_state_subscribers": 1,
+    controller = experiment_controller(
+        rate,
+        mode,
+        use_sim_time=True,
+        sensor_qos="reliable",
+        delay_samples=LOCKSTEP_DELAY,
         **gains,
-    }
-    plant = {
-        "model_file": MODEL_FILE,
-        "clock_mode": "lockstep",
-        "rate_hz": rate,
-        "lockstep_timeout": 2.0,
-        "v_min": -450.0,
-        "v_max": 450.0,
-        "w0": 0.0,
-    }
+    )
+    plant = lockstep_plant(MODEL_FILE, rate, -THESIS_AMPLIFIER, THESIS_AMPLIFIER)
     if name == "regulation":
         # x = x1 + yr (11.4)
         plant.update(

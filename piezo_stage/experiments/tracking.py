@@ -77,6 +77,7 @@ from .harness import (
     span,
 )
 from .plan import Plan
+from .presets import experiment_controller, lockstep_plant
 from .runner import STATE_TYPE, run_plan
 
 Progress = Callable[[float, str], None]
@@ -242,15 +243,8 @@ def _controller(
     spec: TrackingSpec, comp: Compensation, model_file: str, u_start: float, rate: float
 ) -> dict[str, Any]:
     """The controller's overrides of one run (the trajectory, the compensation, learning)."""
-    controller: dict[str, Any] = {
-        "trigger": "sample",
-        "rate_hz": rate,
-        "delay_samples": 0,
-        "mode": spec.mode,
-        "start_closed": True,
-        "on_close": "reset",
-        "hold_voltage": u_start,
-        "wait_for_state_subscribers": 1,
+    controller = experiment_controller(rate, spec.mode, delay_samples=0, hold_voltage=u_start)
+    controller |= {
         "reference_source": "trajectory",
         "trajectory": spec.trajectory if spec.shaped else str(Path(spec.trajectory).resolve()),
         "trajectory_amplitude": spec.amplitude,
@@ -287,20 +281,17 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
     bw = plant_ps.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
     v_min, v_max = rig_amplifier_range()  # the emulated rig's amplifier: the same limits
-    plant = {
-        "model_file": str(find_config(spec.plant_model))
+    plant = lockstep_plant(
+        str(find_config(spec.plant_model))
         if isinstance(spec.plant_model, str)
         else spec.plant_model,
-        "clock_mode": "lockstep",
-        "rate_hz": rate,
-        "lockstep_timeout": 2.0,
-        "v_min": v_min,
-        "v_max": v_max,
-        "w0": 0.0,
-        "initial_displacement": x_start - bw.y0,
-        "initial_voltage": u_start,
-        "initial_velocity": 0.0,
-    }
+        rate,
+        v_min,
+        v_max,
+        initial_displacement=x_start - bw.y0,
+        initial_voltage=u_start,
+        initial_velocity=0.0,
+    )
     controller = {
         "use_sim_time": True,
         "sensor_qos": "reliable",

@@ -259,12 +259,11 @@ def excitation_marks(
     clock starting at 0), or the log times when no message is stamped.
     """
     from piezo_stage.bag.reader import read_messages
+    from piezo_stage.bag.types import stamp_seconds
 
     marks, log_times = [], []
     for _, log_time, msg in read_messages(path, [topic]):
-        marks.append(
-            (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, int(msg.run), bool(msg.steady))
-        )
+        marks.append((stamp_seconds(msg.header.stamp), int(msg.run), bool(msg.steady)))
         log_times.append(log_time * 1e-9)
     if marks and not any(m[0] for m in marks):
         marks = [(t, run, steady) for t, (_, run, steady) in zip(log_times, marks)]

@@ -33,6 +33,11 @@ def ros_value(value: Any) -> str:
     return dump_yaml_value(value)
 
 
+def param_args(params: Mapping[str, Any]) -> list[str]:
+    """``-p KEY:=VALUE`` for each parameter, its value as rcl reads it."""
+    return [arg for key, value in params.items() for arg in ("-p", f"{key}:={ros_value(value)}")]
+
+
 def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     """``--ros-args`` and what follows, in rcl's order of precedence (later wins): params files,
     the graph's use_sim_time, then the entry's overrides (including --param ones)."""
@@ -49,8 +54,7 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
         args += ["--params-file", str(path)]
     if graph.use_sim_time is not None:
         args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
-    for key, value in spec.overrides.items():
-        args += ["-p", f"{key}:={ros_value(value)}"]
+    args += param_args(spec.overrides)
     for src, dst in spec.remappings.items():
         args += ["-r", f"{src}:={dst}"]
     return args

@@ -53,9 +53,11 @@ from rclpy.subscription import Subscription
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.config_path import find_user_file
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, load_bounds, load_nominal_plant
 from piezo_stage.control.controller import (
+    THESIS_AMPLIFIER,
     AntiWindup,
     ControllerConfig,
     ControlOutput,
@@ -93,7 +95,7 @@ from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_to_s, subscribers_matched, to_stamp
+from .runtime import DEFAULT_NAMESPACE, run, set_stamp, subscribers_matched, to_stamp
 from .spec import Param, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
@@ -135,8 +137,8 @@ PARAMETERS = ParameterTable(
         Param("kA", _G.kA, "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
         Param("A", _G.A, "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
         Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
-        Param("u_min", -450.0, "amplifier lower limit", "V"),
-        Param("u_max", 450.0, "amplifier upper limit", "V"),
+        Param("u_min", -THESIS_AMPLIFIER, "amplifier lower limit", "V"),
+        Param("u_max", THESIS_AMPLIFIER, "amplifier upper limit", "V"),
         Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=AntiWindup),
         Param(
             "tracking_time", 0.0, "back-calculation time constant (0: sqrt(Ti*Td))", "s", (0.0, 1e3)
@@ -711,7 +713,7 @@ class ControllerNode(PiezoNode):
             self.setpoint.receive(msg.displacement)
 
     def _on_displacement(self, msg: Displacement) -> None:
-        t = stamp_to_s(msg.header.stamp)
+        t = stamp_seconds(msg.header.stamp)
         ok = msg.status == Displacement.OK and math.isfinite(msg.displacement)
         if not self.supervisor.sample(t, msg.displacement, ok):
             self._send_hold(t)

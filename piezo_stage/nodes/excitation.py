@@ -31,6 +31,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.excitation import (
     HOLDS,
@@ -46,7 +47,7 @@ from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 from .base import PiezoNode
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS
-from .runtime import DEFAULT_NAMESPACE, run, stamp_to_s, subscribers_matched, wait_acked, wall_clock
+from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched, wait_acked, wall_clock
 from .spec import Param, ParameterTable
 
 PLAN_KEYS = (
@@ -249,7 +250,7 @@ class ExcitationNode(PiezoNode):
     def _tick(self, stamp: Time) -> None:
         if not self._running or self._exiting:
             return
-        now = stamp_to_s(stamp)
+        now = stamp_seconds(stamp)
         if self._t_start is None:
             if not subscribers_matched((self._pub_cmd, self._pub_info), self._wait_subs):
                 return  # lockstep: the plant offers this step again until a command answers it

@@ -40,6 +40,7 @@ from rclpy.subscription import Subscription
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions, extract_cycle
 from piezo_stage.identification.errors import IdentificationError
@@ -66,7 +67,7 @@ from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, Diagnosis, Diagnostics
 from .parameters import declare_table
 from .qos import COMMAND_QOS, LATCHED_QOS, LOCKSTEP_DEPTH, adapted_qos
-from .runtime import DEFAULT_NAMESPACE, EXIT_ACK_TIMEOUT, run, stamp_to_s, wait_acked, wall_clock
+from .runtime import DEFAULT_NAMESPACE, EXIT_ACK_TIMEOUT, run, wait_acked, wall_clock
 from .spec import Param, ParameterTable
 
 #: history of the stream subscriptions: a replayed bag arrives in bursts
@@ -295,16 +296,16 @@ class IdentifierNode(PiezoNode):
         self._attempted = False  # the identification at silence (fit, auto) was tried
 
     def _on_voltage(self, msg: Voltage) -> None:
-        self._voltage.t.append(stamp_to_s(msg.header.stamp))
+        self._voltage.t.append(stamp_seconds(msg.header.stamp))
         self._voltage.value.append(msg.voltage)
 
     def _on_displacement(self, msg: Displacement) -> None:
-        self._displacement.t.append(stamp_to_s(msg.header.stamp))
+        self._displacement.t.append(stamp_seconds(msg.header.stamp))
         self._displacement.value.append(msg.displacement)
         self._displacement.status.append(msg.status)
 
     def _on_excitation(self, msg: ExcitationInfo) -> None:
-        t = stamp_to_s(msg.header.stamp)
+        t = stamp_seconds(msg.header.stamp)
         phase = self._runs.mark(t, int(msg.run), bool(msg.steady), msg.offset)
         if phase is not None:
             self.get_logger().info(

@@ -32,11 +32,6 @@ def wall_clock() -> Clock:
     return Clock(clock_type=ClockType.STEADY_TIME)
 
 
-def stamp_to_s(stamp: Any) -> float:
-    seconds: float = stamp.sec + 1e-9 * stamp.nanosec
-    return seconds
-
-
 def to_stamp(stamp: Any) -> Any:
     """A header stamp from a stamp message (returned as is) or integer nanoseconds."""
     if isinstance(stamp, int):

@@ -38,6 +38,7 @@ from typing import Any, Sequence
 
 from rclpy.parameter import Parameter
 
+from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.hardware import (
     ConfigError,
     DriverConfig,
@@ -57,7 +58,7 @@ from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, stamp_to_s, wall_clock
+from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, wall_clock
 from .spec import Param, ParameterTable
 
 PARAMETERS = ParameterTable(
@@ -357,7 +358,7 @@ class VoltageDriverNode(PiezoNode):
         received = self.driver.clock()
         self.driver.command_received(received)  # the watchdog counts from arrival
         if self._playout is not None:
-            self._playout.push(stamp_to_s(stamp), msg.voltage, received)
+            self._playout.push(stamp_seconds(stamp), msg.voltage, received)
         else:
             self._apply(msg.voltage, True, received)
 

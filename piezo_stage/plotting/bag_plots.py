@@ -69,10 +69,10 @@ def _runs(bag: Path, topics: BagTopics) -> list:
 def _steady_mask(bag: Path, topic: str, t: np.ndarray) -> np.ndarray:
     """True where the latest ExcitationInfo at or before each time says ``steady``."""
     from piezo_stage.bag.reader import read_messages
+    from piezo_stage.bag.types import stamp_seconds
 
     marks = sorted(
-        (m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, bool(m.steady))
-        for _, _, m in read_messages(bag, [topic])
+        (stamp_seconds(m.header.stamp), bool(m.steady)) for _, _, m in read_messages(bag, [topic])
     )
     if not marks:
         return np.zeros(len(t), dtype=bool)
@@ -115,11 +115,12 @@ def _model_curve(params, rec) -> np.ndarray:
 
 def _controller_series(bag: Path, topic: str) -> dict[str, np.ndarray] | None:
     from piezo_stage.bag.reader import read_messages
+    from piezo_stage.bag.types import stamp_seconds
 
     fields = ("x1", "x2", "u", "u_pid", "u_excitation", "loop_closed")
     rows, t, mode = {f: [] for f in fields}, [], ""
     for _, log_time, msg in read_messages(bag, [topic]):
-        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        stamp = stamp_seconds(msg.header.stamp)
         t.append(stamp if stamp > 0 else 1e-9 * log_time)
         for f in fields:
             rows[f].append(getattr(msg, f))
