@@ -4,6 +4,7 @@ overrides on a command line, the launcher's ``--ros-args -p``)."""
 from __future__ import annotations
 
 import re
+from enum import Enum
 from typing import Any
 
 import yaml
@@ -24,6 +25,10 @@ for _cls in (_Loader, _Dumper):
         re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
         list("-+0123456789."),
     )
+
+
+# a choice may be given as its Enum member (Law.PID): written as its value, as rcl reads it
+_Dumper.add_multi_representer(Enum, lambda dumper, member: dumper.represent_data(member.value))
 
 
 def load_yaml(text: str) -> Any:
