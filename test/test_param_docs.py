@@ -89,7 +89,12 @@ def test_running_nodes_declare_exactly_their_table(name, tmp_path):
     args = ["x", "--ros-args", *(a for k, v in given.items() for a in ("-p", f"{k}:={v}"))]
     rclpy.init(args=args)
     try:
-        factory = next(v for k, v in vars(module).items() if k.endswith("Node") and k != "Node")
+        # the node class the module defines (not Node or PiezoNode, which it imports)
+        factory = next(
+            v
+            for k, v in vars(module).items()
+            if k.endswith("Node") and getattr(v, "__module__", "") == module.__name__
+        )
         node = factory()
         try:
             declared = {p: node.describe_parameter(p) for p in node._parameters if p not in ROS_OWN}
