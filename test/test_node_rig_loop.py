@@ -285,8 +285,9 @@ def test_invalid_samples_open_the_loop_and_hold_the_hold_voltage(probe, tmp_path
 
 def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(probe, tmp_path):
     """rig_loop, max_gap 0.2 s: a 50 ms silence of the sensor is held through (gaps_held on
-    /diagnostics, the loop stays closed); a 1 s one opens the loop ("no sensor sample"). (Only
-    the composed form: through DDS the hops themselves lose samples for longer at start-up.)
+    /diagnostics, the loop stays closed, no fault); a 1 s one opens the loop ("no sensor
+    sample"). (Only the composed form: through DDS the hops themselves lose samples for longer
+    at start-up.)
     The silences come after start_grace (1 s from the first closing): a start-up gap within it
     only re-arms the closing, as a busy host's 0.2 s gap at 1.76 s once did with the grace at 0."""
     from piezo_stage_msgs.msg import ControllerState
@@ -323,7 +324,13 @@ def test_a_short_sensor_silence_holds_the_output_and_a_long_one_opens_the_loop(p
         time.sleep(0.05)
         rig.emulator.silence_sensor(False)
         assert spin_until(probe, lambda: value("gaps_held") not in ("", "0"), 10.0), rig.log
-        assert value("loop_closed") == "True" and diagnostics[-1].level == DiagnosticStatus.OK
+        # held, not a fault: the loop stays closed (a loaded host may saturate the output on
+        # its own, which /diagnostics reports as a WARN of its own)
+        held = diagnostics[-1]
+        assert value("loop_closed") == "True", (held.message, rig.log)
+        assert held.level == DiagnosticStatus.OK or (
+            held.level == DiagnosticStatus.WARN and held.message.startswith("output saturated")
+        ), (held.message, rig.log)
         rig.emulator.silence_sensor(True)
         opened = spin_until(probe, lambda: "no sensor sample" in diagnostics[-1].message, 10.0)
         rig.emulator.silence_sensor(False)
