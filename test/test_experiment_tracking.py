@@ -137,7 +137,7 @@ def test_rates_tables_and_learning_that_cannot_run_are_refused(model, tmp_path, 
         (["--trajectory", str(csv), "--learn", "5"], "periodic trajectory"),
         (["--rate-hz", "1000", "--table", str(table)], "holds 50 samples"),
         (["--graph", "emulated_rig", "--rate-hz", "2000"], "1000 or 10000"),
-        (["--compensation", "feedback", "--learn", "5"], "learns the"),
+        (["--compensation", "feedback", "--learn", "5"], "learn_periods needs compensation"),
     ):
         assert main(base + extra) == 2, extra
         assert reason in capsys.readouterr().err

@@ -71,6 +71,23 @@ def node_overrides(executable: str, values: Mapping[str, Any]) -> dict[str, Any]
     return dict(values)
 
 
+def check_controller(values: Mapping[str, Any]) -> None:
+    """The controller node's own setup (:func:`piezo_stage.control.setup.configure_controller`)
+    on ``values`` over its defaults: a run the node would refuse is refused before any graph
+    starts (:class:`ExperimentInputError`), with the node's reason."""
+    from piezo_stage.control.setup import SetupError, configure_controller
+    from piezo_stage.nodes.controller import PARAMETERS
+
+    from .errors import ExperimentInputError
+
+    node_overrides("controller", values)
+    own = {k: v for k, v in values.items() if k in PARAMETERS}
+    try:
+        configure_controller(PARAMETERS.settings(PARAMETERS.defaults() | own))
+    except SetupError as exc:
+        raise ExperimentInputError(f"controller: {exc}") from None
+
+
 @dataclass(frozen=True)
 class Stream:
     """A topic to record (relative to the graph's namespace), its message class, QoS

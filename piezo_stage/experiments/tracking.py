@@ -52,7 +52,6 @@ from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel, compensation
 from piezo_stage.control.laws import THESIS_GAINS, Law
-from piezo_stage.control.learning import FeedforwardForm, FeedforwardTable, trajectory_samples
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
@@ -72,6 +71,7 @@ from .harness import (
     Raw,
     Recording,
     Stream,
+    check_controller,
     node_overrides,
     record,
     span,
@@ -164,21 +164,12 @@ def _load(source: str | ParameterSet, what: str) -> ParameterSet:
 
 
 def _model_file(spec: TrackingSpec, folder: Path) -> str:
-    """The feedforward model as a file the controller node can load ('' under feedback)."""
-    if compensation(spec.compensation) is Compensation.FEEDBACK:
+    """The feedforward model as a file the controller node can load ('' under feedback; the
+    controller's setup says what a missing or unusable one lacks)."""
+    if compensation(spec.compensation) is Compensation.FEEDBACK or spec.model is None:
         return ""
-    if spec.model is None:
-        raise ExperimentInputError(
-            f"compensation {spec.compensation} needs --model PARAMS.yaml "
-            "(a dynamic parameter set; see `--identify-model`)"
-        )
-    ps = _load(spec.model, "model")
-    try:
-        FeedforwardModel.from_parameter_set(ps)
-    except ControlError as exc:
-        raise ExperimentInputError(str(exc)) from exc
     path = folder / "feedforward_model.yaml"
-    save_parameter_set(ps, path)
+    save_parameter_set(_load(spec.model, "model"), path)
     return str(path)
 
 
@@ -193,8 +184,7 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
         raise ExperimentInputError(f"unknown graph {spec.graph!r}; expected one of {GRAPHS}")
     try:
         comp = compensation(spec.compensation)
-        FeedforwardForm(spec.feedforward_form)
-    except (ControlError, ValueError) as exc:
+    except ControlError as exc:
         raise ExperimentInputError(str(exc)) from exc
     rate = float(spec.rate_hz)
     if not (math.isfinite(rate) and rate > 0):
@@ -204,18 +194,6 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
             f"the emulated rig's sensor runs at "
             f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}"
         )
-    if spec.learn < 0 or spec.learn > 100_000:
-        raise ExperimentInputError(f"--learn must be in [0, 100000], got {spec.learn}")
-    if spec.learn and comp is Compensation.FEEDBACK:
-        raise ExperimentInputError(
-            "--learn learns the feedforward: use --compensation both or feedforward"
-        )
-    if spec.learn and getattr(spec.make_trajectory(), "shape", None) is None:
-        raise ExperimentInputError(
-            "--learn needs a periodic trajectory (triangle, sine, steps): a file is tracked once"
-        )
-    if spec.table:
-        _check_table(spec, rate)
     report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
     if comp is not Compensation.FEEDFORWARD and not report.stable:
         raise ExperimentInputError(
@@ -224,19 +202,6 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
             "--rate-hz"
         )
     return comp, float(report.spectral_radius)
-
-
-def _check_table(spec: TrackingSpec, rate: float) -> None:
-    """A table to replay must load and be made for this trajectory at this rate."""
-    assert spec.table is not None  # called only when spec.table is given
-    try:
-        table = FeedforwardTable.load(spec.table)
-        x_d, _ = trajectory_samples(spec.make_trajectory(), rate)
-    except ControlError as exc:
-        raise ExperimentInputError(str(exc)) from exc
-    why = table.matches(rate, x_d.size)
-    if why:
-        raise ExperimentInputError(f"--table {spec.table}: {why}")
 
 
 def _controller(
@@ -460,6 +425,13 @@ def emulated_rig_graph(
     return graph, spec.timing(trajectory)[0]
 
 
+def _rig_controller(spec: TrackingSpec, model_file: str, folder: Path) -> dict[str, Any]:
+    """The controller's overrides in the run's emulated_rig graph."""
+    graph, _ = emulated_rig_graph(spec, model_file, "/check", folder, port=0)
+    entry = next(e for e in graph["nodes"] if e.get("executable") == "controller")
+    return dict(entry["overrides"])
+
+
 def run_amplifier_range(spec: TrackingSpec) -> tuple[float, float]:
     """[V] the amplifier range the run's plan (sim) or graph (emulated_rig) sets."""
     if spec.graph == "sim":
@@ -537,15 +509,16 @@ def run_tracking(
     if bag is not None and Path(bag).exists():
         raise ExperimentInputError(f"bag {bag} already exists")
     trajectory = spec.make_trajectory()
-    check_voltage_range(spec, run_amplifier_range(spec))
     seconds, t_from = spec.timing(trajectory)
     if duration is not None:
         seconds = duration
-    sim = spec.graph == "sim"
     with tempfile.TemporaryDirectory(prefix="tracking_") as tmp:
         folder = Path(tmp)
-        specs = _runs_to_make(spec, compare)
-        runs = _record_runs(specs, folder, seconds, sim, progress, wall_timeout)
+        prepared = [
+            _prepare(label, s, folder, seconds) for label, s in _runs_to_make(spec, compare)
+        ]
+        check_voltage_range(spec, run_amplifier_range(spec))
+        runs = _record_runs(prepared, folder, seconds, progress, wall_timeout)
     states, recording = runs[spec.compensation]
     out = _summary(spec, states, recording, t_from, trajectory)
     fb_states = _feedback_states(spec, runs)
@@ -586,32 +559,48 @@ def _runs_to_make(spec: TrackingSpec, compare: bool) -> list[tuple[str, Tracking
     return specs
 
 
+@dataclass(frozen=True)
+class _Run:
+    """One labelled run, ready: its spec, its model file and (sim) its plan."""
+
+    label: str
+    spec: TrackingSpec
+    model_file: str
+    plan: Plan | None
+
+
+def _prepare(label: str, spec: TrackingSpec, folder: Path, seconds: float) -> _Run:
+    """The run of ``spec``, checked as its controller will check it (refused here, before any
+    run starts)."""
+    model_file = _model_file(spec, folder)
+    plan = make_tracking_plan(spec, model_file, seconds) if spec.graph == "sim" else None
+    check_controller(plan.controller if plan else _rig_controller(spec, model_file, folder))
+    return _Run(label, spec, model_file, plan)
+
+
 def _record_runs(
-    specs: list[tuple[str, TrackingSpec]],
+    prepared: list[_Run],
     folder: Path,
     seconds: float,
-    sim: bool,
     progress: Progress | None,
     wall_timeout: float | None,
 ) -> dict[str, tuple[ControllerStates, Recording]]:
-    """Run each labelled spec in turn: its states (rig: t from the first stamp) and recording."""
+    """Run each prepared run in turn: its states (rig: t from the first stamp) and recording."""
     runs: dict[str, tuple[ControllerStates, Recording]] = {}
-    for label, s in specs:
-        model_file = _model_file(s, folder)
-        plan = make_tracking_plan(s, model_file, seconds) if sim else None
-        _check(s)
+    for run in prepared:
+        s, sim = run.spec, run.plan is not None
         if progress is not None:
             progress(
                 0.0,
-                f"tracking/{label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
+                f"tracking/{run.label}: {s.trajectory} at {s.rate_hz / 1e3:g} kHz on "
                 f"the {s.graph} graph, {seconds:g} s" + (" simulated" if sim else ""),
             )
         # sim: generous, ~2000 steps/s on an idle machine, 10x slower under load
         timeout = wall_timeout or (
             60.0 + seconds * s.rate_hz / 200.0 if sim else 120.0 + 3 * seconds
         )
-        recording = _run_once(s, plan, model_file, folder, progress, timeout)
-        runs[label] = (recording.states(relative=not sim), recording)
+        recording = _run_once(s, run.plan, run.model_file, folder, progress, timeout)
+        runs[run.label] = (recording.states(relative=not sim), recording)
     return runs
 
 

@@ -65,21 +65,14 @@ from piezo_stage.control.controller import (
     TimeVaryingPID,
 )
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.feedforward import Compensation, FeedforwardModel
-from piezo_stage.control.laws import THESIS_GAINS, Gains, Law
+from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.laws import THESIS_GAINS, Law
 from piezo_stage.control.learning import (
     FeedforwardForm,
-    FeedforwardTable,
-    IterativeLearning,
-    LearningConfig,
-    LearningError,
     PeriodicLearner,
-    choose_form,
-    feedforward_response,
-    sampled_feedforward,
-    trajectory_samples,
 )
 from piezo_stage.control.setpoint import ReferenceSource, SetPoint
+from piezo_stage.control.setup import SetupError, configure_controller, law_config
 from piezo_stage.control.supervision import (
     GainCheck,
     Gap,
@@ -87,7 +80,7 @@ from piezo_stage.control.supervision import (
     LoopSupervisor,
     SupervisionConfig,
 )
-from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
+from piezo_stage.control.trajectory import DEFAULT_ROUNDING
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .base import PiezoNode
@@ -405,11 +398,12 @@ class ControllerNode(PiezoNode):
             self._rate,
             int(s.delay_samples),
         )
-        self._feedforward = self._load_feedforward()
-        trajectory = self._load_trajectory()
-        self._table = self._load_table(trajectory)
-        self._learner: PeriodicLearner | None = None
-        config = self._config({})
+        try:
+            setup = configure_controller(s)
+        except SetupError as exc:
+            raise RosParameterError(f"controller: {exc}") from None
+        self._feedforward, self._table = setup.feedforward, setup.table
+        trajectory, config = setup.trajectory, setup.config
         report = self._gain_check.reasons(config)
         if report and not s.allow_unverified_gains:
             raise ControlError(
@@ -440,8 +434,11 @@ class ControllerNode(PiezoNode):
             y0=float(s.reference_y0),
             ydot0=float(s.reference_ydot0),
         )
-        if s.learn_periods > 0:
-            self._learner = self._make_learner(config)
+        self._learner = (
+            None
+            if setup.learning is None
+            else PeriodicLearner(setup.learning, int(s.learn_periods), on_done=self._learned)
+        )
         #: the loop thread (composed) and the executor (parameters, services) share the law
         self.lock = threading.Lock()
         on_set(self, self._check_params)
@@ -478,131 +475,10 @@ class ControllerNode(PiezoNode):
 
     # ------------------------------------------------------------------ configuration
     def _config(self, changed: dict[str, Any]) -> ControllerConfig:
-        p = {k: self.get_parameter(k).value for k in CONFIG_KEYS}
-        p.update({k: v for k, v in changed.items() if k in CONFIG_KEYS})
-        hold = p["hold_voltage"]
-        bias = self._bias
-        config = ControllerConfig(
-            mode=p["mode"],
-            gains=Gains(**{k: float(p[k]) for k in GAIN_KEYS}),
-            u_min=float(p["u_min"]) - bias,
-            u_max=float(p["u_max"]) - bias,
-            anti_windup=p["anti_windup"],
-            tracking_time=float(p["tracking_time"]) or None,
-            derivative_tau=float(p["derivative_tau"]),
-            hold_voltage=None if math.isnan(hold) else float(hold) - bias,
-            on_close=p["on_close"],
-            compensation=self.settings.compensation,
-            feedforward=self._feedforward,
-            feedforward_table=self._table,
-        )
-        config.validate()
-        return config
-
-    def _load_feedforward(self) -> FeedforwardModel | None:
-        """The feedforward model (None under feedback); bad files and combinations exit 2."""
-        name, compensation = self.settings.feedforward_model, self.settings.compensation
-        if compensation is Compensation.FEEDBACK:
-            return None
-        if not name:
-            raise RosParameterError(
-                f"controller: compensation {compensation.value} needs feedforward_model"
-            )
-        if self._bias != 0.0:
-            raise RosParameterError(
-                "controller: u_bias and the feedforward both set the operating "
-                "voltage; use one (u_bias: 0)"
-            )
-        try:
-            return FeedforwardModel.load(find_user_file(name))
-        except (ControlError, OSError) as exc:
-            raise RosParameterError(f"controller: feedforward_model: {exc}") from None
-
-    def _load_table(self, trajectory: Trajectory | None) -> FeedforwardTable | None:
-        """The feedforward table: ``feedforward_table`` loaded, or the sampled form computed for
-        the trajectory at rate_hz; None for the continuous form or without a trajectory."""
-        s = self.settings
-        if s.compensation is Compensation.FEEDBACK:
-            return None
-        uses_trajectory = (
-            s.reference_source is ReferenceSource.TRAJECTORY and trajectory is not None
-        )
-        # learning needs a table: it starts from the sampled form whatever the rate
-        form = FeedforwardForm.SAMPLED if s.learn_periods > 0 else s.feedforward_form
-        if not s.feedforward_table and (
-            not uses_trajectory
-            or self._feedforward is None
-            or choose_form(form, self._feedforward, self._rate) is FeedforwardForm.CONTINUOUS
-        ):
-            return None
-        if not uses_trajectory:
-            raise RosParameterError(
-                "controller: feedforward_table needs reference_source "
-                "trajectory (the table follows the trajectory's time)"
-            )
-        assert trajectory is not None  # uses_trajectory says so
-        try:
-            x_d, periodic = trajectory_samples(trajectory, self._rate)
-            if s.feedforward_table:
-                table = FeedforwardTable.load(find_user_file(s.feedforward_table))
-                why = table.matches(self._rate, x_d.size)
-                if why:
-                    raise LearningError(f"feedforward_table {s.feedforward_table}: {why}")
-                return table
-            assert self._feedforward is not None
-            table = sampled_feedforward(
-                self._feedforward,
-                x_d,
-                self._rate,
-                periodic=periodic,
-                delay_samples=int(s.delay_samples),
-            )
-        except (ControlError, OSError) as exc:
-            raise RosParameterError(f"controller: {exc}") from None
-        table.meta = {
-            "trajectory": s.trajectory,
-            "amplitude": s.trajectory_amplitude,
-            "frequency": s.trajectory_frequency,
-            "offset": s.trajectory_offset,
-            "rounding": s.trajectory_rounding,
-            "model": s.feedforward_model,
-            "form": "sampled",
-        }
-        return table
-
-    def _make_learner(self, config: ControllerConfig) -> PeriodicLearner:
-        """Learning over learn_periods periods (a periodic trajectory, its table, the model)."""
-        s, table = self.settings, self._table
-        if table is None or not table.periodic or self._feedforward is None:
-            raise RosParameterError(
-                "controller: learn_periods needs compensation feedforward or "
-                "both, reference_source trajectory with a periodic trajectory, "
-                "and feedforward_form sampled or a feedforward_table"
-            )
-        gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
-        response = feedforward_response(
-            self._feedforward,
-            self._rate,
-            len(table),
-            delay_samples=int(s.delay_samples),
-            gains=gains,
-        )
-        try:
-            learning = IterativeLearning(
-                table,
-                response,
-                LearningConfig(
-                    gain=float(s.learn_gain),
-                    cutoff_hz=float(s.learn_cutoff_hz) or None,
-                    u_min=float(s.u_min),
-                    u_max=float(s.u_max),
-                    slew_rate=float(s.learn_slew_rate),
-                ),
-                self._feedforward,
-            )
-        except ControlError as exc:
-            raise RosParameterError(f"controller: {exc}") from None
-        return PeriodicLearner(learning, int(s.learn_periods), on_done=self._learned)
+        """The law's configuration with the parameters as they are, ``changed`` applied."""
+        values = {p.name: self.get_parameter(p.name).value for p in PARAMETERS}
+        settings = PARAMETERS.settings(values | changed)
+        return law_config(settings, self._feedforward, self._table)
 
     def _learned(self, learner: PeriodicLearner) -> None:
         """Learning ended (loop thread): saving and logging go through the hand-off."""
@@ -626,24 +502,6 @@ class ControllerNode(PiezoNode):
             except OSError as exc:
                 text += f"; could not save it to {out}: {exc}"
         self.get_logger().info(text)
-
-    def _load_trajectory(self) -> Trajectory | None:
-        """The trajectory of reference_source=trajectory, built (and checked) at start."""
-        s = self.settings
-        try:
-            return make_trajectory(
-                s.trajectory,
-                amplitude=s.trajectory_amplitude,
-                frequency=s.trajectory_frequency,
-                offset=None if math.isnan(s.trajectory_offset) else s.trajectory_offset,
-                rounding=s.trajectory_rounding,
-                v_max=s.trajectory_v_max,
-                a_max=s.trajectory_a_max,
-            )
-        except ControlError as exc:
-            if s.reference_source is ReferenceSource.TRAJECTORY:
-                raise RosParameterError(f"controller: {exc}") from None
-            return None  # not used unless reference_source is switched to it (refused then)
 
     def _check_params(self, changed: dict[str, Any]) -> str | None:
         if (

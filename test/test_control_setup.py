@@ -1,0 +1,112 @@
+"""A controller's settings → what it runs (control/setup.py): the law's frame, the files the
+settings name, and every rule between options, each refused with the settings it names. The
+settings are the controller node's own table, so the two cannot drift apart."""
+
+import typing
+
+import numpy as np
+import pytest
+
+from piezo_stage.control.controller import OnClose
+from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.learning import FeedforwardTable
+from piezo_stage.control.setup import (
+    ControllerSettings,
+    SetupError,
+    configure_controller,
+    law_config,
+)
+from piezo_stage.nodes.controller import PARAMETERS
+
+pytestmark = pytest.mark.unit
+
+TRACKING = {
+    "compensation": "both",
+    "feedforward_model": "ch11_rig.yaml",
+    "reference_source": "trajectory",
+    "trajectory": "triangle",
+    "trajectory_offset": 16e-6,
+    "rate_hz": 1000.0,
+    "delay_samples": 0,
+    "u_min": 0.0,
+    "u_max": 400.0,
+}
+
+
+def settings(**values: object) -> typing.Any:
+    return PARAMETERS.settings(PARAMETERS.defaults() | values)
+
+
+def test_every_setting_the_setup_reads_is_a_parameter_of_the_node():
+    fields = typing.get_type_hints(ControllerSettings)
+    assert fields and set(fields) <= set(PARAMETERS.names)
+    for name, kind in fields.items():  # the table's choices are the Enums the setup expects
+        choices = PARAMETERS[name].choices
+        if isinstance(kind, type) and issubclass(kind, str) and kind is not str:
+            assert choices is kind, name
+
+
+def test_the_law_works_in_volts_less_u_bias():
+    """u_min, u_max and hold_voltage are amplifier volts; the law's frame subtracts u_bias."""
+    config = law_config(
+        settings(u_bias=100.0, u_min=0.0, u_max=400.0, hold_voltage=150.0, on_close="reset")
+    )
+    assert (config.u_min, config.u_max, config.hold_voltage) == (-100.0, 300.0, 50.0)
+    assert config.on_close is OnClose.RESET
+    assert law_config(settings()).hold_voltage is None  # NaN: the last output
+    assert law_config(settings(tracking_time=0.0)).tracking_time is None
+
+
+def test_feedback_needs_no_file_and_runs_no_table():
+    setup = configure_controller(settings())
+    assert setup.feedforward is None and setup.table is None and setup.learning is None
+    assert setup.config.compensation is Compensation.FEEDBACK
+
+
+def test_a_tracking_controller_gets_its_model_its_sampled_table_and_its_learning():
+    setup = configure_controller(settings(**TRACKING, learn_periods=3))
+    assert setup.feedforward is not None and setup.trajectory is not None
+    table = setup.table
+    assert table is not None and table.periodic and len(table) == 100  # 10 Hz at 1 kHz
+    assert table.meta["form"] == "sampled" and table.meta["model"] == "ch11_rig.yaml"
+    assert setup.config.feedforward_table is table and setup.learning is not None
+
+
+@pytest.mark.parametrize(
+    "values, reason",
+    [
+        ({"compensation": "both"}, "compensation both needs feedforward_model"),
+        (
+            {"compensation": "both", "feedforward_model": "ch11_rig.yaml", "u_bias": 10.0},
+            "u_bias and the feedforward",
+        ),
+        ({**TRACKING, "feedforward_model": "no_such_model.yaml"}, "feedforward_model: "),
+        ({**TRACKING, "trajectory_frequency": 3.0}, "a whole number"),
+        ({**TRACKING, "trajectory": "circle"}, "circle"),
+        ({"learn_periods": 5}, "learn_periods needs compensation"),
+        ({**TRACKING, "compensation": "feedback", "learn_periods": 5}, "learn_periods needs"),
+        ({**TRACKING, "feedforward_table": "x.json", "reference_source": "constant"}, "needs"),
+        ({"u_min": 10.0, "u_max": 10.0}, "u_min < u_max"),
+    ],
+)
+def test_settings_that_cannot_run_together_are_refused_with_the_reason(values, reason):
+    with pytest.raises(SetupError, match=reason) as info:
+        configure_controller(settings(**values))
+    assert "\n" not in str(info.value)
+
+
+def test_a_saved_table_must_be_made_for_this_trajectory_at_this_rate(tmp_path):
+    wrong = FeedforwardTable(np.zeros(50), 1000.0).save(tmp_path / "wrong.json")
+    with pytest.raises(SetupError, match="holds 50 samples, the trajectory's period 100"):
+        configure_controller(settings(**TRACKING, feedforward_table=str(wrong)))
+    made = configure_controller(settings(**TRACKING)).table
+    assert made is not None
+    right = made.save(tmp_path / "right.json")
+    replayed = configure_controller(settings(**TRACKING, feedforward_table=str(right))).table
+    assert replayed is not None and np.allclose(replayed.u, made.u, rtol=0, atol=1e-9)
+
+
+def test_a_trajectory_setting_unused_by_the_reference_is_no_error():
+    """A constant reference with trajectory_* that give no trajectory runs (the node refuses a
+    later switch to the trajectory then)."""
+    assert configure_controller(settings(trajectory="circle")).trajectory is None
