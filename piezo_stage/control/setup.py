@@ -45,42 +45,77 @@ class SetupError(ControlError):
     """
 
 
-class ControllerSettings(Protocol):
-    """The settings :func:`configure_controller` reads (the controller's parameter table)."""
+class Settings(Protocol):
+    """The settings :func:`configure_controller` reads: the fields of the controller node's
+    settings (its parameter table), read-only.
+    """
 
-    mode: Law
-    k0: float
-    k1: float
-    k2: float
-    kA: float
-    A: float
-    f: float
-    u_bias: float
-    u_min: float
-    u_max: float
-    anti_windup: AntiWindup
-    tracking_time: float
-    derivative_tau: float
-    hold_voltage: float
-    on_close: OnClose
-    rate_hz: float
-    delay_samples: int
-    compensation: Compensation
-    feedforward_model: str
-    feedforward_form: FeedforwardForm
-    feedforward_table: str
-    reference_source: ReferenceSource
-    trajectory: str
-    trajectory_amplitude: float
-    trajectory_frequency: float
-    trajectory_offset: float
-    trajectory_rounding: float
-    trajectory_v_max: float
-    trajectory_a_max: float
-    learn_periods: int
-    learn_gain: float
-    learn_cutoff_hz: float
-    learn_slew_rate: float
+    @property
+    def mode(self) -> Law: ...
+    @property
+    def k0(self) -> float: ...
+    @property
+    def k1(self) -> float: ...
+    @property
+    def k2(self) -> float: ...
+    @property
+    def kA(self) -> float: ...
+    @property
+    def A(self) -> float: ...
+    @property
+    def f(self) -> float: ...
+    @property
+    def u_bias(self) -> float: ...
+    @property
+    def u_min(self) -> float: ...
+    @property
+    def u_max(self) -> float: ...
+    @property
+    def anti_windup(self) -> AntiWindup: ...
+    @property
+    def tracking_time(self) -> float: ...
+    @property
+    def derivative_tau(self) -> float: ...
+    @property
+    def hold_voltage(self) -> float: ...
+    @property
+    def on_close(self) -> OnClose: ...
+    @property
+    def rate_hz(self) -> float: ...
+    @property
+    def delay_samples(self) -> int: ...
+    @property
+    def compensation(self) -> Compensation: ...
+    @property
+    def feedforward_model(self) -> str: ...
+    @property
+    def feedforward_form(self) -> FeedforwardForm: ...
+    @property
+    def feedforward_table(self) -> str: ...
+    @property
+    def reference_source(self) -> ReferenceSource: ...
+    @property
+    def trajectory(self) -> str: ...
+    @property
+    def trajectory_amplitude(self) -> float: ...
+    @property
+    def trajectory_frequency(self) -> float: ...
+    @property
+    def trajectory_offset(self) -> float: ...
+    @property
+    def trajectory_rounding(self) -> float: ...
+    @property
+    def trajectory_v_max(self) -> float: ...
+    @property
+    def trajectory_a_max(self) -> float: ...
+    @property
+    def learn_periods(self) -> int: ...
+    @property
+    def learn_gain(self) -> float: ...
+    @property
+    def learn_cutoff_hz(self) -> float: ...
+    @property
+    def learn_slew_rate(self) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -98,7 +133,7 @@ class ControllerSetup:
 
 
 def law_config(
-    s: ControllerSettings,
+    s: Settings,
     feedforward: FeedforwardModel | None = None,
     table: FeedforwardTable | None = None,
 ) -> ControllerConfig:
@@ -133,9 +168,7 @@ def law_config(
     return config
 
 
-def load_feedforward(
-    s: ControllerSettings, find: FindFile = find_user_file
-) -> FeedforwardModel | None:
+def load_feedforward(s: Settings, find: FindFile = find_user_file) -> FeedforwardModel | None:
     """The feedforward model of ``feedforward_model`` (None under feedback)."""
     if s.compensation is Compensation.FEEDBACK:
         return None
@@ -151,7 +184,7 @@ def load_feedforward(
         raise SetupError(f"feedforward_model: {exc}") from None
 
 
-def load_trajectory(s: ControllerSettings) -> Trajectory | None:
+def load_trajectory(s: Settings) -> Trajectory | None:
     """The trajectory the trajectory_* settings give; None where they give none and
     reference_source does not use it (switching to it later is refused then).
     """
@@ -173,7 +206,7 @@ def load_trajectory(s: ControllerSettings) -> Trajectory | None:
 
 
 def feedforward_table(
-    s: ControllerSettings,
+    s: Settings,
     trajectory: Trajectory | None,
     feedforward: FeedforwardModel | None,
     find: FindFile = find_user_file,
@@ -228,7 +261,7 @@ def feedforward_table(
 
 
 def learning(
-    s: ControllerSettings,
+    s: Settings,
     config: ControllerConfig,
     table: FeedforwardTable | None,
     feedforward: FeedforwardModel | None,
@@ -265,7 +298,7 @@ def learning(
         raise SetupError(str(exc)) from None
 
 
-def configure_controller(s: ControllerSettings, find: FindFile = find_user_file) -> ControllerSetup:
+def configure_controller(s: Settings, find: FindFile = find_user_file) -> ControllerSetup:
     """Everything a controller with settings ``s`` runs, or the :class:`SetupError` that says
     why it cannot (``find`` resolves the files the settings name).
     """

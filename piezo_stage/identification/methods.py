@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from enum import Enum
+from enum import StrEnum
 from typing import Sequence
 
 import numpy as np
@@ -49,7 +49,7 @@ from .simfit import (
 )
 
 
-class Method(str, Enum):
+class Method(StrEnum):
     """Identification method: analytic, fit by simulation error, or auto (module docstring)."""
 
     ANALYTIC = "analytic"

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 from functools import lru_cache
+from typing import Any
 
 from piezo_stage.launch.errors import GraphError
 from piezo_stage.launch.graph import NODE_PACKAGE, Graph, ProcessSpec
@@ -20,12 +21,12 @@ from piezo_stage.nodes.spec import ParameterTable, is_ros_own
 
 
 @lru_cache(maxsize=None)
-def _table(module: str) -> ParameterTable:
-    table: ParameterTable = importlib.import_module(module).PARAMETERS
+def _table(module: str) -> ParameterTable[Any]:
+    table: ParameterTable[Any] = importlib.import_module(module).PARAMETERS
     return table
 
 
-def node_table(spec: ProcessSpec) -> ParameterTable | None:
+def node_table(spec: ProcessSpec) -> ParameterTable[Any] | None:
     """The parameter table of a piezo_stage node entry, or None (a command, another module)."""
     package, _, name = (spec.module or "").rpartition(".")
     if package != NODE_PACKAGE or name not in NODES:

@@ -44,7 +44,7 @@ import math
 import sys
 import threading
 from dataclasses import replace
-from enum import Enum
+from enum import StrEnum
 from typing import Any, Callable, Sequence
 
 from rclpy.parameter import Parameter
@@ -86,9 +86,10 @@ from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
-from .parameters import declare_table, on_set
+from .parameters import on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, subscribers_matched, to_stamp
+from .settings import ControllerSettings
 from .spec import Param, ParameterTable
 
 GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
@@ -104,12 +105,12 @@ CONFIG_KEYS = GAIN_KEYS + (
 )
 
 
-class StepTrigger(str, Enum):
+class StepTrigger(StrEnum):
     TIMER = "timer"  # rate_hz on the node clock
     SAMPLE = "sample"  # one step per displacement sample (the lockstep plant)
 
 
-class SensorQos(str, Enum):
+class SensorQos(StrEnum):
     BEST_EFFORT = "best_effort"  # matches every publisher: the rig's laser_reader
     RELIABLE = "reliable"  # the lockstep plant: no sample lost, no step waits for its timeout
 
@@ -373,6 +374,7 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="The thesis's time-varying PID (11.5, 11.17, 11.18) on ROS topics.",
+    settings_type=ControllerSettings,
 )
 
 
@@ -387,7 +389,8 @@ class ControllerNode(PiezoNode):
         super().__init__(
             "controller", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
         )
-        self.settings = s = PARAMETERS.settings(declare_table(self, PARAMETERS))
+        self.settings: ControllerSettings = self.declare_settings(PARAMETERS)
+        s = self.settings
 
         bounds_path = find_user_file(s.bounds_file)
         self._bias = float(s.u_bias)  # read-only: cached
@@ -476,9 +479,9 @@ class ControllerNode(PiezoNode):
     # ------------------------------------------------------------------ configuration
     def _config(self, changed: dict[str, Any]) -> ControllerConfig:
         """The law's configuration with the parameters as they are, ``changed`` applied."""
-        values = {p.name: self.get_parameter(p.name).value for p in PARAMETERS}
-        settings = PARAMETERS.settings(values | changed)
-        return law_config(settings, self._feedforward, self._table)
+        return law_config(
+            PARAMETERS.updated(self.settings, changed), self._feedforward, self._table
+        )
 
     def _learned(self, learner: PeriodicLearner) -> None:
         """Learning ended (loop thread): saving and logging go through the hand-off."""
@@ -524,7 +527,7 @@ class ControllerNode(PiezoNode):
         if "delay_samples" in changed:
             check = replace(check, delay_samples=int(changed["delay_samples"]))
         report = check.reasons(config)
-        if report and not self.get_parameter("allow_unverified_gains").value:
+        if report and not self.settings.allow_unverified_gains:
             return f"refused: {report}"
         if report:
             self.get_logger().warn(f"unverified gains accepted: {report}")

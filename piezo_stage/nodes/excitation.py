@@ -22,7 +22,7 @@ Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
 from __future__ import annotations
 
 import sys
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 from builtin_interfaces.msg import Time
@@ -48,6 +48,7 @@ from .base import PiezoNode
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched, wait_acked, wall_clock
+from .settings import ExcitationSettings
 from .spec import Param, ParameterTable
 
 PLAN_KEYS = (
@@ -66,12 +67,12 @@ PLAN_KEYS = (
 )
 
 
-class StepTrigger(str, Enum):
+class StepTrigger(StrEnum):
     TIMER = "timer"  # rate_hz on the node clock
     CLOCK = "clock"  # one command per /clock tick (the lockstep plant)
 
 
-class OnDone(str, Enum):
+class OnDone(StrEnum):
     HOLD = "hold"  # keep publishing the hold value
     EXIT = "exit"
 
@@ -163,6 +164,7 @@ PARAMETERS = ParameterTable(
     ),
     summary="The identification excitation (thesis ch. 10): a waveform per offset q, "
     "with run marks.",
+    settings_type=ExcitationSettings,
 )
 
 
@@ -171,30 +173,30 @@ class ExcitationNode(PiezoNode):
         super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
         preset = declare_table(self, PARAMETERS, only=("preset",))["preset"]
         base = plan_from(preset or None)
-        declare_table(
-            self,
+        self.settings: ExcitationSettings = self.declare_settings(
             PARAMETERS,
-            only=set(PARAMETERS.names) - {"preset"},
+            declared={"preset": preset},
             defaults={
                 k: list(v) if isinstance(v, tuple) else v
                 for k in PLAN_KEYS
                 if k not in ("v_min", "v_max") and (v := getattr(base, k)) is not None
             },
         )
+        s = self.settings
 
         self.plan = self._build_plan()
         on_set(self, self._check_params)
         self.finished = False
         self._exiting = False
         self.exit_code = 0
-        self._running = bool(self.get_parameter("autostart").value)
+        self._running = s.autostart
         self._t_start: float | None = None
         self._last_info: tuple[int, bool, bool] | None = None
         self._last_info_t = -1e300
-        self._info_period = 1.0 / max(self.get_parameter("info_rate_hz").value, 1e-9)
+        self._info_period = 1.0 / max(s.info_rate_hz, 1e-9)
 
-        self._wait_subs = int(self.get_parameter("wait_for_subscribers").value)
-        trigger = StepTrigger(self.get_parameter("trigger").value)
+        self._wait_subs = s.wait_for_subscribers
+        trigger = s.trigger
         # lockstep (trigger=clock): the graph runs as fast as the plant and this node, so a slower
         # reader (the recorder, the identifier) falls behind by thousands of samples; a reliable
         # writer keeping only the last 10 would drop what it has not acknowledged
@@ -206,12 +208,12 @@ class ExcitationNode(PiezoNode):
         if trigger is StepTrigger.CLOCK:
             self.create_subscription(Clock, "/clock", self._on_clock, COMMAND_QOS)
         else:
-            self._grid_ns = int(round(1e9 / self.get_parameter("rate_hz").value))
-            self._lead_ns = int(round(self.get_parameter("lead").value * 1e9))
-            self._catch_up = bool(self.get_parameter("catch_up").value)
+            self._grid_ns = int(round(1e9 / s.rate_hz))
+            self._lead_ns = int(round(s.lead * 1e9))
+            self._catch_up = s.catch_up
             # catch_up: at most 1 s of missed instants, then the grid restarts at the latest one
             self._grid = TickGrid(self._grid_ns, max(1, 1_000_000_000 // self._grid_ns))
-            self.create_timer(1.0 / self.get_parameter("rate_hz").value, self._on_timer)
+            self.create_timer(1.0 / s.rate_hz, self._on_timer)
         self.get_logger().info(
             f"{self.plan.waveform} {self.plan.low:g}+{self.plan.amplitude:g} V, "
             f"T={self.plan.period:g} s, "
@@ -221,16 +223,15 @@ class ExcitationNode(PiezoNode):
 
     # ------------------------------------------------------------------ parameters
     def _build_plan(self, changed: dict[str, Any] | None = None) -> ExcitationPlan:
-        values = {k: self.get_parameter(k).value for k in PLAN_KEYS}
-        values.update({k: v for k, v in (changed or {}).items() if k in PLAN_KEYS})
-        return plan_from(None, **values)
+        current = PARAMETERS.updated(self.settings, changed or {})
+        return plan_from(None, **{k: getattr(current, k) for k in PLAN_KEYS})
 
     def _check_params(self, changed: dict[str, Any]) -> str | None:
         if not set(changed) & set(PLAN_KEYS):
             return None
         try:
             plan = self._build_plan(changed)
-        except (ModelError, KeyError, TypeError) as exc:
+        except (ModelError, KeyError, TypeError, ValueError) as exc:
             return f"invalid excitation plan: {exc}"
         self.plan = plan
         return None
@@ -258,11 +259,7 @@ class ExcitationNode(PiezoNode):
         sample = self.plan.sample(now - self._t_start)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
         self._publish_info(stamp, now, sample)
-        if (
-            sample.done
-            and OnDone(self.get_parameter("on_done").value) is OnDone.EXIT
-            and not self._exiting
-        ):
+        if sample.done and self.settings.on_done is OnDone.EXIT and not self._exiting:
             self.get_logger().info("excitation plan done")
             self._exiting = True
             # let the last messages reach the subscribers (reliable delivery needs the process)
@@ -284,7 +281,7 @@ class ExcitationNode(PiezoNode):
         unacknowledged samples of a lagging reader (the recorder in lockstep) go with the
         process."""
         self._exit_timer.cancel()
-        timeout = self.get_parameter("exit_ack_timeout").value
+        timeout = self.settings.exit_ack_timeout
         for topic in wait_acked(self, timeout, (self._pub_cmd, self._pub_info)):
             self.get_logger().warning(
                 f"{topic}: not every subscriber acknowledged the last "

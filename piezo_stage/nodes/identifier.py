@@ -31,7 +31,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any, Callable, TypedDict
 
 import numpy as np
@@ -65,9 +65,9 @@ from piezo_stage_msgs.msg import (
 from .base import PiezoNode
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, Diagnosis, Diagnostics
-from .parameters import declare_table
 from .qos import COMMAND_QOS, LATCHED_QOS, LOCKSTEP_DEPTH, adapted_qos
 from .runtime import DEFAULT_NAMESPACE, EXIT_ACK_TIMEOUT, run, wait_acked, wall_clock
+from .settings import IdentifierSettings
 from .spec import Param, ParameterTable
 
 #: history of the stream subscriptions: a replayed bag arrives in bursts
@@ -121,18 +121,18 @@ class _MaxRms(TypedDict, total=False):
     max_rms_fraction: float
 
 
-class Input(str, Enum):
+class Input(StrEnum):
     VOLTAGE = "voltage"  # ch. 10: voltage -> displacement
     DISPLACEMENT = "displacement"  # ch. 11: displacement -> voltage
 
 
-class StreamQos(str, Enum):
+class StreamQos(StrEnum):
     AUTO = "auto"  # adapted to the publishers, as rosbag2 does
     BEST_EFFORT = "best_effort"  # matches every publisher
     RELIABLE = "reliable"  # no loss from reliable publishers
 
 
-class OnDone(str, Enum):
+class OnDone(StrEnum):
     STAY = "stay"  # the result stays latched
     EXIT = "exit"  # status 0 when identified, 1 when it failed
 
@@ -217,15 +217,16 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="Live (or replayed-bag) identification of the Bouc-Wen model (thesis ch. 10).",
+    settings_type=IdentifierSettings,
 )
 
 
 class IdentifierNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
-        declare_table(self, PARAMETERS)
-        self._input = Input(self.get_parameter("input").value)
-        stream_qos = self.get_parameter("stream_qos").value
+        self.settings: IdentifierSettings = self.declare_settings(PARAMETERS)
+        self._input = self.settings.input
+        stream_qos = self.settings.stream_qos
         self._reset()
         self.result: IdentificationResult | None = None
         self._error = ""
@@ -318,7 +319,7 @@ class IdentifierNode(PiezoNode):
         one run, a sensor gone), ending an ``on_done: exit`` node with status 1."""
         v, d = self._voltage.t, self._displacement.t
         latest = min(v[-1] if v else -math.inf, d[-1] if d else -math.inf)
-        settle = self.get_parameter("settle_time").value
+        settle = self.settings.settle_time
         # on sim time the source's clock moving is activity: a replay crossing a stretch of
         # the bag without samples (its player publishing /clock meanwhile) is not silence
         clock = (
@@ -341,7 +342,7 @@ class IdentifierNode(PiezoNode):
             and len(self._runs.completed) >= RUNS_NEEDED
             and not self._runs.pending
             and self.result is None
-            and self.get_parameter("auto_identify").value
+            and self.settings.auto_identify
         ):
             self._attempted = True
             try:
@@ -354,8 +355,8 @@ class IdentifierNode(PiezoNode):
             poll.silent
             and self.result is None
             and not self._attempted
-            and self.get_parameter("method").value != Method.ANALYTIC.value
-            and self.get_parameter("auto_identify").value
+            and self.settings.method is not Method.ANALYTIC
+            and self.settings.auto_identify
         ):
             self._attempted = True  # the fit takes whatever runs the silence left
             try:
@@ -392,24 +393,22 @@ class IdentifierNode(PiezoNode):
 
     # ------------------------------------------------------------------ results
     def _options(self) -> IdentifyOptions:
-        f1, f2, f3 = self.get_parameter("design_points").value
-        sign = int(self.get_parameter("input_sign").value)
-        k = int(self.get_parameter("steady_periods").value)
+        f1, f2, f3 = self.settings.design_points
+        sign = self.settings.input_sign
+        k = self.settings.steady_periods
         return IdentifyOptions(
-            degree=int(self.get_parameter("degree").value),
-            refine=bool(self.get_parameter("refine").value),
+            degree=self.settings.degree,
+            refine=self.settings.refine,
             input_sign=sign or None,
             design=DesignPoints(f1=f1, f2=f2, f3=f3),
-            cycle=CycleOptions(
-                data_filter=bool(self.get_parameter("filter").value), steady_periods=k or None
-            ),
+            cycle=CycleOptions(data_filter=self.settings.filter, steady_periods=k or None),
             refinement=RefineOptions(**self._max_rms()),
             input_name=self._input.value,
             output_name="displacement" if self._input is Input.VOLTAGE else "voltage",
         )
 
     def _max_rms(self) -> _MaxRms:
-        value = float(self.get_parameter("max_rms").value)
+        value = self.settings.max_rms
         return {"max_rms_fraction": value} if value > 0 else {}
 
     def _run_complete(self, run_index: int) -> None:
@@ -426,7 +425,7 @@ class IdentifierNode(PiezoNode):
                 if f"run {run_index}:" in text
                 else f"{self.get_name()} run {run_index}: {text}"
             )
-            if self.get_parameter("method").value == Method.ANALYTIC.value:
+            if self.settings.method is Method.ANALYTIC:
                 self._set_error(named)
             else:  # the fit by simulation error needs no steady cycle
                 self.get_logger().info(f"no steady cycle ({named})")
@@ -446,7 +445,7 @@ class IdentifierNode(PiezoNode):
 
     def _done(self, code: int) -> None:
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
-        if OnDone(self.get_parameter("on_done").value) is not OnDone.EXIT:
+        if self.settings.on_done is not OnDone.EXIT:
             return
         wait_acked(self, 2 * EXIT_ACK_TIMEOUT, (self._pub_cycle, self._pub_params))
         self.exit_code, self.finished = code, True
@@ -457,7 +456,7 @@ class IdentifierNode(PiezoNode):
             result = identify_runs(
                 runs,
                 self._options(),
-                self.get_parameter("method").value,
+                self.settings.method,
                 FitOptions(**self._max_rms()),
             )
         except (IdentificationError, ModelError, ValueError) as exc:
@@ -482,9 +481,9 @@ class IdentifierNode(PiezoNode):
                 samples=int(result.samples),
             )
         )
-        path = self.get_parameter("output_file").value
+        path = self.settings.output_file
         if path:
-            save_parameter_set(result.to_parameter_set(name=self.get_parameter("name").value), path)
+            save_parameter_set(result.to_parameter_set(name=self.settings.name), path)
         self.get_logger().info(
             f"identified: kappa={list(p.kappa)}, kappa_w={p.kappa_w:.6g}, rho={p.rho:.6g}, "
             f"sigma={p.sigma:.6g}, "

@@ -38,9 +38,10 @@ from piezo_stage_msgs.msg import Displacement
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
-from .parameters import declare_table, on_set
+from .parameters import on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
+from .settings import LaserReaderSettings
 from .spec import Param, ParameterTable
 
 PARAMETERS = ParameterTable(
@@ -151,6 +152,7 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="Micro-Epsilon optoNCDT laser sensor -> displacement.",
+    settings_type=LaserReaderSettings,
 )
 
 
@@ -183,7 +185,7 @@ class LaserReaderNode(PiezoNode):
         )
         self._loop, self._idle, self._handoff = loop, idle, handoff
         self._loop_priority = loop_priority
-        p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
+        p: LaserReaderSettings = self.declare_settings(PARAMETERS)
         on_set(
             self,
             lambda changed: (

@@ -41,8 +41,9 @@ from piezo_stage.bag.types import message_definition
 from .base import PiezoNode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
-from .parameters import declare_table, on_set
+from .parameters import on_set
 from .runtime import DEFAULT_NAMESPACE, run
+from .settings import LiveViewSettings
 from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
 
@@ -103,6 +104,7 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="Serves the namespace's topics to the Foxglove app (WebSocket, foxglove-sdk).",
+    settings_type=LiveViewSettings,
 )
 
 
@@ -190,12 +192,12 @@ class _Listener(ServerListener):
 class LiveViewNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("live_view", namespace=DEFAULT_NAMESPACE)
-        p = declare_table(self, PARAMETERS)
-        self._max_rate = float(p["max_rate_hz"])
-        self._rates = parse_topic_rates(list(p["topic_rates"]), self.resolve_topic_name)
+        s: LiveViewSettings = self.declare_settings(PARAMETERS)
+        self._max_rate = float(s.max_rate_hz)
+        self._rates = parse_topic_rates(list(s.topic_rates), self.resolve_topic_name)
         on_set(self, self._check)
         self.add_post_set_parameters_callback(self._after_set)
-        explicit = {self.resolve_topic_name(t) for t in p["topics"]}
+        explicit = {self.resolve_topic_name(t) for t in s.topics}
         self._explicit = explicit or None
         ns = self.get_namespace().rstrip("/")
         self._prefix = ns + "/"
@@ -209,24 +211,24 @@ class LiveViewNode(PiezoNode):
         try:
             self.server = foxglove.start_server(
                 name=f"piezo_stage {ns or '/'}",
-                host=p["host"],
-                port=int(p["port"]),
+                host=s.host,
+                port=int(s.port),
                 context=self._fox,
                 server_listener=_Listener(self._requests, self._wake.trigger),
             )
         except Exception as exc:  # the SDK raises its own error types for a busy port
             raise RosParameterError(
-                f"live_view: cannot serve on {p['host']}:{p['port']}: {exc}"
+                f"live_view: cannot serve on {s.host}:{s.port}: {exc}"
             ) from None
         self.port = self.server.port
-        self.create_timer(float(p["discovery_period"]), self.discover)
-        Diagnostics(self, "live_view", self._diagnose, p["diagnostics_period"])
-        where = f"ws://{p['host']}:{self.port}"
+        self.create_timer(float(s.discovery_period), self.discover)
+        Diagnostics(self, "live_view", self._diagnose, s.diagnostics_period)
+        where = f"ws://{s.host}:{self.port}"
         self.get_logger().info(
             f"Foxglove live view on {where} ({ns or '/'}): open it in the "
             "app with 'Open connection' > Foxglove WebSocket"
         )
-        if p["host"] not in ("127.0.0.1", "localhost", "::1"):
+        if s.host not in ("127.0.0.1", "localhost", "::1"):
             self.get_logger().warning(
                 f"serving {where} beyond this machine: anyone on the "
                 "network can watch the stage's topics"

@@ -60,7 +60,7 @@ def descriptor(p: Param) -> ParameterDescriptor:
 
 def declare_table(
     node: Node,
-    table: ParameterTable,
+    table: ParameterTable[Any],
     *,
     only: Collection[str] | None = None,
     defaults: Mapping[str, Any] | None = None,

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from enum import Enum
+from enum import StrEnum
 
 from builtin_interfaces.msg import Time
 from rosgraph_msgs.msg import Clock
@@ -41,16 +41,16 @@ from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .base import PiezoNode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
-from .parameters import declare_table
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .settings import PlantSettings
 from .spec import Param, ParameterTable
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
 
 
-class ClockMode(str, Enum):
+class ClockMode(StrEnum):
     REALTIME = "realtime"  # a wall timer at rate_hz
     LOCKSTEP = "lockstep"  # owns /clock: one step per voltage_command
 
@@ -183,40 +183,41 @@ PARAMETERS = ParameterTable(
     ),
     summary="Simulated stage: the Bouc-Wen plant with the real stage's topics "
     "(realtime or lockstep).",
+    settings_type=PlantSettings,
 )
 
 
 class PlantNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("plant", namespace=DEFAULT_NAMESPACE)
-        p = declare_table(self, PARAMETERS)
+        s: PlantSettings = self.declare_settings(PARAMETERS)
 
-        path = find_user_file(p["model_file"])
+        path = find_user_file(s.model_file)
         self.parameter_set = load_parameter_set(path)
-        w0 = self.parameter_set.w0 if math.isnan(p["w0"]) else p["w0"]
+        w0 = self.parameter_set.w0 if math.isnan(s.w0) else s.w0
         self.stage = SimulatedStage(
             self.parameter_set,
             amplifier=AmplifierModel(
-                v_min=p["v_min"],
-                v_max=p["v_max"],
-                bandwidth_hz=p["amplifier_bandwidth_hz"],
-                slew_rate=p["amplifier_slew"],
+                v_min=s.v_min,
+                v_max=s.v_max,
+                bandwidth_hz=s.amplifier_bandwidth_hz,
+                slew_rate=s.amplifier_slew,
             ),
             sensor=SensorModel(
-                noise_std=p["sensor_noise"],
-                resolution=p["sensor_resolution"],
-                range_min=p["sensor_min"],
-                range_max=p["sensor_max"],
-                seed=p["seed"],
+                noise_std=s.sensor_noise,
+                resolution=s.sensor_resolution,
+                range_min=s.sensor_min,
+                range_max=s.sensor_max,
+                seed=s.seed,
             ),
-            x0=p["initial_displacement"],
-            xdot0=p["initial_velocity"],
+            x0=s.initial_displacement,
+            xdot0=s.initial_velocity,
             w0=w0,
-            initial_voltage=p["initial_voltage"],
+            initial_voltage=s.initial_voltage,
         )
-        self.dt = 1.0 / p["rate_hz"]
-        self.mode = ClockMode(p["clock_mode"])
-        self._command = float(p["initial_voltage"])
+        self.dt = 1.0 / s.rate_hz
+        self.mode = ClockMode(s.clock_mode)
+        self._command = float(s.initial_voltage)
         self._rejected = 0
         self._commands = 0
         self._late = 0
@@ -237,20 +238,20 @@ class PlantNode(PiezoNode):
         if lockstep:
             self._pub_clock = self.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
             self._k = 0
-            self._t0_ns = int(round(p["start_time"] * 1e9))
+            self._t0_ns = int(round(s.start_time * 1e9))
             self._dt_ns = int(round(self.dt * 1e9))
             self._waiting_since: float | None = None
             self._started = False
             self._sample_first = False
-            self._timeout = float(p["lockstep_timeout"])
+            self._timeout = float(s.lockstep_timeout)
             self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
         else:
             self._dt_ns = int(round(self.dt * 1e9))
-            self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * p["rate_hz"])))
+            self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
             self.create_timer(self.dt, self._realtime_tick)
         self.get_logger().info(
             f"{self.parameter_set.name} ({self.parameter_set.form}) at "
-            f"{p['rate_hz']:g} Hz, clock {self.mode.value}"
+            f"{s.rate_hz:g} Hz, clock {self.mode.value}"
         )
 
     # ------------------------------------------------------------------ commands

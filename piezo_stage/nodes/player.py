@@ -47,9 +47,9 @@ from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 
 from .base import PiezoNode
 from .errors import RosParameterError
-from .parameters import declare_table
 from .qos import COMMAND_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .settings import PlayerSettings
 from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
 
@@ -190,21 +190,22 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="Replays a rosbag2 (MCAP) folder or a plain .mcap file.",
+    settings_type=PlayerSettings,
 )
 
 
 class PlayerNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("player", namespace=DEFAULT_NAMESPACE)
-        p = declare_table(self, PARAMETERS)
-        bag, topics, remaps, queue_depth = p["bag"], p["topics"], p["remap"], p["queue_depth"]
-        start_offset, duration, paused = p["start_offset"], p["duration"], p["start_paused"]
-        self.rate, self.publish_clock = p["rate"], p["publish_clock"]
-        self.clock_rate_hz = p["clock_rate_hz"]
-        self.loop, self.wait_for_subscribers = p["loop"], p["wait_for_subscribers"]
-        self.wait_timeout, self.drain_timeout = p["wait_timeout"], p["drain_timeout"]
+        s: PlayerSettings = self.declare_settings(PARAMETERS)
+        bag, topics, remaps, queue_depth = s.bag, s.topics, s.remap, s.queue_depth
+        start_offset, duration, paused = s.start_offset, s.duration, s.start_paused
+        self.rate, self.publish_clock = s.rate, s.publish_clock
+        self.clock_rate_hz = s.clock_rate_hz
+        self.loop, self.wait_for_subscribers = s.loop, s.wait_for_subscribers
+        self.wait_timeout, self.drain_timeout = s.wait_timeout, s.drain_timeout
 
-        info = self._open_bag(bag, p["allow_damaged"])
+        info = self._open_bag(bag, s.allow_damaged)
         wanted, remap = self._selection(info, topics, remaps)
         self._outputs: dict[str, _Output] = {}
         self._add_outputs(info, wanted, remap, queue_depth)

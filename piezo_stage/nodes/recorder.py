@@ -47,9 +47,9 @@ from .base import PiezoNode
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import NodeError
-from .parameters import declare_table
 from .qos import adapted_qos
 from .runtime import DEFAULT_NAMESPACE, run
+from .settings import RecorderSettings
 from .spec import Kind, Param, ParameterTable
 from .topics import CONTRACT_TOPICS, GLOBAL_TOPICS, MessageTypeError, message_type
 
@@ -189,16 +189,17 @@ PARAMETERS = ParameterTable(
         ),
     ),
     summary="Records the topics of its namespace to a rosbag2 (MCAP) bag.",
+    settings_type=RecorderSettings,
 )
 
 
 class RecorderNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("recorder", namespace=DEFAULT_NAMESPACE)
-        p = declare_table(self, PARAMETERS)
-        compression, regex, topics = p["compression"], p["topic_regex"], p["topics"]
-        flush_period, period = p["flush_period"], p["discovery_period"]
-        self._queue_depth = p["queue_depth"]
+        s: RecorderSettings = self.declare_settings(PARAMETERS)
+        compression, regex, topics = s.compression, s.topic_regex, s.topics
+        flush_period, period = s.flush_period, s.discovery_period
+        self._queue_depth = s.queue_depth
 
         try:
             self._regex = re.compile(regex) if regex else None
@@ -212,16 +213,16 @@ class RecorderNode(PiezoNode):
                 GLOBAL_TOPICS
             )
 
-        self.bag_path = Path(p["bag"] or default_bag_name()).absolute()
+        self.bag_path = Path(s.bag or default_bag_name()).absolute()
         self.writer = BagWriter(
             self.bag_path,
             compression=COMPRESSIONS[compression],
-            max_bag_size=p["max_bag_size"],
-            max_bag_duration_s=p["max_bag_duration"],
+            max_bag_size=s.max_bag_size,
+            max_bag_duration_s=s.max_bag_duration,
             flush_period_s=flush_period,
             custom_data={"recorder": self.get_fully_qualified_name()},
         )
-        self.paused = bool(p["start_paused"])
+        self.paused = bool(s.start_paused)
         self.finished = False
         self._slots: dict[str, _Slot] = {}
         self._skipped: set[str] = set()  # topics that cannot be recorded (said once)
@@ -234,9 +235,9 @@ class RecorderNode(PiezoNode):
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # sim time may stop or race
         self.create_timer(flush_period, self._flush, clock=steady)
         self.create_timer(period, self.discover, clock=steady)
-        if p["duration"] > 0:  # counted from here, not from the process's start (imports)
-            self._stop_timer = self.create_timer(p["duration"], self._finish, clock=steady)
-        self._diagnostics = Diagnostics(self, "recorder", self._diagnose, p["diagnostics_period"])
+        if s.duration > 0:  # counted from here, not from the process's start (imports)
+            self._stop_timer = self.create_timer(s.duration, self._finish, clock=steady)
+        self._diagnostics = Diagnostics(self, "recorder", self._diagnose, s.diagnostics_period)
         self.get_logger().info(
             f"recording to {self.bag_path}" + (" (paused: call ~/start)" if self.paused else "")
         )

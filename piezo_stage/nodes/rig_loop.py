@@ -53,10 +53,11 @@ from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
 from .qos import BATCH_QOS
 from .runtime import run, set_stamp, wall_clock
+from .spec import ParameterTable
 from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
 
-PARAMETER_TABLES = {
+PARAMETER_TABLES: dict[str, ParameterTable[Any]] = {
     "voltage_driver": DRIVER_PARAMETERS,
     "controller": CONTROLLER_PARAMETERS,
     "laser_reader": READER_PARAMETERS,

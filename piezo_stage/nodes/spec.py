@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field, make_dataclass, replace
 from enum import Enum
 from functools import cached_property
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any, Generic, Iterable, Iterator, Mapping, Sequence, TypeVar
 
 from .errors import RosParameterError
 
@@ -128,17 +128,46 @@ def _typed(p: Param, value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
+#: a node's settings class (:mod:`.settings`, generated from its table)
+S = TypeVar("S")
+
+
+def field_type(p: Param) -> str:
+    """The annotation of ``p``'s settings field: its Enum class, a Literal of its string
+    choices, or the Python type of its kind."""
+    if isinstance(p.choices, type) and issubclass(p.choices, Enum):
+        return p.choices.__name__
+    if p.choices is not None:
+        quoted = ", ".join(f'"{c}"' for c in p.choice_values)
+        return f"Literal[{quoted},]"  # the trailing comma: one choice a line when long
+    return _PYTHON_TYPES[p.kind or Kind.STRING]
+
+
+_PYTHON_TYPES = {
+    Kind.BOOL: "bool",
+    Kind.INT: "int",
+    Kind.FLOAT: "float",
+    Kind.STRING: "str",
+    Kind.INT_ARRAY: "list[int]",
+    Kind.FLOAT_ARRAY: "list[float]",
+    Kind.STRING_ARRAY: "list[str]",
+}
+
+
 def is_ros_own(name: str) -> bool:
     return name in ROS_OWN or name.startswith(ROS_OWN_PREFIXES)
 
 
 @dataclass(frozen=True)
-class ParameterTable:
-    """The parameters of one node (``node``: its executable name), in declaration order."""
+class ParameterTable(Generic[S]):
+    """The parameters of one node (``node``: its executable name), in declaration order;
+    ``settings_type``: its typed settings class (:mod:`.settings`), which
+    :meth:`settings` returns."""
 
     node: str
     params: tuple[Param, ...]
     summary: str = ""
+    settings_type: type[S] | None = field(default=None, kw_only=True)
     _by_name: dict[str, Param] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -165,21 +194,31 @@ class ParameterTable:
         return {p.name: p.default for p in self.params}
 
     @cached_property
-    def settings_class(self) -> type:
-        """A frozen dataclass with one field per parameter (dots become underscores), named
-        after the node: what :meth:`settings` returns."""
+    def settings_class(self) -> type[S]:
+        """``settings_type``, or (a table without one) a frozen dataclass with one field per
+        parameter named after the node."""
+        if self.settings_type is not None:
+            return self.settings_type
         name = "".join(part.title() for part in self.node.split("_")) + "Settings"
-        return make_dataclass(name, [(_field(p.name), Any) for p in self.params], frozen=True)
+        made: type[S] = make_dataclass(
+            name, [(_field(p.name), Any) for p in self.params], frozen=True
+        )
+        return made
 
-    def settings(self, values: Mapping[str, Any]) -> Any:
-        """The node's settings as a frozen dataclass: ``values`` (every parameter of the table)
-        with the choices of an Enum class as its members, so a node compares enums, not
-        strings."""
+    def settings(self, values: Mapping[str, Any]) -> S:
+        """The node's settings: ``values`` (every parameter of the table) with the choices of
+        an Enum class as its members, so a node compares enums, not strings."""
         return self.settings_class(
             **{_field(p.name): _typed(p, values[p.name]) for p in self.params}
         )
 
-    def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable:
+    def updated(self, settings: S, changed: Mapping[str, Any]) -> S:
+        """``settings`` with the ``changed`` values of this table's parameters (others, such as
+        rclpy's own, ignored)."""
+        fields = {_field(n): _typed(self[n], v) for n, v in changed.items() if n in self}
+        return replace(settings, **fields) if fields else settings  # type: ignore[type-var]
+
+    def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable[S]:
         """The same table with other defaults (e.g. the excitation's preset)."""
         unknown = set(defaults) - set(self._by_name)
         if unknown:

@@ -56,9 +56,10 @@ from piezo_stage_msgs.msg import Voltage
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
-from .parameters import declare_table, on_set
+from .parameters import on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, wall_clock
+from .settings import VoltageDriverSettings
 from .spec import Param, ParameterTable
 
 PARAMETERS = ParameterTable(
@@ -225,6 +226,7 @@ PARAMETERS = ParameterTable(
     ),
     summary="Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command -> device, "
     "with limits, slew and watchdog.",
+    settings_type=VoltageDriverSettings,
 )
 
 
@@ -249,7 +251,7 @@ class VoltageDriverNode(PiezoNode):
             "voltage_driver", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
         )
         self._handoff = handoff
-        p = self.settings = PARAMETERS.settings(declare_table(self, PARAMETERS))
+        p: VoltageDriverSettings = self.declare_settings(PARAMETERS)
 
         amplifier = make_amplifier(
             p.backend,
