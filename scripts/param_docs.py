@@ -69,20 +69,20 @@ def render() -> str:
 
 def render_settings() -> str:
     """piezo_stage/nodes/settings.py, formatted as ``ruff format`` leaves it. An Enum whose name
-    two modules use is imported as ``<Module><Name>`` (e.g. ExcitationOnDone)."""
+    two modules use is imported as ``<Node><Name>`` (e.g. ExcitationOnDone)."""
     from piezo_stage.nodes.spec import _field, field_type
 
-    enums = {
-        p.choices
-        for table in tables()
-        for p in table
-        if isinstance(p.choices, type) and issubclass(p.choices, Enum)
-    }
+    owner: dict[type, str] = {}  # each Enum choice and the first node whose table has it
+    for table in tables():
+        for p in table:
+            if isinstance(p.choices, type) and issubclass(p.choices, Enum):
+                owner.setdefault(p.choices, table.node)
+    enums = set(owner)
     names = [e.__name__ for e in enums]
     alias = {
         e: e.__name__
         if names.count(e.__name__) == 1
-        else e.__module__.rsplit(".", 1)[-1].title().replace("_", "") + e.__name__
+        else owner[e].title().replace("_", "") + e.__name__
         for e in enums
     }
     classes = []

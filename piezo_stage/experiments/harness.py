@@ -76,7 +76,7 @@ def check_controller(values: Mapping[str, Any]) -> None:
     on ``values`` over its defaults: a run the node would refuse is refused before any graph
     starts (:class:`ExperimentInputError`), with the node's reason."""
     from piezo_stage.control.setup import SetupError, configure_controller
-    from piezo_stage.nodes.controller import PARAMETERS
+    from piezo_stage.nodes.controller_params import PARAMETERS
 
     from .errors import ExperimentInputError
 

@@ -46,8 +46,8 @@ from rclpy.parameter import Parameter
 from piezo_stage.hardware.timing import set_realtime_priority
 from piezo_stage.yaml_values import load_yaml
 
-from .controller import PARAMETERS as CONTROLLER_PARAMETERS
 from .controller import ControllerNode
+from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from .errors import RosParameterError
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode

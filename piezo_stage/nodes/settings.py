@@ -18,8 +18,8 @@ if TYPE_CHECKING:
     from piezo_stage.control.learning import FeedforwardForm
     from piezo_stage.control.setpoint import ReferenceSource
     from piezo_stage.identification.methods import Method
-    from piezo_stage.nodes.controller import SensorQos
-    from piezo_stage.nodes.controller import StepTrigger as ControllerStepTrigger
+    from piezo_stage.nodes.controller_params import SensorQos
+    from piezo_stage.nodes.controller_params import StepTrigger as ControllerStepTrigger
     from piezo_stage.nodes.excitation import OnDone as ExcitationOnDone
     from piezo_stage.nodes.excitation import StepTrigger as ExcitationStepTrigger
     from piezo_stage.nodes.identifier import Input, StreamQos
