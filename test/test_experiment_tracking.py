@@ -198,3 +198,38 @@ def test_learning_at_1_khz_then_replaying_the_saved_table(model, tmp_path, capsy
     )
     replayed = json.loads(capsys.readouterr().out)
     assert replayed["learning"] == [] and replayed["rms_relative"] <= 0.002
+
+
+@pytest.mark.unit
+def test_the_options_that_set_controller_parameters_come_from_its_table(capsys):
+    """Each such flag's default is the spec's, its choices the parameter's; any other
+    controller parameter goes by --param NAME:=VALUE, checked by the table, and what the
+    experiment sets itself is refused with its flag."""
+    import argparse
+    import dataclasses
+
+    from piezo_stage.cli import main
+    from piezo_stage.commands.experiment import add_arguments
+    from piezo_stage.experiments.tracking import CONTROLLER, CONTROLLER_OPTIONS
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    actions = {a.dest: a for a in parser._actions}
+    defaults = {f.name: f.default for f in dataclasses.fields(TrackingSpec)}
+    for name, option in CONTROLLER_OPTIONS.items():
+        if name == "mode":
+            continue
+        assert actions[name].default == defaults[name], name
+        choices = CONTROLLER[option.param].choice_values
+        assert tuple(actions[name].choices or ()) == choices, name
+    assert defaults["amplitude"] == CONTROLLER["trajectory_amplitude"].default
+    base = ["experiment", "tracking", "--model", "ch11_rig.yaml", "--param"]
+    for param, reason in (
+        ("learn_periods:=3", "sets learn_periods (use --learn)"),
+        ("trigger:=timer", "sets trigger itself"),
+        ("learn_gian:=0.3", "did you mean 'learn_gain'"),
+        ("learn_gain:=abc", "'abc' is not a float"),
+        ("learn_gain", "expected NAME:=VALUE"),
+    ):
+        assert main([*base, param]) == 2, param
+        assert reason in capsys.readouterr().err, param

@@ -54,6 +54,36 @@ def test_choices_and_ranges_are_checked():
 
 
 @pytest.mark.unit
+@pytest.mark.parametrize(
+    "name, value, ok",
+    [
+        ("v_max", 5, True),  # an int serves a float
+        ("v_max", "5", False),
+        ("v_max", True, False),
+        ("colour", 1, False),
+        ("names", [], True),
+        ("names", ["a", "b"], True),
+        ("names", ["a", 2], False),
+        ("names", "a", False),
+    ],
+)
+def test_values_of_another_type_are_refused_before_anything_starts(name, value, ok):
+    """What rclpy would refuse at a node's start, the table refuses at the door (the launcher's
+    and the experiments' checks of overrides)."""
+    refused = [f"demo: {name}: {value!r} is not a {TABLE[name].kind.value}"]
+    assert TABLE.problems({name: value}) == ([] if ok else refused)
+
+
+@pytest.mark.unit
+def test_settings_are_typed_and_kept_current_by_updated():
+    settings = TABLE.settings(TABLE.defaults())
+    assert settings.colour is Colour.RED and settings.v_max == 100.0
+    changed = TABLE.updated(settings, {"colour": "green", "use_sim_time": True})
+    assert changed.colour is Colour.GREEN and changed.v_max == 100.0
+    assert settings.colour is Colour.RED  # frozen: a new object
+
+
+@pytest.mark.unit
 def test_with_defaults_keeps_everything_else():
     other = TABLE.with_defaults({"v_max": 50.0})
     assert other["v_max"].default == 50.0 and other["v_max"].range == (0.0, 200.0)

@@ -15,6 +15,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
@@ -52,33 +53,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
-    from piezo_stage.control.feedforward import Compensation
+    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS
 
+    for name in CONTROLLER_OPTIONS:
+        if name != "mode":  # --mode serves every experiment
+            group.add_argument(f"--{name.replace('_', '-')}", dest=name, **_from_table(name))
     group.add_argument(
-        "--trajectory",
-        default="triangle",
-        help="triangle | sine | steps | FILE.csv (columns t [s], x [m])",
+        "--param",
+        dest="controller",
+        action="append",
+        default=[],
+        metavar="NAME:=VALUE",
+        help="any other controller parameter (docs/parameters.md; VALUE in YAML), repeatable",
     )
-    group.add_argument("--amplitude", type=float, default=10e-6, help="half the range [m] (10e-6)")
-    group.add_argument("--frequency", type=float, default=10.0, help="[Hz] (10)")
-    group.add_argument(
-        "--offset",
-        type=float,
-        default=None,
-        help="mid-range [m] (default: amplitude + 6e-6: x_d from 6 um up, where the hysteresis "
-        "needs no voltage below the amplifier's 0 V)",
-    )
-    group.add_argument(
-        "--rounding",
-        type=float,
-        default=0.2,
-        help="triangle corner / step transition, share of a half period (0.2)",
-    )
-    group.add_argument("--v-max", type=float, default=float("inf"), help="velocity limit [m/s]")
-    group.add_argument(
-        "--a-max", type=float, default=float("inf"), help="acceleration limit [m/s²]"
-    )
-    group.add_argument("--compensation", choices=[c.value for c in Compensation], default="both")
     group.add_argument(
         "--model",
         default=None,
@@ -111,28 +98,32 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         "where the law's gains fail the sampled-loop check",
     )
     group.add_argument(
-        "--learn",
-        type=int,
-        default=0,
-        metavar="N",
-        help="learn the feedforward over N periods, then measure --periods more (after one "
-        "settling period) with it frozen",
-    )
-    group.add_argument(
-        "--feedforward-form",
-        choices=("auto", "sampled", "continuous"),
-        default="auto",
-        help="the staircase the model says the sampled loop needs, or the model stepped along "
-        "x_d (auto: sampled below 10x the model's resonance)",
-    )
-    group.add_argument("--table", default=None, help="replay a saved (learned) feedforward table")
-    group.add_argument("--table-out", default=None, help="save the learned table here (JSON)")
-    group.add_argument(
         "--identify-model",
         metavar="OUT.yaml",
         default=None,
         help="first record the simulated rig, fit the model, save it here, use it",
     )
+
+
+def _from_table(name: str) -> dict[str, Any]:
+    """argparse keywords of the tracking option ``name``: type, choices, help and default from
+    the controller parameter it sets (the experiment's default and help where it has its own)."""
+    from piezo_stage.experiments.tracking import CONTROLLER, CONTROLLER_OPTIONS
+    from piezo_stage.nodes.spec import show
+
+    option = CONTROLLER_OPTIONS[name]
+    row = CONTROLLER[option.param]
+    kind = {"float": float, "int": int, "bool": bool}.get(row.kind.value, str)
+    default = option.value
+    text = option.help or row.description + (f" [{row.unit}]" if row.unit else "")
+    more = "" if default is None else f"; default {show(default).strip(chr(34))}"
+    return {
+        "type": kind,
+        "choices": row.choice_values or None,
+        "default": default,
+        "metavar": "N" if kind is int else None,
+        "help": f"{text} (controller {option.param}{more})",
+    }
 
 
 _SHAPES = ("triangle", "sine", "steps")
@@ -181,32 +172,28 @@ def _unwritable(path: Path) -> str:
 
 def _run_tracking(args: argparse.Namespace, progress) -> dict:
     from piezo_stage.control.tracking import TRACKING_RATE_HZ
-    from piezo_stage.experiments.tracking import TrackingSpec, identify_model, run_tracking
+    from piezo_stage.experiments.tracking import (
+        CONTROLLER_OPTIONS,
+        TrackingSpec,
+        identify_model,
+        run_tracking,
+    )
 
     model = args.model
     if args.identify_model:
         progress(0.0, f"recording the simulated rig {args.plant_model} and fitting the model")
         identify_model(args.identify_model, args.plant_model)
         model = args.identify_model
+    options = {name: getattr(args, name) for name in CONTROLLER_OPTIONS if name != "mode"}
     spec = TrackingSpec(
-        trajectory=args.trajectory,
-        amplitude=args.amplitude,
-        frequency=args.frequency,
-        offset=args.offset,
-        rounding=args.rounding,
-        v_max=args.v_max,
-        a_max=args.a_max,
-        compensation=args.compensation,
+        **options,
+        mode=args.mode or CONTROLLER_OPTIONS["mode"].value,
         model=model,
         plant_model=args.plant_model,
-        mode=args.mode or "pid",
         periods=args.periods,
         rate_hz=args.rate_hz or (TRACKING_RATE_HZ if args.graph == "sim" else 1000.0),
-        learn=args.learn,
         graph=args.graph,
-        feedforward_form=args.feedforward_form,
-        table=args.table,
-        table_out=args.table_out,
+        controller=_controller_params(args.controller),
     )
     return run_tracking(
         spec,
@@ -216,6 +203,20 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         progress=progress,
         duration=args.duration,
     )
+
+
+def _controller_params(texts: list[str]) -> dict[str, Any]:
+    """``--param NAME:=VALUE`` arguments by name (VALUE in YAML)."""
+    from piezo_stage.experiments import ExperimentInputError
+    from piezo_stage.yaml_values import load_yaml
+
+    params = {}
+    for text in texts:
+        name, sep, value = text.partition(":=")
+        if not (sep and name.strip()):
+            raise ExperimentInputError(f"--param {text!r}: expected NAME:=VALUE")
+        params[name.strip()] = load_yaml(value) if value.strip() else ""
+    return params
 
 
 def run(args: argparse.Namespace) -> int:

@@ -67,7 +67,7 @@ def node_overrides(executable: str, values: Mapping[str, Any]) -> dict[str, Any]
     table = importlib.import_module(f"piezo_stage.nodes.{executable}").PARAMETERS
     problems = table.problems(dict(values))
     if problems:
-        raise ExperimentInputError(f"{executable}: " + "; ".join(problems))
+        raise ExperimentInputError("; ".join(problems))  # each names the node
     return dict(values)
 
 

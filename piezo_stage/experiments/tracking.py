@@ -40,9 +40,9 @@ import math
 import os
 import socket
 import tempfile
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -54,7 +54,7 @@ from piezo_stage.control.feedforward import Compensation, FeedforwardModel, comp
 from piezo_stage.control.laws import THESIS_GAINS, Law
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
-from piezo_stage.control.trajectory import DEFAULT_ROUNDING, Trajectory, make_trajectory
+from piezo_stage.control.trajectory import Trajectory, make_trajectory
 from piezo_stage.control.voltage_range import (
     PID_MARGIN,
     AmplifierRange,
@@ -63,6 +63,7 @@ from piezo_stage.control.voltage_range import (
 )
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, save_parameter_set
+from piezo_stage.nodes.controller_params import PARAMETERS as CONTROLLER
 
 from .errors import ExperimentError, ExperimentInputError
 from .harness import (
@@ -92,31 +93,85 @@ FLOOR = 6e-6
 _counter = iter(range(1, 1 << 30))
 
 
+_NODE_DEFAULT: Any = object()
+
+
+@dataclass(frozen=True)
+class ControllerOption:
+    """A tracking option that sets the controller parameter ``param``: the parameter's row
+    gives its type, choices, help and default; ``default`` and ``help`` only where the
+    experiment means something else by it."""
+
+    param: str
+    default: Any = _NODE_DEFAULT
+    help: str = ""
+
+    @property
+    def value(self) -> Any:
+        """The option's default."""
+        return CONTROLLER[self.param].default if self.default is _NODE_DEFAULT else self.default
+
+
+#: the tracking options that are controller parameters: spec field (and ``--flag``) → option
+CONTROLLER_OPTIONS = {
+    "trajectory": ControllerOption(
+        "trajectory", help="triangle | sine | steps | FILE.csv (columns t [s], x [m])"
+    ),
+    "amplitude": ControllerOption("trajectory_amplitude"),
+    "frequency": ControllerOption("trajectory_frequency"),
+    "offset": ControllerOption(
+        "trajectory_offset",
+        None,
+        "mid-range [m] (default: amplitude + 6e-6: x_d from 6 um up, where the hysteresis "
+        "needs no voltage below the amplifier's 0 V)",
+    ),
+    "rounding": ControllerOption("trajectory_rounding"),
+    "v_max": ControllerOption("trajectory_v_max"),
+    "a_max": ControllerOption("trajectory_a_max"),
+    "mode": ControllerOption("mode"),
+    "compensation": ControllerOption("compensation", "both"),
+    "feedforward_form": ControllerOption("feedforward_form"),
+    "learn": ControllerOption(
+        "learn_periods",
+        help="learn the feedforward over N periods, then measure --periods more (after one "
+        "settling period) with it frozen",
+    ),
+    "table": ControllerOption("feedforward_table", None),
+    "table_out": ControllerOption("feedforward_table_out", None),
+}
+
+
+def _default(name: str) -> Any:
+    return CONTROLLER_OPTIONS[name].value
+
+
 @dataclass(frozen=True)
 class TrackingSpec:
     """What to track and how; ``model`` a parameter-set file or an already loaded set.
-    ``rate_hz``: the loop's (sim: the lockstep rate; emulated_rig: the sensor's); ``learn``
-    N: periods the controller learns the feedforward over; ``table``: a saved table to replay;
-    ``table_out``: where the learned table goes."""
+    ``rate_hz``: the loop's (sim: the lockstep rate; emulated_rig: the sensor's); the fields
+    of :data:`CONTROLLER_OPTIONS` set the controller's parameters (``learn`` N: periods it
+    learns the feedforward over; ``table``: a saved table to replay; ``table_out``: where the
+    learned table goes); ``controller``: any other controller parameters, by name."""
 
-    trajectory: str = "triangle"
-    amplitude: float = 10e-6
-    frequency: float = 10.0
-    offset: float | None = None
-    rounding: float = DEFAULT_ROUNDING
-    v_max: float = math.inf
-    a_max: float = math.inf
-    compensation: str = "both"
+    trajectory: str = _default("trajectory")
+    amplitude: float = _default("amplitude")
+    frequency: float = _default("frequency")
+    offset: float | None = _default("offset")
+    rounding: float = _default("rounding")
+    v_max: float = _default("v_max")
+    a_max: float = _default("a_max")
+    compensation: str = _default("compensation")
     model: str | ParameterSet | None = None
     plant_model: str = DEFAULT_PLANT
-    mode: str = "pid"
+    mode: str = _default("mode")
     periods: float = DEFAULT_PERIODS
     rate_hz: float = TRACKING_RATE_HZ
-    learn: int = 0
+    learn: int = _default("learn")
     graph: str = "sim"
-    feedforward_form: str = "auto"
-    table: str | None = None
-    table_out: str | None = None
+    feedforward_form: str = _default("feedforward_form")
+    table: str | None = _default("table")
+    table_out: str | None = _default("table_out")
+    controller: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def shaped(self) -> bool:
@@ -204,36 +259,50 @@ def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
     return comp, float(report.spectral_radius)
 
 
+def _options(spec: TrackingSpec) -> dict[str, Any]:
+    """The controller parameters the spec's options set, as the node takes them (paths
+    absolute; an unset offset, limit or table left to the node)."""
+    values = {o.param: getattr(spec, name) for name, o in CONTROLLER_OPTIONS.items()}
+    if not spec.shaped:
+        values["trajectory"] = str(Path(spec.trajectory).resolve())
+    offset = spec.effective_offset
+    values["trajectory_offset"] = math.nan if offset is None else offset
+    for key in (
+        "trajectory_v_max",
+        "trajectory_a_max",
+        "feedforward_table",
+        "feedforward_table_out",
+    ):
+        value = values.pop(key)
+        if isinstance(value, str):
+            values[key] = str(Path(value).resolve())
+        elif value is not None and math.isfinite(value):
+            values[key] = value
+    return values
+
+
 def _controller(
-    spec: TrackingSpec, comp: Compensation, model_file: str, u_start: float, rate: float
+    spec: TrackingSpec, model_file: str, rate: float, u_start: float, **more: Any
 ) -> dict[str, Any]:
-    """The controller's overrides of one run (the trajectory, the compensation, learning)."""
+    """The controller's overrides of one run: the experiment's (``more`` added), the spec's
+    options, then ``spec.controller``, which may not set what the experiment sets."""
     controller = experiment_controller(rate, spec.mode, delay_samples=0, hold_voltage=u_start)
-    controller |= {
-        "reference_source": "trajectory",
-        "trajectory": spec.trajectory if spec.shaped else str(Path(spec.trajectory).resolve()),
-        "trajectory_amplitude": spec.amplitude,
-        "trajectory_frequency": spec.frequency,
-        "trajectory_offset": math.nan if spec.effective_offset is None else spec.effective_offset,
-        "trajectory_rounding": spec.rounding,
-        "compensation": comp.value,
-        "feedforward_model": model_file,
-        "feedforward_form": spec.feedforward_form,
-        "learn_periods": int(spec.learn),
-    }
-    for key in ("v_max", "a_max"):
-        if math.isfinite(getattr(spec, key)):
-            controller[f"trajectory_{key}"] = getattr(spec, key)
-    if spec.table:
-        controller["feedforward_table"] = str(Path(spec.table).resolve())
-    if spec.table_out:
-        controller["feedforward_table_out"] = str(Path(spec.table_out).resolve())
-    return node_overrides("controller", controller)
+    controller |= {"reference_source": "trajectory", "feedforward_model": model_file}
+    controller |= _options(spec) | more
+    flags = {o.param: f"--{n.replace('_', '-')}" for n, o in CONTROLLER_OPTIONS.items()}
+    taken = sorted(set(spec.controller) & (set(controller) | set(flags)))
+    if taken:
+        raise ExperimentInputError(
+            "the tracking experiment sets "
+            + ", ".join(f"{k} (use {flags[k]})" if k in flags else k for k in taken)
+            + " itself"
+        )
+    return node_overrides("controller", controller | dict(spec.controller))
 
 
 def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
     """The lockstep plant + controller plan of one tracking run on the ``sim`` graph."""
-    comp, radius = _check(spec)
+    _, radius = _check(spec)
     trajectory = spec.make_trajectory()
     plant_ps = _load(spec.plant_model, "plant model")
     if plant_ps.dynamics is None:
@@ -257,13 +326,16 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         initial_voltage=u_start,
         initial_velocity=0.0,
     )
-    controller = {
-        "use_sim_time": True,
-        "sensor_qos": "reliable",
-        **_controller(spec, comp, model_file, u_start, rate),
-        "u_min": v_min,
-        "u_max": v_max,
-    }
+    controller = _controller(
+        spec,
+        model_file,
+        rate,
+        u_start,
+        use_sim_time=True,
+        sensor_qos="reliable",
+        u_min=v_min,
+        u_max=v_max,
+    )
     return Plan(
         "tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant), controller
     )
@@ -369,7 +441,7 @@ def emulated_rig_graph(
     from piezo_stage.launch.graph import find_graph
     from piezo_stage.yaml_values import load_yaml
 
-    comp, _ = _check(spec)
+    _check(spec)
     trajectory = spec.make_trajectory()
     rate = float(spec.rate_hz)
     port, link = _free_port() if port is None else port, str(folder / "sensor")
@@ -413,8 +485,9 @@ def emulated_rig_graph(
                 }
             )
     u_min, u_max = graph_amplifier_range(nodes)  # the driver's and the emulator's limits
-    controller = _controller(spec, comp, model_file, u_min, rate)
-    controller.update(u_min=u_min, u_max=u_max, hold_voltage=math.nan)
+    controller = _controller(
+        spec, model_file, rate, u_min, u_min=u_min, u_max=u_max, hold_voltage=math.nan
+    )
     nodes.append({"executable": "controller", "process": "rig_loop", "overrides": controller})
     graph = {
         **data,

@@ -93,6 +93,9 @@ class Param:
 
     def check(self, value: Any) -> str | None:
         """A reason to refuse ``value``, or None (types and ranges rclpy checks too)."""
+        assert self.kind is not None  # __post_init__ fills it in
+        if not _fits(self.kind, value):
+            return f"{self.name}: {value!r} is not a {self.kind.value}"
         choices = self.choice_values
         if choices and value not in choices:
             near = difflib.get_close_matches(str(value), choices, n=1)
@@ -116,6 +119,20 @@ class Param:
         if self.choice_values:
             text += f" (one of: {', '.join(self.choice_values)})"
         return text
+
+
+def _fits(kind: Kind, value: Any) -> bool:
+    """``value`` has the type of ``kind`` (an int serves a float; an array may be empty)."""
+    if kind in _ELEMENT:
+        return isinstance(value, (list, tuple)) and all(_fits(_ELEMENT[kind], v) for v in value)
+    if isinstance(value, bool):
+        return kind is Kind.BOOL
+    if kind is Kind.FLOAT:
+        return isinstance(value, (int, float))
+    return isinstance(value, {Kind.INT: int, Kind.STRING: str, Kind.BOOL: bool}[kind])
+
+
+_ELEMENT = {Kind.INT_ARRAY: Kind.INT, Kind.FLOAT_ARRAY: Kind.FLOAT, Kind.STRING_ARRAY: Kind.STRING}
 
 
 def _field(name: str) -> str:
