@@ -48,12 +48,15 @@ def test_every_setting_the_setup_reads_is_a_parameter_of_the_node():
 
 
 def test_the_law_works_in_volts_less_u_bias():
-    """u_min, u_max and hold_voltage are amplifier volts; the law's frame subtracts u_bias."""
+    """u_min, u_max and hold_voltage are amplifier volts; the law's frame subtracts u_bias,
+    the supervision (which writes the amplifier) keeps volts."""
     config = law_config(
         settings(u_bias=100.0, u_min=0.0, u_max=400.0, hold_voltage=150.0, on_close="reset")
     )
     assert (config.u_min, config.u_max, config.hold_voltage) == (-100.0, 300.0, 50.0)
     assert config.on_close is OnClose.RESET
+    supervision = configure_controller(settings(u_bias=100.0, u_min=0.0, u_max=400.0)).supervision
+    assert (supervision.u_bias, supervision.u_min, supervision.u_max) == (100.0, 0.0, 400.0)
     assert law_config(settings()).hold_voltage is None  # NaN: the last output
     assert law_config(settings(tracking_time=0.0)).tracking_time is None
 

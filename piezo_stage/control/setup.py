@@ -33,6 +33,7 @@ from .learning import (
     trajectory_samples,
 )
 from .setpoint import ReferenceSource
+from .supervision import SupervisionConfig
 from .trajectory import Trajectory, make_trajectory
 
 #: resolves a file name a setting gives (default: :func:`find_user_file`)
@@ -109,6 +110,18 @@ class Settings(Protocol):
     @property
     def trajectory_a_max(self) -> float: ...
     @property
+    def start_closed(self) -> bool: ...
+    @property
+    def max_gap(self) -> float: ...
+    @property
+    def start_grace(self) -> float: ...
+    @property
+    def open_at(self) -> float: ...
+    @property
+    def open_after(self) -> float: ...
+    @property
+    def open_duration(self) -> float: ...
+    @property
     def learn_periods(self) -> int: ...
     @property
     def learn_gain(self) -> float: ...
@@ -120,12 +133,14 @@ class Settings(Protocol):
 
 @dataclass(frozen=True)
 class ControllerSetup:
-    """What a controller runs: ``config`` for :class:`.controller.TimeVaryingPID`; the model,
+    """What a controller runs: ``config`` for :class:`.controller.TimeVaryingPID` and
+    ``supervision`` for :class:`.supervision.LoopSupervisor` around it; the model,
     trajectory and table it holds (None where the settings need none); ``learning`` when
     learn_periods > 0.
     """
 
     config: ControllerConfig
+    supervision: SupervisionConfig
     feedforward: FeedforwardModel | None
     trajectory: Trajectory | None
     table: FeedforwardTable | None
@@ -166,6 +181,25 @@ def law_config(
     except (ValueError, TypeError) as exc:  # a ControlError is one too
         raise SetupError(str(exc)) from exc
     return config
+
+
+def supervision_config(s: Settings) -> SupervisionConfig:
+    """The supervision of the loop: limits in amplifier volts, start_closed, gaps, the window."""
+    try:
+        return SupervisionConfig(
+            rate_hz=s.rate_hz,
+            u_bias=s.u_bias,
+            u_min=s.u_min,
+            u_max=s.u_max,
+            start_closed=s.start_closed,
+            max_gap=s.max_gap,
+            start_grace=s.start_grace,
+            open_at=s.open_at,
+            open_after=s.open_after,
+            open_duration=s.open_duration,
+        )
+    except ControlError as exc:
+        raise SetupError(str(exc)) from exc
 
 
 def load_feedforward(s: Settings, find: FindFile = find_user_file) -> FeedforwardModel | None:
@@ -307,5 +341,10 @@ def configure_controller(s: Settings, find: FindFile = find_user_file) -> Contro
     table = feedforward_table(s, trajectory, feedforward, find)
     config = law_config(s, feedforward, table)
     return ControllerSetup(
-        config, feedforward, trajectory, table, learning(s, config, table, feedforward)
+        config,
+        supervision_config(s),
+        feedforward,
+        trajectory,
+        table,
+        learning(s, config, table, feedforward),
     )

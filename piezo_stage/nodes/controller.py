@@ -71,7 +71,6 @@ from piezo_stage.control.supervision import (
     Gap,
     Health,
     LoopSupervisor,
-    SupervisionConfig,
 )
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
@@ -139,18 +138,7 @@ class ControllerNode(PiezoNode):
         self.pid = TimeVaryingPID(config, closed=False)
         self.supervisor = LoopSupervisor(
             self.pid,
-            SupervisionConfig(
-                rate_hz=self._rate,
-                u_bias=self._bias,
-                u_min=float(s.u_min),
-                u_max=float(s.u_max),
-                start_closed=bool(s.start_closed),
-                max_gap=float(s.max_gap),
-                start_grace=float(s.start_grace),
-                open_at=float(s.open_at),
-                open_after=float(s.open_after),
-                open_duration=float(s.open_duration),
-            ),
+            setup.supervision,
             notify=self._notify,
         )
         self.setpoint = SetPoint(
