@@ -468,3 +468,40 @@ def test_at_10_khz_the_recorder_gets_every_sample_on_loop_samples(probe, tmp_pat
     span = (samples["stamp"][-1] - samples["stamp"][0]) * 1e-9
     topics_rate = CONTROLLER_PARAMETERS.defaults()["topics_rate_hz"]
     assert t.size <= topics_rate * span * 1.05 + 10  # decimated to topics_rate_hz
+
+
+def test_apply_at_stamp_is_refused_in_the_composed_loop():
+    """The composed loop writes each output as the law computes it: a playout at the stamps
+    cannot apply there, so asking for it is bad input (one line, exit 2), before any device is
+    opened."""
+    import os
+    import subprocess
+    import sys
+
+    from ros_support import ROOT
+
+    env = dict(
+        os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    )
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "piezo_stage.nodes.rig_loop",
+            "voltage_driver.apply_at_stamp:=true",
+            "voltage_driver.url:=tcp://127.0.0.1:9",  # never reached
+            "--ros-args",
+            "-r",
+            f"__ns:={NS}_stamp",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "error: voltage_driver: apply_at_stamp plays commands that arrive on voltage_command at "
+        "their stamps; in the composed loop (rig_loop) the law's output is written as it is "
+        "computed: set apply_at_stamp false"
+    ]

@@ -24,8 +24,8 @@ controller's law is shared under a lock.
 
 One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
 the loop thread's wake-up by up to the switch interval (5 ms by default), so the process runs
-with ``SWITCH_INTERVAL`` (50 µs). Run it with ``piezo-stage launch rig_loop``
-(config/graphs/rig_loop.yaml).
+with :data:`~piezo_stage.hardware.timing.LOOP_SWITCH_INTERVAL` (50 µs). Run it with
+``piezo-stage launch rig_loop`` (config/graphs/rig_loop.yaml).
 """
 
 from __future__ import annotations
@@ -43,7 +43,11 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from piezo_stage.hardware.timing import set_realtime_priority
+from piezo_stage.hardware.timing import (
+    LOOP_SWITCH_INTERVAL,
+    set_realtime_priority,
+    shorten_switch_interval,
+)
 from piezo_stage.yaml_values import load_yaml
 
 from .controller import ControllerNode
@@ -79,8 +83,6 @@ def publish_period(rate_hz: float) -> float:
     return min(PUBLISH_PERIOD, max(MIN_PUBLISH_PERIOD, DRAIN_SAMPLES / rate_hz))
 
 
-#: s a thread may hold the GIL while another waits for it (Python's default: 5 ms)
-SWITCH_INTERVAL = 5e-5
 #: publications the publisher thread makes in a row, then it sleeps SLICE_GAP: a drain gives
 #: the CPU back to the machine every ~0.1-0.2 ms instead of holding it for the whole drain
 DRAIN_SLICE = 8
@@ -252,7 +254,9 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     driver ramps to its safe voltage."""
     overrides = member_overrides(argv)
     # the environment's alternatives are for bench/control_loop.py, which measures them
-    sys.setswitchinterval(float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL", SWITCH_INTERVAL)))
+    shorten_switch_interval(
+        float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL", LOOP_SWITCH_INTERVAL))
+    )
     handoff = Handoff(inline=os.environ.get("PIEZO_RIG_LOOP_INLINE") == "1")
     driver = VoltageDriverNode(
         composed=True, handoff=handoff, overrides=overrides["voltage_driver"]

@@ -40,7 +40,6 @@ from rclpy.parameter import Parameter
 
 from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.hardware import (
-    ConfigError,
     DriverConfig,
     DriverState,
     HardwareError,
@@ -51,11 +50,17 @@ from piezo_stage.hardware import (
 from piezo_stage.hardware.amplifier import AMPLIFIERS
 from piezo_stage.hardware.errors import CommandExpired
 from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
-from piezo_stage.hardware.timing import CommandPlayout, set_realtime_priority
+from piezo_stage.hardware.timing import (
+    PLAYOUT_SWITCH_INTERVAL,
+    CommandPlayout,
+    set_realtime_priority,
+    shorten_switch_interval,
+)
 from piezo_stage_msgs.msg import Voltage
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .parameters import on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, wall_clock
@@ -252,6 +257,16 @@ class VoltageDriverNode(PiezoNode):
         )
         self._handoff = handoff
         p: VoltageDriverSettings = self.declare_settings(PARAMETERS)
+        if p.apply_at_stamp and composed:
+            raise RosParameterError(
+                "voltage_driver: apply_at_stamp plays commands that arrive on voltage_command "
+                "at their stamps; in the composed loop (rig_loop) the law's output is written "
+                "as it is computed: set apply_at_stamp false"
+            )
+        if p.apply_at_stamp and self.get_parameter("use_sim_time").value:
+            raise RosParameterError(
+                "voltage_driver: apply_at_stamp needs wall-clock stamps: not with use_sim_time"
+            )
 
         amplifier = make_amplifier(
             p.backend,
@@ -301,9 +316,7 @@ class VoltageDriverNode(PiezoNode):
         self._lock = threading.Lock()  # commands come from the executor or from the playout thread
         self._playout: CommandPlayout | None = None
         if p.apply_at_stamp:
-            if self.get_parameter("use_sim_time").value:
-                raise ConfigError("apply_at_stamp needs wall-clock stamps: not with use_sim_time")
-            sys.setswitchinterval(5e-4)  # the playout thread gets the GIL within 0.5 ms, not 5 ms
+            shorten_switch_interval(PLAYOUT_SWITCH_INTERVAL)
             self._playout = CommandPlayout(
                 self._apply,
                 p.command_delay,
