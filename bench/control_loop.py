@@ -477,30 +477,25 @@ def figures(
 
 
 DESIGNS = {
-    "loop thread drains, 50 us switch": {},
-    "publisher thread drains (sliced)": {"PIEZO_RIG_LOOP_DRAIN_IN": "publisher"},
-    "executor's thread drains": {"PIEZO_RIG_LOOP_DRAIN_IN": "executor"},
-    "hand-off, 5 ms switch": {"PIEZO_RIG_LOOP_SWITCH_INTERVAL": "0.005"},
-    "inline publishing": {"PIEZO_RIG_LOOP_INLINE": "1"},
+    "loop thread drains, 50 us switch": [],
+    "publisher thread drains (sliced)": ["controller.publish_in:=publisher"],
+    "executor's thread drains": ["controller.publish_in:=executor"],
+    "hand-off, 5 ms switch": ["controller.switch_interval:=0.005"],
+    "inline publishing": ["controller.publish_in:=inline"],
 }
 
 
 def compare_designs(seconds: float, rates: list[float]) -> int:
-    """rig_loop's design alternatives (the environment of its process), in turn."""
+    """rig_loop's design alternatives (controller parameters of its process), in turn."""
     for rate in rates:
         for busy in (False, True):
-            for name, env in DESIGNS.items():
-                saved = {k: os.environ.get(k) for k in env}
-                os.environ.update(env)
+            for name, params in DESIGNS.items():
+                EXTRA.extend(params)
                 try:
                     label = f"{name}, {rate / 1000:g} kHz" + (" + busy" if busy else "")
                     print(measure("rig_loop", rate, seconds, busy, label=label).line(), flush=True)
                 finally:
-                    for k, v in saved.items():
-                        if v is None:
-                            os.environ.pop(k, None)
-                        else:
-                            os.environ[k] = v
+                    del EXTRA[len(EXTRA) - len(params) :]
     return 0
 
 

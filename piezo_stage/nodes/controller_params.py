@@ -13,6 +13,7 @@ from piezo_stage.control.laws import THESIS_GAINS, Law
 from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.setpoint import ReferenceSource
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING
+from piezo_stage.hardware.timing import LOOP_SWITCH_INTERVAL
 
 from .settings import ControllerSettings
 from .spec import Param, ParameterTable
@@ -21,6 +22,16 @@ from .spec import Param, ParameterTable
 class StepTrigger(StrEnum):
     TIMER = "timer"  # rate_hz on the node clock
     SAMPLE = "sample"  # one step per displacement sample (the lockstep plant)
+
+
+class PublishIn(StrEnum):
+    """rig_loop: which thread publishes what the loop queued (bench/control_loop.py --designs
+    measures each)."""
+
+    LOOP = "loop"  # the loop thread, right after a write, every publish_period (shipped)
+    PUBLISHER = "publisher"  # a thread of its own below the loop's priority, in slices
+    EXECUTOR = "executor"  # a wall-clock timer of the executor
+    INLINE = "inline"  # every publication at once, in the loop thread
 
 
 class SensorQos(StrEnum):
@@ -99,6 +110,31 @@ PARAMETERS = ParameterTable(
             "trigger=sample and rig_loop: ignore samples until "
             "controller_state has this many subscribers (an experiment's recorder sees step 0)",
             range=(0, 100),
+            read_only=True,
+        ),
+        Param(
+            "publish_in",
+            "loop",
+            "rig_loop: the thread that publishes what the loop queued",
+            choices=PublishIn,
+            read_only=True,
+        ),
+        Param(
+            "publish_period",
+            0.0,
+            "rig_loop: time between publications of the queue (0: 20 samples' worth within "
+            "[2, 10] ms)",
+            "s",
+            (0.0, 1.0),
+            read_only=True,
+        ),
+        Param(
+            "switch_interval",
+            LOOP_SWITCH_INTERVAL,
+            "rig_loop: the process's GIL switch interval (how long the executor's thread may "
+            "keep the loop's waiting)",
+            "s",
+            (1e-6, 0.1),
             read_only=True,
         ),
         Param(

@@ -24,7 +24,7 @@ controller's law is shared under a lock.
 
 One process has one GIL: a thread that holds it (the executor publishing a batch) would delay
 the loop thread's wake-up by up to the switch interval (5 ms by default), so the process runs
-with :data:`~piezo_stage.hardware.timing.LOOP_SWITCH_INTERVAL` (50 µs). Run it with
+with a short one (``controller.switch_interval``, 50 µs). Run it with
 ``piezo-stage launch rig_loop`` (config/graphs/rig_loop.yaml).
 """
 
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import gc
 import math
-import os
 import sys
 import threading
 import time
@@ -44,7 +43,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from piezo_stage.hardware.timing import (
-    LOOP_SWITCH_INTERVAL,
     set_realtime_priority,
     shorten_switch_interval,
 )
@@ -52,6 +50,7 @@ from piezo_stage.yaml_values import load_yaml
 
 from .controller import ControllerNode
 from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
+from .controller_params import PublishIn
 from .errors import RosParameterError
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
@@ -96,11 +95,11 @@ class Handoff:
     for its whole length, so it runs where the loop has the most time: right after a write
     (bench/control_loop.py, 10 kHz: p99 0.35 ms, 54 µs per sample, against 0.41-0.53 ms and
     64 µs for the executor's thread draining every 2 ms). The alternatives bench/control_loop.py
-    measures (environment): ``PIEZO_RIG_LOOP_DRAIN_IN=executor`` a wall-clock timer of the
-    executor drains (:meth:`attach`); ``PIEZO_RIG_LOOP_DRAIN_IN=publisher`` a thread of its own
+    measures (``controller.publish_in``): ``executor`` a wall-clock timer of the
+    executor drains (:meth:`attach`); ``publisher`` a thread of its own
     below the loop's priority, in slices (:meth:`start_publisher`: a drain in the SCHED_FIFO loop
     thread keeps a CPU from the machine's other processes for its whole length, 1-9 ms of CPU
-    each on a loaded host); ``PIEZO_RIG_LOOP_INLINE=1`` every publication at once."""
+    each on a loaded host); ``inline`` every publication at once."""
 
     def __init__(self, inline: bool = False, period: float = PUBLISH_PERIOD) -> None:
         self._queue: deque[tuple[Callable[..., None], tuple[Any, ...]]] = deque()
@@ -253,26 +252,22 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     one block). Shut down in reverse: the loop stops before the
     driver ramps to its safe voltage."""
     overrides = member_overrides(argv)
-    # the environment's alternatives are for bench/control_loop.py, which measures them
-    shorten_switch_interval(
-        float(os.environ.get("PIEZO_RIG_LOOP_SWITCH_INTERVAL", LOOP_SWITCH_INTERVAL))
-    )
-    handoff = Handoff(inline=os.environ.get("PIEZO_RIG_LOOP_INLINE") == "1")
+    handoff = Handoff()
     driver = VoltageDriverNode(
         composed=True, handoff=handoff, overrides=overrides["voltage_driver"]
     )
     yield driver
     controller = ControllerNode(composed=True, handoff=handoff, overrides=overrides["controller"])
     yield controller
+    s = controller.settings
+    shorten_switch_interval(s.switch_interval)
+    handoff.inline = s.publish_in is PublishIn.INLINE
     batch = SampleBatch(controller)
     handoff.after_drain.append(batch.publish)
     # the loop steps once per sample: its rate (checked with the gains) is the sample rate
-    rate = float(controller.settings.rate_hz)
-    handoff.period = float(os.environ.get("PIEZO_RIG_LOOP_PUBLISH_PERIOD", publish_period(rate)))
-    # the bench's alternatives (bench/control_loop.py --designs, bench/step_probe.py): "loop"
-    # (shipped), "publisher" (a thread of its own, sliced drains), "executor"
-    drain_in = os.environ.get("PIEZO_RIG_LOOP_DRAIN_IN", "loop")
-    if drain_in == "executor":
+    rate = s.rate_hz
+    handoff.period = s.publish_period or publish_period(rate)
+    if s.publish_in is PublishIn.EXECUTOR:
         handoff.attach(driver, handoff.period)
     topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
     supervisor = controller.supervisor
@@ -316,7 +311,8 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     # ordinary processes, but the loop preempts them on a shared CPU instead of waiting for them
     # to block (equal SCHED_FIFO priorities do not preempt each other)
     priority = driver.settings.realtime_priority
-    helpers = max(priority - 1, 1) if priority > 0 and drain_in == "publisher" else priority
+    publisher = s.publish_in is PublishIn.PUBLISHER
+    helpers = max(priority - 1, 1) if priority > 0 and publisher else priority
     refused = set_realtime_priority(helpers)
     if refused:
         driver.get_logger().warn(f"executor thread: {refused}")
@@ -337,7 +333,7 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
 
     def start_loop() -> None:
         reader.destroy_timer(first_turn)
-        if drain_in == "publisher":
+        if publisher:
             handoff.start_publisher(helpers)
         reader.start()
 

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from piezo_stage.control.learning import FeedforwardForm
     from piezo_stage.control.setpoint import ReferenceSource
     from piezo_stage.identification.methods import Method
-    from piezo_stage.nodes.controller_params import SensorQos
+    from piezo_stage.nodes.controller_params import PublishIn, SensorQos
     from piezo_stage.nodes.controller_params import StepTrigger as ControllerStepTrigger
     from piezo_stage.nodes.excitation import OnDone as ExcitationOnDone
     from piezo_stage.nodes.excitation import StepTrigger as ExcitationStepTrigger
@@ -53,6 +53,9 @@ class ControllerSettings:
     start_closed: bool
     start_grace: float
     wait_for_state_subscribers: int
+    publish_in: PublishIn
+    publish_period: float
+    switch_interval: float
     topics_rate_hz: float
     max_gap: float
     reference_source: ReferenceSource
