@@ -137,16 +137,6 @@ def test_rig_loop_graph_composes_the_three_nodes_into_one_process():
     ]
 
 
-def test_topics_take_every_nth_sample_across_reads():
-    from piezo_stage.nodes.rig_loop import TopicDecimation
-
-    assert TopicDecimation(1000.0, 2000.0).every == 1 and TopicDecimation(2000.0, 2000.0).every == 1
-    topics = TopicDecimation(10_000.0, 2000.0)
-    masks = [topics.due(n) for n in (3, 1, 7, 4)]  # reads of 3, 1, 7 and 4 samples
-    assert topics.every == 5
-    assert np.flatnonzero(np.concatenate(masks)).tolist() == [0, 5, 10]
-
-
 def test_the_hand_off_drains_twenty_samples_at_a_time_within_2_and_10_ms():
     """Each drain holds the GIL while the loop waits: at 10 kHz a 2 ms drain (20 samples) keeps
     p99 under 0.5 ms where 10 ms did not (bench/control_loop.py); at 1 kHz and below, 10 ms."""

@@ -31,17 +31,17 @@ with a short one (``controller.switch_interval``, 50 µs). Run it with
 from __future__ import annotations
 
 import gc
-import math
 import sys
 import threading
 import time
 from collections import deque
-from typing import Any, Callable, Iterator, Sequence, cast
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from piezo_stage.control.rig_loop import RigLoop, Row, TopicDecimation
 from piezo_stage.hardware.timing import (
     set_realtime_priority,
     shorten_switch_interval,
@@ -170,11 +170,6 @@ class Handoff:
                 done()
 
 
-#: one row of LoopSamples per sample: stamp [ns], displacement, status, reference, u, u_ff,
-#: loop_closed (the applied voltage is the block's)
-Row = tuple[int, float, int, float, float, float, bool]
-
-
 class SampleBatch:
     """Every sample of the loop since the last publication, published as one LoopSamples
     message on ``loop_samples`` (after each drain of the hand-off)."""
@@ -211,21 +206,6 @@ class SampleBatch:
 
 
 MEMBERS = ("voltage_driver", "controller", "laser_reader")
-
-
-class TopicDecimation:
-    """Which samples go on the per-sample topics: every ``every``-th, ``every`` the smallest
-    that keeps them at or below ``topics_rate`` [Hz] for a ``sample_rate`` [Hz] stream."""
-
-    def __init__(self, sample_rate: float, topics_rate: float) -> None:
-        self.every = max(1, math.ceil(sample_rate / topics_rate - 1e-9))
-        self._count = 0
-
-    def due(self, n: int) -> list[bool]:
-        """Of the next ``n`` samples, those due."""
-        count, every = self._count, self.every
-        self._count = count + n
-        return [k % every == 0 for k in range(count, count + n)]
 
 
 def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
@@ -269,41 +249,14 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     handoff.period = s.publish_period or publish_period(rate)
     if s.publish_in is PublishIn.EXECUTOR:
         handoff.attach(driver, handoff.period)
-    topics = TopicDecimation(rate, float(controller.settings.topics_rate_hz))
-    supervisor = controller.supervisor
-    nan = math.nan
-
-    def step(value: list[float], status: list[int], stamp: list[int]) -> list[bool] | None:
-        """The law steps on every sample; the amplifier gets the newest output (the samples of
-        one read arrived together: the older outputs are already superseded). Every sample
-        goes into the batch; the per-sample topics take the due ones."""
-        due = topics.due(len(value))
-        u = None
-        outputs = 0
-        rows: list[Row] = []
-        for x, st, ns, publish in zip(value, status, stamp, due):
-            out = controller.on_sample(ns, x, st == 0, publish)
-            if out is not None:
-                u, outputs = out, outputs + 1
-            law = controller.last_step
-            # a law output (last_step) comes with its voltage: on_sample returned _step's float
-            rows.append(
-                (ns, x, st, nan, nan if out is None else out, 0.0, False)
-                if law is None
-                else (ns, x, st, law.reference, cast(float, out), law.u_ff, law.loop_closed)
-            )
-        if u is not None:
-            driver.command(u, publish=due[-1])
-            supervisor.superseded += outputs - 1
-        handoff.put(batch.add, rows, driver.driver.last_sent)
-        handoff.drain_due()
-        return None if topics.every == 1 else due
-
-    def idle(now_ns: int) -> None:
-        u = controller.check_gap(now_ns * 1e-9)
-        if u is not None:
-            driver.command(u)
-        handoff.drain_due()  # what the executor's timers queued, while the sensor is silent
+    loop = RigLoop(
+        controller,
+        driver,
+        controller.supervisor,
+        TopicDecimation(rate, s.topics_rate_hz),
+        lambda rows, applied: handoff.put(batch.add, rows, applied),
+        handoff.drain_due,
+    )
 
     # the loop thread at the driver's realtime_priority, and the executor's (a GIL holder
     # preempted by other processes would stall the loop thread, a priority inversion); with the
@@ -321,8 +274,8 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     # takes tens of ms: done before the loop thread runs)
     gc.collect()
     reader = LaserReaderNode(
-        loop=step,
-        idle=idle,
+        loop=loop.step,
+        idle=loop.idle,
         handoff=handoff,
         overrides=overrides["laser_reader"],
         loop_priority=priority,

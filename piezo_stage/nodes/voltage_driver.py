@@ -377,6 +377,11 @@ class VoltageDriverNode(PiezoNode):
         else:
             self._apply(msg.voltage, True, received)
 
+    @property
+    def last_sent(self) -> float:
+        """The voltage last written to the device [V]."""
+        return self.driver.last_sent
+
     def command(self, voltage: float, publish: bool = True) -> None:
         """A command from the composed loop (its own thread): the watchdog counts from now; the
         device read-back follows the write when one is due (``publish`` False: the value
