@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
-    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS
+    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS, Graph
 
     for name in CONTROLLER_OPTIONS:
         if name != "mode":  # --mode serves every experiment
@@ -83,8 +83,8 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
     group.add_argument(
         "--graph",
-        choices=("sim", "emulated_rig"),
-        default="sim",
+        choices=[g.value for g in Graph],
+        default=Graph.SIM.value,
         help="sim: the lockstep plant; emulated_rig: `emulate rig` around the plant model with "
         "the driver, reader and controller in one process (real time); both with the emulated "
         "rig's 0-400 V amplifier: a trajectory the --model says needs more is refused (exit 2) "

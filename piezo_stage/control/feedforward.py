@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,7 @@ class FeedforwardError(ControlError):
     """A parameter set that cannot serve as a feedforward model, or a bad input to it."""
 
 
-class Compensation(str, Enum):
+class Compensation(StrEnum):
     """What drives the amplifier when the loop is closed."""
 
     FEEDBACK = "feedback"  #: the ch. 11 law on x1 = x − x_d alone

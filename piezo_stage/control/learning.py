@@ -42,7 +42,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field, replace
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Callable, Sequence, cast
 
@@ -61,7 +61,7 @@ from .trajectory import PeriodicTrajectory, Trajectory
 TABLE_FORMAT = "piezo_stage feedforward table 1"
 
 
-class FeedforwardForm(str, Enum):
+class FeedforwardForm(StrEnum):
     """The feedforward of a known trajectory in a sampled loop."""
 
     AUTO = "auto"  #: sampled below :data:`SAMPLED_BELOW` times the resonance, else continuous

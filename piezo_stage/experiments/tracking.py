@@ -41,6 +41,7 @@ import os
 import socket
 import tempfile
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -50,8 +51,9 @@ from piezo_stage.config_path import find_config
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.feedforward import Compensation, FeedforwardModel, compensation
+from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import THESIS_GAINS, Law
+from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
 from piezo_stage.control.trajectory import Trajectory, make_trajectory
@@ -83,7 +85,15 @@ from .runner import STATE_TYPE, run_plan
 
 Progress = Callable[[float, str], None]
 DEFAULT_PLANT = "ch11_rig.yaml"
-GRAPHS = ("sim", "emulated_rig")
+
+
+class Graph(StrEnum):
+    """The graph a tracking run goes through."""
+
+    SIM = "sim"  # the lockstep plant node and the controller
+    EMULATED_RIG = "emulated_rig"  # `emulate rig` around the plant model, rig_loop on it
+
+
 #: the emulated rig's sensor (optoNCDT family) at each rate it serves
 RIG_RATES = {1000.0: "ild1320", 10000.0: "ild2300"}
 #: [m] lowest x_d of a periodic trajectory when no offset is given: above κw/κx (4.2 µm on the
@@ -141,6 +151,14 @@ CONTROLLER_OPTIONS = {
 }
 
 
+_CHOICES: tuple[tuple[str, type[StrEnum], str], ...] = (
+    ("compensation", Compensation, "compensation"),
+    ("mode", Law, "law"),
+    ("graph", Graph, "graph"),
+    ("feedforward_form", FeedforwardForm, "feedforward form"),
+)
+
+
 def _default(name: str) -> Any:
     return CONTROLLER_OPTIONS[name].value
 
@@ -160,18 +178,29 @@ class TrackingSpec:
     rounding: float = _default("rounding")
     v_max: float = _default("v_max")
     a_max: float = _default("a_max")
-    compensation: str = _default("compensation")
+    compensation: Compensation = _default("compensation")
     model: str | ParameterSet | None = None
     plant_model: str = DEFAULT_PLANT
-    mode: str = _default("mode")
+    mode: Law = _default("mode")
     periods: float = DEFAULT_PERIODS
     rate_hz: float = TRACKING_RATE_HZ
     learn: int = _default("learn")
-    graph: str = "sim"
-    feedforward_form: str = _default("feedforward_form")
+    graph: Graph = Graph.SIM
+    feedforward_form: FeedforwardForm = _default("feedforward_form")
     table: str | None = _default("table")
     table_out: str | None = _default("table_out")
     controller: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """The choices parsed here, at the door: everything after takes their members."""
+        for name, kind, what in _CHOICES:
+            value = getattr(self, name)
+            try:
+                object.__setattr__(self, name, kind(value))
+            except ValueError:
+                raise ExperimentInputError(
+                    f"unknown {what} {value!r}; expected one of {', '.join(kind)}"
+                ) from None
 
     @property
     def shaped(self) -> bool:
@@ -221,42 +250,33 @@ def _load(source: str | ParameterSet, what: str) -> ParameterSet:
 def _model_file(spec: TrackingSpec, folder: Path) -> str:
     """The feedforward model as a file the controller node can load ('' under feedback; the
     controller's setup says what a missing or unusable one lacks)."""
-    if compensation(spec.compensation) is Compensation.FEEDBACK or spec.model is None:
+    if spec.compensation is Compensation.FEEDBACK or spec.model is None:
         return ""
     path = folder / "feedforward_model.yaml"
     save_parameter_set(_load(spec.model, "model"), path)
     return str(path)
 
 
-def _check(spec: TrackingSpec) -> tuple[Compensation, float]:
-    """The spec's compensation, and the spectral radius of its loop at the rate (delay 0: the
-    lockstep's, and rig_loop's answer within a fraction of a sample); refused with the
-    reason where the law's gains fail the sampled-loop check (its output is not applied
-    under feedforward alone)."""
-    if spec.mode not in tuple(Law):
-        raise ExperimentInputError(f"unknown law {spec.mode!r}; expected one of {', '.join(Law)}")
-    if spec.graph not in GRAPHS:
-        raise ExperimentInputError(f"unknown graph {spec.graph!r}; expected one of {GRAPHS}")
-    try:
-        comp = compensation(spec.compensation)
-    except ControlError as exc:
-        raise ExperimentInputError(str(exc)) from exc
+def _check(spec: TrackingSpec) -> float:
+    """The spectral radius of the spec's loop at its rate (delay 0: the lockstep's, and
+    rig_loop's answer within a fraction of a sample); refused with the reason where the law's
+    gains fail the sampled-loop check (its output is not applied under feedforward alone)."""
     rate = float(spec.rate_hz)
     if not (math.isfinite(rate) and rate > 0):
         raise ExperimentInputError(f"--rate-hz must be > 0, got {rate}")
-    if spec.graph == "emulated_rig" and rate not in RIG_RATES:
+    if spec.graph is Graph.EMULATED_RIG and rate not in RIG_RATES:
         raise ExperimentInputError(
             f"the emulated rig's sensor runs at "
             f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}"
         )
     report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
-    if comp is not Compensation.FEEDFORWARD and not report.stable:
+    if spec.compensation is not Compensation.FEEDFORWARD and not report.stable:
         raise ExperimentInputError(
             f"the {spec.mode} law with the thesis gains is unstable sampled at {rate:g} Hz "
             f"(spectral radius {report.spectral_radius:.4g} >= 1, delay 0): choose another "
             "--rate-hz"
         )
-    return comp, float(report.spectral_radius)
+    return float(report.spectral_radius)
 
 
 def _options(spec: TrackingSpec) -> dict[str, Any]:
@@ -302,7 +322,7 @@ def _controller(
 
 def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
     """The lockstep plant + controller plan of one tracking run on the ``sim`` graph."""
-    _, radius = _check(spec)
+    radius = _check(spec)
     trajectory = spec.make_trajectory()
     plant_ps = _load(spec.plant_model, "plant model")
     if plant_ps.dynamics is None:
@@ -384,7 +404,7 @@ def check_voltage_range(spec: TrackingSpec, amplifier: tuple[float, float]) -> N
         return
     try:
         # feedforward alone: no law adds to u_ff, so no margin is kept for it
-        share = 0.0 if compensation(spec.compensation) is Compensation.FEEDFORWARD else PID_MARGIN
+        share = 0.0 if spec.compensation is Compensation.FEEDFORWARD else PID_MARGIN
         model = FeedforwardModel.from_parameter_set(_load(spec.model, "model"))
         rng = AmplifierRange(*amplifier, margin_share=share)
     except ControlError as exc:
@@ -507,7 +527,7 @@ def _rig_controller(spec: TrackingSpec, model_file: str, folder: Path) -> dict[s
 
 def run_amplifier_range(spec: TrackingSpec) -> tuple[float, float]:
     """[V] the amplifier range the run's plan (sim) or graph (emulated_rig) sets."""
-    if spec.graph == "sim":
+    if spec.graph is Graph.SIM:
         plan = make_tracking_plan(spec, "")
         controller = {"executable": "controller", "overrides": plan.controller}
         return graph_amplifier_range([controller], plan.plant)
@@ -621,14 +641,11 @@ def run_tracking(
 
 def _runs_to_make(spec: TrackingSpec, compare: bool) -> list[tuple[str, TrackingSpec]]:
     """The labelled specs to run: ``spec``, then with ``compare`` its feedback-only twin."""
-    specs = [(spec.compensation, spec)]
-    if compare and compensation(spec.compensation) is not Compensation.FEEDBACK:
-        specs.append(
-            (
-                "feedback",
-                replace(spec, compensation="feedback", learn=0, table=None, table_out=None),
-            )
-        )
+    specs: list[tuple[str, TrackingSpec]] = [(spec.compensation.value, spec)]
+    if compare and spec.compensation is not Compensation.FEEDBACK:
+        feedback = Compensation.FEEDBACK
+        twin = replace(spec, compensation=feedback, learn=0, table=None, table_out=None)
+        specs.append((feedback.value, twin))
     return specs
 
 
@@ -646,7 +663,7 @@ def _prepare(label: str, spec: TrackingSpec, folder: Path, seconds: float) -> _R
     """The run of ``spec``, checked as its controller will check it (refused here, before any
     run starts)."""
     model_file = _model_file(spec, folder)
-    plan = make_tracking_plan(spec, model_file, seconds) if spec.graph == "sim" else None
+    plan = make_tracking_plan(spec, model_file, seconds) if spec.graph is Graph.SIM else None
     check_controller(plan.controller if plan else _rig_controller(spec, model_file, folder))
     return _Run(label, spec, model_file, plan)
 
@@ -713,7 +730,11 @@ def _feedback_states(
     spec: TrackingSpec, runs: dict[str, tuple[ControllerStates, Recording]]
 ) -> ControllerStates | None:
     """The feedback-only twin's states when it was run for comparison, else None."""
-    return runs["feedback"][0] if "feedback" in runs and spec.compensation != "feedback" else None
+    return (
+        runs["feedback"][0]
+        if "feedback" in runs and spec.compensation is not Compensation.FEEDBACK
+        else None
+    )
 
 
 def _name(spec: TrackingSpec) -> str:
@@ -732,7 +753,7 @@ def plot_tracking(
 
     name = _name(spec)
     fb = None if feedback is None else (feedback.t, feedback.x)
-    where = "lockstep" if spec.graph == "sim" else "emulated rig"
+    where = "lockstep" if spec.graph is Graph.SIM else "emulated rig"
     return tracking_figure(
         Path(out_dir) / f"tracking_{name}_{spec.compensation}.png",
         states.t,
