@@ -140,7 +140,7 @@ def test_rig_loop_graph_composes_the_three_nodes_into_one_process():
 def test_the_hand_off_drains_twenty_samples_at_a_time_within_2_and_10_ms():
     """Each drain holds the GIL while the loop waits: at 10 kHz a 2 ms drain (20 samples) keeps
     p99 under 0.5 ms where 10 ms did not (bench/control_loop.py); at 1 kHz and below, 10 ms."""
-    from piezo_stage.nodes.rig_loop import publish_period
+    from piezo_stage.nodes.handoff import publish_period
 
     assert publish_period(10_000.0) == pytest.approx(0.002)
     assert publish_period(5_000.0) == pytest.approx(0.004)
@@ -152,14 +152,14 @@ def test_the_publisher_thread_drains_in_order_in_slices_and_close_publishes_the_
     """The loop only appends; the publisher thread publishes the queue in order, sleeping
     SLICE_GAP every DRAIN_SLICE publications (the CPU goes back to the machine between slices),
     and close() stops it and publishes what is left."""
-    from piezo_stage.nodes import rig_loop
-    from piezo_stage.nodes.rig_loop import DRAIN_SLICE, Handoff
+    from piezo_stage.nodes import handoff as module
+    from piezo_stage.nodes.handoff import DRAIN_SLICE, Handoff
 
     published: list[int] = []
     naps: list[float] = []
-    sleep = rig_loop.time.sleep
+    sleep = module.time.sleep
     handoff = Handoff(period=0.005)
-    rig_loop.time.sleep = lambda s: (naps.append(s), sleep(s))[1]  # type: ignore[assignment]
+    module.time.sleep = lambda s: (naps.append(s), sleep(s))[1]  # type: ignore[assignment]
     try:
         handoff.start_publisher(0)
         assert not handoff.in_loop  # the loop thread's drain_due no longer publishes
@@ -168,14 +168,14 @@ def test_the_publisher_thread_drains_in_order_in_slices_and_close_publishes_the_
         handoff.drain_due()
         assert spin_wait(lambda: len(published) == 3 * DRAIN_SLICE, 5.0)
         assert published == list(range(3 * DRAIN_SLICE))
-        assert naps.count(rig_loop.SLICE_GAP) >= 2  # 24 publications: 3 slices, 2 naps
+        assert naps.count(module.SLICE_GAP) >= 2  # 24 publications: 3 slices, 2 naps
         handoff._stop.set()  # the thread stops: close() must still publish what was put
         handoff._thread.join(timeout=5.0)
         handoff.put(published.append, -1)
         handoff.close()
         assert published[-1] == -1 and handoff.publisher_error is None
     finally:
-        rig_loop.time.sleep = sleep  # type: ignore[assignment]
+        module.time.sleep = sleep  # type: ignore[assignment]
         handoff.close()
 
 

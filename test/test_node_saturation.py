@@ -5,8 +5,6 @@ saturated since its previous report."""
 
 from __future__ import annotations
 
-from typing import Any, Callable
-
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
@@ -81,21 +79,16 @@ def test_the_controller_node_reports_saturation_in_its_states_and_on_diagnostics
         stop(proc)
 
 
-class _Handoff:
-    """rig_loop's hand-off, publishing at once (what its drain does later)."""
-
-    def put(self, publish: Callable[..., None], *args: Any) -> None:
-        publish(*args)
-
-
 def test_the_composed_controller_reports_saturation_in_its_states_and_diagnosis(node):
     """The form rig_loop composes: on_sample() per sensor sample, the states through the
     hand-off; the diagnosis its /diagnostics timer publishes."""
     from piezo_stage.nodes.controller import ControllerNode
+    from piezo_stage.nodes.handoff import Handoff
     from piezo_stage_msgs.msg import ControllerState
 
     overrides = [Parameter(k, value=v) for k, v in SETTINGS.items()]
-    controller = ControllerNode(composed=True, handoff=_Handoff(), overrides=overrides)
+    # rig_loop's hand-off, publishing at once (what its drain does later)
+    controller = ControllerNode(handoff=Handoff(inline=True), overrides=overrides)
     states: list = []
     topic = controller.get_fully_qualified_name().rsplit("/", 1)[0] + "/controller_state"
     deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)  # all 50 kept

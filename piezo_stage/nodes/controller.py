@@ -79,6 +79,7 @@ from .controller_params import PARAMETERS as PARAMETERS  # the launcher reads it
 from .controller_params import SensorQos, StepTrigger
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
+from .handoff import Handoff
 from .parameters import on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, subscribers_matched, to_stamp
@@ -101,13 +102,11 @@ LEVELS = {Health.OK: OK, Health.WARN: WARN, Health.ERROR: ERROR}
 
 
 class ControllerNode(PiezoNode):
-    """``composed``: part of the rig loop (:mod:`.rig_loop`), which calls :meth:`on_sample` from
-    its loop thread and routes every publication through ``handoff``; no displacement
+    """With a ``handoff``: part of the rig loop (:mod:`.rig_loop`), which calls :meth:`on_sample`
+    from its loop thread and routes every publication through the hand-off; no displacement
     subscription, no timer."""
 
-    def __init__(
-        self, composed: bool = False, handoff: Any = None, overrides: Sequence[Parameter] = ()
-    ) -> None:
+    def __init__(self, handoff: Handoff | None = None, overrides: Sequence[Parameter] = ()) -> None:
         super().__init__(
             "controller", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
         )
@@ -175,7 +174,7 @@ class ControllerNode(PiezoNode):
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
         self._trigger = s.trigger
-        if not composed:
+        if handoff is None:
             reliable = s.sensor_qos is SensorQos.RELIABLE
             self.create_subscription(
                 Displacement,

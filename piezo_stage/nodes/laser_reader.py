@@ -26,7 +26,7 @@ import math
 import sys
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 from rclpy.parameter import Parameter
 
@@ -38,6 +38,7 @@ from piezo_stage_msgs.msg import Displacement
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
+from .handoff import Handoff
 from .parameters import on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
@@ -175,7 +176,7 @@ class LaserReaderNode(PiezoNode):
         self,
         loop: SampleSink | None = None,
         idle: Callable[[int], None] | None = None,
-        handoff: Any = None,
+        handoff: Handoff | None = None,
         overrides: Sequence[Parameter] = (),
         loop_priority: int = 0,
         start: bool = True,
@@ -309,10 +310,12 @@ class LaserReaderNode(PiezoNode):
             self._publish(value, out.status, out.stamp)
             return
         keep = self._loop(value, out.status, out.stamp)  # the control step first, then topics
+        handoff = self._handoff
+        assert handoff is not None  # the composed loop gives one with its step
         if keep is None:
-            self._handoff.put(self._publish, value, out.status, out.stamp)
+            handoff.put(self._publish, value, out.status, out.stamp)
         elif any(keep):
-            self._handoff.put(
+            handoff.put(
                 self._publish,
                 *(
                     [x for x, due in zip(column, keep) if due]

@@ -34,7 +34,7 @@ import enum
 import math
 import sys
 import threading
-from typing import Any, Sequence
+from typing import Sequence
 
 from rclpy.parameter import Parameter
 
@@ -61,6 +61,7 @@ from piezo_stage_msgs.msg import Voltage
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
+from .handoff import Handoff
 from .parameters import on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, wall_clock
@@ -245,19 +246,17 @@ class Rejection(enum.Enum):
 
 
 class VoltageDriverNode(PiezoNode):
-    """``composed``: part of the rig loop (:mod:`.rig_loop`), whose loop thread calls
+    """With a ``handoff``: part of the rig loop (:mod:`.rig_loop`), whose loop thread calls
     :meth:`command` directly; no voltage_command subscription (the controller in the same
     process still publishes the topic), every publication through ``handoff``."""
 
-    def __init__(
-        self, composed: bool = False, handoff: Any = None, overrides: Sequence[Parameter] = ()
-    ) -> None:
+    def __init__(self, handoff: Handoff | None = None, overrides: Sequence[Parameter] = ()) -> None:
         super().__init__(
             "voltage_driver", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
         )
         self._handoff = handoff
         p: VoltageDriverSettings = self.declare_settings(PARAMETERS)
-        if p.apply_at_stamp and composed:
+        if p.apply_at_stamp and handoff is not None:
             raise RosParameterError(
                 "voltage_driver: apply_at_stamp plays commands that arrive on voltage_command "
                 "at their stamps; in the composed loop (rig_loop) the law's output is written "
@@ -331,14 +330,14 @@ class VoltageDriverNode(PiezoNode):
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
         self._msg = Voltage()
-        if not composed:
+        if handoff is None:
             self.create_subscription(Voltage, "voltage_command", self._on_command, COMMAND_QOS)
         self.create_timer(p.watchdog_period, self._watchdog, clock=wall_clock())
         # composed: the loop thread reads back right after a write, when one is due (a timer's
         # device round trip would hold the driver while a sample waits to be answered)
         self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 else math.inf
         self._readback_due = 0.0 if p.readback_rate_hz > 0 else math.inf  # 0: never
-        if p.readback_rate_hz > 0 and not composed:
+        if p.readback_rate_hz > 0 and handoff is None:
             self.create_timer(self._readback_period, self._readback, clock=wall_clock())
         self._diagnostics = Diagnostics(self, f"{p.backend} {self.url}", self._diagnose)
         self._reported_down = False
