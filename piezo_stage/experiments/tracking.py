@@ -55,8 +55,9 @@ from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import THESIS_GAINS, Law
 from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
+from piezo_stage.control.setup import SetupError, load_trajectory
 from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ, tracking_errors
-from piezo_stage.control.trajectory import Trajectory, make_trajectory
+from piezo_stage.control.trajectory import Trajectory
 from piezo_stage.control.voltage_range import (
     PID_MARGIN,
     AmplifierRange,
@@ -215,18 +216,15 @@ class TrackingSpec:
         return self.offset
 
     def make_trajectory(self) -> Trajectory:
+        """The trajectory the controller will generate (:func:`~.control.setup.load_trajectory`
+        on the parameters the spec sets)."""
+        values = CONTROLLER.defaults() | _options(self) | {"reference_source": "trajectory"}
         try:
-            return make_trajectory(
-                self.trajectory,
-                amplitude=self.amplitude,
-                frequency=self.frequency,
-                offset=self.effective_offset,
-                rounding=self.rounding,
-                v_max=self.v_max,
-                a_max=self.a_max,
-            )
-        except ControlError as exc:
+            trajectory = load_trajectory(CONTROLLER.settings(values))
+        except SetupError as exc:
             raise ExperimentInputError(str(exc)) from exc
+        assert trajectory is not None  # reference_source trajectory: given or refused
+        return trajectory
 
     def timing(self, trajectory: Trajectory) -> tuple[float, float]:
         """(seconds run, where the measured part starts) — see the module docstring."""
