@@ -16,7 +16,9 @@ fuzz: setup       ## property tests with random seeds, FUZZ x their examples (de
 	@$(ENV) PIEZO_FUZZ_FACTOR=$${FUZZ:-50} $(PYTEST) -m hypothesis \
 	  --hypothesis-profile=fuzz --hypothesis-show-statistics
 lint: setup       ## ruff (D on the core), ruff format, mypy strict, import layers, complexity <= 20
-	@$(ENV) ruff check . && ruff format --check . && mypy && lint-imports --no-cache \
+	@$(ENV) ruff check . && ruff format --check . && mypy \
+	  && { out=$$(lint-imports --no-cache 2>&1) || { echo "$$out"; exit 1; }; \
+	       echo "$$out" | tail -n 1; } \
 	  && python scripts/check_complexity.py
 bench: setup      ## speed/accuracy figures against their baselines
 	@$(ENV) for b in bench/*.py; do echo "== $$b"; python $$b || exit 1; done
