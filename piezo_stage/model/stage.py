@@ -8,7 +8,9 @@ the ``plant`` node and the rig emulator call; the node only schedules it. Defaul
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from enum import IntEnum
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,9 +18,12 @@ from numpy.typing import NDArray
 from .errors import InvalidCommandError, ParameterValueError
 from .parameter_set import ParameterSet
 from .plant import DEFAULT_TOL, DynamicPlant, StaticPlant, _check_dt
+from .stage_file import Stage
 
 __all__ = [
     "AmplifierModel",
+    "AxesSample",
+    "CoupledStage",
     "SensorModel",
     "SimulatedStage",
     "SensorStatus",
@@ -247,3 +252,78 @@ class SimulatedStage:
             i = (k + 1) * every - 1
             out[k] = (applied[i], *self.sensor.measure(float(x[i]) + y0))
         return out
+
+
+class AxesSample(NamedTuple):
+    """One step of a :class:`CoupledStage`, per axis in the stage's order."""
+
+    applied: NDArray[np.float64]  #: amplifier output voltages [V]
+    readings: NDArray[np.float64]  #: sensor readings [m] (NaN unless the status is OK)
+    status: NDArray[np.int64]  #: :class:`SensorStatus` codes
+
+
+class CoupledStage:
+    """N axes of a :class:`~piezo_stage.model.stage_file.Stage`, each an amplifier and a plant,
+    whose sensors read the coupled displacements y = y0 + C (y* - y0), one step at a time.
+
+    Each axis is a :class:`SimulatedStage` with an ideal sensor (its own displacement y*);
+    ``sensors[i]`` then measures axis i's coupled displacement.
+    """
+
+    def __init__(
+        self,
+        stage: Stage,
+        amplifiers: Sequence[AmplifierModel] | None = None,
+        sensors: Sequence[SensorModel] | None = None,
+        tol: float = DEFAULT_TOL,
+    ) -> None:
+        n = len(stage.axes)
+        amplifiers = (
+            list(amplifiers) if amplifiers is not None else [AmplifierModel() for _ in range(n)]
+        )
+        sensors = list(sensors) if sensors is not None else [SensorModel() for _ in range(n)]
+        if len(amplifiers) != n or len(sensors) != n:
+            raise ParameterValueError(
+                f"a stage of {n} axes needs {n} amplifiers and {n} sensors, "
+                f"got {len(amplifiers)} and {len(sensors)}"
+            )
+        self.stage = stage
+        self.axes = [
+            SimulatedStage(axis.model, amplifier=amp, tol=tol)
+            for axis, amp in zip(stage.axes, amplifiers)
+        ]
+        self.sensors = sensors
+        self._y0 = stage.rest_outputs()
+        self._own = np.array([a.output()[1] for a in self.axes])
+        self.time = 0.0
+
+    def own_displacements(self) -> NDArray[np.float64]:
+        """y* of every axis now (each plant's own output)."""
+        return self._own.copy()
+
+    def _measure(self, applied: NDArray[np.float64]) -> AxesSample:
+        coupled = self._y0 + self.stage.coupling @ (self._own - self._y0)
+        readings = np.empty(len(self.axes))
+        status = np.empty(len(self.axes), dtype=np.int64)
+        for i, sensor in enumerate(self.sensors):
+            readings[i], status[i] = sensor.measure(float(coupled[i]))
+        return AxesSample(applied, readings, status)
+
+    def output(self) -> AxesSample:
+        """(applied voltages, sensor readings, statuses) now, without advancing."""
+        return self._measure(np.array([a.amplifier.voltage for a in self.axes]))
+
+    def step(self, commands: Sequence[float], dt: float) -> AxesSample:
+        """Hold ``commands[i]`` on axis i for dt; (applied, readings, statuses) per axis. A NaN or
+        infinite command raises :class:`InvalidCommandError` before any axis moves.
+        """
+        values = [_finite_command(c) for c in commands]
+        if len(values) != len(self.axes):
+            raise InvalidCommandError(
+                f"a stage of {len(self.axes)} axes needs as many commands, got {len(values)}"
+            )
+        applied = np.empty(len(self.axes))
+        for i, (axis, command) in enumerate(zip(self.axes, values)):
+            applied[i], self._own[i], _ = axis.step(command, dt)
+        self.time += dt
+        return self._measure(applied)
