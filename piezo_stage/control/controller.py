@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from enum import Enum, StrEnum
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 from .errors import ControllerConfigError, MeasurementError
 from .feedforward import Compensation, Feedforward, FeedforwardModel
@@ -237,6 +237,18 @@ class ControllerConfig:
         return min(max(u, self.u_min), self.u_max)
 
 
+class OwnFrame(NamedTuple):
+    """An axis of a coupled stage in its own frame (docs/design.md section 12): its own
+    displacement y* [m] and own reference (y*_d [m], ẏ*_d [m/s], ÿ*_d [m/s²]), what its
+    feedforward inverts when the coupling is compensated.
+    """
+
+    x: float
+    xd: float
+    vd: float
+    ad: float
+
+
 @dataclass(frozen=True)
 class ControlOutput:
     """One controller period; field names match ``piezo_stage_msgs/msg/ControllerState``.
@@ -372,10 +384,12 @@ class TimeVaryingPID:
         yr: float = 0.0,
         yr_dot: float | None = None,
         yr_ddot: float = 0.0,
+        own: OwnFrame | None = None,
     ) -> ControlOutput:
         """One period at time ``t`` [s] with measured position ``x_measured`` [m] and reference
         ``yr`` [m] (and ẏr [m/s] if known; else its Euler difference is used; ÿr [m/s²] for the
-        feedforward's m·ÿr term).
+        feedforward's m·ÿr term). ``own``: the model feedforward is seeded and stepped in the
+        axis's own frame instead (a coupled stage); the PID still acts on x − yr.
         """
         check_sample(t, x_measured, yr, yr_dot, yr_ddot)
         cfg = self._config
@@ -388,7 +402,11 @@ class TimeVaryingPID:
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
         if self._t_table is None:
             self._t_table = t
-        self._u_ff = u_ff = self._feedforward_term(t, x_measured, yr, yr_dot, yr_ddot)
+        if own is None:
+            u_ff = self._feedforward_term(t, x_measured, yr, yr_dot, yr_ddot)
+        else:
+            u_ff = self._feedforward_term(t, own.x, own.xd, own.vd, own.ad)
+        self._u_ff = u_ff
         if self._pending_close:
             self._close_now(t, x1, x2)
         elif self._closed and self._t_close is None:

@@ -304,6 +304,21 @@ class CsvTrajectory:
 Trajectory = PeriodicTrajectory | CsvTrajectory
 
 
+@dataclass(frozen=True)
+class SetPoint:
+    """x_d = ``position`` at all times (an axis held while another moves); no period."""
+
+    position: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _finite("position", self.position))
+
+    def evaluate(self, t: ArrayLike) -> Evaluation:
+        """(x_d, ẋ_d, ẍ_d) at ``t``: the position, 0, 0."""
+        t = np.asarray(t, dtype=float)
+        return np.full_like(t, self.position), np.zeros_like(t), np.zeros_like(t)
+
+
 def make_trajectory(
     kind: str,
     *,

@@ -1,0 +1,184 @@
+"""A stage of several axes: one ch. 11 loop per axis, the coupling taken out of the feedforward.
+
+With the static coupling y = y0 + C (y* − y0) (docs/design.md section 12), the stage shows the
+desired displacements y_d when each axis's own displacement follows
+
+    y*_d = y0 + C⁻¹ (y_d − y0),   ẏ*_d = C⁻¹ ẏ_d,   ÿ*_d = C⁻¹ ÿ_d
+
+so each axis's feedforward (the model stepped along (11.1), or a table) is computed along its own
+y*_d, seeded from its own displacement y* = y0 + C⁻¹ (y − y0), while its PID acts on its
+measured error y_i − y_d,i as in the single-axis loop. Without coupling compensation every
+frame is the measured one. No rclpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from piezo_stage.model.stage import CoupledStage
+from piezo_stage.model.stage_file import Stage
+
+from .controller import ControlOutput, OwnFrame, TimeVaryingPID
+from .errors import ControlError
+from .trajectory import SetPoint, Trajectory
+
+__all__ = [
+    "AxisReference",
+    "StageController",
+    "StageReference",
+    "StageRun",
+    "own_reference",
+    "simulate_stage",
+]
+
+AxisReference = Trajectory | SetPoint
+#: (x_d, ẋ_d, ẍ_d), each of shape (axes,) or (axes, samples)
+Frames = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+
+
+def own_reference(stage: Stage, xd: ArrayLike, vd: ArrayLike, ad: ArrayLike) -> Frames:
+    """(y*_d, ẏ*_d, ÿ*_d) = (y0 + C⁻¹ (y_d − y0), C⁻¹ ẏ_d, C⁻¹ ÿ_d); rows are axes."""
+    y0 = stage.rest_outputs()
+    xd, vd, ad = (np.asarray(a, dtype=float) for a in (xd, vd, ad))
+    shape = (-1,) + (1,) * (xd.ndim - 1)
+    y0 = y0.reshape(shape)
+    solve = np.linalg.solve
+    return y0 + solve(stage.coupling, xd - y0), solve(stage.coupling, vd), solve(stage.coupling, ad)
+
+
+class StageReference:
+    """The desired displacement of every axis, in the measured frame and each axis's own."""
+
+    def __init__(
+        self, stage: Stage, references: Sequence[AxisReference], compensate_coupling: bool = True
+    ) -> None:
+        if len(references) != len(stage.axes):
+            raise ControlError(
+                f"a stage of {len(stage.axes)} axes needs one reference per axis, "
+                f"got {len(references)}"
+            )
+        self.stage = stage
+        self.references = tuple(references)
+        self.compensate_coupling = bool(compensate_coupling)
+
+    def measured(self, t: ArrayLike) -> Frames:
+        """(y_d, ẏ_d, ÿ_d) at ``t``; rows are axes."""
+        rows = [r.evaluate(t) for r in self.references]
+        return tuple(np.array([row[k] for row in rows]) for k in range(3))  # type: ignore[return-value]
+
+    def own(self, t: ArrayLike) -> Frames:
+        """What each axis's feedforward follows: :func:`own_reference` of :meth:`measured`, or
+        the measured frame itself without coupling compensation.
+        """
+        frames = self.measured(t)
+        return own_reference(self.stage, *frames) if self.compensate_coupling else frames
+
+    @property
+    def period(self) -> float | None:
+        """The longest period of the moving axes (None when every axis holds a set point)."""
+        periods = [getattr(r, "period", None) for r in self.references]
+        finite = [p for p in periods if p is not None and math.isfinite(p)]
+        return max(finite) if finite else None
+
+
+class StageController:
+    """One :class:`~.controller.TimeVaryingPID` per axis, updated together each sample."""
+
+    def __init__(
+        self,
+        stage: Stage,
+        controllers: Sequence[TimeVaryingPID],
+        compensate_coupling: bool = True,
+    ) -> None:
+        if len(controllers) != len(stage.axes):
+            raise ControlError(
+                f"a stage of {len(stage.axes)} axes needs one controller per axis, "
+                f"got {len(controllers)}"
+            )
+        self.stage = stage
+        self.controllers = tuple(controllers)
+        self.compensate_coupling = bool(compensate_coupling)
+
+    def update(
+        self, t: float, measured: NDArray[np.float64], desired: Frames, own: Frames
+    ) -> list[ControlOutput]:
+        """One period: axis i's controller gets y_i and (y_d, ẏ_d, ÿ_d)_i, and with coupling
+        compensation its own frame (y*_i, y*_d,i, ẏ*_d,i, ÿ*_d,i) for the feedforward.
+        """
+        x_own = self.stage.own(measured) if self.compensate_coupling else None
+        outputs = []
+        for i, pid in enumerate(self.controllers):
+            frame = None
+            if x_own is not None:
+                frame = OwnFrame(
+                    float(x_own[i]), float(own[0][i]), float(own[1][i]), float(own[2][i])
+                )
+            outputs.append(
+                pid.update(
+                    t,
+                    float(measured[i]),
+                    float(desired[0][i]),
+                    float(desired[1][i]),
+                    float(desired[2][i]),
+                    own=frame,
+                )
+            )
+        return outputs
+
+
+@dataclass(frozen=True)
+class StageRun:
+    """A run of :func:`simulate_stage`; arrays of shape (samples, axes) but ``t``."""
+
+    t: NDArray[np.float64]
+    measured: NDArray[np.float64]
+    reference: NDArray[np.float64]
+    u: NDArray[np.float64]
+    u_ff: NDArray[np.float64]
+    saturated: NDArray[np.bool_]
+
+    def errors(self, t_from: float = 0.0) -> NDArray[np.float64]:
+        """RMS of y − y_d per axis from ``t_from`` [m]."""
+        keep = self.t >= t_from
+        e = self.measured[keep] - self.reference[keep]
+        return np.sqrt(np.mean(e * e, axis=0))
+
+
+def simulate_stage(
+    controller: StageController,
+    plant: CoupledStage,
+    reference: StageReference,
+    rate_hz: float,
+    duration: float,
+) -> StageRun:
+    """Run every axis's loop against the coupled ``plant`` at ``rate_hz`` for ``duration`` s:
+    each period, measure all axes, update all controllers, hold their outputs over the period
+    (zero-order hold, no delay), step the plant.
+    """
+    if not (math.isfinite(rate_hz) and rate_hz > 0 and math.isfinite(duration) and duration > 0):
+        raise ControlError(f"rate_hz and duration must be > 0, got {rate_hz}, {duration}")
+    n, axes = int(round(duration * rate_hz)), len(controller.controllers)
+    t = np.arange(n) * (1.0 / rate_hz)  # the grid simulate_closed_loop steps on
+    desired, own = reference.measured(t), reference.own(t)
+    record = {k: np.empty((n, axes)) for k in ("measured", "u", "u_ff")}
+    saturated = np.zeros((n, axes), dtype=bool)
+    readings = plant.output().readings
+    for k in range(n):
+        outputs = controller.update(
+            float(t[k]),
+            readings,
+            tuple(f[:, k] for f in desired),  # type: ignore[arg-type]
+            tuple(f[:, k] for f in own),  # type: ignore[arg-type]
+        )
+        u = [o.u for o in outputs]
+        record["measured"][k] = readings
+        record["u"][k] = u
+        record["u_ff"][k] = [o.u_ff for o in outputs]
+        saturated[k] = [o.saturated for o in outputs]
+        readings = plant.step(u, 1.0 / rate_hz).readings
+    return StageRun(t=t, reference=desired[0].T.copy(), saturated=saturated, **record)
