@@ -155,7 +155,7 @@ def test_open_loop_mode_is_selected_on_connect():
     with EmulatorServer(model, tcp_port=0) as server:
         driver = make_driver(server, "gcs")
         driver.connect()
-        assert model.servo_on is False and model.online is True
+        assert model.servo_on is False and model.online == {model.axis: True}
         assert driver.set_voltage(10.0).sent == 10.0
         assert driver.read_voltage() == 10.0
         driver.close()
@@ -186,7 +186,7 @@ def test_slew_rate_limits_every_step(rig):
 def test_limits_win_over_slew():
     """A device above the configured maximum is brought inside at once, never left outside."""
     model = GCSDeviceModel(servo_on=False)
-    model.voltage = 110.0
+    model.voltages[model.axis] = 110.0
     with EmulatorServer(model, tcp_port=0) as server:
         clock = FakeClock()
         driver = make_driver(server, "gcs", clock, v_max=100.0, slew_rate=10.0)

@@ -19,9 +19,12 @@ from piezo_stage.cli import main
 from piezo_stage.hardware.amplifier import make_amplifier
 from piezo_stage.hardware.driver import DriverConfig, VoltageDriver
 from piezo_stage.hardware.emulators.rig import RigEmulator
+from piezo_stage.hardware.emulators.voltage_log import read_voltage_log
 from piezo_stage.hardware.errors import ConnectionLost
+from piezo_stage.hardware.gcs import GCSConnection
 from piezo_stage.hardware.optoncdt import SampleBlock, Status, frame_format
 from piezo_stage.hardware.sensor import SensorConfig, SensorReader
+from piezo_stage.hardware.transport import make_transport
 
 pytestmark = pytest.mark.ros
 
@@ -83,6 +86,48 @@ def test_gcs_on_tcp_and_mdt_on_pty_in_process(capsys):
     amp.close()
     thread.join(5)
     assert result["rc"] == 0
+
+
+def test_an_e727_class_controller_logs_what_each_axis_applied(capsys, tmp_path):
+    log = tmp_path / "applied.csv"
+    thread, ends, result = run_in_thread(
+        ["emulate", "gcs", "--axes", "1,2,3", "--tcp", "0", "--log", str(log), "--duration", "1"],
+        capsys,
+        1,
+    )
+    with make_transport(ends["gcs"]) as transport:
+        conn = GCSConnection(transport, timeout=1.0)
+        assert conn.query("SAI?") == ["1", "2", "3"]
+        conn.command("SVO 1 0 2 0 3 0")
+        conn.command("SVA 1 10 2 20 3 30")
+        conn.command("SVA 2 21")
+    thread.join(5)
+    assert result["rc"] == 0
+    rows = read_voltage_log(log)
+    assert {axis: [v for _, v in r] for axis, r in rows.items()} == {
+        "1": [10.0],
+        "2": [20.0, 21.0],
+        "3": [30.0],
+    }
+    times = [t for r in rows.values() for t, _ in r]
+    assert all(0.0 <= t < 5.0 for t in times) and rows["2"][0][0] <= rows["2"][1][0]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["gcs", "--axes", "1,1"], "distinct alphanumeric axis names"),
+        (["gcs", "--axes", "1,,2"], "distinct alphanumeric axis names"),
+        (["mdt69x", "--log", "/nonexistent/dir/a.csv"], "cannot write the voltage log"),
+    ],
+)
+def test_bad_axes_or_log_are_one_line_and_exit_2(argv, message, capsys):
+    with pytest.raises(SystemExit) as info:
+        rc = main(["emulate", *argv, "--duration", "0.1"])
+        raise SystemExit(rc)
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1]
 
 
 def test_optoncdt_with_error_values_and_periodic_disconnect(capsys, tmp_path):

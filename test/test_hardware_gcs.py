@@ -3,6 +3,9 @@ emulator."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from piezo_stage.hardware.emulators import EmulatorServer, Faults, GCSDeviceModel
@@ -232,3 +235,63 @@ def test_a_full_pipeline_waits_for_the_oldest_reply_and_times_out_on_a_silent_de
                     conn.command_pipelined(f"SVA 1 {k}")
                     sent += 1
             assert sent == 2
+
+
+def test_a_three_axis_controller_writes_every_axis_in_one_command():
+    """E-727 class: SAI? lists three axes; ``SVA 1 a 2 b 3 c`` sets all three at once, and a
+    pair that is refused leaves every axis where it was."""
+    seen = []
+    model = GCSDeviceModel(
+        axes=("1", "2", "3"), v_min=0.0, v_max=100.0, on_axis_voltage=lambda *a: seen.append(a[:2])
+    )
+    with EmulatorServer(model, tcp_port=0) as server, make_transport(server.url) as transport:
+        conn = GCSConnection(transport, timeout=0.5)
+        assert conn.query("SAI?") == ["1", "2", "3"]
+        conn.command("SVO 1 0 2 0 3 0")
+        assert conn.query_items("SVO?") == {"1": "0", "2": "0", "3": "0"}
+        conn.command("SVA 1 10 2 20.5 3 30")
+        assert conn.query_items("VOL? 1 2 3") == {"1": "10", "2": "20.5", "3": "30"}
+        assert seen == [("1", 10.0), ("2", 20.5), ("3", 30.0)]
+        for bad, code in (("SVA 1 11 2 200", 66), ("SVA 1 11 4 5", 15), ("SVA 1 11 2", 1)):
+            with pytest.raises(GCSError) as err:
+                conn.command(bad)
+            assert err.value.code == code
+        assert model.applied_voltages() == {"1": 10.0, "2": 20.5, "3": 30.0}
+        conn.command("SVO 2 1")  # one axis back in closed loop: open-loop writes to it refused
+        with pytest.raises(GCSError) as err:
+            conn.command("SVA 1 12 2 12")
+        assert err.value.code == 79
+        conn.command("SVA 3 31")
+        assert conn.query_float("VOL? 3", "3") == 31.0
+        assert conn.query_items("VMA? 1 2 3") == {"1": "100", "2": "100", "3": "100"}
+        with pytest.raises(GCSError) as err:
+            conn.query("VOL? 4")
+        assert err.value.code == 17
+
+
+def test_pipython_sees_three_axes_and_writes_them_together():
+    """PIPython in a fresh interpreter: its gateways share class-level connection callbacks, so
+    a second GCSDevice in a process whose first one was closed gets a broken socket."""
+    script = (
+        "import sys\n"
+        "from pipython import GCSDevice\n"
+        "from pipython.pidevice.interfaces.pisocket import PISocket\n"
+        "device = GCSDevice(gateway=PISocket(host='127.0.0.1', port=int(sys.argv[1])))\n"
+        "assert device.axes == ['1', '2', '3'], device.axes\n"
+        "device.SVO(['1', '2', '3'], [False, False, False])\n"
+        "device.SVA(['1', '2', '3'], [5.0, 6.0, 7.0])\n"
+        "assert device.qSVA() == {'1': 5.0, '2': 6.0, '3': 7.0}, device.qSVA()\n"
+        "assert device.qVOL([1, 2, 3]) == {1: 5.0, 2: 6.0, 3: 7.0}, device.qVOL([1, 2, 3])\n"
+        "print('ok')\n"
+    )
+    model = GCSDeviceModel(axes=("1", "2", "3"), v_min=0.0, v_max=100.0)
+    with EmulatorServer(model, tcp_port=0) as server:
+        done = subprocess.run(
+            [sys.executable, "-c", script, str(server.port)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
+    writes = [c.split() for c in model.commands if c.startswith("SVA ")]
+    assert [w[1::2] for w in writes] == [["1", "2", "3"]]  # one line for the three axes

@@ -65,3 +65,17 @@ def test_single_channel_model_has_only_x():
     assert model.execute("yvoltage=1").endswith(b"CMD_NOT_DEFINED>")
     with pytest.raises(ConfigError):
         MDTDeviceModel("MDT694B", vlimit=120.0)
+
+
+def test_the_three_channels_are_written_in_one_command(served):
+    model, conn = served
+    seen = []
+    model.on_axis_voltage = lambda axis, value, at: seen.append((axis, value))
+    conn.exchange("xyzvoltage=10,20.5,30")
+    assert model.applied_voltages() == {"x": 10.0, "y": 20.5, "z": 30.0}
+    assert seen == [("x", 10.0), ("y", 20.5), ("z", 30.0)]
+    assert conn.exchange("xyzvoltage?").replace(" ", "") == "[10.00,20.50,30.00]"
+    for bad in ("xyzvoltage=1,2", "xyzvoltage=1,2,200", "xyzvoltage=1,x,3"):
+        with pytest.raises(DeviceError):
+            conn.exchange(bad)
+    assert model.applied_voltages() == {"x": 10.0, "y": 20.5, "z": 30.0}

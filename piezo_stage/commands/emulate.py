@@ -12,8 +12,10 @@ first); a second signal stops it at once.
 Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbage (random bursts),
 --hangup (a reply cut and the line dropped), --stall/--stall-time (the device stops), --slow
 (reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
+--log FILE (amplifiers and rig) writes a CSV row (time, axis, volts) per applied voltage.
 
   piezo-stage emulate gcs --tcp 50000
+  piezo-stage emulate gcs --axes 1,2,3 --tcp 50000 --log applied.csv   # an E-727-class controller
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
   piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link run:rig_sensor
@@ -39,6 +41,7 @@ from piezo_stage.hardware.emulators import (
     MDTDeviceModel,
     OptoNCDTDeviceModel,
 )
+from piezo_stage.hardware.emulators.voltage_log import VoltageLog
 from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
 
 SENSOR_FAMILIES = sorted(FAMILIES)
@@ -158,13 +161,20 @@ def _sensor_args(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="device", required=True, metavar="DEVICE")
-    gcs = sub.add_parser("gcs", help="PI E-709-class controller (GCS 2.0)")
+    gcs = sub.add_parser("gcs", help="PI E-709-class (one axis) or E-727-class (--axes) controller")
     where = gcs.add_mutually_exclusive_group()
     where.add_argument(
         "--tcp", type=port, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)"
     )
     where.add_argument("--pty", action="store_true", help="serve on a pty (default)")
     gcs.add_argument("--axis", default="1", help="axis identifier reported by SAI?")
+    gcs.add_argument(
+        "--axes",
+        type=axis_names,
+        default=None,
+        metavar="A,B,...",
+        help="several axes (E-727 class: 1,2,3), axis i driving output channel i",
+    )
     gcs.add_argument("--v-min", type=float, default=-30.0, help="VMI? [V]")
     gcs.add_argument("--v-max", type=float, default=130.0, help="VMA? [V]")
     gcs.add_argument(
@@ -175,12 +185,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not refuse SVA while the servo is on (the real controller refuses, error 79)",
     )
+    _log_arg(gcs)
     _faults(gcs)
 
     mdt = sub.add_parser("mdt69x", help="Thorlabs MDT694B/MDT693B on a pty")
     mdt.add_argument("--model", choices=("MDT694B", "MDT693B"), default="MDT694B")
     mdt.add_argument("--vlimit", type=float, choices=(75.0, 100.0, 150.0), default=150.0)
     mdt.add_argument("--no-echo", action="store_true", help="start with command echo off")
+    _log_arg(mdt)
     _faults(mdt)
 
     sensor = sub.add_parser("optoncdt", help="Micro-Epsilon optoNCDT sensor on a pty")
@@ -245,7 +257,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)",
     )
     _sensor_args(rig)
+    _log_arg(rig)
     _faults(rig, link=False)
+
+
+def _log_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--log",
+        default=None,
+        metavar="FILE",
+        help="write a CSV row (time, axis, volts) per applied voltage: what the amplifier saw",
+    )
+
+
+def axis_names(text: str) -> tuple[str, ...]:
+    """``1,2,3`` -> ("1", "2", "3"): distinct alphanumeric names."""
+    names = tuple(part.strip() for part in text.split(","))
+    if not all(n.isalnum() for n in names) or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct alphanumeric axis names separated by commas, got {text!r}"
+        )
+    return names
 
 
 def _make_faults(args: argparse.Namespace) -> Faults:
@@ -267,6 +299,7 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
     if args.device == "gcs":
         model = GCSDeviceModel(
             axis=args.axis,
+            axes=args.axes,
             v_min=args.v_min,
             v_max=args.v_max,
             servo_on=not args.servo_off,
@@ -349,6 +382,11 @@ def run(args: argparse.Namespace) -> int:
         # --params missing or not a parameter set; a port another process listens on
         print(f"piezo-stage emulate: {exc}", file=sys.stderr)
         return 2
+    try:
+        log = _open_log(args, servers)
+    except HardwareError as exc:
+        print(f"piezo-stage emulate: {exc}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signals = [0]
 
@@ -378,7 +416,20 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for server in servers.values():
             server.stop()
+        if log is not None:
+            log.close()
     return 0
+
+
+def _open_log(args: argparse.Namespace, servers: dict[str, EmulatorServer]) -> VoltageLog | None:
+    """``--log``: every amplifier model of ``servers`` reports each applied voltage to it."""
+    if getattr(args, "log", None) is None:
+        return None
+    log = VoltageLog(args.log)
+    for server in servers.values():
+        if isinstance(server.model, (GCSDeviceModel, MDTDeviceModel)):
+            server.model.on_axis_voltage = log.record
+    return log
 
 
 def _catch_signals(on_signal: Callable[..., None]) -> None:

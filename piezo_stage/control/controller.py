@@ -238,7 +238,7 @@ class ControllerConfig:
 
 
 class OwnFrame(NamedTuple):
-    """An axis of a coupled stage in its own frame (docs/design.md section 12): its own
+    """An axis of a coupled stage in its own frame (docs/design.md section 10): its own
     displacement y* [m] and own reference (y*_d [m], ẏ*_d [m/s], ÿ*_d [m/s²]), what its
     feedforward inverts when the coupling is compensated.
     """

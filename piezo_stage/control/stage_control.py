@@ -1,6 +1,6 @@
 """A stage of several axes: one ch. 11 loop per axis, the coupling taken out of the feedforward.
 
-With the static coupling y = y0 + C (y* − y0) (docs/design.md section 12), the stage shows the
+With the static coupling y = y0 + C (y* − y0) (docs/design.md section 10), the stage shows the
 desired displacements y_d when each axis's own displacement follows
 
     y*_d = y0 + C⁻¹ (y_d − y0),   ẏ*_d = C⁻¹ ẏ_d,   ÿ*_d = C⁻¹ ÿ_d
@@ -146,7 +146,8 @@ class StageRun:
         """RMS of y − y_d per axis from ``t_from`` [m]."""
         keep = self.t >= t_from
         e = self.measured[keep] - self.reference[keep]
-        return np.sqrt(np.mean(e * e, axis=0))
+        rms: NDArray[np.float64] = np.sqrt(np.mean(e * e, axis=0))
+        return rms
 
 
 def simulate_stage(
@@ -163,7 +164,9 @@ def simulate_stage(
     if not (math.isfinite(rate_hz) and rate_hz > 0 and math.isfinite(duration) and duration > 0):
         raise ControlError(f"rate_hz and duration must be > 0, got {rate_hz}, {duration}")
     n, axes = int(round(duration * rate_hz)), len(controller.controllers)
-    t = np.arange(n) * (1.0 / rate_hz)  # the grid simulate_closed_loop steps on
+    t: NDArray[np.float64] = np.arange(n, dtype=float) * (
+        1.0 / rate_hz
+    )  # simulate_closed_loop's grid
     desired, own = reference.measured(t), reference.own(t)
     record = {k: np.empty((n, axes)) for k in ("measured", "u", "u_ff")}
     saturated = np.zeros((n, axes), dtype=bool)

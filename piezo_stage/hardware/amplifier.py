@@ -47,6 +47,10 @@ class Amplifier(ABC):
         """Close the link."""
         self.transport.close()
 
+    def drop(self) -> None:
+        """The link failed: close it (a shared link closes only the link that failed)."""
+        self.close()
+
     @abstractmethod
     def write_voltage(self, voltage: float) -> None:
         """Command the output voltage [V] (already checked by the driver)."""

@@ -203,7 +203,7 @@ class VoltageDriver:
         """Close and reopen the link now (``reconnect_attempts`` tries, in the caller's thread)."""
         with self._lock:
             self._mark_down()
-        self.amplifier.close()
+        self.amplifier.drop()
         last: Exception | None = None
         for attempt in range(max(self.config.reconnect_attempts, 1)):
             if attempt and self._stop.wait(self.config.reconnect_delay):
@@ -215,7 +215,7 @@ class VoltageDriver:
                     raise ProtocolError(f"read-back {info.applied} V then {again} V")
             except HardwareError as exc:  # silent, garbled or refusing: try again
                 last = exc
-                self.amplifier.close()
+                self.amplifier.drop()
                 continue
             with self._lock:
                 if not self._may_reconnect:
@@ -233,7 +233,7 @@ class VoltageDriver:
         """Mark the link down and reopen it in the background (never in the caller's thread)."""
         self.last_link_error = str(exc)
         self._mark_down()
-        self.amplifier.close()
+        self.amplifier.drop()
         if self.config.reconnect_attempts <= 0 or not self._may_reconnect:
             return
         if self._reconnector is None or not self._reconnector.is_alive():

@@ -1,6 +1,6 @@
 """The static coupling of a multi-axis stage from runs that excite one axis at a time.
 
-With y = y0 + C (y* - y0) (docs/design.md section 12) and every axis but j held, each held
+With y = y0 + C (y* - y0) (docs/design.md section 10) and every axis but j held, each held
 axis's own displacement y*_k is constant, so axis j's measured displacement is y*_j plus a
 constant and every other axis i reads
 

@@ -14,7 +14,7 @@ writes and what the multi-axis graphs load with ``--stage``::
     coupling_standard_errors: null   # optional, same shape (what the identification gives)
     notes: ""
 
-Coupling (docs/design.md section 12): the measured displacement of axis i is
+Coupling (docs/design.md section 10): the measured displacement of axis i is
 
     y_i = y0_i + sum_j C[i][j] (y*_j - y0_j)
 

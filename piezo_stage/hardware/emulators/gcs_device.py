@@ -1,4 +1,5 @@
-"""Emulated PI E-709-class controller speaking GCS 2.0 (one piezo axis/channel).
+"""Emulated PI controller speaking GCS 2.0: E-709 class (one piezo axis/channel) or E-727 class
+(several axes, axis i+1 driving output channel i+1, as ``SAI?`` lists them).
 
 Commands: ``*IDN?``, ``CSV?``, ``ERR?``, ``HLP?``, ``SAI? [ALL]``, ``ONL``/``ONL?``,
 ``SVO``/``SVO?``, ``SVA``/``SVA?``, ``MOV``/``MOV?``, ``VOL?``, ``VMA?``, ``VMI?``. Setters answer
@@ -6,15 +7,17 @@ nothing; a refused command latches an error code that ``ERR?`` returns and clear
 error is kept until read). A refused query answers nothing (the client times out and reads
 ``ERR?``). ``SVA`` while the servo is on is refused with error 79 like the real controller
 (``refuse_sva_when_servo_on=False`` turns that off); ``SVA`` outside [VMI?, VMA?] gives error 66.
-Closed-loop motion is not simulated: ``MOV`` only stores the target.
+A command naming several axis/value pairs (``SVA 1 10 2 20``) is checked whole before any axis
+changes, as one write. Closed-loop motion is not simulated: ``MOV`` only stores the target.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from typing import Callable
 
-from ..errors import HardwareError
+from ..errors import ConfigError, HardwareError
 from ..gcs import (
     ERR_INVALID_AXIS,
     ERR_PARAM_RANGE,
@@ -53,19 +56,27 @@ class GCSDeviceModel:
         servo_on: bool = True,
         refuse_sva_when_servo_on: bool = True,
         on_voltage: Callable[[float, float | None], None] | None = None,
+        *,
+        axes: Sequence[str] | None = None,
+        on_axis_voltage: Callable[[str, float, float | None], None] | None = None,
     ) -> None:
-        self.axis = axis
-        self.channel = channel
+        # ``axes``: several axes, axis i driving channel i + 1 (``axis`` and ``channel`` unused)
+        self.axes = tuple(axes) if axes else (axis,)
+        if len(set(self.axes)) != len(self.axes) or not all(a and a.isalnum() for a in self.axes):
+            raise ConfigError(f"axes must be distinct alphanumeric names, got {self.axes!r}")
+        self.channels = {a: (i + 1 if axes else channel) for i, a in enumerate(self.axes)}
+        self._axis_of = {str(c): a for a, c in self.channels.items()}
         self.v_min, self.v_max = v_min, v_max
-        self.servo_on = servo_on
-        self.online = True
+        self.servo = {a: servo_on for a in self.axes}
+        self.online = {a: True for a in self.axes}
         self.refuse_sva_when_servo_on = refuse_sva_when_servo_on
-        self.on_voltage = (
-            on_voltage  # called (voltage, time the command arrived or None) on every change
-        )
+        # called (voltage, time the command arrived or None) on every change of the first axis
+        self.on_voltage = on_voltage
+        # called (axis, voltage, time) on every change of any axis (``emulate --log``)
+        self.on_axis_voltage = on_axis_voltage
         self._now: float | None = None  # arrival time of the line being executed
-        self.voltage = 0.0  # open-loop value = applied output voltage [V]
-        self.target = 0.0  # closed-loop target (stored only)
+        self.voltages = {a: 0.0 for a in self.axes}  # open-loop value = applied output [V]
+        self.targets = {a: 0.0 for a in self.axes}  # closed-loop targets (stored only)
         self.error = 0
         self.commands: list[str] = []  # every line received, for tests and rehearsal logs
         self.lock = threading.Lock()
@@ -78,15 +89,41 @@ class GCSDeviceModel:
             "ONL": self._onl,
             "ONL?": self._onl_q,
             "SVO": self._svo,
-            "SVO?": self._svo_q,
+            "SVO?": lambda a: self._axis_query(a, lambda x: str(int(self.servo[x]))),
             "SVA": self._sva,
-            "SVA?": self._sva_q,
+            "SVA?": lambda a: self._axis_query(a, lambda x: format_value(self.voltages[x])),
             "MOV": self._mov,
-            "MOV?": self._mov_q,
-            "VOL?": self._vol_q,
-            "VMA?": lambda a: self._channel_query(a, self.v_max),
-            "VMI?": lambda a: self._channel_query(a, self.v_min),
+            "MOV?": lambda a: self._axis_query(a, lambda x: format_value(self.targets[x])),
+            "VOL?": lambda a: self._channel_query(a, lambda x: format_value(self.voltages[x])),
+            "VMA?": lambda a: self._channel_query(a, lambda x: format_value(self.v_max)),
+            "VMI?": lambda a: self._channel_query(a, lambda x: format_value(self.v_min)),
         }
+
+    # single-axis views (the E-709 form; the first axis of a multi-axis one)
+    @property
+    def axis(self) -> str:
+        """The first axis."""
+        return self.axes[0]
+
+    @property
+    def channel(self) -> int:
+        """The first axis's output channel."""
+        return self.channels[self.axes[0]]
+
+    @property
+    def voltage(self) -> float:
+        """The first axis's output voltage [V]."""
+        return self.voltages[self.axes[0]]
+
+    @property
+    def target(self) -> float:
+        """The first axis's closed-loop target."""
+        return self.targets[self.axes[0]]
+
+    @property
+    def servo_on(self) -> bool:
+        """Whether the first axis's servo is on."""
+        return self.servo[self.axes[0]]
 
     def session(self) -> "_LineSession":
         """A connection's session: GCS command lines in, replies out."""
@@ -98,9 +135,14 @@ class GCSDeviceModel:
 
     @property
     def applied_voltage(self) -> float:
-        """The output voltage [V]."""
+        """The first axis's output voltage [V]."""
         with self.lock:
             return self.voltage
+
+    def applied_voltages(self) -> dict[str, float]:
+        """Every axis's output voltage [V]."""
+        with self.lock:
+            return dict(self.voltages)
 
     def execute(self, line: str, now: float | None = None) -> bytes:
         """Run one command line (arrived at server time ``now``); returns the reply bytes (b""
@@ -129,13 +171,15 @@ class GCSDeviceModel:
             raise _CommandError(ERR_SYNTAX)
         return list(zip(args[::2], args[1::2]))
 
-    def _check_axis(self, axis: str) -> None:
-        if axis != self.axis:
+    def _check_axis(self, axis: str) -> str:
+        if axis not in self.servo:
             raise _CommandError(ERR_INVALID_AXIS)
+        return axis
 
-    def _check_channel(self, channel: str) -> None:
-        if channel != str(self.channel):
+    def _check_channel(self, channel: str) -> str:
+        if channel not in self._axis_of:
             raise _CommandError(ERR_PARAM_RANGE)
+        return self._axis_of[channel]
 
     @staticmethod
     def _number(text: str) -> float:
@@ -152,20 +196,24 @@ class GCSDeviceModel:
             raise _CommandError(ERR_PARAM_RANGE)
         return text == "1"
 
-    def _axis_query(self, args: list[str], value: str) -> list[str]:
-        for axis in args:
-            self._check_axis(axis)
-        return [f"{self.axis}={value}"]
+    def _axis_query(self, args: list[str], value: Callable[[str], str]) -> list[str]:
+        axes = [self._check_axis(a) for a in args] or list(self.axes)
+        return [f"{a}={value(a)}" for a in axes]
 
-    def _channel_query(self, args: list[str], value: float) -> list[str]:
-        for channel in args:
-            self._check_channel(channel)
-        return [f"{self.channel}={format_value(value)}"]
+    def _channel_query(self, args: list[str], value: Callable[[str], str]) -> list[str]:
+        axes = [self._check_channel(c) for c in args] or list(self.axes)
+        return [f"{self.channels[a]}={value(a)}" for a in axes]
 
-    def _set_voltage(self, value: float) -> None:
-        self.voltage = value
-        if self.on_voltage is not None:
+    def _axis_values(self, args: list[str]) -> dict[str, float]:
+        """``<axis> <value>`` pairs, all checked before any is used."""
+        return {self._check_axis(a): self._number(v) for a, v in self._pairs(args)}
+
+    def _set_voltage(self, axis: str, value: float) -> None:
+        self.voltages[axis] = value
+        if self.on_voltage is not None and axis == self.axes[0]:
             self.on_voltage(value, self._now)
+        if self.on_axis_voltage is not None:
+            self.on_axis_voltage(axis, value, self._now)
 
     # --- commands -------------------------------------------------------------------------------
     def _err(self, args: list[str]) -> list[str]:
@@ -180,62 +228,35 @@ class GCSDeviceModel:
     def _sai(self, args: list[str]) -> list[str]:
         if args not in ([], ["ALL"]):
             raise _CommandError(ERR_SYNTAX)
-        return [self.axis]
+        return list(self.axes)
 
     def _onl(self, args: list[str]) -> None:
-        pairs = self._pairs(args)
-        for channel, flag in pairs:
-            self._check_channel(channel)
-            self._flag(flag)
-        self.online = pairs[-1][1] == "1"
+        pairs = [(self._check_channel(c), self._flag(f)) for c, f in self._pairs(args)]
+        for axis, flag in pairs:
+            self.online[axis] = flag
 
     def _onl_q(self, args: list[str]) -> list[str]:
-        return (
-            self._channel_query(args, int(self.online))
-            if args
-            else [f"{self.channel}={int(self.online)}"]
-        )
+        return self._channel_query(args, lambda a: str(int(self.online[a])))
 
     def _svo(self, args: list[str]) -> None:
-        pairs = self._pairs(args)
+        pairs = [(self._check_axis(a), self._flag(f)) for a, f in self._pairs(args)]
         for axis, flag in pairs:
-            self._check_axis(axis)
-            self._flag(flag)
-        self.servo_on = pairs[-1][1] == "1"
-
-    def _svo_q(self, args: list[str]) -> list[str]:
-        return self._axis_query(args, str(int(self.servo_on)))
+            self.servo[axis] = flag
 
     def _sva(self, args: list[str]) -> None:
-        pairs = self._pairs(args)
-        values = []
-        for axis, text in pairs:
-            self._check_axis(axis)
-            values.append(self._number(text))
-        if self.servo_on and self.refuse_sva_when_servo_on:
+        values = self._axis_values(args)
+        if self.refuse_sva_when_servo_on and any(self.servo[a] for a in values):
             raise _CommandError(ERR_SERVO_ON)
-        if any(not self.v_min <= v <= self.v_max for v in values):
+        if any(not self.v_min <= v <= self.v_max for v in values.values()):
             raise _CommandError(ERR_VOLTAGE_LIMITS)
-        self._set_voltage(values[-1])
-
-    def _sva_q(self, args: list[str]) -> list[str]:
-        return self._axis_query(args, format_value(self.voltage))
+        for axis, value in values.items():
+            self._set_voltage(axis, value)
 
     def _mov(self, args: list[str]) -> None:
-        pairs = self._pairs(args)
-        values = []
-        for axis, text in pairs:
-            self._check_axis(axis)
-            values.append(self._number(text))
-        if not self.servo_on:
+        values = self._axis_values(args)
+        if not all(self.servo[a] for a in values):
             raise _CommandError(ERR_SERVO_OFF_MOVE)
-        self.target = values[-1]
-
-    def _mov_q(self, args: list[str]) -> list[str]:
-        return self._axis_query(args, format_value(self.target))
-
-    def _vol_q(self, args: list[str]) -> list[str]:
-        return self._channel_query(args, self.voltage)
+        self.targets.update(values)
 
 
 class _LineSession:

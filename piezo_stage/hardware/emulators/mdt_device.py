@@ -2,10 +2,11 @@
 
 Commands (case-insensitive, CR or LF terminated): ``id?``, ``vlimit?``, ``echo?``, ``echo=0|1``,
 ``<axis>voltage?``, ``<axis>voltage=V``, ``<axis>min?``/``<axis>max?`` and their setters,
-``allvoltage=V``, ``friendly?``, ``serial?``. With echo on (the default) the command text is
-echoed, then the reply lines, each ending in CR, then the prompt ``>``. Unknown commands answer
-``CMD_NOT_DEFINED``. Voltages are clamped to [<axis>min, min(<axis>max, vlimit)] as the
-amplifier's output stage would.
+``allvoltage=V``, ``xyzvoltage=X,Y,Z`` and ``xyzvoltage?`` (MDT693B: all three channels in one
+command, read back as ``[ X, Y, Z]``), ``friendly?``, ``serial?``. With echo on (the default)
+the command text is echoed, then the reply lines, each ending in CR, then the prompt ``>``.
+Unknown commands answer ``CMD_NOT_DEFINED``. Voltages are clamped to
+[<axis>min, min(<axis>max, vlimit)] as the amplifier's output stage would.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ class MDTDeviceModel:
         vlimit: float = 150.0,
         echo: bool = True,
         on_voltage: Callable[[float, float | None], None] | None = None,
+        *,
+        on_axis_voltage: Callable[[str, float, float | None], None] | None = None,
     ) -> None:
         if model not in ("MDT693B", "MDT694B"):
             raise ConfigError(f"model must be MDT693B or MDT694B, got {model!r}")
@@ -41,6 +44,7 @@ class MDTDeviceModel:
         self.vlimit = vlimit
         self.echo = echo
         self.on_voltage = on_voltage  # called (voltage of x, time the command arrived or None)
+        self.on_axis_voltage = on_axis_voltage  # called (axis, voltage, time) for every channel
         self._now: float | None = None  # arrival time of the command being executed
         self.voltage = {a: 0.0 for a in self.axes}
         self.v_min = {a: 0.0 for a in self.axes}
@@ -78,6 +82,13 @@ class MDTDeviceModel:
         self.voltage[axis] = value
         if self.on_voltage is not None and axis == self.axes[0]:
             self.on_voltage(value, self._now)
+        if self.on_axis_voltage is not None:
+            self.on_axis_voltage(axis, value, self._now)
+
+    def applied_voltages(self) -> dict[str, float]:
+        """Every channel's output voltage [V]."""
+        with self.lock:
+            return dict(self.voltage)
 
     def _run(self, cmd: str) -> list[str] | None:
         """Reply lines for ``cmd`` ([] for a setter), or None when the command is not defined."""
@@ -117,7 +128,11 @@ class MDTDeviceModel:
         return axis, field, {"voltage": self.voltage, "min": self.v_min, "max": self.v_max}[field]
 
     def _query(self, name: str) -> list[str] | None:
-        """Reply to ``<axis>voltage?``, ``<axis>min?`` or ``<axis>max?``; None for others."""
+        """Reply to ``<axis>voltage?``, ``<axis>min?``, ``<axis>max?`` or ``xyzvoltage?``; None
+        for others.
+        """
+        if name == "xyzvoltage" and len(self.axes) == 3:
+            return ["[" + ", ".join(f"{self.voltage[a]:6.2f}" for a in self.axes) + "]"]
         found = self._axis_table(name)
         if found is None:
             return None
@@ -130,6 +145,13 @@ class MDTDeviceModel:
             if arg not in ("0", "1"):
                 return None
             self.echo = arg == "1"
+            return []
+        if name == "xyzvoltage" and len(self.axes) == 3:
+            values = [_number(v) for v in arg.split(",")]
+            if len(values) != 3 or any(v is None or not 0.0 <= v <= self.vlimit for v in values):
+                return None
+            for axis, v in zip(self.axes, values):
+                self._set(axis, float(v))  # type: ignore[arg-type]
             return []
         value = _number(arg)
         if name == "allvoltage":
