@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -51,19 +52,25 @@ def own_reference(stage: Stage, xd: ArrayLike, vd: ArrayLike, ad: ArrayLike) -> 
     return y0 + solve(stage.coupling, xd - y0), solve(stage.coupling, vd), solve(stage.coupling, ad)
 
 
+_T = TypeVar("_T")
+
+
+def _one_per_axis(stage: Stage, items: Sequence[_T], what: str) -> tuple[_T, ...]:
+    if len(items) != len(stage.axes):
+        raise ControlError(
+            f"a stage of {len(stage.axes)} axes needs one {what} per axis, got {len(items)}"
+        )
+    return tuple(items)
+
+
 class StageReference:
     """The desired displacement of every axis, in the measured frame and each axis's own."""
 
     def __init__(
         self, stage: Stage, references: Sequence[AxisReference], compensate_coupling: bool = True
     ) -> None:
-        if len(references) != len(stage.axes):
-            raise ControlError(
-                f"a stage of {len(stage.axes)} axes needs one reference per axis, "
-                f"got {len(references)}"
-            )
         self.stage = stage
-        self.references = tuple(references)
+        self.references = _one_per_axis(stage, references, "reference")
         self.compensate_coupling = bool(compensate_coupling)
 
     def measured(self, t: ArrayLike) -> Frames:
@@ -95,13 +102,8 @@ class StageController:
         controllers: Sequence[TimeVaryingPID],
         compensate_coupling: bool = True,
     ) -> None:
-        if len(controllers) != len(stage.axes):
-            raise ControlError(
-                f"a stage of {len(stage.axes)} axes needs one controller per axis, "
-                f"got {len(controllers)}"
-            )
         self.stage = stage
-        self.controllers = tuple(controllers)
+        self.controllers = _one_per_axis(stage, controllers, "controller")
         self.compensate_coupling = bool(compensate_coupling)
 
     def update(
