@@ -16,11 +16,11 @@ line that says it is up (``ready``), left running ``serve`` seconds (beside anot
 command when ``beside`` says so) and stopped with SIGINT to its process group, as a terminal's
 Ctrl-C does; it must then exit as the README says (0: "stops everything cleanly on Ctrl-C").
 
-Long runs: every command gets ``PIEZO_README_QUICK=1`` in its environment, for the commands that
-take minutes to shorten themselves (the same arguments, a shorter run); none reads it yet, so
-the commands marked ``long`` (minutes each here: experiments, commissioning, the fit of a real
-stage's record) are run only with ``PIEZO_README_FULL=1`` and are reported skipped otherwise,
-with their reason. Budget of the default layer: a few minutes on 2 cores.
+Long runs: every command gets ``PIEZO_QUICK=1`` in its environment (README, "Commission your
+rig"): the commands that take minutes shorten themselves (the same arguments, fewer periods or
+sweep frequencies). The two that run in real time against the emulators (``realtime``) are run
+where the real-time layer runs (conftest's host check) and reported skipped, with the
+measurement, on a host too slow for them. Budget: about ten minutes on 2 cores.
 
 The layer is ``ros`` and ``slow`` and one file (the blocks share their folder and run in
 order): ``make test``'s ``--dist loadfile`` keeps it on one worker.
@@ -42,13 +42,15 @@ from pathlib import Path
 from typing import Callable
 
 import pytest
+from conftest import too_slow_for_realtime
+
+from piezo_stage.commands.quick import QUICK_VARIABLE
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-QUICK = "PIEZO_README_QUICK"
-FULL = "PIEZO_README_FULL"
+QUICK = QUICK_VARIABLE
 LINKED = ("bags", "config", "test", "scripts", "bench", ".venv", "install")
 
 
@@ -109,7 +111,7 @@ class Expect:
     beside: str | None = None  # a README command serving meanwhile (key of RUN)
     check: Check | None = None  # a further check (output, folder, results so far)
     timeout: float = 240.0
-    long: str | None = None  # why it runs only with PIEZO_README_FULL=1
+    realtime: bool = False  # runs in real time: only where the real-time layer runs
 
 
 def _identified(out: str, folder: Path, results: dict) -> None:
@@ -189,12 +191,9 @@ RUN: dict[str, Expect] = {
         Expect(
             out=(r"method fit", r"delay"),
             files=("p885.yaml",),
-            long="the fit by simulation error of a 4000-sample record: ~90 s here",
         )
     ),
-    "piezo-stage validate p885.yaml other_run.csv": Expect(
-        out=(r"(?i)rms",), long="needs p885.yaml from the identification above (long)"
-    ),
+    "piezo-stage validate p885.yaml other_run.csv": Expect(out=(r"(?i)rms",)),
     # gains
     "piezo-stage gains --k1 5e6 --k2 580 --k0 1e9 --rate-hz 1000": Expect(
         out=(r"STABLE",), check=_theorem4
@@ -203,37 +202,32 @@ RUN: dict[str, Expect] = {
     "--json": Expect(code=1, check=_unstable_at_20khz),
     # commissioning: minutes of simulated stage each
     "piezo-stage commission out/ --param plant.model_file:=my_plant.yaml": Expect(
+        out=(r"PIEZO_QUICK=1: the sweep at 50, 100 Hz only",),
         files=("out/report.md", "out/controller.yaml"),
         timeout=1800,
-        long="the whole ch. 11 procedure on the 50 kHz lockstep sim graph: minutes",
     ),
-    "piezo-stage commission out/ --graph emulated_rig --m 5.3e-3 --c 13": Expect(
-        timeout=1800, long="the procedure against the device emulators in real time: minutes"
+    "piezo-stage commission emulated/ --graph emulated_rig --m 5.3e-3 --c 13": Expect(
+        timeout=1800, realtime=True
     ),
-    "piezo-stage commission out/ --json": Expect(
-        out=(r"\{",), long="resumes the commissioning above (long)"
-    ),
+    "piezo-stage commission out/ --json": Expect(out=(r"\{",)),
     # tracking
     "piezo-stage experiment tracking --trajectory triangle --amplitude 10e-6 --frequency 10 "
     "--compensation both --identify-model model.yaml --compare --png plots/ --json": Expect(
-        out=(r'"rms_relative"',),
+        out=(r'"rms_relative"', r"PIEZO_QUICK=1: 2 periods instead of 3", r'"quick": true'),
         files=("model.yaml",),
         timeout=1800,
-        long="identifies a model from recordings of the 100 kHz lockstep rig, then tracks: minutes",
     ),
     "piezo-stage experiment tracking --trajectory sine --amplitude 5e-6 --frequency 100 "
-    "--model model.yaml": Expect(timeout=1800, long="100 kHz lockstep tracking: minutes"),
+    "--model model.yaml": Expect(timeout=1800),
     "piezo-stage experiment tracking --trajectory scan.csv --model model.yaml "
-    "--plant-model other_rig.yaml": Expect(timeout=1800, long="100 kHz lockstep tracking: minutes"),
+    "--plant-model other_rig.yaml": Expect(timeout=1800),
     "piezo-stage experiment tracking --rate-hz 1000 --learn 20 --model model.yaml "
-    "--table-out scan.json --png plots/ --json": Expect(
-        files=("scan.json",), timeout=1800, long="20 learning periods on the sim graph: minutes"
-    ),
+    "--table-out scan.json --png plots/ --json": Expect(files=("scan.json",), timeout=1800),
     "piezo-stage experiment tracking --rate-hz 1000 --table scan.json --model model.yaml": Expect(
-        timeout=1800, long="replays the table learned above (long)"
+        timeout=1800
     ),
     "piezo-stage experiment tracking --graph emulated_rig --learn 20 --model model.yaml --json": (
-        Expect(timeout=1800, long="20 learning periods against the emulators in real time")
+        Expect(out=(r'"quick": true',), timeout=1800, realtime=True)
     ),
     # "refused: the gains fail the sampled-loop check at 10 kHz (exit 2)"
     "piezo-stage experiment tracking --rate-hz 10000 --model model.yaml": Expect(
@@ -304,7 +298,7 @@ EXCLUDED: dict[str, str] = {
         "a benchmark (minutes, the whole CPU): its figures are measured on a quiet machine"
     ),
     "python bench/tracking.py": "a benchmark: its figures are measured on a quiet machine",
-    "piezo-stage commission out/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
+    "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"
     ),
 }
@@ -318,8 +312,8 @@ PLACEHOLDERS = {
     "my_rig_bounds.yaml": "config/thesis_rig_bounds.yaml",
     "my_plant.yaml": "config/ch11_rig.yaml",
     "other_rig.yaml": "config/ch11_rig.yaml",
-    "scan.csv": "a 10 Hz sine of 10 µm as `t [s], x [m]`",
-    "model.yaml": "config/ch11_rig.yaml, unless the long `--identify-model` ran first",
+    "scan.csv": "two periods of a 10 Hz sine of 10 µm from 6 µm up, as `t [s], x [m]`",
+    "model.yaml": "config/ch11_rig.yaml, until `--identify-model` writes it",
 }
 
 BLOCKS = readme_blocks()
@@ -371,10 +365,11 @@ def _inputs(folder: Path) -> None:
     shutil.copy(ROOT / "config/thesis_rig_bounds.yaml", folder / "my_rig_bounds.yaml")
     for name in ("my_plant.yaml", "other_rig.yaml", "model.yaml"):
         shutil.copy(ROOT / "config/ch11_rig.yaml", folder / name)
-    ts = np.arange(0.0, 0.5, 1e-3)
+    # from 6 µm up: the experiments' floor, where the 0-400 V amplifier still has its margin
+    ts = np.arange(0.0, 0.2, 1e-3)
     with (folder / "scan.csv").open("w") as f:
         f.write("t [s], x [m]\n")
-        f.writelines(f"{a:.6f}, {5e-6 * (1 - np.cos(2 * np.pi * 10 * a)):.9e}\n" for a in ts)
+        f.writelines(f"{a:.6f}, {6e-6 + 5e-6 * (1 - np.cos(2 * np.pi * 10 * a)):.9e}\n" for a in ts)
 
 
 @pytest.fixture(scope="module")
@@ -495,7 +490,8 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
 )
 def test_readme_block(commands: list[Command], folder: Path):
     """Each command of the block in order, in the shared folder: as the README says, or the
-    reason it is not run (excluded here, or long) reported as this block's skip."""
+    reason it is not run (excluded here, or real time on a host too slow for it) reported as this
+    block's skip."""
     not_run = []
     for command in commands:
         if command.key in EXCLUDED:
@@ -503,8 +499,8 @@ def test_readme_block(commands: list[Command], folder: Path):
             continue
         assert command.key in RUN, f"README.md:{command.line}: {command.key!r} is in no table"
         expect = RUN[command.key]
-        if expect.long and os.environ.get(FULL) != "1":
-            not_run.append(f"line {command.line} `{command.key}`: long, {expect.long}")
+        if expect.realtime and (reason := too_slow_for_realtime()):
+            not_run.append(f"line {command.line} `{command.key}`: real time, {reason}")
             continue
         _run(command, expect, folder)
     if not_run:

@@ -25,6 +25,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.commands.quick import quick_run, say_quick
+
 
 def _floats(text: str) -> tuple[float, ...]:
     try:
@@ -148,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
         return 130
 
 
+def _hz(frequencies: tuple[float, ...]) -> str:
+    return ", ".join(f"{f:g}" for f in frequencies) + " Hz"
+
+
 def _run(args: argparse.Namespace) -> int:
     from piezo_stage.commissioning import Commissioning, Options, StepFailed, SweepSettings
     from piezo_stage.commissioning.graphs import GraphRunError, make_rig
@@ -169,8 +175,12 @@ def _run(args: argparse.Namespace) -> int:
         rig = make_rig(
             args.graph, model_file=model, rate_hz=args.sensor_rate, params=params, progress=progress
         )
+        frequencies = args.frequencies or default_frequencies(rig.rate_hz)
+        if quick_run() and args.frequencies is None and len(frequencies) > 2:
+            say_quick("commission", f"the sweep at {_hz(frequencies[-2:])} only")
+            frequencies = frequencies[-2:]
         settings = SweepSettings(
-            frequencies=args.frequencies or default_frequencies(rig.rate_hz),
+            frequencies=frequencies,
             low=args.low,
             amplitude=args.amplitude,
             offset=args.offset,
@@ -184,8 +194,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.frequencies is None:
         progress(
             "sweep",
-            f"frequencies {', '.join(f'{f:g}' for f in settings.frequencies)} Hz "
-            f"(chosen for the {rig.rate_hz:g} Hz sensor)",
+            f"frequencies {_hz(settings.frequencies)} (chosen for the {rig.rate_hz:g} Hz sensor)",
         )
     options = Options(
         sweep=settings,

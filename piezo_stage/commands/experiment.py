@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.commands.quick import QUICK_PERIODS, quick_run, say_quick
 from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
 
@@ -185,12 +186,16 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         identify_model(args.identify_model, args.plant_model)
         model = args.identify_model
     options = {name: getattr(args, name) for name in CONTROLLER_OPTIONS if name != "mode"}
+    periods = args.periods
+    if quick_run() and periods > QUICK_PERIODS:
+        say_quick("experiment tracking", f"{QUICK_PERIODS:g} periods instead of {periods:g}")
+        periods = QUICK_PERIODS
     spec = TrackingSpec(
         **options,
         mode=args.mode or CONTROLLER_OPTIONS["mode"].value,
         model=model,
         plant_model=args.plant_model,
-        periods=args.periods,
+        periods=periods,
         rate_hz=args.rate_hz or (TRACKING_RATE_HZ if args.graph == "sim" else 1000.0),
         graph=args.graph,
         controller=_controller_params(args.controller),
@@ -254,6 +259,8 @@ def run(args: argparse.Namespace) -> int:
     except (ExperimentError, LaunchError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    if quick_run() and args.name == "tracking":
+        summary["quick"] = True  # its figures are a rehearsal's, not the documented ones
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
