@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezo_stage.identification import IdentificationError, IdentifyOptions, Recording, identify
+from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.dynamics import fit_step_response
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.parameter_set import Dynamics, ParameterSet
@@ -99,15 +100,25 @@ def rig_recordings(
     )
 
 
-def fit_bouc_wen(run_a: Recording, run_b: Recording) -> tuple[BoucWenParameters, float]:
-    """(Bouc-Wen part in metres, input x, output u, y0 a displacement offset; RMS fit error [V])."""
+def fit_bouc_wen(
+    run_a: Recording, run_b: Recording, cycle: CycleOptions | None = None
+) -> tuple[BoucWenParameters, float]:
+    """(Bouc-Wen part in metres, input x, output u, y0 a displacement offset; RMS fit error [V]).
+    ``cycle``: how the steady cycle is taken (default: detected).
+    """
 
     def um(r: Recording) -> Recording:
         return Recording(r.t, r.input / UM, r.output, r.name, "um", "V")
 
     try:
         result = identify(
-            um(run_a), um(run_b), IdentifyOptions(input_name="displacement", output_name="voltage")
+            um(run_a),
+            um(run_b),
+            IdentifyOptions(
+                input_name="displacement",
+                output_name="voltage",
+                cycle=cycle or CycleOptions(),
+            ),
         )
     except Exception as exc:  # the identification's own errors name the cause
         raise ModelFitError(f"identification of the feedforward model failed: {exc}") from exc
@@ -125,9 +136,13 @@ def fit_bouc_wen(run_a: Recording, run_b: Recording) -> tuple[BoucWenParameters,
     ), float(result.rms_error)
 
 
-def fit_feedforward_model(rec: RigRecordings, name: str = "tracking_model") -> ParameterSet:
-    """The dynamic parameter set (input x, output u) fitted from the rig's recordings."""
-    bw, rms = fit_bouc_wen(rec.run_a, rec.run_b)
+def fit_feedforward_model(
+    rec: RigRecordings, name: str = "tracking_model", cycle: CycleOptions | None = None
+) -> ParameterSet:
+    """The dynamic parameter set (input x, output u) fitted from the rig's recordings
+    (``cycle``: see :func:`fit_bouc_wen`).
+    """
+    bw, rms = fit_bouc_wen(rec.run_a, rec.run_b, cycle)
     try:
         dyn = fit_step_response(rec.step_t, rec.step_u, rec.step_x, bw).dynamics
     except IdentificationError as exc:
