@@ -23,7 +23,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from piezo_stage.identification import IdentificationError, IdentifyOptions, Recording, identify
+from piezo_stage.identification import (
+    IdentificationError,
+    IdentificationResult,
+    IdentifyOptions,
+    Recording,
+    identify,
+)
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.dynamics import fit_step_response
 from piezo_stage.model.bouc_wen import BoucWenParameters
@@ -100,18 +106,19 @@ def rig_recordings(
     )
 
 
-def fit_bouc_wen(
+def identify_bouc_wen(
     run_a: Recording, run_b: Recording, cycle: CycleOptions | None = None
-) -> tuple[BoucWenParameters, float]:
-    """(Bouc-Wen part in metres, input x, output u, y0 a displacement offset; RMS fit error [V]).
-    ``cycle``: how the steady cycle is taken (default: detected).
+) -> IdentificationResult:
+    """The ch. 9-10 identification of the two runs with the columns swapped (input x in µm,
+    output u in V): what ``piezo-stage identify --json`` prints for them. ``cycle``: how the
+    steady cycle is taken (default: detected).
     """
 
     def um(r: Recording) -> Recording:
         return Recording(r.t, r.input / UM, r.output, r.name, "um", "V")
 
     try:
-        result = identify(
+        return identify(
             um(run_a),
             um(run_b),
             IdentifyOptions(
@@ -122,6 +129,12 @@ def fit_bouc_wen(
         )
     except Exception as exc:  # the identification's own errors name the cause
         raise ModelFitError(f"identification of the feedforward model failed: {exc}") from exc
+
+
+def bouc_wen_in_metres(result: IdentificationResult) -> BoucWenParameters:
+    """The Bouc-Wen part of :func:`identify_bouc_wen`'s result in metres (input x, output u,
+    y0 a displacement offset).
+    """
     p = result.parameters
     kappa = tuple(k / UM ** (i + 1) for i, k in enumerate(p.kappa))
     # u = κx·x + κw·w + u0  ->  κx·(x − y0) + κw·w with y0 = −u0/κx (the dynamic form's offset)
@@ -133,7 +146,17 @@ def fit_bouc_wen(
         n=p.n,
         y0=-p.y0 / kappa[0],
         input_sign=p.input_sign,
-    ), float(result.rms_error)
+    )
+
+
+def fit_bouc_wen(
+    run_a: Recording, run_b: Recording, cycle: CycleOptions | None = None
+) -> tuple[BoucWenParameters, float]:
+    """(Bouc-Wen part in metres, input x, output u, y0 a displacement offset; RMS fit error [V]).
+    ``cycle``: how the steady cycle is taken (default: detected).
+    """
+    result = identify_bouc_wen(run_a, run_b, cycle)
+    return bouc_wen_in_metres(result), float(result.rms_error)
 
 
 def fit_feedforward_model(

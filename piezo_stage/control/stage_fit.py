@@ -20,14 +20,29 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from piezo_stage.identification import IdentificationError, Recording
+from piezo_stage.identification import IdentificationError, IdentificationResult, Recording
 from piezo_stage.identification.coupling import identify_coupling
 from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.stage_file import Stage, StageAxis
 
-from .model_fit import ModelFitError, RigRecordings, fit_feedforward_model, rig_recordings
+from .model_fit import (
+    ModelFitError,
+    RigRecordings,
+    bouc_wen_in_metres,
+    fit_feedforward_model,
+    identify_bouc_wen,
+    rig_recordings,
+)
 
-__all__ = ["AxisRecordings", "STEADY", "fit_stage", "stage_recordings"]
+__all__ = [
+    "AxisRecordings",
+    "DrivenRuns",
+    "STEADY",
+    "fit_stage",
+    "fit_stage_runs",
+    "stage_recordings",
+]
 
 #: the runs hold steady periods only: the last two are the cycle (noise on the
 #: displacement, the method's input here, would otherwise fail the steady-state detection)
@@ -93,10 +108,76 @@ def fit_stage(template: Stage, recordings: Mapping[str, AxisRecordings]) -> Stag
         except ModelFitError as exc:
             raise ModelFitError(f"axis {axis.name}: {exc}") from None
         axes.append(StageAxis(axis.name, model, axis.channel))
-    try:
-        estimate = identify_coupling(
-            template.names, {name: r.seen for name, r in recordings.items()}
+    return _with_coupling(
+        template,
+        axes,
+        {name: r.seen for name, r in recordings.items()},
+        "identified from recordings: each axis driven in turn, the others held",
+    )
+
+
+@dataclass(frozen=True)
+class DrivenRuns:
+    """What a graph recorded while one axis ran the two wave runs: its own sensor's runs
+    (input x [m], output u [V], steady periods only) and every sensor's reading over the first
+    (samples x axes, the stage's order).
+    """
+
+    axis: str
+    run_a: Recording
+    run_b: Recording
+    seen: NDArray[np.float64]
+
+
+def fit_stage_runs(
+    template: Stage, runs: Mapping[str, DrivenRuns], cycle: CycleOptions = STEADY
+) -> tuple[Stage, dict[str, IdentificationResult]]:
+    """(the identified stage, each axis's identification) from ``runs`` (one per axis of
+    ``template``). The Bouc-Wen part of each axis is identified (11.1 at low frequency); m and
+    c are kept from ``template``'s model: a record at a sensor rate of kHz does not resolve the
+    step response of a stage resonating at several kHz. Raises
+    :class:`~.model_fit.ModelFitError` naming the axis whose runs cannot be used.
+    """
+    axes, results = [], {}
+    for axis in template.axes:
+        if axis.name not in runs:
+            raise ModelFitError(f"no run drives axis {axis.name}")
+        dynamics = axis.model.dynamics
+        if dynamics is None:
+            raise ModelFitError(
+                f"axis {axis.name}: the stage file's model is static; m and c come from it"
+            )
+        try:
+            result = identify_bouc_wen(runs[axis.name].run_a, runs[axis.name].run_b, cycle)
+        except ModelFitError as exc:
+            raise ModelFitError(f"axis {axis.name}: {exc}") from None
+        model = ParameterSet(
+            name=axis.name,
+            form="dynamic",
+            bouc_wen=bouc_wen_in_metres(result),
+            dynamics=dynamics,
+            notes=f"Bouc-Wen part identified with the axis driven, the others held (fit RMS "
+            f"{result.rms_error:.3g} V); m, c kept from {axis.model.name}",
         )
+        axes.append(StageAxis(axis.name, model, axis.channel))
+        results[axis.name] = result
+    stage = _with_coupling(
+        template,
+        axes,
+        {name: r.seen for name, r in runs.items()},
+        "identified through a scanner graph: each axis driven in turn, the others held",
+    )
+    return stage, results
+
+
+def _with_coupling(
+    template: Stage,
+    axes: list[StageAxis],
+    seen: Mapping[str, NDArray[np.float64]],
+    notes: str,
+) -> Stage:
+    try:
+        estimate = identify_coupling(template.names, seen)
     except IdentificationError as exc:
         raise ModelFitError(f"coupling: {exc}") from None
     return Stage(
@@ -104,5 +185,5 @@ def fit_stage(template: Stage, recordings: Mapping[str, AxisRecordings]) -> Stag
         tuple(axes),
         estimate.coupling,
         coupling_standard_errors=estimate.standard_errors,
-        notes="identified from recordings: each axis driven in turn, the others held",
+        notes=notes,
     )

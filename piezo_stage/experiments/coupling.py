@@ -1,0 +1,261 @@
+"""The coupling experiment: every axis of a stage identified and the coupling between them,
+through a scanner graph (docs/design.md section 10).
+
+The graph (``sim_scanner``, ``emulated_scanner`` or ``rig_scanner``, on the plant stage) gets one
+excitation node per axis, in the axis's namespace, started in turn: axis j runs two raised-cosine
+voltage runs (the second shifted by ``shift``), the others hold. A recorder takes every axis's
+``displacement``, ``voltage`` and ``excitation``. Then, per axis, its steady periods pair the
+applied voltage with its sensor's displacement (the voltage held at each sample's stamp) and
+give its Bouc-Wen part; what every sensor saw over its first run gives column j of the coupling
+(:func:`piezo_stage.control.stage_fit.fit_stage_runs`). The stage file written is one the nodes
+load (``--stage``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from piezo_stage.control.stage_fit import DrivenRuns, fit_stage_runs
+from piezo_stage.identification import Recording
+from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.model.stage_file import Stage, load_stage, save_stage
+
+from .errors import ExperimentError, ExperimentInputError
+
+__all__ = ["GRAPHS", "CouplingSpec", "axis_runs", "coupling_experiment"]
+
+#: the scanner graphs the experiment runs on
+GRAPHS = ("sim_scanner", "emulated_scanner", "rig_scanner")
+
+Progress = Callable[[float, str], None]
+Series = tuple[NDArray[np.float64], NDArray[np.float64]]  # (stamps [s], values)
+
+
+@dataclass(frozen=True)
+class CouplingSpec:
+    """The experiment's settings: the graph, the stage it runs on, the runs of each axis."""
+
+    plant_stage: Path  #: the simulated or emulated stage; for a rig its axes and channels
+    output: Path  #: the stage file written (each axis's model beside it)
+    graph: str = "sim_scanner"
+    rate_hz: float = 1000.0  #: commands and (simulated) sensor samples per second
+    low: float = 0.0  #: [V] the first run's lowest voltage
+    amplitude: float = 260.0  #: [V] peak-to-peak span of the raised cosine
+    shift: float = 40.0  #: [V] the second run's offset
+    period: float = 1.0  #: [s] one period of the raised cosine
+    settle_periods: int = 3
+    record_periods: int = 5
+    wall_timeout: float = 600.0
+
+    def __post_init__(self) -> None:
+        if self.graph not in GRAPHS:
+            raise ExperimentInputError(
+                f"--graph must be one of {', '.join(GRAPHS)}, got {self.graph!r}"
+            )
+        for key in ("rate_hz", "amplitude", "period"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise ExperimentInputError(f"{key} must be > 0, got {value}")
+        if self.rate_hz * self.period < 50:
+            raise ExperimentInputError(
+                f"{self.rate_hz:g} Hz gives {self.rate_hz * self.period:.0f} samples per "
+                "period; the identification needs at least 50"
+            )
+        if self.settle_periods < 1 or self.record_periods < 2:
+            raise ExperimentInputError("need settle_periods >= 1 and record_periods >= 2")
+
+    @property
+    def axis_seconds(self) -> float:
+        """How long one axis's two runs last [s]."""
+        return 2 * (self.settle_periods + self.record_periods) * self.period
+
+    def excitation(self) -> dict[str, Any]:
+        """The excitation node's overrides (started by its ``start`` service)."""
+        return {
+            "preset": "",
+            "waveform": "sine",
+            "period": self.period,
+            "low": self.low,
+            "amplitude": self.amplitude,
+            "offsets": [0.0, self.shift],
+            "settle_periods": self.settle_periods,
+            "record_periods": self.record_periods,
+            "hold": "low",
+            "rate_hz": self.rate_hz,
+            "autostart": False,
+            "on_done": "hold",
+        }
+
+
+def axis_runs(
+    axis: str,
+    names: Sequence[str],
+    voltage: Series,
+    displacement: Mapping[str, Series],
+    steady_starts: Sequence[float],
+    spec: CouplingSpec,
+) -> DrivenRuns:
+    """The two runs of driven ``axis`` from its applied ``voltage`` and every axis's
+    ``displacement`` (stamps [s], values); ``steady_starts``: when each run's steady part
+    began. Each sample of the axis's sensor gets the voltage applied at its stamp (the last
+    one stamped at or before it); the other sensors are interpolated to its stamps.
+    """
+    t_u, u = voltage
+    t_x, x = displacement[axis]
+    runs = []
+    for k, start in enumerate(steady_starts[:2]):
+        end = start + spec.record_periods * spec.period
+        keep = (t_x >= start) & (t_x < end) & np.isfinite(x)
+        held = np.searchsorted(t_u, t_x[keep], side="right") - 1
+        if keep.sum() < 50 or held.min(initial=0) < 0:
+            raise ExperimentError(
+                f"axis {axis}, run {k}: {int(keep.sum())} displacement samples with a voltage "
+                "in the steady periods; the graph did not deliver the run"
+            )
+        t = t_x[keep]
+        runs.append(Recording(t - t[0], x[keep], u[held], f"{axis} run {'AB'[k]}", "m", "V"))
+    t_a = runs[0].t + t_x[(t_x >= steady_starts[0])][0]
+    seen = np.column_stack([np.interp(t_a, *_finite(displacement[name])) for name in names])
+    return DrivenRuns(axis, runs[0], runs[1], seen)
+
+
+def _finite(series: Series) -> Series:
+    t, v = series
+    ok = np.isfinite(v)
+    return t[ok], v[ok]
+
+
+def coupling_experiment(spec: CouplingSpec, progress: Progress | None = None) -> dict[str, Any]:
+    """Run the experiment (module docstring); write ``spec.output`` and return the JSON-ready
+    summary: per axis its identification (``identify --json``'s fields), the coupling and its
+    standard errors, the files written.
+    """
+    stage = load_stage(spec.plant_stage)
+    say = progress or (lambda fraction, text: None)
+    started = time.monotonic()
+    raw, namespace = _record(stage, spec, say)
+    say(0.9, "identifying every axis and the coupling")
+    runs = _decode(raw, stage.names, spec)
+    # the window holds record_periods periods; the last record_periods - 1 are whole cycles
+    cycle = CycleOptions(steady_periods=spec.record_periods - 1)
+    fitted, results = fit_stage_runs(stage, runs, cycle)
+    path = save_stage(fitted, spec.output)
+    axes = {}
+    for axis in fitted.axes:
+        entry = results[axis.name].to_dict()
+        entry["model_file"] = str(path.with_name(f"{path.stem}_{axis.name}.yaml"))
+        entry["channel"] = axis.channel
+        axes[axis.name] = entry
+    assert fitted.coupling_standard_errors is not None
+    return {
+        "axes": axes,
+        "coupling": fitted.coupling.tolist(),
+        "coupling_standard_errors": fitted.coupling_standard_errors.tolist(),
+        "output": str(path),
+        "graph": spec.graph,
+        "namespace": namespace,
+        "wall_time": time.monotonic() - started,
+    }
+
+
+def _graph(stage: Stage, spec: CouplingSpec) -> dict[str, Any]:
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
+
+    data = dict(load_yaml(find_graph(spec.graph).read_text(encoding="utf-8")))
+    data["stage"] = str(Path(spec.plant_stage).resolve())
+    data["namespace"] = f"/coupling_{os.getpid()}"
+    data["nodes"] = [
+        *data["nodes"],
+        {"executable": "excitation", "per_axis": True, "overrides": spec.excitation()},
+    ]
+    return data
+
+
+def _record(stage: Stage, spec: CouplingSpec, say: Progress) -> tuple[dict[str, Any], str]:
+    """Launch the graph, start each axis's excitation in turn, record until the last is done."""
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    from .harness import HarnessError, Stream, record
+    from .identification import call_trigger
+
+    graph = _graph(stage, spec)
+    namespace = str(graph["namespace"])
+    streams = [
+        Stream(f"{axis}/{topic}", msg, reliable=reliable, depth=10000)
+        for axis in stage.names
+        for topic, msg, reliable in (
+            ("displacement", Displacement, False),  # the sensors' SensorDataQoS
+            ("voltage", Voltage, False),
+            ("excitation", ExcitationInfo, True),  # its marks delimit the runs: none lost
+        )
+    ]
+    done = threading.Event()
+    failure: list[str] = []
+
+    def drive() -> None:
+        try:
+            for k, axis in enumerate(stage.names):
+                say(0.8 * k / len(stage.names), f"axis {axis}: two raised-cosine runs")
+                call_trigger(f"{namespace}/{axis}/excitation/start", timeout=60.0)
+                time.sleep(spec.axis_seconds + 0.5)
+        except ExperimentError as exc:
+            failure.append(str(exc))
+        done.set()
+
+    driver = threading.Thread(target=drive, daemon=True)
+    started: list[bool] = []
+
+    def until(raw: Mapping[str, list[tuple[int, bytes]]]) -> bool:
+        if not started:
+            started.append(True)
+            driver.start()
+        return done.is_set()
+
+    try:
+        recording = record(graph, streams, until, wall_timeout=spec.wall_timeout, data_timeout=60.0)
+    except HarnessError as exc:
+        raise ExperimentError(exc.with_output()) from None
+    if failure:
+        raise ExperimentError(failure[0])
+    return recording.raw, namespace
+
+
+def _decode(
+    raw: Mapping[str, Any], names: Sequence[str], spec: CouplingSpec
+) -> dict[str, DrivenRuns]:
+    from rclpy.serialization import deserialize_message
+
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    def series(topic: str, msg_type: type, field: str) -> Series:
+        items = sorted(raw[topic], key=lambda p: p[0])
+        t = np.array([ns * 1e-9 for ns, _ in items])
+        v = np.array([getattr(deserialize_message(d, msg_type), field) for _, d in items], float)
+        return t, v
+
+    displacement = {a: series(f"{a}/displacement", Displacement, "displacement") for a in names}
+    out = {}
+    for axis in names:
+        marks = [
+            (ns * 1e-9, deserialize_message(d, ExcitationInfo))
+            for ns, d in sorted(raw[f"{axis}/excitation"], key=lambda p: p[0])
+        ]
+        starts = []
+        for run in (0, 1):
+            steady = [t for t, m in marks if m.run == run and m.steady]
+            if not steady:
+                raise ExperimentError(f"axis {axis}: run {run} never reached its steady part")
+            starts.append(steady[0])
+        voltage = series(f"{axis}/voltage", Voltage, "voltage")
+        out[axis] = axis_runs(axis, names, voltage, displacement, starts, spec)
+    return out
