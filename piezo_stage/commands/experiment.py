@@ -25,8 +25,8 @@ from piezo_stage.experiments.plan import DEFAULT_DURATION
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "name",
-        choices=("regulation", "perturbation", "tracking"),
-        help="experiment (§11.4 / §11.5 / trajectory tracking)",
+        choices=("regulation", "perturbation", "tracking", "coupling"),
+        help="experiment (§11.4 / §11.5 / trajectory tracking / a stage's axes and coupling)",
     )
     parser.add_argument(
         "--mode",
@@ -51,9 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--png", default=None, help="write the figures into this folder")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     _tracking_arguments(parser.add_argument_group("tracking (x_d from --trajectory; SI units)"))
+    _coupling_arguments(parser.add_argument_group("coupling (every axis of a stage, in turn)"))
 
 
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
+    from piezo_stage.experiments.coupling import GRAPHS
     from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS, Graph
 
     for name in CONTROLLER_OPTIONS:
@@ -84,12 +86,13 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
     group.add_argument(
         "--graph",
-        choices=[g.value for g in Graph],
-        default=Graph.SIM.value,
-        help="sim: the lockstep plant; emulated_rig: `emulate rig` around the plant model with "
-        "the driver, reader and controller in one process (real time); both with the emulated "
-        "rig's 0-400 V amplifier: a trajectory the --model says needs more is refused (exit 2) "
-        "with the largest amplitude that fits",
+        choices=[*(g.value for g in Graph), *GRAPHS],
+        default=None,
+        help="tracking: sim (default), the lockstep plant; emulated_rig: `emulate rig` around "
+        "the plant model with the driver, reader and controller in one process (real time); "
+        "both with the emulated rig's 0-400 V amplifier: a trajectory the --model says needs "
+        "more is refused (exit 2) with the largest amplitude that fits. coupling: sim_scanner "
+        "(default), emulated_scanner or rig_scanner",
     )
     group.add_argument(
         "--rate-hz",
@@ -103,6 +106,22 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         metavar="OUT.yaml",
         default=None,
         help="first record the simulated rig, fit the model, save it here, use it",
+    )
+
+
+def _coupling_arguments(group: argparse._ArgumentGroup) -> None:
+    group.add_argument(
+        "--plant-stage",
+        default="xy_scanner.yaml",
+        metavar="STAGE.yaml",
+        help="the simulated or emulated stage (default xy_scanner.yaml); for rig_scanner its "
+        "axes and channels, and each axis's m and c",
+    )
+    group.add_argument(
+        "--output",
+        metavar="STAGE.yaml",
+        default=None,
+        help="the identified stage file (each axis's model written beside it)",
     )
 
 
@@ -171,15 +190,44 @@ def _unwritable(path: Path) -> str:
     return ""
 
 
+def _run_coupling(args: argparse.Namespace, progress) -> dict:
+    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.experiments import ExperimentInputError
+    from piezo_stage.experiments.coupling import CouplingSpec, coupling_experiment
+
+    if args.output is None:
+        raise ExperimentInputError("experiment coupling needs --output STAGE.yaml")
+    try:
+        plant_stage = find_user_file(args.plant_stage)
+    except ConfigNotFoundError as exc:
+        raise ExperimentInputError(f"--plant-stage: {exc}") from None
+    output = user_output_path(args.output)
+    why = _unwritable(output)
+    if why:
+        raise ExperimentInputError(f"--output {args.output}: {why}")
+    spec = CouplingSpec(
+        plant_stage,
+        output,
+        graph=args.graph or "sim_scanner",
+        rate_hz=args.rate_hz or 1000.0,
+    )
+    return coupling_experiment(spec, progress)
+
+
 def _run_tracking(args: argparse.Namespace, progress) -> dict:
     from piezo_stage.control.tracking import TRACKING_RATE_HZ
+    from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.tracking import (
         CONTROLLER_OPTIONS,
+        Graph,
         TrackingSpec,
         identify_model,
         run_tracking,
     )
 
+    graph = args.graph or "sim"
+    if graph not in {g.value for g in Graph}:
+        raise ExperimentInputError(f"--graph {graph}: tracking runs on sim or emulated_rig")
     model = args.model
     if args.identify_model:
         progress(0.0, f"recording the simulated rig {args.plant_model} and fitting the model")
@@ -196,8 +244,8 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         model=model,
         plant_model=args.plant_model,
         periods=periods,
-        rate_hz=args.rate_hz or (TRACKING_RATE_HZ if args.graph == "sim" else 1000.0),
-        graph=args.graph,
+        rate_hz=args.rate_hz or (TRACKING_RATE_HZ if graph == "sim" else 1000.0),
+        graph=Graph(graph),
         controller=_controller_params(args.controller),
     )
     return run_tracking(
@@ -229,6 +277,7 @@ def run(args: argparse.Namespace) -> int:
     from piezo_stage.experiments import ExperimentError, ExperimentInputError, run_experiment
     from piezo_stage.launch import LaunchError
     from piezo_stage.launch.domain import isolated_domain
+    from piezo_stage.model.errors import ModelError
 
     gains = {k: getattr(args, k) for k in ("A", "kA", "f") if getattr(args, k) is not None}
 
@@ -243,6 +292,8 @@ def run(args: argparse.Namespace) -> int:
         with isolated_domain():
             if args.name == "tracking":
                 summary = _run_tracking(args, progress)
+            elif args.name == "coupling":
+                summary = _run_coupling(args, progress)
             else:
                 summary = run_experiment(
                     args.name,
@@ -253,7 +304,8 @@ def run(args: argparse.Namespace) -> int:
                     duration=args.duration,
                     gains=gains or None,
                 )
-    except (ExperimentInputError, ControlError) as exc:  # ControlError: gains the check refuses
+    except (ExperimentInputError, ControlError, ModelError) as exc:
+        # ControlError: gains the check refuses; ModelError: a stage file that does not load
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except (ExperimentError, LaunchError) as exc:
@@ -263,6 +315,10 @@ def run(args: argparse.Namespace) -> int:
         summary["quick"] = True  # its figures are a rehearsal's, not the documented ones
     if args.json:
         print(json.dumps(summary, indent=2))
+    elif args.name == "coupling":
+        from piezo_stage.experiments.coupling import summary_text
+
+        print(summary_text(summary))
     else:
         for key, value in summary.items():
             print(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")

@@ -24,6 +24,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from piezo_stage.control.model_fit import ModelFitError
 from piezo_stage.control.stage_fit import DrivenRuns, fit_stage_runs
 from piezo_stage.identification import Recording
 from piezo_stage.identification.cycles import CycleOptions
@@ -31,7 +32,7 @@ from piezo_stage.model.stage_file import Stage, load_stage, save_stage
 
 from .errors import ExperimentError, ExperimentInputError
 
-__all__ = ["GRAPHS", "CouplingSpec", "axis_runs", "coupling_experiment"]
+__all__ = ["GRAPHS", "CouplingSpec", "axis_runs", "coupling_experiment", "summary_text"]
 
 #: the scanner graphs the experiment runs on
 GRAPHS = ("sim_scanner", "emulated_scanner", "rig_scanner")
@@ -147,13 +148,17 @@ def coupling_experiment(spec: CouplingSpec, progress: Progress | None = None) ->
     runs = _decode(raw, stage.names, spec)
     # the window holds record_periods periods; the last record_periods - 1 are whole cycles
     cycle = CycleOptions(steady_periods=spec.record_periods - 1)
-    fitted, results = fit_stage_runs(stage, runs, cycle)
+    try:
+        fitted, results = fit_stage_runs(stage, runs, cycle)
+    except ModelFitError as exc:  # the record holds runs the identification cannot use
+        raise ExperimentError(f"identification: {exc}") from None
     path = save_stage(fitted, spec.output)
     axes = {}
     for axis in fitted.axes:
         entry = results[axis.name].to_dict()
         entry["model_file"] = str(path.with_name(f"{path.stem}_{axis.name}.yaml"))
         entry["channel"] = axis.channel
+        entry["input_unit"], entry["output_unit"] = "um", "V"  # as identified (model: SI)
         axes[axis.name] = entry
     assert fitted.coupling_standard_errors is not None
     return {
@@ -259,3 +264,20 @@ def _decode(
         voltage = series(f"{axis}/voltage", Voltage, "voltage")
         out[axis] = axis_runs(axis, names, voltage, displacement, starts, spec)
     return out
+
+
+def summary_text(summary: Mapping[str, Any]) -> str:
+    """The summary as lines for a terminal: each axis's parameters, the coupling, the files."""
+    lines = []
+    for name, axis in summary["axes"].items():
+        kappa = ", ".join(f"{k:.6g}" for k in axis["kappa"])
+        lines.append(
+            f"axis {name} (channel {axis['channel']}): kappa [{kappa}], kappa_w "
+            f"{axis['kappa_w']:.6g}, rho {axis['rho']:.6g}, sigma {axis['sigma']:.6g}, "
+            f"n {axis['n']:.6g}; fit RMS {axis['rms_error']:.3g} V -> {axis['model_file']}"
+        )
+    for row, errors in zip(summary["coupling"], summary["coupling_standard_errors"]):
+        cells = "  ".join(f"{c:9.6f} ± {e:.1e}" for c, e in zip(row, errors))
+        lines.append(f"coupling  {cells}")
+    lines.append(f"wrote {summary['output']} ({summary['wall_time']:.0f} s)")
+    return "\n".join(lines)
