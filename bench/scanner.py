@@ -30,20 +30,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID  # noqa: E402
-from piezo_stage.control.feedforward import Compensation, FeedforwardModel  # noqa: E402
-from piezo_stage.control.laws import THESIS_GAINS  # noqa: E402
-from piezo_stage.control.learning import sampled_feedforward  # noqa: E402
 from piezo_stage.control.model_fit import perturbed  # noqa: E402
-from piezo_stage.control.stage_control import (  # noqa: E402
-    StageController,
-    StageReference,
-    simulate_stage,
-)
+from piezo_stage.control.stage_control import scanner_run  # noqa: E402
 from piezo_stage.control.stage_fit import fit_stage, stage_recordings  # noqa: E402
 from piezo_stage.control.trajectory import SetPoint, make_trajectory  # noqa: E402
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
-from piezo_stage.model.stage import AmplifierModel, CoupledStage  # noqa: E402
 from piezo_stage.model.stage_file import Stage, StageAxis  # noqa: E402
 
 CH11 = shipped_parameter_set("ch11_rig")
@@ -77,26 +68,7 @@ def identification(seed: int) -> tuple[Stage, dict[str, float], float, float]:
 def held_y(model_stage: Stage, compensate: bool) -> float:
     """Y's RMS error [m] over the second 0.2 s of 0.4 s, X scanning."""
     references = [make_trajectory("triangle", amplitude=10e-6, frequency=10.0), SetPoint(5e-6)]
-    reference = StageReference(model_stage, references, compensate)
-    own = reference.own(np.arange(int(RATE / 10.0)) / RATE)[0]
-    controllers = []
-    for i, axis in enumerate(model_stage.axes):
-        model = FeedforwardModel.from_parameter_set(axis.model)
-        config = ControllerConfig(
-            mode="pid",
-            gains=THESIS_GAINS,
-            u_min=-450.0,
-            u_max=450.0,
-            on_close=OnClose.RESET,
-            compensation=Compensation.BOTH,
-            feedforward=model,
-            feedforward_table=sampled_feedforward(model, own[i], RATE),
-        )
-        controllers.append(TimeVaryingPID(config, closed=True))
-    plant = CoupledStage(SCANNER, amplifiers=[AmplifierModel(-450, 450) for _ in SCANNER.axes])
-    run = simulate_stage(
-        StageController(model_stage, controllers, compensate), plant, reference, RATE, 0.4
-    )
+    run = scanner_run(model_stage, SCANNER, references, compensate, RATE, 0.4)
     return float(run.errors(t_from=0.2)[1])
 
 

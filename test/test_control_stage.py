@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -17,12 +19,13 @@ from piezo_stage.control.stage_control import (
     StageController,
     StageReference,
     own_reference,
+    scanner_run,
     simulate_stage,
 )
 from piezo_stage.control.trajectory import SetPoint, make_trajectory
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.stage import AmplifierModel, CoupledStage, SimulatedStage
-from piezo_stage.model.stage_file import Stage, StageAxis, single_axis_stage
+from piezo_stage.model.stage_file import Stage, StageAxis, load_stage, single_axis_stage
 
 pytestmark = pytest.mark.unit
 
@@ -130,3 +133,18 @@ def test_a_controller_or_reference_per_axis_is_required():
         StageController(XY, [_pid("feedback")])
     with pytest.raises(ControlError, match="one reference per axis, got 3"):
         StageReference(XY, [SetPoint(0.0)] * 3)
+
+
+def test_a_held_axis_stays_put_while_the_other_scans_only_with_the_coupling_compensated():
+    """The scanner's figure on its true models: Y at 5 µm while X runs a 10 Hz triangle over
+    20 µm at 1 kHz; with the coupling out of the feedforward Y's RMS error is under a tenth of
+    the error without (X's 2 % cross-talk, ~75 nm RMS, is what is left uncompensated)."""
+    scanner = load_stage(Path(__file__).resolve().parents[1] / "config" / "xy_scanner.yaml")
+    references = [make_trajectory("triangle", amplitude=10e-6, frequency=10.0), SetPoint(5e-6)]
+    without, with_ = (
+        scanner_run(scanner, scanner, references, compensate, RATE, 0.4).errors(0.2)
+        for compensate in (False, True)
+    )
+    assert without[1] > 20e-9  # the cross-talk is there to be removed
+    assert with_[1] <= 0.1 * without[1]
+    assert with_[0] <= 1.1 * without[0]  # X's own tracking is not the price

@@ -21,11 +21,14 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from piezo_stage.model.stage import CoupledStage
+from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
 
-from .controller import ControlOutput, OwnFrame, TimeVaryingPID
+from .controller import ControllerConfig, ControlOutput, OnClose, OwnFrame, TimeVaryingPID
 from .errors import ControlError
+from .feedforward import Compensation, FeedforwardModel
+from .laws import THESIS_GAINS, Gains, Law
+from .learning import sampled_feedforward
 from .trajectory import SetPoint, Trajectory
 
 __all__ = [
@@ -33,9 +36,14 @@ __all__ = [
     "StageController",
     "StageReference",
     "StageRun",
+    "feedforward_pids",
     "own_reference",
+    "scanner_run",
     "simulate_stage",
 ]
+
+#: the voltage range of the simulated scanners' amplifiers [V]
+SCANNER_VOLTS = (-450.0, 450.0)
 
 AxisReference = Trajectory | SetPoint
 #: (x_d, ẋ_d, ẍ_d), each of shape (axes,) or (axes, samples)
@@ -187,3 +195,55 @@ def simulate_stage(
         saturated[k] = [o.saturated for o in outputs]
         readings = plant.step(u, 1.0 / rate_hz).readings
     return StageRun(t=t, reference=desired[0].T.copy(), saturated=saturated, **record)
+
+
+def feedforward_pids(
+    stage: Stage,
+    reference: StageReference,
+    rate_hz: float,
+    gains: Gains = THESIS_GAINS,
+    u_limits: tuple[float, float] = SCANNER_VOLTS,
+) -> list[TimeVaryingPID]:
+    """Per axis the ch. 11 PID (11.5) plus its model's feedforward (11.1), sampled along the
+    axis's own reference over one period of the moving axes
+    (:func:`~.learning.sampled_feedforward`); closed from the start.
+    """
+    period = reference.period or 1.0
+    own = reference.own(np.arange(int(round(period * rate_hz))) / rate_hz)[0]
+    pids = []
+    for i, axis in enumerate(stage.axes):
+        model = FeedforwardModel.from_parameter_set(axis.model)
+        config = ControllerConfig(
+            mode=Law.PID,
+            gains=gains,
+            u_min=u_limits[0],
+            u_max=u_limits[1],
+            on_close=OnClose.RESET,
+            compensation=Compensation.BOTH,
+            feedforward=model,
+            feedforward_table=sampled_feedforward(model, own[i], rate_hz),
+        )
+        pids.append(TimeVaryingPID(config, closed=True))
+    return pids
+
+
+def scanner_run(
+    model_stage: Stage,
+    plant_stage: Stage,
+    references: Sequence[AxisReference],
+    compensate_coupling: bool,
+    rate_hz: float,
+    duration: float,
+) -> StageRun:
+    """Every axis of the simulated ``plant_stage`` following ``references`` under
+    :func:`feedforward_pids` built on ``model_stage`` (the identified one), with or without the
+    coupling taken out of the feedforward.
+    """
+    reference = StageReference(model_stage, references, compensate_coupling)
+    controller = StageController(
+        model_stage, feedforward_pids(model_stage, reference, rate_hz), compensate_coupling
+    )
+    plant = CoupledStage(
+        plant_stage, amplifiers=[AmplifierModel(*SCANNER_VOLTS) for _ in plant_stage.axes]
+    )
+    return simulate_stage(controller, plant, reference, rate_hz, duration)
