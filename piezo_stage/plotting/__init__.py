@@ -9,6 +9,7 @@ when a ``bouc_wen_parameters`` message is present (10.15), and the closed-loop s
 from .bag_plots import BagTopics, PlotError, find_topics, plot_bag
 from .figures import (
     closed_loop_figure,
+    coupling_figure,
     hysteresis_figure,
     model_figure,
     timeseries_figure,
@@ -19,6 +20,7 @@ __all__ = [
     "BagTopics",
     "PlotError",
     "closed_loop_figure",
+    "coupling_figure",
     "find_topics",
     "hysteresis_figure",
     "model_figure",

@@ -309,3 +309,33 @@ def learning_figure(
     a2.legend(loc="upper right")
     a1.set_title(title or "learning the feedforward")
     return _save(fig, path)
+
+
+def coupling_figure(
+    path: str | Path,
+    scenarios: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray]],
+    *,
+    title: str = "",
+) -> Path:
+    """One panel per scenario (label, t, the held axis's error without and with the coupling
+    compensated [m]): the error [nm] against time, the two runs overlaid."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(len(scenarios), 1, sharex=True, figsize=(9, 2.6 * len(scenarios)))
+    for ax, (label, t, without, with_) in zip(np.atleast_1d(axes), scenarios):
+        t_ms = np.asarray(t, dtype=float) * 1e3
+        for err, name, color in ((without, "without", "C3"), (with_, "with", "C0")):
+            rms = float(np.sqrt(np.mean(np.square(err[len(err) // 2 :]))))
+            ax.plot(
+                t_ms,
+                np.asarray(err) * 1e9,
+                lw=0.9,
+                color=color,
+                label=f"{name} coupling compensation (RMS {rms * 1e9:.3g} nm, 2nd half)",
+            )
+        ax.set_ylabel("error [nm]")
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel("time [ms]")
+    fig.suptitle(title or "a held axis while another scans")
+    return _save(fig, path)
