@@ -226,26 +226,28 @@ def test_sigint_ramps_every_axis_to_safe_voltage_and_exits_zero(probe, device):
     assert any(c.startswith("SVO") for c in device.model.commands)  # left in open loop
 
 
-def _stage_file(tmp_path, channels, name="bad.yaml"):
-    path = tmp_path / name
-    axes = ", ".join(f"{a}: {{model_file: ch11_rig.yaml, channel: '{c}'}}" for a, c in channels)
-    path.write_text(f"name: bad\naxes: {{{axes}}}\n")
+def _stage_file(tmp_path, axes):
+    """A stage file of ``axes``: (name, channel, model file) each."""
+    path = tmp_path / "stage.yaml"
+    entries = ", ".join(f"{a}: {{model_file: {m}, channel: '{c}'}}" for a, c, m in axes)
+    path.write_text(f"name: bad\naxes: {{{entries}}}\n")
     return str(path)
 
 
 @pytest.mark.parametrize(
-    "channels, message",
+    "axes, message",
     [
-        ((("x", "1"), ("y", "4")), "['4'] not on controller"),  # SAI? lists 1, 2, 3
-        ((("x", "1"), ("y", "1")), "channel '1' used twice"),
+        ([("x", "1", "ch11_rig.yaml"), ("y", "4", "ch11_rig.yaml")], "['4'] not on controller"),
+        ([("x", "1", "ch11_rig.yaml"), ("y", "1", "ch11_rig.yaml")], "channel '1' used twice"),
+        ([("x", "1", "ch11_rig.yaml"), ("y", "2", "no_such_model.yaml")], "axes.y.model_file"),
     ],
 )
 def test_a_stage_the_device_cannot_serve_exits_2_and_nothing_is_sent(
-    probe, device, tmp_path, channels, message
+    probe, device, tmp_path, axes, message
 ):
     proc = start_node(
         "stage_driver",
-        f"stage_file:={_stage_file(tmp_path, channels)}",
+        f"stage_file:={_stage_file(tmp_path, axes)}",
         f"url:={device.url}",
         namespace=NS,
     )
@@ -286,3 +288,24 @@ def test_write_rate_writes_every_axis_latest_command_in_one_sva_per_period(probe
     assert k >= 30 and len(written) <= elapsed * rate + 2, (k, len(written), elapsed)
     assert len(written) < k / 2  # far fewer writes than commands
     assert len(batched) >= 10 and len(batched) >= len(written) - 2, written  # all axes a line
+
+
+def test_exit_code_is_non_zero_when_the_link_is_gone_at_shutdown(probe):
+    """The amplifier is gone when SIGINT comes: no axis can be ramped to safe_voltage, and the
+    exit code says so (naming each channel, and which axis is on it)."""
+    dev = Device()
+    server = EmulatorServer(dev.model, tcp_port=0).start()
+    s = StageNode(
+        probe, server.url, "command_timeout:=0.0", "readback_rate_hz:=20.0", "slew_rate:=1000.0"
+    )
+    try:
+        s.send("x", 20.0)
+        assert s.wait(lambda: dev.model.applied_voltages()["1"] > 0.0)
+        server.stop()
+        assert s.wait(lambda: s.link.value("connected") == "False"), s.link.values
+        s.proc.send_signal(signal.SIGINT)
+        code = s.proc.wait(timeout=120.0)
+    finally:
+        _, err = stop(s.proc)
+    assert code == 1 and "1: output not brought to safe_voltage" in err, err[-2000:]
+    assert "(axes x on 1, y on 2, z on 3)" in err

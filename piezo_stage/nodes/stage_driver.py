@@ -30,7 +30,12 @@ from piezo_stage.config_path import ConfigNotFoundError, find_user_file
 from piezo_stage.hardware import DriverState, HardwareError
 from piezo_stage.hardware.axis_link import make_axis_link
 from piezo_stage.hardware.driver import SetResult
-from piezo_stage.hardware.errors import CommandExpired, ConfigError, SafetyError
+from piezo_stage.hardware.errors import (
+    CommandExpired,
+    ConfigError,
+    SafeStateNotReached,
+    SafetyError,
+)
 from piezo_stage.hardware.stage_driver import StageDriver
 from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
 from piezo_stage.model.stage_file import Stage, StageFileError, load_stage
@@ -351,7 +356,11 @@ class StageDriverNode(PiezoNode):
     def on_shutdown(self) -> None:
         """Ramp every axis to its safe_voltage together and leave the amplifier there."""
         self._pending.clear()  # the ramp owns the outputs now
-        applied = self.driver.shutdown()  # SafeStateNotReached: run() exits 1 naming the axes
+        try:
+            applied = self.driver.shutdown()
+        except SafeStateNotReached as exc:  # run() exits 1 with the reason, per channel
+            names = ", ".join(f"{a.name} on {a.channel}" for a in self.axes.values())
+            raise SafeStateNotReached(f"{exc} (axes {names})") from exc
         for channel, voltage in applied.items():
             self._publish(self.axes[channel], voltage)
         self.get_logger().info(
