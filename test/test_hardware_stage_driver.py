@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from piezo_stage.hardware.axis_link import GCSAxisLink, MDTAxisLink
+from piezo_stage.hardware.axis_link import GCSAxisLink, MDTAxisLink, make_axis_link
 from piezo_stage.hardware.driver import DriverConfig, DriverState
 from piezo_stage.hardware.emulators import (
     EmulatorServer,
@@ -17,6 +17,7 @@ from piezo_stage.hardware.emulators import (
     MDTDeviceModel,
 )
 from piezo_stage.hardware.errors import (
+    CommandExpired,
     ConfigError,
     ConnectionLost,
     NonFiniteVoltageError,
@@ -169,3 +170,27 @@ def test_an_mdt693b_writes_its_three_channels_in_one_command():
         assert model.commands[-1] == "yvoltage=25.000"
         assert driver.shutdown() == {"x": 0.0, "y": 0.0, "z": 0.0}
     assert isinstance(driver.set_voltages({"x": 1.0})["x"], NotConnected)
+
+
+def test_make_axis_link_maps_numbered_gcs_axes_to_their_channels():
+    link = make_axis_link("gcs", "tcp://127.0.0.1:1", ("2", "3"))
+    assert isinstance(link, GCSAxisLink) and link.channels == {"2": 2, "3": 3}
+    assert isinstance(make_axis_link("mdt69x", "/dev/null", ("x", "z")), MDTAxisLink)
+    with pytest.raises(ConfigError, match="MDT69x channels"):
+        make_axis_link("mdt69x", "/dev/null", ("1",))
+    with pytest.raises(ConfigError, match="share output channels"):
+        make_axis_link("gcs", "tcp://127.0.0.1:1", ("A", "1"))
+
+
+def test_set_voltages_checks_each_axis_against_its_own_arrival_time():
+    """A command received before its axis's watchdog fired is expired; the other axis's, in the
+    same call, received after, is written."""
+    driver, model, _, clock, _ = _stage(command_timeout=0.5)
+    driver.connect()
+    clock.sleep(1.0)
+    driver.tick()  # every axis's watchdog fires
+    before, after = clock() - 0.1, clock() + 0.1
+    clock.sleep(0.2)
+    results = driver.set_voltages({"1": 10.0, "2": 20.0}, {"1": before, "2": after})
+    assert isinstance(results["1"], CommandExpired) and results["2"].sent == 20.0
+    assert model.applied_voltages() == {"1": 0.0, "2": 20.0, "3": 0.0}

@@ -51,6 +51,7 @@ def test_every_node_executable_has_its_table():
         "plant",
         "player",
         "recorder",
+        "stage_driver",
         "voltage_driver",
     }
 

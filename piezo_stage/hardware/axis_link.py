@@ -15,6 +15,9 @@ Sharing rules:
 - :meth:`AxisLink.batch` collects the writes of one thread and sends them as one command where
   the protocol allows it (GCS ``SVA 1 a 2 b 3 c``, MDT693B ``xyzvoltage=a,b,c``): one write per
   cycle for all axes.
+
+:func:`make_axis_link` builds the link of a backend from a URL, as
+:func:`~.amplifier.make_amplifier` builds one amplifier.
 """
 
 from __future__ import annotations
@@ -24,14 +27,14 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 
-from .amplifier import Amplifier, DeviceInfo
+from .amplifier import AMPLIFIERS, Amplifier, DeviceInfo
 from .errors import ConfigError, DeviceError, GCSError, ProtocolError
 from .gcs import ERR_UNKNOWN_COMMAND, GCSConnection, parse_float
 from .mdt69x import AXES as MDT_AXES
 from .mdt69x import MDTConnection
-from .transport import Transport
+from .transport import Transport, make_transport
 
-__all__ = ["AxisLink", "ChannelAmplifier", "GCSAxisLink", "MDTAxisLink"]
+__all__ = ["AxisLink", "ChannelAmplifier", "GCSAxisLink", "MDTAxisLink", "make_axis_link"]
 
 
 class AxisLink(ABC):
@@ -280,3 +283,27 @@ class MDTAxisLink(AxisLink):
     def read_one(self, axis: str) -> float:
         """``<axis>voltage?``."""
         return self.conn.query_float(f"{axis}voltage?")
+
+
+def make_axis_link(
+    kind: str,
+    url: str,
+    axes: Sequence[str],
+    *,
+    timeout: float = 1.0,
+    baudrate: int | None = None,
+) -> AxisLink:
+    """Build (not open) the link of ``kind`` ("gcs" or "mdt69x", the names of
+    :data:`~.amplifier.AMPLIFIERS`) at ``url`` for the device axes ``axes``. GCS: an axis named
+    by a number drives that output channel (E-727: axis ``2`` on channel 2), any other its
+    position; MDT69x: the channels x, y, z.
+    """
+    if kind not in AMPLIFIERS:
+        raise ConfigError(f"unknown amplifier {kind!r}; choose from {sorted(AMPLIFIERS)}")
+    transport = make_transport(url, baudrate or AMPLIFIERS[kind][1])
+    if kind == "mdt69x":
+        return MDTAxisLink(transport, axes, timeout)
+    channels = [int(a) if a.isdigit() else i + 1 for i, a in enumerate(axes)]
+    if len(set(channels)) != len(channels):
+        raise ConfigError(f"GCS axes {list(axes)} would share output channels {channels}")
+    return GCSAxisLink(transport, axes, channels, timeout)

@@ -76,11 +76,15 @@ class StageDriver:
             raise
 
     def set_voltages(
-        self, values: Mapping[str, float], received: float | None = None
+        self,
+        values: Mapping[str, float],
+        received: float | Mapping[str, float] | None = None,
     ) -> dict[str, SetResult | HardwareError]:
         """Apply one request per named axis with all of its checks, as one device command; per
         axis what was sent, or the refusal (non-finite, out of range, expired, not connected)
-        for that axis alone. A failed command raises (every axis in it reconnects).
+        for that axis alone. ``received``: when the requests arrived, one time for all or per
+        axis (:meth:`VoltageDriver.set_voltage`). A failed command raises (every axis in it
+        reconnects).
         """
         unknown = [a for a in values if a not in self.drivers]
         if unknown:
@@ -88,8 +92,9 @@ class StageDriver:
         results: dict[str, SetResult | HardwareError] = {}
         with self._one_command(list(values)):
             for axis, value in values.items():
+                at = received.get(axis) if isinstance(received, Mapping) else received
                 try:
-                    results[axis] = self.drivers[axis].set_voltage(value, received)
+                    results[axis] = self.drivers[axis].set_voltage(value, at)
                 except HardwareError as exc:
                     results[axis] = exc
         return results

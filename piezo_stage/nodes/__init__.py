@@ -14,6 +14,7 @@ DEFAULT_NAMESPACE = "/piezo"
 #: the node executables: module piezo_stage.nodes.<name>, console script <name>
 NODES = (
     "voltage_driver",
+    "stage_driver",
     "laser_reader",
     "plant",
     "excitation",

@@ -263,6 +263,33 @@ class RecorderSettings:
 
 
 @dataclass(frozen=True)
+class StageDriverSettings:
+    """``stage_driver``: Multi-channel amplifier driver (PI E-727, Thorlabs MDT693B):
+    <axis>/voltage_command -> the axis's channel, limits, slew and watchdog per axis, one
+    link."""
+
+    stage_file: str
+    backend: Literal[
+        "gcs",
+        "mdt69x",
+    ]
+    url: str
+    baud: int
+    io_timeout: float
+    v_min: float
+    v_max: float
+    safe_voltage: float
+    slew_rate: float
+    command_timeout: float
+    watchdog_period: float
+    reconnect_attempts: int
+    readback_rate_hz: float
+    max_command_age: float
+    max_stamp_ahead: float
+    write_rate_hz: float
+
+
+@dataclass(frozen=True)
 class VoltageDriverSettings:
     """``voltage_driver``: Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command ->
     device, with limits, slew and watchdog."""

@@ -40,7 +40,6 @@ from rclpy.parameter import Parameter
 
 from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.hardware import (
-    DriverConfig,
     DriverState,
     HardwareError,
     NonFiniteVoltageError,
@@ -60,6 +59,7 @@ from piezo_stage_msgs.msg import Voltage
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .driver_config import driver_config
 from .errors import RosParameterError
 from .handoff import Handoff
 from .parameters import on_set
@@ -276,16 +276,7 @@ class VoltageDriverNode(PiezoNode):
             baudrate=p.baud or None,
             pipeline=p.error_pipeline,
         )
-        config = DriverConfig(
-            v_min=p.v_min,
-            v_max=p.v_max,
-            safe_voltage=p.safe_voltage,
-            slew_rate=p.slew_rate or math.inf,
-            command_timeout=p.command_timeout or math.inf,
-            write_period=p.watchdog_period,
-            reconnect_attempts=p.reconnect_attempts,
-        )
-        self.driver = VoltageDriver(amplifier, config)
+        self.driver = VoltageDriver(amplifier, driver_config(p))
         self.max_age = float(p.max_command_age)
         self.stamps = StampPolicy(
             self.max_age, p.max_stamp_ahead, require_stamp=self.max_age > 0 or p.apply_at_stamp
