@@ -412,7 +412,6 @@ def parse_graph(
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
     graph_stage = _graph_stage(data.get("stage"), stage, base, where)
     nodes = _parse_nodes(nodes_data, graph_stage, base, where)
-    _check_names(nodes, where)
     use_sim_time = data.get("use_sim_time")
     if use_sim_time is not None and not isinstance(use_sim_time, bool):
         raise GraphError(f"{where}: use_sim_time: expected true or false, got {use_sim_time!r}")
@@ -469,7 +468,7 @@ def _parse_nodes(
     """The ``nodes:`` entries, each validated, ``per_axis`` ones expanded over the stage's axes
     and the substitutions made (the stage's first, then ``$(free_port NAME)``)."""
     ports: dict[str, int] = {}
-    out: list[ProcessSpec] = []
+    out: list[tuple[str, ProcessSpec]] = []  # (where it comes from, entry)
     for i, entry in enumerate(nodes_data):
         label = f"{where}: nodes[{i}]"
         entry = _mapping(entry, label)
@@ -481,25 +480,26 @@ def _parse_nodes(
             if per_axis or uses(entry, STAGE_VARS):
                 why = "is per_axis" if per_axis else "uses $(stage_file), $(axes) or $(channels)"
                 raise needs_stage(where, f"nodes[{i}] {why}")
-            out.append(_substituted_entry(entry, {}, ports, label, base))
+            out.append((label, _substituted_entry(entry, {}, ports, label, base)))
         elif not per_axis:
-            out.append(_substituted_entry(entry, stage.values, ports, label, base))
+            out.append((label, _substituted_entry(entry, stage.values, ports, label, base)))
         else:
             if "process" in entry:
                 raise GraphError(f"{label}: a 'per_axis' entry is not composed ('process')")
             for axis, channel in stage.axes:
                 values = stage.axis_values(axis, channel)
-                spec = _substituted_entry(entry, values, ports, f"{label} (axis {axis})", base)
-                out.append(
-                    dataclasses.replace(
-                        spec,
-                        name=f"{spec.name}_{axis}",
-                        group=spec.name,
-                        axis=axis,
-                        namespace=axis_namespace(spec.namespace, axis) if spec.is_node else None,
-                    )
+                axis_label = f"{label} (axis {axis})"
+                spec = _substituted_entry(entry, values, ports, axis_label, base)
+                spec = dataclasses.replace(
+                    spec,
+                    name=f"{spec.name}_{axis}",
+                    group=spec.name,
+                    axis=axis,
+                    namespace=axis_namespace(spec.namespace, axis) if spec.is_node else None,
                 )
-    return tuple(out)
+                out.append((axis_label, spec))
+    _check_names(out)
+    return tuple(spec for _, spec in out)
 
 
 def _substituted_entry(
@@ -510,18 +510,17 @@ def _substituted_entry(
     return _parse_entry(data, label, base)
 
 
-def _check_names(nodes: tuple[ProcessSpec, ...], where: str) -> None:
+def _check_names(nodes: list[tuple[str, ProcessSpec]]) -> None:
     """Names are distinct: entries, composition hosts and per_axis groups (``--param`` targets)."""
     seen: set[str] = set()
-    hosts = {spec.process for spec in nodes if spec.process is not None}
-    groups = {spec.group for spec in nodes if spec.group is not None}
-    for i, spec in enumerate(nodes):
+    hosts = {spec.process for _, spec in nodes if spec.process is not None}
+    groups = {spec.group for _, spec in nodes if spec.group is not None}
+    for label, spec in nodes:
         if spec.name in hosts:
-            raise GraphError(f"{where}: nodes[{i}]: name {spec.name!r} is also a 'process'")
+            raise GraphError(f"{label}: name {spec.name!r} is also a 'process'")
         if spec.name in seen or (spec.group is None and spec.name in groups):
             raise GraphError(
-                f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
-                "give each entry a distinct 'name'"
+                f"{label}: name {spec.name!r} is used twice; give each entry a distinct 'name'"
             )
         seen.add(spec.name)
 
