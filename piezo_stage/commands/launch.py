@@ -1,6 +1,7 @@
 """Start a graph of nodes from a YAML file (the project's own `ros2 launch`).
 
 GRAPH is a YAML file or the name of one in config/graphs/ (format: config/graphs/README.md).
+--stage FILE gives a multi-axis graph its stage (the axes its `per_axis` entries run on).
 Every node runs as its own process with --ros-args; output lines are prefixed with the node
 name; the launch waits for the graph's topics, then runs until Ctrl-C / SIGTERM or until a
 `required` node exits. Exit status: 0 clean stop; a required node's exit code when it exits;
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from piezo_stage.commands.argtypes import int_range
+from piezo_stage.launch.axes import user_stage_path
 from piezo_stage.launch.commandline import display_argv, shell_line
 from piezo_stage.launch.errors import (
     GraphError,
@@ -39,6 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         default=None,
         help="namespace of every node (default: the graph's, normally /piezo)",
+    )
+    parser.add_argument(
+        "--stage",
+        metavar="FILE",
+        default=None,
+        help="stage file: the axes of the graph's per_axis entries (default: the graph's "
+        "'stage:'); a path, or a shipped one like xy_scanner.yaml",
     )
     parser.add_argument(
         "--param",
@@ -90,10 +99,11 @@ def _error(message: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        graph_source = args.graph
+        stage = None if args.stage is None else user_stage_path(args.stage)
+        graph_source = load_graph(args.graph, stage=stage)
         if args.view or args.view_port is not None:
             view = {"executable": "live_view", "overrides": {"port": args.view_port or 8765}}
-            graph_source = load_graph(args.graph).with_node(view)
+            graph_source = graph_source.with_node(view)
         launcher = Launcher(
             graph_source,
             namespace=args.ns,
@@ -105,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         _error(str(exc))
         return EXIT_BAD_GRAPH
     graph = launcher.graph
-    names = {s.name for s in graph.nodes}
+    names = graph.entry_names()
     for text in args.param:
         head, dot, _ = text.partition(":=")[0].partition(".")
         if dot and head not in names:
@@ -129,6 +139,8 @@ def _print_plan(launcher: Launcher) -> None:
     g = launcher.graph
     print(f"# {g.source or 'graph'}" + (f": {g.description}" if g.description else ""))
     print(f"# namespace {g.namespace}; waits for: {', '.join(g.topics()) or 'nothing'}")
+    if g.stage is not None:
+        print(f"# stage {g.stage.describe()}")
     for spec in g.processes():
         flags = " (required)" if spec.required else ""
         print(f"{spec.name}{flags}: {shell_line(display_argv(spec, g))}")

@@ -41,7 +41,7 @@ def param_args(params: Mapping[str, Any]) -> list[str]:
 def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     """``--ros-args`` and what follows, in rcl's order of precedence (later wins): params files,
     the graph's use_sim_time, then the entry's overrides (including --param ones)."""
-    args = ["--ros-args", "-r", f"__ns:={graph.namespace}"]
+    args = ["--ros-args", "-r", f"__ns:={graph.namespace_of(spec)}"]
     if spec.members:  # a composition host: the members' params files (their overrides: host_args)
         for path in dict.fromkeys(p for m in spec.members for p in m.parameters):
             args += ["--params-file", str(path)]
@@ -55,6 +55,9 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
     if graph.use_sim_time is not None:
         args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
     args += param_args(spec.overrides)
+    clock = graph.clock_remapping(spec)
+    if clock is not None:
+        args += ["-r", f"/clock:={clock}"]
     for src, dst in spec.remappings.items():
         args += ["-r", f"{src}:={dst}"]
     return args

@@ -2,7 +2,8 @@
 
 Nodes become ``launch_ros.actions.Node`` (the package's console_scripts for `executable`
 entries, ``python3 -m MODULE`` for other modules), commands ``ExecuteProcess``; the namespace
-is a launch argument defaulting to the graph's; `required` maps to ``on_exit=Shutdown()``.
+is a launch argument defaulting to the graph's (an entry's relative namespace is joined to it);
+`required` maps to ``on_exit=Shutdown()``.
 ros2 launch has no equivalent of `wait_for_topics`, `ready_pattern` or the exit-code rule:
 the file says so in comments.
 """
@@ -43,6 +44,28 @@ def _parameters(spec: ProcessSpec, graph: Graph) -> list[str]:
     return items
 
 
+def _namespace(spec: ProcessSpec) -> list[str]:
+    """The entry's namespace as launch substitutions (python expressions) to concatenate."""
+    if spec.namespace is None:
+        return ["NAMESPACE"]
+    if spec.namespace.startswith("/"):
+        return [repr(spec.namespace)]
+    return ["NAMESPACE", repr("/" + spec.namespace)]
+
+
+def _joined(parts: list[str]) -> str:
+    return parts[0] if len(parts) == 1 else "[" + ", ".join(parts) + "]"
+
+
+def _remappings(spec: ProcessSpec, graph: Graph) -> list[str]:
+    """(FROM, TO) pairs as python expressions; ``clock: namespaced`` for an entry in its own
+    namespace remaps /clock to the graph namespace's clock."""
+    items = [repr(pair) for pair in spec.remappings.items()]
+    if graph.clock_remapping(spec) is not None:
+        items.insert(0, "('/clock', [NAMESPACE, '/clock'])")
+    return items
+
+
 def _env(spec: ProcessSpec, graph: Graph) -> dict[str, str]:
     return {**graph.env, **spec.env}
 
@@ -62,16 +85,20 @@ def _node(spec: ProcessSpec, graph: Graph) -> str:
         kw = [
             f"package={PACKAGE!r}",
             f"executable={spec.module.rsplit('.', 1)[1]!r}",
-            "namespace=NAMESPACE",
+            "namespace=" + _joined(_namespace(spec)),
         ]
         kw += _common(spec, graph)
-        if spec.node_name is None:  # Node(name=...) remaps the node name; keep the node's own
-            kw = [k for k in kw if not k.startswith("name=")]
+        # Node(name=...) remaps the node name: the entry's node name (an expanded per_axis
+        # entry keeps it, its namespace tells the axes apart), else the node's own
+        kw = [k for k in kw if not k.startswith("name=")]
+        if spec.node_name is not None:
+            kw.insert(3, f"name={spec.node_name!r}")
         params = _parameters(spec, graph)
         if params:
             kw.append("parameters=[" + ", ".join(params) + "]")
-        if spec.remappings:
-            kw.append(f"remappings={list(spec.remappings.items())!r}")
+        remappings = _remappings(spec, graph)
+        if remappings:
+            kw.append(f"remappings=[{', '.join(remappings)}]")
         if spec.args:
             kw.append(f"arguments={list(spec.args)!r}")
         if spec.members:  # a composition host: its members' overrides, then their params files
@@ -90,7 +117,7 @@ def _module_process(spec: ProcessSpec, graph: Graph) -> str:
         *map(repr, spec.args),
         "'--ros-args'",
         "'-r'",
-        "['__ns:=', NAMESPACE]",
+        f"['__ns:=', {', '.join(_namespace(spec))}]",
     ]
     if spec.node_name:
         cmd += ["'-r'", repr(f"__node:={spec.node_name}")]
@@ -99,6 +126,8 @@ def _module_process(spec: ProcessSpec, graph: Graph) -> str:
     sim = {"use_sim_time": graph.use_sim_time} if graph.use_sim_time is not None else {}
     for key, value in {**sim, **spec.overrides}.items():
         cmd += ["'-p'", repr(f"{key}:={ros_value(value)}")]
+    if graph.clock_remapping(spec) is not None:
+        cmd += ["'-r'", "['/clock:=', NAMESPACE, '/clock']"]
     for src, dst in spec.remappings.items():
         cmd += ["'-r'", repr(f"{src}:={dst}")]
     return _call("ExecuteProcess", ["cmd=[" + ", ".join(cmd) + "]", *_common(spec, graph)])

@@ -4,6 +4,8 @@ Format (documented with examples in ``config/graphs/README.md``)::
 
     description: simulated stage        # optional, shown by --dry-run
     namespace: /piezo                   # default; `--ns` overrides it
+    stage: xy_scanner.yaml              # optional stage file (graph's folder, then config/);
+                                        # `--stage FILE` overrides it
     use_sim_time: false                 # optional; passed to every node when given
     clock: namespaced                   # optional: /clock -> <namespace>/clock for every node
     env: {RCUTILS_LOGGING_BUFFERED_STREAM: "1"}   # optional, for every process
@@ -12,6 +14,8 @@ Format (documented with examples in ``config/graphs/README.md``)::
     nodes:
       - executable: plant               # python module piezo_stage.nodes.plant
         name: plant                     # optional node name (-r __node:=)
+        namespace: x                    # optional: relative (under the graph's) or absolute
+        per_axis: false                 # true: one process per axis of the stage (axes.py)
         parameters: [plant_ch10_patch.yaml]   # params files: graph's folder, then config/
         overrides: {clock_mode: lockstep}     # -p key:=value
         remappings: {voltage_command: cmd}    # -r from:=to
@@ -31,6 +35,13 @@ free on 127.0.0.1 when the graph is read, the same one for each NAME within the 
 helper's port and the URL of the node that connects to it (two launches side by side each get
 their own).
 
+A ``per_axis: true`` entry becomes one entry per axis of the graph's stage, named
+``<name>_<axis>`` in the namespace ``<entry namespace or graph namespace>/<axis>``, with
+``$(axis)`` and ``$(channel)`` replaced in its strings; ``$(stage_file)``, ``$(axes)`` and
+``$(channels)`` are replaced in every entry, before ``$(free_port NAME)``
+(:mod:`piezo_stage.launch.axes`). A ``wait_for_topics`` item with ``$(axis)`` or
+``per_axis: true`` is one wait per axis.
+
 This module is pure Python (yaml only): parsing, validation and the `--ns`/`--param` edits.
 """
 
@@ -48,6 +59,20 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import yaml
 
 from piezo_stage.config_path import ConfigNotFoundError, find_config, shipped_names, yaml_problem
+from piezo_stage.launch.axes import (
+    AXIS_VARS,
+    STAGE_VARS,
+    GraphStage,
+    axis_namespace,
+    check_leftovers,
+    needs_stage,
+    per_axis_flag,
+    read_stage,
+    stage_path,
+    substitute,
+    user_stage_path,
+    uses,
+)
 from piezo_stage.launch.errors import GraphError
 from piezo_stage.nodes import DEFAULT_NAMESPACE  # the package module is pure (no rclpy)
 from piezo_stage.yaml_values import load_yaml
@@ -58,6 +83,7 @@ NODE_PACKAGE = "piezo_stage.nodes"
 _GRAPH_KEYS = (
     "description",
     "namespace",
+    "stage",
     "use_sim_time",
     "clock",
     "env",
@@ -68,6 +94,8 @@ _GRAPH_KEYS = (
 _KINDS = ("executable", "module", "command")
 _NODE_KEYS = (
     "name",
+    "namespace",
+    "per_axis",
     "parameters",
     "overrides",
     "remappings",
@@ -123,10 +151,17 @@ class ProcessSpec:
     ready_pattern: str | None = None
     process: str | None = None  # composed into the process of this host node module
     members: tuple[ProcessSpec, ...] = ()  # a host's composed entries
+    namespace: str | None = None  # own namespace: relative to the graph's, or absolute
+    group: str | None = None  # a per_axis entry's name, for its expanded entries
+    axis: str | None = None  # the axis an expanded entry runs
 
     @property
     def is_node(self) -> bool:
         return self.module is not None
+
+    def targeted_by(self, name: str | None) -> bool:
+        """Whether ``--param NAME.KEY`` reaches this entry: its name or its per_axis group's."""
+        return name is None or name in (self.name, self.group)
 
 
 @dataclass(frozen=True)
@@ -139,6 +174,8 @@ class Graph:
     stop_timeout: float = DEFAULT_STOP_TIMEOUT
     description: str = ""
     source: Path | None = None
+    stage: GraphStage | None = None
+    clock: str = "global"
 
     def node(self, name: str) -> ProcessSpec:
         for spec in self.nodes:
@@ -165,6 +202,24 @@ class Graph:
                     )
                 )
         return tuple(out)
+
+    def namespace_of(self, spec: ProcessSpec) -> str:
+        """The namespace a process runs in: its own (resolved in the graph's) or the graph's."""
+        if spec.namespace is None:
+            return self.namespace
+        return resolve_name(spec.namespace, self.namespace)
+
+    def clock_remapping(self, spec: ProcessSpec) -> str | None:
+        """With ``clock: namespaced``, what ``/clock`` becomes for an entry in a namespace of its
+        own (``<graph namespace>/clock``; the others remap to ``clock``, module
+        :func:`_namespaced_clock`); None otherwise."""
+        if self.clock != "namespaced" or spec.namespace is None or not spec.is_node:
+            return None
+        return None if "/clock" in spec.remappings else resolve_name("clock", self.namespace)
+
+    def entry_names(self) -> set[str]:
+        """What ``--param NAME.KEY`` can name: the entries and the per_axis groups."""
+        return {s.name for s in self.nodes} | {s.group for s in self.nodes if s.group}
 
     def topics(self) -> list[str]:
         """Fully qualified names of the topics waited for."""
@@ -197,7 +252,7 @@ class Graph:
                 s
                 for s in self.nodes
                 if s.is_node
-                and target in (None, s.name)
+                and s.targeted_by(target)
                 and (target is not None or accepts is None or accepts(s, key))
             ]
             if not takers and any(s.is_node for s in self.nodes):
@@ -214,7 +269,7 @@ class Graph:
         """For ``NODE.KEY`` whose NODE is no entry: ``" (did you mean 'controller.mode'?)"`` with
         the closest entry name, or ''."""
         head, dot, rest = key.partition(".")
-        names = [s.name for s in self.nodes if s.is_node]
+        names = sorted({n for s in self.nodes if s.is_node for n in (s.name, s.group) if n})
         near = difflib.get_close_matches(head, names, n=1, cutoff=0.6) if dot else []
         return f" (did you mean {near[0] + '.' + rest!r}?)" if near else ""
 
@@ -228,7 +283,7 @@ class Graph:
         except yaml.YAMLError as exc:
             raise GraphError(f"--param {text!r}: value is not YAML: {exc}") from None
         head, dot, rest = lhs.partition(".")
-        names = {s.name: s for s in self.nodes}
+        names = {n: s for s in self.nodes for n in (s.name, s.group) if n}
         if dot and head in names:
             if not names[head].is_node:
                 raise GraphError(
@@ -263,6 +318,17 @@ def normalize_namespace(namespace: str, where: str = "namespace") -> str:
     return ns
 
 
+def entry_namespace(namespace: Any, where: str) -> str:
+    """An entry's ``namespace``: absolute (``/a/b``) as :func:`normalize_namespace` makes it,
+    or relative to the graph's (``x``, ``a/x``), kept relative so that ``--ns`` moves it."""
+    if not isinstance(namespace, str) or not namespace.strip().strip("/"):
+        if namespace == "/":
+            return "/"
+        raise GraphError(f"{where}: expected a namespace (e.g. x or /stage/x), got {namespace!r}")
+    ns = normalize_namespace(namespace, where)
+    return ns if namespace.strip().startswith("/") else ns[1:]
+
+
 def find_graph(graph: str | os.PathLike[str]) -> Path:
     """An existing file path, or the name of a graph in ``config/graphs/`` (``.yaml`` optional)."""
     path = Path(graph)
@@ -286,8 +352,9 @@ def find_graph(graph: str | os.PathLike[str]) -> Path:
     )
 
 
-def load_graph(graph: str | os.PathLike[str]) -> Graph:
-    """Read and validate a graph file (path or shipped name); GraphError names any problem."""
+def load_graph(graph: str | os.PathLike[str], stage: str | os.PathLike[str] | None = None) -> Graph:
+    """Read and validate a graph file (path or shipped name); GraphError names any problem.
+    ``stage`` (a file the user named) replaces the graph's ``stage:``."""
     path = find_graph(graph)
     try:
         data = load_yaml(path.read_text(encoding="utf-8"))
@@ -295,7 +362,7 @@ def load_graph(graph: str | os.PathLike[str]) -> Graph:
         raise GraphError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
     except (OSError, UnicodeDecodeError) as exc:  # a binary file is not a graph either
         raise GraphError(f"{path}: cannot read: {exc}") from None
-    return parse_graph(data, source=path)
+    return parse_graph(data, source=path, stage=stage)
 
 
 _FREE_PORT_RE = re.compile(rf"\$\(free_port(?:\s+({_TOKEN}))?\s*\)")
@@ -328,10 +395,14 @@ def substitute_free_ports(value: Any, ports: dict[str, int] | None = None) -> An
     return value
 
 
-def parse_graph(data: Any, source: Path | None = None) -> Graph:
+def parse_graph(
+    data: Any, source: Path | None = None, stage: str | os.PathLike[str] | None = None
+) -> Graph:
     """Validate a graph given as data (the parsed YAML); relative params files are looked up in
     the folder of `source` (or the current folder), then in the package's ``config/``;
-    ``$(free_port NAME)`` in the entries becomes a free TCP port (module docstring)."""
+    ``per_axis`` entries are expanded over the stage (``stage``, a file the user named, else
+    the graph's ``stage:``) and ``$(free_port NAME)`` becomes a free TCP port (module
+    docstring)."""
     where = str(source) if source is not None else "graph"
     data = _mapping(data, where)
     _no_unknown_keys(data, _GRAPH_KEYS, where)
@@ -339,21 +410,8 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     nodes_data = data.get("nodes")
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
-    nodes_data = substitute_free_ports(nodes_data)
-    nodes = tuple(
-        _parse_entry(entry, f"{where}: nodes[{i}]", base) for i, entry in enumerate(nodes_data)
-    )
-    seen: set[str] = set()
-    hosts = {spec.process for spec in nodes if spec.process is not None}
-    for i, spec in enumerate(nodes):
-        if spec.name in hosts:
-            raise GraphError(f"{where}: nodes[{i}]: name {spec.name!r} is also a 'process'")
-        if spec.name in seen:
-            raise GraphError(
-                f"{where}: nodes[{i}]: name {spec.name!r} is used twice; "
-                "give each entry a distinct 'name'"
-            )
-        seen.add(spec.name)
+    graph_stage = _graph_stage(data.get("stage"), stage, base, where)
+    nodes = _parse_nodes(nodes_data, graph_stage, base, where)
     use_sim_time = data.get("use_sim_time")
     if use_sim_time is not None and not isinstance(use_sim_time, bool):
         raise GraphError(f"{where}: use_sim_time: expected true or false, got {use_sim_time!r}")
@@ -369,9 +427,8 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
     description = data.get("description", "")
     if not isinstance(description, str):
         raise GraphError(f"{where}: description: expected a string")
-    waits = tuple(
-        _parse_topic_wait(t, f"{where}: wait_for_topics[{i}]")
-        for i, t in enumerate(_list(data.get("wait_for_topics", []), f"{where}: wait_for_topics"))
+    waits = _parse_waits(
+        _list(data.get("wait_for_topics", []), f"{where}: wait_for_topics"), graph_stage, where
     )
     clock = data.get("clock", "global")
     if clock not in ("global", "namespaced"):
@@ -389,7 +446,108 @@ def parse_graph(data: Any, source: Path | None = None) -> Graph:
         stop_timeout=float(stop_timeout),
         description=description.strip(),
         source=source,
+        stage=graph_stage,
+        clock=clock,
     )
+
+
+def _graph_stage(
+    key: Any, given: str | os.PathLike[str] | None, base: Path, where: str
+) -> GraphStage | None:
+    """The stage a graph runs: ``given`` (the user's ``--stage``), else its ``stage:`` key."""
+    if given is not None:
+        return read_stage(user_stage_path(given), "--stage")
+    if key is None:
+        return None
+    return read_stage(stage_path(key, base, where), where)
+
+
+def _parse_nodes(
+    nodes_data: list[Any], stage: GraphStage | None, base: Path, where: str
+) -> tuple[ProcessSpec, ...]:
+    """The ``nodes:`` entries, each validated, ``per_axis`` ones expanded over the stage's axes
+    and the substitutions made (the stage's first, then ``$(free_port NAME)``)."""
+    ports: dict[str, int] = {}
+    out: list[tuple[str, ProcessSpec]] = []  # (where it comes from, entry)
+    for i, entry in enumerate(nodes_data):
+        label = f"{where}: nodes[{i}]"
+        entry = _mapping(entry, label)
+        per_axis = per_axis_flag(entry, label)
+        entry.pop("per_axis", None)
+        if not per_axis and uses(entry, AXIS_VARS):
+            raise GraphError(f"{label}: $(axis) and $(channel) are for 'per_axis: true' entries")
+        if stage is None:
+            if per_axis or uses(entry, STAGE_VARS):
+                why = "is per_axis" if per_axis else "uses $(stage_file), $(axes) or $(channels)"
+                raise needs_stage(where, f"nodes[{i}] {why}")
+            out.append((label, _substituted_entry(entry, {}, ports, label, base)))
+        elif not per_axis:
+            out.append((label, _substituted_entry(entry, stage.values, ports, label, base)))
+        else:
+            if "process" in entry:
+                raise GraphError(f"{label}: a 'per_axis' entry is not composed ('process')")
+            for axis, channel in stage.axes:
+                values = stage.axis_values(axis, channel)
+                axis_label = f"{label} (axis {axis})"
+                spec = _substituted_entry(entry, values, ports, axis_label, base)
+                spec = dataclasses.replace(
+                    spec,
+                    name=f"{spec.name}_{axis}",
+                    group=spec.name,
+                    axis=axis,
+                    namespace=axis_namespace(spec.namespace, axis) if spec.is_node else None,
+                )
+                out.append((axis_label, spec))
+    _check_names(out)
+    return tuple(spec for _, spec in out)
+
+
+def _substituted_entry(
+    entry: dict[str, Any], values: Mapping[str, str], ports: dict[str, int], label: str, base: Path
+) -> ProcessSpec:
+    data = substitute_free_ports(substitute(entry, values), ports)
+    check_leftovers(data, label)
+    return _parse_entry(data, label, base)
+
+
+def _check_names(nodes: list[tuple[str, ProcessSpec]]) -> None:
+    """Names are distinct: entries, composition hosts and per_axis groups (``--param`` targets)."""
+    seen: set[str] = set()
+    hosts = {spec.process for _, spec in nodes if spec.process is not None}
+    groups = {spec.group for _, spec in nodes if spec.group is not None}
+    for label, spec in nodes:
+        if spec.name in hosts:
+            raise GraphError(f"{label}: name {spec.name!r} is also a 'process'")
+        if spec.name in seen or (spec.group is None and spec.name in groups):
+            raise GraphError(
+                f"{label}: name {spec.name!r} is used twice; give each entry a distinct 'name'"
+            )
+        seen.add(spec.name)
+
+
+def _parse_waits(items: list[Any], stage: GraphStage | None, where: str) -> tuple[TopicWait, ...]:
+    """The ``wait_for_topics`` items; one with ``$(axis)`` or ``per_axis: true`` is one wait
+    per axis (``per_axis`` alone: the topic in the axis's namespace, ``<axis>/<topic>``)."""
+    waits: list[TopicWait] = []
+    for i, item in enumerate(items):
+        label = f"{where}: wait_for_topics[{i}]"
+        per_axis = isinstance(item, Mapping) and per_axis_flag(item, label)
+        if not (per_axis or uses(item, AXIS_VARS)):
+            waits.append(_parse_topic_wait(item, label))
+            continue
+        if stage is None:
+            raise needs_stage(where, f"wait_for_topics[{i}] is per axis")
+        for axis, channel in stage.axes:
+            wait = _parse_topic_wait(substitute(item, stage.axis_values(axis, channel)), label)
+            if per_axis and not uses(item, AXIS_VARS):
+                if wait.topic.startswith("/"):
+                    raise GraphError(
+                        f"{label}: a per_axis topic is relative (in each axis's namespace) "
+                        f"or holds $(axis), got {wait.topic!r}"
+                    )
+                wait = dataclasses.replace(wait, topic=f"{axis}/{wait.topic}")
+            waits.append(wait)
+    return tuple(waits)
 
 
 def _namespaced_clock(
@@ -400,7 +558,9 @@ def _namespaced_clock(
     ``/clock`` is global in ROS, so two lockstep stages (each plant owns a clock) can only run side
     by side in namespaces this way (or in different ROS domains)."""
     nodes = tuple(
-        dataclasses.replace(s, remappings={"/clock": "clock", **s.remappings}) if s.is_node else s
+        dataclasses.replace(s, remappings={"/clock": "clock", **s.remappings})
+        if s.is_node and s.namespace is None  # in a namespace of its own: clock_remapping()
+        else s
         for s in nodes
     )
     waits = tuple(
@@ -413,6 +573,8 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
     """One ``nodes:`` item, validated; relative params files are looked up from ``base``."""
     entry = _mapping(entry, where)
     _no_unknown_keys(entry, _KINDS + _NODE_KEYS, where)
+    if "per_axis" in entry:  # parse_graph expands them; an entry added later has no stage
+        raise GraphError(f"{where}: per_axis: only an entry of a graph file is expanded per axis")
     kind = _entry_kind(entry, where)
     node_name = _node_name(entry.get("name"), where)
     module: str | None = None
@@ -432,6 +594,11 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
         _mapping(entry.get("overrides", {}), f"{label}: overrides"), f"{label}: overrides"
     )
     remappings = _remappings(entry.get("remappings", {}), label)
+    namespace = entry.get("namespace")
+    if namespace is not None:
+        if kind == "command":
+            raise GraphError(f"{label}: 'namespace' is for ROS nodes, not for a command")
+        namespace = entry_namespace(namespace, f"{label}: namespace")
     return ProcessSpec(
         name=name,
         module=module,
@@ -448,6 +615,7 @@ def _parse_entry(entry: Any, where: str, base: Path) -> ProcessSpec:
         env=_env(entry.get("env", {}), f"{label}: env"),
         ready_pattern=ready_pattern,
         process=process,
+        namespace=namespace,
     )
 
 
@@ -508,7 +676,7 @@ def _process(entry: Mapping[str, Any], kind: str, label: str) -> str | None:
             f"{label}: process: only an 'executable' entry is composed, into a "
             f"host node module name (e.g. rig_loop), got {process!r}"
         )
-    for key in ("name", "args", "ready_pattern", "remappings"):
+    for key in ("name", "args", "ready_pattern", "remappings", "namespace"):
         if key in entry:
             raise GraphError(f"{label}: {key!r} is not for a composed entry (process: {process})")
     return process
@@ -560,7 +728,7 @@ def _parse_topic_wait(item: Any, where: str) -> TopicWait:
     if isinstance(item, str):
         item = {"topic": item}
     item = _mapping(item, where)
-    _no_unknown_keys(item, ("topic", "publishers", "subscribers"), where)
+    _no_unknown_keys(item, ("topic", "publishers", "subscribers", "per_axis"), where)
     topic = item.get("topic")
     if not isinstance(topic, str) or not _TOPIC_RE.match(topic):
         raise GraphError(f"{where}: {topic!r} is not a topic name (relative or absolute)")

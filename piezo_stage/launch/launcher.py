@@ -27,6 +27,7 @@ from piezo_stage.launch.commandline import (
     shell_line,
 )
 from piezo_stage.launch.errors import (
+    GraphError,
     LaunchError,
     LaunchInterrupted,
     RequiredProcessExited,
@@ -55,6 +56,7 @@ class Launcher:
 
     graph: a Graph, a parsed-YAML mapping, a file path or the name of a shipped graph.
     namespace: replaces the graph's namespace. params: ``NODE.KEY:=VALUE`` / ``KEY:=VALUE``.
+    stage: a stage file replacing the graph's ``stage:`` (when the graph is read here).
     sink: receives every output line (default: prefixed to stdout/stderr, coloured on a tty).
     env: base environment of the processes (default os.environ). timeout: default of
     wait_ready() and of `ready_pattern` waits [s]. stop_timeout: replaces the graph's.
@@ -66,6 +68,7 @@ class Launcher:
         *,
         namespace: str | None = None,
         params: Sequence[str] = (),
+        stage: str | os.PathLike[str] | None = None,
         sink: LineSink | None = None,
         color: str | bool | None = None,
         env: Mapping[str, str] | None = None,
@@ -73,11 +76,13 @@ class Launcher:
         stop_timeout: float | None = None,
     ) -> None:
         if isinstance(graph, Graph):
+            if stage is not None:
+                raise GraphError("stage: give it to load_graph(), the graph here is already read")
             g = graph
         elif isinstance(graph, Mapping):
-            g = parse_graph(graph)
+            g = parse_graph(graph, stage=stage)
         else:
-            g = load_graph(graph)
+            g = load_graph(graph, stage=stage)
         if namespace is not None:
             g = g.with_namespace(namespace)
         if params:
