@@ -58,6 +58,12 @@ class Transport(ABC):
     def reset_input(self) -> None:
         """Discard everything received but not yet read."""
 
+    def fileno(self) -> int:
+        """The open link's descriptor, for a selector over several links (ConfigError when the
+        transport has none).
+        """
+        raise ConfigError(f"{self.url} has no file descriptor to wait on")
+
     def __enter__(self) -> "Transport":
         self.open()
         return self
@@ -118,6 +124,10 @@ class SerialTransport(Transport):
         if self._ser is None:
             raise NotConnected(f"{self.url} is not open")
         return self._ser
+
+    def fileno(self) -> int:
+        """The port's descriptor (pyserial opens it non-blocking)."""
+        return int(self._port().fileno())
 
     def write(self, data: bytes) -> None:
         """Write all of ``data``; DeviceTimeout when the port does not take it within 1 s."""
@@ -204,6 +214,10 @@ class TcpTransport(Transport):
         if self._sock is None:
             raise NotConnected(f"{self.url} is not open")
         return self._sock
+
+    def fileno(self) -> int:
+        """The socket's descriptor."""
+        return self._socket().fileno()
 
     def write(self, data: bytes) -> None:
         """Send all of ``data``."""

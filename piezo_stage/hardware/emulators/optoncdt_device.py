@@ -69,6 +69,13 @@ class OptoNCDTDeviceModel:
         """Server time (``time.monotonic``) of sample 0; ``source`` gets times relative to it."""
         return self._t0
 
+    def synchronise(self, t0: float) -> None:
+        """Take sample 0 at server time ``t0`` (``time.monotonic``, shared by every process of
+        the host): sensors given one ``t0`` sample together, as on one sync line.
+        """
+        with self.lock:
+            self._t0 = float(t0)
+
     @property
     def stream_period(self) -> float:
         """Seconds between :meth:`stream` calls: one sample period, at most 2 ms."""

@@ -1,0 +1,175 @@
+"""The composed loop of a stage, without ROS: every axis of one multi-channel amplifier in one
+thread, one multi-axis write per sensor cycle (docs/design.md §10).
+
+Per cycle (:meth:`StageLoop.step`) each axis's law (the :class:`~.rig_loop.Law` the single-axis
+:class:`~.rig_loop.RigLoop` steps) gets that axis's newest sample, or, when the axis brought none
+this cycle, the tick of its silence (``check_gap``: within ``max_gap`` the axis holds, beyond it
+its loop opens, as in the rig loop). The outputs of every axis that has one leave in one
+:meth:`~piezo_stage.hardware.stage_driver.StageDriver.set_voltages` call (GCS ``SVA 1 a 2 b 3
+c``), where each axis's safety rules apply; an axis without an output is left out of the write
+and its amplifier channel keeps its last voltage. :class:`SupervisedLaw` is such a law from core
+pieces alone (:class:`~.supervision.LoopSupervisor` and a :class:`~.setpoint.SetPoint`);
+:func:`run_stage_loop` is the loop thread over :class:`~piezo_stage.hardware.stage_sensors.
+StageSensors`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from typing import Callable, Protocol
+
+from piezo_stage.hardware.errors import HardwareError
+
+from .controller import ControlOutput
+from .rig_loop import Law
+from .setpoint import SetPoint
+from .supervision import Gap, LoopSupervisor
+
+__all__ = ["StageAmplifier", "StageLoop", "SupervisedLaw", "Cycles", "run_stage_loop"]
+
+
+class StageAmplifier(Protocol):
+    """The multi-channel amplifier (:class:`~piezo_stage.hardware.stage_driver.StageDriver`)."""
+
+    def set_voltages(
+        self, values: Mapping[str, float], received: float | None = None
+    ) -> Mapping[str, object]:
+        """Write every named axis in one device command, each with its own safety rules."""
+
+
+class Cycles(Protocol):
+    """The sensors' side of the loop (:class:`~piezo_stage.hardware.stage_sensors.StageSensors`):
+    per axis the newest sample of the cycle, and whether it is new.
+    """
+
+    value: list[float]
+    status: list[int]
+    stamp: list[int]
+    fresh: list[bool]
+
+    def wait(self, timeout: float) -> bool:
+        """Block until a cycle is due (True) or ``timeout`` s passed without one (False)."""
+
+    def next_cycle(self) -> None:
+        """The cycle was taken: no axis is fresh any more."""
+
+
+class SupervisedLaw:
+    """One axis's supervised law: :class:`LoopSupervisor` around its PID, the set point from
+    ``setpoint``; the voltage to write (``u_bias`` added, within the amplifier's limits), or the
+    hold voltage while the loop is open (as the controller node's ``on_sample``).
+    """
+
+    def __init__(self, supervisor: LoopSupervisor, setpoint: SetPoint) -> None:
+        self.supervisor, self.setpoint = supervisor, setpoint
+        self.last_step: ControlOutput | None = None
+
+    def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
+        """One sample taken at ``stamp_ns`` → the voltage to write now (None: none yet)."""
+        t = stamp_ns * 1e-9
+        self.last_step = None
+        sup = self.supervisor
+        if not sup.sample(t, x, ok):
+            return sup.hold_command()
+        yr, yr_dot, yr_ddot = self.setpoint.evaluate(t)
+        out = self.last_step = sup.step(t, yr, yr_dot, yr_ddot)
+        return sup.command(out)
+
+    def check_gap(self, t: float) -> float | None:
+        """A tick without a sample at ``t`` [s]: the hold voltage once the loop opened, else
+        None (the output holds).
+        """
+        sup = self.supervisor
+        return sup.hold_command() if sup.check_gap(t) is Gap.OPENED else None
+
+
+class StageLoop:
+    """The step of the stage's loop (module docstring): ``laws[i]`` drives ``axes[i]``.
+    ``after()`` runs after every cycle and idle tick (a node's hand-off drain); ``every``: the
+    laws' ``publish`` flag is True on every ``every``-th cycle.
+    """
+
+    def __init__(
+        self,
+        axes: Sequence[str],
+        laws: Sequence[Law],
+        amplifier: StageAmplifier,
+        after: Callable[[], None] | None = None,
+        every: int = 1,
+    ) -> None:
+        if len(axes) != len(laws) or not axes:
+            raise ValueError(f"one law per axis: {len(axes)} axes, {len(laws)} laws")
+        self.axes, self.laws, self.amplifier = tuple(axes), tuple(laws), amplifier
+        self._after = after
+        self.every = max(1, int(every))
+        self.cycles = 0
+        self.write_failures = 0  # cycles whose write failed on the link (the driver reconnects)
+        self.last_error: HardwareError | None = None
+        self._values: dict[str, float] = {}
+        self._pairs = tuple(zip(self.axes, self.laws))
+
+    def step(
+        self,
+        value: Sequence[float],
+        status: Sequence[int],
+        stamp: Sequence[int],
+        fresh: Sequence[bool],
+        now_ns: int,
+    ) -> None:
+        """One cycle at ``now_ns`` (the sensors' clock): axis i steps on (``value[i]``,
+        ``status[i]`` (0: valid), ``stamp[i]``) when ``fresh[i]``, else checks its gap; every
+        output goes out in one write.
+        """
+        publish = self.cycles % self.every == 0
+        self.cycles += 1
+        values, t = self._values, now_ns * 1e-9
+        for i, (axis, law) in enumerate(self._pairs):
+            if fresh[i]:
+                u = law.on_sample(stamp[i], value[i], status[i] == 0, publish)
+            else:
+                u = law.check_gap(t)
+            if u is not None:
+                values[axis] = u
+        self._write(values)
+
+    def idle(self, now_ns: int) -> None:
+        """A wait that brought no cycle: every axis checks its gap (hold, or open)."""
+        values, t = self._values, now_ns * 1e-9
+        for axis, law in self._pairs:
+            u = law.check_gap(t)
+            if u is not None:
+                values[axis] = u
+        self._write(values)
+
+    def _write(self, values: dict[str, float]) -> None:
+        if values:
+            try:
+                self.amplifier.set_voltages(values)
+            except HardwareError as exc:  # every axis of the command is down: it reconnects
+                self.write_failures += 1
+                self.last_error = exc
+            values.clear()
+        if self._after is not None:
+            self._after()
+
+
+def run_stage_loop(
+    sensors: Cycles,
+    loop: StageLoop,
+    stop: threading.Event,
+    poll: float = 0.005,
+    clock_ns: Callable[[], int] = time.monotonic_ns,
+) -> None:
+    """The loop thread: each due cycle → :meth:`StageLoop.step`, each ``poll`` s without one →
+    :meth:`StageLoop.idle`, until ``stop`` is set.
+    """
+    wait, next_cycle, step, idle = sensors.wait, sensors.next_cycle, loop.step, loop.idle
+    value, status, stamp, fresh = sensors.value, sensors.status, sensors.stamp, sensors.fresh
+    while not stop.is_set():
+        if wait(poll):
+            step(value, status, stamp, fresh, clock_ns())
+            next_cycle()
+        else:
+            idle(clock_ns())

@@ -1,0 +1,156 @@
+"""The optoNCDT sensors of a stage's axes, read in one thread: one cycle per sensor period.
+
+:class:`StageSensors` waits on every sensor's descriptor with one selector and reads each that
+is ready without blocking; :class:`~.optoncdt.OptoNCDTParser` (each axis's
+:class:`~.sensor.SensorReader`: frame lock, speed gate) decodes the bytes and each axis's
+:class:`~.timing.SampleClock` stamps them. Per axis it keeps the newest sample only (older
+samples of the same cycle are counted in ``superseded``).
+
+Alignment: a cycle is due when every axis has a sample newer than the last cycle, or ``align``
+seconds (default half a period) after the first of them arrived. Synchronised sensors (one
+master, the others on its sync output, all at one rate) deliver a period's frames together, so
+the master paces the cycles and each cycle carries one sample of every axis; unsynchronised
+ones add up to ``align`` of latency to the earliest axis. Any axis may start a cycle, so a
+sensor that stalls (or goes invalid) never stops the others: in a cycle it missed, it is not
+``fresh`` (its loop checks its gap). A sensor whose link drops leaves the selector (``down``)
+and is missing from every later cycle; no reconnect happens in the loop's thread.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import selectors
+import time
+from collections.abc import Callable, Sequence
+
+from .errors import ConfigError, TransportError
+from .sensor import SensorReader
+from .timing import SampleClock
+from .transport import READ_SIZE
+
+__all__ = ["StageSensors"]
+
+
+class StageSensors:
+    """The sensors ``readers[i]`` of axis i at ``rate`` [Hz] (module docstring); after a due
+    :meth:`wait`, ``value``, ``status``, ``stamp`` [ns] and ``fresh`` hold the cycle.
+    """
+
+    def __init__(
+        self,
+        readers: Sequence[SensorReader],
+        rate: float,
+        align: float | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        stamp_window: float = 2.0,
+    ) -> None:
+        if not readers:
+            raise ConfigError("a stage has one sensor per axis, got none")
+        if not (math.isfinite(rate) and rate > 0):
+            raise ConfigError(f"sample rate must be > 0 Hz, got {rate}")
+        align = 0.5 / rate if align is None else align
+        if not 0 <= align < 2.0 / rate:
+            raise ConfigError(f"align must be in [0, 2 periods) s, got {align}")
+        n = len(readers)
+        self.readers = tuple(readers)
+        self.rate = float(rate)
+        self._align_ns = round(align * 1e9)
+        self._clock_ns = clock_ns
+        self.clocks = [SampleClock(rate, stamp_window) for _ in range(n)]
+        self.value = [math.nan] * n
+        self.status = [0] * n
+        self.stamp = [0] * n
+        self.fresh = [False] * n
+        self.down = [False] * n
+        self.superseded = [0] * n  # samples replaced by a newer one of the same axis and cycle
+        self.samples = [0] * n
+        self.errors: list[TransportError | None] = [None] * n
+        self._first_ns: int | None = None  # when the cycle's first fresh sample arrived
+        self._fresh_count = 0
+        self._live = n  # axes whose link is up
+        self._sel: selectors.BaseSelector | None = None
+
+    def connect(self) -> None:
+        """Open every sensor's link and register it with the selector."""
+        self._sel = selectors.DefaultSelector()
+        for i, reader in enumerate(self.readers):
+            reader.connect()
+            self._sel.register(reader.transport.fileno(), selectors.EVENT_READ, i)
+
+    def close(self) -> None:
+        """Close every link."""
+        if self._sel is not None:
+            self._sel.close()
+            self._sel = None
+        for reader in self.readers:
+            reader.close()
+
+    def wait(self, timeout: float) -> bool:
+        """Read what arrives until a cycle is due (True) or ``timeout`` s passed with no fresh
+        sample (False).
+        """
+        sel = self._sel
+        if sel is None:
+            raise ConfigError("StageSensors.wait before connect()")
+        clock = self._clock_ns
+        deadline = clock() + round(timeout * 1e9)
+        while True:
+            now = clock()
+            if self._fresh_count >= self._live and self._fresh_count:
+                return True
+            first = self._first_ns
+            if first is not None:
+                due = first + self._align_ns
+                if now >= due:
+                    return True
+                wait_ns = due - now
+            elif now >= deadline:
+                return False
+            else:
+                wait_ns = deadline - now
+            for key, _ in sel.select(wait_ns * 1e-9):
+                self._read(key.data, key.fd, clock())
+
+    def _read(self, i: int, fd: int, now_ns: int) -> None:
+        try:
+            data = os.read(fd, READ_SIZE)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._lose(i, fd, TransportError(f"sensor {i}: read failed: {exc}"))
+            return
+        if not data:
+            self._lose(i, fd, TransportError(f"sensor {i}: the link closed"))
+            return
+        block = self.readers[i].parser.feed(data)
+        k = len(block)
+        if not k:
+            return
+        stamp = self.clocks[i].stamps(now_ns, k)[-1]
+        self.samples[i] += k
+        if self.fresh[i]:
+            self.superseded[i] += k
+        else:
+            self.superseded[i] += k - 1
+            self.fresh[i] = True
+            self._fresh_count += 1
+            if self._first_ns is None:
+                self._first_ns = now_ns
+        self.value[i] = float(block.displacement[-1])
+        self.status[i] = int(block.status[-1])
+        self.stamp[i] = stamp
+
+    def _lose(self, i: int, fd: int, exc: TransportError) -> None:
+        if self._sel is not None:
+            self._sel.unregister(fd)
+        self.down[i], self.errors[i] = True, exc
+        self._live -= 1
+
+    def next_cycle(self) -> None:
+        """The cycle was taken: every axis waits for a newer sample."""
+        fresh = self.fresh
+        for i in range(len(fresh)):
+            fresh[i] = False
+        self._fresh_count = 0
+        self._first_ns = None

@@ -1,0 +1,134 @@
+"""The stage's composed loop without ROS or devices (control/stage_loop.py): one write of every
+axis per cycle, a held axis left out while the others go on, a gap beyond max_gap opening that
+axis alone, and the supervised law's voltages."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
+from piezo_stage.control.laws import Gains
+from piezo_stage.control.setpoint import ReferenceSource, SetPoint
+from piezo_stage.control.stage_loop import StageLoop, SupervisedLaw
+from piezo_stage.control.supervision import LoopSupervisor, SupervisionConfig
+from piezo_stage.hardware.errors import ConnectionLost
+
+pytestmark = pytest.mark.unit
+
+AXES = ("1", "2", "3")
+RATE = 1000.0
+MS = 1_000_000  # ns
+U_BIAS, K1, REF = 200.0, 2e6, 1e-3
+
+
+class Amplifier:
+    def __init__(self, fail: bool = False) -> None:
+        self.writes: list[dict[str, float]] = []
+        self.fail = fail
+
+    def set_voltages(self, values, received=None):
+        if self.fail:
+            raise ConnectionLost("link down")
+        self.writes.append(dict(values))
+        return {a: v for a, v in values.items()}
+
+
+def law(max_gap: float = 0.01) -> SupervisedLaw:
+    pid = TimeVaryingPID(
+        ControllerConfig(
+            gains=Gains(k0=0.0, k1=K1, k2=0.0), u_min=-200.0, u_max=200.0, on_close=OnClose.RESET
+        ),
+        closed=False,
+    )
+    config = SupervisionConfig(
+        RATE,
+        u_bias=U_BIAS,
+        u_min=0.0,
+        u_max=400.0,
+        start_closed=True,
+        max_gap=max_gap,
+        start_grace=0.0,
+    )
+    return SupervisedLaw(LoopSupervisor(pid, config), SetPoint(ReferenceSource.CONSTANT, REF))
+
+
+def make(**kw) -> tuple[StageLoop, Amplifier, list[SupervisedLaw]]:
+    laws = [law(**kw) for _ in AXES]
+    amplifier = Amplifier()
+    return StageLoop(AXES, laws, amplifier), amplifier, laws
+
+
+def expected(x: float) -> float:
+    return U_BIAS - K1 * (x - REF)
+
+
+def cycle(loop, k, xs, status=(0, 0, 0), fresh=(True, True, True)):
+    stamps = [k * MS] * len(xs)
+    loop.step(list(xs), list(status), stamps, list(fresh), k * MS + 100_000)
+
+
+def test_every_axis_is_written_in_one_call_per_cycle():
+    loop, amplifier, _ = make()
+    for k in range(1, 4):
+        cycle(loop, k, [REF + 1e-6 * k, REF - 2e-6 * k, REF])
+    assert len(amplifier.writes) == 3 and loop.cycles == 3
+    last = amplifier.writes[-1]
+    assert list(last) == list(AXES)
+    assert last == pytest.approx(
+        {"1": expected(REF + 3e-6), "2": expected(REF - 6e-6), "3": U_BIAS}
+    )
+
+
+def test_an_invalid_sample_holds_that_axis_and_the_others_go_on():
+    loop, amplifier, laws = make()
+    cycle(loop, 1, [REF + 1e-6, REF + 1e-6, REF + 1e-6])
+    held = amplifier.writes[-1]["2"]
+    cycle(loop, 2, [REF + 2e-6, math.nan, REF + 3e-6], status=(0, 3, 0))
+    last = amplifier.writes[-1]
+    assert last["2"] == pytest.approx(held)  # the hold: the last output
+    assert last["1"] == pytest.approx(expected(REF + 2e-6))
+    assert last["3"] == pytest.approx(expected(REF + 3e-6))
+    assert not laws[1].supervisor.pid.loop_closed and laws[0].supervisor.pid.loop_closed
+
+
+def test_a_missing_sample_leaves_the_axis_out_then_opens_it_past_max_gap():
+    loop, amplifier, laws = make(max_gap=0.005)
+    cycle(loop, 1, [REF, REF, REF])
+    u3 = amplifier.writes[-1]["3"]
+    for k in range(2, 5):  # axis 3's sensor is silent, within max_gap: not written
+        cycle(loop, k, [REF + 1e-6 * k, REF, math.nan], fresh=(True, True, False))
+        assert list(amplifier.writes[-1]) == ["1", "2"]
+    assert laws[2].supervisor.pid.loop_closed
+    for k in range(5, 9):  # beyond max_gap: axis 3 opens and keeps its hold on the amplifier
+        cycle(loop, k, [REF + 1e-6 * k, REF, math.nan], fresh=(True, True, False))
+    assert not laws[2].supervisor.pid.loop_closed
+    assert amplifier.writes[-1]["3"] == pytest.approx(u3)
+    assert amplifier.writes[-1]["1"] == pytest.approx(expected(REF + 8e-6))
+    assert "no sensor sample" in laws[2].supervisor.fault
+
+
+def test_idle_checks_every_axis_gap():
+    loop, amplifier, laws = make(max_gap=0.005)
+    cycle(loop, 1, [REF, REF, REF])
+    loop.idle(3 * MS)
+    assert len(amplifier.writes) == 1  # within max_gap: every axis holds, nothing written
+    loop.idle(20 * MS)
+    assert amplifier.writes[-1] == pytest.approx({a: U_BIAS for a in AXES})
+    assert not any(law.supervisor.pid.loop_closed for law in laws)
+
+
+def test_a_failed_write_is_counted_and_the_loop_goes_on():
+    loop, amplifier, _ = make()
+    amplifier.fail = True
+    cycle(loop, 1, [REF, REF, REF])
+    amplifier.fail = False
+    cycle(loop, 2, [REF, REF, REF])
+    assert loop.write_failures == 1 and isinstance(loop.last_error, ConnectionLost)
+    assert len(amplifier.writes) == 1
+
+
+def test_one_law_per_axis():
+    with pytest.raises(ValueError, match="one law per axis"):
+        StageLoop(AXES, [law()], Amplifier())

@@ -1,0 +1,199 @@
+"""The stage's loop on emulated devices: three optoNCDT sensors on ptys read in one thread
+(hardware/stage_sensors.py), one supervised law per axis, one GCS amplifier of axes 1, 2, 3 on
+TCP written once per cycle (control/stage_loop.py); a sensor that fails holds its axis alone;
+each axis's slew cap and limits hold (they are StageDriver's)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
+from piezo_stage.control.laws import Gains
+from piezo_stage.control.setpoint import ReferenceSource, SetPoint
+from piezo_stage.control.stage_loop import StageLoop, SupervisedLaw, run_stage_loop
+from piezo_stage.control.supervision import LoopSupervisor, SupervisionConfig
+from piezo_stage.hardware.axis_link import make_axis_link
+from piezo_stage.hardware.driver import DriverConfig
+from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel
+from piezo_stage.hardware.emulators.optoncdt_device import OptoNCDTDeviceModel
+from piezo_stage.hardware.emulators.server import Faults
+from piezo_stage.hardware.errors import ConfigError
+from piezo_stage.hardware.optoncdt import frame_format
+from piezo_stage.hardware.sensor import SensorConfig, SensorReader
+from piezo_stage.hardware.stage_driver import StageDriver
+from piezo_stage.hardware.stage_sensors import StageSensors
+
+pytestmark = pytest.mark.ros  # ptys and a TCP port
+
+AXES = ("1", "2", "3")
+RATE, MR = 200.0, 2e-3
+U_BIAS, K1 = 200.0, 2e6  # V, V/m
+REF = 1e-3  # m: every axis's set point
+SLEW, PERIOD = 2000.0, 0.001  # V/s and the driver's write period: at most 2 V per write
+# a low rate: the emulators share this process (and its GIL) with the loop under test
+
+
+def square(amplitude: float, hz: float):
+    """REF ± amplitude at ``hz``: the law asks for steps of 2·K1·amplitude."""
+
+    def source(t):
+        return REF + amplitude * np.sign(np.sin(2 * np.pi * hz * np.asarray(t) + 0.1))
+
+    return source
+
+
+class Rig:
+    """The devices, the sensors, the laws and the loop thread."""
+
+    def __init__(self, amplitudes=(2e-6, 4e-6, 6e-6), v_max=400.0, slew=math.inf) -> None:
+        self.models = [
+            OptoNCDTDeviceModel(frame_format("ild1320"), MR, RATE, source=square(a, 5.0))
+            for a in amplitudes
+        ]
+        self.faults = [Faults() for _ in AXES]
+        self.sensors = [
+            EmulatorServer(m, pty=True, faults=f) for m, f in zip(self.models, self.faults)
+        ]
+        self.log: list[tuple[str, float]] = []
+        self.amp = GCSDeviceModel(
+            axes=AXES,
+            v_min=0.0,
+            v_max=400.0,
+            on_axis_voltage=lambda a, v, t: self.log.append((a, v)),
+        )
+        self.amp_server = EmulatorServer(self.amp, tcp_port=0)
+        self.v_max, self.slew = v_max, slew
+
+    def __enter__(self) -> "Rig":
+        t0 = time.monotonic() + 0.05  # the sensors on one sync line
+        for model in self.models:
+            model.synchronise(t0)
+        for server in (*self.sensors, self.amp_server):
+            server.start()
+        config = DriverConfig(
+            v_min=0.0,
+            v_max=self.v_max,
+            slew_rate=self.slew,
+            write_period=PERIOD,
+            command_timeout=1.0,
+        )
+        self.driver = StageDriver(
+            make_axis_link("gcs", self.amp_server.url, AXES), {a: config for a in AXES}
+        )
+        self.driver.connect()
+        readers = [
+            SensorReader.from_url(s.url, SensorConfig("ild1320", MR, rate=RATE))
+            for s in self.sensors
+        ]
+        self.stage = StageSensors(readers, RATE)
+        self.stage.connect()
+        self.laws = [law() for _ in AXES]
+        self.loop = StageLoop(AXES, self.laws, self.driver)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(
+            target=run_stage_loop, args=(self.stage, self.loop, self.stop), daemon=True
+        )
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+        self.stage.close()
+        self.driver.close()
+        for server in (*self.sensors, self.amp_server):
+            server.stop()
+
+    def writes(self) -> list[list[str]]:
+        """The axes of every SVA the amplifier received."""
+        return [c.split()[1::2] for c in list(self.amp.commands) if c.startswith("SVA ")]
+
+    def volts(self, axis: str, since: int = 0) -> np.ndarray:
+        return np.array([v for a, v in self.log[since:] if a == axis])
+
+
+def law() -> SupervisedLaw:
+    pid = TimeVaryingPID(
+        ControllerConfig(
+            gains=Gains(k0=0.0, k1=K1, k2=0.0), u_min=-200.0, u_max=200.0, on_close=OnClose.RESET
+        ),
+        closed=False,
+    )
+    config = SupervisionConfig(
+        RATE,
+        u_bias=U_BIAS,
+        u_min=0.0,
+        u_max=400.0,
+        start_closed=True,
+        max_gap=0.05,
+        start_grace=0.0,
+    )
+    return SupervisedLaw(LoopSupervisor(pid, config), SetPoint(ReferenceSource.CONSTANT, REF))
+
+
+def test_every_axis_reaches_its_channel_in_one_sva_per_cycle():
+    with Rig() as rig:
+        time.sleep(0.8)
+    writes = rig.writes()
+    full = [w for w in writes if w == list(AXES)]
+    # each axis enters the write once its sensor's frame lock holds; from then on all three
+    # (synchronised sensors: a frame later than half a period misses its cycle, rarely)
+    first = writes.index(list(AXES))
+    assert len(full) >= 0.95 * len(writes[first:]) and len(full) > 100
+    assert len(writes) <= rig.loop.cycles and rig.loop.write_failures == 0
+    assert max(rig.stage.superseded) < 0.05 * len(full)
+    for i, axis in enumerate(AXES):  # each axis's law answered its own sensor
+        assert rig.laws[i].supervisor.pid.loop_closed
+        swing = np.ptp(rig.volts(axis)[-100:])
+        assert swing == pytest.approx(2 * K1 * (2e-6, 4e-6, 6e-6)[i], rel=0.05)
+
+
+@pytest.mark.parametrize("fault", ["silent", "corrupt"])
+def test_a_failed_sensor_holds_its_axis_and_the_others_go_on(fault):
+    with Rig() as rig:
+        time.sleep(0.5)
+        setattr(rig.faults[1], fault, True if fault == "silent" else 1.0)
+        time.sleep(0.15)  # the fault is seen (max_gap, or the frame lock)
+        since = len(rig.log)
+        cycles = rig.loop.cycles
+        time.sleep(0.5)
+        cycles = rig.loop.cycles - cycles
+    held = rig.volts("2", since)
+    assert np.ptp(held) == 0.0 if held.size else True
+    assert not rig.laws[1].supervisor.pid.loop_closed
+    assert rig.laws[1].supervisor.fault
+    for axis in ("1", "3"):
+        moving = rig.volts(axis, since)
+        assert moving.size >= 0.8 * cycles > 50  # a loaded host: a frame may miss its cycle
+        assert np.ptp(moving) > 5.0
+    assert rig.laws[0].supervisor.pid.loop_closed and rig.laws[2].supervisor.pid.loop_closed
+
+
+def test_slew_cap_and_limits_hold_per_axis():
+    # axis 3 asks for 200 ± 24 V: the limit 210 V clips it; every step asks 8-48 V: capped at 2
+    with Rig(amplitudes=(2e-6, 4e-6, 12e-6), v_max=210.0, slew=SLEW) as rig:
+        time.sleep(0.8)
+    cap = SLEW * PERIOD
+    for axis in AXES:
+        v = rig.volts(axis)
+        assert v.size > 120
+        steps = np.abs(np.diff(v))
+        assert steps.max() <= cap + 1e-6
+        assert steps.max() == pytest.approx(cap)  # the cap was reached: it held something back
+        assert v.max() <= 210.0
+    assert rig.volts("3").max() == pytest.approx(210.0)
+
+
+def test_stage_sensors_refuse_bad_settings():
+    reader = SensorReader.from_url("serial:///dev/null", SensorConfig("ild1320", MR))
+    with pytest.raises(ConfigError, match="one sensor per axis"):
+        StageSensors([], RATE)
+    with pytest.raises(ConfigError, match="align"):
+        StageSensors([reader], RATE, align=0.01)
+    with pytest.raises(ConfigError, match="before connect"):
+        StageSensors([reader], RATE).wait(0.0)
