@@ -108,8 +108,25 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         assert path.exists(), path
         if path.suffix == ".png":
             assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 10_000
-        elif path.suffix == ".yaml":  # the live and the replayed identifier's parameter sets
-            assert "kappa_w" in path.read_text()
+        elif path.suffix == ".yaml":  # parameter sets, and the scanner's stage file
+            assert "kappa_w" in path.read_text() or "coupling:" in path.read_text()
         else:
             assert (path / "metadata.yaml").exists()
     assert "[" in text and "done in" in text  # the progress lines
+
+    # (e) the XY scanner: each axis within 2 %, the coupling within 5 %, and a held axis's error
+    # with the coupling compensated under a tenth of the error without
+    for axis in ("x", "y"):
+        row = re.search(rf"^axis {axis}: (.*)$", text, re.M)
+        assert row, text
+        errors = [float(e) for e in re.findall(r"([-+]\d+\.\d+) %", row.group(1))]
+        assert len(errors) == 5 and max(map(abs, errors)) <= 2.0, row.group(0)
+    off = re.search(r"^coupling .*: (\S+) % off at most", text, re.M)
+    assert off and float(off.group(1)) <= 5.0, text
+    held = re.findall(
+        r"^(\w) held while (\w) scans: RMS (\S+) nm without .*, (\S+) nm with it", text, re.M
+    )
+    assert [(a, b) for a, b, _, _ in held] == [("y", "x"), ("x", "y")], text
+    for _, _, without, with_ in held:
+        assert float(with_) <= 0.1 * float(without)
+    assert out / "png" / "xy_scanner_hold.png" in listed and out / "xy_scanner.yaml" in listed

@@ -313,6 +313,37 @@ class CoupledStage:
         """(applied voltages, sensor readings, statuses) now, without advancing."""
         return self._measure(np.array([a.amplifier.voltage for a in self.axes]))
 
+    def step_voltages(self, voltages: NDArray[np.float64], h: float, every: int) -> AxesSample:
+        """Hold ``voltages[i, k]`` on axis i for ``h`` each, k = 0, 1, ... (what an amplifier
+        applies between samples, e.g. a low-pass's output; each axis's amplifier limits
+        applied); a sample of the coupled sensors after every ``every`` steps: arrays of shape
+        (samples, axes). Non-finite voltages raise :class:`InvalidCommandError` before any axis
+        moves.
+        """
+        voltages = np.asarray(voltages, dtype=float)
+        n_axes = len(self.axes)
+        if voltages.ndim != 2 or voltages.shape[0] != n_axes or voltages.shape[1] < every:
+            raise InvalidCommandError(
+                f"a stage of {n_axes} axes needs an (axes x steps) array of at least {every} "
+                f"steps, got shape {voltages.shape}"
+            )
+        if not np.all(np.isfinite(voltages)):
+            raise InvalidCommandError("voltages must be finite")
+        n = voltages.shape[1] // every
+        applied, own = np.empty((n, n_axes)), np.empty((n, n_axes))
+        for i, axis in enumerate(self.axes):
+            rows = axis.step_many(voltages[i, : n * every], h, every)
+            applied[:, i], own[:, i] = rows[:, 0], rows[:, 1]
+        self._own = own[-1].copy()
+        self.time += n * every * h
+        coupled = self._y0 + (own - self._y0) @ self.stage.coupling.T
+        readings = np.empty((n, n_axes))
+        status = np.empty((n, n_axes), dtype=np.int64)
+        for i, sensor in enumerate(self.sensors):
+            for k in range(n):
+                readings[k, i], status[k, i] = sensor.measure(float(coupled[k, i]))
+        return AxesSample(applied, readings, status)
+
     def step(self, commands: Sequence[float], dt: float) -> AxesSample:
         """Hold ``commands[i]`` on axis i for dt; (applied, readings, statuses) per axis. A NaN or
         infinite command raises :class:`InvalidCommandError` before any axis moves.

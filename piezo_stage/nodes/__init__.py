@@ -17,6 +17,7 @@ NODES = (
     "stage_driver",
     "laser_reader",
     "plant",
+    "stage_plant",
     "excitation",
     "identifier",
     "controller",

@@ -290,6 +290,20 @@ class StageDriverSettings:
 
 
 @dataclass(frozen=True)
+class StagePlantSettings:
+    """``stage_plant``: Simulated stage of several axes (a stage file), coupled: per axis the
+    real stage's topics in <axis>/ (real time)."""
+
+    stage_file: str
+    rate_hz: float
+    initial_voltage: float
+    v_min: float
+    v_max: float
+    amplifier_bandwidth_hz: float
+    amplifier_filter_order: int
+
+
+@dataclass(frozen=True)
 class VoltageDriverSettings:
     """``voltage_driver``: Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command ->
     device, with limits, slew and watchdog."""

@@ -332,6 +332,9 @@ def coupling_figure(
                 color=color,
                 label=f"{name} coupling compensation (RMS {rms * 1e9:.3g} nm, 2nd half)",
             )
+        late = np.abs(np.concatenate([without[len(without) // 2 :], with_[len(with_) // 2 :]]))
+        if late.size and late.max() > 0:  # the start off-scale, the steady part readable
+            ax.set_ylim(-2e9 * late.max(), 2e9 * late.max())
         ax.set_ylabel("error [nm]")
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)

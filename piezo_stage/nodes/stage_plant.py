@@ -1,0 +1,194 @@
+"""`stage_plant` node: a simulated stage of several axes, a drop-in for ``stage_driver`` and one
+``laser_reader`` per axis.
+
+The axes, their models and the coupling come from a stage file
+(:mod:`piezo_stage.model.stage_file`); the mathematics is
+:class:`piezo_stage.model.stage.CoupledStage`. Per axis, in the axis's namespace: subscribes
+``<axis>/voltage_command``, publishes ``<axis>/voltage`` (what its amplifier applied at the
+sample) and ``<axis>/displacement`` (its sensor, which sees the coupled displacements); one
+tick steps every axis together, and a tick's messages carry one stamp. Real time only: a wall
+timer at ``rate_hz`` whose samples fall on the grid t0 + k/rate_hz (as the ``plant`` node's
+realtime clock; a late tick publishes every sample due since the last).
+
+Each amplifier is a Butterworth low-pass (``amplifier_bandwidth_hz``, order
+``amplifier_filter_order``) stepped finely between samples, as ``emulate rig``'s: a staircase
+at the sample rate straight into a lightly damped stage rings its resonance at every step and
+wears the hysteresis down. A NaN or infinite command is refused (that axis holds).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+
+import numpy as np
+from builtin_interfaces.msg import Time
+
+from piezo_stage.config_path import find_user_file
+from piezo_stage.hardware.emulators.rig import AmplifierLowPass, substeps_for
+from piezo_stage.model.stage import AmplifierModel, AxesSample, CoupledStage
+from piezo_stage.model.stage_file import load_stage
+from piezo_stage.model.tick_grid import TickGrid
+from piezo_stage_msgs.msg import Displacement, Voltage
+
+from .base import PiezoNode
+from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .plant import PARAMETERS as PLANT_PARAMETERS
+from .plant import REALTIME_CATCH_UP
+from .qos import COMMAND_QOS, SENSOR_QOS
+from .runtime import DEFAULT_NAMESPACE, run
+from .settings import StagePlantSettings
+from .spec import Param, ParameterTable
+
+PARAMETERS = ParameterTable(
+    "stage_plant",
+    (
+        Param(
+            "stage_file",
+            "xy_scanner.yaml",
+            "stage file (name in config/ or path): the axes, their models and the coupling",
+            read_only=True,
+        ),
+        PLANT_PARAMETERS["rate_hz"],
+        PLANT_PARAMETERS["initial_voltage"],
+        PLANT_PARAMETERS["v_min"],
+        PLANT_PARAMETERS["v_max"],
+        Param(
+            "amplifier_bandwidth_hz",
+            500.0,
+            "every axis's amplifier: Butterworth low-pass corner (0: ideal, the staircase "
+            "reaches the stage)",
+            "Hz",
+            (0.0, 1e6),
+            read_only=True,
+        ),
+        Param(
+            "amplifier_filter_order",
+            2,
+            "order of that low-pass",
+            range=(1, 2),
+            read_only=True,
+        ),
+    ),
+    summary="Simulated stage of several axes (a stage file), coupled: per axis the real "
+    "stage's topics in <axis>/ (real time).",
+    settings_type=StagePlantSettings,
+)
+
+
+class StagePlantNode(PiezoNode):
+    def __init__(self) -> None:
+        super().__init__("stage_plant", namespace=DEFAULT_NAMESPACE)
+        s: StagePlantSettings = self.declare_settings(PARAMETERS)
+        self.stage_file = find_user_file(s.stage_file)
+        stage = load_stage(self.stage_file)
+        self.names = stage.names
+        n = len(self.names)
+        self.sim = CoupledStage(
+            stage,
+            amplifiers=[AmplifierModel(v_min=s.v_min, v_max=s.v_max) for _ in range(n)],
+        )
+        self.dt = 1.0 / s.rate_hz
+        self._commands = np.full(n, float(s.initial_voltage))
+        self.substeps = 1
+        self.lowpass: list[AmplifierLowPass] = []
+        if s.amplifier_bandwidth_hz > 0.0:
+            self.substeps = max(
+                substeps_for(axis, s.rate_hz, s.amplifier_bandwidth_hz) for axis in self.sim.axes
+            )
+            h = self.dt / self.substeps
+            self.lowpass = [
+                AmplifierLowPass(s.amplifier_bandwidth_hz, s.amplifier_filter_order, h, v)
+                for v in self._commands
+            ]
+        for axis, v in zip(self.sim.axes, self._commands):
+            axis.amplifier.voltage = float(min(max(v, s.v_min), s.v_max))
+        self._rejected = 0
+        self._received = 0
+        self._pub_x, self._pub_v = [], []
+        for i, name in enumerate(self.names):
+            self._pub_x.append(
+                self.create_publisher(Displacement, f"{name}/displacement", SENSOR_QOS)
+            )
+            self._pub_v.append(self.create_publisher(Voltage, f"{name}/voltage", SENSOR_QOS))
+            self.create_subscription(
+                Voltage,
+                f"{name}/voltage_command",
+                functools.partial(self._on_command, i),
+                COMMAND_QOS,
+            )
+        self._msg_x, self._msg_v = Displacement(), Voltage()
+        self._dt_ns = int(round(self.dt * 1e9))
+        self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
+        Diagnostics(self, "simulation", self._diagnose)
+        self.create_timer(self.dt, self._tick)
+        self.get_logger().info(
+            f"stage {stage.name} ({', '.join(self.names)}) at {s.rate_hz:g} Hz, amplifiers "
+            f"{s.amplifier_bandwidth_hz:g} Hz ({self.substeps} steps per sample)"
+        )
+
+    def _on_command(self, i: int, msg: Voltage) -> None:
+        if not math.isfinite(msg.voltage):
+            self._rejected += 1
+            self.get_logger().warn(
+                f"{self.names[i]}: rejected non-finite voltage command {msg.voltage}: holding "
+                f"{self._commands[i]:g} V",
+                throttle_duration_sec=1.0,
+            )
+            return
+        self._commands[i] = msg.voltage
+        self._received += 1
+
+    def _step(self, samples: int) -> AxesSample:
+        """``samples`` samples (a late tick's backlog in one call), the commands held: every
+        axis through its amplifier, then the coupled sensors; arrays (samples, axes)."""
+        if not self.lowpass:
+            rows = [self.sim.step(self._commands.tolist(), self.dt) for _ in range(samples)]
+            return AxesSample(*(np.array([r[k] for r in rows]) for k in range(3)))
+        n = samples * self.substeps
+        volts = np.empty((len(self.names), n))
+        for i, lowpass in enumerate(self.lowpass):
+            volts[i] = lowpass.run(np.full(n, self._commands[i]))
+        return self.sim.step_voltages(volts, self.dt / self.substeps, self.substeps)
+
+    def _tick(self) -> None:
+        due = self._grid.due(self.get_clock().now().nanoseconds)
+        if not due:
+            return
+        applied, readings, status = self._step(len(due))
+        msg_x, msg_v = self._msg_x, self._msg_v
+        for k, ns in enumerate(due):
+            sec, nanosec = divmod(ns, 1_000_000_000)
+            msg_x.header.stamp = msg_v.header.stamp = Time(sec=sec, nanosec=nanosec)
+            for i in range(len(self.names)):
+                ok = int(status[k, i]) == Displacement.OK
+                msg_x.displacement = float(readings[k, i]) if ok else math.nan
+                msg_x.status = int(status[k, i])
+                msg_v.voltage = float(applied[k, i])
+                self._pub_x[i].publish(msg_x)
+                self._pub_v[i].publish(msg_v)
+
+    def _diagnose(self) -> Diagnosis:
+        dropped = self._grid.dropped
+        values = {
+            "stage_file": str(self.stage_file),
+            "axes": ",".join(self.names),
+            "commands": self._received,
+            "rejected_commands": self._rejected,
+            "dropped_samples": dropped,
+            "substeps": self.substeps,
+        }
+        if dropped or self._rejected:
+            return Diagnosis(
+                WARN, f"{self._rejected} rejected command(s), {dropped} dropped sample(s)", values
+            )
+        return Diagnosis(OK, f"simulating {len(self.names)} axes", values)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(StagePlantNode, args, lean=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
