@@ -12,13 +12,19 @@ first); a second signal stops it at once.
 Fault switches rehearse a bad link: --drop/--corrupt (per output byte), --garbage (random bursts),
 --hangup (a reply cut and the line dropped), --stall/--stall-time (the device stops), --slow
 (reply delay), --disconnect-every (hang up and come back), --error-values (sensor).
---log FILE (amplifiers and rig) writes a CSV row (time, axis, volts) per applied voltage.
+--log FILE (amplifiers, rig and scanner) writes a CSV row (time, axis, volts) per applied
+voltage, the axis named as on the device (the stage file's channel).
+`scanner` binds a multi-axis amplifier and one sensor per axis to the coupled stage of a stage
+file; it prints the amplifier's endpoint, one ``optoncdt <axis>: <path>`` line per sensor, and
+last ``scanner: N axes (x, y) at RATE Hz``.
 
   piezo-stage emulate gcs --tcp 50000
   piezo-stage emulate gcs --axes 1,2,3 --tcp 50000 --log applied.csv   # an E-727-class controller
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
   piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link run:rig_sensor
+  piezo-stage emulate scanner --stage xy_scanner.yaml --amp-tcp 50000 \
+      --sensor-link run:scanner_sensor_{axis}
 
 A TCP port already in use is one line and exit 2 (choose another --tcp / --amp-tcp, or 0 for
 any free one).
@@ -41,8 +47,11 @@ from piezo_stage.hardware.emulators import (
     MDTDeviceModel,
     OptoNCDTDeviceModel,
 )
+from piezo_stage.hardware.emulators.scanner import ScannerEmulator
 from piezo_stage.hardware.emulators.voltage_log import VoltageLog
-from piezo_stage.hardware.optoncdt import FAMILIES, frame_format
+from piezo_stage.hardware.optoncdt import FAMILIES, FrameFormat, frame_format
+
+AxisVoltageCallback = Callable[[str, float, "float | None"], None]
 
 SENSOR_FAMILIES = sorted(FAMILIES)
 PTY_GRACE = 1.0  # s a signalled emulator still serves its ptys (within --linger)
@@ -206,29 +215,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="parameter-set YAML of the simulated stage (a path, or a name in config/, "
         "e.g. ch10_patch.yaml; default ch11_rig.yaml, the ch. 11 rig)",
     )
-    rig.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
-    rig.add_argument(
-        "--amp-tcp",
-        type=port,
-        default=None,
-        metavar="PORT",
-        help="serve the GCS amplifier on TCP instead of a pty",
-    )
-    rig.add_argument(
-        "--standoff",
-        type=float,
-        default=None,
-        metavar="M",
-        help="sensor reading at zero displacement [m] (default: MR/2)",
-    )
-    rig.add_argument(
-        "--amp-range",
-        type=float,
-        nargs=2,
-        default=None,
-        metavar=("VMIN", "VMAX"),
-        help="GCS amplifier output range VMI?/VMA? [V] (default -30 130, an E-709)",
-    )
+    _amplifier_args(rig, "E-709")
     rig.add_argument(
         "--amp-bandwidth",
         type=non_negative,
@@ -250,15 +237,64 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PATH",
         help="fixed path (symlink) of the sensor's pty, for the laser_reader's url",
     )
-    rig.add_argument(
+    _sensor_args(rig)
+    _log_arg(rig)
+    _faults(rig, link=False)
+
+    scanner = sub.add_parser(
+        "scanner", help="amplifier + one sensor per axis bound to one simulated coupled stage"
+    )
+    scanner.add_argument(
+        "--stage",
+        required=True,
+        metavar="FILE",
+        help="stage file of the simulated stage (a path, or a name in config/, e.g. "
+        "xy_scanner.yaml); each axis is driven on its channel",
+    )
+    _amplifier_args(scanner, "E-727")
+    scanner.add_argument(
+        "--sensor-link",
+        default=None,
+        metavar="PATTERN",
+        help="fixed path (symlink) of each axis's sensor pty, {axis} replaced by the axis name, "
+        "e.g. run:scanner_sensor_{axis}",
+    )
+    _sensor_args(scanner)
+    _log_arg(scanner)
+    _faults(scanner, link=False)
+
+
+def _amplifier_args(parser: argparse.ArgumentParser, controller: str) -> None:
+    """The amplifier options of ``rig`` and ``scanner``."""
+    parser.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
+    parser.add_argument(
+        "--amp-tcp",
+        type=port,
+        default=None,
+        metavar="PORT",
+        help="serve the GCS amplifier on TCP instead of a pty",
+    )
+    parser.add_argument(
         "--amp-link",
         default=None,
         metavar="PATH",
         help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)",
     )
-    _sensor_args(rig)
-    _log_arg(rig)
-    _faults(rig, link=False)
+    parser.add_argument(
+        "--amp-range",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("VMIN", "VMAX"),
+        help=f"GCS amplifier output range VMI?/VMA? [V] (default -30 130, an {controller})",
+    )
+    parser.add_argument(
+        "--standoff",
+        type=float,
+        default=None,
+        metavar="M",
+        help="sensor reading at zero displacement [m] (default: MR/2)",
+    )
 
 
 def _log_arg(parser: argparse.ArgumentParser) -> None:
@@ -330,6 +366,8 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
                 model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
             )
         }
+    if args.device == "scanner":
+        return _scanner(args, fmt, faults).servers
     from piezo_stage.hardware.emulators.rig import RigEmulator
 
     rig = RigEmulator(
@@ -352,6 +390,44 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
         amplifier_filter_order=args.amp_filter_order,
     )
     return rig.servers
+
+
+def _scanner(args: argparse.Namespace, fmt: FrameFormat, faults: Faults) -> ScannerEmulator:
+    """``emulate scanner``: the stage file's coupled stage on the amplifier and its sensors."""
+    from piezo_stage.config_path import find_user_file
+    from piezo_stage.model.stage import CoupledStage
+    from piezo_stage.model.stage_file import load_stage as load_stage_file
+
+    stage = load_stage_file(find_user_file(args.stage))
+    return ScannerEmulator(
+        CoupledStage(stage),
+        stage.names,
+        [axis.channel for axis in stage.axes],
+        fmt,
+        args.measuring_range,
+        amplifier=args.amplifier,
+        amplifier_tcp_port=args.amp_tcp,
+        amplifier_link=args.amp_link,
+        amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
+        rate=args.rate,
+        standoff=args.standoff,
+        sensor_errors=args.error_values,
+        amplifier_faults=faults,
+        sensor_faults=_make_faults(args),
+        seed=args.seed,
+        sensor_link=args.sensor_link,
+        realtime_priority=args.realtime,
+    )
+
+
+def _ready_line(args: argparse.Namespace, servers: dict[str, EmulatorServer]) -> str | None:
+    """The last line ``emulate scanner`` prints once every endpoint is up (launchers wait on
+    ``^scanner: ``), None for the other devices.
+    """
+    if args.device != "scanner":
+        return None
+    axes = [name.split(" ", 1)[1] for name in servers if name.startswith("optoncdt ")]
+    return f"scanner: {len(axes)} axes ({', '.join(axes)}) at {args.rate:g} Hz"
 
 
 def load_stage(path: str):
@@ -399,6 +475,8 @@ def run(args: argparse.Namespace) -> int:
     for server in servers.values():
         server.start()
     _announce(servers)
+    if (ready := _ready_line(args, servers)) is not None:
+        print(ready, flush=True)
     time.sleep(0.01)  # the server threads have set their priority
     _note_realtime(servers)
     t_end = time.monotonic() + args.duration if args.duration > 0 else float("inf")
@@ -427,9 +505,22 @@ def _open_log(args: argparse.Namespace, servers: dict[str, EmulatorServer]) -> V
         return None
     log = VoltageLog(args.log)
     for server in servers.values():
-        if isinstance(server.model, (GCSDeviceModel, MDTDeviceModel)):
-            server.model.on_axis_voltage = log.record
+        model = server.model
+        if isinstance(model, (GCSDeviceModel, MDTDeviceModel)):
+            model.on_axis_voltage = _also(model.on_axis_voltage, log.record)
     return log
+
+
+def _also(first: AxisVoltageCallback | None, then: AxisVoltageCallback) -> AxisVoltageCallback:
+    """A callback calling ``first`` (a simulated stage's, when there is one), then ``then``."""
+    if first is None:
+        return then
+
+    def both(axis: str, volts: float, at: float | None = None) -> None:
+        first(axis, volts, at)
+        then(axis, volts, at)
+
+    return both
 
 
 def _catch_signals(on_signal: Callable[..., None]) -> None:

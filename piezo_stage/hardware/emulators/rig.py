@@ -18,12 +18,14 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from typing import Callable, Protocol, TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import ConfigError
+from ..mdt69x import AXES as MDT_AXES
 from ..optoncdt import FrameFormat
 from .gcs_device import GCSDeviceModel
 from .mdt_device import MDTDeviceModel
@@ -37,6 +39,47 @@ class _Endpoint(TypedDict, total=False):
     pty: bool
     pty_link: str | None
     tcp_port: int
+
+
+def amplifier_model(
+    kind: str,
+    amplifier_range: tuple[float, float] | None = None,
+    tcp_port: int | None = None,
+    channels: Sequence[str] | None = None,
+) -> GCSDeviceModel | MDTDeviceModel:
+    """The amplifier emulator of a rig: ``gcs`` (E-709 class, or with ``channels`` an E-727
+    class listing exactly those axes in ``SAI?``; ``amplifier_range`` its VMI?/VMA?) or
+    ``mdt69x`` (MDT694B, or with ``channels`` an MDT693B, whose channels are x, y, z; pty only).
+    """
+    if amplifier_range is not None and kind != "gcs":
+        raise ConfigError(
+            "amplifier_range sets the GCS controller's VMI?/VMA?; the MDT69x has its vlimit switch"
+        )
+    if kind == "gcs":
+        if amplifier_range is None:
+            return GCSDeviceModel(axes=channels)
+        return GCSDeviceModel(v_min=amplifier_range[0], v_max=amplifier_range[1], axes=channels)
+    if kind != "mdt69x":
+        raise ConfigError(f"amplifier must be 'gcs' or 'mdt69x', got {kind!r}")
+    if tcp_port is not None:
+        raise ConfigError("the MDT69x emulator serves a pty only")
+    if channels is None:
+        return MDTDeviceModel()
+    unknown = [c for c in channels if c not in MDT_AXES]
+    if unknown:
+        raise ConfigError(
+            f"channel(s) {', '.join(unknown)} are not MDT693B channels ({', '.join(MDT_AXES)})"
+        )
+    return MDTDeviceModel("MDT693B")
+
+
+def amplifier_endpoint(tcp_port: int | None, link: str | None) -> _Endpoint:
+    """Where the amplifier is served: TCP ``tcp_port``, else a pty (at ``link`` when given)."""
+    if tcp_port is None:
+        return {"pty": True, "pty_link": link}
+    if link is not None:
+        raise ConfigError("an amplifier link names a pty: not with a TCP amplifier")
+    return {"tcp_port": tcp_port}
 
 
 class Stage(Protocol):
@@ -87,6 +130,33 @@ def substeps_for(stage: Stage, rate: float, bandwidth_hz: float) -> int:
     return max(1, math.ceil(f / rate))
 
 
+class VoltageHistory:
+    """An amplifier output's applied voltages with their arrival times (server clock), in time
+    order, from ``initial_voltage`` at -inf: the voltage in force at any later instant. Not
+    locked: its owner holds a lock around it.
+    """
+
+    def __init__(self, initial_voltage: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.entries: deque[tuple[float, float]] = deque([(-math.inf, float(initial_voltage))])
+
+    def record(self, value: float, at: float | None = None) -> None:
+        """``value`` applied at ``at`` (None: now); an earlier time than the last is moved up."""
+        t = self.clock() if at is None else at
+        if t < self.entries[-1][0]:  # keep the history in time order
+            t = self.entries[-1][0]
+        self.entries.append((t, float(value)))
+
+    def value_at(self, t: float) -> float:
+        """The voltage in force at ``t``; forgets what was replaced before ``t`` (ask in time
+        order).
+        """
+        entries = self.entries
+        while len(entries) > 1 and entries[1][0] <= t:
+            entries.popleft()
+        return entries[0][1]
+
+
 class RigCoupling:
     """The sensor's displacement source: steps the stage with the amplifier's applied voltage.
 
@@ -119,17 +189,14 @@ class RigCoupling:
         # absolute time of relative sample time 0 (set by RigEmulator)
         self.origin: Callable[[], float] = lambda: 0.0
         self.lock = threading.Lock()
-        self._history: deque[tuple[float, float]] = deque([(-math.inf, float(initial_voltage))])
+        self.history = VoltageHistory(initial_voltage, clock)
         self.applied = 0.0  # last voltage the plant received [V]
         self.displacement = 0.0  # last plant output [m]
 
     def on_voltage(self, value: float, at: float | None = None) -> None:
         """The amplifier applied ``value`` at server time ``at`` (None: now)."""
         with self.lock:
-            t = self.clock() if at is None else at
-            if t < self._history[-1][0]:  # keep the history in time order
-                t = self._history[-1][0]
-            self._history.append((t, float(value)))
+            self.history.record(value, at)
 
     def _step_many(self, voltages: NDArray[np.float64], h: float) -> NDArray[np.float64]:
         """Rows (applied, reading, status) at the end of each sample (every ``substeps``)."""
@@ -151,12 +218,11 @@ class RigCoupling:
         out = np.empty(len(times))
         t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
-            history = self._history
+            history = self.history.entries
             if self.lowpass is None:
                 for k in range(len(times)):
-                    while len(history) > 1 and history[1][0] <= t_abs[k]:
-                        history.popleft()
-                    applied, y, status = self.stage.step(history[0][1], self.dt)
+                    volts = self.history.value_at(float(t_abs[k]))
+                    applied, y, status = self.stage.step(volts, self.dt)
                     out[k] = self._reading(applied, y, status)
                 return out
             # the command in force at each substep, through the amplifier's low-pass
@@ -207,23 +273,7 @@ class RigEmulator:
         amplifier_bandwidth: float = 0.0,
         amplifier_filter_order: int = 2,
     ) -> None:
-        if amplifier_range is not None and amplifier != "gcs":
-            raise ConfigError(
-                "amplifier_range sets the GCS controller's VMI?/VMA?; "
-                "the MDT69x has its vlimit switch"
-            )
-        if amplifier == "gcs":
-            self.amplifier: GCSDeviceModel | MDTDeviceModel = (
-                GCSDeviceModel()
-                if amplifier_range is None
-                else GCSDeviceModel(v_min=amplifier_range[0], v_max=amplifier_range[1])
-            )
-        elif amplifier == "mdt69x":
-            if amplifier_tcp_port is not None:
-                raise ConfigError("the MDT69x emulator serves a pty only")
-            self.amplifier = MDTDeviceModel()
-        else:
-            raise ConfigError(f"amplifier must be 'gcs' or 'mdt69x', got {amplifier!r}")
+        self.amplifier = amplifier_model(amplifier, amplifier_range, amplifier_tcp_port)
         standoff = 0.5 * measuring_range if standoff is None else standoff
         self.coupling = RigCoupling(
             stage,
@@ -243,17 +293,11 @@ class RigEmulator:
             seed=seed,
         )
         self.coupling.origin = lambda: self.sensor.t0 or 0.0
-        if amplifier_tcp_port is not None:
-            if amplifier_link is not None:
-                raise ConfigError("an amplifier link names a pty: not with a TCP amplifier")
-            amp_endpoint: _Endpoint = {"tcp_port": amplifier_tcp_port}
-        else:
-            amp_endpoint = {"pty": True, "pty_link": amplifier_link}
         self.amplifier_server = EmulatorServer(
             self.amplifier,
             faults=amplifier_faults,
             realtime_priority=realtime_priority,
-            **amp_endpoint,
+            **amplifier_endpoint(amplifier_tcp_port, amplifier_link),
         )
         self.sensor_server = EmulatorServer(
             self.sensor,
