@@ -113,3 +113,11 @@ def test_a_run_the_graph_did_not_deliver_is_named():
 def test_settings_it_cannot_use_are_refused(change, message):
     with pytest.raises(ExperimentInputError, match=message):
         CouplingSpec(SPEC.plant_stage, SPEC.output, **change)
+
+
+def test_a_record_with_gaps_is_refused_with_why():
+    t = np.arange(20000) * 1e-3
+    t = np.concatenate([t[:6000], t[7200:]])  # a 1.2 s hole, as a stalled real-time plant leaves
+    sensors = {"x": (t, np.zeros(t.size)), "y": (t, np.zeros(t.size))}
+    with pytest.raises(ExperimentError, match="1 gap.* up to 1.2 s .*fell behind real time"):
+        axis_runs("x", ("x", "y"), (t, np.zeros(t.size)), sensors, [3.0, 11.0], SPEC)

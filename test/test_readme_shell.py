@@ -238,17 +238,11 @@ RUN: dict[str, Expect] = {
     "piezo-stage launch sim_scanner --stage xyz_scanner.yaml --ns /xyz": Expect(
         ready=r"\[launch\] +ready after"
     ),
-    "piezo-stage experiment coupling --graph sim_scanner --plant-stage xy_scanner.yaml "
-    "--output my_scanner.yaml --json": Expect(
-        out=(r'"coupling_standard_errors"',),
-        files=("my_scanner.yaml", "my_scanner_x.yaml", "my_scanner_y.yaml"),
-        timeout=900,
-    ),
     "piezo-stage emulate scanner --stage xy_scanner.yaml --log applied.csv": Expect(
         ready=r"^scanner: ", files=("applied.csv",)
     ),
-    "piezo-stage launch emulated_scanner --stage my_scanner.yaml": Expect(
-        ready=r"\[launch\] +ready after", realtime=True
+    "piezo-stage launch emulated_scanner --stage xyz_scanner.yaml": Expect(
+        ready=r"\[launch\] +ready after"
     ),
     # shared networks: exports in the block's own shell
     "export ROS_DOMAIN_ID=42": Expect(),
@@ -320,6 +314,11 @@ EXCLUDED: dict[str, str] = {
         "a real scanner: an amplifier at 192.168.0.21 and sensors (config/scanner_devices.yaml)"
     ),
     "python bench/scanner.py": "a benchmark: its figures are measured on a quiet machine",
+    "piezo-stage experiment coupling --graph sim_scanner --plant-stage xy_scanner.yaml "
+    "--output my_scanner.yaml --json": (
+        "the simulated scanner in real time needs the whole of this 2-core host: beside the "
+        "other test worker it falls behind and the run is refused, as the README says"
+    ),
     "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"
     ),

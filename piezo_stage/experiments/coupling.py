@@ -123,6 +123,13 @@ def axis_runs(
                 "in the steady periods; the graph did not deliver the run"
             )
         t = t_x[keep]
+        holes = int(np.count_nonzero(np.diff(t) > 1.5 / spec.rate_hz))
+        if holes:
+            raise ExperimentError(
+                f"axis {axis}, run {k}: the record has {holes} gap(s) in its steady periods, up "
+                f"to {np.diff(t).max():.3g} s (samples lost: the graph fell behind real time "
+                "on this machine); run it on a less loaded one"
+            )
         runs.append(Recording(t - t[0], x[keep], u[held], f"{axis} run {'AB'[k]}", "m", "V"))
     t_a = runs[0].t + t_x[(t_x >= steady_starts[0])][0]
     seen = np.column_stack([np.interp(t_a, *_finite(displacement[name])) for name in names])
