@@ -49,6 +49,7 @@ def test_every_node_executable_has_its_table():
         "laser_reader",
         "live_view",
         "plant",
+        "stage_plant",
         "player",
         "recorder",
         "stage_driver",

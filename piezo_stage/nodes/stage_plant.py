@@ -25,8 +25,9 @@ import sys
 import numpy as np
 from builtin_interfaces.msg import Time
 
-from piezo_stage.config_path import find_user_file
+from piezo_stage.config_path import ConfigNotFoundError, find_user_file
 from piezo_stage.hardware.emulators.rig import AmplifierLowPass, substeps_for
+from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage import AmplifierModel, AxesSample, CoupledStage
 from piezo_stage.model.stage_file import load_stage
 from piezo_stage.model.tick_grid import TickGrid
@@ -34,6 +35,7 @@ from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .base import PiezoNode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .plant import PARAMETERS as PLANT_PARAMETERS
 from .plant import REALTIME_CATCH_UP
 from .qos import COMMAND_QOS, SENSOR_QOS
@@ -81,8 +83,11 @@ class StagePlantNode(PiezoNode):
     def __init__(self) -> None:
         super().__init__("stage_plant", namespace=DEFAULT_NAMESPACE)
         s: StagePlantSettings = self.declare_settings(PARAMETERS)
-        self.stage_file = find_user_file(s.stage_file)
-        stage = load_stage(self.stage_file)
+        try:
+            self.stage_file = find_user_file(s.stage_file)
+            stage = load_stage(self.stage_file)
+        except (ConfigNotFoundError, ModelError) as exc:
+            raise RosParameterError(f"parameter 'stage_file': {exc}") from None
         self.names = stage.names
         n = len(self.names)
         self.sim = CoupledStage(
@@ -104,8 +109,8 @@ class StagePlantNode(PiezoNode):
             ]
         for axis, v in zip(self.sim.axes, self._commands):
             axis.amplifier.voltage = float(min(max(v, s.v_min), s.v_max))
-        self._rejected = 0
-        self._received = 0
+        self._rejected = [0] * n
+        self._received = [0] * n
         self._pub_x, self._pub_v = [], []
         for i, name in enumerate(self.names):
             self._pub_x.append(
@@ -130,15 +135,15 @@ class StagePlantNode(PiezoNode):
 
     def _on_command(self, i: int, msg: Voltage) -> None:
         if not math.isfinite(msg.voltage):
-            self._rejected += 1
+            self._rejected[i] += 1
             self.get_logger().warn(
-                f"{self.names[i]}: rejected non-finite voltage command {msg.voltage}: holding "
-                f"{self._commands[i]:g} V",
+                f"rejected non-finite voltage command {msg.voltage} on axis {self.names[i]}: "
+                f"holding {self._commands[i]:g} V",
                 throttle_duration_sec=1.0,
             )
             return
         self._commands[i] = msg.voltage
-        self._received += 1
+        self._received[i] += 1
 
     def _step(self, samples: int) -> AxesSample:
         """``samples`` samples (a late tick's backlog in one call), the commands held: every
@@ -171,17 +176,19 @@ class StagePlantNode(PiezoNode):
 
     def _diagnose(self) -> Diagnosis:
         dropped = self._grid.dropped
-        values = {
+        values: dict[str, object] = {
             "stage_file": str(self.stage_file),
             "axes": ",".join(self.names),
-            "commands": self._received,
-            "rejected_commands": self._rejected,
             "dropped_samples": dropped,
             "substeps": self.substeps,
         }
-        if dropped or self._rejected:
+        for name, received, rejected in zip(self.names, self._received, self._rejected):
+            values[f"{name}.commands"] = received
+            values[f"{name}.rejected_commands"] = rejected
+        rejected_all = sum(self._rejected)
+        if dropped or rejected_all:
             return Diagnosis(
-                WARN, f"{self._rejected} rejected command(s), {dropped} dropped sample(s)", values
+                WARN, f"{rejected_all} rejected command(s), {dropped} dropped sample(s)", values
             )
         return Diagnosis(OK, f"simulating {len(self.names)} axes", values)
 

@@ -1,0 +1,107 @@
+"""The stage_plant node over real DDS: the xy scanner's axes in their namespaces, stepped
+together (one stamp per tick on every axis), y's sensor seeing 2 % of x's motion, NaN commands
+refused, a stage file that does not load refused with exit 2."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+
+from ros_support import ROOT, spin_until, start_node, stop
+
+pytestmark = pytest.mark.ros
+
+NS = "/scanner_sim"  # the probe node's namespace (conftest)
+RATE = 100.0
+
+
+def _ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def test_x_moves_y_by_the_coupling_and_nan_moves_nothing(node):
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    proc = start_node(
+        "stage_plant", "stage_file:=xy_scanner.yaml", f"rate_hz:={RATE}", namespace=NS
+    )
+    xs: dict[str, list] = {"x": [], "y": []}
+    vs: dict[str, list] = {"x": [], "y": []}
+    diags: list = []
+    cmd = {}
+    for axis in "xy":
+        node.create_subscription(Displacement, f"{axis}/displacement", xs[axis].append, SENSOR_QOS)
+        node.create_subscription(Voltage, f"{axis}/voltage", vs[axis].append, SENSOR_QOS)
+        cmd[axis] = node.create_publisher(Voltage, f"{axis}/voltage_command", COMMAND_QOS)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    try:
+        assert spin_until(node, lambda: len(xs["x"]) > 20 and len(xs["y"]) > 20, 15.0)
+        assert spin_until(node, lambda: cmd["x"].get_subscription_count() == 1, 5.0)
+        # refused: NaN on x, inf on y; both hold 0 V and neither moves
+        cmd["x"].publish(Voltage(voltage=math.nan))
+        cmd["y"].publish(Voltage(voltage=math.inf))
+        spin_until(node, lambda: False, 0.5)
+        for axis in "xy":
+            assert vs[axis][-1].voltage == 0.0
+            assert xs[axis][-1].displacement == 0.0 and xs[axis][-1].status == Displacement.OK
+        assert spin_until(
+            node,
+            lambda: any(
+                s.level == DiagnosticStatus.WARN
+                and "2 rejected" in s.message
+                and {(v.key, v.value) for v in s.values}
+                >= {("x.rejected_commands", "1"), ("y.rejected_commands", "1")}
+                for d in diags
+                for s in d.status
+            ),
+            5.0,
+        )
+        cmd["x"].publish(Voltage(voltage=100.0))
+        # through the amplifier's 500 Hz low-pass
+        assert spin_until(node, lambda: abs(vs["x"][-1].voltage - 100.0) < 1e-6, 5.0)
+        spin_until(node, lambda: False, 0.5)  # the stage settles
+        assert vs["y"][-1].voltage == 0.0
+    finally:
+        out, err = stop(proc)
+    # the warning is throttled (1 s): y's, right after x's, is counted on /diagnostics only
+    assert "rejected non-finite voltage command nan on axis x" in err
+    # one tick, one stamp on every axis: pair the samples by stamp
+    by_stamp = {axis: {_ns(m): m for m in xs[axis]} for axis in "xy"}
+    common = sorted(set(by_stamp["x"]) & set(by_stamp["y"]))
+    assert len(common) >= 0.8 * min(len(xs["x"]), len(xs["y"]))
+    period = round(1e9 / RATE)
+    assert all((b - a) % period == 0 and b > a for a, b in zip(common, common[1:]))
+    x, y = by_stamp["x"][common[-1]].displacement, by_stamp["y"][common[-1]].displacement
+    # ~10 um at 100 V (kappa_x ~ 1e-7 m/V); y's own displacement is 0, so its sensor reads
+    # C[1][0] x = 2 % of x's
+    assert 5e-6 < x < 20e-6
+    assert y == pytest.approx(0.02 * x, rel=1e-9)
+
+
+def _bad_coupling(tmp_path) -> str:
+    data = yaml.safe_load((ROOT / "config" / "xy_scanner.yaml").read_text())
+    data["coupling"] = [[1.0, 0.01, 0.0], [0.02, 1.0, 0.0]]
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "stage_file, why",
+    [
+        (lambda tmp: "no_such_stage.yaml", "not found"),
+        (_bad_coupling, "coupling: must be square"),
+    ],
+)
+def test_a_stage_file_that_does_not_load_exits_2_with_one_line(stage_file, why, tmp_path):
+    proc = start_node("stage_plant", f"stage_file:={stage_file(tmp_path)}", namespace=NS)
+    proc.wait(timeout=30.0)
+    _, err = proc.communicate()
+    assert proc.returncode == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "stage_file" in lines[0] and why in lines[0], err
