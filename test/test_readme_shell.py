@@ -314,6 +314,7 @@ EXCLUDED: dict[str, str] = {
         "a real scanner: an amplifier at 192.168.0.21 and sensors (config/scanner_devices.yaml)"
     ),
     "python bench/scanner.py": "a benchmark: its figures are measured on a quiet machine",
+    "python bench/scanner_loop.py": "a benchmark: its figures are measured on a quiet machine",
     "piezo-stage experiment coupling --graph sim_scanner --plant-stage xy_scanner.yaml "
     "--output my_scanner.yaml --json": (
         "the simulated scanner in real time needs the whole of this 2-core host: beside the "
