@@ -138,6 +138,7 @@ def start_node(
     --ros-args -p k:=v ...` (params given as "k:=v")."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    env["PYTHONFAULTHANDLER"] = "1"  # a test that finds it hung can ask for its stacks (SIGABRT)
     args = [sys.executable, "-m", f"piezo_stage.nodes.{executable}", "--ros-args"]
     if namespace:
         args += ["-r", f"__ns:={namespace}"]

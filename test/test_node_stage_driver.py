@@ -6,6 +6,7 @@ per-axis voltage log and its command lines)."""
 from __future__ import annotations
 
 import signal
+import subprocess
 import time
 
 import pytest
@@ -253,8 +254,11 @@ def test_a_stage_the_device_cannot_serve_exits_2_and_nothing_is_sent(
     )
     try:
         code = proc.wait(timeout=60.0)
-    finally:
-        _, err = stop(proc)
+    except subprocess.TimeoutExpired:  # say where it hangs: every thread's stack (faulthandler)
+        proc.send_signal(signal.SIGABRT)
+        _, err = stop(proc, timeout=30.0)
+        pytest.fail(f"stage_driver did not exit within 60 s; its stacks:\n{err[-6000:]}")
+    _, err = stop(proc)
     lines = err.strip().splitlines()
     assert code == 2 and message in lines[-1] and lines[-1].startswith("error: "), err
     assert "Traceback" not in err
