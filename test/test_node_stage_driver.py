@@ -267,9 +267,9 @@ def test_a_stage_the_device_cannot_serve_exits_2_and_nothing_is_sent(
 
 
 def test_write_rate_writes_every_axis_latest_command_in_one_sva_per_period(probe, device):
-    """write_rate_hz 10: commands arrive every ~10 ms per axis; the device gets one SVA per
-    period naming every axis, the latest command of each."""
-    rate = 10.0  # Hz
+    """write_rate_hz 2: commands arrive every ~10 ms per axis (slower on a loaded host); the
+    device gets one SVA per period naming every axis, the latest command of each."""
+    rate = 2.0  # Hz
     s = StageNode(
         probe, device.url, f"write_rate_hz:={rate}", "command_timeout:=0.0", "readback_rate_hz:=0.0"
     )
@@ -277,7 +277,9 @@ def test_write_rate_writes_every_axis_latest_command_in_one_sva_per_period(probe
         n = len(device.svas())
         start = time.monotonic()
         k = 0
-        while time.monotonic() - start < 3.0:
+        # at least 3 s, and more command rounds than twice the writes the rate allows (a loaded
+        # host sends fewer per second): the bound below then says the writes follow the rate
+        while (t := time.monotonic() - start) < 6.0 or (k <= 2 * (t * rate + 2) and t < 30.0):
             k += 1
             for axis, channel in XYZ.items():
                 s.send(axis, 10.0 * int(channel) + 0.01 * k)
@@ -291,7 +293,7 @@ def test_write_rate_writes_every_axis_latest_command_in_one_sva_per_period(probe
     batched = [w for w in written if w[::2] == ["1", "2", "3"]]
     assert k >= 30 and len(written) <= elapsed * rate + 2, (k, len(written), elapsed)
     assert len(written) < k / 2  # far fewer writes than commands
-    assert len(batched) >= 10 and len(batched) >= len(written) - 2, written  # all axes a line
+    assert len(batched) >= 5 and len(batched) >= len(written) - 2, written  # all axes a line
 
 
 def test_exit_code_is_non_zero_when_the_link_is_gone_at_shutdown(probe):
