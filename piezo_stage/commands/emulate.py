@@ -37,7 +37,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 from piezo_stage.commands.argtypes import int_range, non_negative, port, positive, probability
 from piezo_stage.hardware.emulators import (
@@ -374,22 +374,30 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
         load_stage(args.params),
         fmt,
         args.measuring_range,
-        amplifier=args.amplifier,
-        amplifier_tcp_port=args.amp_tcp,
-        rate=args.rate,
-        standoff=args.standoff,
-        sensor_errors=args.error_values,
-        amplifier_faults=faults,
-        sensor_faults=_make_faults(args),
-        seed=args.seed,
-        sensor_link=args.sensor_link,
-        amplifier_link=args.amp_link,
-        amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
-        realtime_priority=args.realtime,
+        **_around_a_stage(args, faults),
         amplifier_bandwidth=args.amp_bandwidth,
         amplifier_filter_order=args.amp_filter_order,
     )
     return rig.servers
+
+
+def _around_a_stage(args: argparse.Namespace, faults: Faults) -> dict[str, Any]:
+    """The options ``emulate rig`` and ``emulate scanner`` share: the amplifier's endpoint,
+    range and faults, the sensors' rate, standoff, errors, faults and links."""
+    return {
+        "amplifier": args.amplifier,
+        "amplifier_tcp_port": args.amp_tcp,
+        "amplifier_link": args.amp_link,
+        "amplifier_range": None if args.amp_range is None else tuple(args.amp_range),
+        "rate": args.rate,
+        "standoff": args.standoff,
+        "sensor_errors": args.error_values,
+        "amplifier_faults": faults,
+        "sensor_faults": _make_faults(args),
+        "seed": args.seed,
+        "sensor_link": args.sensor_link,
+        "realtime_priority": args.realtime,
+    }
 
 
 def _scanner(args: argparse.Namespace, fmt: FrameFormat, faults: Faults) -> ScannerEmulator:
@@ -405,18 +413,7 @@ def _scanner(args: argparse.Namespace, fmt: FrameFormat, faults: Faults) -> Scan
         [axis.channel for axis in stage.axes],
         fmt,
         args.measuring_range,
-        amplifier=args.amplifier,
-        amplifier_tcp_port=args.amp_tcp,
-        amplifier_link=args.amp_link,
-        amplifier_range=None if args.amp_range is None else tuple(args.amp_range),
-        rate=args.rate,
-        standoff=args.standoff,
-        sensor_errors=args.error_values,
-        amplifier_faults=faults,
-        sensor_faults=_make_faults(args),
-        seed=args.seed,
-        sensor_link=args.sensor_link,
-        realtime_priority=args.realtime,
+        **_around_a_stage(args, faults),
     )
 
 
