@@ -97,3 +97,57 @@ def test_overrides_are_checked_against_the_nodes_table_before_a_graph_starts():
         node_overrides("controller", {"learn_period": 3})
     with pytest.raises(ExperimentInputError, match="feedforward_form"):
         node_overrides("controller", {"feedforward_form": "exact"})
+
+
+def _excited_plant(namespace: str, excitation: dict) -> dict:
+    """A real-time plant at 1 kHz driven by an excitation (timer trigger, wall clock)."""
+    return {
+        "namespace": namespace,
+        "nodes": [
+            {"executable": "plant", "overrides": {"clock_mode": "realtime", "rate_hz": 1000.0}},
+            {
+                "executable": "excitation",
+                "overrides": {"trigger": "timer", "rate_hz": 1000.0, "period": 0.1, **excitation},
+            },
+        ],
+    }
+
+
+def test_a_start_gate_starts_the_excitation_once_the_record_flows():
+    """With ``autostart: false`` the excitation waits for the gate: its first mark comes after
+    the samples the gate asked for had reached the recorder, however late the sensor starts."""
+    from piezo_stage.experiments.harness import StartGate
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo
+
+    least = 300
+    recording = record(
+        _excited_plant("/harness_gate", {"autostart": False}),
+        [
+            Stream("displacement", Displacement, reliable=False),
+            Stream("excitation", ExcitationInfo),
+        ],
+        samples("excitation", 3),
+        launch_timeout=30.0,
+        wall_timeout=60.0,
+        data_timeout=30.0,
+        start=StartGate(("excitation/start",), samples("displacement", least)),
+    )
+    displacement, marks = recording.raw["displacement"], recording.raw["excitation"]
+    assert len(displacement) >= least
+    assert marks[0][0] > displacement[least - 1][0]
+
+
+def test_a_start_gate_whose_service_never_answers_fails_the_run():
+    from piezo_stage.experiments.harness import StartGate
+    from piezo_stage_msgs.msg import Displacement
+
+    with pytest.raises(HarnessError, match="did not start within 3 s"):
+        record(
+            _excited_plant("/harness_gate_missing", {"autostart": False}),
+            [Stream("displacement", Displacement, reliable=False)],
+            samples("displacement", 10**9),
+            launch_timeout=30.0,
+            wall_timeout=60.0,
+            data_timeout=3.0,
+            start=StartGate(("no_such_node/start",), samples("displacement", 1)),
+        )

@@ -99,7 +99,7 @@ class StageNode:
         msg.header.stamp = self.probe.get_clock().now().to_msg()
         self.cmd[axis].publish(msg)
 
-    def wait(self, predicate, timeout: float = 10.0) -> bool:
+    def wait(self, predicate, timeout: float = 30.0) -> bool:
         return spin_until(self.probe, predicate, timeout)
 
 

@@ -27,7 +27,7 @@ from .procedure import RigError
 from .sweep import Series
 
 if TYPE_CHECKING:
-    from piezo_stage.experiments.harness import Raw
+    from piezo_stage.experiments.harness import Raw, StartGate
 
 GRAPHS = ("sim", "emulated_rig", "rig")
 _TOPICS = {
@@ -36,6 +36,7 @@ _TOPICS = {
     "excitation": "piezo_stage_msgs/msg/ExcitationInfo",
 }
 SIM_SENSOR_NOISE = 2e-9  #: [m] standard deviation of the sim graph's sensor
+SENSOR_FLOWING = 0.5  #: [s] of a rig's sensor samples recorded before its excitation starts
 RIG_SETTLE = 1.0  #: [s] a rig's closed loop before the §11.5 opening (it starts at rest at 0 V)
 _counter = iter(range(1, 1 << 30))
 
@@ -102,7 +103,14 @@ class RosRig:
         if self.lockstep:
             exc.update(trigger="clock", use_sim_time=True)
         else:
-            exc.update(trigger="timer", rate_hz=min(self.rate_hz, 1000.0), catch_up=True, lead=1.0)
+            # started by the recorder once the sensor's samples reach it (:meth:`excite`)
+            exc.update(
+                trigger="timer",
+                rate_hz=min(self.rate_hz, 1000.0),
+                catch_up=True,
+                lead=1.0,
+                autostart=False,
+            )
         nodes.append({"executable": "excitation", "overrides": exc})
         graph = {
             "description": f"commission ({self.name})",
@@ -145,11 +153,21 @@ class RosRig:
                 required=("displacement", "excitation"),
                 progress=note,
                 node_name="commission",
+                start=None if self.lockstep else self._start_gate(),
             )
         except HarnessError as exc:
             raise _run_error(label, exc, exc.lines) from exc
         recording.write_bag(bag, _TOPICS)
         return _series(recording.raw)
+
+    def _start_gate(self) -> StartGate:
+        """A rig's excitation starts once :data:`SENSOR_FLOWING` s of sensor samples have reached
+        the recorder: launched with the graph, it would run before a slow sensor node publishes,
+        and the first run would lose its steady periods."""
+        from piezo_stage.experiments.harness import StartGate
+
+        least = max(1, int(SENSOR_FLOWING * self.rate_hz))
+        return StartGate(("excitation/start",), lambda raw: len(raw["displacement"]) >= least)
 
     # ------------------------------------------------------------------ acceptance
     def accept(self, run: dict[str, Any], bag: Path, png_dir: Path) -> dict[str, Any]:

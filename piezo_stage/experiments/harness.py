@@ -201,9 +201,12 @@ def record(
     required: Sequence[str] | None = None,
     progress: Callable[[Raw], None] | None = None,
     node_name: str = "recorder",
+    start: StartGate | None = None,
 ) -> Recording:
     """Launch ``graph`` (a graph mapping with its ``namespace``; ``params`` as ``--param``),
     record ``streams`` from before its first message until ``until(raw)``, stop the graph.
+    With ``start``, its Trigger services are called once ``start.when(raw)`` holds (the run
+    begins when the record is flowing, not when the graph's slowest node is up).
 
     HarnessError (with the nodes' last output) when the graph fails to start or ends, when a
     ``required`` topic (default: every stream) has no message ``data_timeout`` s after the
@@ -241,6 +244,7 @@ def record(
             else ReliabilityPolicy.BEST_EFFORT,
         )
         node.create_subscription(stream.msg_type, stream.topic, on_message, qos, raw=True)
+    gate = _Gate(node, start) if start is not None else None
     executor = LeanExecutor(context=ctx)  # a message per wake-up at 1-2 kHz on a loaded host
     executor.add_node(node)
     launch = None
@@ -259,6 +263,8 @@ def record(
         while not until(raw):
             now = time.monotonic()
             _check_run(launch, raw, needed, lines, now - started, wall_timeout, data_timeout)
+            if gate is not None:
+                gate.poll(raw, now - started, data_timeout, lines)
             executor.spin_once(timeout_sec=0.05)
             if progress is not None and now > next_note:
                 next_note += 2.0
@@ -268,10 +274,64 @@ def record(
     finally:
         if launch is not None:
             launch.stop()
+        if gate is not None:
+            gate.close()
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
     return Recording(namespace, raw, time.monotonic() - started, lines)
+
+
+@dataclass(frozen=True)
+class StartGate:
+    """Start a run from the recorder: ``services`` (std_srvs/Trigger, relative to the graph's
+    namespace, e.g. ``excitation/start`` of a node with ``autostart: false``) are called once
+    ``when(raw)`` holds."""
+
+    services: Sequence[str]
+    when: Until
+
+
+class _Gate:
+    """The clients of a :class:`StartGate` and the state of their calls."""
+
+    def __init__(self, node: Any, gate: StartGate) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from std_srvs.srv import Trigger
+
+        # a node of its own: the recorder's lean executor serves subscriptions only
+        ctx = node.context
+        self.node = rclpy.create_node(
+            f"{node.get_name()}_start", namespace=node.get_namespace(), context=ctx
+        )
+        self.executor = SingleThreadedExecutor(context=ctx)
+        self.executor.add_node(self.node)
+        self.gate = gate
+        self.request = Trigger.Request()
+        self.clients = [self.node.create_client(Trigger, name) for name in gate.services]
+        self.calls: list[Any] | None = None
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+    def poll(self, raw: Raw, elapsed: float, data_timeout: float, lines: list[str]) -> None:
+        """Call the services when the gate opens; HarnessError for a refused or unanswered call."""
+        if self.calls is None:
+            if all(c.service_is_ready() for c in self.clients) and self.gate.when(raw):
+                self.calls = [c.call_async(self.request) for c in self.clients]
+            elif elapsed > data_timeout:
+                raise HarnessError(
+                    f"the run did not start within {data_timeout:g} s "
+                    f"({', '.join(self.gate.services)} not ready or the record not flowing)",
+                    lines,
+                )
+            return
+        self.executor.spin_once(timeout_sec=0.0)
+        for name, call in zip(self.gate.services, self.calls):
+            if call.done() and not call.result().success:
+                raise HarnessError(f"{name} refused: {call.result().message}", lines)
 
 
 def _check_run(
@@ -301,6 +361,7 @@ __all__ = [
     "ControllerStates",
     "HarnessError",
     "Recording",
+    "StartGate",
     "Stream",
     "Until",
     "node_overrides",
