@@ -247,6 +247,7 @@ def test_a_three_axis_controller_writes_every_axis_in_one_command():
     with EmulatorServer(model, tcp_port=0) as server, make_transport(server.url) as transport:
         conn = GCSConnection(transport, timeout=0.5)
         assert conn.query("SAI?") == ["1", "2", "3"]
+        assert "E-727" in conn.query("*IDN?")[0]
         conn.command("SVO 1 0 2 0 3 0")
         assert conn.query_items("SVO?") == {"1": "0", "2": "0", "3": "0"}
         conn.command("SVA 1 10 2 20.5 3 30")

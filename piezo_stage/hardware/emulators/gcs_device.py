@@ -30,10 +30,17 @@ from ..gcs import (
     join_reply,
 )
 
-IDN = (
-    "(c)2024 Physik Instrumente (PI) GmbH & Co. KG, E-709.CHG, EMU0000001, 01.000 "
-    "(piezo_stage emulator)"
-)
+
+def idn(model: str) -> str:
+    """The ``*IDN?`` reply of the emulated controller ``model`` (E-709.CHG, E-727.3SDA)."""
+    return (
+        f"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, {model}, EMU0000001, 01.000 "
+        "(piezo_stage emulator)"
+    )
+
+
+IDN = idn("E-709.CHG")  #: the one-axis controller's
+IDN_E727 = idn("E-727.3SDA")  #: the several-axis controller's
 
 
 class _CommandError(HardwareError):
@@ -81,7 +88,7 @@ class GCSDeviceModel:
         self.commands: list[str] = []  # every line received, for tests and rehearsal logs
         self.lock = threading.Lock()
         self._handlers: dict[str, Callable[[list[str]], list[str] | None]] = {
-            "*IDN?": lambda a: [IDN],
+            "*IDN?": lambda a: [IDN_E727 if axes else IDN],
             "CSV?": lambda a: ["2.0"],
             "ERR?": self._err,
             "HLP?": self._hlp,
