@@ -117,7 +117,6 @@ LAYERS = ("unit", "ros")
 #: the files that take longest, longest first (seconds in a full run on a 2-core host): on two
 #: workers the demo started last ran alone for its last five minutes
 LONGEST = (
-    "test_readme_shell.py",  # 585 (every README block; its long ones PIEZO_QUICK)
     "test_demo.py",  # 345
     "test_node_rig_loop.py",  # 170
     "test_node_plant.py",  # 170

@@ -22,8 +22,9 @@ sweep frequencies). The two that run in real time against the emulators (``realt
 where the real-time layer runs (conftest's host check) and reported skipped, with the
 measurement, on a host too slow for them. Budget: about ten minutes on 2 cores.
 
-The layer is ``ros`` and ``slow`` and one file (the blocks share their folder and run in
-order): ``make test``'s ``--dist loadfile`` keeps it on one worker.
+The layer is ``ros``, ``slow`` and ``alone``, one file (the blocks share their folder and run in
+order): ``make test`` runs it after the two workers, with the real-time layer, so that the
+real-time commands do not share the host with another worker's graphs.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from conftest import too_slow_for_realtime
 
 from piezo_stage.commands.quick import QUICK_VARIABLE
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.alone]
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
