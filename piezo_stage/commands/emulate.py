@@ -217,21 +217,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _amplifier_args(rig, "E-709")
     rig.add_argument(
-        "--amp-bandwidth",
-        type=non_negative,
-        default=1000.0,
-        metavar="HZ",
-        help="amplifier small-signal bandwidth: a Butterworth low-pass from command to "
-        "stage (default 1000; 0: ideal, every 1/rate step reaches the stage)",
-    )
-    rig.add_argument(
-        "--amp-filter-order",
-        type=int,
-        choices=(1, 2),
-        default=2,
-        help="order of that low-pass (default 2)",
-    )
-    rig.add_argument(
         "--sensor-link",
         default=None,
         metavar="PATH",
@@ -287,6 +272,21 @@ def _amplifier_args(parser: argparse.ArgumentParser, controller: str) -> None:
         default=None,
         metavar=("VMIN", "VMAX"),
         help=f"GCS amplifier output range VMI?/VMA? [V] (default -30 130, an {controller})",
+    )
+    parser.add_argument(
+        "--amp-bandwidth",
+        type=non_negative,
+        default=1000.0,
+        metavar="HZ",
+        help="amplifier small-signal bandwidth: a Butterworth low-pass from command to "
+        "stage (default 1000; 0: ideal, every 1/rate step reaches the stage)",
+    )
+    parser.add_argument(
+        "--amp-filter-order",
+        type=int,
+        choices=(1, 2),
+        default=2,
+        help="order of that low-pass (default 2)",
     )
     parser.add_argument(
         "--standoff",
@@ -375,15 +375,13 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
         fmt,
         args.measuring_range,
         **_around_a_stage(args, faults),
-        amplifier_bandwidth=args.amp_bandwidth,
-        amplifier_filter_order=args.amp_filter_order,
     )
     return rig.servers
 
 
 def _around_a_stage(args: argparse.Namespace, faults: Faults) -> dict[str, Any]:
     """The options ``emulate rig`` and ``emulate scanner`` share: the amplifier's endpoint,
-    range and faults, the sensors' rate, standoff, errors, faults and links."""
+    range, low-pass and faults, the sensors' rate, standoff, errors, faults and links."""
     return {
         "amplifier": args.amplifier,
         "amplifier_tcp_port": args.amp_tcp,
@@ -397,6 +395,8 @@ def _around_a_stage(args: argparse.Namespace, faults: Faults) -> dict[str, Any]:
         "seed": args.seed,
         "sensor_link": args.sensor_link,
         "realtime_priority": args.realtime,
+        "amplifier_bandwidth": args.amp_bandwidth,
+        "amplifier_filter_order": args.amp_filter_order,
     }
 
 

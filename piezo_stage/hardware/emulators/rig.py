@@ -130,6 +130,13 @@ def substeps_for(stage: Stage, rate: float, bandwidth_hz: float) -> int:
     return max(1, math.ceil(f / rate))
 
 
+def substep_times(times: NDArray[np.float64], substeps: int, h: float) -> NDArray[np.float64]:
+    """The ends of the ``substeps`` steps of ``h`` that lead to each of ``times``, in order."""
+    lags = (substeps - 1 - np.arange(substeps)) * h
+    out: NDArray[np.float64] = (np.asarray(times)[:, None] - lags[None, :]).ravel()
+    return out
+
+
 class VoltageHistory:
     """An amplifier output's applied voltages with their arrival times (server clock), in time
     order, from ``initial_voltage`` at -inf: the voltage in force at any later instant. Not
@@ -155,6 +162,19 @@ class VoltageHistory:
         while len(entries) > 1 and entries[1][0] <= t:
             entries.popleft()
         return entries[0][1]
+
+    def values_at(self, times: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The voltage in force at each of ``times`` (increasing); forgets what was replaced
+        before the last of them.
+        """
+        entries = self.entries
+        hist_t = np.fromiter((t for t, _ in entries), np.float64, len(entries))
+        hist_v = np.fromiter((v for _, v in entries), np.float64, len(entries))
+        idx = np.clip(np.searchsorted(hist_t, times, side="right") - 1, 0, None)
+        for _ in range(int(idx[-1]) if idx.size else 0):
+            entries.popleft()
+        out: NDArray[np.float64] = hist_v[idx]
+        return out
 
 
 class RigCoupling:
@@ -218,7 +238,6 @@ class RigCoupling:
         out = np.empty(len(times))
         t_abs = self.origin() + np.asarray(times, dtype=np.float64)
         with self.lock:
-            history = self.history.entries
             if self.lowpass is None:
                 for k in range(len(times)):
                     volts = self.history.value_at(float(t_abs[k]))
@@ -226,18 +245,11 @@ class RigCoupling:
                     out[k] = self._reading(applied, y, status)
                 return out
             # the command in force at each substep, through the amplifier's low-pass
-            n = self.substeps
-            h = self.dt / n
-            t_sub = (t_abs[:, None] - (n - 1 - np.arange(n))[None, :] * h).ravel()
-            hist_t = np.array([t for t, _ in history])
-            hist_v = np.array([v for _, v in history])
-            idx = np.clip(np.searchsorted(hist_t, t_sub, side="right") - 1, 0, None)
-            rows = self._step_many(self.lowpass.run(hist_v[idx]), h)
+            h = self.dt / self.substeps
+            held = self.history.values_at(substep_times(t_abs, self.substeps, h))
+            rows = self._step_many(self.lowpass.run(held), h)
             for k, (applied, y, status) in enumerate(rows):
                 out[k] = self._reading(applied, y, status)
-            keep = max(int(idx[-1]), 0) if idx.size else 0
-            for _ in range(keep):
-                history.popleft()
         return out
 
     def _reading(self, applied: float, y: float, status: float) -> float:

@@ -8,7 +8,10 @@ voltage its device channel applies. All axes are stepped together, once per samp
 ``standoff + reading_i``, axis i's coupled displacement. Each sensor keeps its own sample clock
 (its own server): its samples map to the grid's at a fixed offset, so the sensors see the same
 stage, stepped once. Any object with ``step(commands, dt) -> (applied, readings, status)`` per
-axis serves as the stage (``piezo_stage.model.stage.CoupledStage``).
+axis serves as the stage (``piezo_stage.model.stage.CoupledStage``). With an amplifier bandwidth
+each channel's command reaches its axis through the rig's low-pass
+(:class:`~.rig.AmplifierLowPass`), the stage stepped :func:`~.rig.substeps_for` times per
+sample (``step_voltages``, as the ``stage_plant`` node does).
 """
 
 from __future__ import annotations
@@ -26,7 +29,14 @@ from numpy.typing import NDArray
 from ..errors import ConfigError
 from ..optoncdt import FrameFormat
 from .optoncdt_device import OptoNCDTDeviceModel
-from .rig import VoltageHistory, amplifier_endpoint, amplifier_model
+from .rig import (
+    AmplifierLowPass,
+    VoltageHistory,
+    amplifier_endpoint,
+    amplifier_model,
+    substep_times,
+    substeps_for,
+)
 from .server import EmulatorServer, Faults
 
 __all__ = ["CoupledAxes", "ScannerCoupling", "ScannerEmulator"]
@@ -43,13 +53,19 @@ class CoupledAxes(Protocol):
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
         """Hold ``commands[i]`` on axis i for dt; (applied, readings, status) per axis."""
 
+    def step_voltages(
+        self, voltages: NDArray[np.float64], h: float, every: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """Hold ``voltages[i, k]`` on axis i for h each; rows of samples every ``every`` steps."""
+
 
 class ScannerCoupling:
     """The sensors' displacement source: steps the stage on one sample grid (module docstring).
 
     ``channels[i]`` is axis i's channel on the amplifier; :meth:`on_axis_voltage` is the
     amplifier model's ``on_axis_voltage`` callback (other channels are ignored);
-    :meth:`source` gives sensor i's ``source(times)``.
+    :meth:`source` gives sensor i's ``source(times)``. ``bandwidth_hz`` > 0: the amplifier's
+    low-pass of ``filter_order`` between each channel's command and its axis.
     """
 
     def __init__(
@@ -60,6 +76,8 @@ class ScannerCoupling:
         standoff: float,
         initial_voltages: dict[str, float] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        bandwidth_hz: float = 0.0,
+        filter_order: int = 2,
     ) -> None:
         if len(set(channels)) != len(channels) or not channels:
             raise ConfigError(f"one distinct channel per axis, got {list(channels)!r}")
@@ -70,6 +88,15 @@ class ScannerCoupling:
         self.standoff = standoff
         start = initial_voltages or {}
         self.histories = {c: VoltageHistory(start.get(c, 0.0), clock) for c in self.channels}
+        axes = getattr(stage, "axes", ())
+        #: stage steps per sample, through the amplifier's low-pass (1: an ideal amplifier)
+        self.substeps = max((substeps_for(a, rate, bandwidth_hz) for a in axes), default=1)
+        h = self.dt / self.substeps
+        self.lowpass = (
+            [AmplifierLowPass(bandwidth_hz, filter_order, h, start.get(c, 0.0)) for c in channels]
+            if bandwidth_hz > 0.0
+            else []
+        )
         self.lock = threading.Lock()
         self.origin: float | None = None  # absolute time of grid sample 0
         self.steps = 0  # grid samples computed so far
@@ -94,6 +121,9 @@ class ScannerCoupling:
     def _advance(self, last: int) -> None:
         """Step the stage through grid sample ``last`` (lock held)."""
         assert self.origin is not None  # set by the first grid_offset() call
+        if self.lowpass:
+            self._advance_filtered(last)
+            return
         ring = self._ring
         while self.steps <= last:
             t = self.origin + self.steps * self.dt
@@ -103,6 +133,32 @@ class ScannerCoupling:
             ring[self.steps % len(ring)] = np.where(ok, self.standoff + readings, math.nan)
             self.applied, self.readings = np.asarray(applied), np.asarray(readings)
             self.steps += 1
+
+    def _advance_filtered(self, last: int) -> None:
+        """:meth:`_advance` through the amplifiers' low-pass: the pending samples in batches of
+        at most the backlog, each channel's command in force at each substep filtered.
+        """
+        assert self.origin is not None
+        while self.steps <= last:
+            self._filtered_batch(min(last, self.steps + len(self._ring) - 1))
+
+    def _filtered_batch(self, last: int) -> None:
+        assert self.origin is not None
+        ring, n = self._ring, len(self._ring)
+        k = np.arange(self.steps, last + 1, dtype=np.float64)
+        h = self.dt / self.substeps
+        t_sub = substep_times(self.origin + k * self.dt, self.substeps, h)
+        volts = np.vstack(
+            [
+                lowpass.run(self.histories[c].values_at(t_sub))
+                for c, lowpass in zip(self.channels, self.lowpass)
+            ]
+        )
+        applied, readings, status = self.stage.step_voltages(volts, h, self.substeps)
+        ok = (np.asarray(status) == 0) & np.isfinite(readings)
+        ring[np.arange(self.steps, last + 1) % n] = np.where(ok, self.standoff + readings, math.nan)
+        self.applied, self.readings = np.asarray(applied[-1]), np.asarray(readings[-1])
+        self.steps = last + 1
 
     def readings_at(self, axis: int, index: NDArray[np.int64]) -> NDArray[np.float64]:
         """Sensor ``axis``'s readings at grid samples ``index`` (after :meth:`grid_offset`); a
@@ -146,7 +202,8 @@ class _AxisSource:
 class ScannerEmulator:
     """The amplifier (GCS on TCP or pty, or MDT693B on pty) and one optoNCDT sensor per axis
     (each on a pty) around one coupled stage; ``axes`` and ``channels`` name the stage's axes in
-    order and their channels on the amplifier.
+    order and their channels on the amplifier; ``amplifier_bandwidth`` [Hz] (0: ideal) and
+    ``amplifier_filter_order`` as :class:`~.rig.RigEmulator`'s.
     """
 
     def __init__(
@@ -169,6 +226,8 @@ class ScannerEmulator:
         seed: int | None = None,
         sensor_link: str | None = None,
         realtime_priority: int = 0,
+        amplifier_bandwidth: float = 0.0,
+        amplifier_filter_order: int = 2,
     ) -> None:
         if len(axes) != len(channels):
             raise ConfigError(f"{len(axes)} axes need as many channels, got {len(channels)}")
@@ -178,7 +237,15 @@ class ScannerEmulator:
         self.amplifier = amplifier_model(amplifier, amplifier_range, amplifier_tcp_port, channels)
         standoff = 0.5 * measuring_range if standoff is None else standoff
         start = self.amplifier.applied_voltages()
-        self.coupling = ScannerCoupling(stage, channels, rate, standoff, start)
+        self.coupling = ScannerCoupling(
+            stage,
+            channels,
+            rate,
+            standoff,
+            start,
+            bandwidth_hz=amplifier_bandwidth,
+            filter_order=amplifier_filter_order,
+        )
         self.amplifier.on_axis_voltage = self.coupling.on_axis_voltage
         self.amplifier_server = EmulatorServer(
             self.amplifier,
