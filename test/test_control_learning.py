@@ -138,6 +138,23 @@ def test_settling_periods_are_not_learned_from_and_learning_stops_when_the_error
     assert np.array_equal(table.u, frozen)
 
 
+def test_errors_at_the_rounding_floor_are_no_improvement():
+    """Once the error is at the floating-point floor, its size there is rounding (it varies with
+    the CPU and the BLAS kernel): a 'fall' by half from 1e-21 to 5e-22 does not keep learning
+    going; two such periods stop it as any stall does."""
+    model = FeedforwardModel.from_parameter_set(RIG)
+    n = 50
+    g = feedforward_response(model, RATE, n)
+    learning = IterativeLearning(
+        FeedforwardTable(np.zeros(n), RATE),
+        g,
+        LearningConfig(gain=1.0, cutoff_hz=RATE / 2, settle_periods=0, patience=2),
+    )
+    for rms in (3.5e-6, 1.2e-21, 6e-22, 3e-22):
+        learning.update(np.full(n, rms))
+    assert learning.done and len(learning.history) == 4
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     u=st.lists(st.floats(-1e3, 1e3), min_size=2, max_size=40),

@@ -157,6 +157,10 @@ def feedforward_response(
     return G
 
 
+#: an RMS error this fraction of the first learned period's is at the floating-point floor
+ROUNDING = 1e-12
+
+
 @dataclass(frozen=True)
 class LearningConfig:
     """How a table learns: ``gain`` α of L = −α·G⁻¹ (0 < α ≤ 1), Q's ``cutoff_hz`` (None:
@@ -168,7 +172,8 @@ class LearningConfig:
     (the loop still answers the change: its error is not the table's); the stop rule: learning
     ends after
     ``patience`` learned periods without the RMS error falling below ``1 − min_improvement``
-    times the best so far.
+    times the best so far (once the best is at :data:`ROUNDING` of the first learned period's,
+    nothing below it counts: that is rounding, whose size varies with the CPU and its BLAS).
     """
 
     gain: float = 0.5
@@ -343,7 +348,8 @@ class IterativeLearning:
             return self.table
         rms = float(np.sqrt(np.mean(e * e)))
         self.history.append(rms)
-        if rms < (1.0 - self.config.min_improvement) * self._best:
+        at_floor = self._best <= ROUNDING * self.history[0]
+        if rms < (1.0 - self.config.min_improvement) * self._best and not at_floor:
             self._best, self._stale = rms, 0
         else:
             self._stale += 1
