@@ -113,8 +113,9 @@ def spin_until(node: Any, predicate: Callable[[], bool], timeout: float) -> bool
     import rclpy
 
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.05)
+    while (left := deadline - time.monotonic()) > 0:
+        # never past the deadline: a short wait (a probe pacing its samples) stays short
+        rclpy.spin_once(node, timeout_sec=min(0.05, left))
         if predicate():
             return True
     return predicate()

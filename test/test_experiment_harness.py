@@ -149,5 +149,6 @@ def test_a_start_gate_whose_service_never_answers_fails_the_run():
             launch_timeout=30.0,
             wall_timeout=60.0,
             data_timeout=3.0,
+            required=(),  # the gate's own timeout, however late a loaded host's plant publishes
             start=StartGate(("no_such_node/start",), samples("displacement", 1)),
         )

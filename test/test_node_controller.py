@@ -151,12 +151,19 @@ class _StartClosed:
         return any(text in st.message for d in self.diags for st in d.status)
 
     def feed_until(self, done, sample, period: float) -> bool:
-        """Publish ``sample()`` every ``period`` s until ``done()`` (15 s at most: matching can
-        lag the graph on a busy host)."""
-        deadline = time.monotonic() + 15.0
+        """Publish ``sample()`` every ``period`` s until ``done()`` (60 s at most: matching can
+        lag the graph on a busy host, and a stalled probe's gaps beyond max_gap make the samples
+        stale until they flow again)."""
+        import rclpy
+
+        next_at = time.monotonic()
+        deadline = next_at + 60.0
         while not done() and time.monotonic() < deadline:
             self.pub.publish(sample())
-            spin_until(self.node, lambda: False, period)
+            # the rest of the period only: the samples stay within max_gap of each other
+            next_at = max(next_at + period, time.monotonic())
+            while (left := next_at - time.monotonic()) > 0:
+                rclpy.spin_once(self.node, timeout_sec=left)
         return done()
 
     def fresh(self):
