@@ -154,6 +154,10 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
     assert errors.samples > 200 and errors.relative <= 0.05, log
 
 
+# the learned figure needs a host near the development one's timing: on a host measuring the
+# minimal loop at 43-77 us (1.7-3.1x) the learning plateaus at 0.6-1.3 % (five runs), its
+# period-to-period timing noise learned back into the table (0.07-0.15 % on the development host)
+@pytest.mark.realtime(slowdown=1.5)
 def test_emulated_rig_learns_the_triangle_and_replays_what_it_learned(tmp_path, capsys):
     """`piezo-stage experiment tracking --graph emulated_rig --learn 20`: the controller in
     rig_loop at the 1 kHz sensor's rate learns the feedforward of a 10 Hz triangle over 20 µm
