@@ -5,15 +5,17 @@ stepping on each 1 kHz sensor sample and generating a triangle (``reference_sour
 trajectory``) with the Bouc-Wen feedforward plus the PID (``both``).
 
 The feedforward's model is fitted from recordings of the simulated rig (never its file). What
-is checked: x_d goes out on ``reference``, controller_state carries u_ff (the voltage the model
-asks for, ~125-145 V at the top here), and after the first period the stage follows x_d: RMS
-error ≤ 5 % of the 10 µm range. Scale of that bound: the hysteresis alone is κw/κx ≈ 4 µm; at a
-1 kHz loop the command is a staircase whose steps ring the rig's 7 kHz resonance, and the
-ringing wears w down (the ch. 11 dither: |w| peaks at 0.11 instead of 0.61), so the model's
+is checked: every sensor sample is answered, x_d goes out on ``reference``, u_ff (the voltage
+the model asks for, ~125-145 V at the top here), and after the first period the stage follows
+x_d: RMS error ≤ 5 % of the 10 µm range. Scale of that bound: the hysteresis alone is κw/κx ≈ 4
+µm; at a 1 kHz loop the command is a staircase whose steps ring the rig's 7 kHz resonance, and
+the ringing wears w down (the ch. 11 dither: |w| peaks at 0.11 instead of 0.61), so the model's
 hysteresis term over-compensates: the feedforward alone leaves 0.9 µm RMS (9 %, pure-core
-simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 0.3 %
-(seen in one process; 2.5-3.5 % through three processes and DDS). The sensor's quantum is
-7.8 nm. Runs ~30 s of real time.
+simulation at 1 kHz; 0.26 µm at 10 kHz, nothing at 100 kHz) and the PID takes it to 0.3 % on
+the development host, 1.2 % on one measuring the minimal loop 2.5x slower (three runs:
+1.19-1.24 %; the amplifier's writes land later in the sensor's period). The sensor's quantum is
+7.8 nm. The figure comes from ``loop_samples``, the loop's own record of every sample. Runs ~10
+s of real time.
 """
 
 from __future__ import annotations
@@ -23,12 +25,13 @@ import socket
 import numpy as np
 import pytest
 
+from piezo_stage.bag import loop_columns
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.tracking import tracking_errors
 from piezo_stage.launch import Launcher
 from piezo_stage.launch.graph import find_graph, parse_graph
 from piezo_stage.model.parameter_set import save_parameter_set, shipped_parameter_set
-from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
+from piezo_stage.nodes.qos import BATCH_QOS, COMMAND_QOS
 from piezo_stage.yaml_values import load_yaml
 
 from ros_support import spin_until
@@ -90,29 +93,20 @@ def tracking_graph(port: int, link: str, model_file: str):
 
 
 def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
-    from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
+    from piezo_stage_msgs.msg import ControllerState, Displacement, LoopSamples
 
     model = tmp_path / "model.yaml"
     rig = shipped_parameter_set("ch11_rig")  # recorded as a simulated rig: the model is fitted
     save_parameter_set(fit_feedforward_model(rig_recordings(rig)), model)
     port, link = free_port(), str(tmp_path / "sensor")
+    # the measurement is the loop's own record: loop_samples, every sample in batches (the
+    # per-sample topics are reliable but keep only the last 10: a Python probe taking them one
+    # spin at a time loses runs of them on a slow host, which would read as gaps in the loop)
+    batches: list = []
     states: list = []
     refs: list = []
-    driving: list = []  # the driver has applied a command: the loop acts on the stage
-    # the controller may close the loop before the driver's command subscription has matched
-    # (the driver then ramps to 0 V for lack of commands); the record starts once it drives
-    probe.create_subscription(
-        Voltage,
-        "voltage",
-        lambda m: driving.append(True) if m.voltage > 1.0 else None,
-        SENSOR_QOS,
-    )
-    probe.create_subscription(
-        ControllerState,
-        "controller_state",
-        lambda m: states.append(m) if driving else None,
-        COMMAND_QOS,
-    )
+    probe.create_subscription(LoopSamples, "loop_samples", batches.append, BATCH_QOS)
+    probe.create_subscription(ControllerState, "controller_state", states.append, COMMAND_QOS)
     probe.create_subscription(Displacement, "reference", refs.append, COMMAND_QOS)
     lines: list[str] = []
     launch = Launcher(
@@ -122,36 +116,43 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
         params=[f"voltage_driver.url:=tcp://127.0.0.1:{port}", f"laser_reader.url:={link}"],
         sink=lambda name, line, is_err: lines.append(f"[{name}] {line}"),
     )
-    n_wanted = int(PERIODS / FREQUENCY * 1000 * 0.9)
+    n_wanted = int(PERIODS / FREQUENCY * 1000)
+
+    def driven() -> int:
+        """Samples answered in closed loop since the driver first applied a command (the
+        controller may close the loop before the driver's command subscription has matched:
+        the driver then ramps to 0 V for lack of commands)."""
+        driving = np.concatenate([np.asarray(b.applied) > 1.0 for b in batches] or [[]])
+        closed = np.concatenate([np.asarray(b.loop_closed) for b in batches] or [[]])
+        return 0 if not driving.any() else int(closed[int(np.argmax(driving)) :].sum())
+
     try:
         launch.start()
         launch.wait_ready(timeout=30.0)
-        done = spin_until(probe, lambda: sum(s.loop_closed for s in states) >= n_wanted, 60.0)
+        done = spin_until(probe, lambda: driven() >= n_wanted, 60.0)
     finally:
         launch.stop()
     log = "\n".join(lines[-40:])
     assert done, log
-    closed = [s for s in states if s.loop_closed]
-    t = np.array([s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in closed])
-    t -= t[0]
-    x_d = np.array([s.reference for s in closed])
-    x = np.array([s.x1 for s in closed]) + x_d
-    u_ff = np.array([s.u_ff for s in closed])
+    record = loop_columns(batches)
+    begin = int(np.argmax(record["applied"] > 1.0))
+    closed = {k: v[begin:][record["loop_closed"][begin:]] for k, v in record.items()}
+    t = (closed["stamp"] - closed["stamp"][0]) * 1e-9
+    # every sample of the 1 kHz sensor is answered (a gap would be the reader's or the loop's)
+    assert np.diff(t).max() < 1.5e-3, np.diff(t).max()
+    x, x_d = closed["displacement"], closed["reference"]
     assert refs and max(r.displacement for r in refs) == pytest.approx(OFFSET + AMPLITUDE, rel=0.02)
     assert np.ptp(x_d) == pytest.approx(2 * AMPLITUDE, rel=0.02)
-    assert 100.0 < u_ff.max() < 180.0  # κx·12 µm = 124 V, plus κw·w
-    # on a loaded host the controller misses samples (best-effort sensor QoS; gaps of 5-40 ms,
-    # dozens per second under the full test suite) and each gap kicks the loop: the 20 ms after
-    # one are the host's doing, not the compensation's, and are left out
-    gaps = t[1:][np.diff(t) > 5e-3]
-    calm = ~np.any((t[:, None] >= gaps[None, :]) & (t[:, None] < gaps[None, :] + 0.02), axis=1)
-    errors = tracking_errors(t[calm], x[calm], x_d[calm], t_from=1.0 / FREQUENCY)
+    assert 100.0 < closed["u_ff"].max() < 180.0  # κx·12 µm = 124 V, plus κw·w
+    assert max(s.u_ff for s in states) == pytest.approx(closed["u_ff"].max(), rel=0.05)
+    errors = tracking_errors(t, x, x_d, t_from=1.0 / FREQUENCY)
     print(
         f"emulated rig tracking: RMS {errors.rms_error * 1e9:.1f} nm = "
         f"{100 * errors.relative:.2f} % of the range, max {errors.max_error * 1e9:.1f} nm "
-        f"({np.count_nonzero(~calm)} samples after {gaps.size} host stalls left out)"
+        f"over {errors.samples} samples"
     )
-    assert errors.samples > 200 and errors.relative <= 0.05, log
+    assert errors.samples > 0.9 * (PERIODS - 1) / FREQUENCY * 1000, errors
+    assert errors.relative <= 0.05, log
 
 
 # the learned figure needs a host near the development one's timing: on a host measuring the

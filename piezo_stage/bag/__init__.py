@@ -22,7 +22,7 @@ from .export import export_csv
 from .info import bag_info, format_info
 from .playback import PlaybackError
 from .qos import LATCHED, RELIABLE, SENSOR_DATA, qos_from_profile, qos_profile
-from .reader import read_loop_samples, read_messages, read_raw, read_series
+from .reader import loop_columns, read_loop_samples, read_messages, read_raw, read_series
 from .reindex import reindex
 from .types import (
     deserialize,
@@ -60,6 +60,7 @@ __all__ = [
     "export_csv",
     "format_info",
     "header",
+    "loop_columns",
     "message_class",
     "message_definition",
     "qos_from_profile",

@@ -264,8 +264,15 @@ def read_loop_samples(path: str | Path, topic: str) -> LoopColumns:
     """The samples of a LoopSamples topic (rig_loop's ``loop_samples``: every sample of the loop,
     in batches) as one array per column, in stamp order; ``stamp`` in ns.
     """
+    return loop_columns((message for _, _, message in read_messages(path, topic)), topic)
+
+
+def loop_columns(messages: Iterable[Any], topic: str = "loop_samples") -> LoopColumns:
+    """LoopSamples messages (from a bag, or received live) as one array per column, in stamp
+    order; a message whose columns differ in length is a :class:`CorruptBagError`.
+    """
     parts: dict[str, list[NDArray[Any]]] = {k: [] for k in _LOOP_COLUMNS}
-    for _, _, message in read_messages(path, topic):
+    for message in messages:
         n = len(message.stamp)
         for name, dtype in _LOOP_COLUMNS.items():
             column = np.asarray(getattr(message, name), dtype=dtype)
