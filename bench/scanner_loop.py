@@ -15,13 +15,18 @@ per axis (every applied voltage names the sample it came from) and writes one
 - CPU per cycle: user + system time of the loop process over the window / the cycles (SVAs);
 - safety: per axis the largest step between successive writes against the slew cap.
 
-    python bench/scanner_loop.py [--seconds 10] [--runs 2] [--axes 1,3]
+``--forms node`` runs the same law in the ROS host instead (``scanner_loop``: the stage_driver
+node, a controller and a laser_reader node per axis, topics through the hand-off), beside the
+core form with ``--forms core,node``.
+
+    python bench/scanner_loop.py [--seconds 10] [--runs 2] [--axes 1,3] [--forms core,node]
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import os
 import subprocess
 import sys
 import tempfile
@@ -35,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
 from control_loop import (  # noqa: E402
+    EXTRA,
     FAMILY,
     K1,
     MR,
@@ -143,11 +149,50 @@ def serve_loop(port: int, links: list[str]) -> None:
     driver.close()
 
 
-def measure(n: int, seconds: float) -> tuple[str, float, float, list[str]]:
+NAMES = ("x", "y", "z")  # the axes' names in the stage file of the node form (channels AXES)
+WATCHDOG = 0.01  # s: the node form's watchdog_period (voltage_driver's default)
+
+
+def node_loop(port: int, tmp: Path, n: int) -> list[str]:
+    """The node form's command: ``scanner_loop`` (the ROS host: stage_driver, a controller and a
+    laser_reader per axis, the loop's node) with bench/control_loop.py's proportional law on
+    every axis, over a stage file of ``n`` axes."""
+    from control_loop import graph_params
+
+    stage = tmp / "stage.yaml"
+    axes = "".join(
+        f"  {NAMES[i]}: {{model_file: ch11_rig.yaml, channel: '{AXES[i]}'}}\n" for i in range(n)
+    )
+    rows = "".join(f"- {[float(i == j) for j in range(n)]}\n" for i in range(n))
+    stage.write_text(f"axes:\n{axes}coupling:\n{rows}")
+    params = [
+        p.replace("voltage_driver.", "stage_driver.")
+        for p in graph_params("rig_loop", RATE, port, str(tmp / "sensor_{axis}"))
+        if "max_command_age" not in p
+    ]
+    params = [p for p in params if not p.startswith("stage_driver.slew_rate")]
+    return [
+        sys.executable,
+        "-m",
+        "piezo_stage.nodes.scanner_loop",
+        f"stage_driver.stage_file:={stage}",
+        # the core form's slew rate, the watchdog at its default 10 ms (a 1 ms timer would cost
+        # the executor a turn per cycle)
+        f"stage_driver.slew_rate:={SLEW}",
+        f"stage_driver.watchdog_period:={WATCHDOG}",
+        "stage_driver.readback_rate_hz:=0.0",
+        *params,
+        "--ros-args",
+        "-r",
+        f"__ns:=/bench_scanner_{os.getpid()}",
+    ]
+
+
+def measure(n: int, seconds: float, form: str = "core") -> tuple[str, float, float, list[str]]:
     """One run of ``n`` axes: (line, worst p99 [s], CPU per cycle [s], safety lines)."""
     tmp = Path(tempfile.mkdtemp(prefix="bench_scanner_"))
     port, amp_log = free_port(), str(tmp / "amp.npy")
-    links = [str(tmp / f"sensor{i}") for i in range(n)]
+    links = [str(tmp / f"sensor_{NAMES[i]}") for i in range(n)]
     logs = [str(tmp / f"sensor{i}.npy") for i in range(n)]
     t_sync = time.monotonic() + 1.0
     me = [sys.executable, __file__, "--serve"]
@@ -158,7 +203,8 @@ def measure(n: int, seconds: float) -> tuple[str, float, float, list[str]]:
     try:
         for path in [amp_log, *logs]:
             _wait_for(Path(path + ".ready"), path)
-        loop = subprocess.Popen([*me, "loop", str(port), *links])
+        command = node_loop(port, tmp, n) if form == "node" else [*me, "loop", str(port), *links]
+        loop = subprocess.Popen(command)
         _wait_for(Path(amp_log + ".running"), "the loop")
         time.sleep(1.0)
         t0, cpu0 = time.monotonic(), cpu_seconds([loop.pid])
@@ -172,6 +218,9 @@ def measure(n: int, seconds: float) -> tuple[str, float, float, list[str]]:
     amp = np.load(amp_log)
     cycles = int(np.count_nonzero((amp[:, 1] == 1.0) & (amp[:, 0] >= t0) & (amp[:, 0] < t1)))
     cpu = (cpu1 - cpu0) / max(cycles, 1)
+    # the driver's cap per write: slew_rate x min(write period, 25 ms) (the node's write period
+    # is its watchdog's)
+    cap = SLEW * min(WATCHDOG if form == "node" else WRITE_PERIOD, 0.025)
     parts, worst, safety = [], 0.0, []
     for i in range(n):
         mine = amp[amp[:, 1] == float(AXES[i])]
@@ -184,11 +233,11 @@ def measure(n: int, seconds: float) -> tuple[str, float, float, list[str]]:
         steps = np.abs(np.diff(mine[:, 2]))
         safety.append(
             f"  axis {AXES[i]}: largest step {steps.max():.3f} V over {mine.shape[0]} writes "
-            f"(slew cap {SLEW * WRITE_PERIOD:g} V per write), range "
+            f"(slew cap {cap:g} V per write), range "
             f"{mine[:, 2].min():.2f}..{mine[:, 2].max():.2f} V (limits 0..400)"
         )
     line = (
-        f"{n} axis/axes: cycles {cycles:6d} ({cycles / (t1 - t0):.0f}/s)  CPU/cycle "
+        f"{form} {n} axis/axes: cycles {cycles:6d} ({cycles / (t1 - t0):.0f}/s)  CPU/cycle "
         f"{cpu * 1e6:6.1f} us  " + "; ".join(parts)
     )
     return line, worst, cpu, safety
@@ -201,8 +250,21 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run")
     parser.add_argument("--runs", type=int, default=2, help="runs of each form (the spread)")
     parser.add_argument("--axes", default="1,3", help="axis counts to compare")
+    parser.add_argument(
+        "--forms",
+        default="core",
+        help="core (the loop of core objects), node (the scanner_loop ROS host), or core,node",
+    )
+    parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NODE.KEY:=VALUE",
+        help="one more parameter of the node form, e.g. controller.topics_rate_hz:=100.0",
+    )
     parser.add_argument("--serve", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    EXTRA.extend(args.param)
     if args.serve:
         kind, rest = args.serve[0], args.serve[1:]
         if kind == "sensor":
@@ -213,26 +275,40 @@ def main() -> int:
             serve_loop(int(rest[0]), rest[1:])
         return 0
     counts = [int(a) for a in args.axes.split(",")]
-    if not args.runs > 0 or any(c not in (1, 2, 3) for c in counts) or not args.seconds > 0:
-        print("scanner_loop: --runs and --seconds > 0, --axes of 1, 2, 3", file=sys.stderr)
+    forms = args.forms.split(",")
+    if (
+        not args.runs > 0
+        or any(c not in (1, 2, 3) for c in counts)
+        or not args.seconds > 0
+        or any(f not in ("core", "node") for f in forms)
+    ):
+        print(
+            "scanner_loop: --runs and --seconds > 0, --axes of 1, 2, 3, --forms of core, node",
+            file=sys.stderr,
+        )
         return 2
-    results: dict[int, list[tuple[float, float]]] = {c: [] for c in counts}
+    results: dict[tuple[str, int], list[tuple[float, float]]] = {
+        (f, c): [] for f in forms for c in counts
+    }
     for run in range(args.runs):
-        for n in counts:
-            line, p99, cpu, safety = measure(n, args.seconds)
-            results[n].append((p99, cpu))
+        for form, n in results:
+            line, p99, cpu, safety = measure(n, args.seconds, form)
+            results[form, n].append((p99, cpu))
             print(f"run {run + 1}: {line}", flush=True)
             print("\n".join(safety), flush=True)
-    for n, rows in results.items():
+    for (form, n), rows in results.items():
         p99s, cpus = np.array(rows).T * 1e3
         print(
-            f"{n} axis/axes over {len(rows)} runs: worst-axis p99 "
+            f"{form} {n} axis/axes over {len(rows)} runs: worst-axis p99 "
             f"{p99s.min():.3f}..{p99s.max():.3f} ms; "
             f"CPU/cycle {cpus.min() * 1e3:.1f}..{cpus.max() * 1e3:.1f} us"
         )
-    if 1 in results and 3 in results:
-        ratio = np.median([c for _, c in results[3]]) / np.median([c for _, c in results[1]])
-        print(f"CPU per cycle, 3 axes / 1 axis (medians): {ratio:.2f}x")
+    for form in forms:
+        if (form, 1) in results and (form, 3) in results:
+            ratio = np.median([c for _, c in results[form, 3]]) / np.median(
+                [c for _, c in results[form, 1]]
+            )
+            print(f"{form}: CPU per cycle, 3 axes / 1 axis (medians): {ratio:.2f}x")
     print(f"targets: {TARGETS}")
     return 0
 

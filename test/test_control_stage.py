@@ -16,6 +16,7 @@ from piezo_stage.control.laws import THESIS_GAINS
 from piezo_stage.control.learning import sampled_feedforward
 from piezo_stage.control.simulation import simulate_closed_loop
 from piezo_stage.control.stage_control import (
+    OwnFrames,
     StageController,
     StageReference,
     own_reference,
@@ -67,6 +68,23 @@ def test_the_own_reference_is_what_the_coupling_turns_into_the_desired_one(c, x)
     np.testing.assert_allclose(stage.measured(own[0]), xd, rtol=0, atol=1e-18)
     np.testing.assert_allclose(coupling @ own[1], vd, rtol=0, atol=1e-18)
     np.testing.assert_allclose(coupling @ own[2], ad, rtol=0, atol=1e-18)
+
+
+@settings(max_examples=50)
+@given(
+    c=st.lists(_entry, min_size=6, max_size=6),
+    x=st.lists(st.floats(-1e-4, 1e-4), min_size=12, max_size=12),
+)
+def test_the_loops_own_frames_are_the_stages(c, x):
+    """OwnFrames (the composed loop's, one sample of plain floats) gives Stage.own and
+    own_reference's values for every axis."""
+    coupling = np.eye(3)
+    coupling[~np.eye(3, dtype=bool)] = c
+    stage = Stage("xyz", tuple(StageAxis(n, CH11, str(i)) for i, n in enumerate("xyz")), coupling)
+    y, xd, vd, ad = (np.array(x[3 * k : 3 * k + 3]) for k in range(4))
+    frames = OwnFrames(stage).frames(list(y), list(xd), list(vd), list(ad))
+    expected = np.column_stack([stage.own(y), *own_reference(stage, xd, vd, ad)])
+    np.testing.assert_allclose(np.array(frames), expected, rtol=0, atol=1e-15)
 
 
 def _held_y_error(compensate: bool) -> tuple[float, float]:

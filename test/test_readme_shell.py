@@ -245,6 +245,7 @@ RUN: dict[str, Expect] = {
     "piezo-stage launch emulated_scanner --stage xyz_scanner.yaml": Expect(
         ready=r"\[launch\] +ready after"
     ),
+    "piezo-stage launch emulated_scanner_loop": Expect(ready=r"\[launch\] +ready after"),
     # shared networks: exports in the block's own shell
     "export ROS_DOMAIN_ID=42": Expect(),
     "export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST": Expect(),
@@ -313,6 +314,9 @@ EXCLUDED: dict[str, str] = {
     "piezo-stage launch rig_scanner --stage my_scanner.yaml "
     "--param stage_driver.url:=tcp://192.168.0.21:50000": (
         "a real scanner: an amplifier at 192.168.0.21 and sensors (config/scanner_devices.yaml)"
+    ),
+    "piezo-stage launch rig_scanner_loop --stage my_scanner.yaml": (
+        "a real scanner: its amplifier and sensors (config/scanner_devices.yaml)"
     ),
     "python bench/scanner.py": "a benchmark: its figures are measured on a quiet machine",
     "python bench/scanner_loop.py": "a benchmark: its figures are measured on a quiet machine",

@@ -14,6 +14,9 @@ import math
 from .reference import SecondOrderReference
 from .trajectory import Trajectory
 
+#: a set point at one instant: (yr [m], ẏr [m/s] or None when unknown, ÿr [m/s²])
+Reference = tuple[float, float | None, float]
+
 
 class ReferenceSource(str, enum.Enum):
     """Where :class:`SetPoint` takes yr from (see the module docstring)."""
@@ -56,7 +59,7 @@ class SetPoint:
         """True when the set point is generated here (trajectory): recorders need it published."""
         return self.source is ReferenceSource.TRAJECTORY and self.trajectory is not None
 
-    def evaluate(self, t: float) -> tuple[float, float | None, float]:
+    def evaluate(self, t: float) -> Reference:
         """(yr, ẏr or None when unknown, ÿr) at time ``t`` [s]."""
         source = self.source
         if source is ReferenceSource.SECOND_ORDER:

@@ -33,6 +33,7 @@ from .trajectory import SetPoint, Trajectory
 
 __all__ = [
     "AxisReference",
+    "OwnFrames",
     "StageController",
     "StageReference",
     "StageRun",
@@ -58,6 +59,46 @@ def own_reference(stage: Stage, xd: ArrayLike, vd: ArrayLike, ad: ArrayLike) -> 
     y0 = y0.reshape(shape)
     solve = np.linalg.solve
     return y0 + solve(stage.coupling, xd - y0), solve(stage.coupling, vd), solve(stage.coupling, ad)
+
+
+class OwnFrames:
+    """Each axis's own frame from every axis's measured displacement and reference.
+
+    One sample at a time (the composed loop's cycle; plain floats, a stage has a few axes):
+
+        y* = y0 + C⁻¹ (y − y0),   y*_d = y0 + C⁻¹ (y_d − y0),   ẏ*_d = C⁻¹ ẏ_d,   ÿ*_d = C⁻¹ ÿ_d
+
+    (:func:`own_reference` and :meth:`Stage.own` for arrays).
+    """
+
+    def __init__(self, stage: Stage) -> None:
+        self.y0 = [float(v) for v in stage.rest_outputs()]
+        self.inverse: list[list[float]] = np.linalg.inv(stage.coupling).tolist()
+
+    def frames(
+        self,
+        x: Sequence[float],
+        xd: Sequence[float],
+        vd: Sequence[float],
+        ad: Sequence[float],
+    ) -> list[OwnFrame]:
+        """Axis i's :class:`OwnFrame` from the measured ``x`` and the references (``xd``,
+        ``vd``, ``ad``) of every axis.
+        """
+        y0 = self.y0
+        dx = [a - b for a, b in zip(x, y0)]
+        dxd = [a - b for a, b in zip(xd, y0)]
+        out = []
+        for row, base in zip(self.inverse, y0):
+            out.append(
+                OwnFrame(
+                    base + sum(c * v for c, v in zip(row, dx)),
+                    base + sum(c * v for c, v in zip(row, dxd)),
+                    sum(c * v for c, v in zip(row, vd)),
+                    sum(c * v for c, v in zip(row, ad)),
+                )
+            )
+        return out
 
 
 _T = TypeVar("_T")

@@ -33,10 +33,12 @@ __all__ = ["StageAmplifier", "StageLoop", "SupervisedLaw", "Cycles", "run_stage_
 class StageAmplifier(Protocol):
     """The multi-channel amplifier (:class:`~piezo_stage.hardware.stage_driver.StageDriver`)."""
 
-    def set_voltages(
-        self, values: Mapping[str, float], received: float | None = None
-    ) -> Mapping[str, object]:
+    def set_voltages(self, values: Mapping[str, float]) -> object:
         """Write every named axis in one device command, each with its own safety rules."""
+
+
+#: a cycle's hook before the laws step: (value, status, stamp [ns], fresh, now [ns])
+Before = Callable[[Sequence[float], Sequence[int], Sequence[int], Sequence[bool], int], None]
 
 
 class Cycles(Protocol):
@@ -87,8 +89,10 @@ class SupervisedLaw:
 
 class StageLoop:
     """The step of the stage's loop (module docstring): ``laws[i]`` drives ``axes[i]``.
-    ``after()`` runs after every cycle and idle tick (a node's hand-off drain); ``every``: the
-    laws' ``publish`` flag is True on every ``every``-th cycle.
+    ``before(value, status, stamp, fresh, now_ns)`` runs before the laws of each cycle step (a
+    coupled stage's own frames, from every axis at once); ``after()`` after every cycle and idle
+    tick (a node's hand-off drain); ``every``: the laws' ``publish`` flag is True on every
+    ``every``-th cycle.
     """
 
     def __init__(
@@ -98,11 +102,12 @@ class StageLoop:
         amplifier: StageAmplifier,
         after: Callable[[], None] | None = None,
         every: int = 1,
+        before: Before | None = None,
     ) -> None:
         if len(axes) != len(laws) or not axes:
             raise ValueError(f"one law per axis: {len(axes)} axes, {len(laws)} laws")
         self.axes, self.laws, self.amplifier = tuple(axes), tuple(laws), amplifier
-        self._after = after
+        self._after, self._before = after, before
         self.every = max(1, int(every))
         self.cycles = 0
         self.write_failures = 0  # cycles whose write failed on the link (the driver reconnects)
@@ -124,6 +129,8 @@ class StageLoop:
         """
         publish = self.cycles % self.every == 0
         self.cycles += 1
+        if self._before is not None:
+            self._before(value, status, stamp, fresh, now_ns)
         values, t = self._values, now_ns * 1e-9
         for i, (axis, law) in enumerate(self._pairs):
             if fresh[i]:

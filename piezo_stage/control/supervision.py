@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from .bounds import Bounds, NominalPlant
-from .controller import ControllerConfig, ControlOutput, TimeVaryingPID
+from .controller import ControllerConfig, ControlOutput, OwnFrame, TimeVaryingPID
 from .discrete import check_sampled_loop
 from .errors import ControllerConfigError
 from .theorem4 import validate_gains
@@ -298,9 +298,16 @@ class LoopSupervisor:
 
     # ------------------------------------------------------------------ period
     def step(
-        self, t: float, yr: float, yr_dot: float | None = None, yr_ddot: float = 0.0
+        self,
+        t: float,
+        yr: float,
+        yr_dot: float | None = None,
+        yr_ddot: float = 0.0,
+        own: OwnFrame | None = None,
     ) -> ControlOutput:
-        """One period on the newest valid sample: the scheduled window, start_closed, the law."""
+        """One period on the newest valid sample: the scheduled window, start_closed, the law
+        (``own``: the axis's own frame on a coupled stage, for the feedforward).
+        """
         assert self.x is not None, "step() before a valid sample"
         self._scheduled_window(t)
         if self.closing_pending:
@@ -309,7 +316,7 @@ class LoopSupervisor:
             self._closed_at = t
             if math.isnan(self._first_closed_at):
                 self._first_closed_at = t
-        out = self.pid.update(t, self.x, yr, yr_dot, yr_ddot)
+        out = self.pid.update(t, self.x, yr, yr_dot, yr_ddot, own)
         self._stepped_on = self.x_stamp
         self.steps += 1
         self.saturated_steps += int(out.saturated)

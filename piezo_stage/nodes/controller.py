@@ -58,13 +58,14 @@ from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, load_bounds, load_n
 from piezo_stage.control.controller import (
     ControllerConfig,
     ControlOutput,
+    OwnFrame,
     TimeVaryingPID,
 )
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.learning import (
     PeriodicLearner,
 )
-from piezo_stage.control.setpoint import ReferenceSource, SetPoint
+from piezo_stage.control.setpoint import Reference, ReferenceSource, SetPoint
 from piezo_stage.control.setup import SetupError, configure_controller, law_config
 from piezo_stage.control.supervision import (
     GainCheck,
@@ -104,12 +105,16 @@ LEVELS = {Health.OK: OK, Health.WARN: WARN, Health.ERROR: ERROR}
 class ControllerNode(PiezoNode):
     """With a ``handoff``: part of the rig loop (:mod:`.rig_loop`), which calls :meth:`on_sample`
     from its loop thread and routes every publication through the hand-off; no displacement
-    subscription, no timer."""
+    subscription, no timer. ``namespace``: the node's (the stage's loop gives each axis its
+    own)."""
 
-    def __init__(self, handoff: Handoff | None = None, overrides: Sequence[Parameter] = ()) -> None:
-        super().__init__(
-            "controller", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
-        )
+    def __init__(
+        self,
+        handoff: Handoff | None = None,
+        overrides: Sequence[Parameter] = (),
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> None:
+        super().__init__("controller", namespace=namespace, parameter_overrides=list(overrides))
         self.settings: ControllerSettings = self.declare_settings(PARAMETERS)
         s = self.settings
 
@@ -294,10 +299,19 @@ class ControllerNode(PiezoNode):
                 return  # the lockstep plant re-offers step 0 until a command answers it
             self._step(t, msg.header.stamp)
 
-    def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
+    def on_sample(
+        self,
+        stamp_ns: int,
+        x: float,
+        ok: bool,
+        publish: bool = True,
+        reference: Reference | None = None,
+        own: OwnFrame | None = None,
+    ) -> float | None:
         """The composed loop's step: one sensor sample taken at ``stamp_ns`` → the voltage to
         write now (None: nothing to write); ``last_step`` is the law's output when it stepped.
-        Publishes through the hand-off (``publish`` False: not this sample's state)."""
+        Publishes through the hand-off (``publish`` False: not this sample's state). A stage's
+        loop gives the set point it evaluated (:meth:`reference`) and the axis's own frame."""
         t = stamp_ns * 1e-9
         self.last_step = None
         with self.lock:
@@ -305,7 +319,13 @@ class ControllerNode(PiezoNode):
                 return self._send_hold(t)
             if self._wait_subs and self._waiting_for_subscribers():
                 return None  # the loop starts once a recorder sees its first state
-            return self._step(t, stamp_ns, publish)
+            return self._step(t, stamp_ns, publish, reference, own)
+
+    def reference(self, t: float) -> Reference:
+        """The set point at ``t`` [s] (yr, ẏr or None, ÿr), for a stage's loop to evaluate
+        every axis's before it steps them (the coupling's own frames)."""
+        with self.lock:
+            return self.setpoint.evaluate(t)
 
     def check_gap(self, t: float) -> float | None:
         """The composed loop's tick without a sample: the voltage to write now, or None."""
@@ -339,13 +359,20 @@ class ControllerNode(PiezoNode):
         self.supervisor.hold_off("no subscriber on voltage_command (the amplifier driver) yet")
         return True
 
-    def _step(self, t: float, stamp: Any, publish: bool = True) -> float | None:
+    def _step(
+        self,
+        t: float,
+        stamp: Any,
+        publish: bool = True,
+        reference: Reference | None = None,
+        own: OwnFrame | None = None,
+    ) -> float | None:
         if self.supervisor.closing_pending and self._driver_missing():
             return None
-        yr, yr_dot, yr_ddot = self.setpoint.evaluate(t)
+        yr, yr_dot, yr_ddot = self.setpoint.evaluate(t) if reference is None else reference
         if publish and self.setpoint.publishes and self._pub_ref is not None:
             self._emit(self._publish_reference, stamp, yr)
-        out = self.supervisor.step(t, yr, yr_dot, yr_ddot)
+        out = self.supervisor.step(t, yr, yr_dot, yr_ddot, own)
         self.last_step = out
         learner = self._learner
         if learner is not None and out.loop_closed and not learner.frozen:

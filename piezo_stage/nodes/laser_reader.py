@@ -170,7 +170,8 @@ class LaserReaderNode(PiezoNode):
     timed out, every publication goes through ``handoff``, and the thread runs SCHED_FIFO at
     ``loop_priority`` (when > 0 and allowed). ``start`` False: the read thread waits for
     :meth:`start` (a composing process starts it once the rest is built, so that no start-up
-    work holds the GIL while samples pile up)."""
+    work holds the GIL while samples pile up; the stage's loop never starts it and reads the
+    link itself). ``namespace``: the node's (a composing process gives each axis its own)."""
 
     def __init__(
         self,
@@ -180,10 +181,9 @@ class LaserReaderNode(PiezoNode):
         overrides: Sequence[Parameter] = (),
         loop_priority: int = 0,
         start: bool = True,
+        namespace: str = DEFAULT_NAMESPACE,
     ) -> None:
-        super().__init__(
-            "laser_reader", namespace=DEFAULT_NAMESPACE, parameter_overrides=list(overrides)
-        )
+        super().__init__("laser_reader", namespace=namespace, parameter_overrides=list(overrides))
         self._loop, self._idle, self._handoff = loop, idle, handoff
         self._loop_priority = loop_priority
         p: LaserReaderSettings = self.declare_settings(PARAMETERS)
@@ -307,23 +307,26 @@ class LaserReaderNode(PiezoNode):
             for x, st in zip(out.displacement, out.status)
         ]
         if self._loop is None:
-            self._publish(value, out.status, out.stamp)
+            self.publish_samples(value, out.status, out.stamp)
             return
         keep = self._loop(value, out.status, out.stamp)  # the control step first, then topics
         handoff = self._handoff
         assert handoff is not None  # the composed loop gives one with its step
         if keep is None:
-            handoff.put(self._publish, value, out.status, out.stamp)
+            handoff.put(self.publish_samples, value, out.status, out.stamp)
         elif any(keep):
             handoff.put(
-                self._publish,
+                self.publish_samples,
                 *(
                     [x for x, due in zip(column, keep) if due]
                     for column in (value, out.status, out.stamp)
                 ),
             )
 
-    def _publish(self, value: Sequence[float], status: Sequence[int], stamp: Sequence[int]) -> None:
+    def publish_samples(
+        self, value: Sequence[float], status: Sequence[int], stamp: Sequence[int]
+    ) -> None:
+        """Publish samples on ``displacement`` (value [m] in the published frame, stamp [ns])."""
         msg, publish = self._msg, self._pub.publish
         for x, st, ns in zip(value, status, stamp):
             set_stamp(msg.header, ns)

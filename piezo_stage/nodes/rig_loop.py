@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import gc
 import sys
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 from rclpy.node import Node
@@ -100,22 +100,24 @@ class SampleBatch:
         self._pub.publish(msg)
 
 
-MEMBERS = ("voltage_driver", "controller", "laser_reader")
-
-
-def member_overrides(argv: Sequence[str]) -> dict[str, list[Parameter]]:
+def member_overrides(
+    argv: Sequence[str],
+    tables: Mapping[str, ParameterTable[Any]] = PARAMETER_TABLES,
+    host: str = "rig_loop",
+) -> dict[str, list[Parameter]]:
     """``NODE.KEY:=VALUE`` arguments (before ``--ros-args``; VALUE in YAML, as the launcher
-    writes them) as parameter overrides per member node; RosParameterError for anything else."""
-    found: dict[str, list[Parameter]] = {name: [] for name in MEMBERS}
+    writes them) as parameter overrides per member node (``tables``: the members' parameter
+    tables); RosParameterError for anything else."""
+    found: dict[str, list[Parameter]] = {name: [] for name in tables}
     for text in argv[: argv.index("--ros-args")] if "--ros-args" in argv else argv:
         lhs, sep, rhs = text.partition(":=")
         node, dot, key = lhs.partition(".")
         if not (sep and dot and key) or node not in found:
             raise RosParameterError(
-                f"rig_loop: {text!r} is not NODE.KEY:=VALUE with NODE one of {', '.join(MEMBERS)}"
+                f"{host}: {text!r} is not NODE.KEY:=VALUE with NODE one of {', '.join(tables)}"
             )
         value = load_yaml(rhs) if rhs.strip() else ""
-        PARAMETER_TABLES[node].check({key: value})
+        tables[node].check({key: value})
         found[node].append(Parameter(key, value=value))
     return found
 

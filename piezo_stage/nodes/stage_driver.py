@@ -23,8 +23,11 @@ from __future__ import annotations
 import functools
 import math
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+
+from rclpy.parameter import Parameter
 
 from piezo_stage.config_path import ConfigNotFoundError, find_user_file
 from piezo_stage.hardware import DriverState, HardwareError
@@ -45,6 +48,7 @@ from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .driver_config import AXIS_SAFETY, driver_config
 from .errors import RosParameterError
+from .handoff import Handoff
 from .parameters import on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock, wall_clock
@@ -127,8 +131,21 @@ def _connect(p: StageDriverSettings, stage: Stage) -> StageDriver:
 
 
 class StageDriverNode(PiezoNode):
-    def __init__(self) -> None:
-        super().__init__("stage_driver", namespace=DEFAULT_NAMESPACE)
+    """With a ``handoff``: part of the stage's composed loop (:mod:`.stage_loop`), whose loop
+    thread calls :meth:`set_voltages` and whose hand-off publishes what the node publishes; the
+    watchdog and the read-back stay in the executor's thread, under the node's lock."""
+
+    def __init__(
+        self,
+        handoff: Handoff | None = None,
+        overrides: Sequence[Parameter] = (),
+        namespace: str = DEFAULT_NAMESPACE,
+    ) -> None:
+        super().__init__("stage_driver", namespace=namespace, parameter_overrides=list(overrides))
+        self._handoff = handoff
+        self._lock = threading.Lock()  # the loop thread writes, the executor's timers tick
+        self.publish_every = 1  # the composed loop's writes published (its topics' decimation)
+        self._loop_writes = 0
         p: StageDriverSettings = self.declare_settings(PARAMETERS)
         self.stage = _load(p.stage_file)
         self.url = p.url
@@ -160,6 +177,8 @@ class StageDriverNode(PiezoNode):
                 driver.last_sent,
             )
             self.axes[axis.channel] = axis
+            if handoff is not None:
+                continue  # the composed loop writes: its controllers' commands are for recorders
             self.create_subscription(
                 Voltage,
                 f"{axis.name}/voltage_command",
@@ -223,19 +242,33 @@ class StageDriverNode(PiezoNode):
         else:
             self._write({axis.channel: (msg.voltage, received)})
 
+    def set_voltages(self, values: Mapping[str, float]) -> None:
+        """The composed loop's write ({channel: voltage}): the watchdog of each axis counts from
+        now; one device command for all (each axis's safety rules apply); every
+        ``publish_every``-th such write is published on the axes' ``voltage``."""
+        self._loop_writes += 1
+        batch = {}
+        for channel, voltage in values.items():
+            received = self.driver.drivers[channel].clock()
+            self.driver.command_received(channel, received)
+            self.axes[channel].last_command = voltage
+            batch[channel] = (voltage, received)
+        self._write(batch, self._loop_writes % self.publish_every == 1 % self.publish_every)
+
     def _write_pending(self) -> None:
         if self._pending:
             batch, self._pending = self._pending, {}
             self._write(batch)
 
-    def _write(self, batch: dict[str, tuple[float, float]]) -> None:
+    def _write(self, batch: dict[str, tuple[float, float]], publish: bool = True) -> None:
         """Write ``batch`` ({channel: (voltage, received)}) as one device command; publish what
-        each axis sent."""
+        each axis sent (``publish`` False: only keep it)."""
         sent_at = self._now_ns()  # applied when the device gets it, not after ERR?
         try:
-            results = self.driver.set_voltages(
-                {c: v for c, (v, _) in batch.items()}, {c: t for c, (_, t) in batch.items()}
-            )
+            with self._lock:
+                results = self.driver.set_voltages(
+                    {c: v for c, (v, _) in batch.items()}, {c: t for c, (_, t) in batch.items()}
+                )
         except HardwareError as exc:
             self._link_error(exc)
             return
@@ -244,7 +277,10 @@ class StageDriverNode(PiezoNode):
             if isinstance(result, SetResult):
                 axis.commands += 1
                 axis.clamped += int(result.clamped)
-                self._publish(axis, result.sent, sent_at)
+                if publish:
+                    self._publish(axis, result.sent, sent_at)
+                else:
+                    axis.applied = result.sent
             elif isinstance(result, CommandExpired):  # counted by the axis's driver
                 self._reject(axis, str(result))
             else:
@@ -267,8 +303,9 @@ class StageDriverNode(PiezoNode):
 
     # ------------------------------------------------------------------ timers
     def _watchdog(self) -> None:
-        trips = {c: d.trips for c, d in self.driver.drivers.items()}
-        states = self.driver.tick()  # every axis's ramp step, in one command
+        with self._lock:
+            trips = {c: d.trips for c, d in self.driver.drivers.items()}
+            states = self.driver.tick()  # every axis's ramp step, in one command
         for channel, axis in self.axes.items():
             d = self.driver.drivers[channel]
             if d.last_sent != axis.applied and states[channel] is not DriverState.DISCONNECTED:
@@ -285,15 +322,21 @@ class StageDriverNode(PiezoNode):
             if not d.connected:
                 continue  # the driver reopens the link
             try:
-                self._publish(axis, d.read_voltage())
+                with self._lock:
+                    voltage = d.read_voltage()
             except HardwareError as exc:
                 self._link_error(exc)
                 return
+            self._publish(axis, voltage)
 
     def _publish(self, axis: _Axis, voltage: float, stamp: int | None = None) -> None:
         """Publish an axis's applied voltage, stamped [ns] when it was sent (default: now)."""
         axis.applied = voltage
-        axis.publish(voltage, self._now_ns() if stamp is None else stamp)
+        stamp = self._now_ns() if stamp is None else stamp
+        if self._handoff is None:
+            axis.publish(voltage, stamp)
+        else:
+            self._handoff.put(axis.publish, voltage, stamp)
 
     # ------------------------------------------------------------------ health, shutdown
     def _diagnose_link(self) -> Diagnosis:
@@ -357,7 +400,8 @@ class StageDriverNode(PiezoNode):
         """Ramp every axis to its safe_voltage together and leave the amplifier there."""
         self._pending.clear()  # the ramp owns the outputs now
         try:
-            applied = self.driver.shutdown()
+            with self._lock:
+                applied = self.driver.shutdown()
         except SafeStateNotReached as exc:  # run() exits 1 with the reason, per channel
             names = ", ".join(f"{a.name} on {a.channel}" for a in self.axes.values())
             raise SafeStateNotReached(f"{exc} (axes {names})") from exc
@@ -368,6 +412,8 @@ class StageDriverNode(PiezoNode):
             + ", ".join(f"{self.axes[c].name} {v:g} V" for c, v in applied.items())
             + f" (safe_voltage {self.settings.safe_voltage:g} V)"
         )
+        if self._handoff is not None:
+            self._handoff.drain()  # the executor no longer spins: publish what is left now
 
 
 def main(args: list[str] | None = None) -> int:
