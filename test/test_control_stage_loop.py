@@ -81,6 +81,23 @@ def test_every_axis_is_written_in_one_call_per_cycle():
     )
 
 
+def test_the_before_hook_sees_every_axis_of_the_cycle_before_any_law_steps():
+    seen: list = []
+    laws = [law() for _ in AXES]
+    amplifier = Amplifier()
+
+    def before(value, status, stamp, fresh, now_ns):
+        # nothing stepped yet this cycle: the laws' steps so far are the previous cycles'
+        seen.append((list(value), list(fresh), now_ns, [x.supervisor.steps for x in laws]))
+
+    loop = StageLoop(AXES, laws, amplifier, before=before)
+    cycle(loop, 1, [REF, REF + 1e-6, REF + 2e-6], fresh=(True, False, True))
+    cycle(loop, 2, [REF, REF, REF])
+    assert [s[0] for s in seen] == [[REF, REF + 1e-6, REF + 2e-6], [REF, REF, REF]]
+    assert seen[0][1] == [True, False, True] and seen[0][2] == MS + 100_000
+    assert seen[0][3] == [0, 0, 0] and seen[1][3] == [1, 0, 1]
+
+
 def test_an_invalid_sample_holds_that_axis_and_the_others_go_on():
     loop, amplifier, laws = make()
     cycle(loop, 1, [REF + 1e-6, REF + 1e-6, REF + 1e-6])

@@ -131,7 +131,7 @@ def _connect(p: StageDriverSettings, stage: Stage) -> StageDriver:
 
 
 class StageDriverNode(PiezoNode):
-    """With a ``handoff``: part of the stage's composed loop (:mod:`.stage_loop`), whose loop
+    """With a ``handoff``: part of the stage's composed loop (:mod:`.scanner_loop`), whose loop
     thread calls :meth:`set_voltages` and whose hand-off publishes what the node publishes; the
     watchdog and the read-back stay in the executor's thread, under the node's lock."""
 
@@ -253,7 +253,7 @@ class StageDriverNode(PiezoNode):
             self.driver.command_received(channel, received)
             self.axes[channel].last_command = voltage
             batch[channel] = (voltage, received)
-        self._write(batch, self._loop_writes % self.publish_every == 1 % self.publish_every)
+        self._write(batch, (self._loop_writes - 1) % self.publish_every == 0)
 
     def _write_pending(self) -> None:
         if self._pending:
