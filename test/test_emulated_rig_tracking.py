@@ -141,10 +141,21 @@ def test_emulated_rig_tracks_a_triangle_with_the_feedforward(probe, tmp_path):
     # every sample of the 1 kHz sensor is answered (a gap would be the reader's or the loop's)
     assert np.diff(t).max() < 1.5e-3, np.diff(t).max()
     x, x_d = closed["displacement"], closed["reference"]
-    assert refs and max(r.displacement for r in refs) == pytest.approx(OFFSET + AMPLITUDE, rel=0.02)
+    assert x_d.max() == pytest.approx(OFFSET + AMPLITUDE, rel=0.02)
     assert np.ptp(x_d) == pytest.approx(2 * AMPLITUDE, rel=0.02)
     assert 100.0 < closed["u_ff"].max() < 180.0  # κx·12 µm = 124 V, plus κw·w
-    assert max(s.u_ff for s in states) == pytest.approx(closed["u_ff"].max(), rel=0.05)
+    # the per-sample topics carry what the loop recorded at the same stamp (the probe may
+    # lose some of them: what it received is compared, not its extremes)
+    for messages, column, value in (
+        (refs, "reference", lambda m: m.displacement),
+        (states, "u_ff", lambda m: m.u_ff),
+    ):
+        stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in messages])
+        found = np.isin(stamps, record["stamp"])
+        assert found.sum() > 100, (column, len(messages), found.sum())
+        at = np.searchsorted(record["stamp"], stamps[found])
+        sent = np.array([value(m) for m, f in zip(messages, found) if f])
+        np.testing.assert_allclose(sent, record[column][at], rtol=1e-9, atol=1e-12)
     errors = tracking_errors(t, x, x_d, t_from=1.0 / FREQUENCY)
     print(
         f"emulated rig tracking: RMS {errors.rms_error * 1e9:.1f} nm = "
