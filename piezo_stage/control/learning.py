@@ -254,32 +254,21 @@ class FeedforwardTable:
         """Table value u_ff [V] at ``t`` [s] from the trajectory's start."""
         return float(self.u[self.index(t)])
 
-    def save(self, path: str | Path) -> Path:
-        """Write the table as JSON to ``path``; returns the path."""
-        path = Path(path)
-        path.write_text(
-            json.dumps(
-                {
-                    "format": TABLE_FORMAT,
-                    "rate_hz": self.rate_hz,
-                    "periodic": self.periodic,
-                    "meta": self.meta,
-                    "u": self.u.tolist(),
-                },
-                indent=1,
-            )
-        )
-        return path
+    def to_dict(self) -> dict[str, Any]:
+        """The table as JSON-ready data (what :meth:`save` writes)."""
+        return {
+            "format": TABLE_FORMAT,
+            "rate_hz": self.rate_hz,
+            "periodic": self.periodic,
+            "meta": self.meta,
+            "u": self.u.tolist(),
+        }
 
     @classmethod
-    def load(cls, path: str | Path) -> "FeedforwardTable":
-        """Read a table :meth:`save` wrote; :class:`LearningError` when it cannot."""
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, ValueError) as exc:
-            raise LearningError(f"feedforward table {path}: {exc}") from exc
+    def from_dict(cls, data: Any, source: str | Path) -> "FeedforwardTable":
+        """The table :meth:`to_dict` gave; :class:`LearningError` naming ``source`` if not."""
         if not isinstance(data, dict) or data.get("format") != TABLE_FORMAT:
-            raise LearningError(f"{path} is not a feedforward table ({TABLE_FORMAT!r})")
+            raise LearningError(f"{source} is not a feedforward table ({TABLE_FORMAT!r})")
         try:
             return cls(
                 np.asarray(data["u"], dtype=float),
@@ -288,7 +277,18 @@ class FeedforwardTable:
                 dict(data.get("meta", {})),
             )
         except (KeyError, TypeError, ValueError) as exc:
-            raise LearningError(f"feedforward table {path}: {exc}") from exc
+            raise LearningError(f"feedforward table {source}: {exc}") from exc
+
+    def save(self, path: str | Path) -> Path:
+        """Write the table as JSON to ``path``; returns the path."""
+        path = Path(path)
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "FeedforwardTable":
+        """Read a table :meth:`save` wrote; :class:`LearningError` when it cannot."""
+        return cls.from_dict(read_json(path, "feedforward table"), path)
 
     def matches(self, rate_hz: float, n: int) -> str:
         """'' when the table serves a loop at ``rate_hz`` over ``n`` samples, else why not."""
@@ -297,6 +297,14 @@ class FeedforwardTable:
         if len(self) != n:
             return f"the table holds {len(self)} samples, the trajectory's period {n}"
         return ""
+
+
+def read_json(path: str | Path, what: str) -> Any:
+    """The JSON data of ``path``; :class:`LearningError` naming ``what`` when unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise LearningError(f"{what} {path}: {exc}") from exc
 
 
 class IterativeLearning:

@@ -13,12 +13,13 @@ the fast axis over-travels them by its turnarounds (an instrument's overscan):
 - Line k (row k of the image, at y_k = c_y − R_y/2 + (k + ½)·R_y/lines) is imaged in window
   [a_k, b_k]: on traces only (``raster``: one line per period), or on traces and retraces
   (``serpentine``: one line per half period, every other one swept backwards). A frame is
-  ``flyback_lines`` periods of fly-back, then the lines; frames repeat.
+  ``flyback_lines`` periods of fly-back, then the lines; frames repeat. The scan starts at
+  rest where a frame ends (the slow axis on the last line) and flies back before the first
+  frame's first line, so every frame after it is the same.
 - The slow axis holds y_k over each window and steps between them (``staircase``), or moves
   at the constant velocity that passes y_k in the middle of window k (``ramp``). Every
-  transition (a step, the fly-back from the last line to the first, the lead-in of the first
-  frame from rest) is the quintic through the end points with their velocities and zero
-  acceleration: ẍ_d is continuous and bounded.
+  transition (a step, a fly-back) is the quintic through its end points with their
+  velocities and zero acceleration: ẍ_d is continuous and bounded.
 """
 
 from __future__ import annotations
@@ -126,7 +127,7 @@ class RasterScan:
     order: Order = Order.RASTER
     rounding: float = DEFAULT_ROUNDING  #: triangle: share of a half period in the corners
     sine_share: float = DEFAULT_SINE_SHARE  #: sine: share of a half period that is image
-    flyback_lines: int = 1  #: periods of fly-back (and lead-in) per frame
+    flyback_lines: int = 1  #: periods of fly-back per frame
 
     def __post_init__(self) -> None:
         for name, kind in (
@@ -285,17 +286,17 @@ class RasterScan:
             x[mask], vel[mask], acc[mask] = quintic_transition(
                 local[mask], flyback, y_last, v, y_first, v
             )
-        # the first frame's lead-in from rest, from where a constant acceleration would start
+        # the first frame's fly-back, from rest where a frame ends (the first frame is like
+        # the others but for its shorter fly-back)
         lead = (tau < first) & (f == 0)
-        y_rest = y_first - 0.5 * v * first
         x[lead], vel[lead], acc[lead] = quintic_transition(
-            tau[lead], first, y_rest, 0.0, y_first, v
+            tau[lead], first, y_last, 0.0, y_first, v
         )
         return x, vel, acc
 
     def line_index(self, t: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.int8]]:
-        """For each time: the image line it is in (−1 in a turnaround, a fly-back or a
-        lead-in) and the fast axis's direction there (+1 trace, −1 retrace, 0 outside).
+        """For each time: the image line it is in (−1 in a turnaround or a fly-back) and the
+        fast axis's direction there (+1 trace, −1 retrace, 0 outside).
         """
         tau = np.mod(np.maximum(np.asarray(t, dtype=np.float64), 0.0), self.frame_time)
         first = float(self.window_start(0))

@@ -32,6 +32,10 @@ __all__ = [
 ]
 
 
+#: pitches of the default grating across the fast axis's range
+GRATING_PITCHES = 8
+
+
 class Sample(Protocol):
     """A surface to scan: its height at positions [m], and where its edges are."""
 
@@ -112,14 +116,15 @@ class HeightMap:
 
 
 def load_sample(source: str, scan: RasterScan) -> Sample:
-    """``grating`` (2 µm pitch, 100 nm deep, pits aligned with the image's corner), or a PNG
-    (grey levels, 1 = 100 nm) or CSV (heights in m, rows along the slow axis) file stretched
-    over the scan's image.
+    """``grating``: pits 100 nm deep, eight pitches across the fast axis's range, a pit's
+    corner on the image's (its walls fall on pixel borders when the pixels per line are a
+    multiple of 16); or a PNG (grey levels, 1 = 100 nm) or CSV (heights in m, rows along the
+    slow axis) file stretched over the scan's image.
     """
     r, c = scan.range, scan.centre
     extent = (c[0] - r[0] / 2, c[0] + r[0] / 2, c[1] - r[1] / 2, c[1] + r[1] / 2)
     if source == "grating":
-        return Grating(origin=(extent[0], extent[2]))
+        return Grating(pitch=r[0] / GRATING_PITCHES, origin=(extent[0], extent[2]))
     path = Path(source)
     try:
         if path.suffix.lower() == ".png":

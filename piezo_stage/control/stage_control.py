@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,7 +29,7 @@ from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
 from .laws import THESIS_GAINS, Gains, Law
 from .learning import sampled_feedforward
-from .trajectory import SetPoint, Trajectory
+from .trajectory import Evaluation
 
 __all__ = [
     "AxisReference",
@@ -46,7 +46,15 @@ __all__ = [
 #: the voltage range of the simulated scanners' amplifiers [V]
 SCANNER_VOLTS = (-450.0, 450.0)
 
-AxisReference = Trajectory | SetPoint
+
+class AxisReference(Protocol):
+    """What an axis follows: a trajectory, a set point, an axis of a scan."""
+
+    def evaluate(self, t: ArrayLike) -> Evaluation:
+        """(x_d, ẋ_d, ẍ_d) at ``t`` [s]."""
+        ...
+
+
 #: (x_d, ẋ_d, ẍ_d), each of shape (axes,) or (axes, samples)
 Frames = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
@@ -207,17 +215,18 @@ def simulate_stage(
     reference: StageReference,
     rate_hz: float,
     duration: float,
+    t0: float = 0.0,
 ) -> StageRun:
-    """Run every axis's loop against the coupled ``plant`` at ``rate_hz`` for ``duration`` s:
-    each period, measure all axes, update all controllers, hold their outputs over the period
-    (zero-order hold, no delay), step the plant.
+    """Run every axis's loop against the coupled ``plant`` at ``rate_hz`` for ``duration`` s
+    from ``t0`` (a run continued where the last one ended): each period, measure all axes,
+    update all controllers, hold their outputs over the period (zero-order hold, no delay),
+    step the plant.
     """
     if not (math.isfinite(rate_hz) and rate_hz > 0 and math.isfinite(duration) and duration > 0):
         raise ControlError(f"rate_hz and duration must be > 0, got {rate_hz}, {duration}")
     n, axes = int(round(duration * rate_hz)), len(controller.controllers)
-    t: NDArray[np.float64] = np.arange(n, dtype=float) * (
-        1.0 / rate_hz
-    )  # simulate_closed_loop's grid
+    # simulate_closed_loop's grid
+    t: NDArray[np.float64] = t0 + np.arange(n, dtype=float) * (1.0 / rate_hz)
     desired, own = reference.measured(t), reference.own(t)
     record = {k: np.empty((n, axes)) for k in ("measured", "u", "u_ff")}
     saturated = np.zeros((n, axes), dtype=bool)

@@ -12,6 +12,8 @@ from .figures import (
     coupling_figure,
     hysteresis_figure,
     model_figure,
+    scan_images_figure,
+    scan_lines_figure,
     timeseries_figure,
     validation_figure,
 )
@@ -25,6 +27,8 @@ __all__ = [
     "hysteresis_figure",
     "model_figure",
     "plot_bag",
+    "scan_images_figure",
+    "scan_lines_figure",
     "timeseries_figure",
     "validation_figure",
 ]

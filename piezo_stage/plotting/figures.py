@@ -342,3 +342,73 @@ def coupling_figure(
     np.atleast_1d(axes)[-1].set_xlabel("time [ms]")
     fig.suptitle(title or "a held axis while another scans")
     return _save(fig, path)
+
+
+def scan_images_figure(
+    path: str | Path,
+    ideal: np.ndarray,
+    scans: Sequence[tuple[str, np.ndarray]],
+    extent: tuple[float, float, float, float],
+    *,
+    title: str = "",
+) -> Path:
+    """A raster's images [nm of height]: the ideal one, each scanned one (label, image), and
+    the last scanned one less the ideal; ``extent`` (x0, x1, y0, y1) [m] of the image."""
+    plt = _pyplot()
+    panels = [("ideal", np.asarray(ideal))] + [(label, np.asarray(im)) for label, im in scans]
+    diff = panels[-1][1] - panels[0][1]
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(3.2 * (len(panels) + 1), 3.6))
+    lo, hi = float(np.nanmin(panels[0][1])) * 1e9, float(np.nanmax(panels[0][1])) * 1e9
+    box = [e * UM for e in extent]
+    for ax, (label, image) in zip(axes, panels):
+        ax.imshow(
+            image * 1e9,
+            origin="lower",
+            extent=box,
+            cmap="gray",
+            vmin=lo,
+            vmax=hi,
+            interpolation="nearest",
+        )
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("fast axis [µm]")
+    span = float(np.nanmax(np.abs(diff))) * 1e9 if np.isfinite(diff).any() else 1.0
+    shown = axes[-1].imshow(
+        diff * 1e9,
+        origin="lower",
+        extent=box,
+        cmap="RdBu_r",
+        vmin=-span or -1,
+        vmax=span or 1,
+        interpolation="nearest",
+    )
+    axes[-1].set_title(f"{panels[-1][0]} − ideal [nm]", fontsize=9)
+    axes[-1].set_xlabel("fast axis [µm]")
+    fig.colorbar(shown, ax=axes[-1], fraction=0.046)
+    axes[0].set_ylabel("slow axis [µm]")
+    fig.suptitle(title or "raster scan of the sample")
+    return _save(fig, path)
+
+
+def scan_lines_figure(
+    path: str | Path,
+    runs: Sequence[tuple[str, np.ndarray]],
+    names: tuple[str, str] = ("fast", "slow"),
+    *,
+    title: str = "",
+) -> Path:
+    """RMS error of each image line [nm] per axis (log scale), one curve per run (label,
+    (lines, 2) array of the fast and slow axes' RMS)."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for i, (ax, name) in enumerate(zip(axes, names)):
+        for label, line_rms in runs:
+            rms = np.asarray(line_rms)[:, i] * 1e9
+            ax.semilogy(np.arange(rms.size), rms, ".-", lw=0.8, label=label)
+        ax.set_title(f"{name} axis", fontsize=10)
+        ax.set_xlabel("image line")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel("RMS error in the line [nm]")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title or "error per image line")
+    return _save(fig, path)

@@ -1,0 +1,379 @@
+"""A raster scan run on a simulated stage, in pure core: every axis's ch. 11 loop along its
+part of a :class:`~.scan.RasterScan`, the feedforward learned line by line.
+
+Each axis's feedforward is a table (:mod:`.learning`): the staircase the model says the sampled
+loop needs along the axis's own reference (:func:`~.learning.sampled_feedforward`), over one
+line period for the fast axis (it repeats every line) and over one frame for the slow one (a
+staircase or ramp repeats every frame). Learning is per line, as a periodic trajectory learns
+per period: the fast axis's table from each line's error, the slow axis's through a
+correction of one line period added to every line of its frame (:class:`LineCorrection`: the
+coupling it sees and its steps repeat every line). With ``compensate_coupling`` each axis's
+feedforward follows its own frame (:mod:`.stage_control`). Frames run back to back; the
+figures are the last frame's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from piezo_stage.model.stage import AmplifierModel, CoupledStage
+from piezo_stage.model.stage_file import Stage
+
+from .controller import ControllerConfig, OnClose, TimeVaryingPID
+from .errors import ControlError
+from .feedforward import Compensation, FeedforwardModel
+from .laws import THESIS_GAINS, Gains, Law
+from .learning import (
+    FeedforwardTable,
+    IterativeLearning,
+    LearningConfig,
+    LearningError,
+    feedforward_response,
+    read_json,
+    sampled_feedforward,
+)
+from .scan import RasterScan
+from .scan_image import Sample, ScanFigures, ScanImage, scan_figures, scan_image
+from .stage_control import (
+    SCANNER_VOLTS,
+    AxisReference,
+    StageController,
+    StageReference,
+    StageRun,
+    simulate_stage,
+)
+from .trajectory import Evaluation, SetPoint
+
+__all__ = ["LineCorrection", "RasterRun", "RasterTables", "ScanAxis", "raster_run"]
+
+Progress = Callable[[float, str], None]
+
+#: file format of a raster's saved tables
+RASTER_TABLES_FORMAT = "piezo_stage raster feedforward tables 1"
+#: learning iterations of the slow axis's frame table against the model (a frame is long)
+FRAME_ITERATIONS = 3
+
+
+@dataclass(frozen=True)
+class ScanAxis:
+    """One axis of a raster scan (``index`` 0 the fast one, 1 the slow one) as an axis
+    reference of :class:`~.stage_control.StageReference`.
+    """
+
+    scan: RasterScan
+    index: int
+
+    def evaluate(self, t: ArrayLike) -> Evaluation:
+        """(x_d, ẋ_d, ẍ_d) of this axis at ``t``."""
+        return self.scan.evaluate(np.asarray(t, dtype=float))[self.index]
+
+    @property
+    def period(self) -> float | None:
+        """The line period for the fast axis; the slow one does not repeat per line."""
+        return self.scan.period if self.index == 0 else None
+
+
+@dataclass
+class RasterRun:
+    """A run of :func:`raster_run`: ``desired`` and ``measured`` (2, samples) [m] of the fast
+    and slow axes, ``u`` (2, samples) [V]; ``learning`` the RMS error of each learning line's
+    image window per axis [m]; ``tables`` the feedforward tables (learned, if it learned).
+    """
+
+    scan: RasterScan
+    t: NDArray[np.float64]
+    desired: NDArray[np.float64]
+    measured: NDArray[np.float64]
+    u: NDArray[np.float64]
+    learning: list[tuple[float, float]] = field(default_factory=list)
+    tables: RasterTables | None = None
+
+    def last_frame(self) -> NDArray[np.bool_]:
+        """The samples of the last whole frame."""
+        frame = self.scan.frame_time
+        end = self.t[-1] + (self.t[-1] - self.t[-2])  # the run's end: after its last sample
+        start = (math.floor(end / frame + 1e-9) - 1) * frame
+        keep: NDArray[np.bool_] = (self.t >= start - 1e-12) & (self.t < start + frame - 1e-12)
+        return keep
+
+    def figures(self, sample: Sample) -> ScanFigures:
+        """The last frame's errors and distortion (:func:`~.scan_image.scan_figures`)."""
+        keep = self.last_frame()
+        return scan_figures(self.scan, sample, self.t[keep], self.measured[:, keep])
+
+    def image(self, sample: Sample) -> ScanImage:
+        """The last frame's image of ``sample``."""
+        keep = self.last_frame()
+        return scan_image(self.scan, sample, self.t[keep], self.measured[:, keep])
+
+
+def _window_rms(scan: RasterScan, t: NDArray[np.float64], e: NDArray[np.float64]) -> float:
+    inside = scan.line_index(t)[0] >= 0
+    return float(np.sqrt(np.mean(e[inside] ** 2))) if inside.any() else math.nan
+
+
+@dataclass(eq=False)
+class RasterTables:
+    """The feedforward of a scan: the fast axis's over one line period, the slow axis's over
+    one frame (saved together, with the scan they were made for in ``meta``).
+    """
+
+    fast: FeedforwardTable
+    slow: FeedforwardTable
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def matches(self, scan: RasterScan, rate_hz: float) -> str:
+        """'' when the tables serve ``scan`` at ``rate_hz``, else why not."""
+        for name, table, seconds in (
+            ("fast", self.fast, scan.period),
+            ("slow", self.slow, scan.frame_time),
+        ):
+            why = table.matches(rate_hz, int(round(seconds * rate_hz)))
+            if why:
+                return f"{name} axis: {why}"
+        return ""
+
+    def save(self, path: str | Path) -> Path:
+        """Write both tables as one JSON file."""
+        path = Path(path)
+        data = {"format": RASTER_TABLES_FORMAT, "meta": self.meta}
+        data.update(fast=self.fast.to_dict(), slow=self.slow.to_dict())
+        path.write_text(json.dumps(data, indent=1))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "RasterTables":
+        """Read what :meth:`save` wrote; :class:`~.learning.LearningError` when it cannot."""
+        data = read_json(path, "raster feedforward tables")
+        if not isinstance(data, dict) or data.get("format") != RASTER_TABLES_FORMAT:
+            raise LearningError(f"{path} is not a raster's tables ({RASTER_TABLES_FORMAT!r})")
+        return cls(
+            FeedforwardTable.from_dict(data.get("fast"), path),
+            FeedforwardTable.from_dict(data.get("slow"), path),
+            dict(data.get("meta", {})),
+        )
+
+
+class LineCorrection:
+    """A correction c of one line period learned into a frame's table (the slow axis): the
+    frame's table is its base plus c on every line period of the frame; c learns from each
+    line's error as a periodic table does (:class:`~.learning.IterativeLearning`).
+    """
+
+    def __init__(
+        self,
+        frame: FeedforwardTable,
+        scan: RasterScan,
+        response: NDArray[np.complex128],
+        config: LearningConfig,
+        model: FeedforwardModel,
+    ) -> None:
+        n_line = int(round(scan.period * frame.rate_hz))
+        self.frame, self.base, self.first = frame, frame.u.copy(), scan.flyback_lines
+        self.correction = FeedforwardTable(np.zeros(n_line), frame.rate_hz)
+        self.learning = IterativeLearning(self.correction, response, config, model)
+
+    def update(self, error: NDArray[np.float64]) -> None:
+        """One line period's error e = x − x_d [m]."""
+        self.learning.update(error)
+        u = self.base.reshape(-1, self.correction.u.size).copy()
+        u[self.first :] += self.correction.u
+        self.frame.u = u.ravel()
+
+
+def _tables(
+    scan: RasterScan,
+    reference: StageReference,
+    models: list[FeedforwardModel],
+    fast: int,
+    slow: int,
+    rate_hz: float,
+) -> RasterTables:
+    """What the models say each axis needs along its own reference: a line of the fast axis,
+    a frame of the slow one, both in the periodic steady state (a frame after the first).
+    """
+    n_line = int(round(scan.period * rate_hz))
+    n_frame = int(round(scan.frame_time * rate_hz))
+    t_line = scan.flyback_lines * scan.period + np.arange(n_line) / rate_hz
+    t_frame = scan.frame_time + np.arange(n_frame) / rate_hz
+    return RasterTables(
+        sampled_feedforward(models[fast], reference.own(t_line)[0][fast], rate_hz),
+        sampled_feedforward(
+            models[slow], reference.own(t_frame)[0][slow], rate_hz, iterations=FRAME_ITERATIONS
+        ),
+    )
+
+
+def raster_run(
+    scan: RasterScan,
+    model_stage: Stage,
+    plant_stage: Stage,
+    rate_hz: float,
+    *,
+    axes: tuple[str, str] = ("x", "y"),
+    compensation: Compensation | str = Compensation.BOTH,
+    compensate_coupling: bool = True,
+    learn_lines: int = 0,
+    tables: RasterTables | None = None,
+    frames: int = 2,
+    gains: Gains = THESIS_GAINS,
+    u_limits: tuple[float, float] = SCANNER_VOLTS,
+    progress: Progress | None = None,
+) -> RasterRun:
+    """``frames`` frames (more if the learning lasts: the last is a whole frame after it) of
+    ``scan`` on the simulated ``plant_stage`` (fast, slow = ``axes``;
+    any other axis holds its rest position), controlled with ``model_stage`` (the identified
+    one) under ``compensation``, the plant at rest at the scan's start. ``learn_lines`` N:
+    both tables learn over the first N line periods (the slow one from those that are image
+    lines), then stay; ``tables``: learned ones replayed.
+    """
+    compensation = Compensation(compensation)
+    fast, slow = _scan_axes(model_stage, axes)
+    n_line = _line_samples(scan, rate_hz)
+    refs: list[AxisReference] = [SetPoint(float(r)) for r in model_stage.rest_outputs()]
+    refs[fast], refs[slow] = ScanAxis(scan, 0), ScanAxis(scan, 1)
+    reference = StageReference(model_stage, refs, compensate_coupling)
+    uses_ff = compensation is not Compensation.FEEDBACK
+    models = [FeedforwardModel.from_parameter_set(a.model) for a in model_stage.axes]
+    if learn_lines > 0 and not uses_ff:
+        raise ControlError("learning needs a feedforward (compensation feedforward or both)")
+    if tables is not None and tables.matches(scan, rate_hz):
+        raise ControlError(f"feedforward tables: {tables.matches(scan, rate_hz)}")
+    if uses_ff:
+        tables = tables or _tables(scan, reference, models, fast, slow, rate_hz)
+    by_axis = {fast: tables.fast, slow: tables.slow} if uses_ff and tables else {}
+    pids = [
+        TimeVaryingPID(
+            ControllerConfig(
+                mode=Law.PID,
+                gains=gains,
+                u_min=u_limits[0],
+                u_max=u_limits[1],
+                on_close=OnClose.RESET,
+                compensation=compensation,
+                feedforward=model if uses_ff else None,
+                feedforward_table=by_axis.get(i),
+            ),
+            closed=True,
+        )
+        for i, model in enumerate(models)
+    ]
+    loop = _Loop(
+        scan,
+        StageController(model_stage, pids, compensate_coupling),
+        CoupledStage(plant_stage, amplifiers=[AmplifierModel(*u_limits) for _ in plant_stage.axes]),
+        reference,
+        rate_hz,
+        progress or (lambda fraction, text: None),
+    )
+    history: list[tuple[float, float]] = []
+    if learn_lines > 0:
+        assert tables is not None  # refused above
+        feedback = None if compensation is Compensation.FEEDFORWARD else gains
+        config = LearningConfig(u_min=u_limits[0], u_max=u_limits[1])
+        responses = [
+            feedforward_response(models[i], rate_hz, n_line, gains=feedback) for i in (fast, slow)
+        ]
+        learners = (
+            IterativeLearning(tables.fast, responses[0], config, models[fast]),
+            LineCorrection(tables.slow, scan, responses[1], config, models[slow]),
+        )
+        history = loop.learn(learn_lines, learners, (fast, slow))
+    loop.run_frames(frames)
+    pick = [fast, slow]
+
+    def stack(name: str) -> NDArray[np.float64]:
+        return np.concatenate([getattr(c, name)[:, pick] for c in loop.chunks]).T.copy()
+
+    return RasterRun(
+        scan,
+        np.concatenate([c.t for c in loop.chunks]),
+        stack("reference"),
+        stack("measured"),
+        stack("u"),
+        history,
+        tables,
+    )
+
+
+def _scan_axes(stage: Stage, axes: tuple[str, str]) -> tuple[int, int]:
+    names = [a.name for a in stage.axes]
+    if len(set(axes)) != 2 or not set(axes) <= set(names):
+        raise ControlError(f"scan axes {axes} must be two different axes of the stage {names}")
+    return names.index(axes[0]), names.index(axes[1])
+
+
+def _line_samples(scan: RasterScan, rate_hz: float) -> int:
+    n = scan.period * rate_hz
+    if abs(n - round(n)) > 1e-6 * n:
+        raise ControlError(
+            f"a line ({scan.period:g} s) is {n:.6g} samples at {rate_hz:g} Hz: the "
+            "feedforward tables need a whole number"
+        )
+    return round(n)
+
+
+class _Learner(Protocol):
+    def update(self, error: NDArray[np.float64]) -> object: ...
+
+
+@dataclass
+class _Loop:
+    """The simulated loop of a raster, run in chunks that continue one another."""
+
+    scan: RasterScan
+    controller: StageController
+    plant: CoupledStage
+    reference: StageReference
+    rate_hz: float
+    say: Progress
+    chunks: list[StageRun] = field(default_factory=list)
+
+    @property
+    def t(self) -> float:
+        """Where the run is [s]."""
+        return sum(len(c.t) for c in self.chunks) / self.rate_hz
+
+    def step(self, duration: float) -> StageRun:
+        """Run on for ``duration`` s."""
+        run = simulate_stage(
+            self.controller, self.plant, self.reference, self.rate_hz, duration, self.t
+        )
+        self.chunks.append(run)
+        return run
+
+    def learn(
+        self, lines: int, learners: tuple[_Learner, _Learner], axes: tuple[int, int]
+    ) -> list[tuple[float, float]]:
+        """``lines`` line periods, each axis's learner fed its error (the slow one only on
+        the frame's image lines); the RMS error of each line's image window per axis.
+        """
+        scan, history = self.scan, []
+        per_frame = round(scan.frame_time / scan.period)
+        for j in range(lines):
+            self.say(0.5 * j / lines, f"learning line {j + 1}/{lines}")
+            run = self.step(scan.period)
+            e = run.measured - run.reference
+            history.append(
+                (_window_rms(scan, run.t, e[:, axes[0]]), _window_rms(scan, run.t, e[:, axes[1]]))
+            )
+            learners[0].update(e[:, axes[0]])
+            if j % per_frame >= scan.flyback_lines:  # an image line's period
+                learners[1].update(e[:, axes[1]])
+        return history
+
+    def run_frames(self, frames: int) -> None:
+        """On to at least ``frames`` frames from the start, and a whole frame after now."""
+        frame = self.scan.frame_time
+        total = max(frames, math.ceil(self.t / frame - 1e-9) + 1) * frame
+        while self.t < total - 0.5 / self.rate_hz:
+            t = self.t
+            self.say(0.5 + 0.5 * t / total, f"frame {int(t / frame) + 1}/{round(total / frame)}")
+            self.step(min(frame - t % frame, total - t))
