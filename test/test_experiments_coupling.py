@@ -121,3 +121,17 @@ def test_a_record_with_gaps_is_refused_with_why():
     sensors = {"x": (t, np.zeros(t.size)), "y": (t, np.zeros(t.size))}
     with pytest.raises(ExperimentError, match="1 gap.* up to 1.2 s .*fell behind real time"):
         axis_runs("x", ("x", "y"), (t, np.zeros(t.size)), sensors, [3.0, 11.0], SPEC)
+
+
+def test_each_graph_has_its_runs_defaults_and_an_explicit_setting_wins():
+    """sim_scanner: 1 s periods at 1 kHz; the device graphs 2 s at 500 commands per second
+    (their timing jitters); a period or rate given is kept."""
+    sim = CouplingSpec(SPEC.plant_stage, SPEC.output)
+    emulated = CouplingSpec(SPEC.plant_stage, SPEC.output, graph="emulated_scanner")
+    assert (sim.period, sim.rate_hz) == (1.0, 1000.0)
+    assert (emulated.period, emulated.rate_hz) == (2.0, 500.0)
+    assert emulated.axis_seconds == 2 * (3 + 5) * 2.0
+    given = CouplingSpec(
+        SPEC.plant_stage, SPEC.output, graph="rig_scanner", period=1.5, rate_hz=800
+    )
+    assert (given.period, given.rate_hz) == (1.5, 800.0)

@@ -4,6 +4,7 @@ reconnect for all axes, a shutdown that ramps every axis together."""
 from __future__ import annotations
 
 import math
+import time
 
 import pytest
 
@@ -194,3 +195,28 @@ def test_set_voltages_checks_each_axis_against_its_own_arrival_time():
     results = driver.set_voltages({"1": 10.0, "2": 20.0}, {"1": before, "2": after})
     assert isinstance(results["1"], CommandExpired) and results["2"].sent == 20.0
     assert model.applied_voltages() == {"1": 0.0, "2": 20.0, "3": 0.0}
+
+
+def test_a_pipelined_link_does_not_wait_for_each_err_reply_and_reports_a_refusal_late():
+    """pipeline 4 on a controller answering 1 s late: four multi-axis writes leave at once,
+    a query waits for their ERR? replies; a refused write (error 66, out of range) is raised at
+    a later write or at the next query, never lost."""
+    from piezo_stage.hardware.emulators import Faults
+    from piezo_stage.hardware.errors import GCSError
+
+    model = GCSDeviceModel(axes=AXES, v_min=0.0, v_max=100.0)
+    with EmulatorServer(model, tcp_port=0) as server, make_transport(server.url) as transport:
+        link = GCSAxisLink(transport, AXES, timeout=5.0, pipeline=4)
+        link.open_device()
+        server.faults = Faults(reply_delay=1.0)
+        started = time.monotonic()
+        for k in range(4):
+            link.write_many({"1": 10.0 + k, "2": 20.0 + k})
+        assert time.monotonic() - started < 0.9  # no write waited for its reply (4 s if so)
+        assert link.read_one("1") == 13.0  # the query settled the four replies first
+        server.faults = Faults()
+        with pytest.raises(GCSError) as err:
+            link.write_many({"3": 500.0})
+            link.read_one("3")
+        assert err.value.code == 66 and "SVA 3 500" in err.value.command
+        assert model.applied_voltages()["3"] == 0.0

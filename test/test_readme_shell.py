@@ -325,6 +325,10 @@ EXCLUDED: dict[str, str] = {
         "the simulated scanner in real time needs the whole of this 2-core host: beside the "
         "other test worker it falls behind and the run is refused, as the README says"
     ),
+    "piezo-stage experiment coupling --graph emulated_scanner --output emulated_scanner.yaml": (
+        "the emulated scanner's seven processes in real time need the whole of this 2-core "
+        "host: test/test_experiment_coupling_emulated.py runs it alone"
+    ),
     "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"
     ),

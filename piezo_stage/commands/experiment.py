@@ -123,6 +123,14 @@ def _coupling_arguments(group: argparse._ArgumentGroup) -> None:
         default=None,
         help="the identified stage file (each axis's model written beside it)",
     )
+    group.add_argument(
+        "--period",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="period of each run's raised cosine (default 1 s on sim_scanner, 2 s on the "
+        "device graphs, whose command timing jitters; their default --rate-hz is 500)",
+    )
 
 
 def _from_table(name: str) -> dict[str, Any]:
@@ -209,7 +217,8 @@ def _run_coupling(args: argparse.Namespace, progress) -> dict:
         plant_stage,
         output,
         graph=args.graph or "sim_scanner",
-        rate_hz=args.rate_hz or 1000.0,
+        rate_hz=args.rate_hz or 0.0,
+        period=args.period,
     )
     return coupling_experiment(spec, progress)
 

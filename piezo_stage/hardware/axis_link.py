@@ -174,8 +174,10 @@ class ChannelAmplifier(Amplifier):
 
 class GCSAxisLink(AxisLink):
     """A PI GCS 2.0 controller of several axes (E-727 class): ``SVO`` 0 on every axis, then
-    ``SVA 1 a 2 b ...`` each followed by ``ERR?``; axis ``axes[i]`` drives output channel
-    ``channels[i]`` (default: its position, 1, 2, 3).
+    ``SVA 1 a 2 b ...`` each followed by ``ERR?``, its reply waited for (``pipeline`` 0) or
+    checked as it arrives with at most ``pipeline`` outstanding (a refused write is raised at
+    most ``pipeline`` writes late, and a write does not wait for the device's round trip);
+    axis ``axes[i]`` drives output channel ``channels[i]`` (default: its position, 1, 2, 3).
     """
 
     decimals = 6
@@ -186,12 +188,13 @@ class GCSAxisLink(AxisLink):
         axes: Sequence[str],
         channels: Sequence[int] | None = None,
         timeout: float = 1.0,
+        pipeline: int = 0,
     ) -> None:
         super().__init__(transport, axes)
         self.channels = dict(zip(self.axes, channels or range(1, len(self.axes) + 1)))
         if len(self.channels) != len(self.axes):
             raise ConfigError("one output channel per axis")
-        self.conn = GCSConnection(transport, timeout)
+        self.conn = GCSConnection(transport, timeout, pipeline)
 
     def open_device(self) -> dict[str, DeviceInfo]:
         """``*IDN?``, clear a latched error, check ``SAI?`` lists every axis, ``ONL`` (where the
@@ -231,7 +234,10 @@ class GCSAxisLink(AxisLink):
     def write_many(self, values: Mapping[str, float]) -> None:
         """``SVA <axis> <V> ...`` in the link's axis order, checked by ``ERR?``."""
         pairs = " ".join(f"{a} {values[a]:.{self.decimals}f}" for a in self.axes if a in values)
-        self.conn.command(f"SVA {pairs}")
+        if self.conn.pipeline:
+            self.conn.command_pipelined(f"SVA {pairs}")
+        else:
+            self.conn.command(f"SVA {pairs}")
 
     def read_one(self, axis: str) -> float:
         """``VOL? <channel>``."""
@@ -292,11 +298,13 @@ def make_axis_link(
     *,
     timeout: float = 1.0,
     baudrate: int | None = None,
+    pipeline: int = 0,
 ) -> AxisLink:
     """Build (not open) the link of ``kind`` ("gcs" or "mdt69x", the names of
     :data:`~.amplifier.AMPLIFIERS`) at ``url`` for the device axes ``axes``. GCS: an axis named
     by a number drives that output channel (E-727: axis ``2`` on channel 2), any other its
-    position; MDT69x: the channels x, y, z.
+    position, with at most ``pipeline`` ``ERR?`` replies outstanding; MDT69x: the channels x,
+    y, z.
     """
     if kind not in AMPLIFIERS:
         raise ConfigError(f"unknown amplifier {kind!r}; choose from {sorted(AMPLIFIERS)}")
@@ -306,4 +314,4 @@ def make_axis_link(
     channels = [int(a) if a.isdigit() else i + 1 for i, a in enumerate(axes)]
     if len(set(channels)) != len(channels):
         raise ConfigError(f"GCS axes {list(axes)} would share output channels {channels}")
-    return GCSAxisLink(transport, axes, channels, timeout)
+    return GCSAxisLink(transport, axes, channels, timeout, pipeline)

@@ -275,6 +275,7 @@ class StageDriverSettings:
     ]
     url: str
     baud: int
+    error_pipeline: int
     io_timeout: float
     v_min: float
     v_max: float

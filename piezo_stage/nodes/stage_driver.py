@@ -58,7 +58,7 @@ from .voltage_driver import PARAMETERS as VOLTAGE_DRIVER
 
 #: voltage_driver's entries, taken as they are: the link and every axis's rules
 _SHARED = (
-    ("backend", "url", "baud", "io_timeout")
+    ("backend", "url", "baud", "error_pipeline", "io_timeout")
     + AXIS_SAFETY
     + ("readback_rate_hz", "max_command_age", "max_stamp_ahead")
 )
@@ -121,7 +121,12 @@ def _connect(p: StageDriverSettings, stage: Stage) -> StageDriver:
     channels = [axis.channel for axis in stage.axes]
     try:
         link = make_axis_link(
-            p.backend, p.url, channels, timeout=p.io_timeout, baudrate=p.baud or None
+            p.backend,
+            p.url,
+            channels,
+            timeout=p.io_timeout,
+            baudrate=p.baud or None,
+            pipeline=p.error_pipeline,
         )
         driver = StageDriver(link, dict.fromkeys(channels, driver_config(p)))
         driver.connect()
