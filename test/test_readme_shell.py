@@ -326,9 +326,21 @@ EXCLUDED: dict[str, str] = {
         "other test worker it falls behind and the run is refused, as the README says"
     ),
     "piezo-stage experiment coupling --graph emulated_scanner --output emulated_scanner.yaml": (
-        "the emulated scanner's seven processes in real time need the whole of this 2-core "
-        "host: test/test_experiment_coupling_emulated.py runs it alone"
+        "the emulated scanner's seven processes in real time want more than this 2-core "
+        "host: run alone it completes 4 of 7 runs here (the README says why)"
     ),
+    "piezo-stage experiment raster --stage xy_scanner.yaml --lines 64 --pixels 256 "
+    "--line-rate 10 --rate-hz 10000 --learn 20 --table-out scan_tables.json --png scan/ "
+    "--json": (
+        "three 10 kHz frames of 64 lines (a minute or two of CPU): "
+        "test/test_experiment_raster.py runs the same command, learning, tables and PNGs, on a "
+        "small scan"
+    ),
+    "piezo-stage experiment raster --stage xy_scanner.yaml --table scan_tables.json --json": (
+        "replays the tables of the command before it (not run): test/test_experiment_raster.py "
+        "replays tables"
+    ),
+    "python bench/raster.py": "a benchmark: its figures are measured on a quiet machine",
     "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"
     ),

@@ -25,8 +25,9 @@ from piezo_stage.experiments.plan import DEFAULT_DURATION
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "name",
-        choices=("regulation", "perturbation", "tracking", "coupling"),
-        help="experiment (§11.4 / §11.5 / trajectory tracking / a stage's axes and coupling)",
+        choices=("regulation", "perturbation", "tracking", "coupling", "raster"),
+        help="experiment (§11.4 / §11.5 / trajectory tracking / a stage's axes and coupling / "
+        "a raster scan's image)",
     )
     parser.add_argument(
         "--mode",
@@ -52,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     _tracking_arguments(parser.add_argument_group("tracking (x_d from --trajectory; SI units)"))
     _coupling_arguments(parser.add_argument_group("coupling (every axis of a stage, in turn)"))
+    _raster_arguments(parser.add_argument_group("raster (a scan of a sample; SI units)"))
 
 
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
@@ -112,10 +114,10 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
 def _coupling_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument(
         "--plant-stage",
-        default="xy_scanner.yaml",
+        default=None,
         metavar="STAGE.yaml",
-        help="the simulated or emulated stage (default xy_scanner.yaml); for rig_scanner its "
-        "axes and channels, and each axis's m and c",
+        help="the simulated or emulated stage (coupling: default xy_scanner.yaml, for "
+        "rig_scanner its axes and channels, and each axis's m and c; raster: default --stage)",
     )
     group.add_argument(
         "--output",
@@ -130,6 +132,50 @@ def _coupling_arguments(group: argparse._ArgumentGroup) -> None:
         metavar="SECONDS",
         help="period of each run's raised cosine (default 1 s on sim_scanner, 2 s on the "
         "device graphs, whose command timing jitters; their default --rate-hz is 500)",
+    )
+
+
+def _pair(text: str) -> tuple[float, float]:
+    """``X,Y`` as two floats (argparse type: a bad value is its one-line error)."""
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y (two numbers), got {text!r}") from None
+
+
+def _raster_arguments(group: argparse._ArgumentGroup) -> None:
+    from piezo_stage.control.scan import FastShape, Order, SlowMotion
+    from piezo_stage.experiments.raster import RasterSpec
+
+    d = RasterSpec(Path("unused"))
+    group.add_argument(
+        "--stage", default="xy_scanner.yaml", help="the model the controllers use (a stage file)"
+    )
+    group.add_argument("--lines", type=int, default=d.lines, help=f"image lines ({d.lines})")
+    group.add_argument("--pixels", type=int, default=d.pixels, help=f"pixels per line ({d.pixels})")
+    group.add_argument(
+        "--line-rate", type=float, default=d.line_rate, help=f"lines per second ({d.line_rate:g})"
+    )
+    group.add_argument(
+        "--range", type=_pair, default=d.range, metavar="X,Y", help="the image's size [m]"
+    )
+    group.add_argument(
+        "--centre", type=_pair, default=d.centre, metavar="X,Y", help="the image's centre [m]"
+    )
+    group.add_argument(
+        "--sample", default=d.sample, help="grating (default) or a height map, FILE.png / FILE.csv"
+    )
+    group.add_argument("--fast-shape", choices=[k.value for k in FastShape], default="triangle")
+    group.add_argument("--slow-motion", choices=[k.value for k in SlowMotion], default="staircase")
+    group.add_argument("--order", choices=[k.value for k in Order], default="raster")
+    group.add_argument(
+        "--no-coupling-compensation",
+        dest="coupling_compensation",
+        action="store_false",
+        help="the feedforward ignores the stage file's coupling",
     )
 
 
@@ -206,7 +252,7 @@ def _run_coupling(args: argparse.Namespace, progress) -> dict:
     if args.output is None:
         raise ExperimentInputError("experiment coupling needs --output STAGE.yaml")
     try:
-        plant_stage = find_user_file(args.plant_stage)
+        plant_stage = find_user_file(args.plant_stage or "xy_scanner.yaml")
     except ConfigNotFoundError as exc:
         raise ExperimentInputError(f"--plant-stage: {exc}") from None
     output = user_output_path(args.output)
@@ -267,6 +313,51 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
     )
 
 
+def _run_raster(args: argparse.Namespace, progress) -> dict:
+    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.control.feedforward import Compensation
+    from piezo_stage.experiments import ExperimentInputError
+    from piezo_stage.experiments.raster import RasterSpec, run_raster
+
+    try:
+        stage = find_user_file(args.stage)
+        plant = find_user_file(args.plant_stage) if args.plant_stage else stage
+        table = find_user_file(args.table) if args.table else None
+    except ConfigNotFoundError as exc:
+        raise ExperimentInputError(str(exc)) from None
+    table_out = user_output_path(args.table_out) if args.table_out else None
+    if table_out is not None and _unwritable(table_out):
+        raise ExperimentInputError(f"--table-out {args.table_out}: {_unwritable(table_out)}")
+    sample = args.sample
+    if sample != "grating":
+        try:
+            sample = str(find_user_file(sample))
+        except ConfigNotFoundError as exc:
+            raise ExperimentInputError(f"--sample: {exc}") from None
+    spec = RasterSpec(
+        stage,
+        plant,
+        graph=args.graph or "sim_scanner",
+        lines=args.lines,
+        pixels=args.pixels,
+        line_rate=args.line_rate,
+        range=args.range,
+        centre=args.centre,
+        rate_hz=args.rate_hz or 10_000.0,
+        learn=args.learn or 0,
+        compensation=Compensation(args.compensation),
+        coupling_compensation=args.coupling_compensation,
+        fast_shape=args.fast_shape,
+        slow_motion=args.slow_motion,
+        order=args.order,
+        table=table,
+        table_out=table_out,
+        sample=sample,
+        png=user_output_path(args.png) if args.png else None,
+    )
+    return run_raster(spec, progress)
+
+
 def _controller_params(texts: list[str]) -> dict[str, Any]:
     """``--param NAME:=VALUE`` arguments by name (VALUE in YAML)."""
     from piezo_stage.experiments import ExperimentInputError
@@ -303,6 +394,8 @@ def run(args: argparse.Namespace) -> int:
                 summary = _run_tracking(args, progress)
             elif args.name == "coupling":
                 summary = _run_coupling(args, progress)
+            elif args.name == "raster":
+                summary = _run_raster(args, progress)
             else:
                 summary = run_experiment(
                     args.name,
@@ -328,6 +421,10 @@ def run(args: argparse.Namespace) -> int:
         from piezo_stage.experiments.coupling import summary_text
 
         print(summary_text(summary))
+    elif args.name == "raster":
+        from piezo_stage.experiments.raster import summary_text as raster_text
+
+        print(raster_text(summary))
     else:
         for key, value in summary.items():
             print(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")

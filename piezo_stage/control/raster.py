@@ -50,8 +50,17 @@ from .stage_control import (
     simulate_stage,
 )
 from .trajectory import Evaluation, SetPoint
+from .voltage_range import PID_MARGIN
 
-__all__ = ["LineCorrection", "RasterRun", "RasterTables", "ScanAxis", "raster_run"]
+__all__ = [
+    "LineCorrection",
+    "RasterRun",
+    "RasterTables",
+    "ScanAxis",
+    "check_voltage_need",
+    "raster_run",
+    "raster_tables",
+]
 
 Progress = Callable[[float, str], None]
 
@@ -59,6 +68,8 @@ Progress = Callable[[float, str], None]
 RASTER_TABLES_FORMAT = "piezo_stage raster feedforward tables 1"
 #: learning iterations of the slow axis's frame table against the model (a frame is long)
 FRAME_ITERATIONS = 3
+#: lines after a fly-back the slow axis does not learn from (its transient settles over 3)
+SETTLE_LINES = 3
 
 
 @dataclass(frozen=True)
@@ -96,11 +107,9 @@ class RasterRun:
     tables: RasterTables | None = None
 
     def last_frame(self) -> NDArray[np.bool_]:
-        """The samples of the last whole frame."""
-        frame = self.scan.frame_time
-        end = self.t[-1] + (self.t[-1] - self.t[-2])  # the run's end: after its last sample
-        start = (math.floor(end / frame + 1e-9) - 1) * frame
-        keep: NDArray[np.bool_] = (self.t >= start - 1e-12) & (self.t < start + frame - 1e-12)
+        """The samples of the last frame (a run ends on a frame's end)."""
+        n_frame = round(self.scan.frame_time / (self.t[1] - self.t[0]))
+        keep: NDArray[np.bool_] = np.arange(self.t.size) >= self.t.size - n_frame
         return keep
 
     def figures(self, sample: Sample) -> ScanFigures:
@@ -211,6 +220,50 @@ def _tables(
     )
 
 
+def raster_tables(
+    scan: RasterScan,
+    model_stage: Stage,
+    rate_hz: float,
+    *,
+    axes: tuple[str, str] = ("x", "y"),
+    compensate_coupling: bool = True,
+) -> RasterTables:
+    """The feedforward tables the models say ``scan`` needs at ``rate_hz`` (what
+    :func:`raster_run` starts from).
+    """
+    fast, slow = _scan_axes(model_stage, axes)
+    _line_samples(scan, rate_hz)
+    reference = StageReference(
+        model_stage, _references(scan, model_stage, fast, slow), compensate_coupling
+    )
+    models = [FeedforwardModel.from_parameter_set(a.model) for a in model_stage.axes]
+    return _tables(scan, reference, models, fast, slow, rate_hz)
+
+
+def check_voltage_need(
+    tables: RasterTables, u_limits: tuple[float, float], margin: float = PID_MARGIN
+) -> None:
+    """Refuse (:class:`~.errors.ControlError`) a scan whose feedforward leaves the amplifier's
+    range less ``margin`` of its span at either end (the PID's share).
+    """
+    lo, hi = u_limits
+    room = margin * (hi - lo)
+    for name, table in (("fast", tables.fast), ("slow", tables.slow)):
+        need = (float(table.u.min()), float(table.u.max()))
+        if need[0] < lo + room or need[1] > hi - room:
+            raise ControlError(
+                f"the {name} axis needs {need[0]:.4g} to {need[1]:.4g} V, the amplifier gives "
+                f"{lo:g} to {hi:g} V (less {100 * margin:g} % for the PID): a smaller range "
+                "or another centre"
+            )
+
+
+def _references(scan: RasterScan, stage: Stage, fast: int, slow: int) -> list[AxisReference]:
+    refs: list[AxisReference] = [SetPoint(float(r)) for r in stage.rest_outputs()]
+    refs[fast], refs[slow] = ScanAxis(scan, 0), ScanAxis(scan, 1)
+    return refs
+
+
 def raster_run(
     scan: RasterScan,
     model_stage: Stage,
@@ -237,9 +290,9 @@ def raster_run(
     compensation = Compensation(compensation)
     fast, slow = _scan_axes(model_stage, axes)
     n_line = _line_samples(scan, rate_hz)
-    refs: list[AxisReference] = [SetPoint(float(r)) for r in model_stage.rest_outputs()]
-    refs[fast], refs[slow] = ScanAxis(scan, 0), ScanAxis(scan, 1)
-    reference = StageReference(model_stage, refs, compensate_coupling)
+    reference = StageReference(
+        model_stage, _references(scan, model_stage, fast, slow), compensate_coupling
+    )
     uses_ff = compensation is not Compensation.FEEDBACK
     models = [FeedforwardModel.from_parameter_set(a.model) for a in model_stage.axes]
     if learn_lines > 0 and not uses_ff:
@@ -337,14 +390,19 @@ class _Loop:
     chunks: list[StageRun] = field(default_factory=list)
 
     @property
-    def t(self) -> float:
-        """Where the run is [s]."""
-        return sum(len(c.t) for c in self.chunks) / self.rate_hz
+    def n(self) -> int:
+        """Samples run so far."""
+        return sum(len(c.t) for c in self.chunks)
 
-    def step(self, duration: float) -> StageRun:
-        """Run on for ``duration`` s."""
+    def step(self, samples: int) -> StageRun:
+        """Run on for ``samples`` samples."""
         run = simulate_stage(
-            self.controller, self.plant, self.reference, self.rate_hz, duration, self.t
+            self.controller,
+            self.plant,
+            self.reference,
+            self.rate_hz,
+            samples / self.rate_hz,
+            self.n / self.rate_hz,
         )
         self.chunks.append(run)
         return run
@@ -357,23 +415,26 @@ class _Loop:
         """
         scan, history = self.scan, []
         per_frame = round(scan.frame_time / scan.period)
+        n_line = round(scan.period * self.rate_hz)
         for j in range(lines):
             self.say(0.5 * j / lines, f"learning line {j + 1}/{lines}")
-            run = self.step(scan.period)
+            run = self.step(n_line)
             e = run.measured - run.reference
             history.append(
                 (_window_rms(scan, run.t, e[:, axes[0]]), _window_rms(scan, run.t, e[:, axes[1]]))
             )
             learners[0].update(e[:, axes[0]])
-            if j % per_frame >= scan.flyback_lines:  # an image line's period
+            # an image line's period, past the fly-back's transient (not line-periodic: the
+            # correction added to every line would carry it into all of them)
+            if j % per_frame >= scan.flyback_lines + SETTLE_LINES:
                 learners[1].update(e[:, axes[1]])
         return history
 
     def run_frames(self, frames: int) -> None:
         """On to at least ``frames`` frames from the start, and a whole frame after now."""
-        frame = self.scan.frame_time
-        total = max(frames, math.ceil(self.t / frame - 1e-9) + 1) * frame
-        while self.t < total - 0.5 / self.rate_hz:
-            t = self.t
-            self.say(0.5 + 0.5 * t / total, f"frame {int(t / frame) + 1}/{round(total / frame)}")
-            self.step(min(frame - t % frame, total - t))
+        n_frame = round(self.scan.frame_time * self.rate_hz)
+        count = max(frames, -(-self.n // n_frame) + 1)  # ceil(n / n_frame) + 1
+        while self.n < count * n_frame:
+            n = self.n
+            self.say(0.5 + 0.5 * n / (count * n_frame), f"frame {n // n_frame + 1}/{count}")
+            self.step(n_frame - n % n_frame)

@@ -1,0 +1,284 @@
+"""The raster experiment: a frame of a raster scan on a scanner, the image it makes of a sample,
+its errors and its distortion (docs/design.md, raster scans).
+
+``sim_scanner``: the simulated scanner (``plant_stage``) under every axis's ch. 11 loop with
+the feedforward of ``stage`` (the identified model), run in the core at any loop rate
+(:func:`piezo_stage.control.raster.raster_run`: the closed loop stepped sample by sample, no
+graph; the real-time ``sim_scanner`` graph cannot hold a 10 kHz loop). The fast axis's table
+and the slow axis's line correction learn over ``learn`` lines; the figures are the last
+frame's. Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop
+rate cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
+fewer than one per pixel), whose feedforward needs more than the amplifier gives, or whose
+sample or tables do not load.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from piezo_stage.control.errors import ControlError
+from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.learning import LearningError
+from piezo_stage.control.raster import (
+    RasterRun,
+    RasterTables,
+    check_voltage_need,
+    raster_run,
+    raster_tables,
+)
+from piezo_stage.control.scan import FastShape, Order, RasterScan, ScanError, SlowMotion
+from piezo_stage.control.scan_image import Sample, load_sample
+from piezo_stage.control.stage_control import SCANNER_VOLTS
+from piezo_stage.model.errors import ModelError
+from piezo_stage.model.stage_file import Stage, load_stage
+
+from .errors import ExperimentError, ExperimentInputError
+
+__all__ = ["GRAPHS", "RasterSpec", "run_raster"]
+
+#: the graphs the raster runs on here
+GRAPHS = ("sim_scanner",)
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class RasterSpec:
+    """A raster experiment, checked at the door (:meth:`check`)."""
+
+    stage: Path  #: the model the controllers use
+    plant_stage: Path | None = None  #: the simulated scanner (None: ``stage``)
+    graph: str = "sim_scanner"
+    lines: int = 64
+    pixels: int = 256
+    line_rate: float = 10.0  #: [Hz] lines (fast-axis periods) per second
+    range: tuple[float, float] = (20e-6, 10e-6)  #: [m] the image, fast and slow axis
+    centre: tuple[float, float] = (20e-6, 10e-6)  #: [m] the image's centre
+    rate_hz: float = 10_000.0
+    learn: int = 0  #: learning lines
+    compensation: Compensation = Compensation.BOTH
+    coupling_compensation: bool = True
+    fast_shape: FastShape = FastShape.TRIANGLE
+    slow_motion: SlowMotion = SlowMotion.STAIRCASE
+    order: Order = Order.RASTER
+    table: Path | None = None  #: learned tables replayed
+    table_out: Path | None = None  #: the tables saved after the run
+    sample: str = "grating"
+    png: Path | None = None
+    min_samples_per_line: int = 20
+
+    def scan(self) -> RasterScan:
+        """The scan, or :class:`ExperimentInputError` with why not."""
+        try:
+            return RasterScan(
+                self.lines,
+                self.pixels,
+                self.line_rate,
+                self.range,
+                self.centre,
+                self.fast_shape,
+                self.slow_motion,
+                self.order,
+            )
+        except ScanError as exc:
+            raise ExperimentInputError(f"scan: {exc}") from None
+
+
+@dataclass(frozen=True)
+class _Checked:
+    scan: RasterScan
+    model: Stage
+    plant: Stage
+    sample: Sample
+    tables: RasterTables | None
+
+
+def _check(spec: RasterSpec) -> _Checked:
+    """Everything that can be refused before anything moves."""
+    if spec.graph not in GRAPHS:
+        raise ExperimentInputError(
+            f"--graph {spec.graph}: the raster runs on {', '.join(GRAPHS)} (the simulated "
+            "scanner); on the emulated and real scanners it is not built yet"
+        )
+    if not (math.isfinite(spec.rate_hz) and spec.rate_hz > 0):
+        raise ExperimentInputError(f"--rate-hz must be > 0, got {spec.rate_hz}")
+    if spec.learn < 0:
+        raise ExperimentInputError(f"--learn must be >= 0, got {spec.learn}")
+    if spec.learn and spec.compensation is Compensation.FEEDBACK:
+        raise ExperimentInputError(
+            "--learn needs a feedforward: --compensation both or feedforward"
+        )
+    scan = spec.scan()
+    try:
+        scan.check_rate(spec.rate_hz, spec.min_samples_per_line)
+        sample = load_sample(spec.sample, scan)
+        model = load_stage(spec.stage)
+        plant = load_stage(spec.plant_stage or spec.stage)
+        tables = RasterTables.load(spec.table) if spec.table else None
+    except (ScanError, ModelError, LearningError) as exc:
+        raise ExperimentInputError(str(exc)) from None
+    if [a.name for a in model.axes] != [a.name for a in plant.axes]:
+        raise ExperimentInputError(
+            f"--stage has axes {model.names}, --plant-stage {plant.names}: they must match"
+        )
+    if len(model.axes) < 2:
+        raise ExperimentInputError(f"a raster needs two axes; {spec.stage} has {model.names}")
+    axes = (model.names[0], model.names[1])
+    try:
+        if tables is not None and tables.matches(scan, spec.rate_hz):
+            raise ExperimentInputError(
+                f"--table {spec.table}: {tables.matches(scan, spec.rate_hz)}"
+            )
+        if spec.compensation is not Compensation.FEEDBACK:
+            need = tables or raster_tables(
+                scan, model, spec.rate_hz, axes=axes, compensate_coupling=spec.coupling_compensation
+            )
+            check_voltage_need(need, SCANNER_VOLTS)
+    except ControlError as exc:
+        raise ExperimentInputError(f"scan: {exc}") from None
+    return _Checked(scan, model, plant, sample, tables)
+
+
+def _figures(run: RasterRun, sample: Sample) -> dict[str, Any]:
+    fig = run.figures(sample)
+    names = ("fast", "slow")
+    return {
+        "axes": {
+            n: {
+                "rms_error": fig.rms_error[i],
+                "max_error": fig.max_error[i],
+                "range": run.scan.range[i],
+            }
+            for i, n in enumerate(names)
+        },
+        "image": {
+            "distortion_px_max": fig.distortion_px_max,
+            "distortion_px_rms": fig.distortion_px_rms,
+            "edges": fig.edges,
+        },
+        "line_rms": fig.line_rms.tolist(),
+    }
+
+
+def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, Any]:
+    """Check, run, and return the JSON-ready summary: per axis (named as the stage names
+    them) its RMS and largest error over the image windows and its range [m], the image's
+    distortion [pixels], each learning line's RMS error per axis [m], the PNGs written; with
+    ``png`` the feedback-only run (and without learning, with ``learn``) beside it."""
+    checked = _check(spec)
+    say = progress or (lambda fraction, text: None)
+    axes = (checked.model.names[0], checked.model.names[1])
+    started = time.monotonic()
+
+    def one(
+        compensation: Compensation, coupling: bool, learn: int, tables: RasterTables | None
+    ) -> RasterRun:
+        return raster_run(
+            checked.scan,
+            checked.model,
+            checked.plant,
+            spec.rate_hz,
+            axes=axes,
+            compensation=compensation,
+            compensate_coupling=coupling,
+            learn_lines=learn,
+            tables=tables,
+            progress=say,
+        )
+
+    try:
+        run = one(spec.compensation, spec.coupling_compensation, spec.learn, checked.tables)
+        others: list[tuple[str, RasterRun]] = []
+        if spec.png is not None:
+            say(0.0, "the same frame under feedback alone, for the figures")
+            others.append(("feedback only", one(Compensation.FEEDBACK, False, 0, None)))
+            if spec.learn:
+                others.append(
+                    ("before learning", one(spec.compensation, spec.coupling_compensation, 0, None))
+                )
+    except ControlError as exc:
+        raise ExperimentError(f"raster: {exc}") from None
+    wall = time.monotonic() - started
+    summary = _figures(run, checked.sample)
+    summary["axes"] = dict(zip(axes, summary["axes"].values()))
+    summary.update(
+        learning=[dict(zip(axes, rms)) for rms in run.learning],
+        lines=spec.lines,
+        pixels=spec.pixels,
+        line_rate=spec.line_rate,
+        rate_hz=spec.rate_hz,
+        frame_time=checked.scan.frame_time,
+        graph=spec.graph,
+        wall_time=wall,
+        png=[],
+    )
+    if spec.table_out is not None and run.tables is not None:
+        run.tables.save(spec.table_out)
+        summary["table_out"] = str(spec.table_out)
+    if spec.png is not None:
+        summary["png"] = [str(p) for p in _plots(spec, checked, run, others, axes)]
+    return summary
+
+
+def _plots(
+    spec: RasterSpec,
+    checked: _Checked,
+    run: RasterRun,
+    others: list[tuple[str, RasterRun]],
+    axes: tuple[str, str],
+) -> list[Path]:
+    from piezo_stage.plotting import scan_images_figure, scan_lines_figure
+
+    assert spec.png is not None
+    spec.png.mkdir(parents=True, exist_ok=True)
+    label = "after learning" if spec.learn else spec.compensation.value
+    runs = [*others, (label, run)]  # feedback only, (before learning,) the run
+    images = [(name, r.image(checked.sample)) for name, r in runs]
+    scan = checked.scan
+    r, c = scan.range, scan.centre
+    extent = (c[0] - r[0] / 2, c[0] + r[0] / 2, c[1] - r[1] / 2, c[1] + r[1] / 2)
+    title = (
+        f"{scan.lines} lines at {scan.line_rate:g} Hz, {scan.pixels} pixels, "
+        f"{spec.rate_hz:g} Hz loop"
+    )
+    return [
+        scan_images_figure(
+            spec.png / "raster_images.png",
+            images[-1][1].ideal,
+            [(name, im.image) for name, im in images],
+            extent,
+            title=title,
+        ),
+        scan_lines_figure(
+            spec.png / "raster_lines.png",
+            [(name, r.figures(checked.sample).line_rms) for name, r in runs],
+            (f"{axes[0]} (fast)", f"{axes[1]} (slow)"),
+            title=title,
+        ),
+    ]
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """The summary as lines for a terminal."""
+    lines = []
+    for name, axis in summary["axes"].items():
+        lines.append(
+            f"axis {name}: RMS {axis['rms_error'] * 1e9:.3g} nm "
+            f"({100 * axis['rms_error'] / axis['range']:.3g} % of {axis['range'] * 1e6:g} um), "
+            f"max {axis['max_error'] * 1e9:.3g} nm"
+        )
+    image = summary["image"]
+    lines.append(
+        f"image: distortion {image['distortion_px_max']:.3g} px max, "
+        f"{image['distortion_px_rms']:.3g} px RMS over {image['edges']} edge crossings"
+    )
+    lines.append(
+        f"{summary['lines']} lines at {summary['line_rate']:g} Hz, {summary['rate_hz']:g} Hz loop: "
+        f"{summary['wall_time']:.1f} s for {summary['frame_time']:.1f} s frames"
+    )
+    lines.extend(f"wrote {p}" for p in summary["png"])
+    return "\n".join(lines)

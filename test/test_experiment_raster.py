@@ -1,0 +1,64 @@
+"""`piezo-stage experiment raster` on the simulated scanner: a small frame learned and its
+image, JSON, PNGs and tables; scans it cannot run refused before anything moves."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from piezo_stage.cli import main
+
+pytestmark = pytest.mark.unit
+
+SMALL = ["--lines", "4", "--pixels", "16", "--line-rate", "20", "--rate-hz", "1000"]
+
+
+def raster(*extra: str) -> list[str]:
+    return ["experiment", "raster", *SMALL, *extra]
+
+
+def test_a_learned_frame_gives_its_figures_pngs_and_tables(tmp_path, capsys):
+    table = tmp_path / "tables.json"
+    argv = raster("--learn", "10", "--table-out", str(table), "--png", str(tmp_path), "--json")
+    assert main(argv) == 0, capsys.readouterr().err
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary["axes"]) == {"x", "y"} and len(summary["learning"]) == 10
+    x, y = summary["axes"]["x"], summary["axes"]["y"]
+    assert x["range"] == 20e-6 and y["range"] == 10e-6
+    # the model is the plant here: learned, both axes far under 0.2 % of their range
+    assert x["rms_error"] < 0.002 * x["range"] and y["rms_error"] < 0.002 * y["range"]
+    assert summary["image"]["distortion_px_max"] < 0.5
+    assert all(
+        p.endswith(".png") and (tmp_path / p.rsplit("/", 1)[-1]).stat().st_size > 1000
+        for p in summary["png"]
+    )
+    assert table.exists()
+    # the saved tables replay on the same scan, and are refused on another
+    assert main(raster("--table", str(table), "--json")) == 0
+    replay = json.loads(capsys.readouterr().out)
+    assert replay["axes"]["x"]["rms_error"] < 0.002 * x["range"]
+    assert main(raster("--table", str(table), "--line-rate", "10")) == 2
+    assert "the table holds 50 samples" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--pixels", "64"], "64 pixels per line at a 1000 Hz loop"),
+        (["--line-rate", "200"], "samples per image line"),
+        (["--range", "400e-6,10e-6"], "the fast axis needs"),
+        (["--range", "20e-6"], "expected X,Y"),
+        (["--sample", "no_such.png"], "no_such.png"),
+        (["--lines", "0"], "lines must be"),
+        (["--compensation", "feedback", "--learn", "3"], "--learn needs a feedforward"),
+    ],
+)
+def test_a_scan_it_cannot_run_is_one_line_and_exit_2(extra, message, capsys):
+    try:
+        code = main(raster(*extra))
+    except SystemExit as exc:  # argparse's own refusal
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1], err
