@@ -22,8 +22,11 @@ def test_a_learned_frame_gives_its_figures_pngs_and_tables(tmp_path, capsys):
     table = tmp_path / "tables.json"
     argv = raster("--learn", "10", "--table-out", str(table), "--png", str(tmp_path), "--json")
     assert main(argv) == 0, capsys.readouterr().err
-    summary = json.loads(capsys.readouterr().out)
+    out = capsys.readouterr().out
+    assert "NaN" not in out  # strict JSON: a learning line without an image window is null
+    summary = json.loads(out)
     assert set(summary["axes"]) == {"x", "y"} and len(summary["learning"]) == 10
+    assert summary["learning"][0] == {"x": None, "y": None}  # the first frame's fly-back
     x, y = summary["axes"]["x"], summary["axes"]["y"]
     assert x["range"] == 20e-6 and y["range"] == 10e-6
     # the model is the plant here: learned, both axes far under 0.2 % of their range
@@ -40,6 +43,19 @@ def test_a_learned_frame_gives_its_figures_pngs_and_tables(tmp_path, capsys):
     assert replay["axes"]["x"]["rms_error"] < 0.002 * x["range"]
     assert main(raster("--table", str(table), "--line-rate", "10")) == 2
     assert "the table holds 50 samples" in capsys.readouterr().err
+
+
+def test_a_sample_without_edges_has_no_distortion_figure(tmp_path, capsys):
+    """A smooth height map (a ramp): the image and errors, the distortion null in the JSON."""
+    ramp = tmp_path / "ramp.csv"
+    ramp.write_text("\n".join(",".join(f"{1e-9 * (i + j):g}" for j in range(8)) for i in range(4)))
+    assert main(raster("--sample", str(ramp), "--json")) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    summary = json.loads(out)
+    assert "NaN" not in out and summary["image"]["edges"] == 0
+    assert summary["image"]["distortion_px_max"] is None
+    assert main(raster("--sample", str(ramp))) == 0
+    assert "no edges to measure the distortion on" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(

@@ -155,9 +155,9 @@ def _figures(run: RasterRun, sample: Sample) -> dict[str, Any]:
             }
             for i, n in enumerate(names)
         },
-        "image": {
-            "distortion_px_max": fig.distortion_px_max,
-            "distortion_px_rms": fig.distortion_px_rms,
+        "image": {  # null for a sample without edges (no distortion to measure)
+            "distortion_px_max": fig.distortion_px_max if fig.edges else None,
+            "distortion_px_rms": fig.distortion_px_rms if fig.edges else None,
             "edges": fig.edges,
         },
         "line_rms": fig.line_rms.tolist(),
@@ -206,7 +206,11 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     summary = _figures(run, checked.sample)
     summary["axes"] = dict(zip(axes, summary["axes"].values()))
     summary.update(
-        learning=[dict(zip(axes, rms)) for rms in run.learning],
+        # a line period with no image window (a fly-back) has no figure: null, not NaN (JSON)
+        learning=[
+            {a: (v if math.isfinite(v) else None) for a, v in zip(axes, rms)}
+            for rms in run.learning
+        ],
         lines=spec.lines,
         pixels=spec.pixels,
         line_rate=spec.line_rate,
@@ -272,10 +276,13 @@ def summary_text(summary: dict[str, Any]) -> str:
             f"max {axis['max_error'] * 1e9:.3g} nm"
         )
     image = summary["image"]
-    lines.append(
-        f"image: distortion {image['distortion_px_max']:.3g} px max, "
-        f"{image['distortion_px_rms']:.3g} px RMS over {image['edges']} edge crossings"
-    )
+    if image["edges"]:
+        lines.append(
+            f"image: distortion {image['distortion_px_max']:.3g} px max, "
+            f"{image['distortion_px_rms']:.3g} px RMS over {image['edges']} edge crossings"
+        )
+    else:
+        lines.append("image: the sample has no edges to measure the distortion on")
     lines.append(
         f"{summary['lines']} lines at {summary['line_rate']:g} Hz, {summary['rate_hz']:g} Hz loop: "
         f"{summary['wall_time']:.1f} s for {summary['frame_time']:.1f} s frames"
