@@ -121,6 +121,28 @@ def spin_until(node: Any, predicate: Callable[[], bool], timeout: float) -> bool
     return predicate()
 
 
+def call_idempotent(
+    node: Any, client: Any, request: Any, timeout: float = 15.0, resend_after: float = 3.0
+) -> Any:
+    """Call a service whose request may safely arrive twice; return the response, or None
+    when none came within ``timeout``.
+
+    A Fast DDS service waits only 100 ms for the client's response reader to match before it
+    drops the response (rmw_fastrtps ``rmw_send_response``), and ``wait_for_service`` says
+    nothing of that side of the discovery: on a loaded host the first answer can be lost. The
+    request is sent again every ``resend_after`` seconds until one is answered."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        future = client.call_async(request)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=min(resend_after, left))
+        if future.done():
+            return future.result()
+        client.remove_pending_request(future)
+    return None
+
+
 def stop(proc: subprocess.Popen, timeout: float = 5.0) -> tuple[str, str]:
     if proc.poll() is None:
         proc.terminate()
