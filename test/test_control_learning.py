@@ -16,11 +16,15 @@ from hypothesis import strategies as st
 from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.learning import (
+    MAX_MISSING,
+    MAX_MISSING_RUN,
     FeedforwardTable,
     IterativeLearning,
     LearningConfig,
     LearningError,
+    PeriodicLearner,
     feedforward_response,
+    fill_gaps,
     harmonics,
     incremental_stiffness,
     limit,
@@ -286,3 +290,55 @@ def test_learning_refuses_what_it_cannot_learn():
     z = np.exp(2j * math.pi * harmonics(4, RATE) / RATE)
     assert np.allclose(g, 1.0 / (incremental_stiffness(static) * z))
     assert Dynamics(RIG.dynamics.m, RIG.dynamics.c) == RIG.dynamics
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    n=st.integers(20, 600),
+    holes=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 20)), max_size=60),
+)
+@example(n=100, holes=[(0.995, 3)])  # a run across the period's end
+def test_a_few_missing_samples_are_filled_and_too_many_refuse_the_period(n, holes):
+    """What is there is kept, what is missing is interpolated between its periodic neighbours
+    (a chord's error), and a period missing more than half its samples, or a run longer than
+    3 % of it (3 at least), is refused."""
+    error = np.sin(2 * math.pi * np.arange(n) / n)
+    holed = error.copy()
+    for at, length in holes:
+        start = int(at * n)
+        holed[np.arange(start, start + length) % n] = np.nan
+    missing = np.isnan(holed)
+    filled = fill_gaps(holed)
+    runs = [0]
+    for k in range(2 * n):  # around the end too
+        runs.append(runs[-1] + 1 if missing[k % n] else 0)
+    longest = max(runs)
+    refuse = (
+        missing.all() or missing.sum() > MAX_MISSING * n or longest > max(3, MAX_MISSING_RUN * n)
+    )
+    if refuse:
+        assert filled is None
+        return
+    assert filled is not None and np.all(np.isfinite(filled))
+    np.testing.assert_array_equal(filled[~missing], error[~missing])
+    # a unit sine's chord across a run of r missing samples (r + 1 intervals of 2π/n) is off
+    # by at most h²/8, h = 2π(r + 1)/n
+    assert np.abs(filled - error).max() <= (2 * math.pi * (longest + 1) / n) ** 2 / 8 + 1e-12
+
+
+def test_a_period_a_loaded_loop_superseded_a_few_samples_of_is_still_learned():
+    model = FeedforwardModel.from_parameter_set(RIG)
+    n = 100
+    g = feedforward_response(model, RATE, n)
+    table = FeedforwardTable(np.zeros(n), RATE)
+    learning = IterativeLearning(table, g, LearningConfig(settle_periods=0))
+    learner = PeriodicLearner(learning, periods=10)
+    error = 1e-7 * np.sin(2 * math.pi * np.arange(n) / n)
+    for period in range(3):
+        for k in range(n):
+            # period 0: two samples missing (learned); period 1: a 10-sample gap (skipped)
+            gone = (period == 0 and k in (40, 41)) or (period == 1 and 30 <= k < 40)
+            if not gone:
+                learner.record(k, float(error[k]))
+    learner.record(0, 0.0)  # the third period ends
+    assert learner.completed == 3 and learner.skipped == 1 and len(learning.history) == 2

@@ -55,7 +55,7 @@ from piezo_stage.model.plant import DynamicPlant
 from .errors import ControlError
 from .feedforward import FeedforwardModel, feedforward
 from .laws import Gains
-from .trajectory import PeriodicTrajectory, Trajectory
+from .trajectory import Trajectory
 
 #: file format of a saved table
 TABLE_FORMAT = "piezo_stage feedforward table 1"
@@ -376,9 +376,11 @@ class IterativeLearning:
 
 class PeriodicLearner:
     """Feeds :class:`IterativeLearning` from a running loop: :meth:`record` the error at each
-    table index as the loop steps; a period ends when the index wraps. A period with a sample
-    missing (a gap, the loop open) is not learned from. After ``periods`` periods, or once the
-    stop rule holds, the table is frozen and ``on_done(self)`` is called once.
+    table index as the loop steps; a period ends when the index wraps. A few samples missing
+    (a loaded host's loop superseded them) are filled from their neighbours
+    (:func:`fill_gaps`); a period missing more (a long gap, the loop open) is not learned from
+    (``skipped``). After ``periods`` periods, or once the stop rule holds, the table is frozen
+    and ``on_done(self)`` is called once.
     """
 
     def __init__(
@@ -393,6 +395,7 @@ class PeriodicLearner:
         self._error = np.full(len(learning.table), math.nan)
         self._last = -1
         self.completed = 0  # periods seen, learned from or not
+        self.skipped = 0  # periods not learned from: too many samples missing
         self.frozen = False
 
     def record(self, index: int, error: float) -> bool:
@@ -408,8 +411,11 @@ class PeriodicLearner:
 
     def _period_done(self) -> None:
         e = self._error
-        if np.all(np.isfinite(e)):
-            self.learning.update(e)
+        filled = fill_gaps(e)
+        if filled is None:
+            self.skipped += 1
+        else:
+            self.learning.update(filled)
         e.fill(math.nan)
         self.completed += 1
         if self.completed >= self.periods or self.learning.done:
@@ -418,12 +424,43 @@ class PeriodicLearner:
                 self._on_done(self)
 
 
+#: a period is learned from when at most this share of its samples is missing (the scanner's
+#: loop of two 1 kHz axes on a 2-core host steps on 57-77 % of them, the others superseded) ...
+MAX_MISSING = 0.5
+#: ... and no run of missing samples is longer than this share of it (at least 3 samples):
+#: what the interpolation leaves is above the line's harmonics the learning needs
+MAX_MISSING_RUN = 0.03
+
+
+def fill_gaps(error: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """One period's error with its missing (NaN) samples interpolated linearly between their
+    periodic neighbours, or None when more than :data:`MAX_MISSING` of it is missing or one
+    run of missing samples is longer than :data:`MAX_MISSING_RUN` of it (at least 3).
+    """
+    missing = ~np.isfinite(error)
+    n = error.size
+    if not missing.any():
+        return error
+    if missing.all() or missing.sum() > MAX_MISSING * n:
+        return None
+    # the longest run, around the period's end too (the table is periodic)
+    edges = np.diff(np.concatenate([[0], np.tile(missing, 2).astype(np.int8), [0]]))
+    runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    if runs.max() > max(3, MAX_MISSING_RUN * n):
+        return None
+    k = np.arange(n)
+    have = ~missing
+    filled = error.copy()
+    filled[missing] = np.interp(k[missing], k[have], error[have], period=n)
+    return filled
+
+
 def trajectory_samples(trajectory: Trajectory, rate_hz: float) -> tuple[NDArray[np.float64], bool]:
     """(x_d at k/rate over one period, periodic): a periodic trajectory's period must be a whole
     number of samples (a table indexed modulo N would drift against it otherwise); a file's
     record is taken whole, not periodic.
     """
-    periodic = isinstance(trajectory, PeriodicTrajectory)
+    periodic = trajectory.periodic
     exact = trajectory.period * rate_hz
     n = int(round(exact))
     if periodic and abs(exact - n) > 1e-6 * max(n, 1):
@@ -556,6 +593,7 @@ __all__ = [
     "resonance",
     "default_cutoff",
     "feedforward_response",
+    "fill_gaps",
     "harmonics",
     "incremental_stiffness",
     "limit",

@@ -321,6 +321,19 @@ class ControllerNode(PiezoNode):
                 return None  # the loop starts once a recorder sees its first state
             return self._step(t, stamp_ns, publish, reference, own)
 
+    def ready(self) -> bool:
+        """False while the controller waits for its state's subscribers
+        (wait_for_state_subscribers)."""
+        with self.lock:
+            return not (self._wait_subs and self._waiting_for_subscribers())
+
+    def start_at(self, t: float) -> None:
+        """Start the trajectory and the feedforward table at ``t`` [s] (a stage's loop gives
+        every axis one origin)."""
+        with self.lock:
+            self.setpoint.start_at(t)
+            self.pid.start_table_at(t)
+
     def reference(self, t: float) -> Reference:
         """The set point at ``t`` [s] (yr, ẏr or None, ÿr), for a stage's loop to evaluate
         every axis's before it steps them (the coupling's own frames)."""
@@ -443,6 +456,7 @@ class ControllerNode(PiezoNode):
             values.update(
                 {
                     "learning_periods": learner.completed,
+                    "learning_skipped": learner.skipped,
                     "learning_frozen": learner.frozen,
                     "learning_rms": history[-1] if history else math.nan,
                 }
