@@ -9,10 +9,12 @@ from piezo_stage.control.scan import (
     FastShape,
     Order,
     RasterScan,
+    ScanAxis,
     ScanError,
     SlowMotion,
     quintic_transition,
 )
+from piezo_stage.control.trajectory import make_trajectory
 
 from property_support import examples
 
@@ -144,17 +146,20 @@ def test_the_loop_rate_must_sample_lines_and_fill_pixels():
         scan(pixels=4, line_rate=100.0).check_rate(1000.0)
 
 
-@settings(max_examples=examples(40), deadline=None)
-@given(
+#: every kind of scan (an even number of lines: a serpentine needs one)
+SCANS = dict(
     lines=st.integers(1, 6).map(lambda n: 2 * n),
     rate=st.floats(0.5, 200.0),
     shape=st.sampled_from(list(FastShape)),
     motion=st.sampled_from(list(SlowMotion)),
     order=st.sampled_from(list(Order)),
     rounding=st.floats(0.05, 0.95),
-    share=st.floats(0.05, 0.95),
     flyback=st.integers(0, 3),
 )
+
+
+@settings(max_examples=examples(40), deadline=None)
+@given(**SCANS, share=st.floats(0.05, 0.95))
 def test_every_scan_is_smooth_and_images_on_its_rows(
     lines, rate, shape, motion, order, rounding, share, flyback
 ):
@@ -171,3 +176,53 @@ def test_every_scan_is_smooth_and_images_on_its_rows(
     np.testing.assert_allclose(xm, C[0], atol=1e-12 * R[0])
     line, _ = s.line_index(mids)
     np.testing.assert_array_equal(line, np.arange(lines))
+
+
+@settings(max_examples=examples(30), deadline=None)
+@given(**SCANS, index=st.sampled_from([0, 1]))
+def test_a_scan_axis_saved_is_read_back_as_the_same_trajectory(
+    tmp_path_factory, lines, rate, shape, motion, order, rounding, flyback, index
+):
+    """A scan axis's file (a controller's ``trajectory``) gives back the same scan and the
+    same x_d, ẋ_d, ẍ_d; its period is the line's (fast) or the frame's (slow)."""
+    s = RasterScan(lines, 16, rate, R, C, shape, motion, order, rounding, flyback_lines=flyback)
+    path = ScanAxis(s, index).save(tmp_path_factory.mktemp("scan") / "axis.json")
+    axis = make_trajectory(str(path))
+    assert isinstance(axis, ScanAxis) and axis.scan == s and axis.index == index
+    assert axis.period == (s.period if index == 0 else s.frame_time) and axis.periodic
+    t = np.linspace(-0.1, 2.5 * s.frame_time, 2001)
+    for got, want in zip(axis.evaluate(t), s.evaluate(t)[index]):
+        np.testing.assert_array_equal(got, want)
+    # as a controller evaluates it: one sample at a time
+    assert (
+        axis.evaluate(0.3 * s.frame_time)[0]
+        == s.evaluate(np.array([0.3 * s.frame_time]))[index][0][0]
+    )
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("not json", "is not JSON"),
+        ('{"format": "other"}', "is not a scan axis"),
+        ('{"format": "piezo_stage raster scan axis 1", "axis": 2, "scan": {}}', "scan"),
+        (
+            '{"format": "piezo_stage raster scan axis 1", "axis": 0, "scan": {"lines": 4, '
+            '"pixels": 8, "line_rate": 10, "range": [1e-6, 1e-6], "spin": 1}}',
+            "spin",
+        ),
+        (
+            '{"format": "piezo_stage raster scan axis 1", "axis": 0, "scan": {"lines": 4, '
+            '"pixels": 8, "line_rate": -1, "range": [1e-6, 1e-6]}}',
+            "line_rate must be > 0",
+        ),
+    ],
+)
+def test_a_scan_axis_file_it_cannot_use_names_itself_and_why(tmp_path, text, match):
+    path = tmp_path / "axis.json"
+    path.write_text(text)
+    with pytest.raises(ScanError, match=match) as info:
+        ScanAxis.read(path)
+    assert str(path) in str(info.value)
+    with pytest.raises(ScanError, match="cannot read scan"):
+        ScanAxis.read(tmp_path / "missing.json")

@@ -114,3 +114,31 @@ def test_a_trajectory_setting_unused_by_the_reference_is_no_error():
     """A constant reference with trajectory_* that give no trajectory runs (the node refuses a
     later switch to the trajectory then)."""
     assert configure_controller(settings(trajectory="circle")).trajectory is None
+
+
+def test_a_scan_axis_runs_with_the_raster_tables_and_its_fast_axis_learns(tmp_path):
+    """A raster's axes as controllers' trajectories: the fast axis's table is a line, learned
+    per line; the slow axis's a frame; the tables the core made for the scan are accepted."""
+    from piezo_stage.config_path import find_config
+    from piezo_stage.control.raster import raster_tables
+    from piezo_stage.control.scan import RasterScan, ScanAxis
+    from piezo_stage.model.stage_file import load_stage
+
+    scan = RasterScan(4, 16, 10.0, (10e-6, 4e-6), (20e-6, 10e-6))
+    tables = raster_tables(scan, load_stage(find_config("xy_scanner.yaml")), 1000.0)
+    for index, table in enumerate((tables.fast, tables.slow)):
+        values = TRACKING | {
+            "trajectory": str(ScanAxis(scan, index).save(tmp_path / f"axis{index}.json")),
+            "feedforward_model": ("ch11_rig.yaml", "xy_scanner_y.yaml")[index],
+            "feedforward_table": str(table.save(tmp_path / f"table{index}.json")),
+        }
+        setup = configure_controller(settings(**values, learn_periods=5 * (1 - index)))
+        assert setup.table is not None and len(setup.table) == (100 if index == 0 else 500)
+        assert (setup.learning is not None) == (index == 0)
+    wrong = str(tables.slow.save(tmp_path / "frame.json"))
+    with pytest.raises(SetupError, match="holds 500 samples, the trajectory's period 100"):
+        configure_controller(
+            settings(
+                **values | {"trajectory": str(tmp_path / "axis0.json"), "feedforward_table": wrong}
+            )
+        )

@@ -130,3 +130,13 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
     for _, _, without, with_ in held:
         assert float(with_) <= 0.1 * float(without)
     assert out / "png" / "xy_scanner_hold.png" in listed and out / "xy_scanner.yaml" in listed
+
+    # (f) the raster: after learning, both axes under 0.2 % of their range, the grating's edges
+    # within half a pixel, the images and the per-line errors drawn
+    raster = text.split("raster scan of a grating")[1]
+    percents = re.findall(r"^axis (\w): RMS \S+ nm \((\S+) % of", raster, re.M)
+    assert [a for a, _ in percents] == ["x", "y"], raster
+    assert all(float(p) <= 0.2 for _, p in percents), percents
+    distortion = re.search(r"^image: distortion (\S+) px max", raster, re.M)
+    assert distortion and float(distortion.group(1)) <= 0.5, raster
+    assert {out / "png" / "raster_images.png", out / "png" / "raster_lines.png"} <= set(listed)

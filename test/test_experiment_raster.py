@@ -78,3 +78,32 @@ def test_a_scan_it_cannot_run_is_one_line_and_exit_2(extra, message, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert message in err[-1], err
+
+
+def test_the_run_is_recorded_to_a_bag_each_axis_loop_samples(tmp_path, capsys):
+    """--bag: every sample of both axes, as the loop graph records them (read back with the
+    package's reader); an existing bag folder is refused before anything runs."""
+    import numpy as np
+
+    from piezo_stage.bag.reader import read_loop_samples
+
+    bag = tmp_path / "scan_bag"
+    assert main(raster("--bag", str(bag), "--json")) == 0, capsys.readouterr().err
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["bag"] == str(bag)
+    frame = summary["frame_time"]
+    for axis in ("x", "y"):
+        columns = read_loop_samples(bag, f"/raster/{axis}/loop_samples")
+        # two frames at 1 kHz, every sample once, in order
+        assert columns["stamp"].size == round(2 * frame * 1000)
+        assert np.all(np.diff(columns["stamp"]) == 1_000_000)
+        error = columns["displacement"] - columns["reference"]
+        # the plant starts at rest at 0, the scan where it starts: after the first frame, the
+        # errors the summary reports (largest over the image windows, turnarounds larger)
+        later = error[columns["stamp"] >= frame * 1e9]
+        assert (
+            np.all(np.isfinite(error)) and summary["axes"][axis]["max_error"] <= np.abs(later).max()
+        )
+        assert np.abs(later).max() < 0.05 * summary["axes"][axis]["range"]
+    assert main(raster("--bag", str(bag))) == 2
+    assert "already exists" in capsys.readouterr().err

@@ -341,6 +341,15 @@ EXCLUDED: dict[str, str] = {
         "replays tables"
     ),
     "python bench/raster.py": "a benchmark: its figures are measured on a quiet machine",
+    "piezo-stage experiment raster --graph emulated_scanner --lines 8 --pixels 128 "
+    "--line-rate 2 --learn 20 --bag scan_bag --json": (
+        "the emulated scanner's processes in real time: test/test_experiment_raster_emulated.py "
+        "runs it alone (the serial phase), bag and learning checked"
+    ),
+    "piezo-stage experiment raster --graph rig_scanner --stage my_scanner.yaml --lines 64 "
+    "--pixels 128 --line-rate 2 --learn 20 --png scan/": (
+        "a real scanner: its amplifier and sensors (config/scanner_devices.yaml)"
+    ),
     "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"
     ),

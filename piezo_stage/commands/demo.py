@@ -346,12 +346,49 @@ def _scanner(args: argparse.Namespace, out: Path, progress: Progress) -> StageRe
     )
 
 
+def _raster(args: argparse.Namespace, out: Path, progress: Progress) -> StageResult:
+    """(f) a raster scan of a calibration grating on the simulated scanner with the model
+    identified in (e): the image under feedback alone, with the feedforward, after learning."""
+    from piezo_stage.config_path import find_config
+    from piezo_stage.experiments.raster import RasterSpec, run_raster, summary_text
+
+    identified = out / "xy_scanner.yaml"
+    plant = find_config("xy_scanner.yaml")
+    spec = RasterSpec(
+        identified if identified.exists() else plant,
+        plant,
+        lines=32,
+        pixels=128,
+        line_rate=10.0,
+        rate_hz=10_000.0,
+        learn=20,
+        png=out / "png",
+    )
+    progress.stage(
+        "(f) raster: 32 lines at 10 Hz, 128 px, 10 kHz; feedback, feedforward, learned 20 lines"
+    )
+    summary = run_raster(spec, lambda fraction, text: progress.bar(fraction))
+    progress.done(f"{summary['wall_time']:.0f} s")
+    print("\nraster scan of a grating (after 20 learning lines):")
+    print(summary_text(summary))
+    axes = summary["axes"].values()
+    worst = max(a["rms_error"] / a["range"] for a in axes)
+    distortion = summary["image"]["distortion_px_max"]
+    return StageResult(
+        worst <= 0.002 and distortion <= 0.5,
+        [Path(p) for p in summary["png"]],
+        problem=f"raster: {100 * worst:.3g} % RMS of an axis's range (target 0.2 %), "
+        f"distortion {distortion:.3g} px (target 0.5)",
+    )
+
+
 #: the demo's stages, in order (add one here: a Stage with a name, its function, and when it runs)
 STAGES: list[Stage] = [
     Stage("identification", _identification),
     Stage("closed_loop", _closed_loop, lambda args: not args.skip_closed_loop),
     Stage("tracking", _tracking, lambda args: not args.skip_closed_loop),
     Stage("scanner", _scanner, lambda args: not args.skip_closed_loop),
+    Stage("raster", _raster, lambda args: not args.skip_closed_loop),
 ]
 
 

@@ -47,7 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f [Hz]")
     parser.add_argument(
-        "--bag", default=None, help="record controller_state to this MCAP bag folder"
+        "--bag",
+        default=None,
+        help="record controller_state (raster: each axis's loop_samples) to this MCAP bag folder",
     )
     parser.add_argument("--png", default=None, help="write the figures into this folder")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -93,14 +95,15 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
         help="tracking: sim (default), the lockstep plant; emulated_rig: `emulate rig` around "
         "the plant model with the driver, reader and controller in one process (real time); "
         "both with the emulated rig's 0-400 V amplifier: a trajectory the --model says needs "
-        "more is refused (exit 2) with the largest amplitude that fits. coupling: sim_scanner "
-        "(default), emulated_scanner or rig_scanner",
+        "more is refused (exit 2) with the largest amplitude that fits. coupling and raster: "
+        "sim_scanner (default), emulated_scanner or rig_scanner",
     )
     group.add_argument(
         "--rate-hz",
         type=float,
         default=None,
-        help="the loop rate (sim: 100000; emulated_rig: its sensor's, 1000 or 10000); refused "
+        help="the loop rate (sim: 100000; emulated_rig: its sensor's, 1000 or 10000; raster: "
+        "10000 on sim_scanner, 1000 on the device graphs); refused "
         "where the law's gains fail the sampled-loop check",
     )
     group.add_argument(
@@ -334,16 +337,17 @@ def _run_raster(args: argparse.Namespace, progress) -> dict:
             sample = str(find_user_file(sample))
         except ConfigNotFoundError as exc:
             raise ExperimentInputError(f"--sample: {exc}") from None
+    graph = args.graph or "sim_scanner"
     spec = RasterSpec(
         stage,
         plant,
-        graph=args.graph or "sim_scanner",
+        graph=graph,
         lines=args.lines,
         pixels=args.pixels,
         line_rate=args.line_rate,
         range=args.range,
         centre=args.centre,
-        rate_hz=args.rate_hz or 10_000.0,
+        rate_hz=args.rate_hz or (10_000.0 if graph == "sim_scanner" else 1000.0),
         learn=args.learn or 0,
         compensation=Compensation(args.compensation),
         coupling_compensation=args.coupling_compensation,
@@ -354,6 +358,7 @@ def _run_raster(args: argparse.Namespace, progress) -> dict:
         table_out=table_out,
         sample=sample,
         png=user_output_path(args.png) if args.png else None,
+        bag=user_output_path(args.bag) if args.bag else None,
     )
     return run_raster(spec, progress)
 

@@ -313,6 +313,11 @@ class TimeVaryingPID:
         model = self._config.feedforward
         self._ff = Feedforward(model) if model is not None else None
 
+    def start_table_at(self, t: float) -> None:
+        """Index the feedforward table from ``t`` [s] (default: the first update's time)."""
+        if self._t_table is None:
+            self._t_table = float(t)
+
     @property
     def config(self) -> ControllerConfig:
         """The configuration in use (see :meth:`reconfigure`)."""

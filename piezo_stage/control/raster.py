@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Callable, Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
@@ -39,7 +39,7 @@ from .learning import (
     read_json,
     sampled_feedforward,
 )
-from .scan import RasterScan
+from .scan import RasterScan, ScanAxis
 from .scan_image import Sample, ScanFigures, ScanImage, scan_figures, scan_image
 from .stage_control import (
     SCANNER_VOLTS,
@@ -49,15 +49,15 @@ from .stage_control import (
     StageRun,
     simulate_stage,
 )
-from .trajectory import Evaluation, SetPoint
+from .trajectory import SetPoint
 from .voltage_range import PID_MARGIN
 
 __all__ = [
     "LineCorrection",
     "RasterRun",
     "RasterTables",
-    "ScanAxis",
     "check_voltage_need",
+    "learning_history",
     "raster_run",
     "raster_tables",
 ]
@@ -70,25 +70,6 @@ RASTER_TABLES_FORMAT = "piezo_stage raster feedforward tables 1"
 FRAME_ITERATIONS = 3
 #: lines after a fly-back the slow axis does not learn from (its transient settles over 3)
 SETTLE_LINES = 3
-
-
-@dataclass(frozen=True)
-class ScanAxis:
-    """One axis of a raster scan (``index`` 0 the fast one, 1 the slow one) as an axis
-    reference of :class:`~.stage_control.StageReference`.
-    """
-
-    scan: RasterScan
-    index: int
-
-    def evaluate(self, t: ArrayLike) -> Evaluation:
-        """(x_d, ẋ_d, ẍ_d) of this axis at ``t``."""
-        return self.scan.evaluate(np.asarray(t, dtype=float))[self.index]
-
-    @property
-    def period(self) -> float | None:
-        """The line period for the fast axis; the slow one does not repeat per line."""
-        return self.scan.period if self.index == 0 else None
 
 
 @dataclass
@@ -107,9 +88,11 @@ class RasterRun:
     tables: RasterTables | None = None
 
     def last_frame(self) -> NDArray[np.bool_]:
-        """The samples of the last frame (a run ends on a frame's end)."""
-        n_frame = round(self.scan.frame_time / (self.t[1] - self.t[0]))
-        keep: NDArray[np.bool_] = np.arange(self.t.size) >= self.t.size - n_frame
+        """The samples of the last whole frame the run holds."""
+        frame, t = self.scan.frame_time, self.t
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        k = math.floor((t[-1] + dt) / frame + 1e-9) - 1
+        keep: NDArray[np.bool_] = (t >= k * frame - 1e-9 * frame) & (t < (k + 1) * frame - 0.5 * dt)
         return keep
 
     def figures(self, sample: Sample) -> ScanFigures:
@@ -126,6 +109,21 @@ class RasterRun:
 def _window_rms(scan: RasterScan, t: NDArray[np.float64], e: NDArray[np.float64]) -> float:
     inside = scan.line_index(t)[0] >= 0
     return float(np.sqrt(np.mean(e[inside] ** 2))) if inside.any() else math.nan
+
+
+def learning_history(
+    scan: RasterScan, t: NDArray[np.float64], error: NDArray[np.float64], lines: int
+) -> list[tuple[float, float]]:
+    """The RMS error (2, samples) [m] of each of the first ``lines`` line periods' image
+    windows, per axis (NaN for a period without one: a fly-back).
+    """
+    out = []
+    for j in range(lines):
+        now = (t >= j * scan.period) & (t < (j + 1) * scan.period)
+        out.append(
+            (_window_rms(scan, t[now], error[0, now]), _window_rms(scan, t[now], error[1, now]))
+        )
+    return out
 
 
 @dataclass(eq=False)

@@ -24,9 +24,12 @@ the fast axis over-travels them by its turnarounds (an instrument's overscan):
 
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from enum import Enum
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,6 +46,7 @@ __all__ = [
     "FastShape",
     "Order",
     "RasterScan",
+    "ScanAxis",
     "ScanError",
     "SlowMotion",
     "quintic_transition",
@@ -163,6 +167,27 @@ class RasterScan:
             raise ScanError(f"rounding must be in (0, 1), got {self.rounding}")
         if not 0.0 < self.sine_share < 1.0:
             raise ScanError(f"sine_share must be in (0, 1), got {self.sine_share}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The scan as plain JSON values (:meth:`from_dict` reads it back)."""
+        data = asdict(self)
+        data.update(range=list(self.range), centre=list(self.centre))
+        data.update({k: getattr(self, k).value for k in ("fast_shape", "slow_motion", "order")})
+        return data
+
+    @classmethod
+    def from_dict(cls, data: Any) -> "RasterScan":
+        """A scan from :meth:`to_dict`'s values; :class:`ScanError` for what does not fit."""
+        if not isinstance(data, dict):
+            raise ScanError(f"a scan is a mapping of its fields, got {type(data).__name__}")
+        try:
+            values = dict(data)
+            for key in ("range", "centre"):
+                if key in values:
+                    values[key] = tuple(values[key])
+            return cls(**values)
+        except TypeError as exc:
+            raise ScanError(f"scan: {exc}") from None
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -316,3 +341,64 @@ class RasterScan:
         r, c = self.range[0], self.centre[0]
         col = np.floor((np.asarray(x, dtype=float) - (c - 0.5 * r)) / (r / self.pixels))
         return np.where((col >= 0) & (col < self.pixels), col, -1).astype(np.int64)
+
+
+#: file format of one axis of a scan (a controller's ``trajectory``)
+SCAN_AXIS_FORMAT = "piezo_stage raster scan axis 1"
+
+
+@dataclass(frozen=True)
+class ScanAxis:
+    """One axis of a raster scan as a trajectory (``index`` 0 the fast axis, 1 the slow one):
+    x_d, ẋ_d, ẍ_d of :meth:`RasterScan.evaluate`; it repeats every line period (fast) or every
+    frame (slow; the first frame's fly-back starts from rest).
+    """
+
+    scan: RasterScan
+    index: int
+
+    periodic = True  #: a feedforward table of one :attr:`period` serves it
+
+    def __post_init__(self) -> None:
+        if self.index not in (0, 1):
+            raise ScanError(f"a scan axis is 0 (fast) or 1 (slow), got {self.index!r}")
+
+    def evaluate(self, t: ArrayLike) -> Evaluation:
+        """(x_d, ẋ_d, ẍ_d) of this axis at ``t``."""
+        t = np.asarray(t, dtype=float)
+        if self.index == 0:
+            return self.scan.fast.evaluate(np.maximum(t, 0.0))
+        return self.scan.evaluate(t)[1]
+
+    @property
+    def period(self) -> float:
+        """The line period (fast axis) or the frame time (slow axis) [s]."""
+        return self.scan.period if self.index == 0 else self.scan.frame_time
+
+    @property
+    def range(self) -> float:
+        """The image's size along this axis [m]."""
+        return self.scan.range[self.index]
+
+    def save(self, path: str | Path) -> Path:
+        """Write the axis as JSON (a controller's ``trajectory`` file)."""
+        path = Path(path)
+        data = {"format": SCAN_AXIS_FORMAT, "axis": self.index, "scan": self.scan.to_dict()}
+        path.write_text(json.dumps(data, indent=1), encoding="utf-8")
+        return path
+
+    @classmethod
+    def read(cls, path: str | Path) -> "ScanAxis":
+        """What :meth:`save` wrote; :class:`ScanError` naming the file when it cannot."""
+        try:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise ScanError(f"cannot read scan {path}: {exc.strerror}") from None
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ScanError(f"{path} is not JSON: {exc}") from None
+        if not isinstance(data, dict) or data.get("format") != SCAN_AXIS_FORMAT:
+            raise ScanError(f"{path} is not a scan axis ({SCAN_AXIS_FORMAT!r})")
+        try:
+            return cls(RasterScan.from_dict(data.get("scan")), data.get("axis"))  # type: ignore[arg-type]
+        except ScanError as exc:
+            raise ScanError(f"{path}: {exc}") from None

@@ -49,6 +49,13 @@ class SetPoint:
         self._second_order: SecondOrderReference | None = None
         self._t_trajectory: float | None = None  # the trajectory's time origin: its first step
 
+    def start_at(self, t: float) -> None:
+        """Start the trajectory's time at ``t`` [s] (default: the first step's time); several
+        axes given one origin run their trajectories in step.
+        """
+        if self._t_trajectory is None:
+            self._t_trajectory = float(t)
+
     def receive(self, value: float) -> None:
         """A set point from the topic (ignored unless finite)."""
         if math.isfinite(value):

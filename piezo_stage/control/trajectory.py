@@ -25,12 +25,15 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, ClassVar, Union, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ControlError
+
+if TYPE_CHECKING:
+    from .scan import ScanAxis
 
 
 class TrajectoryError(ControlError):
@@ -62,6 +65,7 @@ def _finite(name: str, value: float, positive: bool = False) -> float:
 class PeriodicTrajectory:
     """A periodic shape (see the module docstring); times in s, positions in m."""
 
+    periodic: ClassVar[bool] = True  #: a feedforward table of one period serves it
     shape: Shape
     amplitude: float
     frequency: float
@@ -222,6 +226,7 @@ class PeriodicTrajectory:
 class CsvTrajectory:
     """x_d(t) from samples through a clamped C² cubic spline (analytic ẋ_d, ẍ_d)."""
 
+    periodic: ClassVar[bool] = False  #: the record is taken whole
     t: NDArray[np.float64]
     x: NDArray[np.float64]
     name: str = ""
@@ -301,7 +306,7 @@ class CsvTrajectory:
         return cls(t, x, name=str(path), v_max=v_max, a_max=a_max)
 
 
-Trajectory = PeriodicTrajectory | CsvTrajectory
+Trajectory = Union[PeriodicTrajectory, CsvTrajectory, "ScanAxis"]
 
 
 @dataclass(frozen=True)
@@ -329,11 +334,18 @@ def make_trajectory(
     v_max: float = math.inf,
     a_max: float = math.inf,
 ) -> Trajectory:
-    """``kind``: sine | triangle | steps, or the path of a CSV file (t [s], x [m])."""
+    """``kind``: sine | triangle | steps, the path of a CSV file (t [s], x [m]), or of one
+    axis of a raster scan (JSON, :class:`~.scan.ScanAxis`).
+    """
     if kind in {s.value for s in Shape}:
         return PeriodicTrajectory(Shape(kind), amplitude, frequency, offset, rounding, v_max, a_max)
+    if kind.endswith(".json"):
+        from .scan import ScanAxis
+
+        return ScanAxis.read(kind)
     if kind.endswith(".csv") or Path(kind).is_file():
         return CsvTrajectory.read(kind, v_max=v_max, a_max=a_max)
     raise TrajectoryError(
-        f"unknown trajectory {kind!r}: expected sine, triangle, steps or a .csv file"
+        f"unknown trajectory {kind!r}: expected sine, triangle, steps, a .csv file or a "
+        "scan axis's .json file"
     )

@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import ControlError
 from .feedforward import FeedforwardModel, feedforward
-from .trajectory import PeriodicTrajectory, Trajectory
+from .trajectory import Trajectory
 
 #: share of the amplifier's span kept free at each end for the PID (module docstring)
 PID_MARGIN = 0.02
@@ -62,7 +62,7 @@ def voltage_need(model: FeedforwardModel, trajectory: Trajectory) -> VoltageNeed
     (the ch. 11 inverse model, (11.1) with w of (11.3) driven by x_d from w = 0 at x_d(0); see
     the module docstring for the periods and the sampling).
     """
-    periodic = isinstance(trajectory, PeriodicTrajectory)
+    periodic = trajectory.periodic
     n = NEED_SAMPLES * (NEED_PERIODS if periodic else 1)
     span = trajectory.period * (NEED_PERIODS if periodic else 1)
     t = np.arange(n + 1) * (span / n)

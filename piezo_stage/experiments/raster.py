@@ -6,8 +6,13 @@ the feedforward of ``stage`` (the identified model), run in the core at any loop
 (:func:`piezo_stage.control.raster.raster_run`: the closed loop stepped sample by sample, no
 graph; the real-time ``sim_scanner`` graph cannot hold a 10 kHz loop). The fast axis's table
 and the slow axis's line correction learn over ``learn`` lines; the figures are the last
-frame's. Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop
-rate cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
+frame's. ``emulated_scanner`` (the emulated E-727-class amplifier and optoNCDT sensors around
+``plant_stage``, 1 kHz) and ``rig_scanner`` (the devices of config/scanner_devices.yaml): the
+scanner's loop graph, every axis in one loop thread (:mod:`.raster_graph`); there the fast
+axis's table learns and the slow axis plays its frame table.
+
+Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop rate
+cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
 fewer than one per pixel), whose feedforward needs more than the amplifier gives, or whose
 sample or tables do not load.
 """
@@ -15,10 +20,13 @@ sample or tables do not load.
 from __future__ import annotations
 
 import math
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
+
+import numpy as np
 
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation
@@ -37,11 +45,12 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage_file import Stage, load_stage
 
 from .errors import ExperimentError, ExperimentInputError
+from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, EMULATED_RATE, GraphRun, run_on_graph
 
 __all__ = ["GRAPHS", "RasterSpec", "run_raster"]
 
-#: the graphs the raster runs on here
-GRAPHS = ("sim_scanner",)
+#: the graphs the raster runs on
+GRAPHS = ("sim_scanner", *DEVICE_GRAPHS)
 
 Progress = Callable[[float, str], None]
 
@@ -69,6 +78,7 @@ class RasterSpec:
     table_out: Path | None = None  #: the tables saved after the run
     sample: str = "grating"
     png: Path | None = None
+    bag: Path | None = None  #: the run's samples, each axis's loop_samples, to this MCAP bag
     min_samples_per_line: int = 20
 
     def scan(self) -> RasterScan:
@@ -97,21 +107,30 @@ class _Checked:
     tables: RasterTables | None
 
 
-def _check(spec: RasterSpec) -> _Checked:
-    """Everything that can be refused before anything moves."""
+def _check_options(spec: RasterSpec) -> None:
+    """The options alone: the graph, the rate it can run, learning, the bag."""
     if spec.graph not in GRAPHS:
-        raise ExperimentInputError(
-            f"--graph {spec.graph}: the raster runs on {', '.join(GRAPHS)} (the simulated "
-            "scanner); on the emulated and real scanners it is not built yet"
-        )
+        raise ExperimentInputError(f"--graph {spec.graph}: the raster runs on {', '.join(GRAPHS)}")
     if not (math.isfinite(spec.rate_hz) and spec.rate_hz > 0):
         raise ExperimentInputError(f"--rate-hz must be > 0, got {spec.rate_hz}")
+    if spec.graph == "emulated_scanner" and spec.rate_hz != EMULATED_RATE:
+        raise ExperimentInputError(
+            f"--rate-hz {spec.rate_hz:g}: the emulated scanner's sensors sample at "
+            f"{EMULATED_RATE:g} Hz, the rate of its loop"
+        )
     if spec.learn < 0:
         raise ExperimentInputError(f"--learn must be >= 0, got {spec.learn}")
+    if spec.bag is not None and spec.bag.exists():
+        raise ExperimentInputError(f"--bag {spec.bag} already exists")
     if spec.learn and spec.compensation is Compensation.FEEDBACK:
         raise ExperimentInputError(
             "--learn needs a feedforward: --compensation both or feedforward"
         )
+
+
+def _check(spec: RasterSpec) -> _Checked:
+    """Everything that can be refused before anything moves."""
+    _check_options(spec)
     scan = spec.scan()
     try:
         scan.check_rate(spec.rate_hz, spec.min_samples_per_line)
@@ -134,13 +153,28 @@ def _check(spec: RasterSpec) -> _Checked:
                 f"--table {spec.table}: {tables.matches(scan, spec.rate_hz)}"
             )
         if spec.compensation is not Compensation.FEEDBACK:
-            need = tables or raster_tables(
+            tables = tables or raster_tables(
                 scan, model, spec.rate_hz, axes=axes, compensate_coupling=spec.coupling_compensation
             )
-            check_voltage_need(need, SCANNER_VOLTS)
+            check_voltage_need(tables, amplifier_range(spec.graph))
     except ControlError as exc:
         raise ExperimentInputError(f"scan: {exc}") from None
     return _Checked(scan, model, plant, sample, tables)
+
+
+def amplifier_range(graph: str) -> tuple[float, float]:
+    """[V] the amplifier's range on ``graph``: the simulated scanner's, or the narrowest its
+    loop graph's entries set."""
+    if graph not in DEVICE_GRAPHS:
+        return SCANNER_VOLTS
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
+
+    from .tracking import graph_amplifier_range
+
+    data = load_yaml(find_graph(DEVICE_GRAPHS[graph]).read_text(encoding="utf-8"))
+    low, high = graph_amplifier_range(data["nodes"])
+    return (low, high) if math.isfinite(low) and math.isfinite(high) else SCANNER_VOLTS
 
 
 def _figures(run: RasterRun, sample: Sample) -> dict[str, Any]:
@@ -175,8 +209,35 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     started = time.monotonic()
 
     def one(
-        compensation: Compensation, coupling: bool, learn: int, tables: RasterTables | None
+        compensation: Compensation,
+        coupling: bool,
+        learn: int,
+        tables: RasterTables | None,
+        bag: Path | None = None,
     ) -> RasterRun:
+        if spec.graph in DEVICE_GRAPHS:
+            if compensation is not Compensation.FEEDBACK and tables is None:
+                tables = raster_tables(
+                    checked.scan,
+                    checked.model,
+                    spec.rate_hz,
+                    axes=axes,
+                    compensate_coupling=coupling,
+                )
+            run = GraphRun(
+                spec.graph,
+                checked.scan,
+                checked.model,
+                spec.plant_stage,
+                tables if compensation is not Compensation.FEEDBACK else None,
+                spec.rate_hz,
+                compensation.value,
+                coupling,
+                learn,
+                amplifier_range(spec.graph),
+            )
+            with tempfile.TemporaryDirectory(prefix="piezo_raster_") as folder:
+                return run_on_graph(run, Path(folder), say, bag=bag)
         return raster_run(
             checked.scan,
             checked.model,
@@ -191,7 +252,11 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
         )
 
     try:
-        run = one(spec.compensation, spec.coupling_compensation, spec.learn, checked.tables)
+        run = one(
+            spec.compensation, spec.coupling_compensation, spec.learn, checked.tables, spec.bag
+        )
+        if spec.bag is not None and spec.graph not in DEVICE_GRAPHS:
+            write_bag(run, spec.bag, axes)
         others: list[tuple[str, RasterRun]] = []
         if spec.png is not None:
             say(0.0, "the same frame under feedback alone, for the figures")
@@ -220,12 +285,46 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
         wall_time=wall,
         png=[],
     )
+    if spec.bag is not None:
+        summary["bag"] = str(spec.bag)
     if spec.table_out is not None and run.tables is not None:
         run.tables.save(spec.table_out)
         summary["table_out"] = str(spec.table_out)
     if spec.png is not None:
         summary["png"] = [str(p) for p in _plots(spec, checked, run, others, axes)]
     return summary
+
+
+#: samples per LoopSamples message of a simulated run's bag (10 ms at 10 kHz)
+BAG_BATCH = 100
+
+
+def write_bag(run: RasterRun, path: Path, axes: tuple[str, str]) -> None:
+    """A simulated run as a device graph's is recorded: per axis ``/raster/<axis>/loop_samples``
+    (piezo_stage_msgs/LoopSamples, stamps the run's time from 0)."""
+    from rclpy.serialization import serialize_message
+
+    from piezo_stage.bag.writer import BagWriter
+    from piezo_stage_msgs.msg import LoopSamples
+
+    stamps = np.round(run.t * 1e9).astype(np.int64)
+    with BagWriter(path) as bag:
+        for index, axis in enumerate(axes):
+            topic = f"{BAG_NAMESPACE}/{axis}/loop_samples"
+            bag.add_topic(topic, "piezo_stage_msgs/msg/LoopSamples")
+            for start in range(0, stamps.size, BAG_BATCH):
+                part = slice(start, start + BAG_BATCH)
+                msg = LoopSamples()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamps[start]), 10**9)
+                msg.header.frame_id = axis
+                msg.stamp = stamps[part].tolist()
+                msg.displacement = run.measured[index, part].tolist()
+                msg.status = [0] * len(msg.stamp)
+                msg.reference = run.desired[index, part].tolist()
+                msg.u = msg.applied = run.u[index, part].tolist()
+                msg.u_ff = [math.nan] * len(msg.stamp)
+                msg.loop_closed = [True] * len(msg.stamp)
+                bag.write(topic, serialize_message(msg), int(stamps[start]))
 
 
 def _plots(

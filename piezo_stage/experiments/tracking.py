@@ -381,7 +381,7 @@ def graph_amplifier_range(
         overrides = entry.get("overrides", {})
         if entry.get("executable") == "controller":
             limits.append((overrides.get("u_min"), overrides.get("u_max")))
-        elif entry.get("executable") in ("voltage_driver", "plant"):
+        elif entry.get("executable") in ("voltage_driver", "stage_driver", "plant"):
             limits.append((overrides.get("v_min"), overrides.get("v_max")))
         command = entry.get("command") or []
         if "--amp-range" in command:

@@ -175,8 +175,8 @@ PARAMETERS = ParameterTable(
         Param(
             "trajectory",
             "triangle",
-            "reference_source=trajectory: triangle, sine, steps or the "
-            "path of a CSV file (t [s], x [m])",
+            "reference_source=trajectory: triangle, sine, steps, the "
+            "path of a CSV file (t [s], x [m]) or of a raster scan's axis (JSON)",
             read_only=True,
         ),
         Param(

@@ -144,6 +144,7 @@ class AxisLaw:
         self.x_valid = math.nan
         self.reference: Reference = (math.nan, None, 0.0)
         self.own: OwnFrame | None = None
+        self.started = False  # the stage's loop starts every axis in the same cycle
 
     @property
     def last_step(self) -> Any:
@@ -170,7 +171,9 @@ class AxisLaw:
         reader.by_status[status] += 1
         own = self.own
         u = (
-            self.controller.on_sample(stamp_ns, value, ok, publish)
+            None
+            if not self.started
+            else self.controller.on_sample(stamp_ns, value, ok, publish)
             if own is None
             else self.controller.on_sample(stamp_ns, value, ok, publish, self.reference, own)
         )
@@ -186,7 +189,7 @@ class AxisLaw:
         return u
 
     def check_gap(self, t: float) -> float | None:
-        return self.controller.check_gap(t)
+        return self.controller.check_gap(t) if self.started else None
 
     def flush(self, applied: float) -> None:
         """After the cycle's write: the row of this cycle's sample, with the channel's output."""
@@ -235,7 +238,7 @@ class StageLoopNode(PiezoNode):
             driver,
             after=self._after,
             every=every,
-            before=self._own_frames if self.frames is not None else None,
+            before=self._before,
         )
         self.finished, self.exit_code = False, 0  # run(): a loop thread that failed ends it
         self._stop = threading.Event()
@@ -243,7 +246,7 @@ class StageLoopNode(PiezoNode):
         self._first = self.create_timer(0.0, self._start, clock=wall_clock())
         Diagnostics(self, "stage loop", self._diagnose)
 
-    def _own_frames(
+    def _before(
         self,
         value: Sequence[float],
         status: Sequence[int],
@@ -251,12 +254,28 @@ class StageLoopNode(PiezoNode):
         fresh: Sequence[bool],
         now_ns: int,
     ) -> None:
-        """Every axis's own frame for this cycle (the coupling out of the feedforward), once
-        every axis has had a valid sample; until then each axis in its measured frame."""
+        """Start every axis in the first cycle in which all are ready (an experiment's
+        recorder listens to each), their trajectories and tables from one time origin: the
+        earliest of the cycle's samples. Then the own frames of a coupled stage."""
+        laws = self.laws
+        if not laws[0].started:
+            if not (any(fresh) and all(law.controller.ready() for law in laws)):
+                return
+            t0 = min(s - law.reader._latency_ns for s, f, law in zip(stamp, fresh, laws) if f)
+            for law in laws:
+                law.controller.start_at(t0 * 1e-9)
+                law.started = True
+        if self.frames is not None:
+            for i, law in enumerate(laws):
+                law.prepare(value[i], status[i] == 0, stamp[i], fresh[i], now_ns)
+            self._own_frames()
+
+    def _own_frames(self) -> None:
+        """Every axis's own frame for this cycle (the coupling out of the feedforward) from
+        what each prepared, once every axis has had a valid sample; until then each axis in
+        its measured frame."""
         laws, frames = self.laws, self.frames
-        assert frames is not None  # the hook is set with them
-        for i, law in enumerate(laws):
-            law.prepare(value[i], status[i] == 0, stamp[i], fresh[i], now_ns)
+        assert frames is not None  # called with them
         x = [law.x_valid for law in laws]
         if any(math.isnan(v) for v in x):
             return

@@ -1,0 +1,281 @@
+"""A raster scan through a scanner's device graph (``emulated_scanner`` or ``rig_scanner``): the
+loop graph with every axis in one loop thread (``*_scanner_loop``, :mod:`piezo_stage.nodes.
+scanner_loop`), each axis's controller following its axis of the scan (a
+:class:`~piezo_stage.control.scan.ScanAxis` file as its ``trajectory``) with the scan's
+feedforward tables (:func:`~piezo_stage.control.raster.raster_tables`) from one time origin.
+
+The fast axis's table learns over the first ``learn`` lines as any periodic trajectory's does
+(its controller's ``learn_periods``); the slow axis plays its frame table (the node has no line
+correction). Every sample of both axes is recorded (``loop_samples``); the slow axis's
+position is taken at the fast axis's samples (linear interpolation: the sensors are not
+synchronous), and the scan's time origin is checked against the recorded set points.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from piezo_stage.control.learning import FeedforwardTable, LearningError
+from piezo_stage.control.raster import RasterRun, RasterTables, learning_history
+from piezo_stage.control.scan import RasterScan, ScanAxis
+from piezo_stage.model.stage_file import Stage, save_stage
+
+from .errors import ExperimentError
+
+__all__ = ["DEVICE_GRAPHS", "GraphRun", "device_graph", "device_seconds", "run_on_graph"]
+
+Progress = Callable[[float, str], None]
+
+#: the device graphs a raster runs on, and the loop graph each one runs as
+DEVICE_GRAPHS = {"emulated_scanner": "emulated_scanner_loop", "rig_scanner": "rig_scanner_loop"}
+#: [Hz] the emulated scanner's sensors (config/graphs/emulated_scanner_loop.yaml)
+EMULATED_RATE = 1000.0
+#: the namespace of a run's bag (the graph's is the process's own)
+BAG_NAMESPACE = "/raster"
+#: the recorded messages' types in a bag
+_TYPES = {
+    "LoopSamples": "piezo_stage_msgs/msg/LoopSamples",
+    "ControllerState": "piezo_stage_msgs/msg/ControllerState",
+}
+#: [s] a sensor silence the controllers hold through (their default, 20 ms, opens the loop)
+MAX_GAP = 0.2
+#: [ns] how far before the first stepped sample the origin is looked for
+ORIGIN_SEARCH_NS = 50_000_000
+#: [m] largest difference between a recorded set point and the scan at the origin found
+ORIGIN_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class GraphRun:
+    """One raster run on a device graph: the scan, the model stage the controllers use and
+    its tables (None under feedback), the plant stage the emulator runs (None: the model's),
+    and the controllers' settings."""
+
+    graph: str
+    scan: RasterScan
+    model: Stage
+    plant_file: Path | None
+    tables: RasterTables | None
+    rate_hz: float
+    compensation: str
+    coupling_compensation: bool
+    learn: int
+    u_limits: tuple[float, float]
+
+
+def frames_to_run(scan: RasterScan, learn: int, frames: int = 2) -> int:
+    """Frames from the start: ``frames`` at least, and a whole frame after the learning (as
+    :func:`~piezo_stage.control.raster.raster_run`)."""
+    learned = learn * scan.period
+    return max(frames, math.ceil(learned / scan.frame_time - 1e-9) + 1)
+
+
+def device_seconds(scan: RasterScan, learn: int) -> float:
+    """[s] of scan a run records."""
+    return frames_to_run(scan, learn) * scan.frame_time
+
+
+def _controller_overrides(
+    rate_hz: float, compensation: str, u_limits: tuple[float, float]
+) -> dict[str, Any]:
+    from .harness import node_overrides
+    from .presets import experiment_controller
+
+    values = experiment_controller(rate_hz, "pid", delay_samples=0)
+    values |= {
+        "reference_source": "trajectory",
+        "compensation": compensation,
+        "u_min": u_limits[0],
+        "u_max": u_limits[1],
+        "topics_rate_hz": 100.0,
+        # a loaded host stalls the loop now and then: hold through a stall, as the scanner's
+        # loop tests do, rather than open both loops for the rest of the frame
+        "max_gap": MAX_GAP,
+    }
+    return node_overrides("controller", values)
+
+
+def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
+    """The loop graph of ``run.graph`` for one run, its files written in ``folder``: the
+    model stage (the driver's, for the coupling's own frames), the scan's axes, the tables and
+    a params file with each axis's controller block."""
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
+
+    scan, model, tables, learn = run.scan, run.model, run.tables, run.learn
+    data = dict(load_yaml(find_graph(DEVICE_GRAPHS[run.graph]).read_text(encoding="utf-8")))
+    model_file = save_stage(model, folder / "model.yaml")
+    fast, slow = model.names[0], model.names[1]
+    per_axis: dict[str, dict[str, Any]] = {}
+    for index, axis in enumerate((fast, slow)):
+        values: dict[str, Any] = {
+            "trajectory": str(ScanAxis(scan, index).save(folder / f"scan_{axis}.json")),
+            "feedforward_model": str(folder / f"model_{axis}.yaml"),  # save_stage's
+            "learn_periods": learn if index == 0 else 0,
+        }
+        if tables is not None:
+            table = tables.fast if index == 0 else tables.slow
+            values["feedforward_table"] = str(table.save(folder / f"table_{axis}.json"))
+        if index == 0 and learn:
+            values["feedforward_table_out"] = str(folder / f"learned_{axis}.json")
+        per_axis[axis] = values
+    params = folder / "raster_params.yaml"
+    params.write_text(_params_yaml(per_axis), encoding="utf-8")
+    nodes = []
+    for entry in data["nodes"]:
+        entry = dict(entry)
+        if entry.get("executable") == "controller":
+            entry["overrides"] = _controller_overrides(run.rate_hz, run.compensation, run.u_limits)
+            entry["parameters"] = [*entry.get("parameters", []), str(params)]
+        elif entry.get("executable") == "stage_driver":
+            entry["overrides"] = {**entry["overrides"], "stage_file": str(model_file)}
+        elif entry.get("executable") == "stage_loop":
+            entry["overrides"] = {
+                **entry.get("overrides", {}),
+                "coupling_compensation": run.coupling_compensation,
+            }
+        nodes.append(entry)
+    data.update(nodes=nodes, namespace=namespace)
+    data["stage"] = str(run.plant_file or model_file)
+    data["description"] = f"a raster scan on the {run.graph} graph"
+    return data
+
+
+def _params_yaml(per_axis: dict[str, dict[str, Any]]) -> str:
+    import yaml
+
+    blocks = {f"/**/{axis}/controller": {"ros__parameters": v} for axis, v in per_axis.items()}
+    return yaml.safe_dump(blocks, sort_keys=False)
+
+
+def decode(
+    scan: RasterScan,
+    columns: tuple[dict[str, Any], dict[str, Any]],
+    learn: int,
+    tables: RasterTables | None,
+) -> RasterRun:
+    """The record of both axes as a :class:`RasterRun` on the fast axis's samples, t from the
+    scan's origin, ``learning`` from the first ``learn`` lines."""
+    fast, slow = columns
+    t0 = scan_origin(scan, columns)
+    keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
+    t = (fast["stamp"][keep] - t0) * 1e-9
+    slow_ok = np.isfinite(slow["reference"]) & np.isfinite(slow["displacement"])
+    ts = (slow["stamp"][slow_ok] - t0) * 1e-9
+    measured = np.vstack(
+        [fast["displacement"][keep], np.interp(t, ts, slow["displacement"][slow_ok])]
+    )
+    desired = np.vstack([fast["reference"][keep], np.interp(t, ts, slow["reference"][slow_ok])])
+    u = np.vstack([fast["u"][keep], np.interp(t, ts, slow["u"][slow_ok])])
+    return RasterRun(
+        scan, t, desired, measured, u, learning_history(scan, t, measured - desired, learn), tables
+    )
+
+
+def _origin_error(scan: RasterScan, columns: tuple[dict[str, Any], ...], t0: int) -> float:
+    """[m] the largest difference between an axis's recorded set points and its axis of the
+    scan from ``t0`` [ns], time computed as the controller computes it."""
+    worst = 0.0
+    for index, column in enumerate(columns):
+        stepped = np.isfinite(column["reference"])
+        t = column["stamp"][stepped] * 1e-9 - t0 * 1e-9
+        error = np.abs(ScanAxis(scan, index).evaluate(t)[0] - column["reference"][stepped])
+        worst = max(worst, float(error.max()))
+    return worst
+
+
+def scan_origin(scan: RasterScan, columns: tuple[dict[str, Any], ...]) -> int:
+    """[ns] the scan's time origin: the loop starts every axis from the earliest sample of the
+    cycle in which all are ready (a sample it may not step on: an axis whose first sample
+    was refused steps later), so the origin is the stamp of a recorded sample at or before
+    the first stepped one; the one from which both axes' set points are the scan's.
+    :class:`ExperimentError` when none is (the record missed the start)."""
+    stepped = [np.isfinite(c["reference"]) for c in columns]
+    if not all(s.any() for s in stepped):
+        raise ExperimentError("the record holds no stepped sample of one of the axes")
+    first = min(int(c["stamp"][s][0]) for c, s in zip(columns, stepped))
+    stamps = np.unique(np.concatenate([c["stamp"] for c in columns]))
+    candidates = stamps[(stamps <= first) & (stamps >= first - ORIGIN_SEARCH_NS)][::-1]
+    errors = []
+    for t0 in candidates:
+        errors.append(_origin_error(scan, columns, int(t0)))
+        if errors[-1] <= ORIGIN_TOLERANCE:
+            return int(t0)
+    raise ExperimentError(
+        "the recorded set points do not follow the scan from any sample of the loop's first "
+        f"cycle (off by {min(errors) * 1e9:.3g} nm at best): the record missed the start"
+    )
+
+
+def run_on_graph(
+    run: GraphRun,
+    folder: Path,
+    progress: Progress,
+    *,
+    wall_timeout: float = 600.0,
+    bag: Path | None = None,
+) -> RasterRun:
+    """Launch the graph, record every sample of the two scan axes over the run's frames, and
+    decode them; the learned fast table (if it learned) replaces the one given. ``bag``: the
+    record (each axis's ``loop_samples`` and ``controller_state``) written there."""
+    from piezo_stage.bag.reader import loop_columns
+    from piezo_stage_msgs.msg import ControllerState, LoopSamples
+
+    from .harness import HarnessError, Raw, Stream, record
+
+    namespace = f"/raster_{os.getpid()}_{folder.name.replace('-', '_')}"
+    graph = device_graph(run, folder, namespace)
+    scan, learn, tables, graph_name = run.scan, run.learn, run.tables, run.graph
+    axes = run.model.names[:2]
+    seconds = device_seconds(scan, learn)
+    topics = [f"{a}/loop_samples" for a in axes]
+    streams = [Stream(t, LoopSamples, reliable=True, depth=1000) for t in topics]
+    # every controller waits for its state's subscriber: the recorder sees the first step
+    streams += [Stream(f"{a}/controller_state", ControllerState) for a in axes]
+
+    def done_seconds(raw: Any) -> float:
+        items = raw[topics[0]]
+        return (items[-1][0] - items[0][0]) * 1e-9 if items else 0.0
+
+    def note(raw: Raw) -> None:
+        done = done_seconds(raw)
+        progress(min(done / seconds, 1.0), f"scanning on the {graph_name} graph: {done:.1f} s")
+
+    try:
+        recording = record(
+            graph,
+            streams,
+            lambda raw: done_seconds(raw) >= seconds + 0.05,
+            wall_timeout=wall_timeout,
+            data_timeout=60.0,
+            required=topics,
+            progress=note,
+            node_name="raster",
+        )
+    except HarnessError as exc:
+        raise ExperimentError(f"raster on the {graph_name} graph: {exc.with_output()}") from None
+    from rclpy.serialization import deserialize_message
+
+    if bag is not None:  # under /raster, as a simulated run's bag
+        types = {s.topic: _TYPES[s.msg_type.__name__] for s in streams}
+        replace(recording, namespace=BAG_NAMESPACE).write_bag(bag, types, sort=True)
+    columns = tuple(
+        loop_columns((deserialize_message(d, LoopSamples) for _, d in recording.raw[t]), t)
+        for t in topics
+    )
+    learned = folder / f"learned_{axes[0]}.json"
+    if learn and tables is not None and learned.exists():
+        try:
+            tables = RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
+        except LearningError as exc:
+            raise ExperimentError(f"the learned table: {exc}") from None
+    result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
+    if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
+        raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
+    return result

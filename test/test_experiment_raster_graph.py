@@ -1,0 +1,107 @@
+"""A raster through a scanner's loop graph, the parts that need no devices: the graph each run
+launches (its files, each axis's controller block) and the record decoded into the run, its
+time origin checked against the set points."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from piezo_stage.config_path import find_config
+from piezo_stage.control.raster import raster_tables
+from piezo_stage.control.scan import RasterScan, ScanAxis
+from piezo_stage.experiments.errors import ExperimentError
+from piezo_stage.experiments.raster_graph import GraphRun, decode, device_graph, device_seconds
+from piezo_stage.model.stage_file import load_stage
+
+pytestmark = pytest.mark.unit
+
+SCAN = RasterScan(4, 16, 2.0, (10e-6, 4e-6), (20e-6, 10e-6))
+STAGE = load_stage(find_config("xy_scanner.yaml"))
+
+
+def test_each_axis_controller_follows_its_axis_of_the_scan_with_its_table(tmp_path):
+    tables = raster_tables(SCAN, STAGE, 1000.0)
+    run = GraphRun("emulated_scanner", SCAN, STAGE, None, tables, 1000.0, "both", True, 6, (0, 400))
+    graph = device_graph(run, tmp_path, "/r")
+    nodes = {e.get("executable") or e.get("name"): e for e in graph["nodes"]}
+    controller = nodes["controller"]
+    assert controller["overrides"]["reference_source"] == "trajectory"
+    assert controller["overrides"]["u_max"] == 400.0
+    blocks = yaml.safe_load((tmp_path / "raster_params.yaml").read_text())
+    assert str(tmp_path / "raster_params.yaml") in controller["parameters"]
+    x, y = (
+        blocks["/**/x/controller"]["ros__parameters"],
+        blocks["/**/y/controller"]["ros__parameters"],
+    )
+    assert ScanAxis.read(x["trajectory"]) == ScanAxis(SCAN, 0)
+    assert ScanAxis.read(y["trajectory"]) == ScanAxis(SCAN, 1)
+    assert (x["learn_periods"], y["learn_periods"]) == (6, 0) and "feedforward_table_out" in x
+    assert (tmp_path / "model_x.yaml").exists() and (tmp_path / "model_y.yaml").exists()
+    # the driver loads the model stage (the coupling it compensates); the emulator the plant
+    assert nodes["stage_driver"]["overrides"]["stage_file"] == str(tmp_path / "model.yaml")
+    assert graph["stage"] == str(tmp_path / "model.yaml")
+    assert nodes["stage_loop"]["overrides"]["coupling_compensation"] is True
+    # 6 learning lines (3 s) end in the second 2.5 s frame: a whole frame after it, 3 frames
+    assert device_seconds(SCAN, 6) == pytest.approx(3 * SCAN.frame_time)
+
+
+def _record(t0_ns: int, shift_ns: int = 0, seconds: float = 5.0):
+    """Both axes sampled at 1 kHz, the slow one 0.4 ms after the fast one, set points from
+    ``t0_ns + shift_ns``, positions the set points plus 1 nm."""
+    columns = []
+    for index, offset in ((0, 0), (1, 400_000)):
+        stamp = t0_ns + offset + np.arange(int(seconds * 1000), dtype=np.int64) * 1_000_000
+        t = stamp * 1e-9 - (t0_ns + shift_ns) * 1e-9
+        reference = ScanAxis(SCAN, index).evaluate(t)[0]
+        columns.append(
+            {
+                "stamp": stamp,
+                "reference": reference,
+                "displacement": reference + 1e-9,
+                "u": np.zeros(stamp.size),
+            }
+        )
+    return tuple(columns)
+
+
+def test_the_record_becomes_the_run_on_the_fast_axis_samples():
+    run = decode(SCAN, _record(1_700_000_000_123_456_789), 4, None)
+    assert run.t[0] == 0.0 and np.allclose(np.diff(run.t), 1e-3)
+    np.testing.assert_allclose(run.measured - run.desired, 1e-9, rtol=1e-6)
+    assert len(run.learning) == 4 and np.isnan(run.learning[0][0])  # the first line: fly-back
+    assert run.learning[1][0] == pytest.approx(1e-9, rel=1e-6)
+    keep = run.last_frame()
+    assert run.t[keep][0] == pytest.approx(SCAN.frame_time) and keep.sum() == 2500
+
+
+def test_set_points_from_another_origin_are_refused():
+    """A record whose first cycle is missing: the set points do not start where it does."""
+    with pytest.raises(ExperimentError, match="do not follow the scan"):
+        decode(SCAN, _record(1_700_000_000_123_456_789, shift_ns=-3_000_000), 4, None)
+
+
+def test_on_a_real_scanner_the_devices_come_from_their_params_file(tmp_path):
+    """rig_scanner: no emulator; the driver and readers keep config/scanner_devices.yaml, the
+    controllers get the scan's blocks after it."""
+    run = GraphRun("rig_scanner", SCAN, STAGE, None, None, 1000.0, "feedback", False, 0, (0, 100))
+    graph = device_graph(run, tmp_path, "/r")
+    assert not any("command" in e for e in graph["nodes"])
+    nodes = {e["executable"]: e for e in graph["nodes"]}
+    assert nodes["stage_driver"]["parameters"] == ["scanner_devices.yaml"]
+    assert nodes["controller"]["parameters"] == [str(tmp_path / "raster_params.yaml")]
+    x = yaml.safe_load((tmp_path / "raster_params.yaml").read_text())["/**/x/controller"]
+    assert "feedforward_table" not in x["ros__parameters"]  # feedback: no table
+    assert nodes["controller"]["overrides"]["compensation"] == "feedback"
+
+
+def test_the_origin_is_found_when_the_first_sample_was_not_stepped_on():
+    """The loop's first cycle started both axes from the fast axis's sample, on which the
+    fast axis did not step (its first sample was refused): the origin is still found."""
+    t0 = 1_700_000_000_123_456_789
+    columns = _record(t0)
+    columns[0]["reference"][0] = np.nan  # recorded, not stepped
+    run = decode(SCAN, columns, 4, None)
+    # the run's time starts at the origin: the fast axis's first kept sample 1 ms after it
+    assert run.t[0] == pytest.approx(1e-3)
