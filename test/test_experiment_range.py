@@ -18,6 +18,7 @@ from piezo_stage.experiments.tracking import (
     TrackingSpec,
     check_voltage_range,
     make_tracking_plan,
+    plan_tracking,
     rig_amplifier_range,
     run_amplifier_range,
 )
@@ -53,13 +54,13 @@ def _spec(model, graph: str, **kw) -> TrackingSpec:
 @pytest.mark.unit
 def test_both_graphs_have_the_emulated_rigs_amplifier_and_the_same_default_offset(model):
     assert rig_amplifier_range() == (0.0, 400.0)  # config/graphs/emulated_rig.yaml's driver
-    plan = make_tracking_plan(TrackingSpec(), "")
+    plan = make_tracking_plan(plan_tracking(TrackingSpec()), "")
     assert (plan.plant["v_min"], plan.plant["v_max"]) == (0.0, 400.0)
     assert (plan.controller["u_min"], plan.controller["u_max"]) == (0.0, 400.0)
     assert plan.controller["trajectory_offset"] == pytest.approx(16e-6)  # x_d from 6 µm up
     assert plan.plant["initial_displacement"] == pytest.approx(6e-6)
     for graph in GRAPHS:
-        assert run_amplifier_range(_spec(model, graph)) == (0.0, 400.0), graph
+        assert run_amplifier_range(plan_tracking(_spec(model, graph))) == (0.0, 400.0), graph
 
 
 @pytest.mark.unit
@@ -88,9 +89,9 @@ def test_the_over_range_request_is_refused_on_both_graphs_in_one_line(
     assert 7e-6 < best < 9.5e-6
     # what the line proposes fits; 1 % more does not
     fits = _spec(model, graph, amplitude=best, offset=26e-6)
-    check_voltage_range(fits, run_amplifier_range(fits))
+    check_voltage_range(plan_tracking(fits), run_amplifier_range(plan_tracking(fits)))
     with pytest.raises(ExperimentInputError, match="largest amplitude"):
-        check_voltage_range(replace(fits, amplitude=1.01 * best), (0.0, 400.0))
+        check_voltage_range(plan_tracking(replace(fits, amplitude=1.01 * best)), (0.0, 400.0))
 
 
 @pytest.mark.unit
@@ -102,25 +103,25 @@ def test_the_refusal_fires_iff_the_need_leaves_the_range(model):
             spec = _spec(model, "sim", amplitude=amplitude, offset=offset)
             fits = rng.admits(voltage_need(ff, spec.make_trajectory()))
             try:
-                check_voltage_range(spec, (0.0, 400.0))
+                check_voltage_range(plan_tracking(spec), (0.0, 400.0))
                 refused = False
             except ExperimentInputError:
                 refused = True
             assert refused != fits, (amplitude, offset)
     # the default request (10 µm from 6 µm) fits, and so does the 100 Hz sine of the README
-    check_voltage_range(_spec(model, "sim"), (0.0, 400.0))
-    check_voltage_range(
-        _spec(model, "sim", trajectory="sine", amplitude=5e-6, frequency=100.0), (0.0, 400.0)
-    )
+    check_voltage_range(plan_tracking(_spec(model, "sim")), (0.0, 400.0))
+    sine = _spec(model, "sim", trajectory="sine", amplitude=5e-6, frequency=100.0)
+    check_voltage_range(plan_tracking(sine), (0.0, 400.0))
     # no model (feedback alone): nothing to check against
-    check_voltage_range(TrackingSpec(amplitude=1.0, compensation="feedback"), (0.0, 400.0))
+    feedback = TrackingSpec(amplitude=1.0, compensation="feedback")
+    check_voltage_range(plan_tracking(feedback), (0.0, 400.0))
 
 
 @pytest.mark.unit
 def test_an_offset_that_alone_needs_too_much_says_so(model):
     spec = _spec(model, "sim", amplitude=5e-6, offset=45e-6)
     with pytest.raises(ExperimentInputError, match="no amplitude at offset 4.5e-05 m"):
-        check_voltage_range(spec, (0.0, 400.0))
+        check_voltage_range(plan_tracking(spec), (0.0, 400.0))
 
 
 @pytest.mark.ros
@@ -132,7 +133,7 @@ def test_the_sim_plant_applies_the_clamped_voltage(node):
 
     from ros_support import spin_until, start_node, stop
 
-    plant = make_tracking_plan(TrackingSpec(), "").plant
+    plant = make_tracking_plan(plan_tracking(TrackingSpec()), "").plant
     proc = start_node(
         "plant",
         "model_file:=ch10_patch.yaml",

@@ -10,7 +10,12 @@ import pytest
 
 from piezo_stage.bag.reader import read_messages
 from piezo_stage.experiments.errors import ExperimentInputError
-from piezo_stage.experiments.tracking import TrackingSpec, identify_model, make_tracking_plan
+from piezo_stage.experiments.tracking import (
+    TrackingSpec,
+    identify_model,
+    make_tracking_plan,
+    plan_tracking,
+)
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +35,7 @@ def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
         compensation="both",
         model=str(model),
     )
-    plan = make_tracking_plan(spec, str(model))
+    plan = make_tracking_plan(plan_tracking(spec), str(model))
     assert plan.rate_hz == 100e3 and plan.spectral_radius < 1
     assert plan.duration == pytest.approx(0.03)  # three periods
     assert plan.plant["initial_displacement"] == pytest.approx(3e-6)  # x_d(0) = offset - amplitude
@@ -40,7 +45,7 @@ def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
     assert c["trajectory"] == "sine" and c["trajectory_offset"] == 8e-6
     assert c["hold_voltage"] == plan.plant["initial_voltage"]
     # no offset: x_d from 6 µm up (the amplifier's 0 V floor), on both graphs
-    offset = make_tracking_plan(TrackingSpec(), "").controller["trajectory_offset"]
+    offset = make_tracking_plan(plan_tracking(TrackingSpec()), "").controller["trajectory_offset"]
     assert offset == pytest.approx(16e-6)
     for bad, match in (
         (dict(compensation="inverse"), "compensation"),
@@ -50,7 +55,7 @@ def test_plan_starts_the_plant_at_rest_on_x_d_and_refuses_bad_input(model):
         (dict(plant_model="no_such_rig.yaml"), "not found"),
     ):
         with pytest.raises(ExperimentInputError, match=match):
-            make_tracking_plan(TrackingSpec(**bad), "")
+            make_tracking_plan(plan_tracking(TrackingSpec(**bad)), "")
 
 
 @pytest.mark.ros
@@ -137,7 +142,7 @@ def test_rates_tables_and_learning_that_cannot_run_are_refused(model, tmp_path, 
         (["--trajectory", str(csv), "--learn", "5"], "periodic trajectory"),
         (["--rate-hz", "1000", "--table", str(table)], "holds 50 samples"),
         (["--graph", "emulated_rig", "--rate-hz", "2000"], "1000 or 10000"),
-        (["--compensation", "feedback", "--learn", "5"], "learn_periods needs compensation"),
+        (["--compensation", "feedback", "--learn", "5"], "--learn needs a feedforward"),
     ):
         assert main(base + extra) == 2, extra
         assert reason in capsys.readouterr().err

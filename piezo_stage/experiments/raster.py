@@ -45,9 +45,10 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage_file import Stage, load_stage
 
 from .errors import ExperimentError, ExperimentInputError
+from .experiment_plan import ExperimentPlan
 from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, EMULATED_RATE, GraphRun, run_on_graph
 
-__all__ = ["GRAPHS", "RasterSpec", "run_raster"]
+__all__ = ["GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
 
 #: the graphs the raster runs on
 GRAPHS = ("sim_scanner", *DEVICE_GRAPHS)
@@ -57,7 +58,7 @@ Progress = Callable[[float, str], None]
 
 @dataclass(frozen=True)
 class RasterSpec:
-    """A raster experiment, checked at the door (:meth:`check`)."""
+    """A raster experiment as asked (checked at the door into a :class:`RasterPlan`)."""
 
     stage: Path  #: the model the controllers use
     plant_stage: Path | None = None  #: the simulated scanner (None: ``stage``)
@@ -99,38 +100,37 @@ class RasterSpec:
 
 
 @dataclass(frozen=True)
-class _Checked:
+class RasterPlan:
+    """A raster experiment checked at the door (:func:`plan_raster`): what its runs take,
+    every file loaded once; ``tables`` the model's (or the ones given) unless feedback only.
+    """
+
+    common: ExperimentPlan
     scan: RasterScan
     model: Stage
     plant: Stage
     sample: Sample
     tables: RasterTables | None
+    amplifier: tuple[float, float]  #: [V]
+    plant_file: Path | None  #: the emulated stage (None: the model's)
+    coupling_compensation: bool
+
+    @property
+    def axes(self) -> tuple[str, str]:
+        """The fast and the slow axis: the stage's first two."""
+        return self.model.names[0], self.model.names[1]
 
 
-def _check_options(spec: RasterSpec) -> None:
-    """The options alone: the graph, the rate it can run, learning, the bag."""
-    if spec.graph not in GRAPHS:
-        raise ExperimentInputError(f"--graph {spec.graph}: the raster runs on {', '.join(GRAPHS)}")
-    if not (math.isfinite(spec.rate_hz) and spec.rate_hz > 0):
-        raise ExperimentInputError(f"--rate-hz must be > 0, got {spec.rate_hz}")
+def plan_raster(spec: RasterSpec) -> RasterPlan:
+    """Everything that can be refused before anything moves, and the plan the runs take."""
+    common = ExperimentPlan.checked(
+        spec.graph, GRAPHS, spec.rate_hz, spec.compensation, spec.learn, spec.bag
+    )
     if spec.graph == "emulated_scanner" and spec.rate_hz != EMULATED_RATE:
         raise ExperimentInputError(
             f"--rate-hz {spec.rate_hz:g}: the emulated scanner's sensors sample at "
             f"{EMULATED_RATE:g} Hz, the rate of its loop"
         )
-    if spec.learn < 0:
-        raise ExperimentInputError(f"--learn must be >= 0, got {spec.learn}")
-    if spec.bag is not None and spec.bag.exists():
-        raise ExperimentInputError(f"--bag {spec.bag} already exists")
-    if spec.learn and spec.compensation is Compensation.FEEDBACK:
-        raise ExperimentInputError(
-            "--learn needs a feedforward: --compensation both or feedforward"
-        )
-
-
-def _check(spec: RasterSpec) -> _Checked:
-    """Everything that can be refused before anything moves."""
-    _check_options(spec)
     scan = spec.scan()
     try:
         scan.check_rate(spec.rate_hz, spec.min_samples_per_line)
@@ -147,19 +147,30 @@ def _check(spec: RasterSpec) -> _Checked:
     if len(model.axes) < 2:
         raise ExperimentInputError(f"a raster needs two axes; {spec.stage} has {model.names}")
     axes = (model.names[0], model.names[1])
+    amplifier = amplifier_range(spec.graph)
     try:
         if tables is not None and tables.matches(scan, spec.rate_hz):
             raise ExperimentInputError(
                 f"--table {spec.table}: {tables.matches(scan, spec.rate_hz)}"
             )
-        if spec.compensation is not Compensation.FEEDBACK:
+        if common.compensation is not Compensation.FEEDBACK:
             tables = tables or raster_tables(
                 scan, model, spec.rate_hz, axes=axes, compensate_coupling=spec.coupling_compensation
             )
-            check_voltage_need(tables, amplifier_range(spec.graph))
+            check_voltage_need(tables, amplifier)
     except ControlError as exc:
         raise ExperimentInputError(f"scan: {exc}") from None
-    return _Checked(scan, model, plant, sample, tables)
+    return RasterPlan(
+        common,
+        scan,
+        model,
+        plant,
+        sample,
+        tables,
+        amplifier,
+        spec.plant_stage,
+        spec.coupling_compensation,
+    )
 
 
 def amplifier_range(graph: str) -> tuple[float, float]:
@@ -198,77 +209,81 @@ def _figures(run: RasterRun, sample: Sample) -> dict[str, Any]:
     }
 
 
-def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, Any]:
-    """Check, run, and return the JSON-ready summary: per axis (named as the stage names
-    them) its RMS and largest error over the image windows and its range [m], the image's
-    distortion [pixels], each learning line's RMS error per axis [m], the PNGs written; with
-    ``png`` the feedback-only run (and without learning, with ``learn``) beside it."""
-    checked = _check(spec)
-    say = progress or (lambda fraction, text: None)
-    axes = (checked.model.names[0], checked.model.names[1])
-    started = time.monotonic()
-
-    def one(
-        compensation: Compensation,
-        coupling: bool,
-        learn: int,
-        tables: RasterTables | None,
-        bag: Path | None = None,
-    ) -> RasterRun:
-        if spec.graph in DEVICE_GRAPHS:
-            if compensation is not Compensation.FEEDBACK and tables is None:
-                tables = raster_tables(
-                    checked.scan,
-                    checked.model,
-                    spec.rate_hz,
-                    axes=axes,
-                    compensate_coupling=coupling,
-                )
-            run = GraphRun(
-                spec.graph,
-                checked.scan,
-                checked.model,
-                spec.plant_stage,
-                tables if compensation is not Compensation.FEEDBACK else None,
-                spec.rate_hz,
-                compensation.value,
-                coupling,
-                learn,
-                amplifier_range(spec.graph),
-            )
-            with tempfile.TemporaryDirectory(prefix="piezo_raster_") as folder:
-                return run_on_graph(run, Path(folder), say, bag=bag)
+def _one_run(
+    plan: RasterPlan,
+    compensation: Compensation,
+    coupling: bool,
+    learn: int,
+    tables: RasterTables | None,
+    say: Progress,
+    bag: Path | None = None,
+) -> RasterRun:
+    """One run of the plan's scan under ``compensation`` (``tables``: None, the model's)."""
+    graph, rate = plan.common.graph, plan.common.rate_hz
+    if graph not in DEVICE_GRAPHS:
         return raster_run(
-            checked.scan,
-            checked.model,
-            checked.plant,
-            spec.rate_hz,
-            axes=axes,
+            plan.scan,
+            plan.model,
+            plan.plant,
+            rate,
+            axes=plan.axes,
             compensation=compensation,
             compensate_coupling=coupling,
             learn_lines=learn,
             tables=tables,
             progress=say,
         )
-
-    try:
-        run = one(
-            spec.compensation, spec.coupling_compensation, spec.learn, checked.tables, spec.bag
+    feedforward = compensation is not Compensation.FEEDBACK
+    if feedforward and tables is None:
+        tables = raster_tables(
+            plan.scan, plan.model, rate, axes=plan.axes, compensate_coupling=coupling
         )
-        if spec.bag is not None and spec.graph not in DEVICE_GRAPHS:
-            write_bag(run, spec.bag, axes)
+    run = GraphRun(
+        graph,
+        plan.scan,
+        plan.model,
+        plan.plant_file,
+        tables if feedforward else None,
+        rate,
+        compensation.value,
+        coupling,
+        learn,
+        plan.amplifier,
+    )
+    with tempfile.TemporaryDirectory(prefix="piezo_raster_") as folder:
+        return run_on_graph(run, Path(folder), say, bag=bag)
+
+
+def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, Any]:
+    """Check (:func:`plan_raster`), run, and return the JSON-ready summary: per axis (named as
+    the stage names them) its RMS and largest error over the image windows and its range [m],
+    the image's distortion [pixels], each learning line's RMS error per axis [m], the PNGs
+    written; with ``png`` the feedback-only run (and without learning, with ``learn``) beside
+    it."""
+    plan = plan_raster(spec)
+    common, axes = plan.common, plan.axes
+    say = progress or (lambda fraction, text: None)
+    started = time.monotonic()
+    coupling = plan.coupling_compensation
+    try:
+        run = _one_run(
+            plan, common.compensation, coupling, common.learn, plan.tables, say, common.bag
+        )
+        if common.bag is not None and common.graph not in DEVICE_GRAPHS:
+            write_bag(run, common.bag, axes)
         others: list[tuple[str, RasterRun]] = []
         if spec.png is not None:
             say(0.0, "the same frame under feedback alone, for the figures")
-            others.append(("feedback only", one(Compensation.FEEDBACK, False, 0, None)))
-            if spec.learn:
-                others.append(
-                    ("before learning", one(spec.compensation, spec.coupling_compensation, 0, None))
-                )
+            others.append(
+                ("feedback only", _one_run(plan, Compensation.FEEDBACK, False, 0, None, say))
+            )
+            if common.learn:
+                before = _one_run(plan, common.compensation, coupling, 0, None, say)
+                others.append(("before learning", before))
     except ControlError as exc:
         raise ExperimentError(f"raster: {exc}") from None
     wall = time.monotonic() - started
-    summary = _figures(run, checked.sample)
+    summary = _figures(run, plan.sample)
     summary["axes"] = dict(zip(axes, summary["axes"].values()))
     summary.update(
         # a line period with no image window (a fly-back) has no figure: null, not NaN (JSON)
@@ -276,22 +291,22 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
             {a: (v if math.isfinite(v) else None) for a, v in zip(axes, rms)}
             for rms in run.learning
         ],
-        lines=spec.lines,
-        pixels=spec.pixels,
-        line_rate=spec.line_rate,
-        rate_hz=spec.rate_hz,
-        frame_time=checked.scan.frame_time,
-        graph=spec.graph,
+        lines=plan.scan.lines,
+        pixels=plan.scan.pixels,
+        line_rate=plan.scan.line_rate,
+        rate_hz=common.rate_hz,
+        frame_time=plan.scan.frame_time,
+        graph=common.graph,
         wall_time=wall,
         png=[],
     )
-    if spec.bag is not None:
-        summary["bag"] = str(spec.bag)
+    if common.bag is not None:
+        summary["bag"] = str(common.bag)
     if spec.table_out is not None and run.tables is not None:
         run.tables.save(spec.table_out)
         summary["table_out"] = str(spec.table_out)
     if spec.png is not None:
-        summary["png"] = [str(p) for p in _plots(spec, checked, run, others, axes)]
+        summary["png"] = [str(p) for p in _plots(spec.png, plan, run, others)]
     return summary
 
 
@@ -328,37 +343,33 @@ def write_bag(run: RasterRun, path: Path, axes: tuple[str, str]) -> None:
 
 
 def _plots(
-    spec: RasterSpec,
-    checked: _Checked,
-    run: RasterRun,
-    others: list[tuple[str, RasterRun]],
-    axes: tuple[str, str],
+    folder: Path, plan: RasterPlan, run: RasterRun, others: list[tuple[str, RasterRun]]
 ) -> list[Path]:
     from piezo_stage.plotting import scan_images_figure, scan_lines_figure
 
-    assert spec.png is not None
-    spec.png.mkdir(parents=True, exist_ok=True)
-    label = "after learning" if spec.learn else spec.compensation.value
+    folder.mkdir(parents=True, exist_ok=True)
+    common, axes = plan.common, plan.axes
+    label = "after learning" if common.learn else common.compensation.value
     runs = [*others, (label, run)]  # feedback only, (before learning,) the run
-    images = [(name, r.image(checked.sample)) for name, r in runs]
-    scan = checked.scan
+    images = [(name, r.image(plan.sample)) for name, r in runs]
+    scan = plan.scan
     r, c = scan.range, scan.centre
     extent = (c[0] - r[0] / 2, c[0] + r[0] / 2, c[1] - r[1] / 2, c[1] + r[1] / 2)
     title = (
         f"{scan.lines} lines at {scan.line_rate:g} Hz, {scan.pixels} pixels, "
-        f"{spec.rate_hz:g} Hz loop"
+        f"{common.rate_hz:g} Hz loop"
     )
     return [
         scan_images_figure(
-            spec.png / "raster_images.png",
+            folder / "raster_images.png",
             images[-1][1].ideal,
             [(name, im.image) for name, im in images],
             extent,
             title=title,
         ),
         scan_lines_figure(
-            spec.png / "raster_lines.png",
-            [(name, r.figures(checked.sample).line_rms) for name, r in runs],
+            folder / "raster_lines.png",
+            [(name, r.figures(plan.sample).line_rms) for name, r in runs],
             (f"{axes[0]} (fast)", f"{axes[1]} (slow)"),
             title=title,
         ),

@@ -69,6 +69,7 @@ from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, sa
 from piezo_stage.nodes.controller_params import PARAMETERS as CONTROLLER
 
 from .errors import ExperimentError, ExperimentInputError
+from .experiment_plan import ExperimentPlan
 from .harness import (
     ControllerStates,
     HarnessError,
@@ -245,13 +246,14 @@ def _load(source: str | ParameterSet, what: str) -> ParameterSet:
         raise ExperimentInputError(f"{what} {source}: {exc}") from exc
 
 
-def _model_file(spec: TrackingSpec, folder: Path) -> str:
-    """The feedforward model as a file the controller node can load ('' under feedback; the
-    controller's setup says what a missing or unusable one lacks)."""
-    if spec.compensation is Compensation.FEEDBACK or spec.model is None:
+def _model_file(plan: TrackingPlan, folder: Path) -> str:
+    """The feedforward model (loaded at the door) as a file the controller node loads ('' under
+    feedback; the controller's setup says what a missing or unusable one lacks)."""
+    if plan.model is None:
         return ""
     path = folder / "feedforward_model.yaml"
-    save_parameter_set(_load(spec.model, "model"), path)
+    if not path.exists():  # a run and its twin share it
+        save_parameter_set(plan.model, path)
     return str(path)
 
 
@@ -318,17 +320,66 @@ def _controller(
     return node_overrides("controller", controller | dict(spec.controller))
 
 
-def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | None = None) -> Plan:
-    """The lockstep plant + controller plan of one tracking run on the ``sim`` graph."""
+@dataclass(frozen=True)
+class TrackingPlan:
+    """A tracking experiment checked at the door (:func:`plan_tracking`): the spec, the
+    trajectory built once, the models loaded once, the run's timing and its loop's spectral
+    radius; every step of the run takes it."""
+
+    common: ExperimentPlan
+    spec: TrackingSpec
+    trajectory: Trajectory
+    model: ParameterSet | None  #: the feedforward's (None under feedback or without one)
+    plant: ParameterSet
+    seconds: float  #: run
+    t_from: float  #: where the measured part starts
+    radius: float  #: the sampled loop's spectral radius
+
+    def feedback_twin(self) -> "TrackingPlan":
+        """The same run under feedback alone (no model, no learning, no table)."""
+        feedback = Compensation.FEEDBACK
+        spec = replace(self.spec, compensation=feedback, learn=0, table=None, table_out=None)
+        common = replace(self.common, compensation=feedback, learn=0, bag=None)
+        return replace(self, common=common, spec=spec, model=None)
+
+
+def plan_tracking(
+    spec: TrackingSpec, duration: float | None = None, bag: str | os.PathLike[str] | None = None
+) -> TrackingPlan:
+    """Check ``spec`` (:class:`ExperimentInputError`, one line, for what cannot run) and make
+    the plan its runs take; ``duration`` [s] replaces the spec's timing."""
+    common = ExperimentPlan.checked(
+        spec.graph,
+        [g.value for g in Graph],
+        spec.rate_hz,
+        spec.compensation,
+        spec.learn,
+        None if bag is None else Path(bag),
+    )
     radius = _check(spec)
     trajectory = spec.make_trajectory()
-    plant_ps = _load(spec.plant_model, "plant model")
+    seconds, t_from = spec.timing(trajectory)
+    uses_model = spec.model is not None and spec.compensation is not Compensation.FEEDBACK
+    return TrackingPlan(
+        common,
+        spec,
+        trajectory,
+        _load(spec.model, "model") if uses_model else None,  # type: ignore[arg-type]
+        _load(spec.plant_model, "plant model"),
+        seconds if duration is None else float(duration),
+        t_from,
+        radius,
+    )
+
+
+def make_tracking_plan(plan: TrackingPlan, model_file: str) -> Plan:
+    """The lockstep plant + controller plan of one tracking run on the ``sim`` graph."""
+    spec, trajectory, plant_ps = plan.spec, plan.trajectory, plan.plant
     if plant_ps.dynamics is None:
         raise ExperimentInputError(
             f"plant model {spec.plant_model} is static: the loop needs the dynamic form (11.1)"
         )
-    rate = float(spec.rate_hz)
-    duration = spec.timing(trajectory)[0] if duration is None else duration
+    rate = plan.common.rate_hz
     x_start = float(trajectory.evaluate(0.0)[0])
     bw = plant_ps.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
@@ -355,7 +406,13 @@ def make_tracking_plan(spec: TrackingSpec, model_file: str, duration: float | No
         u_max=v_max,
     )
     return Plan(
-        "tracking", spec.mode, rate, radius, duration, node_overrides("plant", plant), controller
+        "tracking",
+        spec.mode,
+        rate,
+        plan.radius,
+        plan.seconds,
+        node_overrides("plant", plant),
+        controller,
     )
 
 
@@ -393,22 +450,22 @@ def graph_amplifier_range(
     return low, high
 
 
-def check_voltage_range(spec: TrackingSpec, amplifier: tuple[float, float]) -> None:
+def check_voltage_range(plan: TrackingPlan, amplifier: tuple[float, float]) -> None:
     """Refuse (:class:`ExperimentInputError`, one line) a trajectory whose voltage need by the
     feedforward model (the ch. 11 inverse model along x_d; no model: nothing to check) leaves
     ``amplifier`` less the PID's margin, naming the need, the range and the largest amplitude
     the range admits at the trajectory's offset (bisection)."""
-    if spec.model is None:
+    spec = plan.spec
+    if plan.model is None:
         return
     try:
         # feedforward alone: no law adds to u_ff, so no margin is kept for it
         share = 0.0 if spec.compensation is Compensation.FEEDFORWARD else PID_MARGIN
-        model = FeedforwardModel.from_parameter_set(_load(spec.model, "model"))
+        model = FeedforwardModel.from_parameter_set(plan.model)
         rng = AmplifierRange(*amplifier, margin_share=share)
     except ControlError as exc:
         raise ExperimentInputError(str(exc)) from exc
-    trajectory = spec.make_trajectory()
-    need = voltage_need(model, trajectory)
+    need = voltage_need(model, plan.trajectory)
     if rng.admits(need):
         return
     low, high = rng.usable
@@ -451,7 +508,7 @@ def _free_port() -> int:
 
 
 def emulated_rig_graph(
-    spec: TrackingSpec, model_file: str, namespace: str, folder: Path, port: int | None = None
+    plan: TrackingPlan, model_file: str, namespace: str, folder: Path, port: int | None = None
 ) -> tuple[dict[str, Any], float]:
     """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
     controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
@@ -459,9 +516,8 @@ def emulated_rig_graph(
     from piezo_stage.launch.graph import find_graph
     from piezo_stage.yaml_values import load_yaml
 
-    _check(spec)
-    trajectory = spec.make_trajectory()
-    rate = float(spec.rate_hz)
+    spec = plan.spec
+    rate = plan.common.rate_hz
     port, link = _free_port() if port is None else port, str(folder / "sensor")
     data = load_yaml(find_graph("emulated_rig").read_text())
     plant = str(find_config(spec.plant_model)) if isinstance(spec.plant_model, str) else ""
@@ -513,28 +569,28 @@ def emulated_rig_graph(
         "nodes": nodes,
         "description": f"tracking on the emulated rig ({spec.trajectory})",
     }
-    return graph, spec.timing(trajectory)[0]
+    return graph, plan.seconds
 
 
-def _rig_controller(spec: TrackingSpec, model_file: str, folder: Path) -> dict[str, Any]:
+def _rig_controller(plan: TrackingPlan, model_file: str, folder: Path) -> dict[str, Any]:
     """The controller's overrides in the run's emulated_rig graph."""
-    graph, _ = emulated_rig_graph(spec, model_file, "/check", folder, port=0)
+    graph, _ = emulated_rig_graph(plan, model_file, "/check", folder, port=0)
     entry = next(e for e in graph["nodes"] if e.get("executable") == "controller")
     return dict(entry["overrides"])
 
 
-def run_amplifier_range(spec: TrackingSpec) -> tuple[float, float]:
+def run_amplifier_range(plan: TrackingPlan) -> tuple[float, float]:
     """[V] the amplifier range the run's plan (sim) or graph (emulated_rig) sets."""
-    if spec.graph is Graph.SIM:
-        plan = make_tracking_plan(spec, "")
-        controller = {"executable": "controller", "overrides": plan.controller}
-        return graph_amplifier_range([controller], plan.plant)
-    graph, _ = emulated_rig_graph(spec, "", "/range", Path(tempfile.gettempdir()), port=0)
+    if plan.spec.graph is Graph.SIM:
+        sim = make_tracking_plan(plan, "")
+        controller = {"executable": "controller", "overrides": sim.controller}
+        return graph_amplifier_range([controller], sim.plant)
+    graph, _ = emulated_rig_graph(plan, "", "/range", Path(tempfile.gettempdir()), port=0)
     return graph_amplifier_range(graph["nodes"])
 
 
 def _run_once(
-    spec: TrackingSpec,
+    tracking: TrackingPlan,
     plan: Plan | None,
     model_file: str,
     folder: Path,
@@ -546,7 +602,7 @@ def _run_once(
         return run_plan(plan, namespace, progress, wall_timeout)
     from piezo_stage_msgs.msg import ControllerState
 
-    graph, seconds = emulated_rig_graph(spec, model_file, namespace, folder)
+    graph, seconds = emulated_rig_graph(tracking, model_file, namespace, folder)
 
     def note(raw: Raw) -> None:
         states = raw["controller_state"]
@@ -596,37 +652,32 @@ def run_tracking(
     duration: float | None = None,
     wall_timeout: float | None = None,
 ) -> dict[str, Any]:
-    """Run ``spec`` (and its feedback-only twin with ``compare``); return the JSON-ready summary."""
-    if bag is not None and Path(bag).exists():
-        raise ExperimentInputError(f"bag {bag} already exists")
-    trajectory = spec.make_trajectory()
-    seconds, t_from = spec.timing(trajectory)
-    if duration is not None:
-        seconds = duration
+    """Check ``spec`` (:func:`plan_tracking`), run it (and its feedback-only twin with
+    ``compare``); return the JSON-ready summary."""
+    plan = plan_tracking(spec, duration, bag)
     with tempfile.TemporaryDirectory(prefix="tracking_") as tmp:
         folder = Path(tmp)
-        prepared = [
-            _prepare(label, s, folder, seconds) for label, s in _runs_to_make(spec, compare)
-        ]
-        check_voltage_range(spec, run_amplifier_range(spec))
-        runs = _record_runs(prepared, folder, seconds, progress, wall_timeout)
+        prepared = [_prepare(label, p, folder) for label, p in _runs_to_make(plan, compare)]
+        check_voltage_range(plan, run_amplifier_range(plan))
+        runs = _record_runs(prepared, folder, progress, wall_timeout)
     states, recording = runs[spec.compensation]
-    out = _summary(spec, states, recording, t_from, trajectory)
+    out = _summary(plan, states, recording)
     fb_states = _feedback_states(spec, runs)
     if spec.table_out and spec.learn:
         out["table"] = str(spec.table_out)
     if fb_states is not None:
-        fb = _figures(fb_states, t_from)
+        fb = _figures(fb_states, plan.t_from)
         out["feedback"] = fb
         out["rms_ratio"] = out["rms_error"] / fb["rms_error"] if fb["rms_error"] > 0 else math.nan
-    if bag is not None:
-        recording.write_bag(bag, {"controller_state": STATE_TYPE})
-        out["bag"] = str(bag)
+    if plan.common.bag is not None:
+        recording.write_bag(plan.common.bag, {"controller_state": STATE_TYPE})
+        out["bag"] = str(plan.common.bag)
     if png_dir is not None:
-        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, t_from))]
+        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, plan.t_from))]
         if spec.learn:
+            period = plan.trajectory.period
             out["png"].append(
-                str(plot_learning(states, Path(png_dir), spec, trajectory.period, out["learning"]))
+                str(plot_learning(states, Path(png_dir), spec, period, out["learning"]))
             )
     if progress is not None:
         progress(
@@ -637,46 +688,43 @@ def run_tracking(
     return out
 
 
-def _runs_to_make(spec: TrackingSpec, compare: bool) -> list[tuple[str, TrackingSpec]]:
-    """The labelled specs to run: ``spec``, then with ``compare`` its feedback-only twin."""
-    specs: list[tuple[str, TrackingSpec]] = [(spec.compensation.value, spec)]
-    if compare and spec.compensation is not Compensation.FEEDBACK:
-        feedback = Compensation.FEEDBACK
-        twin = replace(spec, compensation=feedback, learn=0, table=None, table_out=None)
-        specs.append((feedback.value, twin))
-    return specs
+def _runs_to_make(plan: TrackingPlan, compare: bool) -> list[tuple[str, TrackingPlan]]:
+    """The labelled plans to run: ``plan``, then with ``compare`` its feedback-only twin."""
+    plans: list[tuple[str, TrackingPlan]] = [(plan.common.compensation.value, plan)]
+    if compare and plan.common.compensation is not Compensation.FEEDBACK:
+        plans.append((Compensation.FEEDBACK.value, plan.feedback_twin()))
+    return plans
 
 
 @dataclass(frozen=True)
 class _Run:
-    """One labelled run, ready: its spec, its model file and (sim) its plan."""
+    """One labelled run, ready: its plan, its model file and (sim) its lockstep plan."""
 
     label: str
-    spec: TrackingSpec
+    plan: TrackingPlan
     model_file: str
-    plan: Plan | None
+    sim: Plan | None
 
 
-def _prepare(label: str, spec: TrackingSpec, folder: Path, seconds: float) -> _Run:
-    """The run of ``spec``, checked as its controller will check it (refused here, before any
+def _prepare(label: str, plan: TrackingPlan, folder: Path) -> _Run:
+    """The run of ``plan``, checked as its controller will check it (refused here, before any
     run starts)."""
-    model_file = _model_file(spec, folder)
-    plan = make_tracking_plan(spec, model_file, seconds) if spec.graph is Graph.SIM else None
-    check_controller(plan.controller if plan else _rig_controller(spec, model_file, folder))
-    return _Run(label, spec, model_file, plan)
+    model_file = _model_file(plan, folder)
+    sim = make_tracking_plan(plan, model_file) if plan.spec.graph is Graph.SIM else None
+    check_controller(sim.controller if sim else _rig_controller(plan, model_file, folder))
+    return _Run(label, plan, model_file, sim)
 
 
 def _record_runs(
     prepared: list[_Run],
     folder: Path,
-    seconds: float,
     progress: Progress | None,
     wall_timeout: float | None,
 ) -> dict[str, tuple[ControllerStates, Recording]]:
     """Run each prepared run in turn: its states (rig: t from the first stamp) and recording."""
     runs: dict[str, tuple[ControllerStates, Recording]] = {}
     for run in prepared:
-        s, sim = run.spec, run.plan is not None
+        s, sim, seconds = run.plan.spec, run.sim is not None, run.plan.seconds
         if progress is not None:
             progress(
                 0.0,
@@ -687,19 +735,14 @@ def _record_runs(
         timeout = wall_timeout or (
             60.0 + seconds * s.rate_hz / 200.0 if sim else 120.0 + 3 * seconds
         )
-        recording = _run_once(s, run.plan, run.model_file, folder, progress, timeout)
+        recording = _run_once(run.plan, run.sim, run.model_file, folder, progress, timeout)
         runs[run.label] = (recording.states(relative=not sim), recording)
     return runs
 
 
-def _summary(
-    spec: TrackingSpec,
-    states: ControllerStates,
-    recording: Recording,
-    t_from: float,
-    trajectory: Trajectory,
-) -> dict[str, Any]:
-    """The JSON-ready figures of the run of ``spec`` (its settings, errors, learning, timing)."""
+def _summary(plan: TrackingPlan, states: ControllerStates, recording: Recording) -> dict[str, Any]:
+    """The JSON-ready figures of the run of ``plan`` (its settings, errors, learning, timing)."""
+    spec, period = plan.spec, plan.trajectory.period
     return {
         "experiment": "tracking",
         "graph": spec.graph,
@@ -711,13 +754,13 @@ def _summary(
         "rate_hz": float(spec.rate_hz),
         "duration": float(states.t[-1]) if states.t.size else 0.0,
         "samples": int(states.t.size),
-        "measured_from": t_from,
+        "measured_from": plan.t_from,
         "plant_model": str(spec.plant_model),
         "model": spec.model
         if isinstance(spec.model, str) or spec.model is None
         else spec.model.name,
-        **_figures(states, t_from),
-        "learning": _period_rms(states, trajectory.period, spec.learn) if spec.learn else [],
+        **_figures(states, plan.t_from),
+        "learning": _period_rms(states, period, spec.learn) if spec.learn else [],
         "max_abs_u": float(np.abs(states.u).max()),
         "wall_time": recording.wall_time,
         "steps_per_wall_second": states.t.size / recording.wall_time,

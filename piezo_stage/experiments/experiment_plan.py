@@ -1,0 +1,71 @@
+"""The typed plan of an experiment: its command-line or Python spec parsed and checked once, at
+the door, before anything moves; every step after takes the plan, none parses or loads again.
+
+:class:`ExperimentPlan` is what every closed-loop experiment shares (the graph, the loop's
+rate, the compensation, the learning, the bag it writes); the tracking experiment's plan
+(:func:`piezo_stage.experiments.tracking.plan_tracking`) adds its trajectory and its models,
+loaded once; the raster's (:func:`piezo_stage.experiments.raster.plan_raster`) its scan, its
+stages, its sample and its tables.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Collection
+
+from piezo_stage.control.feedforward import Compensation
+
+from .errors import ExperimentInputError
+
+__all__ = ["ExperimentPlan"]
+
+
+@dataclass(frozen=True)
+class ExperimentPlan:
+    """What every run of an experiment takes, checked (:meth:`checked`)."""
+
+    graph: str
+    rate_hz: float  #: [Hz] the loop's
+    compensation: Compensation
+    learn: int  #: periods (tracking) or lines (raster) the feedforward learns over
+    bag: Path | None = None  #: the record written there
+
+    @classmethod
+    def checked(
+        cls,
+        graph: str,
+        graphs: Collection[str],
+        rate_hz: float,
+        compensation: Compensation | str,
+        learn: int,
+        bag: Path | None = None,
+    ) -> "ExperimentPlan":
+        """The plan, or :class:`ExperimentInputError` (one line) for a graph not in
+        ``graphs``, a rate that is not > 0, a compensation that is none, a negative or
+        feedback-only learning, a bag folder that exists."""
+        if graph not in graphs:
+            raise ExperimentInputError(
+                f"--graph {graph}: the experiment runs on {', '.join(graphs)}"
+            )
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ExperimentInputError(f"--rate-hz must be > 0, got {rate_hz}")
+        try:
+            compensation = Compensation(compensation)
+        except ValueError:
+            raise ExperimentInputError(
+                f"unknown compensation {compensation!r}; expected one of "
+                f"{', '.join(c.value for c in Compensation)}"
+            ) from None
+        if learn < 0:
+            raise ExperimentInputError(f"--learn must be >= 0, got {learn}")
+        if learn and compensation is Compensation.FEEDBACK:
+            raise ExperimentInputError(
+                "--learn needs a feedforward: --compensation both or feedforward"
+            )
+        if bag is not None and Path(bag).exists():
+            raise ExperimentInputError(f"--bag {bag} already exists")
+        return cls(
+            graph, float(rate_hz), compensation, int(learn), None if bag is None else Path(bag)
+        )
