@@ -8,7 +8,7 @@ the first sample's stamp: the run refuses a record where they are not), the fast
 (its learned table saved; the line errors after learning below those of the first image
 lines), the image and its figures. The figure's bound is loose: on a 2-core host the loop's
 timing jitters by a millisecond or more, which at the line's 100 µm/s is 100 nm and more of
-error (1.0-1.4 % of the range here); the figures are in the README.
+error (0.6-1.0 % of the range here); the figures are in the README.
 """
 
 from __future__ import annotations

@@ -52,6 +52,7 @@ def test_every_node_executable_has_its_table():
         "stage_plant",
         "player",
         "recorder",
+        "scan_view",
         "stage_driver",
         "voltage_driver",
     }

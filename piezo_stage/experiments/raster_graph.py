@@ -23,7 +23,8 @@ import numpy as np
 
 from piezo_stage.control.learning import FeedforwardTable, LearningError
 from piezo_stage.control.raster import RasterRun, RasterTables, learning_history
-from piezo_stage.control.scan import RasterScan, ScanAxis
+from piezo_stage.control.scan import RasterScan, ScanAxis, ScanError
+from piezo_stage.control.scan_live import scan_origin
 from piezo_stage.model.stage_file import Stage, save_stage
 
 from .errors import ExperimentError
@@ -43,12 +44,10 @@ _TYPES = {
     "LoopSamples": "piezo_stage_msgs/msg/LoopSamples",
     "ControllerState": "piezo_stage_msgs/msg/ControllerState",
 }
+#: the line-rate harmonics the fast axis's table learns on a device graph
+LEARN_HARMONICS = 10
 #: [s] a sensor silence the controllers hold through (their default, 20 ms, opens the loop)
 MAX_GAP = 0.2
-#: [ns] how far before the first stepped sample the origin is looked for
-ORIGIN_SEARCH_NS = 50_000_000
-#: [m] largest difference between a recorded set point and the scan at the origin found
-ORIGIN_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -118,6 +117,10 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
             "trajectory": str(ScanAxis(scan, index).save(folder / f"scan_{axis}.json")),
             "feedforward_model": str(folder / f"model_{axis}.yaml"),  # save_stage's
             "learn_periods": learn if index == 0 else 0,
+            # the table learns the line's low harmonics only: above them a device loop's
+            # delay (2-3 ms here, not in the model) turns the update's phase past 90 degrees,
+            # and the learning diverged on a loaded host (the error grew 10x in 10 lines)
+            "learn_cutoff_hz": LEARN_HARMONICS * scan.line_rate,
         }
         if tables is not None:
             table = tables.fast if index == 0 else tables.slow
@@ -163,7 +166,10 @@ def decode(
     """The record of both axes as a :class:`RasterRun` on the fast axis's samples, t from the
     scan's origin, ``learning`` from the first ``learn`` lines."""
     fast, slow = columns
-    t0 = scan_origin(scan, columns)
+    try:
+        t0 = scan_origin(scan, columns)
+    except ScanError as exc:
+        raise ExperimentError(str(exc)) from None
     keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
     t = (fast["stamp"][keep] - t0) * 1e-9
     slow_ok = np.isfinite(slow["reference"]) & np.isfinite(slow["displacement"])
@@ -175,41 +181,6 @@ def decode(
     u = np.vstack([fast["u"][keep], np.interp(t, ts, slow["u"][slow_ok])])
     return RasterRun(
         scan, t, desired, measured, u, learning_history(scan, t, measured - desired, learn), tables
-    )
-
-
-def _origin_error(scan: RasterScan, columns: tuple[dict[str, Any], ...], t0: int) -> float:
-    """[m] the largest difference between an axis's recorded set points and its axis of the
-    scan from ``t0`` [ns], time computed as the controller computes it."""
-    worst = 0.0
-    for index, column in enumerate(columns):
-        stepped = np.isfinite(column["reference"])
-        t = column["stamp"][stepped] * 1e-9 - t0 * 1e-9
-        error = np.abs(ScanAxis(scan, index).evaluate(t)[0] - column["reference"][stepped])
-        worst = max(worst, float(error.max()))
-    return worst
-
-
-def scan_origin(scan: RasterScan, columns: tuple[dict[str, Any], ...]) -> int:
-    """[ns] the scan's time origin: the loop starts every axis from the earliest sample of the
-    cycle in which all are ready (a sample it may not step on: an axis whose first sample
-    was refused steps later), so the origin is the stamp of a recorded sample at or before
-    the first stepped one; the one from which both axes' set points are the scan's.
-    :class:`ExperimentError` when none is (the record missed the start)."""
-    stepped = [np.isfinite(c["reference"]) for c in columns]
-    if not all(s.any() for s in stepped):
-        raise ExperimentError("the record holds no stepped sample of one of the axes")
-    first = min(int(c["stamp"][s][0]) for c, s in zip(columns, stepped))
-    stamps = np.unique(np.concatenate([c["stamp"] for c in columns]))
-    candidates = stamps[(stamps <= first) & (stamps >= first - ORIGIN_SEARCH_NS)][::-1]
-    errors = []
-    for t0 in candidates:
-        errors.append(_origin_error(scan, columns, int(t0)))
-        if errors[-1] <= ORIGIN_TOLERANCE:
-            return int(t0)
-    raise ExperimentError(
-        "the recorded set points do not follow the scan from any sample of the loop's first "
-        f"cycle (off by {min(errors) * 1e9:.3g} nm at best): the record missed the start"
     )
 
 

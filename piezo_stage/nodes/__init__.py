@@ -24,4 +24,5 @@ NODES = (
     "recorder",
     "player",
     "live_view",
+    "scan_view",
 )

@@ -263,6 +263,17 @@ class RecorderSettings:
 
 
 @dataclass(frozen=True)
+class ScanViewSettings:
+    """``scan_view``: a raster scan's image as it fills, from the axes' loop_samples"""
+
+    scan_file: str
+    axes: list[str]
+    sample: str
+    frame_id: str
+    publish_rate_hz: float
+
+
+@dataclass(frozen=True)
 class StageDriverSettings:
     """``stage_driver``: Multi-channel amplifier driver (PI E-727, Thorlabs MDT693B):
     <axis>/voltage_command -> the axis's channel, limits, slew and watchdog per axis, one

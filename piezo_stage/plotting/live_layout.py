@@ -1,7 +1,7 @@
 """The Foxglove layout of a stage: what to look at while it runs (``piezo-stage view``) or in a
 recorded bag, built with foxglove-sdk's typed layout model.
 
-Three tabs, every message path on the stage's contract topics (docs/design.md §3) under
+Four tabs, every message path on the stage's contract topics (docs/design.md §3) under
 ``namespace``:
 
 - **Loop**: displacement, reference and the controller's reference against time; the voltage
@@ -11,6 +11,8 @@ Three tabs, every message path on the stage's contract topics (docs/design.md §
   one XY curve per period, the loop forming), the composed rig loop's samples (displacement
   against applied voltage, each batch), the identified Bouc-Wen parameters (latched) and
   the excitation's state.
+- **Scan**: a raster scan's image as it fills (``scan_view``'s ``scan_image``), the measured
+  position (slow against fast axis) and each line's RMS error per axis.
 - **Health**: /diagnostics (summary and detail: a node going red shows here first) and the
   nodes' log (/rosout).
 
@@ -224,9 +226,44 @@ def layout(namespace: str = DEFAULT_NAMESPACE) -> fx.Layout:
             tabs=[
                 fx.TabItem(title="Loop", content=loop),
                 fx.TabItem(title="Hysteresis", content=hysteresis),
+                fx.TabItem(title="Scan", content=_scan_tab(t)),
                 fx.TabItem(title="Health", content=health),
             ]
         )
+    )
+
+
+def _scan_tab(t: Any) -> fx.SplitContainer:
+    """A raster scan (``scan_view``'s topics): the image as it fills, the stage's path, and
+    each line's error as it is scanned."""
+    image = fx.ImagePanel(
+        title="scan image",
+        config=fx.ImageConfig(image_mode=fx.ImageModeConfig(image_topic=t("scan_image"))),
+    )
+    path = fx.PlotPanel(
+        title="measured position: slow against fast axis",
+        config=fx.PlotConfig(
+            paths=[fx.PlotSeries(value=f"{t('scan_position')}.point.y", label="y", enabled=True)],
+            x_axis_val="custom",
+            x_axis_path=fx.PlotXAxisPath(value=f"{t('scan_position')}.point.x", enabled=True),
+            x_axis_label="fast axis [m]",
+            y_axis_label="slow axis [m]",
+        ),
+    )
+    lines = _time_plot(
+        "each line's RMS error",
+        [
+            _series(f"{t('scan_line_rms')}.point.x", "fast axis"),
+            _series(f"{t('scan_line_rms')}.point.y", "slow axis"),
+        ],
+        "m",
+    )
+    return fx.SplitContainer(
+        direction="row",
+        items=[
+            fx.SplitItem(proportion=2, content=image),
+            fx.SplitItem(proportion=1, content=_column(path, lines)),
+        ],
     )
 
 
@@ -243,12 +280,12 @@ def write_layout(path: str | Path, namespace: str = DEFAULT_NAMESPACE) -> Path:
 
 def message_paths(data: Any) -> list[str]:
     """Every message path in a layout's JSON (plot series and x axes, indicators, raw
-    messages, diagnostics topics)."""
+    messages, diagnostics and image topics)."""
     found: list[str] = []
     if isinstance(data, dict):
         for key, value in data.items():
             if (
-                key in ("value", "path", "topicPath", "topicToRender")
+                key in ("value", "path", "topicPath", "topicToRender", "imageTopic")
                 and isinstance(value, str)
                 and value.startswith("/")
             ):
