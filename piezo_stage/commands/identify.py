@@ -19,14 +19,25 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from piezo_stage.commands.argtypes import data_error_exit_code
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.errors import IdentificationError
-from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
+from piezo_stage.identification.io import (
+    DEFAULT_CYCLES_TOPIC,
+    DEFAULT_EXCITATION_TOPIC,
+    bag_holds_runs,
+    is_bag,
+    load_bag_cycles,
+    load_runs,
+)
+from piezo_stage.identification.limit_cycles import identify_cycle_pair
 from piezo_stage.identification.methods import Method, identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
+from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.simfit import FitOptions
@@ -100,6 +111,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input-topic", default="/piezo/voltage")
     parser.add_argument("--output-topic", default="/piezo/displacement")
     parser.add_argument("--excitation-topic", default=DEFAULT_EXCITATION_TOPIC)
+    parser.add_argument(
+        "--source",
+        choices=("auto", "runs", "cycles"),
+        default="auto",
+        help="what to identify from: the runs (input and output topics, CSV), the bags' "
+        "recorded limit cycles (--cycles-topic; analytic method), or auto (default: the runs, "
+        "the cycles when the bags hold no input/output topics)",
+    )
+    parser.add_argument("--cycles-topic", default=DEFAULT_CYCLES_TOPIC)
     parser.add_argument(
         "--input-sign",
         choices=("auto", "+1", "-1"),
@@ -258,6 +278,43 @@ def _plot(result: IdentificationResult, runs, out_dir: Path, stem: str) -> list[
     return written
 
 
+def _from_cycles(args: argparse.Namespace) -> bool:
+    """Whether ``--source`` (auto: bags without input/output topics) says the cycles."""
+    if args.source != "auto":
+        return bool(args.source == "cycles")
+    return all(
+        is_bag(p) and not bag_holds_runs(p, args.input_topic, args.output_topic) for p in args.runs
+    )
+
+
+def _identify_cycles(args: argparse.Namespace, options: IdentifyOptions) -> IdentificationResult:
+    """The analytic method on the bags' recorded limit cycles, as the identifier node does;
+    refused cycles are reported, the source is said on stderr."""
+    if args.method == Method.FIT.value:
+        raise UsageError("--method fit simulates whole runs; limit cycles hold one period each")
+    if not all(is_bag(p) for p in args.runs):
+        raise UsageError("limit cycles are read from bags; a CSV file holds a run")
+    cycles = None
+    for path in args.runs:
+        cycles, refused = load_bag_cycles(path, args.cycles_topic, cycles, options.cycle)
+        for why in refused:
+            print(f"piezo-stage identify: warning: refused {why}", file=sys.stderr)
+    assert cycles is not None
+    print(
+        f"piezo-stage identify: from {len(cycles.held)} limit cycle(s) on {args.cycles_topic}"
+        + ("" if args.source == "cycles" else " (the bags hold no input/output runs)"),
+        file=sys.stderr,
+    )
+    return identify_cycle_pair(cycles, options)
+
+
+def _cycle_recording(cycle) -> Recording:
+    """A cycle as a run of three periods (for the model-vs-data plots)."""
+    m = len(cycle.input)
+    t = np.arange(3 * m) * (cycle.period / m)
+    return Recording(t, np.tile(cycle.input, 3), np.tile(cycle.output, 3), cycle.name)
+
+
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.bag.errors import BagError
     from piezo_stage.model.errors import ModelError
@@ -269,8 +326,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     written: list[Path] = []
     try:
-        runs = load_runs(args.runs, args.input_topic, args.output_topic, args.excitation_topic)
-        result = identify_runs(runs, options, Method(args.method), fit)
+        if _from_cycles(args):
+            result = _identify_cycles(args, options)
+            runs = [_cycle_recording(c) for c in result.cycles]
+        else:
+            runs = load_runs(args.runs, args.input_topic, args.output_topic, args.excitation_topic)
+            result = identify_runs(runs, options, Method(args.method), fit)
         if args.output:
             from piezo_stage.model.parameter_set import save_parameter_set
 
@@ -279,13 +340,17 @@ def run(args: argparse.Namespace) -> int:
         if plots and not args.no_plot:
             stem = Path(args.output).stem if args.output else "identify"
             written = _plot(result, runs, Path(plots), stem)
+    except UsageError as exc:
+        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
+        return 2
     except (IdentificationError, BagError, ModelError, OSError) as exc:
         print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
         return data_error_exit_code(exc)
     for text in result.warnings:
         print(f"piezo-stage identify: warning: {text}", file=sys.stderr)
     if args.json:
-        print(json.dumps(result.to_dict()))
+        source = "limit_cycles" if "offsets" in result.diagnostics else "runs"
+        print(json.dumps(result.to_dict() | {"source": source}))
     else:
         print(_text(result))
         if args.output:

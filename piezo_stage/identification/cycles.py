@@ -233,9 +233,9 @@ def extract_cycle(rec: Recording, options: CycleOptions = CycleOptions()) -> Ste
         v = zero_phase_periodic(v, ratio=options.filter_ratio, zeta=options.filter_zeta)
         y = zero_phase_periodic(y, ratio=options.filter_ratio, zeta=options.filter_zeta)
     m = len(v)
-    i_min = _extreme(v, -1)
+    i_min = extreme_index(v, -1)
     v, y = np.roll(v, -i_min), np.roll(y, -i_min)
-    i_max = _extreme(v, 1)
+    i_max = extreme_index(v, 1)
     half = 0.5 * period / m
     raw_samples = int(
         np.count_nonzero(
@@ -265,7 +265,7 @@ def extract_cycle(rec: Recording, options: CycleOptions = CycleOptions()) -> Ste
     return cycle
 
 
-def _extreme(v: NDArray[np.float64], sign: int) -> int:
+def extreme_index(v: NDArray[np.float64], sign: int) -> int:
     """Index of the cycle's maximum (sign=1) or minimum (-1): located on a smoothed copy
     (robust to noise), then on the samples within that smoothing width (a moving average
     shifts the peak of an asymmetric T-wave).

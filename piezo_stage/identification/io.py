@@ -8,7 +8,8 @@ Comma, semicolon, tab or whitespace separated.
 
 Bags: the input and output topics are read with ``piezo_stage.bag.reader.read_series``; the
 faster one is the time base and the other is interpolated onto it. A bag holding both runs is
-split by the ``run`` field of the excitation topic.
+split by the ``run`` field of the excitation topic. A bag's recorded limit cycles (the
+``LimitCycle`` topic) are read by :func:`load_bag_cycles`.
 """
 
 from __future__ import annotations
@@ -18,13 +19,17 @@ import io as _io
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import DataFormatError, SaturatedOutputError
 from .recording import Recording
+
+if TYPE_CHECKING:
+    from .cycles import CycleOptions
+    from .limit_cycles import CyclePair
 
 REQUIRED = ("time", "input", "output")
 _UNIT_RE = re.compile(r"^(?P<name>[^\[\(]*?)\s*(?:[\[\(](?P<unit>[^\]\)]*)[\]\)])?\s*$")
@@ -48,6 +53,7 @@ _SI = {
     "nm": ("m", 1e-9),
 }
 DEFAULT_EXCITATION_TOPIC = "/piezo/excitation"
+DEFAULT_CYCLES_TOPIC = "/piezo/limit_cycles"
 
 
 def parse_column(header: str) -> tuple[str, str]:
@@ -381,3 +387,40 @@ def load_runs(
         else:
             runs.append(load_csv(p))
     return runs
+
+
+def bag_holds_runs(path: str | Path, input_topic: str, output_topic: str) -> bool:
+    """Whether the bag has both the input and the output topic (the raw runs)."""
+    from piezo_stage.bag.reader import topic_types
+
+    types = topic_types(path)
+    return input_topic in types and output_topic in types
+
+
+def load_bag_cycles(
+    path: str | Path,
+    topic: str = DEFAULT_CYCLES_TOPIC,
+    cycles: CyclePair | None = None,
+    options: CycleOptions | None = None,
+) -> tuple[CyclePair, list[str]]:
+    """The bag's limit cycles, in recording order, each checked and held as the ``identifier``
+    node holds a received one (:meth:`~.limit_cycles.CyclePair.offer`); with the reasons the
+    refused ones were refused. ``cycles``: add to these (several bags).
+    """
+    from piezo_stage.bag.reader import read_messages, topic_types
+
+    from .cycles import CycleOptions
+    from .limit_cycles import CyclePair
+
+    if topic not in topic_types(path):
+        raise DataFormatError(f"{path}: no limit cycles (topic {topic} is not in the bag)")
+    cycles = CyclePair() if cycles is None else cycles
+    refused = []
+    for k, (_, _, msg) in enumerate(read_messages(path, topic)):
+        name = f"{Path(path).name} {topic} #{k}"
+        why = cycles.offer(
+            msg.offset, msg.period, msg.input, msg.output, name, "bag", options or CycleOptions()
+        )
+        if why:
+            refused.append(why)
+    return cycles, refused

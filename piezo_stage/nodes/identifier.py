@@ -17,6 +17,17 @@ result. ``on_done: exit`` makes it leave once it has identified (status 0) or fa
 ch. 11 form: the quasi-static map displacement -> voltage).
 Services: ``~/identify`` (identify now from what is collected), ``~/reset`` (std_srvs/Trigger).
 
+It also subscribes ``limit_cycles`` (``cycles_from``: ``streams``, ``topic`` or ``both``): a
+recording that holds only the steady cycles (an oscilloscope's, another machine's extraction, a
+bag's ``limit_cycles`` replayed) is identified from them with the analytic method, exactly as
+``piezo-stage identify --source cycles`` identifies the same cycles
+(:mod:`piezo_stage.identification.limit_cycles`); with ``both`` one cycle may come from the
+topic and the other from the streams. Each received cycle is checked first: a refused one
+(lengths, non-finite values, not a T-wave, an offset already held) is logged and reported on
+/diagnostics with its reason, and nothing is identified from it. The node's own cycles come
+back to it on the same topic and are told apart by their stamp and content (it keeps the keys
+of what it published), so no cycle counts twice.
+
 ``stream_qos``: ``auto`` (default) subscribes ``voltage`` and ``displacement`` once a publisher
 appears, with the QoS adapted to the publishers' offers as rosbag2 (and the ``recorder``) does:
 reliable and keep-all when every publisher is reliable (the lockstep plant, a player replaying
@@ -30,7 +41,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any, Callable, TypedDict
 
@@ -45,6 +56,11 @@ from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions, extract_cycle
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import recordings_from_series
+from piezo_stage.identification.limit_cycles import (
+    CyclePair,
+    CycleRefusedError,
+    identify_cycle_pair,
+)
 from piezo_stage.identification.methods import Method, identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
 from piezo_stage.identification.recording import Recording
@@ -64,7 +80,7 @@ from piezo_stage_msgs.msg import (
 
 from .base import PiezoNode
 from .dds import use_recorder_transport_profile
-from .diagnostics import ERROR, OK, Diagnosis, Diagnostics
+from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .qos import COMMAND_QOS, LATCHED_QOS, LOCKSTEP_DEPTH, adapted_qos
 from .runtime import DEFAULT_NAMESPACE, EXIT_ACK_TIMEOUT, run, wait_acked, wall_clock
 from .settings import IdentifierSettings
@@ -74,6 +90,9 @@ from .spec import Param, ParameterTable
 STREAM_DEPTH = LOCKSTEP_DEPTH  # a whole lockstep run fits (see qos.LOCKSTEP_DEPTH)
 #: most queued samples one callback takes before yielding to the executor
 BATCH = 2000
+
+#: the ``limit_cycles`` subscription: reliable, deep enough for a replay's burst of cycles
+CYCLES_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 #: fixed stream QoS (``stream_qos`` other than ``auto``)
 STREAM_QOS = {
@@ -132,6 +151,22 @@ class StreamQos(StrEnum):
     RELIABLE = "reliable"  # no loss from reliable publishers
 
 
+class CyclesFrom(StrEnum):
+    STREAMS = "streams"  # the cycles it extracts from voltage/displacement/excitation
+    TOPIC = "topic"  # the cycles received on limit_cycles
+    BOTH = "both"  # either: one from each is a pair too
+
+    @property
+    def streams(self) -> bool:
+        """Whether the raw streams are taken."""
+        return self is not CyclesFrom.TOPIC
+
+    @property
+    def topic(self) -> bool:
+        """Whether ``limit_cycles`` is taken."""
+        return self is not CyclesFrom.STREAMS
+
+
 class OnDone(StrEnum):
     STAY = "stay"  # the result stays latched
     EXIT = "exit"  # status 0 when identified, 1 when it failed
@@ -182,7 +217,21 @@ PARAMETERS = ParameterTable(
             "method's default, 0.005 analytic, 0.02 fit)",
             range=(0.0, 1.0),
         ),
-        Param("auto_identify", True, "identify as soon as two runs are complete"),
+        Param(
+            "cycles_from",
+            "both",
+            "where the steady cycles come from: streams (extracted from voltage, displacement "
+            "and excitation), topic (received on limit_cycles: identified with the analytic "
+            "method) or both",
+            choices=CyclesFrom,
+            read_only=True,
+        ),
+        Param(
+            "auto_identify",
+            True,
+            "identify as soon as two runs are complete (or two cycles of different offsets "
+            "are held)",
+        ),
         Param("output_file", "", "write the identified parameter-set YAML here ('' = do not)"),
         Param("name", "identified", "name stored in the parameter set"),
         Param(
@@ -226,7 +275,9 @@ class IdentifierNode(PiezoNode):
         super().__init__("identifier", namespace=DEFAULT_NAMESPACE)
         self.settings: IdentifierSettings = self.declare_settings(PARAMETERS)
         self._input = self.settings.input
+        self._cycles_from = self.settings.cycles_from
         stream_qos = self.settings.stream_qos
+        self._own: set[tuple[object, ...]] = set()  # keys of the cycles this node published
         self._reset()
         self.result: IdentificationResult | None = None
         self._error = ""
@@ -239,17 +290,20 @@ class IdentifierNode(PiezoNode):
             "voltage": _Stream(Voltage, self._on_voltage),
             "displacement": _Stream(Displacement, self._on_displacement),
         }
-        self._adapt = StreamQos(stream_qos) is StreamQos.AUTO
-        if not self._adapt:
+        streams = self._cycles_from.streams
+        self._adapt = StreamQos(stream_qos) is StreamQos.AUTO and streams
+        if streams and not self._adapt:
             for name in self._streams:
                 self._subscribe(name, STREAM_QOS[stream_qos])
-        # deep: marks must not be dropped while a cycle is being extracted (replayed bags burst)
-        self.create_subscription(
-            ExcitationInfo,
-            "excitation",
-            self._on_excitation,
-            QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
-        )
+        if streams:  # deep: marks must not be dropped while a cycle is being extracted
+            self.create_subscription(
+                ExcitationInfo,
+                "excitation",
+                self._on_excitation,
+                QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE),
+            )
+        if self._cycles_from.topic:
+            self.create_subscription(LimitCycle, "limit_cycles", self._on_limit_cycle, CYCLES_QOS)
         self.create_service(Trigger, "~/identify", self._srv_identify)
         self.create_service(Trigger, "~/reset", self._srv_reset)
         self.finished, self.exit_code = False, 0
@@ -288,6 +342,7 @@ class IdentifierNode(PiezoNode):
     def _tick(self) -> None:
         self._discover()
         self._process_completed()
+        self._check_cycles_silence()
 
     # ------------------------------------------------------------------ data
     def _reset(self) -> None:
@@ -295,6 +350,10 @@ class IdentifierNode(PiezoNode):
         self._displacement = _Series()
         self._runs = RunTracker()
         self._attempted = False  # the identification at silence (fit, auto) was tried
+        self._cycles = CyclePair()  # usable cycles (received, and extracted with ``both``)
+        self._cycles_received = self._cycles_refused = 0
+        self._refusal = ""  # why the last refused cycle was refused
+        self._last_cycle: float | None = None  # monotonic time the last cycle was received
 
     def _on_voltage(self, msg: Voltage) -> None:
         self._voltage.t.append(stamp_seconds(msg.header.stamp))
@@ -312,6 +371,65 @@ class IdentifierNode(PiezoNode):
             self.get_logger().info(
                 f"excitation run {msg.run} (offset {msg.offset:g}) {phase.value} at t = {t:.6g} s"
             )
+
+    def _on_limit_cycle(self, msg: LimitCycle) -> None:
+        """A cycle received on ``limit_cycles``: checked, held, identified from once two of
+        different offsets are held (the node's own publications are skipped)."""
+        if _cycle_key(msg) in self._own:
+            return
+        self._cycles_received += 1
+        self._last_cycle = time.monotonic()
+        name = (
+            f"limit cycle at offset {msg.offset:g} (stamp {stamp_seconds(msg.header.stamp):.6g} s)"
+        )
+        why = self._cycles.offer(
+            msg.offset, msg.period, msg.input, msg.output, name, "topic", self._options().cycle
+        )
+        if why:
+            self._cycles_refused += 1
+            self._refusal = why
+            self.get_logger().warning(f"refused {why}")
+            return
+        self.get_logger().info(f"holding {name}: {len(msg.input)} samples, {msg.period:.6g} s")
+        self._identify_cycles_when_paired()
+
+    def _identify_cycles_when_paired(self) -> None:
+        """Identify from the held cycles once two are held, unless both came from the streams
+        (their runs are identified as runs, as ``piezo-stage identify`` does)."""
+        pair = self._cycles.pair()
+        if pair is None or self.result is not None or not self.settings.auto_identify:
+            return
+        if all(h.source == "streams" for h in pair):
+            return
+        self._attempted = True
+        try:
+            self.identify_now()
+        except (IdentificationError, ModelError, ValueError):
+            self._done(1)  # reported by identify_now (log + /diagnostics)
+        else:
+            self._done(0)
+
+    def _check_cycles_silence(self) -> None:
+        """Cycles received, no streams, fewer than two usable cycles for ``settle_time``: a
+        failure (``on_done: exit``: status 1), with the last refusal's reason."""
+        last = self._last_cycle
+        if (
+            last is None
+            or self.result is not None
+            or self._attempted
+            or self._voltage.t
+            or self._displacement.t
+            or time.monotonic() - last < self.settings.settle_time
+        ):
+            return
+        self._attempted = True
+        refused = f"; the last refused: {self._refusal}" if self._refusal else ""
+        self._set_error(
+            f"{len(self._cycles.held)} usable limit cycle(s) of {self._cycles_received} "
+            f"received, none for {self.settings.settle_time:g} s: the analytic method needs "
+            f"two of different offsets (x(t) and x(t)+q){refused}"
+        )
+        self._done(1)
 
     def _process_completed(self) -> None:
         """Handle the completed runs whose data has arrived (:class:`RunTracker`); identify once
@@ -437,11 +555,18 @@ class IdentifierNode(PiezoNode):
                 input=[float(v) for v in cycle.input],
                 output=[float(v) for v in cycle.output],
             )
+            self._own.add(_cycle_key(msg))
             self._pub_cycle.publish(msg)
             self.get_logger().info(
                 f"run {run_index}: steady cycle of {cycle.period:.6g} s "
                 f"({cycle.periods} periods averaged)"
             )
+            if self._cycles_from.topic:  # a pair with a received cycle (``both``)
+                try:
+                    self._cycles.add(replace(cycle, meta={"offset": msg.offset}), "streams")
+                except CycleRefusedError as exc:
+                    self.get_logger().info(f"not held for a pair: {exc}")
+                self._identify_cycles_when_paired()
 
     def _done(self, code: int) -> None:
         """``on_done: exit``: leave with ``code`` once the subscribers have the results."""
@@ -451,14 +576,22 @@ class IdentifierNode(PiezoNode):
         self.exit_code, self.finished = code, True
 
     def identify_now(self) -> IdentificationResult:
+        """Identify from a pair of held cycles that holds a received one (or with
+        ``cycles_from: topic``), else from the runs collected."""
+        pair = self._cycles.pair()
+        from_cycles = not self._cycles_from.streams or (
+            pair is not None and any(h.source == "topic" for h in pair)
+        )
         try:
-            runs = self.recordings()
-            result = identify_runs(
-                runs,
-                self._options(),
-                self.settings.method,
-                FitOptions(**self._max_rms()),
-            )
+            if from_cycles:
+                result = identify_cycle_pair(self._cycles, self._options())
+            else:
+                result = identify_runs(
+                    self.recordings(),
+                    self._options(),
+                    self.settings.method,
+                    FitOptions(**self._max_rms()),
+                )
         except (IdentificationError, ModelError, ValueError) as exc:
             self._set_error(str(exc))
             raise
@@ -526,10 +659,21 @@ class IdentifierNode(PiezoNode):
             "displacement_samples": len(self._displacement.t),
             "completed_runs": len(self._runs.completed),
             "identified": self.result is not None,
+            "held_cycles": len(self._cycles.held),
+            "refused_cycles": self._cycles_refused,
         }
         if self._error:
             return Diagnosis(ERROR, self._error, values)
+        if self._refusal and self.result is None:
+            return Diagnosis(WARN, f"refused {self._refusal}", values)
         return Diagnosis(OK, "identified" if self.result else "collecting", values)
+
+
+def _cycle_key(msg: LimitCycle) -> tuple[object, ...]:
+    """What tells a published cycle from another: its stamp, offset, period and first sample."""
+    stamp = msg.header.stamp
+    first = (msg.input[0], msg.output[0]) if len(msg.input) and len(msg.output) else ()
+    return (stamp.sec, stamp.nanosec, msg.offset, msg.period, len(msg.input), *first)
 
 
 def main(args: list[str] | None = None) -> int:

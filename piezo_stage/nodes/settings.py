@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from piezo_stage.nodes.controller_params import StepTrigger as ControllerStepTrigger
     from piezo_stage.nodes.excitation import OnDone as ExcitationOnDone
     from piezo_stage.nodes.excitation import StepTrigger as ExcitationStepTrigger
-    from piezo_stage.nodes.identifier import Input, StreamQos
+    from piezo_stage.nodes.identifier import CyclesFrom, Input, StreamQos
     from piezo_stage.nodes.identifier import OnDone as IdentifierOnDone
     from piezo_stage.nodes.plant import ClockMode
 
@@ -142,6 +142,7 @@ class IdentifierSettings:
     steady_periods: int
     filter: bool
     max_rms: float
+    cycles_from: CyclesFrom
     auto_identify: bool
     output_file: str
     name: str
