@@ -20,6 +20,7 @@ last ``scanner: N axes (x, y) at RATE Hz``.
 
   piezo-stage emulate gcs --tcp 50000
   piezo-stage emulate gcs --axes 1,2,3 --tcp 50000 --log applied.csv   # an E-727-class controller
+  piezo-stage emulate e727 --tcp 50000 --stage xyz_scanner.yaml   # E-727 on its servo clock
   piezo-stage emulate mdt69x
   piezo-stage emulate optoncdt --family ild1320 --rate 2000
   piezo-stage emulate rig --params ch10_patch.yaml --amp-tcp 50000 --sensor-link run:rig_sensor
@@ -197,6 +198,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _log_arg(gcs)
     _faults(gcs)
 
+    for controller, axes in (("e727", "three"), ("e709", "one")):
+        _controller_args(
+            sub.add_parser(
+                controller,
+                help=f"PI {controller.upper()}-class controller on a {axes}-axis simulated stage, "
+                "with its servo clock, wave generator and data recorder",
+            )
+        )
+
     mdt = sub.add_parser("mdt69x", help="Thorlabs MDT694B/MDT693B on a pty")
     mdt.add_argument("--model", choices=("MDT694B", "MDT693B"), default="MDT694B")
     mdt.add_argument("--vlimit", type=float, choices=(75.0, 100.0, 150.0), default=150.0)
@@ -247,6 +257,70 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _sensor_args(scanner)
     _log_arg(scanner)
     _faults(scanner, link=False)
+
+
+def _controller_args(parser: argparse.ArgumentParser) -> None:
+    """The options of ``e727`` / ``e709``."""
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--tcp", type=port, default=None, metavar="PORT", help="serve on 127.0.0.1:PORT (0: any)"
+    )
+    where.add_argument("--pty", action="store_true", help="serve on a pty (default)")
+    parser.add_argument(
+        "--stage",
+        default=None,
+        metavar="FILE",
+        help="stage file of the simulated stage, its channels the axes (e709: its first axis; "
+        "default: ch11_rig.yaml on axes 1, 2, 3)",
+    )
+    parser.add_argument("--v-min", type=float, default=-30.0, help="VMI? [V]")
+    parser.add_argument("--v-max", type=float, default=130.0, help="VMA? [V]")
+    parser.add_argument("--servo-on", action="store_true", help="start with the servo on")
+    parser.add_argument(
+        "--sensor-noise",
+        type=non_negative,
+        default=2e-9,
+        metavar="M",
+        help="standard deviation of the position sensors' noise [m] (default 2e-9)",
+    )
+    _log_arg(parser)
+    _faults(parser)
+
+
+def _controller(args: argparse.Namespace) -> Any:
+    """``emulate e727`` / ``e709``: the controller model bound to its simulated stage."""
+    from piezo_stage.config_path import find_user_file
+    from piezo_stage.hardware.emulators.pi_controller import PIControllerModel
+    from piezo_stage.model.parameter_set import shipped_parameter_set
+    from piezo_stage.model.stage import AmplifierModel, CoupledStage, SensorModel
+    from piezo_stage.model.stage_file import Stage, StageAxis, single_axis_stage
+    from piezo_stage.model.stage_file import load_stage as load_stage_file
+
+    if args.stage is None:  # three axes 1, 2, 3 of the shipped rig, uncoupled
+        model = shipped_parameter_set("ch11_rig")
+        axes = tuple(StageAxis(name, model, str(i + 1)) for i, name in enumerate("xyz"))
+        stage = Stage("e727", axes, [[float(i == j) for j in range(3)] for i in range(3)])
+    else:
+        stage = load_stage_file(find_user_file(args.stage))
+    if args.device == "e709":
+        first = stage.axes[0]
+        stage = single_axis_stage(first.model, first.name, first.channel)
+    n = len(stage.axes)
+
+    def build() -> CoupledStage:
+        return CoupledStage(
+            stage,
+            [AmplifierModel(args.v_min, args.v_max) for _ in range(n)],
+            [SensorModel(noise_std=args.sensor_noise, seed=i) for i in range(n)],
+        )
+
+    return PIControllerModel(
+        build,
+        [axis.channel for axis in stage.axes],
+        v_min=args.v_min,
+        v_max=args.v_max,
+        servo_on=args.servo_on,
+    )
 
 
 def _amplifier_args(parser: argparse.ArgumentParser, controller: str) -> None:
@@ -345,6 +419,12 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
             {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
         )
         return {"gcs": EmulatorServer(model, faults=faults, realtime_priority=rt, **endpoint)}
+    if args.device in ("e727", "e709"):
+        endpoint = (
+            {"tcp_port": args.tcp} if args.tcp is not None else {"pty": True, "pty_link": args.link}
+        )
+        server = EmulatorServer(_controller(args), faults=faults, realtime_priority=rt, **endpoint)
+        return {args.device: server}
     if args.device == "mdt69x":
         model = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
         return {
