@@ -139,7 +139,10 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
             assert getattr(got, name) == pytest.approx(value, rel=1e-4)
         assert out_file.exists() and "kappa_w" in out_file.read_text()
     finally:
-        stop(proc)
+        _, err = stop(proc)
+    # its own cycles came back on limit_cycles (cycles_from both): known as its own, neither
+    # held as received cycles nor refused as a second cycle at a held offset
+    assert "holding limit cycle" not in err and "refused" not in err, err[-3000:]
 
 
 def test_identifier_adapts_its_stream_qos_to_the_publishers():

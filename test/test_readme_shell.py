@@ -195,6 +195,14 @@ RUN: dict[str, Expect] = {
         )
     ),
     "piezo-stage validate p885.yaml other_run.csv": Expect(out=(r"(?i)rms",)),
+    "piezo-stage identify bags/ch10_identification --source cycles --degree 2": Expect(
+        out=(r"from 2 limit cycle\(s\) on /piezo/limit_cycles", r"method analytic")
+    ),
+    "piezo-stage launch replay_cycles --param identifier.output_file:=$PWD/cycles.yaml": Expect(
+        out=(r"holding limit cycle at offset 100", r"identifier exited with code 0"),
+        files=("cycles.yaml",),
+        timeout=600,
+    ),
     # gains
     "piezo-stage gains --k1 5e6 --k2 580 --k0 1e9 --rate-hz 1000": Expect(
         out=(r"STABLE",), check=_theorem4
