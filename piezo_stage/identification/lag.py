@@ -18,14 +18,21 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from .derivatives import noise_std
 from .recording import Recording
 
 #: samples each side of a corner in the kink fit, at most a quarter of a branch
 KINK_HALF_WIDTH = 6
-#: largest lag looked for, as a share of a branch
+#: largest lag looked for, as a share of a branch ...
 MAX_LAG_SHARE = 0.2
+#: ... and in samples: a data recorder's branch holds 10^4 samples, and the fit's cost grows
+#: with the square of the window (a lag of 64 samples is 3 ms at 20 kHz: dynamics, not a lag)
+MAX_LAG_SAMPLES = 64
 #: sub-sample resolution of the kink's location
 RESOLUTION = 0.02
+#: an input whose white noise exceeds this share of its change per sample has no corners to
+#: time (it is measured, not commanded: every few samples its slope changes sign)
+NOISY_INPUT = 0.1
 #: kink locations fitted together (bounds the batch's memory: ~ batch × samples × 5 floats)
 KINK_BATCH = 512
 
@@ -89,15 +96,18 @@ def corners(x: NDArray[np.float64], min_gap: int) -> NDArray[np.int_]:
 
 def estimate_lag(rec: Recording) -> LagEstimate | None:
     """The output's lag behind the input (module docstring), or None when the run has no
-    corner far enough from its ends to fit (it is no T-wave run).
+    corner far enough from its ends to fit (it is no T-wave run) or its input is too noisy to
+    time one (:data:`NOISY_INPUT`).
     """
     x, y = np.asarray(rec.input, dtype=float), np.asarray(rec.output, dtype=float)
+    if x.size > 8 and noise_std(x) > NOISY_INPUT * float(np.median(np.abs(np.diff(x)))):
+        return None  # a measured input (the ch. 11 form's x): its noise makes the corners
     turns = corners(x, min_gap=8)
     if turns.size < 2:
         return None
     branch = float(np.median(np.diff(turns)))
     half = int(max(3, min(KINK_HALF_WIDTH, branch // 4)))
-    reach = max(1.0, MAX_LAG_SHARE * branch)
+    reach = max(1.0, min(MAX_LAG_SHARE * branch, MAX_LAG_SAMPLES))
     lags = []
     for i in turns:
         lo, hi = i - half - 1, int(math.ceil(i + half + reach + 1))
