@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from piezo_stage.commands.argtypes import data_error_exit_code
+from piezo_stage.commands.servo_identify import DeviceRunError
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions
@@ -52,16 +53,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "runs",
         metavar="RUN",
-        nargs="+",
+        nargs="*",
         help="recorded runs (CSV, bag folder or .mcap); the analytic method "
-        "needs two, x(t) and x(t)+q (or one bag holding both)",
+        "needs two, x(t) and x(t)+q (or one bag holding both); none with --device",
     )
+    device = parser.add_argument_group(
+        "at a PI controller's servo rate (--device): the ch. 10 T-wave pair played by its wave "
+        "generator, recorded by its data recorder (voltage and its own sensor), read back"
+    )
+    device.add_argument("--device", metavar="URL", help="the controller, e.g. tcp://HOST:PORT")
+    device.add_argument("--axis", help="the axis to identify (default: the first SAI? lists)")
+    device.add_argument(
+        "--voltage",
+        metavar="LOW,HIGH",
+        help="run x(t)'s range [V] (default: 0-75 %% of the output range above max(VMI?, 0))",
+    )
+    device.add_argument(
+        "--offset", type=float, metavar="Q", help="run 2 = run 1 + Q [V] (default: 25 %% of it)"
+    )
+    device.add_argument("--period", type=float, default=1.0, help="T-wave period [s] (1)")
+    device.add_argument(
+        "--periods",
+        metavar="SETTLE,RECORD",
+        default="10,2",
+        help="periods per run: settling (a stage's loop can take several to reach its limit "
+        "cycle: the shipped ch. 11 rig halves its distance per period), then recorded (10,2)",
+    )
+    device.add_argument(
+        "--record-rate",
+        type=int,
+        default=1,
+        metavar="N",
+        help="a table point and a recorded point every N servo cycles (1)",
+    )
+    device.add_argument(
+        "--model-input",
+        choices=("voltage", "displacement"),
+        default="voltage",
+        help="identify voltage -> displacement (ch. 10, default) or displacement -> voltage "
+        "(the ch. 11 form u = Φ(x) of a stage model)",
+    )
+    device.add_argument("--bag", metavar="DIR", help="write the record as a bag here")
     parser.add_argument(
         "--method",
         choices=[m.value for m in Method],
-        default=Method.AUTO.value,
+        default=None,
         help="analytic (ch. 9-10), fit (simulation error, any runs) or auto "
-        "(analytic when its preconditions hold, else fit; default)",
+        "(analytic when its preconditions hold, else fit; default for recordings); with "
+        "--device the default is analytic (the T-wave pair is its design, and the fit's "
+        "cross-check over 10^5 samples takes a minute)",
     )
     parser.add_argument(
         "--degree",
@@ -164,6 +204,14 @@ def _fraction(name: str, value: float, lo: float, hi: float, *, open_lo: bool = 
 
 
 def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
+    if args.method is None:
+        args.method = Method.ANALYTIC.value if args.device else Method.AUTO.value
+    if bool(args.runs) == bool(args.device):
+        raise UsageError(
+            "give recorded runs (RUN ...) or --device URL, not both"
+            if args.runs
+            else "nothing to identify: give recorded runs (RUN ...) or --device URL"
+        )
     design = DesignPoints()
     if args.design_points:
         try:
@@ -326,7 +374,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     written: list[Path] = []
     try:
-        if _from_cycles(args):
+        if args.device:
+            from piezo_stage.commands.servo_identify import identify_on_device
+
+            result, runs = identify_on_device(args, options, fit)
+        elif _from_cycles(args):
             result = _identify_cycles(args, options)
             runs = [_cycle_recording(c) for c in result.cycles]
         else:
@@ -340,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
         if plots and not args.no_plot:
             stem = Path(args.output).stem if args.output else "identify"
             written = _plot(result, runs, Path(plots), stem)
-    except UsageError as exc:
+    except (UsageError, DeviceRunError) as exc:
         print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
         return 2
     except (IdentificationError, BagError, ModelError, OSError) as exc:

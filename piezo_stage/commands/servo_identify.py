@@ -1,0 +1,106 @@
+"""`piezo-stage identify --device URL`: the ch. 10 identification at a PI controller's servo
+rate (:mod:`piezo_stage.experiments.servo_identification`), run from the identify command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+
+from piezo_stage.errors import PiezoStageError
+from piezo_stage.identification.methods import Method, identify_runs
+from piezo_stage.identification.pipeline import IdentifyOptions
+from piezo_stage.identification.recording import Recording
+from piezo_stage.identification.result import IdentificationResult
+from piezo_stage.identification.simfit import FitOptions
+
+
+class DeviceRunError(PiezoStageError):
+    """The controller refused, the link failed or the record is unusable (exit 2)."""
+
+
+def _pair(text: str, name: str, kind: type) -> tuple:
+    try:
+        a, b = (kind(v) for v in text.split(","))
+    except ValueError:
+        raise DeviceRunError(f"{name} needs two comma-separated values, got {text!r}") from None
+    return a, b
+
+
+def excitation_from(args: argparse.Namespace, v_min: float, v_max: float):
+    """The T-wave pair the options ask for, defaults from the output range (VMI?, VMA?)."""
+    from piezo_stage.experiments.servo_identification import TWaveExcitation
+
+    base = max(v_min, 0.0)
+    total = v_max - base
+    low, high = (
+        _pair(args.voltage, "--voltage", float) if args.voltage else (base, base + 0.75 * total)
+    )
+    q = args.offset if args.offset is not None else 0.25 * total
+    settle, record = _pair(args.periods, "--periods", int)
+    excitation = TWaveExcitation(low, high, q, args.period, settle, record, args.record_rate)
+    try:
+        excitation.check(v_min, v_max)
+    except ValueError as exc:
+        raise DeviceRunError(str(exc)) from None
+    return excitation
+
+
+def identify_on_device(
+    args: argparse.Namespace, options: IdentifyOptions, fit: FitOptions
+) -> tuple[IdentificationResult, list[Recording]]:
+    """Record the T-wave pair on ``args.device`` / ``args.axis``, write ``args.bag`` if given,
+    identify the runs as a bag of them is identified; the output is left at max(VMI?, 0 V)."""
+    from piezo_stage.experiments.errors import ExperimentError
+    from piezo_stage.experiments.servo_identification import (
+        record_t_waves,
+        safe_state,
+        write_bag,
+    )
+    from piezo_stage.hardware.amplifier import GCSAmplifier
+    from piezo_stage.hardware.errors import HardwareError
+    from piezo_stage.hardware.pi_recorder import ServoRecorder
+    from piezo_stage.hardware.transport import make_transport
+
+    def say(text: str) -> None:
+        print(f"piezo-stage identify: {text}", file=sys.stderr, flush=True)
+
+    try:
+        amplifier = GCSAmplifier(make_transport(args.device), axis=args.axis)
+        info = amplifier.open()
+    except HardwareError as exc:
+        raise DeviceRunError(f"{args.device}: {exc}") from None
+    recorder = ServoRecorder(amplifier.conn)
+    generator = 1
+    try:
+        axes = [a.strip() for a in amplifier.conn.query("SAI?") if a.strip()]
+        generator = axes.index(amplifier.axis) + 1
+        amplifier.channel = generator  # axis i drives output channel i (SAI? order)
+        excitation = excitation_from(args, info.v_min, info.v_max)
+        say(
+            f"{info.identity.split(',')[1].strip() if ',' in info.identity else info.identity}"
+            f" axis {amplifier.axis}: T-waves {excitation.low:g}..{excitation.high:g} V and "
+            f"+{excitation.q:g} V, {excitation.periods} periods of {excitation.period:g} s each"
+        )
+        record = record_t_waves(
+            amplifier, recorder, excitation, generator, (info.v_min, info.v_max), say
+        )
+        safe_state(amplifier, recorder, generator, info.v_min)
+        say(
+            f"recorded {record.t.size} points at {1e-3 / (record.cycle * excitation.rate):g} kHz"
+            f" in {len(record.segments)} part(s)"
+        )
+    except (HardwareError, ExperimentError) as exc:
+        safe_state(amplifier, recorder, generator, info.v_min)
+        raise DeviceRunError(f"{args.device}: {exc}") from None
+    finally:
+        amplifier.close()
+    if args.bag:
+        say(f"wrote {write_bag(record, args.bag)}")
+    runs = record.recordings(f"{args.device} axis {amplifier.axis}", args.model_input)
+    if args.steady_periods is None:  # the recorded periods, after the settling ones
+        cycle = replace(options.cycle, steady_periods=excitation.record_periods)
+        options = replace(options, cycle=cycle)
+    if args.model_input == "displacement":
+        options = replace(options, input_name="displacement", output_name="voltage")
+    return identify_runs(runs, options, Method(args.method), fit), runs
