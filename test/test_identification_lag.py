@@ -72,6 +72,16 @@ def test_the_lag_is_read_at_the_input_corners_within_a_tenth_of_a_sample(lag, sa
         assert estimate.seconds == pytest.approx(estimate.samples * (run.t[1] - run.t[0]))
 
 
+def test_a_measured_input_has_no_corners_to_time():
+    """The ch. 11 form's input is the sensor's displacement: its noise turns its slope every
+    few samples. No lag is read from it (the slope-sign corners would be noise)."""
+    clean = lagging_pair(0, 300, 0, noise=0.0)[0]
+    rng = np.random.default_rng(1)
+    noisy = clean.input + 1e-3 * np.ptp(clean.input) * rng.standard_normal(len(clean))
+    assert estimate_lag(Recording(clean.t, noisy, clean.output)) is None
+    assert estimate_lag(clean) is not None  # the commanded input is timed
+
+
 def test_no_corner_no_estimate():
     t = np.linspace(0.0, 1.0, 200)
     assert estimate_lag(Recording(t, t, 2 * t)) is None

@@ -10,11 +10,13 @@ between segments (the readback) taken out: for a rate-independent hysteresis a p
 constant input leaves the state where it was. Between runs the output is ramped by the host,
 slew-limited, to the next run's start; that ramp is not recorded.
 
-Times are the controller's: sample k of the record is at ``anchor + k * rate * cycle``, the
-anchor being the host's wall clock when the first ``WGO`` was sent (docs/design.md, "The
-controller's clock in the bags"). The record is cut into runs by the same excitation marks
-the ``excitation`` node publishes, so :func:`write_bag` gives a bag that ``piezo-stage
-identify BAG`` and the ``identifier`` node identify to the same numbers.
+Times are the controller's: sample k of the record is at ``k * rate * cycle`` from the first
+``WGO`` (runs after the first, and parts after a run's first, continue from where the last
+ended). In a bag these are the header stamps; the log times add the anchor, the host's wall
+clock when the first ``WGO`` was sent (docs/design.md, "The controller's clock in the
+bags"). The record is cut into runs by the same excitation marks the ``excitation`` node
+publishes, so :func:`write_bag` gives a bag that ``piezo-stage identify BAG`` and the
+``identifier`` node identify to the same numbers.
 """
 
 from __future__ import annotations
@@ -233,15 +235,17 @@ def safe_state(
 
 
 def write_bag(record: ServoRecord, path: str | Path, namespace: str = "/piezo") -> Path:
-    """The record as a bag of ``voltage``, ``displacement`` and ``excitation`` (module
-    docstring), stamped ``anchor + t``."""
+    """The record as a bag of ``voltage``, ``displacement`` and ``excitation``: header stamps
+    on the controller's clock (t from the first ``WGO``: its samples keep their exact
+    spacing, which seconds since 1970 in a float would round to 0.2 µs), log times on the
+    host's (``anchor + t``)."""
     from piezo_stage.bag import qos
     from piezo_stage.bag.series import encode_series
     from piezo_stage.bag.types import header, message_class, serialize
     from piezo_stage.bag.writer import BagWriter
 
     excitation_type = "piezo_stage_msgs/msg/ExcitationInfo"
-    stamps = record.anchor_ns + np.round(record.t * 1e9).astype(np.int64)
+    stamps = np.round(record.t * 1e9).astype(np.int64)  # the controller's clock
     exc = record.excitation
     with BagWriter(Path(path)) as bag:
         topics = {
@@ -253,7 +257,7 @@ def write_bag(record: ServoRecord, path: str | Path, namespace: str = "/piezo") 
         bag.add_topic(f"{namespace}/excitation", excitation_type, [qos.RELIABLE])
         info = message_class(excitation_type)
         for t, run, steady, offset in record.marks:
-            t_ns = record.anchor_ns + int(round(t * 1e9))
+            t_ns = int(round(t * 1e9))
             msg = info(
                 header=header(t_ns),
                 waveform="triangle",
@@ -263,8 +267,12 @@ def write_bag(record: ServoRecord, path: str | Path, namespace: str = "/piezo") 
                 run=run,
                 steady=steady,
             )
-            bag.write(f"{namespace}/excitation", serialize(msg, excitation_type), t_ns)
+            bag.write(
+                f"{namespace}/excitation",
+                serialize(msg, excitation_type),
+                record.anchor_ns + t_ns,
+            )
         for name, values in (("voltage", record.voltage), ("displacement", record.displacement)):
             for t_ns, data in zip(stamps.tolist(), encode_series(topics[name], stamps, values)):
-                bag.write(f"{namespace}/{name}", data, t_ns)
+                bag.write(f"{namespace}/{name}", data, record.anchor_ns + t_ns)
     return Path(path)

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ProtocolError
+from .errors import GCSError, ProtocolError
 from .gcs import GCSConnection, format_value, parse_float
 
 __all__ = [
@@ -78,18 +78,19 @@ def parse_gcs_array(lines: Sequence[str], columns: int) -> GCSArray:
             header[key.strip()] = value.strip()
     else:
         raise ProtocolError("array reply without # END_HEADER")
+    values = [row.split() for row in rows]
+    if any(len(v) != columns for v in values):
+        raise ProtocolError(f"array reply: rows of {columns} values expected")
     try:
-        data = np.array([[float(v) for v in row.split()] for row in rows], dtype=float)
+        data = np.array(values, dtype=float).reshape(len(rows), columns)
     except ValueError as exc:
         raise ProtocolError(f"array reply: a row that is not {columns} numbers ({exc})") from exc
-    if len(rows) and (data.ndim != 2 or data.shape[1] != columns):
-        raise ProtocolError(f"array reply: rows of {columns} values expected")
     if not np.all(np.isfinite(data)):
         raise ProtocolError("array reply: a value that is not finite")
     expected = header.get("NDATA")
     if expected is not None and expected.isdigit() and int(expected) != len(rows):
         raise ProtocolError(f"array reply: NDATA = {expected} but {len(rows)} rows arrived")
-    return GCSArray(header, data.reshape(len(rows), columns).T)
+    return GCSArray(header, data.T)
 
 
 class ServoRecorder:
@@ -138,7 +139,15 @@ class ServoRecorder:
             chunk = values[start : start + POINTS_PER_LINE]
             text = " ".join(format_value(v) for v in chunk)
             mode = "X" if start == 0 else "&"
-            self.conn.command(f"WAV {table} {mode} PNT {start + 1} {chunk.size} {text}")
+            try:
+                self.conn.command(f"WAV {table} {mode} PNT {start + 1} {chunk.size} {text}")
+            except GCSError as exc:
+                raise GCSError(
+                    exc.code,
+                    f"{exc.message}: wave table {table} refused points {start + 1}.."
+                    f"{start + chunk.size} of {values.size} (longer than the table holds?)",
+                    f"WAV {table} {mode} PNT",
+                ) from None
 
     def connect(
         self, generator: int, table: int, cycles: int, rate: int = 1, offset: float = 0.0
