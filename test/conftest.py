@@ -166,6 +166,7 @@ NEEDS_RCLPY = frozenset(
         "test_emulated_rig_tracking.py",
         "test_env_messages.py",
         "test_experiment_harness.py",
+        "test_gcs_sensor.py",
         "test_identifier_cycles.py",
         "test_launch_run.py",
         "test_node_controller.py",

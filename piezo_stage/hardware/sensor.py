@@ -4,6 +4,11 @@
 :class:`SampleBlock`, possibly empty); ``command()`` runs an ASCII command while samples keep
 arriving (they are kept for the next ``read()``); ``reconnect()`` reopens a dropped link.
 ``stale`` tells when no frame arrived for ``stale_timeout`` seconds (for diagnostics).
+
+:class:`LinkReader` is what the ``laser_reader`` node knows of a reader, shared with
+:class:`~piezo_stage.hardware.gcs_sensor.GCSPositionReader` (a PI controller's own sensor):
+the link (connect, reconnect, close, :meth:`~LinkReader.restart`), staleness, and the counters
+its diagnostics report (:meth:`~LinkReader.counters`, :meth:`~LinkReader.warning`).
 """
 
 from __future__ import annotations
@@ -11,8 +16,9 @@ from __future__ import annotations
 import logging
 import re
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, ClassVar, Generic, Iterator, Mapping, Protocol, TypeVar
 
 from .errors import ConfigError, ConnectionLost, DeviceTimeout, SensorCommandError, TransportError
 from .optoncdt import FrameCheck, OptoNCDTParser, SampleBlock, frame_format
@@ -49,44 +55,71 @@ class SensorConfig:
         return FrameCheck(self.relock_frames, self.max_speed, self.rate)
 
 
-class SensorReader:
-    """Samples and ASCII commands of one optoNCDT sensor over a transport (module docstring)."""
+class LinkConfig(Protocol):
+    """What :class:`LinkReader` reads of a reader's configuration."""
 
-    def __init__(
-        self,
-        transport: Transport,
-        config: SensorConfig,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
+    @property
+    def stale_timeout(self) -> float:
+        """Seconds without a sample before the reader is ``stale``."""
+
+    @property
+    def reconnect_attempts(self) -> int:
+        """Tries of :meth:`LinkReader.reconnect`."""
+
+    @property
+    def reconnect_delay(self) -> float:
+        """Seconds between two tries."""
+
+
+C = TypeVar("C", bound=LinkConfig)
+
+
+class LinkReader(ABC, Generic[C]):
+    """A displacement sensor's reader as the ``laser_reader`` node uses it (module docstring).
+
+    Subclasses set ``config``, implement :meth:`restart`, :meth:`read` and :meth:`counters`, and
+    call :meth:`received` when a sample arrived; ``WARNINGS`` names the counters whose rise the
+    node reports as a warning.
+    """
+
+    #: counters whose rise is a warning -> what the warning calls one of them
+    WARNINGS: ClassVar[Mapping[str, str]] = {}
+
+    config: C
+
+    def __init__(self, transport: Transport, clock: Callable[[], float]) -> None:
         self.transport = transport
-        self.config = config
         self.clock = clock
-        self.parser = OptoNCDTParser(
-            frame_format(config.family, config.bits), config.measuring_range, config.frame_check
-        )
-        self._pending: list[SampleBlock] = []
         self._t_frame = -float("inf")
         self.reconnects = 0
 
-    @classmethod
-    def from_url(
-        cls,
-        url: str,
-        config: SensorConfig,
-        baudrate: int | None = None,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> "SensorReader":
-        """A reader on the transport for ``url`` (``baudrate`` default: the frame format's)."""
-        fmt = frame_format(config.family, config.bits)
-        return cls(make_transport(url, baudrate or fmt.default_baudrate), config, clock)
+    @abstractmethod
+    def restart(self) -> None:
+        """Forget what the link held (received bytes, a parser's state, a poll's pacing)."""
+
+    @abstractmethod
+    def read(self, timeout: float = 0.05) -> SampleBlock:
+        """The samples since the last call, waiting up to about ``timeout`` s for some."""
+
+    @abstractmethod
+    def counters(self) -> dict[str, int]:
+        """The reader's counters for diagnostics; ``frames`` (samples received) is always one."""
+
+    def warning(self, before: Mapping[str, int], now: Mapping[str, int]) -> str:
+        """What the ``WARNINGS`` counters rose by from ``before`` to ``now`` ("" if nothing)."""
+        rises = ((now[key] - before.get(key, 0), label) for key, label in self.WARNINGS.items())
+        return ", ".join(f"{rise} {label}" for rise, label in rises if rise)
+
+    def received(self) -> None:
+        """Note that a sample arrived now (``stale`` counts from here)."""
+        self._t_frame = self.clock()
 
     # --- link -----------------------------------------------------------------------------------
     def connect(self) -> None:
-        """Open the link, drop stale input and reset the parser."""
+        """Open the link and :meth:`restart`."""
         self.transport.open()
-        self.transport.reset_input()
-        self.parser.reset()
-        self._t_frame = self.clock()
+        self.restart()
+        self.received()
 
     def reconnect(self) -> None:
         """Close and reopen the link, ``reconnect_attempts`` tries; ConnectionLost if all fail."""
@@ -110,8 +143,62 @@ class SensorReader:
 
     @property
     def stale(self) -> bool:
-        """Whether no frame arrived for ``stale_timeout`` seconds."""
+        """Whether no sample arrived for ``stale_timeout`` seconds."""
         return self.clock() - self._t_frame > self.config.stale_timeout
+
+
+class SensorReader(LinkReader[SensorConfig]):
+    """Samples and ASCII commands of one optoNCDT sensor over a transport (module docstring)."""
+
+    WARNINGS: ClassVar[Mapping[str, str]] = {
+        "sample_errors": "error value(s)",
+        "resync_bytes_discarded": "byte(s) discarded (resync)",
+        "relock_withheld": "frame(s) withheld (lock)",
+        "speed_rejected": "frame(s) refused (speed gate)",
+    }
+
+    def __init__(
+        self,
+        transport: Transport,
+        config: SensorConfig,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(transport, clock)
+        self.config = config
+        self.parser = OptoNCDTParser(
+            frame_format(config.family, config.bits), config.measuring_range, config.frame_check
+        )
+        self._pending: list[SampleBlock] = []
+
+    @classmethod
+    def from_url(
+        cls,
+        url: str,
+        config: SensorConfig,
+        baudrate: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> "SensorReader":
+        """A reader on the transport for ``url`` (``baudrate`` default: the frame format's)."""
+        fmt = frame_format(config.family, config.bits)
+        return cls(make_transport(url, baudrate or fmt.default_baudrate), config, clock)
+
+    def restart(self) -> None:
+        """Drop stale input and reset the parser."""
+        self.transport.reset_input()
+        self.parser.reset()
+
+    def counters(self) -> dict[str, int]:
+        """The parser's counters under the names the node's diagnostics give them."""
+        stats = self.parser.stats
+        return {
+            "frames": stats.frames,
+            "sample_errors": stats.errors,
+            "resync_bytes_discarded": stats.discarded,
+            "framing_errors": stats.framing_errors,
+            "lock_losses": stats.lock_losses,
+            "relock_withheld": stats.relock_withheld,
+            "speed_rejected": stats.speed_rejected,
+        }
 
     # --- samples --------------------------------------------------------------------------------
     def _receive(self, timeout: float) -> None:
@@ -120,7 +207,7 @@ class SensorReader:
             block = self.parser.feed(data)
             if len(block):
                 self._pending.append(block)
-                self._t_frame = self.clock()
+                self.received()
 
     def read(self, timeout: float = 0.05) -> SampleBlock:
         """Samples received since the last call, waiting up to ``timeout`` s if there are none."""

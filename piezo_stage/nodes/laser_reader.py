@@ -1,4 +1,5 @@
-"""`laser_reader` node: a Micro-Epsilon optoNCDT laser sensor on ``displacement``.
+"""`laser_reader` node ("the reader"): a Micro-Epsilon optoNCDT laser sensor, or a PI controller's
+own sensor polled over GCS (``family`` ``pi_gcs``), on ``displacement``.
 
 Same topic, type, units and QoS as the simulated ``plant`` (docs/design.md §3): publishes
 ``displacement`` (SENSOR_QOS, metres; status != OK carries NaN) and ``/diagnostics``. Frame
@@ -18,6 +19,14 @@ nothing OK next to damaged bytes), error values and link handling are
   in bursts, which only ever add delay); a message is stamped at the mean time of the samples it
   averages, minus ``latency`` (the sensor's own delay: exposure, processing and the serial frame
   time). ``rate_hz`` must be the sensor's measuring rate (MEASRATE).
+
+``family`` ``pi_gcs``: the controller's own (capacitive, strain-gauge) sensor,
+:class:`piezo_stage.hardware.gcs_sensor.GCSPositionReader` on a GCS link of its own (``url``
+``tcp://host:port``: a second TCP connection next to the voltage driver's), ``POS? <gcs_axis>``
+polled on a grid of ``rate_hz`` (um -> m); an answer that is not ``<axis>=<number>`` or a poll
+left unanswered is a sample with status INVALID (then the link is reopened). An axis that the
+controller's ``SAI?`` does not list: one line, exit code 2. ``measuring_range``, ``bits``,
+``max_speed`` and ``relock_frames`` are the optoNCDT's and not used.
 """
 
 from __future__ import annotations
@@ -30,20 +39,24 @@ from typing import Callable, Sequence
 
 from rclpy.parameter import Parameter
 
-from piezo_stage.hardware import SensorConfig, SensorReader, Status, TransportError
+from piezo_stage.hardware import ConfigError, SensorConfig, SensorReader, Status, TransportError
 from piezo_stage.hardware.decimation import Decimator
+from piezo_stage.hardware.gcs_sensor import GCSPositionReader, GCSReaderConfig
 from piezo_stage.hardware.optoncdt import FAMILIES
 from piezo_stage.hardware.timing import SampleClock, set_realtime_priority
 from piezo_stage_msgs.msg import Displacement
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .handoff import Handoff
 from .parameters import on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
 from .settings import LaserReaderSettings
 from .spec import Param, ParameterTable
+
+PI_GCS = "pi_gcs"  #: the ``family`` of a PI controller's own sensor
 
 PARAMETERS = ParameterTable(
     "laser_reader",
@@ -61,7 +74,19 @@ PARAMETERS = ParameterTable(
             range=(0, 4_000_000),
             read_only=True,
         ),
-        Param("family", "ild1320", "optoNCDT family", choices=tuple(FAMILIES), read_only=True),
+        Param(
+            "family",
+            "ild1320",
+            "optoNCDT family, or pi_gcs: a PI controller's own sensor (POS? over GCS)",
+            choices=(*FAMILIES, PI_GCS),
+            read_only=True,
+        ),
+        Param(
+            "gcs_axis",
+            "1",
+            "pi_gcs: the controller's axis whose POS? is polled (an axis SAI? lists)",
+            read_only=True,
+        ),
         Param(
             "bits",
             0,
@@ -95,7 +120,7 @@ PARAMETERS = ParameterTable(
         Param(
             "rate_hz",
             1000.0,
-            "the sensor's measuring rate (stamp correction)",
+            "the sensor's measuring rate (stamp correction); pi_gcs: the poll rate",
             "Hz",
             (1e-3, 1e6),
             read_only=True,
@@ -152,9 +177,39 @@ PARAMETERS = ParameterTable(
             read_only=True,
         ),
     ),
-    summary="Micro-Epsilon optoNCDT laser sensor -> displacement.",
+    summary="Micro-Epsilon optoNCDT laser, or a PI controller's own sensor -> displacement.",
     settings_type=LaserReaderSettings,
 )
+
+
+Reader = SensorReader | GCSPositionReader
+
+
+def make_reader(p: LaserReaderSettings) -> tuple[Reader, str]:
+    """The reader ``p`` describes, connected, and its name for logs and /diagnostics; a
+    configuration the reader or the device refuses is bad input (RosParameterError)."""
+    reader: Reader
+    try:
+        if p.family == PI_GCS:
+            gcs = GCSReaderConfig(p.gcs_axis, p.rate_hz, stale_timeout=p.stale_timeout)
+            reader = GCSPositionReader.from_url(p.url, gcs, baudrate=p.baud or None)
+            name = f"PI GCS sensor, POS? {p.gcs_axis}, {p.url}"
+        else:
+            config = SensorConfig(
+                p.family,
+                p.measuring_range,
+                bits=p.bits or None,
+                stale_timeout=p.stale_timeout,
+                rate=p.rate_hz,
+                max_speed=p.max_speed,
+                relock_frames=p.relock_frames,
+            )
+            reader = SensorReader.from_url(p.url, config, baudrate=p.baud or None)
+            name = f"optoNCDT {p.family} {p.url}"
+        reader.connect()
+    except ConfigError as exc:
+        raise RosParameterError(f"laser_reader: {exc}") from None
+    return reader, name
 
 
 #: the composed loop's step: (displacement [m], status, stamp [ns]) of the new samples ->
@@ -196,17 +251,7 @@ class LaserReaderNode(PiezoNode):
             ),
         )
 
-        config = SensorConfig(
-            p.family,
-            p.measuring_range,
-            bits=p.bits or None,
-            stale_timeout=p.stale_timeout,
-            rate=p.rate_hz,
-            max_speed=p.max_speed,
-            relock_frames=p.relock_frames,
-        )
-        self.reader = SensorReader.from_url(p.url, config, baudrate=p.baud or None)
-        self.reader.connect()
+        self.reader, self.source = make_reader(p)
         self.url = p.url
         self.family = p.family
         self.zero_offset = float(p.zero_offset)
@@ -221,8 +266,8 @@ class LaserReaderNode(PiezoNode):
         self.by_status = [0] * len(Status)  # samples read, per status
         self.link_errors = 0
         self.last_error = ""
-        # (time, frames, published, errors, discarded, withheld + refused)
-        self._last_diag = (time.monotonic(), 0, 0, 0, 0, 0)
+        # (time, published, the reader's counters) at the last /diagnostics
+        self._last_diag: tuple[float, int, dict[str, int]] = (time.monotonic(), 0, {})
 
         self._now_ns = stamp_clock(self)  # use_sim_time is fixed (refused above)
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
@@ -236,19 +281,27 @@ class LaserReaderNode(PiezoNode):
         self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
         if start:
             self.start()
-        Diagnostics(self, f"optoNCDT {self.family} {self.url}", self._diagnose)
+        Diagnostics(self, self.source, self._diagnose)
+        range_text = "" if p.family == PI_GCS else f", MR {p.measuring_range:g} m"
         self.get_logger().info(
-            f"optoNCDT {self.family} on {self.url}: MR "
-            f"{p.measuring_range:g} m, "
-            f"decimation {p.decimation}, rate {self.rate:g} Hz"
+            f"{self.source}{range_text}: decimation {p.decimation}, rate {self.rate:g} Hz"
         )
 
     def start(self) -> None:
         """Start the read thread, forgetting what the link held (samples older than the start
         would reach the loop in one late block)."""
-        self.reader.transport.reset_input()
-        self.reader.parser.reset()
+        self.reader.restart()
         self._thread.start()
+
+    def stream_reader(self) -> SensorReader:
+        """The optoNCDT reader: a loop that waits on several sensors' byte streams at once
+        (the stage's loop) cannot take a polled ``pi_gcs`` one (RosParameterError)."""
+        if not isinstance(self.reader, SensorReader):
+            raise RosParameterError(
+                f"laser_reader: family {PI_GCS} is polled, not streamed: this loop reads "
+                "optoNCDT streams only"
+            )
+        return self.reader
 
     def _read_loop(self) -> None:
         refused = set_realtime_priority(self._loop_priority)
@@ -335,33 +388,21 @@ class LaserReaderNode(PiezoNode):
         self.published += len(status)
 
     def _diagnose(self) -> Diagnosis:
-        stats = self.reader.parser.stats
-        now = (
-            time.monotonic(),
-            stats.frames,
-            self.published,
-            stats.errors,
-            stats.discarded,
-            stats.relock_withheld + stats.speed_rejected,
-        )
-        (t0, frames0, published0, errors0, discarded0, refused0) = self._last_diag
-        self._last_diag = now
-        dt = max(now[0] - t0, 1e-9)
+        counts = self.reader.counters()
+        now = time.monotonic()
+        t0, published0, counts0 = self._last_diag
+        self._last_diag = (now, self.published, counts)
+        dt = max(now - t0, 1e-9)
         values = {
             "connected": self.connected,
             "stale": self.reader.stale,
             "family": self.family,
-            "frame_rate": (stats.frames - frames0) / dt,
+            "frame_rate": (counts["frames"] - counts0.get("frames", 0)) / dt,
             "publish_rate": (self.published - published0) / dt,
-            "frames": stats.frames,
+            "frames": counts["frames"],
             "published": self.published,
             **{f"samples_{s.name.lower()}": int(self.by_status[s]) for s in Status},
-            "sample_errors": stats.errors,
-            "resync_bytes_discarded": stats.discarded,
-            "framing_errors": stats.framing_errors,
-            "lock_losses": stats.lock_losses,
-            "relock_withheld": stats.relock_withheld,
-            "speed_rejected": stats.speed_rejected,
+            **{key: n for key, n in counts.items() if key != "frames"},
             "reconnects": self.reader.reconnects,
             "link_errors": self.link_errors,
             "last_error": self.last_error,
@@ -370,16 +411,9 @@ class LaserReaderNode(PiezoNode):
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         if self.reader.stale:
             return Diagnosis(STALE, f"no frames for {self.reader.config.stale_timeout:g} s", values)
-        errors, discarded = stats.errors - errors0, stats.discarded - discarded0
-        refused = now[5] - refused0
-        if errors or discarded or refused:
-            return Diagnosis(
-                WARN,
-                f"{errors} error value(s), {discarded} byte(s) discarded (resync), "
-                f"{refused} frame(s) withheld or refused (lock, speed gate) "
-                f"in the last {dt:.3g} s",
-                values,
-            )
+        warning = self.reader.warning(counts0, counts)
+        if warning:
+            return Diagnosis(WARN, f"{warning} in the last {dt:.3g} s", values)
         return Diagnosis(OK, "streaming", values)
 
 

@@ -220,7 +220,7 @@ class StageLoopNode(PiezoNode):
         rate = readers[0].rate / readers[0].decimator.n
         s = controllers[0].settings
         self.sensors = StageSensors(
-            [r.reader for r in readers], rate, align=None if p.align < 0 else p.align
+            [r.stream_reader() for r in readers], rate, align=None if p.align < 0 else p.align
         )
         self.sensors.connect()  # the readers' links, already open: stale input dropped
         self.laws = [

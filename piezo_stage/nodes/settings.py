@@ -153,7 +153,8 @@ class IdentifierSettings:
 
 @dataclass(frozen=True)
 class LaserReaderSettings:
-    """``laser_reader``: Micro-Epsilon optoNCDT laser sensor -> displacement."""
+    """``laser_reader``: Micro-Epsilon optoNCDT laser, or a PI controller's own sensor ->
+    displacement."""
 
     url: str
     baud: int
@@ -165,7 +166,9 @@ class LaserReaderSettings:
         "ild2300",
         "ild1750",
         "ild1900",
+        "pi_gcs",
     ]
+    gcs_axis: str
     bits: int
     measuring_range: float
     zero_offset: float
