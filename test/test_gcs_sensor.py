@@ -123,7 +123,10 @@ def test_invalid_replies_and_silence_are_invalid_samples_counted():
     counts = reader.counters()
     assert (counts["frames"], counts["invalid_replies"], counts["reply_timeouts"]) == (2, 1, 1)
     assert reader.reconnects == 1  # after the timeout: a fresh link, no late reply taken
-    assert reader.warning({}, counts) == "1 reply(ies) not '<axis>=<number>', 1 poll(s) unanswered"
+    # (and the slots the 5 ms wait for the silent reply missed at 10 kHz, when it did)
+    assert reader.warning({}, counts).startswith(
+        "1 reply(ies) not '<axis>=<number>', 1 poll(s) unanswered"
+    )
 
 
 @pytest.mark.unit
@@ -241,7 +244,7 @@ def test_polls_are_paced_one_per_period(e727):
         samples += len(reader.read(0.05))  # a wait longer than the period: still one per slot
     elapsed = time.monotonic() - t0
     assert samples == reader.stats.polls == len(arrivals)
-    assert 0.8 * 200 * elapsed <= samples <= 200 * elapsed + 2
+    assert 0.5 * 200 * elapsed <= samples <= 200 * elapsed + 2  # never more than a slot each
     gaps = np.diff(arrivals)
     assert np.median(gaps) == pytest.approx(1 / 200, rel=0.2)
     # a short wait returns nothing between slots
@@ -266,8 +269,8 @@ def test_garbled_replies_are_invalid_samples_never_displacements(e727):
     assert status[-10:] == [Status.OK] * 10
 
 
-def node_like(reader: GCSPositionReader, stop: threading.Event, seen: list[bool]) -> None:
-    """The node's read loop: read, and reconnect after a link error; note ``stale``."""
+def node_like(reader: GCSPositionReader, stop: threading.Event) -> None:
+    """The node's read loop: read, and reconnect after a link error."""
     connected = True
     while not stop.is_set():
         try:
@@ -278,7 +281,16 @@ def node_like(reader: GCSPositionReader, stop: threading.Event, seen: list[bool]
         except TransportError:
             connected = False
             time.sleep(0.002)
-        seen.append(reader.stale)
+
+
+def stall_once(server: EmulatorServer, seconds: float) -> None:
+    """The device stops for ``seconds`` before its next reply (nothing out, input ignored)."""
+    server.faults.stall_time = seconds
+    server.faults.stall = 1.0
+    deadline = time.monotonic() + 2.0
+    while server.faults.counts["stalls"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.001)
+    server.faults.stall = 0.0
 
 
 @pytest.mark.ros
@@ -286,33 +298,31 @@ def node_like(reader: GCSPositionReader, stop: threading.Event, seen: list[bool]
 def test_a_stalled_or_dropped_link_goes_stale_then_reconnects(e727, fault):
     model, server = e727
     reader = reader_on(server, stale_timeout=0.1, reply_timeout=0.02)
-    stop, seen = threading.Event(), []
-    thread = threading.Thread(target=node_like, args=(reader, stop, seen), daemon=True)
+    stop = threading.Event()
+    thread = threading.Thread(target=node_like, args=(reader, stop), daemon=True)
     thread.start()
+    stale, after = False, None  # frames when it was first seen stale (hang-up: when dropped)
     try:
         time.sleep(0.2)
         if fault == "stall":
-            server.faults.stall_time = 0.5
-            server.faults.stall = 1.0  # the next reply: the device stops for 0.5 s
-            deadline = time.monotonic() + 2.0
-            while server.faults.counts["stalls"] == 0 and time.monotonic() < deadline:
-                time.sleep(0.001)
-            server.faults.stall = 0.0
+            stall_once(server, 0.5)
         else:
             server.disconnect()
-        deadline = time.monotonic() + 5.0
-        while not (fault == "hangup" or any(seen)) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        before = reader.stats.frames
-        while reader.stats.frames < before + 100 and time.monotonic() < deadline:
-            time.sleep(0.01)
+            after = reader.stats.frames
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            if reader.stale and not stale:
+                stale, after = True, reader.stats.frames
+            if after is not None and reader.stats.frames >= after + 100:
+                break
+            time.sleep(0.001)
     finally:
         stop.set()
         thread.join(timeout=5.0)
-    assert reader.stats.frames >= before + 100, reader.counters()
+    assert after is not None and reader.stats.frames >= after + 100, reader.counters()
     assert reader.reconnects >= 1 and not reader.stale
     if fault == "stall":
-        assert any(seen) and reader.stats.reply_timeouts >= 1
+        assert stale and reader.stats.reply_timeouts >= 1
 
 
 # --- over DDS ------------------------------------------------------------------------------------

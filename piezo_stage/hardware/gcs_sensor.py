@@ -42,6 +42,9 @@ UM = 1e-6  #: m per um (``POS?`` answers um)
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 _OK, _INVALID = int(Status.OK), int(Status.INVALID)
 GCS_BAUDRATE = 115200  #: the serial default of PI's controllers
+#: s for the SAI? reply on connecting (a controller, or an emulator catching up with its servo
+#: clock, may take longer to answer its first query than a poll may)
+CONNECT_TIMEOUT = 1.0
 
 
 @dataclass(frozen=True)
@@ -155,9 +158,9 @@ class GCSPositionReader(LinkReader[GCSReaderConfig]):
         self._timed_out = False
 
     def _check_axis(self) -> None:
-        reply = self._exchange(b"SAI?\n")
+        reply = self._exchange(b"SAI?\n", max(self.config.reply_timeout, CONNECT_TIMEOUT))
         if reply is None:
-            raise DeviceTimeout(f"no reply to 'SAI?' from {self.transport.url}")
+            raise DeviceTimeout(f"no reply to 'SAI?' from {self.transport.url} on connecting")
         self.axes = [a.strip() for a in split_reply(reply) if a.strip()]
         if self.config.axis not in self.axes:
             self.transport.close()
@@ -212,7 +215,7 @@ class GCSPositionReader(LinkReader[GCSReaderConfig]):
     def _poll(self) -> float | None:
         """One ``POS?``: the position [m], or None (invalid reply or timeout, counted)."""
         self.stats.polls += 1
-        reply = self._exchange(self._query)
+        reply = self._exchange(self._query, self.config.reply_timeout)
         if reply is None:
             self.stats.reply_timeouts += 1
             self._timed_out = True
@@ -225,15 +228,15 @@ class GCSPositionReader(LinkReader[GCSReaderConfig]):
         self.received()
         return value
 
-    def _exchange(self, query: bytes) -> bytes | None:
-        """Send ``query`` and return its reply, or None when none came within reply_timeout;
+    def _exchange(self, query: bytes, timeout: float) -> bytes | None:
+        """Send ``query`` and return its reply, or None when none came within ``timeout`` s;
         whatever was waiting before is dropped (it answers no query of ours).
         """
         while (junk := self._replies.poll(_everything)) is not None:
             self.stats.discarded += len(junk)
         self.transport.write(query)
         try:
-            return self._replies.read_reply(gcs_reply_end, self.config.reply_timeout)
+            return self._replies.read_reply(gcs_reply_end, timeout)
         except DeviceTimeout:
             return None
 
