@@ -203,6 +203,18 @@ RUN: dict[str, Expect] = {
         files=("cycles.yaml",),
         timeout=600,
     ),
+    # PI controllers: play and record in the controller
+    "piezo-stage emulate e727 --tcp 50000": Expect(ready=r"^e727: tcp://127\.0\.0\.1:50000"),
+    "piezo-stage identify --device tcp://127.0.0.1:50000 --axis 1 --model-input displacement "
+    "--output pi_axis1.yaml --bag pi_axis1": Expect(
+        beside="piezo-stage emulate e727 --tcp 50000",
+        out=(r"recorded 640000 points at 20 kHz", r"method analytic"),
+        files=("pi_axis1.yaml", "pi_axis1/metadata.yaml"),
+        timeout=300,
+    ),
+    "piezo-stage identify pi_axis1 --input-topic /piezo/displacement --output-topic "
+    "/piezo/voltage --steady-periods 2": Expect(out=(r"method analytic",)),
+    "piezo-stage launch pi_rig_loop": Expect(ready=r"\[launch\] +ready after"),
     # gains
     "piezo-stage gains --k1 5e6 --k2 580 --k0 1e9 --rate-hz 1000": Expect(
         out=(r"STABLE",), check=_theorem4
@@ -505,24 +517,24 @@ def _env() -> dict[str, str]:
 def _run(command: Command, expect: Expect, folder: Path) -> str:
     env = _env()
     where = f"README.md:{command.line}: {command.text}"
-    if expect.ready is None:
-        proc = subprocess.run(
-            ["bash", "-c", command.text],
-            cwd=folder,
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            timeout=expect.timeout,
-        )
-        out, code = proc.stdout, proc.returncode
-    else:
-        helper = None
-        try:
-            if expect.beside is not None:
-                helper = _Running(expect.beside, folder, env)
-                ready = RUN[expect.beside].ready
-                assert ready and helper.wait_for(ready, expect.timeout), helper.output[-3000:]
+    helper = None
+    try:
+        if expect.beside is not None:  # a README command serving meanwhile
+            helper = _Running(expect.beside, folder, env)
+            ready = RUN[expect.beside].ready
+            assert ready and helper.wait_for(ready, expect.timeout), helper.output[-3000:]
+        if expect.ready is None:
+            proc = subprocess.run(
+                ["bash", "-c", command.text],
+                cwd=folder,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                timeout=expect.timeout,
+            )
+            out, code = proc.stdout, proc.returncode
+        else:
             running = _Running(command.text, folder, env)
             try:
                 up = running.wait_for(expect.ready, expect.timeout)
@@ -532,9 +544,9 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
                 code = running.stop()
             out = running.output
             assert up, f"{where}: never said {expect.ready!r}:\n{out[-3000:]}"
-        finally:
-            if helper is not None:
-                helper.stop()
+    finally:
+        if helper is not None:
+            helper.stop()
     assert code == expect.code, f"{where}: exit code {code}, not {expect.code}:\n{out[-3000:]}"
     for pattern in expect.out:
         assert re.search(pattern, out, re.M), f"{where}: no {pattern!r} in:\n{out[-3000:]}"

@@ -104,7 +104,7 @@ def test_a_run_longer_than_a_table_is_joined_without_a_gap(controller, monkeypat
     amplifier = GCSAmplifier(make_transport(url), axis="1")
     info = amplifier.open()
     try:
-        excitation = TWaveExcitation(0.0, 60.0, 20.0, period=0.05, rate=1)  # 1000 points
+        excitation = TWaveExcitation(0.0, 60.0, 20.0, 0.05, 10, 2, rate=1)  # 1000 points
         record = record_t_waves(
             amplifier, ServoRecorder(amplifier.conn), excitation, 1, (info.v_min, info.v_max)
         )

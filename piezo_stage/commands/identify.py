@@ -75,9 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     device.add_argument(
         "--periods",
         metavar="SETTLE,RECORD",
-        default="10,2",
+        default="10,6",
         help="periods per run: settling (a stage's loop can take several to reach its limit "
-        "cycle: the shipped ch. 11 rig halves its distance per period), then recorded (10,2)",
+        "cycle: the shipped ch. 11 rig halves its distance per period), then recorded (10,6)",
     )
     device.add_argument(
         "--record-rate",

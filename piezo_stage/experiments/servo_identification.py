@@ -55,7 +55,7 @@ class TWaveExcitation:
     q: float
     period: float = 1.0
     settle_periods: int = 10
-    record_periods: int = 2
+    record_periods: int = 6
     rate: int = 1  #: servo cycles per table point and per recorded point (``WTR``, ``RTR``)
 
     def check(self, v_min: float, v_max: float) -> None:
