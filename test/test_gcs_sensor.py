@@ -200,6 +200,10 @@ def e727():
 
 
 def reader_on(server: EmulatorServer, rate: float = 1000.0, **config) -> GCSPositionReader:
+    """A connected reader on the emulator; a reply may take 1 s (not the node's 50 ms: the
+    emulator shares this process's GIL, and a late reply here is a loaded host, not a fault)
+    unless the test sets ``reply_timeout``."""
+    config.setdefault("reply_timeout", 1.0)
     reader = GCSPositionReader.from_url(server.url, GCSReaderConfig("1", rate, **config))
     reader.connect()
     return reader

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
 
 from piezo_stage.model import SimulatedStage as FromPackage
 from piezo_stage.model.bouc_wen import model_output
@@ -86,3 +88,23 @@ def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
         stage.step(math.inf, 1e-4)
     assert stage.output() == before and stage.steps == 50
     assert FromPackage is SimulatedStage  # also importable from piezo_stage.model
+
+
+@given(
+    values=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), max_size=60),
+    noise=st.sampled_from([0.0, 1e-3, 2.0]),
+    resolution=st.sampled_from([0.0, 1e-2, 0.3]),
+    seed=st.integers(0, 2**16),
+)
+@example(values=[0.5, math.nan, 3.0, -2.0, 0.25], noise=1e-3, resolution=1e-2, seed=1)
+@pytest.mark.hypothesis
+def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, seed):
+    """The vectorised reading (what a stage steps per chunk) is the per-sample one: the same
+    statuses, the same noise draws in the same order, the same quantisation."""
+    kw = dict(noise_std=noise, resolution=resolution, range_min=-1.0, range_max=1.5, seed=seed)
+    one, many = SensorModel(**kw), SensorModel(**kw)
+    each = [one.measure(v) for v in values]
+    got, status = many.measure_many(np.array(values, dtype=float))
+    assert status.tolist() == [s for _, s in each]
+    expected = np.array([v for v, _ in each], dtype=float)
+    assert np.array_equal(got, expected, equal_nan=True)

@@ -169,6 +169,26 @@ class SensorModel:
             value = round(value / self.resolution) * self.resolution
         return value, int(SensorStatus.OK)
 
+    def measure_many(
+        self, displacements: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """:meth:`measure` of each displacement in turn (the same noise draws, in order),
+        vectorised: (readings, statuses).
+        """
+        y = np.asarray(displacements, dtype=float)
+        status = np.full(y.shape, int(SensorStatus.OK), dtype=np.int64)
+        status[y > self.range_max] = int(SensorStatus.TOO_FAR)
+        status[y < self.range_min] = int(SensorStatus.TOO_CLOSE)
+        status[~np.isfinite(y)] = int(SensorStatus.INVALID)
+        ok = status == int(SensorStatus.OK)
+        values = np.full(y.shape, math.nan)
+        values[ok] = y[ok]
+        if self.noise_std > 0.0:
+            values[ok] += self.noise_std * self._rng.standard_normal(int(ok.sum()))
+        if self.resolution > 0.0:
+            values[ok] = np.round(values[ok] / self.resolution) * self.resolution
+        return values, status
+
 
 class SimulatedStage:
     """Amplifier -> plant (static (10.15) or dynamic (11.1)) -> sensor, one step at a time."""
@@ -340,8 +360,7 @@ class CoupledStage:
         readings = np.empty((n, n_axes))
         status = np.empty((n, n_axes), dtype=np.int64)
         for i, sensor in enumerate(self.sensors):
-            for k in range(n):
-                readings[k, i], status[k, i] = sensor.measure(float(coupled[k, i]))
+            readings[:, i], status[:, i] = sensor.measure_many(coupled[:, i])
         return AxesSample(applied, readings, status)
 
     def step(self, commands: Sequence[float], dt: float) -> AxesSample:

@@ -42,7 +42,7 @@ PIPython's ``qDRR`` reads; :meth:`PIControllerModel.recorded` gives the same arr
 Python. :meth:`PIControllerModel.inject_drr_fault` cuts or corrupts the next ``DRR?`` reply.
 
 Idle gaps (no generator running, nothing recording) longer than :data:`IDLE_SKIP_S` are
-skipped but for their last second: a held voltage or target has settled by then.
+skipped but for their last :data:`IDLE_KEEP_S`: a held voltage or target has settled by then.
 """
 
 from __future__ import annotations
@@ -88,7 +88,11 @@ MAX_WAVE_POINTS = 65536  #: points per wave table
 SERVO_CHUNK = 20  #: cycles between sensor reads of the servo's chunked integrator (1 ms)
 BUSY_CHUNK = 4000  #: cycles per stage step while generating or recording
 IDLE_CHUNK = 1 << 16  #: cycles per stage step otherwise
-IDLE_SKIP_S = 2.0  #: idle gaps longer than this are skipped but for their last second
+IDLE_SKIP_S = 0.1  #: idle gaps longer than this are skipped but for their last IDLE_KEEP_S
+#: what an idle gap keeps: the held output has settled by then (the ch. 11 rig's resonance
+#: decays in ~1 ms), and simulating a whole second made the first command after an idle
+#: minute wait a second for its answer (a client's 1 s timeout)
+IDLE_KEEP_S = 0.05
 UM = 1e6  #: um per m
 
 PARAM_SERVO_CYCLE = 0x0E000200
@@ -385,7 +389,7 @@ class PIControllerModel(GCSDeviceModel):
         if cycle <= self.cycle:
             return
         while self.cycle < cycle:
-            skip = cycle - self.cycle - round(1.0 / self.cycle_time)
+            skip = cycle - self.cycle - round(IDLE_KEEP_S / self.cycle_time)
             if not self._busy() and skip > IDLE_SKIP_S / self.cycle_time:
                 self.cycle += skip
             limit = SERVO_CHUNK if any(self.servo.values()) else BUSY_CHUNK
