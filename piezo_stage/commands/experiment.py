@@ -90,14 +90,18 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
     group.add_argument(
         "--graph",
-        choices=[*(g.value for g in Graph), *GRAPHS],
+        choices=[*(g.value for g in Graph), "pi_servo", *GRAPHS],
         default=None,
         help="tracking: sim (default), the lockstep plant; emulated_rig: `emulate rig` around "
         "the plant model with the driver, reader and controller in one process (real time); "
         "both with the emulated rig's 0-400 V amplifier: a trajectory the --model says needs "
-        "more is refused (exit 2) with the largest amplitude that fits. coupling and raster: "
+        "more is refused (exit 2) with the largest amplitude that fits; pi_servo: a PI "
+        "controller (--device) plays the table with its wave generator at its servo rate, "
+        "learned from its data recorder. coupling and raster: "
         "sim_scanner (default), emulated_scanner or rig_scanner",
     )
+    group.add_argument("--device", metavar="URL", help="pi_servo: the controller (tcp://HOST:PORT)")
+    group.add_argument("--axis", help="pi_servo: its axis (default: the first SAI? lists)")
     group.add_argument(
         "--rate-hz",
         type=float,
@@ -284,6 +288,10 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
     )
 
     graph = args.graph or "sim"
+    if graph == "pi_servo":
+        from piezo_stage.commands.servo_tracking import run_pi_servo
+
+        return run_pi_servo(args, progress)
     if graph not in {g.value for g in Graph}:
         raise ExperimentInputError(f"--graph {graph}: tracking runs on sim or emulated_rig")
     model = args.model

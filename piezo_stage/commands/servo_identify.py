@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
+from typing import Any
 
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.methods import Method, identify_runs
@@ -46,6 +47,30 @@ def excitation_from(args: argparse.Namespace, v_min: float, v_max: float):
     return excitation
 
 
+def open_controller(url: str, axis: str | None) -> tuple[Any, Any, Any, int]:
+    """(amplifier opened with its servo off, its DeviceInfo, a ServoRecorder on its link, the
+    wave generator of the axis): axis i of ``SAI?`` drives output channel i and is driven by
+    generator i. :class:`DeviceRunError` when the link or the axis is refused."""
+    from piezo_stage.hardware.amplifier import GCSAmplifier
+    from piezo_stage.hardware.errors import HardwareError
+    from piezo_stage.hardware.pi_recorder import ServoRecorder
+    from piezo_stage.hardware.transport import make_transport
+
+    try:
+        amplifier = GCSAmplifier(make_transport(url), axis=axis)
+    except HardwareError as exc:
+        raise DeviceRunError(f"{url}: {exc}") from None
+    try:
+        info = amplifier.open()
+        axes = [a.strip() for a in amplifier.conn.query("SAI?") if a.strip()]
+    except HardwareError as exc:
+        amplifier.close()
+        raise DeviceRunError(f"{url}: {exc}") from None
+    generator = axes.index(amplifier.axis) + 1
+    amplifier.channel = generator
+    return amplifier, info, ServoRecorder(amplifier.conn), generator
+
+
 def identify_on_device(
     args: argparse.Namespace, options: IdentifyOptions, fit: FitOptions
 ) -> tuple[IdentificationResult, list[Recording]]:
@@ -57,25 +82,13 @@ def identify_on_device(
         safe_state,
         write_bag,
     )
-    from piezo_stage.hardware.amplifier import GCSAmplifier
     from piezo_stage.hardware.errors import HardwareError
-    from piezo_stage.hardware.pi_recorder import ServoRecorder
-    from piezo_stage.hardware.transport import make_transport
 
     def say(text: str) -> None:
         print(f"piezo-stage identify: {text}", file=sys.stderr, flush=True)
 
+    amplifier, info, recorder, generator = open_controller(args.device, args.axis)
     try:
-        amplifier = GCSAmplifier(make_transport(args.device), axis=args.axis)
-        info = amplifier.open()
-    except HardwareError as exc:
-        raise DeviceRunError(f"{args.device}: {exc}") from None
-    recorder = ServoRecorder(amplifier.conn)
-    generator = 1
-    try:
-        axes = [a.strip() for a in amplifier.conn.query("SAI?") if a.strip()]
-        generator = axes.index(amplifier.axis) + 1
-        amplifier.channel = generator  # axis i drives output channel i (SAI? order)
         excitation = excitation_from(args, info.v_min, info.v_max)
         say(
             f"{info.identity.split(',')[1].strip() if ',' in info.identity else info.identity}"

@@ -35,7 +35,7 @@ from piezo_stage.identification.io import intervals_from_marks, recordings_from_
 from piezo_stage.identification.recording import Recording
 from piezo_stage.model.signals import triangle
 
-from .errors import ExperimentError
+from .errors import ExperimentError, ExperimentInputError
 
 #: host ramp between runs: volts per step and seconds per step (a slew limit of 2.5 kV/s)
 RAMP_STEP_V, RAMP_STEP_S = 5.0, 2e-3
@@ -149,7 +149,7 @@ def record_t_waves(
     capacity = recorder.table_points()
     fit = capacity // per_period
     if fit < 1:
-        raise ExperimentError(
+        raise ExperimentInputError(
             f"one period ({per_period} points at {excitation.rate} servo cycle(s) per point) "
             f"does not fit a data recorder table of {capacity} points: raise the rate"
         )

@@ -188,22 +188,33 @@ class ServoRecorder:
     def read(
         self, tables: int, count: int, progress: Callable[[int], None] | None = None
     ) -> GCSArray:
-        """The first ``count`` points of tables 1..``tables`` (``DRR?`` in parts of
-        :data:`POINTS_PER_READ`; each part's reply checked by :func:`parse_gcs_array`).
+        """The first ``count`` points of tables 1..``tables`` (:meth:`read_range`)."""
+        return self.read_range(tables, 0, count, progress)
+
+    def read_range(
+        self,
+        tables: int,
+        start: int,
+        count: int,
+        progress: Callable[[int], None] | None = None,
+    ) -> GCSArray:
+        """Points ``start`` .. ``start + count - 1`` (from 0) of tables 1..``tables``
+        (``DRR?`` in parts of :data:`POINTS_PER_READ`; each part's reply checked by
+        :func:`parse_gcs_array`).
         """
         ids = " ".join(str(t + 1) for t in range(tables))
         parts, header = [], {}
         saved, self.conn.timeout = self.conn.timeout, max(self.conn.timeout, self.read_timeout)
         try:
-            for first in range(0, count, POINTS_PER_READ):
-                n = min(POINTS_PER_READ, count - first)
+            for first in range(start, start + count, POINTS_PER_READ):
+                n = min(POINTS_PER_READ, start + count - first)
                 got = parse_gcs_array(self.conn.query(f"DRR? {first + 1} {n} {ids}"), tables)
                 if got.columns.shape[1] != n:
                     raise ProtocolError(f"DRR? {first + 1} {n}: {got.columns.shape[1]} rows")
                 parts.append(got.columns)
                 header = got.header
                 if progress is not None:
-                    progress(first + n)
+                    progress(first + n - start)
         finally:
             self.conn.timeout = saved
         columns = np.concatenate(parts, axis=1) if parts else np.zeros((tables, 0))
