@@ -148,9 +148,11 @@ def test_pipython_plays_and_records_a_sine_and_a_point_table(pidevice):
         data[2, : 3 * 50 * len(points)], np.tile(np.repeat(points, 50), 3)[: n + 100]
     )
     # the recorded position is what the stage model gives for those voltages (a fresh stage
-    # without noise: the emulated one rested at 0 V before), within the sensor noise
+    # without noise: the emulated one rested at 0 V before), within the sensor noise; a cycle
+    # records the sensor it reads before its output acts: point k follows the voltages < k
     volts = np.vstack([data[0], data[2], np.zeros(n + 100)])
     expected = CoupledStage(_stage(noise=0.0)().stage).step_voltages(volts, 50e-6, 1).readings
+    expected = np.vstack([np.zeros((1, 3)), expected[:-1]])
     np.testing.assert_allclose(data[1], expected[:, 0] * 1e6, atol=6 * NOISE * 1e6)
     np.testing.assert_allclose(data[3], expected[:, 1] * 1e6, atol=6 * NOISE * 1e6)
     assert np.allclose(model.recorded(2)[: n + 100], data[1])

@@ -104,6 +104,13 @@ class ServoRecord:
     anchor_ns: int  #: host wall clock [ns] at the first WGO
     segments: list[int] = field(default_factory=list)  #: points of each read-back segment
 
+    @property
+    def voltage_t(self) -> NDArray[np.float64]:
+        """When each recorded voltage acts [s]: a servo cycle reads its sensor, then sets its
+        output, so voltage k is in force from the cycle after point k, and position k follows
+        the voltages before it (the recordings hold the voltage between its stamps)."""
+        return self.t + self.cycle
+
     def recordings(
         self, name: str = "data recorder", input_name: str = "voltage"
     ) -> list[Recording]:
@@ -111,13 +118,14 @@ class ServoRecord:
         displacement (ch. 10), or displacement -> voltage with ``input_name`` "displacement"
         (the ch. 11 form u = Φ(x), whose parameters are the stage model's)."""
         intervals = intervals_from_marks([(t, run, steady) for t, run, steady, _ in self.marks])
+        tv = self.voltage_t
         if input_name == "displacement":
             return recordings_from_series(
-                self.t, self.displacement, self.t, self.voltage, None, intervals, name, "m", "V"
+                self.t, self.displacement, tv, self.voltage, None, intervals, name, "m", "V"
             )
         status = np.zeros(self.t.size, dtype=np.uint8)
         return recordings_from_series(
-            self.t, self.voltage, self.t, self.displacement, status, intervals, name
+            tv, self.voltage, self.t, self.displacement, status, intervals, name
         )
 
 
@@ -245,7 +253,10 @@ def write_bag(record: ServoRecord, path: str | Path, namespace: str = "/piezo") 
     from piezo_stage.bag.writer import BagWriter
 
     excitation_type = "piezo_stage_msgs/msg/ExcitationInfo"
-    stamps = np.round(record.t * 1e9).astype(np.int64)  # the controller's clock
+    stamps = {  # the controller's clock
+        "voltage": np.round(record.voltage_t * 1e9).astype(np.int64),
+        "displacement": np.round(record.t * 1e9).astype(np.int64),
+    }
     exc = record.excitation
     with BagWriter(Path(path)) as bag:
         topics = {
@@ -273,6 +284,7 @@ def write_bag(record: ServoRecord, path: str | Path, namespace: str = "/piezo") 
                 record.anchor_ns + t_ns,
             )
         for name, values in (("voltage", record.voltage), ("displacement", record.displacement)):
-            for t_ns, data in zip(stamps.tolist(), encode_series(topics[name], stamps, values)):
+            at = stamps[name]
+            for t_ns, data in zip(at.tolist(), encode_series(topics[name], at, values)):
                 bag.write(f"{namespace}/{name}", data, record.anchor_ns + t_ns)
     return Path(path)

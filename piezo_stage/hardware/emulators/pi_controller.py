@@ -33,7 +33,9 @@ are accepted but the curves stay straight; a ``SIN_P``/``RAMP`` curve longer tha
 segment wraps around the segment's start.
 
 Data recorder (manual section "Data Recording"): ``TNR?`` tables sharing
-:data:`MAX_RECORD_POINTS` points (0x16000200) equally; a point every ``RTR`` servo cycles,
+:data:`MAX_RECORD_POINTS` points (0x16000200) equally; point k holds what cycle k reads and
+sets: the sensor before the cycle's output acts, and that output; a point every ``RTR`` servo
+cycles,
 recording all tables from the trigger until they are full. ``WGO`` (start) always triggers;
 ``DRT`` 1 adds any command changing a position (``MOV``, ``MVR``, ``SVA``, ``SVR``), 2 the
 next command (then back to 0), 3 (a digital input) never fires here. ``DRR?`` answers in the
@@ -434,12 +436,16 @@ class PIControllerModel(GCSDeviceModel):
                 held = self.voltages[axis] if wave is None else wave
                 volts[i] = np.clip(held, self.v_min, self.v_max)
         every = 1 if self.recorder.active else n
+        before = self.position.copy()  # the sensor as cycle `self.cycle` reads it
         applied, readings, _ = self.stage.step_voltages(volts, self.cycle_time, every)
         position = np.asarray(readings, dtype=float) * UM
         self.applied = np.asarray(applied[-1], dtype=float).copy()
         self.position = position[-1].copy()
         if self.recorder.active:
-            self._rows = {"target": targets, "position": position.T, "volts": volts}
+            # cycle k records the sensor it reads and the output it then sets: the position
+            # before the cycle's voltage acts (the one after is cycle k + 1's reading)
+            read = np.vstack([before, position[:-1]]).T
+            self._rows = {"target": targets, "position": read, "volts": volts}
             self.recorder.take(cycles, self._column)
         self.cycle += n
 
