@@ -102,6 +102,21 @@ def track(url: str, axis: str, rate_hz: float, model: str) -> tuple[dict, float]
     return json.loads(out.getvalue()), time.monotonic() - start
 
 
+def three_at_once(url: str, model: str) -> None:
+    """The three axes' tables played at once (one WGO), all six recorder tables read back."""
+    args = ["experiment", "tracking", "--graph", "pi_servo", "--device", url, "--axis", "1,2,3"]
+    args += ["--trajectory", "triangle", "--frequency", "100", "--amplitude", "5e-6"]
+    args += ["--offset", "6e-6", "--model", model, "--json"]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli(args)
+    if code != 0:
+        raise SystemExit(f"three axes: exit {code}\n{err.getvalue()}")
+    for axis, got in json.loads(out.getvalue())["axes"].items():
+        first, last = got["history_rms_relative"][0], got["rms_relative"]
+        print(f"{axis:>4}  at once {100 * first:7.3f}% {100 * last:7.3f}% {got['plays']:>5}")
+
+
 def tracking(url: str, axes: list[str]) -> None:
     import tempfile
 
@@ -118,6 +133,7 @@ def tracking(url: str, axes: list[str]) -> None:
                 f"{got['plays']:>5} {wall:5.1f} s",
                 flush=True,
             )
+    three_at_once(url, model)
     print(
         f"worst learned RMS: 20 kHz {100 * worst[20000.0]:.3f} %, 1 kHz table "
         f"{100 * worst[1000.0]:.3f} % ({worst[1000.0] / worst[20000.0]:.1f}x)"

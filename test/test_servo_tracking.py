@@ -89,6 +89,21 @@ def test_the_table_learned_in_the_controller_tracks_and_plays_again(controller, 
     _left_safe(device)
 
 
+def test_three_axes_play_and_learn_at_once(controller, tmp_path, capsys):
+    """Three tables on three generators, started by one WGO, six recorder tables read back:
+    every axis learns from its own record."""
+    device, url = controller
+    model = ["--model", _off_model(tmp_path)]
+    code, got, err = _track(url, "--axis", "1,2,3", *model, capsys=capsys)
+    assert code == 0, err
+    assert sorted(got["axes"]) == ["1", "2", "3"]
+    for axis, figures in got["axes"].items():
+        history = figures["history_rms_relative"]
+        assert history[-1] < 0.5 * history[0] and figures["rms_relative"] < 3e-3, axis
+    assert device.recorder.tables == 6
+    _left_safe(device)
+
+
 def test_at_a_host_loop_rate_the_table_cannot_follow(controller, capsys):
     """The same triangle as a 1 kHz table (10 points a period, what a 1 kHz host loop can
     command): an order of magnitude more error than at the servo rate."""
@@ -103,6 +118,7 @@ def test_at_a_host_loop_rate_the_table_cannot_follow(controller, capsys):
     "extra, why",
     [
         (["--axis", "7"], "axis '7' not on controller"),
+        (["--axis", "1,7"], "axis '7' not on controller"),
         (["--frequency", "0.5"], "do not fit a data recorder table"),
         (["--model", "ch10_patch.yaml"], "static"),
     ],

@@ -42,41 +42,68 @@ def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None
         table = FeedforwardTable.load(args.table) if args.table else None
     except (ControlError, ModelError, OSError, ValueError) as exc:
         raise ExperimentInputError(str(exc)) from None
+    names = [a.strip() for a in (args.axis or "").split(",") if a.strip()] or [None]
     try:
-        amplifier, info, recorder, generator = open_controller(args.device, args.axis)
+        amplifier, info, recorder, generator = open_controller(args.device, names[0])
     except DeviceRunError as exc:
         raise ExperimentInputError(str(exc)) from None
+    try:
+        axes = [(amplifier, generator)] + [axis_view(amplifier, name) for name in names[1:]]
+    except DeviceRunError as exc:
+        amplifier.close()
+        raise ExperimentInputError(f"{args.device}: {exc}") from None
     try:
         cycle = recorder.servo_cycle()
         rate = max(1, round(1.0 / (cycle * args.rate_hz))) if args.rate_hz else 1
         x_d, _ = trajectory_samples(trajectory, 1.0 / (cycle * rate))
         plays = args.learn if args.learn else (0 if table is not None else DEFAULT_LEARN)
-        result = learn_in_controller(
-            amplifier,
+        results = learn_in_controller(
+            axes,
             recorder,
-            generator,
             model,
             x_d,
             rate,
             (info.v_min, info.v_max),
             max_iterations=plays,
-            table=table,
+            tables=[table] * len(axes) if table is not None else (),
             progress=lambda text: progress(0.0, text),
         )
     except (HardwareError, ControlError) as exc:
         raise ExperimentInputError(f"{args.device}: {exc}") from None
     finally:
         amplifier.close()
-    summary: dict[str, Any] = {
-        "graph": "pi_servo",
-        "rms_error": result.rms_error,
-        "rms_relative": result.rms_relative,
-        "range": float(x_d.max() - x_d.min()),
-        "rate_hz": 1.0 / (cycle * rate),
-        "points": int(x_d.size),
-        "plays": len(result.history),
-        "history_rms_relative": [h / float(x_d.max() - x_d.min()) for h in result.history],
+    span = float(x_d.max() - x_d.min())
+    per_axis = {
+        a.axis: {
+            "rms_error": r.rms_error,
+            "rms_relative": r.rms_relative,
+            "plays": len(r.history),
+            "history_rms_relative": [h / span for h in r.history],
+        }
+        for (a, _), r in zip(axes, results)
     }
-    if args.table_out:
-        summary["table_out"] = str(result.table.save(args.table_out))
+    summary: dict[str, Any] = {"graph": "pi_servo", "range": span}
+    summary |= {"rate_hz": 1.0 / (cycle * rate), "points": int(x_d.size)}
+    summary |= per_axis[axes[0][0].axis] if len(axes) == 1 else {"axes": per_axis}
+    if args.table_out:  # the first axis's table (one axis: its table)
+        summary["table_out"] = str(results[0].table.save(args.table_out))
     return summary
+
+
+def axis_view(amplifier: Any, name: str) -> tuple[Any, int]:
+    """Another axis of the same controller on the same link (servo off): (its amplifier view,
+    its wave generator), refused (:class:`DeviceRunError`) when ``SAI?`` does not list it."""
+    import copy
+
+    from piezo_stage.hardware.errors import HardwareError
+
+    try:
+        axes = [a.strip() for a in amplifier.conn.query("SAI?") if a.strip()]
+        if name not in axes:
+            raise DeviceRunError(f"axis {name!r} not on controller (SAI? lists {axes})")
+        amplifier.conn.command(f"SVO {name} 0")
+    except HardwareError as exc:
+        raise DeviceRunError(str(exc)) from None
+    view = copy.copy(amplifier)
+    view.axis, view.channel = name, axes.index(name) + 1
+    return view, axes.index(name) + 1

@@ -3,7 +3,9 @@ repeated trajectory, one point per ``rate`` servo cycles, played by the wave gen
 the servo off (the thesis's voltage feedforward, open loop) and learned from the data
 recorder's record of each play.
 
-The first table is the model's (:func:`~piezo_stage.control.learning.sampled_feedforward`:
+Several axes play at once (one ``WGO`` starts every generator; axis k's voltage and position
+are recorder tables 2k + 1 and 2k + 2), each learning from its own record. The first table is
+the model's (:func:`~piezo_stage.control.learning.sampled_feedforward`:
 the inverse of (11.1) along x_d at the table's rate, refined against the model itself).
 Each iteration uploads the table, plays it :data:`SETTLE_PERIODS` + 1 periods (the stage
 settles after the change), reads the position of the last period back and learns from its
@@ -15,6 +17,7 @@ max(VMI?, 0 V) after, and on any failure (the generator stopped first).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -32,7 +35,7 @@ from piezo_stage.hardware.amplifier import GCSAmplifier
 from piezo_stage.hardware.pi_recorder import RecordOption, ServoRecorder
 
 from .errors import ExperimentError, ExperimentInputError
-from .servo_identification import WAVE_TABLE, Progress, ramp_to, safe_state
+from .servo_identification import Progress, ramp_to, safe_state
 
 DEFAULT_LEARNING = LearningConfig()
 #: periods played before the measured one after each change of the table: the ch. 11 rig
@@ -63,76 +66,116 @@ class ServoTracking:
 
 def play_and_measure(
     recorder: ServoRecorder,
-    generator: int,
-    u: NDArray[np.float64],
+    generators: Sequence[int],
+    tables: Sequence[NDArray[np.float64]],
     rate: int,
     period: float,
     settle: int = SETTLE_PERIODS,
-) -> NDArray[np.float64]:
-    """Upload ``u``, play it ``settle + 1`` periods, return the last one's position [m] (read
-    from the data recorder: only the last period's points)."""
-    n = u.size
+) -> list[NDArray[np.float64]]:
+    """Upload each table to its generator's wave table, play them all at once ``settle + 1``
+    periods, return each axis's position over the last one [m] (recorder tables 2k + 2: only
+    the last period's points are read)."""
+    n = tables[0].size
     plays = settle + 1
-    recorder.upload(WAVE_TABLE, u)
-    recorder.connect(generator, WAVE_TABLE, plays, rate, 0.0)
-    recorder.start([generator])
-    recorder.wait_until_stopped([generator], plays * period)
+    for generator, u in zip(generators, tables):
+        recorder.upload(generator, u)
+        recorder.connect(generator, generator, plays, rate, 0.0)
+    recorder.start(generators)
+    recorder.wait_until_stopped(generators, plays * period)
     count = recorder.recorded()
     if count < plays * n:
         raise ExperimentError(f"the data recorder holds {count} of the {plays * n} points played")
-    position: NDArray[np.float64] = recorder.read_range(2, settle * n, n).columns[1]
-    return position * 1e-6  # um, as PI reports positions
+    columns = recorder.read_range(2 * len(tables), settle * n, n).columns
+    return [columns[2 * k + 1] * 1e-6 for k in range(len(tables))]  # um, as PI reports
 
 
 def learn_in_controller(
-    amplifier: GCSAmplifier,
+    axes: Sequence[tuple[GCSAmplifier, int]],
     recorder: ServoRecorder,
-    generator: int,
     model: FeedforwardModel,
     x_d: NDArray[np.float64],
     rate: int,
     limits: tuple[float, float],
     config: LearningConfig = DEFAULT_LEARNING,
     max_iterations: int = 20,
-    table: FeedforwardTable | None = None,
+    tables: Sequence[FeedforwardTable | None] = (),
     progress: Progress = lambda text: None,
-) -> ServoTracking:
-    """Learn (or, with ``max_iterations`` 0, only play) the table that makes the stage follow
+) -> list[ServoTracking]:
+    """Learn (or, with ``max_iterations`` 0, only play) the table that makes each axis follow
     ``x_d`` (one period, a point every ``rate`` servo cycles) on the controller (module
-    docstring); ``table``: start from this one (a saved table) instead of the model's."""
+    docstring); ``axes``: (the axis's amplifier, its wave generator), all played at once;
+    ``tables``: start from these (saved tables) instead of the model's."""
     cycle = recorder.servo_cycle()
     rate_hz = 1.0 / (cycle * rate)
     n = x_d.size
-    period = n / rate_hz
     config = replace(config, u_min=limits[0], u_max=limits[1], settle_periods=0)
-    if table is None:
-        table = sampled_feedforward(model, x_d, rate_hz, config=config)
-    elif table.matches(rate_hz, n):
-        raise ExperimentInputError(table.matches(rate_hz, n))
-    recorder.set_tables(2)  # voltage and position
+    start = [_first_table(t, model, x_d, rate_hz, config) for t in _each(tables, len(axes))]
+    recorder.set_tables(2 * len(axes))  # voltage and position of each axis
     if recorder.table_points() < (SETTLE_PERIODS + 1) * n:
         raise ExperimentInputError(
             f"{SETTLE_PERIODS + 1} periods ({(SETTLE_PERIODS + 1) * n} points) do not fit a "
-            "data recorder table of "
-            f"{recorder.table_points()} points: raise the rate"
+            f"data recorder table of {recorder.table_points()} points: raise the rate"
         )
-    axis = amplifier.axis
-    sources = [(axis, RecordOption.PIEZO_VOLTAGE), (axis, RecordOption.CURRENT_POSITION)]
+    sources = [(a.axis, option) for a, _ in axes for option in RECORD]
     recorder.configure(sources, rate)
-    learning = IterativeLearning(table, feedforward_response(model, rate_hz, n), config, model)
-    history: list[float] = []
+    response = feedforward_response(model, rate_hz, n)
+    learning = [IterativeLearning(t, response, config, model) for t in start]
+    history: list[list[float]] = [[] for _ in axes]
+    generators = [g for _, g in axes]
     try:
-        ramp_to(amplifier, float(table.u[0]))
+        for amplifier, table in zip((a for a, _ in axes), start):
+            ramp_to(amplifier, float(table.u[0]))
         for j in range(max_iterations + 1):
-            x = play_and_measure(recorder, generator, table.u, rate, period)
-            history.append(float(np.sqrt(np.mean((x - x_d) ** 2))))
-            progress(f"play {j}: RMS {100 * history[-1] / np.ptp(x_d):.3g} % of the range")
-            if j == max_iterations or learning.done:
+            xs = play_and_measure(recorder, generators, [t.u for t in start], rate, n / rate_hz)
+            for k, x in enumerate(xs):
+                history[k].append(float(np.sqrt(np.mean((x - x_d) ** 2))))
+            progress(
+                f"play {j}: RMS "
+                + ", ".join(f"{100 * h[-1] / np.ptp(x_d):.3g}" for h in history)
+                + " % of the range"
+            )
+            if j == max_iterations or all(lrn.done for lrn in learning):
                 break
-            learning.update(x - x_d)
+            for lrn, x in zip(learning, xs):
+                lrn.update(x - x_d)
     except BaseException:
-        safe_state(amplifier, recorder, generator, limits[0])
+        _safe(axes, recorder, limits[0])
         raise
-    safe_state(amplifier, recorder, generator, limits[0])
-    table.meta["history_rms"] = history
-    return ServoTracking(table, np.asarray(x_d, dtype=float), x, history)
+    _safe(axes, recorder, limits[0])
+    for table, h in zip(start, history):
+        table.meta["history_rms"] = h
+    xd = np.asarray(x_d, dtype=float)
+    return [ServoTracking(t, xd, x, h) for t, x, h in zip(start, xs, history)]
+
+
+#: what each axis's two recorder tables hold
+RECORD = (RecordOption.PIEZO_VOLTAGE, RecordOption.CURRENT_POSITION)
+
+
+def _each(tables: Sequence[FeedforwardTable | None], count: int) -> list[FeedforwardTable | None]:
+    """One start table (or None: the model's) per axis."""
+    if tables and len(tables) != count:
+        raise ExperimentInputError(f"{len(tables)} table(s) for {count} axes")
+    return list(tables) if tables else [None] * count
+
+
+def _first_table(
+    table: FeedforwardTable | None,
+    model: FeedforwardModel,
+    x_d: NDArray[np.float64],
+    rate_hz: float,
+    config: LearningConfig,
+) -> FeedforwardTable:
+    """The model's table, or a saved one checked for this rate and period."""
+    if table is None:
+        return sampled_feedforward(model, x_d, rate_hz, config=config)
+    why = table.matches(rate_hz, x_d.size)
+    if why:
+        raise ExperimentInputError(why)
+    return table
+
+
+def _safe(axes: Sequence[tuple[GCSAmplifier, int]], recorder: ServoRecorder, v_min: float) -> None:
+    """Every generator stopped, every output ramped to max(VMI?, 0 V)."""
+    for amplifier, generator in axes:
+        safe_state(amplifier, recorder, generator, v_min)
