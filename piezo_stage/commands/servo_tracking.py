@@ -17,31 +17,12 @@ def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None
     """The experiment's summary: RMS error over the last measured period (m and % of the
     range), the RMS of every play, the table's rate and points."""
     from piezo_stage.control.errors import ControlError
-    from piezo_stage.control.feedforward import FeedforwardModel
-    from piezo_stage.control.learning import FeedforwardTable, trajectory_samples
-    from piezo_stage.control.trajectory import make_trajectory
+    from piezo_stage.control.learning import trajectory_samples
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.servo_tracking import learn_in_controller
     from piezo_stage.hardware.errors import HardwareError
-    from piezo_stage.model.errors import ModelError
-    from piezo_stage.model.parameter_set import load_parameter_set
 
-    if not args.device:
-        raise ExperimentInputError("--graph pi_servo plays on a controller: give --device URL")
-    if not args.model:
-        raise ExperimentInputError("--graph pi_servo needs --model (a dynamic parameter set)")
-    try:
-        model = FeedforwardModel.from_parameter_set(load_parameter_set(args.model))
-        trajectory = make_trajectory(
-            args.trajectory,
-            amplitude=args.amplitude,
-            frequency=args.frequency,
-            offset=args.offset,
-            rounding=args.rounding,
-        )
-        table = FeedforwardTable.load(args.table) if args.table else None
-    except (ControlError, ModelError, OSError, ValueError) as exc:
-        raise ExperimentInputError(str(exc)) from None
+    model, trajectory, table = _inputs(args)
     names = [a.strip() for a in (args.axis or "").split(",") if a.strip()] or [None]
     try:
         amplifier, info, recorder, generator = open_controller(args.device, names[0])
@@ -72,22 +53,56 @@ def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None
         raise ExperimentInputError(f"{args.device}: {exc}") from None
     finally:
         amplifier.close()
+    summary: dict[str, Any] = {"graph": "pi_servo", "rate_hz": 1.0 / (cycle * rate)}
+    summary |= _figures([a.axis for a, _ in axes], results, x_d)
+    if args.table_out:  # the first axis's table (one axis: its table)
+        summary["table_out"] = str(results[0].table.save(args.table_out))
+    return summary
+
+
+def _inputs(args: argparse.Namespace) -> tuple[Any, Any, Any]:
+    """(feedforward model, trajectory, saved table or None) from the options, checked."""
+    from piezo_stage.control.errors import ControlError
+    from piezo_stage.control.feedforward import FeedforwardModel
+    from piezo_stage.control.learning import FeedforwardTable
+    from piezo_stage.control.trajectory import make_trajectory
+    from piezo_stage.experiments import ExperimentInputError
+    from piezo_stage.model.errors import ModelError
+    from piezo_stage.model.parameter_set import load_parameter_set
+
+    if not args.device:
+        raise ExperimentInputError("--graph pi_servo plays on a controller: give --device URL")
+    if not args.model:
+        raise ExperimentInputError("--graph pi_servo needs --model (a dynamic parameter set)")
+    try:
+        model = FeedforwardModel.from_parameter_set(load_parameter_set(args.model))
+        trajectory = make_trajectory(
+            args.trajectory,
+            amplitude=args.amplitude,
+            frequency=args.frequency,
+            offset=args.offset,
+            rounding=args.rounding,
+        )
+        table = FeedforwardTable.load(args.table) if args.table else None
+    except (ControlError, ModelError, OSError, ValueError) as exc:
+        raise ExperimentInputError(str(exc)) from None
+    return model, trajectory, table
+
+
+def _figures(names: list[str], results: list[Any], x_d: Any) -> dict[str, Any]:
+    """The summary's figures: one axis's at the top level, several under ``axes``."""
     span = float(x_d.max() - x_d.min())
     per_axis = {
-        a.axis: {
+        name: {
             "rms_error": r.rms_error,
             "rms_relative": r.rms_relative,
             "plays": len(r.history),
             "history_rms_relative": [h / span for h in r.history],
         }
-        for (a, _), r in zip(axes, results)
+        for name, r in zip(names, results)
     }
-    summary: dict[str, Any] = {"graph": "pi_servo", "range": span}
-    summary |= {"rate_hz": 1.0 / (cycle * rate), "points": int(x_d.size)}
-    summary |= per_axis[axes[0][0].axis] if len(axes) == 1 else {"axes": per_axis}
-    if args.table_out:  # the first axis's table (one axis: its table)
-        summary["table_out"] = str(results[0].table.save(args.table_out))
-    return summary
+    figures: dict[str, Any] = {"range": span, "points": int(x_d.size)}
+    return figures | (per_axis[names[0]] if len(names) == 1 else {"axes": per_axis})
 
 
 def axis_view(amplifier: Any, name: str) -> tuple[Any, int]:

@@ -120,24 +120,12 @@ def learn_in_controller(
     recorder.configure(sources, rate)
     response = feedforward_response(model, rate_hz, n)
     learning = [IterativeLearning(t, response, config, model) for t in start]
-    history: list[list[float]] = [[] for _ in axes]
-    generators = [g for _, g in axes]
     try:
         for amplifier, table in zip((a for a, _ in axes), start):
             ramp_to(amplifier, float(table.u[0]))
-        for j in range(max_iterations + 1):
-            xs = play_and_measure(recorder, generators, [t.u for t in start], rate, n / rate_hz)
-            for k, x in enumerate(xs):
-                history[k].append(float(np.sqrt(np.mean((x - x_d) ** 2))))
-            progress(
-                f"play {j}: RMS "
-                + ", ".join(f"{100 * h[-1] / np.ptp(x_d):.3g}" for h in history)
-                + " % of the range"
-            )
-            if j == max_iterations or all(lrn.done for lrn in learning):
-                break
-            for lrn, x in zip(learning, xs):
-                lrn.update(x - x_d)
+        xs, history = _plays(
+            recorder, [g for _, g in axes], learning, x_d, rate, rate_hz, max_iterations, progress
+        )
     except BaseException:
         _safe(axes, recorder, limits[0])
         raise
@@ -146,6 +134,33 @@ def learn_in_controller(
         table.meta["history_rms"] = h
     xd = np.asarray(x_d, dtype=float)
     return [ServoTracking(t, xd, x, h) for t, x, h in zip(start, xs, history)]
+
+
+def _plays(
+    recorder: ServoRecorder,
+    generators: list[int],
+    learning: list[IterativeLearning],
+    x_d: NDArray[np.float64],
+    rate: int,
+    rate_hz: float,
+    max_iterations: int,
+    progress: Progress,
+) -> tuple[list[NDArray[np.float64]], list[list[float]]]:
+    """Play and learn until every axis's learning stops or ``max_iterations``: the last
+    positions and each axis's RMS error per play."""
+    history: list[list[float]] = [[] for _ in learning]
+    for j in range(max_iterations + 1):
+        tables = [lrn.table.u for lrn in learning]
+        xs = play_and_measure(recorder, generators, tables, rate, x_d.size / rate_hz)
+        for k, x in enumerate(xs):
+            history[k].append(float(np.sqrt(np.mean((x - x_d) ** 2))))
+        span = float(np.ptp(x_d))
+        progress(f"play {j}: RMS " + ", ".join(f"{100 * h[-1] / span:.3g}" for h in history) + " %")
+        if j == max_iterations or all(lrn.done for lrn in learning):
+            break
+        for lrn, x in zip(learning, xs):
+            lrn.update(x - x_d)
+    return xs, history
 
 
 #: what each axis's two recorder tables hold
