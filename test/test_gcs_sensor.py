@@ -351,6 +351,7 @@ SET_POINT = 4e-6  # m: ~45 V on the ch. 11 stage of the E-727 emulator
 
 @pytest.mark.ros
 @pytest.mark.slow
+@pytest.mark.realtime  # a 1 kHz loop over TCP: alone, and not on a host too slow for it
 def test_the_pi_rig_loop_closes_on_the_controllers_own_sensor(probe):
     """The graph as shipped (E-727 emulator, driver writing SVA, reader polling POS? at 1 kHz,
     the thesis's PID in one process) with a constant reference: the PI sensor's displacement
