@@ -50,8 +50,13 @@ def _model(**kwargs) -> PIControllerModel:
 def pidevice():
     from pipython.pidevice.gcscommands import GCSCommands
     from pipython.pidevice.gcsmessages import GCSMessages
+    from pipython.pidevice.interfaces.pigateway import PIGateway
     from pipython.pidevice.interfaces.pisocket import PISocket
 
+    # PIPython tells every GCSDevice ever made in the process of each new connection (class-level
+    # callbacks it never drops): one left by another test module in this worker writes *IDN?
+    # to its own closed socket and the new connection fails with a broken pipe
+    PIGateway._connection_status_changed_callbacks.clear()
     model = _model()
     with EmulatorServer(model, tcp_port=0) as server:
         gateway = PISocket(host="127.0.0.1", port=server.port)
