@@ -119,6 +119,12 @@ def test_a_run_longer_than_a_table_is_joined_without_a_gap(controller, monkeypat
     # the input is the triangle the table holds, continuous across the joins
     v = record.voltage[: 12 * 1000]
     assert np.allclose(v, np.tile(excitation.table(record.cycle), 12), atol=1e-6)
+    # each position is paired with the voltage its cycle read it under: the one before (the
+    # stamps are whole servo cycles, so a rounding never pairs it with an older one)
+    for run in record.recordings():
+        k = np.searchsorted(record.t, run.t)
+        assert np.array_equal(record.t[k], run.t)
+        assert np.array_equal(run.input, record.voltage[k - 1])
 
 
 @pytest.mark.parametrize(

@@ -10,13 +10,13 @@ between segments (the readback) taken out: for a rate-independent hysteresis a p
 constant input leaves the state where it was. Between runs the output is ramped by the host,
 slew-limited, to the next run's start; that ramp is not recorded.
 
-Times are the controller's: sample k of the record is at ``k * rate * cycle`` from the first
-``WGO`` (runs after the first, and parts after a run's first, continue from where the last
-ended). In a bag these are the header stamps; the log times add the anchor, the host's wall
-clock when the first ``WGO`` was sent (docs/design.md, "The controller's clock in the
-bags"). The record is cut into runs by the same excitation marks the ``excitation`` node
-publishes, so :func:`write_bag` gives a bag that ``piezo-stage identify BAG`` and the
-``identifier`` node identify to the same numbers.
+Times are the controller's, counted in whole servo cycles: sample k of the record is at
+``k * rate * cycle`` from the first ``WGO`` (runs after the first, and parts after a run's
+first, continue from where the last ended). In a bag these are the header stamps; the log
+times add the anchor, the host's wall clock when the first ``WGO`` was sent (docs/design.md,
+"The controller's clock in the bags"). The record is cut into runs by the same excitation
+marks the ``excitation`` node publishes, so :func:`write_bag` gives a bag that
+``piezo-stage identify BAG`` and the ``identifier`` node identify to the same numbers.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ class TWaveExcitation:
 class ServoRecord:
     """What the data recorder gave: the two runs on the controller's clock, and the marks."""
 
-    t: NDArray[np.float64]  #: [s], controller clock from the anchor
+    ticks: NDArray[np.int64]  #: servo cycles from the first ``WGO``
     voltage: NDArray[np.float64]  #: [V], the output voltage (record option 7)
     displacement: NDArray[np.float64]  #: [m], the controller's sensor (record option 2)
     marks: list[tuple[float, int, bool, float]]  #: (t, run, steady, offset) as ExcitationInfo
@@ -105,11 +105,18 @@ class ServoRecord:
     segments: list[int] = field(default_factory=list)  #: points of each read-back segment
 
     @property
+    def t(self) -> NDArray[np.float64]:
+        """When each point was recorded [s], from the first ``WGO``."""
+        return np.asarray(self.ticks * self.cycle, dtype=np.float64)
+
+    @property
     def voltage_t(self) -> NDArray[np.float64]:
         """When each recorded voltage acts [s]: a servo cycle reads its sensor, then sets its
         output, so voltage k is in force from the cycle after point k, and position k follows
-        the voltages before it (the recordings hold the voltage between its stamps)."""
-        return self.t + self.cycle
+        the voltages before it (the recordings hold the voltage between its stamps). Both
+        stamps are whole servo cycles times the cycle, so a position and the voltage set a
+        cycle before it carry the same float and the hold pairs them, never an older one."""
+        return np.asarray((self.ticks + 1) * self.cycle, dtype=np.float64)
 
     def recordings(
         self, name: str = "data recorder", input_name: str = "voltage"
@@ -183,14 +190,16 @@ def _play_runs(
     fit: int,
     progress: Progress,
 ) -> ServoRecord:
-    dt = cycle * excitation.rate
     per_period = excitation.table(cycle).size
     columns: list[NDArray[np.float64]] = []
+    ticks: list[NDArray[np.int64]] = []
     marks: list[tuple[float, int, bool, float]] = []
     segments: list[int] = []
-    t_next, anchor_ns = 0.0, 0
+    tick_next, anchor_ns = 0, 0
+    gap = int(round(RUN_GAP_S / cycle))
     for run, offset in enumerate((0.0, excitation.q)):
         ramp_to(amplifier, excitation.low + offset)
+        t_next = tick_next * cycle
         marks.append((t_next, run, False, offset))
         marks.append((t_next + excitation.settle_periods * excitation.period, run, True, offset))
         left = excitation.periods
@@ -208,17 +217,18 @@ def _play_runs(
                     f"the data recorder holds {count} of the {n * per_period} points played"
                 )
             data = recorder.read(2, count).columns
-            columns.append(np.vstack([t_next + np.arange(count) * dt, data]))
+            ticks.append(tick_next + np.arange(count, dtype=np.int64) * excitation.rate)
+            columns.append(data)
             segments.append(count)
-            t_next += count * dt
+            tick_next += count * excitation.rate
             left -= n
-        marks.append((t_next, run, False, offset))  # the run's end ("plan done")
-        t_next += RUN_GAP_S
+        marks.append((tick_next * cycle, run, False, offset))  # the run's end ("plan done")
+        tick_next += gap
     record = np.concatenate(columns, axis=1)
     return ServoRecord(
-        t=record[0],
-        voltage=record[1],
-        displacement=record[2] * 1e-6,  # um, as PI reports positions
+        ticks=np.concatenate(ticks),
+        voltage=record[0],
+        displacement=record[1] * 1e-6,  # um, as PI reports positions
         marks=marks,
         cycle=cycle,
         excitation=excitation,
