@@ -16,7 +16,11 @@ With ``--tracking``: the learned table instead (`experiment tracking --graph pi_
 20 kHz (200 points a period) and, side by side, as a 1 kHz table (10 points). Target: RMS ≤
 0.2 % of the range after ≤ 20 plays.
 
+With ``--stage FILE`` the emulator simulates that stage file's axes instead (their channels
+the axis names; ``--axes`` must name them) and the parameters are compared with its own.
+
     python bench/servo_identification.py [--axes 1,2,3] [--rates 1,20] [--tracking]
+                                         [--stage FILE] [--seed N] [--noise M]
 """
 
 from __future__ import annotations
@@ -32,34 +36,36 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import numpy as np  # noqa: E402
 
 from piezo_stage.cli import main as cli  # noqa: E402
+from piezo_stage.commands.emulate import emulated_controller  # noqa: E402
 from piezo_stage.hardware.emulators import EmulatorServer  # noqa: E402
 from piezo_stage.hardware.emulators.pi_controller import PIControllerModel  # noqa: E402
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
-from piezo_stage.model.stage import AmplifierModel, CoupledStage, SensorModel  # noqa: E402
-from piezo_stage.model.stage_file import Stage, StageAxis  # noqa: E402
 
 NAMES = ("kappa_w", "rho", "sigma", "n")
 NOISE = 8.2e-9  # m: 1e-3 of the 8.2 µm the 0-97.5 V run spans
 V_MIN, V_MAX = -30.0, 130.0
 
 
-def controller(noise: float) -> PIControllerModel:
-    model = shipped_parameter_set("ch11_rig")
-    stage = Stage(
-        "e727", tuple(StageAxis(n, model, str(i + 1)) for i, n in enumerate("xyz")), np.eye(3)
-    )
+def controller(noise: float, stage_file: str | None = None, seed: int = 0) -> PIControllerModel:
+    """The emulated E-727 on the ch. 11 rig's three axes, or on the axes of ``stage_file``."""
+    from piezo_stage.config_path import find_user_file
+    from piezo_stage.model.stage_file import load_stage
 
-    def build() -> CoupledStage:
-        return CoupledStage(
-            stage,
-            [AmplifierModel(V_MIN, V_MAX) for _ in range(3)],
-            [SensorModel(noise_std=noise, seed=i) for i in range(3)],
-        )
+    stage = load_stage(find_user_file(stage_file)) if stage_file else None
+    return emulated_controller(stage, v_min=V_MIN, v_max=V_MAX, sensor_noise=noise, seed=seed)
 
-    return PIControllerModel(build, ("1", "2", "3"), v_min=V_MIN, v_max=V_MAX)
+
+def truth(stage_file: str | None) -> dict[str, object]:
+    """Each axis's Bouc-Wen parameters, by its channel (the axis name ``SAI?`` lists)."""
+    if not stage_file:
+        bw = shipped_parameter_set("ch11_rig").bouc_wen
+        return {channel: bw for channel in ("1", "2", "3")}
+    from piezo_stage.config_path import find_user_file
+    from piezo_stage.model.stage_file import load_stage
+
+    return {a.channel: a.model.bouc_wen for a in load_stage(find_user_file(stage_file)).axes}
 
 
 def identify(url: str, axis: str, rate: int, periods: str) -> tuple[dict, float]:
@@ -147,21 +153,24 @@ def main() -> int:
     parser.add_argument("--periods", default="10,6", help="settling,recorded periods per run")
     parser.add_argument("--noise", type=float, default=NOISE, help="sensor noise [m] (8.2e-9)")
     parser.add_argument("--tracking", action="store_true", help="the learned tables instead")
+    parser.add_argument("--stage", default=None, help="stage file (default: the ch. 11 rig)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of axis 1's sensor noise")
     opts = parser.parse_args()
+    emulator = controller(opts.noise, opts.stage, opts.seed)
     if opts.tracking:
-        with EmulatorServer(controller(opts.noise), tcp_port=0) as server:
+        with EmulatorServer(emulator, tcp_port=0) as server:
             tracking(f"tcp://127.0.0.1:{server.port}", opts.axes.split(","))
         return 0
-    truth = shipped_parameter_set("ch11_rig").bouc_wen
+    stage_truth = truth(opts.stage)
     rates = [int(r) for r in opts.rates.split(",")]
     worst: dict[int, float] = {}
     print(f"{'axis':>4} {'rate':>7} " + " ".join(f"{n:>9}" for n in NAMES) + "   wall")
-    with EmulatorServer(controller(opts.noise), tcp_port=0) as server:
+    with EmulatorServer(emulator, tcp_port=0) as server:
         url = f"tcp://127.0.0.1:{server.port}"
         for axis in opts.axes.split(","):
             for rate in rates:
                 got, wall = identify(url, axis, rate, opts.periods)
-                errors = [100 * (got[n] / getattr(truth, n) - 1) for n in NAMES]
+                errors = [100 * (got[n] / getattr(stage_truth[axis], n) - 1) for n in NAMES]
                 worst[rate] = max(worst.get(rate, 0.0), *(abs(e) for e in errors))
                 row = " ".join(f"{e:+8.2f}%" for e in errors)
                 print(f"{axis:>4} {20 / rate:5.0f}kHz {row} {wall:5.1f} s", flush=True)

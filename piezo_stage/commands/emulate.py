@@ -290,19 +290,45 @@ def _controller_args(parser: argparse.ArgumentParser) -> None:
 def _controller(args: argparse.Namespace) -> Any:
     """``emulate e727`` / ``e709``: the controller model bound to its simulated stage."""
     from piezo_stage.config_path import find_user_file
+    from piezo_stage.model.stage_file import load_stage as load_stage_file
+
+    return emulated_controller(
+        None if args.stage is None else load_stage_file(find_user_file(args.stage)),
+        one_axis=args.device == "e709",
+        v_min=args.v_min,
+        v_max=args.v_max,
+        sensor_noise=args.sensor_noise,
+        servo_on=args.servo_on,
+    )
+
+
+def emulated_controller(
+    stage: Any = None,
+    *,
+    one_axis: bool = False,
+    v_min: float = -30.0,
+    v_max: float = 130.0,
+    sensor_noise: float = 2e-9,
+    seed: int = 0,
+    servo_on: bool = False,
+) -> Any:
+    """An E-727 (``one_axis``: E-709, the stage's first axis) bound to a simulated stage: a
+    :class:`~piezo_stage.model.stage_file.Stage` (its channels the axes) or, by default, the
+    shipped ch. 11 rig on axes 1, 2, 3, uncoupled. Axis i's sensor noise is seeded
+    ``seed + i``.
+    """
+    import numpy as np
+
     from piezo_stage.hardware.emulators.pi_controller import PIControllerModel
     from piezo_stage.model.parameter_set import shipped_parameter_set
     from piezo_stage.model.stage import AmplifierModel, CoupledStage, SensorModel
     from piezo_stage.model.stage_file import Stage, StageAxis, single_axis_stage
-    from piezo_stage.model.stage_file import load_stage as load_stage_file
 
-    if args.stage is None:  # three axes 1, 2, 3 of the shipped rig, uncoupled
+    if stage is None:
         model = shipped_parameter_set("ch11_rig")
         axes = tuple(StageAxis(name, model, str(i + 1)) for i, name in enumerate("xyz"))
-        stage = Stage("e727", axes, [[float(i == j) for j in range(3)] for i in range(3)])
-    else:
-        stage = load_stage_file(find_user_file(args.stage))
-    if args.device == "e709":
+        stage = Stage("e727", axes, np.eye(3))
+    if one_axis:
         first = stage.axes[0]
         stage = single_axis_stage(first.model, first.name, first.channel)
     n = len(stage.axes)
@@ -310,16 +336,12 @@ def _controller(args: argparse.Namespace) -> Any:
     def build() -> CoupledStage:
         return CoupledStage(
             stage,
-            [AmplifierModel(args.v_min, args.v_max) for _ in range(n)],
-            [SensorModel(noise_std=args.sensor_noise, seed=i) for i in range(n)],
+            [AmplifierModel(v_min, v_max) for _ in range(n)],
+            [SensorModel(noise_std=sensor_noise, seed=seed + i) for i in range(n)],
         )
 
     return PIControllerModel(
-        build,
-        [axis.channel for axis in stage.axes],
-        v_min=args.v_min,
-        v_max=args.v_max,
-        servo_on=args.servo_on,
+        build, [axis.channel for axis in stage.axes], v_min=v_min, v_max=v_max, servo_on=servo_on
     )
 
 
