@@ -3,7 +3,7 @@
 
 The emulator simulates the ch. 11 rig on its three axes (uncoupled), its sensor noise 1e-3 of
 the recorded span (8 nm of 8 µm). Per axis, `piezo-stage identify --device` plays the ch. 10
-T-wave pair (T = 1 s, 0-97.5 V and +32.5 V, 10 settling + 6 recorded periods) with the wave
+T-wave pair (T = 1 s, 0-97.5 V and +32.5 V, 16 settling + 6 recorded periods) with the wave
 generator and records voltage and position with the data recorder, then identifies the ch. 11
 form u = Φ(x) (displacement -> voltage), whose parameters are the stage file's. Side by side,
 the same at 1 kHz (a point every 20 servo cycles: what a 1 kHz host loop would sample).
@@ -150,7 +150,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--axes", default="1,2,3")
     parser.add_argument("--rates", default="1,20", help="servo cycles per point (1 = 20 kHz)")
-    parser.add_argument("--periods", default="10,6", help="settling,recorded periods per run")
+    parser.add_argument("--periods", default="16,6", help="settling,recorded periods per run")
     parser.add_argument("--noise", type=float, default=NOISE, help="sensor noise [m] (8.2e-9)")
     parser.add_argument("--tracking", action="store_true", help="the learned tables instead")
     parser.add_argument("--stage", default=None, help="stage file (default: the ch. 11 rig)")

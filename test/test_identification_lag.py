@@ -61,6 +61,29 @@ def test_taking_the_lag_off_delays_the_input_and_keeps_the_output_as_measured():
     assert np.array_equal(shifted.output, t[3:])
 
 
+def test_a_measured_input_is_kept_and_the_output_advanced_instead():
+    """Interpolating a noisy input would smooth its noise below what the branch checks
+    expect: the clean output moves instead, held past the run's end."""
+    t = np.arange(200) * 1e-3
+    x = np.sin(2 * np.pi * t) + 1e-2 * np.random.default_rng(3).standard_normal(t.size)
+    rec = Recording(t, x, 2.0 * t)
+    shifted = shift_output(rec, 0.5e-3)
+    assert np.array_equal(shifted.t, t) and np.array_equal(shifted.input, x)
+    assert np.allclose(shifted.output[:-1], 2.0 * (t[:-1] + 0.5e-3))
+    assert shifted.output[-1] == pytest.approx(2.0 * t[-1])
+
+
+def test_a_given_lag_is_taken_off_as_given():
+    """``IdentifyOptions.lag_samples``: the runs are identified with it taken off, not timed
+    at the corners nor refined, and the result's delay is it."""
+    runs = lagging_pair(2, 100, seed=0, noise=1e-4)
+    got = identify_runs(runs, IdentifyOptions(degree=2, lag_samples=2.0))
+    assert got.delay == pytest.approx(2.0 * (runs[0].t[1] - runs[0].t[0]))
+    for name in ("kappa_w", "rho", "sigma", "n"):
+        assert getattr(got.parameters, name) == pytest.approx(getattr(PATCH, name), rel=0.02)
+    assert not any("lags the input" in w for w in got.warnings)
+
+
 @pytest.mark.parametrize("samples_per_branch", [50, 100])
 @pytest.mark.parametrize("lag", [0, 1, 2, 3])
 def test_the_lag_is_read_at_the_input_corners_within_a_tenth_of_a_sample(lag, samples_per_branch):

@@ -13,6 +13,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from piezo_stage.cli import main
+from piezo_stage.commands.emulate import emulated_controller
 from piezo_stage.experiments.servo_identification import TWaveExcitation, record_t_waves
 from piezo_stage.hardware.amplifier import GCSAmplifier
 from piezo_stage.hardware.emulators import EmulatorServer, pi_controller
@@ -21,7 +22,6 @@ from piezo_stage.hardware.errors import DeviceTimeout, ProtocolError
 from piezo_stage.hardware.pi_recorder import ServoRecorder, parse_gcs_array
 from piezo_stage.hardware.transport import make_transport
 from piezo_stage.model.parameter_set import shipped_parameter_set
-from piezo_stage.model.stage import AmplifierModel, CoupledStage, SensorModel
 from piezo_stage.model.stage_file import Stage, StageAxis
 
 pytestmark = pytest.mark.ros
@@ -40,15 +40,7 @@ def _controller(
     stage = Stage(
         "e727", tuple(StageAxis(n, model, str(i + 1)) for i, n in enumerate("xyz")), np.eye(3)
     )
-
-    def build() -> CoupledStage:
-        return CoupledStage(
-            stage,
-            [AmplifierModel(v_min, v_max) for _ in range(3)],
-            [SensorModel(noise_std=noise, seed=i) for i in range(3)],
-        )
-
-    return PIControllerModel(build, ("1", "2", "3"), v_min=v_min, v_max=v_max)
+    return emulated_controller(stage, v_min=v_min, v_max=v_max, sensor_noise=noise)
 
 
 @pytest.fixture()
@@ -94,6 +86,39 @@ def test_the_t_waves_recorded_in_the_controller_identify_its_stage(tmp_path, cap
     again = json.loads(capsys.readouterr().out)
     for name in ("y0", "kappa_w", "rho", "sigma", "n"):
         assert again[name] == pytest.approx(got[name], rel=1e-7), name
+
+
+@pytest.mark.slow
+def test_the_ch11_form_pairs_each_position_with_its_two_voltages_mean(tmp_path, capsys):
+    """The ch. 11 form (displacement -> voltage) of the rig: its measured input is delayed by
+    half a sample (the mean of the voltages held before and after each reading), and the
+    bag identified with ``--lag 0.5`` gives the same numbers; without it, other ones."""
+    model = _controller(noise=2e-9)
+    bag = tmp_path / "servo11"
+    with EmulatorServer(model, tcp_port=0) as server:
+        url = f"tcp://127.0.0.1:{server.port}"
+        args = ["identify", "--device", url, "--axis", "1", "--model-input", "displacement"]
+        fast = ["--period", "0.05", "--periods", "14,2"]  # 20 kHz: 1000 points a period
+        assert main([*args, *fast, "--json", "--bag", str(bag), "--no-plot"]) == 0
+        got = json.loads(capsys.readouterr().out)
+        _left_safe(model)
+    assert got["input_name"] == "displacement" and got["delay"] == pytest.approx(0.5 / 20e3)
+    offline = ["identify", str(bag), "--input-topic", "/piezo/displacement"]
+    offline += ["--output-topic", "/piezo/voltage", "--steady-periods", "2", "--json"]
+    assert main([*offline, "--lag", "0.5", "--method", "analytic", "--no-plot"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert main([*offline, "--method", "analytic", "--no-plot"]) == 0
+    held = json.loads(capsys.readouterr().out)
+    for name in ("kappa_w", "rho", "sigma", "n"):
+        assert again[name] == pytest.approx(got[name], rel=1e-7), name
+    assert abs(held["kappa_w"] / got["kappa_w"] - 1) > 1e-3  # the pairing matters
+
+
+@pytest.mark.parametrize("lag", ["nan", "inf", "65", "-100"])
+def test_a_lag_that_is_no_number_of_samples_is_refused(tmp_path, capsys, lag):
+    assert main(["identify", str(tmp_path / "bag"), "--lag", lag]) == 2
+    err = capsys.readouterr().err
+    assert "--lag must be within ±64 samples" in err and len(err.strip().splitlines()) == 1
 
 
 def test_a_run_longer_than_a_table_is_joined_without_a_gap(controller, monkeypatch):

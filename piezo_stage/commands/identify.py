@@ -35,6 +35,7 @@ from piezo_stage.identification.io import (
     load_bag_cycles,
     load_runs,
 )
+from piezo_stage.identification.lag import MAX_LAG_SAMPLES
 from piezo_stage.identification.limit_cycles import identify_cycle_pair
 from piezo_stage.identification.methods import Method, identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
@@ -75,9 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     device.add_argument(
         "--periods",
         metavar="SETTLE,RECORD",
-        default="10,6",
+        default="16,6",
         help="periods per run: settling (a stage's loop can take several to reach its limit "
-        "cycle: the shipped ch. 11 rig halves its distance per period), then recorded (10,6)",
+        "cycle: the shipped ch. 11 rig halves its distance per period), then recorded (16,6)",
     )
     device.add_argument(
         "--record-rate",
@@ -91,7 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("voltage", "displacement"),
         default="voltage",
         help="identify voltage -> displacement (ch. 10, default) or displacement -> voltage "
-        "(the ch. 11 form u = Φ(x) of a stage model)",
+        "(the ch. 11 form u = Φ(x) of a stage model; its input is paired as --lag 0.5)",
     )
     device.add_argument("--bag", metavar="DIR", help="write the record as a bag here")
     parser.add_argument(
@@ -124,6 +125,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--no-delay", action="store_true", help="fit: do not estimate an input-to-output delay"
+    )
+    parser.add_argument(
+        "--lag",
+        type=float,
+        default=None,
+        metavar="SAMPLES",
+        help="the output's lag behind the input [samples], given instead of timed at the "
+        "input's corners: the input is delayed by it (0.5 pairs a data recorder's position, "
+        "read between two held voltages, with their mean)",
     )
     parser.add_argument(
         "--holdout",
@@ -225,6 +235,8 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
         design = DesignPoints(f1=f1, f2=f2, f3=f3)
     if args.degree < 1:
         raise UsageError(f"--degree must be an integer >= 1, got {args.degree}")
+    if args.lag is not None and not abs(args.lag) <= MAX_LAG_SAMPLES:
+        raise UsageError(f"--lag must be within ±{MAX_LAG_SAMPLES} samples, got {args.lag}")
     if args.steady_periods is not None and args.steady_periods < 1:
         raise UsageError(
             f"--steady-periods must be >= 1 (periods to average), got {args.steady_periods}"
@@ -244,6 +256,7 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
         cycle=CycleOptions(data_filter=args.filter, steady_periods=args.steady_periods),
         design=design,
         refinement=refinement,
+        lag_samples=args.lag,
     )
     return options, fit
 

@@ -15,6 +15,13 @@ from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.simfit import FitOptions
 
+#: [samples] the ch. 11 form's pairing of a record: position k is read between voltage k - 1,
+#: held the cycle before, and voltage k, held the cycle after; the stage (its 7 kHz resonance
+#: slower than a 50 µs step) follows their mean, as the average of u = Φ(x) + m x'' + c x'
+#: over a held step is that step's voltage. Delaying the measured input by half a sample
+#: pairs it so (the input's noise hides the corners that would time it)
+MIDPOINT_LAG = 0.5
+
 
 class DeviceRunError(PiezoStageError):
     """The controller refused, the link failed or the record is unusable (exit 2)."""
@@ -116,4 +123,6 @@ def identify_on_device(
         options = replace(options, cycle=cycle)
     if args.model_input == "displacement":
         options = replace(options, input_name="displacement", output_name="voltage")
+        if options.lag_samples is None:
+            options = replace(options, lag_samples=MIDPOINT_LAG)
     return identify_runs(runs, options, Method(args.method), fit), runs

@@ -54,7 +54,7 @@ class TWaveExcitation:
     high: float
     q: float
     period: float = 1.0
-    settle_periods: int = 10
+    settle_periods: int = 16
     record_periods: int = 6
     rate: int = 1  #: servo cycles per table point and per recorded point (``WTR``, ``RTR``)
 

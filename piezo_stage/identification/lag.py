@@ -94,13 +94,21 @@ def corners(x: NDArray[np.float64], min_gap: int) -> NDArray[np.int_]:
     return np.asarray(out, dtype=int)
 
 
+def measured(x: NDArray[np.float64]) -> bool:
+    """Whether ``x`` is measured, not commanded: its white noise exceeds
+    :data:`NOISY_INPUT` of its change per sample.
+    """
+    x = np.asarray(x, dtype=float)
+    return bool(x.size > 8 and noise_std(x) > NOISY_INPUT * float(np.median(np.abs(np.diff(x)))))
+
+
 def estimate_lag(rec: Recording) -> LagEstimate | None:
     """The output's lag behind the input (module docstring), or None when the run has no
     corner far enough from its ends to fit (it is no T-wave run) or its input is too noisy to
     time one (:data:`NOISY_INPUT`).
     """
     x, y = np.asarray(rec.input, dtype=float), np.asarray(rec.output, dtype=float)
-    if x.size > 8 and noise_std(x) > NOISY_INPUT * float(np.median(np.abs(np.diff(x)))):
+    if measured(x):
         return None  # a measured input (the ch. 11 form's x): its noise makes the corners
     turns = corners(x, min_gap=8)
     if turns.size < 2:
@@ -200,9 +208,14 @@ def shift_output(rec: Recording, seconds: float) -> Recording:
     linearly interpolated: the input is the clean, commanded signal; the noisy output is left
     as measured), the first samples, whose delayed input falls before the start, dropped. So
     the run's last period stays whole (the cycle extraction averages whole periods; the first
-    one settles anyway).
+    one settles anyway). A :func:`measured` input is left as measured and the output advanced
+    instead (y'(t) = y(t + seconds), held past the ends): interpolating noise would smooth it
+    below the noise level the branches' checks expect.
     """
     t = np.asarray(rec.t, dtype=float)
+    if measured(np.asarray(rec.input, dtype=float)):
+        y = np.interp(t + seconds, t, np.asarray(rec.output, dtype=float))
+        return Recording(t, np.asarray(rec.input, dtype=float), y, name=rec.name)
     eps = 1e-12 * max(abs(t[0]), abs(t[-1]), 1.0)
     keep = t - seconds >= t[0] - eps if seconds >= 0 else t - seconds <= t[-1] + eps
     x = np.interp(t[keep] - seconds, t, np.asarray(rec.input, dtype=float))
@@ -215,6 +228,7 @@ __all__ = [
     "corners",
     "estimate_lag",
     "kink",
+    "measured",
     "refine_lag",
     "runs_lag",
     "shift_output",

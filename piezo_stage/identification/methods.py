@@ -88,22 +88,25 @@ def _analytic(
     residual, :func:`~.lag.refine_lag`, its uncertainty added to the standard errors), with the
     lag reported, and the fit's held-out check (:func:`analytic_holdout`).
     """
-    lagging = lag is not None and abs(lag.samples) >= LAG_TOLERANCE
+    given = options.lag_samples is not None
+    lagging = lag is not None and (given or abs(lag.samples) >= LAG_TOLERANCE)
     slopes: dict[str, float] = {}
     if lagging:
         assert lag is not None
-        lag, slopes = _refined_lag(runs, options, lag)
+        if not given:
+            lag, slopes = _refined_lag(runs, options, lag)
         runs = [shift_output(r, lag.seconds) for r in runs]
     result = identify(runs[0], runs[1], options)
     warnings, diagnostics = list(result.warnings), dict(result.diagnostics)
     if lagging:
         assert lag is not None
-        warnings.append(
-            f"the output lags the input by {lag.samples:.2f} ± {lag.spread:.2f} "
-            f"samples ({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} "
-            "corners and the model's least residual): the analytic method ran on "
-            "the output shifted back by it"
-        )
+        if not given:
+            warnings.append(
+                f"the output lags the input by {lag.samples:.2f} ± {lag.spread:.2f} "
+                f"samples ({1e3 * lag.seconds:.3g} ms, at the input's {lag.corners} "
+                "corners and the model's least residual): the analytic method ran on "
+                "the output shifted back by it"
+            )
         diagnostics.update(lag_samples=lag.samples, lag_spread=lag.spread)
         std = dict(diagnostics.get("std") or {})
         for key, slope in slopes.items():  # the lag's uncertainty, propagated
@@ -160,6 +163,12 @@ def _refined_lag(
     except IdentificationError:
         return refined, {}
     return refined, {key: (getattr(up, key) - getattr(down, key)) / (2.0 * h) for key in HYSTERETIC}
+
+
+def given_lag(runs: Sequence[Recording], samples: float) -> LagEstimate:
+    """A lag the caller knows (``IdentifyOptions.lag_samples``), in the runs' sample period."""
+    dt = float(np.median(np.diff(runs[0].t))) if len(runs[0].t) > 1 else math.nan
+    return LagEstimate(float(samples), 0.0, 0, float(samples) * dt)
 
 
 def _settled(rec: Recording) -> int:
@@ -275,7 +284,7 @@ def _identify(
         raise IdentificationError("no runs to identify from")
     for rec in runs:
         check_recording(rec, clip_fraction=options.cycle.clip_fraction)
-    lag = runs_lag(runs)
+    lag = runs_lag(runs) if options.lag_samples is None else given_lag(runs, options.lag_samples)
     if method is Method.ANALYTIC:
         if len(runs) != 2:
             raise IdentificationError(

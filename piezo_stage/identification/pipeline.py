@@ -59,6 +59,9 @@ class IdentifyOptions:
     span_tolerance: float = 0.02  #: the runs' input spans must agree this well
     input_name: str = "voltage"
     output_name: str = "displacement"
+    #: the output's lag behind the input [samples], given: the runs are identified with the
+    #: input delayed by it (None: timed at the input's corners when it is clean, :mod:`.lag`)
+    lag_samples: float | None = None
 
 
 def identify(
