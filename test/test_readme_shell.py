@@ -208,12 +208,12 @@ RUN: dict[str, Expect] = {
     "piezo-stage identify --device tcp://127.0.0.1:50000 --axis 1 --model-input displacement "
     "--output pi_axis1.yaml --bag pi_axis1": Expect(
         beside="piezo-stage emulate e727 --tcp 50000",
-        out=(r"recorded 640000 points at 20 kHz", r"method analytic"),
+        out=(r"recorded 880000 points at 20 kHz", r"method analytic"),
         files=("pi_axis1.yaml", "pi_axis1/metadata.yaml"),
         timeout=300,
     ),
     "piezo-stage identify pi_axis1 --input-topic /piezo/displacement --output-topic "
-    "/piezo/voltage --steady-periods 2": Expect(out=(r"method analytic",)),
+    "/piezo/voltage --steady-periods 6 --lag 0.5": Expect(out=(r"method analytic",)),
     "piezo-stage experiment tracking --graph pi_servo --device tcp://127.0.0.1:50000 --axis 1 "
     "--trajectory triangle --frequency 100 --amplitude 5e-6 --offset 6e-6 --model ch11_rig.yaml "
     "--table-out pi_table.json --json": Expect(
