@@ -108,7 +108,9 @@ def test_two_namespaces_at_once_with_their_own_parameters(tmp_path):
     finally:
         rclpy.shutdown()
     pids = list(a.pids.values()) + list(b.pids.values())
-    assert a.exit_code == 0 and b.exit_code == 0 and a.reason == "stop requested"
+    # (exit 1 after a requested stop: a node outlived SIGINT and SIGTERM and was killed)
+    log = {"alpha": out_a.of("launch"), "beta": out_b.of("launch")}
+    assert a.exit_code == 0 and b.exit_code == 0 and a.reason == "stop requested", log
     assert not wait_gone(pids, timeout=1.0)
     assert "talker /alpha/talker says 'alpha'" in out_a.of("talker")
     heard_a, heard_b = out_a.of("listener"), out_b.of("listener")
