@@ -19,7 +19,7 @@ from piezo_stage.cli import main
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.nodes.qos import LATCHED_QOS
 
-from ros_support import spin_until
+from ros_support import call_idempotent, spin_until
 
 pytestmark = pytest.mark.ros
 
@@ -117,8 +117,10 @@ def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
         spin_until(node, lambda: False, 1.0)
         resume = node.create_client(Trigger, "/piezo/player/resume")
         assert resume.wait_for_service(timeout_sec=60.0), "the player's ~/resume did not appear"
-        future = resume.call_async(Trigger.Request())
-        assert spin_until(node, future.done, 30.0) and future.result().success
+        # resuming twice is resuming: sent again until answered (Fast DDS drops a response
+        # whose reader has not matched yet)
+        answer = call_idempotent(node, resume, Trigger.Request(), timeout=60.0)
+        assert answer is not None and answer.success
         spin_until(node, lambda: proc.poll() is not None, 240.0)
         if proc.poll() is None:
             proc.terminate()
