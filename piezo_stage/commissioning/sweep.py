@@ -9,9 +9,11 @@ hysteresis is one too, so run B's x is run A's shifted by q/kappa_x and the meth
 Pairing of the samples: the plant and the driver publish with sample j the voltage held over
 (t_{j-1}, t_j]; the staircase acts like the smooth input delayed by half a sample, so x(t_j)
 is paired with (v_j + v_{j+1})/2 (without this the loop of a 100 Hz sweep at 50 kHz widens
-and kappa_w, rho, sigma, n come out 5-15 % off). Samples on other stamps (a driver and a
-sensor of their own) are paired with the voltage held at the sample time, or interpolated across
-a gap of lost voltage messages (longer than :data:`GAP_PERIODS` of the record's median period).
+and kappa_w, rho, sigma, n come out 5-15 % off), also when either stream misses a sample (a
+subscription that matched a step later, a lost message): the streams share the clock.
+Samples on other stamps (a driver and a sensor of their own) are paired with the voltage held
+at the sample time, or interpolated across a gap of lost voltage messages (longer than
+:data:`GAP_PERIODS` of the record's median period).
 """
 
 from __future__ import annotations
@@ -114,18 +116,32 @@ class Series:
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
 
 
-def _same_stamps(series: Series) -> bool:
+#: a record whose displacement stamps are at least this fraction voltage stamps shares a clock
+SAME_CLOCK = 0.9
+
+
+def _same_clock(series: Series) -> bool:
+    """Whether voltage and displacement are stamped by one clock (the sim graph's plant publishes
+    both per step), though either stream may miss samples (a subscription matched a step later,
+    a lost message)."""
     t_v, t_x = series.t_v, series.t_x
-    return len(t_v) == len(t_x) and np.allclose(t_v, t_x, rtol=0, atol=1e-9)
+    if t_v.size < 2 or t_x.size < 2:
+        return False
+    i = np.clip(np.searchsorted(t_v, t_x), 1, t_v.size - 1)
+    near = np.minimum(np.abs(t_v[i] - t_x), np.abs(t_v[i - 1] - t_x))
+    return bool(np.count_nonzero(near <= 1e-9) >= SAME_CLOCK * t_x.size)
 
 
 def paired(series: Series, delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t, x, u) on the displacement samples (module docstring), NaN-free samples only;
     ``delay`` [s]: on other stamps, x(t) is paired with the voltage held at t - delay."""
     t_x, x = series.t_x, series.x
-    if _same_stamps(series):
-        v = series.v
-        u = np.concatenate(((v[:-1] + v[1:]) / 2, v[-1:]))
+    if _same_clock(series):
+        # v_j is held over (t_{j-1}, t_j]: at its middle t_j - dt/2 the staircase meets the
+        # smooth input delayed by half a sample; x(t_j) pairs with (v_j + v_{j+1})/2, the
+        # interpolation between two middles (across a lost voltage too)
+        t_v, v = series.t_v, series.v
+        u = np.interp(t_x, t_v - 0.5 * float(np.median(np.diff(t_v))), v)
     else:
         t_v, v, at = series.t_v, series.v, t_x - delay
         idx = np.searchsorted(t_v, at, side="right") - 1
@@ -189,7 +205,7 @@ def run_recordings(
         hi = steady_from + plan.record_periods * plan.period
         dt = float(np.median(np.diff(t)))
         # one sample past the end: record_periods whole periods from the first sample
-        same = _same_stamps(series)
+        same = _same_clock(series)
         keep = (t >= steady_from - 0.5 * dt) & (t <= hi + 1.5 * dt)
         if not same:
             # a rig's sensor clock is not the excitation's: the samples before the run's end
@@ -245,7 +261,7 @@ def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
     2 Hz sweep by ~10 % of kappa_w. The delay taken is the one of :data:`DELAY_GRID` (then
     +-:data:`DELAY_STEP` around the best) whose identified model fits the loop best (least RMS
     error)."""
-    if _same_stamps(series):
+    if _same_clock(series):
         return _identify_at(series, plan, 0.0)
     tried: dict[float, FrequencyResult | SweepError] = {}
 
