@@ -11,7 +11,17 @@ import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 
-from ros_support import MSG_TYPES, ROOT, fill, msg_class, spawn_python, spin_until, stop, to_plain
+from ros_support import (
+    MSG_TYPES,
+    ROOT,
+    call_idempotent,
+    fill,
+    msg_class,
+    spawn_python,
+    spin_until,
+    stop,
+    to_plain,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -87,10 +97,8 @@ def test_every_message_round_trips_between_processes(ros_node):
 
         client = ros_node.create_client(Trigger, "identify")  # the nodes' services are std_srvs
         assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(Trigger.Request())
-        assert spin_until(ros_node, future.done, timeout=10.0)
-        resp = future.result()
-        assert resp.success and resp.message == "echo"
+        resp = call_idempotent(ros_node, client, Trigger.Request(), timeout=10.0)
+        assert resp is not None and resp.success and resp.message == "echo"
     finally:
         stop(echo)
 

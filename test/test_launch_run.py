@@ -50,11 +50,13 @@ class Lines:
 
     def __init__(self) -> None:
         self.items: list[tuple[str, str]] = []
+        self.times: list[float] = []  # when each arrived (monotonic)
         self._lock = threading.Lock()
 
     def __call__(self, name: str, line: str, is_err: bool) -> None:
         with self._lock:
             self.items.append((name, line))
+            self.times.append(time.monotonic())
 
     def of(self, name: str) -> list[str]:
         with self._lock:
@@ -109,8 +111,18 @@ def test_two_namespaces_at_once_with_their_own_parameters(tmp_path):
         rclpy.shutdown()
     pids = list(a.pids.values()) + list(b.pids.values())
     # (exit 1 after a requested stop: a node outlived SIGINT and SIGTERM and was killed)
-    log = {"alpha": out_a.of("launch"), "beta": out_b.of("launch")}
-    assert a.exit_code == 0 and b.exit_code == 0 and a.reason == "stop requested", log
+    if not (a.exit_code == 0 and b.exit_code == 0 and a.reason == "stop requested"):
+        pytest.fail(
+            f"exit codes {a.exit_code}, {b.exit_code}, reason {a.reason!r}; what they printed:\n"
+            + "\n".join(
+                f"{t:.2f} {ns} {name}: {line}"
+                for t, ns, name, line in sorted(
+                    (t, ns, name, line)
+                    for ns, out in (("alpha", out_a), ("beta", out_b))
+                    for t, (name, line) in zip(out.times, out.items)
+                )
+            )
+        )
     assert not wait_gone(pids, timeout=1.0)
     assert "talker /alpha/talker says 'alpha'" in out_a.of("talker")
     heard_a, heard_b = out_a.of("listener"), out_b.of("listener")

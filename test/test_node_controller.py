@@ -15,7 +15,7 @@ from std_srvs.srv import Trigger
 
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
 
-from ros_support import spin_until, start_node, stop
+from ros_support import call_idempotent, spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
 
@@ -25,9 +25,9 @@ NS = "/ctl"
 def _call(node, srv_type, name, request, timeout=10.0):
     client = node.create_client(srv_type, name)
     assert client.wait_for_service(timeout_sec=timeout), name
-    future = client.call_async(request)
-    assert spin_until(node, future.done, timeout)
-    return future.result()
+    result = call_idempotent(node, client, request, timeout)
+    assert result is not None, name
+    return result
 
 
 def _sample(value, status=0, t=0.0):

@@ -17,7 +17,7 @@ from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel, MDTDe
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
 
 from rig_support import DiagnosticsProbe, sva_values
-from ros_support import spin_until, start_node, stop
+from ros_support import call_idempotent, spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
 
@@ -419,9 +419,8 @@ def test_use_sim_time_cannot_be_switched_on_at_run_time(probe, gcs):
         req = SetParameters.Request(
             parameters=[Parameter("use_sim_time", value=True).to_parameter_msg()]
         )
-        future = client.call_async(req)
-        assert d.wait(lambda: future.done(), 10.0)
-        assert not future.result().results[0].successful
+        result = call_idempotent(probe, client, req, 10.0)
+        assert result is not None and not result.results[0].successful
         n = len(sva_values(model))
         d.send(40.0, stamp=probe.get_clock().now() - rclpy.duration.Duration(seconds=3600.0))
         assert d.wait(lambda: d.diag.value("rejected_late") == "1", 5.0), d.diag.values

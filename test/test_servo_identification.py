@@ -109,8 +109,11 @@ def test_the_ch11_form_pairs_each_position_with_its_two_voltages_mean(tmp_path, 
     again = json.loads(capsys.readouterr().out)
     assert main([*offline, "--method", "analytic", "--no-plot"]) == 0
     held = json.loads(capsys.readouterr().out)
+    # the bag's stamps are the record's to a nanosecond, not bit for bit; the fit (kappa_w and
+    # rho correlated to -0.999) turns that into ~1e-7: the tolerance stays 100x below what the
+    # pairing moves
     for name in ("kappa_w", "rho", "sigma", "n"):
-        assert again[name] == pytest.approx(got[name], rel=1e-7), name
+        assert again[name] == pytest.approx(got[name], rel=1e-5), name
     assert abs(held["kappa_w"] / got["kappa_w"] - 1) > 1e-3  # the pairing matters
 
 
