@@ -12,11 +12,12 @@ Targets (20 kHz): κw, ρ, σ, n within 1 % of the stage's, per axis; ≤ 60 s p
 first command to the parameters, readback over TCP included.
 
 With ``--tracking``: the learned table instead (`experiment tracking --graph pi_servo`), a
-100 Hz triangle over 1-11 µm (``--amplitude``, ``--offset``) on each axis, learned at 20 kHz
-(200 points a period) from two models: one 20 % off in κw and 10 % in ρ (side by side, the
-same as a 1 kHz table of 10 points) and the one ``identify --device`` gives on this
-controller (its Bouc-Wen parameters with the stage's m, c). Target: RMS ≤ 0.2 % of the
-range after ≤ 20 plays.
+100 Hz triangle over 10 µm centred in the first axis's range (``--amplitude``, ``--offset``)
+on each axis, learned at 20 kHz (200 points a period) from two models: one 20 % off in κw and
+10 % in ρ (side by side, the same as a 1 kHz table of 10 points) and the one ``identify
+--device`` gives on this controller (its Bouc-Wen parameters with the stage's m, c). Target:
+RMS ≤ 0.2 % of the range after ≤ 20 plays (of the four measured periods' mean; ``noise`` is one
+period's spread about it).
 
 With ``--stage FILE`` the emulator simulates that stage file's axes instead (their channels
 the axis names; ``--axes`` must name them) and the parameters are compared with its own.
@@ -117,10 +118,25 @@ def identified_model(url: str, axis: str, ps: ParameterSet, folder: Path) -> str
     )
 
 
-#: the triangle: 100 Hz over OFFSET ± AMPLITUDE [m] (1-11 µm: the ch. 11 rig's range at
-#: -30..130 V is -2.5..12 µm, short of the 20 µm asked; --amplitude 10e-6 --offset 0 for a
-#: stage that has it)
-TRIANGLE = {"amplitude": "5e-6", "offset": "6e-6"}
+#: the triangle: 100 Hz over OFFSET ± AMPLITUDE [m]; the offset "centre" is the middle of the
+#: first axis's range at V_MIN..V_MAX (:func:`range_centre`; the ch. 11 rig's -2.5..12 µm is
+#: short of the 20 µm asked: --amplitude 10e-6 for a stage that has it)
+TRIANGLE = {"amplitude": "5e-6", "offset": "centre"}
+
+
+def range_centre(ps: ParameterSet) -> float:
+    """The middle [m] of the positions a slow V_MIN..V_MAX cycle reaches (the third of three,
+    1 Hz): a triangle placed there keeps its table off the amplifier's limits longest."""
+    import numpy as np
+
+    from piezo_stage.model.plant import DynamicPlant
+
+    dt = 1e-5
+    t = np.arange(int(round(3.0 / dt))) * dt
+    u = V_MIN + (V_MAX - V_MIN) * (1.0 - np.abs(1.0 - 2.0 * (t % 1.0)))
+    x, _, _ = DynamicPlant(ps.bouc_wen, ps.dynamics).simulate(u, dt)
+    last = x[t >= 2.0] + ps.bouc_wen.y0
+    return 0.5 * float(last.min() + last.max())
 
 
 def triangle_args() -> list[str]:
@@ -166,7 +182,12 @@ def tracking(url: str, axes: list[str], models: dict[str, ParameterSet]) -> None
     import tempfile
 
     folder = Path(tempfile.mkdtemp())
-    print(f"{'axis':>4} {'from':>10} {'table':>8} {'model':>8} {'learned':>8} {'plays':>5}   wall")
+    a, c = float(TRIANGLE["amplitude"]), float(TRIANGLE["offset"])
+    print(f"100 Hz triangle over {1e6 * (c - a):.3g}..{1e6 * (c + a):.3g} µm")
+    print(
+        f"{'axis':>4} {'from':>10} {'table':>8} {'model':>8} {'learned':>8} {'noise':>8} "
+        f"{'plays':>5}   wall"
+    )
     worst: dict[tuple[str, float], float] = {}
     for axis in axes:
         start = {"off model": off_model(models[axis], folder)}
@@ -177,9 +198,10 @@ def tracking(url: str, axes: list[str], models: dict[str, ParameterSet]) -> None
                 first, last = got["history_rms_relative"][0], got["rms_relative"]
                 key = (label, rate_hz)
                 worst[key] = max(worst.get(key, 0.0), last)
+                noise = got["noise_rms"] / got["range"]
                 print(
                     f"{axis:>4} {label:>10} {rate_hz / 1e3:5.0f}kHz {100 * first:7.3f}% "
-                    f"{100 * last:7.3f}% {got['plays']:>5} {wall:5.1f} s",
+                    f"{100 * last:7.3f}% {100 * noise:7.3f}% {got['plays']:>5} {wall:5.1f} s",
                     flush=True,
                 )
     if len(axes) == 3:
@@ -200,10 +222,14 @@ def main() -> int:
     parser.add_argument("--stage", default=None, help="stage file (default: the ch. 11 rig)")
     parser.add_argument("--seed", type=int, default=0, help="seed of axis 1's sensor noise")
     parser.add_argument("--amplitude", default=TRIANGLE["amplitude"], help="triangle's [m]")
-    parser.add_argument("--offset", default=TRIANGLE["offset"], help="triangle's centre [m]")
+    parser.add_argument(
+        "--offset", default=TRIANGLE["offset"], help="triangle's centre [m] or 'centre'"
+    )
     opts = parser.parse_args()
     emulator = controller(opts.noise, opts.stage, opts.seed)
     models = stage_models(opts.stage)
+    if opts.offset == "centre":
+        opts.offset = f"{range_centre(models[opts.axes.split(',')[0]]):.4g}"
     TRIANGLE.update(amplitude=opts.amplitude, offset=opts.offset)
     if opts.tracking:
         with EmulatorServer(emulator, tcp_port=0) as server:

@@ -23,6 +23,7 @@ from piezo_stage.control.learning import (
     LearningConfig,
     LearningError,
     PeriodicLearner,
+    at_limits,
     feedforward_response,
     fill_gaps,
     harmonics,
@@ -176,6 +177,28 @@ def test_every_table_value_keeps_the_limits_and_the_slew(u, lo, span, slew, peri
     assert np.all(out >= lo) and np.all(out <= lo + span)
     steps = np.diff(np.concatenate([out, out[:1]]) if periodic else out)
     assert np.all(np.abs(steps) <= cap * (1 + 1e-9) + 1e-12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    u=st.lists(st.floats(-1e3, 1e3), min_size=2, max_size=40),
+    lo=st.floats(-500, 0),
+    span=st.floats(1, 1000),
+)
+@example(u=[-1e3, 1e3], lo=-10.0, span=20.0)
+@example(u=[0.0, 4.141999409885948e-282], lo=0.0, span=1.0)
+def test_every_clipped_value_is_counted_and_no_other(u, lo, span):
+    """A value the clip moved sits at a limit and is counted, as is one within 1e-9 of the
+    range of it (already there); one 1e-6 of the range inside is not."""
+    hi = lo + span
+    x = np.array(u)
+    out = np.clip(x, lo, hi)
+    outside = int(np.count_nonzero((x < lo) | (x > hi)))
+    tol = 1e-9 * (hi - lo)
+    near = (x >= lo) & (x <= hi) & ((x <= lo + tol) | (x >= hi - tol))
+    assert outside <= at_limits(out, lo, hi) <= outside + int(np.count_nonzero(near))
+    inside = np.clip(x, lo + 1e-6 * span, hi - 1e-6 * span)
+    assert at_limits(inside, lo, hi) == 0
 
 
 def test_bad_configurations_and_errors_are_refused():

@@ -215,10 +215,10 @@ RUN: dict[str, Expect] = {
     "piezo-stage identify pi_axis1 --input-topic /piezo/displacement --output-topic "
     "/piezo/voltage --steady-periods 6 --lag 0.5": Expect(out=(r"method analytic",)),
     "piezo-stage experiment tracking --graph pi_servo --device tcp://127.0.0.1:50000 --axis 1 "
-    "--trajectory triangle --frequency 100 --amplitude 5e-6 --offset 6e-6 --model ch11_rig.yaml "
+    "--trajectory triangle --frequency 100 --amplitude 5e-6 --offset 5e-6 --model ch11_rig.yaml "
     "--table-out pi_table.json --json": Expect(
         beside="piezo-stage emulate e727 --tcp 50000",
-        out=(r'"rms_relative"', r'"rate_hz": 20000'),
+        out=(r'"rms_relative"', r'"rate_hz": 20000', r'"at_limit_points": 0'),
         files=("pi_table.json",),
     ),
     "piezo-stage launch pi_rig_loop": Expect(ready=r"\[launch\] +ready after"),

@@ -19,9 +19,10 @@ from piezo_stage.model.stage_file import Stage, StageAxis
 
 pytestmark = pytest.mark.ros
 
-#: 100 Hz triangle over 1-11 um of the ch. 11 rig (its range at -30..130 V is -2.5..12 um)
+#: 100 Hz triangle over 0-10 um of the ch. 11 rig (its range at -30..130 V is -2.5..12 um; the
+#: table stays within 121 V)
 TRIANGLE = ["--trajectory", "triangle", "--frequency", "100", "--amplitude", "5e-6"]
-TRIANGLE += ["--offset", "6e-6", "--model", "ch11_rig.yaml"]
+TRIANGLE += ["--offset", "5e-6", "--model", "ch11_rig.yaml"]
 
 
 @pytest.fixture()
@@ -78,7 +79,9 @@ def test_the_table_learned_in_the_controller_tracks_and_plays_again(controller, 
     history = got["history_rms_relative"]
     assert got["rate_hz"] == 20000.0 and got["points"] == 200
     assert history[-1] < 0.5 * history[0]  # learned from the data recorder's records
-    assert got["rms_relative"] < 3e-3  # 0.2-0.25 %: the corners' harmonics above Q remain
+    assert got["rms_relative"] < 2e-3  # 0.12-0.14 %: the corners' harmonics above Q remain
+    # the four measured periods differ by the sensor's noise (2 nm), which their mean shrinks
+    assert 1.5e-9 < got["noise_rms"] < 3e-9 and got["at_limit_points"] == 0
     assert got["table_out"] == str(table) and table.exists()
     _left_safe(device)
     # the saved table, played as it is
@@ -99,7 +102,7 @@ def test_three_axes_play_and_learn_at_once(controller, tmp_path, capsys):
     assert sorted(got["axes"]) == ["1", "2", "3"]
     for axis, figures in got["axes"].items():
         history = figures["history_rms_relative"]
-        assert history[-1] < 0.5 * history[0] and figures["rms_relative"] < 3e-3, axis
+        assert history[-1] < 0.5 * history[0] and figures["rms_relative"] < 2e-3, axis
     assert device.recorder.tables == 6
     _left_safe(device)
 
@@ -137,6 +140,19 @@ def test_a_table_made_for_another_rate_is_refused(controller, tmp_path, capsys):
     assert _track(url, "--learn", "1", "--table-out", str(table), capsys=capsys)[0] == 0
     code, _, err = _track(url, "--rate-hz", "1000", "--table", str(table), capsys=capsys)
     assert code == 2 and "the table was made at 20000 Hz" in err, err
+    _left_safe(device)
+
+
+def test_a_table_at_the_amplifier_limit_is_said(controller, capsys):
+    """The triangle 1 um higher (1-11 um): at its top corner the model asks more than 130 V;
+    those points are clipped, the error there stays, and the run says so."""
+    device, url = controller
+    higher = [*TRIANGLE[:-3], "6e-6", *TRIANGLE[-2:]]
+    code, got, err = _track(url, *higher, "--learn", "0", capsys=capsys)
+    assert code == 0, err
+    assert got["at_limit_points"] > 0 and got["rms_relative"] > 2e-3
+    assert f"{got['at_limit_points']} of the table's 200 points at the amplifier's limits" in err
+    assert "(-30..130 V)" in err
     _left_safe(device)
 
 

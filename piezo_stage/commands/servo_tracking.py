@@ -5,6 +5,7 @@ repeated trajectory learned on the host and played by a PI controller's wave gen
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Any, Callable
 
 from piezo_stage.commands.servo_identify import DeviceRunError, open_controller
@@ -14,8 +15,9 @@ DEFAULT_LEARN = 20
 
 
 def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None]) -> dict:
-    """The experiment's summary: RMS error over the last measured period (m and % of the
-    range), the RMS of every play, the table's rate and points."""
+    """The experiment's summary: RMS error of the last play's measured periods, averaged (m
+    and % of the range), one period's noise about that average, the RMS of every play, the
+    table's rate and points."""
     from piezo_stage.control.errors import ControlError
     from piezo_stage.control.learning import trajectory_samples
     from piezo_stage.experiments import ExperimentInputError
@@ -53,6 +55,15 @@ def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None
         raise ExperimentInputError(f"{args.device}: {exc}") from None
     finally:
         amplifier.close()
+    for a, r in zip(axes, results):
+        if r.at_limit:
+            print(
+                f"warning: axis {a[0].axis}: {r.at_limit} of the table's {x_d.size} points at "
+                f"the amplifier's limits ({info.v_min:g}..{info.v_max:g} V): the trajectory "
+                "asks more than the amplifier gives there and that error is not learned; move "
+                "it into the stage's range or slow it",
+                file=sys.stderr,
+            )
     summary: dict[str, Any] = {"graph": "pi_servo", "rate_hz": 1.0 / (cycle * rate)}
     summary |= _figures([a.axis for a, _ in axes], results, x_d)
     if args.table_out:  # the first axis's table (one axis: its table)
@@ -96,6 +107,8 @@ def _figures(names: list[str], results: list[Any], x_d: Any) -> dict[str, Any]:
         name: {
             "rms_error": r.rms_error,
             "rms_relative": r.rms_relative,
+            "noise_rms": r.noise,
+            "at_limit_points": r.at_limit,
             "plays": len(r.history),
             "history_rms_relative": [h / span for h in r.history],
         }

@@ -223,6 +223,15 @@ def limit(
     return out
 
 
+def at_limits(u: NDArray[np.float64], u_min: float, u_max: float) -> int:
+    """How many values of ``u`` sit at u_min or u_max (to 1e-9 of the range): where :func:`limit`
+    clipped what the model or the learning asked, the stage cannot follow and the error stays.
+    """
+    tol = 1e-9 * (u_max - u_min) if math.isfinite(u_max - u_min) else 0.0
+    u = np.asarray(u, dtype=float)
+    return int(np.count_nonzero((u <= u_min + tol) | (u >= u_max - tol)))
+
+
 @dataclass(eq=False)
 class FeedforwardTable:
     """u_ff [V] at each sample of a period of ``len(u)`` samples at ``rate_hz``; ``periodic``
@@ -589,6 +598,7 @@ __all__ = [
     "LearningError",
     "PeriodicLearner",
     "SAMPLED_BELOW",
+    "at_limits",
     "choose_form",
     "resonance",
     "default_cutoff",

@@ -7,12 +7,16 @@ Several axes play at once (one ``WGO`` starts every generator; axis k's voltage 
 are recorder tables 2k + 1 and 2k + 2), each learning from its own record. The first table is
 the model's (:func:`~piezo_stage.control.learning.sampled_feedforward`:
 the inverse of (11.1) along x_d at the table's rate, refined against the model itself).
-Each iteration uploads the table, plays it :data:`SETTLE_PERIODS` + 1 periods (the stage
-settles after the change), reads the position of the last period back and learns from its
-error with the learning that exists (:class:`~piezo_stage.control.learning.IterativeLearning`:
-u ← u + Q·L·e, L = −α·G⁻¹ with G the model's open-loop response, its stop rule), until it
-stops or ``max_iterations``. The output is ramped to the table's first value before and to
-max(VMI?, 0 V) after, and on any failure (the generator stopped first).
+Each iteration uploads the table, plays it :data:`SETTLE_PERIODS` + :data:`MEASURED_PERIODS`
+periods (the stage settles after the change), reads the position of the measured periods back,
+averages them (the sensor's noise falls by the square root of their number; the stage's
+repeatable error is what the table can change) and learns from its error with the learning
+that exists (:class:`~piezo_stage.control.learning.IterativeLearning`: u ← u + Q·L·e,
+L = −α·G⁻¹ with G the model's open-loop response, its stop rule), until it stops or
+``max_iterations``. Points of the table at the amplifier's limits are counted
+(:attr:`ServoTracking.at_limit`): the error there is the amplifier's, not the table's. The
+output is ramped to the table's first value before and to max(VMI?, 0 V) after, and on any
+failure (the generator stopped first).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from piezo_stage.control.learning import (
     FeedforwardTable,
     IterativeLearning,
     LearningConfig,
+    at_limits,
     feedforward_response,
     sampled_feedforward,
 )
@@ -43,6 +48,9 @@ DEFAULT_LEARNING = LearningConfig()
 #: transient (with 4, 6 % of it was learned as error: the exact model stalled at 0.22 % of
 #: the range instead of 0.17 %)
 SETTLE_PERIODS = 10
+#: periods recorded after the settling ones and averaged: the error learned from and reported
+#: is the repeatable one, the sensor's noise reported apart (:attr:`ServoTracking.noise`)
+MEASURED_PERIODS = 4
 
 
 @dataclass
@@ -51,12 +59,14 @@ class ServoTracking:
 
     table: FeedforwardTable  #: the last table played
     x_d: NDArray[np.float64]  #: the trajectory at the table's points [m]
-    x: NDArray[np.float64]  #: the position over the last measured period [m]
+    x: NDArray[np.float64]  #: the position over the measured periods, averaged [m]
     history: list[float] = field(default_factory=list)  #: RMS error of each play [m]
+    noise: float = 0.0  #: RMS of one measured period's position about the average [m]
+    at_limit: int = 0  #: the table's points at the amplifier's limits (clipped)
 
     @property
     def rms_error(self) -> float:
-        """RMS of x − x_d over the last measured period [m]."""
+        """RMS of x − x_d, x the measured periods' average [m]."""
         return float(np.sqrt(np.mean((self.x - self.x_d) ** 2)))
 
     @property
@@ -72,12 +82,13 @@ def play_and_measure(
     rate: int,
     period: float,
     settle: int = SETTLE_PERIODS,
+    measured: int = MEASURED_PERIODS,
 ) -> list[NDArray[np.float64]]:
-    """Upload each table to its generator's wave table, play them all at once ``settle + 1``
-    periods, return each axis's position over the last one [m] (recorder tables 2k + 2: only
-    the last period's points are read)."""
+    """Upload each table to its generator's wave table, play them all at once ``settle +
+    measured`` periods, return each axis's position over the last ``measured`` [m], one row a
+    period (recorder tables 2k + 2: only those periods' points are read)."""
     n = tables[0].size
-    plays = settle + 1
+    plays = settle + measured
     for generator, u in zip(generators, tables):
         recorder.upload(generator, u)
         recorder.connect(generator, generator, plays, rate, 0.0)
@@ -86,8 +97,9 @@ def play_and_measure(
     count = recorder.recorded()
     if count < plays * n:
         raise ExperimentError(f"the data recorder holds {count} of the {plays * n} points played")
-    columns = recorder.read_range(2 * len(tables), settle * n, n).columns
-    return [columns[2 * k + 1] * 1e-6 for k in range(len(tables))]  # um, as PI reports
+    columns = recorder.read_range(2 * len(tables), settle * n, measured * n).columns
+    # um, as PI reports
+    return [columns[2 * k + 1].reshape(measured, n) * 1e-6 for k in range(len(tables))]
 
 
 def learn_in_controller(
@@ -112,10 +124,11 @@ def learn_in_controller(
     config = replace(config, u_min=limits[0], u_max=limits[1], settle_periods=0)
     start = [_first_table(t, model, x_d, rate_hz, config) for t in _each(tables, len(axes))]
     recorder.set_tables(2 * len(axes))  # voltage and position of each axis
-    if recorder.table_points() < (SETTLE_PERIODS + 1) * n:
+    plays = SETTLE_PERIODS + MEASURED_PERIODS
+    if recorder.table_points() < plays * n:
         raise ExperimentInputError(
-            f"{SETTLE_PERIODS + 1} periods ({(SETTLE_PERIODS + 1) * n} points) do not fit a "
-            f"data recorder table of {recorder.table_points()} points: raise the rate"
+            f"{plays} periods ({plays * n} points) do not fit a data recorder table of "
+            f"{recorder.table_points()} points: raise the rate"
         )
     sources = [(a.axis, option) for a, _ in axes for option in RECORD]
     recorder.configure(sources, rate)
@@ -134,7 +147,19 @@ def learn_in_controller(
     for table, h in zip(start, history):
         table.meta["history_rms"] = h
     xd = np.asarray(x_d, dtype=float)
-    return [ServoTracking(t, xd, x, h) for t, x, h in zip(start, xs, history)]
+    return [
+        ServoTracking(t, xd, x.mean(axis=0), h, period_noise(x), at_limits(t.u, *limits))
+        for t, x, h in zip(start, xs, history)
+    ]
+
+
+def period_noise(x: NDArray[np.float64]) -> float:
+    """RMS of one period's position about the periods' average (rows: periods) [m], the
+    unbiased estimate: what differs from period to period (the sensor's noise)."""
+    k = x.shape[0]
+    if k < 2:
+        return float("nan")
+    return float(np.sqrt(np.sum((x - x.mean(axis=0)) ** 2) / ((k - 1) * x.shape[1])))
 
 
 def _plays(
@@ -148,19 +173,20 @@ def _plays(
     progress: Progress,
 ) -> tuple[list[NDArray[np.float64]], list[list[float]]]:
     """Play and learn until every axis's learning stops or ``max_iterations``: the last
-    positions and each axis's RMS error per play."""
+    measured periods' positions (rows: periods) and each axis's RMS error per play (of the
+    periods' average)."""
     history: list[list[float]] = [[] for _ in learning]
     for j in range(max_iterations + 1):
         tables = [lrn.table.u for lrn in learning]
         xs = play_and_measure(recorder, generators, tables, rate, x_d.size / rate_hz)
         for k, x in enumerate(xs):
-            history[k].append(float(np.sqrt(np.mean((x - x_d) ** 2))))
+            history[k].append(float(np.sqrt(np.mean((x.mean(axis=0) - x_d) ** 2))))
         span = float(np.ptp(x_d))
         progress(f"play {j}: RMS " + ", ".join(f"{100 * h[-1] / span:.3g}" for h in history) + " %")
         if j == max_iterations or all(lrn.done for lrn in learning):
             break
         for lrn, x in zip(learning, xs):
-            lrn.update(x - x_d)
+            lrn.update(x.mean(axis=0) - x_d)
     return xs, history
 
 
