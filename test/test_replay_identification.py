@@ -51,41 +51,12 @@ def _offline(bag: str, degree: int, capsys, method: str = "auto") -> dict:
     return json.loads(capsys.readouterr().out)
 
 
-@pytest.mark.parametrize(
-    "bag, degree, params, method",
-    [
-        ("bags/ch10_identification", 2, [], "auto"),  # the graph as shipped (its bag and degree)
-        (
-            "bags/ch9_identification",
-            1,
-            ["--param", "player.bag:=bags/ch9_identification", "--param", "identifier.degree:=1"],
-            "auto",
-        ),
-        # the fit by simulation error over the whole runs, as `identify --method fit`
-        (
-            "bags/ch9_identification",
-            1,
-            [
-                "--param",
-                "player.bag:=bags/ch9_identification",
-                "--param",
-                "identifier.degree:=1",
-                "--param",
-                "identifier.method:=fit",
-            ],
-            "fit",
-        ),
-    ],
-)
-@pytest.mark.slow
-def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
-    node, bag, degree, params, method, tmp_path, capsys
-):
+def _replay(node, params: list[str], out_file: Path) -> list:
+    """Launch replay_identification with ``params`` (the identifier writing ``out_file``), play
+    once the probe is matched with the identifier, wait for its exit 0: the latched
+    BoucWenParameters messages the probe got."""
     from piezo_stage_msgs.msg import BoucWenParameters
 
-    offline = _offline(bag, degree, capsys, method)
-    assert offline["method"] == ("fit" if method == "fit" else "analytic")
-    out_file = tmp_path / "replayed.yaml"
     got: list = []
     node.create_subscription(BoucWenParameters, "bouc_wen_parameters", got.append, LATCHED_QOS)
     cmd = [
@@ -132,7 +103,43 @@ def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+    return got
 
+
+@pytest.mark.parametrize(
+    "bag, degree, params, method",
+    [
+        ("bags/ch10_identification", 2, [], "auto"),  # the graph as shipped (its bag and degree)
+        (
+            "bags/ch9_identification",
+            1,
+            ["--param", "player.bag:=bags/ch9_identification", "--param", "identifier.degree:=1"],
+            "auto",
+        ),
+        # the fit by simulation error over the whole runs, as `identify --method fit`
+        (
+            "bags/ch9_identification",
+            1,
+            [
+                "--param",
+                "player.bag:=bags/ch9_identification",
+                "--param",
+                "identifier.degree:=1",
+                "--param",
+                "identifier.method:=fit",
+            ],
+            "fit",
+        ),
+    ],
+)
+@pytest.mark.slow
+def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
+    node, bag, degree, params, method, tmp_path, capsys
+):
+    offline = _offline(bag, degree, capsys, method)
+    assert offline["method"] == ("fit" if method == "fit" else "analytic")
+    out_file = tmp_path / "replayed.yaml"
+    got = _replay(node, params, out_file)
     replayed = load_parameter_set(out_file)
     p = replayed.bouc_wen
     assert list(p.kappa) == pytest.approx(offline["kappa"], rel=1e-9)
@@ -149,6 +156,47 @@ def test_replaying_a_sample_bag_through_the_identifier_gives_the_offline_result(
         assert getattr(msg, name) == pytest.approx(offline[name], rel=1e-9, abs=1e-300), name
     assert msg.samples == offline["samples"] and msg.input_name == "voltage"
     assert msg.rms_error == pytest.approx(offline["rms_error"], rel=1e-6)
+
+
+@pytest.mark.slow
+def test_a_servo_record_replayed_with_its_lag_gives_the_offline_result(node, tmp_path, capsys):
+    """The ch. 11 form recorded by a PI data recorder (`identify --device --bag`: position ->
+    voltage, each reading paired with its two voltages' mean) replayed through the identifier
+    with lag_samples 0.5 gives what `identify BAG --lag 0.5` gives; without, the held pairing's
+    other numbers."""
+    import numpy as np
+
+    from piezo_stage.commands.emulate import emulated_controller
+    from piezo_stage.hardware.emulators import EmulatorServer
+    from piezo_stage.model.parameter_set import shipped_parameter_set
+    from piezo_stage.model.stage_file import Stage, StageAxis
+
+    rig = shipped_parameter_set("ch11_rig")
+    stage = Stage("e727", (StageAxis("x", rig, "1"),), np.eye(1))
+    bag = tmp_path / "servo11"
+    with EmulatorServer(
+        emulated_controller(stage, v_min=-30.0, v_max=130.0, sensor_noise=2e-9), tcp_port=0
+    ) as server:
+        args = ["identify", "--device", f"tcp://127.0.0.1:{server.port}", "--axis", "1"]
+        args += ["--model-input", "displacement", "--period", "0.05", "--periods", "14,2"]
+        assert main([*args, "--bag", str(bag), "--no-plot"]) == 0
+    capsys.readouterr()
+    offline = ["identify", str(bag), "--input-topic", "/piezo/displacement"]
+    offline += ["--output-topic", "/piezo/voltage", "--steady-periods", "2", "--method", "analytic"]
+    assert main([*offline, "--lag", "0.5", "--json", "--no-plot"]) == 0
+    expected = json.loads(capsys.readouterr().out)
+    out_file = tmp_path / "replayed.yaml"
+    params = [f"player.bag:={bag}", "identifier.input:=displacement", "identifier.degree:=1"]
+    params += ["identifier.steady_periods:=2", "identifier.method:=analytic"]
+    params += ["identifier.lag_samples:=0.5"]
+    got = _replay(node, [a for p in params for a in ("--param", p)], out_file)
+    p = load_parameter_set(out_file).bouc_wen
+    for name in ("kappa_w", "rho", "sigma", "n"):
+        assert getattr(p, name) == pytest.approx(expected[name], rel=1e-9), name
+    assert got and got[0].input_name == "displacement"
+    assert main([*offline, "--json", "--no-plot"]) == 0
+    held = json.loads(capsys.readouterr().out)
+    assert abs(held["kappa_w"] / p.kappa_w - 1) > 1e-3  # what the node paired without the lag
 
 
 def test_a_replay_whose_identification_fails_ends_the_launch_with_the_failure(tmp_path, capsys):

@@ -56,6 +56,7 @@ from piezo_stage.identification.analytic import DesignPoints
 from piezo_stage.identification.cycles import CycleOptions, extract_cycle
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import recordings_from_series
+from piezo_stage.identification.lag import MAX_LAG_SAMPLES
 from piezo_stage.identification.limit_cycles import (
     CyclePair,
     CycleRefusedError,
@@ -210,6 +211,15 @@ PARAMETERS = ParameterTable(
             range=(0, 100000),
         ),
         Param("filter", False, "apply the §10.3.2 zero-phase data filter"),
+        Param(
+            "lag_samples",
+            math.nan,
+            "the output's lag behind the input, taken off as given (NaN: estimated from the "
+            "input's corners, as piezo-stage identify without --lag; 0.5 for a PI data "
+            "recorder's record in the ch. 11 form, as identify --device pairs it)",
+            "samples",
+            (-float(MAX_LAG_SAMPLES), float(MAX_LAG_SAMPLES)),
+        ),
         Param(
             "max_rms",
             0.0,
@@ -514,6 +524,7 @@ class IdentifierNode(PiezoNode):
         f1, f2, f3 = self.settings.design_points
         sign = self.settings.input_sign
         k = self.settings.steady_periods
+        lag = self.settings.lag_samples
         return IdentifyOptions(
             degree=self.settings.degree,
             refine=self.settings.refine,
@@ -523,6 +534,7 @@ class IdentifierNode(PiezoNode):
             refinement=RefineOptions(**self._max_rms()),
             input_name=self._input.value,
             output_name="displacement" if self._input is Input.VOLTAGE else "voltage",
+            lag_samples=None if math.isnan(lag) else lag,
         )
 
     def _max_rms(self) -> _MaxRms:

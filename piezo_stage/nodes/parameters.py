@@ -11,6 +11,7 @@ start and on set, and turns rclpy's type and range refusals at start into
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, Collection, Mapping
 
 import rclpy.parameter
@@ -44,10 +45,16 @@ def parameter_overrides(node: Node) -> dict[str, Any]:
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
+    """The parameter's descriptor. A float whose default is NaN ("not given") carries its range
+    in the text only: rclpy refuses NaN against a range; :meth:`Param.check` enforces it."""
     d = ParameterDescriptor(name=p.name, description=p.full_description(), read_only=p.read_only)
     if p.choice_values:
         d.additional_constraints = "one of: " + ", ".join(p.choice_values)
-    if p.range is not None:
+    unset = p.kind is Kind.FLOAT and isinstance(p.default, float) and math.isnan(p.default)
+    if p.range is not None and unset:
+        lo, hi = p.range
+        d.additional_constraints = f"NaN or within [{lo:g}, {hi:g}]"
+    elif p.range is not None:
         lo, hi = p.range
         if p.kind is Kind.INT:
             d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(p.step))]

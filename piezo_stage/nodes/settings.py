@@ -141,6 +141,7 @@ class IdentifierSettings:
     design_points: list[float]
     steady_periods: int
     filter: bool
+    lag_samples: float
     max_rms: float
     cycles_from: CyclesFrom
     auto_identify: bool
