@@ -34,6 +34,7 @@ import io
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -72,9 +73,11 @@ def stage_models(stage_file: str | None) -> dict[str, ParameterSet]:
     return {a.channel: a.model for a in load_stage(find_user_file(stage_file)).axes}
 
 
-def identify(url: str, axis: str, rate: int, periods: str) -> tuple[dict, float]:
+def identify(
+    url: str, axis: str, rate: int, periods: str, extra: Sequence[str] = ()
+) -> tuple[dict, float]:
     args = ["identify", "--device", url, "--axis", axis, "--model-input", "displacement"]
-    args += ["--record-rate", str(rate), "--periods", periods, "--json", "--no-plot"]
+    args += ["--record-rate", str(rate), "--periods", periods, "--json", "--no-plot", *extra]
     out, err = io.StringIO(), io.StringIO()
     start = time.monotonic()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -102,20 +105,13 @@ def off_model(ps: ParameterSet, folder: Path) -> str:
 
 
 def identified_model(url: str, axis: str, ps: ParameterSet, folder: Path) -> str:
-    """The axis's Bouc-Wen parameters identified on the controller (``identify --device``,
-    the ch. 11 form), with the stage's dynamics m, c (the thesis identifies them apart, 11.4).
-    The identified y0 is the offset of u = Φ(x) in volts; the dynamic form's is the
-    displacement's, -y0 / κx."""
-    got, _ = identify(url, axis, 1, "16,6")
-    names = ("kappa_w", "rho", "sigma", "n")
-    return model_file(
-        ps,
-        folder,
-        f"identified_{axis}",
-        kappa=tuple(got["kappa"]),
-        y0=-got["y0"] / got["kappa"][0],
-        **{n: got[n] for n in names},
-    )
+    """The axis's model identified on the controller (``identify --device``, the ch. 11 form),
+    written as the dynamic model with the stage's m, c (``--m``, ``--c``: the thesis identifies
+    them apart, 11.4)."""
+    path = folder / f"identified_{axis}.yaml"
+    dyn = ["--output", str(path), "--m", repr(ps.dynamics.m), "--c", repr(ps.dynamics.c)]
+    identify(url, axis, 1, "16,6", dyn)
+    return str(path)
 
 
 #: the triangle: 100 Hz over OFFSET ± AMPLITUDE [m]; the offset "centre" is the middle of the

@@ -117,6 +117,60 @@ def test_the_ch11_form_pairs_each_position_with_its_two_voltages_mean(tmp_path, 
     assert abs(held["kappa_w"] / got["kappa_w"] - 1) > 1e-3  # the pairing matters
 
 
+@pytest.mark.slow
+def test_the_ch11_form_with_m_and_c_is_a_model_the_tables_learn_from(tmp_path, capsys):
+    """identify --device --model-input displacement --m --c --output writes the dynamic model
+    (11.1): the identified Φ, the offset as a displacement (-y0/κx), the given m and c; played
+    as a learned table on the same controller, it tracks a 100 Hz triangle."""
+    from piezo_stage.model.parameter_set import load_parameter_set
+
+    rig = shipped_parameter_set("ch11_rig")
+    model = _controller(noise=2e-9)
+    out = tmp_path / "axis1.yaml"
+    with EmulatorServer(model, tcp_port=0) as server:
+        url = f"tcp://127.0.0.1:{server.port}"
+        args = ["identify", "--device", url, "--axis", "1", "--model-input", "displacement"]
+        args += ["--period", "0.05", "--periods", "14,2", "--output", str(out), "--json"]
+        m, c = rig.dynamics.m, rig.dynamics.c
+        assert main([*args, "--m", str(m), "--c", str(c), "--no-plot"]) == 0
+        got = json.loads(capsys.readouterr().out)
+        ps = load_parameter_set(out)
+        assert ps.form == "dynamic" and (ps.dynamics.m, ps.dynamics.c) == (m, c)
+        assert ps.input_name == "voltage" and ps.output_name == "displacement"
+        assert ps.bouc_wen.kappa_w == got["kappa_w"] and ps.bouc_wen.rho == got["rho"]
+        assert ps.bouc_wen.y0 == pytest.approx(-got["y0"] / got["kappa"][0], rel=1e-12)
+        track = ["experiment", "tracking", "--graph", "pi_servo", "--device", url, "--axis", "1"]
+        track += ["--trajectory", "triangle", "--frequency", "100", "--amplitude", "5e-6"]
+        track += ["--offset", "5e-6", "--model", str(out), "--learn", "3", "--json"]
+        assert main(track) == 0
+        tracked = json.loads(capsys.readouterr().out)
+    assert tracked["rms_relative"] < 2e-3 and tracked["at_limit_points"] == 0
+    _left_safe(model)
+
+
+@pytest.mark.parametrize(
+    "extra, why",
+    [
+        (["--m", "5e-3"], "--m and --c go together"),
+        (["--m", "0", "--c", "13"], "need --m > 0 and --c >= 0"),
+        (["--m", "5e-3", "--c", "nan"], "need --m > 0 and --c >= 0"),
+        (["--m", "5e-3", "--c", "13", "--model-input", "voltage"], "need the ch. 11 form"),
+        (["--m", "5e-3", "--c", "13", "--no-output"], "give --output"),
+    ],
+)
+def test_m_and_c_that_cannot_shape_a_model_are_one_line_exit_2(tmp_path, capsys, extra, why):
+    """Refused before anything is played: no controller is even reached."""
+    args = ["identify", "--device", "tcp://127.0.0.1:9", "--model-input", "displacement"]
+    if "--no-output" in extra:
+        extra = [e for e in extra if e != "--no-output"]
+    else:
+        args += ["--output", str(tmp_path / "m.yaml")]
+    code = main([*args, *extra, "--no-plot"])
+    err = capsys.readouterr().err
+    assert code == 2 and why in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "m.yaml").exists()
+
+
 @pytest.mark.parametrize("lag", ["nan", "inf", "65", "-100"])
 def test_a_lag_that_is_no_number_of_samples_is_refused(tmp_path, capsys, lag):
     assert main(["identify", str(tmp_path / "bag"), "--lag", lag]) == 2

@@ -43,7 +43,7 @@ from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.refine import RefineOptions
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.simfit import FitOptions
-from piezo_stage.model.parameter_set import DriftKind
+from piezo_stage.model.parameter_set import DriftKind, ParameterSet
 
 
 class UsageError(PiezoStageError, ValueError):
@@ -151,6 +151,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="write the identified parameter set (YAML) here",
     )
     parser.add_argument(
+        "--m",
+        type=float,
+        default=None,
+        help="with --output and the ch. 11 form (input the displacement): write the dynamic "
+        "model (11.1) with this m [V s²/m] (and --c), ready for experiment tracking",
+    )
+    parser.add_argument(
+        "--c", type=float, default=None, help="with --m: the dynamic model's c [V s/m]"
+    )
+    parser.add_argument(
         "--plots",
         metavar="DIR",
         default=None,
@@ -213,6 +223,21 @@ def _fraction(name: str, value: float, lo: float, hi: float, *, open_lo: bool = 
         raise UsageError(f"{name} must be in {bracket}{lo:g}, {hi:g}], got {value!r}")
 
 
+def _dynamics(args: argparse.Namespace) -> None:
+    """--m and --c: both or neither, finite, m > 0, c >= 0, with --output (and, on a device, the
+    ch. 11 form)."""
+    if args.m is None and args.c is None:
+        return
+    if args.m is None or args.c is None:
+        raise UsageError("--m and --c go together (the dynamic model's mass and damping)")
+    if not (math.isfinite(args.m) and args.m > 0 and math.isfinite(args.c) and args.c >= 0):
+        raise UsageError(f"need --m > 0 and --c >= 0, got --m {args.m!r} --c {args.c!r}")
+    if not args.output:
+        raise UsageError("--m/--c shape the model --output writes: give --output")
+    if args.device and args.model_input != "displacement":
+        raise UsageError("--m/--c need the ch. 11 form: add --model-input displacement")
+
+
 def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
     if args.method is None:
         args.method = Method.ANALYTIC.value if args.device else Method.AUTO.value
@@ -237,6 +262,7 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
         raise UsageError(f"--degree must be an integer >= 1, got {args.degree}")
     if args.lag is not None and not abs(args.lag) <= MAX_LAG_SAMPLES:
         raise UsageError(f"--lag must be within ±{MAX_LAG_SAMPLES} samples, got {args.lag}")
+    _dynamics(args)
     if args.steady_periods is not None and args.steady_periods < 1:
         raise UsageError(
             f"--steady-periods must be >= 1 (periods to average), got {args.steady_periods}"
@@ -376,6 +402,16 @@ def _cycle_recording(cycle) -> Recording:
     return Recording(t, np.tile(cycle.input, 3), np.tile(cycle.output, 3), cycle.name)
 
 
+def _parameter_set(result: IdentificationResult, args: argparse.Namespace) -> ParameterSet:
+    """What --output writes: the static form, or with --m/--c the dynamic model (11.1)."""
+    if args.m is None:
+        return result.to_parameter_set(name=args.name)
+    try:
+        return result.to_dynamic_parameter_set(args.m, args.c, name=args.name)
+    except ValueError as exc:
+        raise UsageError(f"--m/--c: {exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from piezo_stage.bag.errors import BagError
     from piezo_stage.model.errors import ModelError
@@ -400,7 +436,7 @@ def run(args: argparse.Namespace) -> int:
         if args.output:
             from piezo_stage.model.parameter_set import save_parameter_set
 
-            save_parameter_set(result.to_parameter_set(name=args.name), args.output)
+            save_parameter_set(_parameter_set(result, args), args.output)
         plots = args.plots or (str(Path(args.output).parent) if args.output else None)
         if plots and not args.no_plot:
             stem = Path(args.output).stem if args.output else "identify"

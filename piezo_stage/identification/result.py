@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from piezo_stage.model.bouc_wen import BoucWenParameters
-from piezo_stage.model.parameter_set import Drift, ParameterSet
+from piezo_stage.model.parameter_set import Drift, Dynamics, ParameterSet
 
 from .cycles import SteadyCycle
 
@@ -110,6 +110,29 @@ class IdentificationResult:
                 "class_i": False,
             }
         return {key: _finite(value) for key, value in out.items()}
+
+    def to_dynamic_parameter_set(
+        self, m: float, c: float, name: str = "identified"
+    ) -> ParameterSet:
+        """The ch. 11 form's result (input the displacement, output the voltage: u = Φ(x) + y0)
+        as the dynamic model (11.1) m ẍ + c ẋ + Φ(x) = u with the given m, c, whose output
+        x + y0 carries the offset as a displacement: y0 = −y0_u / κx.
+        """
+        if self.input_name != "displacement":
+            raise ValueError(
+                "a dynamic model needs the ch. 11 form (input the displacement, output the "
+                f"voltage); this result's input is the {self.input_name}"
+            )
+        p = self.parameters
+        notes = self.to_parameter_set(name).notes + f"; m = {m:.6g}, c = {c:.6g} given"
+        return ParameterSet(
+            name=name,
+            form="dynamic",
+            bouc_wen=replace(p, y0=-p.y0 / p.kappa_x),
+            dynamics=Dynamics(m=float(m), c=float(c)),
+            w0=float(min(1.0, max(-1.0, self.w0))),
+            notes=notes,
+        )
 
     def to_parameter_set(self, name: str = "identified", notes: str = "") -> ParameterSet:
         """The model's ParameterSet (static form, ch. 10) for `save_parameter_set`."""
