@@ -308,12 +308,14 @@ class Branch:
 def smooth_input(cycle: SteadyCycle) -> NDArray[np.float64]:
     """The cycle's input with measurement noise removed branch by branch (cubic
     Savitzky-Golay in time: exact on triangles; untouched when the input is noise-free),
-    checked to be monotone on each branch (a T-wave, 9.1.1).
+    checked to be monotone on each branch (a T-wave, 9.1.1): a noisy one away from its
+    turning points' uncertainty.
     """
     v = cycle.input.copy()
     m, i_max = len(v), cycle.i_max
     span = cycle.input_span
-    if cycle.noise_input > 1e-9 * span:
+    noisy = cycle.noise_input > 1e-9 * span
+    if noisy:
         from scipy.signal import savgol_filter  # lazy: scipy.signal costs seconds to import
 
         for seg in (slice(0, i_max + 1), slice(i_max, m)):
@@ -324,6 +326,12 @@ def smooth_input(cycle: SteadyCycle) -> NDArray[np.float64]:
     tol = 5.0 * cycle.noise_input + 1e-9 * span
     rising = v[: i_max + 1]
     falling = np.concatenate((v[i_max:], v[:1]))
+    # a noisy input's turning points are known to within the extremes' search (1 % of the
+    # period, :func:`extreme_index`): a reversal that close to a branch's end is the split's
+    # (the fit's end bends to a sample of the other side), not the excitation's
+    k = max(1, m // 100) if noisy else 0
+    if min(rising.size, falling.size) > 2 * k + 2:
+        rising, falling = rising[k : rising.size - k], falling[k : falling.size - k]
     dip = float(np.max(np.maximum.accumulate(rising) - rising))
     bump = float(np.max(falling - np.minimum.accumulate(falling)))
     if max(dip, bump) > tol:
