@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import threading
 import warnings
 from typing import Sequence
 
@@ -51,7 +52,32 @@ def _summary(name: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one sub-command; SIGINT/SIGTERM stop it once, safely (:mod:`piezo_stage.stopping`):
+    one line and the shell's 128 + N, no traceback. Called with ``argv`` (in a caller's
+    process) it gives the signals back on return; as the ``piezo-stage`` process (None) it
+    keeps noting them until the interpreter exits, so a late Ctrl-C prints no traceback."""
+    from piezo_stage import stopping
+
+    own_process = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
+    prog = f"piezo-stage {argv[0]}" if argv and argv[0] in COMMANDS else "piezo-stage"
+    main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread:
+        stopping.install(prog)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:  # stopping.Stop, or a Ctrl-C before install()
+        name = stop.name if isinstance(stop, stopping.Stop) else "SIGINT"
+        print(f"{prog}: interrupted ({name})", file=sys.stderr)
+        return stop.exit_code if isinstance(stop, stopping.Stop) else 130
+    finally:
+        if main_thread and own_process:
+            stopping.finish()
+        elif main_thread:
+            stopping.uninstall()
+
+
+def _main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
         lines = [f"  {name:<11} {_summary(name)}" for name in COMMANDS]
         print("usage: piezo-stage COMMAND [options]   (piezo-stage COMMAND --help)\n\ncommands:")

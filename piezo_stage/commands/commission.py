@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import shutil
-import signal
 import sys
 import time
 from pathlib import Path
@@ -125,29 +124,18 @@ def _model_file(params: list[str]) -> tuple[str | None, list[str]]:
     return model, rest
 
 
-def _interruptible() -> None:
-    """The first SIGINT raises KeyboardInterrupt (the graph is stopped on the way out); later
-    ones are ignored, so that the stop itself, which ramps the amplifier down, completes."""
-
-    def on_sigint(signum: int, frame: object) -> None:
-        signal.signal(signal.SIGINT, lambda *_: None)
-        raise KeyboardInterrupt
-
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, on_sigint)
-
-
 def run(args: argparse.Namespace) -> int:
-    _interruptible()
+    from piezo_stage.stopping import Stop
+
     try:
         return _run(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # the first SIGINT/SIGTERM: the graph is stopped on the way
         print(
             "piezo-stage commission: interrupted; the graph is stopped (rerun the same command "
             "to resume after the last step done)",
             file=sys.stderr,
         )
-        return 130
+        return exc.exit_code if isinstance(exc, Stop) else 130
 
 
 def _hz(frequencies: tuple[float, ...]) -> str:

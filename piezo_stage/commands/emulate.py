@@ -40,7 +40,14 @@ import threading
 import time
 from typing import Any, Callable
 
-from piezo_stage.commands.argtypes import int_range, non_negative, port, positive, probability
+from piezo_stage.commands.argtypes import (
+    int_range,
+    non_negative,
+    output,
+    port,
+    positive,
+    probability,
+)
 from piezo_stage.hardware.emulators import (
     EmulatorServer,
     Faults,
@@ -398,6 +405,7 @@ def _log_arg(parser: argparse.ArgumentParser) -> None:
         "--log",
         default=None,
         metavar="FILE",
+        action=output("file"),
         help="write a CSV row (time, axis, volts) per applied voltage: what the amplifier saw",
     )
 
@@ -595,7 +603,22 @@ def run(args: argparse.Namespace) -> int:
             server.stop()
         if log is not None:
             log.close()
+        _say_outputs(servers)
     return 0
+
+
+def _say_outputs(servers: dict[str, EmulatorServer]) -> None:
+    """One line per amplifier: the output each axis was left at (and running wave generators),
+    what a meter on the bench would read after the run."""
+    for name, server in servers.items():
+        model = server.model
+        volts = getattr(model, "voltages", None) or getattr(model, "voltage", None)
+        if not isinstance(volts, dict):
+            continue
+        text = ", ".join(f"{axis} {float(v):.3f} V" for axis, v in volts.items())
+        running = [i + 1 for i, g in enumerate(getattr(model, "generators", ())) if g.mode]
+        wave = f"; wave generators {running} running" if running else ""
+        print(f"{name}: outputs at exit: {text}{wave}", flush=True)
 
 
 def _open_log(args: argparse.Namespace, servers: dict[str, EmulatorServer]) -> VoltageLog | None:

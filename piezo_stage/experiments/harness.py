@@ -223,8 +223,14 @@ def record(
     raw: Raw = {s.topic: [] for s in streams}
     needed = [s.topic for s in streams] if required is None else list(required)
     lines: list[str] = []
+    from rclpy.signals import SignalHandlerOptions
+
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+    rclpy.init(  # signals stay the command's (piezo_stage.stopping): the graph stops on the way out
+        context=ctx,
+        domain_id=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0),
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
     node = rclpy.create_node(node_name, namespace=namespace, context=ctx)
     for stream in streams:
         sink = raw[stream.topic]
@@ -254,7 +260,7 @@ def record(
             dict(graph),
             params=list(params),
             timeout=launch_timeout,
-            sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+            sink=_graph_sink(lines),
         )
         launch.start()  # the subscriptions exist before the graph's first message
         launch.wait_ready()
@@ -280,6 +286,24 @@ def record(
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
     return Recording(namespace, raw, time.monotonic() - started, lines)
+
+
+#: a file every node's output line of every run's graph is appended to (for a bench's or a
+#: test's look at what the devices said; the experiments show the last lines on a failure)
+GRAPH_LOG_ENV = "PIEZO_GRAPH_LOG"
+
+
+def _graph_sink(lines: list[str]) -> Callable[[str, str, bool], None]:
+    """Keep each node's output line in ``lines`` (and in ``$PIEZO_GRAPH_LOG`` when set)."""
+    path = os.environ.get(GRAPH_LOG_ENV)
+
+    def sink(name: str, line: str, err: bool) -> None:
+        lines.append(f"[{name}] {line}")
+        if path:
+            with open(path, "a", encoding="utf-8") as log:
+                log.write(f"[{name}] {line}\n")
+
+    return sink
 
 
 @dataclass(frozen=True)

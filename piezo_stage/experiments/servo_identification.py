@@ -22,6 +22,7 @@ marks the ``excitation`` node publishes, so :func:`write_bag` gives a bag that
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -30,15 +31,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from piezo_stage.hardware.amplifier import GCSAmplifier
+from piezo_stage.hardware.gcs import GCSConnection
 from piezo_stage.hardware.pi_recorder import RecordOption, ServoRecorder
 from piezo_stage.identification.io import intervals_from_marks, recordings_from_series
 from piezo_stage.identification.recording import Recording
 from piezo_stage.model.signals import triangle
+from piezo_stage.stopping import StopStatus, safe_stop
 
 from .errors import ExperimentError, ExperimentInputError
 
 #: host ramp between runs: volts per step and seconds per step (a slew limit of 2.5 kV/s)
 RAMP_STEP_V, RAMP_STEP_S = 5.0, 2e-3
+#: tries of the safe state; a link quiet this long [s] holds no stale reply; drain at most [s]
+SAFE_ATTEMPTS, DRAIN_QUIET_S, DRAIN_MAX_S = 2, 0.05, 2.0
 #: controller time left between runs in the record [s] (the unrecorded ramp)
 RUN_GAP_S = 0.1
 WAVE_TABLE = 1  #: the wave table the excitation goes to
@@ -136,12 +141,16 @@ class ServoRecord:
         )
 
 
-def ramp_to(amplifier: GCSAmplifier, target: float) -> None:
-    """Slew-limited host ramp of the output to ``target`` (``SVA`` steps of RAMP_STEP_V)."""
+def ramp_to(amplifier: GCSAmplifier, target: float, status: StopStatus | None = None) -> None:
+    """Slew-limited host ramp of the output to ``target`` (``SVA`` steps of RAMP_STEP_V);
+    ``status`` says how far there is still to go."""
     now = amplifier.read_voltage()
     steps = int(np.ceil(abs(target - now) / RAMP_STEP_V))
     for v in np.linspace(now, target, steps + 1)[1:]:
+        if status is not None:
+            status.text = f"ramping axis {amplifier.axis}: {abs(now - target):.1f} V left"
         amplifier.write_voltage(float(v))
+        now = float(v)
         time.sleep(RAMP_STEP_S)
 
 
@@ -240,15 +249,34 @@ def _play_runs(
 def safe_state(
     amplifier: GCSAmplifier, recorder: ServoRecorder, generator: int, v_min: float
 ) -> None:
-    """The generator stopped and the output ramped to max(v_min, 0 V); link errors ignored
-    (the caller reports the first error)."""
-    try:
-        recorder.stop([generator])
-    except Exception:
-        pass
-    try:
-        ramp_to(amplifier, max(v_min, 0.0))
-    except Exception:
+    """The generator stopped and the output ramped to max(v_min, 0 V), whatever signals come
+    meanwhile (:func:`~piezo_stage.stopping.safe_stop`). A link left mid-exchange by a stop is
+    drained first; a failed attempt is tried once more, then warned of (the caller reports the
+    first error)."""
+    target = max(v_min, 0.0)
+    with safe_stop(f"bringing axis {amplifier.axis} to {target:g} V") as status:
+        failure: Exception | None = None
+        for _ in range(SAFE_ATTEMPTS):
+            try:
+                _drain(amplifier.conn)
+                recorder.stop([generator])
+                ramp_to(amplifier, target, status)
+                return
+            except Exception as exc:
+                failure = exc
+        warnings.warn(
+            f"axis {amplifier.axis}: could not bring the output to {target:g} V ({failure}); "
+            "check the amplifier",
+            stacklevel=2,
+        )
+
+
+def _drain(conn: GCSConnection) -> None:
+    """Forget what an interrupted exchange left on the link: its reply may still be arriving,
+    so read until the link has been quiet for DRAIN_QUIET_S (at most DRAIN_MAX_S)."""
+    conn.flush()
+    end = time.monotonic() + DRAIN_MAX_S
+    while time.monotonic() < end and conn.transport.read(DRAIN_QUIET_S):
         pass
 
 

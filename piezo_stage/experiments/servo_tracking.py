@@ -38,6 +38,7 @@ from piezo_stage.control.learning import (
 )
 from piezo_stage.hardware.amplifier import GCSAmplifier
 from piezo_stage.hardware.pi_recorder import RecordOption, ServoRecorder
+from piezo_stage.stopping import safe_stop
 
 from .errors import ExperimentError, ExperimentInputError
 from .servo_identification import Progress, ramp_to, safe_state
@@ -218,6 +219,8 @@ def _first_table(
 
 
 def _safe(axes: Sequence[tuple[GCSAmplifier, int]], recorder: ServoRecorder, v_min: float) -> None:
-    """Every generator stopped, every output ramped to max(VMI?, 0 V)."""
-    for amplifier, generator in axes:
-        safe_state(amplifier, recorder, generator, v_min)
+    """Every generator stopped, every output ramped to max(VMI?, 0 V), whatever signals come
+    before the last axis is safe."""
+    with safe_stop():
+        for amplifier, generator in axes:
+            safe_state(amplifier, recorder, generator, v_min)

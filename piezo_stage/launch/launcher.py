@@ -2,11 +2,13 @@
 
 Shutdown, on request (Ctrl-C, SIGTERM, ``stop()``) or when a `required` process exits: SIGINT to
 every process group still alive, then SIGTERM after the graph's ``stop_timeout``, then SIGKILL
-after another one; each further stop request skips to the next step. Exit code: the required
-process's code when one exited; after a requested stop 0, or 1 when a process had to be
-killed; when every process ended by itself, the first non-zero code (or 0). In a graph
-without a `required` process, every one is needed: the first to exit non-zero while others run
-ends the launch with its code (a player refusing its bag must not leave the others waiting).
+after another one. A further stop request does not hurry it (a driver may be ramping its
+amplifier to the safe voltage): it is noted, and the launcher says what it still waits for.
+Exit code: the required process's code when one exited; after a requested stop 0, or 1 when a
+process had to be killed; when every process ended by itself, the first non-zero code (or 0).
+In a graph without a `required` process, every one is needed: the first to exit non-zero while
+others run ends the launch with its code (a player refusing its bag must not leave the others
+waiting).
 """
 
 from __future__ import annotations
@@ -195,7 +197,7 @@ class Launcher:
         return elapsed
 
     def request_stop(self) -> None:
-        """Ask for a stop (async-signal safe); a further request escalates to the next signal."""
+        """Ask for a stop (async-signal safe); a further one only asks what is still running."""
         self._stop_requests += 1
 
     def stop(self) -> int:
@@ -299,11 +301,21 @@ class Launcher:
             requests = self._stop_requests
             deadline = time.monotonic() + self.stop_timeout
             while time.monotonic() < deadline and any(p.group_alive() for p in alive):
-                if self._stop_requests > requests and sig != signal.SIGKILL:
-                    break  # asked again: escalate now
+                if self._stop_requests > requests:  # asked again: say why it takes this long
+                    requests = self._stop_requests
+                    self._log(self._still_stopping(alive, sig, deadline))
                 time.sleep(POLL_S)
                 self._reap()
         self._reap()
+
+    @staticmethod
+    def _still_stopping(alive: list[ManagedProcess], sig: signal.Signals, deadline: float) -> str:
+        waiting = ", ".join(p.name for p in alive if p.group_alive())
+        later = _STOP_SIGNALS[_STOP_SIGNALS.index(sig) + 1 :]
+        then = (
+            f" ({later[0].name} in {max(deadline - time.monotonic(), 0.0):.0f} s)" if later else ""
+        )
+        return f"stop noted: still waiting for {waiting} to reach its safe state{then}"
 
     def _exit_code(self) -> int:
         if self._failed is not None:
