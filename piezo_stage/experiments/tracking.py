@@ -68,7 +68,7 @@ from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import ParameterSet, load_parameter_set, save_parameter_set
 from piezo_stage.nodes.controller_params import PARAMETERS as CONTROLLER
 
-from .errors import ExperimentError, ExperimentInputError
+from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
 from .harness import (
     ControllerStates,
@@ -84,6 +84,7 @@ from .harness import (
 from .plan import Plan
 from .presets import experiment_controller, lockstep_plant
 from .runner import STATE_TYPE, run_plan
+from .verdict import first, loop_opened, record_gap
 
 Progress = Callable[[float, str], None]
 DEFAULT_PLANT = "ch11_rig.yaml"
@@ -673,12 +674,11 @@ def run_tracking(
         recording.write_bag(plan.common.bag, {"controller_state": STATE_TYPE})
         out["bag"] = str(plan.common.bag)
     if png_dir is not None:
-        out["png"] = [str(plot_tracking(states, Path(png_dir), spec, fb_states, plan.t_from))]
-        if spec.learn:
-            period = plan.trajectory.period
-            out["png"].append(
-                str(plot_learning(states, Path(png_dir), spec, period, out["learning"]))
-            )
+        try:
+            out["png"] = _plots(plan, states, fb_states, Path(png_dir), out.get("learning"))
+        except OSError as exc:
+            kept = {"record": plan.common.bag, "table": out.get("table")}
+            raise figures_not_written(png_dir, exc, kept) from None
     if progress is not None:
         progress(
             1.0,
@@ -686,6 +686,21 @@ def run_tracking(
             f"({100 * out['rms_relative']:.3g} % of the range)",
         )
     return out
+
+
+def _plots(
+    plan: TrackingPlan,
+    states: ControllerStates,
+    fb_states: ControllerStates | None,
+    folder: Path,
+    learning: Any,
+) -> list[str]:
+    """The run's figures (and its learning's, with ``learn``), written to ``folder``."""
+    spec = plan.spec
+    written = [str(plot_tracking(states, folder, spec, fb_states, plan.t_from))]
+    if spec.learn:
+        written.append(str(plot_learning(states, folder, spec, plan.trajectory.period, learning)))
+    return written
 
 
 def _runs_to_make(plan: TrackingPlan, compare: bool) -> list[tuple[str, TrackingPlan]]:
@@ -740,10 +755,15 @@ def _record_runs(
     return runs
 
 
+#: [s] a silence in the controller's states that no figure bridges (its loop opens at 20 ms)
+RECORD_GAP_S = 0.2
+
+
 def _summary(plan: TrackingPlan, states: ControllerStates, recording: Recording) -> dict[str, Any]:
     """The JSON-ready figures of the run of ``plan`` (its settings, errors, learning, timing)."""
     spec, period = plan.spec, plan.trajectory.period
-    return {
+    failed = first(loop_opened(states.t, states.loop_closed), record_gap(states.t, RECORD_GAP_S))
+    return ({"failed": failed} if failed else {}) | {
         "experiment": "tracking",
         "graph": spec.graph,
         "trajectory": spec.trajectory,
