@@ -133,6 +133,8 @@ def test_ros_value_reads_back_as_the_same_value():
     assert ros_value("5e6") == "'5e6'" and ros_value(5e6) == "5000000.0"
     # a choice given as its enum member (the demo loops over Law) is written as its value
     assert ros_value(Law.PID_TV) == "pid_tv" and ros_value([Law.PID, "x"]) == "[pid, x]"
+    # rcl reads a plain y or n as a boolean (PyYAML, YAML 1.1, does not): an axis named y
+    assert ros_value(["x", "y"]) == "[x, 'y']" and ros_value("n") == "'n'"
 
 
 def test_environment_of_a_process():

@@ -129,3 +129,37 @@ def test_started_after_the_scan_it_says_it_missed_the_start(node, tmp_path):
     finally:
         _, err = stop(proc)
     assert "Traceback" not in err, err
+
+
+def test_with_nothing_to_hear_it_says_what_it_waits_for_in_one_line(node, tmp_path):
+    """No scan anywhere: its diagnostics and, after NOTHING_AFTER s, one log line name the two
+    topics it listens on and its ROS domain (a view in the wrong namespace or domain says so)."""
+    import os
+
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from piezo_stage.nodes.scan_view import NOTHING_AFTER
+
+    scan_file = ScanAxis(SCAN, 0).save(tmp_path / "scan_x.json")
+    space = f"{NS}/nothing"
+    proc = start_node("scan_view", f"scan_file:={scan_file}", namespace=space)
+    said = []
+    node.create_subscription(
+        DiagnosticArray,
+        "/diagnostics",
+        lambda m: said.extend(s.message for s in m.status if s.name == f"{space}/scan_view"),
+        10,
+    )
+    domain = os.environ.get("ROS_DOMAIN_ID", "0")
+    waits = (
+        f"waiting for {space}/x/loop_samples and {space}/y/loop_samples on ROS domain {domain}: "
+        "nothing received"
+    )
+    try:
+        assert spin_until(node, lambda: any(waits in m for m in said), 20.0), said
+        spin_until(node, lambda: False, NOTHING_AFTER + 1.5)  # its log line is due
+    finally:
+        _, err = stop(proc)
+    assert "Traceback" not in err, err
+    assert [line for line in err.splitlines() if waits in line], err
+    assert len([line for line in err.splitlines() if "waiting for" in line]) == 1, err

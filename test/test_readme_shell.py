@@ -368,6 +368,10 @@ EXCLUDED: dict[str, str] = {
         "replays tables"
     ),
     "python bench/raster.py": "a benchmark: its figures are measured on a quiet machine",
+    "piezo-stage experiment raster --lines 16 --pixels 64 --view": (
+        "the view on port 8765: test/test_raster_view.py runs a small raster with its view on "
+        "a free port and checks the image a Foxglove client receives against the run's bag"
+    ),
     "piezo-stage experiment raster --graph emulated_scanner --lines 8 --pixels 128 "
     "--line-rate 2 --learn 20 --bag scan_bag --json": (
         "the emulated scanner's processes in real time: test/test_experiment_raster_emulated.py "

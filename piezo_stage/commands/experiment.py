@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.commands.argtypes import int_range
 from piezo_stage.commands.quick import QUICK_PERIODS, quick_run, say_quick
 from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
@@ -183,6 +184,19 @@ def _raster_arguments(group: argparse._ArgumentGroup) -> None:
         dest="coupling_compensation",
         action="store_false",
         help="the feedforward ignores the stage file's coupling",
+    )
+    group.add_argument(
+        "--view",
+        action="store_true",
+        help="watch the scan: its image as it fills in the Foxglove app (scan_view and live_view "
+        "on ws://127.0.0.1:8765, the run's namespace /raster and its ROS domain)",
+    )
+    group.add_argument(
+        "--view-port",
+        metavar="PORT",
+        type=int_range(0, 65535),
+        default=None,
+        help="the view's port (default 8765; 0: a free one; implies --view)",
     )
 
 
@@ -367,6 +381,7 @@ def _run_raster(args: argparse.Namespace, progress) -> dict:
         sample=sample,
         png=user_output_path(args.png) if args.png else None,
         bag=user_output_path(args.bag) if args.bag else None,
+        view_port=(8765 if args.view else None) if args.view_port is None else args.view_port,
     )
     return run_raster(spec, progress)
 

@@ -277,13 +277,16 @@ def raster_run(
     gains: Gains = THESIS_GAINS,
     u_limits: tuple[float, float] = SCANNER_VOLTS,
     progress: Progress | None = None,
+    watch: Callable[[RasterRun], None] | None = None,
 ) -> RasterRun:
     """``frames`` frames (more if the learning lasts: the last is a whole frame after it) of
     ``scan`` on the simulated ``plant_stage`` (fast, slow = ``axes``;
     any other axis holds its rest position), controlled with ``model_stage`` (the identified
     one) under ``compensation``, the plant at rest at the scan's start. ``learn_lines`` N:
     both tables learn over the first N line periods (the slow one from those that are image
-    lines), then stay; ``tables``: learned ones replayed.
+    lines), then stay; ``tables``: learned ones replayed. ``watch`` is given each stretch of
+    the run as it is computed (a line while learning, then frames) as a :class:`RasterRun` of
+    the scan's axes (``learning`` empty, ``tables`` None).
     """
     compensation = Compensation(compensation)
     fast, slow = _scan_axes(model_stage, axes)
@@ -323,6 +326,7 @@ def raster_run(
         reference,
         rate_hz,
         progress or (lambda fraction, text: None),
+        None if watch is None else lambda part: watch(_scan_part(scan, part, (fast, slow))),
     )
     history: list[tuple[float, float]] = []
     if learn_lines > 0:
@@ -351,6 +355,14 @@ def raster_run(
         stack("u"),
         history,
         tables,
+    )
+
+
+def _scan_part(scan: RasterScan, run: StageRun, axes: tuple[int, int]) -> RasterRun:
+    """The scan's axes of a stretch of a run."""
+    pick = list(axes)
+    return RasterRun(
+        scan, run.t, run.reference[:, pick].T, run.measured[:, pick].T, run.u[:, pick].T
     )
 
 
@@ -385,6 +397,7 @@ class _Loop:
     reference: StageReference
     rate_hz: float
     say: Progress
+    watch: Callable[[StageRun], None] | None = None
     chunks: list[StageRun] = field(default_factory=list)
 
     @property
@@ -403,6 +416,8 @@ class _Loop:
             self.n / self.rate_hz,
         )
         self.chunks.append(run)
+        if self.watch is not None:
+            self.watch(run)
         return run
 
     def learn(

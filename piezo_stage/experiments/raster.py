@@ -22,11 +22,10 @@ from __future__ import annotations
 import math
 import tempfile
 import time
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
-
-import numpy as np
 
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation
@@ -47,6 +46,7 @@ from piezo_stage.model.stage_file import Stage, load_stage
 from .errors import ExperimentError, ExperimentInputError
 from .experiment_plan import ExperimentPlan
 from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, EMULATED_RATE, GraphRun, run_on_graph
+from .raster_view import RasterView, loop_batches
 
 __all__ = ["GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
 
@@ -81,6 +81,7 @@ class RasterSpec:
     png: Path | None = None
     bag: Path | None = None  #: the run's samples, each axis's loop_samples, to this MCAP bag
     min_samples_per_line: int = 20
+    view_port: int | None = None  #: watch the run live: its view on this port (0: a free one)
 
     def scan(self) -> RasterScan:
         """The scan, or :class:`ExperimentInputError` with why not."""
@@ -217,8 +218,10 @@ def _one_run(
     tables: RasterTables | None,
     say: Progress,
     bag: Path | None = None,
+    view: RasterView | None = None,
 ) -> RasterRun:
-    """One run of the plan's scan under ``compensation`` (``tables``: None, the model's)."""
+    """One run of the plan's scan under ``compensation`` (``tables``: None, the model's),
+    watched by ``view`` (its namespace, and a simulated run's samples fed to it)."""
     graph, rate = plan.common.graph, plan.common.rate_hz
     if graph not in DEVICE_GRAPHS:
         return raster_run(
@@ -232,6 +235,7 @@ def _one_run(
             learn_lines=learn,
             tables=tables,
             progress=say,
+            watch=None if view is None else view.feed,
         )
     feedforward = compensation is not Compensation.FEEDBACK
     if feedforward and tables is None:
@@ -251,7 +255,15 @@ def _one_run(
         plan.amplifier,
     )
     with tempfile.TemporaryDirectory(prefix="piezo_raster_") as folder:
-        return run_on_graph(run, Path(folder), say, bag=bag)
+        namespace = None if view is None else view.namespace
+        return run_on_graph(run, Path(folder), say, bag=bag, namespace=namespace)
+
+
+def _watching(spec: RasterSpec, plan: RasterPlan) -> AbstractContextManager[RasterView | None]:
+    """The run's live view (``spec.view_port``), or none."""
+    if spec.view_port is None:
+        return nullcontext()
+    return RasterView(plan.scan, plan.axes, spec.sample, spec.view_port)
 
 
 def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, Any]:
@@ -266,9 +278,9 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     started = time.monotonic()
     coupling = plan.coupling_compensation
     try:
-        run = _one_run(
-            plan, common.compensation, coupling, common.learn, plan.tables, say, common.bag
-        )
+        with _watching(spec, plan) as view:  # the run watched live (--view)
+            ff, learn = common.compensation, common.learn
+            run = _one_run(plan, ff, coupling, learn, plan.tables, say, common.bag, view)
         if common.bag is not None and common.graph not in DEVICE_GRAPHS:
             write_bag(run, common.bag, axes)
         others: list[tuple[str, RasterRun]] = []
@@ -310,36 +322,19 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     return summary
 
 
-#: samples per LoopSamples message of a simulated run's bag (10 ms at 10 kHz)
-BAG_BATCH = 100
-
-
 def write_bag(run: RasterRun, path: Path, axes: tuple[str, str]) -> None:
     """A simulated run as a device graph's is recorded: per axis ``/raster/<axis>/loop_samples``
     (piezo_stage_msgs/LoopSamples, stamps the run's time from 0)."""
     from rclpy.serialization import serialize_message
 
     from piezo_stage.bag.writer import BagWriter
-    from piezo_stage_msgs.msg import LoopSamples
 
-    stamps = np.round(run.t * 1e9).astype(np.int64)
     with BagWriter(path) as bag:
         for index, axis in enumerate(axes):
             topic = f"{BAG_NAMESPACE}/{axis}/loop_samples"
             bag.add_topic(topic, "piezo_stage_msgs/msg/LoopSamples")
-            for start in range(0, stamps.size, BAG_BATCH):
-                part = slice(start, start + BAG_BATCH)
-                msg = LoopSamples()
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamps[start]), 10**9)
-                msg.header.frame_id = axis
-                msg.stamp = stamps[part].tolist()
-                msg.displacement = run.measured[index, part].tolist()
-                msg.status = [0] * len(msg.stamp)
-                msg.reference = run.desired[index, part].tolist()
-                msg.u = msg.applied = run.u[index, part].tolist()
-                msg.u_ff = [math.nan] * len(msg.stamp)
-                msg.loop_closed = [True] * len(msg.stamp)
-                bag.write(topic, serialize_message(msg), int(stamps[start]))
+            for msg in loop_batches(run, index, axis):
+                bag.write(topic, serialize_message(msg), int(msg.stamp[0]))
 
 
 def _plots(

@@ -191,16 +191,18 @@ def run_on_graph(
     *,
     wall_timeout: float = 600.0,
     bag: Path | None = None,
+    namespace: str | None = None,
 ) -> RasterRun:
     """Launch the graph, record every sample of the two scan axes over the run's frames, and
     decode them; the learned fast table (if it learned) replaces the one given. ``bag``: the
-    record (each axis's ``loop_samples`` and ``controller_state``) written there."""
+    record (each axis's ``loop_samples`` and ``controller_state``) written there. The graph
+    runs in ``namespace`` (default: one of the process's own)."""
     from piezo_stage.bag.reader import loop_columns
     from piezo_stage_msgs.msg import ControllerState, LoopSamples
 
     from .harness import HarnessError, Raw, Stream, record
 
-    namespace = f"/raster_{os.getpid()}_{folder.name.replace('-', '_')}"
+    namespace = namespace or f"/raster_{os.getpid()}_{folder.name.replace('-', '_')}"
     graph = device_graph(run, folder, namespace)
     scan, learn, tables, graph_name = run.scan, run.learn, run.tables, run.graph
     axes = run.model.names[:2]

@@ -26,11 +26,22 @@ BOOTSTRAP = "piezo_stage.launch.child"
 _VAR = re.compile(r"\$\{(\w+)\}|\$(\w+)")
 
 
+#: strings rcl's parser reads as booleans that YAML 1.1 (PyYAML) writes plain
+_RCL_BOOLEANS = frozenset({"y", "Y", "n", "N"})
+
+
 def ros_value(value: Any) -> str:
-    """A parameter value as rcl reads it after ``-p name:=`` (YAML; strings quoted when needed)."""
+    """A parameter value as rcl reads it after ``-p name:=`` (YAML; strings quoted when needed:
+    an axis named ``y`` is a string, not rcl's boolean)."""
     if isinstance(value, list) and any(isinstance(v, float) for v in value):
         value = [float(v) for v in value]  # rcl wants one element type per array
-    return dump_yaml_value(value)
+    if isinstance(value, list) and any(_rcl_boolean(v) for v in value):
+        return f"[{', '.join(ros_value(v) for v in value)}]"
+    return f"'{value}'" if _rcl_boolean(value) else dump_yaml_value(value)
+
+
+def _rcl_boolean(value: Any) -> bool:
+    return isinstance(value, str) and value in _RCL_BOOLEANS
 
 
 def param_args(params: Mapping[str, Any]) -> list[str]:

@@ -12,8 +12,10 @@ Publishes at ``publish_rate_hz``: ``scan_image`` (sensor_msgs/Image, mono8: the 
 height range from black to white, a pixel no sample reached mid-grey), ``scan_line_rms``
 (geometry_msgs/PointStamped: x, y the RMS error [m] of the fast and slow axis over the last
 line scanned, z its index) and ``scan_position`` (geometry_msgs/PointStamped: the measured x,
-y of the newest fast-axis sample). /diagnostics: waiting for the scan's start, or the frame
-and line it is on.
+y of the newest fast-axis sample). /diagnostics: what it waits for (each axis's
+``loop_samples``, the scan's start), or the line it is on; with nothing received
+``NOTHING_AFTER`` s after its start it says so once in its log, with the topics and the ROS
+domain it listens on (``piezo-stage experiment raster --view`` runs it beside a scan).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ from .spec import Kind, Param, ParameterTable
 UNFILLED = 128
 #: [ns] the slow axis's samples kept to place the fast axis's with
 SLOW_KEEP_NS = 2_000_000_000
+#: [s] with nothing received this long after its start, the node says what it waits for
+NOTHING_AFTER = 5.0
 
 PARAMETERS = ParameterTable(
     "scan_view",
@@ -107,20 +111,23 @@ class ScanViewNode(PiezoNode):
         empty: tuple[np.ndarray, np.ndarray] = (np.empty(0, np.int64), np.empty(0))
         self._slow = self._fast = empty  # samples not yet placed (fast), kept to place (slow)
         self.t0: int | None = None
-        self.why = "waiting for the scan's start"
-        for index, axis in enumerate(axes):
+        self._axes, self._received, self._missed = axes, [0, 0], ""
+        self._topics = [self.resolve_topic_name(f"{axis}/loop_samples") for axis in axes]
+        for index, topic in enumerate(self._topics):
             take = functools.partial(self._on_batch, index)
-            self.create_subscription(LoopSamples, f"{axis}/loop_samples", take, BATCH_QOS)
+            self.create_subscription(LoopSamples, topic, take, BATCH_QOS)
         self._pub_image = self.create_publisher(Image, "scan_image", SENSOR_QOS)
         self._pub_lines = self.create_publisher(PointStamped, "scan_line_rms", SENSOR_QOS)
         self._pub_position = self.create_publisher(PointStamped, "scan_position", SENSOR_QOS)
         self._position = (math.nan, math.nan, 0)
         self.frame_id = s.frame_id
         self.create_timer(1.0 / s.publish_rate_hz, self._publish)
+        self._nothing = self.create_timer(NOTHING_AFTER, self._say_nothing)
         Diagnostics(self, "scan_view", self._diagnose)
 
     # ------------------------------------------------------------------ samples
     def _on_batch(self, index: int, msg: LoopSamples) -> None:
+        self._received[index] += 1
         if self.t0 is None:
             self._pending[index].append(msg)
             self._find_origin()
@@ -136,7 +143,7 @@ class ScanViewNode(PiezoNode):
         try:
             self.t0 = scan_origin(self.scan, columns)
         except ScanError as exc:
-            self.why = f"{exc} (start the view before the scan)"
+            self._missed = f"{exc} (start the view before the scan)"
             self._pending = [[], []]
             return
         self._pending = [[], []]
@@ -204,10 +211,29 @@ class ScanViewNode(PiezoNode):
         msg.point.x, msg.point.y, msg.point.z = x, y, float(z)
         return msg
 
+    def waiting_for(self) -> str:
+        """What the view waits for ('' once the scan's origin is found)."""
+        if self.t0 is not None:
+            return ""
+        missing = [t for t, n in zip(self._topics, self._received) if not n]
+        if missing:
+            domain = self.context.get_domain_id()
+            return (
+                f"waiting for {' and '.join(missing)} on ROS domain {domain}: nothing received "
+                "(the scan's loop publishes them; start this view before the scan)"
+            )
+        return self._missed or "waiting for the scan's start: samples arrive, none stepped yet"
+
+    def _say_nothing(self) -> None:
+        self._nothing.cancel()
+        if not any(self._received):
+            self.get_logger().warning(self.waiting_for())
+
     def _diagnose(self) -> Diagnosis:
-        values = {"samples": self.live.samples, "last_line": self.live.last_line}
+        values: dict[str, Any] = {"samples": self.live.samples, "last_line": self.live.last_line}
+        values |= {f"{a}_batches": n for a, n in zip(self._axes, self._received)}
         if self.t0 is None:
-            return Diagnosis(WARN, self.why, values)
+            return Diagnosis(WARN, self.waiting_for(), values)
         return Diagnosis(OK, f"line {self.live.last_line} of {self.scan.lines}", values)
 
 
