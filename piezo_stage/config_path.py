@@ -99,6 +99,62 @@ def user_output_path(name: str | os.PathLike[str]) -> Path:
     return Path(os.path.expanduser(os.fspath(name))).absolute()
 
 
+#: what an output path names: a file to write, a folder to write files into, or a bag folder
+OUTPUT_KINDS = ("file", "folder", "bag")
+
+
+def output_problem(name: str | os.PathLike[str], kind: str = "file") -> str:
+    """Why the output ``name`` (a path a user typed) cannot be written as ``kind`` ('' when it
+    can), checked before anything runs so that nothing measured is lost to it afterwards.
+
+    ``file``: not a folder, in an existing folder where a file can be created (or itself
+    writable). ``folder``: a folder, or creatable (its nearest existing ancestor a folder where
+    one can be). ``bag``: as ``folder``, and what :class:`piezo_stage.bag.writer.BagWriter`
+    refuses, refused: a path that exists and is not an empty folder. Writability is tried (a
+    nameless temporary file), not read from the mode bits, which do not bind root."""
+    if kind not in OUTPUT_KINDS:
+        raise ValueError(f"kind must be one of {', '.join(OUTPUT_KINDS)}, got {kind!r}")
+    path = user_output_path(name)
+    if kind == "file":
+        return _file_problem(path)
+    if path.exists() and not path.is_dir():
+        return "already exists and is not a folder" if kind == "bag" else "is a file, not a folder"
+    if kind == "bag" and path.is_dir() and any(path.iterdir()):
+        return "folder already exists and is not empty"
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    return _folder_problem(existing)
+
+
+def _file_problem(path: Path) -> str:
+    if path.is_dir():
+        return "is a folder"
+    if not path.parent.exists():
+        return f"no folder {path.parent}"
+    if not path.parent.is_dir():
+        return f"{path.parent} is not a folder"
+    if path.exists():
+        try:
+            with open(path, "ab"):  # opened for appending, nothing written: left as it was
+                pass
+        except OSError as exc:
+            return f"not writable ({exc.strerror or exc})"
+        return ""
+    return _folder_problem(path.parent)
+
+
+def _folder_problem(folder: Path) -> str:
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return f"cannot write in folder {folder} ({exc.strerror or exc})"
+    return ""
+
+
 def read_yaml(path: str | Path, error: type[Exception], what: str = "file") -> Any:
     """Parse the YAML file ``path`` (safe loader). An unreadable file or invalid YAML raises
     ``error`` with a message naming ``what`` and the path: ``cannot read <what> <path>: ...`` or

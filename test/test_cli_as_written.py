@@ -105,9 +105,10 @@ def test_tracking_resolves_every_user_path_at_the_door(in_folder_with_model):
 def test_identify_model_refuses_an_unwritable_output_before_identifying(
     in_folder_with_model, out, capsys
 ):
-    code = main(["experiment", "tracking", "--identify-model", out])
+    with pytest.raises(SystemExit, match="^2$"):  # refused as the command line is parsed
+        main(["experiment", "tracking", "--identify-model", out])
     line = one_error_line(capsys.readouterr().err)  # no progress line: nothing was recorded
-    assert code == 2 and "--identify-model" in line
+    assert "--identify-model" in line
 
 
 @pytest.mark.unit
@@ -216,7 +217,8 @@ def test_the_emulated_rig_graph_takes_a_free_port_of_its_own():
 def test_record_onto_an_existing_folder_is_bad_input(tmp_path, capsys):
     (tmp_path / "my_run").mkdir()
     (tmp_path / "my_run" / "x").write_text("x")
-    assert main(["record", "-o", str(tmp_path / "my_run")]) == 2
+    with pytest.raises(SystemExit, match="^2$"):  # refused as the command line is parsed
+        main(["record", "-o", str(tmp_path / "my_run")])
     assert "already exists" in one_error_line(capsys.readouterr().err)
 
 

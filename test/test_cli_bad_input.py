@@ -136,7 +136,7 @@ TABLE: list[tuple[list[str], int, str]] = [
     (["commission", "{out}", "--graph", "nope"], 2, "--graph"),
     (["view", "--port", "70000"], 2, "--port"),
     (["view", "--max-rate", "-1"], 2, "--max-rate"),
-    (["view", "--write-layout", "{missing}/layout.json"], 2, "cannot write"),
+    (["view", "--write-layout", "{missing}/layout.json"], 2, "--write-layout {missing}/layout"),
     (["nonsense"], 2, "unknown command"),
 ]
 

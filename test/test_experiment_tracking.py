@@ -214,17 +214,20 @@ def test_the_options_that_set_controller_parameters_come_from_its_table(capsys):
     import dataclasses
 
     from piezo_stage.cli import main
-    from piezo_stage.commands.experiment import add_arguments
+    from piezo_stage.commands.experiment import _at_the_door, add_arguments
     from piezo_stage.experiments.tracking import CONTROLLER, CONTROLLER_OPTIONS
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    actions = {a.dest: a for a in parser._actions}
+    (experiments,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    actions = {a.dest: a for a in experiments.choices["tracking"]._actions}
+    unset = parser.parse_args(["tracking"])  # None: a graph's refusal sees what was given
+    assert _at_the_door(unset) == ""  # the options left unset then take their defaults
     defaults = {f.name: f.default for f in dataclasses.fields(TrackingSpec)}
     for name, option in CONTROLLER_OPTIONS.items():
         if name == "mode":
             continue
-        assert actions[name].default == defaults[name], name
+        assert actions[name].default is None and getattr(unset, name) == defaults[name], name
         choices = CONTROLLER[option.param].choice_values
         assert tuple(actions[name].choices or ()) == choices, name
     assert defaults["amplitude"] == CONTROLLER["trajectory_amplitude"].default

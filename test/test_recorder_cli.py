@@ -86,5 +86,6 @@ def test_record_refuses_an_existing_bag(tmp_path, capsys):
 
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    assert main(["record", "-o", str(tmp_path / "full")]) == 2  # bad input
+    with pytest.raises(SystemExit, match="^2$"):  # bad input, refused as it is parsed
+        main(["record", "-o", str(tmp_path / "full")])
     assert "already exists" in capsys.readouterr().err

@@ -1,5 +1,9 @@
 """argparse ``type=`` converters for numeric options: a bad value is one line, exit 2.
 
+:func:`output` and :func:`not_for` are ``action=``s refusing the same way as the command line
+is parsed, before anything runs: an output path that cannot be written, an option that does
+not apply.
+
 ``physical`` bounds magnitudes to [1e-150, 1e150] (or 0) so that products and quotients of two
 values stay finite and normal in double precision (1e308 overflowed (11.6)-(11.7), 1e-320 is
 subnormal and divided by zero).
@@ -9,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import Callable
+from typing import Any, Callable
 
 #: Largest and smallest non-zero magnitude accepted by ``physical``.
 MAX_MAGNITUDE, MIN_MAGNITUDE = 1e150, 1e-150
@@ -77,6 +81,55 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
 
 #: TCP port: 0 (any free one) to 65535.
 port = int_range(0, 65535)
+
+
+class _Refusing(argparse.Action):
+    """An option refused, when :meth:`why` says why, as argparse refuses: ``OPTION WHY``, one
+    line, exit 2, while the command line is parsed."""
+
+    def why(self, values: Any) -> str:
+        return ""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        why = self.why(values)
+        if why:
+            parser.error(f"{option_string or self.metavar or self.dest} {why}")
+        setattr(namespace, self.dest, values)
+
+
+def output(kind: str = "file") -> type[argparse.Action]:
+    """The argparse ``action=`` of an output path (``kind`` file, folder or bag, as
+    :func:`piezo_stage.config_path.output_problem` checks them): a path that cannot be written
+    is refused while the command line is parsed, before anything runs, in one line naming the
+    option (``--bag b: folder already exists and is not empty``), exit 2."""
+    from piezo_stage.config_path import OUTPUT_KINDS, output_problem
+
+    if kind not in OUTPUT_KINDS:
+        raise ValueError(f"kind must be one of {', '.join(OUTPUT_KINDS)}, got {kind!r}")
+
+    class Output(_Refusing):
+        def why(self, values: Any) -> str:
+            problem = output_problem(values, kind)
+            return f"{values}: {problem}" if problem else ""
+
+    return Output
+
+
+def not_for(what: str) -> type[argparse.Action]:
+    """The argparse ``action=`` of an option that ``what`` (e.g. ``experiment raster``) does
+    not take: refused in one line, ``--axis does not apply to experiment raster``, exit 2."""
+
+    class NotHere(_Refusing):
+        def why(self, values: Any) -> str:
+            return f"does not apply to {what}"
+
+    return NotHere
 
 
 def data_error_exit_code(exc: Exception) -> int:

@@ -15,6 +15,8 @@ import json
 import sys
 import warnings
 
+from piezo_stage.commands.argtypes import output
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="{info,export,reindex}")
@@ -23,7 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     info.add_argument("--json", action="store_true", help="print the info as JSON")
     export = verbs.add_parser("export", help="export topics to CSV")
     export.add_argument("bag", help="rosbag2 folder, .mcap or .mcap.zstd file")
-    export.add_argument("--csv", required=True, metavar="DIR", help="output folder")
+    export.add_argument(
+        "--csv", required=True, metavar="DIR", action=output("folder"), help="output folder"
+    )
     export.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
     for sub in (info, export):
         sub.add_argument(

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from piezo_stage.commands.argtypes import output
 from piezo_stage.commands.quick import quick_run, say_quick
 
 
@@ -41,7 +42,11 @@ def _floats(text: str) -> tuple[float, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "out_dir", type=Path, metavar="DIR", help="output folder (resumed when it exists)"
+        "out_dir",
+        type=Path,
+        metavar="DIR",
+        action=output("folder"),
+        help="output folder (resumed when it exists)",
     )
     parser.add_argument(
         "--graph",

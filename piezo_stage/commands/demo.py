@@ -394,13 +394,14 @@ STAGES: list[Stage] = [
 
 # ------------------------------------------------------------------ the command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from piezo_stage.commands.argtypes import positive
+    from piezo_stage.commands.argtypes import output, positive
 
     parser.add_argument(
         "--out",
         "-o",
         metavar="DIR",
         default="demo_output",
+        action=output("folder"),
         help="folder for the bags and PNGs (default: ./demo_output); must not "
         "hold a previous demo's bags",
     )

@@ -1,4 +1,10 @@
-"""Run device emulators (PI GCS, Thorlabs MDT69x, optoNCDT sensor, or a whole rig) on ptys/TCP.
+"""Run device emulators on ptys/TCP: gcs, e727, e709 (PI), mdt69x, optoncdt, rig, scanner.
+
+gcs: a PI E-709-class (one axis) or E-727-class (--axes) GCS controller; e727 / e709: a PI
+controller on a simulated stage with its servo clock, wave generator and data recorder;
+mdt69x: a Thorlabs MDT694B/MDT693B amplifier; optoncdt: a Micro-Epsilon optoNCDT sensor; rig:
+an amplifier and a sensor bound to one simulated stage; scanner: a multi-axis amplifier and a
+sensor per axis bound to a stage file's coupled stage.
 
 Each endpoint is printed as one line, e.g. ``gcs: /dev/pts/7`` or ``gcs: tcp://127.0.0.1:50000``,
 so a launcher or a user can connect the voltage_driver / laser_reader nodes to it; ``--link`` /

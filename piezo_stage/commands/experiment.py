@@ -1,67 +1,206 @@
-"""Run a ch. 11 experiment (regulation | perturbation) or tracking through a ROS graph.
+"""Run an experiment: regulation | perturbation (ch. 11) | tracking | coupling | raster.
 
-The experiment runs on the simulated rig (tracking also on the emulated rig, --graph).
+  regulation, perturbation  §11.4 / §11.5 on the simulated ch. 11 rig, in lockstep
+  tracking                  follow a trajectory, and learn to: the simulated rig in lockstep,
+                            the emulated rig in real time, or a PI controller's wave generator
+  coupling                  every axis of a stage and their coupling, on a scanner graph
+  raster                    a raster scan's image of a sample, its errors and its distortion
 
-The plant node (ch. 11 rig, dynamic form) and the controller node run in lockstep at the lowest
-loop rate at which the sampled loop is stable (the control core's check, delay 0); prints a
-summary (or JSON), optionally records an MCAP bag and writes PNG figures. Exit status: 0 done,
-1 the run failed, 2 bad input.
+`piezo-stage experiment NAME --help` lists that experiment's options with their defaults and
+units; an option that another experiment (or another graph) takes is refused, as is an output
+path that cannot be written, before anything runs. Each prints a summary (or JSON with --json);
+what it measured (--bag, --output, --table-out) is written before its figures (--png).
+Exit status: 0 done, 1 the run failed, 2 bad input.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-from piezo_stage.commands.argtypes import int_range
+from piezo_stage.commands.argtypes import int_range, not_for, output, positive
 from piezo_stage.commands.quick import QUICK_PERIODS, quick_run, say_quick
 from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
 
+#: what every experiment's namespace holds, whether or not it takes the option (run() reads them)
+_SHARED = {
+    "mode": None,
+    "duration": None,
+    "A": None,
+    "kA": None,
+    "f": None,
+    "bag": None,
+    "png": None,
+    "json": False,
+}
+
+_CH11 = (
+    "The plant node (the ch. 11 rig, dynamic form) and the controller node run in lockstep at\n"
+    "the lowest loop rate at which the sampled loop is stable (the control core's check, delay\n"
+    "0). Prints a summary (or JSON), optionally records the controller's state to an MCAP bag\n"
+    "and writes a PNG."
+)
+
+#: each experiment: (its line in `experiment --help`, the rest of its own --help's description)
+ABOUT: dict[str, tuple[str, str]] = {
+    "regulation": (
+        "§11.4: the loop brings the simulated ch. 11 rig from x1(0) = 20 um to its reference",
+        _CH11,
+    ),
+    "perturbation": (
+        "§11.5: the loop at rest near 200 V opened for 10 ms (u = 72 V) and closed again",
+        _CH11,
+    ),
+    "tracking": (
+        "follow a trajectory, and learn its feedforward (sim, emulated_rig or pi_servo)",
+        "--graph sim (default): the ch. 11 rig simulated in lockstep with the controller node.\n"
+        "emulated_rig: `emulate rig` around the plant model, the driver, reader and controller\n"
+        "in one process, in real time at its sensor's rate. Both with the emulated rig's 0-400 V\n"
+        "amplifier: a trajectory the --model says needs more is refused (exit 2) with the\n"
+        "largest amplitude that fits. pi_servo: a PI controller (--device) plays the feedforward\n"
+        "table with its wave generator at its servo rate, learned from its data recorder.",
+    ),
+    "coupling": (
+        "every axis of a stage identified in turn, and their coupling, on a scanner graph",
+        "Each axis runs two raised-cosine voltage runs (the second 40 V higher) while the others\n"
+        "hold, every sensor recorded; its steady periods give its Bouc-Wen model, what every\n"
+        "sensor saw the coupling. --output is the stage file written (each axis's model beside\n"
+        "it), which --stage takes. The graphs run in real time: sim_scanner (default) the\n"
+        "simulated scanner, emulated_scanner `emulate scanner`, rig_scanner the devices of\n"
+        "config/scanner_devices.yaml.",
+    ),
+    "raster": (
+        "a raster scan of a sample: its image, each axis's errors and the image's distortion",
+        "--graph sim_scanner (default): the simulated scanner (--plant-stage) under every axis's\n"
+        "ch. 11 loop with the feedforward of --stage, run in the core at any loop rate (no\n"
+        "graph, not in real time). emulated_scanner (1 kHz) and rig_scanner (the devices of\n"
+        "config/scanner_devices.yaml): the scanner's loop graph, every axis in one loop thread,\n"
+        "in real time. The fast axis's table learns over --learn lines (on sim_scanner the slow\n"
+        "axis's line correction too); the figures are the last frame's.",
+    ),
+}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "name",
-        choices=("regulation", "perturbation", "tracking", "coupling", "raster"),
-        help="experiment (§11.4 / §11.5 / trajectory tracking / a stage's axes and coupling / "
-        "a raster scan's image)",
+    experiments = parser.add_subparsers(
+        dest="name", required=True, metavar="EXPERIMENT", title="experiments (EXPERIMENT --help)"
     )
+    builders = {
+        "regulation": _ch11_arguments("regulation"),
+        "perturbation": _ch11_arguments("perturbation"),
+        "tracking": _tracking_experiment,
+        "coupling": _coupling_arguments,
+        "raster": _raster_experiment,
+    }
+    parsers = {}
+    for name, (summary, description) in ABOUT.items():
+        sub = experiments.add_parser(
+            name,
+            help=summary,
+            description=f"{summary}.\n\n{description}",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        builders[name](sub)
+        dests = {action.dest for action in sub._actions}
+        sub.set_defaults(**{k: v for k, v in _SHARED.items() if k not in dests})
+        parsers[name] = sub
+    _refuse_what_others_take(parsers)
+
+
+def _refuse_what_others_take(parsers: dict[str, argparse.ArgumentParser]) -> None:
+    """Each experiment's parser refuses, in one line, the options only other experiments take
+    (hidden from its --help): `experiment raster --axis 1` is not silently ignored."""
+    flags = {
+        name: {flag for action in p._actions for flag in action.option_strings}
+        for name, p in parsers.items()
+    }
+    every = set().union(*flags.values())
+    for name, parser in parsers.items():
+        for flag in sorted(every - flags[name]):
+            parser.add_argument(
+                flag,
+                action=not_for(f"experiment {name}"),
+                nargs="*",
+                default=argparse.SUPPRESS,
+                help=argparse.SUPPRESS,
+            )
+
+
+def _outputs(parser: argparse.ArgumentParser, bag: str) -> None:
+    """--bag (what it records), --png and --json."""
+    parser.add_argument(
+        "--bag", default=None, metavar="DIR", action=output("bag"), help=f"{bag} (default: none)"
+    )
+    parser.add_argument(
+        "--png",
+        default=None,
+        metavar="DIR",
+        action=output("folder"),
+        help="write the figures into this folder, made if missing (default: none)",
+    )
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _mode(parser: argparse.ArgumentParser, default: str) -> None:
     parser.add_argument(
         "--mode",
         choices=tuple(Law),
         default=None,
-        help="control law (11.5, 11.17, 11.18; default pid_tv, tracking: pid)",
+        help=f"control law: pid (11.5), pid_sine (11.17) or pid_tv (11.18) (default {default})",
     )
-    defaults = ", ".join(f"{name} {seconds:g} s" for name, seconds in DEFAULT_DURATION.items())
+
+
+def _ch11_arguments(name: str) -> Callable[[argparse.ArgumentParser], None]:
+    def build(parser: argparse.ArgumentParser) -> None:
+        from piezo_stage.control.laws import THESIS_GAINS
+
+        _mode(parser, "pid_tv")
+        parser.add_argument(
+            "--duration",
+            type=float,
+            default=None,
+            metavar="SECONDS",
+            help=f"simulated seconds (default {DEFAULT_DURATION[name]:g})",
+        )
+        for flag, what in (
+            ("A", "pid_sine's sine amplitude A [V]"),
+            ("kA", "pid_tv's sine gain kA [V/(m s)]"),
+            ("f", "the sine's frequency f [Hz]"),
+        ):
+            parser.add_argument(
+                f"--{flag}",
+                dest=flag,
+                type=float,
+                default=None,
+                help=f"{what} (default {getattr(THESIS_GAINS, flag):g}, the thesis's)",
+            )
+        _outputs(parser, "record controller_state to this MCAP bag folder")
+
+    return build
+
+
+def _tracking_experiment(parser: argparse.ArgumentParser) -> None:
+    _mode(parser, "pid")
     parser.add_argument(
-        "--duration", type=float, default=None, help=f"simulated seconds (default: {defaults})"
-    )
-    parser.add_argument(
-        "--A", dest="A", type=float, default=None, help="sine amplitude A [V] (pid_sine)"
-    )
-    parser.add_argument(
-        "--kA", dest="kA", type=float, default=None, help="sine gain kA [V/(m s)] (pid_tv)"
-    )
-    parser.add_argument("--f", dest="f", type=float, default=None, help="sine frequency f [Hz]")
-    parser.add_argument(
-        "--bag",
+        "--duration",
+        type=float,
         default=None,
-        help="record controller_state (raster: each axis's loop_samples) to this MCAP bag folder",
+        metavar="SECONDS",
+        help="seconds run, instead of the trajectory's periods (default: --periods of them, "
+        "after the --learn ones)",
     )
-    parser.add_argument("--png", default=None, help="write the figures into this folder")
-    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
-    _tracking_arguments(parser.add_argument_group("tracking (x_d from --trajectory; SI units)"))
-    _coupling_arguments(parser.add_argument_group("coupling (every axis of a stage, in turn)"))
-    _raster_arguments(parser.add_argument_group("raster (a scan of a sample; SI units)"))
+    _tracking_arguments(parser.add_argument_group("the trajectory and the controller (SI units)"))
+    _outputs(parser, "record controller_state to this MCAP bag folder")
 
 
 def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
-    from piezo_stage.experiments.coupling import GRAPHS
-    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS, Graph
+    from piezo_stage.control.tracking import DEFAULT_PERIODS, TRACKING_RATE_HZ
+    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS, DEFAULT_PLANT, RIG_RATES
 
     for name in CONTROLLER_OPTIONS:
         if name != "mode":  # --mode serves every experiment
@@ -77,70 +216,95 @@ def _tracking_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument(
         "--model",
         default=None,
-        help="feedforward model: a dynamic parameter set (input displacement)",
+        metavar="PARAMS.yaml",
+        help="feedforward model: a dynamic parameter set, input the displacement (required "
+        "unless --compensation feedback)",
     )
     group.add_argument(
-        "--plant-model", default="ch11_rig.yaml", help="the simulated rig (ch11_rig.yaml)"
+        "--plant-model",
+        default=None,
+        metavar="PARAMS.yaml",
+        help=f"the simulated or emulated rig (default {DEFAULT_PLANT}, the ch. 11 rig)",
     )
     group.add_argument(
         "--periods",
-        type=float,
-        default=3.0,
-        help="periods to run, the first not measured (with --learn: measured after learning)",
+        type=positive,
+        default=None,
+        help="periods to run, the first not measured (with --learn: measured after learning; "
+        f"default {DEFAULT_PERIODS})",
     )
     group.add_argument("--compare", action="store_true", help="also run feedback only and compare")
     group.add_argument(
         "--graph",
-        choices=[*(g.value for g in Graph), "pi_servo", *GRAPHS],
+        choices=("sim", "emulated_rig", "pi_servo"),
         default=None,
-        help="tracking: sim (default), the lockstep plant; emulated_rig: `emulate rig` around "
-        "the plant model with the driver, reader and controller in one process (real time); "
-        "both with the emulated rig's 0-400 V amplifier: a trajectory the --model says needs "
-        "more is refused (exit 2) with the largest amplitude that fits; pi_servo: a PI "
-        "controller (--device) plays the table with its wave generator at its servo rate, "
-        "learned from its data recorder. coupling and raster: "
-        "sim_scanner (default), emulated_scanner or rig_scanner",
+        help="sim (default), emulated_rig or pi_servo (see above)",
     )
-    group.add_argument("--device", metavar="URL", help="pi_servo: the controller (tcp://HOST:PORT)")
-    group.add_argument("--axis", help="pi_servo: its axis (default: the first SAI? lists)")
+    group.add_argument(
+        "--device", metavar="URL", help="pi_servo: the controller, tcp://HOST:PORT (required)"
+    )
+    group.add_argument(
+        "--axis", help="pi_servo: its axis, or A,B,... (default: the first SAI? lists)"
+    )
     group.add_argument(
         "--rate-hz",
-        type=float,
+        type=positive,
         default=None,
-        help="the loop rate (sim: 100000; emulated_rig: its sensor's, 1000 or 10000; raster: "
-        "10000 on sim_scanner, 1000 on the device graphs); refused "
-        "where the law's gains fail the sampled-loop check",
+        metavar="HZ",
+        help=f"the loop rate [Hz] (sim: default {TRACKING_RATE_HZ:g}, refused where the law's "
+        f"gains fail the sampled-loop check; emulated_rig: its sensor's, "
+        f"{' or '.join(f'{r:g}' for r in RIG_RATES)}, default 1000; pi_servo: the table's, at "
+        "most the servo rate, default the servo rate)",
     )
     group.add_argument(
         "--identify-model",
         metavar="OUT.yaml",
         default=None,
-        help="first record the simulated rig, fit the model, save it here, use it",
+        action=output("file"),
+        help="first record the simulated rig, fit the model, save it here, use it (default: none)",
     )
 
 
-def _coupling_arguments(group: argparse._ArgumentGroup) -> None:
-    group.add_argument(
+def _coupling_arguments(parser: argparse.ArgumentParser) -> None:
+    from piezo_stage.experiments.coupling import GRAPH_DEFAULTS, GRAPHS, graph_rate
+
+    rates = ", ".join(f"{g} {d.rate_hz:g}" for g, d in GRAPH_DEFAULTS.items())
+    periods = ", ".join(f"{g} {d.period:g}" for g, d in GRAPH_DEFAULTS.items())
+    parser.add_argument(
+        "--graph", choices=GRAPHS, default=None, help="the scanner graph (default sim_scanner)"
+    )
+    parser.add_argument(
         "--plant-stage",
         default=None,
         metavar="STAGE.yaml",
-        help="the simulated or emulated stage (coupling: default xy_scanner.yaml, for "
-        "rig_scanner its axes and channels, and each axis's m and c; raster: default --stage)",
+        help="the simulated or emulated stage; for rig_scanner its axes and channels, and each "
+        "axis's m and c (default xy_scanner.yaml)",
     )
-    group.add_argument(
+    parser.add_argument(
         "--output",
         metavar="STAGE.yaml",
         default=None,
-        help="the identified stage file (each axis's model written beside it)",
+        action=output("file"),
+        help="the identified stage file, each axis's model written beside it (required)",
     )
-    group.add_argument(
+    parser.add_argument(
         "--period",
-        type=float,
-        default=0.0,
+        type=positive,
+        default=None,
         metavar="SECONDS",
-        help="period of each run's raised cosine (default 1 s on sim_scanner, 2 s on the "
-        "device graphs, whose command timing jitters; their default --rate-hz is 500)",
+        help=f"period of each run's raised cosine [s] (default {periods}: the device graphs' "
+        "command timing jitters)",
     )
+    parser.add_argument(
+        "--rate-hz",
+        type=positive,
+        default=None,
+        metavar="HZ",
+        help=f"commands per second [Hz] (default {rates}); at most the graph's sensor or "
+        f"plant rate ({graph_rate('sim_scanner'):g} Hz on sim_scanner), and at least 50 per "
+        "period",
+    )
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -154,36 +318,130 @@ def _pair(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(f"expected X,Y (two numbers), got {text!r}") from None
 
 
+def _raster_experiment(parser: argparse.ArgumentParser) -> None:
+    _raster_graph_arguments(parser.add_argument_group("the graph and the feedforward"))
+    _raster_arguments(parser.add_argument_group("the scan and the sample (SI units)"))
+    _outputs(parser, "record each axis's loop_samples to this MCAP bag folder")
+
+
+def _raster_graph_arguments(group: argparse._ArgumentGroup) -> None:
+    from piezo_stage.control.feedforward import Compensation
+    from piezo_stage.experiments.raster import GRAPHS
+
+    group.add_argument(
+        "--graph", choices=GRAPHS, default=None, help="the scanner graph (default sim_scanner)"
+    )
+    group.add_argument(
+        "--rate-hz",
+        type=positive,
+        default=None,
+        metavar="HZ",
+        help="the loop rate [Hz] (default 10000 on sim_scanner, any rate that samples the scan; "
+        "on the device graphs their sensors' rate, 1000)",
+    )
+    group.add_argument(
+        "--plant-stage",
+        default=None,
+        metavar="STAGE.yaml",
+        help="the scanner simulated or emulated; on rig_scanner the devices' axes and channels "
+        "(default: --stage)",
+    )
+    group.add_argument(
+        "--compensation",
+        choices=[c.value for c in Compensation],
+        default=Compensation.BOTH.value,
+        help="feedback, feedforward or both (default both)",
+    )
+    group.add_argument(
+        "--learn",
+        type=int_range(0, 1_000_000),
+        default=None,
+        metavar="LINES",
+        help="learn the feedforward over the first LINES line periods (default 0: no learning)",
+    )
+    group.add_argument(
+        "--table",
+        default=None,
+        metavar="FILE.json",
+        help="learned tables to replay: --table-out's, for the same scan and rate (default: the "
+        "model's)",
+    )
+    group.add_argument(
+        "--table-out",
+        default=None,
+        metavar="FILE.json",
+        action=output("file"),
+        help="save the tables after the run (default: none)",
+    )
+
+
 def _raster_arguments(group: argparse._ArgumentGroup) -> None:
     from piezo_stage.control.scan import FastShape, Order, SlowMotion
     from piezo_stage.experiments.raster import RasterSpec
 
     d = RasterSpec(Path("unused"))
     group.add_argument(
-        "--stage", default="xy_scanner.yaml", help="the model the controllers use (a stage file)"
-    )
-    group.add_argument("--lines", type=int, default=d.lines, help=f"image lines ({d.lines})")
-    group.add_argument("--pixels", type=int, default=d.pixels, help=f"pixels per line ({d.pixels})")
-    group.add_argument(
-        "--line-rate", type=float, default=d.line_rate, help=f"lines per second ({d.line_rate:g})"
+        "--stage",
+        default="xy_scanner.yaml",
+        metavar="STAGE.yaml",
+        help="the model the controllers use, a stage file (default xy_scanner.yaml)",
     )
     group.add_argument(
-        "--range", type=_pair, default=d.range, metavar="X,Y", help="the image's size [m]"
+        "--lines", type=int, default=d.lines, help=f"image lines (default {d.lines})"
     )
     group.add_argument(
-        "--centre", type=_pair, default=d.centre, metavar="X,Y", help="the image's centre [m]"
+        "--pixels", type=int, default=d.pixels, help=f"pixels per line (default {d.pixels})"
     )
     group.add_argument(
-        "--sample", default=d.sample, help="grating (default) or a height map, FILE.png / FILE.csv"
+        "--line-rate",
+        type=float,
+        default=d.line_rate,
+        metavar="HZ",
+        help=f"lines per second [Hz] (default {d.line_rate:g})",
     )
-    group.add_argument("--fast-shape", choices=[k.value for k in FastShape], default="triangle")
-    group.add_argument("--slow-motion", choices=[k.value for k in SlowMotion], default="staircase")
-    group.add_argument("--order", choices=[k.value for k in Order], default="raster")
+    group.add_argument(
+        "--range",
+        type=_pair,
+        default=d.range,
+        metavar="X,Y",
+        help=f"the image's size, fast and slow axis [m] (default {d.range[0]:g},{d.range[1]:g})",
+    )
+    group.add_argument(
+        "--centre",
+        type=_pair,
+        default=d.centre,
+        metavar="X,Y",
+        help=f"the image's centre [m] (default {d.centre[0]:g},{d.centre[1]:g})",
+    )
+    group.add_argument(
+        "--sample",
+        default=d.sample,
+        help="what is scanned: grating, or a height map FILE.png / FILE.csv (default grating)",
+    )
+    group.add_argument(
+        "--fast-shape",
+        choices=[k.value for k in FastShape],
+        default="triangle",
+        help="the fast axis's line: a triangle or a sine (default triangle)",
+    )
+    group.add_argument(
+        "--slow-motion",
+        choices=[k.value for k in SlowMotion],
+        default="staircase",
+        help="the slow axis from one line to the next: a step or a ramp (default staircase)",
+    )
+    group.add_argument(
+        "--order",
+        choices=[k.value for k in Order],
+        default="raster",
+        help="the image lines: traces only (raster) or traces and retraces (serpentine) "
+        "(default raster)",
+    )
     group.add_argument(
         "--no-coupling-compensation",
         dest="coupling_compensation",
         action="store_false",
-        help="the feedforward ignores the stage file's coupling",
+        help="the feedforward ignores the stage file's coupling (default: it takes it out)",
     )
     group.add_argument(
         "--view",
@@ -201,8 +459,9 @@ def _raster_arguments(group: argparse._ArgumentGroup) -> None:
 
 
 def _from_table(name: str) -> dict[str, Any]:
-    """argparse keywords of the tracking option ``name``: type, choices, help and default from
-    the controller parameter it sets (the experiment's default and help where it has its own)."""
+    """argparse keywords of the tracking option ``name``: type, choices and help from the
+    controller parameter it sets, the default (the experiment's where it has its own) said in
+    the help; unset is None, so that an option a graph does not take can be refused."""
     from piezo_stage.experiments.tracking import CONTROLLER, CONTROLLER_OPTIONS
     from piezo_stage.nodes.spec import show
 
@@ -211,14 +470,19 @@ def _from_table(name: str) -> dict[str, Any]:
     kind = {"float": float, "int": int, "bool": bool}.get(row.kind.value, str)
     default = option.value
     text = option.help or row.description + (f" [{row.unit}]" if row.unit else "")
-    more = "" if default is None else f"; default {show(default).strip(chr(34))}"
-    return {
+    more = f"; default {show(default).strip(chr(34))}" if default is not None else ""
+    if default is None and "default" not in text:
+        more = "; default: none"
+    keywords: dict[str, Any] = {
         "type": kind,
         "choices": row.choice_values or None,
-        "default": default,
+        "default": None,
         "metavar": "N" if kind is int else None,
         "help": f"{text} (controller {option.param}{more})",
     }
+    if name == "table_out":
+        keywords["action"] = output("file")
+    return keywords
 
 
 _SHAPES = ("triangle", "sine", "steps")
@@ -229,7 +493,12 @@ def _user_paths(args: argparse.Namespace) -> None:
     graph's processes may run elsewhere. Files to read must exist (a bare name such as
     ``ch11_rig.yaml`` may be a shipped config); a file to write must be writable, checked
     before anything runs. Raises ExperimentInputError (exit 2) with the reason."""
-    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.config_path import (
+        ConfigNotFoundError,
+        find_user_file,
+        output_problem,
+        user_output_path,
+    )
     from piezo_stage.experiments import ExperimentInputError
 
     for key, option in (("model", "--model"), ("plant_model", "--plant-model")):
@@ -245,28 +514,65 @@ def _user_paths(args: argparse.Namespace) -> None:
         if getattr(args, key) is not None:
             setattr(args, key, str(user_output_path(getattr(args, key))))
     if args.identify_model:
-        out = user_output_path(args.identify_model)
-        why = _unwritable(out)
+        why = output_problem(args.identify_model)
         if why:
             raise ExperimentInputError(f"--identify-model {args.identify_model}: {why}")
-        args.identify_model = str(out)
+        args.identify_model = str(user_output_path(args.identify_model))
 
 
-def _unwritable(path: Path) -> str:
-    """Why the file ``path`` cannot be written ('' when it can)."""
-    if path.is_dir():
-        return "is a folder"
-    if not path.parent.is_dir():
-        return f"no folder {path.parent}"
-    if path.exists() and not os.access(path, os.W_OK):
-        return "not writable"
-    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
-        return f"folder {path.parent} is not writable"
+#: tracking options a PI controller's run does not take (the controller plays the table: no
+#: simulated plant, controller node or recorded state), by dest; the flag where it differs
+_NOT_ON_PI_SERVO = (
+    "mode",
+    "duration",
+    "bag",
+    "png",
+    "v_max",
+    "a_max",
+    "compensation",
+    "feedforward_form",
+    "periods",
+    "compare",
+    "plant_model",
+    "identify_model",
+    "controller",
+)
+_FLAGS = {"controller": "--param"}
+
+
+def _at_the_door(args: argparse.Namespace) -> str:
+    """Why the options cannot run together ('' when they can): a tracking option the chosen
+    graph does not take (the experiments' own options are refused by their parsers). The
+    tracking options left unset (None: a graph's refusal needs to see what was given) then
+    take their defaults."""
+    if args.name != "tracking":
+        return ""
+    from piezo_stage.control.tracking import DEFAULT_PERIODS
+    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS, DEFAULT_PLANT
+
+    graph = args.graph or "sim"
+    if graph == "pi_servo":
+        given = [k for k in _NOT_ON_PI_SERVO if getattr(args, k) not in (None, False, [])]
+    else:
+        given = [k for k in ("device", "axis") if getattr(args, k) is not None]
+    if given:
+        flag = _FLAGS.get(given[0], f"--{given[0].replace('_', '-')}")
+        return f"{flag} does not apply to --graph {graph}"
+    for name, option in CONTROLLER_OPTIONS.items():
+        if name != "mode" and getattr(args, name) is None:
+            setattr(args, name, option.value)
+    args.periods = DEFAULT_PERIODS if args.periods is None else args.periods
+    args.plant_model = args.plant_model or DEFAULT_PLANT
     return ""
 
 
 def _run_coupling(args: argparse.Namespace, progress) -> dict:
-    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.config_path import (
+        ConfigNotFoundError,
+        find_user_file,
+        output_problem,
+        user_output_path,
+    )
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.coupling import CouplingSpec, coupling_experiment
 
@@ -276,15 +582,14 @@ def _run_coupling(args: argparse.Namespace, progress) -> dict:
         plant_stage = find_user_file(args.plant_stage or "xy_scanner.yaml")
     except ConfigNotFoundError as exc:
         raise ExperimentInputError(f"--plant-stage: {exc}") from None
-    output = user_output_path(args.output)
-    why = _unwritable(output)
+    why = output_problem(args.output)
     if why:
         raise ExperimentInputError(f"--output {args.output}: {why}")
     spec = CouplingSpec(
         plant_stage,
-        output,
+        user_output_path(args.output),
         graph=args.graph or "sim_scanner",
-        rate_hz=args.rate_hz or 0.0,
+        rate_hz=args.rate_hz,
         period=args.period,
     )
     return coupling_experiment(spec, progress)
@@ -298,6 +603,7 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         Graph,
         TrackingSpec,
         identify_model,
+        plan_tracking,
         run_tracking,
     )
 
@@ -308,11 +614,6 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
         return run_pi_servo(args, progress)
     if graph not in {g.value for g in Graph}:
         raise ExperimentInputError(f"--graph {graph}: tracking runs on sim or emulated_rig")
-    model = args.model
-    if args.identify_model:
-        progress(0.0, f"recording the simulated rig {args.plant_model} and fitting the model")
-        identify_model(args.identify_model, args.plant_model)
-        model = args.identify_model
     options = {name: getattr(args, name) for name in CONTROLLER_OPTIONS if name != "mode"}
     periods = args.periods
     if quick_run() and periods > QUICK_PERIODS:
@@ -321,13 +622,18 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
     spec = TrackingSpec(
         **options,
         mode=args.mode or CONTROLLER_OPTIONS["mode"].value,
-        model=model,
+        model=None if args.identify_model else args.model,
         plant_model=args.plant_model,
         periods=periods,
         rate_hz=args.rate_hz or (TRACKING_RATE_HZ if graph == "sim" else 1000.0),
         graph=Graph(graph),
         controller=_controller_params(args.controller),
     )
+    if args.identify_model:  # what is refused, refused before the rig is recorded
+        plan_tracking(spec, args.duration, args.bag)
+        progress(0.0, f"recording the simulated rig {args.plant_model} and fitting the model")
+        identify_model(args.identify_model, args.plant_model)
+        spec = replace(spec, model=args.identify_model)
     return run_tracking(
         spec,
         compare=args.compare,
@@ -339,7 +645,12 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
 
 
 def _run_raster(args: argparse.Namespace, progress) -> dict:
-    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.config_path import (
+        ConfigNotFoundError,
+        find_user_file,
+        output_problem,
+        user_output_path,
+    )
     from piezo_stage.control.feedforward import Compensation
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.raster import RasterSpec, run_raster
@@ -350,9 +661,11 @@ def _run_raster(args: argparse.Namespace, progress) -> dict:
         table = find_user_file(args.table) if args.table else None
     except ConfigNotFoundError as exc:
         raise ExperimentInputError(str(exc)) from None
+    if args.table_out and output_problem(args.table_out):
+        raise ExperimentInputError(
+            f"--table-out {args.table_out}: {output_problem(args.table_out)}"
+        )
     table_out = user_output_path(args.table_out) if args.table_out else None
-    if table_out is not None and _unwritable(table_out):
-        raise ExperimentInputError(f"--table-out {args.table_out}: {_unwritable(table_out)}")
     sample = args.sample
     if sample != "grating":
         try:
@@ -407,6 +720,10 @@ def run(args: argparse.Namespace) -> int:
     from piezo_stage.launch.domain import isolated_domain
     from piezo_stage.model.errors import ModelError
 
+    refused = _at_the_door(args)
+    if refused:
+        print(f"error: {refused}", file=sys.stderr)
+        return 2
     gains = {k: getattr(args, k) for k in ("A", "kA", "f") if getattr(args, k) is not None}
 
     def progress(fraction: float, text: str) -> None:  # stderr: --json's stdout stays clean

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezo_stage.commands.argtypes import data_error_exit_code
+from piezo_stage.commands.argtypes import data_error_exit_code, int_range, output, positive
 from piezo_stage.commands.servo_identify import DeviceRunError
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.analytic import DesignPoints
@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     device.add_argument(
         "--offset", type=float, metavar="Q", help="run 2 = run 1 + Q [V] (default: 25 %% of it)"
     )
-    device.add_argument("--period", type=float, default=1.0, help="T-wave period [s] (1)")
+    device.add_argument("--period", type=positive, default=1.0, help="T-wave period [s] (1)")
     device.add_argument(
         "--periods",
         metavar="SETTLE,RECORD",
@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     device.add_argument(
         "--record-rate",
-        type=int,
+        type=int_range(1, 1_000_000),
         default=1,
         metavar="N",
         help="a table point and a recorded point every N servo cycles (1)",
@@ -94,7 +94,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="identify voltage -> displacement (ch. 10, default) or displacement -> voltage "
         "(the ch. 11 form u = Φ(x) of a stage model; its input is paired as --lag 0.5)",
     )
-    device.add_argument("--bag", metavar="DIR", help="write the record as a bag here")
+    device.add_argument(
+        "--bag", metavar="DIR", action=output("bag"), help="write the record as a bag here"
+    )
     parser.add_argument(
         "--method",
         choices=[m.value for m in Method],
@@ -148,6 +150,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--output",
         "-o",
         metavar="PARAMS_YAML",
+        action=output("file"),
         help="write the identified parameter set (YAML) here",
     )
     parser.add_argument(
@@ -163,6 +166,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--plots",
         metavar="DIR",
+        action=output("folder"),
         default=None,
         help="folder for PNGs of the fit (default: the folder of --output)",
     )
@@ -238,6 +242,30 @@ def _dynamics(args: argparse.Namespace) -> None:
         raise UsageError("--m/--c need the ch. 11 form: add --model-input displacement")
 
 
+#: the device group's options without a default value: refused without --device
+_DEVICE_ONLY = ("axis", "voltage", "offset", "bag")
+
+
+def _device_options(args: argparse.Namespace) -> None:
+    """A device run's T-wave options, checked before the controller is opened; without
+    --device, refused where given (they would be ignored)."""
+    from piezo_stage.commands.servo_identify import DeviceRunError, pair
+
+    if not args.device:
+        given = [k for k in _DEVICE_ONLY if getattr(args, k) is not None]
+        if given:
+            raise UsageError(f"--{given[0]} applies to a --device run only")
+        return
+    try:
+        settle, record = pair(args.periods, "--periods", int)
+        if args.voltage:
+            pair(args.voltage, "--voltage", float)
+    except DeviceRunError as exc:
+        raise UsageError(str(exc)) from None
+    if settle < 0 or record < 2:
+        raise UsageError(f"--periods {args.periods}: settling >= 0 and recorded >= 2 periods")
+
+
 def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
     if args.method is None:
         args.method = Method.ANALYTIC.value if args.device else Method.AUTO.value
@@ -247,6 +275,7 @@ def _options(args: argparse.Namespace) -> tuple[IdentifyOptions, FitOptions]:
             if args.runs
             else "nothing to identify: give recorded runs (RUN ...) or --device URL"
         )
+    _device_options(args)
     design = DesignPoints()
     if args.design_points:
         try:
@@ -412,41 +441,40 @@ def _parameter_set(result: IdentificationResult, args: argparse.Namespace) -> Pa
         raise UsageError(f"--m/--c: {exc}") from None
 
 
-def run(args: argparse.Namespace) -> int:
-    from piezo_stage.bag.errors import BagError
-    from piezo_stage.model.errors import ModelError
+def _identify(
+    args: argparse.Namespace, options: IdentifyOptions, fit: FitOptions
+) -> tuple[IdentificationResult, list[Recording]]:
+    """The identification the options ask for, and the runs it used."""
+    if args.device:
+        from piezo_stage.commands.servo_identify import identify_on_device
 
-    try:
-        options, fit = _options(args)
-    except UsageError as exc:
-        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
-        return 2
-    written: list[Path] = []
-    try:
-        if args.device:
-            from piezo_stage.commands.servo_identify import identify_on_device
+        return identify_on_device(args, options, fit)
+    if _from_cycles(args):
+        result = _identify_cycles(args, options)
+        return result, [_cycle_recording(c) for c in result.cycles]
+    runs = load_runs(args.runs, args.input_topic, args.output_topic, args.excitation_topic)
+    return identify_runs(runs, options, Method(args.method), fit), runs
 
-            result, runs = identify_on_device(args, options, fit)
-        elif _from_cycles(args):
-            result = _identify_cycles(args, options)
-            runs = [_cycle_recording(c) for c in result.cycles]
-        else:
-            runs = load_runs(args.runs, args.input_topic, args.output_topic, args.excitation_topic)
-            result = identify_runs(runs, options, Method(args.method), fit)
-        if args.output:
-            from piezo_stage.model.parameter_set import save_parameter_set
 
-            save_parameter_set(_parameter_set(result, args), args.output)
-        plots = args.plots or (str(Path(args.output).parent) if args.output else None)
-        if plots and not args.no_plot:
-            stem = Path(args.output).stem if args.output else "identify"
-            written = _plot(result, runs, Path(plots), stem)
-    except (UsageError, DeviceRunError) as exc:
-        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
-        return 2
-    except (IdentificationError, BagError, ModelError, OSError) as exc:
-        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
-        return data_error_exit_code(exc)
+def _kept(args: argparse.Namespace) -> str:
+    """Where what was measured on a device is, for an error after it was recorded."""
+    if args.device and args.bag and Path(args.bag).is_dir():
+        return f" (the record is in {args.bag})"
+    return ""
+
+
+def _figures(
+    args: argparse.Namespace, result: IdentificationResult, runs: list[Recording]
+) -> list[Path]:
+    """The fit's PNGs (--plots, else beside --output; none with --no-plot)."""
+    plots = args.plots or (str(Path(args.output).parent) if args.output else None)
+    if not plots or args.no_plot:
+        return []
+    stem = Path(args.output).stem if args.output else "identify"
+    return _plot(result, runs, Path(plots), stem)
+
+
+def _say(args: argparse.Namespace, result: IdentificationResult) -> None:
     for text in result.warnings:
         print(f"piezo-stage identify: warning: {text}", file=sys.stderr)
     if args.json:
@@ -456,6 +484,41 @@ def run(args: argparse.Namespace) -> int:
         print(_text(result))
         if args.output:
             print(f"wrote {args.output}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from piezo_stage.bag.errors import BagError
+    from piezo_stage.model.errors import ModelError
+
+    try:
+        options, fit = _options(args)
+    except UsageError as exc:
+        print(f"piezo-stage identify: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        result, runs = _identify(args, options, fit)
+        if args.output:
+            from piezo_stage.model.parameter_set import save_parameter_set
+
+            save_parameter_set(_parameter_set(result, args), args.output)
+    except (UsageError, DeviceRunError) as exc:
+        print(f"piezo-stage identify: error: {exc}{_kept(args)}", file=sys.stderr)
+        return 2
+    except (IdentificationError, BagError, ModelError, OSError) as exc:
+        print(f"piezo-stage identify: error: {exc}{_kept(args)}", file=sys.stderr)
+        return data_error_exit_code(exc)
+    _say(args, result)  # the figures come last: what they fail on loses nothing measured
+    try:
+        written = _figures(args, result, runs)
+    except OSError as exc:
+        kept = [str(p) for p in (args.output, args.bag if args.device else None) if p]
+        print(
+            f"piezo-stage identify: error: the figures could not be written: "
+            f"{exc.strerror or exc} ({getattr(exc, 'filename', None) or args.plots}); "
+            + (f"kept: {', '.join(kept)}" if kept else "nothing else was asked to be kept"),
+            file=sys.stderr,
+        )
+        return 1
     for path in written:
         print(f"wrote {path}", file=sys.stderr if args.json else sys.stdout)
     return 0

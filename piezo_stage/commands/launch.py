@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from piezo_stage.commands.argtypes import int_range
+from piezo_stage.commands.argtypes import int_range, output
 from piezo_stage.launch.axes import user_stage_path
 from piezo_stage.launch.commandline import display_argv, shell_line
 from piezo_stage.launch.errors import (
@@ -89,6 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="OUT",
         type=Path,
         default=None,
+        action=output("file"),
         help="write an equivalent ros2 launch file (for full ROS installs) and exit",
     )
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from piezo_stage.commands.argtypes import output
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="BAG", help="rosbag2 folder or .mcap file")
@@ -17,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "-o",
         metavar="DIR",
         default=None,
+        action=output("folder"),
         help="folder for the PNGs (default: BAG_plots next to the bag)",
     )
 

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
-from piezo_stage.commands.argtypes import int_range, non_negative, positive
+from piezo_stage.commands.argtypes import int_range, non_negative, output, positive
 
 NODE_BOOTSTRAP = "piezo_stage.launch.child"
 READY_POLL = 0.05  # [s] how often run_node checks that the node is ready
@@ -35,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--output",
         metavar="BAG",
         default=None,
+        action=output("bag"),
         help="bag folder to create (default rosbag2_<date>-<time>)",
     )
     parser.add_argument(

@@ -27,7 +27,8 @@ class DeviceRunError(PiezoStageError):
     """The controller refused, the link failed or the record is unusable (exit 2)."""
 
 
-def _pair(text: str, name: str, kind: type) -> tuple:
+def pair(text: str, name: str, kind: type) -> tuple:
+    """``A,B`` of option ``name`` as two values of ``kind`` (:class:`DeviceRunError`)."""
     try:
         a, b = (kind(v) for v in text.split(","))
     except ValueError:
@@ -42,10 +43,10 @@ def excitation_from(args: argparse.Namespace, v_min: float, v_max: float):
     base = max(v_min, 0.0)
     total = v_max - base
     low, high = (
-        _pair(args.voltage, "--voltage", float) if args.voltage else (base, base + 0.75 * total)
+        pair(args.voltage, "--voltage", float) if args.voltage else (base, base + 0.75 * total)
     )
     q = args.offset if args.offset is not None else 0.25 * total
-    settle, record = _pair(args.periods, "--periods", int)
+    settle, record = pair(args.periods, "--periods", int)
     excitation = TWaveExcitation(low, high, q, args.period, settle, record, args.record_rate)
     try:
         excitation.check(v_min, v_max)

@@ -37,6 +37,11 @@ def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None
         raise ExperimentInputError(f"{args.device}: {exc}") from None
     try:
         cycle = recorder.servo_cycle()
+        if args.rate_hz and args.rate_hz * cycle > 1.0 + 1e-9:  # before anything moves
+            raise ExperimentInputError(
+                f"--rate-hz {args.rate_hz:g}: the controller's servo runs at {1.0 / cycle:g} Hz, "
+                "the fastest its wave generator plays a table"
+            )
         rate = max(1, round(1.0 / (cycle * args.rate_hz))) if args.rate_hz else 1
         x_d, _ = trajectory_samples(trajectory, 1.0 / (cycle * rate))
         plays = args.learn if args.learn else (0 if table is not None else DEFAULT_LEARN)

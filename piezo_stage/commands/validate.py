@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from piezo_stage.commands.argtypes import data_error_exit_code
+from piezo_stage.commands.argtypes import data_error_exit_code, output
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import DEFAULT_EXCITATION_TOPIC, load_runs
 
@@ -23,7 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("params", metavar="PARAMS", help="parameter-set YAML")
     parser.add_argument("data", metavar="DATA", help="recording: CSV, bag folder or .mcap")
     parser.add_argument(
-        "--out", metavar="DIR", default=".", help="folder for the PNGs (default: .)"
+        "--out",
+        metavar="DIR",
+        default=".",
+        action=output("folder"),
+        help="folder for the PNGs (default: .)",
     )
     parser.add_argument("--no-plot", action="store_true", help="print the figures only")
     parser.add_argument("--json", action="store_true", help="print one JSON object per run")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from piezo_stage.commands.argtypes import int_range, non_negative
+from piezo_stage.commands.argtypes import int_range, non_negative, output
 from piezo_stage.commands.record import run_node
 
 
@@ -52,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--write-layout",
         metavar="FILE",
         default=None,
+        action=output("file"),
         help="write the stage's Foxglove layout for --ns to FILE and exit "
         "(config/foxglove/piezo_stage.json is the one for /piezo)",
     )

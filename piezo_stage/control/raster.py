@@ -430,8 +430,8 @@ class _Loop:
         per_frame = round(scan.frame_time / scan.period)
         n_line = round(scan.period * self.rate_hz)
         for j in range(lines):
-            self.say(0.5 * j / lines, f"learning line {j + 1}/{lines}")
             run = self.step(n_line)
+            self.say((j + 1) / lines, f"learning: {j + 1}/{lines} lines")
             e = run.measured - run.reference
             history.append(
                 (_window_rms(scan, run.t, e[:, axes[0]]), _window_rms(scan, run.t, e[:, axes[1]]))
@@ -447,7 +447,8 @@ class _Loop:
         """On to at least ``frames`` frames from the start, and a whole frame after now."""
         n_frame = round(self.scan.frame_time * self.rate_hz)
         count = max(frames, -(-self.n // n_frame) + 1)  # ceil(n / n_frame) + 1
+        start = self.n  # a stage of its own: its bar from 0 to 100 %
         while self.n < count * n_frame:
-            n = self.n
-            self.say(0.5 + 0.5 * n / (count * n_frame), f"frame {n // n_frame + 1}/{count}")
-            self.step(n_frame - n % n_frame)
+            self.step(n_frame - self.n % n_frame)
+            done = (self.n - start) / (count * n_frame - start)
+            self.say(done, f"frames: {self.n // n_frame}/{count}")

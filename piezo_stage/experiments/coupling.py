@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -27,7 +28,8 @@ from numpy.typing import NDArray
 from piezo_stage.control.model_fit import ModelFitError
 from piezo_stage.control.stage_fit import DrivenRuns, fit_stage_runs
 from piezo_stage.identification import Recording
-from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.identification.cycles import CycleOptions, upward_crossings
+from piezo_stage.identification.errors import NotPeriodicError
 from piezo_stage.model.stage_file import Stage, load_stage, save_stage
 
 from .errors import ExperimentError, ExperimentInputError
@@ -39,6 +41,7 @@ __all__ = [
     "GraphDefaults",
     "axis_runs",
     "coupling_experiment",
+    "graph_rate",
     "summary_text",
 ]
 
@@ -76,6 +79,32 @@ GRAPH_DEFAULTS = {
     "rig_scanner": GraphDefaults(2.0, 500.0, 0.03),
 }
 
+#: the entries of a scanner graph that sample its stage, each at its ``rate_hz``
+_SAMPLERS = ("stage_plant", "laser_reader")
+
+
+def graph_rate(graph: str) -> float:
+    """[Hz] how often the scanner graph ``graph`` samples its stage: the lowest ``rate_hz`` of
+    its simulated plant or sensors, as its entries set it (else their parameter files'
+    ``/**/<node>`` blocks; config/graphs/*.yaml); inf where none is set."""
+    from piezo_stage.config_path import find_config
+    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.yaml_values import load_yaml
+
+    rates = []
+    for entry in load_yaml(find_graph(graph).read_text(encoding="utf-8"))["nodes"]:
+        node = entry.get("executable")
+        if node not in _SAMPLERS:
+            continue
+        rate = entry.get("overrides", {}).get("rate_hz")
+        for name in entry.get("parameters", []) if rate is None else []:
+            block = load_yaml(find_config(name).read_text(encoding="utf-8")).get(f"/**/{node}")
+            rate = (block or {}).get("ros__parameters", {}).get("rate_hz", rate)
+        if rate is not None:
+            rates.append(float(rate))
+    return min(rates, default=math.inf)
+
+
 Progress = Callable[[float, str], None]
 Series = tuple[NDArray[np.float64], NDArray[np.float64]]  # (stamps [s], values)
 
@@ -87,11 +116,12 @@ class CouplingSpec:
     plant_stage: Path  #: the simulated or emulated stage; for a rig its axes and channels
     output: Path  #: the stage file written (each axis's model beside it)
     graph: str = "sim_scanner"
-    rate_hz: float = 0.0  #: commands (and simulated sensor samples) per second (0: the graph's)
+    # None (unset) becomes the graph's default in __post_init__: a float from then on
+    rate_hz: float = None  # type: ignore[assignment]  #: commands per second
     low: float = 0.0  #: [V] the first run's lowest voltage
     amplitude: float = 260.0  #: [V] peak-to-peak span of the raised cosine
     shift: float = 40.0  #: [V] the second run's offset
-    period: float = 0.0  #: [s] one period of the raised cosine (0: the graph's default)
+    period: float = None  # type: ignore[assignment]  #: [s] one period of the raised cosine
     settle_periods: int = 3
     record_periods: int = 5
     wall_timeout: float = 600.0
@@ -102,14 +132,20 @@ class CouplingSpec:
                 f"--graph must be one of {', '.join(GRAPHS)}, got {self.graph!r}"
             )
         defaults = GRAPH_DEFAULTS[self.graph]
-        if self.period == 0.0:
+        if self.period is None:
             object.__setattr__(self, "period", defaults.period)
-        if self.rate_hz == 0.0:
+        if self.rate_hz is None:
             object.__setattr__(self, "rate_hz", defaults.rate_hz)
         for key in ("rate_hz", "amplitude", "period"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0):
                 raise ExperimentInputError(f"{key} must be > 0, got {value}")
+        fastest = graph_rate(self.graph)
+        if self.rate_hz > fastest:
+            raise ExperimentInputError(
+                f"--rate-hz {self.rate_hz:g}: the {self.graph} graph samples its stage at "
+                f"{fastest:g} Hz; commands cannot come faster"
+            )
         if self.rate_hz * self.period < 50:
             raise ExperimentInputError(
                 f"{self.rate_hz:g} Hz gives {self.rate_hz * self.period:.0f} samples per "
@@ -185,6 +221,30 @@ def axis_runs(
     return DrivenRuns(axis, runs[0], runs[1], seen)
 
 
+def _behind(exc: ModelFitError, runs: Mapping[str, DrivenRuns], spec: CouplingSpec) -> str:
+    """Why the fit failed, said as what it is when the input was not periodic: the excitation
+    plays exact periods, so on a real-time graph their differing means the graph fell behind
+    real time; with the largest error of the applied voltage's periods [ms]."""
+    cause: BaseException | None = exc
+    while cause is not None and not isinstance(cause, NotPeriodicError):
+        cause = cause.__cause__ or cause.__context__
+    if cause is None:
+        return str(exc)
+    late = 0.0
+    for driven in runs.values():
+        for run in (driven.run_a, driven.run_b):
+            periods = np.diff(upward_crossings(run.t, run.output))  # the applied voltage
+            if periods.size:
+                late = max(late, float(np.max(np.abs(periods - spec.period))))
+    measured = re.sub(r": the (excitation|input) is not periodic$", "", str(cause))
+    return (
+        f"the {spec.graph} graph fell behind real time: {measured} (the applied voltage's "
+        f"periods were up to {1e3 * late:.0f} ms off the commanded {spec.period:g} s); retry on "
+        "an idle machine, or with a longer --period and a lower --rate-hz (the device graphs' "
+        "2 s and 500 Hz)"
+    )
+
+
 def _finite(series: Series) -> Series:
     t, v = series
     ok = np.isfinite(v)
@@ -210,7 +270,7 @@ def coupling_experiment(spec: CouplingSpec, progress: Progress | None = None) ->
     try:
         fitted, results = fit_stage_runs(stage, runs, cycle)
     except ModelFitError as exc:  # the record holds runs the identification cannot use
-        raise ExperimentError(f"identification: {exc}") from None
+        raise ExperimentError(f"identification: {_behind(exc, runs, spec)}") from None
     path = save_stage(fitted, spec.output)
     axes = {}
     for axis in fitted.axes:

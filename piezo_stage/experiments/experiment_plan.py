@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Collection
 
+from piezo_stage.config_path import output_problem
 from piezo_stage.control.feedforward import Compensation
 
 from .errors import ExperimentInputError
@@ -44,7 +45,8 @@ class ExperimentPlan:
     ) -> "ExperimentPlan":
         """The plan, or :class:`ExperimentInputError` (one line) for a graph not in
         ``graphs``, a rate that is not > 0, a compensation that is none, a negative or
-        feedback-only learning, a bag folder that exists."""
+        feedback-only learning, a bag folder the bag writer would refuse (one that exists and
+        is not empty) or could not make."""
         if graph not in graphs:
             raise ExperimentInputError(
                 f"--graph {graph}: the experiment runs on {', '.join(graphs)}"
@@ -64,8 +66,8 @@ class ExperimentPlan:
             raise ExperimentInputError(
                 "--learn needs a feedforward: --compensation both or feedforward"
             )
-        if bag is not None and Path(bag).exists():
-            raise ExperimentInputError(f"--bag {bag} already exists")
+        if bag is not None and output_problem(bag, "bag"):
+            raise ExperimentInputError(f"--bag {bag}: {output_problem(bag, 'bag')}")
         return cls(
             graph, float(rate_hz), compensation, int(learn), None if bag is None else Path(bag)
         )

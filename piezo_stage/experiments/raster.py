@@ -43,9 +43,10 @@ from piezo_stage.control.stage_control import SCANNER_VOLTS
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage_file import Stage, load_stage
 
-from .errors import ExperimentError, ExperimentInputError
+from .coupling import graph_rate
+from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
-from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, EMULATED_RATE, GraphRun, run_on_graph
+from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, GraphRun, run_on_graph
 from .raster_view import RasterView, loop_batches
 
 __all__ = ["GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
@@ -127,10 +128,11 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
     common = ExperimentPlan.checked(
         spec.graph, GRAPHS, spec.rate_hz, spec.compensation, spec.learn, spec.bag
     )
-    if spec.graph == "emulated_scanner" and spec.rate_hz != EMULATED_RATE:
+    sampled = graph_rate(DEVICE_GRAPHS[spec.graph]) if spec.graph in DEVICE_GRAPHS else None
+    if sampled is not None and spec.rate_hz != sampled:
         raise ExperimentInputError(
-            f"--rate-hz {spec.rate_hz:g}: the emulated scanner's sensors sample at "
-            f"{EMULATED_RATE:g} Hz, the rate of its loop"
+            f"--rate-hz {spec.rate_hz:g}: the {spec.graph} graph's sensors sample at "
+            f"{sampled:g} Hz, the rate of its loop"
         )
     scan = spec.scan()
     try:
@@ -283,14 +285,17 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
             run = _one_run(plan, ff, coupling, learn, plan.tables, say, common.bag, view)
         if common.bag is not None and common.graph not in DEVICE_GRAPHS:
             write_bag(run, common.bag, axes)
+        if spec.table_out is not None and run.tables is not None:  # kept before the figures
+            run.tables.save(spec.table_out)
         others: list[tuple[str, RasterRun]] = []
         if spec.png is not None:
-            say(0.0, "the same frame under feedback alone, for the figures")
+            alone = _labelled(say, "for the figures, feedback alone")
             others.append(
-                ("feedback only", _one_run(plan, Compensation.FEEDBACK, False, 0, None, say))
+                ("feedback only", _one_run(plan, Compensation.FEEDBACK, False, 0, None, alone))
             )
             if common.learn:
-                before = _one_run(plan, common.compensation, coupling, 0, None, say)
+                said = _labelled(say, "for the figures, before learning")
+                before = _one_run(plan, common.compensation, coupling, 0, None, said)
                 others.append(("before learning", before))
     except ControlError as exc:
         raise ExperimentError(f"raster: {exc}") from None
@@ -315,11 +320,19 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     if common.bag is not None:
         summary["bag"] = str(common.bag)
     if spec.table_out is not None and run.tables is not None:
-        run.tables.save(spec.table_out)
         summary["table_out"] = str(spec.table_out)
     if spec.png is not None:
-        summary["png"] = [str(p) for p in _plots(spec.png, plan, run, others)]
+        try:
+            summary["png"] = [str(p) for p in _plots(spec.png, plan, run, others)]
+        except OSError as exc:
+            kept = {"record": common.bag, "tables": summary.get("table_out")}
+            raise figures_not_written(spec.png, exc, kept) from None
     return summary
+
+
+def _labelled(say: Progress, label: str) -> Progress:
+    """``say`` with each line labelled: a run's progress bar told apart from the others'."""
+    return lambda fraction, text: say(fraction, f"{label}: {text}")
 
 
 def write_bag(run: RasterRun, path: Path, axes: tuple[str, str]) -> None:

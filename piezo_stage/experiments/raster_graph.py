@@ -233,6 +233,7 @@ def run_on_graph(
         )
     except HarnessError as exc:
         raise ExperimentError(f"raster on the {graph_name} graph: {exc.with_output()}") from None
+    progress(1.0, f"scanning on the {graph_name} graph: {seconds:.1f} s")
     from rclpy.serialization import deserialize_message
 
     if bag is not None:  # under /raster, as a simulated run's bag

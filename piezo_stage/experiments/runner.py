@@ -8,7 +8,9 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from .errors import ExperimentError
+from piezo_stage.config_path import output_problem
+
+from .errors import ExperimentError, figures_not_written
 from .harness import HarnessError, Raw, Recording, Stream, record, samples
 from .plan import Plan, graph_for, make_plan, summarize
 
@@ -73,8 +75,8 @@ def run_experiment(
     """
     plan = plan if plan is not None else make_plan(name, mode, duration=duration, gains=gains)
     name, mode = plan.name, plan.mode
-    if bag is not None and Path(bag).exists():
-        raise ExperimentError(f"bag {bag} already exists")
+    if bag is not None and output_problem(bag, "bag"):
+        raise ExperimentError(f"bag {bag}: {output_problem(bag, 'bag')}")
     namespace = f"/experiment_{os.getpid()}_{next(_counter)}"
     if progress is not None:
         progress(0.0, f"{name}/{mode}: starting the graph at {plan.rate_hz:g} Hz")
@@ -89,7 +91,10 @@ def run_experiment(
     if png_dir is not None:
         from .plots import plot_run
 
-        result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
+        try:
+            result["png"] = [str(p) for p in plot_run(plan, data, Path(png_dir))]
+        except OSError as exc:
+            raise figures_not_written(png_dir, exc, {"record": bag}) from None
     if progress is not None:
         progress(1.0, f"{name}/{mode}: done")
     return result
