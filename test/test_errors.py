@@ -61,10 +61,14 @@ def _ancestors(name: str, seen: frozenset[str] = frozenset()) -> set[str]:
 
 
 EXCEPTIONS = {name: _ancestors(name) for name in CLASSES if _ancestors(name) & set(STANDARD)}
+#: warnings, and a stop asked by a signal (a KeyboardInterrupt, which no ``except Exception``
+#: may swallow), are not errors
 ERRORS = {
     name: up
     for name, up in EXCEPTIONS.items()
-    if not any(issubclass(STANDARD[b], Warning) for b in up if b in STANDARD)
+    if not any(
+        issubclass(STANDARD[b], (Warning, KeyboardInterrupt)) for b in up if b in STANDARD
+    )
 }
 
 

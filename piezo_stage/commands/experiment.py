@@ -760,8 +760,9 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if quick_run() and args.name == "tracking":
         summary["quick"] = True  # its figures are a rehearsal's, not the documented ones
+    failed = _verdict(summary)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(_json_ready(summary), indent=2))
     elif args.name == "coupling":
         from piezo_stage.experiments.coupling import summary_text
 
@@ -773,4 +774,31 @@ def run(args: argparse.Namespace) -> int:
     else:
         for key, value in summary.items():
             print(f"{key:>22}: {value:.6g}" if isinstance(value, float) else f"{key:>22}: {value}")
+    if failed:
+        print(f"piezo-stage experiment {args.name}: failed: {failed}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _verdict(summary: dict[str, Any]) -> str | None:
+    """Why the run failed (``summary["failed"]``, set here too), or None: what the experiment
+    found (its loop opened, a gap in its record) or a figure that is not finite."""
+    from piezo_stage.experiments.verdict import first, non_finite
+
+    failed = first(summary.get("failed"), non_finite(summary))
+    if failed:
+        summary["failed"] = failed
+    return failed
+
+
+def _json_ready(value: Any) -> Any:
+    """``value`` with every non-finite number as null (JSON has no NaN; ``failed`` says why)."""
+    import math
+
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

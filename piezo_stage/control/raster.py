@@ -86,6 +86,8 @@ class RasterRun:
     u: NDArray[np.float64]
     learning: list[tuple[float, float]] = field(default_factory=list)
     tables: RasterTables | None = None
+    #: why the run failed (its loop opened, its record has a gap), None when it did not
+    failed: str | None = None
 
     def last_frame(self) -> NDArray[np.bool_]:
         """The samples of the last whole frame the run holds."""

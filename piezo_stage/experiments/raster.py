@@ -319,6 +319,8 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     )
     if common.bag is not None:
         summary["bag"] = str(common.bag)
+    if run.failed:
+        summary["failed"] = run.failed
     if spec.table_out is not None and run.tables is not None:
         summary["table_out"] = str(spec.table_out)
     if spec.png is not None:

@@ -252,4 +252,19 @@ def run_on_graph(
     result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
+    result.failed = run_failure(columns, axes)
     return result
+
+
+def run_failure(columns: tuple[dict[str, Any], ...], axes: tuple[str, ...]) -> str | None:
+    """Why a recorded run failed: an axis's loop opened, or its record has a gap longer than
+    MAX_GAP (times from the first sample of the fast axis)."""
+    from .verdict import first, loop_opened, record_gap
+
+    t0 = columns[0]["stamp"][0] if columns[0]["stamp"].size else 0
+    reasons = []
+    for axis, c in zip(axes, columns):
+        t = (c["stamp"] - t0) * 1e-9
+        reasons.append(loop_opened(t, c["loop_closed"], f"axis {axis}'s loop"))
+        reasons.append(record_gap(t, MAX_GAP, f"axis {axis}'s record"))
+    return first(*reasons)
