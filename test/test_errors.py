@@ -66,9 +66,7 @@ EXCEPTIONS = {name: _ancestors(name) for name in CLASSES if _ancestors(name) & s
 ERRORS = {
     name: up
     for name, up in EXCEPTIONS.items()
-    if not any(
-        issubclass(STANDARD[b], (Warning, KeyboardInterrupt)) for b in up if b in STANDARD
-    )
+    if not any(issubclass(STANDARD[b], (Warning, KeyboardInterrupt)) for b in up if b in STANDARD)
 }
 
 
