@@ -381,6 +381,20 @@ def test_module_without_main_runs_as_main(tmp_path):
     assert out.of("script_mod")[0].startswith("as main ['x', '--ros-args', '-r', '__ns:=/piezo'")
 
 
+def test_a_node_stopped_while_it_boots_exits_130_without_a_traceback(tmp_path):
+    """A stop sent before a process has reached its bootstrap's main() (python's start and the
+    bootstrap's imports, 0.5-2 s on a loaded host) is held until main() can take it: the
+    interrupted start is the status 130, never a KeyboardInterrupt traceback in the log."""
+    (tmp_path / "idle_mod.py").write_text("import time\n\n\ndef main():\n    time.sleep(60)\n")
+    out = Lines()
+    graph = {"env": {"PYTHONPATH": str(tmp_path)}, "nodes": [{"module": "idle_mod"}]}
+    launch = Launcher(graph, sink=out, stop_timeout=60.0)  # SIGINT alone, however slow the start
+    launch.start()
+    assert launch.stop() == 0  # at once: the process is still starting
+    assert launch.exited == [("idle_mod", 130)], out.items
+    assert not any("Traceback" in line for _, line in out.items), out.items
+
+
 @pytest.mark.slow
 def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
     """The shipped sim_closed_loop graph twice (`clock: namespaced`): each lockstep plant steps on

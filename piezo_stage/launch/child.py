@@ -3,7 +3,9 @@ or ``... PPID exec CMD ARGS``.
 
 It asks the kernel (Linux prctl PR_SET_PDEATHSIG) to send SIGTERM to the process when the
 launcher dies, even by SIGKILL, so no node outlives its launch; restores default SIGINT/SIGTERM
-dispositions (a launcher started in the background may have them ignored); then either runs
+dispositions (a launcher started in the background may have them ignored) and unblocks SIGINT
+(the launcher starts each process with it blocked, so that a stop sent during python's start and
+these imports is held until here, not a KeyboardInterrupt traceback); then either runs
 the module's ``main()`` -- the console_scripts contract of the nodes -- or, for a module
 without one, runs it as ``__main__`` like ``python -m``; or execs the command.
 Kept free of heavy imports: it is on the start-up path of every process.
@@ -30,6 +32,12 @@ def die_with_parent(parent_pid: int) -> None:
         libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
     if os.getppid() != parent_pid:  # the launcher died before prctl took effect
         sys.exit(128 + int(signal.SIGTERM))
+
+
+def take_sigint() -> None:
+    """Unblock SIGINT, which the launcher blocks while it starts a process (a SIGINT pending
+    since then is delivered now)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def defines_main(module: str) -> bool:
@@ -81,6 +89,7 @@ def main(argv: list[str] | None = None) -> int | str | None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if mode == "exec":
         signal.signal(signal.SIGINT, signal.SIG_DFL)
+        take_sigint()
         try:
             os.execvp(target, [target, *rest])
         except OSError as exc:
@@ -88,6 +97,7 @@ def main(argv: list[str] | None = None) -> int | str | None:
             return EXIT_NOT_FOUND
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
+        take_sigint()  # a stop held since the start is raised here, inside the try
         return run_module(target, rest)
     except KeyboardInterrupt:  # stopped while still importing: the status, not a traceback
         return 128 + int(signal.SIGINT)

@@ -41,14 +41,21 @@ class ManagedProcess:
         self.killed = False  # SIGKILL was needed
 
     def start(self) -> None:
-        self._popen = subprocess.Popen(
-            self.argv,
-            env=self._env,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            start_new_session=True,
-        )
+        """Start the process with SIGINT blocked (the mask is inherited across exec): a stop
+        sent while python starts and the bootstrap imports waits for the bootstrap's main(),
+        which unblocks it where an interrupted start is a status, not a traceback."""
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self._popen = subprocess.Popen(
+                self.argv,
+                env=self._env,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                start_new_session=True,
+            )
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
         for pipe, is_err in ((self._popen.stdout, False), (self._popen.stderr, True)):
             t = threading.Thread(
                 target=self._read,
