@@ -19,7 +19,7 @@ from piezo_stage.nodes.errors import RosParameterError
 from piezo_stage.nodes.live_view import RateGate, parse_topic_rates
 
 from foxglove_client import FoxgloveClient, decoder
-from ros_support import start_node, stop
+from ros_support import spin_until, start_node, stop
 
 pytestmark = pytest.mark.ros
 
@@ -231,6 +231,20 @@ def test_a_busy_port_is_refused_with_exit_2():
     assert proc.returncode == 2 and "cannot serve on 127.0.0.1" in err, err
 
 
+def loop_runs(node, topic: str, samples: int, timeout: float) -> bool:
+    """Whether ``samples`` Displacement messages on ``topic`` reach the probe ``node`` within
+    ``timeout`` s: the lockstep loop is stepping."""
+    from piezo_stage.nodes.qos import SENSOR_QOS
+    from piezo_stage_msgs.msg import Displacement
+
+    got: list = []
+    subscription = node.create_subscription(Displacement, topic, got.append, SENSOR_QOS)
+    try:
+        return spin_until(node, lambda: len(got) >= samples, timeout)
+    finally:
+        node.destroy_subscription(subscription)
+
+
 def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
     """`piezo-stage launch sim_closed_loop --view`: displacement, voltage_command,
     controller_state and /diagnostics reach a client (30 messages of each loop topic, 3 of
@@ -258,6 +272,10 @@ def test_launch_sim_closed_loop_with_view_serves_the_loop(node, tmp_path):
     client = None
     try:
         launcher.wait_ready(timeout=60.0)
+        # the loop stepping first: its first steps compile the plant's kernels when numba's
+        # cache of them is cold (a fresh clone, an edited model file: 40-60 s on a 2-core host,
+        # 0.4 s cached); the waits below then see a running loop
+        assert loop_runs(node, f"{space}/displacement", 10, 600.0), "\n".join(lines[-30:])
         deadline = time.monotonic() + 30.0
         while client is None and time.monotonic() < deadline:
             try:
