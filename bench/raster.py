@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from _targets import check, exit_code
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
@@ -42,6 +44,13 @@ CASES = {
     "A": dict(lines=64, pixels=256, line_rate=10.0, rate=10_000.0),
     "B": dict(lines=64, pixels=32, line_rate=10.0, rate=1_000.0),
     "C": dict(lines=64, pixels=64, line_rate=50.0, rate=10_000.0),
+}
+#: after learning, per case: (figure, its target, unit); x, y: RMS error in % of the axis's
+#: range, y_vs_feedback: Y's error / Y's error under feedback only, px_max: the distortion
+TARGETS = {
+    "A": (("x", 0.2, "%"), ("y", 0.2, "%"), ("y_vs_feedback", 0.1, "x"), ("px_max", 0.5, "px")),
+    "B": (("x", 0.2, "%"),),
+    "C": (("x", 0.5, "%"),),
 }
 RUNS = {  # label: (compensation, coupling compensated, learning lines)
     "feedback only": ("feedback", False, 0),
@@ -96,6 +105,19 @@ def run_case(case: str, model: Stage, png: Path | None) -> dict[str, dict[str, f
     return out
 
 
+def judge(seed: int, case: str, res: dict[str, dict[str, float]]) -> None:
+    """The case's targets on its learned run."""
+    learned = res["both, learned"]
+    figures = {
+        "x": 100 * learned["x"],
+        "y": 100 * learned["y"],
+        "y_vs_feedback": learned["y"] / res["feedback only"]["y"],
+        "px_max": learned["px_max"],
+    }
+    for name, target, unit in TARGETS[case]:
+        check(f"seed {seed} case {case} learned: {name}", figures[name], target, unit)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -117,7 +139,8 @@ def main() -> int:
                     f"sim {r['ratio']:.2f}x scan time",
                     flush=True,
                 )
-    return 0
+            judge(seed, case, res)
+    return exit_code()
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _targets import check, exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
@@ -57,7 +58,8 @@ from control_loop import (  # noqa: E402
 RATE = 1000.0
 AXES = ("1", "2", "3")
 SLEW, WRITE_PERIOD = 1e5, 1e-3  # V/s, s: a cap of 100 V per write (the sawtooth's wrap: 99.8 V)
-TARGETS = "p99 <= 0.3 ms; CPU per cycle, 3 axes <= 2x 1 axis; no step above the slew cap"
+P99_TARGET = 0.3  # ms: sensor frame to SVA, the worst axis
+CPU_RATIO_TARGET = 2.0  # CPU per cycle, 3 axes / 1 axis
 
 
 def serve_sensor(link: str, log_path: str, t0: float) -> None:
@@ -188,8 +190,11 @@ def node_loop(port: int, tmp: Path, n: int) -> list[str]:
     ]
 
 
-def measure(n: int, seconds: float, form: str = "core") -> tuple[str, float, float, list[str]]:
-    """One run of ``n`` axes: (line, worst p99 [s], CPU per cycle [s], safety lines)."""
+def measure(
+    n: int, seconds: float, form: str = "core"
+) -> tuple[str, float, float, list[str], tuple[float, float]]:
+    """One run of ``n`` axes: (line, worst p99 [s], CPU per cycle [s], safety lines, (the
+    largest step between two writes of an axis [V], the slew cap per write [V]))."""
     tmp = Path(tempfile.mkdtemp(prefix="bench_scanner_"))
     port, amp_log = free_port(), str(tmp / "amp.npy")
     links = [str(tmp / f"sensor_{NAMES[i]}") for i in range(n)]
@@ -221,7 +226,7 @@ def measure(n: int, seconds: float, form: str = "core") -> tuple[str, float, flo
     # the driver's cap per write: slew_rate x min(write period, 25 ms) (the node's write period
     # is its watchdog's)
     cap = SLEW * min(WATCHDOG if form == "node" else WRITE_PERIOD, 0.025)
-    parts, worst, safety = [], 0.0, []
+    parts, worst, safety, largest = [], 0.0, [], 0.0
     for i in range(n):
         mine = amp[amp[:, 1] == float(AXES[i])]
         answers = [(float(t), float(v)) for t, _, v in mine]
@@ -231,6 +236,7 @@ def measure(n: int, seconds: float, form: str = "core") -> tuple[str, float, flo
         worst = max(worst, p99 * 1e-3)
         parts.append(f"axis {AXES[i]} p50 {p50:.3f} p99 {p99:.3f} ms unanswered {fig.unanswered}")
         steps = np.abs(np.diff(mine[:, 2]))
+        largest = max(largest, float(steps.max()))
         safety.append(
             f"  axis {AXES[i]}: largest step {steps.max():.3f} V over {mine.shape[0]} writes "
             f"(slew cap {cap:g} V per write), range "
@@ -240,7 +246,7 @@ def measure(n: int, seconds: float, form: str = "core") -> tuple[str, float, flo
         f"{form} {n} axis/axes: cycles {cycles:6d} ({cycles / (t1 - t0):.0f}/s)  CPU/cycle "
         f"{cpu * 1e6:6.1f} us  " + "; ".join(parts)
     )
-    return line, worst, cpu, safety
+    return line, worst, cpu, safety, (largest, cap)
 
 
 def main() -> int:
@@ -292,10 +298,11 @@ def main() -> int:
     }
     for run in range(args.runs):
         for form, n in results:
-            line, p99, cpu, safety = measure(n, args.seconds, form)
+            line, p99, cpu, safety, (largest, cap) = measure(n, args.seconds, form)
             results[form, n].append((p99, cpu))
             print(f"run {run + 1}: {line}", flush=True)
             print("\n".join(safety), flush=True)
+            check(f"run {run + 1}, {form} {n} axis/axes: largest step per write", largest, cap, "V")
     for (form, n), rows in results.items():
         p99s, cpus = np.array(rows).T * 1e3
         print(
@@ -309,8 +316,11 @@ def main() -> int:
                 [c for _, c in results[form, 1]]
             )
             print(f"{form}: CPU per cycle, 3 axes / 1 axis (medians): {ratio:.2f}x")
-    print(f"targets: {TARGETS}")
-    return 0
+            check(f"{form}: CPU per cycle, 3 axes / 1 axis", ratio, CPU_RATIO_TARGET, "x")
+    for (form, n), rows in results.items():
+        worst = 1e3 * max(p99 for p99, _ in rows)
+        check(f"{form} {n} axis/axes: worst-axis p99 of the worst run", worst, P99_TARGET, "ms")
+    return exit_code()
 
 
 if __name__ == "__main__":
