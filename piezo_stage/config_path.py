@@ -100,7 +100,7 @@ def user_output_path(name: str | os.PathLike[str]) -> Path:
 
 
 #: what an output path names: a file to write, a folder to write files into, or a bag folder
-OUTPUT_KINDS = ("file", "folder", "bag")
+OUTPUT_KINDS = ("file", "file_in_new_folder", "folder", "bag")
 
 
 def output_problem(name: str | os.PathLike[str], kind: str = "file") -> str:
@@ -108,15 +108,19 @@ def output_problem(name: str | os.PathLike[str], kind: str = "file") -> str:
     can), checked before anything runs so that nothing measured is lost to it afterwards.
 
     ``file``: not a folder, in an existing folder where a file can be created (or itself
-    writable). ``folder``: a folder, or creatable (its nearest existing ancestor a folder where
-    one can be). ``bag``: as ``folder``, and what :class:`piezo_stage.bag.writer.BagWriter`
-    refuses, refused: a path that exists and is not an empty folder. Writability is tried (a
-    nameless temporary file), not read from the mode bits, which do not bind root."""
+    writable). ``file_in_new_folder``: as ``file``, for a writer that creates its folder: the
+    folder may be missing if it can be created. ``folder``: a folder, or creatable (its nearest
+    existing ancestor a folder where one can be). ``bag``: as ``folder``, and what
+    :class:`piezo_stage.bag.writer.BagWriter` refuses, refused: a path that exists and is not
+    an empty folder. Writability is tried (a nameless temporary file), not read from the mode
+    bits, which do not bind root."""
     if kind not in OUTPUT_KINDS:
         raise ValueError(f"kind must be one of {', '.join(OUTPUT_KINDS)}, got {kind!r}")
     path = user_output_path(name)
-    if kind == "file":
+    if kind == "file" or (kind == "file_in_new_folder" and path.parent.exists()):
         return _file_problem(path)
+    if kind == "file_in_new_folder":
+        path = path.parent
     if path.exists() and not path.is_dir():
         return "already exists and is not a folder" if kind == "bag" else "is a file, not a folder"
     if kind == "bag" and path.is_dir() and any(path.iterdir()):

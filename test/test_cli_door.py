@@ -124,6 +124,8 @@ def test_what_each_kind_of_output_accepts(tmp_path):
         (tmp_path / "a" / "b" / "c", "folder"),
         (tmp_path / "empty", "bag"),
         (tmp_path / "a" / "bag", "bag"),
+        (tmp_path / "no" / "new.py", "file_in_new_folder"),
+        (tmp_path / "afile", "file_in_new_folder"),
     ]
     assert [output_problem(p, kind) for p, kind in ok] == [""] * len(ok)
     refused = [
@@ -135,6 +137,9 @@ def test_what_each_kind_of_output_accepts(tmp_path):
         (tmp_path / "full", "bag"),
         (tmp_path / "afile", "bag"),
         (Path("/proc/new"), "bag"),
+        (tmp_path / "empty", "file_in_new_folder"),
+        (tmp_path / "afile" / "sub" / "new.py", "file_in_new_folder"),
+        (Path("/proc/new/x.py"), "file_in_new_folder"),
     ]
     assert all(output_problem(p, kind) for p, kind in refused)
     assert _tree(tmp_path) == sorted(

@@ -118,7 +118,7 @@ def test_an_e727_class_controller_logs_what_each_axis_applied(capsys, tmp_path):
     [
         (["gcs", "--axes", "1,1"], "distinct alphanumeric axis names"),
         (["gcs", "--axes", "1,,2"], "distinct alphanumeric axis names"),
-        (["mdt69x", "--log", "/nonexistent/dir/a.csv"], "cannot write the voltage log"),
+        (["mdt69x", "--log", "/nonexistent/dir/a.csv"], "--log /nonexistent/dir/a.csv: no folder"),
     ],
 )
 def test_bad_axes_or_log_are_one_line_and_exit_2(argv, message, capsys):

@@ -89,7 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="OUT",
         type=Path,
         default=None,
-        action=output("file"),
+        action=output("file_in_new_folder"),
         help="write an equivalent ros2 launch file (for full ROS installs) and exit",
     )
 
