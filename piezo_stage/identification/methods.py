@@ -226,6 +226,9 @@ DISAGREEMENT = 3.0
 #: and the relative difference below which they agree anyway (noiseless data have standard
 #: errors of 1e-10 that rounding alone exceeds)
 AGREEMENT_FLOOR = 1e-3
+#: samples per run the cross-checking fit sees (a loop's shape needs far fewer than a 20 kHz
+#: data recorder records; the fit's cost grows with them)
+CROSS_CHECK_SAMPLES = 20_000
 
 
 def disagreement(a: IdentificationResult, b: IdentificationResult) -> list[str]:
@@ -255,10 +258,12 @@ def _cross_checked(
     """For auto: the analytic result held against the fit by simulation error from it (which also
     models a delay and a drift): the analytic result when they agree within their standard
     errors, else the one with the smaller residual, with a warning naming both (never one
-    confidently wrong).
+    confidently wrong). The fit sees each run thinned to :data:`CROSS_CHECK_SAMPLES`: a check
+    needs the shape of the loop, not every sample of a 20 kHz record.
     """
     try:
-        fitted = _fit(runs, options, fit, analytic, "", lag)
+        thinned = [r.thinned(CROSS_CHECK_SAMPLES) for r in runs]
+        fitted = _fit(thinned, options, fit, analytic, "", lag)
     except IdentificationError as exc:  # the fit cannot check it: say so, keep the analytic
         note = f"the fit by simulation error could not cross-check the analytic result: {exc}"
         return replace(analytic, warnings=(*analytic.warnings, note))

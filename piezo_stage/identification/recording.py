@@ -53,17 +53,22 @@ class Recording:
     def __len__(self) -> int:
         return len(self.t)
 
-    def slice(self, start: int, stop: int) -> "Recording":
-        """The samples ``start:stop`` as a new recording (same name and units)."""
+    def slice(self, start: int, stop: int, step: int = 1) -> "Recording":
+        """The samples ``start:stop:step`` as a new recording (same name and units)."""
         return Recording(
-            self.t[start:stop],
-            self.input[start:stop],
-            self.output[start:stop],
+            self.t[start:stop:step],
+            self.input[start:stop:step],
+            self.output[start:stop:step],
             self.name,
             self.input_unit,
             self.output_unit,
             dict(self.meta),
         )
+
+    def thinned(self, max_samples: int) -> "Recording":
+        """Every k-th sample, k the least that leaves at most ``max_samples`` (itself if none)."""
+        step = -(-len(self) // max_samples)
+        return self if step <= 1 else self.slice(0, len(self), step)
 
 
 def check_recording(rec: Recording, *, clip_fraction: float = 0.02) -> None:
