@@ -361,3 +361,22 @@ def test_a_graph_run_is_recorded_only_once_the_end_mark_has_arrived():
     assert not recorded_to_the_end({**raw, "voltage": samples[:-1]}, duration, rate)
     assert not recorded_to_the_end({**raw, "displacement": samples[:-2]}, duration, rate)
     assert not recorded_to_the_end({**raw, "voltage": []}, duration, rate)
+
+
+def test_a_rig_run_bent_by_a_stalled_host_says_so():
+    """A rig's run whose driver wrote nothing for 120 ms (the stage stopped meanwhile) fails its
+    sweep, and the reason names the gap the voltage record shows, not only "not periodic"."""
+    from piezo_stage.commissioning.sweep import SweepSettings, identify_frequency, write_stall
+
+    plan = SweepSettings().plan(2.0)
+    whole = simulate(plan, 5000.0)
+    # the sensor on a clock of its own (half a sample later); the driver held for 120 ms
+    later = whole.t_x + 1e-4
+    stall = (whole.t_v > 1.3) & (whole.t_v < 1.42)
+    x = whole.x.copy()
+    x[stall] = x[np.argmax(stall) - 1]
+    bent = Series(whole.t_v[~stall], whole.v[~stall], later, x, whole.status, whole.marks)
+    assert write_stall(whole) is None
+    identify_frequency(dataclasses.replace(whole, t_x=later), plan)  # unbent: identified
+    with pytest.raises(SweepError, match=r"longest 12\d ms at 1\.3\d s: the host fell behind"):
+        identify_frequency(bent, plan)

@@ -36,6 +36,9 @@ PARAMETERS = ("n", "sigma", "rho", "kappa_w", "kappa_x")
 UNITS = {"n": "-", "sigma": "-", "rho": "1/m", "kappa_w": "V", "kappa_x": "V/m"}
 #: a rig's voltage record: a step longer than this many of its median periods is a gap
 GAP_PERIODS = 3.0
+#: [s] a rig's voltage record without a value this long: the amplifier was not written in time
+#: (the host fell behind real time), which bends the excitation's period
+WRITE_STALL = 0.01
 #: least samples per period of the excitation (40 per branch and a clean loop need ~ 500)
 MIN_SAMPLES_PER_PERIOD = 200
 
@@ -280,10 +283,35 @@ def identify_frequency(series: Series, plan: ExcitationPlan) -> FrequencyResult:
     for delay in DELAY_GRID:
         attempt(float(delay))
     if (first := best()) is None:
-        raise next(iter(tried.values()))  # type: ignore[misc]
+        exc = next(iter(tried.values()))
+        assert isinstance(exc, SweepError)
+        if (stall := write_stall(series)) is not None:
+            raise SweepError(f"{exc}; {stall}") from exc
+        raise exc
     for delay in (first.input_delay - DELAY_STEP, first.input_delay + DELAY_STEP):
         attempt(delay)
     return best()  # type: ignore[return-value]
+
+
+def write_stall(series: Series) -> str | None:
+    """What a rig's voltage record says of its timing when a run fails: its longest interval
+    without a value between the excitation's first and last marks, when over
+    :data:`WRITE_STALL` (None otherwise)."""
+    t = series.t_v
+    if series.marks:
+        t = t[(t >= series.marks[0][0]) & (t <= series.marks[-1][0])]
+    if t.size < 2:
+        return None
+    gaps = np.diff(t)
+    worst = int(np.argmax(gaps))
+    if gaps[worst] <= WRITE_STALL:
+        return None
+    start = series.marks[0][0] if series.marks else float(t[0])
+    return (
+        f"the amplifier's voltage record has {int(np.count_nonzero(gaps > WRITE_STALL))} gap(s) "
+        f"over {1e3 * WRITE_STALL:g} ms, the longest {1e3 * gaps[worst]:.0f} ms at "
+        f"{float(t[worst]) - start:.2f} s: the host fell behind real time (a busy or slow host)"
+    )
 
 
 def _identify_at(series: Series, plan: ExcitationPlan, delay: float) -> FrequencyResult:
