@@ -18,7 +18,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from piezo_stage.experiments.verdict import first, loop_opened, non_finite, record_gap
+from piezo_stage.experiments.verdict import (
+    first,
+    learning_diverged,
+    loop_opened,
+    non_finite,
+    record_gap,
+)
 
 from property_support import examples
 
@@ -61,6 +67,19 @@ def test_a_figure_that_is_not_finite_is_named_and_none_passes():
     assert non_finite({"line_rms": [1.0, math.inf]}).startswith("the figure line_rms[1]")
     assert non_finite({"a": 1.0, "b": [None, 2.0], "c": "text"}) is None
     assert first(None, "", "second", "third") == "second"
+
+
+@pytest.mark.unit
+@given(
+    st.lists(st.floats(1e-9, 1e-5) | st.just(math.nan), min_size=0, max_size=30),
+    st.floats(1e-9, 1e-5),
+)
+def test_learning_diverged_exactly_when_it_ends_above_its_first_period(learning, learned):
+    reason = learning_diverged(learning, learned)
+    began = learning[0] if learning else math.nan
+    assert (reason is not None) == (learned > began)  # NaN: no first period, nothing to judge
+    if reason is not None:
+        assert reason.startswith("learning diverged: ") and f"{1e9 * began:.0f} nm" in reason
 
 
 def _children(pid: int) -> list[int]:

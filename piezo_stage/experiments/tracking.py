@@ -84,7 +84,7 @@ from .harness import (
 from .plan import Plan
 from .presets import experiment_controller, lockstep_plant
 from .runner import STATE_TYPE, run_plan
-from .verdict import first, loop_opened, record_gap
+from .verdict import first, learning_diverged, loop_opened, record_gap
 
 Progress = Callable[[float, str], None]
 DEFAULT_PLANT = "ch11_rig.yaml"
@@ -762,7 +762,13 @@ RECORD_GAP_S = 0.2
 def _summary(plan: TrackingPlan, states: ControllerStates, recording: Recording) -> dict[str, Any]:
     """The JSON-ready figures of the run of ``plan`` (its settings, errors, learning, timing)."""
     spec, period = plan.spec, plan.trajectory.period
-    failed = first(loop_opened(states.t, states.loop_closed), record_gap(states.t, RECORD_GAP_S))
+    figures = _figures(states, plan.t_from)
+    learning = _period_rms(states, period, spec.learn) if spec.learn else []
+    failed = first(
+        loop_opened(states.t, states.loop_closed),
+        record_gap(states.t, RECORD_GAP_S),
+        learning_diverged(learning, figures["rms_error"]),
+    )
     return ({"failed": failed} if failed else {}) | {
         "experiment": "tracking",
         "graph": spec.graph,
@@ -779,8 +785,8 @@ def _summary(plan: TrackingPlan, states: ControllerStates, recording: Recording)
         "model": spec.model
         if isinstance(spec.model, str) or spec.model is None
         else spec.model.name,
-        **_figures(states, plan.t_from),
-        "learning": _period_rms(states, period, spec.learn) if spec.learn else [],
+        **figures,
+        "learning": learning,
         "max_abs_u": float(np.abs(states.u).max()),
         "wall_time": recording.wall_time,
         "steps_per_wall_second": states.t.size / recording.wall_time,

@@ -14,7 +14,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["first", "loop_opened", "non_finite", "record_gap"]
+__all__ = ["first", "learning_diverged", "loop_opened", "non_finite", "record_gap"]
 
 
 def loop_opened(t: ArrayLike, loop_closed: ArrayLike, what: str = "the loop") -> str | None:
@@ -50,6 +50,21 @@ def record_gap(t: ArrayLike, max_gap: float, what: str = "the record") -> str | 
         return None
     k = int(np.argmax(steps))
     return f"{what} has a {steps[k]:.3f} s gap at {times[k]:.2f} s (at most {max_gap:g} s fills)"
+
+
+def learning_diverged(learning: ArrayLike, learned: float) -> str | None:
+    """``"learning diverged: ..."`` when the error after learning, ``learned`` (RMS), is above
+    the first learning period's (``learning[0]``): the table learned what it should have left
+    out (a host that held the loop off the CPU feeds it bursts of late samples); None
+    otherwise, or when there was no learning."""
+    periods = np.asarray(learning, dtype=float)
+    if periods.size == 0 or not math.isfinite(periods[0]) or not learned > periods[0]:
+        return None
+    worst = int(np.nanargmax(periods))
+    return (
+        f"learning diverged: RMS {1e9 * learned:.0f} nm after it against {1e9 * periods[0]:.0f} "
+        f"nm in its first period (its worst, period {worst + 1}: {1e9 * periods[worst]:.0f} nm)"
+    )
 
 
 def non_finite(summary: Mapping[str, Any], skip: Iterable[str] = ()) -> str | None:
