@@ -19,7 +19,12 @@ PARAMETERS = ParameterTable(
     "talker",
     (
         Param("text", "hello", "what to say"),
-        Param("exit_after", 0.0, "seconds before exiting by itself (0: never)", "s"),
+        Param(
+            "exit_after",
+            0.0,
+            "seconds after chatter's first subscriber matched before exiting by itself (0: never)",
+            "s",
+        ),
         Param("fail_code", 0, "exit code when exiting by itself"),
     ),
 )
@@ -27,7 +32,8 @@ PARAMETERS = ParameterTable(
 
 class Talker(Node):
     """Publishes ``"<text> <count>"`` on ``chatter`` at 20 Hz; with exit_after > 0 it ends by
-    itself after that many seconds with exit code `fail_code`."""
+    itself that many seconds after a subscriber matched (discovery takes seconds on a loaded
+    host) with exit code `fail_code`."""
 
     def __init__(self) -> None:
         super().__init__("talker")
@@ -36,16 +42,20 @@ class Talker(Node):
         self.pub = self.create_publisher(String, "chatter", COMMAND_QOS)
         self.count = 0
         self.finished = False  # from the start, as run() asks (nodes.runtime.Finishes)
+        self.exit_after = exit_after
+        self.exit_timer = None
         self.create_timer(0.05, self.tick)
-        if exit_after > 0:
-            self.create_timer(exit_after, self.finish)
         print(f"talker {self.get_fully_qualified_name()} says {self.text!r}", flush=True)
 
     def tick(self) -> None:
+        if self.exit_after > 0 and self.exit_timer is None and self.pub.get_subscription_count():
+            self.exit_timer = self.create_timer(self.exit_after, self.finish)
         self.count += 1
         self.pub.publish(String(data=f"{self.text} {self.count}"))
 
     def finish(self) -> None:
+        if self.finished:
+            return
         self.get_logger().info(f"exiting by itself with code {self.fail_code}")
         self.exit_code = self.fail_code
         self.finished = True

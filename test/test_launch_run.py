@@ -145,7 +145,7 @@ def _check_running(a: Launcher, b: Launcher, out_a: Lines, out_b: Lines) -> None
 def test_required_exit_stops_the_others_with_its_code(tmp_path):
     path = chatter_graph(
         tmp_path,
-        talker={"required": True, "overrides": {"exit_after": 0.5, "fail_code": 7}},
+        talker={"required": True, "overrides": {"exit_after": 1.0, "fail_code": 7}},
         extra=[{"command": ["sleep", "60"]}],
     )
     proc = subprocess.run(
