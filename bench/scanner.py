@@ -32,9 +32,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from piezo_stage.control.model_fit import perturbed  # noqa: E402
+from piezo_stage.control.scan import make_trajectory  # noqa: E402
 from piezo_stage.control.stage_control import scanner_run  # noqa: E402
 from piezo_stage.control.stage_fit import fit_stage, stage_recordings  # noqa: E402
-from piezo_stage.control.trajectory import SetPoint, make_trajectory  # noqa: E402
+from piezo_stage.control.trajectory import SetPoint  # noqa: E402
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
 from piezo_stage.model.stage_file import Stage, StageAxis  # noqa: E402
 

@@ -40,8 +40,8 @@ from piezo_stage.control.model_fit import (  # noqa: E402
     perturbed_each,
     rig_recordings,
 )
+from piezo_stage.control.scan import make_trajectory  # noqa: E402
 from piezo_stage.control.tracking import simulate_tracking  # noqa: E402
-from piezo_stage.control.trajectory import make_trajectory  # noqa: E402
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
 
 LITERATURE = 0.01  # 1 % of the range: the better end of the reported 1-2 %

@@ -59,7 +59,7 @@ def test_info_counts_what_the_library_counts(name):
 @pytest.mark.parametrize("name", GENUINE)
 def test_info_from_the_indexes_equals_a_message_walk(name):
     from piezo_stage.bag import records
-    from piezo_stage.bag.reader import bag_files
+    from piezo_stage.bag.files import bag_files
 
     for file in bag_files(DATA / name):
         indexed = records.McapWalk(file).indexed_counts()

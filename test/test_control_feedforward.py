@@ -17,7 +17,7 @@ from piezo_stage.control.feedforward import (
     feedforward,
 )
 from piezo_stage.control.laws import THESIS_GAINS
-from piezo_stage.control.trajectory import make_trajectory
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
 

@@ -32,8 +32,8 @@ from piezo_stage.control.learning import (
     sampled_feedforward,
 )
 from piezo_stage.control.model_fit import perturbed
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.tracking import simulate_tracking
-from piezo_stage.control.trajectory import make_trajectory
 from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
 from piezo_stage.model.plant import DynamicPlant
 

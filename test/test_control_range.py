@@ -14,13 +14,13 @@ from hypothesis import strategies as st
 from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
 from piezo_stage.control.feedforward import FeedforwardModel, feedforward
 from piezo_stage.control.laws import Gains
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.supervision import (
     Health,
     LoopSupervisor,
     SaturationWindow,
     SupervisionConfig,
 )
-from piezo_stage.control.trajectory import make_trajectory
 from piezo_stage.control.voltage_range import (
     PID_MARGIN,
     AmplifierRange,

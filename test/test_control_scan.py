@@ -12,9 +12,9 @@ from piezo_stage.control.scan import (
     ScanAxis,
     ScanError,
     SlowMotion,
+    make_trajectory,
     quintic_transition,
 )
-from piezo_stage.control.trajectory import make_trajectory
 
 from property_support import examples
 

@@ -14,6 +14,7 @@ from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import THESIS_GAINS
 from piezo_stage.control.learning import sampled_feedforward
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.simulation import simulate_closed_loop
 from piezo_stage.control.stage_control import (
     OwnFrames,
@@ -23,7 +24,7 @@ from piezo_stage.control.stage_control import (
     scanner_run,
     simulate_stage,
 )
-from piezo_stage.control.trajectory import SetPoint, make_trajectory
+from piezo_stage.control.trajectory import SetPoint
 from piezo_stage.model.parameter_set import shipped_parameter_set
 from piezo_stage.model.stage import AmplifierModel, CoupledStage, SimulatedStage
 from piezo_stage.model.stage_file import Stage, StageAxis, load_stage, single_axis_stage

@@ -7,8 +7,8 @@ import pytest
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import FeedforwardModel
 from piezo_stage.control.model_fit import fit_feedforward_model, perturbed, rig_recordings
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.tracking import simulate_tracking, tracking_errors
-from piezo_stage.control.trajectory import make_trajectory
 from piezo_stage.model.parameter_set import shipped_parameter_set
 
 pytestmark = pytest.mark.unit

@@ -7,12 +7,12 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
+from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.trajectory import (
     CsvTrajectory,
     PeriodicTrajectory,
     Shape,
     TrajectoryError,
-    make_trajectory,
 )
 
 from property_support import examples

@@ -13,7 +13,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from piezo_stage.bag import bag_info, read_messages
-from piezo_stage.bag.reader import bag_files
+from piezo_stage.bag.files import bag_files
 from piezo_stage.cli import main as cli
 
 from ros_support import spin_until, start_node, stop

@@ -11,92 +11,10 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
-from mcap.records import Channel, Schema
-
-from . import records
-from .errors import InvalidQosError
+from .files import bag_files, file_summary, listed_counts, merged_topics, read_metadata
 from .metadata import BagMetadata
-from .qos import normalize_profiles
-from .reader import _metadata, bag_files, listed_counts
-
-
-def _channel_info(channel: Channel, schema: Schema | None) -> dict[str, Any]:
-    try:
-        qos = normalize_profiles(channel.metadata.get("offered_qos_profiles", ""))
-    except InvalidQosError:
-        qos = []
-    return {
-        "type": schema.name if schema else "",
-        "count": 0,
-        "serialization_format": channel.message_encoding,
-        "offered_qos_profiles": qos,
-        "type_description_hash": channel.metadata.get("topic_type_hash", ""),
-    }
-
-
-def file_summary(path: Path, listed: int | None = None) -> dict[str, Any]:
-    """Size, completeness, damage, counts, times and topics of one MCAP file (``listed``: the
-    count metadata.yaml gives for it, to tell what damage lost when the summary is gone).
-    """
-    scan = records.scan(path)
-    topics: dict[str, dict[str, Any]] = {}
-    start, end, count = 2**63, -1, 0
-    walk = records.McapWalk(path, expected=listed)
-    indexed = walk.indexed_counts()
-    if indexed is not None:  # complete file: chunks CRC-checked, counts from their indexes
-        for channel_id, (n, first, last) in indexed.items():
-            channel = walk.channels[channel_id]
-            info = topics.setdefault(
-                channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id))
-            )
-            info["count"] += n
-            count += n
-            start, end = min(start, first), max(end, last)
-    else:
-        walk = records.McapWalk(path, expected=listed)
-        for channel, log_time, _, _, _ in walk.messages():
-            if channel.topic not in topics:
-                topics[channel.topic] = _channel_info(channel, walk.schemas.get(channel.schema_id))
-            topics[channel.topic]["count"] += 1
-            count += 1
-            start, end = min(start, log_time), max(end, log_time)
-    for channel in walk.channels.values():  # topics without messages (or all lost)
-        topics.setdefault(
-            channel.topic, _channel_info(channel, walk.schemas.get(channel.schema_id))
-        )
-    compression = scan.chunk_compression
-    if path.name.endswith(records.FILE_COMPRESSED_SUFFIX):
-        compression = f"file zstd{', chunk ' + compression if compression else ''}"
-    return {
-        "path": str(path),
-        "size_bytes": path.stat().st_size,
-        "complete": scan.has_footer,
-        "compression": compression,
-        "message_count": count,
-        "start_ns": start if count else 0,
-        "end_ns": end if count else 0,
-        "topics": topics,
-        "damage": str(walk.damage()) if walk.errors else "",
-    }
-
-
-def mcap_topics(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Topics of all files of a bag, counts summed."""
-    return _merged_topics(file_summary(file) for file in bag_files(path))
-
-
-def _merged_topics(files: Iterable[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """The topics of ``file_summary`` dicts merged by name, counts summed."""
-    merged: dict[str, dict[str, Any]] = {}
-    for summary in files:
-        for name, info in summary["topics"].items():
-            if name in merged:
-                merged[name]["count"] += info["count"]
-            else:
-                merged[name] = dict(info)
-    return merged
 
 
 def _add_metadata_topics(topics: dict[str, dict[str, Any]], metadata: BagMetadata) -> None:
@@ -133,8 +51,8 @@ def bag_info(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     listed = listed_counts(path)
     files = [file_summary(f, listed.get(f.name)) for f in bag_files(path)]
-    metadata = _metadata(path)
-    topics = _merged_topics(files)
+    metadata = read_metadata(path)
+    topics = merged_topics(files)
     if metadata is not None:
         _add_metadata_topics(topics, metadata)
     with_messages = [f for f in files if f["message_count"]]

@@ -11,7 +11,6 @@ one ``SkippedTopicWarning`` each.
 
 from __future__ import annotations
 
-import re
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Iterator
@@ -23,79 +22,18 @@ from numpy.typing import NDArray
 from .decode import BagTypes
 from .errors import (
     BagDamageWarning,
-    BagNotFoundError,
     CorruptBagError,
     SkippedTopicWarning,
     UnknownTopicError,
     WrongTopicTypeError,
 )
-from .metadata import METADATA_FILENAME, BagMetadata
-from .records import McapWalk, is_mcap_name
+from .files import bag_files, listed_counts, mcap_topics, read_metadata
+from .records import McapWalk
 from .series import SERIES_FIELDS, decode_series
 from .types import NUMERIC_TYPES, stamp_seconds
 
-_INDEX_RE = re.compile(r"_(\d+)\.mcap(?:\.zstd)?$")
-
 if TYPE_CHECKING:
     from rosbags.interfaces.typing import Typesdict
-
-
-def _file_order(path: Path) -> tuple[int, str]:
-    match = _INDEX_RE.search(path.name)
-    return (int(match.group(1)) if match else -1, path.name)
-
-
-def folder_mcap_files(folder: Path) -> list[Path]:
-    """Every ``*.mcap`` (or ``*.mcap.zstd``) of a folder, in split order (``_0``, ..., ``_10``)."""
-    return sorted((p for p in folder.iterdir() if p.is_file() and is_mcap_name(p)), key=_file_order)
-
-
-def bag_files(path: str | Path) -> list[Path]:
-    """The MCAP files of a bag folder (in recording order) or ``[path]`` for a ``.mcap``."""
-    path = Path(path)
-    if path.is_file():
-        if not is_mcap_name(path):
-            raise BagNotFoundError(f"{path} is not an .mcap file or a rosbag2 folder")
-        return [path]
-    if not path.is_dir():
-        raise BagNotFoundError(f"no bag at {path}")
-    files: list[Path] = []
-    metadata = _metadata(path)
-    if metadata is not None:
-        if metadata.storage_identifier not in ("", "mcap"):
-            raise BagNotFoundError(
-                f"{path} is a rosbag2 bag in {metadata.storage_identifier!r} storage: only MCAP "
-                f"is read here (`ros2 bag convert` or rosbags-convert make an MCAP copy)"
-            )
-        # older rosbag2 wrote the paths with the bag folder in front: keep the name only
-        files = [
-            path / f.path if (path / f.path).is_file() else path / Path(f.path).name
-            for f in metadata.files
-        ]
-        files = [f for f in files if f.is_file()]
-    if not files:
-        files = folder_mcap_files(path)
-    if not files:
-        raise BagNotFoundError(f"{path} holds no .mcap file")
-    return files
-
-
-def listed_counts(path: str | Path) -> dict[str, int]:
-    """``{file name: message count}`` that metadata.yaml lists (to tell what damage lost)."""
-    metadata = _metadata(Path(path))
-    if metadata is None:
-        return {}
-    return {Path(f.path).name: f.message_count for f in metadata.files if f.message_count}
-
-
-def _metadata(path: Path) -> BagMetadata | None:
-    """The bag folder's metadata.yaml, or None (missing or unreadable: the files tell)."""
-    if path.is_dir() and (path / METADATA_FILENAME).is_file():
-        try:
-            return BagMetadata.read(path)
-        except CorruptBagError:
-            return None
-    return None
 
 
 def _topic_set(topics: str | Iterable[str] | None) -> set[str] | None:
@@ -109,7 +47,7 @@ def iter_bag(
 ) -> Iterator[tuple[Channel, Schema | None, int, bytes]]:
     """``(channel, schema, log_time_ns, data)`` of every message of every file, file order."""
     wanted = _topic_set(topics)
-    metadata = _metadata(Path(path))
+    metadata = read_metadata(Path(path))
     per_message = metadata is not None and metadata.compression_mode.upper() == "MESSAGE"
     decompress = _zstd_message if per_message else None
     listed = listed_counts(path) if wanted is None else {}
@@ -189,7 +127,7 @@ def read_messages(
 
 
 def _metadata_types(path: str | Path) -> dict[str, str]:
-    metadata = _metadata(Path(path))
+    metadata = read_metadata(Path(path))
     return {t.name: t.type for t in metadata.topics} if metadata is not None else {}
 
 
@@ -198,8 +136,6 @@ def topic_types(path: str | Path) -> dict[str, str]:
     found = _metadata_types(path)
     if found:
         return found
-    from .info import mcap_topics  # local import: info builds on this module
-
     return {name: t["type"] for name, t in mcap_topics(path).items()}
 
 

@@ -24,9 +24,9 @@ from mcap.writer import CompressionType, Writer
 
 from . import records
 from .errors import BagNotFoundError, InvalidQosError, UnknownMessageTypeError
+from .files import bag_files, folder_mcap_files, read_metadata
 from .metadata import BagMetadata, FileRecord, TopicRecord
 from .qos import normalize_profiles, profiles_to_yaml
-from .reader import _metadata, bag_files, folder_mcap_files
 from .types import message_definition
 from .writer import DEFAULT_CHUNK_SIZE, LIBRARY
 
@@ -316,7 +316,7 @@ def reindex(path: str | Path) -> ReindexReport:
     """
     path = Path(path)
     files = _mcap_files(path)
-    previous = _metadata(path)
+    previous = read_metadata(path)
     metadata = _fresh_metadata(previous)
     table = _TopicTable(previous)
     report = ReindexReport(path)

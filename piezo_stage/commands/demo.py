@@ -289,9 +289,10 @@ def _scanner(args: argparse.Namespace, out: Path, progress: Progress) -> StageRe
     import numpy as np
 
     from piezo_stage.config_path import find_config
+    from piezo_stage.control.scan import make_trajectory
     from piezo_stage.control.stage_control import scanner_run
     from piezo_stage.control.stage_fit import fit_stage, stage_recordings
-    from piezo_stage.control.trajectory import SetPoint, make_trajectory
+    from piezo_stage.control.trajectory import SetPoint
     from piezo_stage.model.stage_file import load_stage, save_stage
     from piezo_stage.plotting.figures import coupling_figure
 

@@ -81,7 +81,7 @@ def _inputs(args: argparse.Namespace) -> tuple[Any, Any, Any]:
     from piezo_stage.control.errors import ControlError
     from piezo_stage.control.feedforward import FeedforwardModel
     from piezo_stage.control.learning import FeedforwardTable
-    from piezo_stage.control.trajectory import make_trajectory
+    from piezo_stage.control.scan import make_trajectory
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.model.errors import ModelError
     from piezo_stage.model.parameter_set import load_parameter_set

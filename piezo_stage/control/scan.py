@@ -1,5 +1,6 @@
 """Raster scans: a fast axis sweeping lines and a slow axis stepping or ramping over a frame,
-in closed form (x_d, ẋ_d, ẍ_d per axis, as :mod:`.trajectory` gives one axis).
+in closed form (x_d, ẋ_d, ẍ_d per axis, as :mod:`.trajectory` gives one axis), and
+``make_trajectory``: any trajectory a controller follows, by name or file.
 
 Geometry (times in s, positions in m). ``range`` and ``centre`` are the *image*'s, per axis;
 the fast axis over-travels them by its turnarounds (an instrument's overscan):
@@ -29,16 +30,18 @@ import math
 from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .trajectory import (
     DEFAULT_ROUNDING,
+    CsvTrajectory,
     Evaluation,
     PeriodicTrajectory,
     Shape,
+    Trajectory,
     TrajectoryError,
 )
 
@@ -49,6 +52,7 @@ __all__ = [
     "ScanAxis",
     "ScanError",
     "SlowMotion",
+    "make_trajectory",
     "quintic_transition",
 ]
 
@@ -357,7 +361,7 @@ class ScanAxis:
     scan: RasterScan
     index: int
 
-    periodic = True  #: a feedforward table of one :attr:`period` serves it
+    periodic: ClassVar[bool] = True  #: a feedforward table of one :attr:`period` serves it
 
     def __post_init__(self) -> None:
         if self.index not in (0, 1):
@@ -402,3 +406,28 @@ class ScanAxis:
             return cls(RasterScan.from_dict(data.get("scan")), data.get("axis"))  # type: ignore[arg-type]
         except ScanError as exc:
             raise ScanError(f"{path}: {exc}") from None
+
+
+def make_trajectory(
+    kind: str,
+    *,
+    amplitude: float = 10e-6,
+    frequency: float = 10.0,
+    offset: float | None = None,
+    rounding: float = DEFAULT_ROUNDING,
+    v_max: float = math.inf,
+    a_max: float = math.inf,
+) -> Trajectory:
+    """``kind``: sine | triangle | steps, the path of a CSV file (t [s], x [m]), or of one
+    axis of a raster scan (JSON, :class:`ScanAxis`).
+    """
+    if kind in {s.value for s in Shape}:
+        return PeriodicTrajectory(Shape(kind), amplitude, frequency, offset, rounding, v_max, a_max)
+    if kind.endswith(".json"):
+        return ScanAxis.read(kind)
+    if kind.endswith(".csv") or Path(kind).is_file():
+        return CsvTrajectory.read(kind, v_max=v_max, a_max=a_max)
+    raise TrajectoryError(
+        f"unknown trajectory {kind!r}: expected sine, triangle, steps, a .csv file or a "
+        "scan axis's .json file"
+    )

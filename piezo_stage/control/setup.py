@@ -32,9 +32,10 @@ from .learning import (
     sampled_feedforward,
     trajectory_samples,
 )
+from .scan import make_trajectory
 from .setpoint import ReferenceSource
 from .supervision import SupervisionConfig
-from .trajectory import Trajectory, make_trajectory
+from .trajectory import Trajectory
 
 #: resolves a file name a setting gives (default: :func:`find_user_file`)
 FindFile = Callable[[str], Path]

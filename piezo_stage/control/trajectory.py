@@ -25,15 +25,12 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar, Union, cast
+from typing import ClassVar, Protocol, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ControlError
-
-if TYPE_CHECKING:
-    from .scan import ScanAxis
 
 
 class TrajectoryError(ControlError):
@@ -306,7 +303,26 @@ class CsvTrajectory:
         return cls(t, x, name=str(path), v_max=v_max, a_max=a_max)
 
 
-Trajectory = Union[PeriodicTrajectory, CsvTrajectory, "ScanAxis"]
+class Trajectory(Protocol):
+    """What a controller follows: x_d, ẋ_d, ẍ_d at any time (:class:`PeriodicTrajectory`,
+    :class:`CsvTrajectory`, one axis of a raster scan: :class:`~.scan.ScanAxis`).
+    """
+
+    periodic: ClassVar[bool]  #: a feedforward table of one :attr:`period` serves it
+
+    @property
+    def period(self) -> float:
+        """The time after which the trajectory repeats (periodic) or ends [s]."""
+        ...
+
+    @property
+    def range(self) -> float:
+        """Max x_d - min x_d [m]."""
+        ...
+
+    def evaluate(self, t: ArrayLike) -> Evaluation:
+        """(x_d, ẋ_d, ẍ_d) at the times ``t``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -322,30 +338,3 @@ class SetPoint:
         """(x_d, ẋ_d, ẍ_d) at ``t``: the position, 0, 0."""
         t = np.asarray(t, dtype=float)
         return np.full_like(t, self.position), np.zeros_like(t), np.zeros_like(t)
-
-
-def make_trajectory(
-    kind: str,
-    *,
-    amplitude: float = 10e-6,
-    frequency: float = 10.0,
-    offset: float | None = None,
-    rounding: float = DEFAULT_ROUNDING,
-    v_max: float = math.inf,
-    a_max: float = math.inf,
-) -> Trajectory:
-    """``kind``: sine | triangle | steps, the path of a CSV file (t [s], x [m]), or of one
-    axis of a raster scan (JSON, :class:`~.scan.ScanAxis`).
-    """
-    if kind in {s.value for s in Shape}:
-        return PeriodicTrajectory(Shape(kind), amplitude, frequency, offset, rounding, v_max, a_max)
-    if kind.endswith(".json"):
-        from .scan import ScanAxis
-
-        return ScanAxis.read(kind)
-    if kind.endswith(".csv") or Path(kind).is_file():
-        return CsvTrajectory.read(kind, v_max=v_max, a_max=a_max)
-    raise TrajectoryError(
-        f"unknown trajectory {kind!r}: expected sine, triangle, steps, a .csv file or a "
-        "scan axis's .json file"
-    )

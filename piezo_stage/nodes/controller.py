@@ -76,8 +76,9 @@ from piezo_stage.control.supervision import (
 from piezo_stage_msgs.msg import ControllerState, Displacement, Voltage
 
 from .base import PiezoNode
+from .choices import ControllerStepTrigger as StepTrigger
+from .choices import SensorQos
 from .controller_params import PARAMETERS as PARAMETERS  # the launcher reads it here
-from .controller_params import SensorQos, StepTrigger
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
 from .handoff import Handoff

@@ -5,7 +5,6 @@ declares from it, and the experiments that start a controller derive their optio
 from __future__ import annotations
 
 import math
-from enum import StrEnum
 
 from piezo_stage.control.controller import THESIS_AMPLIFIER, AntiWindup, OnClose
 from piezo_stage.control.feedforward import Compensation
@@ -15,29 +14,10 @@ from piezo_stage.control.setpoint import ReferenceSource
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING
 from piezo_stage.hardware.timing import LOOP_SWITCH_INTERVAL
 
+from .choices import ControllerStepTrigger as StepTrigger
+from .choices import PublishIn, SensorQos
 from .settings import ControllerSettings
 from .spec import Param, ParameterTable
-
-
-class StepTrigger(StrEnum):
-    TIMER = "timer"  # rate_hz on the node clock
-    SAMPLE = "sample"  # one step per displacement sample (the lockstep plant)
-
-
-class PublishIn(StrEnum):
-    """rig_loop: which thread publishes what the loop queued (bench/control_loop.py --designs
-    measures each)."""
-
-    LOOP = "loop"  # the loop thread, right after a write, every publish_period (shipped)
-    PUBLISHER = "publisher"  # a thread of its own below the loop's priority, in slices
-    EXECUTOR = "executor"  # a wall-clock timer of the executor
-    INLINE = "inline"  # every publication at once, in the loop thread
-
-
-class SensorQos(StrEnum):
-    BEST_EFFORT = "best_effort"  # matches every publisher: the rig's laser_reader
-    RELIABLE = "reliable"  # the lockstep plant: no sample lost, no step waits for its timeout
-
 
 _G = THESIS_GAINS
 PARAMETERS = ParameterTable(

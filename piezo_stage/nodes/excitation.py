@@ -22,7 +22,6 @@ Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
 from __future__ import annotations
 
 import sys
-from enum import StrEnum
 from typing import Any
 
 from builtin_interfaces.msg import Time
@@ -45,6 +44,8 @@ from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import ExcitationInfo, Voltage
 
 from .base import PiezoNode
+from .choices import ExcitationOnDone as OnDone
+from .choices import ExcitationStepTrigger as StepTrigger
 from .parameters import declare_table, on_set
 from .qos import COMMAND_QOS, LOCKSTEP_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched, wait_acked, wall_clock
@@ -65,16 +66,6 @@ PLAN_KEYS = (
     "seed",
     "bandwidth",
 )
-
-
-class StepTrigger(StrEnum):
-    TIMER = "timer"  # rate_hz on the node clock
-    CLOCK = "clock"  # one command per /clock tick (the lockstep plant)
-
-
-class OnDone(StrEnum):
-    HOLD = "hold"  # keep publishing the hold value
-    EXIT = "exit"
 
 
 _BASE = PRESETS["ch10_patch"]

@@ -42,7 +42,6 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 from typing import Any, Callable, TypedDict
 
 import numpy as np
@@ -80,6 +79,8 @@ from piezo_stage_msgs.msg import (
 )
 
 from .base import PiezoNode
+from .choices import CyclesFrom, Input, StreamQos
+from .choices import IdentifierOnDone as OnDone
 from .dds import use_recorder_transport_profile
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .qos import COMMAND_QOS, LATCHED_QOS, LOCKSTEP_DEPTH, adapted_qos
@@ -139,38 +140,6 @@ class _MaxRms(TypedDict, total=False):
     """The ``max_rms`` override of RefineOptions and FitOptions (empty: their defaults)."""
 
     max_rms_fraction: float
-
-
-class Input(StrEnum):
-    VOLTAGE = "voltage"  # ch. 10: voltage -> displacement
-    DISPLACEMENT = "displacement"  # ch. 11: displacement -> voltage
-
-
-class StreamQos(StrEnum):
-    AUTO = "auto"  # adapted to the publishers, as rosbag2 does
-    BEST_EFFORT = "best_effort"  # matches every publisher
-    RELIABLE = "reliable"  # no loss from reliable publishers
-
-
-class CyclesFrom(StrEnum):
-    STREAMS = "streams"  # the cycles it extracts from voltage/displacement/excitation
-    TOPIC = "topic"  # the cycles received on limit_cycles
-    BOTH = "both"  # either: one from each is a pair too
-
-    @property
-    def streams(self) -> bool:
-        """Whether the raw streams are taken."""
-        return self is not CyclesFrom.TOPIC
-
-    @property
-    def topic(self) -> bool:
-        """Whether ``limit_cycles`` is taken."""
-        return self is not CyclesFrom.STREAMS
-
-
-class OnDone(StrEnum):
-    STAY = "stay"  # the result stays latched
-    EXIT = "exit"  # status 0 when identified, 1 when it failed
 
 
 PARAMETERS = ParameterTable(

@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 import sys
 import time
-from enum import StrEnum
 
 from builtin_interfaces.msg import Time
 from rosgraph_msgs.msg import Clock
@@ -40,6 +39,7 @@ from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .base import PiezoNode
+from .choices import ClockMode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
@@ -48,11 +48,6 @@ from .spec import Param, ParameterTable
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
-
-
-class ClockMode(StrEnum):
-    REALTIME = "realtime"  # a wall timer at rate_hz
-    LOCKSTEP = "lockstep"  # owns /clock: one step per voltage_command
 
 
 PARAMETERS = ParameterTable(

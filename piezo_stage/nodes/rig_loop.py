@@ -45,9 +45,9 @@ from piezo_stage.hardware.timing import (
 )
 from piezo_stage.yaml_values import load_yaml
 
+from .choices import PublishIn
 from .controller import ControllerNode
 from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
-from .controller_params import PublishIn
 from .errors import RosParameterError
 from .handoff import Handoff, publish_period
 from .laser_reader import PARAMETERS as READER_PARAMETERS

@@ -43,9 +43,9 @@ from piezo_stage.hardware.timing import set_realtime_priority, shorten_switch_in
 
 from . import DEFAULT_NAMESPACE
 from .base import PiezoNode
+from .choices import PublishIn
 from .controller import ControllerNode
 from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
-from .controller_params import PublishIn
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .handoff import Handoff, publish_period
 from .laser_reader import PARAMETERS as READER_PARAMETERS

@@ -18,13 +18,18 @@ if TYPE_CHECKING:
     from piezo_stage.control.learning import FeedforwardForm
     from piezo_stage.control.setpoint import ReferenceSource
     from piezo_stage.identification.methods import Method
-    from piezo_stage.nodes.controller_params import PublishIn, SensorQos
-    from piezo_stage.nodes.controller_params import StepTrigger as ControllerStepTrigger
-    from piezo_stage.nodes.excitation import OnDone as ExcitationOnDone
-    from piezo_stage.nodes.excitation import StepTrigger as ExcitationStepTrigger
-    from piezo_stage.nodes.identifier import CyclesFrom, Input, StreamQos
-    from piezo_stage.nodes.identifier import OnDone as IdentifierOnDone
-    from piezo_stage.nodes.plant import ClockMode
+    from piezo_stage.nodes.choices import (
+        ClockMode,
+        ControllerStepTrigger,
+        CyclesFrom,
+        ExcitationOnDone,
+        ExcitationStepTrigger,
+        IdentifierOnDone,
+        Input,
+        PublishIn,
+        SensorQos,
+        StreamQos,
+    )
 
 
 @dataclass(frozen=True)
