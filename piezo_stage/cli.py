@@ -12,7 +12,8 @@ import importlib
 import sys
 import threading
 import warnings
-from typing import Sequence
+from types import ModuleType
+from typing import NoReturn, Sequence, TextIO
 
 #: sub-command -> module (in piezo_stage.commands); order is the order shown in --help.
 COMMANDS: dict[str, str] = {
@@ -35,11 +36,11 @@ COMMANDS: dict[str, str] = {
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors: ``piezo-stage CMD: error: ... (see --help)``, exit 2."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def _load(name: str):
+def _load(name: str) -> ModuleType:
     return importlib.import_module(f"piezo_stage.commands.{COMMANDS[name]}")
 
 
@@ -96,7 +97,14 @@ def _main(argv: list[str]) -> int:
     module.add_arguments(parser)
     args = parser.parse_args(rest)
 
-    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+    def one_line(
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        file: TextIO | None = None,
+        line: str | None = None,
+    ) -> None:
         print(f"piezo-stage {name}: warning: {message}", file=sys.stderr)
 
     warnings.showwarning = one_line  # bag damage, skipped topics: one line each

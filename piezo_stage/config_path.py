@@ -24,7 +24,7 @@ class ConfigNotFoundError(PiezoStageError, FileNotFoundError):
 def _candidates(name: str) -> list[Path]:
     paths: list[Path] = []
     try:
-        from ament_index_python.packages import (  # type: ignore[import-not-found]
+        from ament_index_python.packages import (
             PackageNotFoundError,
             get_package_share_directory,
         )

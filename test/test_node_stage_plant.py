@@ -105,3 +105,74 @@ def test_a_stage_file_that_does_not_load_exits_2_with_one_line(stage_file, why, 
     assert proc.returncode == 2, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "stage_file" in lines[0] and why in lines[0], err
+
+
+def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
+    """stage_plant (xy scanner, 100 Hz) in lockstep, driven from the probe node: at each tick of
+    its /clock, both axes' commands stamped with it (x a ramp to 100 V, y 50 V after 20 steps);
+    step 0 is answered on x alone first, and how long the plant then waits for y is returned
+    with every sample of each axis, paired by stamp."""
+    from rosgraph_msgs.msg import Clock
+
+    from piezo_stage.nodes.qos import LOCKSTEP_QOS
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    proc = start_node(
+        "stage_plant",
+        "stage_file:=xy_scanner.yaml",
+        f"rate_hz:={RATE}",
+        "clock_mode:=lockstep",
+        "lockstep_timeout:=60.0",
+        "wait_for_subscribers:=1",
+        namespace=ns,
+        extra=("-r", f"/clock:={ns}/clock"),
+    )
+    ticks: list = []
+    xs: dict[str, list] = {"x": [], "y": []}
+    node.create_subscription(Clock, f"{ns}/clock", ticks.append, LOCKSTEP_QOS)
+    cmd = {}
+    for axis in "xy":
+        node.create_subscription(
+            Displacement, f"{ns}/{axis}/displacement", xs[axis].append, LOCKSTEP_QOS
+        )
+        node.create_subscription(Voltage, f"{ns}/{axis}/voltage", lambda m: None, LOCKSTEP_QOS)
+        cmd[axis] = node.create_publisher(Voltage, f"{ns}/{axis}/voltage_command", LOCKSTEP_QOS)
+
+    try:
+        assert spin_until(node, lambda: bool(ticks), 60.0), "no /clock"
+        stamp = ticks[0].clock
+        cmd["x"].publish(Voltage(voltage=0.0, header=_header(stamp)))
+        spin_until(node, lambda: False, 1.0)
+        held = len(ticks)  # step 0 waits for y's answer
+        cmd["y"].publish(Voltage(voltage=0.0, header=_header(stamp)))
+        for k in range(1, steps):
+            assert spin_until(node, lambda k=k: len(ticks) > k, 30.0), f"no step {k}"
+            stamp = ticks[k].clock
+            for axis in "xy":
+                value = 100.0 * min(k, 40) / 40 if axis == "x" else (50.0 if k >= 20 else 0.0)
+                cmd[axis].publish(Voltage(voltage=value, header=_header(stamp)))
+        assert spin_until(node, lambda: min(len(xs["x"]), len(xs["y"])) >= steps, 30.0)
+    finally:
+        stop(proc)
+    return xs["x"][:steps], xs["y"][:steps], held
+
+
+def _header(stamp):
+    from std_msgs.msg import Header
+
+    return Header(stamp=stamp)
+
+
+def test_lockstep_steps_once_every_axis_has_answered_and_repeats_exactly(node):
+    """clock_mode lockstep: step k is taken once each axis's command stamped t_k has come (x's
+    alone holds it), the samples are stamped t0 + k/rate_hz on both axes, and a second run of
+    the same commands gives the same samples, bit for bit."""
+    x1, y1, held = _lockstep_drive(node, "/stage_lockstep_a", 60)
+    assert held == 1  # step 0 only, however long y took
+    period = round(1e9 / RATE)
+    assert [_ns(m) for m in x1] == [_ns(m) for m in y1] == [k * period for k in range(60)]
+    assert x1[-1].displacement > 5e-6  # x driven to 100 V
+    assert y1[-1].displacement > x1[-1].displacement * 0.02  # y its own 50 V, plus 2 % of x
+    x2, y2, _ = _lockstep_drive(node, "/stage_lockstep_b", 60)
+    assert [m.displacement for m in x1] == [m.displacement for m in x2]
+    assert [m.displacement for m in y1] == [m.displacement for m in y2]

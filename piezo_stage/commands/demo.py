@@ -19,7 +19,7 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TextIO
 
 #: ch. 10 patch sampled at this lockstep rate: 1000 samples per 0.1 Hz triangle period
 DEFAULT_RATE_HZ = 100.0
@@ -38,7 +38,7 @@ DEMO_TOPICS = (
 class Progress:
     """One line per stage with its elapsed time; a simple bar for long stages."""
 
-    def __init__(self, stream=None, width: int = 30) -> None:
+    def __init__(self, stream: TextIO | None = None, width: int = 30) -> None:
         self.stream = stream or sys.stdout
         self.width = width
         self.t0 = time.monotonic()
@@ -194,7 +194,7 @@ def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> Sta
                 mode,
                 bag=out / f"perturbation_{mode}",
                 png_dir=out / "png",
-                progress=lambda f, text="": progress.bar(f),
+                progress=lambda f, text: progress.bar(f),
             )
             progress.done(f"{result.get('samples', 0)} steps")
             rows.append((mode, result))
@@ -218,6 +218,7 @@ def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> Sta
 def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageResult:
     """(d) tracking: a 10 Hz triangle over 20 µm, feedforward + PID vs PID alone, the
     feedforward's model fitted from recordings of the simulated rig."""
+    from piezo_stage.control.feedforward import Compensation
     from piezo_stage.experiments.tracking import TrackingSpec, identify_model, run_tracking
     from piezo_stage.launch.domain import isolated_domain
 
@@ -230,7 +231,7 @@ def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageR
         trajectory="triangle",
         amplitude=10e-6,
         frequency=10.0,
-        compensation="both",
+        compensation=Compensation.BOTH,
         model=str(model),
         periods=2,
     )
@@ -240,7 +241,7 @@ def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageR
             compare=True,
             bag=out / "tracking",
             png_dir=out / "png",
-            progress=lambda f, text="": progress.bar(f),
+            progress=lambda f, text: progress.bar(f),
         )
     progress.done(f"{r['samples']} steps")
     fb = r["feedback"]
@@ -258,7 +259,7 @@ def _tracking(args: argparse.Namespace, out: Path, progress: Progress) -> StageR
         learned = run_tracking(
             replace(spec, rate_hz=1000.0, learn=20, periods=3),
             png_dir=out / "png",
-            progress=lambda f, text="": progress.bar(f),
+            progress=lambda f, text: progress.bar(f),
         )
     progress.done(f"{len(learned['learning'])} learning periods")
     first = learned["learning"][0] / learned["range"]
@@ -290,7 +291,7 @@ def _scanner(args: argparse.Namespace, out: Path, progress: Progress) -> StageRe
 
     from piezo_stage.config_path import find_config
     from piezo_stage.control.scan import make_trajectory
-    from piezo_stage.control.stage_control import scanner_run
+    from piezo_stage.control.stage_control import AxisReference, scanner_run
     from piezo_stage.control.stage_fit import fit_stage, stage_recordings
     from piezo_stage.control.trajectory import SetPoint
     from piezo_stage.model.stage_file import load_stage, save_stage
@@ -320,16 +321,17 @@ def _scanner(args: argparse.Namespace, out: Path, progress: Progress) -> StageRe
     )
     progress.stage("(e) each axis held at 5 µm while the other scans 10 Hz over 20 µm, 1 kHz")
     scan = make_trajectory("triangle", amplitude=10e-6, frequency=10.0)
-    scenarios, ratios = [], []
+    scenarios: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+    ratios: list[float] = []
     for mover, name in enumerate(plant.names):
-        references = [SetPoint(5e-6), SetPoint(5e-6)]
+        references: list[AxisReference] = [SetPoint(5e-6), SetPoint(5e-6)]
         references[mover] = scan
         runs = [scanner_run(fitted, plant, references, c, 1000.0, 0.4) for c in (False, True)]
-        errors = [r.measured[:, 1 - mover] - r.reference[:, 1 - mover] for r in runs]
+        without, with_ = (r.measured[:, 1 - mover] - r.reference[:, 1 - mover] for r in runs)
         rms = [float(r.errors(0.2)[1 - mover]) for r in runs]
         ratios.append(rms[1] / rms[0])
         label = f"{plant.names[1 - mover]} held while {name} scans"
-        scenarios.append((label, runs[0].t, *errors))
+        scenarios.append((label, runs[0].t, without, with_))
         print(
             f"{label}: RMS {1e9 * rms[0]:.3g} nm without coupling compensation, "
             f"{1e9 * rms[1]:.3g} nm with it (x {ratios[-1]:.3f})"

@@ -44,7 +44,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from piezo_stage.commands.argtypes import (
     int_range,
@@ -64,6 +64,9 @@ from piezo_stage.hardware.emulators import (
 from piezo_stage.hardware.emulators.scanner import ScannerEmulator
 from piezo_stage.hardware.emulators.voltage_log import VoltageLog
 from piezo_stage.hardware.optoncdt import FAMILIES, FrameFormat, frame_format
+
+if TYPE_CHECKING:
+    from piezo_stage.model.stage import SimulatedStage
 
 AxisVoltageCallback = Callable[[str, float, "float | None"], None]
 
@@ -462,15 +465,15 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
         server = EmulatorServer(_controller(args), faults=faults, realtime_priority=rt, **endpoint)
         return {args.device: server}
     if args.device == "mdt69x":
-        model = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
+        amplifier = MDTDeviceModel(args.model, args.vlimit, echo=not args.no_echo)
         return {
             "mdt69x": EmulatorServer(
-                model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
+                amplifier, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
             )
         }
     fmt = frame_format(args.family, args.bits)
     if args.device == "optoncdt":
-        model = OptoNCDTDeviceModel(
+        sensor = OptoNCDTDeviceModel(
             fmt,
             args.measuring_range,
             args.rate,
@@ -479,7 +482,7 @@ def _servers(args: argparse.Namespace) -> dict[str, EmulatorServer]:
         )
         return {
             "optoncdt": EmulatorServer(
-                model, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
+                sensor, pty=True, pty_link=args.link, faults=faults, realtime_priority=rt
             )
         }
     if args.device == "scanner":
@@ -543,7 +546,7 @@ def _ready_line(args: argparse.Namespace, servers: dict[str, EmulatorServer]) ->
     return f"scanner: {len(axes)} axes ({', '.join(axes)}) at {args.rate:g} Hz"
 
 
-def load_stage(path: str):
+def load_stage(path: str) -> SimulatedStage:
     """The simulated stage of the parameter set at ``path`` (relative to the current folder),
     or of the shipped config so named."""
     from piezo_stage.config_path import find_user_file

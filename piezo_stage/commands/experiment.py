@@ -27,6 +27,9 @@ from piezo_stage.commands.quick import QUICK_PERIODS, quick_run, say_quick
 from piezo_stage.control.laws import Law
 from piezo_stage.experiments.plan import DEFAULT_DURATION
 
+#: progress(fraction, text): how far a run is, said on stderr
+Progress = Callable[[float, str], None]
+
 #: what every experiment's namespace holds, whether or not it takes the option (run() reads them)
 _SHARED = {
     "mode": None,
@@ -462,11 +465,13 @@ def _from_table(name: str) -> dict[str, Any]:
     """argparse keywords of the tracking option ``name``: type, choices and help from the
     controller parameter it sets, the default (the experiment's where it has its own) said in
     the help; unset is None, so that an option a graph does not take can be refused."""
-    from piezo_stage.experiments.tracking import CONTROLLER, CONTROLLER_OPTIONS
+    from piezo_stage.experiments.tracking import CONTROLLER_OPTIONS
+    from piezo_stage.nodes.controller_params import PARAMETERS as CONTROLLER
     from piezo_stage.nodes.spec import show
 
     option = CONTROLLER_OPTIONS[name]
     row = CONTROLLER[option.param]
+    assert row.kind is not None  # Param.__post_init__ fills it in
     kind = {"float": float, "int": int, "bool": bool}.get(row.kind.value, str)
     default = option.value
     text = option.help or row.description + (f" [{row.unit}]" if row.unit else "")
@@ -566,7 +571,7 @@ def _at_the_door(args: argparse.Namespace) -> str:
     return ""
 
 
-def _run_coupling(args: argparse.Namespace, progress) -> dict:
+def _run_coupling(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     from piezo_stage.config_path import (
         ConfigNotFoundError,
         find_user_file,
@@ -595,7 +600,7 @@ def _run_coupling(args: argparse.Namespace, progress) -> dict:
     return coupling_experiment(spec, progress)
 
 
-def _run_tracking(args: argparse.Namespace, progress) -> dict:
+def _run_tracking(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     from piezo_stage.control.tracking import TRACKING_RATE_HZ
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.tracking import (
@@ -644,7 +649,7 @@ def _run_tracking(args: argparse.Namespace, progress) -> dict:
     )
 
 
-def _run_raster(args: argparse.Namespace, progress) -> dict:
+def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     from piezo_stage.config_path import (
         ConfigNotFoundError,
         find_user_file,

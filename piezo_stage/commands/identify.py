@@ -18,6 +18,7 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from piezo_stage.commands.argtypes import data_error_exit_code, int_range, outpu
 from piezo_stage.commands.servo_identify import DeviceRunError
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.analytic import DesignPoints
-from piezo_stage.identification.cycles import CycleOptions
+from piezo_stage.identification.cycles import CycleOptions, SteadyCycle
 from piezo_stage.identification.errors import IdentificationError
 from piezo_stage.identification.io import (
     DEFAULT_CYCLES_TOPIC,
@@ -323,21 +324,21 @@ def _text(result: IdentificationResult) -> str:
     rows = [("", head, "± std" if std else "", "analytic")]
     final, first = result.parameters, result.analytic
 
-    def row(label: str, get) -> None:
+    def row(label: str, value: float, analytic: float | None) -> None:
         sd = std.get(label)
         rows.append(
             (
                 label,
-                f"{get(final):.6g}",
+                f"{value:.6g}",
                 f"{sd:.2g}" if sd is not None else "",
-                f"{get(first):.6g}" if first is not None else "-",
+                f"{analytic:.6g}" if analytic is not None else "-",
             )
         )
 
-    for i in range(len(final.kappa)):
-        row(f"kappa_{i + 1}", lambda p, i=i: p.kappa[i])
+    for i, kappa in enumerate(final.kappa):
+        row(f"kappa_{i + 1}", kappa, None if first is None else first.kappa[i])
     for name in ("y0", "kappa_w", "rho", "sigma", "n"):
-        row(name, lambda p, name=name: getattr(p, name))
+        row(name, getattr(final, name), None if first is None else getattr(first, name))
     rows.append(("rms_error", f"{result.rms_error:.4g}", "", f"{result.analytic_rms_error:.4g}"))
     width = max(len(r[0]) for r in rows)
     lines = [f"{a:<{width}}  {b:>14}  {c:>8}  {d:>14}" for a, b, c, d in rows]
@@ -371,14 +372,16 @@ def _text(result: IdentificationResult) -> str:
     return "\n".join(lines)
 
 
-def _plot(result: IdentificationResult, runs, out_dir: Path, stem: str) -> list[Path]:
+def _plot(
+    result: IdentificationResult, runs: Sequence[Recording], out_dir: Path, stem: str
+) -> list[Path]:
     from piezo_stage.identification.validation import (
         ValidationResult,
         plot_validation,
         validate_model,
     )
 
-    written = []
+    written: list[Path] = []
     for i, rec in enumerate(runs):
         label = stem if len(runs) == 1 else f"{stem}_run{i}"
         if result.fitted:
@@ -424,10 +427,10 @@ def _identify_cycles(args: argparse.Namespace, options: IdentifyOptions) -> Iden
     return identify_cycle_pair(cycles, options)
 
 
-def _cycle_recording(cycle) -> Recording:
+def _cycle_recording(cycle: SteadyCycle) -> Recording:
     """A cycle as a run of three periods (for the model-vs-data plots)."""
     m = len(cycle.input)
-    t = np.arange(3 * m) * (cycle.period / m)
+    t = np.arange(3 * m, dtype=np.float64) * (cycle.period / m)
     return Recording(t, np.tile(cycle.input, 3), np.tile(cycle.output, 3), cycle.name)
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.methods import Method, identify_runs
@@ -14,6 +14,11 @@ from piezo_stage.identification.pipeline import IdentifyOptions
 from piezo_stage.identification.recording import Recording
 from piezo_stage.identification.result import IdentificationResult
 from piezo_stage.identification.simfit import FitOptions
+
+if TYPE_CHECKING:
+    from piezo_stage.experiments.servo_identification import TWaveExcitation
+
+_T = TypeVar("_T")
 
 #: [samples] the ch. 11 form's pairing of a record: position k is read between voltage k - 1,
 #: held the cycle before, and voltage k, held the cycle after; the stage (its 7 kHz resonance
@@ -27,7 +32,7 @@ class DeviceRunError(PiezoStageError):
     """The controller refused, the link failed or the record is unusable (exit 2)."""
 
 
-def pair(text: str, name: str, kind: type) -> tuple:
+def pair(text: str, name: str, kind: Callable[[str], _T]) -> tuple[_T, _T]:
     """``A,B`` of option ``name`` as two values of ``kind`` (:class:`DeviceRunError`)."""
     try:
         a, b = (kind(v) for v in text.split(","))
@@ -36,7 +41,7 @@ def pair(text: str, name: str, kind: type) -> tuple:
     return a, b
 
 
-def excitation_from(args: argparse.Namespace, v_min: float, v_max: float):
+def excitation_from(args: argparse.Namespace, v_min: float, v_max: float) -> TWaveExcitation:
     """The T-wave pair the options ask for, defaults from the output range (VMI?, VMA?)."""
     from piezo_stage.experiments.servo_identification import TWaveExcitation
 

@@ -14,7 +14,9 @@ from piezo_stage.commands.servo_identify import DeviceRunError, open_controller
 DEFAULT_LEARN = 20
 
 
-def run_pi_servo(args: argparse.Namespace, progress: Callable[[float, str], None]) -> dict:
+def run_pi_servo(
+    args: argparse.Namespace, progress: Callable[[float, str], None]
+) -> dict[str, Any]:
     """The experiment's summary: RMS error of the last play's measured periods, averaged (m
     and % of the range), one period's noise about that average, the RMS of every play, the
     table's rate and points."""

@@ -76,11 +76,19 @@ class Rig(Protocol):
 
     name: str
     rate_hz: float  #: sensor sample rate
-    loop_rates: tuple[float, ...]  #: loop rates the graph can run (the lowest stable is used)
     delay_samples: int  #: output delay of a loop on this graph
-    attempts: int  #: runs of a sweep frequency before its identification counts as failed
     v_min: float
     v_max: float
+
+    @property
+    def loop_rates(self) -> tuple[float, ...]:
+        """Loop rates the graph can run (the lowest stable is used)."""
+        ...
+
+    @property
+    def attempts(self) -> int:
+        """Runs of a sweep frequency before its identification counts as failed."""
+        ...
 
     def excite(self, plan: ExcitationPlan, bag: Path, label: str) -> Series: ...
 

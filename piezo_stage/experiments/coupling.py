@@ -59,6 +59,8 @@ class GraphDefaults:
     """What a graph's runs default to: the raised cosine's ``period`` [s], the command
     ``rate_hz``, and how far (a fraction of the span) the applied voltage's periods may differ.
 
+    The simulated stage runs in lockstep (its samples wait for every axis's command, stamped
+    on its clock): the runs are exact and the same on every run, on any host, however loaded.
     On devices the commands leave a host's timers and a link whose delays vary: with the
     emulated scanner's seven processes on a 2-core host (more than it has at 1 kHz) a command
     is written 1-10 ms late, and at 1 s and 1 kHz sensor samples were lost and the applied
@@ -71,10 +73,11 @@ class GraphDefaults:
     period: float
     rate_hz: float
     input_tolerance: float = CycleOptions.input_tolerance
+    lockstep: bool = False  #: the simulated stage steps with its excitations (deterministic)
 
 
 GRAPH_DEFAULTS = {
-    "sim_scanner": GraphDefaults(1.0, 1000.0),
+    "sim_scanner": GraphDefaults(1.0, 1000.0, lockstep=True),
     "emulated_scanner": GraphDefaults(2.0, 500.0, 0.03),
     "rig_scanner": GraphDefaults(2.0, 500.0, 0.03),
 }
@@ -160,8 +163,11 @@ class CouplingSpec:
         return 2 * (self.settle_periods + self.record_periods) * self.period
 
     def excitation(self) -> dict[str, Any]:
-        """The excitation node's overrides (started by its ``start`` service)."""
+        """The excitation node's overrides (started by its ``start`` service; on a lockstep
+        graph, one command per tick of the plant's clock)."""
+        lockstep = {"trigger": "clock", "use_sim_time": True}
         return {
+            **(lockstep if GRAPH_DEFAULTS[self.graph].lockstep else {}),
             "preset": "",
             "waveform": "sine",
             "period": self.period,
@@ -228,7 +234,7 @@ def _behind(exc: ModelFitError, runs: Mapping[str, DrivenRuns], spec: CouplingSp
     cause: BaseException | None = exc
     while cause is not None and not isinstance(cause, NotPeriodicError):
         cause = cause.__cause__ or cause.__context__
-    if cause is None:
+    if cause is None or GRAPH_DEFAULTS[spec.graph].lockstep:  # a lockstep graph is never late
         return str(exc)
     late = 0.0
     for driven in runs.values():
@@ -298,11 +304,63 @@ def _graph(stage: Stage, spec: CouplingSpec) -> dict[str, Any]:
     data = dict(load_yaml(find_graph(spec.graph).read_text(encoding="utf-8")))
     data["stage"] = str(Path(spec.plant_stage).resolve())
     data["namespace"] = f"/coupling_{os.getpid()}"
+    nodes = list(data["nodes"])
+    if GRAPH_DEFAULTS[spec.graph].lockstep:  # the plant owns the graph's clock
+        data["clock"] = "namespaced"
+        nodes = [
+            {**n, "overrides": {**n.get("overrides", {}), **_LOCKSTEP_PLANT}}
+            if n.get("executable") == "stage_plant"
+            else n
+            for n in nodes
+        ]
     data["nodes"] = [
-        *data["nodes"],
+        *nodes,
         {"executable": "excitation", "per_axis": True, "overrides": spec.excitation()},
     ]
     return data
+
+
+#: the stage plant of a lockstep graph: it starts once the record's subscriptions are matched
+_LOCKSTEP_PLANT = {"clock_mode": "lockstep", "wait_for_subscribers": 1}
+
+
+class _Sequence:
+    """Each axis's runs in turn, from the record: axis k's excitation is started (in a thread:
+    the service call waits for its answer) and the next one once the axis's sensor has sampled
+    its runs and ``REST`` s more, in the graph's time (the stamps: wall time on a real-time
+    graph, the plant's clock in lockstep)."""
+
+    REST = 0.5  #: [s] of hold between two axes' runs
+
+    def __init__(self, names: Sequence[str], namespace: str, spec: CouplingSpec, say: Progress):
+        self.names, self.namespace, self.spec, self.say = list(names), namespace, spec, say
+        self.k = 0
+        self.calling: threading.Thread | None = None
+        self.failure: list[str] = []
+        self._span = int(round((spec.axis_seconds + self.REST) * 1e9))
+
+    def _start(self, axis: str) -> None:
+        from .identification import call_trigger
+
+        try:
+            call_trigger(f"{self.namespace}/{axis}/excitation/start", timeout=60.0)
+        except ExperimentError as exc:
+            self.failure.append(str(exc))
+
+    def done(self, raw: Mapping[str, list[tuple[int, bytes]]]) -> bool:
+        """Whether every axis has run (or a start failed); starts the next axis when due."""
+        if self.failure or self.k == len(self.names):
+            return True
+        axis = self.names[self.k]
+        if self.calling is None:
+            self.say(0.8 * self.k / len(self.names), f"axis {axis}: two raised-cosine runs")
+            self.calling = threading.Thread(target=self._start, args=(axis,), daemon=True)
+            self.calling.start()
+            return False
+        marks, samples = raw[f"{axis}/excitation"], raw[f"{axis}/displacement"]
+        if marks and samples and samples[-1][0] >= marks[0][0] + self._span:
+            self.k, self.calling = self.k + 1, None
+        return self.k == len(self.names)
 
 
 def _record(stage: Stage, spec: CouplingSpec, say: Progress) -> tuple[dict[str, Any], str]:
@@ -310,47 +368,34 @@ def _record(stage: Stage, spec: CouplingSpec, say: Progress) -> tuple[dict[str, 
     from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
     from .harness import HarnessError, Stream, record
-    from .identification import call_trigger
 
     graph = _graph(stage, spec)
     namespace = str(graph["namespace"])
+    lockstep = GRAPH_DEFAULTS[spec.graph].lockstep  # a lockstep plant's streams are reliable
     streams = [
-        Stream(f"{axis}/{topic}", msg, reliable=reliable, depth=10000)
+        Stream(f"{axis}/{topic}", msg, reliable=reliable, depth=0 if lockstep else 10000)
         for axis in stage.names
         for topic, msg, reliable in (
-            ("displacement", Displacement, False),  # the sensors' SensorDataQoS
-            ("voltage", Voltage, False),
+            ("displacement", Displacement, lockstep),  # else the sensors' SensorDataQoS
+            ("voltage", Voltage, lockstep),
             ("excitation", ExcitationInfo, True),  # its marks delimit the runs: none lost
         )
     ]
-    done = threading.Event()
-    failure: list[str] = []
-
-    def drive() -> None:
-        try:
-            for k, axis in enumerate(stage.names):
-                say(0.8 * k / len(stage.names), f"axis {axis}: two raised-cosine runs")
-                call_trigger(f"{namespace}/{axis}/excitation/start", timeout=60.0)
-                time.sleep(spec.axis_seconds + 0.5)
-        except ExperimentError as exc:
-            failure.append(str(exc))
-        done.set()
-
-    driver = threading.Thread(target=drive, daemon=True)
-    started: list[bool] = []
-
-    def until(raw: Mapping[str, list[tuple[int, bytes]]]) -> bool:
-        if not started:
-            started.append(True)
-            driver.start()
-        return done.is_set()
-
+    sequence = _Sequence(stage.names, namespace, spec, say)
     try:
-        recording = record(graph, streams, until, wall_timeout=spec.wall_timeout, data_timeout=60.0)
+        recording = record(
+            graph,
+            streams,
+            sequence.done,
+            wall_timeout=spec.wall_timeout,
+            data_timeout=60.0,
+            # an axis's marks begin with its turn: the samples are what must flow from the start
+            required=[s.topic for s in streams if not s.topic.endswith("/excitation")],
+        )
     except HarnessError as exc:
         raise ExperimentError(exc.with_output()) from None
-    if failure:
-        raise ExperimentError(failure[0])
+    if sequence.failure:
+        raise ExperimentError(sequence.failure[0])
     return recording.raw, namespace
 
 

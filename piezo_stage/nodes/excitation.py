@@ -13,7 +13,8 @@ run/steady and at ``info_rate_hz``). The schedule is
   publishes) every command and mark that many seconds ahead of the clock, so that such a
   driver has it before it is due and the marks stay aligned with the applied voltage;
 - ``clock``: one command per ``/clock`` message, stamped with that time — the lockstep plant
-  advances when it has the command for its current step, so a run is deterministic.
+  advances when it has the command for its current step, so a run is deterministic. Until it
+  is started (``autostart: false``), it answers each tick with the plan's first value.
 
 When the plan is over it holds its hold value (``on_done: hold``) or exits (``on_done: exit``).
 Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
@@ -188,6 +189,10 @@ class ExcitationNode(PiezoNode):
 
         self._wait_subs = s.wait_for_subscribers
         trigger = s.trigger
+        # trigger=clock, not started yet: each tick is answered with the plan's first value (the
+        # lockstep plant steps on, its axis held where the plan will begin); not after a stop
+        self._idle_answers = trigger is StepTrigger.CLOCK
+        self._idle = self.plan.sample(0.0).voltage
         # lockstep (trigger=clock): the graph runs as fast as the plant and this node, so a slower
         # reader (the recorder, the identifier) falls behind by thousands of samples; a reliable
         # writer keeping only the last 10 would drop what it has not acknowledged
@@ -225,11 +230,13 @@ class ExcitationNode(PiezoNode):
         except (ModelError, KeyError, TypeError, ValueError) as exc:
             return f"invalid excitation plan: {exc}"
         self.plan = plan
+        self._idle = plan.sample(0.0).voltage
         return None
 
     # ------------------------------------------------------------------ services
     def _srv_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self._running, self._t_start, self._last_info = True, None, None
+        self._idle_answers = False
         response.success, response.message = True, "excitation (re)started"
         return response
 
@@ -240,7 +247,11 @@ class ExcitationNode(PiezoNode):
 
     # ------------------------------------------------------------------ tick
     def _tick(self, stamp: Time) -> None:
-        if not self._running or self._exiting:
+        if self._exiting:
+            return
+        if not self._running:
+            if self._idle_answers:  # lockstep: the plant's step waits for this axis's answer
+                self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=self._idle))
             return
         now = stamp_seconds(stamp)
         if self._t_start is None:

@@ -11,13 +11,9 @@ Clocks (``clock_mode``):
   hold) and stamped with its grid time. A tick that comes late publishes every sample due
   since the last one (no drift, no lost samples under load); a stall longer than
   ``REALTIME_CATCH_UP`` drops the older backlog and counts it (WARN on /diagnostics).
-- ``lockstep``: the node owns ``/clock``. At step k it publishes ``/clock`` = t_k and the
-  sample at t_k, then waits for the ``voltage_command`` stamped t_k (any publisher: the
-  excitation's clock trigger, the controller's sample trigger) and only then integrates to
-  t_k + 1/rate_hz. After ``lockstep_timeout`` wall seconds without that command it advances
-  with the held command and counts a late step (WARN on /diagnostics). Identical inputs give
-  identical samples, as fast as the graph can go. Stepping starts once a ``voltage_command``
-  publisher is present (``wait_for_commander``).
+- ``lockstep``: the node owns ``/clock`` and steps when its commander has answered the step
+  (:mod:`piezo_stage.nodes.lockstep`); identical inputs give identical samples, as fast as the
+  graph can go.
 
 NaN/inf commands are rejected with a warning and the last command is held, like the real driver.
 """
@@ -29,7 +25,6 @@ import sys
 import time
 
 from builtin_interfaces.msg import Time
-from rosgraph_msgs.msg import Clock
 
 from piezo_stage.config_path import find_user_file
 from piezo_stage.model.errors import InvalidCommandError
@@ -41,8 +36,9 @@ from piezo_stage_msgs.msg import Displacement, Voltage
 from .base import PiezoNode
 from .choices import ClockMode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .lockstep import LockstepClock
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
-from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .runtime import DEFAULT_NAMESPACE, run
 from .settings import PlantSettings
 from .spec import Param, ParameterTable
 
@@ -215,7 +211,6 @@ class PlantNode(PiezoNode):
         self._command = float(s.initial_voltage)
         self._rejected = 0
         self._commands = 0
-        self._late = 0
         self._grid: TickGrid | None = None  # realtime mode
         self._steps = 0
         self._started_wall = time.monotonic()
@@ -230,18 +225,21 @@ class PlantNode(PiezoNode):
         )
         self._topic_command = sub.topic_name
         Diagnostics(self, "simulation", self._diagnose)
+        self._dt_ns = int(round(self.dt * 1e9))
+        self._lockstep: LockstepClock | None = None  # lockstep mode
         if lockstep:
-            self._pub_clock = self.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
-            self._k = 0
-            self._t0_ns = int(round(s.start_time * 1e9))
-            self._dt_ns = int(round(self.dt * 1e9))
-            self._waiting_since: float | None = None
-            self._started = False
-            self._sample_first = False
-            self._timeout = float(s.lockstep_timeout)
-            self.create_timer(min(0.01, max(self._timeout, 1e-3) / 4), self._lockstep_watch)
+            self._lockstep = LockstepClock(
+                self,
+                dt_ns=self._dt_ns,
+                start_ns=int(round(s.start_time * 1e9)),
+                timeout=float(s.lockstep_timeout),
+                command_topics=[self._topic_command],
+                sample_topics=[self._pub_x.topic_name],
+                samples=(self._pub_x, self._pub_v),
+                emit=self._publish,
+                advance=lambda: self._step(self.dt),
+            )
         else:
-            self._dt_ns = int(round(self.dt * 1e9))
             self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
             self.create_timer(self.dt, self._realtime_tick)
         self.get_logger().info(
@@ -257,13 +255,11 @@ class PlantNode(PiezoNode):
                 f"rejected non-finite voltage command {msg.voltage}: holding {self._command:g} V",
                 throttle_duration_sec=1.0,
             )
-            if self.mode is ClockMode.LOCKSTEP and self._matches_step(msg):
-                self._advance()  # the commander answered this step: do not wait for a timeout
-            return
-        self._command = msg.voltage
-        self._commands += 1
-        if self.mode is ClockMode.LOCKSTEP and self._matches_step(msg):
-            self._advance()
+        else:
+            self._command = msg.voltage
+            self._commands += 1
+        if self._lockstep is not None:  # a non-finite command answers the step too: no timeout
+            self._lockstep.answered(0, msg.header.stamp)
 
     # ------------------------------------------------------------------ realtime
     def _realtime_tick(self) -> None:
@@ -272,77 +268,6 @@ class PlantNode(PiezoNode):
             self._step(self.dt)
             sec, nanosec = divmod(ns, 1_000_000_000)
             self._publish(Time(sec=sec, nanosec=nanosec))
-
-    # ------------------------------------------------------------------ lockstep
-    def _stamp(self) -> Time:
-        sec, nanosec = divmod(self._t0_ns + self._k * self._dt_ns, 1_000_000_000)
-        return Time(sec=sec, nanosec=nanosec)
-
-    def _matches_step(self, msg: Voltage) -> bool:
-        if not self._started:
-            return False
-        ns: int = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        return abs(ns - (self._t0_ns + self._k * self._dt_ns)) < self._dt_ns // 2
-
-    def _emit_step(self) -> None:
-        stamp = self._stamp()
-        if self._sample_first:  # a sample-triggered commander (controller) waits for the sample
-            self._publish(stamp)
-            self._pub_clock.publish(Clock(clock=stamp))
-        else:  # a clock-triggered one (excitation) waits for /clock
-            self._pub_clock.publish(Clock(clock=stamp))
-            self._publish(stamp)
-        self._waiting_since = time.monotonic()
-
-    def _commander_reads_samples(self) -> bool:
-        """True when a voltage_command publisher subscribes to our displacement (a controller):
-        then the sample is on the step's critical path and goes out before /clock."""
-        commanders = {
-            (i.node_name, i.node_namespace)
-            for i in self.get_publishers_info_by_topic(self._topic_command)
-        }
-        readers = {
-            (i.node_name, i.node_namespace)
-            for i in self.get_subscriptions_info_by_topic(self._pub_x.topic_name)
-        }
-        return bool(commanders & readers)
-
-    def _advance(self) -> None:
-        self._step(self.dt)
-        self._k += 1
-        self._emit_step()
-
-    def _lockstep_watch(self) -> None:
-        if not self._started:
-            if (
-                self.get_parameter("wait_for_commander").value
-                and self.count_publishers("voltage_command") == 0
-            ):
-                return
-            if not subscribers_matched(
-                (self._pub_x, self._pub_v), self.get_parameter("wait_for_subscribers").value
-            ):
-                return
-            self._started = True
-            self._sample_first = self._commander_reads_samples()
-            self._emit_step()
-            return
-        assert self._waiting_since is not None  # _emit_step set it when the steps started
-        waited = time.monotonic() - self._waiting_since
-        if self._k == 0 and self._commands == 0 and waited > 0.1:
-            # a commander that has just appeared may have missed the first step: offer it again
-            # (same stamp and values; subscribers see a duplicate of step 0 at most)
-            self._sample_first = self._commander_reads_samples()
-            self._emit_step()
-            return
-        if self._timeout > 0 and waited > self._timeout:
-            self._late += 1
-            self.get_logger().warn(
-                f"no command for step {self._k} after {self._timeout:g} s: "
-                f"advancing with {self._command:g} V held",
-                throttle_duration_sec=5.0,
-            )
-            self._advance()
 
     # ------------------------------------------------------------------ common
     def _step(self, dt: float) -> None:
@@ -367,6 +292,7 @@ class PlantNode(PiezoNode):
     def _diagnose(self) -> Diagnosis:
         dropped = self._grid.dropped if self._grid is not None else 0
         elapsed = time.monotonic() - self._started_wall
+        late = self._lockstep.late if self._lockstep is not None else 0
         values = {
             "model": self.parameter_set.name,
             "form": self.parameter_set.form,
@@ -375,13 +301,13 @@ class PlantNode(PiezoNode):
             "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
             "command": self._command,
             "rejected_commands": self._rejected,
-            "late_steps": self._late,
+            "late_steps": late,
             "dropped_samples": dropped,
         }
-        if self._late or self._rejected or dropped:
+        if late or self._rejected or dropped:
             return Diagnosis(
                 WARN,
-                f"{self._late} late step(s), {self._rejected} rejected command(s), "
+                f"{late} late step(s), {self._rejected} rejected command(s), "
                 f"{dropped} dropped sample(s)",
                 values,
             )

@@ -314,10 +314,15 @@ class StageDriverSettings:
 @dataclass(frozen=True)
 class StagePlantSettings:
     """``stage_plant``: Simulated stage of several axes (a stage file), coupled: per axis the
-    real stage's topics in <axis>/ (real time)."""
+    real stage's topics in <axis>/ (realtime or lockstep)."""
 
     stage_file: str
     rate_hz: float
+    clock_mode: ClockMode
+    lockstep_timeout: float
+    wait_for_commander: bool
+    wait_for_subscribers: int
+    start_time: float
     initial_voltage: float
     v_min: float
     v_max: float

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from piezo_stage.errors import PiezoStageError
 
 from . import figures
+
+if TYPE_CHECKING:
+    from piezo_stage.identification.recording import Recording
+    from piezo_stage.model.bouc_wen import BoucWenParameters
 
 VOLTAGE = "piezo_stage_msgs/msg/Voltage"
 DISPLACEMENT = "piezo_stage_msgs/msg/Displacement"
@@ -56,14 +61,15 @@ def find_topics(bag: str | Path) -> BagTopics:
     )
 
 
-def _runs(bag: Path, topics: BagTopics) -> list:
-    """Recordings per excitation run (the identification's own run cutting)."""
+def _runs(bag: Path, topics: BagTopics) -> list[Recording]:
+    """Recordings per excitation run (the identification's own run cutting) of a bag with
+    voltage and displacement topics."""
     from piezo_stage.identification.io import load_bag
 
-    kwargs = {"input_topic": topics.voltage, "output_topic": topics.displacement}
+    assert topics.voltage and topics.displacement  # plot_bag asks only then
     if topics.excitation:
-        kwargs["excitation_topic"] = topics.excitation
-    return load_bag(bag, **kwargs)
+        return load_bag(bag, topics.voltage, topics.displacement, topics.excitation)
+    return load_bag(bag, topics.voltage, topics.displacement)
 
 
 def _steady_mask(bag: Path, topic: str, t: np.ndarray) -> np.ndarray:
@@ -82,7 +88,24 @@ def _steady_mask(bag: Path, topic: str, t: np.ndarray) -> np.ndarray:
     return np.where(index >= 0, flags[np.clip(index, 0, None)], False)
 
 
-def _last_parameters(bag: Path, topic: str):
+def _loops(
+    bag: Path,
+    excitation: str | None,
+    runs: list[Recording],
+    voltage: tuple[np.ndarray, np.ndarray],
+    displacement: tuple[np.ndarray, np.ndarray],
+) -> tuple[list[tuple[str, np.ndarray, np.ndarray]], list[np.ndarray] | None]:
+    """The hysteresis loops, one per run with the samples its excitation marked steady; without
+    runs, the whole record (the voltage held at each displacement sample) and no marks."""
+    if runs and excitation:
+        loops = [(f"run {i}", r.input, r.output) for i, r in enumerate(runs)]
+        return loops, [_steady_mask(bag, excitation, r.t) for r in runs]
+    (t_v, v), (t_y, y) = voltage, displacement
+    held = np.clip(np.searchsorted(t_v, t_y, side="right") - 1, 0, len(v) - 1)
+    return [("recorded", v[held], y)], None
+
+
+def _last_parameters(bag: Path, topic: str) -> BoucWenParameters | None:
     from piezo_stage.bag.reader import read_messages
     from piezo_stage.model.bouc_wen import BoucWenParameters
 
@@ -102,7 +125,7 @@ def _last_parameters(bag: Path, topic: str):
     )
 
 
-def _model_curve(params, rec) -> np.ndarray:
+def _model_curve(params: BoucWenParameters, rec: Recording) -> np.ndarray:
     """(10.15) simulated on the recorded input, w(0) from (10.18) clipped to [-1, 1]."""
     from piezo_stage.identification.analytic import initial_w
     from piezo_stage.model.bouc_wen import model_output
@@ -113,12 +136,15 @@ def _model_curve(params, rec) -> np.ndarray:
     return model_output(params, rec.input, w0=float(np.clip(w0, -1.0, 1.0)))
 
 
-def _controller_series(bag: Path, topic: str) -> dict[str, np.ndarray] | None:
+def _controller_series(bag: Path, topic: str) -> tuple[dict[str, np.ndarray], str] | None:
+    """The controller state's series by field (and ``t``), and its last mode."""
     from piezo_stage.bag.reader import read_messages
     from piezo_stage.bag.types import stamp_seconds
 
     fields = ("x1", "x2", "u", "u_pid", "u_excitation", "loop_closed")
-    rows, t, mode = {f: [] for f in fields}, [], ""
+    rows: dict[str, list[float]] = {f: [] for f in fields}
+    t: list[float] = []
+    mode = ""
     for _, log_time, msg in read_messages(bag, [topic]):
         stamp = stamp_seconds(msg.header.stamp)
         t.append(stamp if stamp > 0 else 1e-9 * log_time)
@@ -129,8 +155,7 @@ def _controller_series(bag: Path, topic: str) -> dict[str, np.ndarray] | None:
         return None
     out = {f: np.asarray(v, dtype=bool if f == "loop_closed" else float) for f, v in rows.items()}
     out["t"] = np.asarray(t)
-    out["mode"] = mode  # type: ignore[assignment]
-    return out
+    return out, mode
 
 
 def plot_bag(
@@ -171,13 +196,7 @@ def plot_bag(
                     title=f"{stem}: voltage and displacement",
                 )
             )
-            steady = None
-            if runs:
-                loops = [(f"run {i}", r.input, r.output) for i, r in enumerate(runs)]
-                steady = [_steady_mask(bag, topics.excitation, r.t) for r in runs]
-            else:
-                held = np.clip(np.searchsorted(t_v, t_y, side="right") - 1, 0, len(v) - 1)
-                loops = [("recorded", v[held], y)]
+            loops, steady = _loops(bag, topics.excitation, runs, (t_v, v), (t_y, y))
             written.append(
                 figures.hysteresis_figure(
                     out / f"{stem}_hysteresis.png",
@@ -199,8 +218,9 @@ def plot_bag(
                     )
                 )
     if topics.controller_state:
-        s = _controller_series(bag, topics.controller_state)
-        if s is not None:
+        found = _controller_series(bag, topics.controller_state)
+        if found is not None:
+            s, mode = found
             written.append(
                 figures.closed_loop_figure(
                     out / f"{stem}_closed_loop.png",
@@ -211,8 +231,8 @@ def plot_bag(
                     s["u_pid"],
                     s["u_excitation"],
                     s["loop_closed"],
-                    mode=str(s["mode"]),
-                    title=f"{stem}: closed loop ({s['mode']})" if s["mode"] else "",
+                    mode=mode,
+                    title=f"{stem}: closed loop ({mode})" if mode else "",
                 )
             )
     if not written:

@@ -1,0 +1,144 @@
+"""The lockstep clock of a simulated stage of N >= 1 axes (``plant``, ``stage_plant``).
+
+The node owns ``/clock``. At step k it publishes ``/clock`` = t_k and the samples at t_k, then
+waits for every axis's ``voltage_command`` stamped t_k (any publisher: the excitation's clock
+trigger, the controller's sample trigger) and only then integrates to t_k + 1/rate_hz. After
+``lockstep_timeout`` wall seconds without them it advances with the held commands and counts a
+late step. Identical inputs give identical samples, as fast as the graph can go. Stepping
+starts once every axis's ``voltage_command`` has a publisher (``wait_for_commander``) and the
+sample publishers have ``wait_for_subscribers`` matched subscribers each.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, Sequence
+
+from builtin_interfaces.msg import Time
+from rosgraph_msgs.msg import Clock
+
+from .qos import LOCKSTEP_QOS
+from .runtime import subscribers_matched
+
+#: wall seconds a step 0 nobody answered waits before it is offered again (a commander that
+#: has just appeared may have missed it)
+REOFFER_AFTER = 0.1
+
+
+class LockstepClock:
+    """Steps a node's simulation in lockstep with its commanders (module docstring).
+
+    ``emit(stamp)`` publishes the samples at ``stamp``; ``advance()`` integrates one step with
+    the commands held; ``samples`` are the sample publishers, ``command_topics`` each axis's
+    resolved ``voltage_command`` topic and ``sample_topics`` each axis's displacement topic.
+    """
+
+    def __init__(
+        self,
+        node: Any,
+        *,
+        dt_ns: int,
+        start_ns: int,
+        timeout: float,
+        command_topics: Sequence[str],
+        sample_topics: Sequence[str],
+        samples: Sequence[Any],
+        emit: Callable[[Time], None],
+        advance: Callable[[], None],
+    ) -> None:
+        self.node = node
+        self.k = 0
+        self.late = 0
+        self.started = False
+        self._dt_ns, self._t0_ns, self._timeout = dt_ns, start_ns, timeout
+        self._commands = list(command_topics)
+        self._sample_topics = list(sample_topics)
+        self._samples = list(samples)
+        self._emit_samples, self._integrate = emit, advance
+        self._answered = [False] * len(self._commands)
+        self._waiting_since = 0.0
+        self._sample_first = False
+        self._heard = False  # any command answered a step
+        self._pub_clock = node.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
+        node.create_timer(min(0.01, max(timeout, 1e-3) / 4), self._watch)
+
+    def stamp(self) -> Time:
+        """t_k as a message stamp."""
+        sec, nanosec = divmod(self._t0_ns + self.k * self._dt_ns, 1_000_000_000)
+        return Time(sec=sec, nanosec=nanosec)
+
+    def answered(self, axis: int, stamp: Time) -> None:
+        """A command for ``axis`` arrived stamped ``stamp`` (finite or not: it answers the
+        step either way); the step advances once every axis has answered it."""
+        if not self.started:
+            return
+        ns: int = stamp.sec * 1_000_000_000 + stamp.nanosec
+        if abs(ns - (self._t0_ns + self.k * self._dt_ns)) >= self._dt_ns // 2:
+            return
+        self._heard = True
+        self._answered[axis] = True
+        if all(self._answered):
+            self._advance()
+
+    def _advance(self) -> None:
+        self._integrate()
+        self.k += 1
+        self._emit()
+
+    def _emit(self) -> None:
+        stamp = self.stamp()
+        self._answered = [False] * len(self._commands)
+        if self._sample_first:  # a sample-triggered commander (controller) waits for the sample
+            self._emit_samples(stamp)
+            self._pub_clock.publish(Clock(clock=stamp))
+        else:  # a clock-triggered one (excitation) waits for /clock
+            self._pub_clock.publish(Clock(clock=stamp))
+            self._emit_samples(stamp)
+        self._waiting_since = time.monotonic()
+
+    def _commanders_read_samples(self) -> bool:
+        """True when a voltage_command publisher subscribes to a displacement (a controller):
+        then the samples are on the step's critical path and go out before /clock."""
+        node = self.node
+        commanders = {
+            (i.node_name, i.node_namespace)
+            for topic in self._commands
+            for i in node.get_publishers_info_by_topic(topic)
+        }
+        readers = {
+            (i.node_name, i.node_namespace)
+            for topic in self._sample_topics
+            for i in node.get_subscriptions_info_by_topic(topic)
+        }
+        return bool(commanders & readers)
+
+    def _ready(self) -> bool:
+        node = self.node
+        if node.get_parameter("wait_for_commander").value and any(
+            node.count_publishers(topic) == 0 for topic in self._commands
+        ):
+            return False
+        return subscribers_matched(self._samples, node.get_parameter("wait_for_subscribers").value)
+
+    def _watch(self) -> None:
+        if not self.started:
+            if self._ready():
+                self.started = True
+                self._sample_first = self._commanders_read_samples()
+                self._emit()
+            return
+        waited = time.monotonic() - self._waiting_since
+        if self.k == 0 and not self._heard and waited > REOFFER_AFTER:
+            # same stamp and values: subscribers see a duplicate of step 0 at most
+            self._sample_first = self._commanders_read_samples()
+            self._emit()
+            return
+        if self._timeout > 0 and waited > self._timeout:
+            self.late += 1
+            missing = [t for t, done in zip(self._commands, self._answered) if not done]
+            self.node.get_logger().warn(
+                f"no command for step {self.k} after {self._timeout:g} s on "
+                f"{', '.join(missing)}: advancing with the commands held",
+                throttle_duration_sec=5.0,
+            )
+            self._advance()
