@@ -131,6 +131,27 @@ def identify_bouc_wen(
         raise ModelFitError(f"identification of the feedforward model failed: {exc}") from exc
 
 
+def identify_static(
+    run_a: Recording, run_b: Recording, degree: int, cycle: CycleOptions | None = None
+) -> IdentificationResult:
+    """The ch. 10 identification (10.15) of the two runs (input x [m], output u [V], as
+    :func:`identify_bouc_wen` takes them) with the columns in the static form's order: input u
+    in V, output x in m, κ of ``degree`` terms.
+    """
+
+    def static(r: Recording) -> Recording:
+        return Recording(r.t, r.output, r.input, r.name, "V", "m")
+
+    try:
+        return identify(
+            static(run_a),
+            static(run_b),
+            IdentifyOptions(degree=degree, cycle=cycle or CycleOptions()),
+        )
+    except Exception as exc:  # the identification's own errors name the cause
+        raise ModelFitError(f"identification of the static model failed: {exc}") from exc
+
+
 def bouc_wen_in_metres(result: IdentificationResult) -> BoucWenParameters:
     """The Bouc-Wen part of :func:`identify_bouc_wen`'s result in metres (input x, output u,
     y0 a displacement offset).

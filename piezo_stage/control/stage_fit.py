@@ -32,6 +32,7 @@ from .model_fit import (
     bouc_wen_in_metres,
     fit_feedforward_model,
     identify_bouc_wen,
+    identify_static,
     rig_recordings,
 )
 
@@ -133,34 +134,22 @@ def fit_stage_runs(
     template: Stage, runs: Mapping[str, DrivenRuns], cycle: CycleOptions = STEADY
 ) -> tuple[Stage, dict[str, IdentificationResult]]:
     """(the identified stage, each axis's identification) from ``runs`` (one per axis of
-    ``template``). The Bouc-Wen part of each axis is identified (11.1 at low frequency); m and
-    c are kept from ``template``'s model: a record at a sensor rate of kHz does not resolve the
-    step response of a stage resonating at several kHz. Raises
-    :class:`~.model_fit.ModelFitError` naming the axis whose runs cannot be used.
+    ``template``), each axis in its form in ``template``. A dynamic axis: the Bouc-Wen part
+    identified (11.1 at low frequency, input x, output u), m and c kept from ``template``'s
+    model (a record at a sensor rate of kHz does not resolve the step response of a stage
+    resonating at several kHz). A static axis: the ch. 10 model (10.15, input u, output x) of
+    ``template``'s degree. Raises :class:`~.model_fit.ModelFitError` naming the axis whose runs
+    cannot be used.
     """
     axes, results = [], {}
     for axis in template.axes:
         if axis.name not in runs:
             raise ModelFitError(f"no run drives axis {axis.name}")
-        dynamics = axis.model.dynamics
-        if dynamics is None:
-            raise ModelFitError(
-                f"axis {axis.name}: the stage file's model is static; m and c come from it"
-            )
         try:
-            result = identify_bouc_wen(runs[axis.name].run_a, runs[axis.name].run_b, cycle)
+            model, results[axis.name] = _fit_axis(axis, runs[axis.name], cycle)
         except ModelFitError as exc:
             raise ModelFitError(f"axis {axis.name}: {exc}") from None
-        model = ParameterSet(
-            name=axis.name,
-            form="dynamic",
-            bouc_wen=bouc_wen_in_metres(result),
-            dynamics=dynamics,
-            notes=f"Bouc-Wen part identified with the axis driven, the others held (fit RMS "
-            f"{result.rms_error:.3g} V); m, c kept from {axis.model.name}",
-        )
         axes.append(StageAxis(axis.name, model, axis.channel))
-        results[axis.name] = result
     stage = _with_coupling(
         template,
         axes,
@@ -168,6 +157,29 @@ def fit_stage_runs(
         "identified through a scanner graph: each axis driven in turn, the others held",
     )
     return stage, results
+
+
+def _fit_axis(
+    axis: StageAxis, driven: DrivenRuns, cycle: CycleOptions
+) -> tuple[ParameterSet, IdentificationResult]:
+    """One axis's model in its form (:func:`fit_stage_runs`) and its identification."""
+    dynamics = axis.model.dynamics
+    note = "identified with the axis driven, the others held"
+    if dynamics is None:  # ch. 10: voltage in, displacement out
+        result = identify_static(driven.run_a, driven.run_b, len(axis.model.bouc_wen.kappa), cycle)
+        return result.to_parameter_set(
+            axis.name, f"{note} (fit RMS {result.rms_error:.3g} m)"
+        ), result
+    result = identify_bouc_wen(driven.run_a, driven.run_b, cycle)
+    model = ParameterSet(
+        name=axis.name,
+        form="dynamic",
+        bouc_wen=bouc_wen_in_metres(result),
+        dynamics=dynamics,
+        notes=f"Bouc-Wen part {note} (fit RMS {result.rms_error:.3g} V); m, c kept from "
+        f"{axis.model.name}",
+    )
+    return model, result
 
 
 def _with_coupling(

@@ -283,7 +283,9 @@ def coupling_experiment(spec: CouplingSpec, progress: Progress | None = None) ->
         entry = results[axis.name].to_dict()
         entry["model_file"] = str(path.with_name(f"{path.stem}_{axis.name}.yaml"))
         entry["channel"] = axis.channel
-        entry["input_unit"], entry["output_unit"] = "um", "V"  # as identified (model: SI)
+        # as identified (the model file: SI); a static axis (ch. 10) maps volts to metres
+        static = axis.model.dynamics is None
+        entry["input_unit"], entry["output_unit"] = ("V", "m") if static else ("um", "V")
         axes[axis.name] = entry
     assert fitted.coupling_standard_errors is not None
     return {
