@@ -31,7 +31,6 @@ controller's ``SAI?`` does not list: one line, exit code 2. ``measuring_range``,
 
 from __future__ import annotations
 
-import math
 import sys
 import threading
 import time
@@ -43,6 +42,7 @@ from piezo_stage.hardware import ConfigError, SensorConfig, SensorReader, Status
 from piezo_stage.hardware.decimation import Decimator
 from piezo_stage.hardware.gcs_sensor import GCSPositionReader, GCSReaderConfig
 from piezo_stage.hardware.optoncdt import FAMILIES
+from piezo_stage.hardware.sensor_frame import SensorFrame
 from piezo_stage.hardware.timing import SampleClock, set_realtime_priority
 from piezo_stage_msgs.msg import Displacement
 
@@ -216,8 +216,6 @@ def make_reader(p: LaserReaderSettings) -> tuple[Reader, str]:
 #: which of them go on the topic (None: all)
 SampleSink = Callable[[list[float], list[int], list[int]], "list[bool] | None"]
 
-_OK = int(Status.OK)
-
 
 class LaserReaderNode(PiezoNode):
     """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
@@ -254,11 +252,8 @@ class LaserReaderNode(PiezoNode):
         self.reader, self.source = make_reader(p)
         self.url = p.url
         self.family = p.family
-        self.zero_offset = float(p.zero_offset)
-        self.sign = float(p.sign)
+        self.frame = SensorFrame(float(p.zero_offset), float(p.sign), float(p.latency))
         self.rate = float(p.rate_hz)
-        self.latency = float(p.latency)
-        self._latency_ns = round(self.latency * 1e9)
         self.decimator = Decimator(int(p.decimation))
         self.sample_clock = SampleClock(self.rate, p.stamp_window)
         self.connected = True
@@ -345,20 +340,16 @@ class LaserReaderNode(PiezoNode):
             if self._idle is not None:
                 self._idle(now)
             return
-        latency, zero, sign = self._latency_ns, self.zero_offset, self.sign
-        stamps = self.sample_clock.stamps(now, len(block))
+        frame = self.frame
         out = self.decimator.feed(
             block.displacement.tolist(),
             block.status.tolist(),
-            [t - latency for t in stamps] if latency else stamps,
+            frame.stamps(self.sample_clock.stamps(now, len(block))),
         )
         counts = self.by_status
         for st in out.status:
             counts[st] += 1
-        value = [
-            sign * (x - zero) if st == _OK else math.nan
-            for x, st in zip(out.displacement, out.status)
-        ]
+        value = frame.values(out.displacement, out.status)
         if self._loop is None:
             self.publish_samples(value, out.status, out.stamp)
             return

@@ -150,24 +150,19 @@ class AxisLaw:
     def last_step(self) -> Any:
         return self.controller.last_step
 
-    def measured(self, x: float, ok: bool) -> float:
-        """A sensor reading in the published frame (NaN when not valid)."""
-        reader = self.reader
-        return reader.sign * (x - reader.zero_offset) if ok else math.nan
-
     def prepare(self, x: float, ok: bool, stamp_ns: int, fresh: bool, now_ns: int) -> None:
         """Before a coupled cycle: the last valid displacement and the set point at this axis's
         sample (or at ``now_ns`` when it has none this cycle)."""
         if fresh and ok:
-            self.x_valid = self.measured(x, ok)
-        at = stamp_ns - self.reader._latency_ns if fresh else now_ns
+            self.x_valid = self.reader.frame.value(x, ok)
+        at = self.reader.frame.stamp(stamp_ns) if fresh else now_ns
         self.reference = self.controller.reference(at * 1e-9)
 
     def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
         reader = self.reader
         status = self.sensors.status[self.index]
-        stamp_ns -= reader._latency_ns
-        value = self.measured(x, ok)
+        stamp_ns = reader.frame.stamp(stamp_ns)
+        value = reader.frame.value(x, ok)
         reader.by_status[status] += 1
         own = self.own
         u = (
@@ -261,7 +256,7 @@ class StageLoopNode(PiezoNode):
         if not laws[0].started:
             if not (any(fresh) and all(law.controller.ready() for law in laws)):
                 return
-            t0 = min(s - law.reader._latency_ns for s, f, law in zip(stamp, fresh, laws) if f)
+            t0 = min(law.reader.frame.stamp(s) for s, f, law in zip(stamp, fresh, laws) if f)
             for law in laws:
                 law.controller.start_at(t0 * 1e-9)
                 law.started = True
