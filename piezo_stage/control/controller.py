@@ -531,3 +531,32 @@ class TimeVaryingPID:
             if integration_winds_up(u_now - cfg.clamp(u_now), coefficient, step):
                 return
         self._x0 += step
+
+
+def closed_pid(
+    gains: Gains,
+    u_min: float,
+    u_max: float,
+    compensation: Compensation,
+    feedforward: FeedforwardModel | None,
+    table: FeedforwardTable | None = None,
+    *,
+    mode: Law = Law.PID,
+    hold_voltage: float | None = None,
+) -> TimeVaryingPID:
+    """The law a core run holds (tracking, a scanner's axes, a raster's): ``mode`` (11.5, 11.17,
+    11.18) with ``gains`` and output limits, ``compensation``'s feedforward (§11.5: the model,
+    and its ``table`` when one is sampled), reset on closing, closed from the start.
+    """
+    config = ControllerConfig(
+        mode=mode,
+        gains=gains,
+        u_min=u_min,
+        u_max=u_max,
+        on_close=OnClose.RESET,
+        hold_voltage=hold_voltage,
+        compensation=compensation,
+        feedforward=feedforward,
+        feedforward_table=table,
+    )
+    return TimeVaryingPID(config, closed=True)

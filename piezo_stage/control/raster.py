@@ -26,10 +26,10 @@ from numpy.typing import NDArray
 from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
 
-from .controller import ControllerConfig, OnClose, TimeVaryingPID
+from .controller import closed_pid
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import THESIS_GAINS, Gains, Law
+from .laws import THESIS_GAINS, Gains
 from .learning import (
     FeedforwardTable,
     IterativeLearning,
@@ -306,19 +306,7 @@ def raster_run(
         tables = tables or _tables(scan, reference, models, fast, slow, rate_hz)
     by_axis = {fast: tables.fast, slow: tables.slow} if uses_ff and tables else {}
     pids = [
-        TimeVaryingPID(
-            ControllerConfig(
-                mode=Law.PID,
-                gains=gains,
-                u_min=u_limits[0],
-                u_max=u_limits[1],
-                on_close=OnClose.RESET,
-                compensation=compensation,
-                feedforward=model if uses_ff else None,
-                feedforward_table=by_axis.get(i),
-            ),
-            closed=True,
-        )
+        closed_pid(gains, *u_limits, compensation, model if uses_ff else None, by_axis.get(i))
         for i, model in enumerate(models)
     ]
     loop = _Loop(

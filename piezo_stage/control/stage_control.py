@@ -24,10 +24,10 @@ from numpy.typing import ArrayLike, NDArray
 from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
 
-from .controller import ControllerConfig, ControlOutput, OnClose, OwnFrame, TimeVaryingPID
+from .controller import ControlOutput, OwnFrame, TimeVaryingPID, closed_pid
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import THESIS_GAINS, Gains, Law
+from .laws import THESIS_GAINS, Gains
 from .learning import sampled_feedforward
 from .trajectory import Evaluation
 
@@ -263,17 +263,8 @@ def feedforward_pids(
     pids = []
     for i, axis in enumerate(stage.axes):
         model = FeedforwardModel.from_parameter_set(axis.model)
-        config = ControllerConfig(
-            mode=Law.PID,
-            gains=gains,
-            u_min=u_limits[0],
-            u_max=u_limits[1],
-            on_close=OnClose.RESET,
-            compensation=Compensation.BOTH,
-            feedforward=model,
-            feedforward_table=sampled_feedforward(model, own[i], rate_hz),
-        )
-        pids.append(TimeVaryingPID(config, closed=True))
+        table = sampled_feedforward(model, own[i], rate_hz)
+        pids.append(closed_pid(gains, *u_limits, Compensation.BOTH, model, table))
     return pids
 
 

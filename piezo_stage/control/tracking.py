@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.plant import DynamicPlant
 
-from .controller import THESIS_AMPLIFIER, ControllerConfig, OnClose, TimeVaryingPID
+from .controller import THESIS_AMPLIFIER, closed_pid
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
 from .laws import THESIS_GAINS, Gains, check_law
@@ -117,18 +117,17 @@ def simulate_tracking(
     x_start = float(trajectory.evaluate(0.0)[0])
     bw = plant.bouc_wen
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
-    config = ControllerConfig(
+    pid = closed_pid(
+        gains,
+        u_min,
+        u_max,
+        Compensation(compensation),
+        model,
+        table,
         mode=check_law(mode),
-        gains=gains,
-        u_min=u_min,
-        u_max=u_max,
-        on_close=OnClose.RESET,
         hold_voltage=u_start,
-        compensation=Compensation(compensation),
-        feedforward=model,
-        feedforward_table=table,
     )
-    pid = TimeVaryingPID(config, closed=True)
+    config = pid.config
     stage = DynamicPlant(bw, plant.dynamics, x0=x_start - bw.y0)
 
     def reference(t: float) -> tuple[float, float, float]:
