@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _load import beside_busy
 from _targets import check, exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,14 +145,9 @@ def main() -> int:
     ap.add_argument("--stage", choices=sorted(STAGES), action="append")
     ap.add_argument("--busy", action="store_true", help="a busy process beside every run")
     args = ap.parse_args()
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy else None
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            for name in args.stage or list(STAGES):
-                run_stage(name, args.runs, Path(tmp))
-    finally:
-        if busy is not None:
-            busy.kill()
+    with beside_busy(args.busy), tempfile.TemporaryDirectory() as tmp:
+        for name in args.stage or list(STAGES):
+            run_stage(name, args.runs, Path(tmp))
     return exit_code()
 
 
