@@ -408,27 +408,37 @@ def _decode(
 
     from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
-    def series(topic: str, msg_type: type, field: str) -> Series:
+    def series(topic: str, msg_type: type, field: str) -> tuple[NDArray[np.int64], Any]:
         items = sorted(raw[topic], key=lambda p: p[0])
-        t = np.array([ns * 1e-9 for ns, _ in items])
+        ns = np.array([ns for ns, _ in items], dtype=np.int64)
         v = np.array([getattr(deserialize_message(d, msg_type), field) for _, d in items], float)
-        return t, v
+        return ns, v
 
-    displacement = {a: series(f"{a}/displacement", Displacement, "displacement") for a in names}
+    sensors = {a: series(f"{a}/displacement", Displacement, "displacement") for a in names}
     out = {}
     for axis in names:
         marks = [
-            (ns * 1e-9, deserialize_message(d, ExcitationInfo))
+            (ns, deserialize_message(d, ExcitationInfo))
             for ns, d in sorted(raw[f"{axis}/excitation"], key=lambda p: p[0])
         ]
+        if not marks:
+            raise ExperimentError(f"axis {axis}: its excitation never started")
+        # times from the axis's first mark, in integer ns first: the same samples give the same
+        # seconds wherever on the clock the run began (a lockstep run is then the same numbers)
+        origin = marks[0][0]
+
+        def since(ns: NDArray[np.int64], origin: int = origin) -> NDArray[np.float64]:
+            return np.asarray((ns - origin) * 1e-9, dtype=np.float64)
+
         starts = []
         for run in (0, 1):
-            steady = [t for t, m in marks if m.run == run and m.steady]
+            steady = [ns for ns, m in marks if m.run == run and m.steady]
             if not steady:
                 raise ExperimentError(f"axis {axis}: run {run} never reached its steady part")
-            starts.append(steady[0])
-        voltage = series(f"{axis}/voltage", Voltage, "voltage")
-        out[axis] = axis_runs(axis, names, voltage, displacement, starts, spec)
+            starts.append(float(since(np.array([steady[0]], dtype=np.int64))[0]))
+        t_u, u = series(f"{axis}/voltage", Voltage, "voltage")
+        displacement = {a: (since(ns), v) for a, (ns, v) in sensors.items()}
+        out[axis] = axis_runs(axis, names, (since(t_u), u), displacement, starts, spec)
     return out
 
 

@@ -182,7 +182,7 @@ class ExcitationNode(PiezoNode):
         self._exiting = False
         self.exit_code = 0
         self._running = s.autostart
-        self._t_start: float | None = None
+        self._t_start: int | None = None  # [ns] the plan's t = 0 on the node's clock
         self._last_info: tuple[int, bool, bool] | None = None
         self._last_info_t = -1e300
         self._info_period = 1.0 / max(s.info_rate_hz, 1e-9)
@@ -257,8 +257,11 @@ class ExcitationNode(PiezoNode):
         if self._t_start is None:
             if not subscribers_matched((self._pub_cmd, self._pub_info), self._wait_subs):
                 return  # lockstep: the plant offers this step again until a command answers it
-            self._t_start = now
-        sample = self.plan.sample(now - self._t_start)
+            self._t_start = stamp.sec * 1_000_000_000 + stamp.nanosec
+        # the plan's time in integer ns first: the same step of a run gets the same command
+        # wherever on the clock the run began
+        elapsed_ns = stamp.sec * 1_000_000_000 + stamp.nanosec - self._t_start
+        sample = self.plan.sample(elapsed_ns * 1e-9)
         self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=sample.voltage))
         self._publish_info(stamp, now, sample)
         if sample.done and self.settings.on_done is OnDone.EXIT and not self._exiting:
