@@ -56,6 +56,7 @@ from piezo_stage.hardware.emulators import EmulatorServer, GCSDeviceModel  # noq
 from piezo_stage.hardware.emulators.optoncdt_device import OptoNCDTDeviceModel  # noqa: E402
 from piezo_stage.hardware.optoncdt import frame_format  # noqa: E402
 from piezo_stage.launch import Launcher  # noqa: E402
+from piezo_stage.stopping import StopFlag  # noqa: E402
 
 NS = "/bench_rig"
 LEVELS = 500  # distinct positions of the sawtooth
@@ -268,7 +269,6 @@ def serve(device: str, args: list[str]) -> None:
     to LOG on SIGTERM."""
     import gc
     import signal
-    import threading
 
     gc.disable()
     if device == "sensor":
@@ -287,11 +287,12 @@ def serve(device: str, args: list[str]) -> None:
 
         amp_model = GCSDeviceModel(v_min=0.0, v_max=400.0, on_voltage=on_voltage)
         server = EmulatorServer(amp_model, tcp_port=port)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop = StopFlag()
+    signal.signal(signal.SIGTERM, stop)
     server.start()
     Path(log_path + ".ready").touch()
-    stop.wait()
+    while not stop.is_set():
+        time.sleep(0.05)
     server.stop()
     np.save(log_path, np.array(log, dtype=np.float64).reshape(len(log), -1))
 

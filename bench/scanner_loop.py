@@ -30,7 +30,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -54,6 +53,8 @@ from control_loop import (  # noqa: E402
     free_port,
     sawtooth,
 )
+
+from piezo_stage.stopping import StopFlag  # noqa: E402
 
 RATE = 1000.0
 AXES = ("1", "2", "3")
@@ -91,11 +92,12 @@ def _serve(server, log: list, log_path: str) -> None:
     import signal
 
     gc.disable()
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop = StopFlag()
+    signal.signal(signal.SIGTERM, stop)
     server.start()
     Path(log_path + ".ready").touch()
-    stop.wait()
+    while not stop.is_set():
+        time.sleep(0.05)
     server.stop()
     np.save(log_path, np.array(log, dtype=np.float64).reshape(len(log), -1))
 
@@ -142,8 +144,8 @@ def serve_loop(port: int, links: list[str]) -> None:
         return SupervisedLaw(LoopSupervisor(pid, sup), ref)
 
     loop = StageLoop(axes, [law() for _ in axes], driver)
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop = StopFlag()
+    signal.signal(signal.SIGTERM, stop)
     gc.collect()
     gc.freeze()
     run_stage_loop(sensors, loop, stop)

@@ -59,6 +59,25 @@ class StopStatus:
     text: str = "bringing the outputs to their safe voltage"
 
 
+class StopFlag:
+    """A stop asked by signals, for a loop that polls it: the handler only counts. Never a
+    ``threading.Event`` in a handler: its ``set()`` takes a lock, and a second signal handled
+    while the first is inside it deadlocks the main thread on that lock (a launcher's SIGKILL
+    sends its children one parent-death SIGTERM per launcher thread, microseconds apart)."""
+
+    __slots__ = ("signals",)
+
+    def __init__(self) -> None:
+        self.signals = 0
+
+    def __call__(self, signum: int = 0, frame: FrameType | None = None) -> None:
+        """The signal handler."""
+        self.signals += 1
+
+    def is_set(self) -> bool:
+        return self.signals > 0
+
+
 @dataclass
 class _State:
     prog: str = "piezo-stage"

@@ -5,6 +5,7 @@ with ``args: [talker]``)."""
 from __future__ import annotations
 
 import sys
+import threading
 
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -78,7 +79,43 @@ class Listener(Node):
             print(f"heard: {msg.data}", flush=True)
 
 
-ROLES = {"talker": Talker, "listener": Listener}
+class StuckInCallback(Node):
+    """Says ``stuck`` from its first timer callback, which never returns (a callback blocked on
+    a device or a lock): a stop reaches its process but never its spin loop."""
+
+    def __init__(self) -> None:
+        super().__init__("stuck_in_callback")
+        self.create_timer(0.05, self.on_tick)
+
+    def on_tick(self) -> None:
+        print("stuck", flush=True)
+        threading.Event().wait()
+
+
+class StuckInTeardown(Node):
+    """Says ``up`` once spinning; its destruction never returns (a middleware that hangs while
+    the process leaves it)."""
+
+    def __init__(self) -> None:
+        super().__init__("stuck_in_teardown")
+        self.said = False
+        self.create_timer(0.05, self.on_tick)
+
+    def on_tick(self) -> None:
+        if not self.said:
+            print("up", flush=True)
+            self.said = True
+
+    def destroy_node(self) -> None:
+        threading.Event().wait()
+
+
+ROLES = {
+    "talker": Talker,
+    "listener": Listener,
+    "stuck_in_callback": StuckInCallback,
+    "stuck_in_teardown": StuckInTeardown,
+}
 
 
 def main() -> int:

@@ -64,6 +64,7 @@ from piezo_stage.hardware.emulators import (
 from piezo_stage.hardware.emulators.scanner import ScannerEmulator
 from piezo_stage.hardware.emulators.voltage_log import VoltageLog
 from piezo_stage.hardware.optoncdt import FAMILIES, FrameFormat, frame_format
+from piezo_stage.stopping import StopFlag
 
 if TYPE_CHECKING:
     from piezo_stage.model.stage import SimulatedStage
@@ -579,15 +580,9 @@ def run(args: argparse.Namespace) -> int:
     except HardwareError as exc:
         print(f"piezo-stage emulate: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    signals = [0]
-
-    def on_signal(*_: object) -> None:
-        signals[0] += 1
-        stop.set()
-
+    stop = StopFlag()
     if threading.current_thread() is threading.main_thread():
-        _catch_signals(on_signal)
+        _catch_signals(stop)
     for server in servers.values():
         server.start()
     _announce(servers)
@@ -603,7 +598,7 @@ def run(args: argparse.Namespace) -> int:
         if (failed := _serve(servers, stop, t_end, next_hangup, args.disconnect_every)) is not None:
             return failed
         if stop.is_set():  # a signal, not --duration: let connected drivers finish their ramp
-            if (failed := _linger(servers, signals, args.linger)) is not None:
+            if (failed := _linger(servers, stop, args.linger)) is not None:
                 return failed
     except KeyboardInterrupt:
         pass
@@ -672,14 +667,14 @@ def _note_realtime(servers: dict[str, EmulatorServer]) -> None:
 
 def _serve(
     servers: dict[str, EmulatorServer],
-    stop: threading.Event,
+    stop: StopFlag,
     t_end: float,
     next_hangup: float,
     disconnect_every: float,
 ) -> int | None:
     """Serve until ``stop`` or ``t_end`` with periodic hang-ups; 1 if a server died, else None."""
     while not stop.is_set() and time.monotonic() < t_end:
-        stop.wait(min(0.05, max(t_end - time.monotonic(), 0.0)))
+        time.sleep(min(0.05, max(t_end - time.monotonic(), 0.0)))
         if time.monotonic() >= next_hangup:
             for server in servers.values():
                 server.disconnect()
@@ -691,11 +686,11 @@ def _serve(
     return None
 
 
-def _linger(servers: dict[str, EmulatorServer], signals: list[int], linger: float) -> int | None:
+def _linger(servers: dict[str, EmulatorServer], stop: StopFlag, linger: float) -> int | None:
     """Serve on after a signal so drivers finish their ramp; 1 if a server died, else None."""
     linger_end = time.monotonic() + max(linger, 0.0)
     while (
-        signals[0] < 2
+        stop.signals < 2
         and time.monotonic() < linger_end
         and any(s.clients for s in servers.values())
     ):
@@ -707,7 +702,7 @@ def _linger(servers: dict[str, EmulatorServer], signals: list[int], linger: floa
     # take the emulator's normal stop for a broken link
     grace_end = time.monotonic() + min(PTY_GRACE, max(linger, 0.0))
     if any(s.is_pty for s in servers.values()):
-        while signals[0] < 2 and time.monotonic() < grace_end:
+        while stop.signals < 2 and time.monotonic() < grace_end:
             time.sleep(0.02)
     return None
 

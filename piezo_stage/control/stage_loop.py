@@ -15,7 +15,6 @@ StageSensors`.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Mapping, Sequence
 from typing import Callable, Protocol
@@ -162,10 +161,16 @@ class StageLoop:
             self._after()
 
 
+class Stopping(Protocol):
+    """What ends a loop thread: a ``threading.Event``, or a flag a signal handler sets."""
+
+    def is_set(self) -> bool: ...
+
+
 def run_stage_loop(
     sensors: Cycles,
     loop: StageLoop,
-    stop: threading.Event,
+    stop: Stopping,
     poll: float = 0.005,
     clock_ns: Callable[[], int] = time.monotonic_ns,
 ) -> None:

@@ -10,8 +10,8 @@ import gc
 import inspect
 import signal
 import sys
-import threading
 import time
+from pathlib import Path
 from typing import Any, Callable, Iterable, Protocol, Sequence, runtime_checkable
 
 import rclpy
@@ -21,7 +21,10 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from piezo_stage.stopping import StopFlag
+
 from . import DEFAULT_NAMESPACE as DEFAULT_NAMESPACE  # re-exported: nodes import it from here
+from .deadline import TEARDOWN_GRACE, Phase, StopDeadline
 from .errors import RosParameterError
 from .executor import LeanExecutor
 
@@ -162,20 +165,19 @@ def run(
     (:class:`ShutsDown`, the last made first) while the context is still valid (so a driver can
     ramp to its safe voltage and publish it), give their reliable subscribers
     ``EXIT_ACK_TIMEOUT`` to acknowledge what they published, then destroy them. Returns the exit
-    code for ``sys.exit`` (:class:`ExitsWithCode`).
+    code for ``sys.exit`` (:class:`ExitsWithCode`). Leaving the spin after a signal and the
+    teardown are bounded (:mod:`.deadline`): a hang there ends the process with one line; the
+    nodes' ``on_shutdown`` is not.
 
     ``lean`` runs them with :class:`LeanExecutor` (hot per-message loops), else with rclpy's
     SingleThreadedExecutor.
     """
     argv = list(sys.argv if args is None else args)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def handler(signum: int, frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    stop = StopFlag()
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    deadline = StopDeadline(_process_name(argv))
     nodes: list[Node] = []
     started = False  # every node made (a failure before names no node: the error says which)
     code = 0
@@ -183,6 +185,7 @@ def run(
         made = node_factory()
         for node in [made] if isinstance(made, Node) else made:  # a generator: one at a time,
             nodes.append(node)  # so that those made before a failure are shut down safely
+            deadline.name = node.get_name()
         started = True
         executor = LeanExecutor() if lean else SingleThreadedExecutor()
         code = _spin(executor, nodes, stop)
@@ -195,12 +198,23 @@ def run(
         print(f"[{nodes[-1].get_name() if started else 'node'}] fatal: {exc}", file=sys.stderr)
         code = 1
     finally:
+        deadline.enter(Phase.SHUTDOWN)
         code = _shut_down(nodes, code)
+        deadline.enter(Phase.TEARDOWN, EXIT_ACK_TIMEOUT * len(nodes) + TEARDOWN_GRACE, code)
         _tear_down(nodes)
+        deadline.close()
     return code
 
 
-def _spin(executor: Executor, nodes: list[Node], stop: threading.Event) -> int:
+def _process_name(argv: Sequence[str]) -> str:
+    """The node's name before it exists: the ``__node:=`` remap, else the program's name."""
+    for arg in argv:
+        if arg.startswith("__node:="):
+            return arg.split(":=", 1)[1]
+    return Path(argv[0]).stem if argv else "node"
+
+
+def _spin(executor: Executor, nodes: list[Node], stop: StopFlag) -> int:
     """Spin ``nodes`` until a signal, the context's end or a finished node; return the exit code."""
     for node in nodes:
         warm_log_lookup(type(node))

@@ -1,0 +1,105 @@
+"""A node process ends after a stop: under a burst of signals (a SIGKILLed launcher's children
+get one parent-death SIGTERM per launcher thread), and even when leaving its spin or the
+middleware hangs, since that SIGTERM to an orphan is the last signal it will get."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from piezo_stage.nodes.deadline import EXIT_HUNG, STOP_DEADLINE, TEARDOWN_GRACE
+from piezo_stage.nodes.runtime import EXIT_ACK_TIMEOUT
+
+from ros_support import ROOT
+
+pytestmark = pytest.mark.ros
+
+#: what the test allows beyond a deadline: python's exit and a loaded host's scheduling
+SLACK = 30.0
+
+
+def start(role: str) -> tuple[subprocess.Popen, threading.Event, list[str], list[str]]:
+    """``python -m launch_nodes ROLE``; the event is set when it prints its first line, the
+    lists gather its stdout and stderr."""
+    env = dict(os.environ)
+    test_dir = str(Path(__file__).parent)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), test_dir, env.get("PYTHONPATH", "")])
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "launch_nodes", role],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    said, out, err = threading.Event(), [], []
+
+    def read_out() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            out.append(line)
+            said.set()
+
+    def read_err() -> None:
+        assert proc.stderr is not None
+        err.extend(proc.stderr)
+
+    for target in (read_out, read_err):
+        threading.Thread(target=target, daemon=True).start()
+    return proc, said, out, err
+
+
+def stop_and_wait(role: str, allowed: float, burst: int = 1) -> tuple[int, float, str, str]:
+    """``burst`` SIGTERMs, as fast as they go, once the node spoke; (exit code, seconds until
+    the process ended, its stdout, its stderr)."""
+    proc, said, out, err = start(role)
+    try:
+        assert said.wait(60), "the node never started"
+        t0 = time.monotonic()
+        for _ in range(burst):
+            proc.send_signal(signal.SIGTERM)
+        code = proc.wait(allowed + SLACK)
+        elapsed = time.monotonic() - t0
+        time.sleep(0.5)  # the last of stderr
+        return code, elapsed, "".join(out), "".join(err)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_burst_of_signals_stops_the_node_cleanly_and_at_once():
+    """Each signal only counts: a handler that took a lock (threading.Event.set) deadlocked
+    when the next signal was handled inside it, and the node never left its spin."""
+    for _ in range(3):
+        # over in milliseconds, as the kernel's are: a signal after the handlers' end at the
+        # interpreter's exit (SIG_DFL again) would kill it with -15, rightly
+        code, elapsed, out, err = stop_and_wait("talker", STOP_DEADLINE, burst=2000)
+        assert code == 0, err
+        assert "clean shutdown" in out, (out, err)  # on_shutdown ran: the spin was left
+        assert "did not stop" not in err and elapsed < STOP_DEADLINE, err
+
+
+def test_a_callback_that_never_returns_ends_the_process_after_the_stop_deadline():
+    code, elapsed, _, err = stop_and_wait("stuck_in_callback", STOP_DEADLINE)
+    assert code == EXIT_HUNG, err
+    assert elapsed >= STOP_DEADLINE  # not cut short: a slow callback gets its allowance
+    line = f"[stuck_in_callback] did not stop within {STOP_DEADLINE:g} s of SIGTERM"
+    assert line in err, err
+    assert "on_shutdown did not run" in err
+    assert "on_tick" in err  # the stacks say where it hung
+
+
+def test_a_teardown_that_never_returns_ends_the_process_with_its_own_code():
+    allowed = EXIT_ACK_TIMEOUT + TEARDOWN_GRACE
+    code, elapsed, _, err = stop_and_wait("stuck_in_teardown", allowed)
+    assert code == 0, err  # stopped as asked; nothing of the run was lost
+    assert f"[stuck_in_teardown] teardown took over {allowed:g} s" in err, err
+    assert "destroy_node" in err
+    assert elapsed >= allowed
