@@ -3,10 +3,11 @@
 parameters) and piezo_stage/nodes/settings.py (every node's typed settings class).
 
 Each node module (``piezo_stage.nodes.<name>`` for every name in
-:data:`piezo_stage.nodes.NODES`) holds a :class:`piezo_stage.nodes.spec.ParameterTable` named
-``PARAMETERS``; the node declares from it and reads its settings as the class generated here, so
-the reference says what the running nodes declare and mypy checks every read. A test
-(test/test_param_docs.py) regenerates both and fails when a committed file is stale.
+:data:`piezo_stage.nodes.NODES` and each composed loop's of ``LOOP_TABLES``) holds a
+:class:`piezo_stage.nodes.spec.ParameterTable` named ``PARAMETERS``; the node declares from it
+and reads its settings as the class generated here, so the reference says what the running
+nodes declare and mypy checks every read. A test (test/test_param_docs.py) regenerates both and
+fails when a committed file is stale.
 
     python scripts/param_docs.py            # rewrite both files
     python scripts/param_docs.py --check    # exit 1 if either is out of date
@@ -56,11 +57,10 @@ from typing import TYPE_CHECKING, Literal
 
 
 def tables() -> list[Any]:
-    from piezo_stage.nodes import NODES
+    from piezo_stage.nodes import LOOP_TABLES, NODES
 
-    return [
-        importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS for name in sorted(NODES)
-    ]
+    modules = sorted(NODES) + sorted(LOOP_TABLES.values())
+    return [importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS for name in modules]
 
 
 def render() -> str:

@@ -41,7 +41,7 @@ def test_committed_reference_is_current():
 
 
 @pytest.mark.unit
-def test_every_node_executable_has_its_table():
+def test_every_node_executable_and_loop_has_its_table():
     assert set(_docs()) == {
         "controller",
         "excitation",
@@ -54,6 +54,7 @@ def test_every_node_executable_has_its_table():
         "recorder",
         "scan_view",
         "stage_driver",
+        "stage_loop",  # the scanner loop's own table, beside its members'
         "voltage_driver",
     }
 

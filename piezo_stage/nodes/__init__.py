@@ -6,7 +6,7 @@ only :mod:`.errors`; the node modules import rclpy and are loaded by their execu
 
 from .errors import NodeError, RosParameterError
 
-__all__ = ["DEFAULT_NAMESPACE", "NODES", "NodeError", "RosParameterError"]
+__all__ = ["DEFAULT_NAMESPACE", "LOOP_TABLES", "NODES", "NodeError", "RosParameterError"]
 
 #: nodes are created in this namespace; `--ros-args -r __ns:=/other` overrides it (rcl remap)
 DEFAULT_NAMESPACE = "/piezo"
@@ -26,3 +26,6 @@ NODES = (
     "live_view",
     "scan_view",
 )
+
+#: a composed loop's own parameter table (beside its members' tables): table name -> module
+LOOP_TABLES = {"stage_loop": "scanner_loop"}

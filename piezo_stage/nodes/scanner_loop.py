@@ -52,11 +52,12 @@ from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
 from .rig_loop import SampleBatch, member_overrides
 from .runtime import run, wall_clock
+from .settings import StageLoopSettings
 from .spec import Param, ParameterTable
 from .stage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .stage_driver import StageDriverNode
 
-PARAMETERS: ParameterTable[Any] = ParameterTable(
+PARAMETERS = ParameterTable(
     "stage_loop",
     (
         Param(
@@ -94,6 +95,7 @@ PARAMETERS: ParameterTable[Any] = ParameterTable(
         ),
     ),
     summary="The stage's composed loop: every axis's sensor, law and channel in one thread.",
+    settings_type=StageLoopSettings,
 )
 
 PARAMETER_TABLES: dict[str, ParameterTable[Any]] = {
@@ -207,7 +209,7 @@ class StageLoopNode(PiezoNode):
         namespace: str,
     ) -> None:
         super().__init__("stage_loop", namespace=namespace, parameter_overrides=list(overrides))
-        p = self.declare_settings(PARAMETERS)
+        p: StageLoopSettings = self.declare_settings(PARAMETERS)
         if p.realtime_priority > 0:  # the executor's thread (this one), below the loop's
             refused = set_realtime_priority(max(p.realtime_priority - 1, 1))
             if refused:

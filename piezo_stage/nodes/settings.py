@@ -359,3 +359,14 @@ class VoltageDriverSettings:
     hold_period: float
     realtime_priority: int
     reconnect_attempts: int
+
+
+@dataclass(frozen=True)
+class StageLoopSettings:
+    """``stage_loop``: The stage's composed loop: every axis's sensor, law and channel in one
+    thread."""
+
+    realtime_priority: int
+    align: float
+    coupling_compensation: bool
+    poll_period: float
