@@ -132,17 +132,20 @@ class PeriodicTrajectory:
         return 2.0 * self.range / blend, 2.0 * math.pi * self.range / blend**2
 
     def _blend_time(self) -> float:
-        """The shortest blend ≥ rounding·P/2 within the limits (bisection: v and a fall as the
-        blend lengthens up to P/2 for the steps, and over the useful range for the triangle).
+        """The shortest blend ≥ rounding·P/2 that meets the limits falling as it lengthens
+        (bisection up to P/2): a step's v and a both; a triangle's a = π·v/T_c alone, since its
+        ramp velocity v grows with the corner, so no longer corner can then meet v_max
+        (``__post_init__`` refuses it with the figure).
         """
         if self.shape is Shape.SINE:
             return 0.0
         half = 0.5 * self.period
         lo = self.rounding * half
+        v_max = math.inf if self.shape is Shape.TRIANGLE else self.v_max
 
         def ok(blend: float) -> bool:
             v, a = self._peaks(blend)
-            return v <= self.v_max and a <= self.a_max
+            return v <= v_max and a <= self.a_max
 
         if ok(lo):
             return lo
