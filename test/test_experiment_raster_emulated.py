@@ -44,9 +44,10 @@ def test_the_emulated_scanner_scans_and_learns_its_fast_axis(tmp_path):
     summary = json.loads(proc.stdout)
     x, y = summary["axes"]["x"], summary["axes"]["y"]
     fast, slow = (100 * a["rms_error"] / a["range"] for a in (x, y))
+    distortion = summary["image"]["distortion_px_max"]  # None when the run failed
     print(
         f"exit {proc.returncode}: fast {fast:.3g} %, slow {slow:.3g} % of range; distortion "
-        f"{summary['image']['distortion_px_max']:.3g} px max; "
+        f"{'none' if distortion is None else format(distortion, '.3g')} px max; "
         f"{summary['wall_time']:.0f} s for {3 * summary['frame_time']:.1f} s of scan"
     )
     # every learning line measured; how much learning gains live is a figure of the host's
