@@ -8,9 +8,13 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from piezo_stage.hardware import ConfigError
 from piezo_stage.hardware.timing import CommandPlayout, SampleClock, set_realtime_priority
+
+from property_support import examples
 
 pytestmark = pytest.mark.unit
 
@@ -72,6 +76,30 @@ def test_sample_clock_follows_lost_samples_within_its_window():
         np.min(err[(truth > T0 + 5.01e9) & (truth < T0 + 5.3e9)]) < -9e-3
     )  # 10 samples early at first
     assert np.max(np.abs(long_after)) < 0.2e-3  # then back on the sensor's clock
+
+
+@settings(max_examples=examples(200), deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(1, 40), st.floats(0.0, 0.05)),  # block size, its link delay [s]
+        min_size=2,
+        max_size=200,
+    ),
+    st.floats(0.01, 2.0),
+)
+@example([(1, 0.01), (1, 0.0)], 2.0)  # the second block lowers the envelope below the first
+def test_sample_clock_stamps_only_increase_half_a_period_apart(blocks, window):
+    """Whatever the link's delays, a stream's stamps increase, at least half a period apart: a
+    reception earlier than the envelope (which lowers t0) never sends time back."""
+    clock = SampleClock(RATE, window=window)
+    stamps, k, latest = [], 0, T0
+    for size, delay in blocks:
+        k += size
+        # the block's last sample was taken at k/RATE; it arrives `delay` later (in order)
+        latest = max(latest, T0 + round(k * 1e9 / RATE + delay * 1e9))
+        stamps += clock.stamps(latest, size)
+    assert len(stamps) == k
+    assert np.all(np.diff(stamps) >= round(0.5e9 / RATE)), np.diff(stamps).min()
 
 
 def test_sample_clock_validation_and_reset():

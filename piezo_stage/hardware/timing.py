@@ -81,7 +81,10 @@ class SampleClock:
     returns the time each was taken, ``t0 + k / rate`` with ``t0`` = min of
     ``t_reception − k_last / rate`` over the last ``window`` seconds. A stamp is never later than
     its reception; a frame lost on the link delays the following stamps by 1/rate until the
-    window has forgotten the older, earlier envelope (≤ ``window`` s).
+    window has forgotten the older, earlier envelope (≤ ``window`` s). Stamps only increase, at
+    least half a period apart: when a reception earlier than the window's envelope lowers
+    ``t0``, the next stamps close the step back half a period per sample (a loop that steps on
+    every sample never sees time go back).
     """
 
     def __init__(self, rate: float, window: float = 2.0) -> None:
@@ -91,11 +94,13 @@ class SampleClock:
             raise ConfigError(f"envelope window must be > 0 s, got {window}")
         self.rate = float(rate)
         self.window = float(window)
+        self._half_period_ns = round(0.5e9 / rate)
         self.reset()
 
     def reset(self) -> None:
         """Forget the stream (after a reconnect the sensor's sample counter restarts for us)."""
         self._base_ns: int | None = None
+        self._last_ns: int | None = None  # the newest stamp given
         self._count = 0
         self._offsets: deque[tuple[float, float]] = deque()  # (t_reception, offset) [s from base]
 
@@ -123,7 +128,13 @@ class SampleClock:
             offsets.popleft()
         t0 = offsets[0][1]
         self._count = count + n
-        return [base + round((t0 + k / rate) * 1e9) for k in range(count, count + n)]
+        out = [base + round((t0 + k / rate) * 1e9) for k in range(count, count + n)]
+        last, step = self._last_ns, self._half_period_ns
+        if last is not None and out[0] < last + step:
+            for k, stamp in enumerate(out):
+                last = out[k] = max(stamp, last + step)
+        self._last_ns = out[-1]
+        return out
 
 
 class CommandPlayout:
