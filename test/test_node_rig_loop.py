@@ -500,6 +500,6 @@ def test_apply_at_stamp_is_refused_in_the_composed_loop():
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         "error: voltage_driver: apply_at_stamp plays commands that arrive on voltage_command at "
-        "their stamps; in the composed loop (rig_loop) the law's output is written as it is "
+        "their stamps; in the composed loop (rig_loop) the outputs are written as they are "
         "computed: set apply_at_stamp false"
     ]

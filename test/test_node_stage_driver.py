@@ -142,6 +142,48 @@ def test_each_axis_commanded_on_its_own_topic_reaches_its_channel(probe, device)
     assert "y: rejected non-finite voltage command" in err
 
 
+def test_apply_at_stamp_plays_each_axis_command_at_its_stamp_plus_the_delay(probe, device):
+    """apply_at_stamp: each axis's commands leave at their stamp + command_delay, in stamp
+    order per axis, not on arrival; an unstamped one is refused."""
+    from builtin_interfaces.msg import Time
+
+    from piezo_stage_msgs.msg import Voltage
+
+    delay = 0.2
+    s = StageNode(
+        probe,
+        device.url,
+        "apply_at_stamp:=true",
+        f"command_delay:={delay}",
+        "command_timeout:=0.0",
+        "readback_rate_hz:=0.0",
+    )
+    try:
+        sent_at = time.monotonic()
+        now = probe.get_clock().now().nanoseconds
+        # x: 30 V due at +0.6 s, sent first; y: 20 V due at +0.3 s; x: 10 V due at +0.4 s
+        for axis, volts, ahead in (("x", 30.0, 0.4), ("y", 20.0, 0.1), ("x", 10.0, 0.2)):
+            msg = Voltage(voltage=volts)
+            ns = now + round(ahead * 1e9)
+            msg.header.stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
+            s.cmd[axis].publish(msg)
+        s.cmd["z"].publish(Voltage(voltage=5.0))  # no stamp
+        assert s.wait(lambda: device.applied("1")[-1:] == [30.0]), device.log
+        assert s.wait(lambda: s.diag["z"].value("rejected_stamp_unstamped") == "1"), s.diag[
+            "z"
+        ].values
+    finally:
+        stop(s.proc)
+    at = {(c, v): t - sent_at for c, v, t in device.log}
+    print({k: f"{v:.3f} s" for k, v in at.items()})
+    # each at its due time or later (the host may be slow), never before; in stamp order
+    assert at[("2", 20.0)] >= delay + 0.1 - 0.02
+    assert at[("1", 10.0)] >= delay + 0.2 - 0.02
+    assert at[("1", 30.0)] >= delay + 0.4 - 0.02
+    assert at[("2", 20.0)] < at[("1", 10.0)] < at[("1", 30.0)]
+    assert ("3", 5.0) not in at  # the unstamped command never left the node
+
+
 def test_the_slew_cap_holds_per_axis_between_successive_writes(probe, device):
     rate = 40.0  # V/s: one write moves an axis at most rate x 25 ms = 1 V
     s = StageNode(probe, device.url, f"slew_rate:={rate}", "command_timeout:=0.0")

@@ -78,7 +78,7 @@ class StageDriver:
     def set_voltages(
         self,
         values: Mapping[str, float],
-        received: float | Mapping[str, float] | None = None,
+        received: float | Mapping[str, float | None] | None = None,
     ) -> dict[str, SetResult | HardwareError]:
         """Apply one request per named axis with all of its checks, as one device command; per
         axis what was sent, or the refusal (non-finite, out of range, expired, not connected)

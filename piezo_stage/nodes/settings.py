@@ -308,6 +308,10 @@ class StageDriverSettings:
     readback_rate_hz: float
     max_command_age: float
     max_stamp_ahead: float
+    apply_at_stamp: bool
+    command_delay: float
+    hold_period: float
+    realtime_priority: int
     write_rate_hz: float
 
 

@@ -21,11 +21,10 @@ device does not list (GCS ``SAI?``), a backend that has no such channel.
 from __future__ import annotations
 
 import functools
-import math
 import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from rclpy.parameter import Parameter
 
@@ -40,10 +39,11 @@ from piezo_stage.hardware.errors import (
     SafetyError,
 )
 from piezo_stage.hardware.stage_driver import StageDriver
-from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
+from piezo_stage.hardware.stamps import StampPolicy
 from piezo_stage.model.stage_file import Stage, StageFileError, load_stage
 from piezo_stage_msgs.msg import Voltage
 
+from .axis_inlet import AxisInlet, Playout, Rejection, check_apply_at_stamp, start_playout
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .driver_config import AXIS_SAFETY, driver_config
@@ -61,6 +61,7 @@ _SHARED = (
     ("backend", "url", "baud", "error_pipeline", "io_timeout")
     + AXIS_SAFETY
     + ("readback_rate_hz", "max_command_age", "max_stamp_ahead")
+    + ("apply_at_stamp", "command_delay", "hold_period", "realtime_priority")
 )
 
 PARAMETERS = ParameterTable(
@@ -92,20 +93,12 @@ PARAMETERS = ParameterTable(
 
 @dataclass
 class _Axis:
-    """One axis's topics and counters (its safety state is its driver's)."""
+    """One axis's topics and inlet (its safety state is its driver's)."""
 
     name: str
     channel: str
     publish: Callable[[float, int], None]
-    applied: float
-    last_command: float = math.nan
-    commands: int = 0
-    clamped: int = 0
-    rejected_nonfinite: int = 0
-    rejected_late: int = 0
-    rejected_stamp: dict[str, int] = field(
-        default_factory=lambda: {v.value: 0 for v in StampVerdict if v is not StampVerdict.OK}
-    )
+    inlet: AxisInlet
 
 
 def _load(name: str) -> Stage:
@@ -154,8 +147,12 @@ class StageDriverNode(PiezoNode):
         p: StageDriverSettings = self.declare_settings(PARAMETERS)
         self.stage = _load(p.stage_file)
         self.url = p.url
+        if p.apply_at_stamp:
+            check_apply_at_stamp(self, "scanner_loop" if handoff is not None else "")
         self.stamps = StampPolicy(
-            p.max_command_age, p.max_stamp_ahead, require_stamp=p.max_command_age > 0
+            p.max_command_age,
+            p.max_stamp_ahead,
+            require_stamp=p.max_command_age > 0 or p.apply_at_stamp,
         )
         on_set(
             self,
@@ -171,19 +168,29 @@ class StageDriverNode(PiezoNode):
         self._last_error = ""
         self._reported_down = False
         #: write_rate_hz > 0: the latest accepted command of each axis, (voltage, received)
-        self._pending: dict[str, tuple[float, float]] = {}
+        self._pending: dict[str, tuple[float, float | None]] = {}
         self.axes: dict[str, _Axis] = {}
+        self._playouts = Playout()
         for stage_axis in self.stage.axes:
             driver = self.driver.drivers[stage_axis.channel]
-            axis = _Axis(
+            channel = stage_axis.channel
+            apply = functools.partial(self._accept, channel)
+            inlet = AxisInlet(
                 stage_axis.name,
-                stage_axis.channel,
-                self._publisher(stage_axis.name),
+                self.get_logger(),
+                self.stamps,
+                apply,
+                functools.partial(self._received, channel),
+                functools.partial(getattr, driver, "last_sent"),
                 driver.last_sent,
             )
-            self.axes[axis.channel] = axis
+            axis = _Axis(stage_axis.name, channel, self._publisher(stage_axis.name), inlet)
+            self.axes[channel] = axis
             if handoff is not None:
                 continue  # the composed loop writes: its controllers' commands are for recorders
+            if p.apply_at_stamp:
+                inlet.playout = start_playout(apply, p, self._playouts)
+                driver.on_timeout.append(inlet.playout.clear)  # the watchdog owns the output
             self.create_subscription(
                 Voltage,
                 f"{axis.name}/voltage_command",
@@ -203,7 +210,9 @@ class StageDriverNode(PiezoNode):
         identity = first.info.identity if first.info is not None else "?"
         self.get_logger().info(
             f"{identity} on {self.url}: "
-            + ", ".join(f"{a.name} on {a.channel} at {a.applied:g} V" for a in self.axes.values())
+            + ", ".join(
+                f"{a.name} on {a.channel} at {a.inlet.applied:g} V" for a in self.axes.values()
+            )
         )
 
     def _publisher(self, axis: str) -> Callable[[float, int], None]:
@@ -220,44 +229,34 @@ class StageDriverNode(PiezoNode):
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, axis: _Axis, msg: Voltage) -> None:
-        if not math.isfinite(msg.voltage):
-            axis.rejected_nonfinite += 1
-            self._reject(axis, f"non-finite voltage command {msg.voltage}")
-            return
-        stamp = msg.header.stamp
-        now = self.get_clock().now().nanoseconds * 1e-9
-        verdict, age = self.stamps.check(stamp.sec, stamp.nanosec, now)
-        if verdict is StampVerdict.TOO_OLD:
-            axis.rejected_late += 1
-            self._reject(
-                axis,
-                f"late voltage command ({age:.3g} s old > max_command_age "
-                f"{self.stamps.max_age:g} s)",
-            )
-            return
-        if verdict is not StampVerdict.OK:
-            axis.rejected_stamp[verdict.value] += 1
-            self._reject(axis, f"voltage command with a {verdict.value} stamp")
-            return
-        received = self.driver.drivers[axis.channel].clock()
-        self.driver.command_received(axis.channel, received)  # the watchdog counts from arrival
-        axis.last_command = msg.voltage
+        axis.inlet.on_command(msg, self.get_clock().now().nanoseconds * 1e-9)
+
+    def _received(self, channel: str) -> float:
+        """A command for ``channel`` arrived: its watchdog counts from now (its driver's
+        clock)."""
+        received = self.driver.drivers[channel].clock()
+        self.driver.command_received(channel, received)
+        return received
+
+    def _accept(self, channel: str, voltage: float, command: bool, received: float | None) -> None:
+        """An accepted command (or a value its play-out interpolated) for ``channel``: written
+        now, or with the others at the next write period (``write_rate_hz``)."""
+        if command:
+            self.axes[channel].inlet.last_command = voltage
         if self._batched:
-            self._pending[axis.channel] = (msg.voltage, received)
+            self._pending[channel] = (voltage, received)
         else:
-            self._write({axis.channel: (msg.voltage, received)})
+            self._write({channel: (voltage, received)})
 
     def set_voltages(self, values: Mapping[str, float]) -> None:
         """The composed loop's write ({channel: voltage}): the watchdog of each axis counts from
         now; one device command for all (each axis's safety rules apply); every
         ``publish_every``-th such write is published on the axes' ``voltage``."""
         self._loop_writes += 1
-        batch = {}
+        batch: dict[str, tuple[float, float | None]] = {}
         for channel, voltage in values.items():
-            received = self.driver.drivers[channel].clock()
-            self.driver.command_received(channel, received)
-            self.axes[channel].last_command = voltage
-            batch[channel] = (voltage, received)
+            self.axes[channel].inlet.last_command = voltage
+            batch[channel] = (voltage, self._received(channel))
         self._write(batch, (self._loop_writes - 1) % self.publish_every == 0)
 
     def _write_pending(self) -> None:
@@ -265,7 +264,7 @@ class StageDriverNode(PiezoNode):
             batch, self._pending = self._pending, {}
             self._write(batch)
 
-    def _write(self, batch: dict[str, tuple[float, float]], publish: bool = True) -> None:
+    def _write(self, batch: dict[str, tuple[float, float | None]], publish: bool = True) -> None:
         """Write ``batch`` ({channel: (voltage, received)}) as one device command; publish what
         each axis sent (``publish`` False: only keep it)."""
         sent_at = self._now_ns()  # applied when the device gets it, not after ERR?
@@ -280,22 +279,15 @@ class StageDriverNode(PiezoNode):
         for channel, result in results.items():
             axis = self.axes[channel]
             if isinstance(result, SetResult):
-                axis.commands += 1
-                axis.clamped += int(result.clamped)
+                axis.inlet.wrote(result)
                 if publish:
                     self._publish(axis, result.sent, sent_at)
                 else:
-                    axis.applied = result.sent
+                    axis.inlet.applied = result.sent
             elif isinstance(result, CommandExpired):  # counted by the axis's driver
-                self._reject(axis, str(result))
+                axis.inlet.reject(Rejection.EXPIRED, str(result))
             else:
                 self._link_error(result)
-
-    def _reject(self, axis: _Axis, text: str) -> None:
-        sent = self.driver.drivers[axis.channel].last_sent
-        self.get_logger().warn(
-            f"{axis.name}: rejected {text}: output stays at {sent:g} V", throttle_duration_sec=1.0
-        )
 
     def _link_error(self, exc: Exception) -> None:
         self._link_errors += 1
@@ -313,7 +305,10 @@ class StageDriverNode(PiezoNode):
             states = self.driver.tick()  # every axis's ramp step, in one command
         for channel, axis in self.axes.items():
             d = self.driver.drivers[channel]
-            if d.last_sent != axis.applied and states[channel] is not DriverState.DISCONNECTED:
+            if (
+                d.last_sent != axis.inlet.applied
+                and states[channel] is not DriverState.DISCONNECTED
+            ):
                 self._publish(axis, d.last_sent)  # a step of a ramp (toward a command or safe)
             if d.trips != trips[channel]:
                 self.get_logger().warn(
@@ -336,7 +331,7 @@ class StageDriverNode(PiezoNode):
 
     def _publish(self, axis: _Axis, voltage: float, stamp: int | None = None) -> None:
         """Publish an axis's applied voltage, stamped [ns] when it was sent (default: now)."""
-        axis.applied = voltage
+        axis.inlet.applied = voltage
         stamp = self._now_ns() if stamp is None else stamp
         if self._handoff is None:
             axis.publish(voltage, stamp)
@@ -369,7 +364,6 @@ class StageDriverNode(PiezoNode):
         d = self.driver.drivers[axis.channel]
         lim = d.limits
         assert lim is not None  # set by connect() in __init__, never unset
-        bad_stamps = sum(axis.rejected_stamp.values())
         values = {
             "state": d.state.value,
             "connected": d.connected,
@@ -377,33 +371,23 @@ class StageDriverNode(PiezoNode):
             "v_min": lim.v_min,
             "v_max": lim.v_max,
             "safe_voltage": d.config.safe_voltage,
-            "last_command": axis.last_command,
             "last_sent": d.last_sent,
-            "applied": axis.applied,
-            "commands": axis.commands,
-            "clamped_commands": axis.clamped,
-            "rejected_nonfinite": axis.rejected_nonfinite,
-            "rejected_late": axis.rejected_late,
-            **{f"rejected_stamp_{k}": n for k, n in axis.rejected_stamp.items()},
+            **axis.inlet.values(),
             "rejected_expired": d.expired,
             "watchdog_trips": d.trips,
             "device_writes": d.writes,
         }
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
-        rejected = axis.rejected_nonfinite + axis.rejected_late + bad_stamps + d.expired
+        rejected, text = axis.inlet.refused(d.expired)
         if rejected or d.state in (DriverState.TIMED_OUT, DriverState.SAFE):
-            return Diagnosis(
-                WARN,
-                f"{d.state.value}; {axis.rejected_nonfinite} non-finite, {axis.rejected_late} "
-                f"late, {bad_stamps} badly stamped and {d.expired} expired command(s) rejected",
-                values,
-            )
+            return Diagnosis(WARN, f"{d.state.value}; {text}", values)
         return Diagnosis(OK, d.state.value, values)
 
     def on_shutdown(self) -> None:
         """Ramp every axis to its safe_voltage together and leave the amplifier there."""
-        self._pending.clear()  # the ramp owns the outputs now
+        self._playouts.stop()  # queued commands are dropped: the ramp owns the outputs now
+        self._pending.clear()
         try:
             with self._lock:
                 applied = self.driver.shutdown()

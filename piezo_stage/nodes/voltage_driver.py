@@ -30,7 +30,6 @@ only what needs the ROS clock:
 
 from __future__ import annotations
 
-import enum
 import math
 import sys
 import threading
@@ -38,7 +37,6 @@ from typing import Sequence
 
 from rclpy.parameter import Parameter
 
-from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.hardware import (
     DriverState,
     HardwareError,
@@ -48,19 +46,13 @@ from piezo_stage.hardware import (
 )
 from piezo_stage.hardware.amplifier import AMPLIFIERS
 from piezo_stage.hardware.errors import CommandExpired
-from piezo_stage.hardware.stamps import StampPolicy, StampVerdict
-from piezo_stage.hardware.timing import (
-    PLAYOUT_SWITCH_INTERVAL,
-    CommandPlayout,
-    set_realtime_priority,
-    shorten_switch_interval,
-)
+from piezo_stage.hardware.stamps import StampPolicy
 from piezo_stage_msgs.msg import Voltage
 
+from .axis_inlet import AxisInlet, Playout, Rejection, check_apply_at_stamp, start_playout
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
 from .driver_config import driver_config
-from .errors import RosParameterError
 from .handoff import Handoff
 from .parameters import on_set
 from .qos import COMMAND_QOS, SENSOR_QOS
@@ -236,15 +228,6 @@ PARAMETERS = ParameterTable(
 )
 
 
-class Rejection(enum.Enum):
-    """Why a voltage command was not applied."""
-
-    NONFINITE = "nonfinite"
-    LATE = "late"  # older than max_command_age
-    STAMP = "stamp"  # a stamp the StampPolicy refuses
-    EXPIRED = "expired"  # received before the watchdog fired
-
-
 class VoltageDriverNode(PiezoNode):
     """With a ``handoff``: part of the rig loop (:mod:`.rig_loop`), whose loop thread calls
     :meth:`command` directly; no voltage_command subscription (the controller in the same
@@ -256,16 +239,8 @@ class VoltageDriverNode(PiezoNode):
         )
         self._handoff = handoff
         p: VoltageDriverSettings = self.declare_settings(PARAMETERS)
-        if p.apply_at_stamp and handoff is not None:
-            raise RosParameterError(
-                "voltage_driver: apply_at_stamp plays commands that arrive on voltage_command "
-                "at their stamps; in the composed loop (rig_loop) the law's output is written "
-                "as it is computed: set apply_at_stamp false"
-            )
-        if p.apply_at_stamp and self.get_parameter("use_sim_time").value:
-            raise RosParameterError(
-                "voltage_driver: apply_at_stamp needs wall-clock stamps: not with use_sim_time"
-            )
+        if p.apply_at_stamp:
+            check_apply_at_stamp(self, "rig_loop" if handoff is not None else "")
 
         amplifier = make_amplifier(
             p.backend,
@@ -293,31 +268,23 @@ class VoltageDriverNode(PiezoNode):
         self._now_ns = stamp_clock(self)
         self.url = p.url
         self.info = self.driver.connect()
-        self._applied = self.info.applied
-        self._last_command = math.nan
-        self._commands = 0
-        self._clamped = 0
-        self._rejected_nonfinite = 0
-        self._rejected_late = 0
-        self._rejected_stamp = {v.value: 0 for v in StampVerdict if v is not StampVerdict.OK}
+        self.inlet = AxisInlet(
+            "",
+            self.get_logger(),
+            self.stamps,
+            self._apply,
+            self._received,
+            lambda: self.driver.last_sent,
+            self.info.applied,
+        )
         self._link_errors = 0
         self._watchdog_trips = 0
         self._last_error = ""
         self._lock = threading.Lock()  # commands come from the executor or from the playout thread
-        self._playout: CommandPlayout | None = None
+        self._playouts = Playout()
         if p.apply_at_stamp:
-            shorten_switch_interval(PLAYOUT_SWITCH_INTERVAL)
-            self._playout = CommandPlayout(
-                self._apply,
-                p.command_delay,
-                realtime_priority=p.realtime_priority,
-                hold_period=p.hold_period,
-                max_ahead=max(p.max_stamp_ahead, p.command_delay),
-            ).start()
-            self.driver.on_timeout.append(self._playout.clear)  # the watchdog owns the output
-            # the executor's thread too: the playout needs the GIL, and a normal-priority holder
-            # preempted by other processes would stall it for tens of ms (priority inversion)
-            self._executor_priority = set_realtime_priority(p.realtime_priority)
+            playout = self.inlet.playout = start_playout(self._apply, p, self._playouts)
+            self.driver.on_timeout.append(playout.clear)  # the watchdog owns the output
 
         self._pub = self.create_publisher(Voltage, "voltage", SENSOR_QOS)
         self._msg = Voltage()
@@ -341,31 +308,13 @@ class VoltageDriverNode(PiezoNode):
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg: Voltage) -> None:
-        if not math.isfinite(msg.voltage):
-            self._reject(Rejection.NONFINITE, f"non-finite voltage command {msg.voltage}")
-            return
-        stamp = msg.header.stamp
-        now = self.get_clock().now().nanoseconds * 1e-9
-        verdict, age = self.stamps.check(stamp.sec, stamp.nanosec, now)
-        if verdict is StampVerdict.TOO_OLD:
-            self._reject(
-                Rejection.LATE,
-                f"late voltage command ({age:.3g} s old > max_command_age {self.max_age:g} s)",
-            )
-            return
-        if verdict is not StampVerdict.OK:
-            self._rejected_stamp[verdict.value] += 1
-            self._reject(
-                Rejection.STAMP,
-                f"voltage command with a {verdict.value} stamp ({stamp.sec} s {stamp.nanosec} ns)",
-            )
-            return
+        self.inlet.on_command(msg, self.get_clock().now().nanoseconds * 1e-9)
+
+    def _received(self) -> float:
+        """A command arrived: the watchdog counts from now (the driver's clock)."""
         received = self.driver.clock()
-        self.driver.command_received(received)  # the watchdog counts from arrival
-        if self._playout is not None:
-            self._playout.push(stamp_seconds(stamp), msg.voltage, received)
-        else:
-            self._apply(msg.voltage, True, received)
+        self.driver.command_received(received)
+        return received
 
     @property
     def last_sent(self) -> float:
@@ -376,8 +325,7 @@ class VoltageDriverNode(PiezoNode):
         """A command from the composed loop (its own thread): the watchdog counts from now; the
         device read-back follows the write when one is due (``publish`` False: the value
         written is not published on ``voltage``)."""
-        received = self.driver.clock()
-        self.driver.command_received(received)
+        received = self._received()
         self._apply(voltage, True, received, publish)
         if received >= self._readback_due:
             self._readback_due = received + self._readback_period
@@ -406,39 +354,24 @@ class VoltageDriverNode(PiezoNode):
                     return
                 self._publish(result.sent, sent_at)
                 return
-            self._last_command = voltage
+            self.inlet.last_command = voltage
             sent_at = self._now_ns()  # applied when the device gets it, not after ERR?
             try:
                 result = self.driver.set_voltage(voltage, received)
             except NonFiniteVoltageError as exc:  # not after the check above; kept for safety
-                self._reject(Rejection.NONFINITE, str(exc))
+                self.inlet.reject(Rejection.NONFINITE, str(exc))
                 return
             except CommandExpired as exc:  # queued before the watchdog fired
-                self._reject(Rejection.EXPIRED, str(exc))
+                self.inlet.reject(Rejection.EXPIRED, str(exc))
                 return
             except HardwareError as exc:
                 self._link_error(exc)
                 return
-            self._commands += 1
-            self._clamped += int(result.clamped)
+            self.inlet.wrote(result)
             if publish:
                 self._publish(result.sent, sent_at)
             else:
-                self._applied = result.sent
-
-    def _reject(self, kind: Rejection, text: str) -> None:
-        # one log call site per kind: rclpy throttles per call site
-        text = f"rejected {text}: output stays at {self.driver.last_sent:g} V"
-        if kind is Rejection.LATE:
-            self._rejected_late += 1
-            self.get_logger().warn(text, throttle_duration_sec=1.0)
-        elif kind is Rejection.STAMP:  # counted by the caller, per verdict
-            self.get_logger().warn(text, throttle_duration_sec=1.0)
-        elif kind is Rejection.EXPIRED:  # counted by the driver
-            self.get_logger().warn(text, throttle_duration_sec=1.0)
-        else:
-            self._rejected_nonfinite += 1
-            self.get_logger().warn(text, throttle_duration_sec=1.0)
+                self.inlet.applied = result.sent
 
     def _link_error(self, exc: Exception) -> None:
         self._link_errors += 1
@@ -459,7 +392,10 @@ class VoltageDriverNode(PiezoNode):
             except HardwareError as exc:
                 self._link_error(exc)
                 return
-            if self.driver.last_sent != self._applied and state is not DriverState.DISCONNECTED:
+            if (
+                self.driver.last_sent != self.inlet.applied
+                and state is not DriverState.DISCONNECTED
+            ):
                 self._publish(self.driver.last_sent)  # a step of a ramp (toward a command or safe)
         if self.driver.trips != trips:
             self._watchdog_trips = self.driver.trips
@@ -479,7 +415,7 @@ class VoltageDriverNode(PiezoNode):
 
     def _publish(self, voltage: float, stamp: int | None = None) -> None:
         """Publish an applied voltage, stamped [ns] when it was sent (default: now)."""
-        self._applied = voltage
+        self.inlet.applied = voltage
         stamp = self._now_ns() if stamp is None else stamp
         if self._handoff is None:
             self._send(voltage, stamp)
@@ -505,50 +441,30 @@ class VoltageDriverNode(PiezoNode):
             "v_min": lim.v_min,
             "v_max": lim.v_max,
             "safe_voltage": d.config.safe_voltage,
-            "last_command": self._last_command,
             "last_sent": d.last_sent,
-            "applied": self._applied,
-            "commands": self._commands,
-            "clamped_commands": self._clamped,
-            "rejected_nonfinite": self._rejected_nonfinite,
-            "rejected_late": self._rejected_late,
+            **self.inlet.values(),
             "watchdog_trips": self._watchdog_trips,
-            **{f"rejected_stamp_{k}": n for k, n in self._rejected_stamp.items()},
             "rejected_expired": d.expired,
             "device_writes": d.writes,
             "reconnects": d.reconnects,
             "link_errors": self._link_errors,
             "last_error": self._last_error or d.last_link_error,
         }
-        playout = self._playout
-        if playout is not None:
-            values.update(
-                command_delay=playout.delay,
-                late_playout=playout.late,
-                ahead_playout=playout.ahead,
-                pending_playout=playout.pending,
-                playout_priority=playout.realtime_error or playout.realtime_priority,
-                executor_priority=self._executor_priority or playout.realtime_priority,
+        if self.inlet.playout is not None:
+            values["executor_priority"] = (
+                self._playouts.executor_priority or self.settings.realtime_priority
             )
         self._reported_down = not d.connected
         if not d.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
-        bad_stamps = sum(self._rejected_stamp.values())
-        rejected = self._rejected_nonfinite + self._rejected_late + bad_stamps + d.expired
+        rejected, text = self.inlet.refused(d.expired)
         if rejected or d.state in (DriverState.TIMED_OUT, DriverState.SAFE):
-            return Diagnosis(
-                WARN,
-                f"{d.state.value}; {self._rejected_nonfinite} non-finite, "
-                f"{self._rejected_late} late, {bad_stamps} badly stamped and "
-                f"{d.expired} expired command(s) rejected",
-                values,
-            )
+            return Diagnosis(WARN, f"{d.state.value}; {text}", values)
         return Diagnosis(OK, d.state.value, values)
 
     def on_shutdown(self) -> None:
         """Ramp to safe_voltage at the slew rate and leave the amplifier there (open loop)."""
-        if self._playout is not None:
-            self._playout.stop()  # queued commands are dropped: the ramp owns the output now
+        self._playouts.stop()  # queued commands are dropped: the ramp owns the output now
         applied = self.driver.shutdown()  # SafeStateNotReached: run() exits 1 with the reason
         self._publish(applied)
         if self._handoff is not None:
