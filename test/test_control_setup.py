@@ -9,9 +9,9 @@ import pytest
 
 from piezo_stage.control.controller import OnClose
 from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.law_settings import LawSettings
 from piezo_stage.control.learning import FeedforwardTable
 from piezo_stage.control.setup import (
-    Settings,
     SetupError,
     configure_controller,
     law_config,
@@ -39,10 +39,10 @@ def settings(**values: object) -> typing.Any:
 
 def test_every_setting_the_setup_reads_is_a_parameter_of_the_node():
     """(mypy checks the types where the node passes its settings.)"""
-    read = [name for name, v in vars(Settings).items() if isinstance(v, property)]
+    read = [name for name, v in vars(LawSettings).items() if isinstance(v, property)]
     assert len(read) > 30 and set(read) <= set(PARAMETERS.names)
     for name in read:  # the table's Enum is the type the setup expects
-        kind = typing.get_type_hints(getattr(Settings, name).fget)["return"]
+        kind = typing.get_type_hints(getattr(LawSettings, name).fget)["return"]
         choices = PARAMETERS[name].choices
         assert choices is None or choices is kind, name
 

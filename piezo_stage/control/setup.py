@@ -14,14 +14,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Callable
 
 from piezo_stage.config_path import find_user_file
 
-from .controller import AntiWindup, ControllerConfig, OnClose
+from .controller import ControllerConfig
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import Gains, Law
+from .law_settings import LawSettings
+from .laws import Gains
 from .learning import (
     FeedforwardForm,
     FeedforwardTable,
@@ -47,91 +48,6 @@ class SetupError(ControlError):
     """
 
 
-class Settings(Protocol):
-    """The settings :func:`configure_controller` reads: the fields of the controller node's
-    settings (its parameter table), read-only.
-    """
-
-    @property
-    def mode(self) -> Law: ...
-    @property
-    def k0(self) -> float: ...
-    @property
-    def k1(self) -> float: ...
-    @property
-    def k2(self) -> float: ...
-    @property
-    def kA(self) -> float: ...
-    @property
-    def A(self) -> float: ...
-    @property
-    def f(self) -> float: ...
-    @property
-    def u_bias(self) -> float: ...
-    @property
-    def u_min(self) -> float: ...
-    @property
-    def u_max(self) -> float: ...
-    @property
-    def anti_windup(self) -> AntiWindup: ...
-    @property
-    def tracking_time(self) -> float: ...
-    @property
-    def derivative_tau(self) -> float: ...
-    @property
-    def hold_voltage(self) -> float: ...
-    @property
-    def on_close(self) -> OnClose: ...
-    @property
-    def rate_hz(self) -> float: ...
-    @property
-    def delay_samples(self) -> int: ...
-    @property
-    def compensation(self) -> Compensation: ...
-    @property
-    def feedforward_model(self) -> str: ...
-    @property
-    def feedforward_form(self) -> FeedforwardForm: ...
-    @property
-    def feedforward_table(self) -> str: ...
-    @property
-    def reference_source(self) -> ReferenceSource: ...
-    @property
-    def trajectory(self) -> str: ...
-    @property
-    def trajectory_amplitude(self) -> float: ...
-    @property
-    def trajectory_frequency(self) -> float: ...
-    @property
-    def trajectory_offset(self) -> float: ...
-    @property
-    def trajectory_rounding(self) -> float: ...
-    @property
-    def trajectory_v_max(self) -> float: ...
-    @property
-    def trajectory_a_max(self) -> float: ...
-    @property
-    def start_closed(self) -> bool: ...
-    @property
-    def max_gap(self) -> float: ...
-    @property
-    def start_grace(self) -> float: ...
-    @property
-    def open_at(self) -> float: ...
-    @property
-    def open_after(self) -> float: ...
-    @property
-    def open_duration(self) -> float: ...
-    @property
-    def learn_periods(self) -> int: ...
-    @property
-    def learn_gain(self) -> float: ...
-    @property
-    def learn_cutoff_hz(self) -> float: ...
-    @property
-    def learn_slew_rate(self) -> float: ...
-
-
 @dataclass(frozen=True)
 class ControllerSetup:
     """What a controller runs: ``config`` for :class:`.controller.TimeVaryingPID` and
@@ -149,7 +65,7 @@ class ControllerSetup:
 
 
 def law_config(
-    s: Settings,
+    s: LawSettings,
     feedforward: FeedforwardModel | None = None,
     table: FeedforwardTable | None = None,
 ) -> ControllerConfig:
@@ -184,7 +100,7 @@ def law_config(
     return config
 
 
-def supervision_config(s: Settings) -> SupervisionConfig:
+def supervision_config(s: LawSettings) -> SupervisionConfig:
     """The supervision of the loop: limits in amplifier volts, start_closed, gaps, the window."""
     try:
         return SupervisionConfig(
@@ -203,7 +119,7 @@ def supervision_config(s: Settings) -> SupervisionConfig:
         raise SetupError(str(exc)) from exc
 
 
-def load_feedforward(s: Settings, find: FindFile = find_user_file) -> FeedforwardModel | None:
+def load_feedforward(s: LawSettings, find: FindFile = find_user_file) -> FeedforwardModel | None:
     """The feedforward model of ``feedforward_model`` (None under feedback)."""
     if s.compensation is Compensation.FEEDBACK:
         return None
@@ -219,7 +135,7 @@ def load_feedforward(s: Settings, find: FindFile = find_user_file) -> Feedforwar
         raise SetupError(f"feedforward_model: {exc}") from None
 
 
-def load_trajectory(s: Settings) -> Trajectory | None:
+def load_trajectory(s: LawSettings) -> Trajectory | None:
     """The trajectory the trajectory_* settings give; None where they give none and
     reference_source does not use it (switching to it later is refused then).
     """
@@ -241,7 +157,7 @@ def load_trajectory(s: Settings) -> Trajectory | None:
 
 
 def feedforward_table(
-    s: Settings,
+    s: LawSettings,
     trajectory: Trajectory | None,
     feedforward: FeedforwardModel | None,
     find: FindFile = find_user_file,
@@ -296,7 +212,7 @@ def feedforward_table(
 
 
 def learning(
-    s: Settings,
+    s: LawSettings,
     config: ControllerConfig,
     table: FeedforwardTable | None,
     feedforward: FeedforwardModel | None,
@@ -333,7 +249,7 @@ def learning(
         raise SetupError(str(exc)) from None
 
 
-def configure_controller(s: Settings, find: FindFile = find_user_file) -> ControllerSetup:
+def configure_controller(s: LawSettings, find: FindFile = find_user_file) -> ControllerSetup:
     """Everything a controller with settings ``s`` runs, or the :class:`SetupError` that says
     why it cannot (``find`` resolves the files the settings name).
     """
