@@ -88,6 +88,7 @@ def test_sample_clock_follows_lost_samples_within_its_window():
     st.floats(0.01, 2.0),
 )
 @example([(1, 0.01), (1, 0.0)], 2.0)  # the second block lowers the envelope below the first
+@example([(1, 0.0007383159840143263), (1, 0.0)], 1.0)  # ... to less than half a period after it
 def test_sample_clock_stamps_only_increase_half_a_period_apart(blocks, window):
     """Whatever the link's delays, a stream's stamps increase, at least half a period apart: a
     reception earlier than the envelope (which lowers t0) never sends time back."""
