@@ -9,9 +9,11 @@ and the device read-back every 1/readback_rate_hz s); ``/diagnostics`` has one s
 :class:`piezo_stage.hardware.stage_driver.StageDriver` (limits, slew cap between every two
 writes, watchdog from the axis's own last command, reconnect; shutdown ramps all axes together);
 this node adds what needs ROS: non-finite commands and badly stamped ones (``max_command_age``,
-``max_stamp_ahead``) are refused here and never sent, and ``write_rate_hz`` chooses how commands
-leave: 0, each on arrival (that axis alone); > 0, the latest command of every axis together, one
-device command per period (GCS ``SVA 1 a 2 b``). SIGINT/SIGTERM: ``on_shutdown()`` ramps every
+``max_stamp_ahead``) are refused here and never sent (:mod:`.axis_inlet`, as in
+``voltage_driver``); ``apply_at_stamp`` plays each axis's commands at their stamps +
+``command_delay`` (a play-out thread per axis), and ``write_rate_hz`` chooses how commands leave:
+0, each when accepted or due (that axis alone); > 0, the latest command of every axis together,
+one device command per period (GCS ``SVA 1 a 2 b``). SIGINT/SIGTERM: ``on_shutdown()`` ramps every
 axis to ``safe_voltage`` (exit 1 naming the axes that did not get there).
 
 Bad input, exit 2 with one line and nothing sent: a stage file that does not load, a channel the
