@@ -270,6 +270,22 @@ def test_a_frequency_that_fails_stops_before_the_gains_and_resumes_from_it(tmp_p
     assert not (tmp_path / "FAILED.md").exists() and (tmp_path / "report.md").is_file()
 
 
+def test_a_stall_held_at_one_peak_is_no_clipping():
+    """A host that stalls the command stream at a peak holds the applied voltage there for one
+    period; an amplifier at a limit flattens every period reaching it."""
+    plan = SweepSettings(low=0.0, amplitude=300.0, offset=100.0).plan(50.0)
+    series = simulate(plan, 50e3)
+    top = int(np.argmax(series.v))
+    held = series.v.copy()
+    held[top : top + 100] = held[top]  # a 2 ms stall (a tenth of a period) at the top
+    near_top = held >= held.max() - 0.3
+    assert np.count_nonzero(near_top) > 1.5 * np.count_nonzero(series.v >= held.max() - 0.3)
+    sweep.check_clipping(dataclasses.replace(series, v=held), plan, 0.0, 450.0)
+    clipped = np.minimum(series.v, held.max() - 4.0)  # 1 % of the span off every top
+    with pytest.raises(SweepError, match="in 4 of the 4 periods reaching it"):
+        sweep.check_clipping(dataclasses.replace(series, v=clipped), plan, 0.0, 450.0)
+
+
 def test_clipping_is_told_from_a_command_held_at_a_limit(tmp_path):
     plan = SweepSettings(low=0.0, amplitude=300.0, offset=100.0).plan(50.0)
     series = simulate(plan, 50e3)

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.identification.errors import IdentificationError
@@ -119,6 +120,9 @@ class Series:
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
 
 
+#: samples a period's flat top (bottom) may have beyond the excitation's and not be clipping
+CLIP_EXCESS = 2
+
 #: a record whose displacement stamps are at least this fraction voltage stamps shares a clock
 SAME_CLOCK = 0.9
 
@@ -162,8 +166,9 @@ def paired(series: Series, delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, 
 
 def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: float) -> None:
     """SweepError when, during the plan (from its first mark), the sensor reported out-of-range
-    samples, or the applied voltage has a flat top or bottom the plan has not (an amplifier at a
-    limit, known or not; a command held at a limit on purpose is no clipping)."""
+    samples, or the applied voltage has a flat top or bottom the plan has not, in most periods
+    reaching it (an amplifier at a limit, known or not, clips every period; a command held at a
+    limit on purpose is no clipping, nor is one held through a stall of the host)."""
     t0 = min(m[0] for m in series.marks) if series.marks else -np.inf
     during_x = (series.t_x >= t0) & (series.t_x < t0 + plan.duration)
     bad = np.flatnonzero(during_x & (series.status != 0))
@@ -178,18 +183,30 @@ def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: fl
     during = (t >= 0) & (t < plan.duration)
     if np.count_nonzero(during) < 3:
         return
-    v, asked = series.v[during], plan.values(t[during])
+    t, v = t[during], series.v[during]
+    asked = plan.values(t)
     delta = 1e-3 * max(float(np.ptp(asked)), 1e-9)
+    period = (t // plan.period).astype(np.int64)
     for name, sign in (("upper", 1.0), ("lower", -1.0)):
-        flat_v = np.count_nonzero(sign * v >= np.max(sign * v) - delta)
-        flat_asked = np.count_nonzero(sign * asked >= np.max(sign * asked) - delta)
-        if flat_v > flat_asked + 3 and flat_v > 1.5 * flat_asked:
+        at_v = sign * v >= np.max(sign * v) - delta
+        at_asked = sign * asked >= np.max(sign * asked) - delta
+        flat_v, flat_asked = _per_period(period, at_v), _per_period(period, at_asked)
+        touching = (flat_v > 0) | (flat_asked > 0)
+        wider = (flat_v > flat_asked + CLIP_EXCESS) & (flat_v > 1.5 * flat_asked)
+        if 2 * np.count_nonzero(wider) > np.count_nonzero(touching):
             level = float(np.max(v) if sign > 0 else np.min(v))
             raise SweepError(
-                f"the applied voltage stays at its {name} extreme {level:.6g} V for {flat_v} "
-                f"samples where the excitation has {flat_asked}: the amplifier clips (limits "
-                f"{v_min:g}/{v_max:g} V); reduce --amplitude/--offset"
+                f"the applied voltage stays at its {name} extreme {level:.6g} V for "
+                f"{int(flat_v.sum())} samples where the excitation has {int(flat_asked.sum())}, "
+                f"in {np.count_nonzero(wider)} of the {np.count_nonzero(touching)} periods "
+                f"reaching it: the amplifier clips (limits {v_min:g}/{v_max:g} V); reduce "
+                "--amplitude/--offset"
             )
+
+
+def _per_period(period: NDArray[np.int64], flags: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """How many flagged samples each period holds."""
+    return np.bincount(period[flags], minlength=int(period.max()) + 1)
 
 
 def run_recordings(
