@@ -96,8 +96,8 @@ class StuckInTeardown(Node):
     """Says ``up`` once spinning; its destruction never returns (a middleware that hangs while
     the process leaves it)."""
 
-    def __init__(self) -> None:
-        super().__init__("stuck_in_teardown")
+    def __init__(self, name: str = "stuck_in_teardown") -> None:
+        super().__init__(name)
         self.said = False
         self.create_timer(0.05, self.on_tick)
 
@@ -110,11 +110,24 @@ class StuckInTeardown(Node):
         threading.Event().wait()
 
 
+class StuckAtExit(StuckInTeardown):
+    """Says ``up`` once spinning and leaves behind a thread that never ends (a device thread
+    nobody joins): its run is over, but the interpreter's exit waits for that thread forever."""
+
+    def __init__(self) -> None:
+        super().__init__("stuck_at_exit")
+        threading.Thread(target=threading.Event().wait, name="never-joined").start()
+
+    def destroy_node(self) -> None:
+        Node.destroy_node(self)
+
+
 ROLES = {
     "talker": Talker,
     "listener": Listener,
     "stuck_in_callback": StuckInCallback,
     "stuck_in_teardown": StuckInTeardown,
+    "stuck_at_exit": StuckAtExit,
 }
 
 

@@ -19,12 +19,17 @@ import faulthandler
 import os
 import signal
 import threading
+import time
 from enum import Enum
 
 #: wall seconds from a stop signal to the nodes' on_shutdown (the running callback's return)
 STOP_DEADLINE = 20.0
 #: wall seconds the teardown may take besides the subscribers' acknowledgement time
 TEARDOWN_GRACE = 10.0
+#: wall seconds after the first stop signal from which a further one is someone asking again
+ASKED_AGAIN = 1.0
+#: wall seconds the interpreter's exit may take once the run is over
+EXIT_GRACE = 10.0
 #: exit code when the spin did not return: on_shutdown never ran, the device may not be safe
 EXIT_HUNG = 1
 
@@ -33,7 +38,7 @@ class Phase(Enum):
     SPIN = "spin"
     SHUTDOWN = "shutdown"
     TEARDOWN = "teardown"
-    DONE = "done"
+    DONE = "done"  #: the run is over: the process exits
 
 
 class StopDeadline:
@@ -54,13 +59,32 @@ class StopDeadline:
 
     def _watch(self) -> None:
         """Drain the wakeup fd (a full or closed one makes every signal print an error); the
-        first signal number arms the spin deadline, a 0 (never a signal) ends the watch."""
-        armed = False
+        first signal number arms the spin deadline, a signal :data:`ASKED_AGAIN` or more after
+        it says once where the stop is (a launcher escalating, Ctrl-C pressed again), a 0
+        (never a signal) ends the watch."""
+        first: float | None = None
+        told = False
         while (data := os.read(self._read, 256)) and 0 not in data:
-            if not armed:
-                armed = True
+            if first is None:
+                first = time.monotonic()
                 self._stopped(data[0])
+            elif not told and time.monotonic() - first >= ASKED_AGAIN:
+                told = True
+                self._still_stopping(data[-1], time.monotonic() - first)
         os.close(self._read)
+
+    def _still_stopping(self, signum: int, after: float) -> None:
+        if self.phase is Phase.DONE:
+            return
+        try:
+            os.write(
+                2,
+                f"[{self.name}] {_signal_name(signum)} {after:.1f} s into the stop, still in "
+                f"its {self.phase.value} phase; where each thread is:\n".encode(),
+            )
+            faulthandler.dump_traceback(file=2, all_threads=True)
+        except (OSError, ValueError):  # no stderr left
+            pass
 
     def _stopped(self, signum: int) -> None:
         with self._lock:
@@ -80,9 +104,16 @@ class StopDeadline:
                 what = f"teardown took over {teardown_deadline:g} s (its devices are safe)"
                 self._arm(teardown_deadline, what, code)
 
-    def close(self) -> None:
-        """Disarm and restore the previous wakeup fd (run() returned: the caller goes on)."""
+    def close(self, code: int) -> None:
+        """The run is over with exit status ``code``, its devices safe: from here the process
+        only exits. A later SIGINT/SIGTERM has nothing left to stop and is ignored (the
+        interpreter's exit gives handled signals their default action back, and a repeated
+        Ctrl-C would turn status ``code`` into a death by signal); an exit that hangs (a thread
+        never joined) ends after :data:`EXIT_GRACE` with ``code``."""
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
         self.enter(Phase.DONE)
+        self._arm(EXIT_GRACE, f"the interpreter's exit took over {EXIT_GRACE:g} s", code)
         signal.set_wakeup_fd(self._previous_fd)
         os.set_blocking(self._write, True)  # only this write is left: it must get through
         os.write(self._write, b"\0")  # ends the watcher

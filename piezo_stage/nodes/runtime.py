@@ -202,7 +202,7 @@ def run(
         code = _shut_down(nodes, code)
         deadline.enter(Phase.TEARDOWN, EXIT_ACK_TIMEOUT * len(nodes) + TEARDOWN_GRACE, code)
         _tear_down(nodes)
-        deadline.close()
+        deadline.close(code)
     return code
 
 
