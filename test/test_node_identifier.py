@@ -3,6 +3,9 @@ offline identification of the same samples."""
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 import rclpy
@@ -28,12 +31,11 @@ def _stamp(msg, t):
     return msg
 
 
-def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_path):
-    from piezo_stage_msgs.msg import BoucWenParameters as ParamsMsg
-    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, LimitCycle, Voltage
-
+def _two_runs(period: float = 1.0, t0: float = 10.0):
+    """Samples (t, v, y) of x(t) then x(t)+q (q = 0.1), three periods each, and the excitation's
+    marks (stamp, run, steady) as the excitation node sends them."""
     true = BoucWenParameters(**CH9_EXAMPLE)
-    period, runs, t0 = 1.0, [], 10.0
+    runs = []
     for k, q in enumerate((0.0, 0.1)):  # x(t) then x(t)+q, one after the other
         rec = triangle_run(
             true, -0.2 + q, 0.2 + q, period=period, samples_per_branch=300, periods=3.0
@@ -50,6 +52,40 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
         (t1 + 1.0, 1, True),
         (t1 + 3.0, 1, False),
     ]
+    return t, v, y, marks
+
+
+def _publish_runs(spin, pub_v, pub_y, pub_e, t, v, y, marks, period: float = 1.0) -> None:
+    """The samples with the marks interleaved at their stamps, then the plan's end mark;
+    ``spin()`` every 200 samples."""
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    def mark(stamp: float, run: int, steady: bool) -> None:
+        info = ExcitationInfo(
+            waveform="triangle", period=period, amplitude=0.4, offset=0.1 * run, run=run
+        )
+        info.steady = steady
+        pub_e.publish(_stamp(info, stamp))
+
+    pending = iter(marks[:-1])
+    next_mark = next(pending)
+    for i in range(len(t)):
+        while next_mark is not None and next_mark[0] <= t[i]:
+            mark(*next_mark)
+            next_mark = next(pending, None)
+        pub_v.publish(_stamp(Voltage(voltage=float(v[i])), t[i]))
+        pub_y.publish(_stamp(Displacement(displacement=float(y[i]), status=0), t[i]))
+        if i % 200 == 0:
+            spin()
+    mark(*marks[-1])
+
+
+def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_path):
+    from piezo_stage_msgs.msg import BoucWenParameters as ParamsMsg
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, LimitCycle, Voltage
+
+    period = 1.0
+    t, v, y, marks = _two_runs(period)
 
     out_file = tmp_path / "identified.yaml"
     proc = start_node(
@@ -75,30 +111,16 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
         spin_until(
             node, lambda: False, 1.0
         )  # both sides of the match settled: no early sample lost
-        mark_iter = iter(marks)
-        next_mark = next(mark_iter)
-        for i in range(len(t)):
-            while next_mark is not None and next_mark[0] <= t[i]:
-                pub_e.publish(
-                    _stamp(
-                        ExcitationInfo(
-                            waveform="triangle",
-                            period=period,
-                            amplitude=0.4,
-                            offset=0.1 * next_mark[1],
-                            run=next_mark[1],
-                            steady=next_mark[2],
-                        ),
-                        next_mark[0],
-                    )
-                )
-                next_mark = next(mark_iter, None)
-            pub_v.publish(_stamp(Voltage(voltage=float(v[i])), t[i]))
-            pub_y.publish(_stamp(Displacement(displacement=float(y[i]), status=0), t[i]))
-            if i % 200 == 0:
-                rclpy.spin_once(node, timeout_sec=0)
-        pub_e.publish(
-            _stamp(ExcitationInfo(run=1, steady=False, offset=0.1, period=period), t1 + 3.0)
+        _publish_runs(
+            lambda: rclpy.spin_once(node, timeout_sec=0),
+            pub_v,
+            pub_y,
+            pub_e,
+            t,
+            v,
+            y,
+            marks,
+            period,
         )
         ok = spin_until(node, lambda: len(params) == 1, 60.0)
         if not ok:
@@ -143,6 +165,72 @@ def test_identifier_publishes_cycles_and_parameters_equal_to_offline(node, tmp_p
     # its own cycles came back on limit_cycles (cycles_from both): known as its own, neither
     # held as received cycles nor refused as a second cycle at a held offset
     assert "holding limit cycle" not in err and "refused" not in err, err[-3000:]
+
+
+def test_identifier_keeps_collecting_while_it_identifies(node, monkeypatch):
+    """The automatic identification runs beside the node's executor: samples that arrive
+    meanwhile are taken and /diagnostics says ``identifying`` (a fit takes a minute or more on
+    a small PC; a node blocked in it was deaf to its streams and to a stop for that long)."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    import piezo_stage.nodes.identifier as module
+    from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
+
+    started, release = threading.Event(), threading.Event()
+    identify_runs = module.identify_runs
+
+    def held_identification(*args, **kwargs):
+        started.set()
+        release.wait(15.0)  # bounded: a node that blocks its executor here still ends the test
+        return identify_runs(*args, **kwargs)
+
+    monkeypatch.setattr(module, "identify_runs", held_identification)
+    identifier = module.IdentifierNode()
+    executor = SingleThreadedExecutor()
+    executor.add_node(identifier)
+    executor.add_node(node)
+    ns = identifier.get_namespace()
+    try:
+        reliable = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
+        pub_v = node.create_publisher(Voltage, f"{ns}/voltage", reliable)
+        pub_y = node.create_publisher(Displacement, f"{ns}/displacement", reliable)
+        pub_e = node.create_publisher(ExcitationInfo, f"{ns}/excitation", COMMAND_QOS)
+
+        def spin_for(condition, seconds: float) -> bool:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                if condition():
+                    return True
+                executor.spin_once(timeout_sec=0.01)
+            return condition()
+
+        assert spin_for(
+            lambda: pub_v.get_subscription_count() and pub_y.get_subscription_count(), 30
+        )
+        t, v, y, marks = _two_runs()
+        _publish_runs(
+            lambda: executor.spin_once(timeout_sec=0), pub_v, pub_y, pub_e, t, v, y, marks
+        )
+        assert spin_for(started.is_set, 30.0), "the identification never started"
+        before = identifier._diagnose()
+        assert before.message == "identifying", before
+        t_late = t[-1] + 1e-3 * (1 + np.arange(50))
+        for k in t_late:  # arriving while the identification runs
+            pub_v.publish(_stamp(Voltage(voltage=0.0), k))
+        taken = lambda: identifier._diagnose().values["voltage_samples"]  # noqa: E731
+        assert spin_for(lambda: taken() == before.values["voltage_samples"] + 50, 10.0), (
+            "samples that arrived during the identification were not taken before it ended",
+            taken(),
+            before.values,
+        )
+        assert not release.is_set()
+        release.set()
+        assert spin_for(lambda: identifier.result is not None, 30.0)
+        assert identifier._diagnose().message == "identified"
+    finally:
+        release.set()
+        executor.remove_node(identifier)
+        identifier.destroy_node()
 
 
 def test_identifier_adapts_its_stream_qos_to_the_publishers():

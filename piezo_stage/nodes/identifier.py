@@ -11,7 +11,10 @@ and paired exactly as ``piezo-stage identify`` cuts a bag
 (:func:`piezo_stage.identification.io.recordings_from_series`; a run ends at the next run's
 first mark or at its "plan done" mark), so replaying a bag through this node gives the offline
 result. ``on_done: exit`` makes it leave once it has identified (status 0) or failed (1): the
-``replay_identification`` graph ends by itself that way.
+``replay_identification`` graph ends by itself that way. The automatic identification is
+computed in a thread on a copy of the data (a fit takes a minute or more on a small PC):
+meanwhile the node keeps taking samples, /diagnostics says ``identifying``, and a stop is
+immediate.
 
 ``input``: ``voltage`` (static ch. 10 form: voltage -> displacement) or ``displacement`` (the
 ch. 11 form: the quasi-static map displacement -> voltage).
@@ -40,6 +43,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, TypedDict
@@ -134,6 +138,28 @@ class _Stream:
                 if got is None:
                     break
                 self.on_message(got[0])
+
+
+class _Identification:
+    """An identification computed in a daemon thread: the node goes on taking samples,
+    answering /diagnostics and its services, and stops at once meanwhile (a fit takes a minute
+    or more on a small PC); a stop leaves it unfinished."""
+
+    def __init__(self, compute: Callable[[], IdentificationResult]) -> None:
+        self._compute = compute
+        self.result: IdentificationResult | None = None
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, daemon=True, name="identification")
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.result = self._compute()
+        except BaseException as exc:  # handed to the node's thread, which reports or raises it
+            self.error = exc
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
 
 
 class _MaxRms(TypedDict, total=False):
@@ -260,6 +286,7 @@ class IdentifierNode(PiezoNode):
         self._reset()
         self.result: IdentificationResult | None = None
         self._error = ""
+        self._running: _Identification | None = None  # the automatic identification under way
 
         self._pub_cycle = self.create_publisher(LimitCycle, "limit_cycles", COMMAND_QOS)
         self._pub_params = self.create_publisher(
@@ -320,6 +347,7 @@ class IdentifierNode(PiezoNode):
 
     def _tick(self) -> None:
         self._discover()
+        self._conclude_background()
         self._process_completed()
         self._check_cycles_silence()
 
@@ -380,13 +408,7 @@ class IdentifierNode(PiezoNode):
             return
         if all(h.source == "streams" for h in pair):
             return
-        self._attempted = True
-        try:
-            self.identify_now()
-        except (IdentificationError, ModelError, ValueError):
-            self._done(1)  # reported by identify_now (log + /diagnostics)
-        else:
-            self._done(0)
+        self._identify_in_background()
 
     def _check_cycles_silence(self) -> None:
         """Cycles received, no streams, fewer than two usable cycles for ``settle_time``: a
@@ -439,15 +461,10 @@ class IdentifierNode(PiezoNode):
             and len(self._runs.completed) >= RUNS_NEEDED
             and not self._runs.pending
             and self.result is None
+            and self._running is None
             and self.settings.auto_identify
         ):
-            self._attempted = True
-            try:
-                self.identify_now()
-            except (IdentificationError, ModelError, ValueError):
-                self._done(1)  # reported by identify_now (log + /diagnostics)
-            else:
-                self._done(0)
+            self._identify_in_background()
         if (
             poll.silent
             and self.result is None
@@ -455,13 +472,7 @@ class IdentifierNode(PiezoNode):
             and self.settings.method is not Method.ANALYTIC
             and self.settings.auto_identify
         ):
-            self._attempted = True  # the fit takes whatever runs the silence left
-            try:
-                self.identify_now()
-            except (IdentificationError, ModelError, ValueError):
-                self._done(1)
-            else:
-                self._done(0)
+            self._identify_in_background()  # the fit takes whatever runs the silence left
             return
         if poll.stalled:
             count, runs = len(v) + len(d), len(self._runs.completed)
@@ -558,24 +569,55 @@ class IdentifierNode(PiezoNode):
 
     def identify_now(self) -> IdentificationResult:
         """Identify from a pair of held cycles that holds a received one (or with
-        ``cycles_from: topic``), else from the runs collected."""
-        pair = self._cycles.pair()
-        from_cycles = not self._cycles_from.streams or (
-            pair is not None and any(h.source == "topic" for h in pair)
-        )
+        ``cycles_from: topic``), else from the runs collected; publish and save the result."""
         try:
-            if from_cycles:
-                result = identify_cycle_pair(self._cycles, self._options())
-            else:
-                result = identify_runs(
-                    self.recordings(),
-                    self._options(),
-                    self.settings.method,
-                    FitOptions(**self._max_rms()),
-                )
+            result = self._identification()()
         except (IdentificationError, ModelError, ValueError) as exc:
             self._set_error(str(exc))
             raise
+        self._publish(result)
+        return result
+
+    def _identification(self) -> Callable[[], IdentificationResult]:
+        """What :meth:`identify_now` computes, on a copy of what is collected: callable from
+        any thread while the node collects on."""
+        pair = self._cycles.pair()
+        options = self._options()
+        if not self._cycles_from.streams or (
+            pair is not None and any(h.source == "topic" for h in pair)
+        ):
+            cycles = CyclePair(list(self._cycles.held))
+            return lambda: identify_cycle_pair(cycles, options)
+        recordings, method = self.recordings(), self.settings.method
+        fit = FitOptions(**self._max_rms())
+        return lambda: identify_runs(recordings, options, method, fit)
+
+    def _identify_in_background(self) -> None:
+        """The automatic identification: computed in a thread, concluded by the tick that finds
+        it done (:meth:`_conclude_background`)."""
+        self._attempted = True
+        self._running = _Identification(self._identification())
+
+    def _conclude_background(self) -> None:
+        """Publish the automatic identification once done, or report why it failed; an
+        ``on_done: exit`` node then leaves."""
+        running = self._running
+        if running is None or not running.done():
+            return
+        self._running = None
+        if running.result is not None:
+            self._publish(running.result)
+            self._done(0)
+            return
+        if isinstance(running.error, (IdentificationError, ModelError, ValueError)):
+            self._set_error(str(running.error))
+            self._done(1)
+            return
+        assert running.error is not None
+        raise running.error  # a defect, not the data: run() reports it and exits 1
+
+    def _publish(self, result: IdentificationResult) -> None:
+        """Hold, log, publish (``bouc_wen_parameters``) and save (``output_file``) a result."""
         self.result, self._error = result, ""
         for text in result.warnings:
             self.get_logger().warning(text)
@@ -604,7 +646,6 @@ class IdentifierNode(PiezoNode):
             f"n={p.n:.6g}, y0={p.y0:.6g}, input_sign={p.input_sign:+d}, rms={result.rms_error:.3g}"
             + (f"; wrote {path}" if path else "")
         )
-        return result
 
     def _set_error(self, reason: str) -> None:
         self._error = reason
@@ -630,7 +671,7 @@ class IdentifierNode(PiezoNode):
 
     def _srv_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self._reset()
-        self.result, self._error = None, ""
+        self.result, self._error, self._running = None, "", None  # a running one is dropped
         response.success, response.message = True, "collected data cleared"
         return response
 
@@ -645,6 +686,8 @@ class IdentifierNode(PiezoNode):
         }
         if self._error:
             return Diagnosis(ERROR, self._error, values)
+        if self._running is not None:
+            return Diagnosis(OK, "identifying", values)
         if self._refusal and self.result is None:
             return Diagnosis(WARN, f"refused {self._refusal}", values)
         return Diagnosis(OK, "identified" if self.result else "collecting", values)
