@@ -100,7 +100,7 @@ def test_tables_that_do_not_fit_the_scan_are_refused(stages, tmp_path):
         (dict(axes=("x", "x")), "two different axes"),
         (dict(axes=("x", "z")), "two different axes"),
         (dict(rate_hz=999.0), "samples at 999 Hz"),
-        (dict(compensation="feedback", learn_lines=2), "learning needs a feedforward"),
+        (dict(compensation="feedback", learn_lines=2), "learn_lines needs a feedforward"),
     ],
 )
 def test_bad_runs_are_refused(stages, kw, match):

@@ -87,7 +87,10 @@ def test_a_tracking_controller_gets_its_model_its_sampled_table_and_its_learning
         ({**TRACKING, "feedforward_model": "no_such_model.yaml"}, "feedforward_model: "),
         ({**TRACKING, "trajectory_frequency": 3.0}, "a whole number"),
         ({**TRACKING, "trajectory": "circle"}, "circle"),
-        ({"learn_periods": 5}, "learn_periods needs compensation"),
+        (
+            {"learn_periods": 5},
+            "learn_periods needs a feedforward: compensation feedforward or both",
+        ),
         ({**TRACKING, "compensation": "feedback", "learn_periods": 5}, "learn_periods needs"),
         ({**TRACKING, "feedforward_table": "x.json", "reference_source": "constant"}, "needs"),
         ({"u_min": 10.0, "u_max": 10.0}, "u_min < u_max"),

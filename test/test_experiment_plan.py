@@ -68,5 +68,5 @@ def test_tracking_and_raster_take_the_same_plan_and_refuse_alike(tmp_path):
     assert (
         refusals[0]
         == refusals[1]
-        == "--learn needs a feedforward: --compensation both or feedforward"
+        == "--learn needs a feedforward: --compensation feedforward or both"
     )

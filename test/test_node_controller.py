@@ -261,7 +261,7 @@ def test_learning_and_tables_that_cannot_serve_exit_with_the_reason(tmp_path):
     )
     for params, reason in (
         ((*tracking, f"feedforward_table:={table}"), "holds 50 samples"),
-        (("learn_periods:=5",), "learn_periods needs compensation"),
+        (("learn_periods:=5",), "learn_periods needs a feedforward"),
         ((*tracking, "trajectory_frequency:=3.0"), "a whole number"),
     ):
         proc = start_node("controller", *params, namespace=NS)

@@ -203,7 +203,7 @@ class ControllerConfig:
         if not (self.dt_max > 0):
             raise ControllerConfigError(f"dt_max must be > 0 s, got {self.dt_max}")
         if (
-            self.compensation is not Compensation.FEEDBACK
+            self.compensation.feeds_forward
             and self.feedforward is None
             and self.feedforward_table is None
         ):

@@ -49,6 +49,24 @@ class Compensation(StrEnum):
     FEEDFORWARD = "feedforward"  #: u_ff alone (the law's state is reported, not applied)
     BOTH = "both"  #: u_ff + the law
 
+    @property
+    def feeds_forward(self) -> bool:
+        """Whether u_ff drives the amplifier (feedforward or both)."""
+        return self is not Compensation.FEEDBACK
+
+
+def check_learning(
+    compensation: Compensation, learns: bool, learn: str, compensation_name: str = "compensation"
+) -> None:
+    """FeedforwardError when the option ``learn`` asks to learn a feedforward (:mod:`.learning`
+    corrects u_ff over repeated periods) that ``compensation`` does not apply; the message
+    names the options as the caller spells them.
+    """
+    if learns and not compensation.feeds_forward:
+        raise FeedforwardError(
+            f"{learn} needs a feedforward: {compensation_name} feedforward or both"
+        )
+
 
 def compensation(value: str | Compensation) -> Compensation:
     """The :class:`Compensation` named ``value``, or :class:`FeedforwardError` listing the names."""

@@ -28,7 +28,7 @@ from piezo_stage.model.stage_file import Stage
 
 from .controller import closed_pid
 from .errors import ControlError
-from .feedforward import Compensation, FeedforwardModel
+from .feedforward import Compensation, FeedforwardModel, check_learning
 from .laws import THESIS_GAINS, Gains
 from .learning import (
     FeedforwardTable,
@@ -296,10 +296,9 @@ def raster_run(
     reference = StageReference(
         model_stage, _references(scan, model_stage, fast, slow), compensate_coupling
     )
-    uses_ff = compensation is not Compensation.FEEDBACK
+    uses_ff = compensation.feeds_forward
     models = [FeedforwardModel.from_parameter_set(a.model) for a in model_stage.axes]
-    if learn_lines > 0 and not uses_ff:
-        raise ControlError("learning needs a feedforward (compensation feedforward or both)")
+    check_learning(compensation, learn_lines > 0, "learn_lines")
     if tables is not None and tables.matches(scan, rate_hz):
         raise ControlError(f"feedforward tables: {tables.matches(scan, rate_hz)}")
     if uses_ff:

@@ -20,7 +20,7 @@ from piezo_stage.config_path import find_user_file
 
 from .controller import ControllerConfig
 from .errors import ControlError
-from .feedforward import Compensation, FeedforwardModel
+from .feedforward import Compensation, FeedforwardError, FeedforwardModel, check_learning
 from .law_settings import LawSettings
 from .laws import Gains
 from .learning import (
@@ -121,7 +121,7 @@ def supervision_config(s: LawSettings) -> SupervisionConfig:
 
 def load_feedforward(s: LawSettings, find: FindFile = find_user_file) -> FeedforwardModel | None:
     """The feedforward model of ``feedforward_model`` (None under feedback)."""
-    if s.compensation is Compensation.FEEDBACK:
+    if not s.compensation.feeds_forward:
         return None
     if not s.feedforward_model:
         raise SetupError(f"compensation {s.compensation.value} needs feedforward_model")
@@ -166,7 +166,7 @@ def feedforward_table(
     rate_hz), or the sampled form computed from the model; None for the continuous form or
     without a trajectory. Learning starts from the sampled form whatever the rate.
     """
-    if s.compensation is Compensation.FEEDBACK:
+    if not s.compensation.feeds_forward:
         return None
     rate = float(s.rate_hz)
     uses_trajectory = s.reference_source is ReferenceSource.TRAJECTORY and trajectory is not None
@@ -222,11 +222,14 @@ def learning(
     """
     if s.learn_periods <= 0:
         return None
+    try:
+        check_learning(s.compensation, True, "learn_periods")
+    except FeedforwardError as exc:
+        raise SetupError(str(exc)) from None
     if table is None or not table.periodic or feedforward is None:
         raise SetupError(
-            "learn_periods needs compensation feedforward or both, reference_source "
-            "trajectory with a periodic trajectory, and feedforward_form sampled or a "
-            "feedforward_table"
+            "learn_periods needs reference_source trajectory with a periodic trajectory, and "
+            "feedforward_form sampled or a feedforward_table"
         )
     gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
     response = feedforward_response(

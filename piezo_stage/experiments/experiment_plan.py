@@ -16,7 +16,12 @@ from pathlib import Path
 from typing import Collection
 
 from piezo_stage.config_path import output_problem
-from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.feedforward import (
+    Compensation,
+    FeedforwardError,
+    check_learning,
+)
+from piezo_stage.control.feedforward import compensation as parse_compensation
 
 from .errors import ExperimentInputError
 
@@ -54,18 +59,12 @@ class ExperimentPlan:
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ExperimentInputError(f"--rate-hz must be > 0, got {rate_hz}")
         try:
-            compensation = Compensation(compensation)
-        except ValueError:
-            raise ExperimentInputError(
-                f"unknown compensation {compensation!r}; expected one of "
-                f"{', '.join(c.value for c in Compensation)}"
-            ) from None
-        if learn < 0:
-            raise ExperimentInputError(f"--learn must be >= 0, got {learn}")
-        if learn and compensation is Compensation.FEEDBACK:
-            raise ExperimentInputError(
-                "--learn needs a feedforward: --compensation both or feedforward"
-            )
+            compensation = parse_compensation(compensation)
+            if learn < 0:
+                raise ExperimentInputError(f"--learn must be >= 0, got {learn}")
+            check_learning(compensation, learn > 0, "--learn", "--compensation")
+        except FeedforwardError as exc:
+            raise ExperimentInputError(str(exc)) from None
         if bag is not None and output_problem(bag, "bag"):
             raise ExperimentInputError(f"--bag {bag}: {output_problem(bag, 'bag')}")
         return cls(

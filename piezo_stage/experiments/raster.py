@@ -156,7 +156,7 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
             raise ExperimentInputError(
                 f"--table {spec.table}: {tables.matches(scan, spec.rate_hz)}"
             )
-        if common.compensation is not Compensation.FEEDBACK:
+        if common.compensation.feeds_forward:
             tables = tables or raster_tables(
                 scan, model, spec.rate_hz, axes=axes, compensate_coupling=spec.coupling_compensation
             )
@@ -239,7 +239,7 @@ def _one_run(
             progress=say,
             watch=None if view is None else view.feed,
         )
-    feedforward = compensation is not Compensation.FEEDBACK
+    feedforward = compensation.feeds_forward
     if feedforward and tables is None:
         tables = raster_tables(
             plan.scan, plan.model, rate, axes=plan.axes, compensate_coupling=coupling

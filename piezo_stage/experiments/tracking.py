@@ -360,7 +360,7 @@ def plan_tracking(
     radius = _check(spec)
     trajectory = spec.make_trajectory()
     seconds, t_from = spec.timing(trajectory)
-    uses_model = spec.model is not None and spec.compensation is not Compensation.FEEDBACK
+    uses_model = spec.model is not None and spec.compensation.feeds_forward
     return TrackingPlan(
         common,
         spec,
@@ -706,7 +706,7 @@ def _plots(
 def _runs_to_make(plan: TrackingPlan, compare: bool) -> list[tuple[str, TrackingPlan]]:
     """The labelled plans to run: ``plan``, then with ``compare`` its feedback-only twin."""
     plans: list[tuple[str, TrackingPlan]] = [(plan.common.compensation.value, plan)]
-    if compare and plan.common.compensation is not Compensation.FEEDBACK:
+    if compare and plan.common.compensation.feeds_forward:
         plans.append((Compensation.FEEDBACK.value, plan.feedback_twin()))
     return plans
 
@@ -797,11 +797,7 @@ def _feedback_states(
     spec: TrackingSpec, runs: dict[str, tuple[ControllerStates, Recording]]
 ) -> ControllerStates | None:
     """The feedback-only twin's states when it was run for comparison, else None."""
-    return (
-        runs["feedback"][0]
-        if "feedback" in runs and spec.compensation is not Compensation.FEEDBACK
-        else None
-    )
+    return runs["feedback"][0] if "feedback" in runs and spec.compensation.feeds_forward else None
 
 
 def _name(spec: TrackingSpec) -> str:
