@@ -296,3 +296,31 @@ def test_pipython_sees_three_axes_and_writes_them_together():
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
     writes = [c.split() for c in model.commands if c.startswith("SVA ")]
     assert [w[1::2] for w in writes] == [["1", "2", "3"]]  # one line for the three axes
+
+
+def test_a_sibling_axis_shares_the_link_and_drives_its_own_channel():
+    """Axes 2 and 3 of an E-727 reached from axis 1's open amplifier: the same connection, each
+    writing its own output (``SVA``) with its servo switched off; an axis the controller does
+    not list is refused with the list."""
+    from piezo_stage.commands.emulate import emulated_controller
+    from piezo_stage.hardware.amplifier import GCSAmplifier
+    from piezo_stage.hardware.errors import ConfigError
+
+    model = emulated_controller(servo_on=True)
+    with EmulatorServer(model, tcp_port=0) as server:
+        first = GCSAmplifier(make_transport(server.url), axis="1")
+        first.open()
+        try:
+            second, third = first.sibling("2"), first.sibling("3")
+            assert (second.channel, third.channel) == (2, 3)
+            assert second.conn is first.conn and first.axis == "1" and first.channel == 1
+            assert not model.servo["2"] and not model.servo["3"]
+            for amplifier, volts in ((first, 10.0), (second, 20.0), (third, 30.0)):
+                amplifier.write_voltage(volts)
+            assert [third.read_voltage(), second.read_voltage(), first.read_voltage()] == (
+                pytest.approx([30.0, 20.0, 10.0], abs=1e-6)
+            )
+            with pytest.raises(ConfigError, match=r"axis '4' not on controller \(SAI\? lists"):
+                first.sibling("4")
+        finally:
+            first.close()

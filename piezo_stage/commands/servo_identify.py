@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any, Callable, TypeVar
+from typing import TYPE_CHECKING, Callable, TypeVar
 
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.methods import Method, identify_runs
@@ -17,6 +17,8 @@ from piezo_stage.identification.simfit import FitOptions
 
 if TYPE_CHECKING:
     from piezo_stage.experiments.servo_identification import TWaveExcitation
+    from piezo_stage.hardware.amplifier import DeviceInfo, GCSAmplifier
+    from piezo_stage.hardware.pi_recorder import ServoRecorder
 
 _T = TypeVar("_T")
 
@@ -60,7 +62,9 @@ def excitation_from(args: argparse.Namespace, v_min: float, v_max: float) -> TWa
     return excitation
 
 
-def open_controller(url: str, axis: str | None) -> tuple[Any, Any, Any, int]:
+def open_controller(
+    url: str, axis: str | None
+) -> tuple[GCSAmplifier, DeviceInfo, ServoRecorder, int]:
     """(amplifier opened with its servo off, its DeviceInfo, a ServoRecorder on its link, the
     wave generator of the axis): axis i of ``SAI?`` drives output channel i and is driven by
     generator i. :class:`DeviceRunError` when the link or the axis is refused."""

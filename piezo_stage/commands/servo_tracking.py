@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from piezo_stage.commands.servo_identify import DeviceRunError, open_controller
+
+if TYPE_CHECKING:
+    from piezo_stage.hardware.amplifier import GCSAmplifier
 
 #: plays of the table when --learn is not given (the issue's "after <= 20 periods")
 DEFAULT_LEARN = 20
@@ -125,20 +128,14 @@ def _figures(names: list[str], results: list[Any], x_d: Any) -> dict[str, Any]:
     return figures | (per_axis[names[0]] if len(names) == 1 else {"axes": per_axis})
 
 
-def axis_view(amplifier: Any, name: str) -> tuple[Any, int]:
-    """Another axis of the same controller on the same link (servo off): (its amplifier view,
-    its wave generator), refused (:class:`DeviceRunError`) when ``SAI?`` does not list it."""
-    import copy
-
+def axis_view(amplifier: GCSAmplifier, name: str) -> tuple[GCSAmplifier, int]:
+    """Another axis of the same controller on the same link (servo off): (its amplifier, its
+    wave generator, axis i's is generator i), refused (:class:`DeviceRunError`) when ``SAI?``
+    does not list it."""
     from piezo_stage.hardware.errors import HardwareError
 
     try:
-        axes = [a.strip() for a in amplifier.conn.query("SAI?") if a.strip()]
-        if name not in axes:
-            raise DeviceRunError(f"axis {name!r} not on controller (SAI? lists {axes})")
-        amplifier.conn.command(f"SVO {name} 0")
+        other = amplifier.sibling(name)
     except HardwareError as exc:
         raise DeviceRunError(str(exc)) from None
-    view = copy.copy(amplifier)
-    view.axis, view.channel = name, axes.index(name) + 1
-    return view, axes.index(name) + 1
+    return other, other.channel

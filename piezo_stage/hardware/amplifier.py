@@ -8,6 +8,7 @@ and only ever hands it values already inside the limits.
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -120,6 +121,19 @@ class GCSAmplifier(Amplifier):
         v_min = self.conn.query_float(f"VMI? {ch}", ch)
         v_max = self.conn.query_float(f"VMA? {ch}", ch)
         return DeviceInfo(identity, self.axis, v_min, v_max, self.read_voltage())
+
+    def sibling(self, axis: str) -> GCSAmplifier:
+        """Another axis of this open controller, over the same link (closing either closes it):
+        ``axis`` must be one ``SAI?`` lists; its output channel is its place there (axis i
+        drives channel i), its servo is switched off (``SVO <axis> 0``). ConfigError otherwise.
+        """
+        axes = [a.strip() for a in self.conn.query("SAI?") if a.strip()]
+        if axis not in axes:
+            raise ConfigError(f"axis {axis!r} not on controller (SAI? lists {axes})")
+        self.conn.command(f"SVO {axis} 0")
+        other = copy.copy(self)  # the same transport and connection, its own axis and channel
+        other.requested_axis, other.axis, other.channel = axis, axis, axes.index(axis) + 1
+        return other
 
     def write_voltage(self, voltage: float) -> None:
         """``SVA <axis> <V>``, checked by ``ERR?`` unless ``check_errors`` is off (class docs)."""
