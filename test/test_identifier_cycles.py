@@ -163,3 +163,66 @@ def test_an_unusable_cycle_is_refused_with_its_reason(node, ch9_cycles, case):
     finally:
         _, err = stop(proc)
     assert "refused" in err and why in err, err[-3000:]
+
+
+def test_a_cycle_arriving_during_the_identification_starts_no_second_one(node, ch9_cycles):
+    """The identification of a held pair runs beside the executor; a further usable cycle (a
+    third offset) that arrives meanwhile is held, and the pair is identified once."""
+    import threading
+    import time
+
+    from rclpy.executors import SingleThreadedExecutor
+
+    import piezo_stage.nodes.identifier as module
+    from piezo_stage_msgs.msg import LimitCycle
+
+    calls, release = [], threading.Event()
+    identify_cycle_pair = module.identify_cycle_pair
+
+    def held(*args, **kwargs):
+        calls.append(time.monotonic())
+        release.wait(15.0)
+        return identify_cycle_pair(*args, **kwargs)
+
+    monkeypatch = pytest.MonkeyPatch()
+    monkeypatch.setattr(module, "identify_cycle_pair", held)
+    identifier = module.IdentifierNode()
+    executor = SingleThreadedExecutor()
+    executor.add_node(identifier)
+    executor.add_node(node)
+
+    def spin_for(condition, seconds: float) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not condition():
+            executor.spin_once(timeout_sec=0.01)
+        return condition()
+
+    try:
+        pub = node.create_publisher(
+            LimitCycle, f"{identifier.get_namespace()}/limit_cycles", COMMAND_QOS
+        )
+        assert spin_for(lambda: pub.get_subscription_count() > 0, 60.0)
+        spin_for(lambda: False, 0.5)
+        (q0, a), (q1, b) = ch9_cycles
+        third = _cycle_msg(2 * q1 - q0, b.period, np.asarray(b.input) + (q1 - q0), b.output)
+        for k, msg in enumerate(
+            [
+                _cycle_msg(q0, a.period, a.input, a.output),
+                _cycle_msg(q1, b.period, b.input, b.output),
+            ]
+        ):
+            msg.header.stamp.sec = 1 + k
+            pub.publish(msg)
+        assert spin_for(lambda: bool(calls), 30.0), "the identification never started"
+        third.header.stamp.sec = 3
+        pub.publish(third)
+        assert spin_for(lambda: len(identifier._cycles.held) == 3, 10.0)
+        release.set()
+        assert spin_for(lambda: identifier.result is not None, 30.0)
+        spin_for(lambda: False, 0.5)
+        assert len(calls) == 1, calls
+    finally:
+        release.set()
+        monkeypatch.undo()
+        executor.remove_node(identifier)
+        identifier.destroy_node()

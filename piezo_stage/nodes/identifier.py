@@ -404,9 +404,9 @@ class IdentifierNode(PiezoNode):
         """Identify from the held cycles once two are held, unless both came from the streams
         (their runs are identified as runs, as ``piezo-stage identify`` does)."""
         pair = self._cycles.pair()
-        if pair is None or self.result is not None or not self.settings.auto_identify:
+        if pair is None or self.result is not None or self._running is not None:
             return
-        if all(h.source == "streams" for h in pair):
+        if not self.settings.auto_identify or all(h.source == "streams" for h in pair):
             return
         self._identify_in_background()
 
