@@ -120,8 +120,9 @@ class Series:
     marks: list[tuple[float, int, bool]] = field(default_factory=list)
 
 
-#: samples a period's flat top (bottom) may have beyond the excitation's and not be clipping
-CLIP_EXCESS = 2
+#: how far (a fraction of the excitation's span) a period's applied extreme may fall short of the
+#: excitation's and not be clipping
+CLIP_SHORT = 5e-3
 
 #: a record whose displacement stamps are at least this fraction voltage stamps shares a clock
 SAME_CLOCK = 0.9
@@ -166,9 +167,10 @@ def paired(series: Series, delay: float = 0.0) -> tuple[np.ndarray, np.ndarray, 
 
 def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: float) -> None:
     """SweepError when, during the plan (from its first mark), the sensor reported out-of-range
-    samples, or the applied voltage has a flat top or bottom the plan has not, in most periods
-    reaching it (an amplifier at a limit, known or not, clips every period; a command held at a
-    limit on purpose is no clipping, nor is one held through a stall of the host)."""
+    samples, or the applied voltage falls short of the excitation's extreme in most periods
+    reaching it (an amplifier at a limit, known or not, cuts every period's top). Compared by
+    value, period by period: a host that stalls the command stream at a peak holds the voltage
+    there longer, and a lag shifts it, but neither takes the peak off."""
     t0 = min(m[0] for m in series.marks) if series.marks else -np.inf
     during_x = (series.t_x >= t0) & (series.t_x < t0 + plan.duration)
     bad = np.flatnonzero(during_x & (series.status != 0))
@@ -185,28 +187,28 @@ def check_clipping(series: Series, plan: ExcitationPlan, v_min: float, v_max: fl
         return
     t, v = t[during], series.v[during]
     asked = plan.values(t)
-    delta = 1e-3 * max(float(np.ptp(asked)), 1e-9)
+    tol = CLIP_SHORT * max(float(np.ptp(asked)), 1e-9)
     period = (t // plan.period).astype(np.int64)
     for name, sign in (("upper", 1.0), ("lower", -1.0)):
-        at_v = sign * v >= np.max(sign * v) - delta
-        at_asked = sign * asked >= np.max(sign * asked) - delta
-        flat_v, flat_asked = _per_period(period, at_v), _per_period(period, at_asked)
-        touching = (flat_v > 0) | (flat_asked > 0)
-        wider = (flat_v > flat_asked + CLIP_EXCESS) & (flat_v > 1.5 * flat_asked)
-        if 2 * np.count_nonzero(wider) > np.count_nonzero(touching):
-            level = float(np.max(v) if sign > 0 else np.min(v))
+        top_v, top_asked = _per_period(period, sign * v), _per_period(period, sign * asked)
+        reaching = top_asked >= np.max(top_asked) - tol
+        short = reaching & (top_v < top_asked - tol)
+        if 2 * np.count_nonzero(short) > np.count_nonzero(reaching):
+            level = float(sign * np.median(top_v[short]))
+            wanted = float(sign * np.max(top_asked))
             raise SweepError(
-                f"the applied voltage stays at its {name} extreme {level:.6g} V for "
-                f"{int(flat_v.sum())} samples where the excitation has {int(flat_asked.sum())}, "
-                f"in {np.count_nonzero(wider)} of the {np.count_nonzero(touching)} periods "
-                f"reaching it: the amplifier clips (limits {v_min:g}/{v_max:g} V); reduce "
-                "--amplitude/--offset"
+                f"the applied voltage stops at {level:.6g} V where the excitation asks "
+                f"{wanted:.6g} V ({name} extreme), in {np.count_nonzero(short)} of the "
+                f"{np.count_nonzero(reaching)} periods reaching it: the amplifier clips (limits "
+                f"{v_min:g}/{v_max:g} V); reduce --amplitude/--offset"
             )
 
 
-def _per_period(period: NDArray[np.int64], flags: NDArray[np.bool_]) -> NDArray[np.int64]:
-    """How many flagged samples each period holds."""
-    return np.bincount(period[flags], minlength=int(period.max()) + 1)
+def _per_period(period: NDArray[np.int64], values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each period's largest value (-inf for a period without samples)."""
+    out = np.full(int(period.max()) + 1, -np.inf)
+    np.maximum.at(out, period, values)
+    return out
 
 
 def run_recordings(
