@@ -286,7 +286,8 @@ class CoupledStage:
     """N axes of a :class:`~piezo_stage.model.stage_file.Stage`, each an amplifier and a plant,
     whose sensors read the coupled displacements y = y0 + C (y* - y0), one step at a time.
 
-    Each axis is a :class:`SimulatedStage` with an ideal sensor (its own displacement y*);
+    Each axis is a :class:`SimulatedStage` with an ideal sensor (its own displacement y*),
+    starting from ``x0``, ``xdot0``, ``w0`` (None: its parameter set's) and ``initial_voltage``;
     ``sensors[i]`` then measures axis i's coupled displacement.
     """
 
@@ -296,6 +297,10 @@ class CoupledStage:
         amplifiers: Sequence[AmplifierModel] | None = None,
         sensors: Sequence[SensorModel] | None = None,
         tol: float = DEFAULT_TOL,
+        x0: float = 0.0,
+        xdot0: float = 0.0,
+        w0: float | None = None,
+        initial_voltage: float = 0.0,
     ) -> None:
         n = len(stage.axes)
         amplifiers = (
@@ -309,7 +314,15 @@ class CoupledStage:
             )
         self.stage = stage
         self.axes = [
-            SimulatedStage(axis.model, amplifier=amp, tol=tol)
+            SimulatedStage(
+                axis.model,
+                amplifier=amp,
+                x0=x0,
+                xdot0=xdot0,
+                w0=w0,
+                initial_voltage=initial_voltage,
+                tol=tol,
+            )
             for axis, amp in zip(stage.axes, amplifiers)
         ]
         self.sensors = sensors

@@ -1,41 +1,56 @@
-"""`plant` node: the simulated stage, a drop-in for ``voltage_driver`` + ``laser_reader``.
+"""`plant` node: a simulated stage of one axis or several, a drop-in for ``voltage_driver`` (or
+``stage_driver``) and one ``laser_reader`` per axis.
 
-Same topics, types and units as the rig (docs/design.md §3): subscribes ``voltage_command``,
-publishes ``voltage`` (what the amplifier applied) and ``displacement`` (the sensor), and
-``/diagnostics``. The mathematics is :class:`piezo_stage.model.stage.SimulatedStage`
-(amplifier -> Bouc-Wen plant -> sensor); this node only schedules it.
+Same topics, types and units as the rig (docs/design.md §3): per axis, subscribes
+``voltage_command``, publishes ``voltage`` (what its amplifier applied at the sample) and
+``displacement`` (its sensor), and ``/diagnostics``. The stage is ``model_file``'s one axis, its
+topics unprefixed, or ``stage_file``'s axes (:mod:`piezo_stage.model.stage_file`), each in
+``<axis>/``, whose sensors see the coupled displacements; ``stage_plant`` is this node with a
+stage file by default. The mathematics is :class:`piezo_stage.model.stage.CoupledStage` (per
+axis amplifier -> Bouc-Wen plant -> sensor); this node only schedules it: one tick steps every
+axis together, and a tick's messages carry one stamp.
 
 Clocks (``clock_mode``):
 - ``realtime``: a wall-clock timer at ``rate_hz``; samples are due on the grid t0 + k/rate_hz
-  of the node clock, each integrated over one step with the last command held (zero-order
+  of the node clock, each integrated over one step with the last commands held (zero-order
   hold) and stamped with its grid time. A tick that comes late publishes every sample due
   since the last one (no drift, no lost samples under load); a stall longer than
   ``REALTIME_CATCH_UP`` drops the older backlog and counts it (WARN on /diagnostics).
-- ``lockstep``: the node owns ``/clock`` and steps when its commander has answered the step
-  (:mod:`piezo_stage.nodes.lockstep`); identical inputs give identical samples, as fast as the
-  graph can go.
+- ``lockstep``: the node owns ``/clock`` and steps once every axis's commander has answered the
+  step (:mod:`piezo_stage.nodes.lockstep`); identical inputs give identical samples, as fast as
+  the graph can go.
 
-NaN/inf commands are rejected with a warning and the last command is held, like the real driver.
+Each amplifier may be a Butterworth low-pass (``amplifier_bandwidth_hz``, order
+``amplifier_filter_order``) stepped finely between samples, as ``emulate rig``'s: a staircase at
+the sample rate straight into a lightly damped stage rings its resonance at every step and wears
+the hysteresis down. A NaN or infinite command is refused, counted, and that axis holds, like
+the real driver.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
 
+import numpy as np
 from builtin_interfaces.msg import Time
+from numpy.typing import NDArray
 
-from piezo_stage.config_path import find_user_file
-from piezo_stage.model.errors import InvalidCommandError
+from piezo_stage.config_path import ConfigNotFoundError, find_user_file
+from piezo_stage.hardware.emulators.rig import AmplifierLowPass, substeps_for
+from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import load_parameter_set
-from piezo_stage.model.stage import AmplifierModel, SensorModel, SimulatedStage
+from piezo_stage.model.stage import AmplifierModel, AxesSample, CoupledStage, SensorModel
+from piezo_stage.model.stage_file import Stage, load_stage, single_axis_stage
 from piezo_stage.model.tick_grid import TickGrid
 from piezo_stage_msgs.msg import Displacement, Voltage
 
 from .base import PiezoNode
 from .choices import ClockMode
 from .diagnostics import OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .lockstep import LockstepClock
 from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run
@@ -55,6 +70,13 @@ PARAMETERS = ParameterTable(
             "parameter-set YAML (name in config/ or path), e.g. "
             "ch9_example.yaml, ch10_patch.yaml, ch11_rig.yaml, or one written by `piezo-stage "
             "identify --output`",
+            read_only=True,
+        ),
+        Param(
+            "stage_file",
+            "",
+            "stage file (name in config/ or path): its axes, their models and the coupling, "
+            "each axis's topics in <axis>/; empty: one axis of model_file, topics unprefixed",
             read_only=True,
         ),
         Param(
@@ -110,7 +132,7 @@ PARAMETERS = ParameterTable(
         Param(
             "initial_displacement",
             0.0,
-            "initial displacement x(0) (dynamic form)",
+            "every axis's initial displacement x(0) (dynamic form)",
             "m",
             read_only=True,
         ),
@@ -132,9 +154,17 @@ PARAMETERS = ParameterTable(
         Param(
             "amplifier_bandwidth_hz",
             0.0,
-            "amplifier first-order bandwidth (0: ideal)",
+            "every axis's amplifier: Butterworth low-pass corner (0: ideal, the staircase "
+            "reaches the stage)",
             "Hz",
-            (0.0, 1e7),
+            (0.0, 1e6),
+            read_only=True,
+        ),
+        Param(
+            "amplifier_filter_order",
+            1,
+            "order of that low-pass",
+            range=(1, 2),
             read_only=True,
         ),
         Param(
@@ -170,37 +200,42 @@ PARAMETERS = ParameterTable(
             "m",
             read_only=True,
         ),
-        Param("seed", 0, "noise seed", range=(0, 2**31 - 1), read_only=True),
+        Param("seed", 0, "noise seed (axis i: seed + i)", range=(0, 2**31 - 1), read_only=True),
     ),
-    summary="Simulated stage: the Bouc-Wen plant with the real stage's topics "
-    "(realtime or lockstep).",
+    summary="Simulated stage of one axis (model_file) or several (stage_file, coupled): the "
+    "Bouc-Wen plant with the real stage's topics (realtime or lockstep).",
     settings_type=PlantSettings,
 )
 
 
 class PlantNode(PiezoNode):
-    def __init__(self) -> None:
-        super().__init__("plant", namespace=DEFAULT_NAMESPACE)
-        s: PlantSettings = self.declare_settings(PARAMETERS)
+    TABLE: ParameterTable[PlantSettings] = PARAMETERS
 
-        path = find_user_file(s.model_file)
-        self.parameter_set = load_parameter_set(path)
-        w0 = self.parameter_set.w0 if math.isnan(s.w0) else s.w0
-        self.stage = SimulatedStage(
-            self.parameter_set,
-            amplifier=AmplifierModel(
-                v_min=s.v_min,
-                v_max=s.v_max,
-                bandwidth_hz=s.amplifier_bandwidth_hz,
-                slew_rate=s.amplifier_slew,
-            ),
-            sensor=SensorModel(
-                noise_std=s.sensor_noise,
-                resolution=s.sensor_resolution,
-                range_min=s.sensor_min,
-                range_max=s.sensor_max,
-                seed=s.seed,
-            ),
+    def __init__(self) -> None:
+        super().__init__(self.TABLE.node, namespace=DEFAULT_NAMESPACE)
+        s: PlantSettings = self.declare_settings(self.TABLE)
+        stage, self.source = self._stage(s)
+        self.names = stage.names
+        #: each axis's topic prefix: none for model_file's one axis, as the rig's
+        self._prefix = [f"{name}/" for name in self.names] if s.stage_file else [""]
+        n = len(self.names)
+        w0 = None if math.isnan(s.w0) else s.w0
+        self.sim = CoupledStage(
+            stage,
+            amplifiers=[
+                AmplifierModel(v_min=s.v_min, v_max=s.v_max, slew_rate=s.amplifier_slew)
+                for _ in range(n)
+            ],
+            sensors=[
+                SensorModel(
+                    noise_std=s.sensor_noise,
+                    resolution=s.sensor_resolution,
+                    range_min=s.sensor_min,
+                    range_max=s.sensor_max,
+                    seed=s.seed + i,
+                )
+                for i in range(n)
+            ],
             x0=s.initial_displacement,
             xdot0=s.initial_velocity,
             w0=w0,
@@ -208,110 +243,174 @@ class PlantNode(PiezoNode):
         )
         self.dt = 1.0 / s.rate_hz
         self.mode = ClockMode(s.clock_mode)
-        self._command = float(s.initial_voltage)
-        self._rejected = 0
-        self._commands = 0
-        self._grid: TickGrid | None = None  # realtime mode
+        self._commands = np.full(n, float(s.initial_voltage))
+        self.substeps = 1
+        self.lowpass: list[AmplifierLowPass] = []
+        if s.amplifier_bandwidth_hz > 0.0:
+            self.substeps = max(
+                substeps_for(axis, s.rate_hz, s.amplifier_bandwidth_hz) for axis in self.sim.axes
+            )
+            h = self.dt / self.substeps
+            self.lowpass = [
+                AmplifierLowPass(s.amplifier_bandwidth_hz, s.amplifier_filter_order, h, v)
+                for v in self._commands
+            ]
+        self._rejected = [0] * n
+        self._received = [0] * n
         self._steps = 0
         self._started_wall = time.monotonic()
-
         lockstep = self.mode is ClockMode.LOCKSTEP
         stream_qos = LOCKSTEP_QOS if lockstep else SENSOR_QOS
-        self._pub_x = self.create_publisher(Displacement, "displacement", stream_qos)
-        self._pub_v = self.create_publisher(Voltage, "voltage", stream_qos)
+        self._pub_x, self._pub_v, commands = [], [], []
+        for i, prefix in enumerate(self._prefix):
+            self._pub_x.append(
+                self.create_publisher(Displacement, f"{prefix}displacement", stream_qos)
+            )
+            self._pub_v.append(self.create_publisher(Voltage, f"{prefix}voltage", stream_qos))
+            sub = self.create_subscription(
+                Voltage,
+                f"{prefix}voltage_command",
+                functools.partial(self._on_command, i),
+                LOCKSTEP_QOS if lockstep else COMMAND_QOS,
+            )
+            commands.append(sub.topic_name)
         self._msg_x, self._msg_v = Displacement(), Voltage()
-        sub = self.create_subscription(
-            Voltage, "voltage_command", self._on_command, LOCKSTEP_QOS if lockstep else COMMAND_QOS
-        )
-        self._topic_command = sub.topic_name
-        Diagnostics(self, "simulation", self._diagnose)
         self._dt_ns = int(round(self.dt * 1e9))
-        self._lockstep: LockstepClock | None = None  # lockstep mode
+        self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
+        self._lockstep: LockstepClock | None = None
+        self._last = self.sim.output()  # what the sensors read now, per axis
+        Diagnostics(self, "simulation", self._diagnose)
         if lockstep:
             self._lockstep = LockstepClock(
                 self,
                 dt_ns=self._dt_ns,
                 start_ns=int(round(s.start_time * 1e9)),
                 timeout=float(s.lockstep_timeout),
-                command_topics=[self._topic_command],
-                sample_topics=[self._pub_x.topic_name],
-                samples=(self._pub_x, self._pub_v),
-                emit=self._publish,
-                advance=lambda: self._step(self.dt),
+                command_topics=commands,
+                sample_topics=[p.topic_name for p in self._pub_x],
+                samples=(*self._pub_x, *self._pub_v),
+                emit=lambda stamp: self._publish(stamp, *self._last),
+                advance=self._advance,
             )
         else:
-            self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
-            self.create_timer(self.dt, self._realtime_tick)
+            self.create_timer(self.dt, self._tick)
         self.get_logger().info(
-            f"{self.parameter_set.name} ({self.parameter_set.form}) at "
-            f"{s.rate_hz:g} Hz, clock {self.mode.value}"
+            f"{stage.name} ({', '.join(self._forms(stage))}) at {s.rate_hz:g} Hz, amplifiers "
+            f"{s.amplifier_bandwidth_hz:g} Hz ({self.substeps} steps per sample), clock "
+            f"{s.clock_mode}"
         )
 
-    # ------------------------------------------------------------------ commands
-    def _on_command(self, msg: Voltage) -> None:
+    @staticmethod
+    def _stage(s: PlantSettings) -> tuple[Stage, str]:
+        """The stage to simulate and the file it came from."""
+        name = "stage_file" if s.stage_file else "model_file"
+        try:
+            if s.stage_file:
+                path = find_user_file(s.stage_file)
+                return load_stage(path), str(path)
+            path = find_user_file(s.model_file)
+            return single_axis_stage(load_parameter_set(path)), str(path)
+        except (ConfigNotFoundError, ModelError) as exc:
+            raise RosParameterError(f"parameter {name!r}: {exc}") from None
+
+    @staticmethod
+    def _forms(stage: Stage) -> list[str]:
+        return [
+            f"{axis.name}: {axis.model.form}" if len(stage.axes) > 1 else axis.model.form
+            for axis in stage.axes
+        ]
+
+    def _key(self, i: int, key: str) -> str:
+        """Axis ``i``'s /diagnostics key (``x.commands``; unprefixed for one unnamed axis)."""
+        return f"{self._prefix[i][:-1]}.{key}" if self._prefix[i] else key
+
+    def _on_command(self, i: int, msg: Voltage) -> None:
         if not math.isfinite(msg.voltage):
-            self._rejected += 1
+            self._rejected[i] += 1
+            axis = f" on axis {self.names[i]}" if self._prefix[i] else ""
             self.get_logger().warn(
-                f"rejected non-finite voltage command {msg.voltage}: holding {self._command:g} V",
+                f"rejected non-finite voltage command {msg.voltage}{axis}: holding "
+                f"{self._commands[i]:g} V",
                 throttle_duration_sec=1.0,
             )
         else:
-            self._command = msg.voltage
-            self._commands += 1
+            self._commands[i] = msg.voltage
+            self._received[i] += 1
         if self._lockstep is not None:  # a non-finite command answers the step too: no timeout
-            self._lockstep.answered(0, msg.header.stamp)
+            self._lockstep.answered(i, msg.header.stamp)
 
-    # ------------------------------------------------------------------ realtime
-    def _realtime_tick(self) -> None:
-        assert self._grid is not None  # set with this timer (realtime mode)
-        for ns in self._grid.due(self.get_clock().now().nanoseconds):
-            self._step(self.dt)
+    def _step(self, samples: int) -> AxesSample:
+        """``samples`` samples (a late tick's backlog in one call), the commands held: every
+        axis through its amplifier, then the coupled sensors; arrays (samples, axes)."""
+        self._steps += samples
+        if not self.lowpass:
+            rows = [self.sim.step(self._commands.tolist(), self.dt) for _ in range(samples)]
+            return AxesSample(*(np.array([r[k] for r in rows]) for k in range(3)))
+        n = samples * self.substeps
+        volts = np.empty((len(self.names), n))
+        for i, lowpass in enumerate(self.lowpass):
+            volts[i] = lowpass.run(np.full(n, self._commands[i]))
+        return self.sim.step_voltages(volts, self.dt / self.substeps, self.substeps)
+
+    def _advance(self) -> None:
+        """lockstep: one step with the commands held."""
+        applied, readings, status = self._step(1)
+        self._last = AxesSample(applied[0], readings[0], status[0])
+
+    def _tick(self) -> None:
+        due = self._grid.due(self.get_clock().now().nanoseconds)
+        if not due:
+            return
+        applied, readings, status = self._step(len(due))
+        for k, ns in enumerate(due):
             sec, nanosec = divmod(ns, 1_000_000_000)
-            self._publish(Time(sec=sec, nanosec=nanosec))
+            self._publish(Time(sec=sec, nanosec=nanosec), applied[k], readings[k], status[k])
 
-    # ------------------------------------------------------------------ common
-    def _step(self, dt: float) -> None:
-        try:
-            self._applied, self._x, self._status = self.stage.step(self._command, dt)
-        except InvalidCommandError as exc:  # the stage refuses: hold (not after the check above)
-            self.get_logger().error(str(exc))
-        self._steps += 1
-
-    def _publish(self, stamp: Time) -> None:
-        if self._steps == 0:  # before the first step: the initial state
-            self._applied, self._x, self._status = self.stage.output()
-        # one message of each kind, refilled: publish() serializes before it returns
+    def _publish(
+        self,
+        stamp: Time,
+        applied: NDArray[np.float64],
+        readings: NDArray[np.float64],
+        status: NDArray[np.int64],
+    ) -> None:
+        """Every axis's sample at ``stamp``: one message of each kind, refilled (publish()
+        serializes before it returns)."""
         msg_x, msg_v = self._msg_x, self._msg_v
         msg_x.header.stamp = msg_v.header.stamp = stamp
-        msg_x.displacement = self._x if self._status == Displacement.OK else math.nan
-        msg_x.status = self._status
-        msg_v.voltage = self._applied
-        self._pub_x.publish(msg_x)
-        self._pub_v.publish(msg_v)
+        for i in range(len(self.names)):
+            ok = int(status[i]) == Displacement.OK
+            msg_x.displacement = float(readings[i]) if ok else math.nan
+            msg_x.status = int(status[i])
+            msg_v.voltage = float(applied[i])
+            self._pub_x[i].publish(msg_x)
+            self._pub_v[i].publish(msg_v)
 
     def _diagnose(self) -> Diagnosis:
-        dropped = self._grid.dropped if self._grid is not None else 0
-        elapsed = time.monotonic() - self._started_wall
+        dropped = self._grid.dropped
         late = self._lockstep.late if self._lockstep is not None else 0
-        values = {
-            "model": self.parameter_set.name,
-            "form": self.parameter_set.form,
+        elapsed = time.monotonic() - self._started_wall
+        values: dict[str, object] = {
+            "stage": self.source,
+            "axes": ",".join(self.names),
             "clock_mode": self.mode.value,
             "steps": self._steps,
             "steps_per_wall_second": self._steps / max(elapsed, 1e-9),
-            "command": self._command,
-            "rejected_commands": self._rejected,
-            "late_steps": late,
             "dropped_samples": dropped,
+            "late_steps": late,
+            "substeps": self.substeps,
         }
-        if late or self._rejected or dropped:
+        for i in range(len(self.names)):
+            values[self._key(i, "command")] = float(self._commands[i])
+            values[self._key(i, "commands")] = self._received[i]
+            values[self._key(i, "rejected_commands")] = self._rejected[i]
+        rejected = sum(self._rejected)
+        if dropped or rejected or late:
             return Diagnosis(
                 WARN,
-                f"{late} late step(s), {self._rejected} rejected command(s), "
-                f"{dropped} dropped sample(s)",
+                f"{late} late step(s), {rejected} rejected command(s), {dropped} dropped sample(s)",
                 values,
             )
-        return Diagnosis(OK, "simulating", values)
+        return Diagnosis(OK, f"simulating {len(self.names)} axis(es)", values)
 
 
 def main(args: list[str] | None = None) -> int:

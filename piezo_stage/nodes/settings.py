@@ -205,10 +205,11 @@ class LiveViewSettings:
 
 @dataclass(frozen=True)
 class PlantSettings:
-    """``plant``: Simulated stage: the Bouc-Wen plant with the real stage's topics (realtime or
-    lockstep)."""
+    """``plant``: Simulated stage of one axis (model_file) or several (stage_file, coupled): the
+    Bouc-Wen plant with the real stage's topics (realtime or lockstep)."""
 
     model_file: str
+    stage_file: str
     rate_hz: float
     clock_mode: ClockMode
     lockstep_timeout: float
@@ -222,6 +223,7 @@ class PlantSettings:
     v_min: float
     v_max: float
     amplifier_bandwidth_hz: float
+    amplifier_filter_order: int
     amplifier_slew: float
     sensor_noise: float
     sensor_resolution: float
@@ -313,25 +315,6 @@ class StageDriverSettings:
     hold_period: float
     realtime_priority: int
     write_rate_hz: float
-
-
-@dataclass(frozen=True)
-class StagePlantSettings:
-    """``stage_plant``: Simulated stage of several axes (a stage file), coupled: per axis the
-    real stage's topics in <axis>/ (realtime or lockstep)."""
-
-    stage_file: str
-    rate_hz: float
-    clock_mode: ClockMode
-    lockstep_timeout: float
-    wait_for_commander: bool
-    wait_for_subscribers: int
-    start_time: float
-    initial_voltage: float
-    v_min: float
-    v_max: float
-    amplifier_bandwidth_hz: float
-    amplifier_filter_order: int
 
 
 @dataclass(frozen=True)
