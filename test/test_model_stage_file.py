@@ -202,3 +202,20 @@ def test_a_bad_command_moves_no_axis_of_the_coupled_stage():
         after = coupled.output()
         np.testing.assert_array_equal(after.applied, before.applied)
         np.testing.assert_array_equal(after.readings, before.readings)
+
+
+@pytest.mark.parametrize("model", ["ch10_patch", "ch11_rig"])
+def test_a_stage_of_one_axis_steps_as_its_model_alone_from_any_initial_state(model):
+    """The plant node serves one axis as a stage of one: from the same initial state (a static
+    axis's hysteresis starts at the initial voltage) it gives the single-axis stage's samples."""
+    ps = shipped_parameter_set(model)
+    start = dict(x0=2e-6, xdot0=0.0, w0=0.3, initial_voltage=100.0)
+    one = CoupledStage(single_axis_stage(ps), **start)
+    alone = SimulatedStage(ps, **start)
+    assert one.output().readings[0] == pytest.approx(alone.output()[1], rel=1e-12, abs=0)
+    for k in range(300):
+        command = 100.0 + 60.0 * math.sin(k * 0.03)
+        applied, readings, _ = one.step([command], 1e-4)
+        expected = alone.step(command, 1e-4)
+        assert applied[0] == expected[0]
+        assert readings[0] == pytest.approx(expected[1], rel=1e-12, abs=1e-18)
