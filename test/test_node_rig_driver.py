@@ -225,9 +225,11 @@ def test_a_watchdog_turn_between_a_write_and_its_publication_publishes_it_once(p
     settings["readback_rate_hz"] = 0.0  # only the commands are published
     node = VoltageDriverNode(overrides=[Parameter(k, value=v) for k, v in settings.items()])
     published: list[float] = []
-    node._send = lambda voltage, stamp: published.append(voltage)
+    (axis,) = node.axes.values()  # the one axis, its topics unprefixed
+    axis.publish = lambda voltage, stamp: published.append(voltage)
     turns: list[threading.Thread] = []
-    write = node.driver.set_voltage
+    driver = node.driver.drivers[axis.channel]
+    write = driver.set_voltage
 
     def write_then_timer(voltage, received=None):
         result = write(voltage, received)
@@ -236,7 +238,7 @@ def test_a_watchdog_turn_between_a_write_and_its_publication_publishes_it_once(p
         turns[-1].join(timeout=0.5)  # it may wait for the command to be published
         return result
 
-    node.driver.set_voltage = write_then_timer
+    driver.set_voltage = write_then_timer
     try:
         node.command(12.0)
         node.command(34.0)

@@ -15,14 +15,32 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
+from typing import ContextManager
 
-from .amplifier import DeviceInfo
+from .amplifier import Amplifier, DeviceInfo
 from .axis_link import AxisLink, ChannelAmplifier
 from .driver import LINK_FAULTS, DriverConfig, DriverState, SetResult, VoltageDriver
 from .errors import ConfigError, HardwareError, SafeStateNotReached
 
 __all__ = ["StageDriver"]
+
+
+class _OwnLink:
+    """The link of a one-axis stage on a device of its own (a single-channel amplifier): its
+    writes are its axis's (:meth:`StageDriver.of_one`).
+    """
+
+    def __init__(self, axis: str) -> None:
+        self.axes = (axis,)
+        self.driver: VoltageDriver | None = None
+
+    def batch(self) -> ContextManager[None]:
+        return nullcontext()
+
+    @property
+    def writes(self) -> int:
+        return self.driver.writes if self.driver is not None else 0
 
 
 class StageDriver:
@@ -42,12 +60,30 @@ class StageDriver:
                 f"one driver configuration per axis of the link {list(link.axes)}; "
                 f"missing {missing}, unknown {extra}"
             )
-        self.link = link
+        self.link: AxisLink | _OwnLink = link
         self.sleep = sleep
         self.drivers = {
             axis: VoltageDriver(ChannelAmplifier(link, axis), configs[axis], clock, sleep)
             for axis in link.axes
         }
+
+    @classmethod
+    def of_one(
+        cls,
+        amplifier: Amplifier,
+        config: DriverConfig,
+        axis: str = "",
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> StageDriver:
+        """The stage of one axis, ``axis``, on ``amplifier``'s device alone (the single-axis rig:
+        its wire exchanges are the amplifier's own).
+        """
+        stage = cls.__new__(cls)
+        link = _OwnLink(axis)
+        link.driver = VoltageDriver(amplifier, config, clock, sleep)
+        stage.link, stage.sleep, stage.drivers = link, sleep, {axis: link.driver}
+        return stage
 
     def connect(self) -> dict[str, DeviceInfo]:
         """Open the link and take over every axis's output; on a refusal the axes already

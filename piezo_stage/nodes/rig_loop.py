@@ -132,6 +132,11 @@ def compose(argv: Sequence[str] = ()) -> Iterator[Node]:
     handoff = Handoff()
     driver = VoltageDriverNode(handoff=handoff, overrides=overrides["voltage_driver"])
     yield driver
+    if driver.stage is not None:
+        raise RosParameterError(
+            "rig_loop: voltage_driver.stage_file names a stage: rig_loop drives one axis "
+            "(a stage's loop is scanner_loop)"
+        )
     controller = ControllerNode(handoff=handoff, overrides=overrides["controller"])
     yield controller
     s = controller.settings

@@ -224,9 +224,10 @@ class StageLoopNode(PiezoNode):
             AxisLaw(i, self.sensors, r, c, handoff)
             for i, (r, c) in enumerate(zip(readers, controllers))
         ]
-        channels = [a.channel for a in driver.stage.axes]
+        stage = driver.require_stage()
+        channels = [a.channel for a in stage.axes]
         self.driver, self.handoff, self.channels = driver, handoff, channels
-        self.frames = OwnFrames(driver.stage) if p.coupling_compensation else None
+        self.frames = OwnFrames(stage) if p.coupling_compensation else None
         every = TopicDecimation(rate, s.topics_rate_hz).every
         driver.publish_every = every
         self.loop = StageLoop(
@@ -354,10 +355,11 @@ def compose(argv: Sequence[str], namespace: str) -> Iterator[Node]:
     handoff = Handoff()
     driver = StageDriverNode(handoff, overrides["stage_driver"], namespace)
     yield driver
+    stage = driver.require_stage()
     base = namespace.rstrip("/")
     controllers: list[ControllerNode] = []
     readers: list[LaserReaderNode] = []
-    for axis in driver.stage.axes:
+    for axis in stage.axes:
         controller = ControllerNode(handoff, overrides["controller"], f"{base}/{axis.name}")
         controllers.append(controller)
         yield controller
@@ -367,7 +369,7 @@ def compose(argv: Sequence[str], namespace: str) -> Iterator[Node]:
     handoff.period = s.publish_period or publish_period(s.rate_hz)
     if s.publish_in is PublishIn.EXECUTOR:
         handoff.attach(driver, handoff.period)
-    for axis in driver.stage.axes:
+    for axis in stage.axes:
         reader = LaserReaderNode(
             handoff=handoff,
             overrides=[axis_value(p, axis.name) for p in overrides["laser_reader"]],

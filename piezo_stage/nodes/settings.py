@@ -286,42 +286,12 @@ class ScanViewSettings:
 
 
 @dataclass(frozen=True)
-class StageDriverSettings:
+class VoltageDriverSettings:
     """``stage_driver``: Multi-channel amplifier driver (PI E-727, Thorlabs MDT693B):
     <axis>/voltage_command -> the axis's channel, limits, slew and watchdog per axis, one
     link."""
 
     stage_file: str
-    backend: Literal[
-        "gcs",
-        "mdt69x",
-    ]
-    url: str
-    baud: int
-    error_pipeline: int
-    io_timeout: float
-    v_min: float
-    v_max: float
-    safe_voltage: float
-    slew_rate: float
-    command_timeout: float
-    watchdog_period: float
-    reconnect_attempts: int
-    readback_rate_hz: float
-    max_command_age: float
-    max_stamp_ahead: float
-    apply_at_stamp: bool
-    command_delay: float
-    hold_period: float
-    realtime_priority: int
-    write_rate_hz: float
-
-
-@dataclass(frozen=True)
-class VoltageDriverSettings:
-    """``voltage_driver``: Piezo amplifier driver (PI GCS2, Thorlabs MDT69x): voltage_command ->
-    device, with limits, slew and watchdog."""
-
     backend: Literal[
         "gcs",
         "mdt69x",
@@ -346,6 +316,7 @@ class VoltageDriverSettings:
     hold_period: float
     realtime_priority: int
     reconnect_attempts: int
+    write_rate_hz: float
 
 
 @dataclass(frozen=True)
