@@ -399,6 +399,7 @@ class VoltageDriverNode(PiezoNode):
                 functools.partial(self._on_command, axis),
                 COMMAND_QOS,
             )
+        self._first = next(iter(self.axes))  # the one axis's channel (the first of a stage's)
         self._batched = p.write_rate_hz > 0
         if self._batched:
             self.create_timer(1.0 / p.write_rate_hz, self._write_pending, clock=wall_clock())
@@ -475,7 +476,7 @@ class VoltageDriverNode(PiezoNode):
     @property
     def last_sent(self) -> float:
         """The voltage last written to the (first) axis [V]."""
-        return next(iter(self.driver.drivers.values())).last_sent
+        return self.driver.drivers[self._first].last_sent
 
     def _accept(self, channel: str, voltage: float, command: bool, received: float | None) -> None:
         """An accepted command (or, ``command`` False, a value its play-out interpolated) for
@@ -486,16 +487,16 @@ class VoltageDriverNode(PiezoNode):
         if self._batched:
             self._pending[channel] = (voltage, received)
         else:
-            self._write({channel: (voltage, received)}, counted=command)
+            self._write_one(channel, voltage, received, counted=command)
 
     def command(self, voltage: float, publish: bool = True) -> None:
         """The one-axis composed loop's write (its own thread): the watchdog counts from now;
         the device read-back follows the write when one is due (``publish`` False: the value
         written is not published on ``voltage``)."""
-        channel = next(iter(self.axes))
+        channel = self._first
         received = self._received(channel)
         self.axes[channel].inlet.last_command = voltage
-        self._write({channel: (voltage, received)}, publish)
+        self._write_one(channel, voltage, received, publish)
         if received >= self._readback_due:
             self._readback_due = received + self._readback_period
             self._readback()
@@ -516,17 +517,9 @@ class VoltageDriverNode(PiezoNode):
             batch, self._pending = self._pending, {}
             self._write(batch)
 
-    def _write(
-        self,
-        batch: dict[str, tuple[float, float | None]],
-        publish: bool = True,
-        counted: bool = True,
-    ) -> None:
+    def _write(self, batch: dict[str, tuple[float, float | None]], publish: bool = True) -> None:
         """Write ``batch`` ({channel: (voltage, received)}) as one device command and publish
-        what each axis sent (``publish`` False: only keep it), under the node's lock: a
-        watchdog turn between a write and its publication would publish it twice.
-        ``counted`` False: values a play-out interpolated (an expired one is dropped
-        silently)."""
+        what each axis sent (``publish`` False: only keep it)."""
         with self._lock:
             sent_at = self._now_ns()  # applied when the device gets it, not after ERR?
             try:
@@ -537,21 +530,54 @@ class VoltageDriverNode(PiezoNode):
                 self._link_error(exc)
                 return
             for channel, result in results.items():
-                axis = self.axes[channel]
-                if isinstance(result, SetResult):
-                    if counted:
-                        axis.inlet.wrote(result)
-                    if publish:
-                        self._publish(axis, result.sent, sent_at)
-                    else:
-                        axis.inlet.applied = result.sent
-                elif isinstance(result, CommandExpired):  # counted by the axis's driver
-                    if counted:
-                        axis.inlet.reject(Rejection.EXPIRED, str(result))
-                elif isinstance(result, NonFiniteVoltageError):  # not after the inlet's check
-                    axis.inlet.reject(Rejection.NONFINITE, str(result))
-                else:
-                    self._link_error(result)
+                self._wrote(self.axes[channel], result, sent_at, publish)
+
+    def _write_one(
+        self,
+        channel: str,
+        voltage: float,
+        received: float | None,
+        publish: bool = True,
+        counted: bool = True,
+    ) -> None:
+        """One axis's write alone, straight to its driver (nothing to batch: a command as it
+        arrives, a play-out's value, the one-axis loop's output); ``counted`` False: a value
+        the play-out interpolated (an expired one is dropped silently)."""
+        with self._lock:
+            sent_at = self._now_ns()
+            try:
+                result: SetResult | HardwareError = self.driver.drivers[channel].set_voltage(
+                    voltage, received
+                )
+            except HardwareError as exc:
+                result = exc
+            self._wrote(self.axes[channel], result, sent_at, publish, counted)
+
+    def _wrote(
+        self,
+        axis: _Axis,
+        result: SetResult | HardwareError,
+        sent_at: int,
+        publish: bool,
+        counted: bool = True,
+    ) -> None:
+        """What an axis's write did: published and counted, or refused, or a link error; under
+        the node's lock (a watchdog turn between a write and its publication would take the
+        value for a ramp step and publish it twice)."""
+        if isinstance(result, SetResult):
+            if counted:
+                axis.inlet.wrote(result)
+            if publish:
+                self._publish(axis, result.sent, sent_at)
+            else:
+                axis.inlet.applied = result.sent
+        elif isinstance(result, CommandExpired):  # counted by the axis's driver
+            if counted:
+                axis.inlet.reject(Rejection.EXPIRED, str(result))
+        elif isinstance(result, NonFiniteVoltageError):  # not after the inlet's check
+            axis.inlet.reject(Rejection.NONFINITE, str(result))
+        else:
+            self._link_error(result)
 
     def _link_error(self, exc: Exception) -> None:
         self._link_errors += 1
