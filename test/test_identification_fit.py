@@ -306,3 +306,28 @@ def test_parameter_set_drift_and_delay_round_trip(delay, kind, coefficient, time
     t = np.linspace(0.0, 10.0, 11)
     values = pset.drift.evaluate(t)
     assert values[0] == 0.0 and np.all(np.diff(values) * np.sign(coefficient) >= 0)
+
+
+def test_a_thinned_cross_check_that_wins_shows_its_model_over_the_whole_runs(monkeypatch, tmp_path):
+    """auto's cross-checking fit sees thinned runs; when its result is returned, its model
+    output (``fitted``: what ``identify --output`` plots against the data) covers the runs as
+    given, sample for sample, and follows them."""
+    from dataclasses import replace
+
+    from piezo_stage.identification import methods
+    from piezo_stage.identification.pipeline import identify
+
+    monkeypatch.setattr(methods, "CROSS_CHECK_SAMPLES", 1500)
+    options = IdentifyOptions(degree=2)
+    runs = list(
+        triangle_pair(PATCH, 0.0, 300.0, 100.0, samples_per_branch=1000, periods=2.0, noise=1e-4)
+    )
+    analytic = identify(runs[0], runs[1], options)
+    off = replace(analytic.parameters, kappa_w=1.3 * analytic.parameters.kappa_w)
+    wrong = replace(analytic, parameters=off, rms_error=1.0)  # far off, and said to fit badly
+    result = methods._cross_checked(wrong, runs, options, FitOptions(), None)
+    assert result.method == "fit" and "disagree" in result.warnings[-1]
+    assert [len(f) for f in result.fitted] == [len(r) for r in runs]
+    span = np.ptp(runs[0].output)
+    for model, rec in zip(result.fitted, runs):
+        assert np.sqrt(np.mean((model - rec.output) ** 2)) < 2e-3 * span

@@ -43,6 +43,7 @@ from .simfit import (
     count_periods,
     holdout_check,
     noise_level,
+    predict,
     seed_from,
     seed_of,
     simulation_fit,
@@ -263,7 +264,7 @@ def _cross_checked(
     """
     try:
         thinned = [r.thinned(CROSS_CHECK_SAMPLES) for r in runs]
-        fitted = _fit(thinned, options, fit, analytic, "", lag)
+        fitted = _fit(thinned, options, fit, analytic, "", lag, shown=runs)
     except IdentificationError as exc:  # the fit cannot check it: say so, keep the analytic
         note = f"the fit by simulation error could not cross-check the analytic result: {exc}"
         return replace(analytic, warnings=(*analytic.warnings, note))
@@ -323,8 +324,10 @@ def _fit(
     analytic: IdentificationResult | None,
     problem: str,
     lag: LagEstimate | None,
+    shown: Sequence[Recording] | None = None,
 ) -> IdentificationResult:
-    """The fit by simulation error, started from the analytic result and the lag if any."""
+    """The fit by simulation error, started from the analytic result and the lag if any; its
+    model output over ``shown`` (default: the runs fitted)."""
     fit = replace(fit, degree=options.degree, input_sign=options.input_sign)
     seeds: list[Seed] = []
     if analytic is not None:
@@ -349,6 +352,7 @@ def _fit(
         analytic_problem=problem,
         input_name=options.input_name,
         output_name=options.output_name,
+        shown=shown,
     )
 
 
@@ -382,9 +386,11 @@ def fit_runs(
     analytic_problem: str = "",
     input_name: str = "voltage",
     output_name: str = "displacement",
+    shown: Sequence[Recording] | None = None,
 ) -> IdentificationResult:
     """The fit by simulation error with its held-out check, as an IdentificationResult
-    (refused with :class:`BadFitError` when the data do not support it).
+    (refused with :class:`BadFitError` when the data do not support it); ``fitted`` holds the
+    model's output over ``shown`` (default: ``runs``; the runs a thinned fit was thinned from).
     """
     figures: dict[str, float] = {}
     check = holdout_check(runs, fit, seeds)
@@ -431,7 +437,7 @@ def fit_runs(
         delay=final.delay,
         drift=final.drift[0],
         warnings=tuple(_warnings(final, figures, fit)),
-        fitted=final.model,
+        fitted=final.model if shown is None else tuple(predict(final, shown)),
     )
     check_fit(result, fit)
     return result
