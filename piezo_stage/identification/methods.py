@@ -327,7 +327,8 @@ def _fit(
     shown: Sequence[Recording] | None = None,
 ) -> IdentificationResult:
     """The fit by simulation error, started from the analytic result and the lag if any; its
-    model output over ``shown`` (default: the runs fitted)."""
+    model output over ``shown`` (default: the runs fitted).
+    """
     fit = replace(fit, degree=options.degree, input_sign=options.input_sign)
     seeds: list[Seed] = []
     if analytic is not None:

@@ -147,6 +147,7 @@ class _Identification:
 
     def __init__(self, compute: Callable[[], IdentificationResult]) -> None:
         self._compute = compute
+        self.started = time.monotonic()
         self.result: IdentificationResult | None = None
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, daemon=True, name="identification")
@@ -597,6 +598,11 @@ class IdentifierNode(PiezoNode):
         it done (:meth:`_conclude_background`)."""
         self._attempted = True
         self._running = _Identification(self._identification())
+        runs, cycles = len(self._runs.completed), len(self._cycles.held)
+        self.get_logger().info(
+            f"identifying ({runs} complete run(s), {cycles} held cycle(s), method "
+            f"{self.settings.method.value}): the node collects on meanwhile"
+        )
 
     def _conclude_background(self) -> None:
         """Publish the automatic identification once done, or report why it failed; an
@@ -605,6 +611,7 @@ class IdentifierNode(PiezoNode):
         if running is None or not running.done():
             return
         self._running = None
+        self.get_logger().info(f"identification took {time.monotonic() - running.started:.1f} s")
         if running.result is not None:
             self._publish(running.result)
             self._done(0)
