@@ -15,8 +15,8 @@ over 20 seeds with the coverage of the standard errors; the real P-885 record (f
 first 60 %, held-out RMS on the last 40 %); the time of a fit on a 10k-sample run.
 
 Run:  python bench/identification.py [section ...]   (sections: noiseless patch timing noisy
-      one_run one_run_patch two_runs ch9_24 noisy_one_run p885 fit_timing; default all, a few
-      minutes)
+      one_run one_run_patch two_runs ch9_24 noisy_one_run p885 fit_timing lag threads; default all,
+      a few minutes)
 """
 
 from __future__ import annotations
@@ -455,6 +455,53 @@ def fit_timing() -> None:
     )
 
 
+_THREADS_CHILD = """
+import time
+from piezo_stage.identification.methods import identify_runs
+from piezo_stage.identification.pipeline import IdentifyOptions
+from piezo_stage.identification.synthetic import CH10_PATCH, triangle_pair
+from piezo_stage.model.bouc_wen import BoucWenParameters
+runs = triangle_pair(BoucWenParameters(**CH10_PATCH), 0.0, 300.0, 100.0, period=3.0,
+                     samples_per_branch=1500, periods=8, noise=2e-4)
+identify_runs(runs, IdentifyOptions(degree=2), "auto")  # warm up (numba)
+t0 = time.perf_counter()
+identify_runs(runs, IdentifyOptions(degree=2), "auto")
+print(time.perf_counter() - t0)
+"""
+
+
+def threads() -> None:
+    section(
+        "BLAS threads: auto identification of the emulated rig's two runs (ch. 10 patch, "
+        "2 x 24k samples), one OpenBLAS thread (the package's default) vs two, idle and "
+        "beside a busy process"
+    )
+    import os
+    import subprocess
+
+    def seconds(n: int) -> float:
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": str(n), "OMP_NUM_THREADS": str(n)}
+        out = subprocess.run(
+            [sys.executable, "-c", _THREADS_CHILD], env=env, capture_output=True, text=True
+        )
+        return float(out.stdout.split()[-1]) if out.returncode == 0 else float("nan")
+
+    for beside in ("idle", "busy"):
+        busy = (
+            subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            if beside == "busy"
+            else None
+        )
+        try:
+            one, two = seconds(1), seconds(2)
+        finally:
+            if busy is not None:
+                busy.kill()
+                busy.wait()
+        print(f"{beside}: 1 thread {one:.2f} s, 2 threads {two:.2f} s, ratio {two / one:.2f}")
+        check(f"one BLAS thread vs two, {beside} (ratio 2/1)", two / one, 1.0, "", True)
+
+
 def lag() -> None:
     section("an output that lags: two ch. 10 T-wave runs, noise 1e-3 of span, 6 seeds each")
     from piezo_stage.identification.lag import estimate_lag
@@ -528,6 +575,7 @@ SECTIONS = {
         p885,
         fit_timing,
         lag,
+        threads,
     )
 }
 

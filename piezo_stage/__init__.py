@@ -10,7 +10,7 @@ import os
 # One BLAS thread unless the user says otherwise (set before numpy is first imported): on the
 # small lab PC the nodes share two cores with the device threads, and OpenBLAS's spinning
 # workers cost more than they give (``identify`` on the emulated rig's bag: 10 s with one
-# thread, 15 s with two; 11 s and 27 s beside a busy core).
+# thread, 15 s with two; 11 s and 27 s beside a busy core; bench/identification.py threads).
 for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
 
