@@ -249,10 +249,14 @@ def run_on_graph(
             tables = RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
         except LearningError as exc:
             raise ExperimentError(f"the learned table: {exc}") from None
-    result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
+    failed = run_failure(columns, axes)
+    try:
+        result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
+    except ExperimentError as exc:  # what went wrong first, then what it cost
+        raise ExperimentError(f"{failed}: {exc}" if failed else str(exc)) from None
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
-    result.failed = run_failure(columns, axes)
+    result.failed = failed
     return result
 
 
