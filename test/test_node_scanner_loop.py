@@ -19,6 +19,8 @@ import pytest
 
 from piezo_stage.bag import loop_columns
 from piezo_stage.bag.reader import LoopColumns
+from piezo_stage.control.scan import RasterScan, ScanAxis
+from piezo_stage.control.scan_live import scan_origin
 from piezo_stage.hardware.emulators.voltage_log import read_voltage_log
 from piezo_stage.launch import Launcher
 from piezo_stage.launch.graph import find_graph, parse_graph
@@ -38,11 +40,11 @@ AXES = ("x", "y")
 CLOSED = {"reference_source": "constant", "start_closed": True, "max_gap": 0.5}
 
 
-def run_graph(probe, tmp_path, per_axis: dict, loop: dict, samples: int):
+def run_graph(probe, tmp_path, per_axis: dict, loop: dict, samples: int, late: float = 0.0):
     """emulated_scanner_loop with the emulator's log, ``per_axis`` controller parameters (a
     params file's blocks), ``loop`` for the stage_loop node; until every axis has ``samples``
-    closed-loop samples on its loop_samples. Returns (records per axis, applied per channel,
-    the launch's lines)."""
+    closed-loop samples on its loop_samples, subscribed ``late`` seconds after the graph is
+    ready. Returns (records per axis, applied per channel, the launch's lines)."""
     from piezo_stage_msgs.msg import LoopSamples
 
     params = tmp_path / "axes.yaml"
@@ -77,15 +79,22 @@ def run_graph(probe, tmp_path, per_axis: dict, loop: dict, samples: int):
     def closed(axis: str) -> int:
         return sum(int(np.count_nonzero(b.loop_closed)) for b in batches[axis])
 
-    for axis, got in batches.items():
-        subscriptions.append(
-            probe.create_subscription(
-                LoopSamples, f"{NS}/{axis}/loop_samples", got.append, BATCH_QOS
+    def subscribe() -> None:
+        for axis, got in batches.items():
+            subscriptions.append(
+                probe.create_subscription(
+                    LoopSamples, f"{NS}/{axis}/loop_samples", got.append, BATCH_QOS
+                )
             )
-        )
+
+    if not late:
+        subscribe()
     try:
         launch.start()
         launch.wait_ready(timeout=30.0)
+        if late:
+            spin_until(probe, lambda: False, late)
+            subscribe()
         done = spin_until(probe, lambda: min(map(closed, AXES)) >= samples, 90.0)
     finally:
         code = launch.stop()
@@ -176,3 +185,24 @@ def test_with_the_coupling_compensated_a_held_axis_stays_put_while_the_other_sca
     # staircase): the compensation cancels x's reference, not x's error. The pure-core
     # figure (bench/scanner.py, the demo) is 0.01x; through the emulated devices, 0.4x.
     assert y_with < 0.6 * y_without
+
+
+def test_a_loop_told_to_wait_for_its_recorder_starts_every_axis_where_it_records(probe, tmp_path):
+    """With ``wait_for_samples_subscribers`` the loop starts no axis before each axis's
+    loop_samples has its subscriber, however late it comes: the record holds the scan's
+    origin (a recorder that matched after the start would miss it, and the scan with it)."""
+    scan = RasterScan(4, 16, 5.0, (10e-6, 6e-6), (10e-6, 8e-6))
+    per_axis = {
+        axis: {
+            **CLOSED,
+            "reference_source": "trajectory",
+            "trajectory": str(ScanAxis(scan, index).save(tmp_path / f"scan_{axis}.json")),
+        }
+        for index, axis in enumerate(AXES)
+    }
+    loop = {"wait_for_samples_subscribers": 1}
+    records, _, text = run_graph(probe, tmp_path, per_axis, loop, 500, late=3.0)
+    columns = [records[axis] for axis in AXES]
+    t0 = scan_origin(scan, columns)  # ScanError: the record missed the start
+    first = min(int(c["stamp"][np.isfinite(c["reference"])][0]) for c in columns)
+    assert 0 <= first - t0 < 50_000_000, (first, t0, text)

@@ -142,6 +142,8 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
             entry["overrides"] = {
                 **entry.get("overrides", {}),
                 "coupling_compensation": run.coupling_compensation,
+                # the recorder sees the scan's first step: its origin is in the record
+                "wait_for_samples_subscribers": 1,
             }
         nodes.append(entry)
     data.update(nodes=nodes, namespace=namespace)

@@ -53,7 +53,7 @@ from .handoff import Handoff, publish_period
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
 from .qos import BATCH_QOS
-from .runtime import run, set_stamp, wall_clock
+from .runtime import run, set_stamp, subscribers_matched, wall_clock
 from .spec import ParameterTable
 from .voltage_driver import PARAMETERS as DRIVER_PARAMETERS
 from .voltage_driver import VoltageDriverNode
@@ -76,6 +76,11 @@ class SampleBatch:
         self._pub = node.create_publisher(LoopSamples, "loop_samples", BATCH_QOS)
         self._rows: list[Row] = []
         self._applied: list[float] = []
+
+    def matched(self, count: int) -> bool:
+        """``loop_samples`` has ``count`` subscribers as its writer sees them (what it publishes
+        reaches them)."""
+        return count <= 0 or subscribers_matched((self._pub,), count)
 
     def add(self, rows: list[Row], applied: float) -> None:
         """A block's rows and the amplifier's output after it (executor thread)."""

@@ -86,6 +86,14 @@ PARAMETERS = ParameterTable(
             read_only=True,
         ),
         Param(
+            "wait_for_samples_subscribers",
+            0,
+            "start no axis until each axis's loop_samples has this many subscribers (an "
+            "experiment's recorder of them sees every step from the first)",
+            range=(0, 100),
+            read_only=True,
+        ),
+        Param(
             "poll_period",
             0.005,
             "a wait this long without a sample: every axis checks its gap (hold, or open)",
@@ -151,6 +159,10 @@ class AxisLaw:
     @property
     def last_step(self) -> Any:
         return self.controller.last_step
+
+    def ready(self, samples_subscribers: int) -> bool:
+        """The controller is ready and ``loop_samples`` has this many subscribers."""
+        return self.controller.ready() and self.batch.matched(samples_subscribers)
 
     def prepare(self, x: float, ok: bool, stamp_ns: int, fresh: bool, now_ns: int) -> None:
         """Before a coupled cycle: the last valid displacement and the set point at this axis's
@@ -228,6 +240,7 @@ class StageLoopNode(PiezoNode):
         channels = [a.channel for a in stage.axes]
         self.driver, self.handoff, self.channels = driver, handoff, channels
         self.frames = OwnFrames(stage) if p.coupling_compensation else None
+        self._wait_samples = p.wait_for_samples_subscribers
         every = TopicDecimation(rate, s.topics_rate_hz).every
         driver.publish_every = every
         self.loop = StageLoop(
@@ -257,7 +270,7 @@ class StageLoopNode(PiezoNode):
         earliest of the cycle's samples. Then the own frames of a coupled stage."""
         laws = self.laws
         if not laws[0].started:
-            if not (any(fresh) and all(law.controller.ready() for law in laws)):
+            if not (any(fresh) and all(law.ready(self._wait_samples) for law in laws)):
                 return
             t0 = min(law.reader.frame.stamp(s) for s, f, law in zip(stamp, fresh, laws) if f)
             for law in laws:

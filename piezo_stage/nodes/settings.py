@@ -327,4 +327,5 @@ class StageLoopSettings:
     realtime_priority: int
     align: float
     coupling_compensation: bool
+    wait_for_samples_subscribers: int
     poll_period: float
