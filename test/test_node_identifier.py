@@ -3,6 +3,7 @@ offline identification of the same samples."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -186,6 +187,18 @@ def test_identifier_keeps_collecting_while_it_identifies(node, monkeypatch):
 
     monkeypatch.setattr(module, "identify_runs", held_identification)
     identifier = module.IdentifierNode()
+    said: list[str] = []
+    logger = identifier.get_logger()
+
+    class Said:  # the node's logger, keeping what it says at info
+        def info(self, text: str) -> None:
+            said.append(text)
+            logger.info(text)
+
+        def __getattr__(self, name: str):
+            return getattr(logger, name)
+
+    identifier.get_logger = Said  # type: ignore[method-assign]
     executor = SingleThreadedExecutor()
     executor.add_node(identifier)
     executor.add_node(node)
@@ -227,6 +240,12 @@ def test_identifier_keeps_collecting_while_it_identifies(node, monkeypatch):
         release.set()
         assert spin_for(lambda: identifier.result is not None, 30.0)
         assert identifier._diagnose().message == "identified"
+        # a user of a small PC sees the wait begin and how long it took
+        began = [k for k, text in enumerate(said) if text.startswith("identifying (2 complete")]
+        took = [
+            k for k, text in enumerate(said) if re.match(r"identification took \d+\.\d s$", text)
+        ]
+        assert began and took and began[0] < took[0], said
     finally:
         release.set()
         executor.remove_node(identifier)
