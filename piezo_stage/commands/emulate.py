@@ -61,6 +61,7 @@ from piezo_stage.hardware.emulators import (
     MDTDeviceModel,
     OptoNCDTDeviceModel,
 )
+from piezo_stage.hardware.emulators.amplifier_options import add_amplifier_options
 from piezo_stage.hardware.emulators.scanner import ScannerEmulator
 from piezo_stage.hardware.emulators.voltage_log import VoltageLog
 from piezo_stage.hardware.optoncdt import FAMILIES, FrameFormat, frame_format
@@ -364,7 +365,7 @@ def emulated_controller(
 
 def _amplifier_args(parser: argparse.ArgumentParser, controller: str) -> None:
     """The amplifier options of ``rig`` and ``scanner``."""
-    parser.add_argument("--amplifier", choices=("gcs", "mdt69x"), default="gcs")
+    add_amplifier_options(parser, controller)
     parser.add_argument(
         "--amp-tcp",
         type=port,
@@ -377,14 +378,6 @@ def _amplifier_args(parser: argparse.ArgumentParser, controller: str) -> None:
         default=None,
         metavar="PATH",
         help="fixed path (symlink) of the amplifier's pty (without --amp-tcp)",
-    )
-    parser.add_argument(
-        "--amp-range",
-        type=float,
-        nargs=2,
-        default=None,
-        metavar=("VMIN", "VMAX"),
-        help=f"GCS amplifier output range VMI?/VMA? [V] (default -30 130, an {controller})",
     )
     parser.add_argument(
         "--amp-bandwidth",

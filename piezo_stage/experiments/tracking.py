@@ -431,8 +431,10 @@ def graph_amplifier_range(
     nodes: list[dict[str, Any]], plant: dict[str, Any] | None = None
 ) -> tuple[float, float]:
     """[V] the narrowest of what a graph's entries set: the controller's u_min/u_max, the
-    voltage driver's v_min/v_max, the emulator's ``--amp-range`` (and ``plant``'s v_min/v_max:
-    the sim plan's plant node); ±inf where none is set."""
+    voltage driver's v_min/v_max, the range the emulated amplifier serves (``served_range``)
+    (and ``plant``'s v_min/v_max: the sim plan's plant node); ±inf where none is set."""
+    from piezo_stage.hardware.emulators.amplifier_options import served_range
+
     low, high = -math.inf, math.inf
     limits = [] if plant is None else [(plant.get("v_min"), plant.get("v_max"))]
     for entry in nodes:
@@ -441,10 +443,9 @@ def graph_amplifier_range(
             limits.append((overrides.get("u_min"), overrides.get("u_max")))
         elif entry.get("executable") in ("voltage_driver", "stage_driver", "plant"):
             limits.append((overrides.get("v_min"), overrides.get("v_max")))
-        command = entry.get("command") or []
-        if "--amp-range" in command:
-            i = command.index("--amp-range")
-            limits.append((command[i + 1], command[i + 2]))
+        served = served_range(entry.get("command") or [])
+        if served is not None:
+            limits.append(served)
     for lo, hi in limits:
         low = low if lo is None else max(low, float(lo))
         high = high if hi is None else min(high, float(hi))
