@@ -73,23 +73,3 @@ def test_the_origin_is_the_stamp_the_set_points_follow_from():
     late = [{k: v[5:] for k, v in c.items()} for c in columns]  # the start missed
     with pytest.raises(ScanError, match="missed the start"):
         scan_origin(SCAN, late)
-
-
-def test_set_points_after_the_loop_opened_do_not_hide_the_origin():
-    """A stage that stalled opens its loop, and evaluates its set points at times its samples
-    do not carry: the origin is found from the samples before the opening."""
-    t0 = 1_700_000_000_000_000_000
-    columns = []
-    for index in (0, 1):
-        stamp = t0 + np.arange(3000, dtype=np.int64) * 1_000_000
-        reference = ScanAxis(SCAN, index).evaluate(stamp * 1e-9 - t0 * 1e-9)[0]
-        closed = np.ones(stamp.size, dtype=bool)
-        closed[:1] = False  # not yet stepped
-        reference[:1] = np.nan
-        closed[1500:] = False  # the loop opened at 1.5 s ...
-        reference[1500:] = reference[1500:] + 300e-9  # ... and its set points drifted
-        columns.append({"stamp": stamp, "reference": reference, "loop_closed": closed})
-    assert scan_origin(SCAN, columns) == t0
-    closed_all = [{**c, "loop_closed": np.ones_like(c["loop_closed"])} for c in columns]
-    with pytest.raises(ScanError, match="missed the start"):  # drift with the loop closed
-        scan_origin(SCAN, closed_all)

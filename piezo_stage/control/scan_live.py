@@ -19,13 +19,7 @@ from numpy.typing import NDArray
 from .scan import RasterScan, ScanAxis, ScanError
 from .scan_image import Sample
 
-__all__ = [
-    "ORIGIN_TOLERANCE",
-    "ScanAccumulator",
-    "origin_error",
-    "scan_origin",
-    "until_opened",
-]
+__all__ = ["ORIGIN_TOLERANCE", "ScanAccumulator", "origin_error", "scan_origin"]
 
 #: [m] largest difference between a recorded set point and the scan at the origin found
 ORIGIN_TOLERANCE = 1e-9
@@ -52,29 +46,11 @@ def origin_error(scan: RasterScan, columns: Sequence[Columns], t0: int) -> float
     return worst
 
 
-def until_opened(column: Columns) -> Columns:
-    """``column`` up to its loop's first opening after it closed (all of it without a
-    ``loop_closed`` column, or when it never closed): the origin is judged on the run as it
-    started, not on what a stall or a lost sensor left after it.
-    """
-    closed = column.get("loop_closed")
-    if closed is None or not np.any(closed):
-        return column
-    start = int(np.argmax(closed))
-    opened = np.flatnonzero(~np.asarray(closed[start:], dtype=bool))
-    if opened.size == 0:
-        return column
-    end = start + int(opened[0])
-    return {k: v[:end] for k, v in column.items()}
-
-
 def scan_origin(scan: RasterScan, columns: Sequence[Columns]) -> int:
     """[ns] the scan's time origin in a record that holds its start (module docstring):
     the latest recorded stamp at or before the first stepped sample (within 50 ms) from which
-    both axes' set points are the scan's, up to each loop's first opening
-    (:func:`until_opened`); :class:`~.scan.ScanError` when none is.
+    both axes' set points are the scan's; :class:`~.scan.ScanError` when none is.
     """
-    columns = [until_opened(c) for c in columns]
     stepped = [np.isfinite(c["reference"]) for c in columns]
     if not all(s.any() for s in stepped):
         raise ScanError("the record holds no stepped sample of one of the axes")
