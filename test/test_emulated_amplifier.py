@@ -1,5 +1,6 @@
 """The rig emulator's amplifier bandwidth: a Butterworth low-pass between command and stage,
-the stage stepped in substeps (batched through SimulatedStage.step_many)."""
+the stage stepped in substeps (batched through SimulatedStage.step_many); the rig's stage is
+the scanner's coupling of one axis."""
 
 from __future__ import annotations
 
@@ -9,9 +10,32 @@ import numpy as np
 import pytest
 
 from piezo_stage.commands.emulate import load_stage
-from piezo_stage.hardware.emulators.rig import AmplifierLowPass, RigCoupling, substeps_for
+from piezo_stage.hardware.emulators.amplifier import AmplifierLowPass, substeps_for
+from piezo_stage.hardware.emulators.rig import OneAxis
+from piezo_stage.hardware.emulators.scanner import ScannerCoupling
 
 pytestmark = pytest.mark.unit
+
+
+class RigSource:
+    """The rig's sensor source: the stage as one axis of a scanner's coupling, its sample 0 at
+    server time 0, its amplifier's channel ``1``."""
+
+    def __init__(self, stage, bandwidth_hz: float = 0.0) -> None:
+        self.coupling = ScannerCoupling(
+            OneAxis(stage), ["1"], 1000.0, 0.0, clock=lambda: 0.0, bandwidth_hz=bandwidth_hz
+        )
+        self.source = self.coupling.source(0, lambda: 0.0)
+
+    def on_voltage(self, value: float, at: float) -> None:
+        self.coupling.on_axis_voltage("1", value, at)
+
+    def __call__(self, times):
+        return self.source(np.asarray(times))
+
+    @property
+    def applied(self) -> float:
+        return float(self.coupling.applied[0])
 
 
 class StepOnly:
@@ -48,9 +72,7 @@ def test_batched_substeps_equal_stepping_one_by_one():
     times = np.arange(1, 41) * 1e-3
     outs = []
     for wrap in (lambda s: s, StepOnly):
-        c = RigCoupling(
-            wrap(load_stage("ch11_rig.yaml")), 1000.0, 0.0, clock=lambda: 0.0, bandwidth_hz=1000.0
-        )
+        c = RigSource(wrap(load_stage("ch11_rig.yaml")), bandwidth_hz=1000.0)
         for k in range(20):  # a 1 kHz staircase, commands between the samples
             c.on_voltage(5.0 * k, at=k * 1e-3 + 3e-4)
         outs.append(np.concatenate([c(times[:7]), c(times[7:])]))  # two batches
@@ -59,11 +81,11 @@ def test_batched_substeps_equal_stepping_one_by_one():
 
 def test_the_stage_lags_a_step_and_settles_without_ringing_past_it():
     stage = load_stage("ch11_rig.yaml")
-    c = RigCoupling(stage, 1000.0, 0.0, clock=lambda: 0.0, bandwidth_hz=1000.0)
+    c = RigSource(stage, bandwidth_hz=1000.0)
     c.on_voltage(100.0, at=0.0)
     fine = c(np.array([1e-4]))  # 0.1 ms after the step the filtered voltage is still low
     assert c.applied < 50.0 and fine[0] < 0.5 * 100.0 / 10.35e6
-    ideal = RigCoupling(load_stage("ch11_rig.yaml"), 1000.0, 0.0, clock=lambda: 0.0)
+    ideal = RigSource(load_stage("ch11_rig.yaml"))
     ideal.on_voltage(100.0, at=0.0)
     ideal(np.array([1e-4]))
     assert ideal.applied == 100.0

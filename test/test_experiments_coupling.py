@@ -16,7 +16,7 @@ import pytest
 from piezo_stage.control.stage_fit import fit_stage_runs
 from piezo_stage.experiments.coupling import CouplingSpec, axis_runs
 from piezo_stage.experiments.errors import ExperimentError, ExperimentInputError
-from piezo_stage.hardware.emulators.rig import AmplifierLowPass
+from piezo_stage.hardware.emulators.amplifier import AmplifierLowPass
 from piezo_stage.identification.cycles import CycleOptions
 from piezo_stage.model.excitation import ExcitationPlan
 from piezo_stage.model.stage import SimulatedStage

@@ -209,9 +209,9 @@ def test_rig_couples_amplifier_voltage_to_sensor_reading():
         deadline = (
             time.monotonic() + 2.0
         )  # the plant gets 0 V from the samples taken after the ramp
-        while rig.coupling.applied != 0.0 and time.monotonic() < deadline:
+        while rig.coupling.applied[0] != 0.0 and time.monotonic() < deadline:
             time.sleep(0.01)
-    assert stage.steps > 100 and rig.coupling.applied == 0.0
+    assert stage.steps > 100 and rig.coupling.applied[0] == 0.0
 
 
 def test_rig_command_with_the_simulated_plant(capsys, tmp_path):

@@ -39,7 +39,7 @@ from builtin_interfaces.msg import Time
 from numpy.typing import NDArray
 
 from piezo_stage.config_path import ConfigNotFoundError, find_user_file
-from piezo_stage.hardware.emulators.rig import AmplifierLowPass, substeps_for
+from piezo_stage.hardware.emulators.amplifier import AmplifierLowPass, substeps_for
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.model.stage import AmplifierModel, AxesSample, CoupledStage, SensorModel

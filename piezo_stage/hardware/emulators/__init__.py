@@ -1,5 +1,6 @@
-"""Device emulators (PI GCS controller, Thorlabs MDT69x, optoNCDT sensor, and a rig coupling both to
-the simulated plant) served on ptys or loopback TCP by :class:`EmulatorServer`.
+"""Device emulators (PI GCS controller, Thorlabs MDT69x, optoNCDT sensor, and a stage of one
+or more axes coupling them to the simulated plant) served on ptys or loopback TCP by
+:class:`EmulatorServer`.
 """
 
 from .gcs_device import GCSDeviceModel

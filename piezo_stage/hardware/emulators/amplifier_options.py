@@ -10,7 +10,7 @@ import argparse
 from typing import Sequence
 
 from ..errors import ConfigError
-from .rig import amplifier_model
+from .amplifier import amplifier_model
 
 __all__ = ["AMPLIFIERS", "add_amplifier_options", "served_range"]
 

@@ -4,14 +4,15 @@ simulated coupled stage (docs/design.md section 10, ``emulate scanner``).
 The amplifier (GCS, E-727 class, or MDT693B) drives every axis: axis i of the stage takes the
 voltage its device channel applies. All axes are stepped together, once per sample of one grid
 (t0 + k/rate, t0 the first sample any sensor takes), with each channel's voltage in force then
-(:class:`~.rig.VoltageHistory`, as the single-axis rig); sensor i streams
+(:class:`~.amplifier.VoltageHistory`); sensor i streams
 ``standoff + reading_i``, axis i's coupled displacement. Each sensor keeps its own sample clock
 (its own server): its samples map to the grid's at a fixed offset, so the sensors see the same
 stage, stepped once. Any object with ``step(commands, dt) -> (applied, readings, status)`` per
 axis serves as the stage (``piezo_stage.model.stage.CoupledStage``). With an amplifier bandwidth
-each channel's command reaches its axis through the rig's low-pass
-(:class:`~.rig.AmplifierLowPass`), the stage stepped :func:`~.rig.substeps_for` times per
-sample (``step_voltages``, as the ``stage_plant`` node does).
+each channel's command reaches its axis through the amplifier's low-pass
+(:class:`~.amplifier.AmplifierLowPass`), the stage stepped :func:`~.amplifier.substeps_for`
+times per sample (``step_voltages``, as the ``plant`` node does). A stage of one axis is the
+rig (:mod:`.rig`).
 """
 
 from __future__ import annotations
@@ -28,8 +29,7 @@ from numpy.typing import NDArray
 
 from ..errors import ConfigError
 from ..optoncdt import FrameFormat
-from .optoncdt_device import OptoNCDTDeviceModel
-from .rig import (
+from .amplifier import (
     AmplifierLowPass,
     VoltageHistory,
     amplifier_endpoint,
@@ -37,6 +37,7 @@ from .rig import (
     substep_times,
     substeps_for,
 )
+from .optoncdt_device import OptoNCDTDeviceModel
 from .server import EmulatorServer, Faults
 
 __all__ = ["CoupledAxes", "ScannerCoupling", "ScannerEmulator"]
@@ -202,15 +203,18 @@ class _AxisSource:
 class ScannerEmulator:
     """The amplifier (GCS on TCP or pty, or MDT693B on pty) and one optoNCDT sensor per axis
     (each on a pty) around one coupled stage; ``axes`` and ``channels`` name the stage's axes in
-    order and their channels on the amplifier; ``amplifier_bandwidth`` [Hz] (0: ideal) and
-    ``amplifier_filter_order`` as :class:`~.rig.RigEmulator`'s.
+    order and their channels on the amplifier (None: a one-channel amplifier, an E-709 or an
+    MDT694B, for a stage of one axis); ``amplifier_bandwidth`` [Hz] (0: ideal) and
+    ``amplifier_filter_order`` (1 or 2): the amplifier's output low-pass
+    (:class:`~.amplifier.AmplifierLowPass`) between command and stage; ``sensor_link``: each
+    sensor's pty link, ``{axis}`` replaced by its axis's name.
     """
 
     def __init__(
         self,
         stage: CoupledAxes,
         axes: Sequence[str],
-        channels: Sequence[str],
+        channels: Sequence[str] | None,
         sensor_format: FrameFormat,
         measuring_range: float,
         *,
@@ -229,12 +233,13 @@ class ScannerEmulator:
         amplifier_bandwidth: float = 0.0,
         amplifier_filter_order: int = 2,
     ) -> None:
+        self.amplifier = amplifier_model(amplifier, amplifier_range, amplifier_tcp_port, channels)
+        channels = self.amplifier.axes if channels is None else channels
         if len(axes) != len(channels):
             raise ConfigError(f"{len(axes)} axes need as many channels, got {len(channels)}")
         if sensor_link is not None and len(axes) > 1 and "{axis}" not in sensor_link:
             raise ConfigError(f"sensor link {sensor_link!r} needs {{axis}}: one pty per axis")
         self.axes = tuple(axes)
-        self.amplifier = amplifier_model(amplifier, amplifier_range, amplifier_tcp_port, channels)
         standoff = 0.5 * measuring_range if standoff is None else standoff
         start = self.amplifier.applied_voltages()
         self.coupling = ScannerCoupling(
@@ -269,7 +274,7 @@ class ScannerEmulator:
                 EmulatorServer(
                     sensor,
                     pty=True,
-                    pty_link=None if sensor_link is None else sensor_link.format(axis=name),
+                    pty_link=None if sensor_link is None else sensor_link.replace("{axis}", name),
                     faults=_faults_for(sensor_faults, i),
                     realtime_priority=realtime_priority,
                 )
@@ -304,9 +309,11 @@ class ScannerEmulator:
 
 
 def _faults_for(faults: Faults | None, i: int) -> Faults | None:
-    """Sensor i's own copy of ``faults`` (its own generator, seeded ``seed + i``)."""
-    if faults is None:
-        return None
+    """Sensor i's faults: ``faults`` itself for the first, for each other its own copy (its
+    own generator, seeded ``seed + i``).
+    """
+    if faults is None or i == 0:
+        return faults
     return dataclasses.replace(faults, seed=None if faults.seed is None else faults.seed + i)
 
 
