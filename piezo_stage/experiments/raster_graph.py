@@ -251,14 +251,10 @@ def run_on_graph(
             tables = RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
         except LearningError as exc:
             raise ExperimentError(f"the learned table: {exc}") from None
-    failed = run_failure(columns, axes)
-    try:
-        result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
-    except ExperimentError as exc:  # what went wrong first, then what it cost
-        raise ExperimentError(f"{failed}: {exc}" if failed else str(exc)) from None
+    result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
-    result.failed = failed
+    result.failed = run_failure(columns, axes)
     return result
 
 
