@@ -11,10 +11,13 @@ A topic is subscribed only while a client of the app is subscribed to its channe
 subscription whose serialized bytes go to the app unchanged (no decode/encode per message),
 stamped with their receive time on the node's clock (``use_sim_time``: /clock time). At most
 ``max_rate_hz`` messages per second and topic reach the app (``topic_rates``: per topic), so a
-1 kHz loop draws at what a browser can take. The view never slows what it watches: every
-subscription is best effort (a reliable publisher never waits for it), except a topic whose
-publishers all latch (transient local: the identifier's parameters), subscribed reliable and
-transient local so that its last message reaches a client that joins later.
+1 kHz loop draws at what a browser can take. ``/diagnostics`` and ``/rosout`` are not thinned
+unless ``topic_rates`` names them: each message is another node's report, and a cap over the
+topic would keep the first node of every burst and drop the others' for good. The view never
+slows what it watches: every subscription is best effort (a reliable publisher never waits for
+it), except a topic whose publishers all latch (transient local: the identifier's parameters),
+subscribed reliable and transient local so that its last message reaches a client that joins
+later.
 
 Another ``host`` than loopback serves the stage's topics to the network, unauthenticated
 (README: "Watch it live").
@@ -47,7 +50,8 @@ from .settings import LiveViewSettings
 from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
 
-#: topics outside the namespace served by default
+#: topics outside the namespace served by default: reports of every node, never thinned by
+#: max_rate_hz (only by topic_rates)
 GLOBAL_VIEW_TOPICS = ("/diagnostics", "/rosout")
 #: KEEP_LAST depth of the view's subscriptions: what arrives between two executor turns
 QUEUE_DEPTH = 10
@@ -72,7 +76,8 @@ PARAMETERS = ParameterTable(
         Param(
             "max_rate_hz",
             100.0,
-            "most messages per second and topic sent to the app (0 = every message)",
+            "most messages per second and topic sent to the app (0 = every message); "
+            "/diagnostics and /rosout are not thinned",
             "Hz",
             (0.0, 1e6),
         ),
@@ -254,7 +259,8 @@ class LiveViewNode(PiezoNode):
             topic.gate = RateGate(self._rate_of(topic.name))
 
     def _rate_of(self, name: str) -> float:
-        return self._rates.get(name, self._max_rate)
+        default = 0.0 if name in GLOBAL_VIEW_TOPICS else self._max_rate
+        return self._rates.get(name, default)
 
     # ------------------------------------------------------------------ topics
     def served(self, name: str) -> bool:
