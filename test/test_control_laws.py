@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from piezo_stage.control.errors import ControlError, GainError
 from piezo_stage.control.laws import (
@@ -15,6 +17,8 @@ from piezo_stage.control.laws import (
     x0_coefficient,
 )
 from piezo_stage.control.reference import SecondOrderReference
+
+from property_support import examples
 
 pytestmark = pytest.mark.unit
 
@@ -75,6 +79,31 @@ def test_reference_other_damping_and_target(xi):
     assert y[0] == 0.0 and yd[0] == 0.0 and y[1] == pytest.approx(0.0)
     assert y[2] == pytest.approx(5e-6, rel=1e-6)
     assert ref(0.1001)[1] > 0  # moving up towards the target
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(
+    y0=st.floats(-1e-4, 1e-4),
+    ydot0=st.floats(-1.0, 1.0),
+    xi=st.floats(0.05, 3.0),
+    omega0=st.floats(10.0, 1e4),
+    target=st.floats(-1e-4, 1e-4),
+    t_start=st.floats(-1.0, 1.0),
+    times=st.lists(st.floats(-2.0, 2.0), min_size=1, max_size=20),
+)
+@example(0.0, 0.0, 1.0, 3000.0, 5e-6, 0.1, [0.05, 0.1, 0.2])  # critically damped: its own form
+def test_the_reference_at_one_time_is_its_evaluation_there(
+    y0, ydot0, xi, omega0, target, t_start, times
+):
+    """``at(t)`` (a controller's per-sample call, in scalar arithmetic) gives what
+    ``evaluate`` gives at t, to rounding, for any damping, before and after t_start."""
+    ref = SecondOrderReference(y0, ydot0, xi, omega0, target, t_start)
+    t = np.array(times + [t_start])
+    want = ref.evaluate(t)
+    got = np.array([ref.at(float(tk)) for tk in t]).T
+    e0 = abs(y0 - target) + abs(ydot0) / omega0 + 1e-30  # the motion's scale [m]
+    for g, w, scale in zip(got, want, (e0 + abs(target), e0 * omega0, e0 * omega0**2)):
+        np.testing.assert_allclose(g, w, rtol=0.0, atol=1e-9 * scale)
 
 
 def test_reference_rejects_bad_parameters():

@@ -226,3 +226,31 @@ def test_a_scan_axis_file_it_cannot_use_names_itself_and_why(tmp_path, text, mat
     assert str(path) in str(info.value)
     with pytest.raises(ScanError, match="cannot read scan"):
         ScanAxis.read(tmp_path / "missing.json")
+
+
+@settings(max_examples=examples(40), deadline=None)
+@given(
+    **SCANS,
+    index=st.sampled_from([0, 1]),
+    share=st.floats(0.05, 0.95),
+    times=st.lists(st.floats(-1.0, 4.0), min_size=1, max_size=30),
+)
+def test_a_scan_axis_at_one_time_is_its_evaluation_there(
+    lines, rate, shape, motion, order, rounding, share, flyback, index, times
+):
+    """``at(t)`` (a controller's per-sample call, in scalar arithmetic) gives what ``evaluate``
+    gives at t, to rounding: at any time in frames (times drawn in frames, plus every window's
+    edges and the frame's ends, where the pieces meet)."""
+    s = RasterScan(
+        lines, 16, rate, R, C, shape, motion, order, rounding, share, flyback_lines=flyback
+    )
+    axis = ScanAxis(s, index)
+    starts = s.window_start(np.arange(lines))
+    edges = np.concatenate([starts, starts + s.window, [0.0, s.frame_time]])
+    t = np.concatenate([np.array(times) * s.frame_time, edges, edges + s.frame_time])
+    want = axis.evaluate(t)
+    got = np.array([axis.at(float(tk)) for tk in t]).T
+    for g, w in zip(got, want):
+        scale = max(np.abs(w).max(), 1e-30)
+        np.testing.assert_allclose(g, w, rtol=0.0, atol=1e-9 * scale)
+    assert all(type(v) is float for v in axis.at(float(t[0])))

@@ -11,6 +11,7 @@ from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.trajectory import (
     CsvTrajectory,
     PeriodicTrajectory,
+    SetPoint,
     Shape,
     TrajectoryError,
 )
@@ -63,6 +64,16 @@ def test_acceleration_limit_lengthens_the_corners_and_impossible_limits_are_refu
         make_trajectory("square")
 
 
+#: every periodic trajectory's arguments
+SHAPES = dict(
+    shape=st.sampled_from(list(Shape)),
+    amplitude=st.floats(1e-7, 5e-5),
+    frequency=st.floats(0.5, 500.0),
+    offset=st.floats(-1e-4, 1e-4),
+    rounding=st.floats(0.05, 1.0),
+)
+
+
 def _unlimited(tr: PeriodicTrajectory, rounding: float) -> PeriodicTrajectory:
     """``tr``'s shape without limits, its blend rounding·P/2 (what the shape needs there)."""
     return PeriodicTrajectory(tr.shape, tr.amplitude, tr.frequency, tr.offset, rounding=rounding)
@@ -70,11 +81,7 @@ def _unlimited(tr: PeriodicTrajectory, rounding: float) -> PeriodicTrajectory:
 
 @settings(max_examples=examples(60), deadline=None)
 @given(
-    shape=st.sampled_from(list(Shape)),
-    amplitude=st.floats(1e-7, 5e-5),
-    frequency=st.floats(0.5, 500.0),
-    offset=st.floats(-1e-4, 1e-4),
-    rounding=st.floats(0.05, 1.0),
+    **SHAPES,
     v_factor=st.one_of(st.none(), st.floats(0.3, 1.5)),
     a_factor=st.one_of(st.none(), st.floats(0.1, 1.5)),
     t=st.lists(st.floats(0.0, 10.0), min_size=1, max_size=20),
@@ -158,3 +165,33 @@ def test_csv_spline_holds_its_ends_and_reports_bad_files(tmp_path):
         make_trajectory(str(bad))
     with pytest.raises(TrajectoryError, match="cannot read"):
         make_trajectory(str(tmp_path / "missing.csv"))
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(
+    **SHAPES,
+    periods=st.lists(st.floats(-2.0, 1e4), min_size=1, max_size=30),
+)
+def test_a_trajectory_at_one_time_is_its_evaluation_there(
+    shape, amplitude, frequency, offset, rounding, periods
+):
+    """``at(t)`` (a controller's per-sample call, in scalar arithmetic) gives what
+    ``evaluate`` gives at t, to rounding, for any shape at any time (drawn in periods, plus
+    the corners' and transitions' edges, where the pieces meet)."""
+    tr = PeriodicTrajectory(shape, amplitude, frequency, offset=offset, rounding=rounding)
+    half, blend = 0.5 * tr.period, tr.blend_time
+    edges = np.array([0.0, 0.5 * blend, blend, half - 0.5 * blend, half, tr.period])
+    t = np.concatenate([np.array(periods) * tr.period, edges, edges + 3 * tr.period])
+    want = tr.evaluate(t)
+    got = np.array([tr.at(float(tk)) for tk in t]).T
+    scales = (amplitude + abs(offset), tr.peak_velocity, tr.peak_acceleration)
+    for g, w, scale in zip(got, want, scales):
+        np.testing.assert_allclose(g, w, rtol=0.0, atol=1e-9 * scale)
+
+
+def test_a_csv_trajectory_and_a_set_point_at_one_time_are_their_evaluation(tmp_path):
+    path = tmp_path / "x.csv"
+    path.write_text("t,x\n0,0\n0.1,1e-6\n0.3,-2e-6\n0.4,0\n", encoding="utf-8")
+    for tr in (CsvTrajectory.read(path), SetPoint(3e-6)):
+        for t in (-0.1, 0.0, 0.05, 0.1, 0.25, 0.4, 1.0):
+            assert tr.at(t) == tuple(float(v) for v in tr.evaluate(t))

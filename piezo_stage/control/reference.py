@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -45,17 +46,32 @@ class SecondOrderReference:
         self, t: ArrayLike
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """(yr, ẏr, ÿr) at times t [s] (vectorised)."""
-        tau = np.maximum(np.asarray(t, dtype=float) - self.t_start, 0.0)
+        t = np.asarray(t, dtype=float)
+        tau = np.maximum(t - self.t_start, 0.0)
+        e, edot, eddot = self._error(tau, np.exp, np.cos, np.sin)
+        before = t < self.t_start
+        return self.target + e, np.where(before, 0.0, edot), np.where(before, 0.0, eddot)
+
+    def at(self, t: float) -> tuple[float, float, float]:
+        """:meth:`evaluate` at one time, in scalar arithmetic (a controller's per-sample call)."""
+        before = t < self.t_start
+        e, edot, eddot = self._error(max(t - self.t_start, 0.0), math.exp, math.cos, math.sin)
+        return self.target + e, 0.0 if before else edot, 0.0 if before else eddot
+
+    def _error(self, tau: Any, exp: Any, cos: Any, sin: Any) -> tuple[Any, Any, Any]:
+        """E = yr − target and its two derivatives at ``tau`` ≥ 0 after t_start, in the
+        arithmetic ``exp``, ``cos``, ``sin`` give (numpy's or math's).
+        """
         xi, w0 = self.xi, self.omega0
         e0, v0 = self.y0 - self.target, self.ydot0
         a = xi * w0
-        decay = np.exp(-a * tau)
+        decay = exp(-a * tau)
         if xi < 1.0:
             wd = w0 * math.sqrt(1.0 - xi * xi)
             b = (v0 + a * e0) / wd
-            cos, sin = np.cos(wd * tau), np.sin(wd * tau)
-            e = decay * (e0 * cos + b * sin)
-            edot = decay * ((b * wd - a * e0) * cos - (e0 * wd + a * b) * sin)
+            c, s = cos(wd * tau), sin(wd * tau)
+            e = decay * (e0 * c + b * s)
+            edot = decay * ((b * wd - a * e0) * c - (e0 * wd + a * b) * s)
         elif xi == 1.0:
             b = v0 + a * e0
             e = decay * (e0 + b * tau)
@@ -65,16 +81,12 @@ class SecondOrderReference:
             l1, l2 = -a + r, -a - r
             c1 = (v0 - l2 * e0) / (l1 - l2)
             c2 = e0 - c1
-            e1, e2 = np.exp(l1 * tau), np.exp(l2 * tau)
+            e1, e2 = exp(l1 * tau), exp(l2 * tau)
             e = c1 * e1 + c2 * e2
             edot = c1 * l1 * e1 + c2 * l2 * e2
-        eddot = -2.0 * a * edot - w0 * w0 * e
-        before = np.asarray(t, dtype=float) < self.t_start
-        edot = np.where(before, 0.0, edot)
-        eddot = np.where(before, 0.0, eddot)
-        return self.target + e, edot, eddot
+        return e, edot, -2.0 * a * edot - w0 * w0 * e
 
     def __call__(self, t: float) -> tuple[float, float]:
         """(yr, ẏr) at one time t, the pair :meth:`TimeVaryingPID.update` takes."""
-        yr, yr_dot, _ = self.evaluate(t)
-        return float(yr), float(yr_dot)
+        yr, yr_dot, _ = self.at(t)
+        return yr, yr_dot

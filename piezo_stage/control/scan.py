@@ -29,8 +29,9 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from enum import Enum
+from functools import cached_property
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,6 +41,7 @@ from .trajectory import (
     CsvTrajectory,
     Evaluation,
     PeriodicTrajectory,
+    Point,
     Shape,
     Trajectory,
     TrajectoryError,
@@ -86,6 +88,11 @@ class Order(str, Enum):
 DEFAULT_SINE_SHARE = 0.6
 
 
+@overload
+def quintic_transition(
+    tau: float, duration: float, p0: float, v0: float, p1: float, v1: float
+) -> Point: ...
+@overload
 def quintic_transition(
     tau: NDArray[np.float64],
     duration: float,
@@ -93,7 +100,8 @@ def quintic_transition(
     v0: float,
     p1: float | NDArray[np.float64],
     v1: float,
-) -> Evaluation:
+) -> Evaluation: ...
+def quintic_transition(tau: Any, duration: float, p0: Any, v0: float, p1: Any, v1: float) -> Any:
     """The quintic from (p0, v0) at τ = 0 to (p1, v1) at τ = T, at zero acceleration at both.
 
     For v0 = v1 = 0 it is the minimum-jerk step::
@@ -103,7 +111,7 @@ def quintic_transition(
     """
     T = duration
     s = tau / T
-    d = np.asarray(p1, dtype=float) - np.asarray(p0, dtype=float)
+    d = p1 - p0  # floats in, floats out: the scalar path of :meth:`RasterScan.slow_at`
     a0, a1 = v0 * T, v1 * T
     c3 = 10.0 * d - 6.0 * a0 - 4.0 * a1
     c4 = -15.0 * d + 8.0 * a0 + 7.0 * a1
@@ -215,7 +223,7 @@ class RasterScan:
         """One frame, fly-back included [s]."""
         return self.flyback_lines * self.period + self.lines * self.line_spacing
 
-    @property
+    @cached_property
     def fast(self) -> PeriodicTrajectory:
         """The fast axis's periodic trajectory (its amplitude covers the image and the
         turnarounds).
@@ -275,16 +283,47 @@ class RasterScan:
             return 0.0
         return (self.range[1] / self.lines) / self.line_spacing
 
+    @cached_property
+    def _slow_geometry(self) -> tuple[tuple[float, ...], float, float, float, float, float]:
+        """The slow axis's row positions, a_0, b_last, its ramp velocity, and its positions
+        at a_0 and b_last (ramp: y(a_0) = y_0 − v·W/2, y(b_last) = y_last + v·W/2).
+        """
+        rows = tuple(float(y) for y in self.row_positions())
+        first = float(self.window_start(0))
+        last = float(self.window_start(self.lines - 1)) + self.window
+        v, half_window = self.slow_velocity(), 0.5 * self.window
+        return rows, first, last, v, rows[0] - v * half_window, rows[-1] + v * half_window
+
+    def slow_at(self, t: float) -> Point:
+        """The slow axis's (x_d, ẋ_d, ẍ_d) of :meth:`evaluate` at one time ``t``, in scalar
+        arithmetic (a controller's per-sample call).
+        """
+        t = max(float(t), 0.0)
+        rows, first, last, v, y_first, y_last = self._slow_geometry
+        frame = self.frame_time
+        f = math.floor(t / frame)
+        tau = t - f * frame
+        if first <= tau <= last:
+            if self.slow_motion is SlowMotion.RAMP:
+                return y_first + v * (tau - first), v, 0.0
+            spacing, window = self.line_spacing, self.window
+            k = min(math.floor((tau - first) / spacing), self.lines - 1)
+            since = tau - first - k * spacing
+            if since > window and k < self.lines - 1:
+                return quintic_transition(
+                    since - window, spacing - window, rows[k], 0.0, rows[k + 1], 0.0
+                )
+            return rows[k], 0.0, 0.0
+        if tau > last or f > 0:
+            local = tau - last if tau > last else tau + frame - last
+            return quintic_transition(local, frame - last + first, y_last, v, y_first, v)
+        return quintic_transition(tau, first, y_last, 0.0, y_first, v)
+
     def _slow(self, t: NDArray[np.float64]) -> Evaluation:
-        rows = self.row_positions()
+        row_list, first, last, v, y_first, y_last = self._slow_geometry
+        rows = np.array(row_list)
         spacing, window, frame = self.line_spacing, self.window, self.frame_time
-        first = float(self.window_start(0))  # a_0
-        last = float(self.window_start(self.lines - 1)) + window  # b_last
-        v = self.slow_velocity()
         ramp = self.slow_motion is SlowMotion.RAMP
-        # ramp: y(a_0) = y_0 − v·W/2 and y(b_last) = y_last + v·W/2
-        y_first = rows[0] - 0.5 * v * window
-        y_last = rows[-1] + 0.5 * v * window
         f = np.floor(t / frame)
         tau = t - f * frame
         x, vel, acc = np.zeros_like(t), np.zeros_like(t), np.zeros_like(t)
@@ -373,6 +412,10 @@ class ScanAxis:
         if self.index == 0:
             return self.scan.fast.evaluate(np.maximum(t, 0.0))
         return self.scan.evaluate(t)[1]
+
+    def at(self, t: float) -> Point:
+        """:meth:`evaluate` at one time, in scalar arithmetic."""
+        return self.scan.fast.at(t) if self.index == 0 else self.scan.slow_at(t)
 
     @property
     def period(self) -> float:

@@ -72,13 +72,11 @@ class SetPoint:
         if source is ReferenceSource.SECOND_ORDER:
             if self._second_order is None:
                 self._second_order = SecondOrderReference(y0=self._y0, ydot0=self._ydot0, t_start=t)
-            yr, yr_dot, yr_ddot = self._second_order.evaluate(t)
-            return float(yr), float(yr_dot), float(yr_ddot)
+            return self._second_order.at(t)
         if source is ReferenceSource.TRAJECTORY and self.trajectory is not None:
             if self._t_trajectory is None:
                 self._t_trajectory = t
-            x, v, a = self.trajectory.evaluate(t - self._t_trajectory)
-            return float(x), float(v), float(a)
+            return self.trajectory.at(t - self._t_trajectory)
         if source is ReferenceSource.CONSTANT:
             return self.reference, 0.0, 0.0
         return self.received, None, 0.0

@@ -49,6 +49,8 @@ class Shape(str, Enum):
 DEFAULT_ROUNDING = 0.2
 
 Evaluation = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+#: (x_d, ẋ_d, ẍ_d) at one time
+Point = tuple[float, float, float]
 
 
 def _finite(name: str, value: float, positive: bool = False) -> float:
@@ -190,6 +192,59 @@ class PeriodicTrajectory:
         low = self._center - self.amplitude
         return low + np.where(sign > 0, x, self.range - x), sign * v, sign * a
 
+    def at(self, t: float) -> Point:
+        """(x_d, ẋ_d, ẍ_d) at one time ``t`` [s]: :meth:`evaluate` in scalar arithmetic (a
+        controller's per-sample call, where numpy costs microseconds per operation).
+        """
+        t = max(float(t), 0.0)
+        a = self.amplitude
+        if self.shape is Shape.SINE:
+            w = 2.0 * math.pi * self.frequency
+            c, s = math.cos(w * t), math.sin(w * t)
+            return self._center - a * c, a * w * s, a * w * w * c
+        half = 0.5 * self.period
+        k = math.floor(t / half)
+        tau = t - k * half
+        x, v, acc = (
+            self._rise_triangle_at(tau) if self.shape is Shape.TRIANGLE else self._rise_step_at(tau)
+        )
+        low = self._center - a
+        if k % 2 == 0:
+            return low + x, v, acc
+        return low + (self.range - x), -v, -acc
+
+    def _rise_triangle_at(self, tau: float) -> Point:
+        """:meth:`_rising_triangle` at one time."""
+        tc, half = self.blend_time, 0.5 * self.period
+        v = self._ramp_velocity(tc)
+        r, wc = v * tc / math.pi, math.pi / tc
+        if tau < 0.5 * tc:
+            return (
+                r * (1.0 - math.cos(wc * tau)),
+                v * math.sin(wc * tau),
+                v * wc * math.cos(wc * tau),
+            )
+        if tau > half - 0.5 * tc:
+            u = half - tau
+            return (
+                self.range - r * (1.0 - math.cos(wc * u)),
+                v * math.sin(wc * u),
+                -v * wc * math.cos(wc * u),
+            )
+        return r + v * (tau - 0.5 * tc), v, 0.0
+
+    def _rise_step_at(self, tau: float) -> Point:
+        """:meth:`_rising_step` at one time."""
+        tr, span, two_pi = self.blend_time, self.range, 2.0 * math.pi
+        if tau >= tr:
+            return span * (1.0 - math.sin(two_pi) / two_pi), 0.0, 0.0
+        s = max(tau / tr, 0.0)
+        return (
+            span * (s - math.sin(two_pi * s) / two_pi),
+            span / tr * (1.0 - math.cos(two_pi * s)),
+            span * two_pi / tr**2 * math.sin(two_pi * s),
+        )
+
     def _rising_triangle(self, tau: NDArray[np.float64]) -> Evaluation:
         """One rise from the bottom corner's middle to the top corner's middle."""
         tc, half = self.blend_time, 0.5 * self.period
@@ -278,6 +333,11 @@ class CsvTrajectory:
             np.where(inside, spline(tc, 2), 0.0),
         )
 
+    def at(self, t: float) -> Point:
+        """:meth:`evaluate` at one time (the spline's own scalar call)."""
+        x, v, a = self.evaluate(t)
+        return float(x), float(v), float(a)
+
     @classmethod
     def read(
         cls, path: str | Path, *, v_max: float = math.inf, a_max: float = math.inf
@@ -327,6 +387,10 @@ class Trajectory(Protocol):
         """(x_d, ẋ_d, ẍ_d) at the times ``t``."""
         ...
 
+    def at(self, t: float) -> Point:
+        """(x_d, ẋ_d, ẍ_d) at one time ``t``, as :meth:`evaluate` gives it, in floats."""
+        ...
+
 
 @dataclass(frozen=True)
 class SetPoint:
@@ -341,3 +405,7 @@ class SetPoint:
         """(x_d, ẋ_d, ẍ_d) at ``t``: the position, 0, 0."""
         t = np.asarray(t, dtype=float)
         return np.full_like(t, self.position), np.zeros_like(t), np.zeros_like(t)
+
+    def at(self, t: float) -> Point:
+        """The position, 0, 0."""
+        return self.position, 0.0, 0.0
