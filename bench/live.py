@@ -10,7 +10,8 @@ verdicts judge every run (a target met by the best run only is missed).
   20 µm, 1 kHz, the feedforward fitted from recordings of the simulated rig): learned RMS
   <= 0.5 % of the range.
 - raster: ``experiment raster --graph emulated_scanner`` (8 lines at 2 Hz, 128 pixels, 20
-  learning lines): fast axis <= 0.5 %, slow <= 0.2 % of the range.
+  learning lines): fast axis <= 0.5 %, slow <= 0.2 % of the range, and >= 99 % of each
+  axis's samples stepped (its bag's loop_samples with a reference).
 
     python bench/live.py [--runs 5] [--case tracking|raster] [--busy]
 
@@ -33,6 +34,7 @@ from _targets import check, exit_code
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from piezo_stage.bag.reader import read_loop_samples, topic_types  # noqa: E402
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings  # noqa: E402
 from piezo_stage.model.parameter_set import (  # noqa: E402
     save_parameter_set,
@@ -80,7 +82,7 @@ def tracking(runs: int, folder: Path) -> None:
 
 
 def raster(runs: int, folder: Path) -> None:
-    fast, slow = [], []
+    fast, slow, stepped = [], [], []
     for k in range(runs):
         argv = ["experiment", "raster", "--graph", "emulated_scanner", "--lines", "8"]
         argv += ["--pixels", "128", "--line-rate", "2", "--learn", "20", "--json"]
@@ -93,15 +95,41 @@ def raster(runs: int, folder: Path) -> None:
         )
         fast.append(fx if code == 0 else float("nan"))
         slow.append(fy if code == 0 else float("nan"))
+        try:
+            shares = stepped_share(folder / f"raster_{k}")
+        except Exception as exc:  # a run that wrote no bag: its line says why
+            shares, last = {}, f"{last}; no stepped share: {exc}"
+        stepped.append(min(shares.values(), default=float("nan")))
         print(
-            f"raster run {k + 1}: exit {code}, fast {fx:.3f} %, slow {fy:.3f} %"
+            f"raster run {k + 1}: exit {code}, fast {fx:.3f} %, slow {fy:.3f} %, stepped "
+            + ", ".join(f"{a} {v:.1f} %" for a, v in shares.items())
             + (f" ({s.get('failed') or last})" if code else ""),
             flush=True,
         )
     _spread("raster fast", fast)
     _spread("raster slow", slow)
+    _spread("raster samples stepped (worst axis)", stepped)
     check("raster fast axis, worst run", _worst(fast), 0.5, "%")
     check("raster slow axis, worst run", _worst(slow), 0.2, "%")
+    worst_stepped = -_worst([-v for v in stepped])
+    check("raster samples stepped, worst run", worst_stepped, 99.0, "%", higher_is_better=True)
+
+
+def stepped_share(bag: Path) -> dict[str, float]:
+    """Per axis of a raster's bag, the share [%] of the sensor's samples the loop stepped on:
+    its loop_samples rows with a reference against the sensor periods (the median stamp step)
+    from the first of them to the last (a sample never stepped leaves no row)."""
+    shares = {}
+    for topic in sorted(t for t in topic_types(bag) if t.endswith("/loop_samples")):
+        columns = read_loop_samples(bag, topic)
+        stamps = columns["stamp"][np.isfinite(columns["reference"])]
+        if stamps.size < 2:
+            shares[topic.split("/")[-2]] = float("nan")
+            continue
+        period = float(np.median(np.diff(stamps)))
+        periods = round((int(stamps[-1]) - int(stamps[0])) / period) + 1
+        shares[topic.split("/")[-2]] = 100.0 * stamps.size / periods
+    return shares
 
 
 def _worst(values: list[float]) -> float:

@@ -11,7 +11,7 @@ import pytest
 from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
 from piezo_stage.control.laws import Gains
 from piezo_stage.control.setpoint import ReferenceSource, SetPoint
-from piezo_stage.control.stage_loop import StageLoop, SupervisedLaw
+from piezo_stage.control.stage_loop import StageLoop, SupervisedLaw, run_stage_loop
 from piezo_stage.control.supervision import LoopSupervisor, SupervisionConfig
 from piezo_stage.hardware.errors import ConnectionLost
 
@@ -149,3 +149,60 @@ def test_a_failed_write_is_counted_and_the_loop_goes_on():
 def test_one_law_per_axis():
     with pytest.raises(ValueError, match="one law per axis"):
         StageLoop(AXES, [law()], Amplifier())
+
+
+class Cycles:
+    """Sensors that deliver, per cycle, a list of samples per axis (oldest first), as
+    StageSensors keeps them; the loop stops after the last cycle."""
+
+    def __init__(self, cycles: list[list[list[float]]]) -> None:
+        self.cycles, self.k = cycles, -1
+        n = len(cycles[0])
+        self.value, self.status, self.stamp, self.fresh = [0.0] * n, [0] * n, [0] * n, [False] * n
+
+    def is_set(self) -> bool:  # the loop's stop flag too
+        return self.k + 1 >= len(self.cycles)
+
+    def wait(self, timeout: float) -> bool:
+        self.k += 1
+        return True
+
+    def depth(self) -> int:
+        return max(len(x) for x in self.cycles[self.k])
+
+    def take(self, j: int, depth: int) -> None:
+        for i, xs in enumerate(self.cycles[self.k]):
+            m = len(xs) - depth + j
+            self.fresh[i] = m >= 0
+            if m >= 0:
+                self.value[i], self.stamp[i] = xs[m], (10 * self.k + m + 1) * MS
+
+    def next_cycle(self) -> None:
+        self.fresh[:] = [False] * len(self.fresh)
+
+
+def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_written():
+    """A cycle in which axis 1 brought three samples, axis 2 one and axis 3 none: axis 1's
+    law steps on all three in order, axis 2's once, in the last sub-cycle with axis 1's
+    newest (the sub-cycles are aligned at their end); one write per cycle, of each axis's
+    newest output; the before hook sees each sub-cycle."""
+    laws = [law(max_gap=0.05) for _ in AXES]
+    amplifier = Amplifier()
+    seen: list = []
+
+    def before(value, status, stamp, fresh, now_ns):
+        seen.append((list(fresh), [value[i] if fresh[i] else None for i in range(3)]))
+
+    loop = StageLoop(AXES, laws, amplifier, before=before)
+    a, b, c = REF + 1e-6, REF + 2e-6, REF + 3e-6
+    cycles = Cycles([[[REF], [REF], [REF]], [[a, b, c], [b], []]])
+    run_stage_loop(cycles, loop, cycles, clock_ns=lambda: 14 * MS)
+    assert [x.supervisor.steps for x in laws] == [4, 2, 1]
+    assert loop.steps == 4 and loop.cycles == 2 and len(amplifier.writes) == 2
+    assert seen[1:] == [
+        ([True, False, False], [a, None, None]),
+        ([True, False, False], [b, None, None]),
+        ([True, True, False], [c, b, None]),
+    ]
+    assert laws[0].supervisor.x == c  # the newest, stepped last
+    assert amplifier.writes[-1] == pytest.approx({"1": expected(c), "2": expected(b)})

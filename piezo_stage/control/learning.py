@@ -433,8 +433,9 @@ class PeriodicLearner:
                 self._on_done(self)
 
 
-#: a period is learned from when at most this share of its samples is missing (the scanner's
-#: loop of two 1 kHz axes on a 2-core host steps on 57-77 % of them, the others superseded) ...
+#: a period is learned from when at most this share of its samples is missing (a loop that
+#: writes the newest output of a read steps on every sample, but a stalled sensor link or a
+#: loop that dropped samples leaves holes) ...
 MAX_MISSING = 0.5
 #: ... and no run of missing samples is longer than this share of it (at least 3 samples):
 #: what the interpolation leaves is above the line's harmonics the learning needs

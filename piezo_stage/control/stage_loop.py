@@ -1,10 +1,12 @@
 """The composed loop of a stage, without ROS: every axis of one multi-channel amplifier in one
 thread, one multi-axis write per sensor cycle (docs/design.md §10).
 
-Per cycle (:meth:`StageLoop.step`) each axis's law (the :class:`~.rig_loop.Law` the single-axis
-:class:`~.rig_loop.RigLoop` steps) gets that axis's newest sample, or, when the axis brought none
-this cycle, the tick of its silence (``check_gap``: within ``max_gap`` the axis holds, beyond it
-its loop opens, as in the rig loop). The outputs of every axis that has one leave in one
+Per cycle each axis's law (the :class:`~.rig_loop.Law` the single-axis
+:class:`~.rig_loop.RigLoop` steps) steps on every sample the axis brought, oldest first, one
+sub-cycle (:meth:`StageLoop.step`) per sample, or, when the axis brought none this
+(sub-)cycle, gets the tick of its silence (``check_gap``: within ``max_gap`` the axis holds,
+beyond it its loop opens, as in the rig loop). After the last sub-cycle, the newest output of
+every axis that has one leaves in one
 :meth:`~piezo_stage.hardware.stage_driver.StageDriver.set_voltages` call (GCS ``SVA 1 a 2 b 3
 c``), where each axis's safety rules apply; an axis without an output is left out of the write
 and its amplifier channel keeps its last voltage. :class:`SupervisedLaw` is such a law from core
@@ -42,7 +44,7 @@ Before = Callable[[Sequence[float], Sequence[int], Sequence[int], Sequence[bool]
 
 class Cycles(Protocol):
     """The sensors' side of the loop (:class:`~piezo_stage.hardware.stage_sensors.StageSensors`):
-    per axis the newest sample of the cycle, and whether it is new.
+    per axis every sample of the cycle, one sub-cycle at a time, and whether the axis has one.
     """
 
     value: list[float]
@@ -52,6 +54,12 @@ class Cycles(Protocol):
 
     def wait(self, timeout: float) -> bool:
         """Block until a cycle is due (True) or ``timeout`` s passed without one (False)."""
+
+    def depth(self) -> int:
+        """The due cycle's sub-cycles (the most samples an axis brought)."""
+
+    def take(self, j: int, depth: int) -> None:
+        """Sub-cycle ``j`` of ``depth`` into value, status, stamp, fresh."""
 
     def next_cycle(self) -> None:
         """The cycle was taken: no axis is fresh any more."""
@@ -88,10 +96,10 @@ class SupervisedLaw:
 
 class StageLoop:
     """The step of the stage's loop (module docstring): ``laws[i]`` drives ``axes[i]``.
-    ``before(value, status, stamp, fresh, now_ns)`` runs before the laws of each cycle step (a
-    coupled stage's own frames, from every axis at once); ``after()`` after every cycle and idle
-    tick (a node's hand-off drain); ``every``: the laws' ``publish`` flag is True on every
-    ``every``-th cycle.
+    ``before(value, status, stamp, fresh, now_ns)`` runs before the laws of each (sub-)cycle
+    step (a coupled stage's own frames, from every axis at once); ``after()`` after every write
+    and idle tick (a node's hand-off drain); ``every``: the laws' ``publish`` flag is True on
+    every ``every``-th step.
     """
 
     def __init__(
@@ -108,7 +116,8 @@ class StageLoop:
         self.axes, self.laws, self.amplifier = tuple(axes), tuple(laws), amplifier
         self._after, self._before = after, before
         self.every = max(1, int(every))
-        self.cycles = 0
+        self.cycles = 0  # cycles written
+        self.steps = 0  # (sub-)cycles stepped
         self.write_failures = 0  # cycles whose write failed on the link (the driver reconnects)
         self.last_error: HardwareError | None = None
         self._values: dict[str, float] = {}
@@ -121,13 +130,15 @@ class StageLoop:
         stamp: Sequence[int],
         fresh: Sequence[bool],
         now_ns: int,
+        write: bool = True,
     ) -> None:
         """One cycle at ``now_ns`` (the sensors' clock): axis i steps on (``value[i]``,
         ``status[i]`` (0: valid), ``stamp[i]``) when ``fresh[i]``, else checks its gap; every
-        output goes out in one write.
+        output goes out in one write (``write`` False: a sub-cycle, its outputs kept for the
+        cycle's write, where a newer one of the same axis replaces them).
         """
-        publish = self.cycles % self.every == 0
-        self.cycles += 1
+        publish = self.steps % self.every == 0
+        self.steps += 1
         if self._before is not None:
             self._before(value, status, stamp, fresh, now_ns)
         values, t = self._values, now_ns * 1e-9
@@ -138,7 +149,9 @@ class StageLoop:
                 u = law.check_gap(t)
             if u is not None:
                 values[axis] = u
-        self._write(values)
+        if write:
+            self.cycles += 1
+            self._write(values)
 
     def idle(self, now_ns: int) -> None:
         """A wait that brought no cycle: every axis checks its gap (hold, or open)."""
@@ -174,14 +187,19 @@ def run_stage_loop(
     poll: float = 0.005,
     clock_ns: Callable[[], int] = time.monotonic_ns,
 ) -> None:
-    """The loop thread: each due cycle → :meth:`StageLoop.step`, each ``poll`` s without one →
-    :meth:`StageLoop.idle`, until ``stop`` is set.
+    """The loop thread: each due cycle → :meth:`StageLoop.step` on each of its sub-cycles,
+    oldest first (every sample of every axis stepped, one write after the last), each ``poll``
+    s without one → :meth:`StageLoop.idle`, until ``stop`` is set.
     """
     wait, next_cycle, step, idle = sensors.wait, sensors.next_cycle, loop.step, loop.idle
+    depth, take = sensors.depth, sensors.take
     value, status, stamp, fresh = sensors.value, sensors.status, sensors.stamp, sensors.fresh
     while not stop.is_set():
         if wait(poll):
-            step(value, status, stamp, fresh, clock_ns())
+            now, n = clock_ns(), depth()
+            for j in range(n):
+                take(j, n)
+                step(value, status, stamp, fresh, now, j == n - 1)
             next_cycle()
         else:
             idle(clock_ns())

@@ -3,8 +3,9 @@
 :class:`StageSensors` waits on every sensor's descriptor with one selector and reads each that
 is ready without blocking; :class:`~.optoncdt.OptoNCDTParser` (each axis's
 :class:`~.sensor.SensorReader`: frame lock, speed gate) decodes the bytes and each axis's
-:class:`~.timing.SampleClock` stamps them. Per axis it keeps the newest sample only (older
-samples of the same cycle are counted in ``superseded``).
+:class:`~.timing.SampleClock` stamps them. Per axis it keeps every sample of the cycle, up to
+``max_pending`` (older ones beyond it are dropped and counted in ``dropped``): the loop steps
+on each, oldest first, in :meth:`StageSensors.take`'s sub-cycles.
 
 Alignment: a cycle is due when every axis has a sample newer than the last cycle, or ``align``
 seconds (default half a period) after the first of them arrived. Synchronised sensors (one
@@ -32,9 +33,14 @@ from .transport import READ_SIZE
 __all__ = ["StageSensors"]
 
 
+#: samples an axis keeps for one cycle: 32 periods of a stalled loop are caught up
+MAX_PENDING = 32
+
+
 class StageSensors:
     """The sensors ``readers[i]`` of axis i at ``rate`` [Hz] (module docstring); after a due
-    :meth:`wait`, ``value``, ``status``, ``stamp`` [ns] and ``fresh`` hold the cycle.
+    :meth:`wait`, each of the cycle's :meth:`depth` sub-cycles is :meth:`take`'s: then
+    ``value``, ``status``, ``stamp`` [ns] and ``fresh`` hold it.
     """
 
     def __init__(
@@ -44,6 +50,7 @@ class StageSensors:
         align: float | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         stamp_window: float = 2.0,
+        max_pending: int = MAX_PENDING,
     ) -> None:
         if not readers:
             raise ConfigError("a stage has one sensor per axis, got none")
@@ -63,8 +70,13 @@ class StageSensors:
         self.stamp = [0] * n
         self.fresh = [False] * n
         self.down = [False] * n
-        self.superseded = [0] * n  # samples replaced by a newer one of the same axis and cycle
+        self.dropped = [0] * n  # samples never stepped: more than max_pending in one cycle
         self.samples = [0] * n
+        # the cycle's samples per axis, oldest first: value, status, stamp [ns]
+        self._values: list[list[float]] = [[] for _ in range(n)]
+        self._statuses: list[list[int]] = [[] for _ in range(n)]
+        self._stamps: list[list[int]] = [[] for _ in range(n)]
+        self._max_pending = max(1, int(max_pending))
         self.errors: list[TransportError | None] = [None] * n
         self._first_ns: int | None = None  # when the cycle's first fresh sample arrived
         self._fresh_count = 0
@@ -127,19 +139,37 @@ class StageSensors:
         k = len(block)
         if not k:
             return
-        stamp = self.clocks[i].stamps(now_ns, k)[-1]
+        stamps = self.clocks[i].stamps(now_ns, k)
         self.samples[i] += k
-        if self.fresh[i]:
-            self.superseded[i] += k
-        else:
-            self.superseded[i] += k - 1
+        if not self.fresh[i]:
             self.fresh[i] = True
             self._fresh_count += 1
             if self._first_ns is None:
                 self._first_ns = now_ns
-        self.value[i] = float(block.displacement[-1])
-        self.status[i] = int(block.status[-1])
-        self.stamp[i] = stamp
+        values, statuses, stamps_i = self._values[i], self._statuses[i], self._stamps[i]
+        values.extend(block.displacement.tolist())
+        statuses.extend(block.status.tolist())
+        stamps_i.extend(stamps)
+        extra = len(values) - self._max_pending
+        if extra > 0:
+            del values[:extra], statuses[:extra], stamps_i[:extra]
+            self.dropped[i] += extra
+
+    def depth(self) -> int:
+        """The due cycle's sub-cycles: the most samples an axis brought."""
+        return max(len(v) for v in self._values)
+
+    def take(self, j: int, depth: int) -> None:
+        """Sub-cycle ``j`` of ``depth``, aligned at the end (the last holds every fresh axis's
+        newest sample): axis i is fresh with its sample ``len_i − depth + j`` when there is one.
+        """
+        for i, values in enumerate(self._values):
+            k = len(values) - depth + j
+            if k >= 0:
+                self.value[i], self.status[i] = values[k], self._statuses[i][k]
+                self.stamp[i], self.fresh[i] = self._stamps[i][k], True
+            else:
+                self.fresh[i] = False
 
     def _lose(self, i: int, fd: int, exc: TransportError) -> None:
         if self._sel is not None:
@@ -152,5 +182,8 @@ class StageSensors:
         fresh = self.fresh
         for i in range(len(fresh)):
             fresh[i] = False
+            self._values[i].clear()
+            self._statuses[i].clear()
+            self._stamps[i].clear()
         self._fresh_count = 0
         self._first_ns = None

@@ -7,11 +7,11 @@ per axis, in ``<namespace>/<axis>``, a ``controller`` and a ``laser_reader`` nod
 parameter tables, topics, services and /diagnostics, as the separate nodes have them. The
 readers' own threads never start: one loop thread
 (:func:`~piezo_stage.control.stage_loop.run_stage_loop`) reads every sensor's link with
-:class:`~piezo_stage.hardware.stage_sensors.StageSensors`, steps each axis's law on its newest
-sample (:class:`~piezo_stage.control.stage_loop.StageLoop`) and writes all the outputs in one
-device command (GCS ``SVA 1 a 2 b 3 c``). A fourth node, ``stage_loop``, owns that thread: its
-parameters (priority, sensor alignment) and its /diagnostics (cycles, superseded samples, a
-sensor whose link dropped).
+:class:`~piezo_stage.hardware.stage_sensors.StageSensors`, steps each axis's law on every
+sample (:class:`~piezo_stage.control.stage_loop.StageLoop`) and writes the newest outputs in
+one device command per cycle (GCS ``SVA 1 a 2 b 3 c``). A fourth node, ``stage_loop``, owns
+that thread: its parameters (priority, sensor alignment) and its /diagnostics (cycles, steps,
+samples dropped beyond a cycle's 32 per axis, a sensor whose link dropped).
 
 Topics leave through the hand-off (:class:`~.handoff.Handoff`), as in ``rig_loop``: per axis
 ``displacement``, ``controller_state``, ``voltage_command``, ``voltage`` (up to
@@ -148,7 +148,7 @@ class AxisLaw:
         self.index, self.sensors, self.reader, self.controller = index, sensors, reader, controller
         self.handoff = handoff
         self.batch = SampleBatch(controller)
-        self.row: Row | None = None
+        self.rows: list[Row] = []  # the cycle's, one per sample stepped
         # a coupled stage's cycle (:meth:`prepare`): the axis's last valid displacement, its set
         # point and its own frame, evaluated before any axis steps
         self.x_valid = math.nan
@@ -190,7 +190,7 @@ class AxisLaw:
             self.handoff.put(reader.publish_samples, [value], [status], [stamp_ns])
         step = self.controller.last_step
         nan = math.nan
-        self.row = (
+        self.rows.append(
             (stamp_ns, value, status, nan, nan if u is None else u, 0.0, False)
             if step is None or u is None
             else (stamp_ns, value, status, step.reference, u, step.u_ff, step.loop_closed)
@@ -201,10 +201,11 @@ class AxisLaw:
         return self.controller.check_gap(t) if self.started else None
 
     def flush(self, applied: float) -> None:
-        """After the cycle's write: the row of this cycle's sample, with the channel's output."""
-        if self.row is not None:
-            self.handoff.put(self.batch.add, [self.row], applied)
-            self.row = None
+        """After the cycle's write: the rows of this cycle's samples, with the channel's
+        output."""
+        if self.rows:
+            self.handoff.put(self.batch.add, self.rows, applied)
+            self.rows = []
 
 
 class StageLoopNode(PiezoNode):
@@ -327,14 +328,15 @@ class StageLoopNode(PiezoNode):
         sensors, loop = self.sensors, self.loop
         values = {
             "cycles": loop.cycles,
+            "steps": loop.steps,
             "write_failures": loop.write_failures,
             **{
                 f"samples_{law.reader.get_namespace()}": n
                 for law, n in zip(self.laws, sensors.samples)
             },
             **{
-                f"superseded_{law.reader.get_namespace()}": n
-                for law, n in zip(self.laws, sensors.superseded)
+                f"dropped_{law.reader.get_namespace()}": n
+                for law, n in zip(self.laws, sensors.dropped)
             },
         }
         down = [str(e) for e in sensors.errors if e is not None]
