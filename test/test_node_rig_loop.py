@@ -212,8 +212,10 @@ def test_the_loop_closes_on_the_emulated_rig_and_holds_the_set_point(probe, tmp_
         lambda m: diagnostics.update({s.name: s for s in m.status}),
         10,
     )
+    # 3000 closed-loop states: 3 s at 1 kHz, 12 s at 250 Hz; on the 2-core host beside the busy
+    # suite the three-process form and this probe (four 250 Hz topics) got under 3000 in 60 s
     with Rig(form, tmp_path) as rig:
-        ok = spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 3000, 60.0)
+        ok = spin_until(probe, lambda: sum(s.loop_closed for s in states) >= 3000, 240.0)
         spin_until(probe, lambda: len(diagnostics) >= 3, 5.0)
         applied = rig.applied()
     assert ok, rig.log

@@ -1,0 +1,268 @@
+#!/usr/bin/env python3
+"""What the shipped graphs cost: each process's CPU share, measured from outside (``/proc``),
+beside the rclpy floor measured in the same run, as ratios; and each process's CPU per sample.
+
+The floor: a bare rclpy node that answers each ``Float64`` of a 1 kHz wall-clock timer (another
+process) with one publish, on the stock ``SingleThreadedExecutor``: what one message in and one
+out per millisecond costs in Python here. Every graph then runs as ``piezo-stage launch`` runs
+it (:class:`~piezo_stage.launch.Launcher`, its own namespace), holding: once its samples flow,
+each process's user + system time over ``--seconds`` is read from ``/proc/<pid>/stat``, and the
+samples of its first axis counted by a probe subscribed here (``displacement``, or the rows of
+``loop_samples`` where the graph thins its topics), so that "per sample" is per sample of one
+axis. Lockstep graphs run as fast as they can: their share is what the host gave them, their
+cost per sample is the figure.
+
+    python bench/cost.py [--seconds 10] [--graphs sim_closed_loop,sim_scanner,...]
+
+Targets (a core to spare, on this 2-core host): emulated_scanner_loop (two axes, 1 kHz)
+<= 50 % of one core for the emulator and the loop together, and the loop <= 80 µs of CPU per
+axis and sample; sim_closed_loop <= 1.3 x twice the floor; a two-axis stage plant in real time
+(sim_scanner) <= half the floor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from _targets import check, exit_code
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from piezo_stage.launch import Launcher  # noqa: E402
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+#: the floor's two processes: a 1 kHz wall timer publishing, and the node that answers each
+FEEDER = """
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from std_msgs.msg import Float64
+rclpy.init()
+node = rclpy.create_node("feeder")
+pub = node.create_publisher(Float64, "/cost_floor/ping", 10)
+msg = Float64()
+def tick():
+    msg.data += 1.0
+    pub.publish(msg)
+node.create_timer(0.001, tick)
+ex = SingleThreadedExecutor()
+ex.add_node(node)
+try:
+    ex.spin()
+except KeyboardInterrupt:
+    pass
+"""
+ECHO = """
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from std_msgs.msg import Float64
+rclpy.init()
+node = rclpy.create_node("echo")
+pub = node.create_publisher(Float64, "/cost_floor/pong", 10)
+node.create_subscription(Float64, "/cost_floor/ping", pub.publish, 10)
+ex = SingleThreadedExecutor()
+ex.add_node(node)
+try:
+    ex.spin()
+except KeyboardInterrupt:
+    pass
+"""
+
+
+@dataclass(frozen=True)
+class Case:
+    """A shipped graph, the topic of its first axis whose samples are counted, and its axes."""
+
+    graph: str
+    topic: str
+    axes: int = 1
+    batched: bool = False  # the topic is loop_samples: count its rows
+
+
+CASES = {
+    c.graph: c
+    for c in (
+        Case("sim_closed_loop", "displacement"),
+        Case("sim_scanner", "x/displacement", 2),
+        Case("emulated_scanner", "x/displacement", 2),
+        Case("emulated_scanner_loop", "x/loop_samples", 2, batched=True),
+    )
+}
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system time of process ``pid`` (every thread) [s]; NaN once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def shares(pids: dict[str, int], seconds: float, count) -> tuple[dict[str, float], int]:
+    """Each process's CPU over ``seconds`` [share of one core], and the samples ``count()``
+    gained meanwhile."""
+    before = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    n0, t0 = count(), time.monotonic()
+    time.sleep(seconds)
+    n1, t1 = count(), time.monotonic()
+    after = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    return {name: (after[name] - before[name]) / (t1 - t0) for name in pids}, n1 - n0
+
+
+class Probe:
+    """A node here counting the samples of one topic (best effort: it never slows the graph)."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        rclpy.init()
+        self.node = rclpy.create_node("cost_probe")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.samples = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def watch(self, topic: str, batched: bool):
+        """Count ``topic``'s samples from now (a new subscription; the last one goes)."""
+        from piezo_stage.nodes.qos import SENSOR_QOS
+        from piezo_stage.nodes.topics import message_type
+
+        for sub in list(self.node.subscriptions):
+            self.node.destroy_subscription(sub)
+        self.samples = 0
+        name = (
+            "piezo_stage_msgs/msg/LoopSamples" if batched else "piezo_stage_msgs/msg/Displacement"
+        )
+
+        def add(msg) -> None:
+            self.samples += len(msg.stamp) if batched else 1
+
+        self.node.create_subscription(message_type(name), topic, add, SENSOR_QOS)
+
+    def close(self) -> None:
+        import rclpy
+
+        self._stop.set()
+        self._thread.join(2.0)
+        self.node.destroy_node()
+        rclpy.shutdown()
+
+
+def floor(seconds: float) -> float:
+    """The echo node's CPU share beside its 1 kHz feeder."""
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.DEVNULL)
+        for code in (FEEDER, ECHO)
+    ]
+    try:
+        time.sleep(3.0)  # discovery, imports
+        share, _ = shares({"echo": procs[1].pid, "feeder": procs[0].pid}, seconds, lambda: 0)
+    finally:
+        for proc in procs:
+            proc.send_signal(signal.SIGINT)
+        for proc in procs:
+            proc.wait(10)
+    print(
+        f"floor: echo {100 * share['echo']:.1f} % of a core, its 1 kHz feeder "
+        f"{100 * share['feeder']:.1f} %",
+        flush=True,
+    )
+    return share["echo"]
+
+
+def run_case(case: Case, probe: Probe, seconds: float, floor_share: float) -> dict[str, float]:
+    """The graph held for ``seconds``: every process's share, printed with its ratio to the floor
+    and its CPU per sample of one axis."""
+    space = f"/cost_{os.getpid()}_{case.graph}"
+    lines: list[str] = []
+    with Launcher(
+        case.graph,
+        namespace=space,
+        sink=lambda name, line, *_: lines.append(f"[{name}] {line}"),
+        timeout=300.0,
+    ) as launch:
+        probe.watch(f"{space}/{case.topic}", case.batched)
+        deadline = time.monotonic() + 300.0  # a cold numba cache compiles the plant first
+        while probe.samples < 200 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if probe.samples < 200:
+            raise SystemExit(f"{case.graph}: no samples on {case.topic}\n" + "\n".join(lines[-20:]))
+        time.sleep(2.0)
+        share, samples = shares(launch.pids, seconds, lambda: probe.samples)
+    rate = samples / seconds
+    total = sum(share.values())
+    print(
+        f"{case.graph}: {samples} samples of one axis in {seconds:g} s ({rate:.0f}/s), "
+        f"{100 * total:.1f} % of a core in all ({total / floor_share:.2f} x the floor)",
+        flush=True,
+    )
+    for name, s in share.items():
+        per = 1e6 * s * seconds / samples / case.axes if samples else float("nan")
+        print(
+            f"  {name:<16} {100 * s:6.1f} % of a core  {s / floor_share:5.2f} x the floor  "
+            f"{per:7.1f} µs per axis and sample",
+            flush=True,
+        )
+    return {**share, "_samples_per_s": rate}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--graphs", default=",".join(CASES), help="comma-separated shipped graphs")
+    args = ap.parse_args()
+    graphs = [g for g in args.graphs.split(",") if g]
+    unknown = [g for g in graphs if g not in CASES]
+    if unknown:
+        print(f"error: no case for {', '.join(unknown)} (cases: {', '.join(CASES)})")
+        return 2
+    floor_share = floor(args.seconds)
+    probe = Probe()
+    results = {}
+    try:
+        for graph in graphs:
+            results[graph] = run_case(CASES[graph], probe, args.seconds, floor_share)
+    finally:
+        probe.close()
+    if "emulated_scanner_loop" in results:
+        r = results["emulated_scanner_loop"]
+        check(
+            "emulated_scanner_loop: emulator + loop",
+            100 * (r["scanner"] + r["scanner_loop"]),
+            50.0,
+            "%",
+        )
+        per = 1e6 * r["scanner_loop"] / r["_samples_per_s"] / 2
+        check("emulated_scanner_loop: the loop per axis and sample", per, 80.0, "µs")
+    if "sim_closed_loop" in results:
+        r = results["sim_closed_loop"]
+        total = sum(v for k, v in r.items() if not k.startswith("_"))
+        check("sim_closed_loop / (2 x floor)", total / (2 * floor_share), 1.3)
+    if "sim_scanner" in results:
+        check(
+            "sim_scanner: stage plant / floor",
+            results["sim_scanner"]["stage_plant"] / floor_share,
+            0.5,
+        )
+    return exit_code()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
