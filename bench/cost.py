@@ -42,11 +42,23 @@ from piezo_stage.launch import Launcher  # noqa: E402
 TICK = os.sysconf("SC_CLK_TCK")
 
 #: the floor's two processes: a 1 kHz wall timer publishing, and the node that answers each
-FEEDER = """
+_HEAD = """
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import Float64
 rclpy.init()
+"""
+_SPIN = """
+ex = SingleThreadedExecutor()
+ex.add_node(node)
+try:
+    ex.spin()
+except KeyboardInterrupt:
+    pass
+"""
+FEEDER = (
+    _HEAD
+    + """
 node = rclpy.create_node("feeder")
 pub = node.create_publisher(Float64, "/cost_floor/ping", 10)
 msg = Float64()
@@ -54,28 +66,18 @@ def tick():
     msg.data += 1.0
     pub.publish(msg)
 node.create_timer(0.001, tick)
-ex = SingleThreadedExecutor()
-ex.add_node(node)
-try:
-    ex.spin()
-except KeyboardInterrupt:
-    pass
 """
-ECHO = """
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from std_msgs.msg import Float64
-rclpy.init()
+    + _SPIN
+)
+ECHO = (
+    _HEAD
+    + """
 node = rclpy.create_node("echo")
 pub = node.create_publisher(Float64, "/cost_floor/pong", 10)
 node.create_subscription(Float64, "/cost_floor/ping", pub.publish, 10)
-ex = SingleThreadedExecutor()
-ex.add_node(node)
-try:
-    ex.spin()
-except KeyboardInterrupt:
-    pass
 """
+    + _SPIN
+)
 
 
 @dataclass(frozen=True)
