@@ -86,7 +86,7 @@ def test_the_before_hook_sees_every_axis_of_the_cycle_before_any_law_steps():
     laws = [law() for _ in AXES]
     amplifier = Amplifier()
 
-    def before(value, status, stamp, fresh, now_ns):
+    def before(value, status, stamp, fresh, now_ns, last):
         # nothing stepped yet this cycle: the laws' steps so far are the previous cycles'
         seen.append((list(value), list(fresh), now_ns, [x.supervisor.steps for x in laws]))
 
@@ -190,8 +190,8 @@ def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_writt
     amplifier = Amplifier()
     seen: list = []
 
-    def before(value, status, stamp, fresh, now_ns):
-        seen.append((list(fresh), [value[i] if fresh[i] else None for i in range(3)]))
+    def before(value, status, stamp, fresh, now_ns, last):
+        seen.append((list(fresh), [value[i] if fresh[i] else None for i in range(3)], last))
 
     loop = StageLoop(AXES, laws, amplifier, before=before)
     a, b, c = REF + 1e-6, REF + 2e-6, REF + 3e-6
@@ -199,10 +199,10 @@ def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_writt
     run_stage_loop(cycles, loop, cycles, clock_ns=lambda: 14 * MS)
     assert [x.supervisor.steps for x in laws] == [4, 2, 1]
     assert loop.steps == 4 and loop.cycles == 2 and len(amplifier.writes) == 2
-    assert seen[1:] == [
-        ([True, False, False], [a, None, None]),
-        ([True, False, False], [b, None, None]),
-        ([True, True, False], [c, b, None]),
+    assert seen[1:] == [  # the last sub-cycle of each cycle says so (a stage starts there)
+        ([True, False, False], [a, None, None], False),
+        ([True, False, False], [b, None, None], False),
+        ([True, True, False], [c, b, None], True),
     ]
     assert laws[0].supervisor.x == c  # the newest, stepped last
     assert amplifier.writes[-1] == pytest.approx({"1": expected(c), "2": expected(b)})

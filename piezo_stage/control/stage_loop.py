@@ -38,8 +38,9 @@ class StageAmplifier(Protocol):
         """Write every named axis in one device command, each with its own safety rules."""
 
 
-#: a cycle's hook before the laws step: (value, status, stamp [ns], fresh, now [ns])
-Before = Callable[[Sequence[float], Sequence[int], Sequence[int], Sequence[bool], int], None]
+#: a (sub-)cycle's hook before the laws step: (value, status, stamp [ns], fresh, now [ns],
+#: last: the cycle's last sub-cycle, where every fresh axis holds its newest sample)
+Before = Callable[[Sequence[float], Sequence[int], Sequence[int], Sequence[bool], int, bool], None]
 
 
 class Cycles(Protocol):
@@ -96,7 +97,7 @@ class SupervisedLaw:
 
 class StageLoop:
     """The step of the stage's loop (module docstring): ``laws[i]`` drives ``axes[i]``.
-    ``before(value, status, stamp, fresh, now_ns)`` runs before the laws of each (sub-)cycle
+    ``before(value, status, stamp, fresh, now_ns, last)`` runs before the laws of each (sub-)cycle
     step (a coupled stage's own frames, from every axis at once); ``after()`` after every write
     and idle tick (a node's hand-off drain); ``every``: the laws' ``publish`` flag is True on
     every ``every``-th step.
@@ -140,7 +141,7 @@ class StageLoop:
         publish = self.steps % self.every == 0
         self.steps += 1
         if self._before is not None:
-            self._before(value, status, stamp, fresh, now_ns)
+            self._before(value, status, stamp, fresh, now_ns, write)
         values, t = self._values, now_ns * 1e-9
         for i, (axis, law) in enumerate(self._pairs):
             if fresh[i]:

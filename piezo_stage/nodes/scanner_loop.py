@@ -265,13 +265,17 @@ class StageLoopNode(PiezoNode):
         stamp: Sequence[int],
         fresh: Sequence[bool],
         now_ns: int,
+        last: bool,
     ) -> None:
         """Start every axis in the first cycle in which all are ready (an experiment's
         recorder listens to each), their trajectories and tables from one time origin: the
-        earliest of the cycle's samples. Then the own frames of a coupled stage."""
+        earliest of the newest samples of the cycle's axes, in its last sub-cycle (an earlier
+        one would leave an axis's older sample, stepped later, before the origin). Then the
+        own frames of a coupled stage."""
         laws = self.laws
         if not laws[0].started:
-            if not (any(fresh) and all(law.ready(self._wait_samples) for law in laws)):
+            ready = last and any(fresh)
+            if not (ready and all(law.ready(self._wait_samples) for law in laws)):
                 return
             t0 = min(law.reader.frame.stamp(s) for s, f, law in zip(stamp, fresh, laws) if f)
             for law in laws:
