@@ -6,6 +6,7 @@ and `piezo-stage launch sim_closed_loop --view` serving the loop's topics."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import time
@@ -99,6 +100,21 @@ class View:
         raise AssertionError(stop(self.proc))
 
 
+@contextlib.contextmanager
+def watched(space: str, *params: str):
+    """A live view of ``space`` and a client connected to it; the view stops after, exit 0."""
+    view = View(space, *params)
+    client = None
+    try:
+        client = FoxgloveClient(view.url)
+        yield client
+    finally:
+        if client is not None:
+            client.close()
+        _, err = stop(view.proc)
+    assert view.proc.returncode == 0, err
+
+
 def publish_for(node, pub, make, seconds: float, rate: float) -> list:
     sent, k, t_end = [], 0, time.monotonic() + seconds
     while time.monotonic() < t_end:
@@ -125,10 +141,7 @@ def test_channels_schemas_values_rate_cap_and_unsubscribing(node):
     space = ns()
     pub = node.create_publisher(Displacement, f"{space}/displacement", 10)
     other = node.create_publisher(Displacement, "/elsewhere/displacement", 10)
-    view = View(space, "max_rate_hz:=40.0")
-    client = None
-    try:
-        client = FoxgloveClient(view.url)
+    with watched(space, "max_rate_hz:=40.0") as client:
         assert client.subprotocol == "foxglove.sdk.v1"
         assert client.wait(lambda: client.channel(f"{space}/displacement") is not None), (
             client.channels
@@ -161,12 +174,7 @@ def test_channels_schemas_values_rate_cap_and_unsubscribing(node):
         assert len(client.received(sub)) == before
         node.destroy_publisher(pub)  # the topic goes: so does its channel
         assert client.wait(lambda: channel["id"] in client.unadvertised, 10.0), client.channels
-    finally:
-        if client is not None:
-            client.close()
-        node.destroy_publisher(other)
-        out, err = stop(view.proc)
-    assert view.proc.returncode == 0, err
+    node.destroy_publisher(other)
 
 
 def test_every_nodes_diagnostics_reach_the_app_whatever_the_rate_cap(node):
@@ -178,31 +186,25 @@ def test_every_nodes_diagnostics_reach_the_app_whatever_the_rate_cap(node):
     space = ns()
     names = [f"{space}/node_{k}" for k in range(3)]
     pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
-    view = View(space, "max_rate_hz:=1.0")
-    client = None
     try:
-        client = FoxgloveClient(view.url)
-        assert client.wait(lambda: client.channel("/diagnostics") is not None), client.channels
-        channel = client.channel("/diagnostics")
-        decode = decoder(channel)
-        sub = client.subscribe(channel["id"])
+        with watched(space, "max_rate_hz:=1.0") as client:
+            assert client.wait(lambda: client.channel("/diagnostics") is not None), client.channels
+            channel = client.channel("/diagnostics")
+            decode = decoder(channel)
+            sub = client.subscribe(channel["id"])
 
-        def seen() -> dict[str, int]:
-            got = [s.name for m in client.received(sub) for s in decode(m.payload).status]
-            return {name: got.count(name) for name in names}
+            def seen() -> dict[str, int]:
+                got = [s.name for m in client.received(sub) for s in decode(m.payload).status]
+                return {name: got.count(name) for name in names}
 
-        deadline = time.monotonic() + 30.0  # the view subscribes on the client's request
-        while min(seen().values()) < 5 and time.monotonic() < deadline:
-            for name in names:
-                pub.publish(DiagnosticArray(status=[DiagnosticStatus(name=name)]))
-            time.sleep(0.2)
-        assert min(seen().values()) >= 5, seen()
+            deadline = time.monotonic() + 30.0  # the view subscribes on the client's request
+            while min(seen().values()) < 5 and time.monotonic() < deadline:
+                for name in names:
+                    pub.publish(DiagnosticArray(status=[DiagnosticStatus(name=name)]))
+                time.sleep(0.2)
+            assert min(seen().values()) >= 5, seen()
     finally:
-        if client is not None:
-            client.close()
         node.destroy_publisher(pub)
-        out, err = stop(view.proc)
-    assert view.proc.returncode == 0, err
 
 
 def test_a_latched_topic_reaches_a_late_client_and_a_vanished_client_disturbs_nothing(node):
