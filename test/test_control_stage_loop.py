@@ -7,11 +7,13 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
 from piezo_stage.control.laws import Gains
 from piezo_stage.control.setpoint import ReferenceSource, SetPoint
-from piezo_stage.control.stage_loop import StageLoop, SupervisedLaw, run_stage_loop
+from piezo_stage.control.stage_loop import StageLoop, StageOrigin, SupervisedLaw, run_stage_loop
 from piezo_stage.control.supervision import LoopSupervisor, SupervisionConfig
 from piezo_stage.hardware.errors import ConnectionLost
 
@@ -206,3 +208,78 @@ def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_writt
     ]
     assert laws[0].supervisor.x == c  # the newest, stepped last
     assert amplifier.writes[-1] == pytest.approx({"1": expected(c), "2": expected(b)})
+
+
+class Arrivals(Cycles):
+    """Cycles whose samples carry their own stamps: ``cycles[k][i]`` lists the stamps [ns] of
+    axis i's samples that arrive in cycle k, oldest first."""
+
+    def take(self, j: int, depth: int) -> None:
+        for i, stamps in enumerate(self.cycles[self.k]):
+            m = len(stamps) - depth + j
+            self.fresh[i] = m >= 0
+            if m >= 0:
+                self.value[i], self.stamp[i] = REF, int(stamps[m])
+
+
+class GatedLaw(SupervisedLaw):
+    """A law that steps only where the stage's origin says so (as each axis of the scanner loop
+    does), and keeps the stamps it stepped on."""
+
+    def __init__(self, origin: StageOrigin) -> None:
+        other = law(max_gap=1.0)
+        super().__init__(other.supervisor, other.setpoint)
+        self.origin, self.stepped = origin, []
+
+    def on_sample(self, stamp_ns, x, ok, publish=True):
+        if not self.origin.steps(stamp_ns):
+            return None
+        self.stepped.append(stamp_ns)
+        return super().on_sample(stamp_ns, x, ok, publish)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    axes=st.lists(
+        st.tuples(st.integers(0, 3), st.integers(0, MS - 1), st.lists(st.integers(0, 2))),
+        min_size=1,
+        max_size=3,
+    ),
+    ready=st.integers(0, 12),
+)
+@example(axes=[(0, 20_000, []), (2, 6_000, [])], ready=3)  # y's samples 2 ms late
+def test_a_stage_starts_at_its_first_stepped_sample_whatever_each_axis_lags(axes, ready):
+    """Axis i samples every ms (its own phase) and each sample reaches the loop ``lag`` cycles
+    later, some a few cycles later still (in order). The stage starts in the first cycle from
+    ``ready`` in which an axis brings a sample; whatever the lags, the origin is the first
+    stamp stepped and no axis steps on a sample before it (a scan's record holds its origin),
+    and every sample at or after it that arrives after the start is stepped."""
+    cycles_n = 25
+    arrivals = [[[] for _ in axes] for _ in range(cycles_n)]
+    for i, (lag, phase, extra) in enumerate(axes):
+        arrive = 0
+        for k in range(cycles_n):
+            arrive = max(arrive, k + lag + (extra[k] if k < len(extra) else 0))
+            if arrive < cycles_n:
+                arrivals[arrive][i].append(k * MS + phase)
+    origin = StageOrigin()
+    laws = [GatedLaw(origin) for _ in axes]
+    started_in: list[int] = []
+    sensors = Arrivals(arrivals)
+
+    def before(value, status, stamp, fresh, now_ns, last):
+        if origin.ns is None and last and any(fresh) and sensors.k >= ready:
+            origin.start(stamp, fresh)
+            started_in.append(sensors.k)
+
+    loop = StageLoop([str(i) for i in range(len(axes))], laws, Amplifier(), before=before)
+    run_stage_loop(sensors, loop, sensors, clock_ns=lambda: 0)
+    if origin.ns is None:
+        return  # no sample arrived from ``ready`` on
+    stepped = [s for g in laws for s in g.stepped]
+    assert min(stepped) == origin.ns
+    assert origin.ns in [g.stepped[0] for g in laws if g.stepped]
+    later = started_in[0] + 1
+    for i, g in enumerate(laws):
+        due = [s for c in arrivals[later:] for s in c[i] if s >= origin.ns]
+        assert set(due) <= set(g.stepped)

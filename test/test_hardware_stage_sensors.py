@@ -235,3 +235,39 @@ def test_stage_sensors_refuse_bad_settings():
         StageSensors([reader], RATE, align=0.01)
     with pytest.raises(ConfigError, match="before connect"):
         StageSensors([reader], RATE).wait(0.0)
+
+
+def test_a_stalled_loop_catches_up_the_newest_samples_and_counts_the_rest():
+    """A loop that reads nothing for 0.3 s (a stalled thread) finds the sensor's backlog in
+    its link: it keeps the newest ``max_pending`` samples, each with its own stamp one period
+    apart, the newest at the time it read them, and counts every older one as dropped."""
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, RATE, source=square(2e-6, 5.0))
+    model.synchronise(time.monotonic())
+    with EmulatorServer(model, pty=True) as server:
+        reader = SensorReader.from_url(server.url, SensorConfig("ild1320", MR, rate=RATE))
+        stage = StageSensors([reader], RATE, max_pending=8)
+        stage.connect()
+        try:
+
+            def cycle() -> bool:  # a loop that takes each cycle as it comes
+                due = stage.wait(0.1)
+                stage.next_cycle()
+                return due and stage.samples[0] > 5
+
+            assert until(cycle, 30.0)
+            before = stage.samples[0]
+            time.sleep(0.3)  # 60 periods at 200 Hz
+            assert stage.wait(1.0)
+            read = stage.samples[0] - before
+            depth = stage.depth()
+            stamps = []
+            for j in range(depth):
+                stage.take(j, depth)
+                stamps.append(stage.stamp[0])
+        finally:
+            stage.close()
+    assert read >= 40  # the backlog was there, in one cycle
+    assert depth == 8
+    assert stage.dropped[0] == read - 8
+    assert np.diff(stamps) == pytest.approx(1e9 / RATE, rel=0.05)
+    assert time.monotonic_ns() - stamps[-1] < 2e8

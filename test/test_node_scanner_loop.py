@@ -121,7 +121,7 @@ def test_every_axis_holds_its_set_point_in_one_loop_thread(probe, tmp_path):
     for axis, target in set_points.items():
         t, x, ref = closed_part(records[axis])
         # each sample stepped on once, in order, every one of the sensor's 1 ms samples (a
-        # cycle that found several of an axis steps on each; more than 32 of them, a stalled
+        # cycle that found several of an axis steps on each; more than 0.25 s of them, a stalled
         # loop, would drop the oldest)
         period = np.median(np.diff(t))
         assert np.all(np.diff(t) > 0) and period == pytest.approx(1e-3, rel=0.01), period

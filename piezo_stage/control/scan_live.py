@@ -2,10 +2,11 @@
 loop samples) placed as :func:`~.scan_image.scan_image` places a frame, line by line, each
 line overwriting the previous frame's (as an instrument's display does).
 
-The scan's time origin is not in the samples: a stage's loop starts every axis from the
-earliest sample of its first cycle (:mod:`piezo_stage.nodes.scanner_loop`), so it is the stamp
-of a recorded sample at or before the first stepped one (:func:`scan_origin`), the one from
-which every recorded set point is the scan's.
+The scan's time origin is not in the samples: a stage's loop starts every axis from one
+sample's stamp and steps each from its first sample at or after it
+(:mod:`piezo_stage.nodes.scanner_loop`), so it is the stamp of a recorded sample at or before
+the first stepped one (:func:`scan_origin`), the one from which every recorded set point is the
+scan's.
 """
 
 from __future__ import annotations

@@ -28,7 +28,14 @@ from .rig_loop import Law
 from .setpoint import SetPoint
 from .supervision import Gap, LoopSupervisor
 
-__all__ = ["StageAmplifier", "StageLoop", "SupervisedLaw", "Cycles", "run_stage_loop"]
+__all__ = [
+    "Cycles",
+    "StageAmplifier",
+    "StageLoop",
+    "StageOrigin",
+    "SupervisedLaw",
+    "run_stage_loop",
+]
 
 
 class StageAmplifier(Protocol):
@@ -64,6 +71,27 @@ class Cycles(Protocol):
 
     def next_cycle(self) -> None:
         """The cycle was taken: no axis is fresh any more."""
+
+
+class StageOrigin:
+    """The one time origin [ns] of a stage's trajectories and tables (``ns``, None until
+    :meth:`start`): the earliest of the newest samples of the axes fresh in the starting cycle's
+    last sub-cycle, the first sample stepped. Each axis steps from its first sample at or after
+    it (:meth:`steps`): an axis whose samples arrive late still has older ones to come, and a
+    scan's record holds its origin only if no stepped sample precedes it.
+    """
+
+    def __init__(self) -> None:
+        self.ns: int | None = None
+
+    def start(self, stamp: Sequence[int], fresh: Sequence[bool]) -> int:
+        """Start at the earliest ``stamp`` of the ``fresh`` axes (at least one is)."""
+        self.ns = min(s for s, f in zip(stamp, fresh) if f)
+        return self.ns
+
+    def steps(self, stamp_ns: int) -> bool:
+        """A sample stamped ``stamp_ns`` is stepped (the stage started at or before it)."""
+        return self.ns is not None and stamp_ns >= self.ns
 
 
 class SupervisedLaw:

@@ -4,8 +4,8 @@
 is ready without blocking; :class:`~.optoncdt.OptoNCDTParser` (each axis's
 :class:`~.sensor.SensorReader`: frame lock, speed gate) decodes the bytes and each axis's
 :class:`~.timing.SampleClock` stamps them. Per axis it keeps every sample of the cycle, up to
-``max_pending`` (older ones beyond it are dropped and counted in ``dropped``): the loop steps
-on each, oldest first, in :meth:`StageSensors.take`'s sub-cycles.
+``max_pending`` (default ``MAX_BACKLOG`` s of them; older ones are dropped and counted in
+``dropped``): the loop steps on each, oldest first, in :meth:`StageSensors.take`'s sub-cycles.
 
 Alignment: a cycle is due when every axis has a sample newer than the last cycle, or ``align``
 seconds (default half a period) after the first of them arrived. Synchronised sensors (one
@@ -33,8 +33,9 @@ from .transport import READ_SIZE
 __all__ = ["StageSensors"]
 
 
-#: samples an axis keeps for one cycle: 32 periods of a stalled loop are caught up
-MAX_PENDING = 32
+#: [s] of samples an axis keeps for one cycle: a loop stalled this long (a loaded host's
+#: scheduler, 50-90 ms was seen) is caught up, every sample stepped; older ones are dropped
+MAX_BACKLOG = 0.25
 
 
 class StageSensors:
@@ -50,7 +51,7 @@ class StageSensors:
         align: float | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         stamp_window: float = 2.0,
-        max_pending: int = MAX_PENDING,
+        max_pending: int | None = None,
     ) -> None:
         if not readers:
             raise ConfigError("a stage has one sensor per axis, got none")
@@ -76,7 +77,8 @@ class StageSensors:
         self._values: list[list[float]] = [[] for _ in range(n)]
         self._statuses: list[list[int]] = [[] for _ in range(n)]
         self._stamps: list[list[int]] = [[] for _ in range(n)]
-        self._max_pending = max(1, int(max_pending))
+        backlog = math.ceil(MAX_BACKLOG * rate) if max_pending is None else max_pending
+        self._max_pending = max(1, int(backlog))
         self.errors: list[TransportError | None] = [None] * n
         self._first_ns: int | None = None  # when the cycle's first fresh sample arrived
         self._fresh_count = 0

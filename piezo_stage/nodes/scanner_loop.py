@@ -11,7 +11,7 @@ readers' own threads never start: one loop thread
 sample (:class:`~piezo_stage.control.stage_loop.StageLoop`) and writes the newest outputs in
 one device command per cycle (GCS ``SVA 1 a 2 b 3 c``). A fourth node, ``stage_loop``, owns
 that thread: its parameters (priority, sensor alignment) and its /diagnostics (cycles, steps,
-samples dropped beyond a cycle's 32 per axis, a sensor whose link dropped).
+samples dropped beyond a cycle's 0.25 s per axis, a sensor whose link dropped).
 
 Topics leave through the hand-off (:class:`~.handoff.Handoff`), as in ``rig_loop``: per axis
 ``displacement``, ``controller_state``, ``voltage_command``, ``voltage`` (up to
@@ -37,7 +37,7 @@ from piezo_stage.control.controller import OwnFrame
 from piezo_stage.control.rig_loop import Row, TopicDecimation
 from piezo_stage.control.setpoint import Reference
 from piezo_stage.control.stage_control import OwnFrames
-from piezo_stage.control.stage_loop import StageLoop, run_stage_loop
+from piezo_stage.control.stage_loop import StageLoop, StageOrigin, run_stage_loop
 from piezo_stage.hardware.stage_sensors import StageSensors
 from piezo_stage.hardware.timing import set_realtime_priority, shorten_switch_interval
 
@@ -144,6 +144,7 @@ class AxisLaw:
         reader: LaserReaderNode,
         controller: ControllerNode,
         handoff: Handoff,
+        origin: StageOrigin,
     ) -> None:
         self.index, self.sensors, self.reader, self.controller = index, sensors, reader, controller
         self.handoff = handoff
@@ -154,7 +155,7 @@ class AxisLaw:
         self.x_valid = math.nan
         self.reference: Reference = (math.nan, None, 0.0)
         self.own: OwnFrame | None = None
-        self.started = False  # the stage's loop starts every axis in the same cycle
+        self.origin = origin  # the stage's, shared by every axis
 
     @property
     def last_step(self) -> Any:
@@ -181,7 +182,7 @@ class AxisLaw:
         own = self.own
         u = (
             None
-            if not self.started
+            if not self.origin.steps(stamp_ns)
             else self.controller.on_sample(stamp_ns, value, ok, publish)
             if own is None
             else self.controller.on_sample(stamp_ns, value, ok, publish, self.reference, own)
@@ -198,7 +199,7 @@ class AxisLaw:
         return u
 
     def check_gap(self, t: float) -> float | None:
-        return self.controller.check_gap(t) if self.started else None
+        return self.controller.check_gap(t) if self.origin.ns is not None else None
 
     def flush(self, applied: float) -> None:
         """After the cycle's write: the rows of this cycle's samples, with the channel's
@@ -233,8 +234,9 @@ class StageLoopNode(PiezoNode):
             [r.stream_reader() for r in readers], rate, align=None if p.align < 0 else p.align
         )
         self.sensors.connect()  # the readers' links, already open: stale input dropped
+        self.origin = StageOrigin()
         self.laws = [
-            AxisLaw(i, self.sensors, r, c, handoff)
+            AxisLaw(i, self.sensors, r, c, handoff, self.origin)
             for i, (r, c) in enumerate(zip(readers, controllers))
         ]
         stage = driver.require_stage()
@@ -268,19 +270,18 @@ class StageLoopNode(PiezoNode):
         last: bool,
     ) -> None:
         """Start every axis in the first cycle in which all are ready (an experiment's
-        recorder listens to each), their trajectories and tables from one time origin: the
-        earliest of the newest samples of the cycle's axes, in its last sub-cycle (an earlier
-        one would leave an axis's older sample, stepped later, before the origin). Then the
-        own frames of a coupled stage."""
+        recorder listens to each), their trajectories and tables from one
+        :class:`~piezo_stage.control.stage_loop.StageOrigin`. Then the own frames of a coupled
+        stage."""
         laws = self.laws
-        if not laws[0].started:
+        if self.origin.ns is None:
             ready = last and any(fresh)
             if not (ready and all(law.ready(self._wait_samples) for law in laws)):
                 return
-            t0 = min(law.reader.frame.stamp(s) for s, f, law in zip(stamp, fresh, laws) if f)
+            frame = [law.reader.frame.stamp(s) for s, law in zip(stamp, laws)]
+            t0 = self.origin.start(frame, fresh)
             for law in laws:
                 law.controller.start_at(t0 * 1e-9)
-                law.started = True
         if self.frames is not None:
             for i, law in enumerate(laws):
                 law.prepare(value[i], status[i] == 0, stamp[i], fresh[i], now_ns)
