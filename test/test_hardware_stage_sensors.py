@@ -271,3 +271,44 @@ def test_a_stalled_loop_catches_up_the_newest_samples_and_counts_the_rest():
     assert stage.dropped[0] == read - 8
     assert np.diff(stamps) == pytest.approx(1e9 / RATE, rel=0.05)
     assert time.monotonic_ns() - stamps[-1] < 2e8
+
+
+def test_decimated_sensors_give_the_loop_one_sample_of_n_stamped_at_the_groups_middle():
+    """Sensors at 400 Hz decimated by 2 (as the reader node decimates): the loop's samples are
+    200 Hz, 5 ms apart, each the mean of two frames, stamped between them; its rate is 200 Hz
+    and its cycles come at that rate."""
+    source = square(2e-6, 5.0)
+    model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 2 * RATE, source=source)
+    model.synchronise(time.monotonic())
+    stamps: list[int] = []
+    values: list[float] = []
+    with EmulatorServer(model, pty=True) as server:
+        reader = SensorReader.from_url(server.url, SensorConfig("ild1320", MR, rate=2 * RATE))
+        stage = StageSensors([reader], 2 * RATE, decimation=2)
+        stage.connect()
+        try:
+            cycles, began = 0, None
+            deadline = time.monotonic() + 30.0
+            while len(stamps) < 150 and time.monotonic() < deadline:
+                if stage.wait(0.1):
+                    cycles += 1
+                    depth = stage.depth()
+                    for j in range(depth):
+                        stage.take(j, depth)
+                        if stage.fresh[0] and stage.status[0] == 0:
+                            stamps.append(stage.stamp[0])
+                            values.append(stage.value[0])
+                    stage.next_cycle()
+                    began = time.monotonic() if began is None else began
+            wall = time.monotonic() - began
+        finally:
+            stage.close()
+    assert stage.rate == RATE and len(stamps) >= 150
+    # one loop sample per two frames: 200 a second of the wall, not the sensor's 400
+    assert (len(stamps) - 1) / wall == pytest.approx(RATE, rel=0.15)
+    step = np.diff(stamps)
+    assert np.median(step) == pytest.approx(1e9 / RATE, rel=0.02)
+    assert cycles <= len(stamps) + 5  # a cycle per loop sample, not per frame
+    # away from the square's edges both frames of a group read the same level
+    level = np.abs(np.array(values) - REF)
+    assert np.median(level) == pytest.approx(2e-6, rel=0.05)

@@ -208,3 +208,20 @@ def test_a_loop_told_to_wait_for_its_recorder_starts_every_axis_where_it_records
     t0 = scan_origin(scan, columns)  # ScanError: the record missed the start
     first = min(int(c["stamp"][np.isfinite(c["reference"])][0]) for c in columns)
     assert 0 <= first - t0 < 50_000_000, (first, t0, text)
+
+
+def test_one_loop_paces_every_axis_so_their_sensors_share_a_rate_and_decimation():
+    from types import SimpleNamespace
+
+    from piezo_stage.nodes.errors import RosParameterError
+    from piezo_stage.nodes.scanner_loop import sensor_pace
+
+    def reader(ns: str, rate: float, n: int):
+        return SimpleNamespace(rate=rate, decimator=SimpleNamespace(n=n), get_namespace=lambda: ns)
+
+    assert sensor_pace([reader("/s/x", 10_000.0, 10), reader("/s/y", 10_000.0, 10)]) == (
+        10_000.0,
+        10,
+    )
+    with pytest.raises(RosParameterError, match=r"/s/y: 10000 Hz / 5"):
+        sensor_pace([reader("/s/x", 10_000.0, 10), reader("/s/y", 10_000.0, 5)])

@@ -3,7 +3,9 @@
 :class:`StageSensors` waits on every sensor's descriptor with one selector and reads each that
 is ready without blocking; :class:`~.optoncdt.OptoNCDTParser` (each axis's
 :class:`~.sensor.SensorReader`: frame lock, speed gate) decodes the bytes and each axis's
-:class:`~.timing.SampleClock` stamps them. Per axis it keeps every sample of the cycle, up to
+:class:`~.timing.SampleClock` stamps them at the sensors' ``rate``; with ``decimation`` N each
+axis's :class:`~.decimation.Decimator` makes one sample of N, as the reader node does, and the
+loop's rate is ``rate`` / N. Per axis it keeps every sample of the cycle, up to
 ``max_pending`` (default ``MAX_BACKLOG`` s of them; older ones are dropped and counted in
 ``dropped``): the loop steps on each, oldest first, in :meth:`StageSensors.take`'s sub-cycles.
 
@@ -25,6 +27,7 @@ import selectors
 import time
 from collections.abc import Callable, Sequence
 
+from .decimation import Decimator
 from .errors import ConfigError, TransportError
 from .sensor import SensorReader
 from .timing import SampleClock
@@ -39,9 +42,10 @@ MAX_BACKLOG = 0.25
 
 
 class StageSensors:
-    """The sensors ``readers[i]`` of axis i at ``rate`` [Hz] (module docstring); after a due
-    :meth:`wait`, each of the cycle's :meth:`depth` sub-cycles is :meth:`take`'s: then
-    ``value``, ``status``, ``stamp`` [ns] and ``fresh`` hold it.
+    """The sensors ``readers[i]`` of axis i at ``rate`` [Hz], each sample of the loop the
+    mean of ``decimation`` of theirs (module docstring); after a due :meth:`wait`, each of the
+    cycle's :meth:`depth` sub-cycles is :meth:`take`'s: then ``value``, ``status``, ``stamp``
+    [ns] and ``fresh`` hold it. ``align`` [s] is in the loop's periods (``rate`` / N).
     """
 
     def __init__(
@@ -52,17 +56,19 @@ class StageSensors:
         clock_ns: Callable[[], int] = time.monotonic_ns,
         stamp_window: float = 2.0,
         max_pending: int | None = None,
+        decimation: int = 1,
     ) -> None:
         if not readers:
             raise ConfigError("a stage has one sensor per axis, got none")
         if not (math.isfinite(rate) and rate > 0):
             raise ConfigError(f"sample rate must be > 0 Hz, got {rate}")
-        align = 0.5 / rate if align is None else align
-        if not 0 <= align < 2.0 / rate:
-            raise ConfigError(f"align must be in [0, 2 periods) s, got {align}")
         n = len(readers)
+        self.decimators = [Decimator(decimation) for _ in range(n)]
+        self.rate = rate / decimation  # the loop's
+        align = 0.5 / self.rate if align is None else align
+        if not 0 <= align < 2.0 / self.rate:
+            raise ConfigError(f"align must be in [0, 2 periods) s, got {align}")
         self.readers = tuple(readers)
-        self.rate = float(rate)
         self._align_ns = round(align * 1e9)
         self._clock_ns = clock_ns
         self.clocks = [SampleClock(rate, stamp_window) for _ in range(n)]
@@ -77,7 +83,7 @@ class StageSensors:
         self._values: list[list[float]] = [[] for _ in range(n)]
         self._statuses: list[list[int]] = [[] for _ in range(n)]
         self._stamps: list[list[int]] = [[] for _ in range(n)]
-        backlog = math.ceil(MAX_BACKLOG * rate) if max_pending is None else max_pending
+        backlog = math.ceil(MAX_BACKLOG * self.rate) if max_pending is None else max_pending
         self._max_pending = max(1, int(backlog))
         self.errors: list[TransportError | None] = [None] * n
         self._first_ns: int | None = None  # when the cycle's first fresh sample arrived
@@ -88,6 +94,8 @@ class StageSensors:
     def connect(self) -> None:
         """Open every sensor's link and register it with the selector."""
         self._sel = selectors.DefaultSelector()
+        for decimator in self.decimators:
+            decimator.reset()
         for i, reader in enumerate(self.readers):
             reader.connect()
             self._sel.register(reader.transport.fileno(), selectors.EVENT_READ, i)
@@ -142,6 +150,14 @@ class StageSensors:
         if not k:
             return
         stamps = self.clocks[i].stamps(now_ns, k)
+        displacement, status = block.displacement.tolist(), block.status.tolist()
+        decimator = self.decimators[i]
+        if decimator.n > 1:
+            out = decimator.feed(displacement, status, stamps)
+            displacement, status, stamps = out.displacement, out.status, out.stamp
+            k = len(status)
+            if not k:
+                return
         self.samples[i] += k
         if not self.fresh[i]:
             self.fresh[i] = True
@@ -149,8 +165,8 @@ class StageSensors:
             if self._first_ns is None:
                 self._first_ns = now_ns
         values, statuses, stamps_i = self._values[i], self._statuses[i], self._stamps[i]
-        values.extend(block.displacement.tolist())
-        statuses.extend(block.status.tolist())
+        values.extend(displacement)
+        statuses.extend(status)
         stamps_i.extend(stamps)
         extra = len(values) - self._max_pending
         if extra > 0:

@@ -47,6 +47,7 @@ from .choices import PublishIn
 from .controller import ControllerNode
 from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from .diagnostics import ERROR, OK, WARN, Diagnosis, Diagnostics
+from .errors import RosParameterError
 from .handoff import Handoff, publish_period
 from .laser_reader import PARAMETERS as READER_PARAMETERS
 from .laser_reader import LaserReaderNode
@@ -228,11 +229,15 @@ class StageLoopNode(PiezoNode):
             refused = set_realtime_priority(max(p.realtime_priority - 1, 1))
             if refused:
                 self.get_logger().warn(f"executor thread: {refused}")
-        rate = readers[0].rate / readers[0].decimator.n
+        sensor_rate, decimation = sensor_pace(readers)
         s = controllers[0].settings
         self.sensors = StageSensors(
-            [r.stream_reader() for r in readers], rate, align=None if p.align < 0 else p.align
+            [r.stream_reader() for r in readers],
+            sensor_rate,
+            align=None if p.align < 0 else p.align,
+            decimation=decimation,
         )
+        rate = self.sensors.rate
         self.sensors.connect()  # the readers' links, already open: stale input dropped
         self.origin = StageOrigin()
         self.laws = [
@@ -357,6 +362,18 @@ class StageLoopNode(PiezoNode):
             self._thread.join(timeout=2.0)
         self.sensors.close()
         self.handoff.close()
+
+
+def sensor_pace(readers: Sequence[LaserReaderNode]) -> tuple[float, int]:
+    """The sensors' rate [Hz] and decimation, the same for every axis (one loop paces them
+    all); RosParameterError when the axes differ."""
+    paces = {(r.rate, r.decimator.n) for r in readers}
+    if len(paces) > 1:
+        found = ", ".join(f"{r.get_namespace()}: {r.rate:g} Hz / {r.decimator.n}" for r in readers)
+        raise RosParameterError(
+            f"scanner_loop: every axis's laser_reader needs one rate_hz and decimation ({found})"
+        )
+    return paces.pop()
 
 
 def axis_value(param: Parameter, axis: str) -> Parameter:
