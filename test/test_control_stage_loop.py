@@ -157,8 +157,8 @@ class Cycles:
     """Sensors that deliver, per cycle, a list of samples per axis (oldest first), as
     StageSensors keeps them; the loop stops after the last cycle."""
 
-    def __init__(self, cycles: list[list[list[float]]]) -> None:
-        self.cycles, self.k = cycles, -1
+    def __init__(self, cycles: list[list[list[float]]], now: int = 0) -> None:
+        self.cycles, self.k, self.now = cycles, -1, now
         n = len(cycles[0])
         self.value, self.status, self.stamp, self.fresh = [0.0] * n, [0] * n, [0] * n, [False] * n
 
@@ -182,6 +182,9 @@ class Cycles:
     def next_cycle(self) -> None:
         self.fresh[:] = [False] * len(self.fresh)
 
+    def now_ns(self) -> int:
+        return self.now
+
 
 def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_written():
     """A cycle in which axis 1 brought three samples, axis 2 one and axis 3 none: axis 1's
@@ -197,8 +200,8 @@ def test_every_sample_of_every_axis_is_stepped_oldest_first_and_the_newest_writt
 
     loop = StageLoop(AXES, laws, amplifier, before=before)
     a, b, c = REF + 1e-6, REF + 2e-6, REF + 3e-6
-    cycles = Cycles([[[REF], [REF], [REF]], [[a, b, c], [b], []]])
-    run_stage_loop(cycles, loop, cycles, clock_ns=lambda: 14 * MS)
+    cycles = Cycles([[[REF], [REF], [REF]], [[a, b, c], [b], []]], now=14 * MS)
+    run_stage_loop(cycles, loop, cycles)
     assert [x.supervisor.steps for x in laws] == [4, 2, 1]
     assert loop.steps == 4 and loop.cycles == 2 and len(amplifier.writes) == 2
     assert seen[1:] == [  # the last sub-cycle of each cycle says so (a stage starts there)
@@ -273,7 +276,7 @@ def test_a_stage_starts_at_its_first_stepped_sample_whatever_each_axis_lags(axes
             started_in.append(sensors.k)
 
     loop = StageLoop([str(i) for i in range(len(axes))], laws, Amplifier(), before=before)
-    run_stage_loop(sensors, loop, sensors, clock_ns=lambda: 0)
+    run_stage_loop(sensors, loop, sensors)
     if origin.ns is None:
         return  # no sample arrived from ``ready`` on
     stepped = [s for g in laws for s in g.stepped]

@@ -240,8 +240,8 @@ def test_a_watchdog_turn_between_a_write_and_its_publication_publishes_it_once(p
 
     driver.set_voltage = write_then_timer
     try:
-        node.command(12.0)
-        node.command(34.0)
+        node.set_voltages({axis.channel: 12.0})
+        node.set_voltages({axis.channel: 34.0})
         for turn in turns:
             turn.join(timeout=5.0)
     finally:

@@ -244,11 +244,11 @@ def test_reconnects_after_the_sensor_link_drops(probe, tmp_path):
 
 
 def test_a_reader_started_late_forgets_what_the_link_held(probe):
-    """``start=False`` (rig_loop starts the loop once the process is built): samples the sensor
-    sent before :meth:`start` never reach the loop, which would otherwise step the law through
-    a late block of stale samples. The sensor reads 2 mm before the start and 6 mm after (it is
-    silent while the level changes), so a stale sample is told by its value, not by timing."""
-    import threading
+    """``start=False`` (the composed loop reads the sensor itself, once the process is built):
+    samples the sensor sent before the loop's :meth:`AxisSensor.connect` never reach the loop,
+    which would otherwise step the law through a late block of stale samples. The sensor reads
+    2 mm before the start and 6 mm after (it is silent while the level changes), so a stale
+    sample is told by its value, not by timing."""
     import time
 
     from rclpy.parameter import Parameter
@@ -256,19 +256,10 @@ def test_a_reader_started_late_forgets_what_the_link_held(probe):
     from piezo_stage.nodes.laser_reader import LaserReaderNode
 
     values: list[float] = []
-    got = threading.Event()
-
-    def loop(value, status, stamp):
-        ok = np.asarray(status) == Status.OK  # the first frames after the flush relock
-        values.extend(np.asarray(value, dtype=float)[ok].tolist())
-        got.set()
-
     level, faults = Level(2e-3), Faults()
     model = OptoNCDTDeviceModel(frame_format("ild1320"), MR, 1000.0, source=level)
     with EmulatorServer(model, pty=True, faults=faults) as server:
         node = LaserReaderNode(
-            loop=loop,
-            handoff=_Inline(),
             start=False,
             overrides=[
                 Parameter("url", value=server.url),
@@ -277,33 +268,26 @@ def test_a_reader_started_late_forgets_what_the_link_held(probe):
                 Parameter("rate_hz", value=1000.0),
             ],
         )
+        sensor = node.sensor
         try:
             deadline = time.monotonic() + 10.0
             while model.sent_samples < 300 and time.monotonic() < deadline:
                 time.sleep(0.01)  # samples at 2 mm wait in the link
-            assert model.sent_samples >= 300 and not values
+            assert model.sent_samples >= 300 and node.published == 0
             faults.silent = True
             time.sleep(0.05)  # the server's last write is out
             level.d = 6e-3
-            node.start()
+            sensor.connect()
             faults.silent = False
-            assert got.wait(10.0)
             deadline = time.monotonic() + 10.0
             while len(values) < 50 and time.monotonic() < deadline:
-                time.sleep(0.01)
+                if sensor.wait(0.05):
+                    block = sensor.block
+                    ok = np.asarray(block.status) == Status.OK  # the first frames relock
+                    values.extend(np.asarray(block.displacement)[ok].tolist())
+                    sensor.next_cycle()
         finally:
             node.on_shutdown()
             node.destroy_node()
     assert len(values) >= 50
     assert values == [quantised("ild1320", 6e-3)] * len(values), values[:5]
-
-
-class _Inline:
-    def put(self, publish, *args) -> None:
-        publish(*args)
-
-    def drain(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass

@@ -14,6 +14,8 @@ y, held while x runs a triangle, no longer follows 2 % of x's motion.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -127,6 +129,8 @@ def test_every_axis_holds_its_set_point_in_one_loop_thread(probe, tmp_path):
         assert np.all(np.diff(t) > 0) and period == pytest.approx(1e-3, rel=0.01), period
         assert len(t) >= 0.98 * ((t[-1] - t[0]) / period + 1), (len(t), t[-1] - t[0])
         assert np.all(ref == pytest.approx(target, abs=1e-12)), axis
+        # on the nodes' clock (ROS time), the driver's voltage stamps' clock: they compare
+        assert abs(t[-1] - time.time()) < 120.0, t[-1]
         settled = x[t >= t[0] + 0.5]
         error = np.sqrt(np.mean((settled - target) ** 2))
         print(f"{axis}: set point {target * 1e6:g} um, RMS error {error * 1e9:.1f} nm")
@@ -214,10 +218,10 @@ def test_one_loop_paces_every_axis_so_their_sensors_share_a_rate_and_decimation(
     from types import SimpleNamespace
 
     from piezo_stage.nodes.errors import RosParameterError
-    from piezo_stage.nodes.scanner_loop import sensor_pace
+    from piezo_stage.nodes.stage_loop import sensor_pace
 
     def reader(ns: str, rate: float, n: int):
-        return SimpleNamespace(rate=rate, decimator=SimpleNamespace(n=n), get_namespace=lambda: ns)
+        return SimpleNamespace(rate=rate, decimation=n, get_namespace=lambda: ns)
 
     assert sensor_pace([reader("/s/x", 10_000.0, 10), reader("/s/y", 10_000.0, 10)]) == (
         10_000.0,

@@ -4,7 +4,7 @@ line overwriting the previous frame's (as an instrument's display does).
 
 The scan's time origin is not in the samples: a stage's loop starts every axis from one
 sample's stamp and steps each from its first sample at or after it
-(:mod:`piezo_stage.nodes.scanner_loop`), so it is the stamp of a recorded sample at or before
+(:mod:`piezo_stage.nodes.stage_loop`), so it is the stamp of a recorded sample at or before
 the first stepped one (:func:`scan_origin`), the one from which every recorded set point is the
 scan's.
 """

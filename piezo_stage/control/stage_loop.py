@@ -1,41 +1,72 @@
-"""The composed loop of a stage, without ROS: every axis of one multi-channel amplifier in one
-thread, one multi-axis write per sensor cycle (docs/design.md §10).
+"""The composed loop of a stage of N >= 1 axes, without ROS: every axis of one amplifier (a
+multi-channel one, or a single channel for a stage of one) in one thread, one write per sensor
+cycle (docs/design.md §10).
 
-Per cycle each axis's law (the :class:`~.rig_loop.Law` the single-axis
-:class:`~.rig_loop.RigLoop` steps) steps on every sample the axis brought, oldest first, one
+Per cycle each axis's :class:`Law` steps on every sample the axis brought, oldest first, one
 sub-cycle (:meth:`StageLoop.step`) per sample, or, when the axis brought none this
 (sub-)cycle, gets the tick of its silence (``check_gap``: within ``max_gap`` the axis holds,
-beyond it its loop opens, as in the rig loop). After the last sub-cycle, the newest output of
-every axis that has one leaves in one
-:meth:`~piezo_stage.hardware.stage_driver.StageDriver.set_voltages` call (GCS ``SVA 1 a 2 b 3
-c``), where each axis's safety rules apply; an axis without an output is left out of the write
-and its amplifier channel keeps its last voltage. :class:`SupervisedLaw` is such a law from core
-pieces alone (:class:`~.supervision.LoopSupervisor` and a :class:`~.setpoint.SetPoint`);
-:func:`run_stage_loop` is the loop thread over :class:`~piezo_stage.hardware.stage_sensors.
-StageSensors`.
+beyond it its loop opens). After the last sub-cycle, the newest output of every axis that has
+one leaves in one :meth:`~piezo_stage.hardware.stage_driver.StageDriver.set_voltages` call (GCS
+``SVA 1 a 2 b 3 c``), where each axis's safety rules apply; the older outputs of the cycle are
+superseded, and counted; an axis without an output is left out of the write and its amplifier
+channel keeps its last voltage. :class:`SupervisedLaw` is such a law from core pieces alone
+(:class:`~.supervision.LoopSupervisor` and a :class:`~.setpoint.SetPoint`);
+:func:`run_stage_loop` is the loop thread over the sensors' cycles
+(:class:`~piezo_stage.hardware.stage_sensors.StageSensors`, or for one axis
+:class:`~piezo_stage.hardware.axis_sensor.AxisSensor`).
 """
 
 from __future__ import annotations
 
-import time
+import math
 from collections.abc import Mapping, Sequence
 from typing import Callable, Protocol
 
 from piezo_stage.hardware.errors import HardwareError
 
 from .controller import ControlOutput
-from .rig_loop import Law
 from .setpoint import SetPoint
 from .supervision import Gap, LoopSupervisor
 
 __all__ = [
     "Cycles",
+    "Law",
+    "Row",
     "StageAmplifier",
     "StageLoop",
     "StageOrigin",
     "SupervisedLaw",
+    "publish_every",
     "run_stage_loop",
 ]
+
+#: one row of LoopSamples per sample: stamp [ns], displacement, status, reference, u, u_ff,
+#: loop_closed (the applied voltage is the cycle's)
+Row = tuple[int, float, int, float, float, float, bool]
+
+
+class Law(Protocol):
+    """One axis's supervised law, as the loop steps it."""
+
+    #: outputs never written: a newer one of the same cycle replaced them
+    superseded: int
+
+    @property
+    def last_step(self) -> ControlOutput | None:
+        """The law's output of the last :meth:`on_sample`, None when it did not step."""
+
+    def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
+        """One sample → the voltage to write (None: nothing to write)."""
+
+    def check_gap(self, t: float) -> float | None:
+        """A tick without a sample at ``t`` [s] → the voltage to write, or None."""
+
+
+def publish_every(sample_rate: float, topics_rate: float) -> int:
+    """Every how many samples the per-sample topics take one: the smallest N that keeps them at
+    or below ``topics_rate`` [Hz] for a ``sample_rate`` [Hz] stream.
+    """
+    return max(1, math.ceil(sample_rate / topics_rate - 1e-9))
 
 
 class StageAmplifier(Protocol):
@@ -72,6 +103,9 @@ class Cycles(Protocol):
     def next_cycle(self) -> None:
         """The cycle was taken: no axis is fresh any more."""
 
+    def now_ns(self) -> int:
+        """Now [ns], on the clock of the stamps (a gap is now less an axis's newest stamp)."""
+
 
 class StageOrigin:
     """The one time origin [ns] of a stage's trajectories and tables (``ns``, None until
@@ -103,6 +137,15 @@ class SupervisedLaw:
     def __init__(self, supervisor: LoopSupervisor, setpoint: SetPoint) -> None:
         self.supervisor, self.setpoint = supervisor, setpoint
         self.last_step: ControlOutput | None = None
+
+    @property
+    def superseded(self) -> int:
+        """Outputs never written (the supervisor's count)."""
+        return self.supervisor.superseded
+
+    @superseded.setter
+    def superseded(self, n: int) -> None:
+        self.supervisor.superseded = n
 
     def on_sample(self, stamp_ns: int, x: float, ok: bool, publish: bool = True) -> float | None:
         """One sample taken at ``stamp_ns`` → the voltage to write now (None: none yet)."""
@@ -177,6 +220,8 @@ class StageLoop:
             else:
                 u = law.check_gap(t)
             if u is not None:
+                if axis in values:
+                    law.superseded += 1
                 values[axis] = u
         if write:
             self.cycles += 1
@@ -209,17 +254,12 @@ class Stopping(Protocol):
     def is_set(self) -> bool: ...
 
 
-def run_stage_loop(
-    sensors: Cycles,
-    loop: StageLoop,
-    stop: Stopping,
-    poll: float = 0.005,
-    clock_ns: Callable[[], int] = time.monotonic_ns,
-) -> None:
+def run_stage_loop(sensors: Cycles, loop: StageLoop, stop: Stopping, poll: float = 0.005) -> None:
     """The loop thread: each due cycle → :meth:`StageLoop.step` on each of its sub-cycles,
     oldest first (every sample of every axis stepped, one write after the last), each ``poll``
     s without one → :meth:`StageLoop.idle`, until ``stop`` is set.
     """
+    clock_ns = sensors.now_ns
     wait, next_cycle, step, idle = sensors.wait, sensors.next_cycle, loop.step, loop.idle
     depth, take = sensors.depth, sensors.take
     value, status, stamp, fresh = sensors.value, sensors.status, sensors.stamp, sensors.fresh

@@ -15,8 +15,11 @@ master, the others on its sync output, all at one rate) deliver a period's frame
 the master paces the cycles and each cycle carries one sample of every axis; unsynchronised
 ones add up to ``align`` of latency to the earliest axis. Any axis may start a cycle, so a
 sensor that stalls (or goes invalid) never stops the others: in a cycle it missed, it is not
-``fresh`` (its loop checks its gap). A sensor whose link drops leaves the selector (``down``)
-and is missing from every later cycle; no reconnect happens in the loop's thread.
+``fresh`` (its loop checks its gap). A sensor whose link drops leaves the selector (``down``,
+its reason in ``errors``) and misses the cycles while a thread of its own reopens the link
+(``reconnect_attempts`` tries, then again after ``RECONNECT_PAUSE``): the loop's thread never
+waits for a reconnect, and the other axes go on. Once reopened, the loop's next wait takes it
+back (``reconnects``), its sample clock and decimator started afresh.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import math
 import os
 import selectors
+import threading
 import time
 from collections.abc import Callable, Sequence
 
@@ -40,12 +44,16 @@ __all__ = ["StageSensors"]
 #: scheduler, 50-90 ms was seen) is caught up, every sample stepped; older ones are dropped
 MAX_BACKLOG = 0.25
 
+#: [s] between two rounds of reconnect attempts of a lost sensor link
+RECONNECT_PAUSE = 0.5
+
 
 class StageSensors:
     """The sensors ``readers[i]`` of axis i at ``rate`` [Hz], each sample of the loop the
     mean of ``decimation`` of theirs (module docstring); after a due :meth:`wait`, each of the
     cycle's :meth:`depth` sub-cycles is :meth:`take`'s: then ``value``, ``status``, ``stamp``
-    [ns] and ``fresh`` hold it. ``align`` [s] is in the loop's periods (``rate`` / N).
+    [ns] and ``fresh`` hold it. ``align`` [s] is in the loop's periods (``rate`` / N). The
+    stamps are ``stamp_ns``'s (the nodes' clock); ``clock_ns`` times the waits.
     """
 
     def __init__(
@@ -57,6 +65,7 @@ class StageSensors:
         stamp_window: float = 2.0,
         max_pending: int | None = None,
         decimation: int = 1,
+        stamp_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         if not readers:
             raise ConfigError("a stage has one sensor per axis, got none")
@@ -70,7 +79,7 @@ class StageSensors:
             raise ConfigError(f"align must be in [0, 2 periods) s, got {align}")
         self.readers = tuple(readers)
         self._align_ns = round(align * 1e9)
-        self._clock_ns = clock_ns
+        self._clock_ns, self._stamp_ns = clock_ns, stamp_ns
         self.clocks = [SampleClock(rate, stamp_window) for _ in range(n)]
         self.value = [math.nan] * n
         self.status = [0] * n
@@ -86,6 +95,9 @@ class StageSensors:
         backlog = math.ceil(MAX_BACKLOG * self.rate) if max_pending is None else max_pending
         self._max_pending = max(1, int(backlog))
         self.errors: list[TransportError | None] = [None] * n
+        self.reconnects = [0] * n
+        self._back = [False] * n  # reopened by its reconnect thread, not yet taken back
+        self._closing = threading.Event()
         self._first_ns: int | None = None  # when the cycle's first fresh sample arrived
         self._fresh_count = 0
         self._live = n  # axes whose link is up
@@ -94,6 +106,7 @@ class StageSensors:
     def connect(self) -> None:
         """Open every sensor's link and register it with the selector."""
         self._sel = selectors.DefaultSelector()
+        self._closing.clear()
         for decimator in self.decimators:
             decimator.reset()
         for i, reader in enumerate(self.readers):
@@ -101,7 +114,8 @@ class StageSensors:
             self._sel.register(reader.transport.fileno(), selectors.EVENT_READ, i)
 
     def close(self) -> None:
-        """Close every link."""
+        """Close every link (a reconnect thread stops at its next attempt)."""
+        self._closing.set()
         if self._sel is not None:
             self._sel.close()
             self._sel = None
@@ -117,6 +131,8 @@ class StageSensors:
             raise ConfigError("StageSensors.wait before connect()")
         clock = self._clock_ns
         deadline = clock() + round(timeout * 1e9)
+        if True in self._back:
+            self._take_back(sel)
         while True:
             now = clock()
             if self._fresh_count >= self._live and self._fresh_count:
@@ -149,7 +165,7 @@ class StageSensors:
         k = len(block)
         if not k:
             return
-        stamps = self.clocks[i].stamps(now_ns, k)
+        stamps = self.clocks[i].stamps(self._stamp_ns(), k)
         displacement, status = block.displacement.tolist(), block.status.tolist()
         decimator = self.decimators[i]
         if decimator.n > 1:
@@ -194,6 +210,39 @@ class StageSensors:
             self._sel.unregister(fd)
         self.down[i], self.errors[i] = True, exc
         self._live -= 1
+        threading.Thread(target=self._reconnect, args=(i,), daemon=True).start()
+
+    def _reconnect(self, i: int) -> None:
+        """Reopen axis ``i``'s link (its own thread) until it opens or the sensors close."""
+        reader = self.readers[i]
+        while not self._closing.is_set():
+            try:
+                reader.reconnect()
+            except TransportError as exc:
+                self.errors[i] = exc
+                self._closing.wait(RECONNECT_PAUSE)
+                continue
+            if self._closing.is_set():
+                reader.close()
+            else:
+                self._back[i] = True
+            return
+
+    def _take_back(self, sel: selectors.BaseSelector) -> None:
+        """Put the reopened links back in the selector (the loop's thread)."""
+        for i, back in enumerate(self._back):
+            if back:
+                self._back[i] = False
+                self.clocks[i].reset()
+                self.decimators[i].reset()
+                sel.register(self.readers[i].transport.fileno(), selectors.EVENT_READ, i)
+                self.down[i], self.errors[i] = False, None
+                self.reconnects[i] += 1
+                self._live += 1
+
+    def now_ns(self) -> int:
+        """Now [ns] on the clock of the stamps."""
+        return self._stamp_ns()
 
     def next_cycle(self) -> None:
         """The cycle was taken: every axis waits for a newer sample."""

@@ -28,4 +28,4 @@ NODES = (
 )
 
 #: a composed loop's own parameter table (beside its members' tables): table name -> module
-LOOP_TABLES = {"stage_loop": "scanner_loop"}
+LOOP_TABLES = {"stage_loop": "stage_loop"}

@@ -34,22 +34,20 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Callable, Sequence
+from typing import Sequence
 
 from rclpy.parameter import Parameter
 
-from piezo_stage.hardware import ConfigError, SensorConfig, SensorReader, Status, TransportError
-from piezo_stage.hardware.decimation import Decimator
+from piezo_stage.hardware import ConfigError, SensorConfig, SensorReader, Status
+from piezo_stage.hardware.axis_sensor import AxisSensor
 from piezo_stage.hardware.gcs_sensor import GCSPositionReader, GCSReaderConfig
 from piezo_stage.hardware.optoncdt import FAMILIES
 from piezo_stage.hardware.sensor_frame import SensorFrame
-from piezo_stage.hardware.timing import SampleClock, set_realtime_priority
 from piezo_stage_msgs.msg import Displacement
 
 from .base import PiezoNode
 from .diagnostics import ERROR, OK, STALE, WARN, Diagnosis, Diagnostics
 from .errors import RosParameterError
-from .handoff import Handoff
 from .parameters import on_set
 from .qos import SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, stamp_clock
@@ -212,33 +210,20 @@ def make_reader(p: LaserReaderSettings) -> tuple[Reader, str]:
     return reader, name
 
 
-#: the composed loop's step: (displacement [m], status, stamp [ns]) of the new samples ->
-#: which of them go on the topic (None: all)
-SampleSink = Callable[[list[float], list[int], list[int]], "list[bool] | None"]
-
-
 class LaserReaderNode(PiezoNode):
-    """``loop`` (the composed rig loop, :mod:`.rig_loop`): the read thread hands each block of
-    samples to ``loop`` before they are published, ``idle(now_ns)`` is called after a read that
-    timed out, every publication goes through ``handoff``, and the thread runs SCHED_FIFO at
-    ``loop_priority`` (when > 0 and allowed). ``start`` False: the read thread waits for
-    :meth:`start` (a composing process starts it once the rest is built, so that no start-up
-    work holds the GIL while samples pile up; the stage's loop never starts it and reads the
-    link itself). ``namespace``: the node's (a composing process gives each axis its own)."""
+    """The read thread (:class:`~piezo_stage.hardware.axis_sensor.AxisSensor`'s ``wait``, then
+    publish) starts at once, or, ``start`` False, never: a composed loop (:mod:`.stage_loop`)
+    reads ``sensor`` (one axis) or the link (several) in its own thread and publishes through
+    :meth:`publish_samples`. ``namespace``: the node's (a composing process gives each axis its
+    own)."""
 
     def __init__(
         self,
-        loop: SampleSink | None = None,
-        idle: Callable[[int], None] | None = None,
-        handoff: Handoff | None = None,
         overrides: Sequence[Parameter] = (),
-        loop_priority: int = 0,
         start: bool = True,
         namespace: str = DEFAULT_NAMESPACE,
     ) -> None:
         super().__init__("laser_reader", namespace=namespace, parameter_overrides=list(overrides))
-        self._loop, self._idle, self._handoff = loop, idle, handoff
-        self._loop_priority = loop_priority
         p: LaserReaderSettings = self.declare_settings(PARAMETERS)
         on_set(
             self,
@@ -254,60 +239,59 @@ class LaserReaderNode(PiezoNode):
         self.family = p.family
         self.frame = SensorFrame(float(p.zero_offset), float(p.sign), float(p.latency))
         self.rate = float(p.rate_hz)
-        self.decimator = Decimator(int(p.decimation))
-        self.sample_clock = SampleClock(self.rate, p.stamp_window)
-        self.connected = True
+        self.decimation = int(p.decimation)
         self.published = 0
         self.by_status = [0] * len(Status)  # samples read, per status
-        self.link_errors = 0
-        self.last_error = ""
         # (time, published, the reader's counters) at the last /diagnostics
         self._last_diag: tuple[float, int, dict[str, int]] = (time.monotonic(), 0, {})
 
-        self._now_ns = stamp_clock(self)  # use_sim_time is fixed (refused above)
+        self.stamp_ns = stamp_clock(self)  # use_sim_time is fixed (refused above)
+        self._reader_stop = threading.Event()
+        self.sensor = AxisSensor(
+            self.reader,
+            self.rate,
+            self.decimation,
+            self.stamp_ns,
+            p.stamp_window,
+            on_link=self._on_link,
+            sleep=self._reader_stop.wait,
+        )
         self._pub = self.create_publisher(Displacement, "displacement", SENSOR_QOS)
         self._msg = Displacement()  # reused: rclpy serializes at publish
-        # a thread blocked in read() stamps each block when it arrives: a periodic poll would
-        # stamp it up to a poll period late, a constant lag (the poll's phase against the
-        # sensor's frames) that the sample clock cannot remove, since it only takes away the
-        # jitter above the smallest delay
-        self._reader_stop = threading.Event()
         self._wait = float(p.poll_period)
         self._thread = threading.Thread(target=self._read_loop, name="laser-reader", daemon=True)
         if start:
-            self.start()
+            self.sensor.connect()
+            self._thread.start()
         Diagnostics(self, self.source, self._diagnose)
         range_text = "" if p.family == PI_GCS else f", MR {p.measuring_range:g} m"
         self.get_logger().info(
             f"{self.source}{range_text}: decimation {p.decimation}, rate {self.rate:g} Hz"
         )
 
-    def start(self) -> None:
-        """Start the read thread, forgetting what the link held (samples older than the start
-        would reach the loop in one late block)."""
-        self.reader.restart()
-        self._thread.start()
-
     def stream_reader(self) -> SensorReader:
         """The optoNCDT reader: a loop that waits on several sensors' byte streams at once
         (the stage's loop) cannot take a polled ``pi_gcs`` one (RosParameterError)."""
         if not isinstance(self.reader, SensorReader):
             raise RosParameterError(
-                f"laser_reader: family {PI_GCS} is polled, not streamed: this loop reads "
-                "optoNCDT streams only"
+                f"laser_reader: family {PI_GCS} is polled, not streamed: a loop of several "
+                "axes reads optoNCDT streams only"
             )
         return self.reader
 
+    def _on_link(self, error: str | None) -> None:
+        if error is None:
+            self.get_logger().info(f"reconnected to {self.url}")
+        else:
+            self.get_logger().error(f"sensor link: {error}", throttle_duration_sec=1.0)
+
     def _read_loop(self) -> None:
-        refused = set_realtime_priority(self._loop_priority)
-        if refused:
-            self.get_logger().warn(f"loop thread: {refused}")
         while not self._reader_stop.is_set():
             try:
                 self._poll(self._wait)
             except Exception as exc:  # a bug must not silently end the stream: say it, go on
-                self.last_error = f"reader thread: {exc!r}"
-                self.get_logger().error(self.last_error, throttle_duration_sec=1.0)
+                self.sensor.last_error = f"reader thread: {exc!r}"
+                self.get_logger().error(self.sensor.last_error, throttle_duration_sec=1.0)
                 self._reader_stop.wait(self._wait)
 
     def on_shutdown(self) -> None:
@@ -315,57 +299,18 @@ class LaserReaderNode(PiezoNode):
         self._reader_stop.set()
         if self._thread.ident is not None:
             self._thread.join(timeout=2.0)
-        if self._handoff is not None:
-            self._handoff.close()
 
     def _poll(self, timeout: float = 0.0) -> None:
         """Read what arrived (waiting up to ``timeout`` s for it), stamp, decimate, publish."""
-        try:
-            if not self.connected:
-                self.reader.reconnect()
-                self.connected = True
-                self.sample_clock.reset()
-                self.decimator.reset()
-                self.get_logger().info(f"reconnected to {self.url}")
-            block = self.reader.read(timeout)
-        except TransportError as exc:
-            self.connected = False
-            self.link_errors += 1
-            self.last_error = str(exc)
-            self.get_logger().error(f"sensor link: {exc}", throttle_duration_sec=1.0)
-            self._reader_stop.wait(timeout)  # a dead link fails at once: retry at the poll pace
+        sensor = self.sensor
+        if not sensor.wait(timeout):
             return
-        now = self._now_ns()
-        if not len(block):
-            if self._idle is not None:
-                self._idle(now)
-            return
-        frame = self.frame
-        out = self.decimator.feed(
-            block.displacement.tolist(),
-            block.status.tolist(),
-            frame.stamps(self.sample_clock.stamps(now, len(block))),
-        )
-        counts = self.by_status
-        for st in out.status:
+        block, frame, counts = sensor.block, self.frame, self.by_status
+        for st in block.status:
             counts[st] += 1
-        value = frame.values(out.displacement, out.status)
-        if self._loop is None:
-            self.publish_samples(value, out.status, out.stamp)
-            return
-        keep = self._loop(value, out.status, out.stamp)  # the control step first, then topics
-        handoff = self._handoff
-        assert handoff is not None  # the composed loop gives one with its step
-        if keep is None:
-            handoff.put(self.publish_samples, value, out.status, out.stamp)
-        elif any(keep):
-            handoff.put(
-                self.publish_samples,
-                *(
-                    [x for x, due in zip(column, keep) if due]
-                    for column in (value, out.status, out.stamp)
-                ),
-            )
+        value = frame.values(block.displacement, block.status)
+        self.publish_samples(value, block.status, frame.stamps(block.stamp))
+        sensor.next_cycle()
 
     def publish_samples(
         self, value: Sequence[float], status: Sequence[int], stamp: Sequence[int]
@@ -385,7 +330,7 @@ class LaserReaderNode(PiezoNode):
         self._last_diag = (now, self.published, counts)
         dt = max(now - t0, 1e-9)
         values = {
-            "connected": self.connected,
+            "connected": self.sensor.connected,
             "stale": self.reader.stale,
             "family": self.family,
             "frame_rate": (counts["frames"] - counts0.get("frames", 0)) / dt,
@@ -395,10 +340,10 @@ class LaserReaderNode(PiezoNode):
             **{f"samples_{s.name.lower()}": int(self.by_status[s]) for s in Status},
             **{key: n for key, n in counts.items() if key != "frames"},
             "reconnects": self.reader.reconnects,
-            "link_errors": self.link_errors,
-            "last_error": self.last_error,
+            "link_errors": self.sensor.link_errors,
+            "last_error": self.sensor.last_error,
         }
-        if not self.connected:
+        if not self.sensor.connected:
             return Diagnosis(ERROR, f"disconnected from {self.url}", values)
         if self.reader.stale:
             return Diagnosis(STALE, f"no frames for {self.reader.config.stale_timeout:g} s", values)

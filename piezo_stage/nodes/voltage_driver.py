@@ -323,11 +323,11 @@ def _connect(p: VoltageDriverSettings, stage: Stage | None, node: str) -> StageD
 
 
 class VoltageDriverNode(PiezoNode):
-    """With a ``handoff``: part of a composed loop (:mod:`.rig_loop` for one axis,
-    :mod:`.scanner_loop` for a stage), whose loop thread calls :meth:`command` or
-    :meth:`set_voltages` directly; no voltage_command subscription (the controllers in the same
-    process still publish the topic), every publication through ``handoff``; the watchdog stays
-    in the executor's thread, under the node's lock."""
+    """With a ``handoff``: part of a composed loop (:mod:`.stage_loop`: ``rig_loop`` for one
+    axis, ``scanner_loop`` for a stage), whose loop thread calls :meth:`set_voltages` directly;
+    no voltage_command subscription (the controllers in the same process still publish the
+    topic), every publication through ``handoff``; the watchdog stays in the executor's thread,
+    under the node's lock."""
 
     TABLE: ParameterTable[VoltageDriverSettings] = PARAMETERS
 
@@ -404,11 +404,10 @@ class VoltageDriverNode(PiezoNode):
         if self._batched:
             self.create_timer(1.0 / p.write_rate_hz, self._write_pending, clock=wall_clock())
         self.create_timer(p.watchdog_period, self._watchdog, clock=wall_clock())
-        # one axis composed: the loop thread reads back right after a write, when one is due (a
-        # timer's device round trip would hold the driver while a sample waits to be answered)
+        # composed: the loop thread reads back right after a write, when one is due
         self._readback_period = 1.0 / p.readback_rate_hz if p.readback_rate_hz > 0 else math.inf
         self._readback_due = 0.0 if p.readback_rate_hz > 0 else math.inf
-        if p.readback_rate_hz > 0 and (handoff is None or self.stage is not None):
+        if p.readback_rate_hz > 0 and handoff is None:
             self.create_timer(self._readback_period, self._readback, clock=wall_clock())
         self._diagnostics = Diagnostics(
             self,
@@ -489,28 +488,23 @@ class VoltageDriverNode(PiezoNode):
         else:
             self._write_one(channel, voltage, received, counted=command)
 
-    def command(self, voltage: float, publish: bool = True) -> None:
-        """The one-axis composed loop's write (its own thread): the watchdog counts from now;
-        the device read-back follows the write when one is due (``publish`` False: the value
-        written is not published on ``voltage``)."""
-        channel = self._first
-        received = self._received(channel)
-        self.axes[channel].inlet.last_command = voltage
-        self._write_one(channel, voltage, received, publish)
+    def set_voltages(self, values: Mapping[str, float]) -> None:
+        """The composed loop's write ({channel: voltage}, its own thread): the watchdog of each
+        axis counts from now; one device command for all (each axis's safety rules apply); every
+        ``publish_every``-th such write is published on the axes' ``voltage``; the device
+        read-back follows the write when one is due (a timer's device round trip would hold the
+        driver while a sample waits to be answered)."""
+        self._loop_writes += 1
+        batch: dict[str, tuple[float, float | None]] = {}
+        received = 0.0
+        for channel, voltage in values.items():
+            self.axes[channel].inlet.last_command = voltage
+            received = self._received(channel)
+            batch[channel] = (voltage, received)
+        self._write(batch, (self._loop_writes - 1) % self.publish_every == 0)
         if received >= self._readback_due:
             self._readback_due = received + self._readback_period
             self._readback()
-
-    def set_voltages(self, values: Mapping[str, float]) -> None:
-        """The stage's composed loop's write ({channel: voltage}): the watchdog of each axis
-        counts from now; one device command for all (each axis's safety rules apply); every
-        ``publish_every``-th such write is published on the axes' ``voltage``."""
-        self._loop_writes += 1
-        batch: dict[str, tuple[float, float | None]] = {}
-        for channel, voltage in values.items():
-            self.axes[channel].inlet.last_command = voltage
-            batch[channel] = (voltage, self._received(channel))
-        self._write(batch, (self._loop_writes - 1) % self.publish_every == 0)
 
     def _write_pending(self) -> None:
         if self._pending:
