@@ -169,7 +169,8 @@ class SupervisedLaw:
 class StageLoop:
     """The step of the stage's loop (module docstring): ``laws[i]`` drives ``axes[i]``.
     ``before(value, status, stamp, fresh, now_ns, last)`` runs before the laws of each (sub-)cycle
-    step (a coupled stage's own frames, from every axis at once); ``after()`` after every write
+    step (the stage's start; a coupled stage's own frames, from every axis at once; None once
+    there is nothing left to do there); ``after()`` after every write
     and idle tick (a node's hand-off drain); ``every``: the laws' ``publish`` flag is True on
     every ``every``-th step.
     """
@@ -186,7 +187,7 @@ class StageLoop:
         if len(axes) != len(laws) or not axes:
             raise ValueError(f"one law per axis: {len(axes)} axes, {len(laws)} laws")
         self.axes, self.laws, self.amplifier = tuple(axes), tuple(laws), amplifier
-        self._after, self._before = after, before
+        self._after, self.before = after, before
         self.every = max(1, int(every))
         self.cycles = 0  # cycles written
         self.steps = 0  # (sub-)cycles stepped
@@ -211,8 +212,8 @@ class StageLoop:
         """
         publish = self.steps % self.every == 0
         self.steps += 1
-        if self._before is not None:
-            self._before(value, status, stamp, fresh, now_ns, write)
+        if self.before is not None:
+            self.before(value, status, stamp, fresh, now_ns, write)
         values, t = self._values, now_ns * 1e-9
         for i, (axis, law) in enumerate(self._pairs):
             if fresh[i]:

@@ -366,6 +366,8 @@ class StageLoopNode(PiezoNode):
             t0 = self.origin.start(frame, fresh)
             for law in laws:
                 law.controller.start_at(t0 * 1e-9)
+            if self.frames is None:
+                self.loop.before = None  # started: nothing more to do before each step
         if self.frames is not None:
             for i, law in enumerate(laws):
                 law.prepare(value[i], status[i] == 0, stamp[i], fresh[i], now_ns)
