@@ -91,7 +91,11 @@ def _replay(node, params: list[str], out_file: Path) -> list:
         # resuming twice is resuming: sent again until answered (Fast DDS drops a response
         # whose reader has not matched yet)
         answer = call_idempotent(node, resume, Trigger.Request(), timeout=60.0)
-        assert answer is not None and answer.success
+        if answer is None:  # say what the graph did meanwhile: the player's and DDS's sides
+            proc.terminate()
+            log = proc.communicate(timeout=60)[0]
+            raise AssertionError(f"~/resume unanswered for 60 s; the launch said:\n{log[-4000:]}")
+        assert answer.success
         spin_until(node, lambda: proc.poll() is not None, 240.0)
         if proc.poll() is None:
             proc.terminate()
