@@ -122,7 +122,6 @@ LONGEST = (
     "test_node_rig_loop.py",  # 170
     "test_node_plant.py",  # 170
     "test_experiment_ch11.py",  # 170
-    "test_commission_ros.py",  # 160
     "test_replay_identification.py",  # 140
 )
 

@@ -10,10 +10,8 @@ import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from piezo_stage.experiments.tracking import graph_amplifier_range
 from piezo_stage.hardware.emulators.amplifier_options import served_range
-from piezo_stage.launch.graph import find_graph
-from piezo_stage.yaml_values import load_yaml
+from piezo_stage.launch.graph import load_graph, parse_graph
 
 pytestmark = pytest.mark.unit
 
@@ -59,12 +57,23 @@ def test_other_commands_serve_no_known_range(argv):
     ],
 )
 def test_the_shipped_graphs_ranges(graph, expected):
-    nodes = load_yaml(find_graph(graph).read_text(encoding="utf-8"))["nodes"]
-    assert graph_amplifier_range(nodes) == expected
+    assert load_graph(graph, free_ports=False).amplifier_range == expected
 
 
 def test_an_emulator_without_a_range_is_checked_against_its_defaults():
     """A graph's `emulate rig` with no --amp-range serves an E-709's -30..130 V: a trajectory
     is checked against that, not against an unbounded amplifier."""
     nodes = [{"command": ["piezo-stage", "emulate", "rig", "--rate", "1000"], "name": "rig"}]
-    assert graph_amplifier_range(nodes) == (-30.0, 130.0)
+    assert parse_graph({"nodes": nodes}).amplifier_range == (-30.0, 130.0)
+
+
+@given(plant=st.tuples(volts, volts).map(sorted), law=st.tuples(volts, volts).map(sorted))
+@example(plant=[0.0, 400.0], law=[-30.0, 130.0])
+def test_a_graphs_range_is_the_narrowest_its_entries_set(plant, law):
+    """A plant's v_min/v_max and a controller's u_min/u_max: the graph's range is both at once."""
+    nodes = [
+        {"executable": "stage_plant", "overrides": {"v_min": plant[0], "v_max": plant[1]}},
+        {"executable": "controller", "overrides": {"u_min": law[0], "u_max": law[1]}},
+    ]
+    low, high = parse_graph({"nodes": nodes}).amplifier_range
+    assert (low, high) == (max(plant[0], law[0]), min(plant[1], law[1]))

@@ -38,7 +38,7 @@ import signal
 import subprocess
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -149,6 +149,47 @@ def _coupled(out: str, folder: Path, results: dict) -> None:
     coupling = np.array(got["coupling"])
     assert np.abs(coupling - truth.coupling)[off].max() <= 0.05 * np.abs(truth.coupling[off]).min()
     assert load_stage(folder / "my_scanner.yaml").names == truth.names
+
+
+def _commissioned(out: str, folder: Path, results: dict) -> None:
+    """`commission out/ --json` on the sim graph's folder: my_plant.yaml is a plant the
+    procedure does not know (PLACEHOLDERS): its Bouc-Wen part within 2 %, m and c within 10 %,
+    bounds that hold it, gains inside Theorem 4's, the loop stable and u kept within 1 % after the
+    perturbation; the files and one bag per run (the sweep at 50 and 100 Hz)."""
+    from piezo_stage.model.parameter_set import load_parameter_set
+
+    s, _ = json.JSONDecoder().raw_decode(out[out.index("{") :])  # stderr's lines may follow
+    plant = load_parameter_set(folder / "my_plant.yaml")
+    p, dynamics = plant.bouc_wen, plant.dynamics
+    assert dynamics is not None
+    truth = {
+        "kappa_x": p.kappa[0],
+        "kappa_w": p.kappa_w,
+        "rho": p.rho,
+        "sigma": p.sigma,
+        "n": p.n,
+        "m": dynamics.m,
+        "c": dynamics.c,
+    }
+    for key in ("kappa_x", "kappa_w", "rho", "sigma", "n"):
+        assert s["identified"][key] == pytest.approx(truth[key], rel=0.02), key
+    for key in ("m", "c"):
+        assert s["identified"][key] == pytest.approx(truth[key], rel=0.10), key
+    b = s["bounds"]
+    assert b["m_min"] < truth["m"] < b["m_max"] and b["c_max"] > truth["c"]
+    for key in ("kappa_x", "kappa_w", "sigma", "rho"):
+        assert b[f"{key}_max"] > truth[key], key
+    assert s["gains"]["k2"] > s["k2_min"] and 0 < s["gains"]["k0"] < s["k0_max"]
+    assert s["spectral_radius"] < 1.0
+    assert s["closed_loop"]["u_change_relative"] <= 0.01
+    for key in ("parameter_set", "bounds", "controller", "report"):
+        assert Path(s["files"][key]).is_file()
+    assert sorted(p.name for p in (folder / "out" / "bags").iterdir()) == [
+        "acceptance",
+        "dynamics_step",
+        "sweep_100Hz",
+        "sweep_50Hz",
+    ]
 
 
 def _replayed(out: str, folder: Path, results: dict) -> None:
@@ -263,7 +304,7 @@ RUN: dict[str, Expect] = {
     "piezo-stage commission emulated/ --graph emulated_rig --m 5.3e-3 --c 13": Expect(
         timeout=1800, realtime=True
     ),
-    "piezo-stage commission out/ --json": Expect(out=(r"\{",)),
+    "piezo-stage commission out/ --json": Expect(check=_commissioned),
     # tracking
     "piezo-stage experiment tracking --trajectory triangle --amplitude 10e-6 --frequency 10 "
     "--compensation both --identify-model model.yaml --compare --png plots/ --json": Expect(
@@ -416,7 +457,7 @@ PLACEHOLDERS = {
     "sine_run.csv": "the ch. 10 patch simulated under a 0.1 Hz sine of 50-350 V",
     "other_run.csv": "test/data/p885/p885_raised_cosine.csv again (the P-885's only record)",
     "my_rig_bounds.yaml": "config/thesis_rig_bounds.yaml",
-    "my_plant.yaml": "config/ch11_rig.yaml",
+    "my_plant.yaml": "config/ch11_rig.yaml, κw +20 % and m -15 %: a plant unknown to commission",
     "other_rig.yaml": "config/ch11_rig.yaml",
     "scan.csv": "two periods of a 10 Hz sine of 10 µm from 6 µm up, as `t [s], x [m]`",
     "model.yaml": "config/ch11_rig.yaml, until `--identify-model` writes it",
@@ -459,6 +500,7 @@ def _inputs(folder: Path) -> None:
 
     from piezo_stage.identification import load_runs
     from piezo_stage.model import StaticPlant, shipped_parameter_set
+    from piezo_stage.model.parameter_set import save_parameter_set
 
     runs = load_runs([ROOT / "bags" / "ch10_identification"])
     for run, name in zip(runs, ("run_0_300V.csv", "run_100_400V.csv")):
@@ -469,8 +511,17 @@ def _inputs(folder: Path) -> None:
     _write_csv(folder / "sine_run.csv", t, v, y)
     shutil.copy(ROOT / "test/data/p885/p885_raised_cosine.csv", folder / "other_run.csv")
     shutil.copy(ROOT / "config/thesis_rig_bounds.yaml", folder / "my_rig_bounds.yaml")
-    for name in ("my_plant.yaml", "other_rig.yaml", "model.yaml"):
+    for name in ("other_rig.yaml", "model.yaml"):
         shutil.copy(ROOT / "config/ch11_rig.yaml", folder / name)
+    rig = shipped_parameter_set("ch11_rig")
+    assert rig.dynamics is not None
+    unknown = replace(
+        rig,
+        name="my_plant",
+        bouc_wen=replace(rig.bouc_wen, kappa_w=1.2 * rig.bouc_wen.kappa_w),
+        dynamics=replace(rig.dynamics, m=0.85 * rig.dynamics.m),
+    )
+    save_parameter_set(unknown, folder / "my_plant.yaml")
     # from 6 µm up: the experiments' floor, where the 0-400 V amplifier still has its margin
     ts = np.arange(0.0, 0.2, 1e-3)
     with (folder / "scan.csv").open("w") as f:

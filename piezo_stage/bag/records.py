@@ -67,11 +67,6 @@ class Scan:
     has_footer: bool  # the file ends with a footer and the closing magic
     chunk_compression: str  # compression of the first chunk ("" if none or no chunk)
 
-    @property
-    def truncated_bytes(self) -> int:
-        """Bytes after the last complete top-level record."""
-        return self.size - self.complete_end
-
 
 def is_mcap_name(path: Path) -> bool:
     """``x.mcap`` or a FILE-mode compressed ``x.mcap.zstd``."""

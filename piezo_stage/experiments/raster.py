@@ -181,13 +181,9 @@ def amplifier_range(graph: str) -> tuple[float, float]:
     loop graph's entries set."""
     if graph not in DEVICE_GRAPHS:
         return SCANNER_VOLTS
-    from piezo_stage.launch.graph import find_graph
-    from piezo_stage.yaml_values import load_yaml
+    from piezo_stage.launch.graph import load_graph
 
-    from .tracking import graph_amplifier_range
-
-    data = load_yaml(find_graph(DEVICE_GRAPHS[graph]).read_text(encoding="utf-8"))
-    low, high = graph_amplifier_range(data["nodes"])
+    low, high = load_graph(DEVICE_GRAPHS[graph], free_ports=False).amplifier_range
     return (low, high) if math.isfinite(low) and math.isfinite(high) else SCANNER_VOLTS
 
 

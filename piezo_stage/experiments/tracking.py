@@ -81,7 +81,7 @@ from .harness import (
     record,
     span,
 )
-from .plan import Plan
+from .plan import Plan, graph_for
 from .presets import experiment_controller, lockstep_plant
 from .runner import STATE_TYPE, run_plan
 from .verdict import first, learning_diverged, loop_opened, record_gap
@@ -420,36 +420,9 @@ def make_tracking_plan(plan: TrackingPlan, model_file: str) -> Plan:
 def rig_amplifier_range() -> tuple[float, float]:
     """[V] the emulated rig's amplifier (config/graphs/emulated_rig.yaml): its driver's
     v_min/v_max within the emulated amplifier's ``--amp-range``."""
-    from piezo_stage.launch.graph import find_graph
-    from piezo_stage.yaml_values import load_yaml
+    from piezo_stage.launch.graph import load_graph
 
-    data = load_yaml(find_graph("emulated_rig").read_text())
-    return graph_amplifier_range(data["nodes"])
-
-
-def graph_amplifier_range(
-    nodes: list[dict[str, Any]], plant: dict[str, Any] | None = None
-) -> tuple[float, float]:
-    """[V] the narrowest of what a graph's entries set: the controller's u_min/u_max, the
-    voltage driver's v_min/v_max, the range the emulated amplifier serves (``served_range``)
-    (and ``plant``'s v_min/v_max: the sim plan's plant node); ±inf where none is set."""
-    from piezo_stage.hardware.emulators.amplifier_options import served_range
-
-    low, high = -math.inf, math.inf
-    limits = [] if plant is None else [(plant.get("v_min"), plant.get("v_max"))]
-    for entry in nodes:
-        overrides = entry.get("overrides", {})
-        if entry.get("executable") == "controller":
-            limits.append((overrides.get("u_min"), overrides.get("u_max")))
-        elif entry.get("executable") in ("voltage_driver", "stage_driver", "plant"):
-            limits.append((overrides.get("v_min"), overrides.get("v_max")))
-        served = served_range(entry.get("command") or [])
-        if served is not None:
-            limits.append(served)
-    for lo, hi in limits:
-        low = low if lo is None else max(low, float(lo))
-        high = high if hi is None else min(high, float(hi))
-    return low, high
+    return load_graph("emulated_rig", free_ports=False).amplifier_range
 
 
 def check_voltage_range(plan: TrackingPlan, amplifier: tuple[float, float]) -> None:
@@ -560,7 +533,7 @@ def emulated_rig_graph(
                     },
                 }
             )
-    u_min, u_max = graph_amplifier_range(nodes)  # the driver's and the emulator's limits
+    u_min, u_max = rig_amplifier_range()  # the driver's and the emulator's limits
     controller = _controller(
         spec, model_file, rate, u_min, u_min=u_min, u_max=u_max, hold_voltage=math.nan
     )
@@ -582,13 +555,14 @@ def _rig_controller(plan: TrackingPlan, model_file: str, folder: Path) -> dict[s
 
 
 def run_amplifier_range(plan: TrackingPlan) -> tuple[float, float]:
-    """[V] the amplifier range the run's plan (sim) or graph (emulated_rig) sets."""
+    """[V] the amplifier range the run's graph sets (sim: the plan's plant and controller)."""
+    from piezo_stage.launch.graph import parse_graph
+
     if plan.spec.graph is Graph.SIM:
-        sim = make_tracking_plan(plan, "")
-        controller = {"executable": "controller", "overrides": sim.controller}
-        return graph_amplifier_range([controller], sim.plant)
-    graph, _ = emulated_rig_graph(plan, "", "/range", Path(tempfile.gettempdir()), port=0)
-    return graph_amplifier_range(graph["nodes"])
+        graph = graph_for(make_tracking_plan(plan, ""), "/range")
+    else:
+        graph, _ = emulated_rig_graph(plan, "", "/range", Path(tempfile.gettempdir()), port=0)
+    return parse_graph(graph, free_ports=False).amplifier_range
 
 
 def _run_once(

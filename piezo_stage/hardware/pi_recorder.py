@@ -10,7 +10,6 @@ recording), ``DRL?`` counts the points and ``DRR?`` reads them in the GCS array 
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from enum import IntEnum
@@ -234,8 +233,3 @@ class ServoRecorder:
                     f"(expected {expected:.3g} s)"
                 )
             time.sleep(min(poll, max(expected / 20.0, 1e-3)))
-
-
-def points_for(duration: float, cycle: float, rate: int) -> int:
-    """Points a recording of ``duration`` s holds at a point every ``rate`` servo cycles."""
-    return int(math.ceil(duration / (cycle * rate) - 1e-9))

@@ -133,10 +133,6 @@ class _Problem:
             else []
         )
 
-    @property
-    def n_theta(self) -> int:
-        return 3 + len(self.runs) + int(self.options.fit_delay)
-
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         r = len(self.runs)
         lo = [1e-6, 0.5, 1.0] + [-1.0] * r

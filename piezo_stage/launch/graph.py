@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import os
 import re
 import socket
@@ -134,6 +135,13 @@ class TopicWait:
         return self.resolve(namespace) + (f" (with {' and '.join(need)})" if need else "")
 
 
+#: the parameters that bound the output voltage [V], per node executable
+_RANGE_KEYS = {
+    "controller": ("u_min", "u_max"),
+    **{n: ("v_min", "v_max") for n in ("voltage_driver", "stage_driver", "plant", "stage_plant")},
+}
+
+
 @dataclass(frozen=True)
 class ProcessSpec:
     """One entry of `nodes:`: a ROS node module (`executable`/`module`) or a `command`."""
@@ -216,6 +224,28 @@ class Graph:
         if self.clock != "namespaced" or spec.namespace is None or not spec.is_node:
             return None
         return None if "/clock" in spec.remappings else resolve_name("clock", self.namespace)
+
+    @property
+    def amplifier_range(self) -> tuple[float, float]:
+        """[V] the narrowest output range the entries set: a controller's u_min/u_max, a
+        driver's or plant's v_min/v_max, what an emulator serves (its command line read by the
+        emulator's own parser, :func:`~piezo_stage.hardware.emulators.amplifier_options.
+        served_range`); ±inf where none is set."""
+        from piezo_stage.hardware.emulators.amplifier_options import served_range
+
+        limits: list[tuple[Any, Any]] = []
+        for spec in self.nodes:
+            keys = _RANGE_KEYS.get((spec.module or "").rpartition(".")[2])
+            if keys is not None:
+                limits.append((spec.overrides.get(keys[0]), spec.overrides.get(keys[1])))
+            served = served_range((*spec.command, *spec.args))
+            if served is not None:
+                limits.append(served)
+        low, high = -math.inf, math.inf
+        for lo, hi in limits:
+            low = low if lo is None else max(low, float(lo))
+            high = high if hi is None else min(high, float(hi))
+        return low, high
 
     def entry_names(self) -> set[str]:
         """What ``--param NAME.KEY`` can name: the entries and the per_axis groups."""
@@ -352,9 +382,14 @@ def find_graph(graph: str | os.PathLike[str]) -> Path:
     )
 
 
-def load_graph(graph: str | os.PathLike[str], stage: str | os.PathLike[str] | None = None) -> Graph:
+def load_graph(
+    graph: str | os.PathLike[str],
+    stage: str | os.PathLike[str] | None = None,
+    free_ports: bool = True,
+) -> Graph:
     """Read and validate a graph file (path or shipped name); GraphError names any problem.
-    ``stage`` (a file the user named) replaces the graph's ``stage:``."""
+    ``stage`` (a file the user named) replaces the graph's ``stage:``; ``free_ports`` False:
+    ``$(free_port NAME)`` is 0 (a graph read, not launched, binds no socket)."""
     path = find_graph(graph)
     try:
         data = load_yaml(path.read_text(encoding="utf-8"))
@@ -362,7 +397,7 @@ def load_graph(graph: str | os.PathLike[str], stage: str | os.PathLike[str] | No
         raise GraphError(f"{path}: not valid YAML: {yaml_problem(exc)}") from None
     except (OSError, UnicodeDecodeError) as exc:  # a binary file is not a graph either
         raise GraphError(f"{path}: cannot read: {exc}") from None
-    return parse_graph(data, source=path, stage=stage)
+    return parse_graph(data, source=path, stage=stage, free_ports=free_ports)
 
 
 _FREE_PORT_RE = re.compile(rf"\$\(free_port(?:\s+({_TOKEN}))?\s*\)")
@@ -375,28 +410,34 @@ def _free_port() -> int:
         return port
 
 
-def substitute_free_ports(value: Any, ports: dict[str, int] | None = None) -> Any:
+def substitute_free_ports(
+    value: Any, ports: dict[str, int] | None = None, allocate: Callable[[], int] = _free_port
+) -> Any:
     """``value`` (YAML data) with every ``$(free_port NAME)`` in its strings replaced by a TCP
-    port free now on 127.0.0.1, the same for each NAME (in ``ports``, filled as they come)."""
+    port free now on 127.0.0.1 (``allocate``), the same for each NAME (in ``ports``, filled as
+    they come)."""
     ports = {} if ports is None else ports
 
     def port(match: re.Match[str]) -> str:
         name = match.group(1) or ""
         if name not in ports:
-            ports[name] = _free_port()
+            ports[name] = allocate()
         return str(ports[name])
 
     if isinstance(value, str):
         return _FREE_PORT_RE.sub(port, value)
     if isinstance(value, list):
-        return [substitute_free_ports(v, ports) for v in value]
+        return [substitute_free_ports(v, ports, allocate) for v in value]
     if isinstance(value, dict):
-        return {k: substitute_free_ports(v, ports) for k, v in value.items()}
+        return {k: substitute_free_ports(v, ports, allocate) for k, v in value.items()}
     return value
 
 
 def parse_graph(
-    data: Any, source: Path | None = None, stage: str | os.PathLike[str] | None = None
+    data: Any,
+    source: Path | None = None,
+    stage: str | os.PathLike[str] | None = None,
+    free_ports: bool = True,
 ) -> Graph:
     """Validate a graph given as data (the parsed YAML); relative params files are looked up in
     the folder of `source` (or the current folder), then in the package's ``config/``;
@@ -411,7 +452,8 @@ def parse_graph(
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
     graph_stage = _graph_stage(data.get("stage"), stage, base, where)
-    nodes = _parse_nodes(nodes_data, graph_stage, base, where)
+    allocate = _free_port if free_ports else lambda: 0
+    nodes = _parse_nodes(nodes_data, graph_stage, base, where, allocate)
     use_sim_time = data.get("use_sim_time")
     if use_sim_time is not None and not isinstance(use_sim_time, bool):
         raise GraphError(f"{where}: use_sim_time: expected true or false, got {use_sim_time!r}")
@@ -463,7 +505,11 @@ def _graph_stage(
 
 
 def _parse_nodes(
-    nodes_data: list[Any], stage: GraphStage | None, base: Path, where: str
+    nodes_data: list[Any],
+    stage: GraphStage | None,
+    base: Path,
+    where: str,
+    allocate: Callable[[], int],
 ) -> tuple[ProcessSpec, ...]:
     """The ``nodes:`` entries, each validated, ``per_axis`` ones expanded over the stage's axes
     and the substitutions made (the stage's first, then ``$(free_port NAME)``)."""
@@ -480,16 +526,17 @@ def _parse_nodes(
             if per_axis or uses(entry, STAGE_VARS):
                 why = "is per_axis" if per_axis else "uses $(stage_file), $(axes) or $(channels)"
                 raise needs_stage(where, f"nodes[{i}] {why}")
-            out.append((label, _substituted_entry(entry, {}, ports, label, base)))
+            out.append((label, _substituted_entry(entry, {}, ports, allocate, label, base)))
         elif not per_axis:
-            out.append((label, _substituted_entry(entry, stage.values, ports, label, base)))
+            spec = _substituted_entry(entry, stage.values, ports, allocate, label, base)
+            out.append((label, spec))
         else:
             if "process" in entry:
                 raise GraphError(f"{label}: a 'per_axis' entry is not composed ('process')")
             for axis, channel in stage.axes:
                 values = stage.axis_values(axis, channel)
                 axis_label = f"{label} (axis {axis})"
-                spec = _substituted_entry(entry, values, ports, axis_label, base)
+                spec = _substituted_entry(entry, values, ports, allocate, axis_label, base)
                 spec = dataclasses.replace(
                     spec,
                     name=f"{spec.name}_{axis}",
@@ -503,9 +550,14 @@ def _parse_nodes(
 
 
 def _substituted_entry(
-    entry: dict[str, Any], values: Mapping[str, str], ports: dict[str, int], label: str, base: Path
+    entry: dict[str, Any],
+    values: Mapping[str, str],
+    ports: dict[str, int],
+    allocate: Callable[[], int],
+    label: str,
+    base: Path,
 ) -> ProcessSpec:
-    data = substitute_free_ports(substitute(entry, values), ports)
+    data = substitute_free_ports(substitute(entry, values), ports, allocate)
     check_leftovers(data, label)
     return _parse_entry(data, label, base)
 

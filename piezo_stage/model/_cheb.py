@@ -125,33 +125,6 @@ def graded_breaks(low: float, high: float, levels: int, toward_low: bool = True)
     return low + (high - low) * fractions
 
 
-@njit
-def pw_eval(breaks: Array, coefs: Array, x: float) -> float:
-    """Value at ``x`` of the piecewise Chebyshev table (clamped to its domain)."""
-    last = breaks.size - 2
-    k = int(np.searchsorted(breaks, x, side="right")) - 1
-    if k < 0:
-        k = 0
-    elif k > last:
-        k = last
-    a = breaks[k]
-    b = breaks[k + 1]
-    t = (2.0 * x - a - b) / (b - a)
-    if t > 1.0:
-        t = 1.0
-    elif t < -1.0:
-        t = -1.0
-    two_t = 2.0 * t
-    b1 = 0.0
-    b2 = 0.0
-    for j in range(coefs.shape[1] - 1, 0, -1):
-        b0 = coefs[k, j] + two_t * b1 - b2
-        b2 = b1
-        b1 = b0
-    value: float = coefs[k, 0] + t * b1 - b2
-    return value
-
-
 def pack(tables: list[tuple[Array, Array]]) -> tuple[Array, list[int]]:
     """Concatenate piecewise tables into one flat array; returns it and each table's header.
 

@@ -167,10 +167,6 @@ class ExcitationPlan:
             phase=float(np.mod(t / self.period, 1.0)),
         )
 
-    def with_limits(self, v_min: float, v_max: float) -> "ExcitationPlan":
-        """Copy with the limits [v_min, v_max] replaced, validated."""
-        return replace(self, v_min=v_min, v_max=v_max)
-
 
 def _random_table(seed: int, period: float, bandwidth: float) -> RandomTable:
     """Frequencies (harmonics of 1/period up to bandwidth), random phases, equal weights, and

@@ -330,10 +330,6 @@ class CoupledStage:
         self._own = np.array([a.output()[1] for a in self.axes])
         self.time = 0.0
 
-    def own_displacements(self) -> NDArray[np.float64]:
-        """y* of every axis now (each plant's own output)."""
-        return self._own.copy()
-
     def _measure(self, applied: NDArray[np.float64]) -> AxesSample:
         coupled = self._y0 + self.stage.coupling @ (self._own - self._y0)
         readings = np.empty(len(self.axes))
