@@ -95,6 +95,7 @@ CASES = {
     for c in (
         Case("sim_closed_loop", "displacement"),
         Case("sim_scanner", "x/displacement", 2),
+        Case("emulated_rig", "displacement"),
         Case("emulated_scanner", "x/displacement", 2),
         Case("emulated_scanner_loop", "x/loop_samples", 2, batched=True),
     )

@@ -108,3 +108,24 @@ def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, see
     assert status.tolist() == [s for _, s in each]
     expected = np.array([v for v, _ in each], dtype=float)
     assert np.array_equal(got, expected, equal_nan=True)
+
+
+@pytest.mark.parametrize("name", ["ch10_patch", "ch11_rig"])
+def test_stepping_many_is_stepping_each_in_turn(name):
+    """``step_many`` (the emulators' substeps, one plant call per chunk) is ``step`` of each
+    command in turn, read after every ``every``-th: the same applied voltages, statuses and
+    readings (the static form's too: it was stepped one sample at a time)."""
+    ps = shipped_parameter_set(name)
+    kw = dict(resolution=1e-9, range_min=-1e-3, range_max=2e-5)  # the top of the sweep: TOO_FAR
+    one, many = (
+        SimulatedStage(ps, AmplifierModel(v_min=-20.0, v_max=250.0), SensorModel(**kw))
+        for _ in range(2)
+    )
+    volts = 120.0 + 150.0 * np.sin(np.linspace(0.0, 12.0, 1200))
+    each = np.array([one.step(v, 1e-4) for v in volts])[4::5]
+    got = many.step_many(volts, 1e-4, 5)
+    assert got.shape == each.shape and set(got[:, 2]) == {SensorStatus.OK, SensorStatus.TOO_FAR}
+    assert np.array_equal(got[:, [0, 2]], each[:, [0, 2]])
+    ok = each[:, 2] == SensorStatus.OK
+    assert np.allclose(got[ok, 1], each[ok, 1], rtol=0.0, atol=2e-9)  # a quantum, at most
+    assert many.steps == one.steps and many.amplifier.voltage == one.amplifier.voltage

@@ -247,13 +247,13 @@ class SimulatedStage:
         self, commands: NDArray[np.float64], dt: float, every: int = 1
     ) -> NDArray[np.float64]:
         """:meth:`step` for each of ``commands`` in turn; rows (applied, reading, status) after
-        steps every-1, 2 every-1, ... (one integrator call when the amplifier is ideal and the
-        plant dynamic: the rig emulator's substeps).
+        steps every-1, 2 every-1, ... (one plant call when the amplifier is ideal: the rig
+        emulator's substeps).
         """
         commands = np.asarray(commands, dtype=float)
         ideal = self.amplifier.bandwidth_hz == 0.0 and self.amplifier.slew_rate == 0.0
         out = np.empty((commands.size // every, 3))
-        if not (ideal and isinstance(self.plant, DynamicPlant)):
+        if not ideal:
             for k, command in enumerate(commands):
                 row = self.step(float(command), dt)
                 if (k + 1) % every == 0:
@@ -261,16 +261,20 @@ class SimulatedStage:
             return out
         if not np.all(np.isfinite(commands)):
             raise InvalidCommandError("command voltages must be finite")
+        _check_dt(dt)
         applied = np.clip(commands, self.amplifier.v_min, self.amplifier.v_max)
-        x, _, _ = self.plant.simulate(applied, dt)
+        if isinstance(self.plant, DynamicPlant):
+            x, _, _ = self.plant.simulate(applied, dt)
+            y = x + self.plant.params.y0
+        else:
+            y = self.plant.simulate(applied)
         if commands.size:
             self.amplifier.voltage = float(applied[-1])
         self.steps += commands.size
         self.time += commands.size * dt
-        y0 = self.plant.params.y0
-        for k in range(out.shape[0]):
-            i = (k + 1) * every - 1
-            out[k] = (applied[i], *self.sensor.measure(float(x[i]) + y0))
+        picked = slice(every - 1, out.shape[0] * every, every)
+        out[:, 0] = applied[picked]
+        out[:, 1], out[:, 2] = self.sensor.measure_many(y[picked])
         return out
 
 
