@@ -248,11 +248,11 @@ def main() -> int:
         r = results["emulated_scanner_loop"]
         check(
             "emulated_scanner_loop: emulator + loop",
-            100 * (r["scanner"] + r["scanner_loop"]),
+            100 * (r["scanner"] + r["rig_loop"]),
             50.0,
             "%",
         )
-        per = 1e6 * r["scanner_loop"] / r["_samples_per_s"] / 2
+        per = 1e6 * r["rig_loop"] / r["_samples_per_s"] / 2
         check("emulated_scanner_loop: the loop per axis and sample", per, 80.0, "µs")
     if "sim_closed_loop" in results:
         r = results["sim_closed_loop"]

@@ -15,7 +15,7 @@ per axis (every applied voltage names the sample it came from) and writes one
 - CPU per cycle: user + system time of the loop process over the window / the cycles (SVAs);
 - safety: per axis the largest step between successive writes against the slew cap.
 
-``--forms node`` runs the same law in the ROS host instead (``scanner_loop``: the stage_driver
+``--forms node`` runs the same law in the ROS host instead (``rig_loop`` over a stage: the driver
 node, a controller and a laser_reader node per axis, topics through the hand-off), beside the
 core form with ``--forms core,node``.
 
@@ -158,9 +158,9 @@ WATCHDOG = 0.01  # s: the node form's watchdog_period (voltage_driver's default)
 
 
 def node_loop(port: int, tmp: Path, n: int) -> list[str]:
-    """The node form's command: ``scanner_loop`` (the ROS host: stage_driver, a controller and a
-    laser_reader per axis, the loop's node) with bench/control_loop.py's proportional law on
-    every axis, over a stage file of ``n`` axes."""
+    """The node form's command: ``rig_loop`` over a stage (the ROS host: voltage_driver with the
+    stage file, a controller and a laser_reader per axis, the loop's node) with
+    bench/control_loop.py's proportional law on every axis, over a stage file of ``n`` axes."""
     from control_loop import graph_params
 
     stage = tmp / "stage.yaml"
@@ -170,21 +170,20 @@ def node_loop(port: int, tmp: Path, n: int) -> list[str]:
     rows = "".join(f"- {[float(i == j) for j in range(n)]}\n" for i in range(n))
     stage.write_text(f"axes:\n{axes}coupling:\n{rows}")
     params = [
-        p.replace("voltage_driver.", "stage_driver.")
+        p
         for p in graph_params("rig_loop", RATE, port, str(tmp / "sensor_{axis}"))
-        if "max_command_age" not in p
+        if "max_command_age" not in p and not p.startswith("voltage_driver.slew_rate")
     ]
-    params = [p for p in params if not p.startswith("stage_driver.slew_rate")]
     return [
         sys.executable,
         "-m",
-        "piezo_stage.nodes.scanner_loop",
-        f"stage_driver.stage_file:={stage}",
+        "piezo_stage.nodes.rig_loop",
+        f"voltage_driver.stage_file:={stage}",
         # the core form's slew rate, the watchdog at its default 10 ms (a 1 ms timer would cost
         # the executor a turn per cycle)
-        f"stage_driver.slew_rate:={SLEW}",
-        f"stage_driver.watchdog_period:={WATCHDOG}",
-        "stage_driver.readback_rate_hz:=0.0",
+        f"voltage_driver.slew_rate:={SLEW}",
+        f"voltage_driver.watchdog_period:={WATCHDOG}",
+        "voltage_driver.readback_rate_hz:=0.0",
         *params,
         "--ros-args",
         "-r",
@@ -261,7 +260,7 @@ def main() -> int:
     parser.add_argument(
         "--forms",
         default="core",
-        help="core (the loop of core objects), node (the scanner_loop ROS host), or core,node",
+        help="core (the loop of core objects), node (the rig_loop ROS host), or core,node",
     )
     parser.add_argument(
         "--param",

@@ -40,7 +40,7 @@ def test_each_axis_controller_follows_its_axis_of_the_scan_with_its_table(tmp_pa
     assert (x["learn_periods"], y["learn_periods"]) == (6, 0) and "feedforward_table_out" in x
     assert (tmp_path / "model_x.yaml").exists() and (tmp_path / "model_y.yaml").exists()
     # the driver loads the model stage (the coupling it compensates); the emulator the plant
-    assert nodes["stage_driver"]["overrides"]["stage_file"] == str(tmp_path / "model.yaml")
+    assert nodes["voltage_driver"]["overrides"]["stage_file"] == str(tmp_path / "model.yaml")
     assert graph["stage"] == str(tmp_path / "model.yaml")
     assert nodes["stage_loop"]["overrides"]["coupling_compensation"] is True
     # 6 learning lines (3 s) end in the second 2.5 s frame: a whole frame after it, 3 frames
@@ -83,13 +83,15 @@ def test_set_points_from_another_origin_are_refused():
 
 
 def test_on_a_real_scanner_the_devices_come_from_their_params_file(tmp_path):
-    """rig_scanner: no emulator; the driver and readers keep config/scanner_devices.yaml, the
-    controllers get the scan's blocks after it."""
+    """rig_scanner: no emulator; the loop is rig_loop over the stage, whose driver and readers
+    keep config/rig_devices.yaml; the controllers get the scan's blocks after it."""
     run = GraphRun("rig_scanner", SCAN, STAGE, None, None, 1000.0, "feedback", False, 0, (0, 100))
     graph = device_graph(run, tmp_path, "/r")
     assert not any("command" in e for e in graph["nodes"])
     nodes = {e["executable"]: e for e in graph["nodes"]}
-    assert nodes["stage_driver"]["parameters"] == ["scanner_devices.yaml"]
+    assert nodes["voltage_driver"]["parameters"] == ["rig_devices.yaml"]
+    assert nodes["voltage_driver"]["overrides"]["stage_file"] == str(tmp_path / "model.yaml")
+    assert nodes["laser_reader"]["parameters"] == ["rig_devices.yaml"]
     assert nodes["controller"]["parameters"] == [str(tmp_path / "raster_params.yaml")]
     x = yaml.safe_load((tmp_path / "raster_params.yaml").read_text())["/**/x/controller"]
     assert "feedforward_table" not in x["ros__parameters"]  # feedback: no table

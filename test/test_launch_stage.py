@@ -136,14 +136,25 @@ def test_each_axis_gets_a_free_port_of_its_own(monkeypatch):
     assert g.node("laser_reader_y").overrides["url"].endswith(":" + port_y)
 
 
-def test_a_graph_that_uses_a_stage_needs_one():
-    for data in (
-        {"nodes": [{"executable": "plant", "per_axis": True}]},
-        {"nodes": [{"executable": "plant", "overrides": {"stage_file": "$(stage_file)"}}]},
-        {"nodes": [{"executable": "plant"}], "wait_for_topics": [{"topic": "a", "per_axis": True}]},
-    ):
-        with pytest.raises(GraphError, match=r"^graph graph needs a stage: give --stage FILE"):
-            parse_graph(data)
+def test_a_graph_without_a_stage_runs_one_axis_unprefixed():
+    """No stage is a stage of one axis: a per_axis entry runs once, with its own name in its own
+    namespace; the substitutions are empty, and an empty one takes its ``/`` along, so that
+    ``$(axis)/displacement`` is the one-axis topic ``displacement``."""
+    g = parse_graph(
+        {
+            "namespace": "/piezo",
+            "wait_for_topics": ["$(axis)/displacement", {"topic": "voltage", "per_axis": True}],
+            "nodes": [
+                {"executable": "voltage_driver", "overrides": {"stage_file": "$(stage_file)"}},
+                {"executable": "laser_reader", "per_axis": True, "args": ["$(axis)/x", "$(axes)"]},
+            ],
+        }
+    )
+    assert [n.name for n in g.nodes] == ["voltage_driver", "laser_reader"]
+    reader = g.node("laser_reader")
+    assert reader.namespace is None and reader.axis is None and reader.args == ("x", "")
+    assert g.node("voltage_driver").overrides["stage_file"] == ""
+    assert [w.topic for w in g.wait_for_topics] == ["displacement", "voltage"]
     assert parse_graph(
         {"nodes": [{"executable": "plant", "per_axis": True}]}, stage="xy_scanner.yaml"
     ).node("plant_y")
@@ -284,10 +295,9 @@ def test_namespaced_clock_in_entry_namespaces_is_the_graphs():
 def test_cli_dry_run_shows_every_axis(tmp_path, capsys):
     data = {k: v for k, v in SCANNER.items() if k != "stage"}
     path = write(tmp_path, data)
-    assert main(["launch", str(path), "--dry-run"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("piezo-stage launch: graph ") and "give --stage FILE" in err
-    assert "\n" not in err
+    assert main(["launch", str(path), "--dry-run"]) == 0  # no stage: one axis
+    out = capsys.readouterr().out
+    assert "laser_reader: " in out and "laser_reader_x" not in out
     assert main(["launch", str(path), "--stage", "config/xy_scanner.yaml", "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert f"# stage {XY.resolve()}: axes x (channel 1), y (channel 2)" in out
@@ -329,3 +339,21 @@ def test_the_readme_example_is_a_graph_that_expands(monkeypatch):
     assert g.node("laser_reader_y").overrides["url"].endswith(g.node("sensor_y").command[2])
     assert ns_arg(g, "controller_y") == "__ns:=/scanner/loops/y"
     assert g.topics() == ["/scanner/x/displacement", "/scanner/y/displacement"]
+
+
+def test_rig_loop_is_one_axis_as_shipped_and_every_axis_of_a_stage_given():
+    """One graph, one process for any number of axes: ``rig_loop`` without a stage is the rig's
+    one axis (its topics in the namespace itself); with ``--stage`` its driver serves the stage
+    file's axes, which the composed loop runs, and the launch waits for each axis's topics."""
+    one = load_graph("rig_loop")
+    assert one.node("voltage_driver").overrides["stage_file"] == ""
+    assert [w.topic for w in one.wait_for_topics] == ["displacement", "voltage"]
+    xy = load_graph("rig_loop", stage=XY)
+    assert xy.node("voltage_driver").overrides["stage_file"] == str(XY.resolve())
+    assert [w.topic for w in xy.wait_for_topics] == [
+        "x/displacement",
+        "y/displacement",
+        "x/voltage",
+        "y/voltage",
+    ]
+    assert {n.process for n in xy.nodes} == {"rig_loop"}

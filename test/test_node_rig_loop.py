@@ -124,11 +124,12 @@ class Rig:
         return self.emulator.applied()
 
 
-def test_rig_loop_graph_composes_the_three_nodes_into_one_process():
+def test_rig_loop_graph_composes_the_three_nodes_and_the_loops_into_one_process():
     graph = load_graph("rig_loop").with_params(["controller.k1:=5e6"])
     (host,) = graph.processes()
     assert host.name == "rig_loop" and host.module == "piezo_stage.nodes.rig_loop"
-    assert [m.name for m in host.members] == ["voltage_driver", "laser_reader", "controller"]
+    members = [m.name for m in host.members]
+    assert members == ["voltage_driver", "laser_reader", "controller", "stage_loop"]
     assert graph.node("controller").overrides["k1"] == 5e6
     assert [m.name for m in load_graph("rig_closed_loop").processes()] == [
         "voltage_driver",

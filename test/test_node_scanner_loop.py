@@ -1,9 +1,9 @@
-"""The stage's loop in one process (``scanner_loop``, graph emulated_scanner_loop): `piezo-stage
-emulate scanner` around config/xy_scanner.yaml (an E-727-class amplifier on TCP, one optoNCDT
-per axis on a pty, 2 % of x seen by y's sensor, 1 % of y by x's) and, composed, the
-stage_driver, per axis a laser_reader and a controller in ``<namespace>/<axis>``, and the loop's
-own node; over real DDS. Per-axis settings come from a params file's ``/**/<axis>/controller``
-blocks, as a user's would.
+"""The stage's loop in one process (``rig_loop`` over a stage, graph emulated_scanner_loop):
+`piezo-stage emulate scanner` around config/xy_scanner.yaml (an E-727-class amplifier on TCP,
+one optoNCDT per axis on a pty, 2 % of x seen by y's sensor, 1 % of y by x's) and, composed, the
+voltage_driver over the stage file, per axis a laser_reader and a controller in
+``<namespace>/<axis>``, and the loop's own node; over real DDS. Per-axis settings come from a
+params file's ``/**/<axis>/controller`` blocks, as a user's would.
 
 Checked from outside: each axis holds the set point its own block gives it, each axis's loop
 steps at its sensor's rate (its ``loop_samples``), the amplifier saw one multi-axis write per
@@ -104,7 +104,7 @@ def run_graph(probe, tmp_path, per_axis: dict, loop: dict, samples: int, late: f
             probe.destroy_subscription(sub)
     text = "\n".join(lines[-40:])
     assert done, text
-    assert code == 0 and any("scanner_loop exited with code 0" in line for line in lines), text
+    assert code == 0 and any("rig_loop exited with code 0" in line for line in lines), text
     records = {axis: loop_columns(batches[axis]) for axis in AXES}
     return records, read_voltage_log(log), text
 

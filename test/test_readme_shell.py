@@ -408,11 +408,11 @@ EXCLUDED: dict[str, str] = {
     ),
     "python bench/tracking.py": "a benchmark: its figures are measured on a quiet machine",
     "piezo-stage launch rig_scanner --stage my_scanner.yaml "
-    "--param stage_driver.url:=tcp://192.168.0.21:50000": (
-        "a real scanner: an amplifier at 192.168.0.21 and sensors (config/scanner_devices.yaml)"
+    "--param voltage_driver.url:=tcp://192.168.0.21:50000": (
+        "a real scanner: an amplifier at 192.168.0.21 and sensors (config/rig_devices.yaml)"
     ),
-    "piezo-stage launch rig_scanner_loop --stage my_scanner.yaml": (
-        "a real scanner: its amplifier and sensors (config/scanner_devices.yaml)"
+    "piezo-stage launch rig_loop --stage my_scanner.yaml": (
+        "a real scanner: its amplifier and sensors (config/rig_devices.yaml)"
     ),
     "python bench/scanner.py": "a benchmark: its figures are measured on a quiet machine",
     "python bench/scanner_loop.py": "a benchmark: its figures are measured on a quiet machine",
@@ -443,7 +443,7 @@ EXCLUDED: dict[str, str] = {
     ),
     "piezo-stage experiment raster --graph rig_scanner --stage my_scanner.yaml --lines 64 "
     "--pixels 128 --line-rate 2 --learn 20 --png scan/": (
-        "a real scanner: its amplifier and sensors (config/scanner_devices.yaml)"
+        "a real scanner: its amplifier and sensors (config/rig_devices.yaml)"
     ),
     "piezo-stage commission rig/ --graph rig --m 5.3e-3 --c 13 --m-std 2e-4": (
         "a real rig's devices (config/rig_devices.yaml)"

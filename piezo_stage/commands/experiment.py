@@ -75,14 +75,14 @@ ABOUT: dict[str, tuple[str, str]] = {
         "sensor saw the coupling. --output is the stage file written (each axis's model beside\n"
         "it), which --stage takes. The graphs run in real time: sim_scanner (default) the\n"
         "simulated scanner, emulated_scanner `emulate scanner`, rig_scanner the devices of\n"
-        "config/scanner_devices.yaml.",
+        "config/rig_devices.yaml.",
     ),
     "raster": (
         "a raster scan of a sample: its image, each axis's errors and the image's distortion",
         "--graph sim_scanner (default): the simulated scanner (--plant-stage) under every axis's\n"
         "ch. 11 loop with the feedforward of --stage, run in the core at any loop rate (no\n"
         "graph, not in real time). emulated_scanner (1 kHz) and rig_scanner (the devices of\n"
-        "config/scanner_devices.yaml): the scanner's loop graph, every axis in one loop thread,\n"
+        "config/rig_devices.yaml): the scanner's loop graph, every axis in one loop thread,\n"
         "in real time. The fast axis's table learns over --learn lines (on sim_scanner the slow\n"
         "axis's line correction too); the figures are the last frame's.",
     ),

@@ -7,7 +7,7 @@ the feedforward of ``stage`` (the identified model), run in the core at any loop
 graph; the real-time ``sim_scanner`` graph cannot hold a 10 kHz loop). The fast axis's table
 and the slow axis's line correction learn over ``learn`` lines; the figures are the last
 frame's. ``emulated_scanner`` (the emulated E-727-class amplifier and optoNCDT sensors around
-``plant_stage``, 1 kHz) and ``rig_scanner`` (the devices of config/scanner_devices.yaml): the
+``plant_stage``, 1 kHz) and ``rig_scanner`` (the devices of config/rig_devices.yaml): the
 scanner's loop graph, every axis in one loop thread (:mod:`.raster_graph`); there the fast
 axis's table learns and the slow axis plays its frame table.
 

@@ -1,7 +1,7 @@
 """A raster scan through a scanner's device graph (``emulated_scanner`` or ``rig_scanner``): the
-loop graph with every axis in one loop thread (``*_scanner_loop``, :mod:`piezo_stage.nodes.
-scanner_loop`), each axis's controller following its axis of the scan (a
-:class:`~piezo_stage.control.scan.ScanAxis` file as its ``trajectory``) with the scan's
+loop graph with every axis in one loop thread (``emulated_scanner_loop``, ``rig_loop`` over the
+stage: :mod:`piezo_stage.nodes.stage_loop`), each axis's controller following its axis of the
+scan (a :class:`~piezo_stage.control.scan.ScanAxis` file as its ``trajectory``) with the scan's
 feedforward tables (:func:`~piezo_stage.control.raster.raster_tables`) from one time origin.
 
 The fast axis's table learns over the first ``learn`` lines as any periodic trajectory's does
@@ -34,7 +34,7 @@ __all__ = ["DEVICE_GRAPHS", "GraphRun", "device_graph", "device_seconds", "run_o
 Progress = Callable[[float, str], None]
 
 #: the device graphs a raster runs on, and the loop graph each one runs as
-DEVICE_GRAPHS = {"emulated_scanner": "emulated_scanner_loop", "rig_scanner": "rig_scanner_loop"}
+DEVICE_GRAPHS = {"emulated_scanner": "emulated_scanner_loop", "rig_scanner": "rig_loop"}
 #: [Hz] the emulated scanner's sensors (config/graphs/emulated_scanner_loop.yaml)
 EMULATED_RATE = 1000.0
 #: the namespace of a run's bag (the graph's is the process's own)
@@ -136,7 +136,7 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
         if entry.get("executable") == "controller":
             entry["overrides"] = _controller_overrides(run.rate_hz, run.compensation, run.u_limits)
             entry["parameters"] = [*entry.get("parameters", []), str(params)]
-        elif entry.get("executable") == "stage_driver":
+        elif entry.get("executable") == "voltage_driver":
             entry["overrides"] = {**entry["overrides"], "stage_file": str(model_file)}
         elif entry.get("executable") == "stage_loop":
             entry["overrides"] = {

@@ -13,6 +13,7 @@ import difflib
 import os
 import re
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -25,8 +26,11 @@ from piezo_stage.model.stage_file import load_stage
 STAGE_VARS = ("stage_file", "axes", "channels")
 #: replaced in the entries (and topic waits) expanded per axis
 AXIS_VARS = ("axis", "channel")
+#: a graph without a stage runs one axis, unprefixed: its substitutions are empty (a node's
+#: ``stage_file`` "" is its one axis; ``$(axis)/displacement`` is ``displacement``)
+ONE_AXIS = dict.fromkeys((*STAGE_VARS, *AXIS_VARS), "")
 _KNOWN = (*STAGE_VARS, *AXIS_VARS, "free_port")
-_VAR_RE = re.compile(r"\$\((\w+)\)")
+_VAR_RE = re.compile(r"\$\((\w+)\)(/?)")
 _LEFT_RE = re.compile(r"\$\((\w+)[^)]*\)?")
 
 
@@ -107,14 +111,22 @@ def uses(value: Any, names: tuple[str, ...]) -> bool:
 
 def substitute(value: Any, values: Mapping[str, str]) -> Any:
     """``value`` (YAML data) with ``$(NAME)`` replaced by ``values[NAME]`` in every string, keys
-    included; other ``$(...)`` stay (``$(free_port NAME)`` comes after)."""
+    included (an empty value takes the ``/`` after it along); other ``$(...)`` stay
+    (``$(free_port NAME)`` comes after)."""
     if isinstance(value, str):
-        return _VAR_RE.sub(lambda m: values.get(m.group(1), m.group(0)), value)
+        return _VAR_RE.sub(partial(_replace, values), value)
     if isinstance(value, list):
         return [substitute(v, values) for v in value]
     if isinstance(value, Mapping):
         return {substitute(k, values): substitute(v, values) for k, v in value.items()}
     return value
+
+
+def _replace(values: Mapping[str, str], m: re.Match[str]) -> str:
+    name, slash = m.group(1), m.group(2)
+    if name not in values:
+        return m.group(0)
+    return values[name] + slash if values[name] else ""
 
 
 def check_leftovers(value: Any, where: str) -> None:
@@ -150,8 +162,3 @@ def per_axis_flag(item: Mapping[str, Any], where: str) -> bool:
     if not isinstance(flag, bool):
         raise GraphError(f"{where}: per_axis: expected true or false, got {flag!r}")
     return flag
-
-
-def needs_stage(where: str, why: str) -> GraphError:
-    """The error of a graph that uses the stage but was given none."""
-    return GraphError(f"graph {where} needs a stage: give --stage FILE ({why})")

@@ -62,11 +62,10 @@ import yaml
 from piezo_stage.config_path import ConfigNotFoundError, find_config, shipped_names, yaml_problem
 from piezo_stage.launch.axes import (
     AXIS_VARS,
-    STAGE_VARS,
+    ONE_AXIS,
     GraphStage,
     axis_namespace,
     check_leftovers,
-    needs_stage,
     per_axis_flag,
     read_stage,
     stage_path,
@@ -522,17 +521,12 @@ def _parse_nodes(
         entry.pop("per_axis", None)
         if not per_axis and uses(entry, AXIS_VARS):
             raise GraphError(f"{label}: $(axis) and $(channel) are for 'per_axis: true' entries")
-        if stage is None:
-            if per_axis or uses(entry, STAGE_VARS):
-                why = "is per_axis" if per_axis else "uses $(stage_file), $(axes) or $(channels)"
-                raise needs_stage(where, f"nodes[{i}] {why}")
-            out.append((label, _substituted_entry(entry, {}, ports, allocate, label, base)))
-        elif not per_axis:
-            spec = _substituted_entry(entry, stage.values, ports, allocate, label, base)
-            out.append((label, spec))
+        if per_axis and "process" in entry:
+            raise GraphError(f"{label}: a 'per_axis' entry is not composed ('process')")
+        if stage is None or not per_axis:  # no stage: one axis, a per_axis entry once
+            values = ONE_AXIS if stage is None else stage.values
+            out.append((label, _substituted_entry(entry, values, ports, allocate, label, base)))
         else:
-            if "process" in entry:
-                raise GraphError(f"{label}: a 'per_axis' entry is not composed ('process')")
             for axis, channel in stage.axes:
                 values = stage.axis_values(axis, channel)
                 axis_label = f"{label} (axis {axis})"
@@ -587,8 +581,9 @@ def _parse_waits(items: list[Any], stage: GraphStage | None, where: str) -> tupl
         if not (per_axis or uses(item, AXIS_VARS)):
             waits.append(_parse_topic_wait(item, label))
             continue
-        if stage is None:
-            raise needs_stage(where, f"wait_for_topics[{i}] is per axis")
+        if stage is None:  # one axis: the topic itself
+            waits.append(_parse_topic_wait(substitute(item, ONE_AXIS), label))
+            continue
         for axis, channel in stage.axes:
             wait = _parse_topic_wait(substitute(item, stage.axis_values(axis, channel)), label)
             if per_axis and not uses(item, AXIS_VARS):

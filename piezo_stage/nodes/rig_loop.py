@@ -1,10 +1,10 @@
-"""`rig_loop`: the rig's closed loop in one process, a stage of one axis — sensor → law →
-amplifier by direct calls. The ``voltage_driver``, ``controller`` and ``laser_reader`` nodes of
-``rig_closed_loop``, with their names, parameter tables, topics, services and /diagnostics, in
-the namespace itself, and ``stage_loop`` (the loop thread; its priority is
-``voltage_driver.realtime_priority`` unless its own is set). One implementation serves it and
-``scanner_loop``: :mod:`.stage_loop`. Run it with ``piezo-stage launch rig_loop``
-(config/graphs/rig_loop.yaml).
+"""`rig_loop`: the rig's closed loop in one process, for its one axis or every axis of a stage
+(``voltage_driver.stage_file``) — sensors → laws → amplifier by direct calls. The
+``voltage_driver``, ``controller`` and ``laser_reader`` nodes of ``rig_closed_loop``, with their
+names, parameter tables, topics, services and /diagnostics, in the namespace itself, and
+``stage_loop`` (the loop thread; its priority is ``voltage_driver.realtime_priority`` unless its
+own is set); a stage's axes each in ``<namespace>/<axis>``: :mod:`.stage_loop`. Run it with
+``piezo-stage launch rig_loop`` (config/graphs/rig_loop.yaml).
 """
 
 from __future__ import annotations

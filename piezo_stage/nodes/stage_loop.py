@@ -1,13 +1,14 @@
 """The composed loop of a stage of N >= 1 axes: every axis in one process and one loop thread —
 sensors → laws → one amplifier write per cycle, by direct calls (docs/design.md section 10).
 
-One host serves both names users type: ``rig_loop`` (the single-axis rig: the
-``voltage_driver``, ``controller`` and ``laser_reader`` of ``rig_closed_loop``, topics in the
-namespace itself) and ``scanner_loop`` (a stage file's axes on one multi-channel amplifier: the
-``stage_driver`` node, and per axis, in ``<namespace>/<axis>``, a ``controller`` and a
-``laser_reader``). Each node keeps its parameter table, topics, services and /diagnostics, as
-the separate nodes have them (as ros2_control's controller manager calls read/update/write in
-one thread while broadcasters publish). The readers' own threads never start: one loop thread
+One host, ``rig_loop``, serves a stage of any number of axes: the driver's stage (its
+``stage_file``) is the loop's. Without a stage file it is the
+single-axis rig (the ``voltage_driver``, ``controller`` and ``laser_reader`` of
+``rig_closed_loop``, topics in the namespace itself); with one, a multi-channel amplifier and
+per axis, in ``<namespace>/<axis>``, a ``controller`` and a ``laser_reader``. Each node keeps
+its parameter table, topics, services and /diagnostics, as the separate nodes have them (as
+ros2_control's controller manager calls read/update/write in one thread while broadcasters
+publish). The readers' own threads never start: one loop thread
 (:func:`~piezo_stage.control.stage_loop.run_stage_loop`) reads the sensors — one axis's with
 :class:`~piezo_stage.hardware.axis_sensor.AxisSensor` (any link: an optoNCDT stream or a PI
 controller's sensor polled, reopened when it drops), several axes' streams with
@@ -27,8 +28,7 @@ interval (5 ms by default), so the process runs with a short one
 (``controller.switch_interval``). Member parameters: ``NODE.KEY:=VALUE`` before ``--ros-args``
 for NODE a member (``controller`` and ``laser_reader`` reach every axis; ``{axis}`` in a
 reader's string value is the axis's name); per axis through params files (``/**/x/laser_reader``
-blocks, config/scanner_devices.yaml). Run them with ``piezo-stage launch rig_loop`` and
-``piezo-stage launch rig_scanner_loop``.
+blocks, config/rig_devices.yaml). Run it with ``piezo-stage launch rig_loop [--stage FILE]``.
 """
 
 from __future__ import annotations
@@ -73,7 +73,6 @@ from .qos import BATCH_QOS
 from .runtime import run, set_stamp, subscribers_matched, wall_clock
 from .settings import StageLoopSettings
 from .spec import Param, ParameterTable
-from .stage_driver import StageDriverNode
 from .voltage_driver import VoltageDriverNode
 
 PARAMETERS = ParameterTable(
@@ -452,15 +451,11 @@ class StageLoopNode(PiezoNode):
 
 @dataclass(frozen=True)
 class Host:
-    """A name the composed loop answers to: ``name`` (the process, in errors), its driver node
-    (``voltage_driver``: one axis, no stage file; ``stage_driver``: a stage file's axes)."""
+    """The composed loop's process: ``name`` (in errors) and its driver node, whose stage is the
+    loop's: its one axis, or every axis of its stage file."""
 
     name: str
     driver: type[VoltageDriverNode]
-
-    @property
-    def one_axis(self) -> bool:
-        return self.driver is VoltageDriverNode
 
     @property
     def tables(self) -> dict[str, ParameterTable[Any]]:
@@ -474,7 +469,6 @@ class Host:
 
 
 RIG_LOOP = Host("rig_loop", VoltageDriverNode)
-SCANNER_LOOP = Host("scanner_loop", StageDriverNode)
 
 
 class Sensors(Cycles, Protocol):
@@ -522,7 +516,7 @@ def sensor_pace(readers: Sequence[LaserReaderNode]) -> tuple[float, int]:
     if len(paces) > 1:
         found = ", ".join(f"{r.get_namespace()}: {r.rate:g} Hz / {r.decimation}" for r in readers)
         raise RosParameterError(
-            f"scanner_loop: every axis's laser_reader needs one rate_hz and decimation ({found})"
+            f"rig_loop: every axis's laser_reader needs one rate_hz and decimation ({found})"
         )
     return paces.pop()
 
@@ -545,15 +539,10 @@ def compose(argv: Sequence[str], namespace: str, host: Host) -> Iterator[Node]:
     driver = host.driver(handoff, overrides[host.driver.TABLE.node], namespace)
     yield driver
     base = namespace.rstrip("/")
-    if host.one_axis:
-        if driver.stage is not None:
-            raise RosParameterError(
-                f"{host.name}: voltage_driver.stage_file names a stage: {host.name} drives one "
-                "axis (a stage's loop is scanner_loop)"
-            )
+    if driver.stage is None:  # one axis: its nodes in the namespace itself
         axes = [("", namespace)]
     else:
-        axes = [(a.name, f"{base}/{a.name}") for a in driver.require_stage().axes]
+        axes = [(a.name, f"{base}/{a.name}") for a in driver.stage.axes]
     controllers: list[ControllerNode] = []
     readers: list[LaserReaderNode] = []
     for _, ns in axes:

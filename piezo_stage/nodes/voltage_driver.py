@@ -323,8 +323,8 @@ def _connect(p: VoltageDriverSettings, stage: Stage | None, node: str) -> StageD
 
 
 class VoltageDriverNode(PiezoNode):
-    """With a ``handoff``: part of a composed loop (:mod:`.stage_loop`: ``rig_loop`` for one
-    axis, ``scanner_loop`` for a stage), whose loop thread calls :meth:`set_voltages` directly;
+    """With a ``handoff``: part of a composed loop (:mod:`.stage_loop`: ``rig_loop``, one axis
+    or a stage), whose loop thread calls :meth:`set_voltages` directly;
     no voltage_command subscription (the controllers in the same process still publish the
     topic), every publication through ``handoff``; the watchdog stays in the executor's thread,
     under the node's lock."""
@@ -348,8 +348,7 @@ class VoltageDriverNode(PiezoNode):
         self.stage = _load(p.stage_file, name) if p.stage_file else None
         self.url = p.url
         if p.apply_at_stamp:
-            loop = "rig_loop" if self.stage is None else "scanner_loop"
-            check_apply_at_stamp(self, loop if handoff is not None else "")
+            check_apply_at_stamp(self, "rig_loop" if handoff is not None else "")
         self.stamps = StampPolicy(
             p.max_command_age,
             p.max_stamp_ahead,
