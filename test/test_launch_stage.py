@@ -357,3 +357,21 @@ def test_rig_loop_is_one_axis_as_shipped_and_every_axis_of_a_stage_given():
         "y/voltage",
     ]
     assert {n.process for n in xy.nodes} == {"rig_loop"}
+
+
+def test_rig_closed_loop_takes_a_stage_as_separate_nodes_per_axis():
+    """The separate nodes' form too: one axis as shipped (the names and namespace of today's
+    rig_closed_loop), with ``--stage`` a reader and a controller per axis in its namespace."""
+    one = load_graph("rig_closed_loop")
+    assert [n.name for n in one.nodes] == ["voltage_driver", "laser_reader", "controller"]
+    assert all(n.namespace is None for n in one.nodes)
+    xy = load_graph("rig_closed_loop", stage=XY)
+    assert [n.name for n in xy.nodes] == [
+        "voltage_driver",
+        "laser_reader_x",
+        "laser_reader_y",
+        "controller_x",
+        "controller_y",
+    ]
+    assert xy.node("controller_y").namespace == "y"
+    assert xy.node("voltage_driver").overrides["stage_file"] == str(XY.resolve())
