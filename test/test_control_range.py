@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.control.controller import ControllerConfig, TimeVaryingPID
@@ -22,6 +22,7 @@ from piezo_stage.control.supervision import (
     SupervisionConfig,
 )
 from piezo_stage.control.voltage_range import (
+    AMPLITUDE_TOLERANCE,
     PID_MARGIN,
     AmplifierRange,
     VoltageNeed,
@@ -96,9 +97,14 @@ def test_the_largest_amplitude_of_the_refused_rig_request():
     span=st.floats(150.0, 600.0),
     shape=st.sampled_from(["triangle", "sine", "steps"]),
 )
+# the offset alone nearly leaves the range: the answer (1.5 nm) is within the bisection's
+# tolerance of the exact one, and 1 % more of it is still admitted
+@example(offset=5e-6, amplitude=9.12508397408557e-06, u_min=48.734375, span=150.0, shape="triangle")
 def test_largest_amplitude_is_admitted_and_one_percent_more_is_not(
     offset, amplitude, u_min, span, shape
 ):
+    """The answer is admitted; 1 % more is not, or the tolerance more where that is larger
+    (the answer is exact to the tolerance times the ask)."""
     amplifier = AmplifierRange(u_min, u_min + span)
 
     def at(a: float):
@@ -112,7 +118,8 @@ def test_largest_amplitude_is_admitted_and_one_percent_more_is_not(
     assert (best == amplitude) == amplifier.admits(need)
     if 0.0 < best < amplitude / 1.01:
         assert amplifier.admits(voltage_need(RIG, at(best)))
-        assert not amplifier.admits(voltage_need(RIG, at(1.01 * best)))
+        more = max(1.01 * best, best + AMPLITUDE_TOLERANCE * amplitude)
+        assert not amplifier.admits(voltage_need(RIG, at(more)))
 
 
 @settings(max_examples=examples(25), deadline=None)

@@ -107,3 +107,59 @@ def test_the_origin_is_found_when_the_first_sample_was_not_stepped_on():
     run = decode(SCAN, columns, 4, None)
     # the run's time starts at the origin: the fast axis's first kept sample 1 ms after it
     assert run.t[0] == pytest.approx(1e-3)
+
+
+def test_on_the_simulated_scanner_its_plant_steps_in_lockstep_under_a_controller_per_axis(
+    tmp_path,
+):
+    """sim_scanner: the plant node on the graph's own clock in lockstep, the core's ideal
+    amplifiers and range; a controller node per axis on that clock, every sample's state."""
+    tables = raster_tables(SCAN, STAGE, 2000.0)
+    run = GraphRun("sim_scanner", SCAN, STAGE, None, tables, 2000.0, "both", True, 4, (-450, 450))
+    graph = device_graph(run, tmp_path, "/r")
+    assert graph["clock"] == "namespaced" and graph["stage"] == str(tmp_path / "model.yaml")
+    plant, controller = graph["nodes"]
+    assert plant["executable"] == "stage_plant"
+    assert plant["overrides"]["clock_mode"] == "lockstep"
+    assert plant["overrides"]["rate_hz"] == 2000.0
+    assert plant["overrides"]["amplifier_bandwidth_hz"] == 0.0
+    assert (plant["overrides"]["v_min"], plant["overrides"]["v_max"]) == (-450, 450)
+    assert "model_file" not in plant["overrides"]  # the stage file's models
+    assert controller["executable"] == "controller" and controller["per_axis"] is True
+    overrides = controller["overrides"]
+    assert overrides["use_sim_time"] is True and overrides["sensor_qos"] == "reliable"
+    assert overrides["topics_rate_hz"] == 2000.0 and overrides["rate_hz"] == 2000.0
+    assert controller["parameters"] == [str(tmp_path / "raster_params.yaml")]
+
+
+def test_every_state_of_a_lockstep_run_becomes_a_sample_of_its_axis():
+    """controller_state, one message a sample, in any arrival order: the loop_samples columns
+    the raster decodes, the position x1 + reference."""
+    from rclpy.serialization import serialize_message
+
+    from piezo_stage.experiments.raster_graph import state_columns
+    from piezo_stage_msgs.msg import ControllerState
+
+    items = []
+    for k in (2, 0, 1):
+        msg = ControllerState(reference=1e-6 * k, x1=-1e-9, u=10.0 * k, loop_closed=k > 0)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 5, 1_000_000 * k
+        items.append((5_000_000_000 + 1_000_000 * k, serialize_message(msg)))
+    columns = state_columns(items)
+    assert columns["stamp"].tolist() == [5_000_000_000, 5_001_000_000, 5_002_000_000]
+    np.testing.assert_allclose(columns["displacement"], [-1e-9, 1e-6 - 1e-9, 2e-6 - 1e-9])
+    assert columns["u"].tolist() == [0.0, 10.0, 20.0]
+    assert columns["loop_closed"].tolist() == [False, True, True]
+
+
+@pytest.mark.parametrize("name", ["piezo_raster__hw6o6gy", "piezo_raster_-x-", "a--b", "_9"])
+def test_a_runs_namespace_is_a_ros_name_whatever_its_folder_is_called(tmp_path, name):
+    """A temporary folder's name may hold ``-`` or ``_`` anywhere: the run's namespace is a
+    valid ROS name (no ``__``, no trailing ``_``), which rclpy refuses to start a node in."""
+    from rclpy.validate_namespace import validate_namespace
+
+    from piezo_stage.experiments.raster_graph import run_namespace
+
+    namespace = run_namespace(tmp_path / name)
+    assert validate_namespace(namespace)
+    assert "__" not in namespace and namespace.startswith("/raster_")

@@ -111,7 +111,7 @@ def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
     """stage_plant (xy scanner, 100 Hz) in lockstep, driven from the probe node: at each tick of
     its /clock, both axes' commands stamped with it (x a ramp to 100 V, y 50 V after 20 steps);
     step 0 is answered on x alone first, and how long the plant then waits for y is returned
-    with every sample of each axis, paired by stamp."""
+    with every sample of each axis (step 0 once: it is offered again while y holds it)."""
     from rosgraph_msgs.msg import Clock
 
     from piezo_stage.nodes.qos import LOCKSTEP_QOS
@@ -143,18 +143,23 @@ def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
         stamp = ticks[0].clock
         cmd["x"].publish(Voltage(voltage=0.0, header=_header(stamp)))
         spin_until(node, lambda: False, 1.0)
-        held = len(ticks)  # step 0 waits for y's answer
+        held = {t.clock.sec * 10**9 + t.clock.nanosec for t in ticks}  # y holds step 0
+        again = len(ticks)
         cmd["y"].publish(Voltage(voltage=0.0, header=_header(stamp)))
         for k in range(1, steps):
-            assert spin_until(node, lambda k=k: len(ticks) > k, 30.0), f"no step {k}"
-            stamp = ticks[k].clock
+            assert spin_until(node, lambda k=k: len(ticks) >= again + k, 30.0), f"no step {k}"
+            stamp = ticks[again + k - 1].clock
             for axis in "xy":
                 value = 100.0 * min(k, 40) / 40 if axis == "x" else (50.0 if k >= 20 else 0.0)
                 cmd[axis].publish(Voltage(voltage=value, header=_header(stamp)))
-        assert spin_until(node, lambda: min(len(xs["x"]), len(xs["y"])) >= steps, 30.0)
+        last = (steps - 1) * round(1e9 / RATE)  # every step's sample, step 0's repeats aside
+        assert spin_until(node, lambda: all(v and _ns(v[-1]) >= last for v in xs.values()), 30.0)
     finally:
         stop(proc)
-    return xs["x"][:steps], xs["y"][:steps], held
+    once = {
+        a: [m for i, m in enumerate(v) if i == 0 or _ns(m) > _ns(v[i - 1])] for a, v in xs.items()
+    }
+    return once["x"][:steps], once["y"][:steps], held
 
 
 def _header(stamp):
@@ -165,10 +170,11 @@ def _header(stamp):
 
 def test_lockstep_steps_once_every_axis_has_answered_and_repeats_exactly(node):
     """clock_mode lockstep: step k is taken once each axis's command stamped t_k has come (x's
-    alone holds it), the samples are stamped t0 + k/rate_hz on both axes, and a second run of
-    the same commands gives the same samples, bit for bit."""
+    alone holds it: step 0 is offered again, never step 1), the samples are stamped
+    t0 + k/rate_hz on both axes, and a second run of the same commands gives the same samples,
+    bit for bit."""
     x1, y1, held = _lockstep_drive(node, "/stage_lockstep_a", 60)
-    assert held == 1  # step 0 only, however long y took
+    assert held == {0}  # step 0 only, however long y took
     period = round(1e9 / RATE)
     assert [_ns(m) for m in x1] == [_ns(m) for m in y1] == [k * period for k in range(60)]
     assert x1[-1].displacement > 5e-6  # x driven to 100 V

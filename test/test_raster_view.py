@@ -1,8 +1,9 @@
 """`piezo-stage experiment raster --view`: the run watched live. A short raster on the simulated
-scanner with its view on a free port: the line it prints says where (the URL, the ROS domain and
-namespace); a Foxglove client connected there sees the scan image build up (a line not yet
-scanned, then none) and, once the scan is done, the experiment's own image: the last frame of
-the samples in its bag, placed as the experiment's figures place them."""
+scanner (in the core, and through its nodes in lockstep) with its view on a free port: the
+line it prints says where (the URL, the ROS domain and namespace); a Foxglove client connected
+there sees the scan image build up (a line not yet scanned, then none) and, once the scan is
+done, the experiment's own image: the last frame of the samples in its bag, placed as the
+experiment's figures place them."""
 
 from __future__ import annotations
 
@@ -65,12 +66,14 @@ def _experiment_image(bag) -> tuple[np.ndarray, float, float]:
     return image.image, float(image.ideal.min()), float(np.ptp(image.ideal))
 
 
-def test_raster_with_view_serves_the_image_the_experiment_makes(tmp_path):
+@pytest.mark.parametrize("graph", ["core", "sim_scanner"])
+def test_raster_with_view_serves_the_image_the_experiment_makes(graph, tmp_path):
     bag = tmp_path / "bag"
     argv = [
         "piezo-stage",
         "experiment",
         "raster",
+        *("--graph", graph),
         *("--lines", str(LINES), "--pixels", str(PIXELS), "--line-rate", str(LINE_RATE)),
         *("--rate-hz", str(RATE), "--view-port", "0", "--bag", str(bag), "--json"),
     ]

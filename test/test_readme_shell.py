@@ -429,6 +429,11 @@ EXCLUDED: dict[str, str] = {
         "replays tables"
     ),
     "python bench/raster.py": "a benchmark: its figures are measured on a quiet machine",
+    "piezo-stage experiment raster --graph sim_scanner --stage xy_scanner.yaml --lines 8 "
+    "--pixels 64 --line-rate 2 --learn 8 --json": (
+        "test/test_experiment_raster_sim.py runs a smaller scan through the same nodes, against "
+        "the core and twice (the same numbers), learning checked"
+    ),
     "piezo-stage experiment raster --lines 16 --pixels 64 --view": (
         "the view on port 8765: test/test_raster_view.py runs a small raster with its view on "
         "a free port and checks the image a Foxglove client receives against the run's bag"

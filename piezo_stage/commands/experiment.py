@@ -73,18 +73,20 @@ ABOUT: dict[str, tuple[str, str]] = {
         "Each axis runs two raised-cosine voltage runs (the second 40 V higher) while the others\n"
         "hold, every sensor recorded; its steady periods give its Bouc-Wen model, what every\n"
         "sensor saw the coupling. --output is the stage file written (each axis's model beside\n"
-        "it), which --stage takes. The graphs run in real time: sim_scanner (default) the\n"
-        "simulated scanner, emulated_scanner `emulate scanner`, rig_scanner the devices of\n"
-        "config/rig_devices.yaml.",
+        "it), which --stage takes. sim_scanner (default): the simulated scanner in lockstep\n"
+        "(the same numbers on every run); in real time emulated_scanner `emulate scanner`,\n"
+        "rig_scanner the devices of config/rig_devices.yaml.",
     ),
     "raster": (
         "a raster scan of a sample: its image, each axis's errors and the image's distortion",
-        "--graph sim_scanner (default): the simulated scanner (--plant-stage) under every axis's\n"
-        "ch. 11 loop with the feedforward of --stage, run in the core at any loop rate (no\n"
-        "graph, not in real time). emulated_scanner (1 kHz) and rig_scanner (the devices of\n"
-        "config/rig_devices.yaml): the scanner's loop graph, every axis in one loop thread,\n"
-        "in real time. The fast axis's table learns over --learn lines (on sim_scanner the slow\n"
-        "axis's line correction too); the figures are the last frame's.",
+        "--graph core (default): the simulated scanner (--plant-stage) under every axis's\n"
+        "ch. 11 loop with the feedforward of --stage, stepped in this process at any loop rate\n"
+        "(no nodes: the fastest). sim_scanner: the same scanner's plant node in lockstep under\n"
+        "a controller node per axis (any rate, the same numbers on every run). emulated_scanner\n"
+        "(1 kHz) and rig_scanner (the devices of config/rig_devices.yaml): the scanner's loop\n"
+        "graph, every axis in one loop thread, in real time. The fast axis's table learns over\n"
+        "--learn lines (in the core the slow axis's line correction too); the figures are the\n"
+        "last frame's.",
     ),
 }
 
@@ -332,15 +334,15 @@ def _raster_graph_arguments(group: argparse._ArgumentGroup) -> None:
     from piezo_stage.experiments.raster import GRAPHS
 
     group.add_argument(
-        "--graph", choices=GRAPHS, default=None, help="the scanner graph (default sim_scanner)"
+        "--graph", choices=GRAPHS, default=None, help="where the scan runs (default core)"
     )
     group.add_argument(
         "--rate-hz",
         type=positive,
         default=None,
         metavar="HZ",
-        help="the loop rate [Hz] (default 10000 on sim_scanner, any rate that samples the scan; "
-        "on the device graphs their sensors' rate, 1000)",
+        help="the loop rate [Hz] (any rate that samples the scan: default 10000 in the core, "
+        "1000 on sim_scanner; on the device graphs their sensors' rate, 1000)",
     )
     group.add_argument(
         "--plant-stage",
@@ -658,7 +660,7 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     )
     from piezo_stage.control.feedforward import Compensation
     from piezo_stage.experiments import ExperimentInputError
-    from piezo_stage.experiments.raster import RasterSpec, run_raster
+    from piezo_stage.experiments.raster import CORE, RasterSpec, run_raster
 
     try:
         stage = find_user_file(args.stage)
@@ -677,7 +679,7 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
             sample = str(find_user_file(sample))
         except ConfigNotFoundError as exc:
             raise ExperimentInputError(f"--sample: {exc}") from None
-    graph = args.graph or "sim_scanner"
+    graph = args.graph or CORE
     spec = RasterSpec(
         stage,
         plant,
@@ -687,7 +689,7 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         line_rate=args.line_rate,
         range=args.range,
         centre=args.centre,
-        rate_hz=args.rate_hz or (10_000.0 if graph == "sim_scanner" else 1000.0),
+        rate_hz=args.rate_hz or (10_000.0 if graph == CORE else 1000.0),
         learn=args.learn or 0,
         compensation=Compensation(args.compensation),
         coupling_compensation=args.coupling_compensation,

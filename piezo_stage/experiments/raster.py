@@ -1,15 +1,15 @@
 """The raster experiment: a frame of a raster scan on a scanner, the image it makes of a sample,
 its errors and its distortion (docs/design.md, raster scans).
 
-``sim_scanner``: the simulated scanner (``plant_stage``) under every axis's ch. 11 loop with
-the feedforward of ``stage`` (the identified model), run in the core at any loop rate
-(:func:`piezo_stage.control.raster.raster_run`: the closed loop stepped sample by sample, no
-graph; the real-time ``sim_scanner`` graph cannot hold a 10 kHz loop). The fast axis's table
+``core``: the simulated scanner (``plant_stage``) under every axis's ch. 11 loop with the
+feedforward of ``stage`` (the identified model), stepped in this process at any loop rate
+(:func:`piezo_stage.control.raster.raster_run`: no nodes, the fastest); the fast axis's table
 and the slow axis's line correction learn over ``learn`` lines; the figures are the last
-frame's. ``emulated_scanner`` (the emulated E-727-class amplifier and optoNCDT sensors around
-``plant_stage``, 1 kHz) and ``rig_scanner`` (the devices of config/rig_devices.yaml): the
-scanner's loop graph, every axis in one loop thread (:mod:`.raster_graph`); there the fast
-axis's table learns and the slow axis plays its frame table.
+frame's. Through nodes (:mod:`.raster_graph`): ``sim_scanner`` (the simulated scanner's plant
+node in lockstep under a controller node per axis, any rate), ``emulated_scanner`` (the
+emulated E-727-class amplifier and optoNCDT sensors around ``plant_stage``, 1 kHz) and
+``rig_scanner`` (the devices of config/rig_devices.yaml), the last two every axis in one loop
+thread; there the fast axis's table learns and the slow axis plays its frame table.
 
 Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop rate
 cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
@@ -46,13 +46,15 @@ from piezo_stage.model.stage_file import Stage, load_stage
 from .coupling import graph_rate
 from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
-from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, GraphRun, run_on_graph
+from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, NODE_GRAPHS, GraphRun, run_on_graph
 from .raster_view import RasterView, loop_batches
 
-__all__ = ["GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
+__all__ = ["CORE", "GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
 
+#: the loop stepped in this process, no nodes (any rate, the fastest)
+CORE = "core"
 #: the graphs the raster runs on
-GRAPHS = ("sim_scanner", *DEVICE_GRAPHS)
+GRAPHS = (CORE, *NODE_GRAPHS)
 
 Progress = Callable[[float, str], None]
 
@@ -63,7 +65,7 @@ class RasterSpec:
 
     stage: Path  #: the model the controllers use
     plant_stage: Path | None = None  #: the simulated scanner (None: ``stage``)
-    graph: str = "sim_scanner"
+    graph: str = CORE
     lines: int = 64
     pixels: int = 256
     line_rate: float = 10.0  #: [Hz] lines (fast-axis periods) per second
@@ -221,7 +223,7 @@ def _one_run(
     """One run of the plan's scan under ``compensation`` (``tables``: None, the model's),
     watched by ``view`` (its namespace, and a simulated run's samples fed to it)."""
     graph, rate = plan.common.graph, plan.common.rate_hz
-    if graph not in DEVICE_GRAPHS:
+    if graph == CORE:
         return raster_run(
             plan.scan,
             plan.model,
@@ -253,6 +255,9 @@ def _one_run(
         plan.amplifier,
     )
     with tempfile.TemporaryDirectory(prefix="piezo_raster_") as folder:
+        if graph not in DEVICE_GRAPHS:  # the lockstep graph: recorded and watched from here
+            watch = None if view is None else view.feed
+            return run_on_graph(run, Path(folder), say, watch=watch)
         namespace = None if view is None else view.namespace
         return run_on_graph(run, Path(folder), say, bag=bag, namespace=namespace)
 

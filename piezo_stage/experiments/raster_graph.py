@@ -1,20 +1,26 @@
-"""A raster scan through a scanner's device graph (``emulated_scanner`` or ``rig_scanner``): the
-loop graph with every axis in one loop thread (``emulated_scanner_loop``, ``rig_loop`` over the
-stage: :mod:`piezo_stage.nodes.stage_loop`), each axis's controller following its axis of the
+"""A raster scan through a scanner's nodes, each axis's controller following its axis of the
 scan (a :class:`~piezo_stage.control.scan.ScanAxis` file as its ``trajectory``) with the scan's
 feedforward tables (:func:`~piezo_stage.control.raster.raster_tables`) from one time origin.
 
+- ``sim_scanner``: the simulated stage's plant node in lockstep (its clock waits for every
+  axis's command) under a controller node per axis: deterministic, at any rate, the same
+  numbers on any host; every sample of each axis recorded from its ``controller_state``.
+- ``emulated_scanner``, ``rig_scanner``: the loop graph with every axis in one loop thread
+  (``emulated_scanner_loop``, ``rig_loop`` over the stage: :mod:`piezo_stage.nodes.stage_loop`)
+  at the sensors' rate; every sample recorded from each axis's ``loop_samples``.
+
 The fast axis's table learns over the first ``learn`` lines as any periodic trajectory's does
 (its controller's ``learn_periods``); the slow axis plays its frame table (the node has no line
-correction). Every sample of both axes is recorded (``loop_samples``); the slow axis's
-position is taken at the fast axis's samples (linear interpolation: the sensors are not
-synchronous), and the scan's time origin is checked against the recorded set points.
+correction). The slow axis's position is taken at the fast axis's samples (linear
+interpolation: a device graph's sensors are not synchronous), and the scan's time origin is
+checked against the recorded set points.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -29,14 +35,25 @@ from piezo_stage.model.stage_file import Stage, save_stage
 
 from .errors import ExperimentError
 
-__all__ = ["DEVICE_GRAPHS", "GraphRun", "device_graph", "device_seconds", "run_on_graph"]
+__all__ = [
+    "DEVICE_GRAPHS",
+    "LOCKSTEP_GRAPH",
+    "NODE_GRAPHS",
+    "GraphRun",
+    "device_graph",
+    "device_seconds",
+    "run_namespace",
+    "run_on_graph",
+]
 
 Progress = Callable[[float, str], None]
 
 #: the device graphs a raster runs on, and the loop graph each one runs as
 DEVICE_GRAPHS = {"emulated_scanner": "emulated_scanner_loop", "rig_scanner": "rig_loop"}
-#: [Hz] the emulated scanner's sensors (config/graphs/emulated_scanner_loop.yaml)
-EMULATED_RATE = 1000.0
+#: the simulated scanner's graph: its plant node in lockstep, a controller node per axis
+LOCKSTEP_GRAPH = "sim_scanner"
+#: the graphs a raster runs through as nodes (the core runs none)
+NODE_GRAPHS = (LOCKSTEP_GRAPH, *DEVICE_GRAPHS)
 #: the namespace of a run's bag (the graph's is the process's own)
 BAG_NAMESPACE = "/raster"
 #: the recorded messages' types in a bag
@@ -80,24 +97,42 @@ def device_seconds(scan: RasterScan, learn: int) -> float:
     return frames_to_run(scan, learn) * scan.frame_time
 
 
-def _controller_overrides(
-    rate_hz: float, compensation: str, u_limits: tuple[float, float]
-) -> dict[str, Any]:
+def _controller_overrides(run: GraphRun) -> dict[str, Any]:
     from .harness import node_overrides
     from .presets import experiment_controller
 
-    values = experiment_controller(rate_hz, "pid", delay_samples=0)
+    values = experiment_controller(run.rate_hz, "pid", delay_samples=0)
     values |= {
         "reference_source": "trajectory",
-        "compensation": compensation,
-        "u_min": u_limits[0],
-        "u_max": u_limits[1],
+        "compensation": run.compensation,
+        "u_min": run.u_limits[0],
+        "u_max": run.u_limits[1],
         "topics_rate_hz": 100.0,
         # a loaded host stalls the loop now and then: hold through a stall, as the scanner's
         # loop tests do, rather than open both loops for the rest of the frame
         "max_gap": MAX_GAP,
     }
+    if run.graph == LOCKSTEP_GRAPH:  # on the plant's clock; every sample's state recorded
+        values |= {"use_sim_time": True, "sensor_qos": "reliable", "topics_rate_hz": run.rate_hz}
     return node_overrides("controller", values)
+
+
+def _lockstep_nodes(run: GraphRun, nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The simulated scanner's nodes: its plant in lockstep at the run's rate with the run's
+    amplifier range, and a controller per axis (which holds step 0 until the record listens).
+    """
+    from .presets import lockstep_plant
+
+    # ideal amplifiers, as the core's scanner: the tables are the sampled loop's staircase
+    plant = lockstep_plant(None, run.rate_hz, *run.u_limits, amplifier_bandwidth_hz=0.0)
+    del plant["model_file"]  # the stage file's models
+    out = [
+        {**n, "overrides": {**n.get("overrides", {}), **plant}}
+        if n.get("executable") == "stage_plant"
+        else n
+        for n in nodes
+    ]
+    return [*out, {"executable": "controller", "per_axis": True}]
 
 
 def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
@@ -108,7 +143,8 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
     from piezo_stage.yaml_values import load_yaml
 
     scan, model, tables, learn = run.scan, run.model, run.tables, run.learn
-    data = dict(load_yaml(find_graph(DEVICE_GRAPHS[run.graph]).read_text(encoding="utf-8")))
+    loop_graph = DEVICE_GRAPHS.get(run.graph, run.graph)
+    data = dict(load_yaml(find_graph(loop_graph).read_text(encoding="utf-8")))
     model_file = save_stage(model, folder / "model.yaml")
     fast, slow = model.names[0], model.names[1]
     per_axis: dict[str, dict[str, Any]] = {}
@@ -130,11 +166,15 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
         per_axis[axis] = values
     params = folder / "raster_params.yaml"
     params.write_text(_params_yaml(per_axis), encoding="utf-8")
+    entries = list(data["nodes"])
+    if run.graph == LOCKSTEP_GRAPH:
+        entries = _lockstep_nodes(run, entries)
+        data["clock"] = "namespaced"  # the plant's: several runs side by side
     nodes = []
-    for entry in data["nodes"]:
+    for entry in entries:
         entry = dict(entry)
         if entry.get("executable") == "controller":
-            entry["overrides"] = _controller_overrides(run.rate_hz, run.compensation, run.u_limits)
+            entry["overrides"] = _controller_overrides(run)
             entry["parameters"] = [*entry.get("parameters", []), str(params)]
         elif entry.get("executable") == "voltage_driver":
             entry["overrides"] = {**entry["overrides"], "stage_file": str(model_file)}
@@ -194,25 +234,23 @@ def run_on_graph(
     wall_timeout: float = 600.0,
     bag: Path | None = None,
     namespace: str | None = None,
+    watch: Callable[[RasterRun], None] | None = None,
 ) -> RasterRun:
     """Launch the graph, record every sample of the two scan axes over the run's frames, and
     decode them; the learned fast table (if it learned) replaces the one given. ``bag``: the
-    record (each axis's ``loop_samples`` and ``controller_state``) written there. The graph
-    runs in ``namespace`` (default: one of the process's own)."""
-    from piezo_stage.bag.reader import loop_columns
-    from piezo_stage_msgs.msg import ControllerState, LoopSamples
+    record (each axis's ``loop_samples`` and ``controller_state``) written there (a device
+    graph's). The graph runs in ``namespace`` (default: one of the process's own). ``watch``
+    (the lockstep graph's) is given each stretch of both axes as it is recorded."""
+    from .harness import HarnessError, Raw, record
 
-    from .harness import HarnessError, Raw, Stream, record
-
-    namespace = namespace or f"/raster_{os.getpid()}_{folder.name.replace('-', '_')}"
+    namespace = namespace or run_namespace(folder)
     graph = device_graph(run, folder, namespace)
     scan, learn, tables, graph_name = run.scan, run.learn, run.tables, run.graph
     axes = run.model.names[:2]
     seconds = device_seconds(scan, learn)
-    topics = [f"{a}/loop_samples" for a in axes]
-    streams = [Stream(t, LoopSamples, reliable=True, depth=1000) for t in topics]
-    # every controller waits for its state's subscriber: the recorder sees the first step
-    streams += [Stream(f"{a}/controller_state", ControllerState) for a in axes]
+    lockstep = graph_name == LOCKSTEP_GRAPH
+    topics, streams = _streams(axes, lockstep)
+    feed = _Feed(scan, topics, watch) if lockstep and watch is not None else None
 
     def done_seconds(raw: Any) -> float:
         items = raw[topics[0]]
@@ -221,6 +259,8 @@ def run_on_graph(
     def note(raw: Raw) -> None:
         done = done_seconds(raw)
         progress(min(done / seconds, 1.0), f"scanning on the {graph_name} graph: {done:.1f} s")
+        if feed is not None:
+            feed.update(raw)
 
     try:
         recording = record(
@@ -236,26 +276,101 @@ def run_on_graph(
     except HarnessError as exc:
         raise ExperimentError(f"raster on the {graph_name} graph: {exc.with_output()}") from None
     progress(1.0, f"scanning on the {graph_name} graph: {seconds:.1f} s")
-    from rclpy.serialization import deserialize_message
-
+    if feed is not None:
+        feed.update(recording.raw)
     if bag is not None:  # under /raster, as a simulated run's bag
         types = {s.topic: _TYPES[s.msg_type.__name__] for s in streams}
         replace(recording, namespace=BAG_NAMESPACE).write_bag(bag, types, sort=True)
     columns = tuple(
-        loop_columns((deserialize_message(d, LoopSamples) for _, d in recording.raw[t]), t)
-        for t in topics
+        (state_columns if lockstep else _loop_columns)(recording.raw[t], t) for t in topics
     )
-    learned = folder / f"learned_{axes[0]}.json"
-    if learn and tables is not None and learned.exists():
-        try:
-            tables = RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
-        except LearningError as exc:
-            raise ExperimentError(f"the learned table: {exc}") from None
+    if learn and tables is not None:
+        tables = _learned(tables, folder / f"learned_{axes[0]}.json")
     result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
     result.failed = run_failure(columns, axes)
     return result
+
+
+def run_namespace(folder: Path) -> str:
+    """A namespace of the process's own for a run in ``folder``: a ROS name (letters, digits and
+    single underscores; a temporary folder's name may hold ``-`` or ``__``)."""
+    return "/" + re.sub(r"[^A-Za-z0-9]+", "_", f"raster_{os.getpid()}_{folder.name}").strip("_")
+
+
+def _streams(axes: tuple[str, ...], lockstep: bool) -> tuple[list[str], list[Any]]:
+    """The topics of every sample of each axis, and every stream the run records."""
+    from piezo_stage_msgs.msg import ControllerState, LoopSamples
+
+    from .harness import Stream
+
+    if lockstep:  # every sample's state, on the plant's clock (step 0 may be offered twice)
+        topics = [f"{a}/controller_state" for a in axes]
+        return topics, [Stream(t, ControllerState, monotonic=True) for t in topics]
+    topics = [f"{a}/loop_samples" for a in axes]
+    streams = [Stream(t, LoopSamples, reliable=True, depth=1000) for t in topics]
+    # every controller waits for its state's subscriber: the recorder sees the first step
+    return topics, streams + [Stream(f"{a}/controller_state", ControllerState) for a in axes]
+
+
+def _learned(tables: RasterTables, learned: Path) -> RasterTables:
+    """The tables with the fast one its controller learned (saved at ``learned``), if it did."""
+    if not learned.exists():
+        return tables
+    try:
+        return RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
+    except LearningError as exc:
+        raise ExperimentError(f"the learned table: {exc}") from None
+
+
+def _loop_columns(items: list[tuple[int, bytes]], topic: str) -> dict[str, Any]:
+    """A ``loop_samples`` record as :func:`~piezo_stage.bag.reader.loop_columns`."""
+    from rclpy.serialization import deserialize_message
+
+    from piezo_stage.bag.reader import loop_columns
+    from piezo_stage_msgs.msg import LoopSamples
+
+    return loop_columns((deserialize_message(d, LoopSamples) for _, d in items), topic)
+
+
+def state_columns(items: list[tuple[int, bytes]], topic: str = "") -> dict[str, Any]:
+    """A ``controller_state`` record (one message a sample) as the ``loop_samples`` columns
+    the raster reads: stamp [ns], reference, displacement (x1 + reference), u, u_ff,
+    loop_closed."""
+    from .harness import ControllerStates
+
+    items = sorted(items, key=lambda p: p[0])
+    states = ControllerStates.decode(items)
+    return {
+        "stamp": np.array([ns for ns, _ in items], dtype=np.int64),
+        "reference": states.reference,
+        "displacement": states.x,
+        "u": states.u,
+        "u_ff": states.u_ff,
+        "loop_closed": states.loop_closed,
+    }
+
+
+class _Feed:
+    """A lockstep run's record given to ``watch`` as it grows: the stretch of both axes since
+    the last update, t from the first recorded state (the scan's origin: both controllers
+    start on the plant's first sample)."""
+
+    def __init__(self, scan: RasterScan, topics: list[str], watch: Callable[[RasterRun], None]):
+        self.scan, self.topics, self.watch = scan, topics, watch
+        self.done = 0
+
+    def update(self, raw: Any) -> None:
+        n = min(len(raw[t]) for t in self.topics)
+        if n <= self.done:
+            return
+        columns = [state_columns(raw[t][self.done : n]) for t in self.topics]
+        t0 = raw[self.topics[0]][0][0]
+        self.done = n
+        both = {k: np.vstack([c[k] for c in columns]) for k in ("reference", "displacement", "u")}
+        t = (columns[0]["stamp"] - t0) * 1e-9
+        self.watch(RasterRun(self.scan, t, both["reference"], both["displacement"], both["u"]))
 
 
 def run_failure(columns: tuple[dict[str, Any], ...], axes: tuple[str, ...]) -> str | None:

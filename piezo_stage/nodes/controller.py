@@ -163,6 +163,7 @@ class ControllerNode(PiezoNode):
         on_set(self, self._check_params)
         self.add_post_set_parameters_callback(self._after_set)
         self._wait_subs = int(s.wait_for_state_subscribers)
+        self._stepped_at = -math.inf  # [s] the last sample stepped on (trigger: sample)
         self._handoff = handoff
         self.last_step: ControlOutput | None = None
 
@@ -291,13 +292,16 @@ class ControllerNode(PiezoNode):
 
     def _on_displacement(self, msg: Displacement) -> None:
         t = stamp_seconds(msg.header.stamp)
+        if t <= self._stepped_at:
+            return  # a sample stepped on already (a lockstep plant's step 0 offered again)
         ok = msg.status == Displacement.OK and math.isfinite(msg.displacement)
         if not self.supervisor.sample(t, msg.displacement, ok):
             self._send_hold(t)
             return
         if self._trigger is StepTrigger.SAMPLE:
             if self._waiting_for_subscribers():
-                return  # the lockstep plant re-offers step 0 until a command answers it
+                return  # the lockstep plant offers step 0 again until every axis answers it
+            self._stepped_at = t
             self._step(t, msg.header.stamp)
 
     def on_sample(

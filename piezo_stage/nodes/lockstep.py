@@ -6,7 +6,10 @@ trigger, the controller's sample trigger) and only then integrates to t_k + 1/ra
 ``lockstep_timeout`` wall seconds without them it advances with the held commands and counts a
 late step. Identical inputs give identical samples, as fast as the graph can go. Stepping
 starts once every axis's ``voltage_command`` has a publisher (``wait_for_commander``) and the
-sample publishers have ``wait_for_subscribers`` matched subscribers each.
+sample publishers have ``wait_for_subscribers`` matched subscribers each. Step 0 waits for
+every axis: it is offered again every ``REOFFER_AFTER`` until each has answered (a commander
+may have just appeared, or hold step 0 until its own recorder listens), the answers given
+kept, so that every axis starts on the same sample.
 """
 
 from __future__ import annotations
@@ -20,8 +23,7 @@ from rosgraph_msgs.msg import Clock
 from .qos import LOCKSTEP_QOS
 from .runtime import subscribers_matched
 
-#: wall seconds a step 0 nobody answered waits before it is offered again (a commander that
-#: has just appeared may have missed it)
+#: wall seconds a step 0 not every axis answered waits before it is offered again
 REOFFER_AFTER = 0.1
 
 
@@ -58,7 +60,6 @@ class LockstepClock:
         self._answered = [False] * len(self._commands)
         self._waiting_since = 0.0
         self._sample_first = False
-        self._heard = False  # any command answered a step
         self._pub_clock = node.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
         node.create_timer(min(0.01, max(timeout, 1e-3) / 4), self._watch)
 
@@ -75,7 +76,6 @@ class LockstepClock:
         ns: int = stamp.sec * 1_000_000_000 + stamp.nanosec
         if abs(ns - (self._t0_ns + self.k * self._dt_ns)) >= self._dt_ns // 2:
             return
-        self._heard = True
         self._answered[axis] = True
         if all(self._answered):
             self._advance()
@@ -85,9 +85,11 @@ class LockstepClock:
         self.k += 1
         self._emit()
 
-    def _emit(self) -> None:
+    def _emit(self, again: bool = False) -> None:
+        """Publish step k (``again``: a step 0 offered again, the answers given kept)."""
         stamp = self.stamp()
-        self._answered = [False] * len(self._commands)
+        if not again:
+            self._answered = [False] * len(self._commands)
         if self._sample_first:  # a sample-triggered commander (controller) waits for the sample
             self._emit_samples(stamp)
             self._pub_clock.publish(Clock(clock=stamp))
@@ -128,10 +130,10 @@ class LockstepClock:
                 self._emit()
             return
         waited = time.monotonic() - self._waiting_since
-        if self.k == 0 and not self._heard and waited > REOFFER_AFTER:
-            # same stamp and values: subscribers see a duplicate of step 0 at most
-            self._sample_first = self._commanders_read_samples()
-            self._emit()
+        if self.k == 0:  # same stamp and values: a commander that answered ignores it
+            if waited > REOFFER_AFTER:
+                self._sample_first = self._commanders_read_samples()
+                self._emit(again=True)
             return
         if self._timeout > 0 and waited > self._timeout:
             self.late += 1
