@@ -260,8 +260,8 @@ def main() -> int:
         check("sim_closed_loop / (2 x floor)", total / (2 * floor_share), 1.3)
     if "sim_scanner" in results:
         check(
-            "sim_scanner: stage plant / floor",
-            results["sim_scanner"]["stage_plant"] / floor_share,
+            "sim_scanner: the plant / floor",
+            results["sim_scanner"]["plant"] / floor_share,
             0.5,
         )
     return exit_code()

@@ -102,11 +102,8 @@ def render_settings() -> str:
         else owner[e].title().replace("_", "") + e.__name__
         for e in enums
     }
-    classes, rendered = [], set()
+    classes = []
     for table in tables():
-        if table.settings_class in rendered:  # a table sharing another's class (stage_plant)
-            continue
-        rendered.add(table.settings_class)
         lines = [f"@dataclass(frozen=True)\nclass {table.settings_class.__name__}:\n"]
         doc = textwrap.fill(f"``{table.node}``: {table.summary}", 89, subsequent_indent="    ")
         lines.append(f'    """{doc}"""\n\n')

@@ -72,7 +72,7 @@ def test_an_emulator_without_a_range_is_checked_against_its_defaults():
 def test_a_graphs_range_is_the_narrowest_its_entries_set(plant, law):
     """A plant's v_min/v_max and a controller's u_min/u_max: the graph's range is both at once."""
     nodes = [
-        {"executable": "stage_plant", "overrides": {"v_min": plant[0], "v_max": plant[1]}},
+        {"executable": "plant", "overrides": {"v_min": plant[0], "v_max": plant[1]}},
         {"executable": "controller", "overrides": {"u_min": law[0], "u_max": law[1]}},
     ]
     low, high = parse_graph({"nodes": nodes}).amplifier_range

@@ -119,7 +119,7 @@ def test_on_the_simulated_scanner_its_plant_steps_in_lockstep_under_a_controller
     graph = device_graph(run, tmp_path, "/r")
     assert graph["clock"] == "namespaced" and graph["stage"] == str(tmp_path / "model.yaml")
     plant, controller = graph["nodes"]
-    assert plant["executable"] == "stage_plant"
+    assert plant["executable"] == "plant"
     assert plant["overrides"]["clock_mode"] == "lockstep"
     assert plant["overrides"]["rate_hz"] == 2000.0
     assert plant["overrides"]["amplifier_bandwidth_hz"] == 0.0

@@ -84,15 +84,6 @@ def test_settings_are_typed_and_kept_current_by_updated():
 
 
 @pytest.mark.unit
-def test_with_defaults_keeps_everything_else():
-    other = TABLE.with_defaults({"v_max": 50.0})
-    assert other["v_max"].default == 50.0 and other["v_max"].range == (0.0, 200.0)
-    assert TABLE["v_max"].default == 100.0
-    with pytest.raises(KeyError):
-        TABLE.with_defaults({"nope": 1})
-
-
-@pytest.mark.unit
 @pytest.mark.parametrize("name", NODES)
 def test_every_node_has_a_well_formed_table(name):
     table = importlib.import_module(f"piezo_stage.nodes.{name}").PARAMETERS

@@ -1,7 +1,7 @@
-"""stage_driver node over real DDS against an emulated E-727-class GCS controller (three axes,
-axis i on output channel i) run in this process: each axis commanded on its own topic reaches
-its channel, and the safety rules hold per axis on what the emulated device received (its
-per-axis voltage log and its command lines)."""
+"""voltage_driver over a stage, over real DDS, against an emulated E-727-class GCS controller
+(three axes, axis i on output channel i) run in this process: each axis commanded on its own
+topic reaches its channel, and the safety rules hold per axis on what the emulated device
+received (its per-axis voltage log and its command lines)."""
 
 from __future__ import annotations
 
@@ -55,15 +55,15 @@ def device():
 
 
 class StageNode:
-    """A stage_driver process (config/xyz_scanner.yaml unless told) plus the probe's command
-    publishers, voltage subscriptions and diagnostics, per axis."""
+    """A voltage_driver process over a stage (config/xyz_scanner.yaml unless told) plus the
+    probe's command publishers, voltage subscriptions and diagnostics, per axis."""
 
     def __init__(self, probe, url: str, *params: str, stage: str = "xyz_scanner.yaml") -> None:
         from piezo_stage_msgs.msg import Voltage
 
         self.probe = probe
         self.proc = start_node(
-            "stage_driver",
+            "voltage_driver",
             f"stage_file:={stage}",
             "backend:=gcs",
             f"url:={url}",
@@ -79,8 +79,8 @@ class StageNode:
         for axis in XYZ:
             probe.create_subscription(Voltage, f"{axis}/voltage", self.voltages[axis].append, deep)
             self.cmd[axis] = probe.create_publisher(Voltage, f"{axis}/voltage_command", COMMAND_QOS)
-            self.diag[axis] = DiagnosticsProbe(probe, f"{NS}/stage_driver/{axis}")
-        self.link = DiagnosticsProbe(probe, f"{NS}/stage_driver")
+            self.diag[axis] = DiagnosticsProbe(probe, f"{NS}/voltage_driver/{axis}")
+        self.link = DiagnosticsProbe(probe, f"{NS}/voltage_driver")
         ok = spin_until(
             probe,
             lambda: (
@@ -289,7 +289,7 @@ def test_a_stage_the_device_cannot_serve_exits_2_and_nothing_is_sent(
     probe, device, tmp_path, axes, message
 ):
     proc = start_node(
-        "stage_driver",
+        "voltage_driver",
         f"stage_file:={_stage_file(tmp_path, axes)}",
         f"url:={device.url}",
         namespace=NS,
@@ -299,7 +299,7 @@ def test_a_stage_the_device_cannot_serve_exits_2_and_nothing_is_sent(
     except subprocess.TimeoutExpired:  # say where it hangs: every thread's stack (faulthandler)
         proc.send_signal(signal.SIGABRT)
         _, err = stop(proc, timeout=30.0)
-        pytest.fail(f"stage_driver did not exit within 60 s; its stacks:\n{err[-6000:]}")
+        pytest.fail(f"voltage_driver did not exit within 60 s; its stacks:\n{err[-6000:]}")
     _, err = stop(proc)
     lines = err.strip().splitlines()
     assert code == 2 and message in lines[-1] and lines[-1].startswith("error: "), err

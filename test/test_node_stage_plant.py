@@ -1,6 +1,6 @@
-"""The stage_plant node over real DDS: the xy scanner's axes in their namespaces, stepped
-together (one stamp per tick on every axis), y's sensor seeing 2 % of x's motion, NaN commands
-refused, a stage file that does not load refused with exit 2."""
+"""The plant node over a stage file, over real DDS: the xy scanner's axes in their namespaces,
+stepped together (one stamp per tick on every axis), y's sensor seeing 2 % of x's motion, NaN
+commands refused, a stage file that does not load refused with exit 2."""
 
 from __future__ import annotations
 
@@ -27,9 +27,7 @@ def _ns(msg) -> int:
 def test_x_moves_y_by_the_coupling_and_nan_moves_nothing(node):
     from piezo_stage_msgs.msg import Displacement, Voltage
 
-    proc = start_node(
-        "stage_plant", "stage_file:=xy_scanner.yaml", f"rate_hz:={RATE}", namespace=NS
-    )
+    proc = start_node("plant", "stage_file:=xy_scanner.yaml", f"rate_hz:={RATE}", namespace=NS)
     xs: dict[str, list] = {"x": [], "y": []}
     vs: dict[str, list] = {"x": [], "y": []}
     diags: list = []
@@ -99,7 +97,7 @@ def _bad_coupling(tmp_path) -> str:
     ],
 )
 def test_a_stage_file_that_does_not_load_exits_2_with_one_line(stage_file, why, tmp_path):
-    proc = start_node("stage_plant", f"stage_file:={stage_file(tmp_path)}", namespace=NS)
+    proc = start_node("plant", f"stage_file:={stage_file(tmp_path)}", namespace=NS)
     proc.wait(timeout=30.0)
     _, err = proc.communicate()
     assert proc.returncode == 2, err
@@ -108,7 +106,7 @@ def test_a_stage_file_that_does_not_load_exits_2_with_one_line(stage_file, why, 
 
 
 def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
-    """stage_plant (xy scanner, 100 Hz) in lockstep, driven from the probe node: at each tick of
+    """plant (xy scanner, 100 Hz) in lockstep, driven from the probe node: at each tick of
     its /clock, both axes' commands stamped with it (x a ramp to 100 V, y 50 V after 20 steps);
     step 0 is answered on x alone first, and how long the plant then waits for y is returned
     with every sample of each axis (step 0 once: it is offered again while y holds it)."""
@@ -118,7 +116,7 @@ def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
     from piezo_stage_msgs.msg import Displacement, Voltage
 
     proc = start_node(
-        "stage_plant",
+        "plant",
         "stage_file:=xy_scanner.yaml",
         f"rate_hz:={RATE}",
         "clock_mode:=lockstep",

@@ -49,11 +49,9 @@ def test_every_node_executable_and_loop_has_its_table():
         "laser_reader",
         "live_view",
         "plant",
-        "stage_plant",
         "player",
         "recorder",
         "scan_view",
-        "stage_driver",
         "stage_loop",  # the scanner loop's own table, beside its members'
         "voltage_driver",
     }

@@ -83,7 +83,7 @@ GRAPH_DEFAULTS = {
 }
 
 #: the entries of a scanner graph that sample its stage, each at its ``rate_hz``
-_SAMPLERS = ("stage_plant", "laser_reader")
+_SAMPLERS = ("plant", "laser_reader")
 
 
 def graph_rate(graph: str) -> float:
@@ -311,7 +311,7 @@ def _graph(stage: Stage, spec: CouplingSpec) -> dict[str, Any]:
         data["clock"] = "namespaced"
         nodes = [
             {**n, "overrides": {**n.get("overrides", {}), **_LOCKSTEP_PLANT}}
-            if n.get("executable") == "stage_plant"
+            if n.get("executable") == "plant"
             else n
             for n in nodes
         ]

@@ -128,7 +128,7 @@ def _lockstep_nodes(run: GraphRun, nodes: list[dict[str, Any]]) -> list[dict[str
     del plant["model_file"]  # the stage file's models
     out = [
         {**n, "overrides": {**n.get("overrides", {}), **plant}}
-        if n.get("executable") == "stage_plant"
+        if n.get("executable") == "plant"
         else n
         for n in nodes
     ]

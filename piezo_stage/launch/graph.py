@@ -137,7 +137,7 @@ class TopicWait:
 #: the parameters that bound the output voltage [V], per node executable
 _RANGE_KEYS = {
     "controller": ("u_min", "u_max"),
-    **{n: ("v_min", "v_max") for n in ("voltage_driver", "stage_driver", "plant", "stage_plant")},
+    **{n: ("v_min", "v_max") for n in ("voltage_driver", "plant")},
 }
 
 

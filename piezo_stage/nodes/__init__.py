@@ -14,10 +14,8 @@ DEFAULT_NAMESPACE = "/piezo"
 #: the node executables: module piezo_stage.nodes.<name>, console script <name>
 NODES = (
     "voltage_driver",
-    "stage_driver",
     "laser_reader",
     "plant",
-    "stage_plant",
     "excitation",
     "identifier",
     "controller",

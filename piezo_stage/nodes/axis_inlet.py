@@ -1,6 +1,6 @@
-"""One axis's command inlet in an amplifier node (``voltage_driver``: its axis; ``stage_driver``:
-each axis of the stage): what a ``voltage_command`` passes before it reaches the axis's driver,
-the counters of what was refused, and the play-out of ``apply_at_stamp``.
+"""One axis's command inlet in ``voltage_driver`` (its one axis, or each axis of its stage):
+what a ``voltage_command`` passes before it reaches the axis's driver, the counters of what was
+refused, and the play-out of ``apply_at_stamp``.
 
 A command is refused here, counted and logged (once a second per kind), and never written when
 its voltage is not finite, when it is older than ``max_command_age`` (late) or when its stamp is

@@ -1,6 +1,6 @@
 """What the amplifier nodes share: the :class:`~piezo_stage.hardware.driver.DriverConfig` of an
-axis, built from voltage_driver's safety parameters (``voltage_driver``: its one axis;
-``stage_driver``: every axis of the stage, from the same table entries).
+axis, built from voltage_driver's safety parameters (its one axis, or every axis of its stage
+from the same table entries).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Protocol
 
 from piezo_stage.hardware import DriverConfig
 
-#: voltage_driver's parameters that are one axis's safety rules (stage_driver: every axis's)
+#: voltage_driver's parameters that are one axis's safety rules (a stage: every axis's)
 AXIS_SAFETY = (
     "v_min",
     "v_max",

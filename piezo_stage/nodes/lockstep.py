@@ -1,4 +1,4 @@
-"""The lockstep clock of a simulated stage of N >= 1 axes (``plant``, ``stage_plant``).
+"""The lockstep clock of a simulated stage of N >= 1 axes (the ``plant`` node).
 
 The node owns ``/clock``. At step k it publishes ``/clock`` = t_k and the samples at t_k, then
 waits for every axis's ``voltage_command`` stamped t_k (any publisher: the excitation's clock

@@ -1,14 +1,14 @@
-"""`plant` node: a simulated stage of one axis or several, a drop-in for ``voltage_driver`` (or
-``stage_driver``) and one ``laser_reader`` per axis.
+"""`plant` node: a simulated stage of one axis or several, a drop-in for ``voltage_driver`` and
+one ``laser_reader`` per axis.
 
 Same topics, types and units as the rig (docs/design.md §3): per axis, subscribes
 ``voltage_command``, publishes ``voltage`` (what its amplifier applied at the sample) and
 ``displacement`` (its sensor), and ``/diagnostics``. The stage is ``model_file``'s one axis, its
 topics unprefixed, or ``stage_file``'s axes (:mod:`piezo_stage.model.stage_file`), each in
-``<axis>/``, whose sensors see the coupled displacements; ``stage_plant`` is this node with a
-stage file by default. The mathematics is :class:`piezo_stage.model.stage.CoupledStage` (per
-axis amplifier -> Bouc-Wen plant -> sensor); this node only schedules it: one tick steps every
-axis together, and a tick's messages carry one stamp.
+``<axis>/``, whose sensors see the coupled displacements. The mathematics is
+:class:`piezo_stage.model.stage.CoupledStage` (per axis amplifier -> Bouc-Wen plant -> sensor);
+this node only schedules it: one tick steps every axis together, and a tick's messages carry one
+stamp.
 
 Clocks (``clock_mode``):
 - ``realtime``: a wall-clock timer at ``rate_hz``; samples are due on the grid t0 + k/rate_hz

@@ -287,9 +287,9 @@ class ScanViewSettings:
 
 @dataclass(frozen=True)
 class VoltageDriverSettings:
-    """``stage_driver``: Multi-channel amplifier driver (PI E-727, Thorlabs MDT693B):
-    <axis>/voltage_command -> the axis's channel, limits, slew and watchdog per axis, one
-    link."""
+    """``voltage_driver``: Piezo amplifier driver (PI GCS2, Thorlabs MDT69x) of one axis or of a
+    stage's axes over one link: voltage_command -> device, with limits, slew and watchdog
+    per axis."""
 
     stage_file: str
     backend: Literal[

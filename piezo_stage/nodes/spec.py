@@ -235,16 +235,6 @@ class ParameterTable(Generic[S]):
         fields = {_field(n): _typed(self[n], v) for n, v in changed.items() if n in self}
         return replace(settings, **fields) if fields else settings  # type: ignore[type-var]
 
-    def with_defaults(self, defaults: Mapping[str, Any]) -> ParameterTable[S]:
-        """The same table with other defaults (e.g. the excitation's preset)."""
-        unknown = set(defaults) - set(self._by_name)
-        if unknown:
-            raise KeyError(f"{self.node}: no parameter {sorted(unknown)}")
-        params = tuple(
-            replace(p, default=defaults[p.name]) if p.name in defaults else p for p in self.params
-        )
-        return replace(self, params=params)
-
     def suggest(self, name: str) -> str:
         """``" (did you mean 'v_max'?)"`` for the closest valid name, or ''."""
         near = difflib.get_close_matches(name, self.names, n=1, cutoff=0.5)

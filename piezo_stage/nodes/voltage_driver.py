@@ -1,6 +1,5 @@
 """`voltage_driver` node: the amplifier (PI GCS2 or Thorlabs MDT69x) behind ``voltage_command``,
-for one axis or for every axis of a stage over one link (``stage_driver`` is this node with a
-stage file by default; docs/design.md §3, §10).
+for one axis or for every axis of a stage over one link (docs/design.md §3, §10).
 
 Same topics, types, units and QoS as the simulated ``plant``, per axis: subscribes
 ``voltage_command`` (COMMAND_QOS), publishes ``voltage`` (SENSOR_QOS: the value the device
