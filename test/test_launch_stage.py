@@ -264,16 +264,21 @@ def test_the_stage_key_and_the_stage_argument(tmp_path):
         Launcher(parse_graph({"nodes": [{"executable": "plant"}]}), stage=XY)
 
 
+#: a graph entry over a stage: the plant node given the stage file
+PLANT = {"executable": "plant", "overrides": {"stage_file": "$(stage_file)"}}
+
+
 def test_a_bad_stage_file_is_one_line(tmp_path):
+    """A graph over a stage given a stage file that does not load: one line."""
     bad = tmp_path / "bad.yaml"
     axes = {a: {"model_file": "ch11_rig.yaml", "channel": 1} for a in "xy"}
     bad.write_text(yaml.safe_dump({"axes": axes}))
     with pytest.raises(GraphError, match="channel '1' used twice") as info:
-        parse_graph({"nodes": [{"executable": "plant"}]}, stage=bad)
+        parse_graph({"nodes": [PLANT]}, stage=bad)
     assert "\n" not in str(info.value) and str(bad) in str(info.value)
     bad.write_text("axes: [x\n")
     with pytest.raises(GraphError, match="not valid YAML") as info:
-        parse_graph({"nodes": [{"executable": "plant"}]}, stage=bad)
+        parse_graph({"nodes": [PLANT]}, stage=bad)
     assert "\n" not in str(info.value)
 
 
@@ -317,6 +322,16 @@ def test_cli_refuses_a_stage_file_with_a_channel_used_twice(tmp_path, capsys):
     assert err.count("\n") == 1 and "channel '2' used twice (axes x, y)" in err
     assert main(["launch", str(graph), "--stage", str(tmp_path / "absent.yaml")]) == 2
     assert "--stage: file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("graph", ["sim_closed_loop", "emulated_rig", "pi_rig_loop"])
+def test_stage_on_a_graph_of_one_axis_is_refused_in_one_line(graph, capsys):
+    """A graph with no per_axis entry and no stage substitution would run its one axis
+    whatever stage was given: --stage there is bad input, exit 2, nothing started."""
+    assert main(["launch", graph, "--stage", "xy_scanner.yaml", "--dry-run"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1
+    assert "--stage:" in err and "runs one axis" in err
 
 
 def test_the_readme_example_is_a_graph_that_expands(monkeypatch):

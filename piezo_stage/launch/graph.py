@@ -63,6 +63,7 @@ from piezo_stage.config_path import ConfigNotFoundError, find_config, shipped_na
 from piezo_stage.launch.axes import (
     AXIS_VARS,
     ONE_AXIS,
+    STAGE_VARS,
     GraphStage,
     axis_namespace,
     check_leftovers,
@@ -450,7 +451,7 @@ def parse_graph(
     nodes_data = data.get("nodes")
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
-    graph_stage = _graph_stage(data.get("stage"), stage, base, where)
+    graph_stage = _graph_stage(data.get("stage"), stage, nodes_data, base, where)
     allocate = _free_port if free_ports else lambda: 0
     nodes = _parse_nodes(nodes_data, graph_stage, base, where, allocate)
     use_sim_time = data.get("use_sim_time")
@@ -493,14 +494,31 @@ def parse_graph(
 
 
 def _graph_stage(
-    key: Any, given: str | os.PathLike[str] | None, base: Path, where: str
+    key: Any,
+    given: str | os.PathLike[str] | None,
+    nodes_data: list[Any],
+    base: Path,
+    where: str,
 ) -> GraphStage | None:
-    """The stage a graph runs: ``given`` (the user's ``--stage``), else its ``stage:`` key."""
+    """The stage a graph runs: ``given`` (the user's ``--stage``), else its ``stage:`` key.
+    ``--stage`` on a graph that does not use a stage (no ``per_axis`` entry, no stage
+    substitution, no ``stage:``) is refused: it would run its one axis regardless."""
     if given is not None:
+        if key is None and not _uses_stage(nodes_data):
+            raise GraphError(
+                f"--stage: {where} runs one axis (no per_axis entry, no $(stage_file)); the "
+                "graphs over a stage are rig_loop, rig_closed_loop and the scanner graphs"
+            )
         return read_stage(user_stage_path(given), "--stage")
     if key is None:
         return None
     return read_stage(stage_path(key, base, where), where)
+
+
+def _uses_stage(nodes_data: list[Any]) -> bool:
+    """Whether a graph's entries use its stage: a ``per_axis`` entry or a stage substitution."""
+    per_axis = any(isinstance(e, dict) and e.get("per_axis") for e in nodes_data)
+    return per_axis or uses(nodes_data, (*STAGE_VARS, *AXIS_VARS))
 
 
 def _parse_nodes(
