@@ -163,3 +163,17 @@ def test_a_runs_namespace_is_a_ros_name_whatever_its_folder_is_called(tmp_path, 
     namespace = run_namespace(tmp_path / name)
     assert validate_namespace(namespace)
     assert "__" not in namespace and namespace.startswith("/raster_")
+
+
+def test_a_lockstep_record_that_lacks_its_first_states_is_decoded_from_the_plants_origin():
+    """The first states may be published before the recorder's reader has matched: the record
+    then starts a few samples late, and only the known origin (the lockstep plant's first
+    sample) places it; a record whose set points do not follow the scan from there is refused."""
+    late = tuple({k: v[3:] for k, v in c.items()} for c in _record(0))
+    with pytest.raises(ExperimentError, match="do not follow the scan"):
+        decode(SCAN, late, 4, None)  # searched among the recorded stamps: 3 ms late
+    run = decode(SCAN, late, 4, None, origin=0)
+    assert run.t[0] == pytest.approx(3e-3)
+    np.testing.assert_allclose(run.measured - run.desired, 1e-9, rtol=1e-6)
+    with pytest.raises(ExperimentError, match="did not start together"):
+        decode(SCAN, _record(0, shift_ns=3_000_000), 4, None, origin=0)

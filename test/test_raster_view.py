@@ -61,7 +61,7 @@ def _experiment_image(bag) -> tuple[np.ndarray, float, float]:
     """The last frame's image of the run in ``bag`` (heights [m]), and the sample's lowest
     height and height range (the view's black and its span to white)."""
     columns = tuple(read_loop_samples(bag, f"/raster/{axis}/loop_samples") for axis in "xy")
-    run = decode(SCAN, columns, 0, None)
+    run = decode(SCAN, columns, 0, None, origin=0)  # a simulated run's bag: time from 0
     image = run.image(load_sample("grating", SCAN))
     return image.image, float(image.ideal.min()), float(np.ptp(image.ideal))
 

@@ -30,7 +30,7 @@ import numpy as np
 from piezo_stage.control.learning import FeedforwardTable, LearningError
 from piezo_stage.control.raster import RasterRun, RasterTables, learning_history
 from piezo_stage.control.scan import RasterScan, ScanAxis, ScanError
-from piezo_stage.control.scan_live import scan_origin
+from piezo_stage.control.scan_live import ORIGIN_TOLERANCE, origin_error, scan_origin
 from piezo_stage.model.stage_file import Stage, save_stage
 
 from .errors import ExperimentError
@@ -204,14 +204,22 @@ def decode(
     columns: tuple[dict[str, Any], dict[str, Any]],
     learn: int,
     tables: RasterTables | None,
+    origin: int | None = None,
 ) -> RasterRun:
     """The record of both axes as a :class:`RasterRun` on the fast axis's samples, t from the
-    scan's origin, ``learning`` from the first ``learn`` lines."""
+    scan's origin (``origin`` [ns] where it is known: a lockstep plant's first sample, which
+    the record may lack), ``learning`` from the first ``learn`` lines."""
     fast, slow = columns
     try:
-        t0 = scan_origin(scan, columns)
+        t0 = scan_origin(scan, columns) if origin is None else origin
     except ScanError as exc:
         raise ExperimentError(str(exc)) from None
+    if origin is not None and origin_error(scan, columns, origin) > ORIGIN_TOLERANCE:
+        off = origin_error(scan, columns, origin)
+        raise ExperimentError(
+            f"the recorded set points do not follow the scan from the plant's first sample "
+            f"(off by {off * 1e9:.3g} nm): the axes did not start together"
+        )
     keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
     t = (fast["stamp"][keep] - t0) * 1e-9
     slow_ok = np.isfinite(slow["reference"]) & np.isfinite(slow["displacement"])
@@ -286,7 +294,10 @@ def run_on_graph(
     )
     if learn and tables is not None:
         tables = _learned(tables, folder / f"learned_{axes[0]}.json")
-    result = decode(scan, columns, learn, tables)  # type: ignore[arg-type]
+    # a lockstep graph's axes start on the plant's first sample (its start_time, 0): the
+    # record may lack the first states (published before the recorder's reader matched)
+    origin = 0 if lockstep else None
+    result = decode(scan, columns, learn, tables, origin)  # type: ignore[arg-type]
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
     result.failed = run_failure(columns, axes)
@@ -354,8 +365,8 @@ def state_columns(items: list[tuple[int, bytes]], topic: str = "") -> dict[str, 
 
 class _Feed:
     """A lockstep run's record given to ``watch`` as it grows: the stretch of both axes since
-    the last update, t from the first recorded state (the scan's origin: both controllers
-    start on the plant's first sample)."""
+    the last update, t from the plant's first sample (the scan's origin: both controllers
+    start on it)."""
 
     def __init__(self, scan: RasterScan, topics: list[str], watch: Callable[[RasterRun], None]):
         self.scan, self.topics, self.watch = scan, topics, watch
@@ -366,7 +377,7 @@ class _Feed:
         if n <= self.done:
             return
         columns = [state_columns(raw[t][self.done : n]) for t in self.topics]
-        t0 = raw[self.topics[0]][0][0]
+        t0 = 0  # the plant's first sample, the scan's origin (lockstep)
         self.done = n
         both = {k: np.vstack([c[k] for c in columns]) for k in ("reference", "displacement", "u")}
         t = (columns[0]["stamp"] - t0) * 1e-9
