@@ -214,8 +214,8 @@ def decode(
         t0 = scan_origin(scan, columns) if origin is None else origin
     except ScanError as exc:
         raise ExperimentError(str(exc)) from None
-    if origin is not None and origin_error(scan, columns, origin) > ORIGIN_TOLERANCE:
-        off = origin_error(scan, columns, origin)
+    off = 0.0 if origin is None else origin_error(scan, columns, origin)
+    if off > ORIGIN_TOLERANCE:
         raise ExperimentError(
             f"the recorded set points do not follow the scan from the plant's first sample "
             f"(off by {off * 1e9:.3g} nm): the axes did not start together"
