@@ -301,8 +301,8 @@ class ControllerNode(PiezoNode):
         if self._trigger is StepTrigger.SAMPLE:
             if self._waiting_for_subscribers():
                 return  # the lockstep plant offers step 0 again until every axis answers it
-            self._stepped_at = t
-            self._step(t, msg.header.stamp)
+            if self._step(t, msg.header.stamp) is not None:  # answered: a command went out
+                self._stepped_at = t
 
     def on_sample(
         self,
