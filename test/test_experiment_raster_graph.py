@@ -177,3 +177,45 @@ def test_a_lockstep_record_that_lacks_its_first_states_is_decoded_from_the_plant
     np.testing.assert_allclose(run.measured - run.desired, 1e-9, rtol=1e-6)
     with pytest.raises(ExperimentError, match="did not start together"):
         decode(SCAN, _record(0, shift_ns=3_000_000), 4, None, origin=0)
+
+
+def test_a_slow_axis_recorded_from_later_is_interpolated_never_held():
+    """Each axis's record may start on a different sample (its reader matched later): the run
+    holds the span both records hold, the slow axis's set point the scan's at every time."""
+    fast, slow = _record(0)
+    late = (fast, {k: v[40:] for k, v in slow.items()})
+    run = decode(SCAN, late, 4, None, origin=0)
+    assert run.t[0] == pytest.approx(40e-3)  # the slow axis's first sample 0.4 ms later
+    # (held for those 0.4 ms: within 1 nm; held from the fast axis's first, 80 nm off)
+    np.testing.assert_allclose(run.desired[1], ScanAxis(SCAN, 1).evaluate(run.t)[0], atol=1e-9)
+    with pytest.raises(ExperimentError, match="no stepped sample of the slow axis"):
+        decode(SCAN, (fast, {k: v[:0] for k, v in slow.items()}), 4, None, origin=0)
+
+
+def test_the_view_is_fed_the_samples_both_axes_hold_matched_by_stamp():
+    """The lockstep feed: states of the two axes matched by stamp, whichever record lacks one;
+    each update gives only what the last did not."""
+    from rclpy.serialization import serialize_message
+
+    from piezo_stage.experiments.raster_graph import _Feed
+    from piezo_stage_msgs.msg import ControllerState
+
+    def states(ks, axis):
+        out = []
+        for k in ks:
+            msg = ControllerState(reference=float(axis * 1000 + k), x1=0.0, u=0.0)
+            out.append((1_000_000 * k, serialize_message(msg)))
+        return out
+
+    given = []
+    feed = _Feed(SCAN, ["x", "y"], given.append)
+    raw = {"x": states(range(0, 10), 0), "y": states(range(3, 8), 1)}
+    feed.update(raw)
+    raw["x"] += states(range(10, 12), 0)
+    raw["y"] += states([8, 9, 11, 12], 1)
+    feed.update(raw)
+    first, second = given
+    assert first.t.tolist() == pytest.approx([k * 1e-3 for k in range(3, 8)])
+    assert second.t.tolist() == pytest.approx([8e-3, 9e-3, 11e-3])
+    for run in given:
+        np.testing.assert_array_equal(run.desired[1] - run.desired[0], 1000.0)

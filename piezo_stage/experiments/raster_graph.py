@@ -220,10 +220,17 @@ def decode(
             f"the recorded set points do not follow the scan from the plant's first sample "
             f"(off by {off * 1e9:.3g} nm): the axes did not start together"
         )
-    keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
-    t = (fast["stamp"][keep] - t0) * 1e-9
     slow_ok = np.isfinite(slow["reference"]) & np.isfinite(slow["displacement"])
     ts = (slow["stamp"][slow_ok] - t0) * 1e-9
+    if ts.size == 0:
+        raise ExperimentError("the record holds no stepped sample of the slow axis")
+    # the slow axis interpolated, held for at most one of its periods (asynchronous sensors):
+    # the span both records hold
+    period = float(np.median(np.diff(ts))) if ts.size > 1 else 0.0
+    t = (fast["stamp"] - t0) * 1e-9
+    keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
+    keep &= (t >= ts[0] - period) & (t <= ts[-1] + period)
+    t = t[keep]
     measured = np.vstack(
         [fast["displacement"][keep], np.interp(t, ts, slow["displacement"][slow_ok])]
     )
@@ -364,24 +371,33 @@ def state_columns(items: list[tuple[int, bytes]], topic: str = "") -> dict[str, 
 
 
 class _Feed:
-    """A lockstep run's record given to ``watch`` as it grows: the stretch of both axes since
-    the last update, t from the plant's first sample (the scan's origin: both controllers
-    start on it)."""
+    """A lockstep run's record given to ``watch`` as it grows: the stretch that both axes hold
+    since the last update (matched by stamp: either record may lack a state the other has),
+    t from the plant's first sample (the scan's origin: both controllers start on it)."""
 
     def __init__(self, scan: RasterScan, topics: list[str], watch: Callable[[RasterRun], None]):
         self.scan, self.topics, self.watch = scan, topics, watch
-        self.done = 0
+        self.done = -1  # [ns] the last stamp given
 
     def update(self, raw: Any) -> None:
-        n = min(len(raw[t]) for t in self.topics)
-        if n <= self.done:
+        if not all(raw[t] for t in self.topics):
             return
-        columns = [state_columns(raw[t][self.done : n]) for t in self.topics]
-        t0 = 0  # the plant's first sample, the scan's origin (lockstep)
-        self.done = n
-        both = {k: np.vstack([c[k] for c in columns]) for k in ("reference", "displacement", "u")}
-        t = (columns[0]["stamp"] - t0) * 1e-9
-        self.watch(RasterRun(self.scan, t, both["reference"], both["displacement"], both["u"]))
+        end = min(raw[t][-1][0] for t in self.topics)
+        new = [[i for i in raw[t] if self.done < i[0] <= end] for t in self.topics]
+        columns = [state_columns(items) for items in new]
+        both, first, second = np.intersect1d(
+            columns[0]["stamp"], columns[1]["stamp"], return_indices=True
+        )
+        if both.size == 0:
+            return
+        self.done = int(both[-1])
+        pick = (first, second)
+        stack = {
+            k: np.vstack([c[k][i] for c, i in zip(columns, pick)])
+            for k in ("reference", "displacement", "u")
+        }
+        t = both * 1e-9  # t0 = 0: the plant's first sample, the scan's origin (lockstep)
+        self.watch(RasterRun(self.scan, t, stack["reference"], stack["displacement"], stack["u"]))
 
 
 def run_failure(columns: tuple[dict[str, Any], ...], axes: tuple[str, ...]) -> str | None:
