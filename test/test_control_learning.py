@@ -357,11 +357,50 @@ def test_a_period_a_loaded_loop_superseded_a_few_samples_of_is_still_learned():
     learning = IterativeLearning(table, g, LearningConfig(settle_periods=0))
     learner = PeriodicLearner(learning, periods=10)
     error = 1e-7 * np.sin(2 * math.pi * np.arange(n) / n)
+    ends = []
     for period in range(3):
         for k in range(n):
-            # period 0: two samples missing (learned); period 1: a 10-sample gap (skipped)
-            gone = (period == 0 and k in (40, 41)) or (period == 1 and 30 <= k < 40)
-            if not gone:
-                learner.record(k, float(error[k]))
-    learner.record(0, 0.0)  # the third period ends
+            # period 0: two samples missing (learned); period 1: a 10-sample gap (skipped);
+            # period 2: its last sample missing (it ends when the index wraps)
+            gone = (
+                (period == 0 and k in (40, 41))
+                or (period == 1 and 30 <= k < 40)
+                or (period == 2 and k == n - 1)
+            )
+            if not gone and learner.record(k, float(error[k])):
+                ends.append((period, k))
+    assert ends == [(0, n - 1), (1, n - 1)]  # at its last sample: the next plays the new table
+    assert learner.record(0, 0.0)  # the third period ends
     assert learner.completed == 3 and learner.skipped == 1 and len(learning.history) == 2
+
+
+def test_a_frame_learns_its_correction_from_each_line_past_the_fly_back():
+    """A raster's slow axis: the learner's periods are the frame's lines (6 a frame, 1 of
+    fly-back); the correction learns from the lines past the fly-back's settling only, every
+    line counts toward ``periods``, and the frame's table is its base plus the correction on
+    the lines past the fly-back."""
+    from piezo_stage.control.learning import SETTLE_LINES, LineCorrection
+
+    model = FeedforwardModel.from_parameter_set(RIG)
+    n, lines, first = 50, 6, 1
+    frame = FeedforwardTable(np.linspace(0.0, 5.0, n * lines), RATE)
+    base = frame.u.copy()
+    config = LearningConfig(settle_periods=0, patience=100)
+    correction = LineCorrection(
+        frame, n, first, feedforward_response(model, RATE, n), config, model
+    )
+    done = []
+    learner = PeriodicLearner(correction, periods=2 * lines, on_done=done.append)
+    error = 1e-7 * np.sin(2 * math.pi * np.arange(n) / n)
+    for k in range(2 * lines * n + 1):  # two frames, and the first sample of a third
+        learner.record(k % (lines * n), float(error[k % n]))
+    assert learner.completed == 2 * lines and learner.frozen and done == [learner]
+    # of each frame's lines, those from first + SETTLE_LINES on
+    assert len(correction.history) == 2 * (lines - first - SETTLE_LINES)
+    delta = (frame.u - base).reshape(lines, n)
+    assert np.all(delta[:first] == 0.0) and np.abs(delta[first:]).max() > 0
+    np.testing.assert_allclose(
+        delta[first:], np.tile(correction.correction.u, (lines - 1, 1)), atol=1e-12
+    )
+    with pytest.raises(LearningError, match="not whole lines of 70"):
+        LineCorrection(frame, 70, first, feedforward_response(model, RATE, 70), config, model)

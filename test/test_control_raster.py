@@ -9,7 +9,7 @@ import pytest
 from piezo_stage.config_path import find_config
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.learning import FeedforwardTable, LearningConfig, LearningError
-from piezo_stage.control.raster import LineCorrection, RasterTables, raster_run
+from piezo_stage.control.raster import RasterTables, raster_run
 from piezo_stage.control.scan import RasterScan
 from piezo_stage.control.scan_image import load_sample
 from piezo_stage.model.stage_file import load_stage
@@ -115,16 +115,15 @@ def test_bad_runs_are_refused(stages, kw, match):
 def test_a_line_correction_goes_on_the_line_periods_of_the_frame(stages):
     model, _ = stages
     from piezo_stage.control.feedforward import FeedforwardModel
-    from piezo_stage.control.learning import feedforward_response
+    from piezo_stage.control.learning import LineCorrection, feedforward_response
 
     s = scan(lines=4, flyback_lines=2)
     n_line, n_frame = round(s.period * RATE), round(s.frame_time * RATE)
     frame = FeedforwardTable(np.linspace(0.0, 1.0, n_frame), RATE)
     base = frame.u.copy()
     ff = FeedforwardModel.from_parameter_set(model.axes[1].model)
-    corr = LineCorrection(
-        frame, s, feedforward_response(ff, RATE, n_line), LearningConfig(settle_periods=0), ff
-    )
+    response = feedforward_response(ff, RATE, n_line)
+    corr = LineCorrection(frame, n_line, 2, response, LearningConfig(settle_periods=0), ff)
     corr.update(1e-7 * np.sin(2 * np.pi * np.arange(n_line) / n_line))
     delta = (frame.u - base).reshape(-1, n_line)
     assert np.all(delta[:2] == 0.0)  # the fly-back's two periods keep the model's values

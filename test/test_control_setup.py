@@ -119,10 +119,12 @@ def test_a_trajectory_setting_unused_by_the_reference_is_no_error():
     assert configure_controller(settings(trajectory="circle")).trajectory is None
 
 
-def test_a_scan_axis_runs_with_the_raster_tables_and_its_fast_axis_learns(tmp_path):
+def test_a_scan_axis_runs_with_the_raster_tables_and_learns_per_line(tmp_path):
     """A raster's axes as controllers' trajectories: the fast axis's table is a line, learned
-    per line; the slow axis's a frame; the tables the core made for the scan are accepted."""
+    per line; the slow axis's a frame, learned through a correction of one line added to its
+    lines past the fly-back; the tables the core made for the scan are accepted."""
     from piezo_stage.config_path import find_config
+    from piezo_stage.control.learning import IterativeLearning, LineCorrection
     from piezo_stage.control.raster import raster_tables
     from piezo_stage.control.scan import RasterScan, ScanAxis
     from piezo_stage.model.stage_file import load_stage
@@ -135,9 +137,14 @@ def test_a_scan_axis_runs_with_the_raster_tables_and_its_fast_axis_learns(tmp_pa
             "feedforward_model": ("ch11_rig.yaml", "xy_scanner_y.yaml")[index],
             "feedforward_table": str(table.save(tmp_path / f"table{index}.json")),
         }
-        setup = configure_controller(settings(**values, learn_periods=5 * (1 - index)))
+        setup = configure_controller(settings(**values, learn_periods=5))
         assert setup.table is not None and len(setup.table) == (100 if index == 0 else 500)
-        assert (setup.learning is not None) == (index == 0)
+        learning = setup.learning
+        if index == 0:
+            assert type(learning) is IterativeLearning and learning.table is setup.table
+        else:  # 5 lines a frame (one of fly-back), a correction of one line
+            assert isinstance(learning, LineCorrection) and learning.table is setup.table
+            assert (learning.lines, learning.first, learning.correction.u.size) == (5, 1, 100)
     wrong = str(tables.slow.save(tmp_path / "frame.json"))
     with pytest.raises(SetupError, match="holds 500 samples, the trajectory's period 100"):
         configure_controller(

@@ -37,7 +37,9 @@ def test_each_axis_controller_follows_its_axis_of_the_scan_with_its_table(tmp_pa
     )
     assert ScanAxis.read(x["trajectory"]) == ScanAxis(SCAN, 0)
     assert ScanAxis.read(y["trajectory"]) == ScanAxis(SCAN, 1)
-    assert (x["learn_periods"], y["learn_periods"]) == (6, 0) and "feedforward_table_out" in x
+    # both learn over the 6 lines (the slow axis through its line correction), each table saved
+    assert (x["learn_periods"], y["learn_periods"]) == (6, 6)
+    assert x["feedforward_table_out"] != y["feedforward_table_out"]
     assert (tmp_path / "model_x.yaml").exists() and (tmp_path / "model_y.yaml").exists()
     # the driver loads the model stage (the coupling it compensates); the emulator the plant
     assert nodes["voltage_driver"]["overrides"]["stage_file"] == str(tmp_path / "model.yaml")
@@ -68,7 +70,8 @@ def _record(t0_ns: int, shift_ns: int = 0, seconds: float = 5.0):
 
 def test_the_record_becomes_the_run_on_the_fast_axis_samples():
     run = decode(SCAN, _record(1_700_000_000_123_456_789), 4, None)
-    assert run.t[0] == 0.0 and np.allclose(np.diff(run.t), 1e-3)
+    # from the first fast sample both records hold: the slow axis's first is 0.4 ms late
+    assert run.t[0] == pytest.approx(1e-3) and np.allclose(np.diff(run.t), 1e-3)
     np.testing.assert_allclose(run.measured - run.desired, 1e-9, rtol=1e-6)
     assert len(run.learning) == 4 and np.isnan(run.learning[0][0])  # the first line: fly-back
     assert run.learning[1][0] == pytest.approx(1e-9, rel=1e-6)
@@ -173,21 +176,22 @@ def test_a_lockstep_record_that_lacks_its_first_states_is_decoded_from_the_plant
     with pytest.raises(ExperimentError, match="do not follow the scan"):
         decode(SCAN, late, 4, None)  # searched among the recorded stamps: 3 ms late
     run = decode(SCAN, late, 4, None, origin=0)
-    assert run.t[0] == pytest.approx(3e-3)
+    assert run.t[0] == pytest.approx(4e-3)  # the first both hold (slow: 0.4 ms late)
     np.testing.assert_allclose(run.measured - run.desired, 1e-9, rtol=1e-6)
     with pytest.raises(ExperimentError, match="did not start together"):
         decode(SCAN, _record(0, shift_ns=3_000_000), 4, None, origin=0)
 
 
 def test_a_slow_axis_recorded_from_later_is_interpolated_never_held():
-    """Each axis's record may start on a different sample (its reader matched later): the run
-    holds the span both records hold, the slow axis's set point the scan's at every time."""
+    """Each axis's record may start or end on a different sample (its reader matched later,
+    the recording stopped before its last state came): the run holds the span both records
+    hold, the slow axis's set point the scan's at every time (linear between its samples)."""
     fast, slow = _record(0)
-    late = (fast, {k: v[40:] for k, v in slow.items()})
+    late = (fast, {k: v[40:-3] for k, v in slow.items()})
     run = decode(SCAN, late, 4, None, origin=0)
-    assert run.t[0] == pytest.approx(40e-3)  # the slow axis's first sample 0.4 ms later
-    # (held for those 0.4 ms: within 1 nm; held from the fast axis's first, 80 nm off)
-    np.testing.assert_allclose(run.desired[1], ScanAxis(SCAN, 1).evaluate(run.t)[0], atol=1e-9)
+    assert run.t[0] == pytest.approx(41e-3) and run.t[-1] == pytest.approx(4.996)
+    # (held from the fast axis's first sample: 80 nm off)
+    np.testing.assert_allclose(run.desired[1], ScanAxis(SCAN, 1).evaluate(run.t)[0], atol=1e-11)
     with pytest.raises(ExperimentError, match="no stepped sample of the slow axis"):
         decode(SCAN, (fast, {k: v[:0] for k, v in slow.items()}), 4, None, origin=0)
 

@@ -260,6 +260,9 @@ def test_a_parameter_set_on_a_playing_node_is_answered(node, bag):
 
 
 def test_loop_replays_until_stopped(node, bag):
+    """Every loop plays the bag's messages in order; the first may lack a few at its start (the
+    player's writer can match before this reader has: DDS discovery is not symmetric)."""
+    recorded = [d for _, _, _, d in read_raw(bag, f"{NS}/voltage")]
     sink = _sink_all(node)
     proc = start_node(
         "player",
@@ -278,9 +281,10 @@ def test_loop_replays_until_stopped(node, bag):
     finally:
         _, err = stop(proc)
     assert "Traceback" not in err
-    first = [d for _, d in sink.got[f"{NS}/voltage"][:N]]
-    second = [d for _, d in sink.got[f"{NS}/voltage"][N : 2 * N]]
-    assert first == second
+    got = [d for _, d in sink.got[f"{NS}/voltage"]]
+    end = got.index(recorded[-1]) + 1  # the first loop's end
+    assert got[:end] == recorded[N - end :] and end >= N // 2
+    assert got[end : end + N] == recorded and got[end + N : end + 2 * N] == recorded
 
 
 def test_unknown_topic_in_the_filter_is_refused(bag):

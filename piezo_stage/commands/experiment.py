@@ -84,9 +84,8 @@ ABOUT: dict[str, tuple[str, str]] = {
         "(no nodes: the fastest). sim_scanner: the same scanner's plant node in lockstep under\n"
         "a controller node per axis (any rate, the same numbers on every run). emulated_scanner\n"
         "(1 kHz) and rig_scanner (the devices of config/rig_devices.yaml): the scanner's loop\n"
-        "graph, every axis in one loop thread, in real time. The fast axis's table learns over\n"
-        "--learn lines (in the core the slow axis's line correction too); the figures are the\n"
-        "last frame's.",
+        "graph, every axis in one loop thread, in real time. The fast axis's table and the slow\n"
+        "axis's line correction learn over --learn lines; the figures are the last frame's.",
     ),
 }
 

@@ -383,10 +383,65 @@ class IterativeLearning:
         return self.table
 
 
+class LineCorrection:
+    """A correction c of one line period learned into a frame's table (a raster's slow axis):
+    the frame's table is its base plus c on every line from ``first`` on; c learns from a
+    line's error as a periodic table does (:class:`IterativeLearning`), from the lines that
+    :meth:`learns` (past the fly-back's transient: a correction added to every line would
+    carry it into all of them).
+    """
+
+    def __init__(
+        self,
+        frame: FeedforwardTable,
+        line_samples: int,
+        first: int,
+        response: NDArray[np.complex128],
+        config: LearningConfig,
+        model: FeedforwardModel,
+    ) -> None:
+        if line_samples < 2 or len(frame) % line_samples:
+            raise LearningError(
+                f"a frame of {len(frame)} samples is not whole lines of {line_samples}"
+            )
+        self.table, self.base, self.first = frame, frame.u.copy(), first
+        self.lines = len(frame) // line_samples  # line periods a frame
+        self.correction = FeedforwardTable(np.zeros(line_samples), frame.rate_hz)
+        self.learning = IterativeLearning(self.correction, response, config, model)
+
+    @property
+    def history(self) -> list[float]:
+        """RMS error of each line learned from."""
+        return self.learning.history
+
+    @property
+    def done(self) -> bool:
+        """Whether the stop rule holds (:attr:`IterativeLearning.done`)."""
+        return self.learning.done
+
+    def learns(self, line: int) -> bool:
+        """Whether line period ``line`` (from the frame's start) is learned from."""
+        return line % self.lines >= self.first + SETTLE_LINES
+
+    def update(self, error: NDArray[np.float64]) -> FeedforwardTable:
+        """One line period's error e = x − x_d [m]; the frame's table with the correction."""
+        self.learning.update(error)
+        u = self.base.reshape(self.lines, -1).copy()
+        u[self.first :] += self.correction.u
+        self.table.u = u.ravel()
+        return self.table
+
+
+#: lines after a fly-back a :class:`LineCorrection` does not learn from (the slow axis's
+#: transient settles over 3)
+SETTLE_LINES = 3
+
+
 class PeriodicLearner:
-    """Feeds :class:`IterativeLearning` from a running loop: :meth:`record` the error at each
-    table index as the loop steps; a period ends when the index wraps. A few samples missing
-    (a loaded host's loop superseded them) are filled from their neighbours
+    """Feeds :class:`IterativeLearning` (or a :class:`LineCorrection`, its periods the frame's
+    lines) from a running loop: :meth:`record` the error at each table index as the loop
+    steps; a period ends at its last index (or, that one missing, when the index wraps). A few
+    samples missing (a loaded host's loop superseded them) are filled from their neighbours
     (:func:`fill_gaps`); a period missing more (a long gap, the loop open) is not learned from
     (``skipped``). After ``periods`` periods, or once the stop rule holds, the table is frozen
     and ``on_done(self)`` is called once.
@@ -394,40 +449,57 @@ class PeriodicLearner:
 
     def __init__(
         self,
-        learning: IterativeLearning,
+        learning: IterativeLearning | LineCorrection,
         periods: int,
         on_done: Callable[["PeriodicLearner"], None] | None = None,
     ) -> None:
         if periods < 1:
             raise LearningError(f"learning periods must be >= 1, got {periods}")
         self.learning, self.periods, self._on_done = learning, periods, on_done
-        self._error = np.full(len(learning.table), math.nan)
+        n = learning.correction.u.size if isinstance(learning, LineCorrection) else None
+        self._n = n or len(learning.table)  # samples a period
+        self._error = np.full(self._n, math.nan)
         self._last = -1
+        self._open = False  # the buffer holds samples of a period not yet ended
         self.completed = 0  # periods seen, learned from or not
         self.skipped = 0  # periods not learned from: too many samples missing
         self.frozen = False
 
     def record(self, index: int, error: float) -> bool:
-        """The error x − x_d [m] of the sample at ``index``; True when it completed a period."""
+        """The error x − x_d [m] of the sample at ``index``; True when it completed a period
+        (at its last sample, so the next sample plays the changed table; or, that one missing,
+        once the index wraps).
+        """
         if self.frozen:
             return False
-        wrapped = index < self._last
+        n, last = self._n, self._last
+        at = index % n
+        ended = self._open and (at < last % n or index // n != last // n)
+        if ended:
+            self._period_done(last // n)
+            if self.frozen:
+                return True
         self._last = index
-        if wrapped:
-            self._period_done()
-        self._error[index] = error
-        return wrapped
+        self._error[at] = error
+        self._open = True
+        if at == n - 1:
+            self._period_done(index // n)
+            ended = True
+        return ended
 
-    def _period_done(self) -> None:
+    def _period_done(self, period: int) -> None:
         e = self._error
-        filled = fill_gaps(e)
-        if filled is None:
-            self.skipped += 1
-        else:
-            self.learning.update(filled)
+        learning = self.learning
+        if not isinstance(learning, LineCorrection) or learning.learns(period):
+            filled = fill_gaps(e)
+            if filled is None:
+                self.skipped += 1
+            else:
+                learning.update(filled)
         e.fill(math.nan)
+        self._open = False
         self.completed += 1
-        if self.completed >= self.periods or self.learning.done:
+        if self.completed >= self.periods or learning.done:
             self.frozen = True
             if self._on_done is not None:
                 self._on_done(self)
@@ -597,8 +669,10 @@ __all__ = [
     "IterativeLearning",
     "LearningConfig",
     "LearningError",
+    "LineCorrection",
     "PeriodicLearner",
     "SAMPLED_BELOW",
+    "SETTLE_LINES",
     "at_limits",
     "choose_form",
     "resonance",

@@ -18,7 +18,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +35,7 @@ from .learning import (
     IterativeLearning,
     LearningConfig,
     LearningError,
+    LineCorrection,
     feedforward_response,
     read_json,
     sampled_feedforward,
@@ -53,7 +54,6 @@ from .trajectory import SetPoint
 from .voltage_range import PID_MARGIN
 
 __all__ = [
-    "LineCorrection",
     "RasterRun",
     "RasterTables",
     "check_voltage_need",
@@ -68,8 +68,6 @@ Progress = Callable[[float, str], None]
 RASTER_TABLES_FORMAT = "piezo_stage raster feedforward tables 1"
 #: learning iterations of the slow axis's frame table against the model (a frame is long)
 FRAME_ITERATIONS = 3
-#: lines after a fly-back the slow axis does not learn from (its transient settles over 3)
-SETTLE_LINES = 3
 
 
 @dataclass
@@ -168,33 +166,6 @@ class RasterTables:
             FeedforwardTable.from_dict(data.get("slow"), path),
             dict(data.get("meta", {})),
         )
-
-
-class LineCorrection:
-    """A correction c of one line period learned into a frame's table (the slow axis): the
-    frame's table is its base plus c on every line period of the frame; c learns from each
-    line's error as a periodic table does (:class:`~.learning.IterativeLearning`).
-    """
-
-    def __init__(
-        self,
-        frame: FeedforwardTable,
-        scan: RasterScan,
-        response: NDArray[np.complex128],
-        config: LearningConfig,
-        model: FeedforwardModel,
-    ) -> None:
-        n_line = int(round(scan.period * frame.rate_hz))
-        self.frame, self.base, self.first = frame, frame.u.copy(), scan.flyback_lines
-        self.correction = FeedforwardTable(np.zeros(n_line), frame.rate_hz)
-        self.learning = IterativeLearning(self.correction, response, config, model)
-
-    def update(self, error: NDArray[np.float64]) -> None:
-        """One line period's error e = x − x_d [m]."""
-        self.learning.update(error)
-        u = self.base.reshape(-1, self.correction.u.size).copy()
-        u[self.first :] += self.correction.u
-        self.frame.u = u.ravel()
 
 
 def _tables(
@@ -327,7 +298,9 @@ def raster_run(
         ]
         learners = (
             IterativeLearning(tables.fast, responses[0], config, models[fast]),
-            LineCorrection(tables.slow, scan, responses[1], config, models[slow]),
+            LineCorrection(
+                tables.slow, n_line, scan.flyback_lines, responses[1], config, models[slow]
+            ),
         )
         history = loop.learn(learn_lines, learners, (fast, slow))
     loop.run_frames(frames)
@@ -372,10 +345,6 @@ def _line_samples(scan: RasterScan, rate_hz: float) -> int:
     return round(n)
 
 
-class _Learner(Protocol):
-    def update(self, error: NDArray[np.float64]) -> object: ...
-
-
 @dataclass
 class _Loop:
     """The simulated loop of a raster, run in chunks that continue one another."""
@@ -410,13 +379,15 @@ class _Loop:
         return run
 
     def learn(
-        self, lines: int, learners: tuple[_Learner, _Learner], axes: tuple[int, int]
+        self,
+        lines: int,
+        learners: tuple[IterativeLearning, LineCorrection],
+        axes: tuple[int, int],
     ) -> list[tuple[float, float]]:
         """``lines`` line periods, each axis's learner fed its error (the slow one only on
         the frame's image lines); the RMS error of each line's image window per axis.
         """
         scan, history = self.scan, []
-        per_frame = round(scan.frame_time / scan.period)
         n_line = round(scan.period * self.rate_hz)
         for j in range(lines):
             run = self.step(n_line)
@@ -426,9 +397,7 @@ class _Loop:
                 (_window_rms(scan, run.t, e[:, axes[0]]), _window_rms(scan, run.t, e[:, axes[1]]))
             )
             learners[0].update(e[:, axes[0]])
-            # an image line's period, past the fly-back's transient (not line-periodic: the
-            # correction added to every line would carry it into all of them)
-            if j % per_frame >= scan.flyback_lines + SETTLE_LINES:
+            if learners[1].learns(j):
                 learners[1].update(e[:, axes[1]])
         return history
 

@@ -28,12 +28,13 @@ from .learning import (
     FeedforwardTable,
     IterativeLearning,
     LearningConfig,
+    LineCorrection,
     choose_form,
     feedforward_response,
     sampled_feedforward,
     trajectory_samples,
 )
-from .scan import make_trajectory
+from .scan import ScanAxis, make_trajectory
 from .setpoint import ReferenceSource
 from .supervision import SupervisionConfig
 from .trajectory import Trajectory
@@ -61,7 +62,7 @@ class ControllerSetup:
     feedforward: FeedforwardModel | None
     trajectory: Trajectory | None
     table: FeedforwardTable | None
-    learning: IterativeLearning | None
+    learning: IterativeLearning | LineCorrection | None
 
 
 def law_config(
@@ -214,11 +215,14 @@ def feedforward_table(
 def learning(
     s: LawSettings,
     config: ControllerConfig,
+    trajectory: Trajectory | None,
     table: FeedforwardTable | None,
     feedforward: FeedforwardModel | None,
-) -> IterativeLearning | None:
+) -> IterativeLearning | LineCorrection | None:
     """The learning of the table over learn_periods periods (None for 0): it needs a periodic
-    trajectory's table and the model whose response it inverts.
+    trajectory's table and the model whose response it inverts. A raster's slow axis learns a
+    correction of one line added to each line of its frame (:class:`LineCorrection`), its
+    periods the lines.
     """
     if s.learn_periods <= 0:
         return None
@@ -231,23 +235,24 @@ def learning(
             "learn_periods needs reference_source trajectory with a periodic trajectory, and "
             "feedforward_form sampled or a feedforward_table"
         )
+    slow = trajectory if isinstance(trajectory, ScanAxis) and trajectory.index == 1 else None
+    n = round(slow.scan.period * table.rate_hz) if slow is not None else len(table)
     gains = None if s.compensation is Compensation.FEEDFORWARD else config.gains
     response = feedforward_response(
-        feedforward, float(s.rate_hz), len(table), delay_samples=int(s.delay_samples), gains=gains
+        feedforward, float(s.rate_hz), n, delay_samples=int(s.delay_samples), gains=gains
     )
     try:
-        return IterativeLearning(
-            table,
-            response,
-            LearningConfig(
-                gain=float(s.learn_gain),
-                cutoff_hz=float(s.learn_cutoff_hz) or None,
-                u_min=float(s.u_min),
-                u_max=float(s.u_max),
-                slew_rate=float(s.learn_slew_rate),
-            ),
-            feedforward,
+        learn = LearningConfig(
+            gain=float(s.learn_gain),
+            cutoff_hz=float(s.learn_cutoff_hz) or None,
+            u_min=float(s.u_min),
+            u_max=float(s.u_max),
+            slew_rate=float(s.learn_slew_rate),
         )
+        if slow is not None:
+            first = slow.scan.flyback_lines
+            return LineCorrection(table, n, first, response, learn, feedforward)
+        return IterativeLearning(table, response, learn, feedforward)
     except ControlError as exc:
         raise SetupError(str(exc)) from None
 
@@ -266,5 +271,5 @@ def configure_controller(s: LawSettings, find: FindFile = find_user_file) -> Con
         feedforward,
         trajectory,
         table,
-        learning(s, config, table, feedforward),
+        learning(s, config, trajectory, table, feedforward),
     )

@@ -9,7 +9,7 @@ frame's. Through nodes (:mod:`.raster_graph`): ``sim_scanner`` (the simulated sc
 node in lockstep under a controller node per axis, any rate), ``emulated_scanner`` (the
 emulated E-727-class amplifier and optoNCDT sensors around ``plant_stage``, 1 kHz) and
 ``rig_scanner`` (the devices of config/rig_devices.yaml), the last two every axis in one loop
-thread; there the fast axis's table learns and the slow axis plays its frame table.
+thread; there both learn in their controllers, as in the core.
 
 Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop rate
 cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or

@@ -9,9 +9,10 @@ feedforward tables (:func:`~piezo_stage.control.raster.raster_tables`) from one 
   (``emulated_scanner_loop``, ``rig_loop`` over the stage: :mod:`piezo_stage.nodes.stage_loop`)
   at the sensors' rate; every sample recorded from each axis's ``loop_samples``.
 
-The fast axis's table learns over the first ``learn`` lines as any periodic trajectory's does
-(its controller's ``learn_periods``); the slow axis plays its frame table (the node has no line
-correction). The slow axis's position is taken at the fast axis's samples (linear
+Both tables learn over the first ``learn`` lines (each controller's ``learn_periods``), as in
+the core: the fast axis's line table as any periodic trajectory's does, the slow axis's frame
+table through a correction of one line (:class:`~piezo_stage.control.learning.LineCorrection`).
+The slow axis's position is taken at the fast axis's samples (linear
 interpolation: a device graph's sensors are not synchronous), and the scan's time origin is
 checked against the recorded set points.
 """
@@ -61,7 +62,7 @@ _TYPES = {
     "LoopSamples": "piezo_stage_msgs/msg/LoopSamples",
     "ControllerState": "piezo_stage_msgs/msg/ControllerState",
 }
-#: the line-rate harmonics the fast axis's table learns on a device graph
+#: the line-rate harmonics the tables learn on a device graph (the lockstep graph: the core's)
 LEARN_HARMONICS = 10
 #: [s] a sensor silence the controllers hold through (their default, 20 ms, opens the loop)
 MAX_GAP = 0.2
@@ -147,27 +148,29 @@ def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:
     data = dict(load_yaml(find_graph(loop_graph).read_text(encoding="utf-8")))
     model_file = save_stage(model, folder / "model.yaml")
     fast, slow = model.names[0], model.names[1]
+    lockstep = run.graph == LOCKSTEP_GRAPH
     per_axis: dict[str, dict[str, Any]] = {}
     for index, axis in enumerate((fast, slow)):
         values: dict[str, Any] = {
             "trajectory": str(ScanAxis(scan, index).save(folder / f"scan_{axis}.json")),
             "feedforward_model": str(folder / f"model_{axis}.yaml"),  # save_stage's
-            "learn_periods": learn if index == 0 else 0,
-            # the table learns the line's low harmonics only: above them a device loop's
-            # delay (2-3 ms here, not in the model) turns the update's phase past 90 degrees,
-            # and the learning diverged on a loaded host (the error grew 10x in 10 lines)
-            "learn_cutoff_hz": LEARN_HARMONICS * scan.line_rate,
+            "learn_periods": learn,  # lines: the slow axis's periods are its lines too
+            # on a device graph the table learns the line's low harmonics only: above them the
+            # loop's delay (2-3 ms here, not in the model) turns the update's phase past 90
+            # degrees, and the learning diverged on a loaded host (the error grew 10x in 10
+            # lines); in lockstep the core's cutoff (the model's)
+            "learn_cutoff_hz": 0.0 if lockstep else LEARN_HARMONICS * scan.line_rate,
         }
         if tables is not None:
             table = tables.fast if index == 0 else tables.slow
             values["feedforward_table"] = str(table.save(folder / f"table_{axis}.json"))
-        if index == 0 and learn:
+        if learn:
             values["feedforward_table_out"] = str(folder / f"learned_{axis}.json")
         per_axis[axis] = values
     params = folder / "raster_params.yaml"
     params.write_text(_params_yaml(per_axis), encoding="utf-8")
     entries = list(data["nodes"])
-    if run.graph == LOCKSTEP_GRAPH:
+    if lockstep:
         entries = _lockstep_nodes(run, entries)
         data["clock"] = "namespaced"  # the plant's: several runs side by side
     nodes = []
@@ -224,12 +227,11 @@ def decode(
     ts = (slow["stamp"][slow_ok] - t0) * 1e-9
     if ts.size == 0:
         raise ExperimentError("the record holds no stepped sample of the slow axis")
-    # the slow axis interpolated, held for at most one of its periods (asynchronous sensors):
-    # the span both records hold
-    period = float(np.median(np.diff(ts))) if ts.size > 1 else 0.0
+    # the slow axis interpolated, never held: the span both records hold (either may end a
+    # sample early: the recording stops on the fast axis's record)
     t = (fast["stamp"] - t0) * 1e-9
     keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
-    keep &= (t >= ts[0] - period) & (t <= ts[-1] + period)
+    keep &= (t >= ts[0]) & (t <= ts[-1])
     t = t[keep]
     measured = np.vstack(
         [fast["displacement"][keep], np.interp(t, ts, slow["displacement"][slow_ok])]
@@ -252,7 +254,7 @@ def run_on_graph(
     watch: Callable[[RasterRun], None] | None = None,
 ) -> RasterRun:
     """Launch the graph, record every sample of the two scan axes over the run's frames, and
-    decode them; the learned fast table (if it learned) replaces the one given. ``bag``: the
+    decode them; the learned tables (if they learned) replace the ones given. ``bag``: the
     record (each axis's ``loop_samples`` and ``controller_state``) written there (a device
     graph's). The graph runs in ``namespace`` (default: one of the process's own). ``watch``
     (the lockstep graph's) is given each stretch of both axes as it is recorded."""
@@ -300,7 +302,7 @@ def run_on_graph(
         (state_columns if lockstep else _loop_columns)(recording.raw[t], t) for t in topics
     )
     if learn and tables is not None:
-        tables = _learned(tables, folder / f"learned_{axes[0]}.json")
+        tables = _learned(tables, folder, axes)
     # a lockstep graph's axes start on the plant's first sample (its start_time, 0): the
     # record may lack the first states (published before the recorder's reader matched)
     origin = 0 if lockstep else None
@@ -332,14 +334,17 @@ def _streams(axes: tuple[str, ...], lockstep: bool) -> tuple[list[str], list[Any
     return topics, streams + [Stream(f"{a}/controller_state", ControllerState) for a in axes]
 
 
-def _learned(tables: RasterTables, learned: Path) -> RasterTables:
-    """The tables with the fast one its controller learned (saved at ``learned``), if it did."""
-    if not learned.exists():
-        return tables
+def _learned(tables: RasterTables, folder: Path, axes: tuple[str, ...]) -> RasterTables:
+    """The tables each axis's controller learned (saved in ``folder``), where it did."""
+    learned = [folder / f"learned_{axis}.json" for axis in axes[:2]]
     try:
-        return RasterTables(FeedforwardTable.load(learned), tables.slow, tables.meta)
+        fast, slow = (
+            FeedforwardTable.load(path) if path.exists() else given
+            for path, given in zip(learned, (tables.fast, tables.slow))
+        )
     except LearningError as exc:
-        raise ExperimentError(f"the learned table: {exc}") from None
+        raise ExperimentError(f"a learned table: {exc}") from None
+    return RasterTables(fast, slow, tables.meta)
 
 
 def _loop_columns(items: list[tuple[int, bytes]], topic: str) -> dict[str, Any]:

@@ -230,7 +230,8 @@ PARAMETERS = ParameterTable(
             "learn_periods",
             0,
             "learn the feedforward table over this many periods of the "
-            "trajectory, then keep it (0: no learning)",
+            "trajectory, then keep it (0: no learning); a raster's slow axis: its lines, "
+            "through a correction of one line added to each line of its frame",
             range=(0, 1_000_000),
             read_only=True,
         ),
