@@ -13,6 +13,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
+from piezo_stage.bag.types import stamp_seconds
 from piezo_stage.nodes.qos import COMMAND_QOS, SENSOR_QOS
 
 from ros_support import call_idempotent, spin_until, start_node, stop
@@ -209,6 +210,33 @@ def test_start_closed_holds_off_until_a_driver_listens_on_voltage_command(node):
         assert c.feed_until(c.closed, c.fresh, 0.002)
     finally:
         stop(c.proc)
+
+
+def test_a_held_off_lockstep_sample_is_stepped_when_offered_again(node):
+    """trigger=sample (the lockstep plant's mode): a sample the controller held off on (no
+    driver on voltage_command yet) is not marked answered, so the plant's second offer of the
+    same step is stepped on; a third offer of a sample already answered is not stepped twice."""
+    from piezo_stage.nodes.controller import ControllerNode
+    from piezo_stage_msgs.msg import Voltage
+
+    settings = {"trigger": "sample", "reference_source": "constant", "start_closed": True}
+    overrides = [Parameter(k, value=v) for k, v in settings.items()]
+    controller = ControllerNode(overrides=overrides, namespace=NS)
+    commands: list = []
+    try:
+        step0 = _sample(0.0, t=1.0)
+        controller._on_displacement(step0)  # no driver listens: held off, nothing sent
+        node.create_subscription(Voltage, "voltage_command", commands.append, COMMAND_QOS)
+        assert spin_until(node, lambda: controller._pub_cmd.get_subscription_count() > 0, 15.0)
+        assert not commands
+        controller._on_displacement(step0)  # the plant offers step 0 again: answered now
+        assert spin_until(node, lambda: len(commands) >= 1, 15.0)
+        assert stamp_seconds(commands[0].header.stamp) == pytest.approx(1.0)
+        controller._on_displacement(step0)  # answered already: not stepped twice
+        spin_until(node, lambda: len(commands) >= 2, 0.5)
+        assert len(commands) == 1, [stamp_seconds(c.header.stamp) for c in commands]
+    finally:
+        controller.destroy_node()
 
 
 def test_unsafe_gain_change_is_refused_with_a_reason(node):
