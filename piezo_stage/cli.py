@@ -68,6 +68,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt as stop:  # stopping.Stop, or a Ctrl-C before install()
+        if main_thread and own_process:
+            stopping.finish()  # the line below is the last: a later signal is noted silently
         name = stop.name if isinstance(stop, stopping.Stop) else "SIGINT"
         print(f"{prog}: interrupted ({name})", file=sys.stderr)
         return stop.exit_code if isinstance(stop, stopping.Stop) else 130

@@ -83,6 +83,7 @@ class _State:
     prog: str = "piezo-stage"
     installed: bool = False
     stopping: bool = False  # a stop has begun: no signal is raised any more
+    finished: bool = False  # the command has said its last line: a signal is noted silently
     pending: int | None = None  # a signal noted inside a safe_stop block, raised at its end
     signals: int = 0
     blocks: list[StopStatus] = field(default_factory=list)
@@ -110,13 +111,14 @@ def uninstall() -> None:
     for sig, handler in _state.previous.items():
         signal.signal(sig, handler)
     _state.previous.clear()
-    _state.installed = _state.stopping = False
+    _state.installed = _state.stopping = _state.finished = False
     _state.pending, _state.signals = None, 0
 
 
 def finish() -> None:
-    """The command has ended: a signal from now until the process exits is only noted."""
-    _state.stopping = True
+    """The command has ended (its last line said, or about to be): a signal from now until the
+    process exits is only noted, silently, so that the command's last line stays its last."""
+    _state.stopping = _state.finished = True
 
 
 def stop_requested() -> bool:
@@ -139,7 +141,7 @@ def _on_signal(signum: int, frame: FrameType | None) -> None:
         if not state.stopping:
             state.pending = signum
         state.stopping = True
-        if state.signals > 1:
+        if state.signals > 1 and not state.finished:
             doing = state.blocks[-1].text if state.blocks else "stopping"
             _say(f"{signal.Signals(signum).name} noted: still {doing}; the outputs are not left on")
         return

@@ -58,6 +58,44 @@ def test_the_first_signal_raises_stop_and_later_ones_are_only_noted(installed, c
 
 
 @pytest.mark.unit
+def test_once_the_command_has_finished_a_signal_is_noted_silently(installed, capfd):
+    """The command's last line (its result, or "interrupted") stays the last: a Ctrl-C while
+    the interpreter exits says nothing more."""
+    with pytest.raises(stopping.Stop):
+        os.kill(os.getpid(), INT)
+        time.sleep(1.0)
+    stopping.finish()
+    os.kill(os.getpid(), INT)
+    os.kill(os.getpid(), TERM)
+    time.sleep(0.05)
+    assert capfd.readouterr().err == ""
+
+
+@pytest.mark.ros  # a process of its own (no DDS)
+def test_a_launch_being_stopped_is_not_cut_short_by_a_signal(installed, capfd):
+    """A signal while the launcher stops its graph (the clean-up of a run that had ended, or
+    ended by an earlier signal) is raised only once every process has ended."""
+    from piezo_stage.launch import Launcher
+
+    slow = (  # half a second from SIGINT to its exit, as a node ramping to its safe state
+        "import signal, sys, time; signal.signal(signal.SIGINT, lambda *a: (time.sleep(0.5), "
+        "sys.exit(0))); print('up', flush=True); time.sleep(60)"
+    )
+    node = {"command": [sys.executable, "-c", slow], "name": "slow", "ready_pattern": "^up$"}
+    launch = Launcher({"nodes": [node]}, sink=lambda name, line, err: None)
+    launch.start()
+    launch.wait_ready()
+    threading.Timer(0.1, os.kill, (os.getpid(), INT)).start()
+    try:
+        with pytest.raises(stopping.Stop):
+            launch.stop()
+        assert launch.wait(0) == 0  # every process had ended when the signal was raised
+    finally:
+        with stopping.safe_stop():
+            launch.stop()
+
+
+@pytest.mark.unit
 def test_a_signal_inside_a_safe_block_is_raised_when_the_outermost_block_ends(installed, capfd):
     done = []
     with pytest.raises(stopping.Stop) as stop:
@@ -243,16 +281,56 @@ def _exit_outputs(log: Path) -> dict[str, float]:
 @example([(1.0, INT), (0.2, INT), (0.2, INT)])
 @given(schedules)
 def test_signals_during_a_raster_on_the_emulated_scanner_leave_every_axis_safe(tmp_path, schedule):
+    log = _raster_interrupted(tmp_path, "emulated_scanner", schedule)
+    outputs = _exit_outputs(log)
+    assert outputs and all(abs(v) < 1e-6 for v in outputs.values()), outputs
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@settings(
+    max_examples=examples(1),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@example([(1.0, INT), (0.2, INT), (0.2, INT)])
+@example([(0.3, TERM)])
+@given(schedules)
+def test_signals_during_a_lockstep_raster_on_the_simulated_scanner_end_every_node(
+    tmp_path, schedule
+):
+    """The lockstep graph (plant, controllers, recorder) stops with the command: every process
+    it started is gone when it exits, none left waiting for a step that never comes."""
+    _raster_interrupted(tmp_path, "sim_scanner", schedule)
+
+
+def _raster_interrupted(tmp_path: Path, graph: str, schedule) -> Path:
+    """A short raster on ``graph``, signalled while it scans; the graph's log. Every process
+    of the run (those that inherit its log's path) has ended when the command has."""
     log = tmp_path / f"graph_{time.monotonic_ns()}.log"
-    argv = ["experiment", "raster", "--graph", "emulated_scanner", "--lines", "4"]
+    argv = ["experiment", "raster", "--graph", graph, "--lines", "4"]
     argv += ["--pixels", "32", "--line-rate", "2"]
     run = _Run(argv, env={"PIEZO_GRAPH_LOG": str(log)})
     run.wait_for("scanning on the", 120.0)
+    mark = f"PIEZO_GRAPH_LOG={log}"
+    assert len(_processes_with(mark)) > 1  # the command and the graph's nodes
     sent = run.signal(schedule)
     code, err = run.end(120.0)
     _ended_well(code, err, sent, schedule)
-    outputs = _exit_outputs(log)
-    assert outputs and all(abs(v) < 1e-6 for v in outputs.values()), outputs
+    assert not _processes_with(mark), log.read_text()[-2000:]
+    return log
+
+
+def _processes_with(variable: str) -> list[int]:
+    """The live processes whose environment holds ``variable`` (``NAME=value``)."""
+    found = []
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        try:
+            if variable.encode() in environ.read_bytes().split(b"\0"):
+                found.append(int(environ.parent.name))
+        except OSError:  # ended meanwhile, or not ours to read
+            continue
+    return found
 
 
 if __name__ == "__main__":  # pragma: no cover

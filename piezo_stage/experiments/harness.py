@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from piezo_stage.stopping import safe_stop
+
 from .errors import ExperimentError
 
 if TYPE_CHECKING:
@@ -278,13 +280,14 @@ def record(
     except LaunchError as exc:
         raise HarnessError(str(exc), lines) from exc
     finally:
-        if launch is not None:
-            launch.stop()
-        if gate is not None:
-            gate.close()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        with safe_stop("stopping the graph"):  # a signal now is raised once all is stopped
+            if launch is not None:
+                launch.stop()
+            if gate is not None:
+                gate.close()
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=ctx)
     return Recording(namespace, raw, time.monotonic() - started, lines)
 
 

@@ -39,6 +39,7 @@ from piezo_stage.launch.graph import Graph, load_graph, parse_graph
 from piezo_stage.launch.output import LAUNCHER_NAME, LineSink, Prefixer, use_color
 from piezo_stage.launch.parameters import accepts, check_parameters
 from piezo_stage.launch.process import ManagedProcess
+from piezo_stage.stopping import safe_stop
 
 POLL_S = 0.05
 DEFAULT_TIMEOUT = 30.0
@@ -201,15 +202,18 @@ class Launcher:
         self._stop_requests += 1
 
     def stop(self) -> int:
-        """Stop every process (SIGINT, SIGTERM, SIGKILL as needed); return the exit code."""
+        """Stop every process (SIGINT, SIGTERM, SIGKILL as needed); return the exit code. A
+        signal meanwhile cannot cut it short: it is noted and raised once every process has
+        ended (:func:`~piezo_stage.stopping.safe_stop`)."""
         if self._state == "new":
             self._state, self.exit_code, self.reason = "done", 0, REQUESTED
             self._done.set()
             return 0
-        if not self._done.is_set():
-            self.request_stop()
-        while self.wait(0.2) is None:
-            pass
+        with safe_stop("stopping the graph"):
+            if not self._done.is_set():
+                self.request_stop()
+            while self.wait(0.2) is None:
+                pass
         assert self.exit_code is not None
         return self.exit_code
 
