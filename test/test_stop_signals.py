@@ -271,13 +271,17 @@ def _exit_outputs(log: Path) -> dict[str, float]:
     return {part.split()[0]: float(part.split()[1]) for part in text.split(",")}
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-@settings(
+#: a raster run is long: one example drawn beside the explicit ones
+_ONE_RUN = settings(
     max_examples=examples(1),
     deadline=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@_ONE_RUN
 @example([(1.0, INT), (0.2, INT), (0.2, INT)])
 @given(schedules)
 def test_signals_during_a_raster_on_the_emulated_scanner_leave_every_axis_safe(tmp_path, schedule):
@@ -288,11 +292,7 @@ def test_signals_during_a_raster_on_the_emulated_scanner_leave_every_axis_safe(t
 
 @pytest.mark.ros
 @pytest.mark.slow
-@settings(
-    max_examples=examples(1),
-    deadline=None,
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-)
+@_ONE_RUN
 @example([(1.0, INT), (0.2, INT), (0.2, INT)])
 @example([(0.3, TERM)])
 @given(schedules)
