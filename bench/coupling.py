@@ -12,7 +12,7 @@ runs ``--runs`` times as a user runs it::
 run gave the same numbers (each axis's runs start where its start service lands on the plant's
 clock, after a rest at the same held voltage; the excitation and the analysis count time from
 the run's start in integer ns: idle runs agreed to the last digit, runs beside a busy process
-to 9e-11, the rest's length reaching the last bits of the held axes' state). Targets: 2 %,
+to 2e-10, the rest's length reaching the last bits of the held axes' state). Targets: 2 %,
 5 %, 300 s, on every run, and runs that agree to 1e-9.
 
     python bench/coupling.py [--runs 10] [--stage xy_a|xy_b|xyz] [--busy]
