@@ -118,6 +118,7 @@ LAYERS = ("unit", "ros")
 #: the files that take longest, longest first (seconds in a full run on a 2-core host): on two
 #: workers the demo started last ran alone for its last five minutes
 LONGEST = (
+    "test_readme_shell.py",  # 250
     "test_demo.py",  # 345
     "test_node_rig_loop.py",  # 170
     "test_node_plant.py",  # 170
@@ -128,7 +129,7 @@ LONGEST = (
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """A test without its layer is a collection error, not a silent member of no layer. Files
-    that hold slow tests run first, the LONGEST first of all (stable order otherwise): on two
+    that hold slow tests run first, the LONGEST first of all (stable order otherwise): on the
     workers the long ones then start early instead of leaving one worker alone at the end
     (``make test`` passes ``--no-loadscope-reorder``: xdist would otherwise order the files by
     their number of tests, and the one-test demo came last)."""

@@ -305,10 +305,12 @@ def test_signals_during_a_lockstep_raster_on_the_simulated_scanner_end_every_nod
 
 
 def _raster_interrupted(tmp_path: Path, graph: str, schedule) -> Path:
-    """A short raster on ``graph``, signalled while it scans; the graph's log. Every process
-    of the run (those that inherit its log's path) has ended when the command has."""
+    """A raster on ``graph``, signalled while it scans; the graph's log. Every process of the
+    run (those that inherit its log's path) has ended when the command has. The scan (8 s of
+    lines) outlasts every schedule, so the graph is still up when the first signal comes: a
+    lockstep graph runs faster than real time, and four lines could end before it."""
     log = tmp_path / f"graph_{time.monotonic_ns()}.log"
-    argv = ["experiment", "raster", "--graph", graph, "--lines", "4"]
+    argv = ["experiment", "raster", "--graph", graph, "--lines", "16"]
     argv += ["--pixels", "32", "--line-rate", "2"]
     run = _Run(argv, env={"PIEZO_GRAPH_LOG": str(log)})
     run.wait_for("scanning on the", 120.0)

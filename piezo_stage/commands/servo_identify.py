@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 from typing import TYPE_CHECKING, Callable, TypeVar
 
+from piezo_stage.commands.quick import QUICK_SETTLE_PERIODS, quick_run, say_quick
 from piezo_stage.errors import PiezoStageError
 from piezo_stage.identification.methods import Method, identify_runs
 from piezo_stage.identification.pipeline import IdentifyOptions
@@ -54,6 +55,9 @@ def excitation_from(args: argparse.Namespace, v_min: float, v_max: float) -> TWa
     )
     q = args.offset if args.offset is not None else 0.25 * total
     settle, record = pair(args.periods, "--periods", int)
+    if quick_run() and settle > QUICK_SETTLE_PERIODS:
+        say_quick("identify", f"{QUICK_SETTLE_PERIODS} settling periods instead of {settle}")
+        settle = QUICK_SETTLE_PERIODS
     excitation = TWaveExcitation(low, high, q, args.period, settle, record, args.record_rate)
     try:
         excitation.check(v_min, v_max)
