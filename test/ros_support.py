@@ -122,10 +122,15 @@ def spin_until(node: Any, predicate: Callable[[], bool], timeout: float) -> bool
 
 
 def call_idempotent(
-    node: Any, client: Any, request: Any, timeout: float = 15.0, resend_after: float = 3.0
+    node: Any,
+    client: Any,
+    request: Any,
+    timeout: float = 15.0,
+    resend_after: float = 3.0,
+    gone: Callable[[], bool] = lambda: False,
 ) -> Any:
     """Call a service whose request may safely arrive twice; return the response, or None
-    when none came within ``timeout``.
+    when none came within ``timeout`` or the server is ``gone()`` (then none can come).
 
     A Fast DDS service waits only 100 ms for the client's response reader to match before it
     drops the response (rmw_fastrtps ``rmw_send_response``), and ``wait_for_service`` says
@@ -134,7 +139,7 @@ def call_idempotent(
     import rclpy
 
     deadline = time.monotonic() + timeout
-    while (left := deadline - time.monotonic()) > 0:
+    while (left := deadline - time.monotonic()) > 0 and not gone():
         future = client.call_async(request)
         rclpy.spin_until_future_complete(node, future, timeout_sec=min(resend_after, left))
         if future.done():
