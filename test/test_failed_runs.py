@@ -19,6 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.experiments.verdict import (
+    beyond_range,
     first,
     learning_diverged,
     loop_opened,
@@ -37,6 +38,36 @@ def test_a_loop_that_opens_after_closing_is_named_with_its_time():
     assert reason is not None and reason.startswith("axis x's loop opened at 4.00 s")
     assert loop_opened(t, t >= 0.05) is None  # closed and stayed closed
     assert loop_opened(t, np.zeros(t.size)) is None  # feedback never closed: no verdict
+
+
+@pytest.mark.unit
+@settings(max_examples=examples(50), deadline=None)
+@given(
+    st.dictionaries(st.sampled_from("xyz"), st.tuples(st.floats(0, 1e-4), st.floats(1e-6, 1e-4)))
+)
+def test_a_run_has_diverged_exactly_when_an_axis_erred_beyond_its_range(axes):
+    summary = {a: {"max_error": e, "range": r} for a, (e, r) in axes.items()}
+    reason = beyond_range(summary)
+    beyond = [a for a, (e, r) in axes.items() if e > r]
+    assert (reason is not None) == bool(beyond)
+    if reason is not None:
+        assert reason.startswith(f"the loop diverged: axis {beyond[0]}'s error reached")
+
+
+@pytest.mark.unit
+@pytest.mark.slow
+def test_a_raster_sampled_where_its_loop_diverges_exits_1_and_says_so(tmp_path, capsys):
+    """The core raster at 5 kHz: the thesis gains are unstable sampled there (radius 1.85 on
+    the shipped XY stage's axes), the scan runs away to ~100 µm on a 20 µm range; the command
+    ends failed instead of printing the figures as a result."""
+    from piezo_stage.cli import main
+
+    argv = ["experiment", "raster", "--stage", "xy_scanner.yaml", "--lines", "4"]
+    argv += ["--pixels", "32", "--line-rate", "2", "--rate-hz", "5000", "--json"]
+    assert main(argv) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["failed"].startswith("the loop diverged: axis x's error reached")
+    assert "failed: the loop diverged" in err.splitlines()[-1]
 
 
 @pytest.mark.unit

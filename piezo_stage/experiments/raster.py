@@ -48,6 +48,7 @@ from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
 from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, NODE_GRAPHS, GraphRun, run_on_graph
 from .raster_view import RasterView, loop_batches
+from .verdict import beyond_range, first
 
 __all__ = ["CORE", "GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_raster"]
 
@@ -320,8 +321,9 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     )
     if common.bag is not None:
         summary["bag"] = str(common.bag)
-    if run.failed:
-        summary["failed"] = run.failed
+    failed = first(run.failed, beyond_range(summary["axes"]))
+    if failed:
+        summary["failed"] = failed
     if spec.table_out is not None and run.tables is not None:
         summary["table_out"] = str(spec.table_out)
     if spec.png is not None:

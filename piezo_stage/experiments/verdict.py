@@ -14,7 +14,14 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["first", "learning_diverged", "loop_opened", "non_finite", "record_gap"]
+__all__ = [
+    "beyond_range",
+    "first",
+    "learning_diverged",
+    "loop_opened",
+    "non_finite",
+    "record_gap",
+]
 
 
 def loop_opened(t: ArrayLike, loop_closed: ArrayLike, what: str = "the loop") -> str | None:
@@ -65,6 +72,21 @@ def learning_diverged(learning: ArrayLike, learned: float) -> str | None:
         f"learning diverged: RMS {1e9 * learned:.0f} nm after it against {1e9 * periods[0]:.0f} "
         f"nm in its first period (its worst, period {worst + 1}: {1e9 * periods[worst]:.0f} nm)"
     )
+
+
+def beyond_range(axes: Mapping[str, Mapping[str, float]]) -> str | None:
+    """``"the loop diverged: axis x's error reached 109 µm, beyond its 20 µm range"`` for the
+    first axis whose largest error exceeds its range (``max_error``, ``range`` [m]): no stage
+    scanned so has followed its reference (a loop sampled where its gains make it unstable);
+    None otherwise."""
+    for name, axis in axes.items():
+        worst, span = axis["max_error"], axis["range"]
+        if worst > span:
+            return (
+                f"the loop diverged: axis {name}'s error reached {1e6 * worst:.4g} µm, beyond "
+                f"its {1e6 * span:.4g} µm range"
+            )
+    return None
 
 
 def non_finite(summary: Mapping[str, Any], skip: Iterable[str] = ()) -> str | None:
