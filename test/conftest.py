@@ -118,7 +118,6 @@ LAYERS = ("unit", "ros")
 #: the files that take longest, longest first (seconds in a full run on a 2-core host): on two
 #: workers the demo started last ran alone for its last five minutes
 LONGEST = (
-    "test_readme_shell.py",  # 400 (its blocks in one folder, in order)
     "test_demo.py",  # 345
     "test_node_rig_loop.py",  # 170
     "test_node_plant.py",  # 170
