@@ -8,8 +8,8 @@ setup:            ## .venv + pinned wheels, wheel fixes, piezo_stage_msgs build 
 demo: setup       ## the simulated stage, end to end
 	@$(ENV) piezo-stage demo --out demo_out
 PYTEST := python -m pytest test -q -p no:cacheprovider --durations=50
-test: setup lint  ## lint, then every test: all but `realtime`/`alone` on three workers, then those alone
-	@$(ENV) $(PYTEST) -n 3 --dist loadfile --no-loadscope-reorder -m "not realtime and not alone" && $(PYTEST) -m "realtime or alone"
+test: setup lint  ## lint, then every test: all but `realtime`/`alone` on two workers, then those alone
+	@$(ENV) $(PYTEST) -n 2 --dist loadfile --no-loadscope-reorder -m "not realtime and not alone" && $(PYTEST) -m "realtime or alone"
 test-fast: setup  ## the unit layer without slow tests (no ROS processes, no sockets; < 1 min)
 	@$(ENV) $(PYTEST) -n 2 -m "unit and not slow"
 fuzz: setup       ## property tests with random seeds, FUZZ x their examples (default 50)
