@@ -23,10 +23,9 @@ run where the real-time layer runs (conftest's host check) and reported skipped,
 measurement, on a host too slow for it. Budget: about ten minutes on 2 cores.
 
 The layer is ``ros``, ``slow`` and ``alone``, one file (the blocks share their folder and run in
-order): ``make test`` runs it after the workers, with the real-time layer. A block with a
-real-time command (``test_readme_block_in_real_time``) runs last. On the workers, beside
-three workers' graphs, a launch's controller once missed its stop deadline on Ctrl-C (killed,
-exit 137), so the whole file stays alone.
+order): ``make test`` runs it after the workers, with the real-time layer, so that the
+real-time commands do not share the host with another worker's graphs (beside three workers'
+graphs a launch's controller once missed its stop deadline on Ctrl-C: killed, exit 137).
 """
 
 from __future__ import annotations
@@ -661,34 +660,13 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
     return out
 
 
-def _in_real_time(commands: list[Command]) -> bool:
-    """Whether a block holds a command that runs in real time (``Expect.realtime``)."""
-    return any(c.key in RUN and RUN[c.key].realtime for c in commands)
-
-
-def _blocks(real_time: bool) -> list:
-    return [
-        pytest.param(c, id=f"README.md:{line}")
-        for line, c in BLOCKS
-        if _in_real_time(c) == real_time
-    ]
-
-
-@pytest.mark.parametrize("commands", _blocks(real_time=False))
+@pytest.mark.parametrize(
+    "commands", [pytest.param(c, id=f"README.md:{line}") for line, c in BLOCKS]
+)
 def test_readme_block(commands: list[Command], folder: Path):
     """Each command of the block in order, in the shared folder: as the README says, or the
-    reason it is not run (excluded here) reported as this block's skip."""
-    _run_block(commands, folder)
-
-
-@pytest.mark.parametrize("commands", _blocks(real_time=True))
-def test_readme_block_in_real_time(commands: list[Command], folder: Path):
-    """A block with a live run, alone on the host: as :func:`test_readme_block`, its real-time
-    commands reported as this block's skip on a host too slow for them."""
-    _run_block(commands, folder)
-
-
-def _run_block(commands: list[Command], folder: Path) -> None:
+    reason it is not run (excluded here, or real time on a host too slow for it) reported as this
+    block's skip."""
     not_run = []
     for command in commands:
         if command.key in EXCLUDED:
