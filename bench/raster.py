@@ -12,10 +12,10 @@ feedback only, the image's distortion in pixels, and the simulated-to-scan time 
 Cases (the learning: 20 lines; feedback only: the thesis PID alone; both: PID + feedforward
 tables from the identified models with the coupling taken out):
 
-- A: 64 lines at 10 Hz, 256 pixels, 10 kHz loop (500 samples per trace). Targets after
+- A: 64 lines at 10 Hz, 256 pixels, 8 kHz loop (400 samples per trace). Targets after
   learning: X ≤ 0.2 %, Y ≤ 0.2 %, Y's error ≤ 0.1× feedback only, distortion ≤ 0.5 px.
 - B: the same at a 1 kHz loop, 32 pixels. Target: X ≤ 0.2 % after learning.
-- C: 50 Hz lines at 10 kHz, 64 pixels. Target: X ≤ 0.5 % after learning.
+- C: 50 Hz lines at 8 kHz, 64 pixels. Target: X ≤ 0.5 % after learning.
 
     python bench/raster.py [--seeds 2] [--png DIR]
 """
@@ -41,9 +41,9 @@ from piezo_stage.control.scan_image import load_sample  # noqa: E402
 from piezo_stage.model.stage_file import Stage  # noqa: E402
 
 CASES = {
-    "A": dict(lines=64, pixels=256, line_rate=10.0, rate=10_000.0),
+    "A": dict(lines=64, pixels=256, line_rate=10.0, rate=8_000.0),
     "B": dict(lines=64, pixels=32, line_rate=10.0, rate=1_000.0),
-    "C": dict(lines=64, pixels=64, line_rate=50.0, rate=10_000.0),
+    "C": dict(lines=64, pixels=64, line_rate=50.0, rate=8_000.0),
 }
 #: after learning, per case: (figure, its target, unit); x, y: RMS error in % of the axis's
 #: range, y_vs_feedback: Y's error / Y's error under feedback only, px_max: the distortion

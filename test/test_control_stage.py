@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
+from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
 from piezo_stage.control.laws import THESIS_GAINS
@@ -17,15 +19,18 @@ from piezo_stage.control.learning import sampled_feedforward
 from piezo_stage.control.scan import make_trajectory
 from piezo_stage.control.simulation import simulate_closed_loop
 from piezo_stage.control.stage_control import (
+    LOOP_RATES,
     OwnFrames,
     StageController,
     StageReference,
+    axis_plant,
+    check_stage_loops,
     own_reference,
     scanner_run,
     simulate_stage,
 )
 from piezo_stage.control.trajectory import SetPoint
-from piezo_stage.model.parameter_set import shipped_parameter_set
+from piezo_stage.model.parameter_set import Dynamics, shipped_parameter_set
 from piezo_stage.model.stage import AmplifierModel, CoupledStage, SimulatedStage
 from piezo_stage.model.stage_file import Stage, StageAxis, load_stage, single_axis_stage
 
@@ -167,3 +172,38 @@ def test_a_held_axis_stays_put_while_the_other_scans_only_with_the_coupling_comp
     assert without[1] > 20e-9  # the cross-talk is there to be removed
     assert with_[1] <= 0.1 * without[1]
     assert with_[0] <= 1.1 * without[0]  # X's own tracking is not the price
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.sampled_from(LOOP_RATES), st.floats(0.5, 3.0))
+def test_a_stage_loop_is_refused_exactly_where_an_axis_sampled_loop_is_unstable(rate, mass):
+    """x as the ch. 11 rig, y ``mass`` times as heavy (c by its root): refused exactly when one
+    of the two sampled loops (11.5) is unstable, and every rate the refusal offers passes."""
+    assert CH11.dynamics is not None
+    dynamics = Dynamics(m=CH11.dynamics.m * mass, c=CH11.dynamics.c * mass**0.5)
+    heavy = dataclasses.replace(CH11, dynamics=dynamics)
+    stage = Stage("xy", (StageAxis("x", CH11, "1"), StageAxis("y", heavy, "2")), C)
+    stable = [
+        check_sampled_loop(axis_plant(a.model), THESIS_GAINS, rate).stable  # type: ignore[arg-type]
+        for a in stage.axes
+    ]
+    try:
+        check_stage_loops(stage, THESIS_GAINS, rate)
+    except ControlError as exc:
+        assert not all(stable)
+        offered = str(exc).split("stable at ")[1].removesuffix(" Hz").split(" or ")
+        for r in offered:
+            if r.startswith("none"):
+                break
+            check_stage_loops(stage, THESIS_GAINS, float(r))
+    else:
+        assert all(stable)
+
+
+def test_a_static_axis_has_no_sampled_loop_to_refuse():
+    """The ch. 10 patch (static: no m, c) passes at a rate where the ch. 11 axis is refused."""
+    patch = single_axis_stage(shipped_parameter_set("ch10_patch"))
+    assert axis_plant(patch.axes[0].model) is None
+    check_stage_loops(patch, THESIS_GAINS, 10_000.0)
+    with pytest.raises(ControlError, match="unstable on axis x"):
+        check_stage_loops(single_axis_stage(CH11), THESIS_GAINS, 10_000.0)

@@ -54,20 +54,54 @@ def test_a_run_has_diverged_exactly_when_an_axis_erred_beyond_its_range(axes):
         assert reason.startswith(f"the loop diverged: axis {beyond[0]}'s error reached")
 
 
+def _heavier(stage: Path, out: Path, mass: float) -> Path:
+    """``stage`` with every axis's moving mass m times ``mass`` (c times its root: the same
+    damping ratio), as a sample mounted on the scanner makes it, written to ``out``."""
+    import dataclasses
+
+    from piezo_stage.model.stage_file import load_stage, save_stage
+
+    loaded = load_stage(stage)
+    axes = []
+    for axis in loaded.axes:
+        d = axis.model.dynamics
+        dynamics = dataclasses.replace(d, m=d.m * mass, c=d.c * math.sqrt(mass))
+        model = dataclasses.replace(axis.model, dynamics=dynamics)
+        axes.append(dataclasses.replace(axis, model=model))
+    return save_stage(dataclasses.replace(loaded, axes=tuple(axes)), out)
+
+
 @pytest.mark.unit
 @pytest.mark.slow
-def test_a_raster_sampled_where_its_loop_diverges_exits_1_and_says_so(tmp_path, capsys):
-    """The core raster at 5 kHz: the thesis gains are unstable sampled there (radius 1.85 on
-    the shipped XY stage's axes), the scan runs away to ~100 µm on a 20 µm range; the command
-    ends failed instead of printing the figures as a result."""
+def test_a_raster_whose_scanner_diverges_under_its_model_loop_exits_1_and_says_so(tmp_path, capsys):
+    """The core raster at 8 kHz, where the model's loop is stable on every axis (the door lets
+    it run), on a scanner twice as heavy as the model (radius 1.99 sampled there): the scan runs
+    away far beyond its range; the command ends failed instead of printing the figures."""
     from piezo_stage.cli import main
+    from piezo_stage.config_path import find_config
 
-    argv = ["experiment", "raster", "--stage", "xy_scanner.yaml", "--lines", "4"]
-    argv += ["--pixels", "32", "--line-rate", "2", "--rate-hz", "5000", "--json"]
+    plant = _heavier(find_config("xy_scanner.yaml"), tmp_path / "heavy.yaml", 2.0)
+    argv = ["experiment", "raster", "--stage", "xy_scanner.yaml", "--plant-stage", str(plant)]
+    argv += ["--lines", "4", "--pixels", "32", "--line-rate", "2", "--rate-hz", "8000", "--json"]
     assert main(argv) == 1
     out, err = capsys.readouterr()
     assert json.loads(out)["failed"].startswith("the loop diverged: axis x's error reached")
     assert "failed: the loop diverged" in err.splitlines()[-1]
+
+
+@pytest.mark.unit
+def test_a_raster_whose_model_loop_is_unstable_at_its_rate_is_refused_before_it_runs(capsys):
+    """The thesis gains sampled at 5 kHz on the shipped XY stage's axes: radius 1.85 and 1.70;
+    refused at the door (exit 2, one line naming the axes and the rates that are stable)."""
+    from piezo_stage.cli import main
+
+    argv = ["experiment", "raster", "--stage", "xy_scanner.yaml", "--lines", "4"]
+    argv += ["--pixels", "32", "--line-rate", "2", "--rate-hz", "5000", "--json"]
+    assert main(argv) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line
+    assert "unstable on axis x (spectral radius 1.849 >= 1), y (spectral radius 1.699" in line
+    assert "stable at 1000 or 4000 or 8000 or 100000 Hz" in line
 
 
 @pytest.mark.unit

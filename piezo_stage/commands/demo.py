@@ -363,12 +363,12 @@ def _raster(args: argparse.Namespace, out: Path, progress: Progress) -> StageRes
         lines=32,
         pixels=128,
         line_rate=10.0,
-        rate_hz=10_000.0,
+        rate_hz=8_000.0,
         learn=20,
         png=out / "png",
     )
     progress.stage(
-        "(f) raster: 32 lines at 10 Hz, 128 px, 10 kHz; feedback, feedforward, learned 20 lines"
+        "(f) raster: 32 lines at 10 Hz, 128 px, 8 kHz; feedback, feedforward, learned 20 lines"
     )
     summary = run_raster(spec, lambda fraction, text: progress.bar(fraction))
     progress.done(f"{summary['wall_time']:.0f} s")

@@ -340,8 +340,9 @@ def _raster_graph_arguments(group: argparse._ArgumentGroup) -> None:
         type=positive,
         default=None,
         metavar="HZ",
-        help="the loop rate [Hz] (any rate that samples the scan: default 10000 in the core, "
-        "1000 on sim_scanner; on the device graphs their sensors' rate, 1000)",
+        help="the loop rate [Hz] (any rate that samples the scan and where every axis's loop is "
+        "stable: default 8000 in the core, 1000 on sim_scanner; on the device graphs their "
+        "sensors' rate, 1000)",
     )
     group.add_argument(
         "--plant-stage",
@@ -688,7 +689,7 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         line_rate=args.line_rate,
         range=args.range,
         centre=args.centre,
-        rate_hz=args.rate_hz or (10_000.0 if graph == CORE else 1000.0),
+        rate_hz=args.rate_hz or (RasterSpec.rate_hz if graph == CORE else 1000.0),
         learn=args.learn or 0,
         compensation=Compensation(args.compensation),
         coupling_compensation=args.coupling_compensation,

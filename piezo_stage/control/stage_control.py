@@ -21,11 +21,14 @@ from typing import Protocol, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
 
+from .bounds import NominalPlant
 from .controller import ControlOutput, OwnFrame, TimeVaryingPID, closed_pid
-from .errors import ControlError
+from .discrete import check_sampled_loop
+from .errors import ControlError, SampledLoopError
 from .feedforward import Compensation, FeedforwardModel
 from .laws import THESIS_GAINS, Gains
 from .learning import sampled_feedforward
@@ -37,6 +40,8 @@ __all__ = [
     "StageController",
     "StageReference",
     "StageRun",
+    "axis_plant",
+    "check_stage_loops",
     "feedforward_pids",
     "own_reference",
     "scanner_run",
@@ -45,6 +50,50 @@ __all__ = [
 
 #: the voltage range of the simulated scanners' amplifiers [V]
 SCANNER_VOLTS = (-450.0, 450.0)
+#: loop rates offered when a stage's loop is unstable at the one asked [Hz]
+LOOP_RATES: tuple[float, ...] = (1e3, 2e3, 4e3, 5e3, 8e3, 10e3, 20e3, 50e3, 100e3)
+
+
+def axis_plant(model: ParameterSet) -> NominalPlant | None:
+    """The linear part of (11.1)-(11.3) of a dynamic axis model (m, c, κx, κw, ρ), the plant of
+    the sampled-loop check; None for a static (ch. 10) model, which has no dynamics.
+    """
+    if model.dynamics is None:
+        return None
+    bw = model.bouc_wen
+    return NominalPlant(
+        m=model.dynamics.m, c=model.dynamics.c, kappa_x=bw.kappa[0], kappa_w=bw.kappa_w, rho=bw.rho
+    )
+
+
+def _unstable(stage: Stage, gains: Gains, rate_hz: float, law: str) -> list[str]:
+    """'axis (spectral radius ρ)' of each dynamic axis whose sampled loop is unstable."""
+    found = []
+    for axis in stage.axes:
+        plant = axis_plant(axis.model)
+        try:
+            report = None if plant is None else check_sampled_loop(plant, gains, rate_hz, 0, law)
+        except SampledLoopError:  # beyond the sampled check: the continuous verdict applies
+            report = None
+        if report is not None and not report.stable:
+            found.append(f"{axis.name} (spectral radius {report.spectral_radius:.4g} >= 1)")
+    return found
+
+
+def check_stage_loops(stage: Stage, gains: Gains, rate_hz: float, law: str = "pid") -> None:
+    """ControlError unless every dynamic axis's loop (11.5) with ``gains``, sampled at
+    ``rate_hz`` without delay (:func:`~.discrete.check_sampled_loop` on :func:`axis_plant`), is
+    stable; the message names the rates of :data:`LOOP_RATES` at which every axis is.
+    """
+    unstable = _unstable(stage, gains, rate_hz, law)
+    if not unstable:
+        return
+    stable = [f"{r:g}" for r in LOOP_RATES if not _unstable(stage, gains, r, law)]
+    raise ControlError(
+        f"the {law} loop sampled at {rate_hz:g} Hz (delay 0) is unstable on axis "
+        f"{', '.join(unstable)}; every axis's is stable at "
+        f"{' or '.join(stable) + ' Hz' if stable else 'none of ' + str(LOOP_RATES)}"
+    )
 
 
 class AxisReference(Protocol):

@@ -11,8 +11,9 @@ emulated E-727-class amplifier and optoNCDT sensors around ``plant_stage``, 1 kH
 ``rig_scanner`` (the devices of config/rig_devices.yaml), the last two every axis in one loop
 thread; there both learn in their controllers, as in the core.
 
-Before anything runs, a scan is refused (:class:`ExperimentInputError`) that the loop rate
-cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
+Before anything runs, a scan is refused (:class:`ExperimentInputError`) whose loop is unstable
+sampled at its rate on some axis of ``stage`` (the feedback's gains, the axis's model), that the
+loop rate cannot sample (fewer than ``min_samples_per_line`` samples in a line's image window, or
 fewer than one per pixel), whose feedforward needs more than the amplifier gives, or whose
 sample or tables do not load.
 """
@@ -29,6 +30,7 @@ from typing import Any, Callable
 
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation
+from piezo_stage.control.laws import THESIS_GAINS
 from piezo_stage.control.learning import LearningError
 from piezo_stage.control.raster import (
     RasterRun,
@@ -39,7 +41,7 @@ from piezo_stage.control.raster import (
 )
 from piezo_stage.control.scan import FastShape, Order, RasterScan, ScanError, SlowMotion
 from piezo_stage.control.scan_image import Sample, load_sample
-from piezo_stage.control.stage_control import SCANNER_VOLTS
+from piezo_stage.control.stage_control import SCANNER_VOLTS, check_stage_loops
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage_file import Stage, load_stage
 
@@ -72,7 +74,7 @@ class RasterSpec:
     line_rate: float = 10.0  #: [Hz] lines (fast-axis periods) per second
     range: tuple[float, float] = (20e-6, 10e-6)  #: [m] the image, fast and slow axis
     centre: tuple[float, float] = (20e-6, 10e-6)  #: [m] the image's centre
-    rate_hz: float = 10_000.0
+    rate_hz: float = 8_000.0  #: where the thesis gains are stable on the shipped scanners
     learn: int = 0  #: learning lines
     compensation: Compensation = Compensation.BOTH
     coupling_compensation: bool = True
@@ -154,6 +156,11 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         raise ExperimentInputError(f"a raster needs two axes; {spec.stage} has {model.names}")
     axes = (model.names[0], model.names[1])
     amplifier = amplifier_range(spec.graph)
+    if common.compensation is not Compensation.FEEDFORWARD:
+        try:
+            check_stage_loops(model, THESIS_GAINS, spec.rate_hz)
+        except ControlError as exc:
+            raise ExperimentInputError(f"--rate-hz {spec.rate_hz:g}: {exc}") from None
     try:
         if tables is not None and tables.matches(scan, spec.rate_hz):
             raise ExperimentInputError(
