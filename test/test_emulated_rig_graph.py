@@ -102,7 +102,8 @@ def test_emulated_rig_graph_identifies_the_emulated_patch(probe, tmp_path):
             # generous: auto's cross-checking fit takes 30-100 s here (the emulator and the
             # real-time driver hold over a core meanwhile, and the node's intake shares the
             # GIL with it), and over 240 s were seen in CI with two spinning BLAS threads
-            return bool(params) or (bool(over) and time.monotonic() > over[0] + 480.0)
+            failed = any("identification failed" in line for line in lines)
+            return bool(params) or failed or (bool(over) and time.monotonic() > over[0] + 480.0)
 
         done = spin_until(probe, identified_or_given_up, 600.0)
         spin_until(probe, lambda: False, 0.3)

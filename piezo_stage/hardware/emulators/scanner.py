@@ -44,6 +44,8 @@ __all__ = ["CoupledAxes", "ScannerCoupling", "ScannerEmulator"]
 
 #: grid samples [s] kept for a sensor that reads late (after a stall); older ones are gone
 BACKLOG_S = 3.0
+#: longest a sensor waits [s] for the amplifier to handle what reached it before a sample
+HEARD_WAIT = 1.0
 
 
 class CoupledAxes(Protocol):
@@ -105,6 +107,10 @@ class ScannerCoupling:
         self._ring = np.full((max(2, math.ceil(BACKLOG_S * rate)), n), math.nan)
         self.applied = np.zeros(n)  # last voltages the stage received [V]
         self.readings = np.zeros(n)  # last sensor readings of the stage [m]
+        #: server time up to which the amplifier has handled its input (its server's
+        #: ``heard_until``); None: always now
+        self.heard: Callable[[], float] | None = None
+        self.clock = clock
 
     def on_axis_voltage(self, channel: str, value: float, at: float | None = None) -> None:
         """The amplifier applied ``value`` on ``channel`` at server time ``at`` (None: now)."""
@@ -165,6 +171,8 @@ class ScannerCoupling:
         """Sensor ``axis``'s readings at grid samples ``index`` (after :meth:`grid_offset`); a
         sample older than the backlog reads the oldest kept.
         """
+        if index.size:
+            self._wait_heard(int(index.max()))
         with self.lock:
             if index.size:
                 self._advance(int(index.max()))
@@ -172,6 +180,23 @@ class ScannerCoupling:
             kept = np.clip(index, oldest, None)
             out: NDArray[np.float64] = self._ring[kept % len(self._ring), axis]  # a copy
             return out
+
+    def _wait_heard(self, last: int) -> None:
+        """Wait (at most :data:`HEARD_WAIT`) until the amplifier has handled every command that
+        reached it before grid sample ``last``: one that came during a stall of this process
+        applies from its arrival, as on the device, not from the first sample after the stall.
+        """
+        heard, origin = self.heard, self.origin
+        if heard is None or origin is None or last < self.steps:
+            return
+        t = origin + last * self.dt
+        deadline = None
+        while heard() < t:
+            now = self.clock()
+            deadline = now + HEARD_WAIT if deadline is None else deadline
+            if now >= deadline:
+                return
+            time.sleep(2e-4)
 
     def grid_offset(self, origin: float) -> int:
         """Grid samples between the grid's sample 0 and a sensor's sample 0 at ``origin``; the
@@ -258,6 +283,7 @@ class ScannerEmulator:
             realtime_priority=realtime_priority,
             **amplifier_endpoint(amplifier_tcp_port, amplifier_link),
         )
+        self.coupling.heard = self.amplifier_server.heard_until
         self.sensors: list[OptoNCDTDeviceModel] = []
         self.sensor_servers: list[EmulatorServer] = []
         for i, name in enumerate(self.axes):

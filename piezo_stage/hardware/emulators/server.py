@@ -18,7 +18,9 @@ from __future__ import annotations
 import errno
 import heapq
 import itertools
+import math
 import os
+import select
 import selectors
 import socket
 import struct
@@ -225,6 +227,9 @@ class EmulatorServer:
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         self._requests: list[str] = []
+        # heard_until's state, replaced whole at each turn: (waiting for input, the time before
+        # which everything received is handled: the start of the last wait that was handled)
+        self._heard: tuple[bool, float] = (True, -math.inf)
         self._stop = threading.Event()
         self._thread = threading.Thread(
             target=self._run, name=f"emulator-{model.name}", daemon=True
@@ -268,6 +273,28 @@ class EmulatorServer:
     def clients(self) -> int:
         """TCP clients connected now (a pty has no way to tell: always 0)."""
         return sum(1 for channel in list(self._channels.values()) if channel.sock is not None)
+
+    def heard_until(self) -> float:
+        """Server time up to which everything the device received has been handled: now while
+        its thread waits with nothing to read (or does not run), else the start of the last
+        wait whose input it has handled. A source that answers for the device at an instant (a
+        sensor's sample of the stage the amplifier drives) waits for this to pass that instant:
+        after a stall of the process, the commands that arrived meanwhile apply from their
+        arrival before any later sample is taken.
+        """
+        state = self._heard
+        waiting, handled = state
+        if not self._thread.is_alive():
+            return time.monotonic()
+        if not waiting:
+            return handled
+        now, fds = time.monotonic(), list(self._channels)
+        try:
+            pending = bool(fds) and bool(select.select(fds, [], [], 0.0)[0])
+        except (OSError, ValueError):  # a channel closed meanwhile
+            return handled
+        # still the same wait (the thread did not wake during the poll) and nothing to read
+        return now if self._heard is state and not pending else handled
 
     def start(self) -> "EmulatorServer":
         """Start the server thread; returns the server."""
@@ -422,7 +449,7 @@ class EmulatorServer:
             raise
 
     def _loop(self) -> None:
-        next_stream = time.monotonic()
+        next_stream = handled = time.monotonic()
         while not self._stop.is_set():
             period = self.model.stream_period
             now = time.monotonic()
@@ -434,8 +461,16 @@ class EmulatorServer:
             for fd, channel in self._channels.items():
                 events = selectors.EVENT_READ | (selectors.EVENT_WRITE if channel.out else 0)
                 self._sel.modify(fd, events, "channel")
-            for key, mask in self._sel.select(timeout):
+            self._heard = (True, handled)
+            # what arrived before the wait began is in what it returns (what arrives later may
+            # not be, even before this thread runs again)
+            began, channels = time.monotonic(), len(self._channels)
+            ready = self._sel.select(timeout)
+            self._heard = (False, handled)
+            for key, mask in ready:
                 self._on_event(key, mask)
+            if len(self._channels) <= channels:  # a new channel may hold older input: next turn
+                handled = began
             now = time.monotonic()
             while self._requests:
                 if self._requests.pop(0) == "disconnect":
