@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from piezo_stage.control.bounds import axis_plant
 from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
@@ -23,7 +24,6 @@ from piezo_stage.control.stage_control import (
     OwnFrames,
     StageController,
     StageReference,
-    axis_plant,
     check_stage_loops,
     own_reference,
     scanner_run,

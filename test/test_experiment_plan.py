@@ -70,3 +70,28 @@ def test_tracking_and_raster_take_the_same_plan_and_refuse_alike(tmp_path):
         == refusals[1]
         == "--learn needs a feedforward: --compensation feedforward or both"
     )
+
+
+def test_a_tracking_loop_is_checked_on_the_plant_it_runs_on(tmp_path):
+    """The ch. 11 rig at 1 kHz: stable (radius 0.935); the same rig four times as heavy (c by
+    its root) at 1 kHz: radius 1.51, refused at the door with the reason."""
+    import dataclasses
+    import math
+
+    from piezo_stage.model.parameter_set import (
+        Dynamics,
+        save_parameter_set,
+        shipped_parameter_set,
+    )
+
+    rig = shipped_parameter_set("ch11_rig")
+    assert rig.dynamics is not None
+    heavy = dataclasses.replace(rig, dynamics=Dynamics(m=4 * rig.dynamics.m, c=2 * rig.dynamics.c))
+    path = tmp_path / "heavy.yaml"
+    save_parameter_set(heavy, path)
+    ok = plan_tracking(TrackingSpec(rate_hz=1000.0, model="ch11_rig.yaml"))
+    assert math.isclose(ok.radius, 0.935, abs_tol=0.001)
+    with pytest.raises(
+        ExperimentInputError, match=r"unstable sampled at 1000 Hz \(spectral radius 1\.51"
+    ):
+        plan_tracking(TrackingSpec(rate_hz=1000.0, model="ch11_rig.yaml", plant_model=str(path)))

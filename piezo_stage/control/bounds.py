@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Protocol, TypeVar
 
 from piezo_stage.config_path import read_yaml
+from piezo_stage.model.parameter_set import ParameterSet
 
 from .errors import BoundsError
 
@@ -200,3 +201,15 @@ def thesis_bounds_path() -> Path:
     from ..config_path import find_config
 
     return find_config("thesis_rig_bounds.yaml")
+
+
+def axis_plant(model: ParameterSet) -> NominalPlant | None:
+    """The linear part of (11.1)-(11.3) of a dynamic axis model (m, c, κx, κw, ρ), the plant of
+    the sampled-loop check; None for a static (ch. 10) model, which has no dynamics.
+    """
+    if model.dynamics is None:
+        return None
+    bw = model.bouc_wen
+    return NominalPlant(
+        m=model.dynamics.m, c=model.dynamics.c, kappa_x=bw.kappa[0], kappa_w=bw.kappa_w, rho=bw.rho
+    )

@@ -21,11 +21,10 @@ from typing import Protocol, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from piezo_stage.model.parameter_set import ParameterSet
 from piezo_stage.model.stage import AmplifierModel, CoupledStage
 from piezo_stage.model.stage_file import Stage
 
-from .bounds import NominalPlant
+from .bounds import axis_plant
 from .controller import ControlOutput, OwnFrame, TimeVaryingPID, closed_pid
 from .discrete import check_sampled_loop
 from .errors import ControlError, SampledLoopError
@@ -40,7 +39,6 @@ __all__ = [
     "StageController",
     "StageReference",
     "StageRun",
-    "axis_plant",
     "check_stage_loops",
     "feedforward_pids",
     "own_reference",
@@ -52,18 +50,6 @@ __all__ = [
 SCANNER_VOLTS = (-450.0, 450.0)
 #: loop rates offered when a stage's loop is unstable at the one asked [Hz]
 LOOP_RATES: tuple[float, ...] = (1e3, 2e3, 4e3, 5e3, 8e3, 10e3, 20e3, 50e3, 100e3)
-
-
-def axis_plant(model: ParameterSet) -> NominalPlant | None:
-    """The linear part of (11.1)-(11.3) of a dynamic axis model (m, c, κx, κw, ρ), the plant of
-    the sampled-loop check; None for a static (ch. 10) model, which has no dynamics.
-    """
-    if model.dynamics is None:
-        return None
-    bw = model.bouc_wen
-    return NominalPlant(
-        m=model.dynamics.m, c=model.dynamics.c, kappa_x=bw.kappa[0], kappa_w=bw.kappa_w, rho=bw.rho
-    )
 
 
 def _unstable(stage: Stage, gains: Gains, rate_hz: float, law: str) -> list[str]:

@@ -48,7 +48,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from piezo_stage.config_path import find_config
-from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
+from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, axis_plant
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
@@ -258,10 +258,11 @@ def _model_file(plan: TrackingPlan, folder: Path) -> str:
     return str(path)
 
 
-def _check(spec: TrackingSpec) -> float:
-    """The spectral radius of the spec's loop at its rate (delay 0: the lockstep's, and
-    rig_loop's answer within a fraction of a sample); refused with the reason where the law's
-    gains fail the sampled-loop check (its output is not applied under feedforward alone)."""
+def _check(spec: TrackingSpec, plant: ParameterSet) -> float:
+    """The spectral radius of the spec's loop at its rate on ``plant`` (its linear part; the
+    thesis's for a static one), delay 0: the lockstep's, and rig_loop's answer within a
+    fraction of a sample; refused with the reason where the law's gains fail the sampled-loop
+    check (its output is not applied under feedforward alone)."""
     rate = float(spec.rate_hz)
     if not (math.isfinite(rate) and rate > 0):
         raise ExperimentInputError(f"--rate-hz must be > 0, got {rate}")
@@ -270,7 +271,8 @@ def _check(spec: TrackingSpec) -> float:
             f"the emulated rig's sensor runs at "
             f"{' or '.join(f'{r:g}' for r in RIG_RATES)} Hz, not {rate:g}"
         )
-    report = check_sampled_loop(THESIS_NOMINAL_PLANT, THESIS_GAINS, rate, 0, spec.mode)
+    nominal = axis_plant(plant) or THESIS_NOMINAL_PLANT
+    report = check_sampled_loop(nominal, THESIS_GAINS, rate, 0, spec.mode)
     if spec.compensation is not Compensation.FEEDFORWARD and not report.stable:
         raise ExperimentInputError(
             f"the {spec.mode} law with the thesis gains is unstable sampled at {rate:g} Hz "
@@ -357,7 +359,8 @@ def plan_tracking(
         spec.learn,
         None if bag is None else Path(bag),
     )
-    radius = _check(spec)
+    plant = _load(spec.plant_model, "plant model")
+    radius = _check(spec, plant)
     trajectory = spec.make_trajectory()
     seconds, t_from = spec.timing(trajectory)
     uses_model = spec.model is not None and spec.compensation.feeds_forward
@@ -366,7 +369,7 @@ def plan_tracking(
         spec,
         trajectory,
         _load(spec.model, "model") if uses_model else None,  # type: ignore[arg-type]
-        _load(spec.plant_model, "plant model"),
+        plant,
         seconds if duration is None else float(duration),
         t_from,
         radius,
