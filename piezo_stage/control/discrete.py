@@ -216,8 +216,9 @@ def check_sampled_loop(
 ) -> SampledLoopReport:
     """Spectral radius, stability flag and margin 1 − ρ of the sampled loop (module docstring).
 
-    With the §11.4.1 gains and plant: stable at 1 kHz, unstable at 5-50 kHz, stable at 100 kHz
-    without delay, and needing ≥ 200 kHz with a one-sample delay (docs/design.md §7).
+    With the §11.4.1 gains and plant, without delay: stable at 1, 4, 6, 8 and 100 kHz, unstable
+    at 2, 3, 5, 10, 20 and 50 kHz (the plant's 7 kHz resonance against the sampling); with a
+    one-sample delay at 1 kHz and from 200 kHz (docs/design.md §7).
     """
     limit = max_meaningful_rate(plant, gains, hysteresis)
     if rate_hz > limit:
