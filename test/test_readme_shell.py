@@ -18,14 +18,14 @@ Ctrl-C does; it must then exit as the README says (0: "stops everything cleanly 
 
 Long runs: every command gets ``PIEZO_QUICK=1`` in its environment (README, "Commission your
 rig"): the commands that take minutes shorten themselves (the same arguments, fewer periods or
-sweep frequencies). A command that runs in real time against the emulators (``realtime``) is
-run where the real-time layer runs (conftest's host check) and reported skipped, with the
-measurement, on a host too slow for it. Budget: about ten minutes on 2 cores.
+sweep frequencies). A command whose figures are the host's timing (a learning loop on the
+emulated rig or scanner in real time) is excluded and named with the test that runs it alone
+(the serial phase of ``make test``). Budget: about five minutes on 2 cores.
 
-The layer is ``ros``, ``slow`` and ``alone``, one file (the blocks share their folder and run in
-order): ``make test`` runs it after the workers, with the real-time layer, so that the
-real-time commands do not share the host with another worker's graphs (beside three workers'
-graphs a launch's controller once missed its stop deadline on Ctrl-C: killed, exit 137).
+The layer is ``ros`` and ``slow``, one file (the blocks share their folder and run in order,
+on one worker: ``--dist loadfile``) beside the other worker's tests; what runs in real time
+here (a launch of the emulators, ``identify --device`` on the E-727 emulator) times itself by
+the emulated device's clock, not by the host's.
 """
 
 from __future__ import annotations
@@ -45,11 +45,10 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from conftest import too_slow_for_realtime
 
 from piezo_stage.commands.quick import QUICK_VARIABLE
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.alone]
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -104,10 +103,6 @@ def readme_blocks(text: str | None = None) -> list[tuple[int, list[Command]]]:
 Check = Callable[[str, Path, dict], None]
 
 
-#: the last line of a live run that failed because the host held it off the CPU
-HOST_FELL_BEHIND = re.compile(r"fell behind real time|loop opened at|learning diverged")
-
-
 @dataclass(frozen=True)
 class Expect:
     code: int = 0  # exit code (of the stop, for a command that serves)
@@ -118,8 +113,6 @@ class Expect:
     beside: str | None = None  # a README command serving meanwhile (key of RUN)
     check: Check | None = None  # a further check (output, folder, results so far)
     timeout: float = 240.0
-    realtime: bool = False  # runs in real time: only where the real-time layer runs; exit 1
-    # with a last line that says the host fell behind passes (HOST_FELL_BEHIND)
 
 
 def _identified(out: str, folder: Path, results: dict) -> None:
@@ -323,9 +316,6 @@ RUN: dict[str, Expect] = {
     "piezo-stage experiment tracking --rate-hz 1000 --table scan.json --model model.yaml": Expect(
         timeout=1800
     ),
-    "piezo-stage experiment tracking --graph emulated_rig --learn 20 --model model.yaml --json": (
-        Expect(out=(r'"quick": true',), timeout=1800, realtime=True)
-    ),
     # "refused: the gains fail the sampled-loop check at 10 kHz (exit 2)"
     "piezo-stage experiment tracking --rate-hz 10000 --model model.yaml": Expect(
         code=2, out=(r"(?i)sampled", r"10000|10 kHz")
@@ -451,6 +441,10 @@ EXCLUDED: dict[str, str] = {
     "piezo-stage experiment raster --graph rig_scanner --stage my_scanner.yaml --lines 64 "
     "--pixels 128 --line-rate 2 --learn 20 --png scan/": (
         "a real scanner: its amplifier and sensors (config/rig_devices.yaml)"
+    ),
+    "piezo-stage experiment tracking --graph emulated_rig --learn 20 --model model.yaml --json": (
+        "the emulated rig in real time: test/test_emulated_rig_tracking.py runs it alone (the "
+        "serial phase), learning, the saved table and its replay checked"
     ),
     "piezo-stage commission emulated/ --graph emulated_rig --m 5.3e-3 --c 13": (
         "the emulators in real time: test/test_commission_ros.py runs it alone (the serial "
@@ -643,13 +637,6 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
     finally:
         if helper is not None:
             helper.stop()
-    if expect.realtime and code == 1 and code != expect.code:
-        # a live run the host held off the CPU ends failed and says so in its last line (the
-        # README's "what a run's exit says"); any other failure is one
-        last = out.strip().splitlines()[-1] if out.strip() else ""
-        assert HOST_FELL_BEHIND.search(last), f"{where}: exit code 1:\n{out[-3000:]}"
-        print(f"{where}: the host fell behind: {last}")
-        return out
     assert code == expect.code, f"{where}: exit code {code}, not {expect.code}:\n{out[-3000:]}"
     for pattern in expect.out:
         assert re.search(pattern, out, re.M), f"{where}: no {pattern!r} in:\n{out[-3000:]}"
@@ -665,18 +652,13 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
 )
 def test_readme_block(commands: list[Command], folder: Path):
     """Each command of the block in order, in the shared folder: as the README says, or the
-    reason it is not run (excluded here, or real time on a host too slow for it) reported as this
-    block's skip."""
+    reason it is not run (EXCLUDED) reported as this block's skip."""
     not_run = []
     for command in commands:
         if command.key in EXCLUDED:
             not_run.append(f"line {command.line} `{command.key}`: {EXCLUDED[command.key]}")
             continue
         assert command.key in RUN, f"README.md:{command.line}: {command.key!r} is in no table"
-        expect = RUN[command.key]
-        if expect.realtime and (reason := too_slow_for_realtime()):
-            not_run.append(f"line {command.line} `{command.key}`: real time, {reason}")
-            continue
-        _run(command, expect, folder)
+        _run(command, RUN[command.key], folder)
     if not_run:
         pytest.skip("not run: " + "; ".join(not_run))
