@@ -10,6 +10,10 @@ raised as :class:`Stop` when the outermost such block ends, with every axis safe
 
 Only the main thread receives Python signals; without :func:`install` (a library user, a
 test) nothing changes but that :func:`safe_stop` blocks hold a Ctrl-C until they end.
+
+A process that a launcher started tells it the phase of its stop (:func:`report_phase`, on the
+pipe the launcher gave it): while one is in :data:`SAFE_STATE_PHASE` the launcher does not
+escalate (SIGTERM, SIGKILL) a ramp that a slow slew rate makes longer than its stop timeout.
 """
 
 from __future__ import annotations
@@ -33,6 +37,31 @@ __all__ = [
 ]
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+#: the environment variable naming the pipe a launched process reports its stop phase on
+PHASE_FD_VARIABLE = "PIEZO_STOP_PHASE_FD"
+#: the stop phase in which a process brings its devices to their safe state (never cut short)
+SAFE_STATE_PHASE = "shutdown"
+_phase_fd: int | None = None
+
+
+def take_phase_fd() -> None:
+    """Take the launcher's phase pipe out of the environment (the launcher's child bootstrap
+    calls it): only this process reports on it, nothing it starts inherits it."""
+    global _phase_fd
+    fd = os.environ.pop(PHASE_FD_VARIABLE, "")
+    if fd.isdigit():
+        _phase_fd = int(fd)
+        os.set_inheritable(_phase_fd, False)
+
+
+def report_phase(phase: str) -> None:
+    """Tell the launcher that started this process, if one did, the stop phase it entered."""
+    if _phase_fd is not None:
+        try:
+            os.write(_phase_fd, f"{phase}\n".encode())
+        except OSError:  # the launcher is gone: nobody left to tell
+            pass
 
 
 class Stop(KeyboardInterrupt):

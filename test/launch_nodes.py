@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -122,12 +123,25 @@ class StuckAtExit(StuckInTeardown):
         Node.destroy_node(self)
 
 
+class SlowToSafe(Talker):
+    """A talker whose on_shutdown takes :data:`SAFE_AFTER` s (a driver ramping its amplifier to
+    the safe voltage at a slow slew rate), then says ``safe``."""
+
+    def on_shutdown(self) -> None:
+        time.sleep(SAFE_AFTER)
+        print("safe", flush=True)
+
+
+#: seconds SlowToSafe's on_shutdown takes
+SAFE_AFTER = 3.0
+
 ROLES = {
     "talker": Talker,
     "listener": Listener,
     "stuck_in_callback": StuckInCallback,
     "stuck_in_teardown": StuckInTeardown,
     "stuck_at_exit": StuckAtExit,
+    "slow_to_safe": SlowToSafe,
 }
 
 

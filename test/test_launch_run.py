@@ -285,6 +285,50 @@ def test_stubborn_process_is_terminated_then_killed(tmp_path):
     assert not wait_gone(pids.values(), timeout=1.0)
 
 
+def test_a_ramp_to_the_safe_state_longer_than_the_stop_timeout_is_not_cut_short(tmp_path):
+    """A node in its on_shutdown (bringing its devices to their safe state) gets no SIGTERM or
+    SIGKILL however long that takes; the escalation of the others waits for it, then goes on."""
+    from launch_nodes import SAFE_AFTER
+
+    deaf = (
+        "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+        "print('up', flush=True); time.sleep(60)"
+    )
+    out = Lines()
+    launch = Launcher(
+        {
+            "env": {"PYTHONPATH": TEST_DIR + ":${PYTHONPATH}"},
+            "stop_timeout": 0.5,
+            "nodes": [
+                {
+                    "module": "launch_nodes",
+                    "name": "ramp",
+                    "args": ["slow_to_safe"],
+                    "ready_pattern": "says",
+                },
+                {"command": [PY, "-c", deaf], "name": "deaf", "ready_pattern": "^up$"},
+            ],
+        },
+        sink=out,
+    )
+    launch.start()
+    launch.wait_ready()
+    t0 = time.monotonic()
+    assert launch.stop() == 0, out.items  # nothing had to be killed
+    assert time.monotonic() - t0 >= SAFE_AFTER
+    assert "safe" in out.of("ramp")
+    log = out.of("launch")
+    assert "ramp exited with code 0" in log and not launch.process("ramp").killed, log
+    assert "sending SIGTERM to deaf" in log and "deaf exited with code 143" in log, log
+    assert not any("SIGTERM to ramp" in line or "SIGKILL" in line for line in log), log
+    with out._lock:
+        said_safe = next(t for (n, line), t in zip(out.items, out.times) if line == "safe")
+        term = next(
+            t for (n, line), t in zip(out.items, out.times) if line.startswith("sending SIGTERM")
+        )
+    assert term >= said_safe  # the others' escalation waited for the ramp
+
+
 def test_ready_pattern_orders_the_start(tmp_path):
     out = Lines()
     first = "import time; time.sleep(0.3); print('serving', flush=True); time.sleep(60)"

@@ -22,6 +22,8 @@ import runpy
 import signal
 import sys
 
+from piezo_stage.stopping import take_phase_fd
+
 PR_SET_PDEATHSIG = 1
 EXIT_NOT_FOUND = 2
 
@@ -86,6 +88,7 @@ def main(argv: list[str] | None = None) -> int | str | None:
         return EXIT_NOT_FOUND
     die_with_parent(int(argv[0]))
     mode, target, rest = argv[1], argv[2], argv[3:]
+    take_phase_fd()  # a command exec'd here does not report: its pipe closes at the exec
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if mode == "exec":
         signal.signal(signal.SIGINT, signal.SIG_DFL)

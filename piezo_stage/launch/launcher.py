@@ -2,8 +2,10 @@
 
 Shutdown, on request (Ctrl-C, SIGTERM, ``stop()``) or when a `required` process exits: SIGINT to
 every process group still alive, then SIGTERM after the graph's ``stop_timeout``, then SIGKILL
-after another one. A further stop request does not hurry it (a driver may be ramping its
-amplifier to the safe voltage): it is noted, and the launcher says what it still waits for.
+after another one, each counted from when no process says it is still bringing its devices to
+their safe state (a driver's ramp at a slow slew rate: :func:`piezo_stage.stopping.report_phase`).
+A further stop request does not hurry it: it is noted, and the launcher says what it still
+waits for.
 Exit code: the required process's code when one exited; after a requested stop 0, or 1 when a
 process had to be killed; when every process ended by itself, the first non-zero code (or 0).
 In a graph without a `required` process, every one is needed: the first to exit non-zero while
@@ -308,6 +310,8 @@ class Launcher:
                 if self._stop_requests > requests:  # asked again: say why it takes this long
                     requests = self._stop_requests
                     self._log(self._still_stopping(alive, sig, deadline))
+                if any(p.bringing_to_safe_state for p in alive):  # a ramp is never cut short
+                    deadline = max(deadline, time.monotonic() + self.stop_timeout)
                 time.sleep(POLL_S)
                 self._reap()
         self._reap()

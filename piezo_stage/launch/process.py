@@ -12,6 +12,7 @@ from typing import IO, Sequence
 
 from piezo_stage.launch.graph import ProcessSpec
 from piezo_stage.launch.output import LineSink
+from piezo_stage.stopping import PHASE_FD_VARIABLE, SAFE_STATE_PHASE
 
 TAIL_LINES = 40
 
@@ -39,23 +40,34 @@ class ManagedProcess:
         self._popen: subprocess.Popen[bytes] | None = None
         self._readers: list[threading.Thread] = []
         self.killed = False  # SIGKILL was needed
+        self.stop_phase = ""  # the phase of its stop the process reported last (stopping.py)
 
     def start(self) -> None:
         """Start the process with SIGINT blocked (the mask is inherited across exec): a stop
         sent while python starts and the bootstrap imports waits for the bootstrap's main(),
         which unblocks it where an interrupted start is a status, not a traceback."""
+        phases, phase_w = os.pipe()
         held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             self._popen = subprocess.Popen(
                 self.argv,
-                env=self._env,
+                env={**self._env, PHASE_FD_VARIABLE: str(phase_w)},
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 start_new_session=True,
+                pass_fds=(phase_w,),
             )
+        except BaseException:
+            os.close(phases)
+            raise
         finally:
+            os.close(phase_w)
             signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        t = threading.Thread(
+            target=self._read_phases, args=(phases,), daemon=True, name=f"launch-{self.name}-phase"
+        )
+        t.start()
         for pipe, is_err in ((self._popen.stdout, False), (self._popen.stderr, True)):
             t = threading.Thread(
                 target=self._read,
@@ -83,6 +95,16 @@ class ManagedProcess:
                     Exception
                 ):  # a failing sink must not stop the draining (the child would block)
                     pass
+
+    def _read_phases(self, fd: int) -> None:
+        with open(fd, "rb") as pipe:
+            for raw in pipe:
+                self.stop_phase = raw.decode("ascii", errors="replace").strip()
+
+    @property
+    def bringing_to_safe_state(self) -> bool:
+        """The process said it is bringing its devices to their safe state, and is still at it."""
+        return self.stop_phase == SAFE_STATE_PHASE and self.poll() is None
 
     @property
     def pid(self) -> int:

@@ -22,6 +22,8 @@ import threading
 import time
 from enum import Enum
 
+from piezo_stage.stopping import SAFE_STATE_PHASE, report_phase
+
 #: wall seconds from a stop signal to the nodes' on_shutdown (the running callback's return)
 STOP_DEADLINE = 20.0
 #: wall seconds the teardown may take besides the subscribers' acknowledgement time
@@ -36,7 +38,7 @@ EXIT_HUNG = 1
 
 class Phase(Enum):
     SPIN = "spin"
-    SHUTDOWN = "shutdown"
+    SHUTDOWN = SAFE_STATE_PHASE
     TEARDOWN = "teardown"
     DONE = "done"  #: the run is over: the process exits
 
@@ -95,6 +97,7 @@ class StopDeadline:
     def enter(self, phase: Phase, teardown_deadline: float = 0.0, code: int = 0) -> None:
         """The main thread moved to ``phase``; TEARDOWN arms ``teardown_deadline`` seconds,
         after which the process exits with ``code`` (its devices are already safe)."""
+        report_phase(phase.value)
         with self._lock:
             self.phase = phase
             if self._timer is not None:
