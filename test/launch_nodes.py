@@ -133,7 +133,7 @@ class SlowToSafe(Talker):
 
 
 #: seconds SlowToSafe's on_shutdown takes
-SAFE_AFTER = 3.0
+SAFE_AFTER = 4.0
 
 ROLES = {
     "talker": Talker,

@@ -298,7 +298,7 @@ def test_a_ramp_to_the_safe_state_longer_than_the_stop_timeout_is_not_cut_short(
     launch = Launcher(
         {
             "env": {"PYTHONPATH": TEST_DIR + ":${PYTHONPATH}"},
-            "stop_timeout": 0.5,
+            "stop_timeout": 1.5,  # the old escalation killed the ramp at 3 s
             "nodes": [
                 {
                     "module": "launch_nodes",
