@@ -16,7 +16,8 @@ cost per sample is the figure.
 
 Targets (a core to spare, on this 2-core host): emulated_scanner_loop (two axes, 1 kHz)
 <= 50 % of one core for the emulator and the loop together, and the loop <= 80 µs of CPU per
-axis and sample; sim_closed_loop <= 1.3 x twice the floor; a two-axis stage plant in real time
+axis and sample; sim_closed_loop <= 1.3 x twice the floor (lockstep: per sample against the
+floor's per message); a two-axis stage plant in real time
 (sim_scanner) <= half the floor.
 """
 
@@ -255,9 +256,15 @@ def main() -> int:
         per = 1e6 * r["rig_loop"] / r["_samples_per_s"] / 2
         check("emulated_scanner_loop: the loop per axis and sample", per, 80.0, "µs")
     if "sim_closed_loop" in results:
+        # lockstep runs as fast as the host lets it: its share is whatever the host gives, so
+        # the figure is its CPU per sample against the floor's per message (its 1 kHz share)
         r = results["sim_closed_loop"]
-        total = sum(v for k, v in r.items() if not k.startswith("_"))
-        check("sim_closed_loop / (2 x floor)", total / (2 * floor_share), 1.3)
+        per_sample = sum(v for k, v in r.items() if not k.startswith("_")) / r["_samples_per_s"]
+        check(
+            "sim_closed_loop per sample / (2 x floor per message)",
+            per_sample * 1e3 / (2 * floor_share),
+            1.3,
+        )
     if "sim_scanner" in results:
         check(
             "sim_scanner: the plant / floor",
