@@ -170,9 +170,14 @@ def graph_for(plan: Plan, namespace: str) -> dict[str, Any]:
             {"topic": "/clock", "publishers": 1},
             {"topic": "voltage_command", "publishers": 1},
         ],
-        "nodes": [
-            {"executable": "plant", "overrides": plan.plant, "required": True},
-            {"executable": "controller", "overrides": plan.controller, "required": True},
+        "nodes": [  # one process: each lockstep step by direct calls (nodes/sim_loop.py)
+            {
+                "executable": "plant",
+                "process": "sim_loop",
+                "overrides": plan.plant,
+                "required": True,
+            },
+            {"executable": "controller", "process": "sim_loop", "overrides": plan.controller},
         ],
     }
 

@@ -58,6 +58,8 @@ def ros_arguments(spec: ProcessSpec, graph: Graph) -> list[str]:
             args += ["--params-file", str(path)]
         if graph.use_sim_time is not None:
             args += ["-p", f"use_sim_time:={ros_value(graph.use_sim_time)}"]
+        for src, dst in {k: v for m in spec.members for k, v in m.remappings.items()}.items():
+            args += ["-r", f"{src}:={dst}"]  # the graph's (a member has none of its own)
         return args
     if spec.node_name:
         args += ["-r", f"__node:={spec.node_name}"]

@@ -165,6 +165,8 @@ class ControllerNode(PiezoNode):
         self._wait_subs = int(s.wait_for_state_subscribers)
         self._stepped_at = -math.inf  # [s] the last sample stepped on (trigger: sample)
         self._handoff = handoff
+        #: its commands reach the plant by direct calls (a lockstep plant in this process)
+        self.driven = False
         self.last_step: ControlOutput | None = None
 
         # trigger=sample (lockstep): a recorder lagging the graph by many steps loses no command or
@@ -181,9 +183,10 @@ class ControllerNode(PiezoNode):
         self.create_service(Trigger, "~/close_loop", self._srv_close)
         self.create_service(Trigger, "~/open_loop", self._srv_open)
         self._trigger = s.trigger
+        self._sub_x: Subscription | None = None
         if handoff is None:
             reliable = s.sensor_qos is SensorQos.RELIABLE
-            self.create_subscription(
+            self._sub_x = self.create_subscription(
                 Displacement,
                 "displacement",
                 self._on_displacement,
@@ -291,18 +294,31 @@ class ControllerNode(PiezoNode):
             self.setpoint.receive(msg.displacement)
 
     def _on_displacement(self, msg: Displacement) -> None:
+        self.step_on(msg)
+
+    def drive_directly(self) -> None:
+        """Samples in and commands out by direct calls from a lockstep plant in this process
+        (:meth:`step_on`): no displacement subscription, no driver to wait for."""
+        self.driven = True
+        if self._sub_x is not None:
+            self.destroy_subscription(self._sub_x)
+            self._sub_x = None
+
+    def step_on(self, msg: Displacement) -> float | None:
+        """One sensor sample: the command sent for it (trigger sample; a hold while the loop
+        is open), None when none went out. A lockstep plant in this process calls it directly."""
         t = stamp_seconds(msg.header.stamp)
         if t <= self._stepped_at:
-            return  # a sample stepped on already (a lockstep plant's step 0 offered again)
+            return None  # a sample stepped on already (a lockstep plant's step 0 offered again)
         ok = msg.status == Displacement.OK and math.isfinite(msg.displacement)
         if not self.supervisor.sample(t, msg.displacement, ok):
-            self._send_hold(t)
-            return
-        if self._trigger is StepTrigger.SAMPLE:
-            if self._waiting_for_subscribers():
-                return  # the lockstep plant offers step 0 again until every axis answers it
-            if self._step(t, msg.header.stamp) is not None:  # answered: a command went out
-                self._stepped_at = t
+            return self._send_hold(t)
+        if self._trigger is not StepTrigger.SAMPLE or self._waiting_for_subscribers():
+            return None  # the lockstep plant offers step 0 again until every axis answers it
+        u = self._step(t, msg.header.stamp)
+        if u is not None:  # answered: a command went out
+            self._stepped_at = t
+        return u
 
     def on_sample(
         self,
@@ -372,7 +388,7 @@ class ControllerNode(PiezoNode):
         """start_closed holds off while no driver listens on voltage_command (the separate
         nodes: a loop closed before the driver matched would integrate commands nobody
         applies); the composed loop writes the amplifier directly."""
-        if self._handoff is not None or self._pub_cmd.get_subscription_count() > 0:
+        if self.driven or self._handoff is not None or self._pub_cmd.get_subscription_count() > 0:
             return False
         self.supervisor.hold_off("no subscriber on voltage_command (the amplifier driver) yet")
         return True

@@ -9,7 +9,9 @@ starts once every axis's ``voltage_command`` has a publisher (``wait_for_command
 sample publishers have ``wait_for_subscribers`` matched subscribers each. Step 0 waits for
 every axis: it is offered again every ``REOFFER_AFTER`` until each has answered (a commander
 may have just appeared, or hold step 0 until its own recorder listens), the answers given
-kept, so that every axis starts on the same sample.
+kept, so that every axis starts on the same sample. Commanders in the plant's own process (the
+``sim_loop`` host) are stepped by direct calls instead (:meth:`LockstepClock.drive`): the same
+steps in the same order, without a message round trip per step.
 """
 
 from __future__ import annotations
@@ -25,6 +27,16 @@ from .runtime import subscribers_matched
 
 #: wall seconds a step 0 not every axis answered waits before it is offered again
 REOFFER_AFTER = 0.1
+#: wall seconds a lockstep driven by direct calls steps before the executor serves the rest
+BATCH_S = 0.01
+
+
+def _nothing() -> None:
+    pass
+
+
+def _ready() -> bool:
+    return True
 
 
 class LockstepClock:
@@ -61,7 +73,40 @@ class LockstepClock:
         self._waiting_since = 0.0
         self._sample_first = False
         self._pub_clock = node.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
-        node.create_timer(min(0.01, max(timeout, 1e-3) / 4), self._watch)
+        self._timer = node.create_timer(min(0.01, max(timeout, 1e-3) / 4), self._watch)
+        self._command: Callable[[], None] = _nothing
+        self._commanders_ready: Callable[[], bool] = _ready
+
+    def drive(self, ready: Callable[[], bool], command: Callable[[], None]) -> None:
+        """Step by direct calls, not commands on topics (the commanders in this process):
+        once ``ready()``, each step emits its samples and ``/clock``, ``command()`` steps every
+        commander on them and applies their commands, and the simulation integrates, for
+        :data:`BATCH_S` at a time between the executor's other callbacks."""
+        self._command, self._commanders_ready = command, ready
+        self.node.destroy_timer(self._timer)
+        self._timer = self.node.create_timer(1e-3, self._run_batch)
+
+    def _run_batch(self) -> None:
+        if not self.started:
+            if not (self._ready() and self._commanders_ready()):
+                return
+            self.started = True
+        end = time.monotonic() + BATCH_S
+        emit, pub_clock, command, integrate = (
+            self._emit_samples,
+            self._pub_clock,
+            self._command,
+            self._integrate,
+        )
+        while True:
+            stamp = self.stamp()
+            emit(stamp)
+            pub_clock.publish(Clock(clock=stamp))
+            command()
+            integrate()
+            self.k += 1
+            if time.monotonic() > end:
+                return
 
     def stamp(self) -> Time:
         """t_k as a message stamp."""

@@ -33,10 +33,13 @@ import functools
 import math
 import sys
 import time
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from numpy.typing import NDArray
+from rclpy.parameter import Parameter
+from rclpy.subscription import Subscription
 
 from piezo_stage.config_path import ConfigNotFoundError, find_user_file
 from piezo_stage.hardware.emulators.amplifier import AmplifierLowPass, substeps_for
@@ -56,6 +59,9 @@ from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run
 from .settings import PlantSettings
 from .spec import Param, ParameterTable
+
+if TYPE_CHECKING:
+    from .controller import ControllerNode
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
@@ -211,8 +217,10 @@ PARAMETERS = ParameterTable(
 class PlantNode(PiezoNode):
     TABLE: ParameterTable[PlantSettings] = PARAMETERS
 
-    def __init__(self) -> None:
-        super().__init__(self.TABLE.node, namespace=DEFAULT_NAMESPACE)
+    def __init__(
+        self, overrides: Sequence[Parameter] = (), namespace: str = DEFAULT_NAMESPACE
+    ) -> None:
+        super().__init__(self.TABLE.node, namespace=namespace, parameter_overrides=list(overrides))
         s: PlantSettings = self.declare_settings(self.TABLE)
         stage, self.source = self._stage(s)
         self.names = stage.names
@@ -262,6 +270,7 @@ class PlantNode(PiezoNode):
         lockstep = self.mode is ClockMode.LOCKSTEP
         stream_qos = LOCKSTEP_QOS if lockstep else SENSOR_QOS
         self._pub_x, self._pub_v, commands = [], [], []
+        self._subs: list[Subscription] = []
         for i, prefix in enumerate(self._prefix):
             self._pub_x.append(
                 self.create_publisher(Displacement, f"{prefix}displacement", stream_qos)
@@ -273,6 +282,7 @@ class PlantNode(PiezoNode):
                 functools.partial(self._on_command, i),
                 LOCKSTEP_QOS if lockstep else COMMAND_QOS,
             )
+            self._subs.append(sub)
             commands.append(sub.topic_name)
         self._msg_x, self._msg_v = Displacement(), Voltage()
         self._dt_ns = int(round(self.dt * 1e9))
@@ -325,19 +335,58 @@ class PlantNode(PiezoNode):
         return f"{self._prefix[i][:-1]}.{key}" if self._prefix[i] else key
 
     def _on_command(self, i: int, msg: Voltage) -> None:
-        if not math.isfinite(msg.voltage):
+        self._apply(i, msg.voltage)
+        if self._lockstep is not None:  # a non-finite command answers the step too: no timeout
+            self._lockstep.answered(i, msg.header.stamp)
+
+    def _apply(self, i: int, voltage: float) -> None:
+        """Axis ``i``'s command: held until the next one; a non-finite one refused and counted."""
+        if not math.isfinite(voltage):
             self._rejected[i] += 1
             axis = f" on axis {self.names[i]}" if self._prefix[i] else ""
             self.get_logger().warn(
-                f"rejected non-finite voltage command {msg.voltage}{axis}: holding "
+                f"rejected non-finite voltage command {voltage}{axis}: holding "
                 f"{self._commands[i]:g} V",
                 throttle_duration_sec=1.0,
             )
         else:
-            self._commands[i] = msg.voltage
+            self._commands[i] = voltage
             self._received[i] += 1
-        if self._lockstep is not None:  # a non-finite command answers the step too: no timeout
-            self._lockstep.answered(i, msg.header.stamp)
+
+    def drive(self, controllers: Sequence[ControllerNode]) -> None:
+        """Lockstep with each axis's controller in this process (``controllers`` in the
+        stage's axis order) by direct calls: each step's samples go to them as messages, their
+        commands come back as return values (:meth:`LockstepClock.drive`); a step a controller
+        does not answer (its loop open without a hold) keeps the axis's command and counts as
+        late. Every topic is still published, for the graph's other nodes."""
+        lockstep = self._lockstep
+        if lockstep is None or len(controllers) != len(self.names):
+            raise RosParameterError(
+                f"{self.get_name()}: controllers in its process need clock_mode lockstep and one "
+                f"controller per axis ({len(self.names)})"
+            )
+        for sub in self._subs:  # the commands arrive as return values
+            self.destroy_subscription(sub)
+        for controller in controllers:
+            controller.drive_directly()
+        samples = [Displacement() for _ in controllers]
+        apply = self._apply
+
+        def command() -> None:
+            applied, readings, status = self._last
+            stamp = lockstep.stamp()
+            for i, (controller, msg) in enumerate(zip(controllers, samples)):
+                msg.header.stamp = stamp
+                ok = int(status[i]) == Displacement.OK
+                msg.displacement = float(readings[i]) if ok else math.nan
+                msg.status = int(status[i])
+                u = controller.step_on(msg)
+                if u is None:
+                    lockstep.late += 1
+                else:
+                    apply(i, u)
+
+        lockstep.drive(lambda: all(c.ready() for c in controllers), command)
 
     def _step(self, samples: int) -> AxesSample:
         """``samples`` samples (a late tick's backlog in one call), the commands held: every
