@@ -120,20 +120,20 @@ def _controller_overrides(run: GraphRun) -> dict[str, Any]:
 
 def _lockstep_nodes(run: GraphRun, nodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The simulated scanner's nodes: its plant in lockstep at the run's rate with the run's
-    amplifier range, and a controller per axis (which holds step 0 until the record listens).
-    """
+    amplifier range, and a controller per axis (which holds step 0 until the record listens),
+    in one process (nodes/sim_loop.py: each step by direct calls)."""
     from .presets import lockstep_plant
 
     # ideal amplifiers, as the core's scanner: the tables are the sampled loop's staircase
     plant = lockstep_plant(None, run.rate_hz, *run.u_limits, amplifier_bandwidth_hz=0.0)
     del plant["model_file"]  # the stage file's models
     out = [
-        {**n, "overrides": {**n.get("overrides", {}), **plant}}
+        {**n, "process": "sim_loop", "overrides": {**n.get("overrides", {}), **plant}}
         if n.get("executable") == "plant"
         else n
         for n in nodes
     ]
-    return [*out, {"executable": "controller", "per_axis": True}]
+    return [*out, {"executable": "controller", "process": "sim_loop"}]
 
 
 def device_graph(run: GraphRun, folder: Path, namespace: str) -> dict[str, Any]:

@@ -7,7 +7,8 @@ tables, topics, services and /diagnostics, as the separate nodes have them. Each
 hands the controllers their samples and takes their commands back as return values
 (:meth:`~piezo_stage.nodes.plant.PlantNode.drive`): the steps and their numbers are those of the
 separate nodes, without the two messages and two wake-ups a step costs across processes; every
-topic is still published for the rest of the graph. Member parameters: ``NODE.KEY:=VALUE``
+topic is still published for the rest of the graph. A real-time plant and its controllers talk
+over their topics, as separate nodes. Member parameters: ``NODE.KEY:=VALUE``
 before ``--ros-args`` (NODE ``plant`` or ``controller``; ``controller`` reaches every axis).
 """
 
@@ -18,6 +19,7 @@ from typing import Any, Iterator, Sequence
 
 from rclpy.node import Node
 
+from .choices import ClockMode
 from .controller import ControllerNode
 from .controller_params import PARAMETERS as CONTROLLER_PARAMETERS
 from .plant import PARAMETERS as PLANT_PARAMETERS
@@ -43,7 +45,8 @@ def compose(argv: Sequence[str], namespace: str) -> Iterator[Node]:
         controller = ControllerNode(None, overrides["controller"], ns)
         controllers.append(controller)
         yield controller
-    plant.drive(controllers)
+    if plant.mode is ClockMode.LOCKSTEP:  # in real time they talk over their topics
+        plant.drive(controllers)
 
 
 def main(args: list[str] | None = None) -> int:
