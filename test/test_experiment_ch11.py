@@ -149,10 +149,10 @@ def test_the_plant_steps_its_controller_in_one_process_as_across_processes():
     the same steps in the same order as the separate nodes' messages, so the same states to
     the last bit, through the loop's opening and closing (the perturbation's window)."""
     import numpy as np
-    from piezo_stage_msgs.msg import ControllerState
 
     from piezo_stage.experiments.harness import ControllerStates, Stream, record, samples
     from piezo_stage.experiments.plan import graph_for
+    from piezo_stage_msgs.msg import ControllerState
 
     plan = make_plan("perturbation", "pid_tv", duration=PERT)
     steps = int(round(plan.duration * plan.rate_hz))
