@@ -116,7 +116,8 @@ def test_on_the_simulated_scanner_its_plant_steps_in_lockstep_under_a_controller
     tmp_path,
 ):
     """sim_scanner: the plant node on the graph's own clock in lockstep, the core's ideal
-    amplifiers and range; a controller node per axis on that clock, every sample's state."""
+    amplifiers and range; a controller node per axis on that clock, every sample's state, in
+    the plant's process (sim_loop makes one per axis of the stage)."""
     tables = raster_tables(SCAN, STAGE, 2000.0)
     run = GraphRun("sim_scanner", SCAN, STAGE, None, tables, 2000.0, "both", True, 4, (-450, 450))
     graph = device_graph(run, tmp_path, "/r")
@@ -128,7 +129,8 @@ def test_on_the_simulated_scanner_its_plant_steps_in_lockstep_under_a_controller
     assert plant["overrides"]["amplifier_bandwidth_hz"] == 0.0
     assert (plant["overrides"]["v_min"], plant["overrides"]["v_max"]) == (-450, 450)
     assert "model_file" not in plant["overrides"]  # the stage file's models
-    assert controller["executable"] == "controller" and controller["per_axis"] is True
+    assert controller["executable"] == "controller" and "per_axis" not in controller
+    assert plant["process"] == controller["process"] == "sim_loop"
     overrides = controller["overrides"]
     assert overrides["use_sim_time"] is True and overrides["sensor_qos"] == "reliable"
     assert overrides["topics_rate_hz"] == 2000.0 and overrides["rate_hz"] == 2000.0

@@ -301,16 +301,16 @@ def test_signals_during_a_lockstep_raster_on_the_simulated_scanner_end_every_nod
 ):
     """The lockstep graph (plant, controllers, recorder) stops with the command: every process
     it started is gone when it exits, none left waiting for a step that never comes."""
-    _raster_interrupted(tmp_path, "sim_scanner", schedule)
+    # 32 s of lines: the lockstep graph steps them several times faster than real time
+    _raster_interrupted(tmp_path, "sim_scanner", schedule, lines=64)
 
 
-def _raster_interrupted(tmp_path: Path, graph: str, schedule) -> Path:
+def _raster_interrupted(tmp_path: Path, graph: str, schedule, lines: int = 16) -> Path:
     """A raster on ``graph``, signalled while it scans; the graph's log. Every process of the
     run (those that inherit its log's path) has ended when the command has. The scan (8 s of
-    lines) outlasts every schedule, so the graph is still up when the first signal comes: a
-    lockstep graph runs faster than real time, and four lines could end before it."""
+    lines) outlasts every schedule, so the graph is still up when the first signal comes."""
     log = tmp_path / f"graph_{time.monotonic_ns()}.log"
-    argv = ["experiment", "raster", "--graph", graph, "--lines", "16"]
+    argv = ["experiment", "raster", "--graph", graph, "--lines", str(lines)]
     argv += ["--pixels", "32", "--line-rate", "2"]
     run = _Run(argv, env={"PIEZO_GRAPH_LOG": str(log)})
     run.wait_for("scanning on the", 120.0)
