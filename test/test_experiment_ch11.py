@@ -141,38 +141,3 @@ def test_command_json(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["mode"] == "pid" and out["samples"] >= 499
     assert main(["experiment", "perturbation", "--mode", "pid", "--duration", "0.01"]) == 2
-
-
-@pytest.mark.ros
-def test_the_plant_steps_its_controller_in_one_process_as_across_processes():
-    """sim_loop hands the controller each sample and takes its command back by direct calls:
-    the same steps in the same order as the separate nodes' messages, so the same states to
-    the last bit, through the loop's opening and closing (the perturbation's window)."""
-    import numpy as np
-
-    from piezo_stage.experiments.harness import ControllerStates, Stream, record, samples
-    from piezo_stage.experiments.plan import graph_for
-    from piezo_stage_msgs.msg import ControllerState
-
-    plan = make_plan("perturbation", "pid_tv", duration=PERT)
-    steps = int(round(plan.duration * plan.rate_hz))
-    states = {}
-    for composed in (True, False):
-        graph = graph_for(plan, f"/one_process_{int(composed)}")
-        if not composed:
-            graph["nodes"] = [
-                {k: v for k, v in n.items() if k != "process"} for n in graph["nodes"]
-            ]
-        assert all(("process" in n) == composed for n in graph["nodes"])
-        recording = record(
-            graph,
-            [Stream("controller_state", ControllerState, monotonic=True)],
-            samples("controller_state", steps),
-            wall_timeout=300.0,
-        )
-        states[composed] = ControllerStates.decode(recording.raw["controller_state"][:steps])
-    one, two = states[True], states[False]
-    assert len(one.t) == len(two.t) == steps
-    for name in ("t", "reference", "x0", "x1", "x2", "u", "u_pid", "u_ff", "loop_closed"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
-    assert not one.loop_closed.all() and one.loop_closed[-1]  # opened, then closed again

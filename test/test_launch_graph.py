@@ -390,6 +390,18 @@ def test_namespaced_clock_remaps_every_node_and_the_wait():
         parse_graph({"clock": "local", "nodes": [{"executable": "plant"}]})
 
 
+def test_a_composed_process_follows_the_namespaced_clock_of_its_graph():
+    """The plant and its controller in one process (sim_loop) publish and read the graph's
+    <namespace>/clock, as they do as separate processes."""
+    from piezo_stage.launch.commandline import ros_arguments
+
+    nodes = [{"executable": name, "process": "sim_loop"} for name in ("plant", "controller")]
+    for clock, remapped in (("namespaced", True), ("global", False)):
+        g = parse_graph({"clock": clock, "nodes": nodes}).with_namespace("/stage2")
+        (host,) = g.processes()
+        assert ("/clock:=clock" in ros_arguments(host, g)) == remapped, clock
+
+
 def test_cli_view_adds_the_live_view_to_any_graph(tmp_path, capsys):
     """`launch GRAPH --view [--view-port P]`: one more entry, live_view in the graph's namespace
     on the port asked (8765 by default); a graph that already has an entry of that name is

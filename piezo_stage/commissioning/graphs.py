@@ -112,7 +112,13 @@ class RosRig:
                 lead=1.0,
                 autostart=False,
             )
-        nodes.append({"executable": "excitation", "overrides": exc})
+        entry: dict[str, Any] = {"executable": "excitation", "overrides": exc}
+        if self.lockstep:  # in the plant's process: each step by direct calls
+            entry["process"] = "sim_excitation"
+            for node in nodes:
+                if node.get("executable") == "plant":
+                    node["process"] = "sim_excitation"
+        nodes.append(entry)
         graph = {
             "description": f"commission ({self.name})",
             "namespace": namespace,

@@ -307,19 +307,25 @@ def _graph(stage: Stage, spec: CouplingSpec) -> dict[str, Any]:
     data["stage"] = str(Path(spec.plant_stage).resolve())
     data["namespace"] = f"/coupling_{os.getpid()}"
     nodes = list(data["nodes"])
+    excitation: dict[str, Any] = {"executable": "excitation", "overrides": spec.excitation()}
     if GRAPH_DEFAULTS[spec.graph].lockstep:  # the plant owns the graph's clock
         data["clock"] = "namespaced"
+        # one process, an excitation per axis of the plant's stage: each step by direct calls
         nodes = [
-            {**n, "overrides": {**n.get("overrides", {}), **_LOCKSTEP_PLANT}}
+            {**n, "process": HOST, "overrides": {**n.get("overrides", {}), **_LOCKSTEP_PLANT}}
             if n.get("executable") == "plant"
             else n
             for n in nodes
         ]
-    data["nodes"] = [
-        *nodes,
-        {"executable": "excitation", "per_axis": True, "overrides": spec.excitation()},
-    ]
+        excitation["process"] = HOST
+    else:
+        excitation["per_axis"] = True
+    data["nodes"] = [*nodes, excitation]
     return data
+
+
+#: the lockstep plant's process (nodes/sim_excitation.py)
+HOST = "sim_excitation"
 
 
 #: the stage plant of a lockstep graph: it starts once the record's subscriptions are matched

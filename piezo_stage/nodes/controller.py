@@ -304,6 +304,10 @@ class ControllerNode(PiezoNode):
             self.destroy_subscription(self._sub_x)
             self._sub_x = None
 
+    def answer(self, stamp: Any, sample: Displacement) -> float | None:
+        """A lockstep plant's step in this process: :meth:`step_on` its sample."""
+        return self.step_on(sample)
+
     def step_on(self, msg: Displacement) -> float | None:
         """One sensor sample: the command sent for it (trigger sample; a hold while the loop
         is open), None when none went out. A lockstep plant in this process calls it directly."""

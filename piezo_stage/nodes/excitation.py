@@ -23,9 +23,11 @@ Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import Any, Sequence
 
 from builtin_interfaces.msg import Time
+from rclpy.parameter import Parameter
+from rclpy.subscription import Subscription
 from rclpy.time import Time as RosTime
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
@@ -42,7 +44,7 @@ from piezo_stage.model.excitation import (
     plan_from,
 )
 from piezo_stage.model.tick_grid import TickGrid
-from piezo_stage_msgs.msg import ExcitationInfo, Voltage
+from piezo_stage_msgs.msg import Displacement, ExcitationInfo, Voltage
 
 from .base import PiezoNode
 from .choices import ExcitationOnDone as OnDone
@@ -161,8 +163,10 @@ PARAMETERS = ParameterTable(
 
 
 class ExcitationNode(PiezoNode):
-    def __init__(self) -> None:
-        super().__init__("excitation", namespace=DEFAULT_NAMESPACE)
+    def __init__(
+        self, overrides: Sequence[Parameter] = (), namespace: str = DEFAULT_NAMESPACE
+    ) -> None:
+        super().__init__("excitation", namespace=namespace, parameter_overrides=list(overrides))
         preset = declare_table(self, PARAMETERS, only=("preset",))["preset"]
         base = plan_from(preset or None)
         self.settings: ExcitationSettings = self.declare_settings(
@@ -201,8 +205,9 @@ class ExcitationNode(PiezoNode):
         self._pub_info = self.create_publisher(ExcitationInfo, "excitation", out_qos)
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
+        self._sub_clock: Subscription | None = None
         if trigger is StepTrigger.CLOCK:
-            self.create_subscription(Clock, "/clock", self._on_clock, COMMAND_QOS)
+            self._sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, COMMAND_QOS)
         else:
             self._grid_ns = int(round(1e9 / s.rate_hz))
             self._lead_ns = int(round(s.lead * 1e9))
@@ -245,18 +250,35 @@ class ExcitationNode(PiezoNode):
         response.success, response.message = True, "excitation stopped (no more commands)"
         return response
 
+    # ------------------------------------------------------------------ lockstep in-process
+    def ready(self) -> bool:
+        """A lockstep plant in this process may start (this node waits in :meth:`answer`)."""
+        return True
+
+    def drive_directly(self) -> None:
+        """The plant in this process asks for each step's command (:meth:`answer`): no /clock."""
+        if self._sub_clock is not None:
+            self.destroy_subscription(self._sub_clock)
+            self._sub_clock = None
+
+    def answer(self, stamp: Time, sample: Displacement) -> float | None:
+        """The command for the step at ``stamp`` (published too); None: none yet."""
+        return self._tick(stamp)
+
     # ------------------------------------------------------------------ tick
-    def _tick(self, stamp: Time) -> None:
+    def _tick(self, stamp: Time) -> float | None:
+        """The command at ``stamp``, published (None: none, e.g. waiting for subscribers)."""
         if self._exiting:
-            return
+            return None
         if not self._running:
             if self._idle_answers:  # lockstep: the plant's step waits for this axis's answer
                 self._pub_cmd.publish(Voltage(header=_header(stamp), voltage=self._idle))
-            return
+                return self._idle
+            return None
         now = stamp_seconds(stamp)
         if self._t_start is None:
             if not subscribers_matched((self._pub_cmd, self._pub_info), self._wait_subs):
-                return  # lockstep: the plant offers this step again until a command answers it
+                return None  # lockstep: the plant offers this step again until a command answers
             self._t_start = stamp.sec * 1_000_000_000 + stamp.nanosec
         # the plan's time in integer ns first: the same step of a run gets the same command
         # wherever on the clock the run began
@@ -269,6 +291,7 @@ class ExcitationNode(PiezoNode):
             self._exiting = True
             # let the last messages reach the subscribers (reliable delivery needs the process)
             self._exit_timer = self.create_timer(0.5, self._finish, clock=wall_clock())
+        return float(sample.voltage)
 
     def _on_clock(self, msg: Clock) -> None:
         self._tick(msg.clock)

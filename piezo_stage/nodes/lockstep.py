@@ -31,10 +31,6 @@ REOFFER_AFTER = 0.1
 BATCH_S = 0.01
 
 
-def _nothing() -> None:
-    pass
-
-
 def _ready() -> bool:
     return True
 
@@ -74,39 +70,64 @@ class LockstepClock:
         self._sample_first = False
         self._pub_clock = node.create_publisher(Clock, "/clock", LOCKSTEP_QOS)
         self._timer = node.create_timer(min(0.01, max(timeout, 1e-3) / 4), self._watch)
-        self._command: Callable[[], None] = _nothing
+        self._ask: Callable[[int, Time], bool] | None = None
         self._commanders_ready: Callable[[], bool] = _ready
+        self._fresh = True  # step k's samples not emitted yet (direct calls)
 
-    def drive(self, ready: Callable[[], bool], command: Callable[[], None]) -> None:
-        """Step by direct calls, not commands on topics (the commanders in this process):
-        once ``ready()``, each step emits its samples and ``/clock``, ``command()`` steps every
-        commander on them and applies their commands, and the simulation integrates, for
-        :data:`BATCH_S` at a time between the executor's other callbacks."""
-        self._command, self._commanders_ready = command, ready
+    def drive(self, ready: Callable[[], bool], ask: Callable[[int, Time], bool]) -> None:
+        """Step by direct calls, not commands on topics (the commanders in this process).
+        Once ``ready()``, each step emits its samples and ``/clock``, then ``ask(i, t_k)`` asks
+        axis i's commander for its command (True: it answered, and the command is applied),
+        again on the next turns for the axes that have not answered; the simulation integrates
+        once every axis has, or after ``lockstep_timeout`` (a late step; never step 0), as
+        across processes. Runs for :data:`BATCH_S` at a time between the executor's other
+        callbacks."""
+        self._ask, self._commanders_ready = ask, ready
         self.node.destroy_timer(self._timer)
         self._timer = self.node.create_timer(1e-3, self._run_batch)
 
     def _run_batch(self) -> None:
+        ask = self._ask
+        assert ask is not None  # drive() made this timer
         if not self.started:
             if not (self._ready() and self._commanders_ready()):
                 return
             self.started = True
         end = time.monotonic() + BATCH_S
-        emit, pub_clock, command, integrate = (
-            self._emit_samples,
-            self._pub_clock,
-            self._command,
-            self._integrate,
-        )
+        answered = self._answered
         while True:
-            stamp = self.stamp()
-            emit(stamp)
-            pub_clock.publish(Clock(clock=stamp))
-            command()
-            integrate()
+            if self._fresh:
+                stamp = self.stamp()
+                self._emit_samples(stamp)
+                self._pub_clock.publish(Clock(clock=stamp))
+                answered[:] = [False] * len(answered)
+                self._waiting_since, self._fresh = time.monotonic(), False
+            else:
+                stamp = self.stamp()
+            for i, done in enumerate(answered):
+                if not done:
+                    answered[i] = ask(i, stamp)
+            if not all(answered) and not self._timed_out():
+                return  # asked again on the next turn
+            self._integrate()
             self.k += 1
+            self._fresh = True
             if time.monotonic() > end:
                 return
+
+    def _timed_out(self) -> bool:
+        """Step k (not 0) has waited ``lockstep_timeout``: counted and said, then advanced."""
+        waited = time.monotonic() - self._waiting_since
+        if self.k == 0 or self._timeout <= 0 or waited <= self._timeout:
+            return False
+        self.late += 1
+        missing = [t for t, done in zip(self._commands, self._answered) if not done]
+        self.node.get_logger().warn(
+            f"no command for step {self.k} after {self._timeout:g} s on "
+            f"{', '.join(missing)}: advancing with the commands held",
+            throttle_duration_sec=5.0,
+        )
+        return True
 
     def stamp(self) -> Time:
         """t_k as a message stamp."""
@@ -180,12 +201,5 @@ class LockstepClock:
                 self._sample_first = self._commanders_read_samples()
                 self._emit(again=True)
             return
-        if self._timeout > 0 and waited > self._timeout:
-            self.late += 1
-            missing = [t for t, done in zip(self._commands, self._answered) if not done]
-            self.node.get_logger().warn(
-                f"no command for step {self.k} after {self._timeout:g} s on "
-                f"{', '.join(missing)}: advancing with the commands held",
-                throttle_duration_sec=5.0,
-            )
+        if self._timed_out():
             self._advance()

@@ -33,7 +33,7 @@ import functools
 import math
 import sys
 import time
-from typing import TYPE_CHECKING, Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -60,8 +60,20 @@ from .runtime import DEFAULT_NAMESPACE, run
 from .settings import PlantSettings
 from .spec import Param, ParameterTable
 
-if TYPE_CHECKING:
-    from .controller import ControllerNode
+
+class Commander(Protocol):
+    """A node that commands an axis of a lockstep plant in its process (:meth:`PlantNode.drive`)."""
+
+    def ready(self) -> bool:
+        """Whether the plant may take step 0 (its readers listen)."""
+
+    def drive_directly(self) -> None:
+        """From now on its samples and commands are direct calls: it drops its topics for them."""
+
+    def answer(self, stamp: Time, sample: Displacement) -> float | None:
+        """The command for the step at ``stamp`` whose sample of this axis is ``sample`` (it
+        publishes it too), or None: not yet (asked again)."""
+
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
@@ -353,40 +365,38 @@ class PlantNode(PiezoNode):
             self._commands[i] = voltage
             self._received[i] += 1
 
-    def drive(self, controllers: Sequence[ControllerNode]) -> None:
-        """Lockstep with each axis's controller in this process (``controllers`` in the
-        stage's axis order) by direct calls: each step's samples go to them as messages, their
-        commands come back as return values (:meth:`LockstepClock.drive`); a step a controller
-        does not answer (its loop open without a hold) keeps the axis's command and counts as
-        late. Every topic is still published, for the graph's other nodes."""
+    def drive(self, commanders: Sequence[Commander]) -> None:
+        """Lockstep with each axis's commander in this process (a controller, an excitation;
+        in the stage's axis order) by direct calls: each step's sample goes to it as a message,
+        its command comes back as the return value (:meth:`LockstepClock.drive`). Every topic
+        is still published, for the graph's other nodes."""
         lockstep = self._lockstep
-        if lockstep is None or len(controllers) != len(self.names):
+        if lockstep is None or len(commanders) != len(self.names):
             raise RosParameterError(
-                f"{self.get_name()}: controllers in its process need clock_mode lockstep and one "
-                f"controller per axis ({len(self.names)})"
+                f"{self.get_name()}: commanders in its process need clock_mode lockstep and one "
+                f"commander per axis ({len(self.names)})"
             )
         for sub in self._subs:  # the commands arrive as return values
             self.destroy_subscription(sub)
-        for controller in controllers:
-            controller.drive_directly()
-        samples = [Displacement() for _ in controllers]
+        for commander in commanders:
+            commander.drive_directly()
+        samples = [Displacement() for _ in commanders]
         apply = self._apply
 
-        def command() -> None:
-            applied, readings, status = self._last
-            stamp = lockstep.stamp()
-            for i, (controller, msg) in enumerate(zip(controllers, samples)):
-                msg.header.stamp = stamp
-                ok = int(status[i]) == Displacement.OK
-                msg.displacement = float(readings[i]) if ok else math.nan
-                msg.status = int(status[i])
-                u = controller.step_on(msg)
-                if u is None:
-                    lockstep.late += 1
-                else:
-                    apply(i, u)
+        def ask(i: int, stamp: Time) -> bool:
+            _, readings, status = self._last
+            msg = samples[i]
+            msg.header.stamp = stamp
+            ok = int(status[i]) == Displacement.OK
+            msg.displacement = float(readings[i]) if ok else math.nan
+            msg.status = int(status[i])
+            u = commanders[i].answer(stamp, msg)
+            if u is None:
+                return False
+            apply(i, u)
+            return True
 
-        lockstep.drive(lambda: all(c.ready() for c in controllers), command)
+        lockstep.drive(lambda: all(c.ready() for c in commanders), ask)
 
     def _step(self, samples: int) -> AxesSample:
         """``samples`` samples (a late tick's backlog in one call), the commands held: every
