@@ -206,6 +206,7 @@ class ExcitationNode(PiezoNode):
         self.create_service(Trigger, "~/start", self._srv_start)
         self.create_service(Trigger, "~/stop", self._srv_stop)
         self._sub_clock: Subscription | None = None
+        self._direct = False  # a lockstep plant in this process asks for the commands
         if trigger is StepTrigger.CLOCK:
             self._sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, COMMAND_QOS)
         else:
@@ -257,6 +258,7 @@ class ExcitationNode(PiezoNode):
 
     def drive_directly(self) -> None:
         """The plant in this process asks for each step's command (:meth:`answer`): no /clock."""
+        self._direct = True
         if self._sub_clock is not None:
             self.destroy_subscription(self._sub_clock)
             self._sub_clock = None
@@ -277,7 +279,12 @@ class ExcitationNode(PiezoNode):
             return None
         now = stamp_seconds(stamp)
         if self._t_start is None:
-            if not subscribers_matched((self._pub_cmd, self._pub_info), self._wait_subs):
+            n = self._wait_subs  # the plant in this process reads the commands directly
+            cmd = n - 1 if self._direct else n
+            if not (
+                subscribers_matched((self._pub_info,), n)
+                and subscribers_matched((self._pub_cmd,), cmd)
+            ):
                 return None  # lockstep: the plant offers this step again until a command answers
             self._t_start = stamp.sec * 1_000_000_000 + stamp.nanosec
         # the plan's time in integer ns first: the same step of a run gets the same command
