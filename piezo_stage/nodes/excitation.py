@@ -14,7 +14,9 @@ run/steady and at ``info_rate_hz``). The schedule is
   driver has it before it is due and the marks stay aligned with the applied voltage;
 - ``clock``: one command per ``/clock`` message, stamped with that time — the lockstep plant
   advances when it has the command for its current step, so a run is deterministic. Until it
-  is started (``autostart: false``), it answers each tick with the plan's first value.
+  is started (``autostart: false``), it answers each tick with the plan's first value. In the
+  plant's process (``sim_excitation``) the plant asks for each step's command by a direct call
+  (:meth:`ExcitationNode.answer`) instead.
 
 When the plan is over it holds its hold value (``on_done: hold``) or exits (``on_done: exit``).
 Services: ``~/start`` and ``~/stop`` (std_srvs/Trigger).

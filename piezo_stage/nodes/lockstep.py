@@ -10,8 +10,9 @@ sample publishers have ``wait_for_subscribers`` matched subscribers each. Step 0
 every axis: it is offered again every ``REOFFER_AFTER`` until each has answered (a commander
 may have just appeared, or hold step 0 until its own recorder listens), the answers given
 kept, so that every axis starts on the same sample. Commanders in the plant's own process (the
-``sim_loop`` host) are stepped by direct calls instead (:meth:`LockstepClock.drive`): the same
-steps in the same order, without a message round trip per step.
+``sim_loop`` and ``sim_excitation`` hosts) are asked by direct calls instead
+(:meth:`LockstepClock.drive`): the same steps in the same order, without a message round trip
+per step.
 """
 
 from __future__ import annotations
