@@ -59,8 +59,11 @@ def _entries(graph: str) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     from piezo_stage.yaml_values import load_yaml
 
     data = load_yaml(find_graph(graph).read_text(encoding="utf-8"))
-    nodes = {
-        entry["executable"]: {**entry, "overrides": dict(entry.get("overrides", {}))}
+    nodes = {  # each in a process of its own: the excitation starts in a graph of its own
+        entry["executable"]: {
+            **{k: v for k, v in entry.items() if k != "process"},
+            "overrides": dict(entry.get("overrides", {})),
+        }
         for entry in data["nodes"]
     }
     for needed in ("plant", "identifier", "excitation"):

@@ -11,7 +11,8 @@ are those of the separate nodes, without the messages and wake-ups a step costs 
 processes; every topic is still published for the rest of the graph. A real-time plant and its
 commanders talk over their topics, as separate nodes. Member parameters: ``NODE.KEY:=VALUE``
 before ``--ros-args`` (NODE ``plant`` or the commander's name; the commander's reach every
-axis).
+axis). A lockstep commander has its trigger set (``trigger: sample`` for a controller,
+``clock`` for an excitation): without any argument for it the process is the plant alone.
 """
 
 from __future__ import annotations
@@ -65,6 +66,8 @@ def compose(argv: Sequence[str], namespace: str, host: SimHost) -> Iterator[Node
     overrides = member_overrides(argv, host.tables, host.name)
     plant = PlantNode(overrides["plant"], namespace)
     yield plant
+    if not overrides[host.commander]:  # a lockstep commander has its trigger set: none here
+        return  # the plant alone (its commanders in other processes, over the topics)
     base = namespace.rstrip("/")
     spaces = [namespace] if not plant.settings.stage_file else [f"{base}/{n}" for n in plant.names]
     commanders: list[Commander] = []
