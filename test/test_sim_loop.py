@@ -22,12 +22,23 @@ def _separate(graph: dict[str, Any]) -> dict[str, Any]:
     return {**graph, "nodes": nodes}
 
 
-def _both(graph: dict[str, Any], streams: list[Stream], n: int) -> list[list[tuple[int, bytes]]]:
+def _plant_alone(graph: dict[str, Any]) -> dict[str, Any]:
+    """The graph with the plant alone in its host's process, its commanders in their own."""
+    nodes = [
+        n if n["executable"] == "plant" else {k: v for k, v in n.items() if k != "process"}
+        for n in graph["nodes"]
+    ]
+    return {**graph, "nodes": nodes}
+
+
+def _both(
+    graph: dict[str, Any], streams: list[Stream], n: int, *variants: Any
+) -> list[list[tuple[int, bytes]]]:
     """The first ``n`` messages of the first of ``streams`` (all recorded) from ``graph``
-    composed, then separate."""
+    composed, then separate, then each of ``variants`` of it."""
     topic, runs = streams[0].topic, []
-    for g in (graph, _separate(graph)):
-        assert any("process" in node for node in g["nodes"]) == (g is graph)
+    assert all("process" in node for node in graph["nodes"])
+    for g in (graph, _separate(graph), *(v(graph) for v in variants)):
         g = {**g, "namespace": f"{graph['namespace']}_{len(runs)}"}
         recording = record(g, streams, samples(topic, n), wall_timeout=300.0)
         runs.append(recording.raw[topic][:n])
@@ -69,11 +80,12 @@ def test_the_plant_steps_its_excitation_in_one_process_as_across_processes():
         Stream("displacement", Displacement, monotonic=True),
         Stream("voltage", Voltage, monotonic=True),
     ]
-    one, two = (
+    # and the plant alone in its host's process (no excitation composed: it makes none)
+    one, two, three = (
         [(ns, deserialize_message(d, Displacement).displacement) for ns, d in raw]
-        for raw in _both(graph, streams, n)
+        for raw in _both(graph, streams, n, _plant_alone)
     )
-    assert len(one) == len(two) == n
-    assert one == two
+    assert len(one) == len(two) == len(three) == n
+    assert one == two == three
     x = np.array([v for _, v in one])
     assert np.ptp(x) > 1e-6  # the stage moved
