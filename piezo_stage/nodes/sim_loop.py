@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -38,27 +38,27 @@ from .stage_loop import member_overrides, take_namespace
 
 @dataclass(frozen=True)
 class SimHost:
-    """A process of a lockstep plant and one commander per axis: ``name`` (in errors) and the
-    commander's node class, ``controller`` or ``excitation``."""
+    """A process of a lockstep plant and one commander per axis: ``name`` (in errors), the
+    commander's parameter table and ``make(overrides, namespace)``, its node."""
 
     name: str
-    commander: str
+    table: ParameterTable[Any]
+    make: Callable[[Sequence[Parameter], str], ControllerNode | ExcitationNode]
 
-    def make(
-        self, overrides: Sequence[Parameter], namespace: str
-    ) -> ControllerNode | ExcitationNode:
-        if self.commander == "controller":
-            return ControllerNode(None, overrides, namespace)
-        return ExcitationNode(overrides, namespace)
+    @property
+    def commander(self) -> str:
+        """The commander's node name (its arguments' prefix)."""
+        return self.table.node
 
     @property
     def tables(self) -> dict[str, ParameterTable[Any]]:
-        table = CONTROLLER_PARAMETERS if self.commander == "controller" else EXCITATION_PARAMETERS
-        return {"plant": PLANT_PARAMETERS, self.commander: table}
+        return {"plant": PLANT_PARAMETERS, self.commander: self.table}
 
 
-SIM_LOOP = SimHost("sim_loop", "controller")
-SIM_EXCITATION = SimHost("sim_excitation", "excitation")
+SIM_LOOP = SimHost(
+    "sim_loop", CONTROLLER_PARAMETERS, lambda over, ns: ControllerNode(None, over, ns)
+)
+SIM_EXCITATION = SimHost("sim_excitation", EXCITATION_PARAMETERS, ExcitationNode)
 
 
 def compose(argv: Sequence[str], namespace: str, host: SimHost) -> Iterator[Node]:
