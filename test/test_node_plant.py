@@ -207,3 +207,41 @@ def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node
     finally:
         stop(proc)
         second.destroy_node()
+
+
+def test_realtime_plant_wakes_per_sample_only_while_commanded(node):
+    """With no voltage_command publisher the plant holds and wakes every HOLD_TICK, stepping the
+    samples due in one batch; a commander brings the timer to the sample rate, and its going
+    back to HOLD_TICK. The samples stay on the grid throughout."""
+    from piezo_stage.nodes.plant import HOLD_TICK
+    from piezo_stage_msgs.msg import Displacement, Voltage
+
+    proc = start_node("plant", "model_file:=ch10_patch.yaml", "rate_hz:=1000.0", namespace=NS)
+    stamps: list[int] = []
+    period: list[float] = []
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key == "tick_period" and status.name == f"{NS}/plant":
+                    period.append(float(kv.value))
+
+    node.create_subscription(
+        Displacement,
+        "displacement",
+        lambda m: stamps.append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec),
+        QoSProfile(depth=5000, reliability=ReliabilityPolicy.BEST_EFFORT),
+    )
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    try:
+        assert spin_until(node, lambda: period and period[-1] == pytest.approx(HOLD_TICK), 15.0)
+        cmd = node.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
+        assert spin_until(node, lambda: period[-1] == pytest.approx(1e-3), 15.0), period
+        cmd.publish(Voltage(voltage=50.0))
+        node.destroy_publisher(cmd)
+        assert spin_until(node, lambda: period[-1] == pytest.approx(HOLD_TICK), 15.0), period
+        spin_until(node, lambda: False, 0.2)
+    finally:
+        stop(proc)
+    spacing = np.diff(stamps)
+    assert len(stamps) > 100 and np.all(spacing > 0) and np.all(spacing % 1_000_000 == 0)

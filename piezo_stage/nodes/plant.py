@@ -11,11 +11,13 @@ this node only schedules it: one tick steps every axis together, and a tick's me
 stamp.
 
 Clocks (``clock_mode``):
-- ``realtime``: a wall-clock timer at ``rate_hz``; samples are due on the grid t0 + k/rate_hz
-  of the node clock, each integrated over one step with the last commands held (zero-order
-  hold) and stamped with its grid time. A tick that comes late publishes every sample due
-  since the last one (no drift, no lost samples under load); a stall longer than
-  ``REALTIME_CATCH_UP`` drops the older backlog and counts it (WARN on /diagnostics).
+- ``realtime``: a wall-clock timer; samples are due on the grid t0 + k/rate_hz of the node
+  clock, each integrated over one step with the last commands held (zero-order hold) and
+  stamped with its grid time. A tick steps every sample due since the last one in one batch
+  (no drift, no lost samples under load); a stall longer than ``REALTIME_CATCH_UP`` drops the
+  older backlog and counts it (WARN on /diagnostics). The timer runs at ``rate_hz`` while a
+  ``voltage_command`` publisher exists (a loop may close on each sample); with none the plant
+  holds and wakes every ``HOLD_TICK`` only, its samples the same, published in bursts.
 - ``lockstep``: the node owns ``/clock`` and steps once every axis's commander has answered the
   step (:mod:`piezo_stage.nodes.lockstep`); identical inputs give identical samples, as fast as
   the graph can go.
@@ -77,6 +79,8 @@ class Commander(Protocol):
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
+#: realtime with no commander: the timer's period [s] (the samples' grid stays 1/rate_hz)
+HOLD_TICK = 0.005
 
 
 PARAMETERS = ParameterTable(
@@ -315,7 +319,9 @@ class PlantNode(PiezoNode):
                 advance=self._advance,
             )
         else:
-            self.create_timer(self.dt, self._tick)
+            self._hold_ns = max(self._dt_ns, int(HOLD_TICK * 1e9))
+            self._timer = self.create_timer(self.dt, self._tick)
+            self._pace_in = 0  # ticks until the timer's period is chosen again
         self.get_logger().info(
             f"{stage.name} ({', '.join(self._forms(stage))}) at {s.rate_hz:g} Hz, amplifiers "
             f"{s.amplifier_bandwidth_hz:g} Hz ({self.substeps} steps per sample), clock "
@@ -347,9 +353,14 @@ class PlantNode(PiezoNode):
         return f"{self._prefix[i][:-1]}.{key}" if self._prefix[i] else key
 
     def _on_command(self, i: int, msg: Voltage) -> None:
-        self._apply(i, msg.voltage)
         if self._lockstep is not None:  # a non-finite command answers the step too: no timeout
+            self._apply(i, msg.voltage)
             self._lockstep.answered(i, msg.header.stamp)
+            return
+        if self._timer.timer_period_ns != self._dt_ns:  # a commander came: per sample from now
+            self._pace_in = 0
+            self._tick()  # the samples due so far with the commands they were due under
+        self._apply(i, msg.voltage)
 
     def _apply(self, i: int, voltage: float) -> None:
         """Axis ``i``'s command: held until the next one; a non-finite one refused and counted."""
@@ -417,6 +428,9 @@ class PlantNode(PiezoNode):
         self._last = AxesSample(applied[0], readings[0], status[0])
 
     def _tick(self) -> None:
+        self._pace_in -= 1
+        if self._pace_in <= 0:
+            self._pace()
         due = self._grid.due(self.get_clock().now().nanoseconds)
         if not due:
             return
@@ -424,6 +438,15 @@ class PlantNode(PiezoNode):
         for k, ns in enumerate(due):
             sec, nanosec = divmod(ns, 1_000_000_000)
             self._publish(Time(sec=sec, nanosec=nanosec), applied[k], readings[k], status[k])
+
+    def _pace(self) -> None:
+        """realtime: the timer at the sample rate while any axis has a commander, else at
+        ``HOLD_TICK``; looked at again every ``HOLD_TICK``."""
+        commanded = any(sub.get_publisher_count() for sub in self._subs)
+        period = self._dt_ns if commanded else self._hold_ns
+        if period != self._timer.timer_period_ns:
+            self._timer.timer_period_ns = period
+        self._pace_in = self._hold_ns // period
 
     def _publish(
         self,
@@ -458,6 +481,8 @@ class PlantNode(PiezoNode):
             "late_steps": late,
             "substeps": self.substeps,
         }
+        if self._lockstep is None:
+            values["tick_period"] = self._timer.timer_period_ns * 1e-9
         for i in range(len(self.names)):
             values[self._key(i, "command")] = float(self._commands[i])
             values[self._key(i, "commands")] = self._received[i]
