@@ -24,14 +24,17 @@ floor's per message); a two-axis stage plant in real time
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 from _targets import check, exit_code
 
@@ -83,19 +86,30 @@ node.create_subscription(Float64, "/cost_floor/ping", pub.publish, 10)
 
 @dataclass(frozen=True)
 class Case:
-    """A shipped graph, the topic of its first axis whose samples are counted, and its axes."""
+    """A shipped graph, the topic of its first axis whose samples are counted, and its axes;
+    ``record``: topics a ``piezo-stage record`` beside it records (its process ``recorder``)."""
 
     graph: str
     topic: str
     axes: int = 1
     batched: bool = False  # the topic is loop_samples: count its rows
+    record: tuple[str, ...] = ()
+    name: str = ""
 
+    @property
+    def key(self) -> str:
+        return self.name or self.graph
+
+
+#: the recorder's case: a two-axis stage's four 1 kHz streams
+RECORDED = ("x/displacement", "x/voltage", "y/displacement", "y/voltage")
 
 CASES = {
-    c.graph: c
+    c.key: c
     for c in (
         Case("sim_closed_loop", "displacement"),
         Case("sim_scanner", "x/displacement", 2),
+        Case("sim_scanner", "x/displacement", 2, record=RECORDED, name="recorder"),
         Case("emulated_rig", "displacement"),
         Case("emulated_scanner", "x/displacement", 2),
         Case("emulated_scanner_loop", "x/loop_samples", 2, batched=True),
@@ -191,6 +205,35 @@ def floor(seconds: float) -> float:
     return share["echo"]
 
 
+def descendants(pid: int) -> list[int]:
+    """``pid`` and its processes' children, depth first."""
+    out = [pid]
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            out += descendants(int(child))
+    return out
+
+
+@contextlib.contextmanager
+def recorder(case: Case, space: str, folder: str) -> Iterator[subprocess.Popen[bytes] | None]:
+    """``piezo-stage record`` of the case's ``record`` topics into ``folder`` (None: none),
+    stopped by SIGINT as a user's Ctrl-C, and checked to have closed its bag."""
+    if not case.record:
+        yield None
+        return
+    cmd = [sys.executable, "-m", "piezo_stage.cli", "record", "--ns", space]
+    cmd += ["-o", f"{folder}/bag", "--topics", *case.record]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        time.sleep(3.0)  # its subscriptions matched
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    if proc.returncode != 0:
+        raise SystemExit(f"recorder exited {proc.returncode}: {err.decode()[-2000:]}")
+
+
 def run_case(case: Case, probe: Probe, seconds: float, floor_share: float) -> dict[str, float]:
     """The graph held for ``seconds``: every process's share, printed with its ratio to the floor
     and its CPU per sample of one axis."""
@@ -208,12 +251,16 @@ def run_case(case: Case, probe: Probe, seconds: float, floor_share: float) -> di
             time.sleep(0.2)
         if probe.samples < 200:
             raise SystemExit(f"{case.graph}: no samples on {case.topic}\n" + "\n".join(lines[-20:]))
-        time.sleep(2.0)
-        share, samples = shares(launch.pids, seconds, lambda: probe.samples)
+        pids = dict(launch.pids)
+        with tempfile.TemporaryDirectory() as tmp, recorder(case, space, tmp) as rec:
+            if rec is not None:  # the node: the command's child (it forwards Ctrl-C)
+                pids["recorder"] = descendants(rec.pid)[-1]
+            time.sleep(2.0)
+            share, samples = shares(pids, seconds, lambda: probe.samples)
     rate = samples / seconds
     total = sum(share.values())
     print(
-        f"{case.graph}: {samples} samples of one axis in {seconds:g} s ({rate:.0f}/s), "
+        f"{case.key}: {samples} samples of one axis in {seconds:g} s ({rate:.0f}/s), "
         f"{100 * total:.1f} % of a core in all ({total / floor_share:.2f} x the floor)",
         flush=True,
     )
@@ -271,6 +318,9 @@ def main() -> int:
             results["sim_scanner"]["plant"] / floor_share,
             0.5,
         )
+    if "recorder" in results:
+        per_stream = results["recorder"]["recorder"] / len(RECORDED)
+        check("recorder per recorded 1 kHz stream / floor", per_stream / floor_share, 0.3)
     return exit_code()
 
 
