@@ -14,18 +14,21 @@ first applied voltage that differs by more than 1 V from the one before. A step 
 itself answers late (it was held off the CPU) is charged to the loop under test: that is the
 point. Also counted: amplifier writes (``SVA``) per sensor frame.
 
-    python bench/step_probe.py [--runs 3] [--seconds 20] [--warmup 8] [--form rig_loop]
+    python bench/step_probe.py [--runs 3] [--seconds 20] [--warmup 8] [--form rig_loop|minimal]
                                [--param NODE.KEY:=VALUE ...] [--probe-priority 0]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from _targets import check, exit_code
@@ -43,6 +46,10 @@ from piezo_stage.launch import Launcher  # noqa: E402
 
 RATE = 1000.0  # Hz, ILD1320
 HALF_PERIOD = 0.0437  # s between steps
+#: the same in tenths of a sample at RATE: the source and the analysis find the samples of a step
+#: in integers (in floats, j * 43.7 samples lands a sample early or late for some j: a 1 ms
+#: "latency" every 30th step, 3.7 % of them, seen by every loop alike)
+HALF_TENTHS = 437
 STEP = 0.4e-6  # m, peak to peak
 K1 = 5e6  # V/m: 0.4 um -> 2 V
 LATE = 1e-3  # s: a step answered later than this is counted
@@ -54,7 +61,7 @@ WRITES_TARGET = 1.01
 
 def source(t: np.ndarray) -> np.ndarray:
     """±STEP/2 about the middle of the range, switching every HALF_PERIOD."""
-    k = np.floor(np.asarray(t) / HALF_PERIOD).astype(np.int64)
+    k = np.rint(np.asarray(t) * RATE).astype(np.int64) * 10 // HALF_TENTHS
     return cl.BASE + np.where(k % 2 == 0, 0.5, -0.5) * STEP
 
 
@@ -65,6 +72,29 @@ def params(form: str, port: int, link: str, extra: list[str]) -> list[str]:
         if not p.startswith(("controller.k1:=", "controller.reference:="))
     ]
     return out + [f"controller.k1:={K1}", f"controller.reference:={cl.BASE - 1e-3}"] + extra
+
+
+@contextlib.contextmanager
+def loop(form: str, port: int, link: str, extra: list[str], lines: list[str]) -> Iterator[None]:
+    """The graph ``form`` launched, or the ``minimal`` loop (the baseline: one Python thread,
+    pty -> parse -> the same proportional law -> TCP, nothing else)."""
+    if form != "minimal":
+        with Launcher(
+            form,
+            namespace=cl.NS,
+            params=params(form, port, link, extra),
+            sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
+            timeout=30.0,
+        ):
+            yield
+        return
+    args = [link, str(port), str(cl.MR), "1e-3", str(K1), str(cl.U_BIAS), str(cl.BASE - 1e-3)]
+    proc = subprocess.Popen([sys.executable, "-c", cl.MINIMAL, *args])
+    try:
+        yield
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def one_run(form: str, seconds: float, warmup: float, extra: list[str]) -> dict[str, float]:
@@ -83,13 +113,7 @@ def one_run(form: str, seconds: float, warmup: float, extra: list[str]) -> dict[
         s.start()
     lines: list[str] = []
     try:
-        with Launcher(
-            form,
-            namespace=cl.NS,
-            params=params(form, port, link, extra),
-            sink=lambda name, line, err: lines.append(f"[{name}] {line}"),
-            timeout=30.0,
-        ):
+        with loop(form, port, link, extra, lines):
             time.sleep(warmup)
             t0 = time.monotonic()
             sva0 = sum(c.startswith("SVA") for c in list(amp.commands))
@@ -108,7 +132,7 @@ def one_run(form: str, seconds: float, warmup: float, extra: list[str]) -> dict[
     lat: list[float] = []
     j = int(np.ceil((t0 - base) / HALF_PERIOD))
     while base + j * HALF_PERIOD < t1:
-        k = int(np.ceil(j * HALF_PERIOD * RATE - 1e-9))  # first sample after the step
+        k = -(-j * HALF_TENTHS // 10)  # the first sample after the step
         burst = np.searchsorted(log[:, 2], k, side="right")  # the burst that carried it
         written = log[burst, 0]
         later = np.nonzero(volts[:, 0] >= written)[0]
