@@ -39,7 +39,6 @@ from typing import Protocol, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from numpy.typing import NDArray
 from rclpy.parameter import Parameter
 from rclpy.subscription import Subscription
 
@@ -300,7 +299,7 @@ class PlantNode(PiezoNode):
             )
             self._subs.append(sub)
             commands.append(sub.topic_name)
-        self._msg_x, self._msg_v = Displacement(), Voltage()
+        self._msg_x, self._msg_v, self._stamp = Displacement(), Voltage(), Time()
         self._dt_ns = int(round(self.dt * 1e9))
         self._grid = TickGrid(self._dt_ns, max(10, int(REALTIME_CATCH_UP * s.rate_hz)))
         self._lockstep: LockstepClock | None = None
@@ -315,7 +314,7 @@ class PlantNode(PiezoNode):
                 command_topics=commands,
                 sample_topics=[p.topic_name for p in self._pub_x],
                 samples=(*self._pub_x, *self._pub_v),
-                emit=lambda stamp: self._publish(stamp, *self._last),
+                emit=lambda stamp: self._publish(stamp, *(a.tolist() for a in self._last)),
                 advance=self._advance,
             )
         else:
@@ -435,9 +434,10 @@ class PlantNode(PiezoNode):
         if not due:
             return
         applied, readings, status = self._step(len(due))
-        for k, ns in enumerate(due):
-            sec, nanosec = divmod(ns, 1_000_000_000)
-            self._publish(Time(sec=sec, nanosec=nanosec), applied[k], readings[k], status[k])
+        stamp = self._stamp
+        for ns, row in zip(due, zip(applied.tolist(), readings.tolist(), status.tolist())):
+            stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
+            self._publish(stamp, *row)
 
     def _pace(self) -> None:
         """realtime: the timer at the sample rate while any axis has a commander, else at
@@ -451,21 +451,20 @@ class PlantNode(PiezoNode):
     def _publish(
         self,
         stamp: Time,
-        applied: NDArray[np.float64],
-        readings: NDArray[np.float64],
-        status: NDArray[np.int64],
+        applied: Sequence[float],
+        readings: Sequence[float],
+        status: Sequence[int],
     ) -> None:
         """Every axis's sample at ``stamp``: one message of each kind, refilled (publish()
         serializes before it returns)."""
         msg_x, msg_v = self._msg_x, self._msg_v
         msg_x.header.stamp = msg_v.header.stamp = stamp
-        for i in range(len(self.names)):
-            ok = int(status[i]) == Displacement.OK
-            msg_x.displacement = float(readings[i]) if ok else math.nan
-            msg_x.status = int(status[i])
-            msg_v.voltage = float(applied[i])
-            self._pub_x[i].publish(msg_x)
-            self._pub_v[i].publish(msg_v)
+        for pub_x, pub_v, v, x, code in zip(self._pub_x, self._pub_v, applied, readings, status):
+            msg_x.displacement = x if code == Displacement.OK else math.nan
+            msg_x.status = code
+            msg_v.voltage = v
+            pub_x.publish(msg_x)
+            pub_v.publish(msg_v)
 
     def _diagnose(self) -> Diagnosis:
         dropped = self._grid.dropped
