@@ -210,12 +210,13 @@ def test_lockstep_plant_steps_once_its_writers_have_matched_the_subscribers(node
 
 
 def test_realtime_plant_wakes_per_sample_only_while_commanded(node):
-    """With no voltage_command publisher the plant holds and wakes every HOLD_TICK, stepping the
-    samples due in one batch; a commander brings the timer to the sample rate, and its going
-    back to HOLD_TICK. The samples stay on the grid throughout."""
-    from piezo_stage.nodes.plant import HOLD_TICK
+    """With no voltage_command publisher the plant holds and wakes every hold period (5 samples
+    at 1 kHz), stepping the samples due in one batch; a commander brings the timer to the
+    sample rate, and its going back to the hold period. The samples stay on the grid."""
+    from piezo_stage.nodes.plant import hold_period
     from piezo_stage_msgs.msg import Displacement, Voltage
 
+    hold = hold_period(1000.0)
     proc = start_node("plant", "model_file:=ch10_patch.yaml", "rate_hz:=1000.0", namespace=NS)
     stamps: list[int] = []
     period: list[float] = []
@@ -234,12 +235,12 @@ def test_realtime_plant_wakes_per_sample_only_while_commanded(node):
     )
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     try:
-        assert spin_until(node, lambda: period and period[-1] == pytest.approx(HOLD_TICK), 15.0)
+        assert spin_until(node, lambda: period and period[-1] == pytest.approx(hold), 15.0)
         cmd = node.create_publisher(Voltage, "voltage_command", COMMAND_QOS)
         assert spin_until(node, lambda: period[-1] == pytest.approx(1e-3), 15.0), period
         cmd.publish(Voltage(voltage=50.0))
         node.destroy_publisher(cmd)
-        assert spin_until(node, lambda: period[-1] == pytest.approx(HOLD_TICK), 15.0), period
+        assert spin_until(node, lambda: period[-1] == pytest.approx(hold), 15.0), period
         spin_until(node, lambda: False, 0.2)
     finally:
         stop(proc)

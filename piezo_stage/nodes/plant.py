@@ -17,7 +17,8 @@ Clocks (``clock_mode``):
   (no drift, no lost samples under load); a stall longer than ``REALTIME_CATCH_UP`` drops the
   older backlog and counts it (WARN on /diagnostics). The timer runs at ``rate_hz`` while a
   ``voltage_command`` publisher exists (a loop may close on each sample); with none the plant
-  holds and wakes every ``HOLD_TICK`` only, its samples the same, published in bursts.
+  holds and wakes every :func:`hold_period` only, its samples the same, published in bursts
+  that a best-effort reader of SensorDataQoS depth keeps whole.
 - ``lockstep``: the node owns ``/clock`` and steps once every axis's commander has answered the
   step (:mod:`piezo_stage.nodes.lockstep`); identical inputs give identical samples, as fast as
   the graph can go.
@@ -78,8 +79,15 @@ class Commander(Protocol):
 
 #: realtime: longest backlog [s] a late tick still publishes (beyond it the samples are dropped)
 REALTIME_CATCH_UP = 1.0
-#: realtime with no commander: the timer's period [s] (the samples' grid stays 1/rate_hz)
-HOLD_TICK = 0.005
+#: realtime with no commander: the longest timer period [s] (the samples' grid stays 1/rate_hz)
+HOLD_TICK = 0.01
+
+
+def hold_period(rate_hz: float) -> float:
+    """realtime with no commander: the timer's period [s], whole samples, at most
+    ``HOLD_TICK`` and at most a SensorDataQoS reader's depth of samples (5: a burst it keeps)."""
+    samples = max(1, min(SENSOR_QOS.depth, math.floor(HOLD_TICK * rate_hz + 1e-9)))
+    return samples / rate_hz
 
 
 PARAMETERS = ParameterTable(
@@ -318,7 +326,7 @@ class PlantNode(PiezoNode):
                 advance=self._advance,
             )
         else:
-            self._hold_ns = max(self._dt_ns, int(HOLD_TICK * 1e9))
+            self._hold_ns = int(round(hold_period(s.rate_hz) * 1e9))
             self._timer = self.create_timer(self.dt, self._tick)
             self._pace_in = 0  # ticks until the timer's period is chosen again
         self.get_logger().info(
@@ -441,7 +449,7 @@ class PlantNode(PiezoNode):
 
     def _pace(self) -> None:
         """realtime: the timer at the sample rate while any axis has a commander, else at
-        ``HOLD_TICK``; looked at again every ``HOLD_TICK``."""
+        :func:`hold_period`; looked at again every hold period."""
         commanded = any(sub.get_publisher_count() for sub in self._subs)
         period = self._dt_ns if commanded else self._hold_ns
         if period != self._timer.timer_period_ns:
