@@ -95,13 +95,22 @@ def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
     noise=st.sampled_from([0.0, 1e-3, 2.0]),
     resolution=st.sampled_from([0.0, 1e-2, 0.3]),
     seed=st.integers(0, 2**16),
+    span=st.sampled_from([(-1.0, 1.5), (-math.inf, math.inf)]),
 )
-@example(values=[0.5, math.nan, 3.0, -2.0, 0.25], noise=1e-3, resolution=1e-2, seed=1)
+@example(
+    values=[0.5, math.nan, 3.0, -2.0, 0.25], noise=1e-3, resolution=1e-2, seed=1, span=(-1, 1.5)
+)
+@example(values=[0.5, 3.0], noise=0.0, resolution=0.0, seed=1, span=(-math.inf, math.inf))
+@example(
+    values=[0.5, math.nan, -math.inf], noise=0.0, resolution=0.0, seed=1, span=(-math.inf, math.inf)
+)
 @pytest.mark.hypothesis
-def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, seed):
+def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, seed, span):
     """The vectorised reading (what a stage steps per chunk) is the per-sample one: the same
-    statuses, the same noise draws in the same order, the same quantisation."""
-    kw = dict(noise_std=noise, resolution=resolution, range_min=-1.0, range_max=1.5, seed=seed)
+    statuses, the same noise draws in the same order, the same quantisation; an ideal sensor
+    (no noise, no quantum, no range) too."""
+    lo, hi = span
+    kw = dict(noise_std=noise, resolution=resolution, range_min=lo, range_max=hi, seed=seed)
     one, many = SensorModel(**kw), SensorModel(**kw)
     each = [one.measure(v) for v in values]
     got, status = many.measure_many(np.array(values, dtype=float))

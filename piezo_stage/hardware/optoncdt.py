@@ -119,7 +119,7 @@ class FrameFormat:
     ) -> NDArray[np.int64]:
         """Inverse of :meth:`to_metres`, rounded to the nearest digital value and clipped."""
         x = (np.asarray(distance, dtype=np.float64) / measuring_range + self.offset) / self.scale
-        return np.clip(np.rint(x), 0, self.measurement_max).astype(np.int64)
+        return np.minimum(np.maximum(np.rint(x), 0), self.measurement_max).astype(np.int64)
 
     def error_value(self, status: Status) -> int:
         """The error value a sensor of this family sends for ``status`` (not OK)."""

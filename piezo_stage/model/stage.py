@@ -139,6 +139,8 @@ class SensorModel:
         self.range_min, self.range_max = float(range_min), float(range_max)
         self.seed = int(seed)
         self._rng = np.random.default_rng(self.seed)
+        unbounded = math.isinf(range_min) and math.isinf(range_max)
+        self._ideal = noise_std == 0.0 and resolution == 0.0 and unbounded
 
     @classmethod
     def laser(cls, midpoint: float = 0.0, noise_std: float = 0.0, seed: int = 0) -> "SensorModel":
@@ -176,6 +178,10 @@ class SensorModel:
         vectorised: (readings, statuses).
         """
         y = np.asarray(displacements, dtype=float)
+        if self._ideal:  # the displacement itself, INVALID where it is not finite
+            finite = np.isfinite(y)
+            if finite.all():
+                return y.copy(), np.zeros(y.shape, dtype=np.int64)
         status = np.full(y.shape, int(SensorStatus.OK), dtype=np.int64)
         status[y > self.range_max] = int(SensorStatus.TOO_FAR)
         status[y < self.range_min] = int(SensorStatus.TOO_CLOSE)
@@ -262,7 +268,7 @@ class SimulatedStage:
         if not np.all(np.isfinite(commands)):
             raise InvalidCommandError("command voltages must be finite")
         _check_dt(dt)
-        applied = np.clip(commands, self.amplifier.v_min, self.amplifier.v_max)
+        applied = np.minimum(np.maximum(commands, self.amplifier.v_min), self.amplifier.v_max)
         if isinstance(self.plant, DynamicPlant):
             x, _, _ = self.plant.simulate(applied, dt)
             y = x + self.plant.params.y0

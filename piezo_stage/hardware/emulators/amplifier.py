@@ -161,7 +161,7 @@ class VoltageHistory:
         entries = self.entries
         hist_t = np.fromiter((t for t, _ in entries), np.float64, len(entries))
         hist_v = np.fromiter((v for _, v in entries), np.float64, len(entries))
-        idx = np.clip(np.searchsorted(hist_t, times, side="right") - 1, 0, None)
+        idx = np.maximum(np.searchsorted(hist_t, times, side="right") - 1, 0)
         for _ in range(int(idx[-1]) if idx.size else 0):
             entries.popleft()
         out: NDArray[np.float64] = hist_v[idx]

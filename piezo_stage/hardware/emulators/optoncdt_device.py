@@ -104,10 +104,13 @@ class OptoNCDTDeviceModel:
     def encode(self, distance: NDArray[np.float64]) -> NDArray[np.int64]:
         """Metres from the start of the range -> digital values, out-of-range as error values."""
         d = np.asarray(distance, dtype=np.float64)
-        raw = self.fmt.from_metres(np.nan_to_num(d, nan=0.0), self.measuring_range)
-        raw[d < 0] = self.fmt.error_value(Status.TOO_CLOSE)
-        raw[d > self.measuring_range] = self.fmt.error_value(Status.TOO_FAR)
-        raw[np.isnan(d)] = self.fmt.error_value(Status.NO_TARGET)
+        if ((d >= 0.0) & (d <= self.measuring_range)).all():  # the usual case, and cheaper
+            raw = self.fmt.from_metres(d, self.measuring_range)
+        else:
+            raw = self.fmt.from_metres(np.nan_to_num(d, nan=0.0), self.measuring_range)
+            raw[d < 0] = self.fmt.error_value(Status.TOO_CLOSE)
+            raw[d > self.measuring_range] = self.fmt.error_value(Status.TOO_FAR)
+            raw[np.isnan(d)] = self.fmt.error_value(Status.NO_TARGET)
         if self.error_probability:
             hit = self.rng.random(raw.size) < self.error_probability
             codes = np.array(sorted(self.fmt.errors) or [self.fmt.error_range[0]])

@@ -177,7 +177,7 @@ class ScannerCoupling:
             if index.size:
                 self._advance(int(index.max()))
             oldest = max(0, self.steps - len(self._ring))
-            kept = np.clip(index, oldest, None)
+            kept = np.maximum(index, oldest)
             out: NDArray[np.float64] = self._ring[kept % len(self._ring), axis]  # a copy
             return out
 
