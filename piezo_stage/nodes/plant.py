@@ -86,7 +86,7 @@ HOLD_TICK = 0.01
 def hold_period(rate_hz: float) -> float:
     """realtime with no commander: the timer's period [s], whole samples, at most
     ``HOLD_TICK`` and at most a SensorDataQoS reader's depth of samples (5: a burst it keeps)."""
-    samples = max(1, min(SENSOR_QOS.depth, math.floor(HOLD_TICK * rate_hz + 1e-9)))
+    samples = max(1, min(int(SENSOR_QOS.depth), math.floor(HOLD_TICK * rate_hz + 1e-9)))
     return samples / rate_hz
 
 
