@@ -153,6 +153,7 @@ class _Channel:
         self.session = session
         self.out = bytearray()
         self.closed = False
+        self.events = selectors.EVENT_READ  # what the server's selector waits for on it
 
     def recv(self) -> tuple[bytes, float]:
         """(data, arrival time in ``time.monotonic`` seconds): the kernel's receive stamp of a TCP
@@ -460,7 +461,9 @@ class EmulatorServer:
                 timeout = min(timeout, max(self._delayed[0][0] - now, 0.0))
             for fd, channel in self._channels.items():
                 events = selectors.EVENT_READ | (selectors.EVENT_WRITE if channel.out else 0)
-                self._sel.modify(fd, events, "channel")
+                if events != channel.events:  # re-registering costs a turn several calls
+                    self._sel.modify(fd, events, "channel")
+                    channel.events = events
             self._heard = (True, handled)
             # what arrived before the wait began is in what it returns (what arrives later may
             # not be, even before this thread runs again)
