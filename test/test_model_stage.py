@@ -100,6 +100,9 @@ def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
 @example(
     values=[0.5, math.nan, 3.0, -2.0, 0.25], noise=1e-3, resolution=1e-2, seed=1, span=(-1, 1.5)
 )
+@example(
+    values=[1.797693134862316e306], noise=0.0, resolution=0.01, seed=0, span=(-math.inf, math.inf)
+)
 @example(values=[0.5, 3.0], noise=0.0, resolution=0.0, seed=1, span=(-math.inf, math.inf))
 @example(
     values=[0.5, math.nan, -math.inf], noise=0.0, resolution=0.0, seed=1, span=(-math.inf, math.inf)
@@ -108,7 +111,8 @@ def test_dynamic_stage_steps_the_plant_and_rejects_non_finite_commands():
 def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, seed, span):
     """The vectorised reading (what a stage steps per chunk) is the per-sample one: the same
     statuses, the same noise draws in the same order, the same quantisation; an ideal sensor
-    (no noise, no quantum, no range) too."""
+    (no noise, no quantum, no range) too; a reading its quantum or noise takes past the largest
+    float is INVALID, never OK."""
     lo, hi = span
     kw = dict(noise_std=noise, resolution=resolution, range_min=lo, range_max=hi, seed=seed)
     one, many = SensorModel(**kw), SensorModel(**kw)
@@ -117,6 +121,7 @@ def test_measuring_many_is_measuring_each_in_turn(values, noise, resolution, see
     assert status.tolist() == [s for _, s in each]
     expected = np.array([v for v, _ in each], dtype=float)
     assert np.array_equal(got, expected, equal_nan=True)
+    assert np.all(np.isfinite(got[status == SensorStatus.OK]))
 
 
 @pytest.mark.parametrize("name", ["ch10_patch", "ch11_rig"])

@@ -168,7 +168,10 @@ class SensorModel:
         if self.noise_std > 0.0:
             value += self.noise_std * float(self._rng.standard_normal())
         if self.resolution > 0.0:
-            value = round(value / self.resolution) * self.resolution
+            steps = value / self.resolution
+            value = round(steps) * self.resolution if math.isfinite(steps) else math.inf
+        if not math.isfinite(value):  # noise or quantum beyond the largest float: no reading
+            return math.nan, int(SensorStatus.INVALID)
         return value, int(SensorStatus.OK)
 
     def measure_many(
@@ -192,7 +195,10 @@ class SensorModel:
         if self.noise_std > 0.0:
             values[ok] += self.noise_std * self._rng.standard_normal(int(ok.sum()))
         if self.resolution > 0.0:
-            values[ok] = np.round(values[ok] / self.resolution) * self.resolution
+            with np.errstate(over="ignore"):
+                values[ok] = np.round(values[ok] / self.resolution) * self.resolution
+        lost = ok & ~np.isfinite(values)  # noise or quantum beyond the largest float
+        values[lost], status[lost] = math.nan, int(SensorStatus.INVALID)
         return values, status
 
 
