@@ -498,3 +498,30 @@ def test_two_lockstep_stages_side_by_side_each_with_its_own_clock():
         # (any number of times on a loaded host); every later step is published once
         later = [t for t in got if t > got[0]]
         assert len(later) >= 150 and all(t1 > t0 for t0, t1 in zip(later, later[1:])), topic
+
+
+def test_a_probe_that_hangs_in_its_teardown_neither_holds_the_launch_nor_outlives_it(
+    monkeypatch,
+):
+    """A DDS participant can hang while destroyed: the probe that said `ready` and then hangs
+    is killed in the background; one that dies is a LaunchError, not a launch waiting forever."""
+    from piezo_stage.launch import ready
+
+    monkeypatch.setattr(ready, "REAP_S", 0.5)
+    pid_file = Path(os.environ.get("TMPDIR", "/tmp")) / f"probe_{os.getpid()}.pid"
+    monkeypatch.setattr(
+        ready,
+        "probe_argv",
+        lambda waits, ns: ["sh", "-c", f"echo $$ > {pid_file}; echo ready; exec sleep 60"],
+    )
+    launch = Launcher({"nodes": [{"command": ["sleep", "60"]}], "wait_for_topics": ["x"]})
+    launch.start()
+    try:
+        assert launch.wait_ready(timeout=20.0) < 10.0
+        assert not wait_gone([int(pid_file.read_text())], timeout=10.0)
+        monkeypatch.setattr(ready, "probe_argv", lambda waits, ns: ["sh", "-c", "exit 7"])
+        with pytest.raises(LaunchError, match="the topic probe exited with code 7"):
+            launch.wait_ready(timeout=20.0)
+    finally:
+        pid_file.unlink(missing_ok=True)
+        assert launch.stop() == 0

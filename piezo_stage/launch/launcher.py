@@ -177,12 +177,10 @@ class Launcher:
         waits, ns = self.graph.wait_for_topics, self.graph.namespace
         self._raise_if_ended()
         if waits:
-            from piezo_stage.launch.ready import (
-                TopicProbe,
-            )  # rclpy only when there is something to wait for
+            from piezo_stage.launch.ready import TopicProbe
 
-            with TopicProbe() as probe:
-                while missing := probe.missing(waits, ns):
+            with TopicProbe(waits, ns) as probe:
+                while missing := probe.missing(2 * POLL_S):
                     self._raise_if_ended()
                     ended = self._done.is_set()  # every process exited: nothing will appear
                     if ended or time.monotonic() - t0 > timeout:
@@ -191,7 +189,6 @@ class Launcher:
                             time.monotonic() - t0 if ended else timeout,
                             [f"{n} (code {c})" for n, c in self.exited],
                         )
-                    time.sleep(2 * POLL_S)
         elapsed = time.monotonic() - t0
         self._log(
             f"ready after {elapsed:.1f} s"
