@@ -1,35 +1,31 @@
-"""Ask the ROS graph which of the awaited topics exist (the launcher's only rclpy module).
+"""Ask the ROS graph which of the awaited topics exist.
 
-The probe runs in a child process (``python -m piezo_stage.launch.ready``): a DDS participant
-that hangs while it is destroyed (Fast DDS does, rarely, in ``delete_participant``) then costs
-the launcher a killed child, not a hung launch. The child has no signal handlers, no rosout and
-no parameter services; it prints ``missing I J ...`` (indices of the waits not satisfied) each
-time that set changes, then ``ready`` once it is empty, and exits.
+The question is asked by a child process (:mod:`piezo_stage.launch.graph_probe`, the launcher's
+only rclpy module): a DDS participant that hangs while it is destroyed (Fast DDS does, rarely,
+in ``delete_participant``) then costs the launcher a killed child, not a hung launch.
 """
 
 from __future__ import annotations
 
 import os
 import select
-import signal
 import subprocess
 import sys
 import threading
-import time
+from pathlib import Path
 from typing import Sequence
 
 from piezo_stage.launch.errors import LaunchError
-from piezo_stage.launch.graph import TopicWait, resolve_name
+from piezo_stage.launch.graph import TopicWait
 
-POLL_S = 0.1  # between two looks at the ROS graph
 REAP_S = 10.0  # a child that printed `ready` but does not exit within this is killed
 
 
 def probe_argv(waits: Sequence[TopicWait], namespace: str) -> list[str]:
     """The child's command line: the namespace, then (topic, publishers, subscribers) each."""
-    argv = [sys.executable, "-m", __name__, namespace]
+    argv = [sys.executable, str(Path(__file__).with_name("graph_probe.py"))]
     for w in waits:
-        argv += [w.topic, str(w.publishers), str(w.subscribers)]
+        argv += [w.resolve(namespace), str(w.publishers), str(w.subscribers)]
     return argv
 
 
@@ -87,45 +83,3 @@ def _reap(child: subprocess.Popen[bytes], grace: float | None = None) -> None:
     except subprocess.TimeoutExpired:
         child.kill()
         child.wait()
-
-
-def _poll_graph(waits: Sequence[TopicWait], namespace: str) -> None:
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
-
-    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(
-        f"piezo_launch_probe_{os.getpid()}", enable_rosout=False, start_parameter_services=False
-    )
-    said: list[int] | None = None
-    while True:
-        present = {name for name, _types in node.get_topic_names_and_types()}
-        left = []
-        for i, w in enumerate(waits):
-            topic = resolve_name(w.topic, namespace)
-            if (
-                topic not in present
-                or (w.publishers and node.count_publishers(topic) < w.publishers)
-                or (w.subscribers and node.count_subscribers(topic) < w.subscribers)
-            ):
-                left.append(i)
-        if not left:
-            print("ready", flush=True)
-            break
-        if left != said:
-            print("missing", *left, flush=True)
-            said = left
-        time.sleep(POLL_S)
-    node.destroy_node()
-    rclpy.try_shutdown()
-
-
-def main(argv: Sequence[str]) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the launcher ends the probe, not Ctrl-C
-    namespace, rest = argv[0], argv[1:]
-    waits = [TopicWait(rest[i], int(rest[i + 1]), int(rest[i + 2])) for i in range(0, len(rest), 3)]
-    _poll_graph(waits, namespace)
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
