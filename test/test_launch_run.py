@@ -525,3 +525,19 @@ def test_a_probe_that_hangs_in_its_teardown_neither_holds_the_launch_nor_outlive
     finally:
         pid_file.unlink(missing_ok=True)
         assert launch.stop() == 0
+
+
+def test_the_probe_of_a_launcher_killed_while_it_waits_does_not_outlive_it():
+    """A launcher SIGKILLed while it waits for topics leaves no probe polling the graph."""
+    code = (
+        "import os, sys\n"
+        "from piezo_stage.launch.graph import TopicWait\n"
+        "from piezo_stage.launch.ready import TopicProbe\n"
+        "probe = TopicProbe([TopicWait('never_published')], '/orphan')\n"
+        "probe.missing(0.5)\n"
+        "print(probe._child.pid, flush=True)\n"
+        "os.kill(os.getpid(), 9)\n"
+    )
+    out = subprocess.run([PY, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == -9, out.stderr
+    assert not wait_gone([int(out.stdout.split()[0])], timeout=10.0)

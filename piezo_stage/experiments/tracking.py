@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 import os
-import socket
 import tempfile
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -478,25 +477,18 @@ def _asked(spec: TrackingSpec) -> str:
     )
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 def emulated_rig_graph(
     plan: TrackingPlan, model_file: str, namespace: str, folder: Path, port: int | None = None
 ) -> tuple[dict[str, Any], float]:
     """``piezo-stage emulate rig`` around the plant model with the driver, the reader and the
     controller composed in ``rig_loop`` (config/graphs/emulated_rig.yaml's devices); the
     seconds to record. ``port``: the amplifier's TCP port (default: a free one)."""
-    from piezo_stage.launch.graph import find_graph
+    from piezo_stage.launch.graph import find_graph, free_port
     from piezo_stage.yaml_values import load_yaml
 
     spec = plan.spec
     rate = plan.common.rate_hz
-    port, link = _free_port() if port is None else port, str(folder / "sensor")
+    port, link = free_port() if port is None else port, str(folder / "sensor")
     data = load_yaml(find_graph("emulated_rig").read_text())
     plant = str(find_config(spec.plant_model)) if isinstance(spec.plant_model, str) else ""
     if not plant:

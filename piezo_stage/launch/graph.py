@@ -403,7 +403,8 @@ def load_graph(
 _FREE_PORT_RE = re.compile(rf"\$\(free_port(?:\s+({_TOKEN}))?\s*\)")
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
@@ -411,7 +412,7 @@ def _free_port() -> int:
 
 
 def substitute_free_ports(
-    value: Any, ports: dict[str, int] | None = None, allocate: Callable[[], int] = _free_port
+    value: Any, ports: dict[str, int] | None = None, allocate: Callable[[], int] = free_port
 ) -> Any:
     """``value`` (YAML data) with every ``$(free_port NAME)`` in its strings replaced by a TCP
     port free now on 127.0.0.1 (``allocate``), the same for each NAME (in ``ports``, filled as
@@ -452,7 +453,7 @@ def parse_graph(
     if not isinstance(nodes_data, list) or not nodes_data:
         raise GraphError(f"{where}: 'nodes' must be a non-empty list of entries")
     graph_stage = _graph_stage(data.get("stage"), stage, nodes_data, base, where)
-    allocate = _free_port if free_ports else lambda: 0
+    allocate = free_port if free_ports else lambda: 0
     nodes = _parse_nodes(nodes_data, graph_stage, base, where, allocate)
     use_sim_time = data.get("use_sim_time")
     if use_sim_time is not None and not isinstance(use_sim_time, bool):

@@ -2,8 +2,8 @@
 topic resolved), so that it imports rclpy and nothing of the package.
 
 It prints ``missing I J ...`` (indices of the waits not satisfied) each time that set changes,
-then ``ready`` once it is empty, and exits. No signal handlers (the launcher ends it, not
-Ctrl-C), no rosout, no parameter services.
+then ``ready`` once it is empty, and exits; also when its launcher is gone (its parent changed).
+No signal handlers (the launcher ends it, not Ctrl-C), no rosout, no parameter services.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ POLL_S = 0.1  # between two looks at the ROS graph
 
 def main(argv: Sequence[str]) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -28,7 +29,7 @@ def main(argv: Sequence[str]) -> None:
         f"piezo_launch_probe_{os.getpid()}", enable_rosout=False, start_parameter_services=False
     )
     said: list[int] | None = None
-    while True:
+    while os.getppid() == parent:
         present = {name for name, _types in node.get_topic_names_and_types()}
         left = [
             i
