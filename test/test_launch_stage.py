@@ -113,7 +113,7 @@ def test_each_axis_gets_a_free_port_of_its_own(monkeypatch):
     """``$(free_port sensor_$(axis))``: the stage's substitution first, so one port per axis,
     the same for every entry of that axis."""
     ports = itertools.count(40000)
-    monkeypatch.setattr(graph_module, "_free_port", lambda: next(ports))
+    monkeypatch.setattr(graph_module, "free_port", lambda: next(ports))
     g = parse_graph(
         {
             "stage": "xy_scanner.yaml",
@@ -340,7 +340,7 @@ def test_the_readme_example_is_a_graph_that_expands(monkeypatch):
     section = text.split("## Multi-axis graphs", 1)[1]
     example = section.split("```yaml\n", 1)[1].split("```", 1)[0]
     ports = itertools.count(41000)
-    monkeypatch.setattr(graph_module, "_free_port", lambda: next(ports))
+    monkeypatch.setattr(graph_module, "free_port", lambda: next(ports))
     g = parse_graph(yaml.safe_load(example))
     check_parameters(g)
     assert [s.name for s in g.nodes] == [
