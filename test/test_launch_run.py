@@ -541,3 +541,15 @@ def test_the_probe_of_a_launcher_killed_while_it_waits_does_not_outlive_it():
     out = subprocess.run([PY, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == -9, out.stderr
     assert not wait_gone([int(out.stdout.split()[0])], timeout=10.0)
+
+
+def test_the_bootstrap_of_a_launched_process_imports_no_model():
+    """Every node starts through piezo_stage.launch.child: importing it loads neither the
+    launcher nor the model (numba, scipy), which the node imports itself if it needs them."""
+    probe = (
+        "import sys, piezo_stage.launch.child; print(sorted({'numba', 'scipy'} & set(sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert out.stdout.strip() == "[]", out.stdout
