@@ -352,6 +352,13 @@ def _raster_graph_arguments(group: argparse._ArgumentGroup) -> None:
         "(default: --stage)",
     )
     group.add_argument(
+        "--device",
+        metavar="URL",
+        help="pi_servo: the controller, tcp://HOST:PORT (required there); the stage file's "
+        "channels are its axes; the tables play with its servo off (--compensation feedforward) "
+        "at --rate-hz (default: its servo rate), --learn counts frames",
+    )
+    group.add_argument(
         "--compensation",
         choices=[c.value for c in Compensation],
         default=Compensation.BOTH.value,
@@ -652,26 +659,44 @@ def _run_tracking(args: argparse.Namespace, progress: Progress) -> dict[str, Any
 
 
 def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
-    from piezo_stage.config_path import (
-        ConfigNotFoundError,
-        find_user_file,
-        output_problem,
-        user_output_path,
-    )
+    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, output_problem
     from piezo_stage.control.feedforward import Compensation
     from piezo_stage.experiments import ExperimentInputError
-    from piezo_stage.experiments.raster import CORE, RasterSpec, run_raster
+    from piezo_stage.experiments.raster import CORE, PI_SERVO, run_raster
 
     try:
         stage = find_user_file(args.stage)
         plant = find_user_file(args.plant_stage) if args.plant_stage else stage
-        table = find_user_file(args.table) if args.table else None
+        if args.table:
+            find_user_file(args.table)
     except ConfigNotFoundError as exc:
         raise ExperimentInputError(str(exc)) from None
     if args.table_out and output_problem(args.table_out):
         raise ExperimentInputError(
             f"--table-out {args.table_out}: {output_problem(args.table_out)}"
         )
+    graph = args.graph or CORE
+    if graph == PI_SERVO:
+        from piezo_stage.commands.servo_raster import servo_setup
+
+        with servo_setup(args, stage) as servo:
+            args.compensation = Compensation.FEEDFORWARD.value
+            return run_raster(_raster_spec(args, stage, plant, graph, servo), progress)
+    elif args.device:
+        raise ExperimentInputError("--device: only --graph pi_servo plays on a controller")
+    return run_raster(_raster_spec(args, stage, plant, graph), progress)
+
+
+def _raster_spec(
+    args: argparse.Namespace, stage: Path, plant: Path, graph: str, servo: Any = None
+) -> Any:
+    """The raster's spec from its options (checked by :func:`plan_raster`)."""
+    from piezo_stage.config_path import ConfigNotFoundError, find_user_file, user_output_path
+    from piezo_stage.control.feedforward import Compensation
+    from piezo_stage.experiments import ExperimentInputError
+    from piezo_stage.experiments.raster import CORE, RasterSpec
+
+    table = find_user_file(args.table) if args.table else None
     table_out = user_output_path(args.table_out) if args.table_out else None
     sample = args.sample
     if sample != "grating":
@@ -679,8 +704,8 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
             sample = str(find_user_file(sample))
         except ConfigNotFoundError as exc:
             raise ExperimentInputError(f"--sample: {exc}") from None
-    graph = args.graph or CORE
-    spec = RasterSpec(
+    rate_hz = servo.rate_hz if servo else args.rate_hz
+    return RasterSpec(
         stage,
         plant,
         graph=graph,
@@ -689,7 +714,7 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         line_rate=args.line_rate,
         range=args.range,
         centre=args.centre,
-        rate_hz=args.rate_hz or (RasterSpec.rate_hz if graph == CORE else 1000.0),
+        rate_hz=rate_hz or (RasterSpec.rate_hz if graph == CORE else 1000.0),
         learn=args.learn or 0,
         compensation=Compensation(args.compensation),
         coupling_compensation=args.coupling_compensation,
@@ -702,8 +727,8 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         png=user_output_path(args.png) if args.png else None,
         bag=user_output_path(args.bag) if args.bag else None,
         view_port=(8765 if args.view else None) if args.view_port is None else args.view_port,
+        servo=servo,
     )
-    return run_raster(spec, progress)
 
 
 def _controller_params(texts: list[str]) -> dict[str, Any]:

@@ -42,12 +42,7 @@ def run_pi_servo(
         raise ExperimentInputError(f"{args.device}: {exc}") from None
     try:
         cycle = recorder.servo_cycle()
-        if args.rate_hz and args.rate_hz * cycle > 1.0 + 1e-9:  # before anything moves
-            raise ExperimentInputError(
-                f"--rate-hz {args.rate_hz:g}: the controller's servo runs at {1.0 / cycle:g} Hz, "
-                "the fastest its wave generator plays a table"
-            )
-        rate = max(1, round(1.0 / (cycle * args.rate_hz))) if args.rate_hz else 1
+        rate = table_divisor(cycle, args.rate_hz)
         x_d, _ = trajectory_samples(trajectory, 1.0 / (cycle * rate))
         plays = args.learn if args.learn else (0 if table is not None else DEFAULT_LEARN)
         results = learn_in_controller(
@@ -79,6 +74,19 @@ def run_pi_servo(
     if args.table_out:  # the first axis's table (one axis: its table)
         summary["table_out"] = str(results[0].table.save(args.table_out))
     return summary
+
+
+def table_divisor(cycle: float, rate_hz: float | None) -> int:
+    """Servo cycles per table point for ``--rate-hz`` (None: every cycle); refused
+    (ExperimentInputError) above the servo rate, before anything moves."""
+    from piezo_stage.experiments import ExperimentInputError
+
+    if rate_hz and rate_hz * cycle > 1.0 + 1e-9:
+        raise ExperimentInputError(
+            f"--rate-hz {rate_hz:g}: the controller's servo runs at {1.0 / cycle:g} Hz, "
+            "the fastest its wave generator plays a table"
+        )
+    return max(1, round(1.0 / (cycle * rate_hz))) if rate_hz else 1
 
 
 def _inputs(args: argparse.Namespace) -> tuple[Any, Any, Any]:

@@ -137,9 +137,13 @@ class RasterTables:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def matches(self, scan: RasterScan, rate_hz: float) -> str:
-        """'' when the tables serve ``scan`` at ``rate_hz``, else why not."""
+        """'' when the tables serve ``scan`` at ``rate_hz``, else why not (the fast axis's
+        table may be a frame's, as :func:`raster_tables` makes it with ``fast_over_frame``).
+        """
+        frame = int(round(scan.frame_time * rate_hz))
+        fast = scan.frame_time if len(self.fast) == frame else scan.period
         for name, table, seconds in (
-            ("fast", self.fast, scan.period),
+            ("fast", self.fast, fast),
             ("slow", self.slow, scan.frame_time),
         ):
             why = table.matches(rate_hz, int(round(seconds * rate_hz)))
@@ -175,16 +179,19 @@ def _tables(
     fast: int,
     slow: int,
     rate_hz: float,
+    fast_over_frame: bool = False,
 ) -> RasterTables:
-    """What the models say each axis needs along its own reference: a line of the fast axis,
-    a frame of the slow one, both in the periodic steady state (a frame after the first).
+    """What the models say each axis needs along its own reference: a line of the fast axis
+    (``fast_over_frame``: a frame, which holds what the slow axis's coupling asks of it line by
+    line), a frame of the slow one, both in the periodic steady state (a frame after the first).
     """
     n_line = int(round(scan.period * rate_hz))
     n_frame = int(round(scan.frame_time * rate_hz))
     t_line = scan.flyback_lines * scan.period + np.arange(n_line) / rate_hz
     t_frame = scan.frame_time + np.arange(n_frame) / rate_hz
+    t_fast = t_frame if fast_over_frame else t_line
     return RasterTables(
-        sampled_feedforward(models[fast], reference.own(t_line)[0][fast], rate_hz),
+        sampled_feedforward(models[fast], reference.own(t_fast)[0][fast], rate_hz),
         sampled_feedforward(
             models[slow], reference.own(t_frame)[0][slow], rate_hz, iterations=FRAME_ITERATIONS
         ),
@@ -198,9 +205,10 @@ def raster_tables(
     *,
     axes: tuple[str, str] = ("x", "y"),
     compensate_coupling: bool = True,
+    fast_over_frame: bool = False,
 ) -> RasterTables:
     """The feedforward tables the models say ``scan`` needs at ``rate_hz`` (what
-    :func:`raster_run` starts from).
+    :func:`raster_run` starts from; ``fast_over_frame``: the fast axis's over a frame).
     """
     fast, slow = _scan_axes(model_stage, axes)
     _line_samples(scan, rate_hz)
@@ -208,7 +216,7 @@ def raster_tables(
         model_stage, _references(scan, model_stage, fast, slow), compensate_coupling
     )
     models = [FeedforwardModel.from_parameter_set(a.model) for a in model_stage.axes]
-    return _tables(scan, reference, models, fast, slow, rate_hz)
+    return _tables(scan, reference, models, fast, slow, rate_hz, fast_over_frame)
 
 
 def check_voltage_need(

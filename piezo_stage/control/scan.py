@@ -252,9 +252,12 @@ class RasterScan:
         """Loop samples in one line's image window at ``rate_hz``."""
         return self.window * rate_hz
 
-    def check_rate(self, rate_hz: float, min_samples_per_line: int = 20) -> None:
+    def check_rate(
+        self, rate_hz: float, min_samples_per_line: int = 20, per_pixel: bool = True
+    ) -> None:
         """Refuse a loop rate that cannot sample the lines or fill the pixels: fewer than
-        ``min_samples_per_line`` samples in an image window, or fewer than one per pixel.
+        ``min_samples_per_line`` samples in an image window, or (``per_pixel``: the loop's
+        samples are the pixels') fewer than one per pixel.
         """
         n = self.samples_per_window(_positive("rate_hz", rate_hz))
         if n < min_samples_per_line:
@@ -262,7 +265,7 @@ class RasterScan:
                 f"{self.line_rate:g} Hz lines at a {rate_hz:g} Hz loop give {n:.1f} samples per "
                 f"image line (at least {min_samples_per_line}): lower the line rate"
             )
-        if n < self.pixels:
+        if per_pixel and n < self.pixels:
             raise ScanError(
                 f"{self.pixels} pixels per line at a {rate_hz:g} Hz loop: only {n:.1f} samples "
                 "in each line's image window (one per pixel at least): fewer pixels, a slower "

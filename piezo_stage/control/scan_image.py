@@ -26,6 +26,7 @@ __all__ = [
     "Sample",
     "ScanFigures",
     "ScanImage",
+    "detector_samples",
     "load_sample",
     "scan_figures",
     "scan_image",
@@ -188,6 +189,25 @@ def scan_image(
     gx, gy = np.meshgrid(xs, scan.row_positions())
     shape = (scan.lines, scan.pixels)
     return ScanImage(sample.height(gx, gy), image.reshape(shape), counts.reshape(shape))
+
+
+def detector_samples(
+    scan: RasterScan, t: ArrayLike, measured: ArrayLike, per_pixel: int = 1
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A detector on a clock of its own, ``per_pixel`` samples a pixel across each image line's
+    window of the frame ``t`` covers (times at the sub-pixels' centres), and the stage's
+    position (2, N) [m] at each, interpolated linearly between the record's samples ``t``,
+    ``measured``: what an instrument sampling faster than its controller's recorder images.
+    """
+    t = np.asarray(t, dtype=float)
+    pos = np.asarray(measured, dtype=float)
+    frame = math.floor(float(t[0]) / scan.frame_time + 1e-9) * scan.frame_time
+    n = scan.pixels * per_pixel
+    offsets = (np.arange(n) + 0.5) * (scan.window / n)
+    starts = frame + scan.window_start(np.arange(scan.lines))
+    times = (starts[:, None] + offsets[None, :]).ravel()
+    times = times[(times >= t[0]) & (times <= t[-1])]
+    return times, np.vstack([np.interp(times, t, pos[a]) for a in (0, 1)])
 
 
 @dataclass(frozen=True)

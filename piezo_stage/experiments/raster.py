@@ -42,12 +42,14 @@ from piezo_stage.control.raster import (
 from piezo_stage.control.scan import FastShape, Order, RasterScan, ScanError, SlowMotion
 from piezo_stage.control.scan_image import Sample, load_sample
 from piezo_stage.control.stage_control import SCANNER_VOLTS, check_stage_loops
+from piezo_stage.control.voltage_range import PID_MARGIN
 from piezo_stage.model.errors import ModelError
 from piezo_stage.model.stage_file import Stage, load_stage
 
 from .coupling import graph_rate
 from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
+from .pi_raster import ServoSetup
 from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, NODE_GRAPHS, GraphRun, run_on_graph
 from .raster_view import RasterView, loop_batches
 from .verdict import beyond_range, first
@@ -56,8 +58,10 @@ __all__ = ["CORE", "GRAPHS", "RasterPlan", "RasterSpec", "plan_raster", "run_ras
 
 #: the loop stepped in this process, no nodes (any rate, the fastest)
 CORE = "core"
+#: the raster played by a PI controller's wave generator (:mod:`.pi_raster`)
+PI_SERVO = "pi_servo"
 #: the graphs the raster runs on
-GRAPHS = (CORE, *NODE_GRAPHS)
+GRAPHS = (CORE, *NODE_GRAPHS, PI_SERVO)
 
 Progress = Callable[[float, str], None]
 
@@ -88,6 +92,7 @@ class RasterSpec:
     bag: Path | None = None  #: the run's samples, each axis's loop_samples, to this MCAP bag
     min_samples_per_line: int = 20
     view_port: int | None = None  #: watch the run live: its view on this port (0: a free one)
+    servo: ServoSetup | None = None  #: pi_servo: the controller it plays on
 
     def scan(self) -> RasterScan:
         """The scan, or :class:`ExperimentInputError` with why not."""
@@ -121,6 +126,7 @@ class RasterPlan:
     amplifier: tuple[float, float]  #: [V]
     plant_file: Path | None  #: the emulated stage (None: the model's)
     coupling_compensation: bool
+    servo: ServoSetup | None = None
 
     @property
     def axes(self) -> tuple[str, str]:
@@ -134,6 +140,15 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         spec.graph, GRAPHS, spec.rate_hz, spec.compensation, spec.learn, spec.bag
     )
     sampled = graph_rate(DEVICE_GRAPHS[spec.graph]) if spec.graph in DEVICE_GRAPHS else None
+    if spec.graph == PI_SERVO:
+        if spec.servo is None:
+            raise ExperimentInputError("--graph pi_servo plays on a controller: give --device URL")
+        sampled = spec.servo.rate_hz
+        if Compensation(spec.compensation) is not Compensation.FEEDFORWARD:
+            raise ExperimentInputError(
+                "--graph pi_servo plays the feedforward with the controller's servo off: "
+                "--compensation feedforward"
+            )
     if sampled is not None and spec.rate_hz != sampled:
         raise ExperimentInputError(
             f"--rate-hz {spec.rate_hz:g}: the {spec.graph} graph's sensors sample at "
@@ -141,7 +156,8 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         )
     scan = spec.scan()
     try:
-        scan.check_rate(spec.rate_hz, spec.min_samples_per_line)
+        # pi_servo: a detector of its own samples the pixels between the recorder's samples
+        scan.check_rate(spec.rate_hz, spec.min_samples_per_line, spec.servo is None)
         sample = load_sample(spec.sample, scan)
         model = load_stage(spec.stage)
         plant = load_stage(spec.plant_stage or spec.stage)
@@ -155,7 +171,7 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
     if len(model.axes) < 2:
         raise ExperimentInputError(f"a raster needs two axes; {spec.stage} has {model.names}")
     axes = (model.names[0], model.names[1])
-    amplifier = amplifier_range(spec.graph)
+    amplifier = spec.servo.limits if spec.servo else amplifier_range(spec.graph)
     if common.compensation is not Compensation.FEEDFORWARD:
         try:
             check_stage_loops(model, THESIS_GAINS, spec.rate_hz)
@@ -168,9 +184,14 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
             )
         if common.compensation.feeds_forward:
             tables = tables or raster_tables(
-                scan, model, spec.rate_hz, axes=axes, compensate_coupling=spec.coupling_compensation
+                scan,
+                model,
+                spec.rate_hz,
+                axes=axes,
+                compensate_coupling=spec.coupling_compensation,
+                fast_over_frame=spec.servo is not None,  # no feedback there to take the coupling
             )
-            check_voltage_need(tables, amplifier)
+            check_voltage_need(tables, amplifier, 0.0 if spec.servo else PID_MARGIN)
     except ControlError as exc:
         raise ExperimentInputError(f"scan: {exc}") from None
     return RasterPlan(
@@ -183,6 +204,7 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         amplifier,
         spec.plant_stage,
         spec.coupling_compensation,
+        spec.servo,
     )
 
 
@@ -231,6 +253,8 @@ def _one_run(
     """One run of the plan's scan under ``compensation`` (``tables``: None, the model's),
     watched by ``view`` (its namespace, and a simulated run's samples fed to it)."""
     graph, rate = plan.common.graph, plan.common.rate_hz
+    if plan.servo is not None:
+        return plan.servo.play(plan.scan, plan.model, tables, plan.axes, coupling, learn, say)
     if graph == CORE:
         return raster_run(
             plan.scan,
@@ -297,15 +321,15 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
         if spec.table_out is not None and run.tables is not None:  # kept before the figures
             run.tables.save(spec.table_out)
         others: list[tuple[str, RasterRun]] = []
-        if spec.png is not None:
+        if spec.png is not None and plan.servo is None:
             alone = _labelled(say, "for the figures, feedback alone")
             others.append(
                 ("feedback only", _one_run(plan, Compensation.FEEDBACK, False, 0, None, alone))
             )
-            if common.learn:
-                said = _labelled(say, "for the figures, before learning")
-                before = _one_run(plan, common.compensation, coupling, 0, None, said)
-                others.append(("before learning", before))
+        if spec.png is not None and common.learn:
+            said = _labelled(say, "for the figures, before learning")
+            before = _one_run(plan, common.compensation, coupling, 0, None, said)
+            others.append(("before learning", before))
     except ControlError as exc:
         raise ExperimentError(f"raster: {exc}") from None
     wall = time.monotonic() - started

@@ -129,6 +129,11 @@ class ServoRecorder:
         self.conn.command(f"SPA 1 0x{PARAM_RECORD_TABLES:08X} {int(count)}")
 
     # --- wave generator -------------------------------------------------------------------------
+    def wave_points(self, table: int) -> int:
+        """Points wave table ``table`` holds at most (``WMS? table``)."""
+        values = self.conn.query_items(f"WMS? {int(table)}")
+        return int(parse_float(next(iter(values.values()), "nan"), "WMS?"))
+
     def upload(self, table: int, values: NDArray[np.float64]) -> None:
         """Table ``table`` := ``values`` (``WAV table X PNT 1 n ...``, then ``&`` lines)."""
         values = np.asarray(values, dtype=float)

@@ -21,7 +21,7 @@ Commands beyond :class:`~.gcs_device.GCSDeviceModel`'s: ``POS?``, ``TSP?``, ``TM
 ``TMX?``, ``ONT?``, ``MVR``, ``SVR``, ``ECO?``, ``HDR?``, ``HPA?``, ``SPA``/``SPA?``, ``TNR?``,
 ``DRC``/``DRC?``, ``DRT``/``DRT?``, ``RTR``/``RTR?``, ``DRL?``, ``DRR?``, ``WAV``
 (``SIN_P``, ``LIN``, ``RAMP``, ``PNT``; append ``X``/``&``/``+``), ``WAV?``, ``GWD?``,
-``WCL``, ``WSL``/``WSL?``, ``WGC``/``WGC?``, ``WTR``/``WTR?``, ``WOS``/``WOS?``,
+``WMS?``, ``WCL``, ``WSL``/``WSL?``, ``WGC``/``WGC?``, ``WTR``/``WTR?``, ``WOS``/``WOS?``,
 ``WGO``/``WGO?``, ``TWG?``, and the single characters #5 (motion?), #7 (ready?), #24 (stop).
 Positions are in um as PI reports them (the stage's metres x 1e6).
 
@@ -86,7 +86,7 @@ SERVO_CYCLE = 50e-6  #: s, ``SPA? 1 0x0E000200`` (servo update time)
 MAX_RECORD_POINTS = 262144  #: data recorder points shared by the tables (0x16000200)
 RECORD_TABLES = 8  #: ``TNR?`` at power-up (0x16000300)
 WAVE_TABLES = 8  #: wave tables 1..8
-MAX_WAVE_POINTS = 65536  #: points per wave table
+MAX_WAVE_POINTS = 65536  #: points per wave table (``WMS?``)
 SERVO_CHUNK = 20  #: cycles between sensor reads of the servo's chunked integrator (1 ms)
 BUSY_CHUNK = 4000  #: cycles per stage step while generating or recording
 IDLE_CHUNK = 1 << 16  #: cycles per stage step otherwise
@@ -499,6 +499,7 @@ class PIControllerModel(GCSDeviceModel):
             "TWG?": lambda a: [str(len(self.generators))],
             "WAV": self._wav,
             "WAV?": self._wav_q,
+            "WMS?": self._wms_q,
             "GWD?": self._gwd,
             "WCL": self._wcl,
             "WSL": lambda a: self._gen_set(a, "table", lambda v: _int(v, 0, WAVE_TABLES)),
@@ -736,6 +737,10 @@ class PIControllerModel(GCSDeviceModel):
         points[: old.size] = old
         points[first : first + n] = values
         return points
+
+    def _wms_q(self, args: list[str]) -> list[str]:
+        tables = [self._wave_table(a) for a in args] or range(1, WAVE_TABLES + 1)
+        return [f"{t}={MAX_WAVE_POINTS}" for t in tables]
 
     def _wav_q(self, args: list[str]) -> list[str]:
         if not args or len(args) % 2:
