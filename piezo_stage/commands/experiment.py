@@ -361,8 +361,8 @@ def _raster_graph_arguments(group: argparse._ArgumentGroup) -> None:
     group.add_argument(
         "--compensation",
         choices=[c.value for c in Compensation],
-        default=Compensation.BOTH.value,
-        help="feedback, feedforward or both (default both)",
+        default=None,
+        help="feedback, feedforward or both (default both; pi_servo: feedforward, its only one)",
     )
     group.add_argument(
         "--learn",
@@ -660,7 +660,6 @@ def _run_tracking(args: argparse.Namespace, progress: Progress) -> dict[str, Any
 
 def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
     from piezo_stage.config_path import ConfigNotFoundError, find_user_file, output_problem
-    from piezo_stage.control.feedforward import Compensation
     from piezo_stage.experiments import ExperimentInputError
     from piezo_stage.experiments.raster import CORE, PI_SERVO, run_raster
 
@@ -680,7 +679,6 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         from piezo_stage.commands.servo_raster import servo_setup
 
         with servo_setup(args, stage) as servo:
-            args.compensation = Compensation.FEEDFORWARD.value
             return run_raster(_raster_spec(args, stage, plant, graph, servo), progress)
     elif args.device:
         raise ExperimentInputError("--device: only --graph pi_servo plays on a controller")
@@ -716,7 +714,9 @@ def _raster_spec(
         centre=args.centre,
         rate_hz=rate_hz or (RasterSpec.rate_hz if graph == CORE else 1000.0),
         learn=args.learn or 0,
-        compensation=Compensation(args.compensation),
+        compensation=Compensation(
+            args.compensation or (Compensation.FEEDFORWARD if servo else Compensation.BOTH)
+        ),
         coupling_compensation=args.coupling_compensation,
         fast_shape=args.fast_shape,
         slow_motion=args.slow_motion,
