@@ -263,20 +263,36 @@ def test_signals_during_pi_servo_tracking_leave_every_output_safe(schedule):
     _on_e727(argv, "%]", schedule)
 
 
-def _exit_outputs(log: Path) -> dict[str, float]:
-    """The emulated scanner's outputs at exit, from its last line in the graph's log."""
-    lines = [ln for ln in log.read_text().splitlines() if "outputs at exit:" in ln]
-    assert lines, log.read_text()[-2000:]
-    text = lines[-1].split("outputs at exit:")[1].split(";")[0]
-    return {part.split()[0]: float(part.split()[1]) for part in text.split(",")}
-
-
 #: a raster run is long: one example drawn beside the explicit ones
 _ONE_RUN = settings(
     max_examples=examples(1),
     deadline=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
+
+
+#: a raster of the shipped XY scanner's model played on the E-727's axes 1 and 2
+RASTER_ON_PI = ["experiment", "raster", "--graph", "pi_servo", "--stage", "xy_scanner.yaml"]
+RASTER_ON_PI += ["--lines", "16", "--pixels", "64", "--line-rate", "100", "--learn", "8"]
+RASTER_ON_PI += ["--range", "8e-6,8e-6", "--centre", "5e-6,5e-6"]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@_ONE_RUN
+@example([(0.5, INT), (0.3, INT)])
+@example([(0.2, TERM), (0.0, INT), (0.01, INT)])
+@given(schedules)
+def test_signals_during_a_raster_in_the_controller_leave_every_output_safe(schedule):
+    _on_e727(RASTER_ON_PI, "%]", schedule)
+
+
+def _exit_outputs(log: Path) -> dict[str, float]:
+    """The emulated scanner's outputs at exit, from its last line in the graph's log."""
+    lines = [ln for ln in log.read_text().splitlines() if "outputs at exit:" in ln]
+    assert lines, log.read_text()[-2000:]
+    text = lines[-1].split("outputs at exit:")[1].split(";")[0]
+    return {part.split()[0]: float(part.split()[1]) for part in text.split(",")}
 
 
 @pytest.mark.ros

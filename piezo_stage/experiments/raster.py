@@ -49,7 +49,7 @@ from piezo_stage.model.stage_file import Stage, load_stage
 from .coupling import graph_rate
 from .errors import ExperimentError, ExperimentInputError, figures_not_written
 from .experiment_plan import ExperimentPlan
-from .pi_raster import ServoSetup
+from .pi_raster import DetectedRun, ServoSetup
 from .raster_graph import BAG_NAMESPACE, DEVICE_GRAPHS, NODE_GRAPHS, GraphRun, run_on_graph
 from .raster_view import RasterView, loop_batches
 from .verdict import beyond_range, first
@@ -352,6 +352,9 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     )
     if common.bag is not None:
         summary["bag"] = str(common.bag)
+    if isinstance(run, DetectedRun):  # played by a controller: its own figures
+        summary["frame_wall"] = run.frame_wall
+        summary["at_limit_points"] = dict(zip(axes, run.at_limit))
     failed = first(run.failed, beyond_range(summary["axes"]))
     if failed:
         summary["failed"] = failed
