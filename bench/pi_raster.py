@@ -12,14 +12,16 @@ which a frame fits a wave table and two frames a record table. Figures: per axis
 the image as a share of the range, the image's distortion (RMS and largest, on the sensor's
 noisy positions), frames played, and the wall time of the last play per frame against the
 frame's own time. ``--model off``: the controller is given a model 20 % off in κw and 10 % in
-ρ (both axes), so that learning has something to learn. And at 100 Hz the slow axis without
+ρ (both axes), so that learning has something to learn; ``--model identified``: the models
+``identify --device`` gives on the same controller (each axis's T-waves, the ch. 11 form with
+the stage's m and c), the coupling the stage file's. And at 100 Hz the slow axis without
 the coupling taken out, beside it.
 
 Targets: at 200 Hz lines, fast and slow axis <= 0.2 % of the range and the distortion
 (RMS) <= 0.5 px on every seed; the coupling's residue on the slow axis >= 10x smaller with
 the compensation; the wall time per frame <= 1.5x the frame's.
 
-    python bench/pi_raster.py [--rates 10,50,100,200,400] [--seeds 3] [--model exact|off]
+    python bench/pi_raster.py [--rates 10,50,100,200,400] [--seeds 3] [--model exact|off|identified]
 """
 
 from __future__ import annotations
@@ -47,7 +49,11 @@ from piezo_stage.hardware.emulators.pi_controller import (  # noqa: E402
     SERVO_CYCLE,
     PIControllerModel,
 )
-from piezo_stage.model.parameter_set import ParameterSet, shipped_parameter_set  # noqa: E402
+from piezo_stage.model.parameter_set import (  # noqa: E402
+    ParameterSet,
+    load_parameter_set,
+    shipped_parameter_set,
+)
 from piezo_stage.model.stage import AmplifierModel, CoupledStage, SensorModel  # noqa: E402
 from piezo_stage.model.stage_file import Stage, StageAxis, save_stage  # noqa: E402
 
@@ -73,8 +79,9 @@ def stage(kw: float = 1.0, rho: float = 1.0) -> Stage:
     return Stage("xy_bench", (StageAxis("x", x, "1"), StageAxis("y", y, "2")), COUPLING.copy())
 
 
-#: the model the controller is given: the stage's own, or one 20 % off in κw and 10 % in ρ
-MODELS = {"exact": (1.0, 1.0), "off": (1.2, 0.9)}
+#: the model the controller is given: the stage's own, one 20 % off in κw and 10 % in ρ, or
+#: the one ``identify --device`` gives on the controller (:func:`identified`)
+MODELS = {"exact": (1.0, 1.0), "off": (1.2, 0.9), "identified": (1.0, 1.0)}
 MODEL = "exact"
 
 
@@ -94,9 +101,9 @@ def table_rate(line_rate: float) -> float:
     raise SystemExit(f"{line_rate} Hz: no table rate fits")
 
 
-def run(line_rate: float, seed: int, folder: Path, *extra: str) -> dict:
+def controller(seed: int) -> PIControllerModel:
+    """The emulated E-727 on the bench's stage, its sensors' noise seeded by ``seed``."""
     s = stage()
-    path = save_stage(stage(*MODELS[MODEL]), folder / "xy_model.yaml")
 
     def build() -> CoupledStage:
         return CoupledStage(
@@ -105,19 +112,59 @@ def run(line_rate: float, seed: int, folder: Path, *extra: str) -> dict:
             [SensorModel(noise_std=1e-3 * RANGE, seed=10 * seed + i) for i in range(2)],
         )
 
-    device = PIControllerModel(build, ("1", "2"), v_min=-30.0, v_max=130.0)
-    with EmulatorServer(device, tcp_port=0) as server:
-        out, err = io.StringIO(), io.StringIO()
+    return PIControllerModel(build, ("1", "2"), v_min=-30.0, v_max=130.0)
+
+
+def quiet(args: list[str]) -> tuple[int, str, str]:
+    """The command's exit code, output and errors."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli(args)
+    return code, out.getvalue(), err.getvalue()
+
+
+def identified(seed: int, folder: Path) -> Path:
+    """The stage file of the models `identify --device` gives on the controller: each axis's
+    ch. 11 form from its T-waves, with the stage's m and c; the coupling the stage file's."""
+    path = folder / f"identified_{seed}.yaml"
+    if path.exists():
+        return path
+    s = stage()
+    models = []
+    with EmulatorServer(controller(seed), tcp_port=0) as server:
+        for a in s.axes:
+            assert a.model.dynamics is not None
+            out = folder / f"identified_{seed}_{a.name}.yaml"
+            args = ["identify", "--device", f"tcp://127.0.0.1:{server.port}", "--axis", a.channel]
+            args += ["--model-input", "displacement", "--json", "--no-plot", "--output", str(out)]
+            args += ["--m", repr(a.model.dynamics.m), "--c", repr(a.model.dynamics.c)]
+            code, _, err = quiet(args)
+            if code != 0:
+                raise SystemExit(f"identify axis {a.channel}: exit {code}: {err[-500:]}")
+            models.append(load_parameter_set(out))
+    axes = tuple(StageAxis(a.name, m, a.channel) for a, m in zip(s.axes, models))
+    return save_stage(Stage("xy_identified", axes, s.coupling.copy()), path)
+
+
+def model_file(seed: int, folder: Path) -> Path:
+    """The model the controller is given (``MODEL``)."""
+    if MODEL == "identified":
+        return identified(seed, folder)
+    return save_stage(stage(*MODELS[MODEL]), folder / "xy_model.yaml")
+
+
+def run(line_rate: float, seed: int, folder: Path, *extra: str) -> dict:
+    path = model_file(seed, folder)
+    with EmulatorServer(controller(seed), tcp_port=0) as server:
         args = ["experiment", "raster", "--graph", "pi_servo"]
         args += ["--device", f"tcp://127.0.0.1:{server.port}", "--stage", str(path)]
         args += ["--lines", str(LINES), "--pixels", str(PIXELS), "--line-rate", f"{line_rate:g}"]
         args += ["--range", f"{RANGE},{RANGE}", "--centre", f"{CENTRE},{CENTRE}"]
         args += ["--rate-hz", f"{table_rate(line_rate):g}", "--json", *extra]
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            code = cli(args)
+        code, out, err = quiet(args)
     if code != 0:
-        return {"failed": err.getvalue().strip().splitlines()[-1]}
-    return json.loads(out.getvalue())
+        return {"failed": err.strip().splitlines()[-1]}
+    return json.loads(out)
 
 
 def percent(summary: dict, axis: str) -> float:
@@ -133,7 +180,7 @@ def main() -> int:
     opts = ap.parse_args()
     global MODEL
     MODEL = opts.model
-    print(f"model: {MODEL} (κw x{MODELS[MODEL][0]:g}, ρ x{MODELS[MODEL][1]:g} of the stage's)")
+    print(f"model: {MODEL}")
     rates = [float(r) for r in opts.rates.split(",")]
     print(
         "| line rate | table rate | fast | slow | distortion RMS / max | frames | wall per frame |"

@@ -287,6 +287,17 @@ RUN: dict[str, Expect] = {
         files=("pi_table.json",),
     ),
     "piezo-stage launch pi_rig_loop": Expect(ready=r"\[launch\] +ready after"),
+    # a raster in the controller
+    "piezo-stage emulate e727 --tcp 50001 --stage xy_scanner.yaml": Expect(
+        ready=r"^e727: tcp://127\.0\.0\.1:50001"
+    ),
+    "piezo-stage experiment raster --graph pi_servo --device tcp://127.0.0.1:50001 --stage "
+    "xy_scanner.yaml --lines 64 --pixels 256 --line-rate 200 --range 8e-6,8e-6 --centre "
+    "5e-6,5e-6 --learn 20 --table-out pi_scan.json --json": Expect(
+        beside="piezo-stage emulate e727 --tcp 50001 --stage xy_scanner.yaml",
+        out=(r'"graph": "pi_servo"', r'"rate_hz": 20000', r'"frame_wall"'),
+        files=("pi_scan.json",),
+    ),
     # gains
     "piezo-stage gains --k1 5e6 --k2 580 --k0 1e9 --rate-hz 1000": Expect(
         out=(r"STABLE",), check=_theorem4

@@ -191,3 +191,28 @@ def test_a_raster_on_pi_servo_needs_a_device(capsys):
     code = main(["experiment", "raster", "--graph", "pi_servo", *SCAN, "--json"])
     err = capsys.readouterr().err
     assert code == 2 and "--device" in err, err
+
+
+def test_the_frame_goes_to_a_bag_and_the_images_to_png(controller, tmp_path, capsys):
+    """--bag: the recorded frame of both axes as LoopSamples (the controller's clock, the
+    loop open, the command the feedforward); --png: the images before and after learning."""
+    from piezo_stage.bag.reader import read_loop_samples
+
+    device, url, stage = controller
+    bag, png = tmp_path / "scan_bag", tmp_path / "png"
+    extra = ["--line-rate", "250", "--lines", "8", "--learn", "2"]
+    code, got, err = _raster(
+        url, stage, *extra, "--bag", str(bag), "--png", str(png), capsys=capsys
+    )
+    assert code == 0, err
+    assert sorted(p.name for p in png.iterdir()) == ["raster_images.png", "raster_lines.png"]
+    n = round(got["frame_time"] * got["rate_hz"])
+    for axis in ("x", "y"):
+        columns = read_loop_samples(bag, f"/raster/{axis}/loop_samples")
+        assert columns["stamp"].size == n
+        assert np.all(np.diff(columns["stamp"]) == 50_000)  # 20 kHz, no gap
+        assert not columns["loop_closed"].any()
+        assert np.array_equal(columns["u_ff"], columns["u"])
+        error = columns["displacement"] - columns["reference"]
+        assert np.sqrt(np.mean(error**2)) < 0.01 * got["axes"][axis]["range"]
+    _left_safe(device)

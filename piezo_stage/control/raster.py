@@ -18,7 +18,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -86,6 +86,8 @@ class RasterRun:
     tables: RasterTables | None = None
     #: why the run failed (its loop opened, its record has a gap), None when it did not
     failed: str | None = None
+    #: the axes under feedback (False: the feedforward played alone, the command is u_ff)
+    closed_loop: ClassVar[bool] = True
 
     def last_frame(self) -> NDArray[np.bool_]:
         """The samples of the last whole frame the run holds."""

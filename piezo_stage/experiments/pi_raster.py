@@ -29,6 +29,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,6 +99,7 @@ class DetectedRun(RasterRun):
     per_pixel: int = 1
     at_limit: tuple[int, int] = (0, 0)
     frame_wall: float = math.nan
+    closed_loop: ClassVar[bool] = False
 
     def detected(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The detector's times and positions over the last frame."""

@@ -53,7 +53,8 @@ def loop_batches(
     run: RasterRun, index: int, frame_id: str, batch: int = SIM_BATCH
 ) -> Iterator[Any]:
     """Axis ``index`` of a simulated run as the scanner's loop publishes it: LoopSamples of
-    ``batch`` samples, stamps the run's time [ns] from 0, every sample stepped and closed."""
+    ``batch`` samples, stamps the run's time [ns] from 0, every sample stepped and closed (a
+    controller's open-loop run: not closed, its command the feedforward)."""
     from piezo_stage_msgs.msg import LoopSamples
 
     stamps = np.round(run.t * 1e9).astype(np.int64)
@@ -67,8 +68,8 @@ def loop_batches(
         msg.status = [0] * len(msg.stamp)
         msg.reference = run.desired[index, part].tolist()
         msg.u = msg.applied = run.u[index, part].tolist()
-        msg.u_ff = [math.nan] * len(msg.stamp)
-        msg.loop_closed = [True] * len(msg.stamp)
+        msg.u_ff = [math.nan] * len(msg.stamp) if run.closed_loop else msg.u
+        msg.loop_closed = [run.closed_loop] * len(msg.stamp)
         yield msg
 
 
