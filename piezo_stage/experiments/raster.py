@@ -139,16 +139,7 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
     common = ExperimentPlan.checked(
         spec.graph, GRAPHS, spec.rate_hz, spec.compensation, spec.learn, spec.bag
     )
-    sampled = graph_rate(DEVICE_GRAPHS[spec.graph]) if spec.graph in DEVICE_GRAPHS else None
-    if spec.graph == PI_SERVO:
-        if spec.servo is None:
-            raise ExperimentInputError("--graph pi_servo plays on a controller: give --device URL")
-        sampled = spec.servo.rate_hz
-        if Compensation(spec.compensation) is not Compensation.FEEDFORWARD:
-            raise ExperimentInputError(
-                "--graph pi_servo plays the feedforward with the controller's servo off: "
-                "--compensation feedforward"
-            )
+    sampled = _graph_rate(spec)
     if sampled is not None and spec.rate_hz != sampled:
         raise ExperimentInputError(
             f"--rate-hz {spec.rate_hz:g}: the {spec.graph} graph's sensors sample at "
@@ -206,6 +197,20 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         spec.coupling_compensation,
         spec.servo,
     )
+
+
+def _graph_rate(spec: RasterSpec) -> float | None:
+    """[Hz] the rate the spec's graph samples at (None: any), the controller's checked."""
+    if spec.graph != PI_SERVO:
+        return graph_rate(DEVICE_GRAPHS[spec.graph]) if spec.graph in DEVICE_GRAPHS else None
+    if spec.servo is None:
+        raise ExperimentInputError("--graph pi_servo plays on a controller: give --device URL")
+    if Compensation(spec.compensation) is not Compensation.FEEDFORWARD:
+        raise ExperimentInputError(
+            "--graph pi_servo plays the feedforward with the controller's servo off: "
+            "--compensation feedforward"
+        )
+    return spec.servo.rate_hz
 
 
 def amplifier_range(graph: str) -> tuple[float, float]:
@@ -332,7 +337,21 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
             others.append(("before learning", before))
     except ControlError as exc:
         raise ExperimentError(f"raster: {exc}") from None
-    wall = time.monotonic() - started
+    summary = _summary(run, plan, time.monotonic() - started)
+    if spec.table_out is not None and run.tables is not None:
+        summary["table_out"] = str(spec.table_out)
+    if spec.png is not None:
+        try:
+            summary["png"] = [str(p) for p in _plots(spec.png, plan, run, others)]
+        except OSError as exc:
+            kept = {"record": common.bag, "tables": summary.get("table_out")}
+            raise figures_not_written(spec.png, exc, kept) from None
+    return summary
+
+
+def _summary(run: RasterRun, plan: RasterPlan, wall: float) -> dict[str, Any]:
+    """The run's JSON-ready figures (:func:`run_raster`), but for its files."""
+    common, axes = plan.common, plan.axes
     summary = _figures(run, plan.sample)
     summary["axes"] = dict(zip(axes, summary["axes"].values()))
     summary.update(
@@ -358,14 +377,6 @@ def run_raster(spec: RasterSpec, progress: Progress | None = None) -> dict[str, 
     failed = first(run.failed, beyond_range(summary["axes"]))
     if failed:
         summary["failed"] = failed
-    if spec.table_out is not None and run.tables is not None:
-        summary["table_out"] = str(spec.table_out)
-    if spec.png is not None:
-        try:
-            summary["png"] = [str(p) for p in _plots(spec.png, plan, run, others)]
-        except OSError as exc:
-            kept = {"record": common.bag, "tables": summary.get("table_out")}
-            raise figures_not_written(spec.png, exc, kept) from None
     return summary
 
 
