@@ -79,6 +79,20 @@ def test_the_record_becomes_the_run_on_the_fast_axis_samples():
     assert run.t[keep][0] == pytest.approx(SCAN.frame_time) and keep.sum() == 2500
 
 
+def test_the_last_frame_is_the_runs_however_long_the_graph_ran_on():
+    """A lockstep graph runs on until its recorder stops it (later on a loaded host): frames
+    past the run's span are not its figures' frame."""
+    record = _record(0, seconds=8.0)  # three whole frames of 2.5 s and a part
+    for axis in record:  # the third frame differs: a run that went on sees other errors
+        axis["displacement"][axis["stamp"] >= 5_000_000_000] += 5e-9
+    on = decode(SCAN, record, 4, None, origin=0)
+    run = decode(SCAN, record, 4, None, origin=0, seconds=5.0)
+    assert on.t[on.last_frame()][0] == pytest.approx(5.0)
+    assert run.t[-1] < 5.0 and run.t[run.last_frame()][0] == pytest.approx(SCAN.frame_time)
+    e = run.measured - run.desired
+    np.testing.assert_allclose(e[:, run.last_frame()], 1e-9, rtol=1e-6)
+
+
 def test_set_points_from_another_origin_are_refused():
     """A record whose first cycle is missing: the set points do not start where it does."""
     with pytest.raises(ExperimentError, match="do not follow the scan"):

@@ -208,10 +208,13 @@ def decode(
     learn: int,
     tables: RasterTables | None,
     origin: int | None = None,
+    seconds: float = math.inf,
 ) -> RasterRun:
     """The record of both axes as a :class:`RasterRun` on the fast axis's samples, t from the
     scan's origin (``origin`` [ns] where it is known: a lockstep plant's first sample, which
-    the record may lack), ``learning`` from the first ``learn`` lines."""
+    the record may lack), ``learning`` from the first ``learn`` lines. Samples from
+    ``seconds`` on are not the run's: a lockstep graph runs on, as fast as it goes, until the
+    recorder stops it, and its last whole frame must not depend on how late that was."""
     fast, slow = columns
     try:
         t0 = scan_origin(scan, columns) if origin is None else origin
@@ -231,7 +234,7 @@ def decode(
     # sample early: the recording stops on the fast axis's record)
     t = (fast["stamp"] - t0) * 1e-9
     keep = np.isfinite(fast["reference"]) & np.isfinite(fast["displacement"])
-    keep &= (t >= ts[0]) & (t <= ts[-1])
+    keep &= (t >= ts[0]) & (t <= ts[-1]) & (t < seconds)
     t = t[keep]
     measured = np.vstack(
         [fast["displacement"][keep], np.interp(t, ts, slow["displacement"][slow_ok])]
@@ -306,7 +309,7 @@ def run_on_graph(
     # a lockstep graph's axes start on the plant's first sample (its start_time, 0): the
     # record may lack the first states (published before the recorder's reader matched)
     origin = 0 if lockstep else None
-    result = decode(scan, columns, learn, tables, origin)  # type: ignore[arg-type]
+    result = decode(scan, columns, learn, tables, origin, seconds)  # type: ignore[arg-type]
     if result.t.size == 0 or result.t[-1] < seconds - 2 * scan.period:
         raise ExperimentError(f"the record ends at {result.t[-1]:.2f} s of {seconds:.2f} s")
     result.failed = run_failure(columns, axes)
