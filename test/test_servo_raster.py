@@ -29,10 +29,15 @@ COUPLING = np.array([[1.0, 0.015], [0.025, 1.0]])
 NOISE = 8e-9  # m: 1e-3 of the image's span
 
 
-def _stage(name: str, kappa_w: float = 1.0, rho: float = 1.0) -> Stage:
-    """The ch. 11 rig on x and y, κw and ρ scaled, coupled."""
+def _stage(name: str, kappa_w: float = 1.0, rho: float = 1.0, kappa: float = 1.0) -> Stage:
+    """The ch. 11 rig on x and y, κ, κw and ρ scaled, coupled."""
     ps = shipped_parameter_set("ch11_rig")
-    bw = replace(ps.bouc_wen, kappa_w=ps.bouc_wen.kappa_w * kappa_w, rho=ps.bouc_wen.rho * rho)
+    bw = replace(
+        ps.bouc_wen,
+        kappa=tuple(k * kappa for k in ps.bouc_wen.kappa),
+        kappa_w=ps.bouc_wen.kappa_w * kappa_w,
+        rho=ps.bouc_wen.rho * rho,
+    )
     model = replace(ps, name=name, bouc_wen=bw)
     return Stage(name, (StageAxis("x", model, "1"), StageAxis("y", model, "2")), COUPLING.copy())
 
@@ -95,6 +100,7 @@ def test_the_raster_learns_in_the_controller_and_plays_its_tables_again(
     assert image["distortion_px_rms"] < 0.25 and image["distortion_px_max"] < 1.5, image
     assert image["edges"] > 1000
     assert len(got["learning"]) <= 21
+    assert "amplifier's limits" not in err
     _left_safe(device)
     saved = RasterTables.load(tables)
     assert len(saved.fast) == len(saved.slow) == round(33 / 200 * 20000)  # a frame each
@@ -119,6 +125,22 @@ def test_without_the_coupling_taken_out_the_slow_axis_carries_it(controller, cap
     )
     assert code == 0, err
     assert _percent(without, "y") > 10 * _percent(with_it, "y"), (with_it, without)
+    _left_safe(device)
+
+
+def test_tables_at_the_amplifiers_limits_are_counted_and_said(controller, tmp_path, capsys):
+    """A model that asks 15 % less than the stage gives passes the check of its own tables;
+    near the top of the range the learned tables then reach 130 V, and the run says so."""
+    device, url, _ = controller
+    low = save_stage(_stage("low", kappa=0.85), tmp_path / "low.yaml")
+    near_top = ["--centre", "8.3e-6,8.3e-6", "--line-rate", "100", "--learn", "3"]
+    code, got, err = _raster(url, low, *near_top, capsys=capsys)
+    assert code == 0, err
+    at_limit = got["at_limit_points"]
+    assert at_limit["x"] > 0, got
+    said = [line for line in err.splitlines() if "at the amplifier's limits" in line]
+    assert said[0].startswith(f"warning: axis x: {at_limit['x']} of the table's "), err
+    assert len(said) == sum(1 for n in at_limit.values() if n), err
     _left_safe(device)
 
 

@@ -676,10 +676,12 @@ def _run_raster(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
         )
     graph = args.graph or CORE
     if graph == PI_SERVO:
-        from piezo_stage.commands.servo_raster import servo_setup
+        from piezo_stage.commands.servo_raster import say_at_limits, servo_setup
 
         with servo_setup(args, stage) as servo:
-            return run_raster(_raster_spec(args, stage, plant, graph, servo), progress)
+            summary = run_raster(_raster_spec(args, stage, plant, graph, servo), progress)
+        say_at_limits(summary, servo)
+        return summary
     elif args.device:
         raise ExperimentInputError("--device: only --graph pi_servo plays on a controller")
     return run_raster(_raster_spec(args, stage, plant, graph), progress)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from typing import TYPE_CHECKING, Callable, TypeVar
 
@@ -90,6 +92,44 @@ def open_controller(
     generator = axes.index(amplifier.axis) + 1
     amplifier.channel = generator
     return amplifier, info, ServoRecorder(amplifier.conn), generator
+
+
+@contextmanager
+def open_axes(
+    url: str, names: Sequence[str | None]
+) -> Iterator[tuple[list[tuple[GCSAmplifier, int]], DeviceInfo, ServoRecorder]]:
+    """The controller at ``url`` opened for axes ``names`` (None: its first), servo off, closed
+    after: ((amplifier, wave generator) per axis, the first's DeviceInfo, a ServoRecorder on
+    the link). The other axes are siblings on the same link; :class:`DeviceRunError` when the
+    link or an axis is refused, before anything moves."""
+    from piezo_stage.hardware.errors import HardwareError
+
+    amplifier, info, recorder, generator = open_controller(url, names[0])
+    try:
+        axes = [(amplifier, generator)]
+        for name in names[1:]:
+            try:
+                other = amplifier.sibling(str(name))
+            except HardwareError as exc:
+                raise DeviceRunError(f"{url}: {exc}") from None
+            axes.append((other, other.channel))
+        yield axes, info, recorder
+    finally:
+        amplifier.close()
+
+
+def warn_at_limits(
+    counts: dict[str, int], points: dict[str, int], limits: tuple[float, float], asks: str
+) -> None:
+    """Say, per axis, how many of its table's points sit at the amplifier's limits: the error
+    there is the amplifier's, not the table's, and is not learned (``asks``: what to change)."""
+    for name, count in counts.items():
+        if count:
+            print(
+                f"warning: axis {name}: {count} of the table's {points[name]} points at the "
+                f"amplifier's limits ({limits[0]:g}..{limits[1]:g} V): {asks}",
+                file=sys.stderr,
+            )
 
 
 def identify_on_device(

@@ -5,13 +5,13 @@ controller's wave generator, its image from the data recorder
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from piezo_stage.commands.servo_identify import DeviceRunError, open_controller
-from piezo_stage.commands.servo_tracking import axis_view, table_divisor
+from piezo_stage.commands.servo_identify import DeviceRunError, open_axes, warn_at_limits
+from piezo_stage.commands.servo_tracking import table_divisor
 
 if TYPE_CHECKING:
     from piezo_stage.experiments.pi_raster import ServoSetup
@@ -34,30 +34,26 @@ def servo_setup(args: argparse.Namespace, stage_file: Path) -> Iterator[ServoSet
         stage = load_stage(stage_file)
     except ModelError as exc:
         raise ExperimentInputError(str(exc)) from None
-    channels = [a.channel for a in stage.axes]
     try:
-        amplifier, info, recorder, generator = open_controller(args.device, channels[0])
+        with open_axes(args.device, [a.channel for a in stage.axes]) as (views, info, recorder):
+            axes = {a.name: ServoAxis(*view) for a, view in zip(stage.axes, views)}
+            cycle = recorder.servo_cycle()
+            rate = table_divisor(cycle, args.rate_hz)
+            yield ServoSetup(recorder, axes, rate, cycle, (info.v_min, info.v_max))
     except DeviceRunError as exc:
         raise ExperimentInputError(str(exc)) from None
-    try:
-        views = [(amplifier, generator)] + [axis_view(amplifier, c) for c in channels[1:]]
-        axes = {a.name: ServoAxis(*view) for a, view in zip(stage.axes, views)}
-        cycle = recorder.servo_cycle()
-        rate = table_divisor(cycle, args.rate_hz)
-        yield ServoSetup(recorder, axes, rate, cycle, (info.v_min, info.v_max))
-    except (DeviceRunError, HardwareError) as exc:
+    except HardwareError as exc:
         raise ExperimentInputError(f"{args.device}: {exc}") from None
-    finally:
-        amplifier.close()
 
 
-def warn_at_limits(run: Any, say: Callable[[str], None]) -> None:
-    """Say how many points of each table sit at the amplifier's limits (their error is the
-    amplifier's, not the table's)."""
-    for name, count in zip(("fast", "slow"), getattr(run, "at_limit", (0, 0))):
-        if count:
-            say(
-                f"warning: the {name} axis's table has {count} points at the amplifier's "
-                "limits: the scan asks more than the amplifier gives there and that error is "
-                "not learned; a smaller range or another centre"
-            )
+def say_at_limits(summary: dict[str, Any], servo: ServoSetup) -> None:
+    """Warn of the tables' points at the amplifier's limits (the summary's
+    ``at_limit_points``; both tables are a frame long), as the servo tracking does."""
+    counts = summary.get("at_limit_points") or {}
+    points = round(summary["frame_time"] * servo.rate_hz)
+    warn_at_limits(
+        counts,
+        dict.fromkeys(counts, points),
+        servo.limits,
+        "the scan asks more than the amplifier gives there; a smaller range or another centre",
+    )

@@ -5,15 +5,11 @@ repeated trajectory learned on the host and played by a PI controller's wave gen
 from __future__ import annotations
 
 import argparse
-import sys
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
-from piezo_stage.commands.servo_identify import DeviceRunError, open_controller
+from piezo_stage.commands.servo_identify import DeviceRunError, open_axes, warn_at_limits
 
-if TYPE_CHECKING:
-    from piezo_stage.hardware.amplifier import GCSAmplifier
-
-#: plays of the table when --learn is not given (the issue's "after <= 20 periods")
+#: plays of the table when --learn is not given
 DEFAULT_LEARN = 20
 
 
@@ -32,43 +28,33 @@ def run_pi_servo(
     model, trajectory, table = _inputs(args)
     names = [a.strip() for a in (args.axis or "").split(",") if a.strip()] or [None]
     try:
-        amplifier, info, recorder, generator = open_controller(args.device, names[0])
+        with open_axes(args.device, names) as (axes, info, recorder):
+            cycle = recorder.servo_cycle()
+            rate = table_divisor(cycle, args.rate_hz)
+            x_d, _ = trajectory_samples(trajectory, 1.0 / (cycle * rate))
+            plays = args.learn if args.learn else (0 if table is not None else DEFAULT_LEARN)
+            results = learn_in_controller(
+                axes,
+                recorder,
+                model,
+                x_d,
+                rate,
+                (info.v_min, info.v_max),
+                max_iterations=plays,
+                tables=[table] * len(axes) if table is not None else (),
+                progress=lambda text: progress(0.0, text),
+            )
     except DeviceRunError as exc:
         raise ExperimentInputError(str(exc)) from None
-    try:
-        axes = [(amplifier, generator)] + [axis_view(amplifier, name) for name in names[1:]]
-    except DeviceRunError as exc:
-        amplifier.close()
-        raise ExperimentInputError(f"{args.device}: {exc}") from None
-    try:
-        cycle = recorder.servo_cycle()
-        rate = table_divisor(cycle, args.rate_hz)
-        x_d, _ = trajectory_samples(trajectory, 1.0 / (cycle * rate))
-        plays = args.learn if args.learn else (0 if table is not None else DEFAULT_LEARN)
-        results = learn_in_controller(
-            axes,
-            recorder,
-            model,
-            x_d,
-            rate,
-            (info.v_min, info.v_max),
-            max_iterations=plays,
-            tables=[table] * len(axes) if table is not None else (),
-            progress=lambda text: progress(0.0, text),
-        )
     except (HardwareError, ControlError) as exc:
         raise ExperimentInputError(f"{args.device}: {exc}") from None
-    finally:
-        amplifier.close()
-    for a, r in zip(axes, results):
-        if r.at_limit:
-            print(
-                f"warning: axis {a[0].axis}: {r.at_limit} of the table's {x_d.size} points at "
-                f"the amplifier's limits ({info.v_min:g}..{info.v_max:g} V): the trajectory "
-                "asks more than the amplifier gives there and that error is not learned; move "
-                "it into the stage's range or slow it",
-                file=sys.stderr,
-            )
+    warn_at_limits(
+        {a.axis: r.at_limit for (a, _), r in zip(axes, results)},
+        {a.axis: x_d.size for a, _ in axes},
+        (info.v_min, info.v_max),
+        "the trajectory asks more than the amplifier gives there; move it into the stage's "
+        "range or slow it",
+    )
     summary: dict[str, Any] = {"graph": "pi_servo", "rate_hz": 1.0 / (cycle * rate)}
     summary |= _figures([a.axis for a, _ in axes], results, x_d)
     if args.table_out:  # the first axis's table (one axis: its table)
@@ -134,16 +120,3 @@ def _figures(names: list[str], results: list[Any], x_d: Any) -> dict[str, Any]:
     }
     figures: dict[str, Any] = {"range": span, "points": int(x_d.size)}
     return figures | (per_axis[names[0]] if len(names) == 1 else {"axes": per_axis})
-
-
-def axis_view(amplifier: GCSAmplifier, name: str) -> tuple[GCSAmplifier, int]:
-    """Another axis of the same controller on the same link (servo off): (its amplifier, its
-    wave generator, axis i's is generator i), refused (:class:`DeviceRunError`) when ``SAI?``
-    does not list it."""
-    from piezo_stage.hardware.errors import HardwareError
-
-    try:
-        other = amplifier.sibling(name)
-    except HardwareError as exc:
-        raise DeviceRunError(str(exc)) from None
-    return other, other.channel
