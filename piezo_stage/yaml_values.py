@@ -27,7 +27,8 @@ for _cls in (_Loader, _Dumper):
     )
 
 
-# a choice may be given as its Enum member (Law.PID): written as its value, as rcl reads it
+# a choice may be given as its Enum member (AntiWindup.CONDITIONAL): written as its value, as
+# rcl reads it
 _Dumper.add_multi_representer(Enum, lambda dumper, member: dumper.represent_data(member.value))
 
 

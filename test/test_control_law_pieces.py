@@ -21,7 +21,7 @@ from piezo_stage.control.controller import (
     x2_filtered,
 )
 from piezo_stage.control.errors import ControllerConfigError, GainError, MeasurementError
-from piezo_stage.control.laws import Gains, Law, check_law, pid_term
+from piezo_stage.control.laws import PID_TV, Gains, check_law, pid_term
 
 from property_support import examples
 
@@ -96,7 +96,11 @@ def test_conditional_anti_windup_skips_only_increments_that_push_further_out(
 
 def test_choices_are_enums_and_a_wrong_name_lists_them():
     cfg = ControllerConfig(mode="pid_tv", anti_windup="back_calculation", on_close="reset")
-    assert cfg.mode is Law.PID_TV and cfg.anti_windup is AntiWindup.BACK_CALCULATION
+    assert (
+        cfg.mode == "pid_tv"
+        and cfg.law is PID_TV
+        and cfg.anti_windup is AntiWindup.BACK_CALCULATION
+    )
     assert cfg.on_close is OnClose.RESET and f"{cfg.on_close}" == "reset"
     with pytest.raises(ControllerConfigError, match="on_close must be one of bumpless, reset"):
         ControllerConfig(on_close="smooth")

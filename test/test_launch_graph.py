@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from piezo_stage.cli import main
-from piezo_stage.control.laws import Law
+from piezo_stage.control.controller import AntiWindup, OnClose
 from piezo_stage.launch import GraphError, Launcher, load_graph, parse_graph
 from piezo_stage.launch.child import defines_main
 from piezo_stage.launch.commandline import (
@@ -131,8 +131,9 @@ def test_ros_value_reads_back_as_the_same_value():
     ):
         assert load_yaml(ros_value(value)) == value, value
     assert ros_value("5e6") == "'5e6'" and ros_value(5e6) == "5000000.0"
-    # a choice given as its enum member (the demo loops over Law) is written as its value
-    assert ros_value(Law.PID_TV) == "pid_tv" and ros_value([Law.PID, "x"]) == "[pid, x]"
+    # a choice given as its enum member is written as its value
+    assert ros_value(AntiWindup.BACK_CALCULATION) == "back_calculation"
+    assert ros_value([OnClose.RESET, "x"]) == "[reset, x]"
     # rcl reads a plain y or n as a boolean (PyYAML, YAML 1.1, does not): an axis named y
     assert ros_value(["x", "y"]) == "[x, 'y']" and ros_value("n") == "'n'"
 

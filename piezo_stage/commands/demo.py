@@ -181,13 +181,13 @@ def _identification(args: argparse.Namespace, out: Path, progress: Progress) -> 
 
 def _closed_loop(args: argparse.Namespace, out: Path, progress: Progress) -> StageResult:
     """(c) the ch. 11 perturbation experiment in every controller mode."""
-    from piezo_stage.control.laws import Law
+    from piezo_stage.control.laws import LAW_NAMES
     from piezo_stage.experiments import run_experiment
     from piezo_stage.launch.domain import isolated_domain
 
     rows, files = [], []
     with isolated_domain():
-        for mode in Law:
+        for mode in LAW_NAMES:
             progress.stage(f"(c) ch. 11 perturbation experiment, mode {mode}")
             result = run_experiment(
                 "perturbation",

@@ -24,19 +24,20 @@ from typing import Any, Callable
 
 from piezo_stage.commands.argtypes import int_range, not_for, output, positive
 from piezo_stage.commands.quick import QUICK_PERIODS, quick_run, say_quick
-from piezo_stage.control.laws import Law
+from piezo_stage.control.laws import GAIN_ROWS, LAW_NAMES, PID, PID_TV, law_equations
 from piezo_stage.experiments.plan import DEFAULT_DURATION
 
 #: progress(fraction, text): how far a run is, said on stderr
 Progress = Callable[[float, str], None]
 
+#: the gains beyond the PID's that a ch. 11 experiment takes as flags (--A, --kA, --f)
+_EXTRA_GAINS = tuple(g for g in GAIN_ROWS if g.name not in PID.gains)
+
 #: what every experiment's namespace holds, whether or not it takes the option (run() reads them)
 _SHARED = {
     "mode": None,
     "duration": None,
-    "A": None,
-    "kA": None,
-    "f": None,
+    **{g.name: None for g in _EXTRA_GAINS},
     "bag": None,
     "png": None,
     "json": False,
@@ -153,17 +154,15 @@ def _outputs(parser: argparse.ArgumentParser, bag: str) -> None:
 def _mode(parser: argparse.ArgumentParser, default: str) -> None:
     parser.add_argument(
         "--mode",
-        choices=tuple(Law),
+        choices=LAW_NAMES,
         default=None,
-        help=f"control law: pid (11.5), pid_sine (11.17) or pid_tv (11.18) (default {default})",
+        help=f"control law (default {default}): {law_equations()}",
     )
 
 
 def _ch11_arguments(name: str) -> Callable[[argparse.ArgumentParser], None]:
     def build(parser: argparse.ArgumentParser) -> None:
-        from piezo_stage.control.laws import THESIS_GAINS
-
-        _mode(parser, "pid_tv")
+        _mode(parser, PID_TV.name)
         parser.add_argument(
             "--duration",
             type=float,
@@ -171,17 +170,13 @@ def _ch11_arguments(name: str) -> Callable[[argparse.ArgumentParser], None]:
             metavar="SECONDS",
             help=f"simulated seconds (default {DEFAULT_DURATION[name]:g})",
         )
-        for flag, what in (
-            ("A", "pid_sine's sine amplitude A [V]"),
-            ("kA", "pid_tv's sine gain kA [V/(m s)]"),
-            ("f", "the sine's frequency f [Hz]"),
-        ):
+        for g in _EXTRA_GAINS:
             parser.add_argument(
-                f"--{flag}",
-                dest=flag,
+                f"--{g.name}",
+                dest=g.name,
                 type=float,
                 default=None,
-                help=f"{what} (default {getattr(THESIS_GAINS, flag):g}, the thesis's)",
+                help=f"{g.description} [{g.unit}] (default {g.default:g}, the thesis's)",
             )
         _outputs(parser, "record controller_state to this MCAP bag folder")
 
@@ -189,7 +184,7 @@ def _ch11_arguments(name: str) -> Callable[[argparse.ArgumentParser], None]:
 
 
 def _tracking_experiment(parser: argparse.ArgumentParser) -> None:
-    _mode(parser, "pid")
+    _mode(parser, PID.name)
     parser.add_argument(
         "--duration",
         type=float,
@@ -758,7 +753,9 @@ def run(args: argparse.Namespace) -> int:
     if refused:
         print(f"error: {refused}", file=sys.stderr)
         return 2
-    gains = {k: getattr(args, k) for k in ("A", "kA", "f") if getattr(args, k) is not None}
+    gains = {
+        g.name: getattr(args, g.name) for g in _EXTRA_GAINS if getattr(args, g.name) is not None
+    }
 
     def progress(fraction: float, text: str) -> None:  # stderr: --json's stdout stays clean
         print(f"[{fraction * 100:5.1f} %] {text}", file=sys.stderr, flush=True)
@@ -778,7 +775,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 summary = run_experiment(
                     args.name,
-                    args.mode or "pid_tv",
+                    args.mode or PID_TV.name,
                     bag=args.bag,
                     png_dir=args.png,
                     progress=progress,

@@ -37,7 +37,7 @@ from piezo_stage.control.discrete import (
     check_sampled_loop,
 )
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.laws import Gains, Law
+from piezo_stage.control.laws import LAW_NAMES, PID, Gains, law_equations
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
@@ -114,9 +114,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     d.add_argument(
         "--law",
-        choices=tuple(Law),
-        default="pid",
-        help="law checked (pid_sine = pid; pid_tv needs --kA, --f, rate/f integer)",
+        choices=LAW_NAMES,
+        default=PID.name,
+        help="law checked (pid_sine's sampled loop is pid's; pid_tv needs --kA, --f, rate/f "
+        f"integer): {law_equations()}",
     )
     d.add_argument(
         "--hysteresis",

@@ -22,7 +22,7 @@ from typing import Any
 
 from piezo_stage.control.bounds import Bounds, NominalPlant
 from piezo_stage.control.discrete import SampledLoopReport, check_sampled_loop
-from piezo_stage.control.laws import Gains
+from piezo_stage.control.laws import PID_TV, Gains
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 from .errors import CommissioningError
@@ -124,7 +124,7 @@ def design_gains(
         if abs(rate / f - round(rate / f)) > 1e-9:
             tried.append((rate, math.nan))
             continue
-        sampled = check_sampled_loop(nominal, gains, rate, delay_samples, "pid_tv")
+        sampled = check_sampled_loop(nominal, gains, rate, delay_samples, PID_TV.name)
         tried.append((rate, float(sampled.spectral_radius)))
         if sampled.stable:
             return GainDesign(gains, rate, delay_samples, report, sampled, tuple(tried))
@@ -164,7 +164,7 @@ def write_controller_params(
     """A ROS 2 params file for the controller node (``--params-file``, a graph's ``parameters``)."""
     g = design.gains
     params = {
-        "mode": "pid_tv",
+        "mode": PID_TV.name,
         "k0": g.k0,
         "k1": g.k1,
         "k2": g.k2,

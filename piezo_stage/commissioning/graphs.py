@@ -21,6 +21,7 @@ import numpy as np
 import yaml
 
 from piezo_stage.control.controller import THESIS_AMPLIFIER
+from piezo_stage.control.laws import PID_TV
 from piezo_stage.model.excitation import ExcitationPlan
 
 from .procedure import RigError
@@ -188,7 +189,7 @@ class RosRig:
 
         # the §11.5 plan of the experiments, moved to this rig: its plant file, the designed
         # gains, rate and bounds file, and the set point of the identified kappa_x
-        base = make_plan("perturbation", "pid_tv", duration=float(run["duration"]))
+        base = make_plan("perturbation", PID_TV.name, duration=float(run["duration"]))
         rate = float(run["rate_hz"])
         x_eq = U_SET / float(run["kappa_x"])  # w(0) = 0: kappa_x x = u (11.2)
         gains = {k: float(run["gains"][k]) for k in ("k0", "k1", "k2", "kA", "f")}
@@ -225,7 +226,7 @@ class RosRig:
         try:
             return run_experiment(
                 "perturbation",
-                "pid_tv",
+                PID_TV.name,
                 bag=str(bag),
                 png_dir=str(png_dir),
                 plan=plan,
@@ -260,7 +261,7 @@ class RosRig:
         # loop's first state
         controller = experiment_controller(
             rate,
-            "pid_tv",
+            PID_TV.name,
             delay_samples=int(run["delay_samples"]),
             bounds_file=run["bounds_file"],
         )
@@ -275,7 +276,7 @@ class RosRig:
         }
         plan = Plan(
             "perturbation",
-            "pid_tv",
+            PID_TV.name,
             rate,
             math.nan,
             total,

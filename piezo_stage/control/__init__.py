@@ -25,7 +25,7 @@ from .errors import (
     MeasurementError,
     SampledLoopError,
 )
-from .laws import THESIS_GAINS, Gains, Law, control_law
+from .laws import LAW_NAMES, THESIS_GAINS, ControlLaw, Gains, control_law, law_named, register
 from .reference import SecondOrderReference
 from .theorem4 import GainReport, k0_max, k2_min, validate_gains
 
@@ -47,7 +47,10 @@ __all__ = [
     "GainError",
     "MeasurementError",
     "SampledLoopError",
-    "Law",
+    "ControlLaw",
+    "LAW_NAMES",
+    "law_named",
+    "register",
     "THESIS_GAINS",
     "Gains",
     "control_law",

@@ -21,15 +21,7 @@ from typing import NamedTuple, TypeVar
 
 from .errors import ControllerConfigError, MeasurementError
 from .feedforward import Compensation, Feedforward, FeedforwardModel
-from .laws import (
-    THESIS_GAINS,
-    Gains,
-    Law,
-    check_law,
-    excitation_term,
-    pid_term,
-    x0_coefficient,
-)
+from .laws import PID, THESIS_GAINS, ControlLaw, Gains, check_law, law_named
 from .learning import FeedforwardTable
 
 
@@ -109,11 +101,15 @@ def x2_filtered(x2f: float, x: float, x_prev: float, yr_dot: float, dt: float, t
     return x2f + dt / (tau + dt) * (x2 - x2f)
 
 
-def bumpless_x0(gains: Gains, u: float, u_ff: float, x1: float, x2: float) -> float:
-    """x0 that makes u = −k0·x0 − k1·x1 − k2·x2 + u_ff (11.5) equal the output ``u`` being
-    applied: the bumpless open→closed transfer.
+def bumpless_x0(
+    gains: Gains, u: float, u_ff: float, x1: float, x2: float, law: ControlLaw = PID
+) -> float:
+    """x0 that makes the law's u at closing (t = 0) plus u_ff equal the output ``u`` being
+    applied: the bumpless open→closed transfer. The law is affine in x0 there, so
+    x0 = (u − u_ff − u(x0 = 0)) / (∂u/∂x0); for (11.5): −(u − u_ff + k1·x1 + k2·x2)/k0.
     """
-    return -(u - u_ff + gains.k1 * x1 + gains.k2 * x2) / gains.k0
+    at_zero = sum(law.split(gains, 0.0, 0.0, x1, x2))
+    return float((u - u_ff - at_zero) / law.x0_coefficient(gains, 0.0))
 
 
 def back_calculation(
@@ -162,7 +158,7 @@ class ControllerConfig:
       instead of the model stepped along yr.
     """
 
-    mode: Law = Law.PID
+    mode: str = PID.name
     gains: Gains = THESIS_GAINS
     u_min: float = -math.inf
     u_max: float = math.inf
@@ -185,6 +181,11 @@ class ControllerConfig:
         ):
             object.__setattr__(self, name, _member(kind, name, getattr(self, name)))
 
+    @property
+    def law(self) -> ControlLaw:
+        """The registered law ``mode`` names."""
+        return law_named(self.mode)
+
     def validate(self) -> None:
         """Raise :class:`ControllerConfigError` / :class:`GainError` for an unusable
         configuration.
@@ -192,8 +193,11 @@ class ControllerConfig:
         self.gains.validate(self.mode)
         if math.isnan(self.u_min) or math.isnan(self.u_max) or not self.u_min < self.u_max:
             raise ControllerConfigError(f"need u_min < u_max, got [{self.u_min}, {self.u_max}]")
-        if self.on_close is OnClose.BUMPLESS and self.gains.k0 <= 0:
-            raise ControllerConfigError("bumpless transfer solves u for x0 and needs k0 > 0")
+        if self.on_close is OnClose.BUMPLESS and self.law.x0_coefficient(self.gains, 0.0) == 0:
+            raise ControllerConfigError(
+                f"bumpless transfer solves u for x0 and needs u to depend on x0 (k0 > 0 for "
+                f"{self.mode})"
+            )
         if self.anti_windup is AntiWindup.BACK_CALCULATION:
             self._validate_back_calculation()
         if not (math.isfinite(self.derivative_tau) and self.derivative_tau >= 0):
@@ -262,7 +266,7 @@ class ControlOutput:
 
     t: float
     dt: float
-    mode: Law
+    mode: str
     loop_closed: bool
     reference: float
     x0: float
@@ -289,6 +293,7 @@ class TimeVaryingPID:
     ) -> None:
         config.validate()
         self._config = config
+        self._law = config.law
         self._x0_initial = float(x0_initial)
         self._start_closed = closed
         self.reset()
@@ -359,6 +364,7 @@ class TimeVaryingPID:
         if config.feedforward != old.feedforward:
             self._ff = Feedforward(config.feedforward) if config.feedforward is not None else None
         self._config = config
+        self._law = config.law
 
     def open_loop(self, hold: float | None = None) -> None:
         """Open the loop: u = ``hold``, else ``config.hold_voltage``, else the last output
@@ -487,8 +493,8 @@ class TimeVaryingPID:
         if cfg.compensation is _FEEDFORWARD:
             u_pid = u_exc = 0.0
         else:
-            u_pid = float(pid_term(cfg.gains, self._x0, x1, x2))
-            u_exc = float(excitation_term(cfg.mode, cfg.gains, t - self._t_close, self._x0))
+            parts = self._law.split(cfg.gains, t - self._t_close, self._x0, x1, x2)
+            u_pid, u_exc = float(parts[0]), float(parts[1])
         u_raw = u_pid + u_exc + u_ff
         self._u = cfg.clamp(u_raw)
         if (
@@ -505,7 +511,7 @@ class TimeVaryingPID:
         """Open→closed transfer at time t (the new phase origin: sin(2πf·0) = 0)."""
         cfg = self._config
         if cfg.on_close is OnClose.BUMPLESS:
-            self._x0 = bumpless_x0(cfg.gains, self._u, self._u_ff, x1, x2)
+            self._x0 = bumpless_x0(cfg.gains, self._u, self._u_ff, x1, x2, self._law)
         elif cfg.on_close is OnClose.RESET:
             self._x0 = 0.0
         self._closed, self._pending_close, self._t_close, self._hold = True, False, t, None
@@ -522,12 +528,9 @@ class TimeVaryingPID:
         if cfg.anti_windup is AntiWindup.CONDITIONAL:
             assert self._t_close is not None  # integrating: the loop is closed
             tau = t - self._t_close
-            u_now = float(
-                pid_term(cfg.gains, self._x0, x1, x2)
-                + excitation_term(cfg.mode, cfg.gains, tau, self._x0)
-                + self._u_ff
-            )
-            coefficient = x0_coefficient(cfg.mode, cfg.gains, tau)
+            u_pid, u_exc = self._law.split(cfg.gains, tau, self._x0, x1, x2)
+            u_now = float(u_pid + u_exc + self._u_ff)
+            coefficient = self._law.x0_coefficient(cfg.gains, tau)
             if integration_winds_up(u_now - cfg.clamp(u_now), coefficient, step):
                 return
         self._x0 += step
@@ -541,7 +544,7 @@ def closed_pid(
     feedforward: FeedforwardModel | None,
     table: FeedforwardTable | None = None,
     *,
-    mode: Law = Law.PID,
+    mode: str = PID.name,
     hold_voltage: float | None = None,
 ) -> TimeVaryingPID:
     """The law a core run holds (tracking, a scanner's axes, a raster's): ``mode`` (11.5, 11.17,

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from .bounds import NominalPlant
 from .errors import SampledLoopError
-from .laws import Gains, check_law
+from .laws import PID, Gains, LinearGains, law_named
 
 HYSTERESIS_MODELS: tuple[str, ...] = ("disturbance", "initial_slope")
 #: Margins 1 − ρ smaller than this are rounding noise of a double ρ near 1 (1e6·eps keeps ~4 digits
@@ -89,8 +89,7 @@ def _step_matrix(
     ad: NDArray[np.float64],
     bd: NDArray[np.float64],
     period: float,
-    k0_eff: float,
-    gains: Gains,
+    linear: LinearGains,
     delay: int,
     alpha: float,
 ) -> NDArray[np.float64]:
@@ -100,7 +99,8 @@ def _step_matrix(
     x = eye[0]
     x0 = eye[2] + period * x
     x2f = (1.0 - alpha) * eye[4] + alpha * (x - eye[3]) / period
-    v = -k0_eff * x0 - gains.k1 * x - gains.k2 * x2f
+    k0, k1, k2 = linear
+    v = -k0 * x0 - k1 * x - k2 * x2f
     applied = v if delay == 0 else eye[4 + delay]
     phi = np.zeros((n, n))
     phi[:2] = ad @ eye[:2] + np.outer(bd, applied)
@@ -135,12 +135,14 @@ def closed_loop_matrices(
     gains: Gains,
     rate_hz: float,
     delay_samples: int = 0,
-    law: str = "pid",
+    law: str = PID.name,
     derivative_tau: float = 0.0,
     hysteresis: str = "disturbance",
 ) -> list[NDArray[np.float64]]:
-    """Per-sample matrices of the sampled loop: one for (11.5)/(11.17), N = rate/f for (11.18)."""
-    check_law(law)
+    """Per-sample matrices of the sampled loop, one per entry of the law's
+    :meth:`~.laws.ControlLaw.sampled_gains`: one for (11.5)/(11.17), N = rate/f for (11.18).
+    """
+    control = law_named(law)
     plant.validate()
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise SampledLoopError(f"rate_hz must be > 0, got {rate_hz}")
@@ -164,26 +166,11 @@ def closed_loop_matrices(
         )
     alpha = period / (derivative_tau + period)
     delay = int(delay_samples)
-    if law != "pid_tv":
-        return [_step_matrix(ad, bd, period, gains.k0, gains, delay, alpha)]
-    if not gains.f > 0:
-        raise SampledLoopError("law pid_tv needs f > 0")
-    n_per = rate_hz / gains.f
-    n_int = round(n_per) if math.isfinite(n_per) else 0
-    if n_int < 1 or abs(n_per - n_int) > 1e-9 * n_per:
-        raise SampledLoopError(
-            f"pid_tv check needs rate/f to be an integer (Floquet over one period), got {n_per:.6g}"
-        )
-    if n_int * (5 + delay) ** 2 > MAX_FLOQUET_ENTRIES:
-        raise SampledLoopError(
-            f"pid_tv check over rate/f = {n_int} samples with delay {delay} "
-            f"needs more than {MAX_FLOQUET_ENTRIES:.0e} matrix entries"
-        )
-    phase = 2.0 * math.pi * gains.f * period * np.arange(n_int)
-    return [
-        _step_matrix(ad, bd, period, gains.k0 + gains.kA * math.sin(p), gains, delay, alpha)
-        for p in phase
-    ]
+    linear = control.sampled_gains(gains, rate_hz, MAX_FLOQUET_ENTRIES // (5 + delay) ** 2)
+    matrices = [_step_matrix(ad, bd, period, each, delay, alpha) for each in linear]
+    if all(k0 == 0.0 for k0, _, _ in linear):  # x0 feeds nothing back: its mode (1) is not the
+        return [np.delete(np.delete(m, 2, 0), 2, 1) for m in matrices]  # loop's
+    return matrices
 
 
 def spectral_radius_per_sample(matrices: list[NDArray[np.float64]]) -> float:
@@ -210,7 +197,7 @@ def check_sampled_loop(
     gains: Gains,
     rate_hz: float,
     delay_samples: int = 0,
-    law: str = "pid",
+    law: str = PID.name,
     derivative_tau: float = 0.0,
     hysteresis: str = "disturbance",
 ) -> SampledLoopReport:
@@ -232,7 +219,12 @@ def check_sampled_loop(
         plant, gains, rate_hz, delay_samples, law, derivative_tau, hysteresis
     )
     rho = spectral_radius_per_sample(mats)
-    cont = bool(np.all(continuous_poles(plant, gains, hysteresis).real < 0))
+    # the continuous loop of the law's mean linear gains (pid_tv: its sine averages out);
+    # without an integral (k0 = 0) its x0 is not part of the loop
+    linear = np.mean(law_named(law).sampled_gains(gains, rate_hz, len(mats)), axis=0)
+    mean = Gains(k0=float(linear[0]), k1=float(linear[1]), k2=float(linear[2]))
+    poles = continuous_poles(plant, mean, hysteresis)
+    cont = bool(np.all(poles[poles != 0].real < 0) if mean.k0 == 0 else np.all(poles.real < 0))
     return SampledLoopReport(
         rate_hz=float(rate_hz),
         delay_samples=int(delay_samples),

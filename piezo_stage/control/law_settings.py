@@ -14,7 +14,6 @@ from typing import Protocol
 
 from piezo_stage.control.controller import AntiWindup, OnClose
 from piezo_stage.control.feedforward import Compensation
-from piezo_stage.control.laws import Law
 from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.setpoint import ReferenceSource
 
@@ -23,7 +22,7 @@ class LawSettings(Protocol):
     """The controller node's settings that the core reads (module docstring)."""
 
     @property
-    def mode(self) -> Law: ...
+    def mode(self) -> str: ...
     @property
     def k0(self) -> float: ...
     @property

@@ -29,7 +29,7 @@ from .controller import ControlOutput, OwnFrame, TimeVaryingPID, closed_pid
 from .discrete import check_sampled_loop
 from .errors import ControlError, SampledLoopError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import THESIS_GAINS, Gains
+from .laws import PID, THESIS_GAINS, Gains
 from .learning import sampled_feedforward
 from .trajectory import Evaluation
 
@@ -66,7 +66,7 @@ def _unstable(stage: Stage, gains: Gains, rate_hz: float, law: str) -> list[str]
     return found
 
 
-def check_stage_loops(stage: Stage, gains: Gains, rate_hz: float, law: str = "pid") -> None:
+def check_stage_loops(stage: Stage, gains: Gains, rate_hz: float, law: str = PID.name) -> None:
     """ControlError unless every dynamic axis's loop (11.5) with ``gains``, sampled at
     ``rate_hz`` without delay (:func:`~.discrete.check_sampled_loop` on :func:`axis_plant`), is
     stable; the message names the rates of :data:`LOOP_RATES` at which every axis is.

@@ -39,7 +39,6 @@ from .bounds import Bounds, NominalPlant
 from .controller import ControllerConfig, ControlOutput, OwnFrame, TimeVaryingPID
 from .discrete import check_sampled_loop
 from .errors import ControllerConfigError
-from .theorem4 import validate_gains
 
 #: a sample later than this many periods after the previous one starts a gap
 GAP_PERIODS = 1.5
@@ -115,14 +114,7 @@ class GainCheck:
     def reasons(self, config: ControllerConfig) -> str:
         """'' when both accept the gains of ``config``, else the reasons."""
         g = config.gains
-        report = validate_gains(
-            self.bounds,
-            g.k1,
-            g.k2,
-            g.k0,
-            g.kA if config.mode == "pid_tv" else None,
-            g.f if config.mode != "pid" else None,
-        )
+        report = config.law.theorem4(self.bounds, g)
         reasons = list(report.reasons)
         sampled = check_sampled_loop(
             self.plant, g, self.rate_hz, self.delay_samples, config.mode, config.derivative_tau

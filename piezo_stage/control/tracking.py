@@ -22,7 +22,7 @@ from piezo_stage.model.plant import DynamicPlant
 from .controller import THESIS_AMPLIFIER, closed_pid
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardModel
-from .laws import THESIS_GAINS, Gains, check_law
+from .laws import PID, THESIS_GAINS, Gains, check_law
 from .learning import FeedforwardTable, IterativeLearning, LearningConfig, feedforward_response
 from .simulation import ClosedLoopResult, simulate_closed_loop
 from .trajectory import Trajectory
@@ -94,7 +94,7 @@ def simulate_tracking(
     compensation: Compensation | str,
     model: FeedforwardModel | None,
     *,
-    mode: str = "pid",
+    mode: str = PID.name,
     gains: Gains = THESIS_GAINS,
     rate_hz: float = TRACKING_RATE_HZ,
     duration: float | None = None,

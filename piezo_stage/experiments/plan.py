@@ -53,7 +53,7 @@ import numpy as np
 from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
 from piezo_stage.control.controller import THESIS_AMPLIFIER
 from piezo_stage.control.discrete import check_sampled_loop
-from piezo_stage.control.laws import THESIS_GAINS, Law, check_law
+from piezo_stage.control.laws import LAW_NAMES, THESIS_GAINS, check_law
 from piezo_stage.model.parameter_set import shipped_parameter_set
 
 from .errors import ExperimentError, ExperimentInputError, UnknownExperimentError
@@ -109,7 +109,7 @@ def make_plan(
     try:
         check_law(mode)
     except Exception as exc:
-        names = ", ".join(Law)
+        names = ", ".join(LAW_NAMES)
         raise UnknownExperimentError(f"unknown mode {mode!r}; expected one of {names}") from exc
     gains = dict(gains or {})
     unknown = set(gains) - set(THESIS_GAINS.to_dict())

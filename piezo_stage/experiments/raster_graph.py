@@ -28,6 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from piezo_stage.control.laws import PID
 from piezo_stage.control.learning import FeedforwardTable, LearningError
 from piezo_stage.control.raster import RasterRun, RasterTables, learning_history
 from piezo_stage.control.scan import RasterScan, ScanAxis, ScanError
@@ -102,7 +103,7 @@ def _controller_overrides(run: GraphRun) -> dict[str, Any]:
     from .harness import node_overrides
     from .presets import experiment_controller
 
-    values = experiment_controller(run.rate_hz, "pid", delay_samples=0)
+    values = experiment_controller(run.rate_hz, PID.name, delay_samples=0)
     values |= {
         "reference_source": "trajectory",
         "compensation": run.compensation,

@@ -42,7 +42,7 @@ import tempfile
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
@@ -51,7 +51,7 @@ from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT, axis_plant
 from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.feedforward import Compensation, FeedforwardModel
-from piezo_stage.control.laws import THESIS_GAINS, Law
+from piezo_stage.control.laws import LAW_NAMES, THESIS_GAINS, check_law
 from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.model_fit import fit_feedforward_model, rig_recordings
 from piezo_stage.control.setup import SetupError, load_trajectory
@@ -153,11 +153,12 @@ CONTROLLER_OPTIONS = {
 }
 
 
-_CHOICES: tuple[tuple[str, type[StrEnum], str], ...] = (
-    ("compensation", Compensation, "compensation"),
-    ("mode", Law, "law"),
-    ("graph", Graph, "graph"),
-    ("feedforward_form", FeedforwardForm, "feedforward form"),
+#: (field, its parser, its choices, what it is): the choices parsed at the door
+_CHOICES: tuple[tuple[str, Callable[[Any], Any], Iterable[str], str], ...] = (
+    ("compensation", Compensation, Compensation, "compensation"),
+    ("mode", check_law, LAW_NAMES, "law"),
+    ("graph", Graph, Graph, "graph"),
+    ("feedforward_form", FeedforwardForm, FeedforwardForm, "feedforward form"),
 )
 
 
@@ -183,7 +184,7 @@ class TrackingSpec:
     compensation: Compensation = _default("compensation")
     model: str | ParameterSet | None = None
     plant_model: str = DEFAULT_PLANT
-    mode: Law = _default("mode")
+    mode: str = _default("mode")
     periods: float = DEFAULT_PERIODS
     rate_hz: float = TRACKING_RATE_HZ
     learn: int = _default("learn")
@@ -195,13 +196,13 @@ class TrackingSpec:
 
     def __post_init__(self) -> None:
         """The choices parsed here, at the door: everything after takes their members."""
-        for name, kind, what in _CHOICES:
+        for name, parse, choices, what in _CHOICES:
             value = getattr(self, name)
             try:
-                object.__setattr__(self, name, kind(value))
-            except ValueError:
+                object.__setattr__(self, name, parse(value))
+            except (ValueError, ControlError):
                 raise ExperimentInputError(
-                    f"unknown {what} {value!r}; expected one of {', '.join(kind)}"
+                    f"unknown {what} {value!r}; expected one of {', '.join(choices)}"
                 ) from None
 
     @property

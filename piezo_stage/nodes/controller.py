@@ -62,6 +62,7 @@ from piezo_stage.control.controller import (
     TimeVaryingPID,
 )
 from piezo_stage.control.errors import ControlError
+from piezo_stage.control.laws import GAIN_ROWS
 from piezo_stage.control.learning import (
     PeriodicLearner,
 )
@@ -87,7 +88,7 @@ from .qos import COMMAND_QOS, LOCKSTEP_QOS, SENSOR_QOS
 from .runtime import DEFAULT_NAMESPACE, run, set_stamp, subscribers_matched, to_stamp
 from .settings import ControllerSettings
 
-GAIN_KEYS = ("k0", "k1", "k2", "kA", "A", "f")
+GAIN_KEYS = tuple(g.name for g in GAIN_ROWS)
 CONFIG_KEYS = GAIN_KEYS + (
     "mode",
     "u_min",

@@ -8,7 +8,7 @@ import math
 
 from piezo_stage.control.controller import THESIS_AMPLIFIER, AntiWindup, OnClose
 from piezo_stage.control.feedforward import Compensation
-from piezo_stage.control.laws import THESIS_GAINS, Law
+from piezo_stage.control.laws import GAIN_ROWS, LAW_NAMES, PID
 from piezo_stage.control.learning import FeedforwardForm
 from piezo_stage.control.setpoint import ReferenceSource
 from piezo_stage.control.trajectory import DEFAULT_ROUNDING
@@ -19,19 +19,17 @@ from .choices import PublishIn, SensorQos
 from .settings import ControllerSettings
 from .spec import Param, ParameterTable
 
-_G = THESIS_GAINS
 PARAMETERS = ParameterTable(
     "controller",
     (
         Param(
-            "mode", "pid", "control law: pid (11.5), pid_sine (11.17), pid_tv (11.18)", choices=Law
+            "mode",
+            PID.name,
+            "control law, a registered one (the thesis's: pid (11.5), pid_sine (11.17), "
+            "pid_tv (11.18))",
+            choices=LAW_NAMES,
         ),
-        Param("k0", _G.k0, "integral gain k0", "V/(m s)", (0.0, 1e15)),
-        Param("k1", _G.k1, "proportional gain k1", "V/m", (0.0, 1e15)),
-        Param("k2", _G.k2, "derivative gain k2", "V s/m", (0.0, 1e12)),
-        Param("kA", _G.kA, "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
-        Param("A", _G.A, "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
-        Param("f", _G.f, "sine frequency f", "Hz", (1e-6, 1e6)),
+        *(Param(g.name, g.default, g.description, g.unit, g.range) for g in GAIN_ROWS),
         Param("u_min", -THESIS_AMPLIFIER, "amplifier lower limit", "V"),
         Param("u_max", THESIS_AMPLIFIER, "amplifier upper limit", "V"),
         Param("anti_windup", "conditional", "anti-windup of the integral x0", choices=AntiWindup),

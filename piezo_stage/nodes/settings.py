@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING, Literal
 if TYPE_CHECKING:
     from piezo_stage.control.controller import AntiWindup, OnClose
     from piezo_stage.control.feedforward import Compensation
-    from piezo_stage.control.laws import Law
     from piezo_stage.control.learning import FeedforwardForm
     from piezo_stage.control.setpoint import ReferenceSource
     from piezo_stage.identification.methods import Method
@@ -36,7 +35,7 @@ if TYPE_CHECKING:
 class ControllerSettings:
     """``controller``: The thesis's time-varying PID (11.5, 11.17, 11.18) on ROS topics."""
 
-    mode: Law
+    mode: str
     k0: float
     k1: float
     k2: float

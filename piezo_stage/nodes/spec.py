@@ -58,7 +58,9 @@ def _kind_of(value: Any) -> Kind:
 @dataclass(frozen=True)
 class Param:
     """One parameter. ``choices``: a ``str`` Enum class or a sequence of strings (a string
-    parameter must be one of them); ``range``: (lo, hi) inclusive, for int and float."""
+    parameter must be one of them; a sequence other than a tuple or list is read at each
+    check, as the registered control laws are); ``range``: (lo, hi) inclusive, for int and
+    float."""
 
     name: str
     default: Any
@@ -150,11 +152,11 @@ S = TypeVar("S")
 
 
 def field_type(p: Param) -> str:
-    """The annotation of ``p``'s settings field: its Enum class, a Literal of its string
-    choices, or the Python type of its kind."""
+    """The annotation of ``p``'s settings field: its Enum class, a Literal of its fixed string
+    choices, or the Python type of its kind (also for choices read at each use)."""
     if isinstance(p.choices, type) and issubclass(p.choices, Enum):
         return p.choices.__name__
-    if p.choices is not None:
+    if isinstance(p.choices, (tuple, list)):
         quoted = ", ".join(f'"{c}"' for c in p.choice_values)
         return f"Literal[{quoted},]"  # the trailing comma: one choice a line when long
     return _PYTHON_TYPES[p.kind or Kind.STRING]
