@@ -70,6 +70,9 @@ SETTLE_FRAMES = 1
 START_FRAMES = 4
 #: frames recorded and read back
 MEASURED_FRAMES = 1
+#: frames of the image played back to back once learned (the tables left as they are, each
+#: frame read back while the next plays; fewer where a record table holds fewer)
+IMAGE_FRAMES = 4
 #: what each axis's two recorder tables hold (tables 2k + 1, 2k + 2 of the fast, slow axis)
 RECORD = (RecordOption.PIEZO_VOLTAGE, RecordOption.CURRENT_POSITION)
 UM = 1e-6  #: m per um (PI reports positions in um)
@@ -98,7 +101,7 @@ class DetectedRun(RasterRun):
     """A raster recorded by the controller at its table rate and imaged by a detector of its
     own (module docstring): :meth:`figures` and :meth:`image` on the detector's samples of the
     last frame; ``at_limit`` the fast and slow tables' points at the amplifier's limits;
-    ``frame_wall`` the wall time of the last play per frame played [s]."""
+    ``frame_wall`` the wall time per frame of the image once learned [s]."""
 
     per_pixel: int = 1
     at_limit: tuple[int, int] = (0, 0)
@@ -193,7 +196,8 @@ def servo_raster(
         for axis, learner in zip(axes, learners):
             ramp_to(axis.amplifier, float(learner.table.u[0]))
         player.settle([lrn.table.u for lrn in learners], START_FRAMES)
-        record, history = _learn(player, learners, keep, scan, t, desired, learn, progress)
+        history = _learn(player, learners, keep, scan, t, desired, learn, progress)
+        record = player.image(IMAGE_FRAMES)
     except BaseException:
         _safe(axes, recorder, limits[0])
         raise
@@ -238,16 +242,49 @@ class _Player:
     def play(self, u: Sequence[NDArray[np.float64]]) -> tuple[Array, Array]:
         """Voltages [V] and positions [m] (2, samples) of the recorded frame."""
         frames = SETTLE_FRAMES + MEASURED_FRAMES
-        recorder = self.recorder
-        started = time.monotonic()
         self.settle(u, frames)
-        count = recorder.recorded()
+        count = self.recorder.recorded()
         if count < frames * self.n_frame:
             raise ExperimentError(
                 f"the data recorder holds {count} of the {frames * self.n_frame} points played"
             )
-        columns = recorder.read_range(4, SETTLE_FRAMES * self.n_frame, self.n_frame).columns
+        return self._frame(SETTLE_FRAMES)
+
+    def image(self, frames: int) -> tuple[Array, Array]:
+        """Play the tables as they are (uploaded by the last :meth:`play`) for ``frames``
+        frames back to back (fewer if a record table holds fewer), reading each frame back
+        while the next plays: the last frame's voltages [V] and positions [m];
+        :attr:`frame_wall` the wall time per frame from the start to the last read."""
+        recorder, generators = self.recorder, [a.generator for a in self.axes]
+        frames = max(1, min(frames, recorder.table_points() // self.n_frame))
+        lines_per_frame = self.n_frame // self.n_fast
+        started = time.monotonic()
+        for axis, cycles in zip(self.axes, (frames * lines_per_frame, frames)):
+            recorder.connect(axis.generator, axis.generator, cycles, self.rate, 0.0)
+        recorder.start(generators)
+        for k in range(frames):
+            self._wait_recorded((k + 1) * self.n_frame, started + (k + 1) * self.frame_time)
+            record = self._frame(k)
+        recorder.wait_until_stopped(generators, self.frame_time)
         self.frame_wall = (time.monotonic() - started) / frames
+        return record
+
+    def _wait_recorded(self, points: int, due: float) -> None:
+        """Until the recorder holds ``points`` (``DRL?``): asked from the monotonic time
+        ``due`` on, then every millisecond; :class:`ExperimentError` if it holds fewer a
+        frame's time after that plus 10 s."""
+        time.sleep(max(0.0, due - time.monotonic()))
+        deadline = max(due, time.monotonic()) + self.frame_time + 10.0
+        while (count := self.recorder.recorded()) < points:
+            if time.monotonic() > deadline:
+                raise ExperimentError(
+                    f"the data recorder holds {count} of the {points} points played"
+                )
+            time.sleep(1e-3)
+
+    def _frame(self, k: int) -> tuple[Array, Array]:
+        """Voltages [V] and positions [m] (2, samples) of the ``k``-th frame recorded."""
+        columns = self.recorder.read_range(4, k * self.n_frame, self.n_frame).columns
         return columns[0::2], columns[1::2] * UM
 
 
@@ -268,14 +305,13 @@ def _learn(
     desired: NDArray[np.float64],
     learn: int,
     progress: Progress,
-) -> tuple[tuple[Array, Array], list[tuple[float, float]]]:
+) -> list[tuple[float, float]]:
     """Play, learn from the recorded frame, play again, until both learners stop or ``learn``
-    frames: the last play's record (voltages, positions) and each play's RMS error over the
-    image windows per axis [m]."""
+    frames: each play's RMS error over the image windows per axis [m]."""
     history: list[tuple[float, float]] = []
     inside = scan.line_index(t)[0] >= 0
     for j in range(learn + 1):
-        u, x = player.play([lrn.table.u for lrn in learners])
+        _, x = player.play([lrn.table.u for lrn in learners])
         e = x - desired
         history.append(
             (
@@ -286,7 +322,7 @@ def _learn(
         rms = ", ".join(f"{100 * h / r:.3g}" for h, r in zip(history[-1], scan.range))
         progress((j + 1) / (learn + 1), f"frame {j}: RMS {rms} % of the range")
         if j == learn or all(lrn.done for lrn in learners):
-            return (u, x), history
+            return history
         fast = e[0].reshape(-1, player.n_fast).mean(axis=0)
         learners[0].update(np.fft.irfft(np.fft.rfft(fast) * keep, fast.size))
         learners[1].update(e[1])
