@@ -144,9 +144,15 @@ def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
         held = {t.clock.sec * 10**9 + t.clock.nanosec for t in ticks}  # y holds step 0
         again = len(ticks)
         cmd["y"].publish(Voltage(voltage=0.0, header=_header(stamp)))
+        period = round(1e9 / RATE)
+        start = _tick_ns(ticks[0])
         for k in range(1, steps):
-            assert spin_until(node, lambda k=k: len(ticks) >= again + k, 30.0), f"no step {k}"
-            stamp = ticks[again + k - 1].clock
+            # step k's tick by its time: step 0 may still be offered again after `again`
+            due = start + k * period
+            assert spin_until(
+                node, lambda due=due: any(_tick_ns(t) == due for t in ticks[again:]), 30.0
+            ), f"no step {k}"
+            stamp = next(t.clock for t in ticks[again:] if _tick_ns(t) == due)
             for axis in "xy":
                 value = 100.0 * min(k, 40) / 40 if axis == "x" else (50.0 if k >= 20 else 0.0)
                 cmd[axis].publish(Voltage(voltage=value, header=_header(stamp)))
@@ -158,6 +164,10 @@ def _lockstep_drive(node, ns: str, steps: int) -> tuple[list, list, float]:
         a: [m for i, m in enumerate(v) if i == 0 or _ns(m) > _ns(v[i - 1])] for a, v in xs.items()
     }
     return once["x"][:steps], once["y"][:steps], held
+
+
+def _tick_ns(tick) -> int:
+    return tick.clock.sec * 1_000_000_000 + tick.clock.nanosec
 
 
 def _header(stamp):
