@@ -96,3 +96,23 @@ def test_bad_arguments():
         check_sampled_loop(PLANT, G, 1234.5, law="pid_tv")
     with pytest.raises(SampledLoopError, match="hysteresis"):
         check_sampled_loop(PLANT, G, 1e3, hysteresis="bogus")
+
+
+@pytest.mark.unit
+def test_a_loop_without_an_integral_is_judged_without_its_x0_mode():
+    """k0 = 0: x0 feeds nothing back, so the full matrix has an eigenvalue 1 that is not the
+    loop's; the check's radius is the largest of the others, and the loop counts as stable."""
+    from piezo_stage.control.bounds import THESIS_NOMINAL_PLANT
+    from piezo_stage.control.discrete import _step_matrix, zoh_plant
+    from piezo_stage.control.laws import Gains
+
+    pd = Gains(k0=0.0, k1=5e6, k2=600.0)
+    report = check_sampled_loop(THESIS_NOMINAL_PLANT, pd, 100e3, 0, "pid")
+    ad, bd = zoh_plant(THESIS_NOMINAL_PLANT, 1 / 100e3, "disturbance")
+    full = _step_matrix(ad, bd, 1 / 100e3, (0.0, 5e6, 600.0), 0, 1.0)
+    eig = np.linalg.eigvals(full)
+    x0_mode = np.argmin(np.abs(eig - 1.0))
+    assert abs(eig[x0_mode] - 1.0) < 1e-12  # x0 integrates and feeds nothing back
+    others = np.abs(np.delete(eig, x0_mode))
+    assert report.spectral_radius == pytest.approx(others.max(), rel=1e-9)
+    assert report.stable and report.continuous_stable
