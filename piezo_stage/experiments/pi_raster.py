@@ -129,7 +129,7 @@ def table_rate(scan: RasterScan, cycle: float, rate: int) -> tuple[float, int, i
     if abs(n - round(n)) > 1e-6 * n or round(n) < 2:
         raise ExperimentInputError(
             f"a {scan.line_rate:g} Hz line is {n:.6g} points at the controller's {rate_hz:g} Hz "
-            "table rate: a line rate that divides it into whole points (and at least 2)"
+            "table rate: a line needs a whole number of points (at least 2)"
         )
     n_line = round(n)
     return rate_hz, n_line, round(scan.frame_time * rate_hz)
@@ -353,6 +353,12 @@ class ServoSetup:
     def rate_hz(self) -> float:
         """The tables' rate [Hz]."""
         return 1.0 / (self.cycle * self.rate)
+
+    def check(self, scan: RasterScan, axes: tuple[str, str]) -> None:
+        """Refuse a ``scan`` the controller cannot play on ``axes`` (fast, slow) with tables
+        over a frame (:func:`table_rate`, :func:`check_capacity`), before any is computed."""
+        _, _, n_frame = table_rate(scan, self.cycle, self.rate)
+        check_capacity(self.recorder, (self.axes[axes[0]], self.axes[axes[1]]), n_frame, n_frame)
 
     def play(
         self,

@@ -163,6 +163,8 @@ def plan_raster(spec: RasterSpec) -> RasterPlan:
         raise ExperimentInputError(f"a raster needs two axes; {spec.stage} has {model.names}")
     axes = (model.names[0], model.names[1])
     amplifier = spec.servo.limits if spec.servo else amplifier_range(spec.graph)
+    if spec.servo is not None:
+        spec.servo.check(scan, axes)
     if common.compensation is not Compensation.FEEDFORWARD:
         try:
             check_stage_loops(model, THESIS_GAINS, spec.rate_hz)
