@@ -12,7 +12,9 @@ give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
 
 Design: a k2 or k0 not given is designed from k1 strictly inside Theorem 4, as `commission`
 does: k2 = (1 + G) k2_min, k0 = (1 - G) k0_max (--gain-margin G, default 0.1); the output
-marks them as designed, and --rate-hz checks the sampled loop of those gains.
+marks them as designed, and --rate-hz checks the sampled loop of those gains. A law's own gains
+(--law smc: ks, phi) not given come from its design rule on the same bounds, the sampled loop
+(--rate-hz) and the sensor noise (--noise); the verdict is the law's condition.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from piezo_stage.commands.argtypes import int_range, physical
@@ -37,10 +40,20 @@ from piezo_stage.control.discrete import (
     check_sampled_loop,
 )
 from piezo_stage.control.errors import ControlError
-from piezo_stage.control.laws import LAW_NAMES, PID, Gains, law_equations
+from piezo_stage.control.laws import (
+    GAIN_ROWS,
+    LAW_NAMES,
+    PID,
+    Gains,
+    LoopContext,
+    law_equations,
+    law_named,
+)
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
+#: the gains of laws beyond the thesis's (flags of their own, designed by the law when not given)
+_OWN_ROWS = tuple(r for r in GAIN_ROWS if r.name not in ("k0", "k1", "k2", "kA", "A", "f"))
 _BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
 _NOMINAL_FLAGS = ("m", "c", "kappa_x", "kappa_w", "rho")
 _UNITS = {
@@ -51,6 +64,8 @@ _UNITS = {
     "kappa_w_max": "V",
     "sigma_max": "-",
     "rho_max": "1/m",
+    "ks": "V",
+    "phi": "m/s",
 }
 
 
@@ -101,6 +116,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]"
+    )
+    for row in _OWN_ROWS:
+        g.add_argument(
+            f"--{row.name}",
+            type=physical,
+            default=None,
+            help=f"{row.description} [{row.unit}] (default: the law's design rule)",
+        )
+    g.add_argument(
+        "--noise",
+        type=physical,
+        default=0.0,
+        help="sensor noise [m RMS] a law's design may read (smc's boundary layer)",
     )
     d = parser.add_argument_group("sampled-loop check")
     d.add_argument(
@@ -176,19 +204,48 @@ def _design(args: argparse.Namespace, bounds: Bounds) -> list[str]:
     return designed
 
 
+def _own_gains(
+    args: argparse.Namespace, bounds: Bounds, nominal: NominalPlant | None, report: GainReport
+) -> tuple[GainReport, Gains | None, list[str]]:
+    """The law's verdict on the gains, the gains (None: k2 or k0 has no admissible value) and
+    the names of its own gains it designed."""
+    if report.k2 is None or report.k0 is None:  # k2 <= k2_min: no k0 to design or check
+        return report, None, []
+    own = {row.name: getattr(args, row.name) for row in _OWN_ROWS}
+    given = {k: v for k, v in own.items() if v is not None}
+    extra = {"kA": report.kA or 0.0, **({"f": report.f} if report.f is not None else {})}
+    gains = Gains(k0=report.k0, k1=report.k1, k2=report.k2, **extra, **given)
+    law = law_named(args.law)
+    loop = LoopContext(
+        nominal if args.rate_hz is not None else None,
+        args.rate_hz,
+        args.delay_samples,
+        args.derivative_tau,
+        args.hysteresis,
+        args.noise,
+    )
+    designed = law.design(bounds, gains, args.gain_margin, loop, set(given))
+    gains = Gains(**{**gains.to_dict(), **designed})
+    law.check(gains)
+    verdict = law.theorem4(bounds, gains)  # the law's condition, beside what was checked
+    merged = replace(
+        report,
+        valid=report.valid and verdict.valid,
+        reasons=tuple(dict.fromkeys(report.reasons + verdict.reasons)),
+        notes=tuple(dict.fromkeys(report.notes + verdict.notes)),
+    )
+    return merged, gains, list(designed)
+
+
 def _discrete(
-    args: argparse.Namespace, report: GainReport, nominal: NominalPlant | None
+    args: argparse.Namespace, report: GainReport, gains: Gains | None, nominal: NominalPlant | None
 ) -> SampledLoopReport:
     if nominal is None:
         raise ControlError(
             f"{args.bounds} has no 'nominal' section: give --m, --c and --kappa-x for --rate-hz"
         )
-    if report.k2 is None or report.k0 is None:  # k2 <= k2_min: no k0 to design or check
+    if gains is None:
         raise ControlError("--rate-hz: no admissible gains to check: " + "; ".join(report.reasons))
-    extra = {"kA": report.kA or 0.0}
-    if report.f is not None:
-        extra["f"] = report.f
-    gains = Gains(k0=report.k0, k1=report.k1, k2=report.k2, **extra)
     return check_sampled_loop(
         nominal,
         gains,
@@ -211,6 +268,7 @@ def _print_table(
     disc: SampledLoopReport | None,
     designed: list[str],
     margin: float,
+    own: dict[str, float],
 ) -> None:
     print(f"Assumption 2 bounds ({path}):")
     for name, value in bounds.to_dict().items():
@@ -229,9 +287,11 @@ def _print_table(
     )
     if report.kA is not None or report.f is not None:
         print(f"  kA = {_fmt(report.kA):<12} f = {_fmt(report.f)} Hz")
+    for name, value in own.items():
+        print(f"  {name} = {_fmt(value):<12} {_UNITS.get(name, '')}")
     rules = {"k2": f"(1 + {margin:g}) k2_min", "k0": f"(1 - {margin:g}) k0_max"}
     for name in designed:
-        print(f"  {name} designed: {rules[name]}")
+        print(f"  {name} designed: {rules.get(name, 'the law design rule')}")
     print(f"  gains {'VALID' if report.valid else 'NOT VALID'}")
     for reason in report.reasons:
         print(f"    - {reason}")
@@ -254,7 +314,9 @@ def run(args: argparse.Namespace) -> int:
         path, bounds, nominal = _load(args)
         designed = _design(args, bounds)
         report = validate_gains(bounds, args.k1, args.k2, args.k0, args.kA, args.f)
-        disc = _discrete(args, report, nominal) if args.rate_hz is not None else None
+        report, gains, own_designed = _own_gains(args, bounds, nominal, report)
+        designed += own_designed
+        disc = _discrete(args, report, gains, nominal) if args.rate_hz is not None else None
     except ControlError as exc:
         print(f"piezo-stage gains: {exc}", file=sys.stderr)
         return 2
@@ -264,17 +326,20 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    reads = law_named(args.law).gains
+    own = {r.name: getattr(gains, r.name) for r in _OWN_ROWS if gains and r.name in reads}
     if args.json:
         out = {
             "bounds_file": str(path),
             "bounds": bounds.to_dict(),
             **report.to_dict(),
+            **own,
             "designed": designed,
             "gain_margin": args.gain_margin,
             "discrete": None if disc is None else disc.to_dict(),
         }
         print(json.dumps(out))
     else:
-        _print_table(path, bounds, report, disc, designed, args.gain_margin)
+        _print_table(path, bounds, report, disc, designed, args.gain_margin, own)
     ok = report.valid and (disc is None or disc.stable)
     return 0 if ok else 1

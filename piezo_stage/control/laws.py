@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import GainError, SampledLoopError
 
 if TYPE_CHECKING:
-    from .bounds import Bounds
+    from .bounds import Bounds, NominalPlant
     from .theorem4 import GainReport
 
 Value = NDArray[np.float64] | float
@@ -40,10 +40,11 @@ Value = NDArray[np.float64] | float
 @dataclass(frozen=True)
 class Gains:
     """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V],
-    f [Hz].
+    f [Hz]; of the sliding-mode law (:mod:`.sliding`): ks [V], phi [m/s].
 
     Thesis values (§11.4.1, §11.5.3): k1 = 5e6, k2 = 580, k0 = 1e9, kA = 1.5e9, f = 100 Hz;
-    §11.5.2 uses A = 15 V with f = 10 Hz.
+    §11.5.2 uses A = 15 V with f = 10 Hz. ks and phi: the sliding-mode design on the thesis's
+    bounds at 1 kHz (``piezo-stage gains --law smc``).
     """
 
     k0: float
@@ -52,6 +53,8 @@ class Gains:
     kA: float = 0.0
     A: float = 0.0
     f: float = 100.0
+    ks: float = 0.0
+    phi: float = 1.0
 
     def validate(self, mode: str = "pid") -> None:
         """Raise :class:`GainError` for non-finite or negative gains, or what law ``mode``
@@ -61,7 +64,7 @@ class Gains:
         for key, value in asdict(self).items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise GainError(f"gain {key} must be a finite number, got {value!r}")
-        for key in ("k0", "k1", "k2", "kA", "A"):
+        for key in ("k0", "k1", "k2", "kA", "A", "ks"):
             if getattr(self, key) < 0:
                 raise GainError(f"gain {key} must be >= 0, got {getattr(self, key)}")
         law.check(self)
@@ -72,7 +75,7 @@ class Gains:
 
 
 #: §11.4.1 / §11.5.3 design.
-THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0)
+THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32)
 
 
 @dataclass(frozen=True)
@@ -98,10 +101,27 @@ GAIN_ROWS: tuple[GainRow, ...] = (
     GainRow("kA", "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
     GainRow("A", "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
     GainRow("f", "sine frequency f", "Hz", (1e-6, 1e6)),
+    GainRow("ks", "switching gain ks (smc)", "V", (0.0, 1e4)),
+    GainRow("phi", "boundary layer phi of s = x2 + (k1/k2) x1 (smc)", "m/s", (1e-9, 1e6)),
 )
 
 #: (k0, k1, k2) of the linear loop at one sample
 LinearGains = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class LoopContext:
+    """What a law's design rule may read beside the Assumption 2 bounds: the sampled loop's
+    nominal ``plant`` and ``rate_hz`` (None: not known), its output delay, x2's filter
+    time constant [s], the hysteresis's linearisation and the sensor's ``noise`` [m RMS].
+    """
+
+    plant: NominalPlant | None = None
+    rate_hz: float | None = None
+    delay_samples: int = 0
+    derivative_tau: float = 0.0
+    hysteresis: str = "disturbance"
+    noise: float = 0.0
 
 
 class ControlLaw(Protocol):
@@ -146,6 +166,15 @@ class ControlLaw(Protocol):
         """The linear gains its sampled loop holds at each sample of one period (one entry for
         a time-invariant law); :class:`SampledLoopError` where the loop is not linear
         periodic at ``rate_hz`` or its period holds more than ``most`` samples.
+        """
+        ...
+
+    def design(
+        self, bounds: Bounds, gains: Gains, margin: float, loop: LoopContext, given: set[str]
+    ) -> dict[str, float]:
+        """Its own gains (beyond k0, k1, k2) not in ``given``, from its design rule on
+        ``bounds`` and ``loop`` with ``margin``; :class:`GainError` when ``loop`` lacks what the
+        rule needs.
         """
         ...
 
@@ -213,6 +242,14 @@ class Pid:
         """(k0, k1, k2) at every sample: the sine of (11.17) is an input, not a gain."""
         return [(gains.k0, gains.k1, gains.k2)]
 
+    def design(
+        self, bounds: Bounds, gains: Gains, margin: float, loop: LoopContext, given: set[str]
+    ) -> dict[str, float]:
+        """None beyond k0, k1, k2 (Theorem 4's, designed by the caller); kA, A and f are
+        the user's.
+        """
+        return {}
+
 
 class _Sine(Pid):
     """The sine laws' frequency check."""
@@ -272,14 +309,20 @@ _LAWS: dict[str, ControlLaw] = {}
 L = TypeVar("L", bound=ControlLaw)
 #: the environment variable naming modules that register more laws
 LAW_MODULES = "PIEZO_STAGE_LAWS"
+#: the package's laws in modules of their own (registered at the registry's first use)
+BUILTIN_LAW_MODULES = ("piezo_stage.control.sliding",)
 _modules_loaded = False
 
 
 def _laws() -> dict[str, ControlLaw]:
-    """The registry, after importing the modules :data:`LAW_MODULES` names (once)."""
+    """The registry, after importing the package's law modules and those :data:`LAW_MODULES`
+    names (once).
+    """
     global _modules_loaded
     if not _modules_loaded:
         _modules_loaded = True
+        for name in BUILTIN_LAW_MODULES:
+            importlib.import_module(name)
         for name in filter(None, (m.strip() for m in os.environ.get(LAW_MODULES, "").split(","))):
             try:
                 importlib.import_module(name)

@@ -42,6 +42,8 @@ class ControllerSettings:
     kA: float
     A: float
     f: float
+    ks: float
+    phi: float
     u_min: float
     u_max: float
     anti_windup: AntiWindup
