@@ -176,7 +176,7 @@ def _ch11_arguments(name: str) -> Callable[[argparse.ArgumentParser], None]:
                 dest=g.name,
                 type=float,
                 default=None,
-                help=f"{g.description} [{g.unit}] (default {g.default:g}, the thesis's)",
+                help=f"{g.description} [{g.unit}] (default {g.default:g}, {g.origin})",
             )
         _outputs(parser, "record controller_state to this MCAP bag folder")
 

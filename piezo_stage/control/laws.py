@@ -86,12 +86,16 @@ class GainRow:
     description: str
     unit: str
     range: tuple[float, float]
+    #: where its default comes from
+    origin: str = "the thesis's"
 
     @property
     def default(self) -> float:
-        """The thesis's value (:data:`THESIS_GAINS`)."""
+        """Its value in :data:`THESIS_GAINS`."""
         return float(getattr(THESIS_GAINS, self.name))
 
+
+_SMC_DESIGN = "the sliding-mode design on the thesis's bounds at 1 kHz"
 
 #: every gain a law may read: the controller's gain parameters and the CLI's gain flags
 GAIN_ROWS: tuple[GainRow, ...] = (
@@ -101,8 +105,10 @@ GAIN_ROWS: tuple[GainRow, ...] = (
     GainRow("kA", "time-varying sine gain kA (pid_tv)", "V/(m s)", (0.0, 1e15)),
     GainRow("A", "sine amplitude A (pid_sine)", "V", (0.0, 1e4)),
     GainRow("f", "sine frequency f", "Hz", (1e-6, 1e6)),
-    GainRow("ks", "switching gain ks (smc)", "V", (0.0, 1e4)),
-    GainRow("phi", "boundary layer phi of s = x2 + (k1/k2) x1 (smc)", "m/s", (1e-9, 1e6)),
+    GainRow("ks", "switching gain ks (smc)", "V", (0.0, 1e4), _SMC_DESIGN),
+    GainRow(
+        "phi", "boundary layer phi of s = x2 + (k1/k2) x1 (smc)", "m/s", (1e-9, 1e6), _SMC_DESIGN
+    ),
 )
 
 #: (k0, k1, k2) of the linear loop at one sample

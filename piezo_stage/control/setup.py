@@ -22,7 +22,7 @@ from .controller import ControllerConfig
 from .errors import ControlError
 from .feedforward import Compensation, FeedforwardError, FeedforwardModel, check_learning
 from .law_settings import LawSettings
-from .laws import Gains
+from .laws import GAIN_ROWS, Gains
 from .learning import (
     FeedforwardForm,
     FeedforwardTable,
@@ -76,14 +76,7 @@ def law_config(
     try:
         config = ControllerConfig(
             mode=s.mode,
-            gains=Gains(
-                k0=float(s.k0),
-                k1=float(s.k1),
-                k2=float(s.k2),
-                kA=float(s.kA),
-                A=float(s.A),
-                f=float(s.f),
-            ),
+            gains=Gains(**{g.name: float(getattr(s, g.name)) for g in GAIN_ROWS}),
             u_min=float(s.u_min) - bias,
             u_max=float(s.u_max) - bias,
             anti_windup=s.anti_windup,
