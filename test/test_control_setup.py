@@ -48,6 +48,16 @@ def test_every_setting_the_setup_reads_is_a_parameter_of_the_node():
         assert choices is None or choices is kind or (kind is str and choices is LAW_NAMES), name
 
 
+def test_every_gain_parameter_reaches_the_law():
+    """Each gain row of the node's table is the law's gain of that name (smc's ks and phi
+    too, which no thesis law reads)."""
+    from piezo_stage.control.laws import GAIN_ROWS
+
+    values = {g.name: g.default * 1.5 + 1.0 for g in GAIN_ROWS}
+    config = law_config(settings(mode="smc", **values))
+    assert config.gains.to_dict() == pytest.approx(values, rel=1e-15)
+
+
 def test_the_law_works_in_volts_less_u_bias():
     """u_min, u_max and hold_voltage are amplifier volts; the law's frame subtracts u_bias,
     the supervision (which writes the amplifier) keeps volts."""
