@@ -304,6 +304,10 @@ RUN: dict[str, Expect] = {
     ),
     "piezo-stage gains --bounds my_rig_bounds.yaml --k1 5e6 --rate-hz 20000 --delay-samples 1 "
     "--json": Expect(code=1, check=_unstable_at_20khz),
+    "piezo-stage gains --k1 5e6 --law smc --rate-hz 1000 --delay-samples 1": Expect(
+        out=(r"ks = 53\.614", r"phi = 0\.32\d*", r"phi designed", r"STABLE", r"gains VALID")
+    ),
+    "python bench/laws.py": Expect(out=(r"\| `smc` \| [\d.]+", r"\| `pid_tv` \|"), timeout=600),
     # commissioning: minutes of simulated stage each
     "piezo-stage commission out/ --param plant.model_file:=my_plant.yaml": Expect(
         out=(r"PIEZO_QUICK=1: the sweep at 50, 100 Hz only",),

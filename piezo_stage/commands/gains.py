@@ -52,6 +52,7 @@ from piezo_stage.control.laws import (
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
+LAW_RULE = "the law's design rule"
 #: the gains of laws beyond the thesis's (flags of their own, designed by the law when not given)
 _OWN_ROWS = tuple(r for r in GAIN_ROWS if r.name not in ("k0", "k1", "k2", "kA", "A", "f"))
 _BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
@@ -291,7 +292,7 @@ def _print_table(
         print(f"  {name} = {_fmt(value):<12} {_UNITS.get(name, '')}")
     rules = {"k2": f"(1 + {margin:g}) k2_min", "k0": f"(1 - {margin:g}) k0_max"}
     for name in designed:
-        print(f"  {name} designed: {rules.get(name, 'the law design rule')}")
+        print(f"  {name} designed: {rules.get(name, LAW_RULE)}")
     print(f"  gains {'VALID' if report.valid else 'NOT VALID'}")
     for reason in report.reasons:
         print(f"    - {reason}")
