@@ -180,6 +180,14 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
     assert d.theorem4.valid and d.gains.k2 > d.theorem4.k2_min and d.gains.k0 < d.theorem4.k0_max
     assert d.rate_hz in design.RATE_CANDIDATES
     assert check_sampled_loop(nominal, Gains(**d.gains.to_dict()), d.rate_hz, 0, "pid_tv").stable
+    # every law's own gains, by its rule, for this rig: smc's switching gain and layer
+    from piezo_stage.control.sliding import stable_layer, switching_gain
+
+    assert d.own == ("ks", "phi") and d.not_designed == {}
+    assert d.gains.ks == pytest.approx(switching_gain(b, 0.1))
+    assert d.gains.phi == pytest.approx(stable_layer(nominal, d.gains, d.rate_hz, 0))
+    assert check_sampled_loop(nominal, d.gains, d.rate_hz, 0, "smc").stable
+    assert {"ks", "phi"} <= set(d.to_dict()["gains"])
     with pytest.raises(design.DesignError, match="unstable"):
         design.design_gains(b, nominal, rate_hz=20e3, delay_samples=0)
 
@@ -192,6 +200,8 @@ def test_procedure_writes_the_files_and_resumes(tmp_path):
     assert summary["identified"]["m"] == pytest.approx(TRUTH_DYN.m, rel=0.1)
     for key in ("parameter_set", "bounds", "controller", "report"):
         assert Path(summary["files"][key]).is_file()
+    params = design.read_controller_params(Path(summary["files"]["controller"]))
+    assert params["mode"] == "pid_tv" and params["ks"] > TRUTH.kappa_w and params["phi"] > 0
     from piezo_stage.control.bounds import load_bounds
     from piezo_stage.model.parameter_set import load_parameter_set
 

@@ -41,8 +41,8 @@ from piezo_stage.control.discrete import (
 )
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.laws import (
-    GAIN_ROWS,
     LAW_NAMES,
+    OWN_GAIN_ROWS,
     PID,
     Gains,
     LoopContext,
@@ -53,8 +53,7 @@ from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_ga
 
 DEFAULT_GAIN_MARGIN = 0.1  # as `commission --gain-margin`
 LAW_RULE = "the law's design rule"
-#: the gains of laws beyond the thesis's (flags of their own, designed by the law when not given)
-_OWN_ROWS = tuple(r for r in GAIN_ROWS if r.name not in ("k0", "k1", "k2", "kA", "A", "f"))
+
 _BOUND_FLAGS = ("m_min", "m_max", "c_max", "kappa_x_max", "kappa_w_max", "sigma_max", "rho_max")
 _NOMINAL_FLAGS = ("m", "c", "kappa_x", "kappa_w", "rho")
 _UNITS = {
@@ -118,7 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--f", dest="f", type=physical, default=None, help="sine frequency f of (11.17-11.18) [Hz]"
     )
-    for row in _OWN_ROWS:
+    for row in OWN_GAIN_ROWS:
         g.add_argument(
             f"--{row.name}",
             type=physical,
@@ -212,7 +211,7 @@ def _own_gains(
     the names of its own gains it designed."""
     if report.k2 is None or report.k0 is None:  # k2 <= k2_min: no k0 to design or check
         return report, None, []
-    own = {row.name: getattr(args, row.name) for row in _OWN_ROWS}
+    own = {row.name: getattr(args, row.name) for row in OWN_GAIN_ROWS}
     given = {k: v for k, v in own.items() if v is not None}
     extra = {"kA": report.kA or 0.0, **({"f": report.f} if report.f is not None else {})}
     gains = Gains(k0=report.k0, k1=report.k1, k2=report.k2, **extra, **given)
@@ -328,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     reads = law_named(args.law).gains
-    own = {r.name: getattr(gains, r.name) for r in _OWN_ROWS if gains and r.name in reads}
+    own = {r.name: getattr(gains, r.name) for r in OWN_GAIN_ROWS if gains and r.name in reads}
     if args.json:
         out = {
             "bounds_file": str(path),

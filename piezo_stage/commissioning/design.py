@@ -16,13 +16,21 @@ the graph's delay.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from piezo_stage.control.bounds import Bounds, NominalPlant
 from piezo_stage.control.discrete import SampledLoopReport, check_sampled_loop
-from piezo_stage.control.laws import PID_TV, Gains
+from piezo_stage.control.errors import ControlError
+from piezo_stage.control.laws import (
+    LAW_NAMES,
+    OWN_GAIN_ROWS,
+    PID_TV,
+    Gains,
+    LoopContext,
+    law_named,
+)
 from piezo_stage.control.theorem4 import GainReport, k0_max, k2_min, validate_gains
 
 from .errors import CommissioningError
@@ -80,11 +88,21 @@ class GainDesign:
     theorem4: GainReport
     sampled: SampledLoopReport
     tried: tuple[tuple[float, float], ...]  #: (rate, spectral radius) of each rate checked
+    own: tuple[str, ...] = ()  #: the laws' own gains designed (:func:`own_gains`)
+    not_designed: dict[str, str] = field(default_factory=dict)  #: law: why its rule found none
 
     def to_dict(self) -> dict[str, Any]:
         g = self.gains
         return {
-            "gains": {"k0": g.k0, "k1": g.k1, "k2": g.k2, "kA": g.kA, "f": g.f},
+            "gains": {
+                "k0": g.k0,
+                "k1": g.k1,
+                "k2": g.k2,
+                "kA": g.kA,
+                "f": g.f,
+                **{name: getattr(g, name) for name in self.own},
+            },
+            "not_designed": dict(self.not_designed),
             "rate_hz": self.rate_hz,
             "delay_samples": self.delay_samples,
             "k2_min": self.theorem4.k2_min,
@@ -127,12 +145,38 @@ def design_gains(
         sampled = check_sampled_loop(nominal, gains, rate, delay_samples, PID_TV.name)
         tried.append((rate, float(sampled.spectral_radius)))
         if sampled.stable:
-            return GainDesign(gains, rate, delay_samples, report, sampled, tuple(tried))
+            loop = LoopContext(nominal, rate, delay_samples)
+            own, why = own_gains(bounds, gains, gain_margin, loop)
+            return GainDesign(
+                replace(gains, **own),
+                rate,
+                delay_samples,
+                report,
+                sampled,
+                tuple(tried),
+                tuple(own),
+                why,
+            )
     text = ", ".join(f"{r:g} Hz: {s:.6f}" for r, s in tried)
     raise DesignError(
         f"the sampled loop of pid_tv with delay {delay_samples} is unstable at every rate "
         f"checked (spectral radius per sample: {text}); the loop must run faster"
     )
+
+
+def own_gains(
+    bounds: Bounds, gains: Gains, margin: float, loop: LoopContext
+) -> tuple[dict[str, float], dict[str, str]]:
+    """Every registered law's own gains by its design rule (:meth:`ControlLaw.design`) beside
+    ``gains``, and the laws whose rule finds none, with why."""
+    own: dict[str, float] = {}
+    why: dict[str, str] = {}
+    for name in LAW_NAMES:
+        try:
+            own.update(law_named(name).design(bounds, gains, margin, loop, set(own)))
+        except ControlError as exc:
+            why[name] = str(exc)
+    return own, why
 
 
 def write_bounds(
@@ -170,6 +214,7 @@ def write_controller_params(
         "k2": g.k2,
         "kA": g.kA,
         "f": g.f,
+        **{row.name: getattr(g, row.name) for row in OWN_GAIN_ROWS if row.name in design.own},
         "rate_hz": design.rate_hz,
         "delay_samples": design.delay_samples,
         "trigger": trigger,

@@ -111,6 +111,10 @@ GAIN_ROWS: tuple[GainRow, ...] = (
     ),
 )
 
+#: the gains of the thesis's laws; the other rows are gains laws beyond them design themselves
+THESIS_GAIN_NAMES = ("k0", "k1", "k2", "kA", "A", "f")
+OWN_GAIN_ROWS = tuple(r for r in GAIN_ROWS if r.name not in THESIS_GAIN_NAMES)
+
 #: (k0, k1, k2) of the linear loop at one sample
 LinearGains = tuple[float, float, float]
 
