@@ -64,8 +64,7 @@ _UNITS = {
     "kappa_w_max": "V",
     "sigma_max": "-",
     "rho_max": "1/m",
-    "ks": "V",
-    "phi": "m/s",
+    **{row.name: row.unit for row in OWN_GAIN_ROWS},
 }
 
 
