@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from _targets import check, exit_code
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -170,7 +171,37 @@ def main() -> int:
             f"| {span([f.rms_fb for f in figs], '.2f')} "
             f"| {span([f.rms_ff for f in figs], '.2f')} |"
         )
-    return 0
+    judge(rows)
+    return exit_code()
+
+
+def judge(rows: dict[str, list[Figures]]) -> None:
+    """The targets for a law beyond the thesis's three, each on the worst of its seeds against
+    the best of the reference's: the perturbation at the experiment's rate settled at least
+    2× faster than pid_tv with |Δu| ≤ 1 % and no more total variation; the triangle with
+    feedback only at least 2× better than the best of pid and pid_tv."""
+    thesis = ("pid", "pid_sine", "pid_tv")
+    tv_ref = rows["pid_tv"]
+    track_ref = min(f.rms_fb for m in ("pid", "pid_tv") for f in rows[m])
+    for mode, figs in rows.items():
+        if mode in thesis:
+            continue
+        check(
+            f"{mode}: settling / pid_tv's",
+            max(f.settling[0] for f in figs) / min(f.settling[0] for f in tv_ref),
+            0.5,
+        )
+        check(f"{mode}: |Δu|", max(abs(f.du[0]) for f in figs) * 100, 1.0, "%")
+        check(
+            f"{mode}: total variation / pid_tv's",
+            max(f.tv[0] for f in figs) / min(f.tv[0] for f in tv_ref),
+            1.0,
+        )
+        check(
+            f"{mode}: triangle RMS, feedback only / the best of pid and pid_tv",
+            max(f.rms_fb for f in figs) / track_ref,
+            0.5,
+        )
 
 
 if __name__ == "__main__":

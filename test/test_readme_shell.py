@@ -307,7 +307,6 @@ RUN: dict[str, Expect] = {
     "piezo-stage gains --k1 5e6 --law smc --rate-hz 1000 --delay-samples 1": Expect(
         out=(r"ks = 53\.614", r"phi = 0\.32\d*", r"phi designed", r"STABLE", r"gains VALID")
     ),
-    "python bench/laws.py": Expect(out=(r"\| `smc` \| [\d.]+", r"\| `pid_tv` \|"), timeout=600),
     # commissioning: minutes of simulated stage each
     "piezo-stage commission out/ --param plant.model_file:=my_plant.yaml": Expect(
         out=(r"PIEZO_QUICK=1: the sweep at 50, 100 Hz only",),
@@ -414,6 +413,10 @@ EXCLUDED: dict[str, str] = {
         "a benchmark (minutes, the whole CPU): its figures are measured on a quiet machine"
     ),
     "python bench/tracking.py": "a benchmark: its figures are measured on a quiet machine",
+    "python bench/laws.py": (
+        "a benchmark that states targets (exit 1 where one is missed): test/test_control_"
+        "sliding.py checks the sliding-mode law's parts and its perturbation in the core"
+    ),
     "piezo-stage launch rig_scanner --stage my_scanner.yaml "
     "--param voltage_driver.url:=tcp://192.168.0.21:50000": (
         "a real scanner: an amplifier at 192.168.0.21 and sensors (config/rig_devices.yaml)"
