@@ -34,8 +34,8 @@ LAYER_SIGMAS = 3.0
 #: the sampled loop inside the layer: its spectral radius at most this share of the way from
 #: the PID part's to 1 (a linear check at the layer's largest gain does not bound the loop's
 #: behaviour between no gain and that one: at 1 kHz with a one-sample delay, a layer at
-#: radius 0.972 chatters where the PID's is 0.932; one share of 0.1 keeps the voltage's
-#: total variation the PID's, tests/test_control_sliding.py)
+#: radius 0.972 chatters where the PID's is 0.932; a share of 0.1 keeps the voltage's
+#: total variation the PID's, test/test_control_sliding.py)
 LAYER_SHARE = 0.1
 MAX_HALVINGS = 60
 
