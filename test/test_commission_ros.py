@@ -12,6 +12,8 @@ import sys
 
 import pytest
 
+from piezo_stage.control.laws import OWN_GAIN_ROWS
+
 pytestmark = pytest.mark.ros
 
 
@@ -74,7 +76,9 @@ def test_emulated_rig_commissions_with_physical_m_and_c(tmp_path):
         "rho_max",
     }
     assert s["rate_hz"] == 1000.0 and s["spectral_radius"] < 1.0
-    assert set(s["gains"]) == {"k0", "k1", "k2", "kA", "f"}
+    own = {row.name for row in OWN_GAIN_ROWS}  # every law's own gains, designed for this rig
+    assert set(s["gains"]) == {"k0", "k1", "k2", "kA", "f"} | own
+    assert s["gains"]["ks"] > s["bounds"]["kappa_w_max"] and s["gains"]["phi"] > 0
     loop = s["closed_loop"]
     assert abs(loop["u_after"] - loop["u_before"]) <= 0.01 * abs(loop["u_before"])
     assert loop["settling_time"] >= 0.0
