@@ -188,6 +188,22 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
     assert d.gains.phi == pytest.approx(stable_layer(nominal, d.gains, d.rate_hz, 0))
     assert check_sampled_loop(nominal, d.gains, d.rate_hz, 0, "smc").stable
     assert {"ks", "phi"} <= set(d.to_dict()["gains"])
+    # a law whose rule finds nothing for this rig is named with why; the others are designed
+    from piezo_stage.control.errors import GainError
+    from piezo_stage.control.laws import LoopContext, Pid, register, unregister
+
+    class Undesignable(Pid):
+        name = "undesignable"
+
+        def design(self, bounds, gains, margin, loop, given):
+            raise GainError("nothing to design from")
+
+    register(Undesignable())
+    try:
+        own, why = design.own_gains(b, d.gains, 0.1, LoopContext(nominal, d.rate_hz, 0))
+    finally:
+        unregister("undesignable")
+    assert why == {"undesignable": "nothing to design from"} and set(own) == {"ks", "phi"}
     with pytest.raises(design.DesignError, match="unstable"):
         design.design_gains(b, nominal, rate_hz=20e3, delay_samples=0)
 

@@ -25,7 +25,6 @@ from piezo_stage.control.discrete import SampledLoopReport, check_sampled_loop
 from piezo_stage.control.errors import ControlError
 from piezo_stage.control.laws import (
     LAW_NAMES,
-    OWN_GAIN_ROWS,
     PID_TV,
     Gains,
     LoopContext,
@@ -214,7 +213,7 @@ def write_controller_params(
         "k2": g.k2,
         "kA": g.kA,
         "f": g.f,
-        **{row.name: getattr(g, row.name) for row in OWN_GAIN_ROWS if row.name in design.own},
+        **{name: getattr(g, name) for name in design.own},
         "rate_hz": design.rate_hz,
         "delay_samples": design.delay_samples,
         "trigger": trigger,
