@@ -20,6 +20,7 @@ from piezo_stage.identification.synthetic import CH9_EXAMPLE, triangle_pair
 from piezo_stage.model.bouc_wen import BoucWenParameters
 from piezo_stage.model.parameter_set import load_parameter_set
 from piezo_stage.nodes.qos import COMMAND_QOS, LATCHED_QOS
+from piezo_stage.nodes.runtime import MATCH_SETTLE
 
 from ros_support import spin_until, start_node, stop
 
@@ -74,7 +75,7 @@ def ch9_cycles():
 
 def _publish_when_matched(node, pub, msgs) -> None:
     assert spin_until(node, lambda: pub.get_subscription_count() > 0, 60.0)
-    spin_until(node, lambda: False, 0.5)  # both sides of the match settled
+    spin_until(node, lambda: False, MATCH_SETTLE)  # both sides of the match settled
     for k, msg in enumerate(msgs):
         msg.header.stamp.sec = 1 + k
         pub.publish(msg)
@@ -226,3 +227,24 @@ def test_a_cycle_arriving_during_the_identification_starts_no_second_one(node, c
         monkeypatch.undo()
         executor.remove_node(identifier)
         identifier.destroy_node()
+
+
+def test_a_replay_that_never_reaches_the_identifier_ends_with_what_it_listened_to():
+    """``on_done: exit`` with ``wait_timeout``: nothing received within it is a failure (exit 1)
+    naming the topic and its publishers, not a run that waits for ever."""
+    proc = start_node(
+        "identifier",
+        "cycles_from:=topic",
+        "on_done:=exit",
+        "wait_timeout:=1.0",
+        namespace="/never_fed",
+    )
+    try:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        out, err = stop(proc)
+    err = out + err
+    assert proc.returncode == 1, err[-3000:]
+    line = next(x for x in err.splitlines() if "identification failed" in x)
+    assert "nothing received within wait_timeout = 1 s on /never_fed/limit_cycles" in line, err
+    assert "(0 publisher(s))" in line, line

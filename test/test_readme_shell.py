@@ -602,6 +602,15 @@ class _Running:
             time.sleep(0.1)
         return False
 
+    def wait_exit(self, timeout: float) -> bool:
+        """Whether it ended by itself within ``timeout``, its output then read to the end."""
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return False
+        self._reader.join(5.0)
+        return True
+
     def stop(self, timeout: float = 60.0) -> int:
         """Ctrl-C (SIGINT to the group); SIGKILL if it outlives ``timeout``."""
         if self.proc.poll() is None:
@@ -632,16 +641,11 @@ def _run(command: Command, expect: Expect, folder: Path) -> str:
             ready = RUN[expect.beside].ready
             assert ready and helper.wait_for(ready, expect.timeout), helper.output[-3000:]
         if expect.ready is None:
-            proc = subprocess.run(
-                ["bash", "-c", command.text],
-                cwd=folder,
-                env=env,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-                timeout=expect.timeout,
-            )
-            out, code = proc.stdout, proc.returncode
+            running = _Running(command.text, folder, env)
+            ended = running.wait_exit(expect.timeout)
+            code = running.stop()  # a command still running after its time: what it said
+            out = running.output
+            assert ended, f"{where}: still running after {expect.timeout:g} s:\n{out[-3000:]}"
         else:
             running = _Running(command.text, folder, env)
             try:

@@ -261,6 +261,15 @@ PARAMETERS = ParameterTable(
             read_only=True,
         ),
         Param(
+            "wait_timeout",
+            0.0,
+            "with on_done=exit: wall seconds to wait for the first sample or cycle; nothing "
+            "received by then is a failure that names the topics and their publishers (exit 1; "
+            "0 = wait for ever, as a live node does)",
+            "s",
+            (0.0, 3600.0),
+        ),
+        Param(
             "settle_time",
             10.0,
             "wall seconds of silent streams (on use_sim_time, with the clock standing still "
@@ -351,6 +360,7 @@ class IdentifierNode(PiezoNode):
         self._conclude_background()
         self._process_completed()
         self._check_cycles_silence()
+        self._check_nothing_received()
 
     # ------------------------------------------------------------------ data
     def _reset(self) -> None:
@@ -362,6 +372,7 @@ class IdentifierNode(PiezoNode):
         self._cycles_received = self._cycles_refused = 0
         self._refusal = ""  # why the last refused cycle was refused
         self._last_cycle: float | None = None  # monotonic time the last cycle was received
+        self._waiting_since = time.monotonic()  # for the first sample or cycle
 
     def _on_voltage(self, msg: Voltage) -> None:
         self._voltage.t.append(stamp_seconds(msg.header.stamp))
@@ -431,6 +442,35 @@ class IdentifierNode(PiezoNode):
             f"received, none for {self.settings.settle_time:g} s: the analytic method needs "
             f"two of different offsets (x(t) and x(t)+q){refused}"
         )
+        self._done(1)
+
+    def _check_nothing_received(self) -> None:
+        """``on_done: exit`` and ``wait_timeout`` > 0: no sample and no cycle within it is a
+        failure (status 1) naming what it listened to, so a replay whose messages never reach
+        this node ends and says so instead of waiting for ever."""
+        timeout = self.settings.wait_timeout
+        if (
+            not timeout
+            or self.settings.on_done is not OnDone.EXIT
+            or self._attempted
+            or self.result is not None
+            or self._cycles_received
+            or self._voltage.t
+            or self._displacement.t
+            or time.monotonic() - self._waiting_since < timeout
+        ):
+            return
+        self._attempted = True
+        topics = [*(self._streams if self._cycles_from.streams else ()), "limit_cycles"]
+        if not self._cycles_from.topic:
+            topics.remove("limit_cycles")
+        own = {"limit_cycles": 1}  # this node publishes its own cycles there
+        heard = ", ".join(
+            f"{self.resolve_topic_name(t)} ({self.count_publishers(t) - own.get(t, 0)} "
+            "publisher(s))"
+            for t in topics
+        )
+        self._set_error(f"nothing received within wait_timeout = {timeout:g} s on {heard}")
         self._done(1)
 
     def _process_completed(self) -> None:

@@ -48,7 +48,7 @@ from piezo_stage.bag.playback import PlaybackClock, PlaybackError, parse_remaps
 from .base import PiezoNode
 from .errors import RosParameterError
 from .qos import COMMAND_QOS
-from .runtime import DEFAULT_NAMESPACE, run, subscribers_matched
+from .runtime import DEFAULT_NAMESPACE, MATCH_SETTLE, run, subscribers_matched
 from .settings import PlayerSettings
 from .spec import Kind, Param, ParameterTable
 from .topics import MessageTypeError, message_type
@@ -166,7 +166,8 @@ PARAMETERS = ParameterTable(
         Param(
             "wait_for_subscribers",
             0,
-            "before playing, wait until every topic has this many subscribers",
+            "before playing, wait until every topic has this many subscribers (then half a "
+            "second more: a subscriber that has not matched the player yet drops what it gets)",
             range=(0, 1000),
             read_only=True,
         ),
@@ -392,6 +393,9 @@ class PlayerNode(PiezoNode):
             if subscribers_matched(
                 [o.publisher for o in self._outputs.values()], self.wait_for_subscribers
             ):
+                settled = time.monotonic() + MATCH_SETTLE
+                while not self._stop and time.monotonic() < settled:
+                    time.sleep(0.02)
                 return
             time.sleep(0.02)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")

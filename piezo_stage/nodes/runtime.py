@@ -71,6 +71,9 @@ def subscribers_matched(publishers: Sequence[Any], count: int) -> bool:
     return all(pub.get_subscription_count() >= count for pub in publishers)
 
 
+#: wall seconds given to the subscribers' side of a match once the writer has matched them: a
+#: reader that has not matched the writer yet drops what it receives from it
+MATCH_SETTLE = 0.5
 #: wall seconds a stopping node gives its reliable subscribers to acknowledge what it published
 EXIT_ACK_TIMEOUT = 2.0
 #: periodic status topics, superseded by their next message: not waited for on shutdown

@@ -155,6 +155,7 @@ class IdentifierSettings:
     name: str
     stream_qos: StreamQos
     on_done: IdentifierOnDone
+    wait_timeout: float
     settle_time: float
 
 
