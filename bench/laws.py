@@ -4,7 +4,9 @@
 Pure core: the controller (control/controller.py) sampled against the model's DynamicPlant of
 ``config/ch11_rig.yaml``, its measurement with white sensor noise (three seeds);
 each law with the package's gains (``THESIS_GAINS``: the thesis's, and the sliding-mode design
-on the thesis's bounds at 1 kHz), u within ±450 V.
+on the thesis's bounds at 1 kHz), except the gains a law designs for the loop it runs in
+(``RUN_DESIGNED``, by the law's own rule on the thesis's bounds and nominal plant at the run's
+rate, no delay, and its sensor noise: smc's layer φ and dead band δ), u within ±450 V.
 
 - Perturbation (§11.5, as ``experiment perturbation``, whose figures it gives without noise):
   at rest at 200 V, the loop opened 10 ms at 72 V and closed again with x0 = 0, 0.4 s in all;
@@ -24,7 +26,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +35,21 @@ from _targets import check, exit_code
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from piezo_stage.control.bounds import (  # noqa: E402
+    THESIS_NOMINAL_PLANT,
+    load_bounds,
+    thesis_bounds_path,
+)
 from piezo_stage.control.controller import ControllerConfig, OnClose, TimeVaryingPID  # noqa: E402
 from piezo_stage.control.feedforward import FeedforwardModel  # noqa: E402
-from piezo_stage.control.laws import LAW_NAMES, THESIS_GAINS  # noqa: E402
+from piezo_stage.control.laws import (  # noqa: E402
+    GAIN_ROWS,
+    LAW_NAMES,
+    THESIS_GAINS,
+    Gains,
+    LoopContext,
+    law_named,
+)
 from piezo_stage.control.simulation import simulate_closed_loop  # noqa: E402
 from piezo_stage.control.trajectory import PeriodicTrajectory  # noqa: E402
 from piezo_stage.model.parameter_set import shipped_parameter_set  # noqa: E402
@@ -46,6 +60,16 @@ EXPERIMENT_RATE = 100e3  # experiment perturbation's
 RIG = shipped_parameter_set("ch11_rig")
 U_SET, U_OPEN, T_OPEN, OPEN_FOR, DURATION = 200.0, 72.0, 0.005, 0.010, 0.4
 AMPLITUDE, OFFSET, FREQUENCY, PERIODS = 10e-6, 16e-6, 10.0, 3
+#: gains a law's design rule takes from the run's loop (the others: THESIS_GAINS)
+RUN_DESIGNED = ("phi", "delta")
+
+
+def run_gains(mode: str, rate: float, noise: float) -> Gains:
+    """THESIS_GAINS with what law ``mode`` designs for a loop at ``rate`` with ``noise``."""
+    given = {r.name for r in GAIN_ROWS} - set(RUN_DESIGNED)
+    loop = LoopContext(THESIS_NOMINAL_PLANT, rate, 0, noise=noise)
+    own = law_named(mode).design(load_bounds(thesis_bounds_path()), THESIS_GAINS, 0.1, loop, given)
+    return replace(THESIS_GAINS, **own)
 
 
 class NoisyPlant:
@@ -80,7 +104,7 @@ def perturbation(
     x_eq = U_SET / RIG.bouc_wen.kappa[0]
     config = ControllerConfig(
         mode=mode,
-        gains=THESIS_GAINS,
+        gains=run_gains(mode, rate, noise),
         u_min=-450.0 - U_SET,
         u_max=450.0 - U_SET,
         on_close=OnClose.RESET,
@@ -111,7 +135,7 @@ def tracking(mode: str, noise: float, seed: int, feedforward: bool) -> float:
     u_start = float(FeedforwardModel(bw, 0.0, 0.0).static_force(x_start - bw.y0, 0.0))
     config = ControllerConfig(
         mode=mode,
-        gains=THESIS_GAINS,
+        gains=run_gains(mode, RATE, noise),
         u_min=-450.0,
         u_max=450.0,
         on_close=OnClose.RESET,

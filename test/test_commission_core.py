@@ -183,7 +183,8 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
     # every law's own gains, by its rule, for this rig: smc's switching gain and layer
     from piezo_stage.control.sliding import stable_layer, switching_gain
 
-    assert d.own == ("ks", "phi") and d.not_designed == {}
+    assert d.own == ("ks", "delta", "phi") and d.not_designed == {}
+    assert d.gains.delta == 0.0  # no sensor noise known here: no dead band
     assert d.gains.ks == pytest.approx(switching_gain(b, 0.1))
     assert d.gains.phi == pytest.approx(stable_layer(nominal, d.gains, d.rate_hz, 0))
     assert check_sampled_loop(nominal, d.gains, d.rate_hz, 0, "smc").stable
@@ -203,7 +204,7 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
         own, why = design.own_gains(b, d.gains, 0.1, LoopContext(nominal, d.rate_hz, 0))
     finally:
         unregister("undesignable")
-    assert why == {"undesignable": "nothing to design from"} and set(own) == {"ks", "phi"}
+    assert why == {"undesignable": "nothing to design from"} and set(own) == {"ks", "delta", "phi"}
     with pytest.raises(design.DesignError, match="unstable"):
         design.design_gains(b, nominal, rate_hz=20e3, delay_samples=0)
 

@@ -13,7 +13,7 @@ give ≈ 515.9 and ≈ 1.515e9 for its bounds (docs/design.md §7).
 Design: a k2 or k0 not given is designed from k1 strictly inside Theorem 4, as `commission`
 does: k2 = (1 + G) k2_min, k0 = (1 - G) k0_max (--gain-margin G, default 0.1); the output
 marks them as designed, and --rate-hz checks the sampled loop of those gains. A law's own gains
-(--law smc: ks, phi) not given come from its design rule on the same bounds, the sampled loop
+(--law smc: ks, phi, delta) not given come from its design rule on the same bounds, the sampled loop
 (--rate-hz) and the sensor noise (--noise); the verdict is the law's condition.
 """
 

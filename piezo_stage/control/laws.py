@@ -40,11 +40,11 @@ Value = NDArray[np.float64] | float
 @dataclass(frozen=True)
 class Gains:
     """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V],
-    f [Hz]; of the sliding-mode law (:mod:`.sliding`): ks [V], phi [m/s].
+    f [Hz]; of the sliding-mode law (:mod:`.sliding`): ks [V], phi [m/s], delta [m/s].
 
     Thesis values (§11.4.1, §11.5.3): k1 = 5e6, k2 = 580, k0 = 1e9, kA = 1.5e9, f = 100 Hz;
     §11.5.2 uses A = 15 V with f = 10 Hz. ks and phi: the sliding-mode design on the thesis's
-    bounds at 1 kHz (``piezo-stage gains --law smc``).
+    bounds at 1 kHz (``piezo-stage gains --law smc``; no sensor noise given: delta = 0).
     """
 
     k0: float
@@ -55,6 +55,7 @@ class Gains:
     f: float = 100.0
     ks: float = 0.0
     phi: float = 1.0
+    delta: float = 0.0
 
     def validate(self, mode: str = "pid") -> None:
         """Raise :class:`GainError` for non-finite or negative gains, or what law ``mode``
@@ -64,7 +65,7 @@ class Gains:
         for key, value in asdict(self).items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise GainError(f"gain {key} must be a finite number, got {value!r}")
-        for key in ("k0", "k1", "k2", "kA", "A", "ks"):
+        for key in ("k0", "k1", "k2", "kA", "A", "ks", "delta"):
             if getattr(self, key) < 0:
                 raise GainError(f"gain {key} must be >= 0, got {getattr(self, key)}")
         law.check(self)
@@ -108,6 +109,13 @@ GAIN_ROWS: tuple[GainRow, ...] = (
     GainRow("ks", "switching gain ks (smc)", "V", (0.0, 1e4), _SMC_DESIGN),
     GainRow(
         "phi", "boundary layer phi of s = x2 + (k1/k2) x1 (smc)", "m/s", (1e-9, 1e6), _SMC_DESIGN
+    ),
+    GainRow(
+        "delta",
+        "dead band of s where smc does not switch (the sensor noise on s)",
+        "m/s",
+        (0.0, 1e6),
+        _SMC_DESIGN,
     ),
 )
 

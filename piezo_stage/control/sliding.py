@@ -1,16 +1,18 @@
 """Sliding-mode law with a boundary layer on the tracking error of (11.4), ``smc``.
 
     s = x2 + λ·x1,  λ = k1/k2
-    u = −k0·x0 − k1·x1 − k2·x2 − ks·sat(s/φ),  sat(z) = max(−1, min(1, z))
+    u = −k0·x0 − k1·x1 − k2·x2 − ks·sat(dz(s)/φ),  dz(s) = sign(s)·max(|s| − δ, 0),
+    sat(z) = max(−1, min(1, z))
 
 The PID of (11.5) plus a switching term. In the normalized Bouc-Wen model (11.2)-(11.3) |w| ≤ 1
 for w(0) in [−1, 1], so the hysteretic force κw·w is bounded by κw_max (Assumption 2): a
-switching gain ks > κw_max dominates it wherever |s| > φ (the reaching condition s·ṡ < 0 for
-that part of the force), :func:`switching_gain`. Inside the layer the term is linear, ks·s/φ,
-and the loop holds the PID with k1 + ks·λ/φ and k2 + ks/φ: the sampled-loop check takes those
-(the law's largest linear gains), so the layer is bounded below twice: by the sensor noise
-on s (:func:`noise_layer`, no switching on noise) and by the sampled loop's stability at the
-rate it runs (:func:`stable_layer`).
+switching gain ks > κw_max dominates it wherever |s| > δ + φ (the reaching condition s·ṡ < 0
+for that part of the force), :func:`switching_gain`. Within the dead band |s| ≤ δ the law is
+the PID: δ holds the sensor noise on s (:func:`noise_layer`), so noise does not switch (each
+switch of noise would add to the voltage's total variation). Beyond it the term is linear
+over the layer φ, where the loop holds the PID with k1 + ks·λ/φ and k2 + ks/φ: the sampled-loop
+check takes those and the PID's, and φ is bounded below by the sampled loop's stability at
+the rate it runs (:func:`stable_layer`).
 """
 
 from __future__ import annotations
@@ -49,16 +51,19 @@ class SlidingMode(Pid):
     """The sliding-mode law of the module docstring."""
 
     name = "smc"
-    equation = "smc (sliding mode): u = -k0 x0 - k1 x1 - k2 x2 - ks sat(s/phi), s = x2 + (k1/k2) x1"
-    gains = ("k0", "k1", "k2", "ks", "phi")
+    equation = (
+        "smc (sliding mode): u = -k0 x0 - k1 x1 - k2 x2 - ks sat(dz(s)/phi), s = x2 + (k1/k2) x1,"
+        " dz: dead band delta"
+    )
+    gains = ("k0", "k1", "k2", "ks", "phi", "delta")
 
     def split(
         self, gains: Gains, t: ArrayLike, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike
     ) -> tuple[Value, Value]:
-        """(the PID of (11.5), −ks·sat(s/φ))."""
+        """(the PID of (11.5), −ks·sat(dz(s)/φ))."""
         u_pid, _ = super().split(gains, t, x0, x1, x2)
         s = _num(x2) + gains.k1 / gains.k2 * _num(x1)
-        return u_pid, -gains.ks * _sat(s / gains.phi)
+        return u_pid, -gains.ks * _sat(_dead_band(s, gains.delta) / gains.phi)
 
     def check(self, gains: Gains) -> None:
         """k2 > 0 (λ = k1/k2) and φ > 0."""
@@ -76,7 +81,8 @@ class SlidingMode(Pid):
                 notes=(
                     *report.notes,
                     f"ks = {gains.ks:.6g} V > kappa_w_max = {bounds.kappa_w_max:.6g} V: the "
-                    f"switching dominates kappa_w w outside |s| <= phi = {gains.phi:.6g} m/s",
+                    f"switching dominates kappa_w w outside |s| <= delta + phi = "
+                    f"{gains.delta + gains.phi:.6g} m/s",
                 ),
             )
         why = (
@@ -86,26 +92,32 @@ class SlidingMode(Pid):
         return replace(report, valid=False, reasons=(*report.reasons, why))
 
     def sampled_gains(self, gains: Gains, rate_hz: float, most: int) -> list[LinearGains]:
-        """Inside the layer: (k0, k1 + ks·λ/φ, k2 + ks/φ), the law's largest linear gains."""
+        """Inside the layer: (k0, k1 + ks·λ/φ, k2 + ks/φ), the law's largest linear gains; with
+        a dead band also the PID's, the loop within it.
+        """
         self.check(gains)
-        return [layer_gains(gains)]
+        inside = [(gains.k0, gains.k1, gains.k2)] if gains.delta > 0 else []
+        return [*inside, layer_gains(gains)]
 
     def design(
         self, bounds: Bounds, gains: Gains, margin: float, loop: LoopContext, given: set[str]
     ) -> dict[str, float]:
-        """The switching gain by :func:`switching_gain`; φ the larger of :func:`noise_layer`
-        and :func:`stable_layer` (each where ``loop`` holds what it needs).
+        """The switching gain by :func:`switching_gain`; δ by :func:`noise_layer` (0 with no
+        noise given); φ by :func:`stable_layer` with a nominal plant, else the noise layer.
         """
         out: dict[str, float] = {}
         if "ks" not in given:
             out["ks"] = switching_gain(bounds, margin)
+        noise = None
+        if loop.noise > 0 and loop.rate_hz:
+            lam = gains.k1 / gains.k2
+            noise = noise_layer(loop.noise, loop.rate_hz, loop.derivative_tau, lam)
+        if "delta" not in given:
+            out["delta"] = noise or 0.0
         if "phi" in given:
             return out
         ks = out.get("ks", gains.ks)
-        layers = []
-        if loop.noise > 0 and loop.rate_hz:
-            lam = gains.k1 / gains.k2
-            layers.append(noise_layer(loop.noise, loop.rate_hz, loop.derivative_tau, lam))
+        layers = [] if noise is None or loop.plant is not None else [noise]
         if loop.plant is not None and loop.rate_hz:
             g = replace(gains, ks=ks)
             layers.append(
@@ -125,6 +137,15 @@ class SlidingMode(Pid):
             )
         out["phi"] = max(layers)
         return out
+
+
+def _dead_band(s: Value, delta: float) -> Value:
+    """sign(s)·max(|s| − δ, 0), a float for a float."""
+    if not delta:
+        return s
+    if isinstance(s, float):
+        return math.copysign(max(abs(s) - delta, 0.0), s)
+    return np.sign(s) * np.maximum(np.abs(s) - delta, 0.0)
 
 
 def layer_gains(gains: Gains) -> LinearGains:

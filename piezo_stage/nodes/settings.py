@@ -44,6 +44,7 @@ class ControllerSettings:
     f: float
     ks: float
     phi: float
+    delta: float
     u_min: float
     u_max: float
     anti_windup: AntiWindup
