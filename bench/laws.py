@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,7 @@ AMPLITUDE, OFFSET, FREQUENCY, PERIODS = 10e-6, 16e-6, 10.0, 3
 RUN_DESIGNED = ("phi", "delta")
 
 
+@lru_cache(maxsize=None)
 def run_gains(mode: str, rate: float, noise: float) -> Gains:
     """THESIS_GAINS with what law ``mode`` designs for a loop at ``rate`` with ``noise``."""
     given = {r.name for r in GAIN_ROWS} - set(RUN_DESIGNED)

@@ -79,6 +79,13 @@ def test_within_the_dead_band_it_is_the_pid_beyond_it_the_layer_starts_at_zero(x
     assert np.allclose(arrays[1], u_term, rtol=0, atol=1e-12)
 
 
+def test_with_a_dead_band_the_sampled_check_takes_the_pid_within_it_too():
+    k0, k1, k2 = GAINS.k0, GAINS.k1, GAINS.k2
+    assert SLIDING.sampled_gains(GAINS, 1e3, 1) == [layer_gains(GAINS)]
+    banded = replace(GAINS, delta=1e-3)
+    assert SLIDING.sampled_gains(banded, 1e3, 1) == [(k0, k1, k2), layer_gains(banded)]
+
+
 def _noisy_perturbation(mode, gains, rate=100e3, noise=2e-8, seed=0):
     """§11.5 at rest at 200 V (closing with x0 = 0, as ``experiment perturbation``), 20 nm RMS
     of sensor noise: the voltage's total variation after

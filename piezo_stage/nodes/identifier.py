@@ -461,9 +461,8 @@ class IdentifierNode(PiezoNode):
         ):
             return
         self._attempted = True
-        topics = [*(self._streams if self._cycles_from.streams else ()), "limit_cycles"]
-        if not self._cycles_from.topic:
-            topics.remove("limit_cycles")
+        topics = [*(self._streams if self._cycles_from.streams else ())]
+        topics += ["limit_cycles"] if self._cycles_from.topic else []
         own = {"limit_cycles": 1}  # this node publishes its own cycles there
         heard = ", ".join(
             f"{self.resolve_topic_name(t)} ({self.count_publishers(t) - own.get(t, 0)} "
