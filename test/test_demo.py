@@ -27,7 +27,7 @@ def test_demo_identifies_the_patch_and_runs_the_closed_loop(tmp_path):
         cwd=ROOT,
         capture_output=True,
         text=True,
-        timeout=1800,  # 345-510 s in full runs on a 2-core host, past 600 s beside more load
+        timeout=1800,  # 144 s alone, 176-219 s beside the other workers on a 2-core host
     )
     text = proc.stdout
     assert proc.returncode == 0, text[-3000:] + proc.stderr[-3000:]
