@@ -425,6 +425,7 @@ EXCLUDED: dict[str, str] = {
         "a real scanner: its amplifier and sensors (config/rig_devices.yaml)"
     ),
     "python bench/scanner.py": "a benchmark: its figures are measured on a quiet machine",
+    "python bench/staircase.py": "a benchmark: its figures are measured on a quiet machine",
     "python bench/scanner_loop.py": "a benchmark: its figures are measured on a quiet machine",
     "piezo-stage experiment coupling --graph emulated_scanner --output emulated_scanner.yaml": (
         "the emulated scanner's seven processes in real time want more than this 2-core "
