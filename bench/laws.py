@@ -62,7 +62,7 @@ RIG = shipped_parameter_set("ch11_rig")
 U_SET, U_OPEN, T_OPEN, OPEN_FOR, DURATION = 200.0, 72.0, 0.005, 0.010, 0.4
 AMPLITUDE, OFFSET, FREQUENCY, PERIODS = 10e-6, 16e-6, 10.0, 3
 #: gains a law's design rule takes from the run's loop (the others: THESIS_GAINS)
-RUN_DESIGNED = ("phi", "delta")
+RUN_DESIGNED = ("phi", "delta", "eps_a")
 
 
 @lru_cache(maxsize=None)

@@ -180,10 +180,17 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
     assert d.theorem4.valid and d.gains.k2 > d.theorem4.k2_min and d.gains.k0 < d.theorem4.k0_max
     assert d.rate_hz in design.RATE_CANDIDATES
     assert check_sampled_loop(nominal, Gains(**d.gains.to_dict()), d.rate_hz, 0, "pid_tv").stable
-    # every law's own gains, by its rule, for this rig: smc's switching gain and layer
+    # every law's own gains, by its rule, for this rig: smc's switching gain and layer, the
+    # adaptive law's projection interval and adaptation time
+    from piezo_stage.control.adaptive import TAU_SEPARATION
     from piezo_stage.control.sliding import stable_layer, switching_gain
 
-    assert d.own == ("ks", "delta", "phi") and d.not_designed == {}
+    assert set(d.own) == {"ks", "delta", "phi", "tau_a", "eps_a", "kx_max"}
+    assert d.not_designed == {}
+    assert d.gains.kx_max == b.kappa_x_max
+    assert d.gains.tau_a == pytest.approx(
+        TAU_SEPARATION * (d.gains.k1 + b.kappa_x_max) / d.gains.k0
+    )
     assert d.gains.delta == 0.0  # no sensor noise known here: no dead band
     assert d.gains.ks == pytest.approx(switching_gain(b, 0.1))
     assert d.gains.phi == pytest.approx(stable_layer(nominal, d.gains, d.rate_hz, 0))
@@ -204,7 +211,7 @@ def test_bounds_are_on_the_safe_side_and_the_gains_valid_and_stable():
         own, why = design.own_gains(b, d.gains, 0.1, LoopContext(nominal, d.rate_hz, 0))
     finally:
         unregister("undesignable")
-    assert why == {"undesignable": "nothing to design from"} and set(own) == {"ks", "delta", "phi"}
+    assert why == {"undesignable": "nothing to design from"} and set(own) == set(d.own)
     with pytest.raises(design.DesignError, match="unstable"):
         design.design_gains(b, nominal, rate_hz=20e3, delay_samples=0)
 

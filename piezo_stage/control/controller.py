@@ -21,7 +21,16 @@ from typing import NamedTuple, TypeVar
 
 from .errors import ControllerConfigError, MeasurementError
 from .feedforward import Compensation, Feedforward, FeedforwardModel
-from .laws import PID, THESIS_GAINS, ControlLaw, Gains, check_law, law_named
+from .laws import (
+    PID,
+    THESIS_GAINS,
+    ControlLaw,
+    Gains,
+    LawState,
+    check_law,
+    law_named,
+    law_state,
+)
 from .learning import FeedforwardTable
 
 
@@ -294,6 +303,7 @@ class TimeVaryingPID:
         config.validate()
         self._config = config
         self._law = config.law
+        self._state = law_state(self._law, config.gains)
         self._x0_initial = float(x0_initial)
         self._start_closed = closed
         self.reset()
@@ -313,6 +323,10 @@ class TimeVaryingPID:
         self._hold: float | None = None
         self._last: ControlOutput | None = None
         self._u_ff = 0.0
+        self._yr = 0.0
+        self._last_raw = self._u  # the last unclamped output
+        if self._state is not None:
+            self._state = law_state(self._law, self._config.gains)
         self._t_table: float | None = None  # the table's time origin: the first update
         self.table_index = -1  # the table's sample the last update read (-1: none)
         model = self._config.feedforward
@@ -344,6 +358,13 @@ class TimeVaryingPID:
         return self._u
 
     @property
+    def law_state(self) -> LawState | None:
+        """What the law has learned (the adaptive law's estimate); None for a law that does not
+        learn.
+        """
+        return self._state
+
+    @property
     def last_output(self) -> ControlOutput | None:
         """The last :class:`ControlOutput`; None before the first update."""
         return self._last
@@ -363,6 +384,12 @@ class TimeVaryingPID:
             self._x0 *= old.gains.k0 / config.gains.k0
         if config.feedforward != old.feedforward:
             self._ff = Feedforward(config.feedforward) if config.feedforward is not None else None
+        if config.mode != old.mode or self._state is None:
+            self._state = law_state(config.law, config.gains)
+            if self._state is not None and self._closed:
+                self._state.rebase(self._yr)  # it learns from here
+        else:
+            self._state.configure(config.gains)
         self._config = config
         self._law = config.law
 
@@ -410,6 +437,7 @@ class TimeVaryingPID:
             return replace(self._last, dt=dt, timing=timing)
         x1 = x_measured - yr
         x2 = self._x2(timing, dt, x_measured, yr, yr_dot)
+        self._yr = yr
         self._t_prev, self._x_prev, self._yr_prev = t, x_measured, yr
         if self._t_table is None:
             self._t_table = t
@@ -422,6 +450,8 @@ class TimeVaryingPID:
             self._close_now(t, x1, x2)
         elif self._closed and self._t_close is None:
             self._t_close = t  # started closed: phase origin at the first sample
+            if self._state is not None:
+                self._state.rebase(yr)
         elif self._closed and timing is _OK:
             self._integrate(t, x1, x2, dt)
         x0_used = self._x0
@@ -431,6 +461,7 @@ class TimeVaryingPID:
             u_pid = u_exc = 0.0
             u_raw = self._hold if self._hold is not None else self._u
             self._u = cfg.clamp(u_raw)
+        self._last_raw = u_raw
         self._last = ControlOutput(
             t=t,
             dt=dt,
@@ -493,8 +524,14 @@ class TimeVaryingPID:
         if cfg.compensation is _FEEDFORWARD:
             u_pid = u_exc = 0.0
         else:
-            parts = self._law.split(cfg.gains, t - self._t_close, self._x0, x1, x2)
-            u_pid, u_exc = float(parts[0]), float(parts[1])
+            u_pid, u_exc = self._law_parts(t - self._t_close, x1, x2)
+            if (
+                self._state is not None
+                and cfg.compensation is _FEEDBACK
+                and 0 < dt <= cfg.dt_max
+                and self._u == self._last_raw
+            ):  # not while the amplifier limits u, nor beside a model's feedforward
+                self._state.adapt(x1, x2, self._yr, dt)
         u_raw = u_pid + u_exc + u_ff
         self._u = cfg.clamp(u_raw)
         if (
@@ -507,6 +544,15 @@ class TimeVaryingPID:
             )
         return u_pid, u_exc, u_raw
 
+    def _law_parts(self, tau: float, x1: float, x2: float) -> tuple[float, float]:
+        """(u_pid, u_excitation) of the law at ``tau`` [s] since closing, its state's term in
+        the latter.
+        """
+        u_pid, u_exc = self._law.split(self._config.gains, tau, self._x0, x1, x2)
+        if self._state is not None:
+            return float(u_pid), float(u_exc) + self._state.term(self._yr)
+        return float(u_pid), float(u_exc)
+
     def _close_now(self, t: float, x1: float, x2: float) -> None:
         """Open→closed transfer at time t (the new phase origin: sin(2πf·0) = 0)."""
         cfg = self._config
@@ -514,6 +560,8 @@ class TimeVaryingPID:
             self._x0 = bumpless_x0(cfg.gains, self._u, self._u_ff, x1, x2, self._law)
         elif cfg.on_close is OnClose.RESET:
             self._x0 = 0.0
+        if self._state is not None:
+            self._state.rebase(self._yr)
         self._closed, self._pending_close, self._t_close, self._hold = True, False, t, None
 
     def _integrate(self, t: float, x1: float, x2: float, dt: float) -> None:
@@ -528,8 +576,8 @@ class TimeVaryingPID:
         if cfg.anti_windup is AntiWindup.CONDITIONAL:
             assert self._t_close is not None  # integrating: the loop is closed
             tau = t - self._t_close
-            u_pid, u_exc = self._law.split(cfg.gains, tau, self._x0, x1, x2)
-            u_now = float(u_pid + u_exc + self._u_ff)
+            u_pid, u_exc = self._law_parts(tau, x1, x2)
+            u_now = u_pid + u_exc + self._u_ff
             coefficient = self._law.x0_coefficient(cfg.gains, tau)
             if integration_winds_up(u_now - cfg.clamp(u_now), coefficient, step):
                 return

@@ -23,7 +23,7 @@ import math
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Protocol, TypeVar, overload
+from typing import TYPE_CHECKING, Protocol, TypeVar, overload, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,11 +40,13 @@ Value = NDArray[np.float64] | float
 @dataclass(frozen=True)
 class Gains:
     """Gains of (11.5), (11.17), (11.18): k0 [V/(m s)], k1 [V/m], k2 [V s/m], kA [V/(m s)], A [V],
-    f [Hz]; of the sliding-mode law (:mod:`.sliding`): ks [V], phi [m/s], delta [m/s].
+    f [Hz]; of the sliding-mode law (:mod:`.sliding`): ks [V], phi [m/s], delta [m/s]; of the
+    adaptive law (:mod:`.adaptive`): tau_a [s], eps_a [m], kx_max [V/m].
 
     Thesis values (§11.4.1, §11.5.3): k1 = 5e6, k2 = 580, k0 = 1e9, kA = 1.5e9, f = 100 Hz;
     §11.5.2 uses A = 15 V with f = 10 Hz. ks and phi: the sliding-mode design on the thesis's
-    bounds at 1 kHz (``piezo-stage gains --law smc``; no sensor noise given: delta = 0).
+    bounds at 1 kHz (``piezo-stage gains --law smc``; no sensor noise given: delta = 0);
+    tau_a, eps_a, kx_max: the adaptive law's design on the same (``--law adaptive``).
     """
 
     k0: float
@@ -56,6 +58,9 @@ class Gains:
     ks: float = 0.0
     phi: float = 1.0
     delta: float = 0.0
+    tau_a: float = 0.0632
+    eps_a: float = 1e-8
+    kx_max: float = 10.8e6
 
     def validate(self, mode: str = "pid") -> None:
         """Raise :class:`GainError` for non-finite or negative gains, or what law ``mode``
@@ -65,7 +70,7 @@ class Gains:
         for key, value in asdict(self).items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise GainError(f"gain {key} must be a finite number, got {value!r}")
-        for key in ("k0", "k1", "k2", "kA", "A", "ks", "delta"):
+        for key in ("k0", "k1", "k2", "kA", "A", "ks", "delta", "kx_max"):
             if getattr(self, key) < 0:
                 raise GainError(f"gain {key} must be >= 0, got {getattr(self, key)}")
         law.check(self)
@@ -76,7 +81,9 @@ class Gains:
 
 
 #: §11.4.1 / §11.5.3 design.
-THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32)
+THESIS_GAINS = Gains(
+    k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32, tau_a=0.0632
+)
 
 
 @dataclass(frozen=True)
@@ -97,6 +104,7 @@ class GainRow:
 
 
 _SMC_DESIGN = "the sliding-mode design on the thesis's bounds at 1 kHz"
+_ADAPTIVE_DESIGN = "the adaptive law's design on the thesis's bounds"
 
 #: every gain a law may read: the controller's gain parameters and the CLI's gain flags
 GAIN_ROWS: tuple[GainRow, ...] = (
@@ -116,6 +124,23 @@ GAIN_ROWS: tuple[GainRow, ...] = (
         "m/s",
         (0.0, 1e6),
         _SMC_DESIGN,
+    ),
+    GainRow(
+        "tau_a", "adaptation time constant tau_a (adaptive)", "s", (1e-6, 1e6), _ADAPTIVE_DESIGN
+    ),
+    GainRow(
+        "eps_a",
+        "smallest reference excursion the adaptive law learns from",
+        "m",
+        (1e-12, 1.0),
+        _ADAPTIVE_DESIGN,
+    ),
+    GainRow(
+        "kx_max",
+        "largest stiffness estimate kappa_x_hat (adaptive)",
+        "V/m",
+        (0.0, 1e15),
+        _ADAPTIVE_DESIGN,
     ),
 )
 
@@ -195,6 +220,40 @@ class ControlLaw(Protocol):
         rule needs.
         """
         ...
+
+
+class LawState(Protocol):
+    """What a law learns while its loop runs (:class:`AdaptingLaw`), one per controller."""
+
+    def configure(self, gains: Gains) -> None:
+        """Take new gains, keeping what was learned."""
+        ...
+
+    def rebase(self, yr: float) -> None:
+        """The loop closes at reference ``yr`` [m]."""
+        ...
+
+    def term(self, yr: float) -> float:
+        """The term [V] it adds to the law's at reference ``yr``."""
+        ...
+
+    def adapt(self, x1: float, x2: float, yr: float, dt: float) -> None:
+        """One update over ``dt`` [s] from the errors x1 [m], x2 [m/s] at reference ``yr``."""
+        ...
+
+
+@runtime_checkable
+class AdaptingLaw(Protocol):
+    """A law with a state of its own beside x0 (the adaptive law): the controller keeps one."""
+
+    def estimate(self, gains: Gains) -> LawState:
+        """A fresh state for a controller running the law with ``gains``."""
+        ...
+
+
+def law_state(law: ControlLaw, gains: Gains) -> LawState | None:
+    """A fresh state of ``law`` when it learns, else None."""
+    return law.estimate(gains) if isinstance(law, AdaptingLaw) else None
 
 
 def _num(value: ArrayLike) -> Value:
@@ -328,7 +387,7 @@ L = TypeVar("L", bound=ControlLaw)
 #: the environment variable naming modules that register more laws
 LAW_MODULES = "PIEZO_STAGE_LAWS"
 #: the package's laws in modules of their own (registered at the registry's first use)
-BUILTIN_LAW_MODULES = ("piezo_stage.control.sliding",)
+BUILTIN_LAW_MODULES = ("piezo_stage.control.sliding", "piezo_stage.control.adaptive")
 _modules_loaded = False
 
 

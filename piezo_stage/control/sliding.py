@@ -57,7 +57,7 @@ class SlidingMode(Pid):
         "smc (sliding mode): u = -k0 x0 - k1 x1 - k2 x2 - ks sat(dz(s)/phi), s = x2 + (k1/k2) x1,"
         " dz: dead band delta"
     )
-    gains = ("k0", "k1", "k2", "ks", "phi", "delta")
+    gains: tuple[str, ...] = ("k0", "k1", "k2", "ks", "phi", "delta")
 
     def split(
         self, gains: Gains, t: ArrayLike, x0: ArrayLike, x1: ArrayLike, x2: ArrayLike

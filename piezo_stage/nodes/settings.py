@@ -45,6 +45,9 @@ class ControllerSettings:
     ks: float
     phi: float
     delta: float
+    tau_a: float
+    eps_a: float
+    kx_max: float
     u_min: float
     u_max: float
     anti_windup: AntiWindup
