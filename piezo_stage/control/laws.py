@@ -58,7 +58,7 @@ class Gains:
     ks: float = 0.0
     phi: float = 1.0
     delta: float = 0.0
-    tau_a: float = 0.0632
+    tau_a: float = 0.2528
     eps_a: float = 1e-8
     kx_max: float = 10.8e6
 
@@ -82,7 +82,7 @@ class Gains:
 
 #: §11.4.1 / §11.5.3 design.
 THESIS_GAINS = Gains(
-    k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32, tau_a=0.0632
+    k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32, tau_a=0.2528
 )
 
 
