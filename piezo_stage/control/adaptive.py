@@ -9,7 +9,7 @@ unknown parameter within its known interval and dominate the rest. With s = x2 +
     dκ̂x/dt = −(k2/τa)·s·φ/(P + εa²),  dP/dt = (φ² − P)/τa,  κ̂x projected on [0, kx_max]
 
 From m·ṡ = −k2·s + (κ̂x − κx)·φ − κw·w + (terms the PID dominates), V = m·s²/2 + τa·(P +
-εa²)·κ̃x²/2 (P held) decreases wherever k2·s² > κw_max·|s|: the projection keeps the estimate
+εa²)·κ̃x²/(2·k2) (P held) decreases wherever k2·s² > κw_max·|s|: the projection keeps the estimate
 in [0, kx_max], s enters the ball κw_max/k2, and κ̂x converges where φ excites it (a reference
 that moves: at a set point φ = 0 and the law is ``smc``). The regressor is the reference (the
 desired-compensation form): no sensor noise enters the term, and the integral x0 holds the
@@ -72,13 +72,13 @@ class StiffnessEstimate:
         return self.kx * (yr - self._y_close) if self._y_close is not None else 0.0
 
     def adapt(self, x1: float, x2: float, yr: float, dt: float) -> None:
-        """One step of dP/dt = (φ² − P)/τa and dκ̂x/dt = (1/τa)·u_pid·φ/(P + εa²), κ̂x projected
-        on [0, kx_max].
+        """One step of dP/dt = (φ² − P)/τa and dκ̂x/dt = −(k2/τa)·s·φ/(P + εa²), s = x2 + λ·x1,
+        κ̂x projected on [0, kx_max] (a step longer than τa counts as τa).
         """
         if self._y_close is None:
             return
         phi = yr - self._y_close
-        step = dt * self._rate
+        step = min(dt * self._rate, 1.0)
         self.power += step * (phi * phi - self.power)
         s = x2 + self._lam * x1
         kx = self.kx - step * self._k2 * s * phi / (self.power + self._eps2)
