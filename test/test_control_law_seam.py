@@ -20,6 +20,7 @@ from piezo_stage.control.discrete import check_sampled_loop
 from piezo_stage.control.errors import ControllerConfigError, GainError
 from piezo_stage.control.laws import (
     LAW_NAMES,
+    PID,
     THESIS_GAINS,
     Gains,
     LinearGains,
@@ -134,6 +135,59 @@ def test_a_registered_law_is_what_the_controller_runs(pd_only):
     # a law whose u does not depend on x0 cannot close bumplessly: said at the door
     with pytest.raises(ControllerConfigError, match="depend on x0"):
         ControllerConfig(mode=NAME, on_close="bumpless").validate()
+
+
+class _Counter:
+    """A law's state that counts the samples it is fed and adds 1 mV per sample to u."""
+
+    def __init__(self) -> None:
+        self.fed, self.rebased = 0, []
+
+    def configure(self, gains: Gains) -> None:
+        return None
+
+    def rebase(self, yr: float) -> None:
+        self.rebased.append(yr)
+
+    def term(self, yr: float) -> float:
+        return 1e-3 * self.fed
+
+    def adapt(self, x1: float, x2: float, yr: float, dt: float) -> None:
+        self.fed += 1
+
+
+class Counting(Proportional):
+    """The PD law with a state of its own (the ``AdaptingLaw`` protocol)."""
+
+    name = "pd_counting"
+
+    def estimate(self, gains: Gains) -> _Counter:
+        return _Counter()
+
+
+@pytest.mark.unit
+def test_a_registered_law_with_a_state_gets_one_per_controller_fed_each_closed_sample():
+    register(Counting())
+    try:
+        config = ControllerConfig(mode="pd_counting", gains=THESIS_GAINS, on_close="reset")
+        one, two = TimeVaryingPID(config, closed=True), TimeVaryingPID(config, closed=True)
+        assert isinstance(one.law_state, _Counter) and one.law_state is not two.law_state
+        outs = [one.update(k * 1e-3, 1e-6, yr=2e-6) for k in range(4)]
+        # rebased at the first closed sample; fed from the second (the first has no Δt)
+        assert one.law_state.rebased == [2e-6] and one.law_state.fed == 3
+        pd = -THESIS_GAINS.k1 * outs[-1].x1 - THESIS_GAINS.k2 * outs[-1].x2
+        assert outs[-1].u_excitation == pytest.approx(2e-3)  # the term before this update
+        assert outs[-1].u == pytest.approx(pd + 2e-3, rel=1e-12)
+        one.open_loop(0.0)
+        one.update(4e-3, 1e-6, yr=3e-6)
+        assert one.law_state.fed == 3  # open: not fed
+        one.close_loop()
+        one.update(5e-3, 1e-6, yr=3e-6)
+        assert one.law_state.rebased == [2e-6, 3e-6]
+        assert two.law_state.fed == 0
+    finally:
+        unregister("pd_counting")
+    assert TimeVaryingPID(ControllerConfig(mode=PID.name)).law_state is None
 
 
 @pytest.mark.unit
