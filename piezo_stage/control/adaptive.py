@@ -27,7 +27,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from .errors import GainError
-from .laws import Gains, LinearGains, LoopContext, register
+from .laws import Gains, LoopContext, register
 from .sliding import SlidingMode
 
 if TYPE_CHECKING:
@@ -86,7 +86,9 @@ class StiffnessEstimate:
 
 
 class AdaptiveSliding(SlidingMode):
-    """The adaptive law of the module docstring: ``smc`` plus κ̂x·(yr − yr(t_c))."""
+    """The adaptive law of the module docstring: ``smc`` plus κ̂x·(yr − yr(t_c)). Its sampled
+    loop is the sliding law's: κ̂x multiplies the reference, an input of the loop, not a gain.
+    """
 
     name = "adaptive"
     equation = (
@@ -119,10 +121,6 @@ class AdaptiveSliding(SlidingMode):
             "the projection keeps kappa_x_hat below stiffnesses Assumption 2 allows"
         )
         return replace(report, valid=False, reasons=(*report.reasons, why))
-
-    def sampled_gains(self, gains: Gains, rate_hz: float, most: int) -> list[LinearGains]:
-        """The sliding law's: κ̂x multiplies the reference, an input of the loop, not a gain."""
-        return super().sampled_gains(gains, rate_hz, most)
 
     def design(
         self, bounds: Bounds, gains: Gains, margin: float, loop: LoopContext, given: set[str]

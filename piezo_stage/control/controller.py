@@ -303,7 +303,6 @@ class TimeVaryingPID:
         config.validate()
         self._config = config
         self._law = config.law
-        self._state = law_state(self._law, config.gains)
         self._x0_initial = float(x0_initial)
         self._start_closed = closed
         self.reset()
@@ -325,8 +324,7 @@ class TimeVaryingPID:
         self._u_ff = 0.0
         self._yr = 0.0
         self._last_raw = self._u  # the last unclamped output
-        if self._state is not None:
-            self._state = law_state(self._law, self._config.gains)
+        self._state = law_state(self._law, self._config.gains)  # what the law learns, afresh
         self._t_table: float | None = None  # the table's time origin: the first update
         self.table_index = -1  # the table's sample the last update read (-1: none)
         model = self._config.feedforward

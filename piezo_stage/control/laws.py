@@ -81,9 +81,7 @@ class Gains:
 
 
 #: §11.4.1 / §11.5.3 design.
-THESIS_GAINS = Gains(
-    k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32, tau_a=0.2528
-)
+THESIS_GAINS = Gains(k0=1e9, k1=5e6, k2=580.0, kA=1.5e9, A=15.0, f=100.0, ks=53.6, phi=0.32)
 
 
 @dataclass(frozen=True)
