@@ -165,15 +165,22 @@ def main() -> int:
     args = parser.parse_args()
     print(f"laws at {RATE:g} Hz, sensor noise {args.noise:g} m RMS, seeds 0..{args.seeds - 1}")
     rows: dict[str, list[Figures]] = {}
-    for mode in LAW_NAMES:
-        rows[mode] = []
-        for seed in range(args.seeds):
-            runs = [perturbation(mode, args.noise, seed, r) for r in (EXPERIMENT_RATE, RATE)]
-            s, du, e, tv = (tuple(x) for x in zip(*runs))
-            fb = tracking(mode, args.noise, seed, False)
-            ff = tracking(mode, args.noise, seed, True)
-            rows[mode].append(Figures(s, du, e, tv, fb, ff))  # type: ignore[arg-type]
-            print(f"  {mode} seed {seed} done", file=sys.stderr, flush=True)
+    try:
+        for mode in LAW_NAMES:
+            figs: list[Figures] = []
+            for seed in range(args.seeds):
+                runs = [perturbation(mode, args.noise, seed, r) for r in (EXPERIMENT_RATE, RATE)]
+                s, du, e, tv = (tuple(x) for x in zip(*runs))
+                fb = tracking(mode, args.noise, seed, False)
+                ff = tracking(mode, args.noise, seed, True)
+                figs.append(Figures(s, du, e, tv, fb, ff))  # type: ignore[arg-type]
+                print(f"  {mode} seed {seed} done", file=sys.stderr, flush=True)
+            rows[mode] = figs
+    except KeyboardInterrupt:
+        print(f"interrupted: the laws done are below ({', '.join(rows) or 'none'})", flush=True)
+        interrupted = True
+    else:
+        interrupted = False
 
     def span(values: list[float], fmt: str) -> str:
         lo, hi = min(values), max(values)
@@ -197,6 +204,8 @@ def main() -> int:
             f"| {span([f.rms_fb for f in figs], '.2f')} "
             f"| {span([f.rms_ff for f in figs], '.2f')} |"
         )
+    if interrupted:
+        return 130
     judge(rows)
     return exit_code()
 

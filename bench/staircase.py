@@ -92,9 +92,13 @@ def main() -> int:
     args = parser.parse_args()
     print(f"axis x of config/xy_scanner.yaml, amplifier low-pass {args.bandwidth:g} Hz")
     print(f"{'commands/s':>10}  {'kappa_w':>8} {'rho':>8} {'sigma':>8} {'n':>8}")
-    for rate in args.rates:
-        e = errors(rate, args.bandwidth)
-        print(f"{rate:10.0f}  " + " ".join(f"{100 * v:+7.1f}%" for v in e.values()))
+    try:
+        for rate in args.rates:
+            e = errors(rate, args.bandwidth)
+            print(f"{rate:10.0f}  " + " ".join(f"{100 * v:+7.1f}%" for v in e.values()))
+    except KeyboardInterrupt:
+        print("interrupted: the rates done are above", flush=True)
+        return 130
     return 0
 
 
